@@ -1,0 +1,41 @@
+"""Bus messages of hybrid-iamp: dataclasses, msgpack codec, registry and keys.
+
+Depends on numpy and msgpack only. ``decode(data)`` turns any registered
+payload into its message; ``Cls.decode(data)`` insists on one schema. Every
+decode problem raises a ``SchemaError`` subclass.
+"""
+
+from . import keys
+from ._wire import MAX_PAYLOAD_BYTES, REGISTRY, Array, Message, decode_any, json_schema, peek_schema, register
+from .common import VEHICLE_TYPE_VALUES, AgentType, Header
+from .errors import MalformedPayload, PayloadTooLarge, SchemaError, UnknownSchema, WrongSchema, WrongVersion
+from .infra import NodeStats, Progress
+from .tracks import SceneInfo, TrackFrame
+
+decode = decode_any
+
+__all__ = [
+    "MAX_PAYLOAD_BYTES",
+    "REGISTRY",
+    "AgentType",
+    "Array",
+    "Header",
+    "MalformedPayload",
+    "Message",
+    "NodeStats",
+    "PayloadTooLarge",
+    "Progress",
+    "SceneInfo",
+    "SchemaError",
+    "TrackFrame",
+    "UnknownSchema",
+    "VEHICLE_TYPE_VALUES",
+    "WrongSchema",
+    "WrongVersion",
+    "decode",
+    "decode_any",
+    "json_schema",
+    "keys",
+    "peek_schema",
+    "register",
+]

@@ -1,0 +1,354 @@
+"""The one msgpack user: envelope, strict field codec and ndarray codec.
+
+Wire form of every message: the msgpack map ``{"schema": str, "v": int,
+"body": {field: value}}``. Packing uses ``use_bin_type=True``; unpacking uses
+``raw=False``, string map keys only and buffer limits. A numpy array travels as
+the list ``[dtype_str, shape_list, raw_bytes]`` (little-endian, C order). Enums
+travel as their integer values.
+
+Field types are read from the dataclass annotations, so the codec is written
+once: ``int``, ``float``, ``str``, ``bool``, ``bytes``, IntEnum subclasses,
+nested message parts (dataclasses), ``tuple[T, ...]``, ``dict[str, T]``,
+``T | None`` and ``Annotated[np.ndarray, Array(dtype, dims)]``. Decoding checks
+the schema name, the version, that every field is present and no field is
+unknown, every type, array dtypes and shapes (named dims must agree across the
+fields of one object), and the payload size. Anything wrong raises a
+``SchemaError`` subclass with a message that names the schema and the field.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+import types
+import typing
+from dataclasses import dataclass
+from typing import Any, Annotated, ClassVar
+
+import msgpack
+import numpy as np
+
+from .errors import MalformedPayload, PayloadTooLarge, UnknownSchema, WrongSchema, WrongVersion
+
+MAX_PAYLOAD_BYTES = 64 * 1024 * 1024
+_ALLOWED_DTYPES = frozenset(
+    ["bool", "uint8", "int8", "uint16", "int16", "uint32", "int32", "uint64", "int64", "float16", "float32", "float64"]
+)
+
+
+@dataclass(frozen=True, slots=True)
+class Array:
+    """Annotation for an ndarray field: exact dtype and named or fixed dims.
+
+    ``dims`` entries are ``int`` (fixed size), ``str`` (a named size that must
+    agree with every other use of that name in the same object) or ``None``
+    (free).
+    """
+
+    dtype: str
+    dims: tuple[int | str | None, ...]
+
+
+REGISTRY: dict[str, type["Message"]] = {}
+
+
+class Message:
+    """Base of all bus messages: ``encode()`` and ``decode()`` written once."""
+
+    __slots__ = ()
+    SCHEMA: ClassVar[str]
+    VERSION: ClassVar[int]
+
+    def encode(self) -> bytes:
+        body = _encode_obj(self, type(self).SCHEMA)
+        return msgpack.packb({"schema": self.SCHEMA, "v": self.VERSION, "body": body}, use_bin_type=True)
+
+    @classmethod
+    def decode(cls, data: bytes, *, where: str = "") -> "Message":
+        """Decode ``data`` as exactly this class; ``where`` (a key) goes into errors."""
+        schema, version, body = unpack_envelope(data, where=where)
+        if schema != cls.SCHEMA:
+            raise WrongSchema(f"{schema} v{version}{_at(where)}: expected {cls.SCHEMA}")
+        return cls._from_body(version, body, where)
+
+    @classmethod
+    def _from_body(cls, version: int, body: Any, where: str) -> "Message":
+        if version != cls.VERSION:
+            raise WrongVersion(f"{cls.SCHEMA} v{version}{_at(where)}: this build reads v{cls.VERSION}")
+        return _decode_obj(cls, body, f"{cls.SCHEMA}", where)
+
+
+def register(cls: type[Message]) -> type[Message]:
+    """Class decorator: add a message class to ``REGISTRY`` (after ``@dataclass``)."""
+    if not (isinstance(getattr(cls, "SCHEMA", None), str) and isinstance(getattr(cls, "VERSION", None), int)):
+        raise TypeError(f"{cls.__name__} needs SCHEMA: str and VERSION: int class constants")
+    if cls.SCHEMA in REGISTRY and REGISTRY[cls.SCHEMA] is not cls:
+        raise TypeError(f"schema {cls.SCHEMA} registered twice")
+    REGISTRY[cls.SCHEMA] = cls
+    return cls
+
+
+def _at(where: str) -> str:
+    return f" on {where}" if where else ""
+
+
+def unpack_envelope(data: bytes, *, where: str = "") -> tuple[str, int, dict]:
+    """Return (schema, version, body) of a payload, checking only the envelope."""
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise MalformedPayload(f"payload{_at(where)} is {type(data).__name__}, not bytes")
+    if len(data) > MAX_PAYLOAD_BYTES:
+        raise PayloadTooLarge(f"payload{_at(where)} has {len(data)} bytes, limit {MAX_PAYLOAD_BYTES}")
+    try:
+        env = msgpack.unpackb(
+            bytes(data),
+            raw=False,
+            strict_map_key=True,
+            max_bin_len=MAX_PAYLOAD_BYTES,
+            max_str_len=1024 * 1024,
+            max_array_len=1_000_000,
+            max_map_len=100_000,
+        )
+    except Exception as exc:  # msgpack raises several unrelated types
+        raise MalformedPayload(f"payload{_at(where)} is not valid msgpack: {type(exc).__name__}: {exc}") from None
+    if not isinstance(env, dict) or set(env) != {"schema", "v", "body"}:
+        raise MalformedPayload(f"payload{_at(where)} is not an envelope {{schema, v, body}}")
+    schema, version, body = env["schema"], env["v"], env["body"]
+    if not isinstance(schema, str) or type(version) is not int or not isinstance(body, dict):
+        raise MalformedPayload(f"payload{_at(where)} has an envelope with wrong types")
+    return schema, version, body
+
+
+def peek_schema(data: bytes) -> tuple[str, int]:
+    """(schema, version) of a payload without decoding the body; raises SchemaError."""
+    schema, version, _ = unpack_envelope(data)
+    return schema, version
+
+
+def decode_any(data: bytes, *, where: str = "") -> Message:
+    """Decode a payload of any registered schema."""
+    schema, version, body = unpack_envelope(data, where=where)
+    cls = REGISTRY.get(schema)
+    if cls is None:
+        raise UnknownSchema(f"{schema} v{version}{_at(where)}: unknown schema")
+    return cls._from_body(version, body, where)
+
+
+# --------------------------------------------------------------------------- field codec
+
+_HINTS: dict[type, dict[str, Any]] = {}
+
+
+def _hints(cls: type) -> dict[str, Any]:
+    h = _HINTS.get(cls)
+    if h is None:
+        allh = typing.get_type_hints(cls, include_extras=True)
+        h = {f.name: allh[f.name] for f in dataclasses.fields(cls)}
+        _HINTS[cls] = h
+    return h
+
+
+def _encode_obj(obj: Any, path: str) -> dict:
+    out = {}
+    dims: dict[str, int] = {}
+    for name, tp in _hints(type(obj)).items():
+        out[name] = _encode_value(getattr(obj, name), tp, f"{path}.{name}", dims)
+    return out
+
+
+def _encode_value(value: Any, tp: Any, path: str, dims: dict[str, int]) -> Any:
+    origin = typing.get_origin(tp)
+    if origin is Annotated:
+        base, *meta = typing.get_args(tp)
+        spec = next((m for m in meta if isinstance(m, Array)), None)
+        if spec is None:
+            return _encode_value(value, base, path, dims)
+        arr = np.asarray(value)
+        if arr.dtype != np.dtype(spec.dtype):
+            raise TypeError(f"{path}: array dtype {arr.dtype}, schema wants {spec.dtype}")
+        _check_dims(arr.shape, spec, path, dims, TypeError)
+        arr = np.ascontiguousarray(arr, dtype=np.dtype(spec.dtype).newbyteorder("<"))
+        return [spec.dtype, list(arr.shape), arr.tobytes()]
+    if origin in (typing.Union, types.UnionType):
+        if value is None:
+            return None
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        return _encode_value(value, args[0], path, dims)
+    if origin is tuple:
+        (elem, _ellipsis) = typing.get_args(tp)
+        return [_encode_value(v, elem, f"{path}[{i}]", {}) for i, v in enumerate(value)]
+    if origin is dict:
+        _k, vt = typing.get_args(tp)
+        return {str(k): _encode_value(v, vt, f"{path}[{k}]", {}) for k, v in value.items()}
+    if isinstance(tp, type) and issubclass(tp, enum.Enum):
+        return int(tp(value).value)
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, tp):
+            raise TypeError(f"{path}: expected {tp.__name__}, got {type(value).__name__}")
+        return _encode_obj(value, path)
+    if tp is float:
+        return float(value)
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+            raise TypeError(f"{path}: expected int, got {type(value).__name__}")
+        return int(value)
+    if tp is bool:
+        return bool(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise TypeError(f"{path}: expected str, got {type(value).__name__}")
+        return value
+    if tp is bytes:
+        return bytes(value)
+    raise TypeError(f"{path}: unsupported field type {tp!r}")
+
+
+def _check_dims(shape: tuple[int, ...], spec: Array, path: str, dims: dict[str, int], exc: type[Exception]) -> None:
+    if len(shape) != len(spec.dims):
+        raise exc(f"{path}: array has {len(shape)} dims, schema wants {len(spec.dims)}")
+    for size, want in zip(shape, spec.dims):
+        if isinstance(want, int) and size != want:
+            raise exc(f"{path}: array shape {tuple(shape)}, schema wants {spec.dims}")
+        if isinstance(want, str):
+            have = dims.setdefault(want, size)
+            if have != size:
+                raise exc(f"{path}: dim '{want}' is {size} here but {have} in another field")
+
+
+def _decode_obj(cls: type, body: Any, path: str, where: str) -> Any:
+    if not isinstance(body, dict):
+        raise MalformedPayload(f"{path}{_at(where)}: expected a map, got {type(body).__name__}")
+    hints = _hints(cls)
+    missing = [n for n in hints if n not in body]
+    unknown = [n for n in body if n not in hints]
+    if missing:
+        raise MalformedPayload(f"{path}{_at(where)}: missing field(s) {', '.join(missing)}")
+    if unknown:
+        raise MalformedPayload(f"{path}{_at(where)}: unknown field(s) {', '.join(map(str, unknown))}")
+    dims: dict[str, int] = {}
+    kwargs = {n: _decode_value(body[n], tp, f"{path}.{n}", where, dims) for n, tp in hints.items()}
+    try:
+        return cls(**kwargs)
+    except (TypeError, ValueError) as exc:
+        raise MalformedPayload(f"{path}{_at(where)}: {exc}") from None
+
+
+def _bad(path: str, where: str, what: str) -> MalformedPayload:
+    return MalformedPayload(f"{path}{_at(where)}: {what}")
+
+
+def _decode_value(raw: Any, tp: Any, path: str, where: str, dims: dict[str, int]) -> Any:
+    origin = typing.get_origin(tp)
+    if origin is Annotated:
+        base, *meta = typing.get_args(tp)
+        spec = next((m for m in meta if isinstance(m, Array)), None)
+        if spec is None:
+            return _decode_value(raw, base, path, where, dims)
+        if not (isinstance(raw, list) and len(raw) == 3):
+            raise _bad(path, where, "expected an array [dtype, shape, bytes]")
+        dtype, shape, buf = raw
+        if dtype != spec.dtype or dtype not in _ALLOWED_DTYPES:
+            raise _bad(path, where, f"array dtype {dtype!r}, schema wants {spec.dtype}")
+        if not (isinstance(shape, list) and all(type(d) is int and d >= 0 for d in shape)):
+            raise _bad(path, where, "array shape is not a list of non-negative ints")
+        if not isinstance(buf, bytes):
+            raise _bad(path, where, "array data is not bytes")
+        dt = np.dtype(dtype).newbyteorder("<")
+        if math.prod(shape) * dt.itemsize != len(buf):
+            raise _bad(path, where, f"array of shape {shape} {dtype} needs {math.prod(shape) * dt.itemsize} bytes, got {len(buf)}")
+        try:
+            _check_dims(tuple(shape), spec, path + _at(where), dims, MalformedPayload)
+        except MalformedPayload:
+            raise
+        arr = np.frombuffer(buf, dtype=dt).reshape(shape).astype(np.dtype(dtype), copy=True)
+        return arr
+    if origin in (typing.Union, types.UnionType):
+        if raw is None:
+            if type(None) in typing.get_args(tp):
+                return None
+            raise _bad(path, where, "is nil")
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        return _decode_value(raw, args[0], path, where, dims)
+    if origin is tuple:
+        (elem, _ellipsis) = typing.get_args(tp)
+        if not isinstance(raw, list):
+            raise _bad(path, where, f"expected a list, got {type(raw).__name__}")
+        return tuple(_decode_value(v, elem, f"{path}[{i}]", where, {}) for i, v in enumerate(raw))
+    if origin is dict:
+        _k, vt = typing.get_args(tp)
+        if not isinstance(raw, dict):
+            raise _bad(path, where, f"expected a map, got {type(raw).__name__}")
+        return {k: _decode_value(v, vt, f"{path}[{k}]", where, {}) for k, v in raw.items()}
+    if isinstance(tp, type) and issubclass(tp, enum.Enum):
+        if type(raw) is not int:
+            raise _bad(path, where, f"expected an enum value (int), got {type(raw).__name__}")
+        try:
+            return tp(raw)
+        except ValueError:
+            raise _bad(path, where, f"{raw} is not a {tp.__name__}") from None
+    if dataclasses.is_dataclass(tp):
+        return _decode_obj(tp, raw, path, where)
+    if tp is float:
+        if isinstance(raw, bool) or not isinstance(raw, (int, float)):
+            raise _bad(path, where, f"expected float, got {type(raw).__name__}")
+        return float(raw)
+    if tp is int:
+        if type(raw) is not int:
+            raise _bad(path, where, f"expected int, got {type(raw).__name__}")
+        return raw
+    if tp is bool:
+        if type(raw) is not bool:
+            raise _bad(path, where, f"expected bool, got {type(raw).__name__}")
+        return raw
+    if tp is str:
+        if not isinstance(raw, str):
+            raise _bad(path, where, f"expected str, got {type(raw).__name__}")
+        return raw
+    if tp is bytes:
+        if not isinstance(raw, bytes):
+            raise _bad(path, where, f"expected bytes, got {type(raw).__name__}")
+        return raw
+    raise _bad(path, where, f"unsupported field type {tp!r}")
+
+
+def json_schema(cls: type) -> dict:
+    """A JSON-Schema-like description of a message body (for MCAP schema records)."""
+
+    def describe(tp: Any) -> dict:
+        origin = typing.get_origin(tp)
+        if origin is Annotated:
+            base, *meta = typing.get_args(tp)
+            spec = next((m for m in meta if isinstance(m, Array)), None)
+            if spec is None:
+                return describe(base)
+            return {
+                "type": "array",
+                "description": f"ndarray as [dtype, shape, bytes]; dtype {spec.dtype}, dims {list(spec.dims)}",
+            }
+        if origin in (typing.Union, types.UnionType):
+            args = [a for a in typing.get_args(tp) if a is not type(None)]
+            return {"anyOf": [describe(args[0]), {"type": "null"}]}
+        if origin is tuple:
+            return {"type": "array", "items": describe(typing.get_args(tp)[0])}
+        if origin is dict:
+            return {"type": "object", "additionalProperties": describe(typing.get_args(tp)[1])}
+        if isinstance(tp, type) and issubclass(tp, enum.Enum):
+            return {"type": "integer", "enum": [int(m.value) for m in tp], "description": ", ".join(f"{m.value}={m.name}" for m in tp)}
+        if dataclasses.is_dataclass(tp):
+            hints = _hints(tp)
+            return {
+                "type": "object",
+                "title": tp.__name__,
+                "properties": {n: describe(t) for n, t in hints.items()},
+                "required": list(hints),
+                "additionalProperties": False,
+            }
+        return {"type": {int: "integer", float: "number", str: "string", bool: "boolean", bytes: "string"}.get(tp, "string")}
+
+    body = describe(cls)
+    return {
+        **body,
+        "$comment": "msgpack envelope {schema, v, body}; this describes body",
+        "title": cls.SCHEMA,
+        "version": cls.VERSION,
+    }

@@ -1,0 +1,72 @@
+"""Tracked objects of one frame (``iamp.TrackFrame``) and the scene they live in."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated, ClassVar
+
+import numpy as np
+
+from ._wire import Array, Message, register
+from .common import Header
+
+F64 = Annotated[np.ndarray, Array("float64", ("n",))]
+
+
+@register
+@dataclass(frozen=True, slots=True, kw_only=True, eq=False)
+class TrackFrame(Message):
+    """All objects of one frame, column-wise: every array has shape ``(n,)``.
+
+    ``agent_types`` holds ``AgentType`` values (uint8). Positions are metres in
+    the scene's local map frame (x east, y north), velocities m/s in the same
+    frame, yaw in radians from the x axis. ``scene_id`` names the ``SceneInfo``
+    (map + projection) the positions refer to.
+    """
+
+    SCHEMA: ClassVar[str] = "iamp.TrackFrame"
+    VERSION: ClassVar[int] = 1
+
+    header: Header
+    scene_id: str
+    track_ids: Annotated[np.ndarray, Array("int64", ("n",))]
+    agent_types: Annotated[np.ndarray, Array("uint8", ("n",))]
+    x_m: F64
+    y_m: F64
+    vx_mps: F64
+    vy_mps: F64
+    yaw_rad: F64
+    length_m: F64
+    width_m: F64
+
+    def __len__(self) -> int:
+        return int(self.track_ids.shape[0])
+
+
+@register
+@dataclass(frozen=True, slots=True, kw_only=True, eq=False)
+class SceneInfo(Message):
+    """What a stage needs to load the same map as the source.
+
+    Published by the source before its first frame and answered to queries
+    (latched), so a stage that starts or restarts late still gets it.
+    ``scene_id`` is a content hash of the map file, projection and origin.
+    ``map_path`` is absolute on the publishing host; a stage on another host
+    checks ``map_sha256`` against its own copy.
+    """
+
+    SCHEMA: ClassVar[str] = "iamp.SceneInfo"
+    VERSION: ClassVar[int] = 1
+
+    header: Header
+    scene_id: str
+    recording: str
+    location_id: str
+    map_path: str
+    map_sha256: str
+    projection: str
+    origin_lat_deg: float
+    origin_lon_deg: float
+    frame_rate_hz: float
+    speed_limit_mps: float
+    n_frames: int

@@ -1,0 +1,412 @@
+#!/usr/bin/env python3
+"""Launch a hybrid-iamp pipeline: validate, spawn, supervise, shut down cleanly.
+
+    python launch.py                              # pipelines/hybrid.toml on the embedded scenario
+    python launch.py pipelines/baseline.toml --stop-after 20 --record run.mcap
+    python launch.py --check | --describe         # validate only / print the resolved pipeline
+
+Every node runs as its own process (``python -m <stage>``); its output lines
+are prefixed with ``[node-id]``. The launcher opens the bus hub (a Zenoh peer
+on 127.0.0.1) that every node connects to, waits for every node's liveliness
+token before starting the sources, restarts processing nodes that die
+(``restart = true``), and stops everything with SIGINT -> SIGTERM -> SIGKILL.
+When the sources end (or after ``--stop-after``), nodes are stopped in
+dataflow order so each drains what it has; the recorder stops last and
+finishes its MCAP file.
+
+Exit codes: 0 clean run, 1 a node failed (the first failing code is
+reported), 2 bad command line or pipeline file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parent
+sys.path.insert(0, str(REPO))
+
+from stages._core import ConfigError  # noqa: E402
+from stages.pipeline import Pipeline, PipelineError, load_pipeline  # noqa: E402
+
+DEFAULT_PIPELINE = REPO / "pipelines" / "hybrid.toml"
+SOURCE_STAGES = {"stages.tracks_source"}
+RECORDER_STAGE = "stages.recorder"
+VIEWER_STAGE = "stages.viewer"
+MAX_RESTARTS = 5
+STOP_ESCALATION_S = 5.0
+
+_print_lock = threading.Lock()
+
+
+def say(line: str, tag: str = "launch") -> None:
+    with _print_lock:
+        sys.stdout.write(f"[{tag}] {line}\n")
+        sys.stdout.flush()
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="launch.py", description="Run a hybrid-iamp pipeline (default: pipelines/hybrid.toml on the embedded scenario).")
+    p.add_argument("pipeline", nargs="?", default=str(DEFAULT_PIPELINE), help="pipeline TOML file")
+    p.add_argument("--check", action="store_true", help="validate the pipeline and exit (0 ok, 2 error)")
+    p.add_argument("--describe", action="store_true", help="print the resolved nodes, keys, schemas and parameters, then exit")
+    p.add_argument("--stop-after", type=float, metavar="SECONDS", help="stop the run cleanly after this many seconds of playing")
+    p.add_argument("--set", action="append", default=[], metavar="NODE.KEY=VALUE", help="override a node parameter (TOML value)")
+    p.add_argument("--var", action="append", default=[], metavar="NAME=VALUE", help="set a ${NAME} variable of the pipeline file")
+    p.add_argument("--record", metavar="FILE.mcap", help="record the run to this MCAP file (default: runs/<run>-<time>.mcap)")
+    p.add_argument("--no-record", action="store_true", help="leave the recorder out")
+    p.add_argument("--no-viewer", action="store_true", help="leave the viewer out")
+    p.add_argument("--data", metavar="PATH", help="data folder laid out like shared/data/taf-bw (default: the embedded scenario)")
+    p.add_argument("--recording", metavar="NAME", help="recording to play from --data")
+    p.add_argument("--speed", metavar="X|max", help="playback speed factor of the source, or 'max'")
+    p.add_argument("--run-id", help="run id (keys under iamp/<run>/); default from the pipeline file")
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="join a remote Zenoh router/peer as well")
+    p.add_argument("--listen", metavar="ENDPOINT", help="the hub endpoint (default from the pipeline, tcp/127.0.0.1:<free port>)")
+    p.add_argument("--startup-timeout", type=float, default=90.0, metavar="SECONDS", help="how long to wait for every node's liveliness (default 90)")
+    p.add_argument("--log-level", default="INFO", help="log level passed to every node")
+    return p
+
+
+def _toml_value(text: str) -> Any:
+    import tomllib
+
+    try:
+        return tomllib.loads(f"x = {text}")["x"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def parse_overrides(items: list[str]) -> dict[str, dict[str, Any]]:
+    out: dict[str, dict[str, Any]] = {}
+    for item in items:
+        if "=" not in item or "." not in item.split("=", 1)[0]:
+            raise PipelineError(f"--set {item!r}: expected NODE.KEY=VALUE")
+        lhs, rhs = item.split("=", 1)
+        node, key = lhs.split(".", 1)
+        out.setdefault(node.strip(), {})[key.strip()] = _toml_value(rhs.strip())
+    return out
+
+
+def default_record_path(run_id: str) -> str:
+    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%d-%H%M%S")
+    return str(Path("runs") / f"{run_id}-{stamp}.mcap")
+
+
+def make_editor(args: argparse.Namespace):
+    """Apply --data/--recording/--speed/--record/--no-viewer/--run-id to the raw descriptor."""
+
+    def edit(raw: dict) -> None:
+        nodes = raw.setdefault("nodes", [])
+        if args.run_id:
+            raw.setdefault("bus", {})["run_id"] = args.run_id
+        if args.no_viewer:
+            raw["nodes"] = nodes = [n for n in nodes if n.get("stage") != VIEWER_STAGE]
+        if args.no_record:
+            raw["nodes"] = nodes = [n for n in nodes if n.get("stage") != RECORDER_STAGE]
+        sources = [n for n in nodes if n.get("stage") in SOURCE_STAGES]
+        for flag, key, value in (("--data", "data", args.data), ("--recording", "recording", args.recording), ("--speed", "speed", args.speed)):
+            if value is None:
+                continue
+            if not sources:
+                raise PipelineError(f"{flag}: the pipeline has no dataset source node ({', '.join(sorted(SOURCE_STAGES))})")
+            if key == "speed" and value != "max":
+                try:
+                    value = float(value)
+                except ValueError:
+                    raise PipelineError(f"--speed {value!r}: expected a number > 0 or 'max'") from None
+            for n in sources:
+                n.setdefault("params", {})[key] = str(Path(value).resolve()) if key == "data" else value
+                if key == "recording" and args.data is None:
+                    pass
+        if args.data is not None and args.recording is None:
+            for n in sources:  # another data folder: do not keep the default scenario's sequence choice
+                n.setdefault("params", {}).pop("sequences", None)
+        if not args.no_record:
+            recs = [n for n in nodes if n.get("stage") == RECORDER_STAGE]
+            if not recs and args.record:
+                recs = [{"id": "recorder", "stage": RECORDER_STAGE, "params": {}}]
+                nodes.append(recs[0])
+            for n in recs:
+                params = n.setdefault("params", {})
+                if args.record:
+                    params["path"] = args.record
+                if not params.get("path"):
+                    params["path"] = default_record_path(raw.get("bus", {}).get("run_id", raw.get("name", "demo")))
+
+    return edit
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def resolve_hub(pipeline: Pipeline, override: str | None) -> str:
+    ep = override or (pipeline.listen[0] if pipeline.listen else "tcp/127.0.0.1:0")
+    if ep.endswith(":0"):
+        ep = ep[:-2] + f":{free_port()}"
+    return ep
+
+
+class Child:
+    def __init__(self, node: Any, cmd: list[str]) -> None:
+        self.node = node
+        self.cmd = cmd
+        self.proc: subprocess.Popen | None = None
+        self.restarts = 0
+        self.finished = False  # a source that ended on its own, or a node we stopped
+        self.exit_code: int | None = None
+
+    def start(self) -> None:
+        self.proc = subprocess.Popen(
+            self.cmd,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            cwd=os.getcwd(),
+            env={**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")},
+            start_new_session=True,  # a Ctrl-C at the terminal reaches the launcher only; it stops children in order
+            text=True,
+            bufsize=1,
+        )
+        threading.Thread(target=self._pump, args=(self.proc,), daemon=True).start()
+
+    def _pump(self, proc: subprocess.Popen) -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            say(line.rstrip("\n"), self.node.id)
+
+    def poll(self) -> int | None:
+        return None if self.proc is None else self.proc.poll()
+
+    def stop(self) -> int | None:
+        """SIGINT, then SIGTERM after 5 s, then SIGKILL after 5 s more."""
+        if self.proc is None or self.proc.poll() is not None:
+            return self.poll()
+        for sig, wait in ((signal.SIGINT, STOP_ESCALATION_S), (signal.SIGTERM, STOP_ESCALATION_S), (signal.SIGKILL, 10.0)):
+            try:
+                self.proc.send_signal(sig)
+            except ProcessLookupError:
+                break
+            try:
+                self.proc.wait(timeout=wait)
+                break
+            except subprocess.TimeoutExpired:
+                if sig != signal.SIGKILL:
+                    say(f"node {self.node.id} still running after {signal.Signals(sig).name}; escalating")
+        return self.proc.poll()
+
+
+def describe_code(code: int) -> str:
+    if code < 0:
+        try:
+            return f"signal {signal.Signals(-code).name}"
+        except ValueError:
+            return f"signal {-code}"
+    return f"exit code {code}"
+
+
+class Launcher:
+    def __init__(self, pipeline: Pipeline, hub: str, args: argparse.Namespace) -> None:
+        self.p = pipeline
+        self.hub = hub
+        self.args = args
+        self.children: dict[str, Child] = {}
+        self.stop_requested = threading.Event()
+        self.first_failure: int | None = None
+        self.alive: set[str] = set()
+        self._alive_lock = threading.Lock()
+        self.bus = None
+
+    def command(self, node: Any) -> list[str]:
+        cmd = [
+            sys.executable,
+            "-m",
+            node.stage,
+            "--node-id",
+            node.id,
+            "--run-id",
+            self.p.run_id,
+            "--params-json",
+            json.dumps(node.params),
+            "--mode",
+            self.p.mode,
+            "--connect",
+            self.hub,
+            "--log-level",
+            self.args.log_level,
+        ]
+        for ep in self.p.connect + self.args.connect:
+            cmd += ["--connect", ep]
+        if node.inputs:
+            cmd += ["--inputs-json", json.dumps(node.inputs)]
+        if node.queue_size:
+            cmd += ["--queue-size", str(node.queue_size)]
+        return cmd
+
+    def _on_alive(self, node_id: str, alive: bool) -> None:
+        with self._alive_lock:
+            (self.alive.add if alive else self.alive.discard)(node_id)
+
+    def wait_alive(self, ids: list[str], timeout: float) -> list[str]:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self._alive_lock:
+                missing = [i for i in ids if i not in self.alive]
+            if not missing:
+                return []
+            for i in missing:
+                c = self.children[i]
+                code = c.poll()
+                if code is not None:
+                    return missing
+            time.sleep(0.05)
+        with self._alive_lock:
+            return [i for i in ids if i not in self.alive]
+
+    def spawn(self, node: Any) -> None:
+        child = self.children.get(node.id) or Child(node, self.command(node))
+        self.children[node.id] = child
+        child.start()
+
+    def run(self) -> int:
+        from stages.runtime import BusClient
+        from bus_schemas import keys
+
+        order = self.p.topo_order()
+        sources = [n for n in order if n.kind == "source"]
+        others = [n for n in order if n.kind != "source"]
+        say(f"pipeline {self.p.name}: run={self.p.run_id} hub={self.hub} nodes={','.join(n.id for n in order)}")
+        for n in order:
+            if n.stage == RECORDER_STAGE:
+                say(f"recording to {Path(n.params.get('path')).resolve()}")
+        self.bus = BusClient(mode="peer", listen=[self.hub], connect=self.p.connect + self.args.connect)
+        self.bus.watch_alive(keys.alive_pattern(self.p.run_id), self._on_alive)
+        signal.signal(signal.SIGINT, lambda *_: self.stop_requested.set())
+        signal.signal(signal.SIGTERM, lambda *_: self.stop_requested.set())
+        try:
+            for n in others:
+                self.spawn(n)
+            missing = self.wait_alive([n.id for n in others], self.args.startup_timeout)
+            if missing:
+                dead = [f"{i} ({describe_code(self.children[i].poll())})" for i in missing if self.children[i].poll() is not None]
+                say(f"nodes not alive after start: {', '.join(missing)}" + (f"; exited: {', '.join(dead)}" if dead else f" (waited {self.args.startup_timeout:.0f} s)"))
+                codes = [self.children[i].poll() for i in missing if self.children[i].poll() not in (None, 0)]
+                self.first_failure = codes[0] if codes and codes[0] > 0 else 1
+                return self.shutdown(order)
+            say(f"all {len(others)} nodes alive; starting sources: {', '.join(n.id for n in sources) or '(none)'}")
+            for n in sources:
+                self.spawn(n)
+            t_start = time.monotonic()
+            return self.supervise(order, sources, t_start)
+        finally:
+            self.bus.close()
+
+    def supervise(self, order: list[Any], sources: list[Any], t_start: float) -> int:
+        while True:
+            if self.stop_requested.is_set():
+                say("stop requested")
+                return self.shutdown(order)
+            if self.args.stop_after is not None and time.monotonic() - t_start >= self.args.stop_after:
+                say(f"--stop-after {self.args.stop_after:g} s reached")
+                return self.shutdown(order)
+            for nid, c in list(self.children.items()):
+                if c.finished:
+                    continue
+                code = c.poll()
+                if code is None:
+                    continue
+                if c.node.kind == "source" and code == 0:
+                    c.finished = True
+                    say(f"source {nid} finished")
+                    continue
+                say(f"node {nid} died ({describe_code(code)})")
+                if c.node.restart and c.restarts < MAX_RESTARTS and code != 2:
+                    c.restarts += 1
+                    say(f"restarting {nid} ({c.restarts}/{MAX_RESTARTS})")
+                    c.start()
+                    continue
+                self.first_failure = code if code > 0 else 1
+                c.finished = True
+                say(f"stopping the run because {nid} failed")
+                return self.shutdown(order)
+            if sources and all(self.children[s.id].finished for s in sources):
+                say("all sources finished; draining")
+                return self.shutdown(order)
+            time.sleep(0.05)
+
+    def shutdown(self, order: list[Any]) -> int:
+        """Stop sources first, then the rest in dataflow order; raw sinks last."""
+        sinks = [n for n in order if n.kind == "raw_sink"]
+        rest = [n for n in order if n.kind != "raw_sink"]
+        for n in rest + sinks:
+            c = self.children.get(n.id)
+            if c is None or c.proc is None:
+                continue
+            code = c.stop()
+            if code not in (0, None) and not c.finished and self.first_failure is None:
+                # a non-zero code on our own SIGINT is a failure to stop cleanly
+                say(f"node {n.id} stopped with {describe_code(code)}")
+                self.first_failure = code if code > 0 else 1
+            c.finished = True
+        for n in sinks:
+            if n.stage == RECORDER_STAGE:
+                self.report_recording(n.params.get("path"))
+        code = self.first_failure or 0
+        say(f"run ended: exit code {code}")
+        return code
+
+    def report_recording(self, path: str | None) -> None:
+        if not path or not Path(path).exists():
+            say(f"recording {path}: no file written")
+            return
+        try:
+            from stages.mcap_inspect import inspect
+
+            info = inspect(path)
+            say(f"recording saved: {Path(path).resolve()} ({info.get('messages', '?')} messages, {len(info.get('channels', []))} channels)")
+        except Exception as exc:  # a report must never turn a good run into a failure
+            say(f"recording saved: {Path(path).resolve()} (could not inspect: {exc})")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        variables = {}
+        for item in args.var:
+            if "=" not in item:
+                raise PipelineError(f"--var {item!r}: expected NAME=VALUE")
+            k, v = item.split("=", 1)
+            variables[k.strip()] = _toml_value(v.strip())
+        pipeline = load_pipeline(args.pipeline, variables=variables, overrides=parse_overrides(args.set), edit=make_editor(args))
+    except (PipelineError, ConfigError) as exc:
+        print(f"launch.py: {exc}", file=sys.stderr)
+        return 2
+    for w in pipeline.warnings:
+        say(f"warning: {w}")
+    if args.describe:
+        print(pipeline.describe())
+        return 0
+    if args.check:
+        say(f"pipeline {pipeline.path} is valid: {len(pipeline.nodes)} nodes")
+        return 0
+    if args.stop_after is not None and args.stop_after <= 0:
+        print("launch.py: --stop-after must be > 0", file=sys.stderr)
+        return 2
+    hub = resolve_hub(pipeline, args.listen)
+    return Launcher(pipeline, hub, args).run()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,121 @@
+"""What every stage core shares: issues, results and config parsing.
+
+Pure: no zenoh, no msgpack, no wall clock. Cores return ``StageResult``; the
+runtime publishes the outputs and logs and counts the issues.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+
+@dataclass(frozen=True, slots=True)
+class Issue:
+    """One agent (or input) a core could not handle; the others still were.
+
+    ``kind`` is a short snake_case category that the runtime counts by
+    (``nan_state``, ``off_map``, ``unknown_type`` ...); ``agent_id`` is the
+    track id or -1 when the issue concerns no single agent.
+    """
+
+    kind: str
+    agent_id: int
+    detail: str
+
+
+@dataclass(slots=True)
+class StageResult:
+    """Outputs of one core update, keyed by output port name, plus issues.
+
+    An output missing from ``outputs`` is simply not published this time.
+    """
+
+    outputs: dict[str, Any] = field(default_factory=dict)
+    issues: list[Issue] = field(default_factory=list)
+
+
+class ConfigError(ValueError):
+    """A pipeline parameter that is unknown or of the wrong type."""
+
+
+def _type_ok(value: Any, tp: Any) -> tuple[bool, Any]:
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        for a in typing.get_args(tp):
+            ok, v = _type_ok(value, a)
+            if ok:
+                return True, v
+        return False, value
+    if tp is type(None):
+        return value is None, value
+    if tp is Any:
+        return True, value
+    if origin is typing.Literal:
+        return value in typing.get_args(tp), value
+    if origin in (tuple, list):
+        if not isinstance(value, (list, tuple)):
+            return False, value
+        args = typing.get_args(tp)
+        elem = args[0] if args else Any
+        out = []
+        for v in value:
+            ok, vv = _type_ok(v, elem)
+            if not ok:
+                return False, value
+            out.append(vv)
+        return True, tuple(out) if origin is tuple else out
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return False, value
+        return True, float(value)
+    if tp is int:
+        return (type(value) is int), value
+    if tp is bool:
+        return (type(value) is bool), value
+    if tp is str:
+        return isinstance(value, str), value
+    if isinstance(tp, type):
+        return isinstance(value, tp), value
+    return True, value
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
+
+
+def config_from_params(cls: type, params: Mapping[str, Any] | None, where: str):
+    """Build a frozen config dataclass from a parameter mapping.
+
+    Rejects unknown keys and wrong types with a ``ConfigError`` whose message
+    names ``where`` (file and node) and lists the known keys.
+    """
+    params = dict(params or {})
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    unknown = sorted(k for k in params if k not in fields)
+    if unknown:
+        raise ConfigError(
+            f"{where}: unknown parameter(s) {', '.join(unknown)}; known: {', '.join(sorted(fields)) or '(none)'}"
+        )
+    kwargs = {}
+    for k, v in params.items():
+        ok, vv = _type_ok(v, hints[k])
+        if not ok:
+            raise ConfigError(f"{where}: parameter {k} = {v!r} should be {_type_name(hints[k])}")
+        kwargs[k] = vv
+    try:
+        return cls(**kwargs)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+
+
+class ConfigMixin:
+    """Gives a config dataclass ``from_params(mapping, where)``."""
+
+    @classmethod
+    def from_params(cls, params: Mapping[str, Any] | None = None, where: str = "params"):
+        return config_from_params(cls, params, where)

@@ -1,0 +1,832 @@
+"""The stage runtime: the only module of hybrid-iamp that imports zenoh.
+
+A stage is a config dataclass, a pure core and a thin binding that hands both,
+with its ports, to ``run_stage``. The runtime owns everything else:
+
+- the Zenoh session (peer mode on ``tcp/127.0.0.1``, multicast scouting off,
+  explicit endpoints; ``--mode/--connect/--listen/--config`` to join a remote
+  router);
+- a liveliness token at ``iamp/<run>/_alive/<node>``;
+- one bounded queue for all inputs: subscriber callbacks only enqueue (when
+  full the oldest entry is dropped and counted) and a single loop drains it,
+  so processing is ordered and single-threaded;
+- decoding through the port's message class: a ``SchemaError`` becomes one log
+  line, a counter increment and a dropped message;
+- a bounded, counted join on ``header.stamp_ns`` for stages with several
+  inputs; latched inputs (the scene) are kept and queried at start instead;
+- latched outputs: the last payload is kept and answered to queries, so a
+  stage that (re)starts late still gets it;
+- issues from the core: logged and counted by kind;
+- encoding and publishing; ``NodeStats`` at ``_stats/<node>`` every second and
+  ``Progress`` at ``_ack/<node>`` after every handled input set;
+- pacing of sources (recording rate times ``speed``, or ``max``: as fast as
+  every live node keeps up, by their ``Progress``);
+- a clean stop on SIGINT/SIGTERM (drain the queue, wait until the inputs are
+  quiet, print a summary) and exit codes 0 (clean), 1 (crash), 2 (bad
+  command line or config).
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import logging
+import math
+import os
+import signal
+import sys
+import threading
+import time
+import traceback
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterable, Iterator, Mapping, Protocol
+
+import numpy as np
+import zenoh
+
+import bus_schemas
+from bus_schemas import NodeStats, Progress, SchemaError, keys
+from bus_schemas._wire import Message, unpack_envelope
+
+from ._core import ConfigError, Issue, StageResult
+
+EXIT_OK = 0
+EXIT_CRASH = 1
+EXIT_USAGE = 2
+
+DEFAULT_LISTEN = "tcp/127.0.0.1:0"
+
+
+# --------------------------------------------------------------------------- ports and specs
+
+
+@dataclass(frozen=True, slots=True)
+class Port:
+    """A named input or output carrying one message class.
+
+    ``latched``: an output whose last value is kept and answered to queries;
+    an input that takes such an output, is queried at start and is not part of
+    the stamp join (the core sees its latest value with every update).
+    ``optional``: an input that a pipeline may leave unbound.
+    """
+
+    schema: type[Message]
+    latched: bool = False
+    optional: bool = False
+
+
+class OperatorCore(Protocol):
+    def update(self, inputs: Mapping[str, Message]) -> StageResult: ...
+
+
+class SourceCore(Protocol):
+    def __iter__(self) -> Iterator[tuple[int, StageResult]]: ...
+
+
+class RawSinkCore(Protocol):
+    def handle(self, key: str, payload: bytes, recv_ns: int) -> list[Issue] | None: ...
+
+    def close(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class NodeContext:
+    """What a core factory gets besides its config."""
+
+    run_id: str
+    node_id: str
+    stage: str
+    log: logging.Logger
+    input_keys: Mapping[str, str] = field(default_factory=dict)
+    output_keys: Mapping[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """Everything the runtime needs to know about a stage.
+
+    ``kind`` is ``"source"`` (no inputs; the core is iterable and yields
+    ``(stamp_ns, StageResult)``), ``"operator"`` (the core has ``update``) or
+    ``"raw_sink"`` (no typed inputs; receives every payload of the run as raw
+    bytes: the recorder).
+    """
+
+    stage: str
+    config_cls: type
+    make_core: Callable[[Any, NodeContext], Any]
+    inputs: Mapping[str, Port]
+    outputs: Mapping[str, Port]
+    kind: str = "operator"
+    restart_default: bool = True
+
+
+# --------------------------------------------------------------------------- command line
+
+
+def add_network_args(parser: argparse.ArgumentParser) -> None:
+    """The zenoh-python network flags, shared by stages and tools."""
+    g = parser.add_argument_group("network")
+    g.add_argument("--mode", choices=["peer", "client"], default="peer", help="zenoh mode (default peer)")
+    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="endpoint to connect to, e.g. tcp/127.0.0.1:7447")
+    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT", help=f"endpoint to listen on (default {DEFAULT_LISTEN})")
+    g.add_argument("--config", metavar="FILE", help="zenoh JSON5 config file; the flags above override it")
+
+
+def make_zenoh_config(mode: str = "peer", connect: Iterable[str] = (), listen: Iterable[str] = (), config_file: str | None = None) -> zenoh.Config:
+    conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    connect = list(connect)
+    listen = list(listen) or ([DEFAULT_LISTEN] if mode == "peer" else [])
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+    return conf
+
+
+def open_session(mode: str = "peer", connect: Iterable[str] = (), listen: Iterable[str] = (), config_file: str | None = None) -> zenoh.Session:
+    """Open a zenoh session with the project's defaults (loopback, no multicast)."""
+    return zenoh.open(make_zenoh_config(mode, connect, listen, config_file))
+
+
+def session_from_args(args: argparse.Namespace) -> zenoh.Session:
+    return open_session(args.mode, args.connect, args.listen, args.config)
+
+
+def _parse_set(items: list[str]) -> dict[str, Any]:
+    import tomllib
+
+    out: dict[str, Any] = {}
+    for item in items:
+        if "=" not in item:
+            raise ConfigError(f"--set {item!r}: expected key=value")
+        k, v = item.split("=", 1)
+        try:
+            out[k.strip()] = tomllib.loads(f"x = {v}")["x"]
+        except tomllib.TOMLDecodeError:
+            out[k.strip()] = v
+    return out
+
+
+def build_parser(spec: StageSpec) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=f"python -m {spec.stage}", description=(sys.modules[spec.stage].__doc__ or "").split("\n")[0] if spec.stage in sys.modules else None)
+    default_id = spec.stage.rsplit(".", 1)[-1]
+    p.add_argument("--node-id", default=default_id, help=f"node id (default {default_id})")
+    p.add_argument("--run-id", default="demo", help="run id: keys live under iamp/<run>/ (default demo)")
+    p.add_argument("--params-json", default="{}", help="parameters as a JSON object (the launcher passes them)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one parameter (TOML value)")
+    p.add_argument("--inputs-json", default=None, help='input bindings as JSON {"port": "node/output"}')
+    p.add_argument("--input", action="append", default=[], metavar="PORT=NODE/OUTPUT", help="bind one input")
+    p.add_argument("--queue-size", type=int, default=256, help="bounded input queue length (default 256)")
+    p.add_argument("--stats-period", type=float, default=1.0, help="seconds between NodeStats (default 1)")
+    p.add_argument("--log-level", default="INFO")
+    add_network_args(p)
+    return p
+
+
+# --------------------------------------------------------------------------- statistics
+
+
+class _Stats:
+    def __init__(self) -> None:
+        self.counters: dict[str, int] = collections.Counter()
+        for k in ("received", "processed", "published", "decode_errors", "join_drops", "queue_drops", "issues", "core_errors"):
+            self.counters[k] = 0
+        self.issues_by_kind: dict[str, int] = collections.Counter()
+        self.errors_by_kind: dict[str, int] = collections.Counter()
+        self.proc_ms: collections.deque[float] = collections.deque(maxlen=4096)
+        self.latency_ms: collections.deque[float] = collections.deque(maxlen=4096)
+        self.proc_ms_max = 0.0
+        self.last_stamp_ns = 0
+
+    @staticmethod
+    def _pct(values: Iterable[float], q: float) -> float:
+        arr = np.fromiter(values, dtype=float)
+        return float(np.percentile(arr, q)) if arr.size else 0.0
+
+    def message(self, run_id: str, node_id: str, stage: str, started: float, depth: int) -> NodeStats:
+        return NodeStats(
+            run_id=run_id,
+            node_id=node_id,
+            stage=stage,
+            pid=os.getpid(),
+            uptime_s=time.monotonic() - started,
+            counters=dict(self.counters),
+            issues_by_kind=dict(self.issues_by_kind),
+            errors_by_kind=dict(self.errors_by_kind),
+            proc_ms_p50=self._pct(self.proc_ms, 50),
+            proc_ms_p95=self._pct(self.proc_ms, 95),
+            proc_ms_max=self.proc_ms_max,
+            latency_ms_p50=self._pct(self.latency_ms, 50),
+            latency_ms_p95=self._pct(self.latency_ms, 95),
+            queue_depth=depth,
+            last_stamp_ns=self.last_stamp_ns,
+        )
+
+    def summary(self) -> str:
+        parts = [f"{k}={v}" for k, v in sorted(self.counters.items())]
+        if self.issues_by_kind:
+            parts.append("issues_by_kind=" + ",".join(f"{k}:{v}" for k, v in sorted(self.issues_by_kind.items())))
+        if self.errors_by_kind:
+            parts.append("errors_by_kind=" + ",".join(f"{k}:{v}" for k, v in sorted(self.errors_by_kind.items())))
+        parts.append(f"proc_ms_p50={self._pct(self.proc_ms, 50):.2f} proc_ms_p95={self._pct(self.proc_ms, 95):.2f}")
+        return " ".join(parts)
+
+
+# --------------------------------------------------------------------------- the bounded queue
+
+
+class _InputQueue:
+    """Bounded FIFO; when full the oldest entry is dropped and counted."""
+
+    def __init__(self, maxlen: int, on_drop: Callable[[], None]) -> None:
+        self._dq: collections.deque = collections.deque()
+        self._maxlen = max(1, maxlen)
+        self._cv = threading.Condition()
+        self._on_drop = on_drop
+
+    def put(self, item: Any) -> None:
+        with self._cv:
+            if len(self._dq) >= self._maxlen:
+                self._dq.popleft()
+                self._on_drop()
+            self._dq.append(item)
+            self._cv.notify()
+
+    def get(self, timeout: float) -> Any | None:
+        with self._cv:
+            if not self._dq:
+                self._cv.wait(timeout)
+            return self._dq.popleft() if self._dq else None
+
+    def __len__(self) -> int:
+        return len(self._dq)
+
+
+# --------------------------------------------------------------------------- the node
+
+
+class StopRequested(Exception):
+    pass
+
+
+class Node:
+    """One running stage: session, ports, loop. Built by ``run_stage``."""
+
+    def __init__(self, spec: StageSpec, args: argparse.Namespace, config: Any, bindings: dict[str, str]) -> None:
+        self.spec = spec
+        self.args = args
+        self.config = config
+        self.run_id = args.run_id
+        self.node_id = args.node_id
+        self.log = logging.getLogger(f"iamp.{self.node_id}")
+        self.stats = _Stats()
+        self.started = time.monotonic()
+        self.stop_event = threading.Event()
+        self.signals = 0
+        self.queue = _InputQueue(args.queue_size, self._count_queue_drop)
+        self.bindings = bindings
+        self.input_keys = {port: f"{keys.ROOT}/{self.run_id}/{ref}" for port, ref in bindings.items()}
+        self.output_keys = {port: keys.data_key(self.run_id, self.node_id, port) for port in spec.outputs}
+        self.session: zenoh.Session | None = None
+        self._publishers: dict[str, Any] = {}
+        self._latched_out: dict[str, bytes] = {}
+        self._latched_in: dict[str, Message] = {}
+        self._pending: "collections.OrderedDict[int, dict[str, Message]]" = collections.OrderedDict()
+        self._pending_since: dict[int, float] = {}
+        self._keepalive: list[Any] = []
+        self._last_stats = 0.0
+        self._last_input_mono = time.monotonic()
+        self._progress_pub = None
+        self._acks: dict[str, Progress] = {}
+        self._alive: set[str] = set()
+        self._ack_lock = threading.Lock()
+        self._frames_published: collections.deque[int] = collections.deque(maxlen=64)
+
+    # ---- counters used from callbacks
+    def _count_queue_drop(self) -> None:
+        self.stats.counters["queue_drops"] += 1
+
+    # ---- session and declarations
+    def open(self) -> None:
+        self.session = session_from_args(self.args)
+        s = self.session
+        for port, key in self.output_keys.items():
+            cc = zenoh.CongestionControl.BLOCK
+            self._publishers[port] = s.declare_publisher(key, congestion_control=cc)
+            if self.spec.outputs[port].latched:
+                self._keepalive.append(s.declare_queryable(key, self._make_latched_reply(port)))
+        if self.spec.kind == "raw_sink":
+            self._keepalive.append(s.declare_subscriber(keys.run_pattern(self.run_id), self._on_raw_sample))
+        for port, key in self.input_keys.items():
+            self._keepalive.append(s.declare_subscriber(key, self._make_input_cb(port)))
+            if self.spec.inputs[port].latched:
+                threading.Thread(target=self._query_latched, args=(port, key), daemon=True).start()
+        self._stats_pub = s.declare_publisher(keys.stats_key(self.run_id, self.node_id), congestion_control=zenoh.CongestionControl.DROP)
+        self._progress_pub = s.declare_publisher(keys.ack_key(self.run_id, self.node_id), congestion_control=zenoh.CongestionControl.DROP)
+        if self.spec.kind == "source":
+            self._keepalive.append(s.declare_subscriber(keys.ack_pattern(self.run_id), self._on_ack))
+            self._keepalive.append(s.liveliness().declare_subscriber(keys.alive_pattern(self.run_id), self._on_alive, history=True))
+        self._token = s.liveliness().declare_token(keys.alive_key(self.run_id, self.node_id))
+        self.log.info(
+            "node up: stage=%s run=%s inputs=%s outputs=%s pid=%d",
+            self.spec.stage,
+            self.run_id,
+            ",".join(f"{p}<-{k}" for p, k in self.input_keys.items()) or "-",
+            ",".join(self.output_keys.values()) or "-",
+            os.getpid(),
+        )
+
+    def _make_latched_reply(self, port: str) -> Callable[[Any], None]:
+        key = self.output_keys[port]
+
+        def reply(query: Any) -> None:
+            data = self._latched_out.get(port)
+            if data is not None:
+                query.reply(key, data)
+
+        return reply
+
+    def _query_latched(self, port: str, key: str) -> None:
+        try:
+            for reply in self.session.get(key, timeout=5.0):
+                if reply.ok is not None:
+                    self.queue.put((port, key, reply.ok.payload.to_bytes(), time.time_ns()))
+        except Exception as exc:  # the session may be closing
+            self.log.debug("latched query failed: port=%s error=%s", port, exc)
+
+    def _make_input_cb(self, port: str) -> Callable[[Any], None]:
+        def cb(sample: Any) -> None:
+            self.stats.counters["received"] += 1
+            self.queue.put((port, str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+
+        return cb
+
+    def _on_raw_sample(self, sample: Any) -> None:
+        key = str(sample.key_expr)
+        if f"/{keys.ACK}/" in key:
+            return
+        self.stats.counters["received"] += 1
+        self.queue.put((None, key, sample.payload.to_bytes(), time.time_ns()))
+
+    def _on_ack(self, sample: Any) -> None:
+        try:
+            msg = Progress.decode(sample.payload.to_bytes())
+        except SchemaError:
+            return
+        with self._ack_lock:
+            self._acks[msg.node_id] = msg
+
+    def _on_alive(self, sample: Any) -> None:
+        node = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self._ack_lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._alive.add(node)
+            else:
+                self._alive.discard(node)
+                self._acks.pop(node, None)
+
+    # ---- publishing
+    def publish(self, result: StageResult, stamp_ns: int, frame_index: int) -> None:
+        for port, msg in result.outputs.items():
+            if port not in self._publishers:
+                raise RuntimeError(f"core returned output {port!r}, which {self.spec.stage} does not declare")
+            want = self.spec.outputs[port].schema
+            if not isinstance(msg, want):
+                raise RuntimeError(f"core returned {type(msg).__name__} on {port!r}, declared {want.__name__}")
+            data = msg.encode()
+            if self.spec.outputs[port].latched:
+                self._latched_out[port] = data
+            self._publishers[port].put(data)
+            self.stats.counters["published"] += 1
+        for issue in result.issues:
+            self.stats.counters["issues"] += 1
+            self.stats.issues_by_kind[issue.kind] += 1
+            self.log.warning("issue: kind=%s agent=%s stamp_ns=%d %s", issue.kind, issue.agent_id, stamp_ns, issue.detail)
+        self.stats.last_stamp_ns = max(self.stats.last_stamp_ns, stamp_ns)
+        self.stats.counters["processed"] += 1
+        self._progress_pub.put(
+            Progress(node_id=self.node_id, last_stamp_ns=stamp_ns, last_frame_index=frame_index, handled=self.stats.counters["processed"]).encode()
+        )
+
+    def maybe_stats(self, force: bool = False) -> None:
+        now = time.monotonic()
+        if force or now - self._last_stats >= self.args.stats_period:
+            self._last_stats = now
+            self._stats_pub.put(self.stats.message(self.run_id, self.node_id, self.spec.stage, self.started, len(self.queue)).encode())
+
+    # ---- decode
+    def _decode(self, port: str | None, key: str, data: bytes) -> Message | None:
+        try:
+            if port is None:
+                return bus_schemas.decode_any(data, where=key)
+            return self.spec.inputs[port].schema.decode(data, where=key)
+        except SchemaError as exc:
+            self.stats.counters["decode_errors"] += 1
+            self.stats.errors_by_kind[type(exc).__name__] += 1
+            self.log.warning("dropped message: reason=%s key=%s detail=%s", type(exc).__name__, key, exc)
+            return None
+
+    # ---- operator loop
+    def _join_ports(self) -> list[str]:
+        return [p for p in self.input_keys if not self.spec.inputs[p].latched]
+
+    def _required_latched(self) -> list[str]:
+        return [p for p in self.input_keys if self.spec.inputs[p].latched]
+
+    def _handle_operator_item(self, core: Any, item: tuple) -> None:
+        port, key, data, recv_ns = item
+        msg = self._decode(port, key, data)
+        if msg is None:
+            return
+        if self.spec.inputs[port].latched:
+            self._latched_in[port] = msg
+            return
+        header = getattr(msg, "header", None)
+        stamp = int(header.stamp_ns) if header is not None else 0
+        lat_ms = (recv_ns - stamp) / 1e6 if header is not None else math.nan
+        entry = self._pending.setdefault(stamp, {})
+        self._pending_since.setdefault(stamp, time.monotonic())
+        if port in entry:
+            self.stats.counters["join_drops"] += 1
+            self.log.warning("duplicate input: port=%s stamp_ns=%d (older one replaced)", port, stamp)
+        entry[port] = msg
+        join = self._join_ports()
+        ready = [s for s, e in self._pending.items() if all(p in e for p in join)]
+        for s in sorted(ready):
+            # a complete newer stamp makes every older incomplete one stale
+            for old in [o for o in self._pending if o < s and o not in ready]:
+                self._drop_pending(old, "superseded")
+            inputs = self._pending.pop(s)
+            self._pending_since.pop(s, None)
+            missing_latched = [p for p in self._required_latched() if p not in self._latched_in]
+            if missing_latched:
+                self.stats.counters["join_drops"] += 1
+                self.log.warning("dropped input set: reason=waiting_for_latched ports=%s stamp_ns=%d", ",".join(missing_latched), s)
+                continue
+            inputs.update(self._latched_in)
+            self._run_update(core, inputs, s, lat_ms)
+        self._expire_pending()
+
+    def _drop_pending(self, stamp: int, reason: str) -> None:
+        entry = self._pending.pop(stamp, None)
+        self._pending_since.pop(stamp, None)
+        if entry is not None:
+            self.stats.counters["join_drops"] += 1
+            self.log.warning("dropped input set: reason=%s stamp_ns=%d had=%s", reason, stamp, ",".join(sorted(entry)))
+
+    def _expire_pending(self) -> None:
+        limit = max(2, getattr(self.args, "join_window", 16))
+        while len(self._pending) > limit:
+            self._drop_pending(next(iter(self._pending)), "join_window_full")
+        now = time.monotonic()
+        for s in [s for s, t in self._pending_since.items() if now - t > JOIN_TIMEOUT_S]:
+            self._drop_pending(s, "join_timeout")
+
+    def _run_update(self, core: Any, inputs: dict[str, Message], stamp: int, lat_ms: float) -> None:
+        t0 = time.perf_counter()
+        try:
+            result = core.update(inputs)
+        except Exception:
+            self.stats.counters["core_errors"] += 1
+            self.stats.errors_by_kind["core_exception"] += 1
+            self.log.error("core failed on stamp_ns=%d (input set dropped):\n%s", stamp, traceback.format_exc().rstrip())
+            return
+        dt = (time.perf_counter() - t0) * 1e3
+        self.stats.proc_ms.append(dt)
+        self.stats.proc_ms_max = max(self.stats.proc_ms_max, dt)
+        if not math.isnan(lat_ms):
+            self.stats.latency_ms.append(lat_ms + dt)
+        frame_index = _frame_index_of(inputs)
+        self.publish(result, stamp, frame_index)
+
+    def run_operator(self, core: Any) -> None:
+        self._serve(lambda item: self._handle_operator_item(core, item))
+
+    def run_raw_sink(self, core: Any) -> None:
+        def handle(item: tuple) -> None:
+            _port, key, data, recv_ns = item
+            t0 = time.perf_counter()
+            try:
+                issues = core.handle(key, data, recv_ns) or []
+            except Exception:
+                self.stats.counters["core_errors"] += 1
+                self.log.error("sink failed on key=%s (message dropped):\n%s", key, traceback.format_exc().rstrip())
+                return
+            dt = (time.perf_counter() - t0) * 1e3
+            self.stats.proc_ms.append(dt)
+            self.stats.proc_ms_max = max(self.stats.proc_ms_max, dt)
+            self.stats.counters["processed"] += 1
+            stamp = _peek_stamp(data)
+            if stamp is not None and stamp > self.stats.last_stamp_ns:
+                self.stats.last_stamp_ns = stamp
+                self._progress_pub.put(
+                    Progress(node_id=self.node_id, last_stamp_ns=stamp, last_frame_index=-1, handled=self.stats.counters["processed"]).encode()
+                )
+            for issue in issues:
+                self.stats.counters["issues"] += 1
+                self.stats.issues_by_kind[issue.kind] += 1
+                self.log.warning("issue: kind=%s key=%s %s", issue.kind, key, issue.detail)
+
+        try:
+            self._serve(handle)
+        finally:
+            core.close()
+
+    def _serve(self, handle: Callable[[tuple], None]) -> None:
+        quiet_s = DRAIN_QUIET_S
+        while True:
+            item = self.queue.get(timeout=0.05)
+            if item is not None:
+                self._last_input_mono = time.monotonic()
+                handle(item)
+            else:
+                self._expire_pending()
+            self.maybe_stats()
+            if self.stop_event.is_set() and item is None:
+                if self.signals > 1 or time.monotonic() - self._last_input_mono >= quiet_s:
+                    break
+
+    # ---- source loop
+    def run_source(self, core: Any) -> None:
+        speed = getattr(self.config, "speed", 1.0)
+        as_fast = isinstance(speed, str) and speed == "max"
+        if not as_fast:
+            speed = float(speed)
+            if not speed > 0:
+                raise ConfigError(f"speed must be > 0 or 'max', got {speed}")
+        t_wall0 = None
+        stamp0 = None
+        n = 0
+        for stamp, result in core:
+            if self.stop_event.is_set():
+                break
+            if as_fast:
+                self._wait_for_consumers(stamp, window=MAX_SPEED_WINDOW)
+            else:
+                if t_wall0 is None:
+                    t_wall0, stamp0 = time.monotonic(), stamp
+                due = t_wall0 + (stamp - stamp0) / 1e9 / speed
+                while not self.stop_event.is_set():
+                    left = due - time.monotonic()
+                    if left <= 0:
+                        break
+                    self.stop_event.wait(min(left, 0.1))
+                if self.stop_event.is_set():
+                    break
+            t0 = time.perf_counter()
+            self.publish(result, stamp, _frame_index_of(result.outputs))
+            self.stats.proc_ms.append((time.perf_counter() - t0) * 1e3)
+            self._frames_published.append(stamp)
+            n += 1
+            self.maybe_stats()
+        else:
+            self.log.info("source finished: frames=%d", n)
+            if as_fast:
+                self._wait_for_consumers(None, window=0)
+
+    def _wait_for_consumers(self, stamp: int | None, window: int) -> None:
+        """Block until every live node has acked the frame ``window`` frames back."""
+        if stamp is not None and len(self._frames_published) < window:
+            return
+        target = self._frames_published[-window] if window else (self._frames_published[-1] if self._frames_published else None)
+        if target is None:
+            return
+        deadline = time.monotonic() + CONSUMER_WAIT_S
+        while not self.stop_event.is_set():
+            with self._ack_lock:
+                others = [n for n in self._alive if n != self.node_id]
+                behind = [n for n in others if n not in self._acks or self._acks[n].last_stamp_ns < target]
+            if not behind:
+                return
+            if time.monotonic() > deadline:
+                self.log.warning("pacing: nodes behind after %.0f s, going on: %s", CONSUMER_WAIT_S, ",".join(sorted(behind)))
+                with self._ack_lock:
+                    for n in behind:  # do not wait on them again until they ack
+                        self._acks[n] = Progress(node_id=n, last_stamp_ns=2**62, last_frame_index=-1, handled=0)
+                return
+            time.sleep(0.002)
+
+    def close(self) -> None:
+        self.maybe_stats(force=True)
+        self.log.info("node stopping: %s", self.stats.summary())
+        try:
+            if self.session is not None:
+                self._token.undeclare()
+                self.session.close()
+        except Exception as exc:
+            self.log.debug("session close failed: %s", exc)
+
+
+JOIN_TIMEOUT_S = 2.0
+DRAIN_QUIET_S = 0.3
+MAX_SPEED_WINDOW = 3
+CONSUMER_WAIT_S = 10.0
+
+
+def _peek_stamp(data: bytes) -> int | None:
+    """``header.stamp_ns`` of a payload if it has one (no full decode)."""
+    try:
+        _schema, _v, body = unpack_envelope(data)
+        stamp = body.get("header", {}).get("stamp_ns")
+    except (SchemaError, AttributeError):
+        return None
+    return stamp if type(stamp) is int else None
+
+
+def _frame_index_of(messages: Mapping[str, Any]) -> int:
+    for m in messages.values():
+        h = getattr(m, "header", None)
+        if h is not None:
+            return int(h.frame_index)
+    return -1
+
+
+# --------------------------------------------------------------------------- entry point
+
+
+def parse_bindings(spec: StageSpec, args: argparse.Namespace) -> dict[str, str]:
+    """Input bindings port -> 'node/output', checked against the spec."""
+    raw: dict[str, str] = json.loads(args.inputs_json) if args.inputs_json else {}
+    if not isinstance(raw, dict):
+        raise ConfigError("--inputs-json must be a JSON object {port: 'node/output'}")
+    for item in args.input:
+        if "=" not in item:
+            raise ConfigError(f"--input {item!r}: expected PORT=NODE/OUTPUT")
+        p, ref = item.split("=", 1)
+        raw[p.strip()] = ref.strip()
+    for port, ref in raw.items():
+        if port not in spec.inputs:
+            raise ConfigError(f"{spec.stage}: unknown input port {port!r}; known: {', '.join(spec.inputs) or '(none)'}")
+        parts = str(ref).split("/")
+        if len(parts) != 2:
+            raise ConfigError(f"{spec.stage}: input {port} = {ref!r}: expected 'node/output'")
+        keys.check_name(parts[0], "node id")
+        keys.check_name(parts[1], "output name")
+    missing = [p for p, port in spec.inputs.items() if p not in raw and not port.optional]
+    if missing and spec.kind == "operator":
+        raise ConfigError(f"{spec.stage}: input port(s) {', '.join(missing)} not bound; use --input PORT=NODE/OUTPUT")
+    return raw
+
+
+def setup_logging(level: str, node_id: str) -> None:
+    logging.basicConfig(
+        level=getattr(logging, str(level).upper(), logging.INFO),
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        datefmt="%H:%M:%S",
+        stream=sys.stderr,
+        force=True,
+    )
+
+
+def run_stage(spec: StageSpec, argv: list[str] | None = None) -> int:
+    """Parse the command line, build config and core, run until stopped.
+
+    Returns the process exit code: 0 clean stop, 1 crash, 2 bad command line
+    or config.
+    """
+    parser = build_parser(spec)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:
+        return EXIT_OK if exc.code == 0 else EXIT_USAGE
+    setup_logging(args.log_level, args.node_id)
+    log = logging.getLogger(f"iamp.{args.node_id}")
+    try:
+        keys.check_run_id(args.run_id)
+        keys.check_name(args.node_id, "node id")
+        params = json.loads(args.params_json)
+        if not isinstance(params, dict):
+            raise ConfigError("--params-json must be a JSON object")
+        params.update(_parse_set(args.set))
+        config = spec.config_cls.from_params(params, where=f"node {args.node_id} ({spec.stage})")
+        bindings = parse_bindings(spec, args)
+    except (ConfigError, ValueError, json.JSONDecodeError) as exc:
+        log.error("bad configuration: %s", exc)
+        return EXIT_USAGE
+
+    node = Node(spec, args, config, bindings)
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        node.signals += 1
+        node.stop_event.set()
+        if node.signals == 1:
+            log.info("stop requested: signal=%s, draining", signal.Signals(signum).name)
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    ctx = NodeContext(
+        run_id=args.run_id, node_id=args.node_id, stage=spec.stage, log=log, input_keys=node.input_keys, output_keys=node.output_keys
+    )
+    try:
+        try:
+            core = spec.make_core(config, ctx)
+        except (ConfigError, FileNotFoundError, ValueError) as exc:
+            log.error("bad configuration: %s", exc)
+            return EXIT_USAGE
+        node.open()
+        if spec.kind == "source":
+            node.run_source(core)
+        elif spec.kind == "raw_sink":
+            node.run_raw_sink(core)
+        else:
+            node.run_operator(core)
+    except ConfigError as exc:
+        log.error("bad configuration: %s", exc)
+        return EXIT_USAGE
+    except Exception:
+        log.error("crashed:\n%s", traceback.format_exc().rstrip())
+        node.close()
+        return EXIT_CRASH
+    node.close()
+    return EXIT_OK
+
+
+# --------------------------------------------------------------------------- helpers for tools (launcher, replay, tests, benchmarks)
+
+
+class BusClient:
+    """A plain session for tools that are not stages: publish, subscribe, watch liveliness.
+
+    Used by the launcher (liveliness, progress), replay, tests and benchmarks,
+    so that they too never import zenoh themselves.
+    """
+
+    def __init__(self, mode: str = "peer", connect: Iterable[str] = (), listen: Iterable[str] = (), config_file: str | None = None) -> None:
+        self.session = open_session(mode, connect, listen, config_file)
+        self._keep: list[Any] = []
+
+    def __enter__(self) -> "BusClient":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def close(self) -> None:
+        try:
+            self.session.close()
+        except Exception:
+            pass
+
+    def locators(self) -> list[str]:
+        """Endpoints this session listens on (with the real port when 0 was asked)."""
+        return _own_locators(self.session)
+
+    def publisher(self, key: str, *, block: bool = True) -> Callable[[bytes], None]:
+        pub = self.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP)
+        self._keep.append(pub)
+        return lambda data: pub.put(data)
+
+    def publisher_with_matching(self, key: str) -> tuple[Callable[[bytes], None], Callable[[], bool]]:
+        pub = self.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+        self._keep.append(pub)
+        return (lambda data: pub.put(data)), (lambda: bool(pub.matching_status.matching))
+
+    def put(self, key: str, data: bytes) -> None:
+        self.session.put(key, data, congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def subscribe(self, key: str, callback: Callable[[str, bytes], None]) -> None:
+        def cb(sample: Any) -> None:
+            callback(str(sample.key_expr), sample.payload.to_bytes())
+
+        self._keep.append(self.session.declare_subscriber(key, cb))
+
+    def watch_alive(self, pattern: str, callback: Callable[[str, bool], None]) -> None:
+        """Call ``callback(node_id, alive)`` for every liveliness change (with history)."""
+
+        def cb(sample: Any) -> None:
+            callback(str(sample.key_expr).rsplit("/", 1)[-1], sample.kind == zenoh.SampleKind.PUT)
+
+        self._keep.append(self.session.liveliness().declare_subscriber(pattern, cb, history=True))
+
+    def alive_now(self, pattern: str, timeout_s: float = 2.0) -> set[str]:
+        out = set()
+        for reply in self.session.liveliness().get(pattern, timeout=timeout_s):
+            if reply.ok is not None:
+                out.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
+        return out
+
+    def declare_token(self, key: str) -> None:
+        self._keep.append(self.session.liveliness().declare_token(key))
+
+    def query(self, key: str, timeout_s: float = 2.0) -> list[bytes]:
+        out = []
+        for reply in self.session.get(key, timeout=timeout_s):
+            if reply.ok is not None:
+                out.append(reply.ok.payload.to_bytes())
+        return out
+
+
+def _own_locators(session: zenoh.Session) -> list[str]:
+    info = session.info
+    # zenoh-python exposes the session's own locators through its config/state; fall back to none
+    for attr in ("locators",):
+        fn = getattr(info, attr, None)
+        if callable(fn):
+            try:
+                return [str(x) for x in fn()]
+            except Exception:
+                pass
+    return []

@@ -1,0 +1,77 @@
+"""Deterministic sample messages, one per registered schema (for golden payloads and round trips)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+import bus_schemas as bs
+
+
+def header(frame_index: int = 7) -> bs.Header:
+    return bs.Header(run_id="golden", frame_index=frame_index, stamp_ns=1_700_000_000_000_000_000 + frame_index * 100_000_000, producer="source")
+
+
+def track_frame(n: int = 4) -> bs.TrackFrame:
+    i = np.arange(n, dtype=np.float64)
+    return bs.TrackFrame(
+        header=header(),
+        scene_id="0123456789abcdef",
+        track_ids=np.arange(100, 100 + n, dtype=np.int64),
+        agent_types=np.array([1, 1, 6, 5][:n] + [1] * max(0, n - 4), dtype=np.uint8),
+        x_m=10.0 + i,
+        y_m=-5.0 - 0.5 * i,
+        vx_mps=np.full(n, 3.25),
+        vy_mps=np.zeros(n),
+        yaw_rad=np.linspace(-np.pi, np.pi, n),
+        length_m=np.full(n, 4.5),
+        width_m=np.full(n, 1.9),
+    )
+
+
+def scene_info() -> bs.SceneInfo:
+    return bs.SceneInfo(
+        header=header(0),
+        scene_id="0123456789abcdef",
+        recording="k729_2022-03-16",
+        location_id="K729",
+        map_path="/data/taf-bw/maps/k729_2022-03-16.osm",
+        map_sha256="ab" * 32,
+        projection="local_cartesian",
+        origin_lat_deg=49.01160993928274,
+        origin_lon_deg=8.43856470258739,
+        frame_rate_hz=10.0,
+        speed_limit_mps=13.88888888888889,
+        n_frames=1177,
+    )
+
+
+def node_stats() -> bs.NodeStats:
+    return bs.NodeStats(
+        run_id="golden",
+        node_id="corridors",
+        stage="stages.corridors",
+        pid=4242,
+        uptime_s=12.5,
+        counters={"received": 10, "processed": 9, "published": 18, "decode_errors": 1},
+        issues_by_kind={"off_map": 2},
+        errors_by_kind={"WrongVersion": 1},
+        proc_ms_p50=1.5,
+        proc_ms_p95=3.25,
+        proc_ms_max=7.0,
+        latency_ms_p50=2.0,
+        latency_ms_p95=4.0,
+        queue_depth=0,
+        last_stamp_ns=1_700_000_000_700_000_000,
+    )
+
+
+def progress() -> bs.Progress:
+    return bs.Progress(node_id="corridors", last_stamp_ns=1_700_000_000_700_000_000, last_frame_index=7, handled=8)
+
+
+SAMPLES = {
+    "iamp.TrackFrame": track_frame,
+    "iamp.SceneInfo": scene_info,
+    "iamp.NodeStats": node_stats,
+    "iamp.Progress": progress,
+}

@@ -1,0 +1,153 @@
+"""Round trips, strict decoding and golden payloads of the bus schemas."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import dataclasses
+
+import msgpack
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import bus_schemas as bs  # noqa: E402
+from bus_schemas import keys  # noqa: E402
+from samples import SAMPLES, track_frame  # noqa: E402
+
+GOLDEN = Path(__file__).resolve().parent / "golden"
+
+
+def _repack(data: bytes, mutate) -> bytes:
+    env = msgpack.unpackb(data, raw=False)
+    mutate(env)
+    return msgpack.packb(env, use_bin_type=True)
+
+
+@pytest.mark.parametrize("schema", sorted(SAMPLES))
+def test_round_trip_is_exact(schema):
+    msg = SAMPLES[schema]()
+    data = msg.encode()
+    back = bs.decode(data)
+    assert type(back) is type(msg)
+    assert back.encode() == data
+
+
+def test_every_registered_schema_has_a_sample_and_a_golden_file():
+    assert set(bs.REGISTRY) == set(SAMPLES), "add a sample (tests/bus_schemas/samples.py) for every new schema"
+    for schema, cls in bs.REGISTRY.items():
+        assert (GOLDEN / f"{schema}.v{cls.VERSION}.msgpack").exists(), f"run tests/bus_schemas/make_golden.py for {schema}"
+
+
+@pytest.mark.parametrize("path", sorted(GOLDEN.glob("*.msgpack")), ids=lambda p: p.name)
+def test_golden_payloads_keep_decoding(path):
+    data = path.read_bytes()
+    schema, version = bs.peek_schema(data)
+    cls = bs.REGISTRY[schema]
+    if version != cls.VERSION:
+        with pytest.raises(bs.WrongVersion):
+            bs.decode(data)
+        return
+    msg = bs.decode(data)
+    assert msg.encode() == data
+    # the golden file equals what today's sample encodes to: the format did not drift
+    assert SAMPLES[schema]().encode() == data
+
+
+def test_track_frame_arrays_keep_dtype_and_values():
+    f = track_frame(5)
+    g = bs.TrackFrame.decode(f.encode())
+    assert len(g) == 5
+    assert g.track_ids.dtype == np.int64 and g.agent_types.dtype == np.uint8
+    np.testing.assert_array_equal(g.x_m, f.x_m)
+    np.testing.assert_array_equal(g.yaw_rad, f.yaw_rad)
+    assert g.header == f.header
+
+
+def test_wrong_version_names_schema_key_and_version():
+    data = _repack(track_frame().encode(), lambda e: e.__setitem__("v", 2))
+    with pytest.raises(bs.WrongVersion) as ei:
+        bs.TrackFrame.decode(data, where="iamp/x/source/track_frame")
+    assert str(ei.value) == "iamp.TrackFrame v2 on iamp/x/source/track_frame: this build reads v1"
+
+
+def test_unknown_schema_and_wrong_schema():
+    data = _repack(track_frame().encode(), lambda e: e.__setitem__("schema", "iamp.Nope"))
+    with pytest.raises(bs.UnknownSchema):
+        bs.decode(data)
+    with pytest.raises(bs.WrongSchema):
+        bs.SceneInfo.decode(track_frame().encode())
+
+
+@pytest.mark.parametrize(
+    "mutate, needle",
+    [
+        (lambda e: e["body"].pop("x_m"), "missing field(s) x_m"),
+        (lambda e: e["body"].__setitem__("extra", 1), "unknown field(s) extra"),
+        (lambda e: e["body"]["header"].__setitem__("stamp_ns", "soon"), "expected int"),
+        (lambda e: e["body"].__setitem__("scene_id", 5), "expected str"),
+        (lambda e: e["body"].__setitem__("x_m", ["float32", [4], b"\0" * 16]), "dtype"),
+        (lambda e: e["body"].__setitem__("x_m", ["float64", [4], b"\0" * 8]), "needs 32 bytes"),
+        (lambda e: e["body"].__setitem__("x_m", ["float64", [3], b"\0" * 24]), "dim 'n'"),
+        (lambda e: e["body"].__setitem__("x_m", ["object", [4], b"\0" * 32]), "dtype"),
+        (lambda e: e["body"].__setitem__("x_m", [1, 2]), "expected an array"),
+        (lambda e: e.pop("body"), "envelope"),
+    ],
+)
+def test_malformed_bodies_raise_typed_errors(mutate, needle):
+    data = _repack(track_frame().encode(), mutate)
+    with pytest.raises(bs.MalformedPayload) as ei:
+        bs.TrackFrame.decode(data)
+    assert needle in str(ei.value)
+
+
+@pytest.mark.parametrize("data", [b"", b"\xc1", b"garbage bytes", msgpack.packb([1, 2, 3]), msgpack.packb({1: 2})])
+def test_garbage_is_malformed_not_a_crash(data):
+    with pytest.raises(bs.MalformedPayload):
+        bs.decode(data)
+
+
+def test_oversized_payload_is_rejected_before_unpacking():
+    with pytest.raises(bs.PayloadTooLarge):
+        bs.decode(b"\0" * (bs.MAX_PAYLOAD_BYTES + 1))
+
+
+def test_encode_refuses_wrong_dtype_or_mismatched_lengths():
+    f = track_frame(3)
+    bad = bs.TrackFrame(**{**{fl.name: getattr(f, fl.name) for fl in dataclasses.fields(f)}, "x_m": np.zeros(3, np.float32)})
+    with pytest.raises(TypeError, match="dtype"):
+        bad.encode()
+    bad = bs.TrackFrame(**{**{fl.name: getattr(f, fl.name) for fl in dataclasses.fields(f)}, "y_m": np.zeros(2)})
+    with pytest.raises(TypeError, match="dim 'n'"):
+        bad.encode()
+
+
+def test_enum_values_are_checked():
+    data = bs.Header(run_id="r", frame_index=0, stamp_ns=0, producer="p")
+    assert data.run_id == "r"
+    assert bs.AgentType(6).name == "PEDESTRIAN" and not bs.AgentType.PEDESTRIAN.is_vehicle and bs.AgentType.CAR.is_vehicle
+
+
+def test_keys_layout_and_checks():
+    assert keys.data_key("demo", "corridors", "corridor_set") == "iamp/demo/corridors/corridor_set"
+    assert keys.alive_key("demo", "corridors") == "iamp/demo/_alive/corridors"
+    assert keys.stats_key("demo", "corridors") == "iamp/demo/_stats/corridors"
+    assert keys.run_pattern("demo") == "iamp/demo/**"
+    p = keys.parse_key("iamp/demo/_stats/relations")
+    assert p.is_infrastructure and p.node_id == "relations"
+    assert keys.replace_run("iamp/a/source/track_frame", "b") == "iamp/b/source/track_frame"
+    for bad in ("Demo", "de mo", "", "a/b", "_x"):
+        with pytest.raises(keys.KeyFormatError):
+            keys.data_key(bad, "n", "o")
+    with pytest.raises(keys.KeyFormatError):
+        keys.data_key("demo", "Corridors", "o")
+    with pytest.raises(keys.KeyFormatError):
+        keys.parse_key("other/demo/x/y")
+
+
+def test_json_schema_describes_every_field():
+    js = bs.json_schema(bs.TrackFrame)
+    assert js["title"] == "iamp.TrackFrame" and js["version"] == 1
+    assert set(js["required"]) == {fl.name for fl in dataclasses.fields(bs.TrackFrame)}
