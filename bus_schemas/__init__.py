@@ -7,8 +7,10 @@ decode problem raises a ``SchemaError`` subclass.
 
 from . import keys
 from ._wire import MAX_PAYLOAD_BYTES, REGISTRY, Array, Message, decode_any, json_schema, peek_schema, register
+from .corridors import Corridor, CorridorSet, MatchStatus, VehicleCorridors
 from .common import VEHICLE_TYPE_VALUES, AgentType, Header
 from .errors import MalformedPayload, PayloadTooLarge, SchemaError, UnknownSchema, WrongSchema, WrongVersion
+from .relations import ConflictKind, CorridorRelations, RelationSet
 from .infra import NodeStats, Progress
 from .tracks import SceneInfo, TrackFrame
 
@@ -18,6 +20,13 @@ __all__ = [
     "MAX_PAYLOAD_BYTES",
     "REGISTRY",
     "AgentType",
+    "ConflictKind",
+    "Corridor",
+    "CorridorRelations",
+    "CorridorSet",
+    "MatchStatus",
+    "RelationSet",
+    "VehicleCorridors",
     "Array",
     "Header",
     "MalformedPayload",

@@ -75,3 +75,75 @@ SAMPLES = {
     "iamp.NodeStats": node_stats,
     "iamp.Progress": progress,
 }
+
+
+def corridor_set() -> bs.CorridorSet:
+    m = 6
+    s = np.arange(m, dtype=np.float64) * 0.5
+    cor = bs.Corridor(
+        corridor_id=11,
+        lanelet_ids=np.array([-1001, -1002], dtype=np.int64),
+        lanelet_start_s_m=np.array([0.0, 1.5]),
+        x_m=s.copy(),
+        y_m=np.zeros(m),
+        s_m=s,
+        heading_rad=np.zeros(m),
+        curvature_1pm=np.zeros(m),
+        width_m=np.full(m, 3.25),
+        extension_start_s_m=2.5,
+        vehicle_s_m=0.75,
+        vehicle_d_m=-0.25,
+        speed_limit_mps=13.875,
+    )
+    return bs.CorridorSet(
+        header=header(),
+        scene_id="0123456789abcdef",
+        vehicles=(
+            bs.VehicleCorridors(
+                track_id=100, agent_type=bs.AgentType.CAR, status=bs.MatchStatus.MATCHED, lanelet_id=-1001, match_distance_m=0.0, speed_mps=3.5, corridors=(cor,)
+            ),
+            bs.VehicleCorridors(
+                track_id=102, agent_type=bs.AgentType.PEDESTRIAN, status=bs.MatchStatus.NOT_A_VEHICLE, lanelet_id=-1, match_distance_m=-1.0, speed_mps=1.25, corridors=()
+            ),
+        ),
+    )
+
+
+def relation_set() -> bs.RelationSet:
+    def f(*v):
+        return np.array(v, dtype=np.float64)
+
+    rel = bs.CorridorRelations(
+        track_id=100,
+        corridor_id=11,
+        object_track_ids=np.array([101], dtype=np.int64),
+        object_types=np.array([1], dtype=np.uint8),
+        object_s_m=f(20.0),
+        object_d_m=f(0.25),
+        object_gap_m=f(14.5),
+        object_speed_mps=f(4.0),
+        leader_track_id=101,
+        leader_gap_m=14.5,
+        leader_speed_mps=4.0,
+        intersection_ids=np.array([0], dtype=np.int64),
+        intersection_entry_s_m=f(30.0),
+        intersection_exit_s_m=f(52.5),
+        intersection_distance_m=f(29.25),
+        intersection_entry_lanelet_ids=np.array([-1002], dtype=np.int64),
+        conflict_track_ids=np.array([103], dtype=np.int64),
+        conflict_corridor_ids=np.array([31], dtype=np.int64),
+        conflict_kinds=np.array([1], dtype=np.uint8),
+        conflict_s_m=f(40.0),
+        conflict_other_s_m=f(12.5),
+        conflict_x_m=f(40.0),
+        conflict_y_m=f(0.5),
+        conflict_time_s=f(8.0),
+        conflict_other_time_s=f(2.5),
+        conflict_priority=np.array([-1], dtype=np.int8),
+        influencing_index=0,
+        influencing_rule="priority_other_first",
+    )
+    return bs.RelationSet(header=header(), scene_id="0123456789abcdef", relations=(rel,))
+
+
+SAMPLES.update({"iamp.CorridorSet": corridor_set, "iamp.RelationSet": relation_set})

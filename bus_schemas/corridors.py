@@ -1,0 +1,78 @@
+"""Corridors: the lanelet sequences each vehicle may follow (``iamp.CorridorSet``)."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from typing import Annotated, ClassVar
+
+import numpy as np
+
+from ._wire import Array, Message, register
+from .common import AgentType, Header
+
+PTS = Annotated[np.ndarray, Array("float64", ("m",))]
+
+
+class MatchStatus(enum.IntEnum):
+    """How a tracked object was matched to the map."""
+
+    UNKNOWN = 0
+    MATCHED = 1  # on (or near) a car lanelet with agreeing heading: has corridors
+    OFF_MAP = 2  # no car lanelet near enough (parking lot, outside the map, wrong way)
+    NOT_A_VEHICLE = 3  # pedestrians, cyclists: obstacles only, no corridors
+    BAD_STATE = 4  # NaN/inf position or speed: skipped this frame
+
+
+@dataclass(frozen=True, slots=True, kw_only=True, eq=False)
+class Corridor:
+    """One possible route: a lanelet sequence with a resampled centreline.
+
+    The centreline arrays all have shape ``(m,)`` and are sampled about every
+    0.5 m; ``s_m`` is the arc length from the corridor's start, which lies a
+    little behind the vehicle. ``lanelet_start_s_m[i]`` is where
+    ``lanelet_ids[i]`` begins along the corridor. Past ``extension_start_s_m``
+    the corridor is the last lanelet extended straight (the map ended).
+    ``vehicle_s_m``/``vehicle_d_m`` are the vehicle's Frenet coordinates on it
+    (d positive to the left).
+    """
+
+    corridor_id: int
+    lanelet_ids: Annotated[np.ndarray, Array("int64", ("k",))]
+    lanelet_start_s_m: Annotated[np.ndarray, Array("float64", ("k",))]
+    x_m: PTS
+    y_m: PTS
+    s_m: PTS
+    heading_rad: PTS
+    curvature_1pm: PTS
+    width_m: PTS
+    extension_start_s_m: float
+    vehicle_s_m: float
+    vehicle_d_m: float
+    speed_limit_mps: float
+
+
+@dataclass(frozen=True, slots=True, kw_only=True, eq=False)
+class VehicleCorridors:
+    """The corridors of one tracked object (empty unless ``status`` is MATCHED)."""
+
+    track_id: int
+    agent_type: AgentType
+    status: MatchStatus
+    lanelet_id: int  # the matched lanelet, -1 if none
+    match_distance_m: float
+    speed_mps: float
+    corridors: tuple[Corridor, ...]
+
+
+@register
+@dataclass(frozen=True, slots=True, kw_only=True, eq=False)
+class CorridorSet(Message):
+    """Every object of one frame with its corridors; objects are never dropped."""
+
+    SCHEMA: ClassVar[str] = "iamp.CorridorSet"
+    VERSION: ClassVar[int] = 1
+
+    header: Header
+    scene_id: str
+    vehicles: tuple[VehicleCorridors, ...]
