@@ -19,6 +19,12 @@ spawned::
     restart = true                 # default: true for operators, false for sources/sinks
     queue_size = 256               # optional
 
+Outputs of processes that the launcher does not start (a live tracker) are
+declared with their schema so that edges to them can be checked::
+
+    [external]
+    "tracker/track_frame" = "iamp.TrackFrame"
+
 ``${VAR}`` (from ``[vars]`` or ``--var``) is the only substitution; a whole
 string ``"${VAR}"`` takes the variable's type. An input ``port = "node/output"``
 names the key suffix ``iamp/<run>/node/output`` literally. Stage modules expose
@@ -41,7 +47,7 @@ from bus_schemas import keys
 
 from ._core import ConfigError
 
-TOP_KEYS = {"name", "vars", "bus", "nodes", "description"}
+TOP_KEYS = {"name", "vars", "bus", "nodes", "description", "external"}
 BUS_KEYS = {"run_id", "mode", "listen", "connect"}
 NODE_KEYS = {"id", "stage", "inputs", "outputs", "params", "restart", "queue_size", "description"}
 _VAR_RE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}")
@@ -78,6 +84,7 @@ class Pipeline:
     connect: list[str]
     nodes: list[NodeDesc]
     warnings: list[str] = field(default_factory=list)
+    external: dict[str, str] = field(default_factory=dict)
 
     def node(self, node_id: str) -> NodeDesc:
         for n in self.nodes:
@@ -96,7 +103,7 @@ class Pipeline:
         while remaining:
             progressed = False
             for n in list(remaining):
-                deps = {ref.split("/")[0] for ref in n.inputs.values()}
+                deps = {ref.split("/")[0] for ref in n.inputs.values() if ref not in self.external}
                 if deps <= seen | {n.id}:
                     done.append(n)
                     seen.add(n.id)
@@ -257,6 +264,19 @@ def load_pipeline(
     if overrides:
         raise PipelineError(f"{where}: --set names unknown node(s) {', '.join(sorted(overrides))}; nodes: {', '.join(n.id for n in nodes)}")
 
+    external = raw.get("external", {})
+    if not isinstance(external, dict):
+        raise PipelineError(f"{where}: [external] must map \"node/output\" to a schema name")
+    from bus_schemas import REGISTRY
+
+    for ref, schema in external.items():
+        if ref.count("/") != 1 or schema not in REGISTRY:
+            raise PipelineError(
+                f"{where}: [external] {ref!r} = {schema!r}: expected \"node/output\" = one of {', '.join(sorted(REGISTRY))}"
+            )
+        if ref.split("/")[0] in ids:
+            raise PipelineError(f"{where}: [external] {ref!r} names node {ref.split('/')[0]!r}, which the pipeline starts itself")
+
     by_id = {n.id: n for n in nodes}
     used_outputs: set[tuple[str, str]] = set()
     for n in nodes:
@@ -267,6 +287,10 @@ def load_pipeline(
             if not isinstance(ref, str) or ref.count("/") != 1:
                 raise PipelineError(f"{nwhere}: input {port} = {ref!r}: expected \"node/output\"")
             src_id, out = ref.split("/")
+            if ref in external:
+                if external[ref] != n.spec.inputs[port].schema.SCHEMA:
+                    raise PipelineError(f"{nwhere}: input {port} wants {n.spec.inputs[port].schema.SCHEMA} but external {ref} carries {external[ref]}")
+                continue
             if src_id not in by_id:
                 raise PipelineError(f"{nwhere}: input {port} = {ref!r}: does node {src_id!r} exist? nodes: {', '.join(by_id)}")
             src = by_id[src_id]
@@ -291,5 +315,6 @@ def load_pipeline(
             if (n.id, out) not in used_outputs and not has_raw_sink:
                 warnings.append(f"output {n.id}/{out} is not connected to any node")
     return Pipeline(
-        name=str(raw.get("name", path.stem)), path=str(path), run_id=run_id, mode=mode, listen=listen, connect=connect, nodes=nodes, warnings=warnings
+        name=str(raw.get("name", path.stem)), path=str(path), run_id=run_id, mode=mode, listen=listen, connect=connect, nodes=nodes, warnings=warnings,
+        external=dict(external),
     )
