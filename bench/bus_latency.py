@@ -29,7 +29,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import bus_schemas as bs  # noqa: E402
-from bus_schemas._wire import Array, Message, register  # noqa: E402
+from bus_schemas._wire import Array, Message  # noqa: E402
 from stages.runtime import BusClient  # noqa: E402
 
 from typing import Annotated, ClassVar  # noqa: E402

@@ -18,8 +18,16 @@ class ConflictKind(enum.IntEnum):
     MERGE = 2
 
 
-def _a(dtype: str, dim: str):
-    return Annotated[np.ndarray, Array(dtype, (dim,))]
+# per-object arrays: o = surrounding objects, q = intersections, c = conflicts
+I64_O = Annotated[np.ndarray, Array("int64", ("o",))]
+U8_O = Annotated[np.ndarray, Array("uint8", ("o",))]
+F64_O = Annotated[np.ndarray, Array("float64", ("o",))]
+I64_Q = Annotated[np.ndarray, Array("int64", ("q",))]
+F64_Q = Annotated[np.ndarray, Array("float64", ("q",))]
+I64_C = Annotated[np.ndarray, Array("int64", ("c",))]
+U8_C = Annotated[np.ndarray, Array("uint8", ("c",))]
+I8_C = Annotated[np.ndarray, Array("int8", ("c",))]
+F64_C = Annotated[np.ndarray, Array("float64", ("c",))]
 
 
 @dataclass(frozen=True, slots=True, kw_only=True, eq=False)
@@ -47,30 +55,30 @@ class CorridorRelations:
 
     track_id: int
     corridor_id: int
-    object_track_ids: _a("int64", "o")
-    object_types: _a("uint8", "o")
-    object_s_m: _a("float64", "o")
-    object_d_m: _a("float64", "o")
-    object_gap_m: _a("float64", "o")
-    object_speed_mps: _a("float64", "o")
+    object_track_ids: I64_O
+    object_types: U8_O
+    object_s_m: F64_O
+    object_d_m: F64_O
+    object_gap_m: F64_O
+    object_speed_mps: F64_O
     leader_track_id: int
     leader_gap_m: float
     leader_speed_mps: float
-    intersection_ids: _a("int64", "q")
-    intersection_entry_s_m: _a("float64", "q")
-    intersection_exit_s_m: _a("float64", "q")
-    intersection_distance_m: _a("float64", "q")
-    intersection_entry_lanelet_ids: _a("int64", "q")
-    conflict_track_ids: _a("int64", "c")
-    conflict_corridor_ids: _a("int64", "c")
-    conflict_kinds: _a("uint8", "c")
-    conflict_s_m: _a("float64", "c")
-    conflict_other_s_m: _a("float64", "c")
-    conflict_x_m: _a("float64", "c")
-    conflict_y_m: _a("float64", "c")
-    conflict_time_s: _a("float64", "c")
-    conflict_other_time_s: _a("float64", "c")
-    conflict_priority: _a("int8", "c")
+    intersection_ids: I64_Q
+    intersection_entry_s_m: F64_Q
+    intersection_exit_s_m: F64_Q
+    intersection_distance_m: F64_Q
+    intersection_entry_lanelet_ids: I64_Q
+    conflict_track_ids: I64_C
+    conflict_corridor_ids: I64_C
+    conflict_kinds: U8_C
+    conflict_s_m: F64_C
+    conflict_other_s_m: F64_C
+    conflict_x_m: F64_C
+    conflict_y_m: F64_C
+    conflict_time_s: F64_C
+    conflict_other_time_s: F64_C
+    conflict_priority: I8_C
     influencing_index: int
     influencing_rule: str
 

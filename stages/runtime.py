@@ -155,7 +155,7 @@ def session_from_args(args: argparse.Namespace) -> zenoh.Session:
     return open_session(args.mode, args.connect, args.listen, args.config)
 
 
-def _parse_set(items: list[str]) -> dict[str, Any]:
+def parse_set(items: list[str]) -> dict[str, Any]:
     import tomllib
 
     out: dict[str, Any] = {}
@@ -239,27 +239,41 @@ class _Stats:
 
 
 class _InputQueue:
-    """Bounded FIFO; when full the oldest entry is dropped and counted."""
+    """Bounded FIFO.
 
-    def __init__(self, maxlen: int, on_drop: Callable[[], None]) -> None:
+    When full, an operator's queue drops its oldest entry (counted): fresh
+    frames matter more than old ones. A raw sink's queue (``block=True``, the
+    recorder) instead makes the subscriber callback wait, which pushes back
+    through Zenoh's congestion control to the publishers, so nothing is lost.
+    """
+
+    def __init__(self, maxlen: int, on_drop: Callable[[], None], block: bool = False) -> None:
         self._dq: collections.deque = collections.deque()
         self._maxlen = max(1, maxlen)
         self._cv = threading.Condition()
         self._on_drop = on_drop
+        self._block = block
+        self.closed = False
 
     def put(self, item: Any) -> None:
         with self._cv:
-            if len(self._dq) >= self._maxlen:
+            if self._block:
+                while len(self._dq) >= self._maxlen and not self.closed:
+                    self._cv.wait(0.1)
+            elif len(self._dq) >= self._maxlen:
                 self._dq.popleft()
                 self._on_drop()
             self._dq.append(item)
-            self._cv.notify()
+            self._cv.notify_all()
 
     def get(self, timeout: float) -> Any | None:
         with self._cv:
             if not self._dq:
                 self._cv.wait(timeout)
-            return self._dq.popleft() if self._dq else None
+            item = self._dq.popleft() if self._dq else None
+            if item is not None and self._block:
+                self._cv.notify_all()
+            return item
 
     def __len__(self) -> int:
         return len(self._dq)
@@ -286,7 +300,7 @@ class Node:
         self.started = time.monotonic()
         self.stop_event = threading.Event()
         self.signals = 0
-        self.queue = _InputQueue(args.queue_size, self._count_queue_drop)
+        self.queue = _InputQueue(args.queue_size, self._count_queue_drop, block=spec.kind == "raw_sink")
         self.bindings = bindings
         self.input_keys = {port: f"{keys.ROOT}/{self.run_id}/{ref}" for port, ref in bindings.items()}
         self.output_keys = {port: keys.data_key(self.run_id, self.node_id, port) for port in spec.outputs}
@@ -700,7 +714,7 @@ def run_stage(spec: StageSpec, argv: list[str] | None = None) -> int:
         params = json.loads(args.params_json)
         if not isinstance(params, dict):
             raise ConfigError("--params-json must be a JSON object")
-        params.update(_parse_set(args.set))
+        params.update(parse_set(args.set))
         config = spec.config_cls.from_params(params, where=f"node {args.node_id} ({spec.stage})")
         bindings = parse_bindings(spec, args)
     except (ConfigError, ValueError, json.JSONDecodeError) as exc:
@@ -807,6 +821,16 @@ class BusClient:
             if reply.ok is not None:
                 out.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
         return out
+
+    def declare_queryable(self, key: str, reply: Callable[[], bytes | None]) -> None:
+        """Answer queries on ``key`` with ``reply()`` (nothing when it returns None)."""
+
+        def cb(query: Any) -> None:
+            data = reply()
+            if data is not None:
+                query.reply(key, data)
+
+        self._keep.append(self.session.declare_queryable(key, cb))
 
     def declare_token(self, key: str) -> None:
         self._keep.append(self.session.liveliness().declare_token(key))

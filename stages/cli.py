@@ -1,0 +1,120 @@
+"""The ``iamp`` command: record, replay and inspect MCAP recordings (eval and train follow).
+
+::
+
+    iamp record FILE.mcap --run-id R [network flags]      record iamp/R/** until Ctrl-C
+    iamp replay FILE.mcap [--speed X|max] [--run-id R]     publish a recording onto the bus
+    iamp inspect FILE.mcap [--json]                        channels, counts, time range, frames
+
+Exit codes: 0 success, 1 crash, 2 bad command line, configuration or file.
+Only ``record`` and ``replay`` open a Zenoh session.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import Callable
+
+EXIT_USAGE = 2
+
+
+def _add_record(sub: "argparse._SubParsersAction") -> None:
+    p = sub.add_parser("record", help="record every key of a run into an MCAP file until Ctrl-C")
+    p.add_argument("file", metavar="FILE.mcap", help="file to write (parent folders are created)")
+    p.add_argument("--run-id", required=True, help="run to record: keys iamp/<run>/**")
+    p.add_argument("--node-id", default="recorder", help="node id of the recorder (default recorder)")
+    p.add_argument("--compression", choices=["zstd", "lz4", "none"], default=None, help="chunk compression (default zstd)")
+    p.add_argument("--chunk-size-bytes", type=int, default=None, help="close a chunk at about this size (default 262144)")
+    p.add_argument("--flush-period-s", type=float, default=None, help="close the open chunk at least this often (default 1)")
+    p.add_argument("--no-stats", action="store_true", help="leave out the _stats keys")
+    p.add_argument("--log-level", default="INFO")
+    from .runtime import add_network_args
+
+    add_network_args(p)
+    p.set_defaults(run=_run_record)
+
+
+def _run_record(args: argparse.Namespace) -> int:
+    from . import recorder
+
+    params: dict[str, object] = {"path": args.file}
+    for name in ("compression", "chunk_size_bytes", "flush_period_s"):
+        if getattr(args, name) is not None:
+            params[name] = getattr(args, name)
+    if args.no_stats:
+        params["include_stats"] = False
+    argv = ["--run-id", args.run_id, "--node-id", args.node_id, "--params-json", json.dumps(params), "--log-level", args.log_level, "--mode", args.mode]
+    argv += [x for e in args.connect for x in ("--connect", e)]
+    argv += [x for e in args.listen for x in ("--listen", e)]
+    if args.config:
+        argv += ["--config", args.config]
+    return recorder.main(argv)
+
+
+def _add_replay(sub: "argparse._SubParsersAction") -> None:
+    from .replay import add_cli_arguments
+
+    p = sub.add_parser("replay", help="publish a recording onto the bus (original timing or --speed max)")
+    add_cli_arguments(p)
+    p.set_defaults(run=_run_replay)
+
+
+def _run_replay(args: argparse.Namespace) -> int:
+    from .replay import run_cli
+
+    return run_cli(args)
+
+
+def _add_inspect(sub: "argparse._SubParsersAction") -> None:
+    from .mcap_inspect import add_arguments
+
+    p = sub.add_parser("inspect", help="summarise a recording: channels, counts, time range, frames")
+    add_arguments(p)
+    p.set_defaults(run=_run_inspect)
+
+
+def _run_inspect(args: argparse.Namespace) -> int:
+    from .mcap_inspect import run
+
+    return run(args)
+
+
+# Subcommands, in the order `iamp --help` lists them. Later issues add theirs here:
+#   eval  -> _add_eval  (offline comparison: hybrid vs baseline vs constant velocity; mADE/mFDE table)
+#   train -> _add_train (retrain the AR acceleration model)
+# Each adder declares its subparser and sets `run` to a function args -> exit code,
+# importing its heavy modules inside that function.
+SUBCOMMANDS: list[Callable[["argparse._SubParsersAction"], None]] = [
+    _add_record,
+    _add_replay,
+    _add_inspect,
+    # _add_eval,   # TODO(eval issue)
+    # _add_train,  # TODO(train issue)
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="iamp", description="hybrid-iamp tools: record, replay and inspect runs.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for add in SUBCOMMANDS:
+        add(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:
+        return 0 if exc.code == 0 else EXIT_USAGE
+    if getattr(args, "run", None) is None:
+        parser.print_usage(sys.stderr)
+        sys.stderr.write("iamp: error: a command is required\n")
+        return EXIT_USAGE
+    return int(args.run(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

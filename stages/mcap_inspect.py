@@ -1,0 +1,319 @@
+"""Reading hybrid-iamp MCAP recordings, also ones cut short by a kill.
+
+``read_messages(path, report)`` walks the file front to back with mcap's
+non-seeking ``StreamReader`` (it never needs the summary), yields every
+message of every complete chunk as a ``RecordedMessage`` and stops cleanly
+where the file ends early: the ``ReadReport`` then says ``truncated`` and
+why, and a warning is logged. A chunk is yielded all or nothing, so a
+recording left by ``kill -9`` reads up to its last complete chunk.
+
+``inspect(path)`` summarises a recording as a dict (channels with counts,
+time range, per-schema counts, TrackFrame frame indices, truncation);
+``main(argv)`` is ``iamp inspect FILE.mcap [--json]``: a table by default,
+JSON with ``--json``, exit 2 for a missing or unreadable file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import sys
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from typing import Any, Iterator
+
+from mcap.exceptions import EndOfFile, InvalidMagic
+from mcap.records import Channel, Chunk, DataEnd, Footer, Metadata, Schema, Statistics
+from mcap.records import Header as McapHeader
+from mcap.records import Message as McapMessage
+from mcap.stream_reader import StreamReader, breakup_chunk
+
+from bus_schemas import SchemaError, TrackFrame
+
+# Largest record we try to load; a corrupt length field beyond this is read as truncation.
+_RECORD_SIZE_LIMIT = 1 << 31
+_MAX_GAPS_LISTED = 50
+
+
+class RecordingError(ValueError):
+    """A file that is missing or is not an MCAP recording at all."""
+
+
+@dataclass(frozen=True, slots=True)
+class RecordedMessage:
+    """One recorded message: its key (``topic``), schema name ('' if none), times and payload."""
+
+    topic: str
+    schema: str
+    log_time_ns: int
+    publish_time_ns: int
+    data: bytes
+
+
+@dataclass(slots=True)
+class ReadReport:
+    """What ``read_messages`` found besides the messages; filled in while reading.
+
+    ``truncated`` is True when the file ended (or broke) before its footer;
+    ``error`` then says where and how. ``summary_present`` is True when the
+    writer finished the file (footer with a summary section). ``metadata``
+    maps each metadata record's name to its key/value pairs.
+    """
+
+    truncated: bool = False
+    error: str = ""
+    summary_present: bool = False
+    library: str = ""
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    chunks: int = 0
+    messages: int = 0
+    summary_message_count: int | None = None
+
+
+def _open(path: str):
+    try:
+        return open(path, "rb")
+    except FileNotFoundError:
+        raise RecordingError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise RecordingError(f"{path}: is a directory, not an MCAP file") from None
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot open: {exc.strerror or exc}") from None
+
+
+def read_messages(path: str, report: ReadReport | None = None) -> Iterator[RecordedMessage]:
+    """Yield the messages of ``path`` in file order; stop cleanly at a truncation.
+
+    Raises ``RecordingError`` (before yielding anything) when the file is
+    missing or does not start like an MCAP file. Anything that goes wrong
+    later is read as the end of the usable data: ``report.truncated`` is set,
+    ``report.error`` says what happened, and the iteration ends (callers
+    log it; this function does not, so that polling a growing file is quiet).
+    """
+    report = report if report is not None else ReadReport()
+    path = str(path)
+    with _open(path) as f:
+        records = StreamReader(f, emit_chunks=True, record_size_limit=_RECORD_SIZE_LIMIT).records
+        schemas: dict[int, str] = {}
+        channels: dict[int, tuple[str, int]] = {}
+        started = False
+        while True:
+            try:
+                record = next(records)
+            except StopIteration:
+                break
+            except Exception as exc:  # mcap raises EndOfFile, struct.error, decompression and CRC errors
+                if not started:
+                    if f.tell() == 0:
+                        raise RecordingError(f"{path}: empty file, not an MCAP recording") from None
+                    what = "not an MCAP file" if isinstance(exc, InvalidMagic) else f"not a readable MCAP file ({_why(exc)})"
+                    raise RecordingError(f"{path}: {what}") from None
+                report.truncated = True
+                report.error = f"file ends or breaks at byte {f.tell()} before its footer ({_why(exc)})"
+                break
+            started = True
+            if isinstance(record, Chunk):
+                try:
+                    inner = breakup_chunk(record, validate_crc=True)
+                except Exception as exc:
+                    report.truncated = True
+                    report.error = f"chunk {report.chunks + 1} is damaged ({_why(exc)})"
+                    break
+                report.chunks += 1
+                for rec in inner:
+                    msg = _take(rec, schemas, channels, report)
+                    if msg is not None:
+                        yield msg
+                continue
+            msg = _take(record, schemas, channels, report)
+            if msg is not None:
+                yield msg
+
+
+def _why(exc: Exception) -> str:
+    if isinstance(exc, EndOfFile):
+        return "end of file"
+    name = type(exc).__name__
+    if name == "error":  # struct.error
+        name = f"{type(exc).__module__}.error"
+    text = str(exc)
+    return f"{name}: {text}" if text else name
+
+
+def _take(record: Any, schemas: dict[int, str], channels: dict[int, tuple[str, int]], report: ReadReport) -> RecordedMessage | None:
+    if isinstance(record, McapMessage):
+        topic, schema_id = channels.get(record.channel_id, (f"<channel {record.channel_id}>", 0))
+        report.messages += 1
+        return RecordedMessage(
+            topic=topic,
+            schema=schemas.get(schema_id, ""),
+            log_time_ns=record.log_time,
+            publish_time_ns=record.publish_time,
+            data=bytes(record.data),
+        )
+    if isinstance(record, Schema):
+        schemas[record.id] = record.name
+    elif isinstance(record, Channel):
+        channels[record.id] = (record.topic, record.schema_id)
+    elif isinstance(record, Metadata):
+        report.metadata[record.name] = dict(record.metadata)
+    elif isinstance(record, McapHeader):
+        report.library = record.library
+    elif isinstance(record, Statistics):
+        report.summary_message_count = record.message_count
+    elif isinstance(record, Footer):
+        report.summary_present = record.summary_start != 0
+    elif isinstance(record, DataEnd):
+        pass
+    return None
+
+
+def recording_run_id(path: str) -> str | None:
+    """The run id a recording was made under (its metadata, else its first key), or None."""
+    report = ReadReport()
+    for msg in read_messages(path, report):
+        meta = report.metadata.get("hybrid-iamp", {})
+        if meta.get("run_id"):
+            return meta["run_id"]
+        parts = msg.topic.split("/")
+        return parts[1] if len(parts) >= 2 else None
+    return report.metadata.get("hybrid-iamp", {}).get("run_id") or None
+
+
+# --------------------------------------------------------------------------- inspect
+
+
+def _frame_summary(indices: list[int]) -> dict[str, Any]:
+    gaps: list[list[int]] = []
+    missing = 0
+    increasing = True
+    for a, b in zip(indices, indices[1:]):
+        if b <= a:
+            increasing = False
+        elif b > a + 1:
+            missing += b - a - 1
+            if len(gaps) < _MAX_GAPS_LISTED:
+                gaps.append([a, b])
+    return {
+        "count": len(indices),
+        "first": indices[0] if indices else None,
+        "last": indices[-1] if indices else None,
+        "strictly_increasing": increasing,
+        "gaps": gaps,
+        "missing": missing,
+    }
+
+
+def inspect(path: str) -> dict[str, Any]:
+    """Summarise a recording.
+
+    Keys: ``channels`` (list of ``{"topic", "schema", "count"}``, one per
+    topic and schema, sorted by topic), ``start_ns`` and ``end_ns`` (log
+    times, None for an empty file), ``messages``, ``truncated``, ``error``,
+    ``summary_present``, ``chunks``, ``by_schema`` (counts), ``metadata``,
+    and ``frames``: for every ``iamp.TrackFrame`` topic the decoded frame
+    indices as ``{count, first, last, strictly_increasing, gaps, missing,
+    undecodable}``.
+    """
+    report = ReadReport()
+    counts: collections.Counter[tuple[str, str]] = collections.Counter()
+    by_schema: collections.Counter[str] = collections.Counter()
+    frame_indices: dict[str, list[int]] = collections.defaultdict(list)
+    undecodable: collections.Counter[str] = collections.Counter()
+    start_ns: int | None = None
+    end_ns: int | None = None
+    for msg in read_messages(path, report):
+        counts[(msg.topic, msg.schema)] += 1
+        by_schema[msg.schema] += 1
+        start_ns = msg.log_time_ns if start_ns is None else min(start_ns, msg.log_time_ns)
+        end_ns = msg.log_time_ns if end_ns is None else max(end_ns, msg.log_time_ns)
+        if msg.schema == TrackFrame.SCHEMA:
+            try:
+                frame = TrackFrame.decode(msg.data, where=msg.topic)
+            except SchemaError:
+                undecodable[msg.topic] += 1
+                continue
+            frame_indices[msg.topic].append(frame.header.frame_index)
+    frames = {}
+    for topic in sorted(set(frame_indices) | set(undecodable)):
+        frames[topic] = {**_frame_summary(frame_indices.get(topic, [])), "undecodable": undecodable.get(topic, 0)}
+    return {
+        "path": str(path),
+        "channels": [{"topic": t, "schema": s, "count": n} for (t, s), n in sorted(counts.items())],
+        "start_ns": start_ns,
+        "end_ns": end_ns,
+        "messages": report.messages,
+        "truncated": report.truncated,
+        "error": report.error or None,
+        "summary_present": report.summary_present,
+        "chunks": report.chunks,
+        "by_schema": dict(sorted(by_schema.items())),
+        "metadata": report.metadata,
+        "frames": frames,
+    }
+
+
+def _utc(ns: int | None) -> str:
+    if ns is None:
+        return "-"
+    return datetime.fromtimestamp(ns / 1e9, tz=timezone.utc).strftime("%Y-%m-%d %H:%M:%S.%f")[:-3] + "Z"
+
+
+def format_table(info: dict[str, Any]) -> str:
+    """The human-readable form of ``inspect``'s dict."""
+    lines = [f"file: {info['path']}"]
+    if info["truncated"]:
+        lines.append(f"state: TRUNCATED, read up to the last complete chunk: {info['error']}")
+    else:
+        lines.append(f"state: complete, summary {'present' if info['summary_present'] else 'absent'}")
+    dur = (info["end_ns"] - info["start_ns"]) / 1e9 if info["start_ns"] is not None else 0.0
+    lines.append(
+        f"messages: {info['messages']}  channels: {len(info['channels'])}  chunks: {info['chunks']}  "
+        f"start: {_utc(info['start_ns'])}  end: {_utc(info['end_ns'])}  duration_s: {dur:.3f}"
+    )
+    for name, meta in info["metadata"].items():
+        lines.append(f"metadata {name}: " + " ".join(f"{k}={v}" for k, v in sorted(meta.items())))
+    if info["channels"]:
+        wt = max(len("topic"), *(len(c["topic"]) for c in info["channels"]))
+        ws = max(len("schema"), *(len(c["schema"] or "-") for c in info["channels"]))
+        lines.append(f"{'topic':<{wt}}  {'schema':<{ws}}  {'count':>8}")
+        for c in info["channels"]:
+            lines.append(f"{c['topic']:<{wt}}  {c['schema'] or '-':<{ws}}  {c['count']:>8}")
+    for topic, fr in info["frames"].items():
+        lines.append(
+            f"frames {topic}: count={fr['count']} first={fr['first']} last={fr['last']} "
+            f"strictly_increasing={'yes' if fr['strictly_increasing'] else 'NO'} gaps={len(fr['gaps'])} "
+            f"missing={fr['missing']} undecodable={fr['undecodable']}"
+        )
+    return "\n".join(lines)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("file", metavar="FILE.mcap", help="recording to inspect")
+    parser.add_argument("--json", action="store_true", help="print the summary as JSON")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``iamp inspect`` on parsed arguments; returns the exit code."""
+    try:
+        info = inspect(args.file)
+    except RecordingError as exc:
+        sys.stderr.write(f"iamp inspect: {exc}\n")
+        return 2
+    sys.stdout.write((json.dumps(info, indent=2) if args.json else format_table(info)) + "\n")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="iamp inspect", description="Summarise an MCAP recording of hybrid-iamp.")
+    add_arguments(parser)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:
+        return 0 if exc.code == 0 else 2
+    return run(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,105 @@
+"""Pipeline descriptors: good and bad fixture files, with the exact error text."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from stages.pipeline import PipelineError, load_pipeline
+
+REPO = Path(__file__).resolve().parents[1]
+FIX = REPO / "tests" / "fixtures" / "pipelines"
+
+
+def test_good_fixture_resolves_vars_and_ports():
+    p = load_pipeline(FIX / "good.toml")
+    assert p.run_id == "fixture"
+    src = p.node("source")
+    assert src.config.speed == 2.0  # "${SPEED}" took the variable's type
+    assert [n.id for n in p.topo_order()] == ["source", "recorder"]
+    assert p.output_key("source", "track_frame") == "iamp/fixture/source/track_frame"
+
+
+def test_overrides_apply_and_are_type_checked():
+    p = load_pipeline(FIX / "good.toml", overrides={"source": {"speed": "max"}})
+    assert p.node("source").config.speed == "max"
+    with pytest.raises(PipelineError, match=r"node source: parameter speed = \[1\] should be float \| str"):
+        load_pipeline(FIX / "good.toml", overrides={"source": {"speed": [1]}})
+    with pytest.raises(PipelineError) as ei:
+        load_pipeline(FIX / "good.toml", overrides={"nosuch": {"a": 1}})
+    assert "--set names unknown node(s) nosuch; nodes: source, recorder" in str(ei.value)
+
+
+@pytest.mark.parametrize(
+    "name, message",
+    [
+        ("unknown_stage.toml", "node source: unknown stage 'stages.no_such_stage'"),
+        ("unknown_param.toml", "node source: unknown parameter(s) sped; known: "),
+        ("duplicate_id.toml", "node source: duplicate node id 'source'"),
+        ("unknown_var.toml", "unknown variable ${FAST}; defined: (none)"),
+        ("unknown_node_key.toml", "node source: unknown key(s) parms; known: "),
+    ],
+)
+def test_bad_fixtures_name_node_and_problem(name, message):
+    with pytest.raises(PipelineError) as ei:
+        load_pipeline(FIX / name)
+    assert message in str(ei.value)
+    assert str(FIX / name) in str(ei.value)
+
+
+def _write(tmp_path: Path, text: str) -> Path:
+    f = tmp_path / "p.toml"
+    f.write_text(text)
+    return f
+
+
+def test_input_bound_to_missing_node_or_output_or_other_schema(tmp_path):
+    base = '[[nodes]]\nid = "source"\nstage = "stages.tracks_source"\n[[nodes]]\nid = "corridors"\nstage = "stages.corridors"\n'
+    f = _write(tmp_path, base + 'inputs = { track_frame = "src/track_frame", scene = "source/scene" }\n')
+    with pytest.raises(PipelineError, match=r"node corridors: input track_frame = 'src/track_frame': does node 'src' exist\? nodes: source, corridors"):
+        load_pipeline(f)
+    f = _write(tmp_path, base + 'inputs = { track_frame = "source/frames", scene = "source/scene" }\n')
+    with pytest.raises(PipelineError, match=r"does node source declare output 'frames'\? it has: scene, track_frame"):
+        load_pipeline(f)
+    f = _write(tmp_path, base + 'inputs = { track_frame = "source/scene", scene = "source/scene" }\n')
+    with pytest.raises(PipelineError, match=r"node corridors: input track_frame wants iamp.TrackFrame but source/scene carries iamp.SceneInfo"):
+        load_pipeline(f)
+    f = _write(tmp_path, base + 'inputs = { scene = "source/scene" }\n')
+    with pytest.raises(PipelineError, match=r"node corridors: input port\(s\) track_frame not connected"):
+        load_pipeline(f)
+    f = _write(tmp_path, base + 'inputs = { frames = "source/track_frame" }\n')
+    with pytest.raises(PipelineError, match=r"stage stages.corridors has no input port 'frames'"):
+        load_pipeline(f)
+
+
+def test_external_outputs_are_declared_with_their_schema(tmp_path):
+    f = _write(
+        tmp_path,
+        '[external]\n"tracker/track_frame" = "iamp.SceneInfo"\n"tracker/scene" = "iamp.SceneInfo"\n'
+        '[[nodes]]\nid = "corridors"\nstage = "stages.corridors"\ninputs = { track_frame = "tracker/track_frame", scene = "tracker/scene" }\n',
+    )
+    with pytest.raises(PipelineError, match="wants iamp.TrackFrame but external tracker/track_frame carries iamp.SceneInfo"):
+        load_pipeline(f)
+
+
+@pytest.mark.parametrize("pipeline", sorted((REPO / "pipelines").glob("*.toml")), ids=lambda p: p.name)
+def test_shipped_pipelines_are_valid(pipeline):
+    r = subprocess.run([sys.executable, str(REPO / "launch.py"), str(pipeline), "--check"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr + r.stdout
+    assert "is valid" in r.stdout
+
+
+def test_launcher_check_and_describe_exit_codes():
+    r = subprocess.run([sys.executable, str(REPO / "launch.py"), str(FIX / "unknown_param.toml"), "--check"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    assert "unknown parameter(s) sped" in r.stderr
+    r = subprocess.run([sys.executable, str(REPO / "launch.py"), str(FIX / "good.toml"), "--describe"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "out track_frame      -> iamp/fixture/source/track_frame  [iamp.TrackFrame v1]" in r.stdout
+    r = subprocess.run([sys.executable, str(REPO / "launch.py"), "--stop-after", "0", "--check"], capture_output=True, text=True, timeout=120)
+    assert r.returncode in (0, 2)
+    r = subprocess.run([sys.executable, str(REPO / "launch.py"), "no/such/file.toml"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "pipeline file no/such/file.toml does not exist" in r.stderr
