@@ -1,0 +1,120 @@
+"""Benchmark of the Markov propagation kernel (METHOD.md §1.3–1.5); prints figures, asserts nothing.
+
+For the default grid it prints the stencil build time, the sparse expansion
+time and nnz of Υ(τ) and Υ([0, τ]); then, for B = 1, 10, 50, 200
+vehicle-corridor pairs in hybrid mode (input distribution replaced every
+step), the time per frame (K = 10 steps) and per step on the numpy/scipy
+backend, torch on CPU and torch on CUDA when available, with and without the
+interval matrix, with and without cropping to the active s-window.
+
+    python bench/markov_kernel.py [--repeats N] [--pairs 1,10,50,200]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from stages.markov import (  # noqa: E402
+    InputReplaced,
+    MarkovGridConfig,
+    MarkovPropagator,
+    TransitionKind,
+    build_stencils,
+    initial_state,
+)
+
+
+def _scenario(config: MarkovGridConfig, n_pairs: int, seed: int = 0):
+    """Urban-like pairs: 5 m into the window, 0–15 m/s, AR-like input distributions per step."""
+    rng = np.random.default_rng(seed)
+    speeds_mps = rng.uniform(0.0, 15.0, n_pairs)
+    centres = config.input_centres_mps2()
+    means = rng.uniform(-1.5, 1.0, (n_pairs, config.n_steps + 1))
+    sigmas = np.linspace(0.3, 1.0, config.n_steps + 1)[None, :]
+    logits = -0.5 * ((centres[None, None, :] - means[..., None]) / sigmas[..., None]) ** 2
+    lam = np.exp(logits)
+    lam /= lam.sum(axis=-1, keepdims=True)
+    p0 = initial_state(
+        config,
+        s_m=np.full(n_pairs, 5.0),
+        v_mps=speeds_mps,
+        half_width_s_m=1.0,
+        half_width_v_mps=0.5,
+        input_probs=lam[:, 0],
+    )
+    inputs = [InputReplaced(probs=lam[:, k + 1].astype(np.float32)) for k in range(config.n_steps)]
+    return p0, inputs
+
+
+def _time_frame(propagator: MarkovPropagator, p0, inputs, with_interval: bool, repeats: int, sync) -> float:
+    propagator.run(p0, inputs, with_interval=with_interval)  # warm-up (lazy matrices, kernels)
+    times = []
+    for _ in range(repeats):
+        sync()
+        start = time.perf_counter()
+        propagator.run(p0, inputs, with_interval=with_interval)
+        sync()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--pairs", default="1,10,50,200")
+    args = parser.parse_args(argv)
+    pair_counts = [int(x) for x in args.pairs.split(",")]
+
+    config = MarkovGridConfig()
+    start = time.perf_counter()
+    stencils = build_stencils(config)
+    build_s = time.perf_counter() - start
+    print(f"grid: ds={config.ds_m} m dv={config.dv_mps} m/s v_max={config.v_max_mps} m/s "
+          f"N_s={config.n_s_cells} N_v={config.n_v_cells} M={config.n_inputs} tau={config.tau_s} s K={config.n_steps}")
+    print(f"samples: {config.n_state_samples}x{config.n_state_samples} states x {config.n_input_samples} inputs, "
+          f"n_t={config.n_sub_times}; stencil offsets D={stencils.n_offsets}")
+    print(f"stencil build (both kinds): {build_s * 1e3:.0f} ms")
+    for kind in TransitionKind:
+        start = time.perf_counter()
+        matrix = stencils.expand_sparse(kind)
+        expand_s = time.perf_counter() - start
+        per_column = stencils.nnz(kind) / (config.n_inputs * config.n_v_cells)
+        print(f"{kind.name:14s} stencil entries={stencils.nnz(kind)} ({per_column:.1f}/column) "
+              f"CSR {matrix.shape[0]}x{matrix.shape[1]} nnz={matrix.nnz} expand={expand_s * 1e3:.1f} ms")
+
+    import torch
+
+    targets = [("numpy", "cpu"), ("torch", "cpu")]
+    if torch.cuda.is_available():
+        targets.append(("torch", "cuda"))
+    else:
+        print("torch.cuda.is_available() is False: no CUDA figures")
+    print(f"torch {torch.__version__}, CPU threads {torch.get_num_threads()}")
+    print()
+    print(f"{'backend':12s} {'crop':5s} {'interval':8s} " + " ".join(f"{'B=' + str(b):>20s}" for b in pair_counts))
+    print(f"{'':12s} {'':5s} {'':8s} " + " ".join(f"{'frame / step [ms]':>20s}" for _ in pair_counts))
+    for backend, device in targets:
+        sync = (lambda: torch.cuda.synchronize()) if device == "cuda" else (lambda: None)
+        for crop in (False, True):
+            for with_interval in (False, True):
+                cells = []
+                for n_pairs in pair_counts:
+                    p0, inputs = _scenario(config, n_pairs)
+                    propagator = MarkovPropagator(stencils, backend=backend, device=device, crop=crop)
+                    frame_s = _time_frame(propagator, p0, inputs, with_interval, args.repeats, sync)
+                    cells.append(f"{frame_s * 1e3:9.1f} / {frame_s * 1e2:7.2f}")
+                label = f"{backend}-{device}"
+                print(f"{label:12s} {str(crop):5s} {str(with_interval):8s} " + " ".join(f"{c:>20s}" for c in cells))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
