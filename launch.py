@@ -251,6 +251,10 @@ class Launcher:
             cmd += ["--connect", ep]
         if node.inputs:
             cmd += ["--inputs-json", json.dumps(node.inputs)]
+        if node.kind == "source":
+            others = [n.id for n in self.p.nodes if n.kind != "source"]
+            if others:
+                cmd += ["--await-nodes", ",".join(others)]
         if node.queue_size:
             cmd += ["--queue-size", str(node.queue_size)]
         return cmd

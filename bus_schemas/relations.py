@@ -46,8 +46,10 @@ class CorridorRelations:
 
     Corridor to corridor, arrays ``(c,)``: conflict points with corridors of
     other vehicles, with the arc length on both, the point, the kind, the
-    times both vehicles need to reach it, and priority from this corridor's
-    view (+1 this one has priority, -1 it must yield, 0 unknown/equal).
+    distances along each corridor from each vehicle to the point (negative:
+    the vehicle's centre is past it), the other vehicle's speed, the times
+    both vehicles need to reach it, and priority from this corridor's view
+    (+1 this one has priority, -1 it must yield, 0 unknown/equal).
     ``influencing_*`` is the one conflict (index into the arrays, -1 if none)
     that the rules chose to influence this corridor, and ``influencing_rule``
     says which rule chose it.
@@ -76,6 +78,9 @@ class CorridorRelations:
     conflict_other_s_m: F64_C
     conflict_x_m: F64_C
     conflict_y_m: F64_C
+    conflict_distance_m: F64_C
+    conflict_other_distance_m: F64_C
+    conflict_other_speed_mps: F64_C
     conflict_time_s: F64_C
     conflict_other_time_s: F64_C
     conflict_priority: I8_C

@@ -342,6 +342,7 @@ def run_replay(
     listen: list[str] | tuple[str, ...] = (),
     config_file: str | None = None,
     log: logging.Logger | None = None,
+    await_nodes: tuple[str, ...] = (),
 ) -> int:
     """Open a session, hold a liveliness token, replay, log a summary; returns the exit code.
 
@@ -369,6 +370,13 @@ def run_replay(
     try:
         with BusClient(mode, connect, listen, config_file) as bus:
             bus.declare_token(keys.alive_key(token_run, node_id))
+            if await_nodes:
+                # as the runtime's sources: publish only once the consumers' subscriptions are visible
+                seen: set[str] = set()
+                bus.watch_alive(keys.alive_pattern(token_run), lambda n, alive: seen.add(n) if alive else seen.discard(n))
+                deadline = time.monotonic() + 30.0
+                while not set(await_nodes) <= seen and not stop.is_set() and time.monotonic() < deadline:
+                    stop.wait(0.005)
             log.info(
                 "replay up: path=%s speed=%s run=%s recorded_run=%s",
                 config.path,
@@ -440,6 +448,7 @@ def main(argv: list[str] | None = None) -> int:
         listen=args.listen,
         config_file=args.config,
         log=log,
+        await_nodes=tuple(n for n in args.await_nodes.split(",") if n),
     )
 
 

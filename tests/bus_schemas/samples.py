@@ -137,11 +137,14 @@ def relation_set() -> bs.RelationSet:
         conflict_other_s_m=f(12.5),
         conflict_x_m=f(40.0),
         conflict_y_m=f(0.5),
+        conflict_distance_m=f(25.0),
+        conflict_other_distance_m=f(7.5),
+        conflict_other_speed_mps=f(3.0),
         conflict_time_s=f(8.0),
         conflict_other_time_s=f(2.5),
         conflict_priority=np.array([-1], dtype=np.int8),
         influencing_index=0,
-        influencing_rule="priority_other_first",
+        influencing_rule="priority_other",
     )
     return bs.RelationSet(header=header(), scene_id="0123456789abcdef", relations=(rel,))
 

@@ -1,0 +1,612 @@
+"""The pure part of the corridors stage: `CorridorsConfig` and `CorridorBuilder`.
+
+See the package docstring for the rules; nothing here touches the bus or the
+wall clock (time comes from `header.stamp_ns`).
+"""
+
+from __future__ import annotations
+
+import collections
+import hashlib
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+from bus_schemas import AgentType, Corridor, CorridorSet, Header, MatchStatus, SceneInfo, TrackFrame, VehicleCorridors
+from stages._core import ConfigMixin, Issue, StageResult
+from stages.maps import Projection, RoadMap, load_map, parse_projection, projection_for_location, wrap_angle_rad
+
+from .matching import LaneletIndex, LaneletMatch, select_lanelets
+from .routes import RouteCache, RouteGeometry, cut_corridor, max_separation_m, project_vehicle, route_hash
+
+_NS = 1e-9
+
+
+@dataclass(frozen=True, kw_only=True)
+class CorridorsConfig(ConfigMixin):
+    """Parameters of the corridors stage (package docstring, METHOD.md §5)."""
+
+    horizon_s: float = 4.0
+    a_plan_mps2: float = 2.0
+    extra_length_m: float = 10.0
+    behind_m: float = 5.0
+    resample_step_m: float = 0.5
+    match_max_distance_m: float = 1.5
+    match_max_heading_rad: float = 0.8
+    ambiguity_margin_m: float = 1.0
+    continuity_margin_m: float = 1.0
+    entry_extension_m: float = 50.0
+    max_corridors_per_vehicle: int = 8
+    merge_tolerance_m: float = 1.0
+    route_length_m: float = 150.0
+    lane_change_corridors: bool = True
+    lane_change_length_m: float = 20.0
+    frenet_window_m: float = 10.0
+    heading_window_s: float = 1.0
+    heading_min_travel_m: float = 2.0
+    yaw_agreement_rad: float = 0.5
+    track_timeout_s: float = 2.0
+    projection: str = "auto"
+
+    def __post_init__(self) -> None:
+        positive = ("horizon_s", "resample_step_m", "route_length_m", "lane_change_length_m", "frenet_window_m", "heading_window_s",
+                    "heading_min_travel_m", "track_timeout_s", "match_max_heading_rad", "yaw_agreement_rad")
+        non_negative = ("a_plan_mps2", "extra_length_m", "behind_m", "match_max_distance_m", "ambiguity_margin_m", "continuity_margin_m",
+                        "entry_extension_m", "merge_tolerance_m")
+        for name in positive:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"{name} = {value!r}: must be > 0")
+        for name in non_negative:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{name} = {value!r}: must be >= 0")
+        if self.max_corridors_per_vehicle < 1:
+            raise ValueError(f"max_corridors_per_vehicle = {self.max_corridors_per_vehicle}: must be >= 1")
+        if parse_projection(self.projection) is Projection.UNKNOWN:
+            known = ", ".join(p.name.lower() for p in Projection if p is not Projection.UNKNOWN)
+            raise ValueError(f"projection = {self.projection!r}: expected one of {known}")
+
+    def ahead_m(self, speed_mps: float) -> float:
+        """Corridor length ahead of the vehicle: v0·T + ½·a_plan·T² + extra (METHOD.md §5)."""
+        t = self.horizon_s
+        return max(speed_mps, 0.0) * t + 0.5 * self.a_plan_mps2 * t * t + self.extra_length_m
+
+
+# --------------------------------------------------------------------------- maps of scenes
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SceneMap:
+    """A loaded map with the indices the builder needs; `road_map` None if it could not load."""
+
+    road_map: RoadMap | None
+    index: LaneletIndex | None
+    routes: RouteCache | None
+    problems: tuple[str, ...]
+    projection: Projection
+
+
+def resolve_projection(configured: str, scene: SceneInfo) -> Projection:
+    """The configured projection, else the scene's, else the measured one for its location."""
+    for value in (configured, scene.projection):
+        chosen = parse_projection(value)
+        if chosen not in (Projection.AUTO, Projection.UNKNOWN):
+            return chosen
+    return projection_for_location(scene.location_id)
+
+
+class SceneMaps:
+    """Loads and caches scene maps (one lanelet2 load per file, projection and origin).
+
+    Share one between builders to load each map once (the coverage bench).
+    """
+
+    def __init__(self, config: CorridorsConfig | None = None) -> None:
+        self.config = config or CorridorsConfig()
+        self._maps: dict[tuple, SceneMap] = {}
+
+    def get(self, scene: SceneInfo, configured_projection: str = "auto") -> SceneMap:
+        projection = resolve_projection(configured_projection, scene)
+        key = (scene.map_path, scene.map_sha256, projection, scene.origin_lat_deg, scene.origin_lon_deg, self._route_options())
+        found = self._maps.get(key)
+        if found is None:
+            found = self._load(scene, projection)
+            self._maps[key] = found
+        return found
+
+    def _route_options(self) -> tuple:
+        cfg = self.config
+        return (cfg.route_length_m, cfg.lane_change_corridors, cfg.lane_change_length_m, cfg.resample_step_m)
+
+    def _load(self, scene: SceneInfo, projection: Projection) -> SceneMap:
+        problems: list[str] = []
+        path = Path(scene.map_path)
+        if scene.map_sha256 and path.is_file():
+            try:
+                digest = hashlib.sha256(path.read_bytes()).hexdigest()
+            except OSError as error:
+                digest = f"unreadable ({error})"
+            if digest != scene.map_sha256:
+                problems.append(f"map_sha256_mismatch: {path} has {digest[:12]}, the scene names {scene.map_sha256[:12]}")
+        road_map, found = load_map(
+            path, scene.origin_lat_deg, scene.origin_lon_deg, projection, resample_step_m=self.config.resample_step_m
+        )
+        problems.extend(f"{p.kind.name.lower()}: {p.detail}" for p in found)
+        if road_map is None or not road_map.lanelet_ids:
+            return SceneMap(None, None, None, tuple(problems) or ("no car lanelets",), projection)
+        cfg = self.config
+        routes = RouteCache(
+            road_map,
+            cfg.route_length_m,
+            lane_changes=cfg.lane_change_corridors,
+            lane_change_length_m=cfg.lane_change_length_m,
+        )
+        return SceneMap(road_map, LaneletIndex(road_map), routes, tuple(problems), projection)
+
+
+# --------------------------------------------------------------------------- per-track state
+
+
+@dataclass(slots=True)
+class _Track:
+    """What the builder remembers about one track between frames."""
+
+    last_stamp_ns: int
+    history: collections.deque = field(default_factory=lambda: collections.deque(maxlen=64))
+    motion_heading_rad: float | None = None
+    matched: tuple[int, ...] = ()
+    routes: dict[tuple[int, ...], int] = field(default_factory=dict)
+    emitted: frozenset[int] = frozenset()
+    frenet: dict[int, tuple[int, float]] = field(default_factory=dict)
+    speed_mps: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class _Kinematics:
+    speed_mps: float
+    heading_rad: float
+    heading_ambiguous: bool
+    heading_confident: bool
+    heading_known: bool = True
+
+
+@dataclass(slots=True)
+class _Candidate:
+    path: tuple[int, ...]
+    geometry: RouteGeometry
+    match: LaneletMatch
+    s_m: float
+    d_m: float
+    corridor_id: int = -1
+    corridor: Corridor | None = None
+
+
+def _route_overlap(old: tuple[int, ...], new: tuple[int, ...]) -> int:
+    """Lanelets two routes share when one continues the other consistently; 0 if they do not."""
+    for a, b in ((old, new), (new, old)):
+        if b[0] in a:
+            tail = a[a.index(b[0]) :]
+            n = min(len(tail), len(b))
+            if tail[:n] == b[:n]:
+                return n
+    return 0
+
+
+# --------------------------------------------------------------------------- the core
+
+
+class CorridorBuilder:
+    """TrackFrame (+ latched SceneInfo) -> CorridorSet; see the package docstring."""
+
+    def __init__(
+        self,
+        config: CorridorsConfig,
+        *,
+        scene_maps: SceneMaps | None = None,
+        producer: str = "corridors",
+        log: logging.Logger | None = None,
+    ) -> None:
+        self.config = config
+        self.producer = producer
+        self.log = log
+        self.scene_maps = scene_maps or SceneMaps(config)
+        self._scene_id: str | None = None
+        self._map: SceneMap | None = None
+        self._tracks: dict[int, _Track] = {}
+        self._last_stamp_ns: int | None = None
+
+    @property
+    def scene_map(self) -> SceneMap | None:
+        """The map of the current scene (None before the first scene)."""
+        return self._map
+
+    @property
+    def tracked_ids(self) -> frozenset[int]:
+        """Track ids with state kept between frames (dropped after `track_timeout_s` unseen)."""
+        return frozenset(self._tracks)
+
+    # ----- entry point -------------------------------------------------------
+
+    def update(self, inputs: Mapping[str, object]) -> StageResult:
+        """One frame: `inputs["track_frame"]` (TrackFrame) and `inputs["scene"]` (SceneInfo or absent)."""
+        frame = inputs.get("track_frame")
+        scene = inputs.get("scene")
+        if not isinstance(frame, TrackFrame):
+            return StageResult(issues=[Issue("no_frame", -1, "update without a track_frame")])
+        corridor_set, issues = self.process(frame, scene if isinstance(scene, SceneInfo) else None)
+        return StageResult(outputs={"corridor_set": corridor_set}, issues=issues)
+
+    def process(self, frame: TrackFrame, scene: SceneInfo | None) -> tuple[CorridorSet, list[Issue]]:
+        """The pure function behind `update`: (output, issues)."""
+        issues: list[Issue] = []
+        scene_map = self._scene(frame, scene, issues)
+        stamp = int(frame.header.stamp_ns)
+        self._expire(stamp, issues)
+        n = len(frame)
+        entries: list[VehicleCorridors | None] = [None] * n
+        to_match: list[tuple[int, int, AgentType, _Kinematics]] = []
+        seen: set[int] = set()
+        for row in range(n):
+            track_id = int(frame.track_ids[row])
+            agent_type = self._agent_type(int(frame.agent_types[row]), track_id, issues)
+            vx, vy = float(frame.vx_mps[row]), float(frame.vy_mps[row])
+            reported_speed = math.hypot(vx, vy) if math.isfinite(vx) and math.isfinite(vy) else math.nan
+            if track_id in seen:
+                issues.append(Issue("duplicate_track", track_id, "track id appears twice in one frame; later row skipped"))
+                entries[row] = _entry(track_id, agent_type, MatchStatus.BAD_STATE, reported_speed)
+                continue
+            seen.add(track_id)
+            if not agent_type.is_vehicle:
+                entries[row] = _entry(track_id, agent_type, MatchStatus.NOT_A_VEHICLE, reported_speed)
+                continue
+            kin = self._kinematics(frame, row, track_id, stamp)
+            if kin is None:
+                detail = f"non-finite state x={frame.x_m[row]} y={frame.y_m[row]} vx={vx} vy={vy} yaw={frame.yaw_rad[row]}"
+                issues.append(Issue("bad_state", track_id, detail))
+                entries[row] = _entry(track_id, agent_type, MatchStatus.BAD_STATE, reported_speed)
+                continue
+            if scene_map is None or scene_map.road_map is None:
+                entries[row] = _entry(track_id, agent_type, MatchStatus.OFF_MAP, kin.speed_mps)
+                continue
+            to_match.append((row, track_id, agent_type, kin))
+        if to_match:
+            self._match_and_build(frame, scene_map, to_match, entries, issues)
+        header = Header(
+            run_id=frame.header.run_id,
+            frame_index=frame.header.frame_index,
+            stamp_ns=stamp,
+            producer=self.producer,
+        )
+        scene_id = scene.scene_id if scene is not None else frame.scene_id
+        return CorridorSet(header=header, scene_id=scene_id, vehicles=tuple(entries)), issues
+
+    # ----- scene and time ------------------------------------------------------
+
+    def _scene(self, frame: TrackFrame, scene: SceneInfo | None, issues: list[Issue]) -> SceneMap | None:
+        if scene is None:
+            issues.append(Issue("no_map", -1, "no SceneInfo received yet: every vehicle is OFF_MAP"))
+            return None
+        if scene.scene_id != self._scene_id:
+            self._scene_id = scene.scene_id
+            self._map = self.scene_maps.get(scene, self.config.projection)
+            self._tracks.clear()
+            for problem in self._map.problems:
+                kind = "map_sha256_mismatch" if problem.startswith("map_sha256_mismatch") else "map_problem"
+                issues.append(Issue(kind, -1, problem))
+            if self.log is not None:
+                road_map = self._map.road_map
+                self.log.info(
+                    "scene loaded: scene_id=%s map=%s projection=%s car_lanelets=%d problems=%d",
+                    scene.scene_id,
+                    scene.map_path,
+                    self._map.projection.name.lower(),
+                    len(road_map.lanelet_ids) if road_map is not None else 0,
+                    len(self._map.problems),
+                )
+        if self._map is None or self._map.road_map is None:
+            detail = "; ".join(self._map.problems) if self._map is not None else "no map"
+            issues.append(Issue("no_map", -1, f"map {scene.map_path} unusable: {detail}"))
+        if frame.scene_id and frame.scene_id != scene.scene_id:
+            issues.append(Issue("scene_mismatch", -1, f"frame names scene {frame.scene_id}, latched scene is {scene.scene_id}"))
+        return self._map
+
+    def _expire(self, stamp_ns: int, issues: list[Issue]) -> None:
+        if self._last_stamp_ns is not None and stamp_ns < self._last_stamp_ns:
+            issues.append(Issue("stamp_backwards", -1, f"stamp {stamp_ns} < {self._last_stamp_ns}: track state reset"))
+            self._tracks.clear()
+        self._last_stamp_ns = stamp_ns
+        timeout_ns = self.config.track_timeout_s / _NS
+        stale = [k for k, t in self._tracks.items() if stamp_ns - t.last_stamp_ns > timeout_ns]
+        for k in stale:
+            del self._tracks[k]
+
+    @staticmethod
+    def _agent_type(value: int, track_id: int, issues: list[Issue]) -> AgentType:
+        try:
+            agent_type = AgentType(value)
+        except ValueError:
+            agent_type = AgentType.UNKNOWN
+        if agent_type is AgentType.UNKNOWN:
+            issues.append(Issue("unknown_type", track_id, f"agent type {value}: treated as not a vehicle"))
+        return agent_type
+
+    # ----- kinematics ------------------------------------------------------------
+
+    def _kinematics(self, frame: TrackFrame, row: int, track_id: int, stamp: int) -> _Kinematics | None:
+        """Speed and heading for matching; heading from the track's own motion when they disagree.
+
+        The motion heading is the chord from the newest earlier position at
+        least `heading_min_travel_m` away (within `heading_window_s`). The
+        reported yaw is used when it agrees with it within
+        `yaw_agreement_rad`. A stopped car keeps its last motion heading.
+        Without any motion history the yaw is used, and the direction is
+        ambiguous (matched modulo pi) when yaw and reported velocity disagree
+        (the k733 quirk); below 1 m/s it is not known at all (the K729 yaw
+        of a standing car drifts by up to 90 degrees).
+        """
+        cfg = self.config
+        x, y = float(frame.x_m[row]), float(frame.y_m[row])
+        if not (math.isfinite(x) and math.isfinite(y)):
+            return None
+        vx, vy, yaw = float(frame.vx_mps[row]), float(frame.vy_mps[row]), float(frame.yaw_rad[row])
+        track = self._tracks.get(track_id)
+        if track is None:
+            track = _Track(last_stamp_ns=stamp)
+            self._tracks[track_id] = track
+        motion = None
+        history_speed = None
+        window_ns = cfg.heading_window_s / _NS
+        for t_ns, hx, hy in reversed(track.history):
+            if stamp - t_ns > window_ns or t_ns >= stamp:
+                break
+            dist = math.hypot(x - hx, y - hy)
+            if dist >= cfg.heading_min_travel_m:
+                motion = math.atan2(y - hy, x - hx)
+                history_speed = dist / ((stamp - t_ns) * _NS)
+                break
+        if track.history and history_speed is None:
+            t_ns, hx, hy = track.history[0]
+            if 0 < stamp - t_ns <= window_ns:
+                history_speed = math.hypot(x - hx, y - hy) / ((stamp - t_ns) * _NS)
+        track.history.append((stamp, x, y))
+        track.last_stamp_ns = stamp
+        velocity_ok = math.isfinite(vx) and math.isfinite(vy)
+        speed = math.hypot(vx, vy) if velocity_ok else history_speed
+        if speed is None:
+            return None
+        yaw_ok = math.isfinite(yaw)
+        if motion is not None:
+            track.motion_heading_rad = motion
+            if yaw_ok and abs(float(wrap_angle_rad(yaw - motion))) <= cfg.yaw_agreement_rad:
+                return _Kinematics(speed, yaw, False, True)
+            return _Kinematics(speed, motion, False, True)
+        if track.motion_heading_rad is not None:
+            return _Kinematics(speed, track.motion_heading_rad, False, False)
+        moving = velocity_ok and speed >= 1.0
+        if yaw_ok:
+            ambiguous = moving and abs(float(wrap_angle_rad(math.atan2(vy, vx) - yaw))) > 0.5 * math.pi
+            return _Kinematics(speed, yaw, ambiguous, False, heading_known=moving)
+        if moving:
+            return _Kinematics(speed, math.atan2(vy, vx), True, False)
+        return None
+
+    # ----- matching and corridors -----------------------------------------------
+
+    def _match_and_build(self, frame: TrackFrame, scene_map: SceneMap, to_match, entries, issues: list[Issue]) -> None:
+        cfg = self.config
+        index = scene_map.index
+        rows = [r for r, *_ in to_match]
+        points = np.column_stack([np.asarray(frame.x_m)[rows], np.asarray(frame.y_m)[rows]])
+        meas = index.measure(points, max_distance_m=cfg.match_max_distance_m, entry_extension_m=cfg.entry_extension_m)
+        for k, (row, track_id, agent_type, kin) in enumerate(to_match):
+            track = self._tracks[track_id]
+            matches, near = select_lanelets(
+                index,
+                meas,
+                k,
+                heading_rad=kin.heading_rad,
+                heading_ambiguous=kin.heading_ambiguous,
+                heading_confident=kin.heading_confident,
+                heading_known=kin.heading_known,
+                allowed=self._allowed(scene_map.road_map, track.matched),
+                previous=track.matched,
+                max_heading_rad=cfg.match_max_heading_rad,
+                ambiguity_margin_m=cfg.ambiguity_margin_m,
+                continuity_margin_m=cfg.continuity_margin_m,
+            )
+            if not matches:
+                if near:
+                    issues.append(Issue("off_map_heading", track_id, f"near car lanelets but heading {kin.heading_rad:.2f} rad agrees with none (wrong way or manoeuvring)"))
+                else:
+                    issues.append(Issue("off_map", track_id, f"no car lanelet within {cfg.match_max_distance_m} m of ({points[k, 0]:.1f}, {points[k, 1]:.1f})"))
+                entries[row] = _entry(track_id, agent_type, MatchStatus.OFF_MAP, kin.speed_mps)
+                continue
+            corridors, truncated = self._corridors(scene_map, track, points[k], kin, matches)
+            if truncated:
+                issues.append(Issue("corridors_truncated", track_id, f"{truncated} corridors beyond max_corridors_per_vehicle dropped"))
+            track.matched = tuple(m.lanelet_id for m in matches)
+            track.speed_mps = kin.speed_mps
+            entries[row] = VehicleCorridors(
+                track_id=track_id,
+                agent_type=agent_type,
+                status=MatchStatus.MATCHED,
+                lanelet_id=matches[0].lanelet_id,
+                match_distance_m=matches[0].centre_distance_m,
+                speed_mps=kin.speed_mps,
+                corridors=corridors,
+            )
+
+    @staticmethod
+    def _allowed(road_map: RoadMap, previous: tuple[int, ...]) -> frozenset[int]:
+        """Continuity set: the previous lanelets, two levels of successors, and siblings."""
+        allowed = set(previous)
+        for lanelet_id in previous:
+            for succ in road_map.successors(lanelet_id):
+                allowed.add(succ)
+                allowed.update(road_map.successors(succ))
+            for pred in road_map.predecessors(lanelet_id):
+                allowed.update(road_map.successors(pred))
+        return frozenset(allowed)
+
+    def _predecessor(self, road_map: RoadMap, lanelet_id: int, track: _Track) -> int | None:
+        """The lanelet the vehicle came from.
+
+        A previously matched or routed predecessor; else the only one; else
+        the one nearest to where the track was `behind_m` ago; else the one
+        continuing the lanelet's start heading most closely.
+        """
+        preds = road_map.predecessors(lanelet_id)
+        if not preds:
+            return None
+        for known in (set(track.matched), set().union(*track.routes) if track.routes else set()):
+            for pred in preds:
+                if pred in known:
+                    return pred
+        if len(preds) == 1:
+            return preds[0]
+        if track.history:
+            _t, x, y = track.history[-1]
+            for _t_ns, hx, hy in reversed(track.history):
+                if math.hypot(hx - x, hy - y) >= self.config.behind_m:
+                    back = np.array([hx, hy])
+                    return min(
+                        preds,
+                        key=lambda p: (float(np.hypot(*(road_map.lanelet(p).centreline.points_m - back).T).min()), p),
+                    )
+        start = road_map.lanelet(lanelet_id).centreline.heading_rad[0]
+        return min(preds, key=lambda p: (abs(float(wrap_angle_rad(road_map.lanelet(p).centreline.heading_rad[-1] - start))), p))
+
+    def _corridors(self, scene_map: SceneMap, track: _Track, xy, kin: _Kinematics, matches):
+        cfg = self.config
+        road_map, cache = scene_map.road_map, scene_map.routes
+        ahead = cfg.ahead_m(kin.speed_mps)
+        dt_s = 0.0
+        if len(track.history) >= 2:
+            dt_s = (track.history[-1][0] - track.history[-2][0]) * _NS
+        candidates: list[_Candidate] = []
+        for match in matches:
+            lanelet_id = match.lanelet_id
+            front: tuple[int, ...] = ()
+            if match.s_m - cfg.behind_m < 0.0:
+                pred = self._predecessor(road_map, lanelet_id, track)
+                front = (pred,) if pred is not None else ()
+            for path in cache.routes_from(lanelet_id, match.s_m + ahead):
+                geometry = cache.geometry(front + path)
+                s_first = float(geometry.lanelet_start_s_m[len(front)])
+                candidates.append(_Candidate(path, geometry, match, s_first + match.s_m, match.d_m))
+        candidates = self._drop_redundant_lane_changes(road_map, candidates)
+        self._assign_ids(track, candidates)
+        for cand in candidates:
+            # continuity (METHOD.md §8.10): search near the previous s of this corridor, else near the match
+            hint = cand.s_m
+            previous = track.frenet.get(cand.corridor_id)
+            if previous is not None and previous[0] in cand.geometry.lanelet_ids:
+                k = cand.geometry.lanelet_ids.index(previous[0])
+                hint = float(cand.geometry.lanelet_start_s_m[k]) + previous[1] + track.speed_mps * dt_s
+            cand.s_m, cand.d_m = project_vehicle(cand.geometry, xy, hint, cfg.frenet_window_m)
+        for cand in candidates:
+            cand.corridor = cut_corridor(
+                cand.geometry,
+                corridor_id=cand.corridor_id,
+                vehicle_s_m=cand.s_m,
+                vehicle_d_m=cand.d_m,
+                behind_m=cfg.behind_m,
+                ahead_m=ahead,
+                step_m=cfg.resample_step_m,
+            )
+        # merge near-identical corridors; keep ids seen last frame, then the most map-backed
+        order = sorted(
+            range(len(candidates)),
+            key=lambda i: (
+                candidates[i].corridor_id not in track.emitted,
+                -candidates[i].corridor.extension_start_s_m,
+                i,
+            ),
+        )
+        vehicle_index = int(round(cfg.behind_m / cfg.resample_step_m))
+        kept: list[_Candidate] = []
+        for i in order:
+            cand = candidates[i]
+            if any(max_separation_m(cand.corridor, other.corridor, vehicle_index) <= cfg.merge_tolerance_m for other in kept):
+                continue
+            kept.append(cand)
+        truncated = max(0, len(kept) - cfg.max_corridors_per_vehicle)
+        kept = kept[: cfg.max_corridors_per_vehicle]
+        rank = {id(c): i for i, c in enumerate(candidates)}
+        kept.sort(key=lambda c: rank[id(c)])  # output in match, then route order
+        track.routes = {c.path: c.corridor_id for c in candidates}
+        track.emitted = frozenset(c.corridor_id for c in kept)
+        track.frenet = {}
+        for c in kept:
+            geometry = c.geometry
+            k = int(np.clip(np.searchsorted(geometry.lanelet_start_s_m, c.s_m, side="right") - 1, 0, len(geometry.lanelet_ids) - 1))
+            track.frenet[c.corridor_id] = (geometry.lanelet_ids[k], c.s_m - float(geometry.lanelet_start_s_m[k]))
+        return tuple(c.corridor for c in kept), truncated
+
+    @staticmethod
+    def _drop_redundant_lane_changes(road_map: RoadMap, candidates: list[_Candidate]) -> list[_Candidate]:
+        """Drop a lane-change route whose part after the switch ends a plain route of the same vehicle.
+
+        A vehicle matched to two neighbouring lanes already has a corridor
+        along the other lane; switching into it later adds nothing.
+        """
+        def switch_index(path: tuple[int, ...]) -> int | None:
+            for k in range(1, len(path)):
+                if path[k] not in road_map.successors(path[k - 1]):
+                    return k
+            return None
+
+        switches = [switch_index(c.path) for c in candidates]
+        plain = [c.path for c, k in zip(candidates, switches) if k is None]
+        kept = []
+        for cand, k in zip(candidates, switches):
+            if k is not None:
+                after = cand.path[k:]
+                if any(len(p) >= len(after) and p[len(p) - len(after) :] == after for p in plain):
+                    continue
+            kept.append(cand)
+        return kept
+
+    @staticmethod
+    def _assign_ids(track: _Track, candidates: list[_Candidate]) -> None:
+        """Inherit the id of the previous frame's route each candidate continues, else hash the route.
+
+        Pairs (candidate, old route) are taken by decreasing overlap; an old
+        id goes to one candidate only.
+        """
+        pairs = []
+        for i, cand in enumerate(candidates):
+            for old, cid in track.routes.items():
+                overlap = _route_overlap(old, cand.path)
+                if overlap:
+                    pairs.append((-overlap, cid, i))
+        pairs.sort()
+        taken_ids: set[int] = set()
+        for _neg, cid, i in pairs:
+            if candidates[i].corridor_id < 0 and cid not in taken_ids:
+                candidates[i].corridor_id = cid
+                taken_ids.add(cid)
+        for cand in candidates:
+            if cand.corridor_id < 0:
+                cid = route_hash(cand.path)
+                while cid in taken_ids:
+                    cid = (cid + 1) & ((1 << 63) - 1)
+                cand.corridor_id = cid
+                taken_ids.add(cid)
+
+
+def _entry(track_id: int, agent_type: AgentType, status: MatchStatus, speed_mps: float) -> VehicleCorridors:
+    return VehicleCorridors(
+        track_id=track_id,
+        agent_type=agent_type,
+        status=status,
+        lanelet_id=-1,
+        match_distance_m=-1.0,
+        speed_mps=float(speed_mps) if speed_mps is not None else math.nan,
+        corridors=(),
+    )

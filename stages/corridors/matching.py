@@ -1,0 +1,226 @@
+"""Map matching for the corridors stage: which car lanelets a vehicle may be on.
+
+`LaneletIndex` holds the static geometry of a `RoadMap` as padded numpy arrays
+(centreline segments, polygon edges, widths), so that one call measures every
+vehicle of a frame against every car lanelet at once. `select_lanelets` then
+applies the matching rule of the package docstring to one vehicle.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from stages.maps import RoadMap, wrap_angle_rad
+
+INSIDE = 0
+"""Candidate level: the position lies inside the lanelet's polygon."""
+NEAR = 1
+"""Candidate level: outside the polygon but within `match_max_distance_m` of it."""
+ENTRY_EXTENSION = 2
+"""Candidate level: on the straight backward extension of a lanelet without predecessor."""
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Measurements:
+    """Every vehicle of a frame against every car lanelet; arrays (n_vehicles, n_lanelets).
+
+    `s_m` is the arc length of the centreline foot point (clipped to the
+    lanelet; negative on an entry extension), `d_m` the signed lateral offset
+    (left positive), `centre_distance_m` the distance to the centreline (or to
+    the backward extension for level ENTRY_EXTENSION), `heading_rad` the
+    centreline heading at the foot, `level` INSIDE / NEAR / ENTRY_EXTENSION or
+    -1 (not a candidate by position).
+    """
+
+    s_m: np.ndarray
+    d_m: np.ndarray
+    centre_distance_m: np.ndarray
+    heading_rad: np.ndarray
+    level: np.ndarray
+
+
+class LaneletIndex:
+    """Padded per-lanelet geometry of a `RoadMap` for vectorised matching."""
+
+    def __init__(self, road_map: RoadMap) -> None:
+        self.road_map = road_map
+        self.ids = np.asarray(road_map.lanelet_ids, dtype=np.int64)
+        self.column = {int(x): k for k, x in enumerate(self.ids)}
+        infos = [road_map.lanelet(int(x)) for x in self.ids]
+        n = len(infos)
+        self.widths_m = np.array([i.width_m for i in infos])
+        self.lengths_m = np.array([i.length_m for i in infos])
+        n_seg = max((len(i.centreline.s_m) - 1 for i in infos), default=1)
+        self.seg_start = np.zeros((n, n_seg, 2))
+        self.seg_vec = np.zeros((n, n_seg, 2))
+        self.seg_s0 = np.zeros((n, n_seg))
+        self.seg_heading = np.zeros((n, n_seg))
+        self.seg_valid = np.zeros((n, n_seg), dtype=bool)
+        n_edge = max((len(i.left_bound_m) + len(i.right_bound_m) for i in infos), default=1)
+        self.edge_start = np.zeros((n, n_edge, 2))
+        self.edge_vec = np.zeros((n, n_edge, 2))
+        self.edge_valid = np.zeros((n, n_edge), dtype=bool)
+        for k, info in enumerate(infos):
+            line = info.centreline
+            pts = line.points_m
+            m = len(pts) - 1
+            self.seg_start[k, :m] = pts[:-1]
+            self.seg_vec[k, :m] = np.diff(pts, axis=0)
+            self.seg_s0[k, :m] = line.s_m[:-1]
+            self.seg_heading[k, :m] = np.arctan2(self.seg_vec[k, :m, 1], self.seg_vec[k, :m, 0])
+            self.seg_valid[k, :m] = True
+            polygon = np.concatenate([info.left_bound_m, info.right_bound_m[::-1]])
+            e = len(polygon)
+            self.edge_start[k, :e] = polygon
+            self.edge_vec[k, :e] = np.roll(polygon, -1, axis=0) - polygon
+            self.edge_valid[k, :e] = True
+        self.seg_len2 = np.maximum((self.seg_vec**2).sum(axis=2), 1e-18)
+        self.edge_len2 = np.maximum((self.edge_vec**2).sum(axis=2), 1e-18)
+        self.is_entry = np.array([not road_map.predecessors(int(x)) for x in self.ids], dtype=bool)
+        self.start_xy = np.array([i.centreline.points_m[0] for i in infos]).reshape(n, 2)
+        self.start_heading = np.array([i.centreline.heading_rad[0] for i in infos])
+
+    def measure(
+        self, points_m: np.ndarray, *, max_distance_m: float, entry_extension_m: float
+    ) -> Measurements:
+        """Measure points (n, 2) against every lanelet (one `inside_matrix` call)."""
+        p = np.asarray(points_m, dtype=np.float64).reshape(-1, 2)
+        n_pts, n_l = len(p), len(self.ids)
+        inside = self.road_map.inside_matrix(p) if n_pts else np.zeros((0, n_l), dtype=bool)
+        # centreline foot points, clipped to each lanelet
+        rel = p[:, None, None, :] - self.seg_start[None]
+        t = np.clip((rel * self.seg_vec[None]).sum(axis=3) / self.seg_len2[None], 0.0, 1.0)
+        diff = rel - t[..., None] * self.seg_vec[None]
+        dist2 = np.where(self.seg_valid[None], (diff**2).sum(axis=3), np.inf)
+        j = dist2.argmin(axis=2)
+        pi, li = np.meshgrid(np.arange(n_pts), np.arange(n_l), indexing="ij")
+        centre = np.sqrt(dist2[pi, li, j])
+        tj = t[pi, li, j]
+        seg_len = np.sqrt(self.seg_len2[li, j])
+        s = self.seg_s0[li, j] + tj * seg_len
+        vec = self.seg_vec[li, j]
+        r = rel[pi, li, j]
+        d = (vec[..., 0] * r[..., 1] - vec[..., 1] * r[..., 0]) / seg_len
+        heading = self.seg_heading[li, j]
+        # distance to the polygon boundary, for positions outside it
+        rel_e = p[:, None, None, :] - self.edge_start[None]
+        te = np.clip((rel_e * self.edge_vec[None]).sum(axis=3) / self.edge_len2[None], 0.0, 1.0)
+        de2 = ((rel_e - te[..., None] * self.edge_vec[None]) ** 2).sum(axis=3)
+        poly_dist = np.sqrt(np.where(self.edge_valid[None], de2, np.inf).min(axis=2))
+        level = np.full((n_pts, n_l), -1, dtype=np.int8)
+        level[(poly_dist <= max_distance_m) & ~inside] = NEAR
+        level[inside] = INSIDE
+        if entry_extension_m > 0.0 and self.is_entry.any():
+            # behind the start of an entry lanelet, along its straight backward extension
+            ux, uy = np.cos(self.start_heading), np.sin(self.start_heading)
+            rx = p[:, 0:1] - self.start_xy[None, :, 0]
+            ry = p[:, 1:2] - self.start_xy[None, :, 1]
+            s_ext = rx * ux[None] + ry * uy[None]
+            d_ext = ux[None] * ry - uy[None] * rx
+            on_ext = (
+                self.is_entry[None]
+                & (level < 0)
+                & (s_ext < 0.0)
+                & (s_ext >= -entry_extension_m)
+                & (np.abs(d_ext) <= 0.5 * self.widths_m[None] + max_distance_m)
+            )
+            level[on_ext] = ENTRY_EXTENSION
+            s = np.where(on_ext, s_ext, s)
+            d = np.where(on_ext, d_ext, d)
+            centre = np.where(on_ext, np.abs(d_ext), centre)
+            heading = np.where(on_ext, self.start_heading[None], heading)
+        return Measurements(s_m=s, d_m=d, centre_distance_m=centre, heading_rad=heading, level=level)
+
+
+@dataclass(frozen=True, slots=True)
+class LaneletMatch:
+    """One lanelet a vehicle was matched to, with its Frenet position on it."""
+
+    lanelet_id: int
+    level: int
+    s_m: float
+    d_m: float
+    centre_distance_m: float
+    heading_error_rad: float
+
+
+def heading_errors_rad(vehicle_heading_rad: float, lane_heading_rad: np.ndarray, ambiguous: bool) -> np.ndarray:
+    """|heading difference|; modulo pi when the vehicle's direction is ambiguous."""
+    err = np.abs(wrap_angle_rad(np.asarray(lane_heading_rad) - vehicle_heading_rad))
+    return np.minimum(err, math.pi - err) if ambiguous else err
+
+
+def select_lanelets(
+    index: LaneletIndex,
+    meas: Measurements,
+    row: int,
+    *,
+    heading_rad: float,
+    heading_ambiguous: bool,
+    heading_confident: bool,
+    heading_known: bool = True,
+    allowed: frozenset[int],
+    previous: tuple[int, ...] = (),
+    max_heading_rad: float,
+    ambiguity_margin_m: float,
+    continuity_margin_m: float,
+) -> tuple[tuple[LaneletMatch, ...], bool]:
+    """The lanelets vehicle `row` is matched to, best first, and whether any lay near by position.
+
+    Rule (package docstring): a candidate lies inside, near or on an entry
+    extension of the lanelet and agrees in heading; a `previous` lanelet
+    that is still a candidate by position counts as agreeing when the
+    heading is not confident (no fresh motion) or when nothing else agrees;
+    without `heading_known` (a slow car never seen moving) every candidate
+    by position counts if none agrees in heading.
+    Among the candidates, the lanelets of `allowed` (continuity) win unless
+    another lies more than `continuity_margin_m` closer to its centreline (a
+    lane change); then
+    every candidate within `ambiguity_margin_m` of the best centreline
+    distance is kept. A kept lanelet whose predecessor is also kept is
+    dropped (the route from the predecessor contains it).
+    """
+    level = meas.level[row]
+    near = level >= 0
+    if not near.any():
+        return (), False
+    errors = heading_errors_rad(heading_rad, meas.heading_rad[row], heading_ambiguous)
+    ok = near & (errors <= max_heading_rad)
+    if previous and (not heading_confident or not ok.any()):
+        # a heading glitch (yaw noise of a slow car, a tracker jump) does not move a car out of its lane
+        ok |= near & np.isin(index.ids, np.fromiter(previous, dtype=np.int64, count=len(previous)))
+    if not heading_known and not ok.any():
+        # a standing car seen for the first time: its yaw may be anything (K729), go by position
+        ok = near
+    if not ok.any():
+        return (), True
+    pool = ok
+    if allowed:
+        cont = pool & np.isin(index.ids, np.fromiter(allowed, dtype=np.int64, count=len(allowed)))
+        centre = meas.centre_distance_m[row]
+        if cont.any() and centre[cont].min() <= centre[pool].min() + continuity_margin_m:
+            pool = cont
+    dist = np.where(pool, meas.centre_distance_m[row], np.inf)
+    keep = pool & (dist <= dist.min() + ambiguity_margin_m)
+    cols = np.flatnonzero(keep)
+    cols = cols[np.lexsort((index.ids[cols], dist[cols]))]
+    kept_ids = {int(index.ids[c]) for c in cols}
+    matches = []
+    for c in cols:
+        lanelet_id = int(index.ids[c])
+        if any(p in kept_ids for p in index.road_map.predecessors(lanelet_id)):
+            continue
+        matches.append(
+            LaneletMatch(
+                lanelet_id=lanelet_id,
+                level=int(level[c]),
+                s_m=float(meas.s_m[row, c]),
+                d_m=float(meas.d_m[row, c]),
+                centre_distance_m=float(meas.centre_distance_m[row, c]),
+                heading_error_rad=float(errors[c]),
+            )
+        )
+    return tuple(matches), True

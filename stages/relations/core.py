@@ -1,0 +1,674 @@
+"""The pure part of the relations stage: `RelationsConfig`, `SceneTables` and `RelationExtractor`.
+
+See the package docstring for the rules; nothing here touches the bus or the
+wall clock.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+from bus_schemas import (
+    AgentType,
+    ConflictKind,
+    Corridor,
+    CorridorRelations,
+    CorridorSet,
+    Header,
+    RelationSet,
+    SceneInfo,
+    TrackFrame,
+    VehicleCorridors,
+)
+from stages._core import ConfigMixin, Issue, StageResult
+from stages.corridors.core import SceneMap, SceneMaps
+from stages.datasets import DEFAULT_SIZES_M
+from stages.maps import ConflictKind as MapConflictKind
+from stages.maps import Projection, RoadMap, parse_projection, project_to_polyline, wrap_angle_rad
+
+from .influence import NO_INFLUENCE, choose_influencing
+
+_KIND_ON_BUS = {MapConflictKind.CROSSING: ConflictKind.CROSSING, MapConflictKind.MERGE: ConflictKind.MERGE}
+
+
+@dataclass(frozen=True, kw_only=True)
+class RelationsConfig(ConfigMixin):
+    """Parameters of the relations stage (package docstring, METHOD.md §5)."""
+
+    lateral_margin_m: float = 0.5
+    lookahead_m: float = 100.0
+    lookbehind_m: float = 20.0
+    leader_max_heading_rad: float = math.pi / 3.0
+    stopped_speed_mps: float = 0.5
+    horizon_s: float = 4.0
+    horizon_margin_s: float = 2.0
+    min_time_speed_mps: float = 1.0
+    clear_margin_m: float = 0.5
+    duplicate_conflict_m: float = 1.0
+    refine_window_m: float = 3.0
+    min_route_probability: float = 0.1
+    projection: str = "auto"
+
+    def __post_init__(self) -> None:
+        positive = ("horizon_s", "min_time_speed_mps", "leader_max_heading_rad")
+        non_negative = ("lateral_margin_m", "lookahead_m", "lookbehind_m", "stopped_speed_mps", "horizon_margin_s",
+                        "clear_margin_m", "duplicate_conflict_m", "refine_window_m", "min_route_probability")
+        for name in positive:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"{name} = {value!r}: must be > 0")
+        for name in non_negative:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{name} = {value!r}: must be >= 0")
+        if self.min_route_probability > 1.0:
+            raise ValueError(f"min_route_probability = {self.min_route_probability!r}: must be <= 1")
+        if parse_projection(self.projection) is Projection.UNKNOWN:
+            known = ", ".join(p.name.lower() for p in Projection if p is not Projection.UNKNOWN)
+            raise ValueError(f"projection = {self.projection!r}: expected one of {known}")
+
+    @property
+    def conflict_horizon_s(self) -> float:
+        """Bound on the other vehicle's time to a conflict for the influencing rule (4 s + 2 s)."""
+        return self.horizon_s + self.horizon_margin_s
+
+
+# --------------------------------------------------------------------------- per-map tables
+
+
+class SceneTables:
+    """The map's lanelet relations as arrays, built once per map: per frame, conflicts are lookups.
+
+    Lanelets are numbered 0..n-1 in `RoadMap.lanelet_ids` order; index n
+    stands for any id the map does not know. `pair_first[a, b]` is the first
+    row of the point table for lanelets a and b (oriented: s on a, then on
+    b), -1 if they do not conflict, and `pair_count[a, b]` the number of
+    points. Point rows (p,): `point_kind` (bus ConflictKind values),
+    `point_s_a_m`, `point_s_b_m`, `point_x_m`, `point_y_m` and
+    `point_priority` (``RoadMap.priority(a, b)``: +1 when a has right of
+    way). Per lanelet (n + 1,): `intersection_id` (-1 if none) and the
+    member's `entry_s_m`/`exit_s_m`; `is_successor[a, b]` (n + 1, n + 1)
+    tells whether b follows a in the routing graph.
+    """
+
+    def __init__(self, road_map: RoadMap) -> None:
+        self.road_map = road_map
+        ids = road_map.lanelet_ids
+        n = len(ids)
+        self.n_lanelets = n
+        self._index = {lanelet_id: k for k, lanelet_id in enumerate(ids)}
+        self.pair_first = np.full((n + 1, n + 1), -1, dtype=np.int32)
+        self.pair_count = np.zeros((n + 1, n + 1), dtype=np.int32)
+        rows: list[tuple[int, float, float, float, float, int]] = []
+        for conflict in road_map.conflicts():
+            for a, b in ((conflict.lanelet_a_id, conflict.lanelet_b_id), (conflict.lanelet_b_id, conflict.lanelet_a_id)):
+                oriented = road_map.conflict(a, b)
+                if oriented is None or oriented.kind not in _KIND_ON_BUS:
+                    continue
+                i, j = self._index[a], self._index[b]
+                self.pair_first[i, j] = len(rows)
+                self.pair_count[i, j] = len(oriented.points)
+                priority = road_map.priority(a, b)
+                kind = int(_KIND_ON_BUS[oriented.kind])
+                rows.extend((kind, p.s_a_m, p.s_b_m, p.x_m, p.y_m, priority) for p in oriented.points)
+        table = np.array(rows, dtype=np.float64).reshape(-1, 6)
+        self.point_kind = table[:, 0].astype(np.uint8)
+        self.point_s_a_m = table[:, 1].copy()
+        self.point_s_b_m = table[:, 2].copy()
+        self.point_x_m = table[:, 3].copy()
+        self.point_y_m = table[:, 4].copy()
+        self.point_priority = table[:, 5].astype(np.int8)
+        self.is_successor = np.zeros((n + 1, n + 1), dtype=bool)
+        for lanelet_id in ids:
+            for succ in road_map.successors(lanelet_id):
+                self.is_successor[self._index[lanelet_id], self._index[succ]] = True
+        self.intersection_id = np.full(n + 1, -1, dtype=np.int64)
+        self.entry_s_m = np.full(n + 1, np.nan)
+        self.exit_s_m = np.full(n + 1, np.nan)
+        for intersection in road_map.intersections():
+            for member in intersection.members:
+                k = self._index[member.lanelet_id]
+                self.intersection_id[k] = intersection.intersection_id
+                self.entry_s_m[k] = member.entry_s_m
+                self.exit_s_m[k] = member.exit_s_m
+
+    def indices(self, lanelet_ids) -> np.ndarray:
+        """Table indices (k,) int64 of lanelet ids; unknown ids map to `n_lanelets`."""
+        return np.fromiter((self._index.get(int(x), self.n_lanelets) for x in lanelet_ids), dtype=np.int64)
+
+
+# --------------------------------------------------------------------------- per-frame inputs
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Objects:
+    """Every object of the frame, arrays (n,); `valid` marks finite positions (first row of a track id)."""
+
+    track_ids: np.ndarray
+    types: np.ndarray
+    xy: np.ndarray
+    length_m: np.ndarray
+    speed_mps: np.ndarray
+    heading_rad: np.ndarray
+    speed_known: np.ndarray
+    valid: np.ndarray
+
+
+@dataclass(slots=True, eq=False)
+class _Pair:
+    """One (vehicle, corridor) to relate; `g` numbers the pairs of the frame."""
+
+    g: int
+    vehicle: VehicleCorridors
+    corridor: Corridor
+    row: int
+    speed_mps: float
+    length_m: float
+    xy: np.ndarray
+    lanelet_index: np.ndarray
+    follows_lanelets: bool
+
+
+@dataclass(slots=True, eq=False)
+class _Conflicts:
+    """Every conflict of the frame from the view of pair `g`, arrays (c,), sorted by (g, s)."""
+
+    g: np.ndarray
+    other_g: np.ndarray
+    kind: np.ndarray
+    s_m: np.ndarray
+    other_s_m: np.ndarray
+    x_m: np.ndarray
+    y_m: np.ndarray
+    distance_m: np.ndarray
+    other_distance_m: np.ndarray
+    other_speed_mps: np.ndarray
+    time_s: np.ndarray
+    other_time_s: np.ndarray
+    priority: np.ndarray
+
+
+def _heading_at(corridor: Corridor, s_m: float) -> float:
+    return float(wrap_angle_rad(np.interp(s_m, corridor.s_m, np.unwrap(corridor.heading_rad))))
+
+
+def _corridor_problem(corridor: Corridor) -> str | None:
+    """Why a corridor cannot be related, or None."""
+    arrays = (corridor.x_m, corridor.y_m, corridor.s_m, corridor.heading_rad, corridor.width_m)
+    if len(corridor.x_m) < 2 or any(len(a) != len(corridor.x_m) for a in arrays):
+        return f"{len(corridor.x_m)} centreline points"
+    if not all(np.isfinite(a).all() for a in arrays):
+        return "non-finite centreline values"
+    if not corridor.s_m[-1] - corridor.s_m[0] > 0.0 or (np.diff(corridor.s_m) < 0.0).any():
+        return f"length {corridor.s_m[-1] - corridor.s_m[0]:.2f} m (zero or s not increasing)"
+    if not math.isfinite(corridor.vehicle_s_m):
+        return f"vehicle_s_m = {corridor.vehicle_s_m}"
+    if len(corridor.lanelet_ids) != len(corridor.lanelet_start_s_m) or not np.isfinite(corridor.lanelet_start_s_m).all():
+        return "lanelet_ids and lanelet_start_s_m disagree"
+    return None
+
+
+_EMPTY_I64 = np.zeros(0, dtype=np.int64)
+_EMPTY_F64 = np.zeros(0, dtype=np.float64)
+
+
+# --------------------------------------------------------------------------- the core
+
+
+class RelationExtractor:
+    """TrackFrame + CorridorSet (+ latched SceneInfo) -> RelationSet; see the package docstring."""
+
+    def __init__(
+        self,
+        config: RelationsConfig,
+        *,
+        producer: str = "relations",
+        scene_maps: SceneMaps | None = None,
+    ) -> None:
+        self.config = config
+        self.producer = producer
+        self.scene_maps = scene_maps or SceneMaps()
+        self._scene_id: str | None = None
+        self._map: SceneMap | None = None
+        self._tables: SceneTables | None = None
+
+    @property
+    def tables(self) -> SceneTables | None:
+        """The current scene's tables (None before a usable scene)."""
+        return self._tables
+
+    # ----- entry point -------------------------------------------------------
+
+    def update(self, inputs: Mapping[str, object]) -> StageResult:
+        """One frame: ``track_frame``, ``corridor_set`` (same stamp) and ``scene`` (latched, may be absent)."""
+        frame = inputs.get("track_frame")
+        corridor_set = inputs.get("corridor_set")
+        scene = inputs.get("scene")
+        if not isinstance(frame, TrackFrame) or not isinstance(corridor_set, CorridorSet):
+            missing = [n for n, v in (("track_frame", frame), ("corridor_set", corridor_set)) if v is None]
+            return StageResult(issues=[Issue("no_input", -1, f"update without {', '.join(missing) or 'the right types'}")])
+        relation_set, issues = self.process(frame, corridor_set, scene if isinstance(scene, SceneInfo) else None)
+        outputs = {"relation_set": relation_set} if relation_set is not None else {}
+        return StageResult(outputs=outputs, issues=issues)
+
+    def process(
+        self,
+        frame: TrackFrame,
+        corridor_set: CorridorSet,
+        scene: SceneInfo | None,
+        *,
+        route_probabilities: Mapping[tuple[int, int], float] | None = None,
+    ) -> tuple[RelationSet | None, list[Issue]]:
+        """The pure function behind `update`: (output, issues); output None on a stamp mismatch.
+
+        `route_probabilities` maps (track_id, corridor_id) to P(R = corridor)
+        from the intentions; when given, the influencing rule skips other
+        corridors below `min_route_probability`.
+        """
+        issues: list[Issue] = []
+        stamp = int(frame.header.stamp_ns)
+        if int(corridor_set.header.stamp_ns) != stamp:
+            issues.append(Issue("stamp_mismatch", -1, f"track_frame stamp {stamp} != corridor_set stamp {corridor_set.header.stamp_ns}: frame skipped"))
+            return None, issues
+        tables = self._scene(scene, corridor_set, issues)
+        objects = self._objects(frame, corridor_set, issues)
+        pairs = self._pairs(corridor_set, objects, tables, issues)
+        conflicts = self._conflicts(pairs, tables) if tables is not None and pairs else None
+        relations = []
+        starts = np.searchsorted(conflicts.g, np.arange(len(pairs) + 1)) if conflicts is not None else None
+        projected = _project_onto_corridors(objects.xy[objects.valid], pairs) if pairs else None
+        for pair in pairs:
+            lateral = self._lateral(pair, objects, projected)
+            crossings = self._intersections(pair, tables)
+            span = slice(starts[pair.g], starts[pair.g + 1]) if starts is not None else slice(0, 0)
+            relations.append(self._relations(pair, pairs, objects, lateral, crossings, conflicts, span, route_probabilities))
+        header = Header(run_id=frame.header.run_id, frame_index=frame.header.frame_index, stamp_ns=stamp, producer=self.producer)
+        scene_id = scene.scene_id if scene is not None else corridor_set.scene_id
+        return RelationSet(header=header, scene_id=scene_id, relations=tuple(relations)), issues
+
+    # ----- scene -------------------------------------------------------------
+
+    def _scene(self, scene: SceneInfo | None, corridor_set: CorridorSet, issues: list[Issue]) -> SceneTables | None:
+        if scene is None:
+            issues.append(Issue("no_map", -1, "no SceneInfo received yet: lateral relations only"))
+            return None
+        if scene.scene_id != self._scene_id:
+            self._scene_id = scene.scene_id
+            self._map = self.scene_maps.get(scene, self.config.projection)
+            road_map = self._map.road_map
+            self._tables = SceneTables(road_map) if road_map is not None else None
+            for problem in self._map.problems:
+                kind = "map_sha256_mismatch" if problem.startswith("map_sha256_mismatch") else "map_problem"
+                issues.append(Issue(kind, -1, problem))
+        if self._tables is None:
+            issues.append(Issue("no_map", -1, f"map {scene.map_path} unusable: lateral relations only"))
+        if corridor_set.scene_id and corridor_set.scene_id != scene.scene_id:
+            issues.append(Issue("scene_mismatch", -1, f"corridor_set names scene {corridor_set.scene_id}, latched scene is {scene.scene_id}"))
+        return self._tables
+
+    # ----- inputs --------------------------------------------------------------
+
+    def _objects(self, frame: TrackFrame, corridor_set: CorridorSet, issues: list[Issue]) -> _Objects:
+        """Objects with length, speed and heading; a matched vehicle's heading is its corridor's."""
+        n = len(frame)
+        track_ids = np.asarray(frame.track_ids, dtype=np.int64)
+        xy = np.column_stack([np.asarray(frame.x_m, np.float64), np.asarray(frame.y_m, np.float64)]).reshape(n, 2)
+        valid = np.isfinite(xy).all(axis=1)
+        _, first = np.unique(track_ids, return_index=True)
+        unique = np.zeros(n, dtype=bool)
+        unique[first] = True
+        for row in np.flatnonzero(~unique):
+            issues.append(Issue("duplicate_track", int(track_ids[row]), "track id appears twice in the frame; later row ignored"))
+        for row in np.flatnonzero(unique & ~valid):
+            issues.append(Issue("nan_state", int(track_ids[row]), f"non-finite position ({xy[row, 0]}, {xy[row, 1]}): ignored"))
+        valid &= unique
+        types = np.asarray(frame.agent_types, dtype=np.uint8)
+        length = np.asarray(frame.length_m, dtype=np.float64).copy()
+        bad_length = ~(np.isfinite(length) & (length > 0.0))
+        for row in np.flatnonzero(bad_length):
+            try:
+                agent_type = AgentType(int(types[row]))
+            except ValueError:
+                agent_type = AgentType.UNKNOWN
+            length[row] = DEFAULT_SIZES_M[agent_type][0]
+        vx, vy = np.asarray(frame.vx_mps, np.float64), np.asarray(frame.vy_mps, np.float64)
+        speed = np.hypot(vx, vy)
+        heading = np.where(speed >= self.config.stopped_speed_mps, np.arctan2(vy, vx), np.asarray(frame.yaw_rad, np.float64))
+        known = np.isfinite(speed)
+        speed = np.where(known, speed, 0.0)
+        first_row = {int(track_ids[r]): int(r) for r in first}
+        with_corridors = np.zeros(n, dtype=bool)
+        for vehicle in corridor_set.vehicles:
+            row = first_row.get(vehicle.track_id)
+            if row is None or not vehicle.corridors:
+                continue
+            with_corridors[row] = True
+            corridor = vehicle.corridors[0]
+            if len(corridor.s_m) >= 2 and len(corridor.heading_rad) == len(corridor.s_m) and math.isfinite(corridor.vehicle_s_m):
+                along = _heading_at(corridor, corridor.vehicle_s_m)
+                if math.isfinite(along):
+                    heading[row] = along
+            if math.isfinite(vehicle.speed_mps):
+                speed[row] = max(float(vehicle.speed_mps), 0.0)
+                known[row] = True
+        for row in np.flatnonzero(valid & ~known & ~with_corridors):
+            issues.append(Issue("nan_velocity", int(track_ids[row]), "non-finite velocity: obstacle with speed 0"))
+        return _Objects(track_ids, types, xy, length, speed, heading, known, valid)
+
+    def _pairs(self, corridor_set, objects: _Objects, tables, issues) -> list[_Pair]:
+        """The (vehicle, corridor) pairs to relate; bad vehicles and corridors become issues."""
+        rows = {int(t): r for r, t in enumerate(objects.track_ids) if objects.valid[r]}
+        all_rows = {int(t) for t in objects.track_ids}
+        listed = {v.track_id for v in corridor_set.vehicles}
+        for track_id in sorted(all_rows - listed):
+            issues.append(Issue("missing_corridors", track_id, "in the TrackFrame but not in the CorridorSet: obstacle only"))
+        pairs: list[_Pair] = []
+        for vehicle in corridor_set.vehicles:
+            if not vehicle.corridors:
+                continue
+            row = rows.get(vehicle.track_id)
+            if row is None:
+                if vehicle.track_id not in all_rows:
+                    issues.append(Issue("missing_track", vehicle.track_id, "in the CorridorSet but not in the TrackFrame: skipped"))
+                continue
+            if not objects.speed_known[row]:
+                issues.append(Issue("nan_state", vehicle.track_id, "no finite speed: skipped (obstacle with speed 0)"))
+                continue
+            speed = float(objects.speed_mps[row])
+            for corridor in vehicle.corridors:
+                problem = _corridor_problem(corridor)
+                if problem is not None:
+                    issues.append(Issue("bad_corridor", vehicle.track_id, f"corridor {corridor.corridor_id}: {problem}: skipped"))
+                    continue
+                lanelet_index = tables.indices(corridor.lanelet_ids) if tables is not None else _EMPTY_I64
+                follows = tables is None or bool(tables.is_successor[lanelet_index[:-1], lanelet_index[1:]].all())
+                pairs.append(
+                    _Pair(
+                        g=len(pairs),
+                        vehicle=vehicle,
+                        corridor=corridor,
+                        row=row,
+                        speed_mps=max(speed, 0.0),
+                        length_m=float(objects.length_m[row]),
+                        xy=np.column_stack([corridor.x_m, corridor.y_m]),
+                        lanelet_index=lanelet_index,
+                        follows_lanelets=follows,
+                    )
+                )
+        return pairs
+
+    # ----- lateral relation --------------------------------------------------------
+
+    def _lateral(self, pair: _Pair, objects: _Objects, projected):
+        """Objects within the lane of the corridor, ordered by s, and the leader (row into them or -1).
+
+        `projected` is (s, d, heading) of every valid object on every
+        corridor, arrays (pairs, valid objects), from `_project_onto_corridors`.
+        """
+        cfg = self.config
+        corridor = pair.corridor
+        candidates = np.flatnonzero(objects.valid)
+        all_s, all_d, all_heading = (a[pair.g] for a in projected)
+        s_v = corridor.vehicle_s_m
+        half_width = 0.5 * np.interp(all_s, corridor.s_m, corridor.width_m)
+        inside = (
+            (objects.track_ids[candidates] != pair.vehicle.track_id)
+            & (np.abs(all_d) < half_width + cfg.lateral_margin_m)
+            & (all_s >= s_v - cfg.lookbehind_m)
+            & (all_s <= min(s_v + cfg.lookahead_m, float(corridor.s_m[-1])))
+        )
+        keep = np.flatnonzero(inside)
+        keep = keep[np.argsort(all_s[keep], kind="stable")]
+        rows = candidates[keep]
+        s, d = all_s[keep], all_d[keep]
+        relative = wrap_angle_rad(objects.heading_rad[rows] - all_heading[keep])
+        along = objects.speed_mps[rows] * np.cos(relative)
+        along = np.where(np.isfinite(along), along, 0.0)
+        half_lengths = 0.5 * (objects.length_m[rows] + pair.length_m)
+        ahead = s >= s_v
+        gap = np.where(ahead, np.maximum(s - s_v - half_lengths, 0.0), np.minimum(s - s_v + half_lengths, 0.0))
+        can_lead = ahead & (
+            (np.abs(np.nan_to_num(relative, nan=math.pi)) <= cfg.leader_max_heading_rad)
+            | (objects.speed_mps[rows] < cfg.stopped_speed_mps)
+        )
+        leader = int(np.flatnonzero(can_lead)[0]) if can_lead.any() else -1
+        return rows, s, d, gap, along, leader
+
+    # ----- corridor to intersection ------------------------------------------------
+
+    @staticmethod
+    def _intersections(pair: _Pair, tables: SceneTables | None):
+        """(ids, entry, exit, entry lanelet ids) of the intersections the corridor still has ahead or is in."""
+        if tables is None or not len(pair.lanelet_index):
+            return _EMPTY_I64, _EMPTY_F64, _EMPTY_F64, _EMPTY_I64
+        corridor = pair.corridor
+        ids = tables.intersection_id[pair.lanelet_index]
+        starts = corridor.lanelet_start_s_m
+        found = []
+        k, n = 0, len(ids)
+        while k < n:
+            if ids[k] < 0:
+                k += 1
+                continue
+            j = k
+            while j + 1 < n and ids[j + 1] == ids[k]:
+                j += 1
+            entry = float(starts[k] + tables.entry_s_m[pair.lanelet_index[k]])
+            exit_ = float(starts[j] + tables.exit_s_m[pair.lanelet_index[j]])
+            if exit_ >= corridor.vehicle_s_m:
+                found.append((int(ids[k]), entry, exit_, int(corridor.lanelet_ids[k])))
+            k = j + 1
+        if not found:
+            return _EMPTY_I64, _EMPTY_F64, _EMPTY_F64, _EMPTY_I64
+        cols = list(zip(*found))
+        return (
+            np.asarray(cols[0], dtype=np.int64),
+            np.asarray(cols[1], dtype=np.float64),
+            np.asarray(cols[2], dtype=np.float64),
+            np.asarray(cols[3], dtype=np.int64),
+        )
+
+    # ----- corridor to corridor -------------------------------------------------------
+
+    def _conflicts(self, pairs: list[_Pair], tables: SceneTables) -> _Conflicts:
+        """All conflict points between corridors of different vehicles, by table lookups.
+
+        Every lanelet occurrence of every corridor is looked up against every
+        other occurrence at once (`pair_first`), which gives s* = lanelet start
+        in the corridor + arc length within the lanelet on both corridors.
+        """
+        cfg = self.config
+        occ_g = np.concatenate([np.full(len(p.lanelet_index), p.g, dtype=np.int64) for p in pairs])
+        occ_lanelet = np.concatenate([p.lanelet_index for p in pairs])
+        occ_start = np.concatenate([np.asarray(p.corridor.lanelet_start_s_m, np.float64) for p in pairs])
+        vehicle_of = np.array([p.row for p in pairs], dtype=np.int64)
+        length_of = np.array([float(p.corridor.s_m[-1]) for p in pairs])
+        s_v = np.array([p.corridor.vehicle_s_m for p in pairs])
+        speed = np.array([p.speed_mps for p in pairs])
+        half_length = 0.5 * np.array([p.length_m for p in pairs])
+        occ_vehicle = vehicle_of[occ_g]
+        different = occ_vehicle[:, None] != occ_vehicle[None, :]
+        first = tables.pair_first[occ_lanelet[:, None], occ_lanelet[None, :]]
+        i, j = np.nonzero((first >= 0) & different)
+        count = tables.pair_count[occ_lanelet[i], occ_lanelet[j]]
+        point = np.repeat(first[i, j], count) + _ranges(count)
+        i, j = np.repeat(i, count), np.repeat(j, count)
+        g, other_g = occ_g[i], occ_g[j]
+        s = occ_start[i] + tables.point_s_a_m[point]
+        other_s = occ_start[j] + tables.point_s_b_m[point]
+        self._refine(pairs, tables, point, g, s)
+        self._refine(pairs, tables, point, other_g, other_s)
+        distance = s - s_v[g]
+        other_distance = other_s - s_v[other_g]
+        keep = (
+            (s >= 0.0) & (s <= length_of[g]) & (other_s >= 0.0) & (other_s <= length_of[other_g])
+            & (distance > -(half_length[g] + cfg.clear_margin_m))
+            & (other_distance > -(half_length[other_g] + cfg.clear_margin_m))
+        )
+        # a shared lanelet before the point on both corridors: a following relation, not a conflict
+        same = (occ_lanelet[:, None] == occ_lanelet[None, :]) & (occ_lanelet[:, None] < tables.n_lanelets) & different
+        si, sj = np.nonzero(same)
+        shared_start = np.full((len(pairs), len(pairs)), np.inf)
+        np.minimum.at(shared_start, (occ_g[si], occ_g[sj]), occ_start[si])
+        keep &= ~((shared_start[g, other_g] <= s) & (shared_start[other_g, g] <= other_s))
+        idx = np.flatnonzero(keep)
+        idx = idx[np.lexsort((s[idx], other_g[idx], g[idx]))]
+        # one point per place: the same crossing reached through two lanelet pairs (at a lanelet join)
+        if len(idx) > 1:
+            same_pair = (g[idx][1:] == g[idx][:-1]) & (other_g[idx][1:] == other_g[idx][:-1])
+            close = np.diff(s[idx]) < cfg.duplicate_conflict_m
+            idx = idx[np.concatenate([[True], ~(same_pair & close)])]
+        idx = idx[np.lexsort((other_g[idx], s[idx], g[idx]))]
+        floor = cfg.min_time_speed_mps
+        return _Conflicts(
+            g=g[idx],
+            other_g=other_g[idx],
+            kind=tables.point_kind[point[idx]],
+            s_m=s[idx],
+            other_s_m=other_s[idx],
+            x_m=tables.point_x_m[point[idx]],
+            y_m=tables.point_y_m[point[idx]],
+            distance_m=distance[idx],
+            other_distance_m=other_distance[idx],
+            other_speed_mps=speed[other_g[idx]],
+            time_s=distance[idx] / np.maximum(speed[g[idx]], floor),
+            other_time_s=other_distance[idx] / np.maximum(speed[other_g[idx]], floor),
+            priority=tables.point_priority[point[idx]],
+        )
+
+    def _refine(self, pairs: list[_Pair], tables: SceneTables, point, g, s) -> None:
+        """Arc lengths on corridors that change lane: the point projected onto the corridor near the lookup.
+
+        A lane-change corridor blends from one lane into its neighbour, so it
+        leaves its lanelets' centrelines around the join and the lookup s*
+        can be off by up to a metre there; elsewhere lookups are exact.
+        """
+        window = self.config.refine_window_m
+        for k in np.unique(g):
+            pair = pairs[k]
+            if pair.follows_lanelets or window <= 0.0:
+                continue
+            rows = np.flatnonzero((g == k) & (s > -window) & (s < pair.corridor.s_m[-1] + window))
+            if not len(rows):
+                continue
+            xy = np.column_stack([tables.point_x_m[point[rows]], tables.point_y_m[point[rows]]])
+            frenet = project_to_polyline(xy, pair.xy, pair.corridor.s_m, s_hint_m=s[rows], window_m=window)
+            s[rows] = frenet.s_m
+
+    # ----- assembly ------------------------------------------------------------------
+
+    def _relations(self, pair, pairs, objects, lateral, crossings, conflicts, span, route_probabilities) -> CorridorRelations:
+        """One corridor's message part, with the influencing conflict chosen by the rules."""
+        rows, s, d, gap, along, leader = lateral
+        corridor = pair.corridor
+        isect_ids, entry, exit_, entry_lanelets = crossings
+        if conflicts is not None and span.stop > span.start:
+            c = {name: getattr(conflicts, name)[span] for name in _Conflicts.__dataclass_fields__}
+        else:
+            c = None
+        if c is not None:
+            other_pairs = [pairs[k] for k in c["other_g"]]
+            probability = None
+            if route_probabilities is not None:
+                probability = np.array(
+                    [route_probabilities.get((p.vehicle.track_id, p.corridor.corridor_id), 1.0) for p in other_pairs]
+                )
+            index, rule = choose_influencing(
+                c["kind"], c["priority"], c["distance_m"], c["other_distance_m"], c["time_s"], c["other_time_s"],
+                horizon_s=self.config.conflict_horizon_s,
+                other_probability=probability,
+                min_probability=self.config.min_route_probability,
+            )
+            conflict_tracks = np.array([p.vehicle.track_id for p in other_pairs], dtype=np.int64)
+            conflict_corridors = np.array([p.corridor.corridor_id for p in other_pairs], dtype=np.int64)
+        else:
+            index, rule = -1, NO_INFLUENCE
+            conflict_tracks = conflict_corridors = _EMPTY_I64
+            c = {
+                "kind": np.zeros(0, np.uint8), "priority": np.zeros(0, np.int8),
+                **{k: _EMPTY_F64 for k in ("s_m", "other_s_m", "x_m", "y_m", "distance_m", "other_distance_m",
+                                           "other_speed_mps", "time_s", "other_time_s")},
+            }
+        return CorridorRelations(
+            track_id=pair.vehicle.track_id,
+            corridor_id=corridor.corridor_id,
+            object_track_ids=np.asarray(objects.track_ids[rows], dtype=np.int64),
+            object_types=np.asarray(objects.types[rows], dtype=np.uint8),
+            object_s_m=s,
+            object_d_m=d,
+            object_gap_m=gap,
+            object_speed_mps=along,
+            leader_track_id=-1 if leader < 0 else int(objects.track_ids[rows[leader]]),
+            leader_gap_m=math.nan if leader < 0 else float(gap[leader]),
+            leader_speed_mps=math.nan if leader < 0 else float(along[leader]),
+            intersection_ids=isect_ids,
+            intersection_entry_s_m=entry,
+            intersection_exit_s_m=exit_,
+            intersection_distance_m=entry - corridor.vehicle_s_m,
+            intersection_entry_lanelet_ids=entry_lanelets,
+            conflict_track_ids=conflict_tracks,
+            conflict_corridor_ids=conflict_corridors,
+            conflict_kinds=np.asarray(c["kind"], np.uint8),
+            conflict_s_m=c["s_m"],
+            conflict_other_s_m=c["other_s_m"],
+            conflict_x_m=c["x_m"],
+            conflict_y_m=c["y_m"],
+            conflict_distance_m=c["distance_m"],
+            conflict_other_distance_m=c["other_distance_m"],
+            conflict_other_speed_mps=c["other_speed_mps"],
+            conflict_time_s=c["time_s"],
+            conflict_other_time_s=c["other_time_s"],
+            conflict_priority=np.asarray(c["priority"], np.int8),
+            influencing_index=index,
+            influencing_rule=rule,
+        )
+
+
+def _project_onto_corridors(points_m: np.ndarray, pairs: list[_Pair]):
+    """Frenet (s, d, heading) of points (n, 2) on every pair's corridor at once; arrays (pairs, n).
+
+    The same projection as `maps.project_to_polyline` (nearest segment, the
+    end segments extended straight, d positive to the left, heading of the
+    foot segment), over all corridors padded to one length, so a frame costs
+    a few numpy calls instead of a few per corridor.
+    """
+    n_pairs, n = len(pairs), len(points_m)
+    n_segments = np.array([len(p.xy) - 1 for p in pairs])
+    m = int(n_segments.max())
+    line = np.zeros((n_pairs, m + 1, 2))
+    arc = np.zeros((n_pairs, m + 1))
+    for p in pairs:
+        line[p.g, : len(p.xy)] = p.xy
+        arc[p.g, : len(p.xy)] = p.corridor.s_m
+    segment = np.diff(line, axis=1)
+    valid = np.arange(m)[None, :] < n_segments[:, None]
+    length2 = np.where(valid, np.maximum((segment**2).sum(axis=2), 1e-18), 1.0)
+    lower = np.zeros((n_pairs, m))
+    upper = np.ones((n_pairs, m))
+    lower[:, 0] = -np.inf
+    upper[np.arange(n_pairs), n_segments - 1] = np.inf
+    rel = points_m[None, :, None, :] - line[:, None, :-1, :]
+    t = np.clip((rel * segment[:, None]).sum(axis=3) / length2[:, None], lower[:, None], upper[:, None])
+    off = rel - t[..., None] * segment[:, None]
+    dist2 = np.where(valid[:, None], (off**2).sum(axis=3), np.inf)
+    j = dist2.argmin(axis=2)
+    g = np.arange(n_pairs)[:, None]
+    k = np.arange(n)[None, :]
+    seg_len = np.sqrt(length2[g, j])
+    ux, uy = segment[g, j, 0] / seg_len, segment[g, j, 1] / seg_len
+    s = arc[g, j] + t[g, k, j] * seg_len
+    d = ux * rel[g, k, j, 1] - uy * rel[g, k, j, 0]
+    return s, d, np.arctan2(uy, ux)
+
+
+def _ranges(count: np.ndarray) -> np.ndarray:
+    """0..count[k]-1 for every k, concatenated (count (n,) int)."""
+    total = int(count.sum())
+    if total == 0:
+        return np.zeros(0, dtype=np.int64)
+    starts = np.repeat(np.cumsum(count) - count, count)
+    return np.arange(total, dtype=np.int64) - starts
