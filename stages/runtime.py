@@ -461,36 +461,45 @@ class Node:
         msg = self._decode(port, key, data)
         if msg is None:
             return
+        lat_ms = math.nan
         if self.spec.inputs[port].latched:
             self._latched_in[port] = msg
+        else:
+            header = getattr(msg, "header", None)
+            stamp = int(header.stamp_ns) if header is not None else 0
+            lat_ms = (recv_ns - stamp) / 1e6 if header is not None else math.nan
+            entry = self._pending.setdefault(stamp, {})
+            self._pending_since.setdefault(stamp, time.monotonic())
+            if port in entry:
+                self.stats.counters["join_drops"] += 1
+                self.log.warning("duplicate input: port=%s stamp_ns=%d (older one replaced)", port, stamp)
+            entry[port] = msg
+        self._run_ready(core, lat_ms)
+        self._expire_pending()
+
+    def _run_ready(self, core: Any, lat_ms: float) -> None:
+        """Run the core on every complete input set, oldest first.
+
+        Sets wait (bounded by the join window and timeout) while a latched
+        input has not arrived yet: a frame may overtake the scene on the wire.
+        """
+        if any(p not in self._latched_in for p in self._required_latched()):
             return
-        header = getattr(msg, "header", None)
-        stamp = int(header.stamp_ns) if header is not None else 0
-        lat_ms = (recv_ns - stamp) / 1e6 if header is not None else math.nan
-        entry = self._pending.setdefault(stamp, {})
-        self._pending_since.setdefault(stamp, time.monotonic())
-        if port in entry:
-            self.stats.counters["join_drops"] += 1
-            self.log.warning("duplicate input: port=%s stamp_ns=%d (older one replaced)", port, stamp)
-        entry[port] = msg
         join = self._join_ports()
-        ready = [s for s, e in self._pending.items() if all(p in e for p in join)]
-        for s in sorted(ready):
+        ready = sorted(s for s, e in self._pending.items() if all(p in e for p in join))
+        for s in ready:
             # a complete newer stamp makes every older incomplete one stale
             for old in [o for o in self._pending if o < s and o not in ready]:
                 self._drop_pending(old, "superseded")
             inputs = self._pending.pop(s)
             self._pending_since.pop(s, None)
-            missing_latched = [p for p in self._required_latched() if p not in self._latched_in]
-            if missing_latched:
-                self.stats.counters["join_drops"] += 1
-                self.log.warning("dropped input set: reason=waiting_for_latched ports=%s stamp_ns=%d", ",".join(missing_latched), s)
-                continue
             inputs.update(self._latched_in)
             self._run_update(core, inputs, s, lat_ms)
-        self._expire_pending()
 
     def _drop_pending(self, stamp: int, reason: str) -> None:
+        missing_latched = [p for p in self._required_latched() if p not in self._latched_in]
+        if missing_latched:
+            reason = f"waiting_for_latched ports={','.join(missing_latched)}"
         entry = self._pending.pop(stamp, None)
         self._pending_since.pop(stamp, None)
         if entry is not None:
