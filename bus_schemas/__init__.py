@@ -11,7 +11,9 @@ from .corridors import Corridor, CorridorSet, MatchStatus, VehicleCorridors
 from .common import VEHICLE_TYPE_VALUES, AgentType, Header
 from .errors import MalformedPayload, PayloadTooLarge, SchemaError, UnknownSchema, WrongSchema, WrongVersion
 from .relations import ConflictKind, CorridorRelations, RelationSet
+from .predictions import CorridorPrediction, CorridorPredictions, GridStep, MotionGrid
 from .infra import NodeStats, Progress
+from .intentions import CorridorBelief, IntentionBelief, Manoeuvre, VehicleBelief
 from .tracks import SceneInfo, TrackFrame
 
 decode = decode_any
@@ -22,15 +24,23 @@ __all__ = [
     "AgentType",
     "ConflictKind",
     "Corridor",
+    "CorridorPrediction",
+    "CorridorPredictions",
     "CorridorRelations",
     "CorridorSet",
+    "CorridorBelief",
+    "IntentionBelief",
+    "Manoeuvre",
+    "VehicleBelief",
     "MatchStatus",
     "RelationSet",
     "VehicleCorridors",
     "Array",
+    "GridStep",
     "Header",
     "MalformedPayload",
     "Message",
+    "MotionGrid",
     "NodeStats",
     "PayloadTooLarge",
     "Progress",

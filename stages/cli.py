@@ -1,10 +1,12 @@
-"""The ``iamp`` command: record, replay and inspect MCAP recordings (eval and train follow).
+"""The ``iamp`` command: record, replay and inspect MCAP recordings; evaluate predictions (train follows).
 
 ::
 
     iamp record FILE.mcap --run-id R [network flags]      record iamp/R/** until Ctrl-C
     iamp replay FILE.mcap [--speed X|max] [--run-id R]     publish a recording onto the bus
     iamp inspect FILE.mcap [--json]                        channels, counts, time range, frames
+    iamp eval [--data PATH] [--recording NAME]... [--mode M...] [--stride S] [--json FILE] [--figures DIR]
+                                                           offline metrics of the prediction modes
 
 Exit codes: 0 success, 1 crash, 2 bad command line, configuration or file.
 Only ``record`` and ``replay`` open a Zenoh session.
@@ -81,6 +83,20 @@ def _run_inspect(args: argparse.Namespace) -> int:
     return run(args)
 
 
+def _add_eval(sub: "argparse._SubParsersAction") -> None:
+    from .evaluation import add_arguments
+
+    p = sub.add_parser("eval", help="offline comparison of prediction modes against ground truth (mADE/mFDE, coverage, NLL)")
+    add_arguments(p)
+    p.set_defaults(run=_run_eval)
+
+
+def _run_eval(args: argparse.Namespace) -> int:
+    from .evaluation import run_cli
+
+    return run_cli(args)
+
+
 # Subcommands, in the order `iamp --help` lists them. Later issues add theirs here:
 #   eval  -> _add_eval  (offline comparison: hybrid vs baseline vs constant velocity; mADE/mFDE table)
 #   train -> _add_train (retrain the AR acceleration model)
@@ -90,13 +106,13 @@ SUBCOMMANDS: list[Callable[["argparse._SubParsersAction"], None]] = [
     _add_record,
     _add_replay,
     _add_inspect,
-    # _add_eval,   # TODO(eval issue)
+    _add_eval,
     # _add_train,  # TODO(train issue)
 ]
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="iamp", description="hybrid-iamp tools: record, replay and inspect runs.")
+    parser = argparse.ArgumentParser(prog="iamp", description="hybrid-iamp tools: record, replay and inspect runs; evaluate predictions.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for add in SUBCOMMANDS:
         add(sub)

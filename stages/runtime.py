@@ -370,12 +370,26 @@ class Node:
         return reply
 
     def _query_latched(self, port: str, key: str) -> None:
-        try:
-            for reply in self.session.get(key, timeout=5.0):
-                if reply.ok is not None:
-                    self.queue.put((port, key, reply.ok.payload.to_bytes(), time.time_ns()))
-        except Exception as exc:  # the session may be closing
-            self.log.debug("latched query failed: port=%s error=%s", port, exc)
+        """Ask the publisher of a latched input for its last value until one arrives.
+
+        A query sent before this session knows the route to the publisher's
+        queryable gets no answer (as with puts), so it is repeated until the
+        value has come, by reply or by subscription.
+        """
+        attempt = 0
+        while port not in self._latched_in and not self.stop_event.is_set():
+            attempt += 1
+            try:
+                for reply in self.session.get(key, timeout=1.0):
+                    if reply.ok is not None:
+                        self.queue.put((port, key, reply.ok.payload.to_bytes(), time.time_ns()))
+                        return
+            except Exception as exc:  # the session may be closing
+                self.log.debug("latched query failed: port=%s error=%s", port, exc)
+                return
+            if attempt == 10:
+                self.log.info("still waiting for latched input: port=%s key=%s", port, key)
+            self.stop_event.wait(0.2)
 
     def _make_input_cb(self, port: str) -> Callable[[Any], None]:
         def cb(sample: Any) -> None:

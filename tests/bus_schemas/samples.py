@@ -150,3 +150,93 @@ def relation_set() -> bs.RelationSet:
 
 
 SAMPLES.update({"iamp.CorridorSet": corridor_set, "iamp.RelationSet": relation_set})
+
+
+def corridor_predictions() -> bs.CorridorPredictions:
+    k, w, nv = 3, 4, 5
+    s_probs = np.array([[0.5, 0.5, 0.0, 0.0], [0.0, 0.25, 0.75, 0.0], [0.0, 0.0, 0.5, 0.375]], dtype=np.float32)
+    v_probs = np.zeros((k, nv), dtype=np.float32)
+    v_probs[:, 2] = s_probs.sum(axis=1)
+    steps = np.array([0.4, 0.8, 1.2])
+    pred = bs.CorridorPrediction(
+        track_id=100,
+        corridor_id=11,
+        probability=0.5,
+        vehicle_s_m=5.0,
+        s_first_m=5.0,
+        s_probs=s_probs,
+        v_probs=v_probs,
+        outside_mass=np.array([0.0, 0.0, 0.125], dtype=np.float32),
+        mean_x_m=np.array([1.0, 2.25, 3.5]),
+        mean_y_m=np.array([-0.5, -0.5, -0.25]),
+        mean_s_m=np.array([6.0, 7.25, 8.5]),
+        x_at_mean_s_m=np.array([1.0, 2.25, 3.5]),
+        y_at_mean_s_m=np.array([-0.5, -0.5, -0.5]),
+    )
+    assert pred.s_probs.shape == (k, w)
+    return bs.CorridorPredictions(
+        header=header(), scene_id="0123456789abcdef", mode="baseline", step_times_s=steps, ds_m=1.0, dv_mps=0.5, predictions=(pred,)
+    )
+
+
+def motion_grid() -> bs.MotionGrid:
+    def step(rows, cols, values):
+        return bs.GridStep(
+            rows=np.array(rows, dtype=np.int32), cols=np.array(cols, dtype=np.int32), values=np.array(values, dtype=np.float32)
+        )
+
+    return bs.MotionGrid(
+        header=header(),
+        scene_id="0123456789abcdef",
+        mode="baseline",
+        distribution="interval",
+        origin_x_m=-20.0,
+        origin_y_m=-10.5,
+        cell_m=0.5,
+        n_rows=40,
+        n_cols=80,
+        min_value=1e-5,
+        step_times_s=np.array([0.4, 0.8]),
+        steps=(step([20, 20, 21], [41, 42, 42], [0.5, 0.25, 0.125]), step([20], [45], [0.75])),
+    )
+
+
+SAMPLES.update({"iamp.CorridorPredictions": corridor_predictions, "iamp.MotionGrid": motion_grid})
+
+
+def intention_belief() -> bs.IntentionBelief:
+    def corridor(corridor_id, probability, manoeuvre, count, s, v, p_stop, stop_distance):
+        return bs.CorridorBelief(
+            corridor_id=corridor_id,
+            probability=probability,
+            manoeuvre=manoeuvre,
+            particle_count=count,
+            s_mean_m=s,
+            s_std_m=0.25,
+            v_mean_mps=v,
+            v_std_mps=0.5,
+            a_mean_mps2=-0.75,
+            a_std_mps2=0.5,
+            p_stop=p_stop,
+            stop_distance_m=stop_distance,
+        )
+
+    vehicle = bs.VehicleBelief(
+        track_id=100,
+        corridors=(
+            corridor(11, 0.75, bs.Manoeuvre.TURN_LEFT, 200, 5.25, 3.5, 0.5, 24.0),
+            corridor(12, 0.25, bs.Manoeuvre.GO_STRAIGHT, 100, 5.0, 4.0, 0.25, float("nan")),
+        ),
+        p_stop=0.4375,
+        p_expected_stop=0.125,
+        p_violation=0.375,
+        p_lane_change=0.0,
+        expected_manoeuvre=bs.Manoeuvre.TURN_LEFT,
+        intersection_distance_m=24.0,
+        effective_sample_size=212.5,
+        particle_count=300,
+    )
+    return bs.IntentionBelief(header=header(), scene_id="0123456789abcdef", vehicles=(vehicle,))
+
+
+SAMPLES.update({"iamp.IntentionBelief": intention_belief})

@@ -1,0 +1,129 @@
+"""Motion predictions: per (vehicle, corridor) distributions and the fused motion grid (METHOD.md §1.4, §6).
+
+``iamp.CorridorPredictions`` holds, for every vehicle-corridor pair of one
+frame, the Markov chain's marginals at the prediction steps t_k = k·τ
+(k = 1..K) and the positions derived from them. ``iamp.MotionGrid`` holds the
+occupancy of all vehicles fused on one map-frame grid, sparse per step.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated, ClassVar
+
+import numpy as np
+
+from ._wire import Array, Message, register
+from .common import Header
+
+F64_K = Annotated[np.ndarray, Array("float64", ("k",))]
+
+
+@dataclass(frozen=True, slots=True, kw_only=True, eq=False)
+class CorridorPrediction:
+    """The prediction of one vehicle along one of its corridors; arrays over the K steps.
+
+    ``corridor_id`` is the CorridorSet's id, or -1 for the Cartesian
+    constant-velocity line of mode ``cv`` (a straight line from the vehicle
+    along its velocity, with s from the vehicle's position).
+    ``probability`` is the corridor's weight P(R = corridor) used for the
+    grid (uniform over the vehicle's corridors until intentions are wired).
+
+    Distributions at t_k (time-point marginals):
+
+    - ``s_probs`` ``(K, W) float32``: mass per s-cell of ``ds_m`` (see the
+      message); cell j covers corridor arc lengths
+      [s_first_m + j·ds, s_first_m + (j+1)·ds). Cells never occupied at any
+      step are cropped, so W is at most the Markov window;
+    - ``v_probs`` ``(K, N_v) float32``: mass per speed cell of ``dv_mps`` from 0;
+    - ``outside_mass`` ``(K,) float32``: mass past the end of the window or of
+      the corridor (never renormalised away: s_probs plus outside sums to 1).
+
+    Positions at t_k, metres in the map frame, NaN when no mass is left inside:
+
+    - ``mean_x_m``, ``mean_y_m``: Σ p(s_i)·X_c(s_i) / Σ p(s_i), the
+      probability-weighted mean of centreline points (METHOD.md §6, the one
+      the metrics use);
+    - ``mean_s_m``: E[s] over the same cells, and ``x_at_mean_s_m``,
+      ``y_at_mean_s_m``: X_c(E[s]) (differs from the mean position on curves).
+    """
+
+    track_id: int
+    corridor_id: int
+    probability: float
+    vehicle_s_m: float
+    s_first_m: float
+    s_probs: Annotated[np.ndarray, Array("float32", ("k", "w"))]
+    v_probs: Annotated[np.ndarray, Array("float32", ("k", "nv"))]
+    outside_mass: Annotated[np.ndarray, Array("float32", ("k",))]
+    mean_x_m: F64_K
+    mean_y_m: F64_K
+    mean_s_m: F64_K
+    x_at_mean_s_m: F64_K
+    y_at_mean_s_m: F64_K
+
+
+@register
+@dataclass(frozen=True, slots=True, kw_only=True, eq=False)
+class CorridorPredictions(Message):
+    """Every vehicle-corridor prediction of one frame (the frame of ``header.stamp_ns``).
+
+    ``mode`` names the predictor: ``baseline`` (rule-based Markov chain),
+    ``cv`` (Cartesian constant velocity), ``corridor_cv`` (constant speed
+    along each corridor), later ``hybrid``. ``step_times_s`` ``(K,)`` are the
+    prediction times after the frame (0.4 … 4.0 s by default); ``ds_m`` and
+    ``dv_mps`` the cell sizes of ``s_probs`` and ``v_probs``.
+    """
+
+    SCHEMA: ClassVar[str] = "iamp.CorridorPredictions"
+    VERSION: ClassVar[int] = 1
+
+    header: Header
+    scene_id: str
+    mode: str
+    step_times_s: F64_K
+    ds_m: float
+    dv_mps: float
+    predictions: tuple[CorridorPrediction, ...]
+
+
+@dataclass(frozen=True, slots=True, kw_only=True, eq=False)
+class GridStep:
+    """The non-negligible cells of one step, COO: ``rows``, ``cols`` ``(n,) int32`` and ``values`` ``(n,) float32``."""
+
+    rows: Annotated[np.ndarray, Array("int32", ("n",))]
+    cols: Annotated[np.ndarray, Array("int32", ("n",))]
+    values: Annotated[np.ndarray, Array("float32", ("n",))]
+
+
+@register
+@dataclass(frozen=True, slots=True, kw_only=True, eq=False)
+class MotionGrid(Message):
+    """Fused occupancy probability of all predicted vehicles on a map-frame grid, one sparse layer per step.
+
+    Cell (row, col) covers x ∈ [origin_x_m + col·cell_m, origin_x_m +
+    (col+1)·cell_m) and y ∈ [origin_y_m + row·cell_m, …): row 0 is the
+    southern edge. The grid has ``n_rows`` × ``n_cols`` cells; only cells
+    above ``min_value`` are listed. Per vehicle n the corridors are weighted
+    by their probability and the grid G_n sums to 1 − outside mass; vehicles
+    combine as 1 − Π_n (1 − G_n) (METHOD.md §6). ``distribution`` says what
+    a step holds: ``interval`` (Υ([0, τ]): occupancy during the step ending
+    at t_k) or ``point`` (the position at t_k). ``steps`` has one entry per
+    ``step_times_s``.
+    """
+
+    SCHEMA: ClassVar[str] = "iamp.MotionGrid"
+    VERSION: ClassVar[int] = 1
+
+    header: Header
+    scene_id: str
+    mode: str
+    distribution: str
+    origin_x_m: float
+    origin_y_m: float
+    cell_m: float
+    n_rows: int
+    n_cols: int
+    min_value: float
+    step_times_s: F64_K
+    steps: tuple[GridStep, ...]

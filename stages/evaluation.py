@@ -1,0 +1,706 @@
+"""Offline evaluation (``iamp eval``): the prediction modes against ground truth, in-process (METHOD.md §6).
+
+Runs source → corridors → relations → markov_prediction as plain cores, no
+bus: ``TrackPlayer`` plays each sequence of each recording (fresh cores per
+sequence, maps loaded once), the corridors and relations cores see every
+frame (their continuity state is as on the bus), every mode's
+``MarkovPredictor`` observes every frame (the measured acceleration) and
+predicts at the evaluated instants: the frames at multiples of ``stride_s``
+from the sequence's first stamp.
+
+Windows. At an instant, every vehicle (``AgentType.is_vehicle``; TAF-BW has
+cars only) whose track has ground truth at exactly t + k·τ, k = 1..K, and
+that the corridors stage matched (so every mode predicts it). Vehicles
+without a full future or unmatched are counted in ``skipped``. Every mode is
+evaluated on the same windows.
+
+Metrics per window (K = 10 steps of 0.4 s):
+
+- ADE_c, FDE_c of each corridor's probability-weighted mean position
+  (``FramePrediction.mean_xy_m``; a step whose mass has all left the corridor
+  keeps the last finite mean, counted in ``nan_means``);
+  ``mADE_m``/``mFDE_m``: minimum over the vehicle's corridors, each
+  minimised separately (the paper's oracle); ``wADE_m``/``wFDE_m``: the
+  corridor-probability-weighted mean of ADE_c/FDE_c;
+- ``coverage90``: share of (vehicle, step) pairs whose true position lies in
+  a cell of the 90 % highest-probability region of that vehicle's grid at
+  that step (the vehicle's own grid, corridors weighted, not the fused
+  one; all occupied cells when the grid holds less than 90 %);
+- ``nll``: mean over (vehicle, step) of −ln max(G(cell of the true position),
+  ``nll_floor``), in nats, G the probability of the ``grid_cell_m`` cell
+  (a discrete probability, not a density); the floor (1e-6 by default, so
+  a miss costs 13.8 nats) keeps it finite when the truth falls outside the
+  predicted cells.
+
+In ``--json`` a split without windows has ``windows`` 0 and null metrics.
+
+The grids used here are the centre-point grids at t_k (``grid_distribution =
+"point"``, METHOD.md §6 "for calibration"); the stage publishes interval
+occupancy by default. ``frame_ms_*`` is the wall time of one
+``MarkovPredictor.process`` call (all vehicles of the frame, grid included;
+corridors and relations excluded). Splits: ``by_speed.slow`` (speed at t ≤
+2 m/s), ``by_speed.fast`` (> 2 m/s), ``by_recording.<name>``.
+
+Figures (``figures_dir``): for the instant with the most windows,
+``grid_4s_<mode>.png`` (car lanelets grey, the fused grid at the last step as
+a heat map, white to yellow to red in log scale over 1e-4…1, current vehicle
+positions blue) and ``means_<mode>.png`` (ground truth black, each corridor's
+mean positions in its own colour, one dot per step, the start in blue), PNGs
+written with numpy and zlib; ``figures.txt`` names the instant and the
+colours.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import json
+import math
+import struct
+import sys
+import time
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bus_schemas import AgentType, CorridorSet, MatchStatus, RelationSet, SceneInfo, TrackFrame
+
+from .corridors import CorridorBuilder, CorridorsConfig, SceneMaps
+from .datasets import DEFAULT_DATA_DIR, Recording, discover, load_recording
+from .markov import MarkovGridConfig, load_or_build_stencils
+from .markov_prediction import FramePrediction, MarkovPredictionConfig, MarkovPredictor
+from .markov_prediction.rasterise import GridFrame, highest_density_threshold
+from .relations import RelationExtractor, RelationsConfig
+from .tracks_source import TrackPlayer, TracksSourceConfig, file_sha256
+
+EVAL_MODES = ("baseline", "cv", "corridor_cv")
+SLOW_SPEED_MPS = 2.0
+_MS = 1_000_000
+
+
+@dataclass(frozen=True, kw_only=True)
+class EvalConfig:
+    """What to evaluate and how (see the module docstring)."""
+
+    data_dir: Path = DEFAULT_DATA_DIR
+    recordings: tuple[str, ...] = ()
+    sequences: tuple[str, ...] = ()
+    modes: tuple[str, ...] = EVAL_MODES
+    stride_s: float = 0.4
+    max_frames_per_sequence: int = 0
+    corridor_weights: str = "uniform"
+    backend: str = "numpy"
+    device: str = "cpu"
+    coverage_level: float = 0.9
+    nll_floor: float = 1e-6
+    progress: bool = True
+    figures_dir: Path | None = None
+    params: tuple[tuple[str, Any], ...] = ()
+
+    def __post_init__(self) -> None:
+        unknown = [m for m in self.modes if m not in EVAL_MODES]
+        if unknown or not self.modes:
+            raise ValueError(f"modes {unknown or '(none)'}: expected one or several of {', '.join(EVAL_MODES)}")
+        if not (math.isfinite(self.stride_s) and self.stride_s > 0):
+            raise ValueError(f"stride_s = {self.stride_s!r}: must be > 0")
+        if not (0 < self.coverage_level < 1) or not (0 < self.nll_floor < 1):
+            raise ValueError("coverage_level and nll_floor must lie in (0, 1)")
+
+
+# --------------------------------------------------------------------------- accumulation
+
+
+@dataclass(slots=True)
+class _Stats:
+    """Sums over windows of one (mode, split)."""
+
+    windows: int = 0
+    made: float = 0.0
+    mfde: float = 0.0
+    wade: float = 0.0
+    wfde: float = 0.0
+    steps: int = 0
+    covered: int = 0
+    nll: float = 0.0
+
+    def add(self, w: "_WindowResult") -> None:
+        self.windows += 1
+        self.made += w.made
+        self.mfde += w.mfde
+        self.wade += w.wade
+        self.wfde += w.wfde
+        self.steps += w.steps
+        self.covered += w.covered
+        self.nll += w.nll
+
+    def summary(self) -> dict[str, float | int]:
+        n, k = max(self.windows, 1), max(self.steps, 1)
+        nan = float("nan")
+        return {
+            "windows": self.windows,
+            "mADE_m": self.made / n if self.windows else nan,
+            "mFDE_m": self.mfde / n if self.windows else nan,
+            "wADE_m": self.wade / n if self.windows else nan,
+            "wFDE_m": self.wfde / n if self.windows else nan,
+            "coverage90": self.covered / k if self.steps else nan,
+            "nll": self.nll / k if self.steps else nan,
+        }
+
+
+@dataclass(frozen=True, slots=True)
+class _WindowResult:
+    made: float
+    mfde: float
+    wade: float
+    wfde: float
+    steps: int
+    covered: int
+    nll: float
+
+
+@dataclass(slots=True)
+class _ModeAccumulator:
+    overall: _Stats = field(default_factory=_Stats)
+    slow: _Stats = field(default_factory=_Stats)
+    fast: _Stats = field(default_factory=_Stats)
+    by_recording: dict[str, _Stats] = field(default_factory=lambda: collections.defaultdict(_Stats))
+    frame_ms: list[float] = field(default_factory=list)
+    vehicles: list[int] = field(default_factory=list)
+    nan_means: int = 0
+
+
+@dataclass(slots=True)
+class _Figure:
+    """The instant drawn by ``--figures``."""
+
+    n_windows: int
+    recording: str
+    sequence: str
+    stamp_ns: int
+    scene: SceneInfo
+    scene_maps: SceneMaps
+    predictions: dict[str, FramePrediction]
+    truths: dict[int, np.ndarray]
+    starts: dict[int, tuple[float, float]]
+
+
+# --------------------------------------------------------------------------- the evaluation
+
+
+class Evaluation:
+    """Runs the cores over the selected recordings and accumulates the metrics per mode."""
+
+    def __init__(self, config: EvalConfig) -> None:
+        self.config = config
+        self.scene_maps = SceneMaps()
+        grid = MarkovGridConfig()
+        stencils = load_or_build_stencils(grid) if "baseline" in config.modes else None
+        self.predictors = {
+            mode: MarkovPredictor(
+                MarkovPredictionConfig.from_params(
+                    {
+                        **dict(config.params),
+                        "mode": mode,
+                        "backend": config.backend if mode == "baseline" else "numpy",
+                        "device": config.device if mode == "baseline" else "cpu",
+                        "corridor_weights": config.corridor_weights,
+                        "grid_distribution": "point",
+                    },
+                    where="iamp eval --set",
+                ),
+                producer=f"eval-{mode}",
+                stencils=stencils,
+            )
+            for mode in config.modes
+        }
+        self.acc = {mode: _ModeAccumulator() for mode in config.modes}
+        self.skipped: collections.Counter[str] = collections.Counter()
+        self.instants = 0
+        self.figure: _Figure | None = None
+        self.recordings: list[str] = []
+
+    # ----- data ---------------------------------------------------------------------
+
+    def _load(self) -> list[Recording]:
+        cfg = self.config
+        names = list(cfg.recordings) or [ref.name for ref in discover(cfg.data_dir)]
+        return [load_recording(cfg.data_dir, name, tuple(cfg.sequences) or None) for name in names]
+
+    def run(self) -> dict[str, Any]:
+        recordings = self._load()
+        total = 0
+        for rec in recordings:
+            for seq in rec.sequences:
+                total += seq.n_frames if not self.config.max_frames_per_sequence else min(seq.n_frames, self.config.max_frames_per_sequence)
+        bar = _progress(total, self.config.progress)
+        try:
+            for rec in recordings:
+                self.recordings.append(rec.name)
+                sha = file_sha256(rec.map_path) if rec.map_path is not None else ""
+                for seq in rec.sequences:
+                    self._sequence(rec, seq, sha, bar)
+        finally:
+            bar.close()
+        return self.report()
+
+    def _sequence(self, rec: Recording, seq, map_sha256: str, bar) -> None:
+        cfg = self.config
+        one = dataclasses.replace(rec, sequences=(seq,))
+        player = TrackPlayer(
+            TracksSourceConfig(data=str(cfg.data_dir), recording=rec.name), one, map_sha256=map_sha256, run_id="eval", producer="source"
+        )
+        corridors = CorridorBuilder(CorridorsConfig(), scene_maps=self.scene_maps)
+        relations = RelationExtractor(RelationsConfig(), scene_maps=self.scene_maps)
+        for predictor in self.predictors.values():
+            predictor.reset()
+        truth = _ground_truth(seq)
+        tau_ns = int(round(self.predictors[cfg.modes[0]].config.tau_s * 1e9))
+        n_steps = self.predictors[cfg.modes[0]].config.n_steps
+        stride_ns = int(round(cfg.stride_s * 1e9))
+        first = int(seq.stamp_ns[0]) if seq.n_rows else 0
+        scene: SceneInfo | None = None
+        for n, (stamp, result) in enumerate(player):
+            if cfg.max_frames_per_sequence and n >= cfg.max_frames_per_sequence:
+                break
+            bar.update(1)
+            if "scene" in result.outputs:
+                scene = result.outputs["scene"]
+            frame: TrackFrame = result.outputs["track_frame"]
+            corridor_set, _ = corridors.process(frame, scene)
+            relation_set, _ = relations.process(frame, corridor_set, scene)
+            offset = stamp - first
+            if offset % stride_ns > _MS and stride_ns - offset % stride_ns > _MS:
+                for predictor in self.predictors.values():
+                    predictor.observe(corridor_set)
+                continue
+            self._instant(rec.name, seq.id, stamp, frame, corridor_set, relation_set, scene, truth, tau_ns, n_steps)
+
+    def _instant(self, recording, sequence_id, stamp, frame, corridor_set: CorridorSet, relation_set: RelationSet | None,
+                 scene, truth, tau_ns, n_steps) -> None:
+        self.instants += 1
+        windows: dict[int, tuple[np.ndarray, float]] = {}
+        statuses = {v.track_id: v for v in corridor_set.vehicles}
+        for row, track_id in enumerate(frame.track_ids.tolist()):
+            if not AgentType(int(frame.agent_types[row])).is_vehicle:
+                continue
+            future = _future(truth.get(track_id), stamp, tau_ns, n_steps)
+            if future is None:
+                self.skipped["no_full_future"] += 1
+                continue
+            vehicle = statuses.get(track_id)
+            if vehicle is None or vehicle.status != MatchStatus.MATCHED or not vehicle.corridors:
+                self.skipped["not_matched"] += 1
+                continue
+            speed = math.hypot(float(frame.vx_mps[row]), float(frame.vy_mps[row]))
+            if not math.isfinite(speed):
+                speed = vehicle.speed_mps
+            windows[track_id] = (future, speed)
+        predictions: dict[str, FramePrediction] = {}
+        for mode, predictor in self.predictors.items():
+            t0 = time.perf_counter()
+            prediction, _issues = predictor.process(corridor_set, relation_set, scene, frame)
+            self.acc[mode].frame_ms.append((time.perf_counter() - t0) * 1e3)
+            self.acc[mode].vehicles.append(len({p.track_id for p in prediction.pairs}))
+            predictions[mode] = prediction
+            acc = self.acc[mode]
+            for track_id, (future, speed) in windows.items():
+                result = self._score(prediction, track_id, future, acc)
+                if result is None:
+                    self.skipped[f"no_prediction_{mode}"] += 1
+                    continue
+                acc.overall.add(result)
+                (acc.slow if speed <= SLOW_SPEED_MPS else acc.fast).add(result)
+                acc.by_recording[recording].add(result)
+        if windows and scene is not None and (self.figure is None or len(windows) > self.figure.n_windows):
+            rows = {int(t): i for i, t in enumerate(frame.track_ids)}
+            self.figure = _Figure(
+                n_windows=len(windows),
+                recording=recording,
+                sequence=sequence_id,
+                stamp_ns=stamp,
+                scene=scene,
+                scene_maps=self.scene_maps,
+                predictions=predictions,
+                truths={t: f for t, (f, _) in windows.items()},
+                starts={t: (float(frame.x_m[rows[t]]), float(frame.y_m[rows[t]])) for t in windows},
+            )
+
+    def _score(self, prediction: FramePrediction, track_id: int, future: np.ndarray, acc: _ModeAccumulator) -> _WindowResult | None:
+        cfg = self.config
+        members = [b for b, p in enumerate(prediction.pairs) if p.track_id == track_id]
+        if not members:
+            return None
+        ade, fde, weights = [], [], []
+        for b in members:
+            means = prediction.mean_xy_m[b]
+            bad = ~np.all(np.isfinite(means), axis=1)
+            if np.any(bad):
+                acc.nan_means += int(bad.sum())
+                means = _fill_forward(means, prediction.pairs[b])
+            err = np.hypot(*(means - future).T)
+            ade.append(float(err.mean()))
+            fde.append(float(err[-1]))
+            weights.append(prediction.pairs[b].probability)
+        w = np.asarray(weights)
+        w = w / w.sum() if w.sum() > 0 else np.full(len(weights), 1.0 / len(weights))
+        grid = prediction.vehicle_grids.get(track_id)
+        frame = prediction.grid_frame
+        cells_true = frame.flat_index(future[:, 0], future[:, 1])
+        covered, nll = 0, 0.0
+        for k in range(future.shape[0]):
+            cells, values = grid.step(k, frame.n_cells) if grid is not None else (np.zeros(0, np.int64), np.zeros(0))
+            value = 0.0
+            if cells_true[k] >= 0 and cells.size:
+                i = int(np.searchsorted(cells, cells_true[k]))
+                if i < cells.size and cells[i] == cells_true[k]:
+                    value = float(values[i])
+            if value > 0 and value >= highest_density_threshold(values, cfg.coverage_level):
+                covered += 1
+            nll -= math.log(max(value, cfg.nll_floor))
+        return _WindowResult(
+            made=min(ade), mfde=min(fde), wade=float(np.dot(w, ade)), wfde=float(np.dot(w, fde)),
+            steps=future.shape[0], covered=covered, nll=nll,
+        )
+
+    # ----- results ------------------------------------------------------------------
+
+    def report(self) -> dict[str, Any]:
+        cfg = self.config
+        modes: dict[str, Any] = {}
+        for mode, acc in self.acc.items():
+            times = np.asarray(acc.frame_ms) if acc.frame_ms else np.full(1, np.nan)
+            modes[mode] = {
+                "overall": acc.overall.summary(),
+                "by_speed": {"slow": acc.slow.summary(), "fast": acc.fast.summary()},
+                "by_recording": {name: acc.by_recording[name].summary() for name in self.recordings},
+                "frame_ms_median": float(np.median(times)),
+                "frame_ms_p95": float(np.percentile(times, 95)),
+                "vehicles_per_frame_mean": float(np.mean(acc.vehicles)) if acc.vehicles else float("nan"),
+                "frames": len(acc.frame_ms),
+                "nan_means": acc.nan_means,
+            }
+        return {
+            "data": str(cfg.data_dir),
+            "recordings": self.recordings,
+            "stride_s": cfg.stride_s,
+            "corridor_weights": cfg.corridor_weights,
+            "backend": cfg.backend,
+            "device": cfg.device,
+            "params": {k: v for k, v in cfg.params},
+            "instants": self.instants,
+            "skipped": dict(sorted(self.skipped.items())),
+            "metrics": {
+                "coverage90": f"share of (vehicle, step) pairs whose true position is in the {cfg.coverage_level:.0%} highest-probability cells of the vehicle's centre-point grid",
+                "nll": f"mean -ln max(P(true cell), {cfg.nll_floor:g}) over (vehicle, step), nats, {self.predictors[cfg.modes[0]].config.grid_cell_m} m cells",
+                "mADE_m": "min over corridors of the ADE of the probability-weighted mean position",
+                "wADE_m": "corridor-probability-weighted mean of the ADE",
+            },
+            "modes": modes,
+        }
+
+    def write_figures(self, directory: Path) -> list[Path]:
+        """The figures of the module docstring; returns the files written (none without an instant)."""
+        directory.mkdir(parents=True, exist_ok=True)
+        fig = self.figure
+        if fig is None:
+            (directory / "figures.txt").write_text("no instant with a full-future window: no figure\n")
+            return []
+        scene_map = fig.scene_maps.get(fig.scene)
+        road = scene_map.road_map
+        written = []
+        for mode, prediction in fig.predictions.items():
+            pts = [np.array(list(fig.starts.values()))] + [f for f in fig.truths.values()]
+            pts.append(prediction.mean_xy_m[np.isfinite(prediction.mean_xy_m).all(axis=2)].reshape(-1, 2))
+            allp = np.concatenate([p.reshape(-1, 2) for p in pts if p.size])
+            lo, hi = allp.min(axis=0) - 15.0, allp.max(axis=0) + 15.0
+            for kind in ("grid_4s", "means"):
+                canvas = _Canvas(lo[0], lo[1], hi[0], hi[1], resolution_m=0.1)
+                if road is not None:
+                    for lanelet_id in road.lanelet_ids:
+                        info = road.lanelet(lanelet_id)
+                        canvas.fill_polygon(np.vstack([info.left_bound_m, info.right_bound_m[::-1]]), (225, 225, 225))
+                if kind == "grid_4s":
+                    _draw_grid(canvas, prediction, step=prediction.step_times_s.shape[0] - 1)
+                    for x, y in fig.starts.values():
+                        canvas.disc(x, y, 0.8, (40, 90, 220))
+                else:
+                    for truth in fig.truths.values():
+                        canvas.polyline(truth, (0, 0, 0), 0.25)
+                        for x, y in truth:
+                            canvas.disc(x, y, 0.35, (0, 0, 0))
+                    for b, pair in enumerate(prediction.pairs):
+                        if pair.track_id not in fig.truths:
+                            continue
+                        colour = _PALETTE[b % len(_PALETTE)]
+                        for x, y in prediction.mean_xy_m[b]:
+                            if math.isfinite(x) and math.isfinite(y):
+                                canvas.disc(x, y, 0.45, colour)
+                    for x, y in fig.starts.values():
+                        canvas.disc(x, y, 0.8, (40, 90, 220))
+                path = directory / f"{kind}_{mode}.png"
+                canvas.write_png(path)
+                written.append(path)
+        (directory / "figures.txt").write_text(
+            f"instant: recording {fig.recording} sequence {fig.sequence} stamp_ns {fig.stamp_ns}"
+            f" ({fig.n_windows} vehicles with a full 4 s future)\n"
+            "grid_4s_<mode>.png: car lanelets grey; fused motion grid (centre-point) at the last step, white-yellow-red on a"
+            " log scale 1e-4..1; vehicle positions at t blue\n"
+            "means_<mode>.png: ground truth 0.4..4 s black; per corridor its probability-weighted mean positions, one colour"
+            " per corridor, one dot per step; vehicle positions at t blue\n"
+        )
+        return written
+
+
+# --------------------------------------------------------------------------- ground truth
+
+
+def _ground_truth(seq) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Per track: (stamps (n,) int64 sorted, positions (n, 2))."""
+    out = {}
+    order = np.lexsort((seq.stamp_ns, seq.track_id))
+    tid = seq.track_id[order]
+    bounds = np.flatnonzero(np.diff(tid)) + 1
+    for idx in np.split(order, bounds):
+        if idx.size:
+            out[int(seq.track_id[idx[0]])] = (seq.stamp_ns[idx], np.column_stack([seq.x_m[idx], seq.y_m[idx]]))
+    return out
+
+
+def _future(track: tuple[np.ndarray, np.ndarray] | None, stamp_ns: int, tau_ns: int, n_steps: int) -> np.ndarray | None:
+    """True positions (K, 2) at exactly stamp + k·τ (±1 ms), or None when one is missing."""
+    if track is None:
+        return None
+    stamps, xy = track
+    want = stamp_ns + tau_ns * np.arange(1, n_steps + 1)
+    i = np.searchsorted(stamps, want - _MS)
+    if np.any(i >= stamps.shape[0]):
+        return None
+    if np.any(np.abs(stamps[i] - want) > _MS):
+        return None
+    return xy[i]
+
+
+def _fill_forward(means: np.ndarray, pair) -> np.ndarray:
+    out = means.copy()
+    last = None
+    for k in range(out.shape[0]):
+        if np.all(np.isfinite(out[k])):
+            last = out[k].copy()
+        elif last is not None:
+            out[k] = last
+    if not np.all(np.isfinite(out)):
+        finite = out[np.isfinite(out).all(axis=1)]
+        out[~np.isfinite(out).all(axis=1)] = finite[0] if finite.size else 0.0
+    return out
+
+
+# --------------------------------------------------------------------------- table
+
+
+def format_table(report: dict[str, Any]) -> str:
+    """The printed summary: per mode overall/slow/fast, then timing."""
+    head = f"{'mode':<12} {'split':<8} {'windows':>7} {'mADE':>7} {'mFDE':>7} {'wADE':>7} {'wFDE':>7} {'cov90':>6} {'NLL':>6}"
+    lines = [head, "-" * len(head)]
+    for mode, res in report["modes"].items():
+        for split, stats in (("overall", res["overall"]), ("slow", res["by_speed"]["slow"]), ("fast", res["by_speed"]["fast"])):
+            lines.append(
+                f"{mode:<12} {split:<8} {stats['windows']:>7d} {stats['mADE_m']:>7.2f} {stats['mFDE_m']:>7.2f}"
+                f" {stats['wADE_m']:>7.2f} {stats['wFDE_m']:>7.2f} {stats['coverage90']:>6.2f} {stats['nll']:>6.2f}"
+            )
+    lines.append("")
+    for mode, res in report["modes"].items():
+        lines.append(
+            f"{mode:<12} frame time median {res['frame_ms_median']:.1f} ms, p95 {res['frame_ms_p95']:.1f} ms,"
+            f" {res['vehicles_per_frame_mean']:.1f} vehicles per frame over {res['frames']} frames"
+        )
+    lines.append(f"instants {report['instants']}, skipped {report['skipped']}")
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- command line
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA_DIR, help="data folder laid out like data/taf-bw (default: the embedded scenario)")
+    parser.add_argument("--recording", action="append", default=[], help="recording to evaluate (repeatable; default all)")
+    parser.add_argument("--sequence", action="append", default=[], help="sequence id to evaluate (repeatable; default all)")
+    parser.add_argument("--mode", nargs="+", default=list(EVAL_MODES), choices=EVAL_MODES, help="prediction modes (default all)")
+    parser.add_argument("--stride", type=float, default=0.4, help="seconds between evaluated instants (default 0.4)")
+    parser.add_argument("--corridor-weights", choices=["uniform"], default="uniform", help="corridor probabilities (intentions later)")
+    parser.add_argument("--backend", choices=["numpy", "torch"], default="numpy", help="Markov backend (default numpy)")
+    parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    parser.add_argument("--max-frames", type=int, default=0, help="stop each sequence after this many frames (0: all)")
+    parser.add_argument("--json", type=Path, default=None, help="write the results as JSON")
+    parser.add_argument("--figures", type=Path, default=None, help="write PNG figures of one instant into this folder")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="markov_prediction parameter for every mode (JSON value), e.g. --set speed_limit_factor=1.1")
+
+
+def run_cli(args) -> int:
+    try:
+        params = []
+        for item in args.set:
+            key, sep, value = item.partition("=")
+            if not sep:
+                raise ValueError(f"--set {item!r}: expected KEY=VALUE")
+            try:
+                params.append((key.strip(), json.loads(value)))
+            except json.JSONDecodeError:
+                params.append((key.strip(), value))
+        config = EvalConfig(
+            params=tuple(params),
+            data_dir=args.data,
+            recordings=tuple(args.recording),
+            sequences=tuple(args.sequence),
+            modes=tuple(dict.fromkeys(args.mode)),
+            stride_s=args.stride,
+            max_frames_per_sequence=max(args.max_frames, 0),
+            corridor_weights=args.corridor_weights,
+            backend=args.backend,
+            device=args.device,
+            progress=not args.no_progress,
+            figures_dir=args.figures,
+        )
+        evaluation = Evaluation(config)
+        report = evaluation.run()
+    except ValueError as exc:  # DatasetError and bad options
+        sys.stderr.write(f"iamp eval: error: {exc}\n")
+        return 2
+    print(format_table(report))
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(_json_safe(report), indent=2, allow_nan=False))
+        print(f"wrote {args.json}")
+    if args.figures is not None:
+        for path in evaluation.write_figures(args.figures):
+            print(f"wrote {path}")
+    return 0
+
+
+def _json_safe(value: Any) -> Any:
+    """The report with NaN (a split without windows) as null, so the file is strict JSON."""
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+# --------------------------------------------------------------------------- progress and figures
+
+
+class _NoBar:
+    def update(self, n: int) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def _progress(total: int, enabled: bool):
+    if not enabled:
+        return _NoBar()
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="frame", desc="iamp eval", file=sys.stderr, dynamic_ncols=True)
+
+
+_PALETTE = [(228, 26, 28), (77, 175, 74), (152, 78, 163), (255, 127, 0), (166, 86, 40), (247, 129, 191), (0, 160, 160), (160, 160, 0)]
+
+
+class _Canvas:
+    """An RGB image over a map window: x east, y north, ``resolution_m`` metres per pixel."""
+
+    def __init__(self, x_min_m: float, y_min_m: float, x_max_m: float, y_max_m: float, resolution_m: float) -> None:
+        self.x0, self.y1, self.res = x_min_m, y_max_m, resolution_m
+        self.width = max(int(math.ceil((x_max_m - x_min_m) / resolution_m)), 1)
+        self.height = max(int(math.ceil((y_max_m - y_min_m) / resolution_m)), 1)
+        self.rgb = np.full((self.height, self.width, 3), 255, dtype=np.uint8)
+
+    def to_px(self, points_m) -> np.ndarray:
+        p = np.asarray(points_m, dtype=np.float64).reshape(-1, 2)
+        return np.column_stack([(p[:, 0] - self.x0) / self.res, (self.y1 - p[:, 1]) / self.res])
+
+    def fill_polygon(self, points_m, colour) -> None:
+        """Even-odd scanline fill."""
+        px = self.to_px(points_m)
+        a, b = px, np.roll(px, -1, axis=0)
+        for row in range(max(0, int(px[:, 1].min())), min(self.height, int(px[:, 1].max()) + 1)):
+            yc = row + 0.5
+            straddle = (a[:, 1] > yc) != (b[:, 1] > yc)
+            if not straddle.any():
+                continue
+            aa, bb = a[straddle], b[straddle]
+            xs = np.sort(aa[:, 0] + (yc - aa[:, 1]) * (bb[:, 0] - aa[:, 0]) / (bb[:, 1] - aa[:, 1]))
+            for x_start, x_end in zip(xs[0::2], xs[1::2]):
+                c0, c1 = max(0, int(math.ceil(x_start - 0.5))), min(self.width, int(math.floor(x_end - 0.5)) + 1)
+                if c1 > c0:
+                    self.rgb[row, c0:c1] = colour
+
+    def disc(self, x_m: float, y_m: float, radius_m: float, colour) -> None:
+        (cx, cy), r = self.to_px([x_m, y_m])[0], radius_m / self.res
+        r0, r1 = max(0, int(cy - r)), min(self.height, int(cy + r) + 1)
+        c0, c1 = max(0, int(cx - r)), min(self.width, int(cx + r) + 1)
+        if r1 <= r0 or c1 <= c0:
+            return
+        yy, xx = np.mgrid[r0:r1, c0:c1] + 0.5
+        mask = (xx - cx) ** 2 + (yy - cy) ** 2 <= r * r
+        self.rgb[r0:r1, c0:c1][mask] = colour
+
+    def polyline(self, points_m, colour, width_m: float) -> None:
+        pts = np.asarray(points_m, dtype=np.float64).reshape(-1, 2)
+        for p, q in zip(pts[:-1], pts[1:]):
+            n = max(int(np.hypot(*(q - p)) / (0.5 * self.res)), 1)
+            for t in np.linspace(0.0, 1.0, n + 1):
+                self.disc(*(p + t * (q - p)), width_m, colour)
+
+    def cells(self, frame: GridFrame, flat: np.ndarray, rgb: np.ndarray) -> None:
+        """Paint grid cells (flat indices) in the given colours (n, 3)."""
+        rows, cols = np.divmod(flat, frame.n_cols)
+        for (row, col), colour in zip(zip(rows.tolist(), cols.tolist()), rgb):
+            x0 = frame.origin_x_m + col * frame.cell_m
+            y0 = frame.origin_y_m + row * frame.cell_m
+            (px0, py1), (px1, py0) = self.to_px([[x0, y0], [x0 + frame.cell_m, y0 + frame.cell_m]])
+            r0, r1 = max(0, int(round(py0))), min(self.height, int(round(py1)))
+            c0, c1 = max(0, int(round(px0))), min(self.width, int(round(px1)))
+            if r1 > r0 and c1 > c0:
+                self.rgb[r0:r1, c0:c1] = colour
+
+    def write_png(self, path: Path) -> None:
+        raw = b"".join(b"\x00" + self.rgb[r].tobytes() for r in range(self.height))
+
+        def chunk(tag: bytes, data: bytes) -> bytes:
+            return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
+
+        header = struct.pack(">IIBBBBB", self.width, self.height, 8, 2, 0, 0, 0)
+        path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
+
+
+def _draw_grid(canvas: _Canvas, prediction: FramePrediction, step: int) -> None:
+    cells, values = prediction.fused_grid.step(step, prediction.grid_frame.n_cells)
+    keep = values > 1e-4
+    if not np.any(keep):
+        return
+    level = np.clip((np.log10(values[keep]) + 4.0) / 4.0, 0.0, 1.0)[:, None]  # 0 at 1e-4, 1 at 1
+    yellow, red = np.array([255, 230, 60]), np.array([200, 0, 0])
+    low = np.array([255, 250, 200])
+    rgb = np.where(level < 0.5, low + (yellow - low) * (level / 0.5), yellow + (red - yellow) * ((level - 0.5) / 0.5))
+    canvas.cells(prediction.grid_frame, cells[keep], rgb.astype(np.uint8))
+
+
+def evaluate(config: EvalConfig) -> dict[str, Any]:
+    """Run an evaluation and return its report (the dict written by ``--json``)."""
+    evaluation = Evaluation(config)
+    report = evaluation.run()
+    if config.figures_dir is not None:
+        evaluation.write_figures(config.figures_dir)
+    return report
+
+
+__all__ = ["EVAL_MODES", "EvalConfig", "Evaluation", "add_arguments", "evaluate", "format_table", "run_cli"]

@@ -1,0 +1,146 @@
+"""Markov prediction stage: rule-based Markov-chain motion prediction and the motion grid (METHOD.md §1.4, §2, §6).
+
+Consumes ``corridor_set`` (``CorridorSet``) and ``relation_set``
+(``RelationSet``) of the same stamp, the latched ``scene`` (``SceneInfo``) and,
+optionally, ``track_frame`` (``TrackFrame``: vehicle sizes, and the velocity
+of mode ``cv``). Produces ``corridor_predictions`` (``CorridorPredictions``)
+and ``motion_grid`` (``MotionGrid``) for every frame. Run it alone with
+``python -m stages.markov_prediction``.
+
+Modes (``mode``):
+
+- ``baseline``: the Markov chain of METHOD.md §1.4 with the rule-based
+  priority vector λ of §2; all vehicle-corridor pairs of a frame propagate
+  together, one batch per step (``backend`` "numpy" = scipy CSR, or
+  "torch" on ``device`` "cpu"/"cuda");
+- ``cv``: Cartesian constant velocity, one straight line per vehicle along its
+  velocity (``corridor_id`` -1);
+- ``corridor_cv``: constant speed along each corridor.
+Every mode produces the same structures (s- and v-distributions per step,
+mean positions, outside mass, grid), so comparisons share one code path.
+``hybrid`` (AR-Net accelerations replace λ, §3) and ``corridor_weights =
+"intentions"`` come with their issues: the config refuses them until then,
+and ``HOOK(...)`` comments mark where they plug in.
+
+Initial distribution (§1.4). Per pair, a uniform box in (s, v) around the
+vehicle's arc length on the corridor and its speed, ±max(Δs/2, 2σ_s) and
+±max(Δv/2, 2σ_v) (``init_sigma_s_m`` 0.25, ``init_sigma_v_mps`` 0.25), times
+a Gaussian input distribution around the measured acceleration: the
+least-squares slope of the vehicle's speed over the last ``accel_window_s``
+1 s of frames (0 with less history or with ``accel_window_s`` 0), shrunk
+towards 0 by its standard error σ (slope·max(0, 1 − σ²/slope²); the K733
+tracker's speeds jitter by ±3 m/s from frame to frame), with spread
+√(``init_sigma_a_mps2``² + min(σ, 1)²). The window of ``window_cells`` 100
+s-cells of ``ds_m`` 1 m starts ``window_behind_m`` 3 m behind the vehicle.
+
+Standstill (ours, after CORA's standstill location). A cell-based chain
+cannot hold a vehicle at v = 0: v-cell 0 is [0, 0.5] m/s and its mass is
+re-spread over it every step, so a standing car creeps 0.5–0.8 m in 4 s even
+under braking inputs, and the preference q starts it. A vehicle at or below
+``standstill_speed_mps`` 0.5 is therefore predicted as the mixture
+P_stay(t)·(its start box, v = 0) + (1 − P_stay(t))·chain, P_stay(t) =
+exp(−``standstill_start_rate_hz``·t); 0.055 /s gives P(start within 4 s) =
+0.2, what TAF-BW's standing cars show (77–88 % move less than 1 m in 4 s).
+Followers see a standing leader through the same mixture.
+
+Lateral offset. Means and grids are placed at the vehicle's lateral offset
+from the centreline, d(t) = d0·exp(−t/``lateral_offset_decay_s``); the
+default 1e6 s keeps d0 (on TAF-BW, keeping it beat decaying it with 2 s and
+the bare centreline).
+
+Priority vector λ (baseline). At every step, for every state (s, v) and
+input α of every pair: m = min(λ_speed, λ_lead, λ_conf), then CORA's
+combination with the free-driving preference q (``free_driving_preference``,
+METHOD.md §2.1's 10-cell vector, scaled to a largest entry of 1 so that a
+restriction below 1 cuts it; with q summing to 1 only restrictions below
+0.3 would act): from the highest input down r_α = min(m_α, q_α + carry),
+the cut carried to the next lower input; where every m_α ≤
+``forbid_threshold`` only the strongest braking input is kept. Γ_i =
+colnorm(diag(r_i) Ψ) (Ψ with γ = ``psi_gamma`` 0.2) is applied without being
+built (``chain.InputPriority``).
+
+- λ_speed (§2.2): v_prof(s) = min(v_limit, √(a_lat/|κ(s)|)) with κ smoothed
+  over ``curvature_smoothing_m``, v_limit the corridor's (else the scene's)
+  limit × ``speed_limit_factor``; a braking look-ahead v_adm(s) = min over s'
+  ≥ s of √(v_prof(s')² + 2b(s' − s)) (``lookahead_brake_mps2`` 2.5); an input
+  is allowed under one profile when v + aτ ≤ v_adm(s + vτ); the four a_lat
+  of ``lat_accels_mps2`` are mixed with ``lat_accel_weights``.
+- λ_lead (§2.3, critical-gap form, never a dense Θ): g*(Δt, v_F, α_F, v_L,
+  α_L) is tabulated once (both hold their inputs for Δt ∈
+  ``leader_horizons_s``, then both brake at ``leader_brake_mps2`` 6 m/s²; the
+  gap must stay positive). λ_lead = mean over Δt of P(leader displacement ≥
+  s_F − s_F0 − gap0 + g*) + ε·(1 − P) (``leader_horizon_mean`` "geometric"
+  takes the geometric mean over Δt instead; on TAF-BW it did not help), with
+  the leader's displacement
+  distribution at the same step taken from its own pairs in the batch
+  (averaged over its corridors) and its speed and input through their means;
+  a leader without pairs (pedestrian, unmatched vehicle) moves at its
+  relation speed, ±``static_leader_spread_m``.
+- λ_conf (§2.4, occupancy windows): for the pair's influencing corridor, the
+  conflict zone s* ± (L + w_other)/2 on both corridors; for every state and
+  held input the time window in the zone, widened by ``conflict_margin_s``,
+  gives q = the maximum over the overlapping steps of the other vehicle's
+  probability to occupy its zone (from its interval distributions) and λ =
+  ε^q (log-linear between free and taken: the linear 1 − q barely moves the
+  chain, whose Ψ keeps the current input with 0.67 per step). States in or
+  past the zone, or that cannot stop before it with the strongest braking
+  input, are committed and not restricted. Because the
+  window looks into the future, the batch runs twice when a frame has an
+  influencing corridor: first with λ_speed and λ_lead for every pair, then
+  again for the restricted pairs and (transitively) their followers, with
+  the other vehicles' occupancies from the first pass.
+
+Outputs (§6). Per pair the time-point s- and v-marginals at t_k = k·τ (k =
+1..K), the outside mass (past the window or the corridor's end, never
+renormalised), the probability-weighted mean of centreline points and
+X_c(E[s]) (both moved by the lateral offset). Constant-velocity modes report the exact s0 + v0·t instead of
+the cell average, and spread it with σ_s(t) = √(σ0² + (½·σ_a·t²)²) along
+the line (``cv_accel_sigma_mps2`` 1) for the grid. The motion grid
+rasterises each pair's ``grid_distribution`` ("interval": occupancy during
+the step, Υ([0, τ]); "point": position at t_k) along the centreline with
+``grid_substeps`` samples per s-cell and a lateral Gaussian of
+``grid_lateral_sigma_m`` 0.4, weights corridors by their probability
+(uniform over a vehicle's corridors), combines vehicles as 1 − Π(1 − G_n)
+and keeps cells above ``grid_min_value`` 1e-5 on a ``grid_cell_m`` 0.5 grid
+whose extent is ``grid_extent_m`` (x_min, y_min, x_max, y_max) or, when
+empty, the occupied cells plus ``grid_margin_m``.
+
+Issues (every other pair is still predicted): ``corridor_too_short`` (outside
+mass at the horizon above ``outside_issue_mass`` 1 %, per pair),
+``nan_state`` (non-finite speed or arc length: vehicle or pair skipped),
+``bad_corridor`` (fewer than two points, non-finite or non-increasing
+centreline), ``unknown_corridor`` (a relation for a pair that is not
+predicted: ignored), ``nan_relation``/``bad_relation`` (a leader gap or
+conflict point that is not finite, an index out of range: that restriction
+ignored), ``stamp_mismatch`` (relations of another stamp: ignored),
+``no_relations``.
+"""
+
+from __future__ import annotations
+
+from .config import MODES, MarkovPredictionConfig
+from .core import CV_LINE_ID, FramePrediction, MarkovPredictor, PairInfo
+
+__all__ = [
+    "CV_LINE_ID",
+    "INPUTS",
+    "MODES",
+    "OUTPUTS",
+    "SPEC",
+    "FramePrediction",
+    "MarkovPredictionConfig",
+    "MarkovPredictor",
+    "PairInfo",
+    "main",
+]
+
+_BINDING = ("SPEC", "INPUTS", "OUTPUTS", "main", "make_core")
+
+
+def __getattr__(name: str):
+    """The binding lives in ``__main__.py``; importing it pulls in the runtime (zenoh) only when asked."""
+    if name in _BINDING:
+        from . import __main__ as binding
+
+        return getattr(binding, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

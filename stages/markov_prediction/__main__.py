@@ -1,0 +1,37 @@
+"""Binding of the markov_prediction stage: ports and ``main``; the stage is documented in ``stages/markov_prediction/__init__.py``."""
+
+from __future__ import annotations
+
+from bus_schemas import CorridorPredictions, CorridorSet, MotionGrid, RelationSet, SceneInfo, TrackFrame
+from stages.markov_prediction.config import MarkovPredictionConfig
+from stages.markov_prediction.core import MarkovPredictor
+from stages.runtime import NodeContext, Port, StageSpec, run_stage
+
+INPUTS = {
+    "corridor_set": Port(CorridorSet),
+    "relation_set": Port(RelationSet),
+    "scene": Port(SceneInfo, latched=True),
+    "track_frame": Port(TrackFrame, optional=True),  # sizes, and the velocity of mode "cv"
+    # HOOK(intentions issue): "intention_belief": Port(IntentionBelief, optional=True)
+    #   -> corridor_weights = "intentions" (P(R = c)) and the initial boxes.
+    # HOOK(AR issue): "acceleration_profiles": Port(AccelerationProfiles, optional=True)
+    #   -> mode = "hybrid" (InputReplaced(λ_AR(k)), METHOD.md §3.2).
+}
+OUTPUTS = {"corridor_predictions": Port(CorridorPredictions), "motion_grid": Port(MotionGrid)}
+
+
+def make_core(config: MarkovPredictionConfig, ctx: NodeContext) -> MarkovPredictor:
+    return MarkovPredictor(config, producer=ctx.node_id)
+
+
+SPEC = StageSpec(
+    stage="stages.markov_prediction", config_cls=MarkovPredictionConfig, make_core=make_core, inputs=INPUTS, outputs=OUTPUTS
+)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_stage(SPEC, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,101 @@
+"""A per-state input transition Γ_i = colnorm(diag(λ_i) Ψ) given by λ alone (METHOD.md §2.1).
+
+``stages.markov``'s ``InputPerState`` takes the full Γ, ``(B, M, M, N_v, N_s)``:
+1.6 MB per pair and step at the default grid. The baseline only ever needs
+Γ of that form, whose product with p⁻ is cheap without building it::
+
+    Z[b] = Σ_a λ[a] Ψ[a, b]             (per state, b = previous input)
+    p(t_{k+1})[a] = λ[a] · Σ_b Ψ[a, b] p⁻[b] / Z[b]
+
+``InputPriority`` carries λ as a function of the s-window the step works on
+(so λ is only built on the active window), and ``PriorityPropagator`` is a
+``MarkovPropagator`` whose backend applies it; every other input transition
+goes to the backend unchanged. The wrapper relies on the backends' slab
+layouts (numpy ``(L, M, N_v, B)``, torch ``(B, M·N_v, L)``), which
+``stages/markov/propagate.py`` documents; moving ``InputPriority`` into
+``stages.markov`` would remove that coupling.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from stages.markov import MarkovPropagator, TransitionStencils
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class InputPriority:
+    """Γ_i = colnorm(diag(λ_i) Ψ) at every state of every pair for one step.
+
+    ``weights(lo, hi)`` returns λ for the s-cells [lo, hi) of the window,
+    ``(B, M, N_v, hi − lo)`` float32, non-negative, with no all-zero column
+    (``priority.combine_with_preference`` guarantees it).
+    """
+
+    weights: Callable[[int, int], np.ndarray]
+
+
+class _PriorityBackend:
+    """Wraps a ``stages.markov`` backend: applies ``InputPriority``, delegates everything else."""
+
+    def __init__(self, inner: Any, psi: np.ndarray, kind: str) -> None:
+        self._inner = inner
+        self._kind = kind
+        self._psi = np.asarray(psi, dtype=np.float32)
+        if kind == "torch":
+            torch = inner.torch
+            self._psi_t = torch.as_tensor(self._psi, device=inner.device)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._inner, name)
+
+    def apply_input(self, slab: Any, transition: Any, lo: int, hi: int, before: Any) -> tuple[Any, Any]:
+        if not isinstance(transition, InputPriority):
+            return self._inner.apply_input(slab, transition, lo, hi, before)
+        lam = np.asarray(transition.weights(lo, hi), dtype=np.float32)
+        if self._kind == "numpy":
+            return self._numpy(slab, lam, before)
+        return self._torch(slab, lam, before)
+
+    def _numpy(self, slab: np.ndarray, lam: np.ndarray, before: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+        # slab (L, M, N_v, B); λ (B, M, N_v, L) -> slab layout
+        lam_s = np.ascontiguousarray(np.transpose(lam, (3, 1, 2, 0)))
+        shape = lam_s.shape
+        flat = (shape[0], shape[1], shape[2] * shape[3])
+        norm = np.matmul(self._psi.T, lam_s.reshape(flat)).reshape(shape)  # Z[b] = Σ_a λ[a] Ψ[a, b]
+        ratio = np.divide(slab, norm, out=np.zeros_like(slab), where=norm > 0)
+        out = lam_s * np.matmul(self._psi, ratio.reshape(flat)).reshape(shape)
+        kept = None
+        if before is not None:
+            kept = self._inner.position(slab).sum(axis=1)
+            factors = (before / np.where(kept > 0, kept, 1.0)).astype(np.float32)
+            out *= factors
+        return out.astype(np.float32, copy=False), kept
+
+    def _torch(self, slab: Any, lam: np.ndarray, before: Any) -> tuple[Any, Any]:
+        torch = self._inner.torch
+        n_pairs, length = slab.shape[0], slab.shape[2]
+        n_in, n_v = self._inner.n_in, self._inner.n_v
+        joint = slab.reshape(n_pairs, n_in, n_v, length)
+        lam_t = torch.as_tensor(lam, device=slab.device)
+        norm = torch.einsum("ab,xavl->xbvl", self._psi_t, lam_t)
+        ratio = torch.where(norm > 0, joint / torch.where(norm > 0, norm, torch.ones_like(norm)), torch.zeros_like(joint))
+        out = lam_t * torch.einsum("ab,xbvl->xavl", self._psi_t, ratio)
+        kept = None
+        if before is not None:
+            kept = slab.sum(dim=(1, 2))
+            factors = before / torch.where(kept > 0, kept, torch.ones_like(kept))
+            out = out * factors[:, None, None, None]
+        return out.reshape(n_pairs, n_in * n_v, length).contiguous(), kept
+
+
+class PriorityPropagator(MarkovPropagator):
+    """``MarkovPropagator`` that also accepts ``InputPriority`` input transitions (Ψ given here)."""
+
+    def __init__(self, stencils: TransitionStencils, psi: np.ndarray, **kwargs: Any) -> None:
+        super().__init__(stencils, **kwargs)
+        self._backend = _PriorityBackend(self._backend, psi, self.backend)

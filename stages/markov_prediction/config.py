@@ -1,0 +1,129 @@
+"""``MarkovPredictionConfig``: every parameter of the markov_prediction stage, with units and defaults."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from stages._core import ConfigMixin
+
+#: Modes implemented now. ``hybrid`` (AR-Net accelerations replace λ, METHOD.md §3) comes with the AR issue.
+MODES = ("baseline", "cv", "corridor_cv")
+LATER_MODES = ("hybrid",)
+#: Corridor weights implemented now; ``intentions`` (P(R = c) from the DBN) comes with the intentions issue.
+CORRIDOR_WEIGHTS = ("uniform",)
+LATER_CORRIDOR_WEIGHTS = ("intentions",)
+BACKENDS = ("numpy", "torch")
+GRID_DISTRIBUTIONS = ("interval", "point")
+
+#: METHOD.md §2.1 "our 10-cell free-driving preference" over [-3, 2] m/s² in 0.5 m/s² cells.
+DEFAULT_PREFERENCE = (0.005, 0.01, 0.02, 0.04, 0.10, 0.25, 0.30, 0.15, 0.08, 0.04)
+
+
+@dataclass(frozen=True, kw_only=True)
+class MarkovPredictionConfig(ConfigMixin):
+    """Parameters of the markov_prediction stage (package docstring; METHOD.md §0–2, §6)."""
+
+    mode: str = "baseline"
+    backend: str = "numpy"
+    device: str = "cpu"
+    corridor_weights: str = "uniform"
+    # discretisation (the stencils are cached per ds, dv, v_max, τ)
+    ds_m: float = 1.0
+    dv_mps: float = 0.5
+    v_max_mps: float = 20.0
+    tau_s: float = 0.4
+    n_steps: int = 10
+    window_cells: int = 100
+    window_behind_m: float = 3.0
+    prune_threshold: float = 1e-7
+    stencil_cache_dir: str = ""
+    # initial distribution (§1.4)
+    init_sigma_s_m: float = 0.25
+    init_sigma_v_mps: float = 0.25
+    init_sigma_a_mps2: float = 0.5
+    accel_window_s: float = 1.0
+    standstill_speed_mps: float = 0.5
+    standstill_start_rate_hz: float = 0.055
+    track_timeout_s: float = 2.0
+    # Γ = colnorm(diag(λ) Ψ) (§2.1)
+    psi_gamma: float = 0.2
+    free_driving_preference: tuple[float, ...] = DEFAULT_PREFERENCE
+    forbid_threshold: float = 1e-3
+    # speed limit and curvature (§2.2)
+    lat_accels_mps2: tuple[float, ...] = (3.0, 2.5, 2.0, 1.5)
+    lat_accel_weights: tuple[float, ...] = (0.1, 0.2, 0.4, 0.3)
+    lookahead_brake_mps2: float = 2.5
+    speed_limit_factor: float = 1.0
+    default_speed_limit_mps: float = 13.89
+    curvature_smoothing_m: float = 3.0
+    # leader (§2.3)
+    leader_horizons_s: tuple[float, ...] = (0.4, 1.6, 3.2)
+    leader_brake_mps2: float = 6.0
+    leader_epsilon: float = 1e-4
+    leader_horizon_mean: str = "arithmetic"
+    static_leader_spread_m: float = 1.0
+    # influencing corridor (§2.4)
+    conflict_margin_s: float = 1.0
+    conflict_epsilon: float = 1e-4
+    # constant-velocity baselines
+    cv_accel_sigma_mps2: float = 1.0
+    # motion grid (§6)
+    grid_cell_m: float = 0.5
+    grid_lateral_sigma_m: float = 0.4
+    grid_substeps: int = 4
+    grid_extent_m: tuple[float, ...] = ()
+    grid_margin_m: float = 3.0
+    grid_min_value: float = 1e-5
+    grid_distribution: str = "interval"
+    lateral_offset_decay_s: float = 1e6
+    # issues
+    outside_issue_mass: float = 0.01
+
+    def __post_init__(self) -> None:
+        if self.mode in LATER_MODES:
+            raise ValueError(f"mode = {self.mode!r} needs the acceleration_profiles input, which has not landed; use one of {', '.join(MODES)}")
+        if self.mode not in MODES:
+            raise ValueError(f"mode = {self.mode!r}: expected one of {', '.join(MODES)}")
+        if self.corridor_weights in LATER_CORRIDOR_WEIGHTS:
+            raise ValueError(f"corridor_weights = {self.corridor_weights!r} needs the intention_belief input, which has not landed; use 'uniform'")
+        if self.corridor_weights not in CORRIDOR_WEIGHTS:
+            raise ValueError(f"corridor_weights = {self.corridor_weights!r}: expected one of {', '.join(CORRIDOR_WEIGHTS)}")
+        if self.backend not in BACKENDS:
+            raise ValueError(f"backend = {self.backend!r}: expected one of {', '.join(BACKENDS)}")
+        if self.backend == "numpy" and self.device != "cpu":
+            raise ValueError(f"device = {self.device!r}: the numpy backend runs on cpu only (use backend = 'torch')")
+        if self.leader_horizon_mean not in ("arithmetic", "geometric"):
+            raise ValueError(f"leader_horizon_mean = {self.leader_horizon_mean!r}: expected 'arithmetic' or 'geometric'")
+        if self.grid_distribution not in GRID_DISTRIBUTIONS:
+            raise ValueError(f"grid_distribution = {self.grid_distribution!r}: expected one of {', '.join(GRID_DISTRIBUTIONS)}")
+        positive = (
+            "ds_m", "dv_mps", "v_max_mps", "tau_s", "init_sigma_s_m", "init_sigma_v_mps", "init_sigma_a_mps2",
+            "track_timeout_s", "psi_gamma", "lookahead_brake_mps2", "speed_limit_factor",
+            "default_speed_limit_mps", "leader_brake_mps2", "static_leader_spread_m", "grid_cell_m",
+            "grid_lateral_sigma_m", "cv_accel_sigma_mps2",
+        )
+        non_negative = (
+            "window_behind_m", "accel_window_s", "prune_threshold", "standstill_speed_mps", "standstill_start_rate_hz", "forbid_threshold", "curvature_smoothing_m", "leader_epsilon",
+            "conflict_margin_s", "conflict_epsilon", "grid_margin_m", "lateral_offset_decay_s", "grid_min_value", "outside_issue_mass",
+        )
+        for name in positive:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} = {value!r}: must be > 0")
+        for name in non_negative:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} = {value!r}: must be >= 0")
+        for name in ("n_steps", "window_cells", "grid_substeps"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} = {getattr(self, name)!r}: must be >= 1")
+        if len(self.lat_accels_mps2) != len(self.lat_accel_weights) or not self.lat_accels_mps2:
+            raise ValueError("lat_accels_mps2 and lat_accel_weights must be non-empty and of equal length")
+        if any(a <= 0 for a in self.lat_accels_mps2) or any(w < 0 for w in self.lat_accel_weights):
+            raise ValueError("lat_accels_mps2 must be > 0 and lat_accel_weights >= 0")
+        if not self.leader_horizons_s or any(h <= 0 for h in self.leader_horizons_s):
+            raise ValueError(f"leader_horizons_s = {self.leader_horizons_s!r}: needs positive values")
+        if self.grid_extent_m and (len(self.grid_extent_m) != 4 or self.grid_extent_m[2] <= self.grid_extent_m[0]
+                                   or self.grid_extent_m[3] <= self.grid_extent_m[1]):
+            raise ValueError(f"grid_extent_m = {self.grid_extent_m!r}: expected () (auto) or (x_min, y_min, x_max, y_max)")

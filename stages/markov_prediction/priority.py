@@ -1,0 +1,378 @@
+"""The rule-based priority vector λ of the baseline (METHOD.md §2.1–2.4), pure numpy.
+
+Every array of restrictions uses the layout of the Markov chain without the
+pair axis or with it first: ``(B, M, N_v, L)`` = (pair, input cell α,
+velocity cell, s-cell of the part of the window being processed). A value is
+a weight in [0, 1] per input: 1 allowed, 0 forbidden, in between soft.
+
+- ``speed_restriction``: the speed-limit and curvature profile with a braking
+  look-ahead (§2.2), four lateral accelerations mixed with weights;
+- ``CriticalGaps`` and ``leader_restriction``: the leader interaction in its
+  critical-gap form (§2.3), never a dense Θ;
+- ``conflict_restriction``: the crossing restriction as an occupancy-window
+  lookup against the influencing vehicle's predicted occupancy (§2.4);
+- ``combine_with_preference``: the elementwise minimum of the restrictions
+  combined with the free-driving preference q, CORA's carry-down rule
+  (§2.1), with the strongest braking input kept where everything is
+  forbidden.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Curvature below this (1/m) counts as straight: v_prof = √(a_lat / max(|κ|, this)).
+MIN_CURVATURE_1PM = 1e-4
+
+
+# ---------------------------------------------------------------------------
+# Combination with the free-driving preference (§2.1)
+# ---------------------------------------------------------------------------
+
+
+def normalised_preference(values: tuple[float, ...] | np.ndarray, n_inputs: int) -> np.ndarray:
+    """q over the ``n_inputs`` cells, float32, scaled so that its largest entry is 1.
+
+    METHOD.md §2.1 gives q only up to a factor (CORA's sums to 1). Γ does not
+    depend on the scale, but the combination min(m_α, q_α) does: a
+    restriction m_α is the probability that input α is allowed, and it
+    should cut the preferred inputs whenever it is below 1. With q summing
+    to 1 (largest entry 0.3) a 63 % risk of meeting the crossing vehicle
+    (m = 0.37) would not restrict anything. Raises ValueError when q cannot
+    be a preference.
+    """
+    q = np.asarray(values, dtype=np.float64)
+    if q.shape != (n_inputs,) or not np.all(np.isfinite(q)) or np.any(q < 0) or q.sum() <= 0:
+        raise ValueError(f"free-driving preference must be {n_inputs} non-negative finite values, got {tuple(values)}")
+    return (q / q.max()).astype(np.float32)
+
+
+def combine_with_preference(restriction: np.ndarray, preference: np.ndarray, forbid_threshold: float) -> np.ndarray:
+    """The priority vector r from the restriction m and the preference q, along axis 1 (inputs).
+
+    From the highest input down: r_α = min(m_α, q_α + carry) and the part of
+    q_α + carry that m_α cuts is carried to the next lower input (a driver
+    who may not use the preferred acceleration falls back to the next lower
+    one). Where every m_α is at most ``forbid_threshold`` (everything
+    forbidden or only ε-safe), r puts all weight on the strongest braking
+    input α = 0 (METHOD.md §2.1 item 4, §8.5). The result has the shape of
+    ``restriction`` (float32) and no all-zero column.
+    """
+    m = np.asarray(restriction, dtype=np.float32)
+    n_in = m.shape[1]
+    out = np.empty_like(m)
+    carry = np.zeros(m.shape[:1] + m.shape[2:], dtype=np.float32)
+    for alpha in range(n_in - 1, -1, -1):
+        want = carry + preference[alpha]
+        np.minimum(m[:, alpha], want, out=out[:, alpha])
+        carry = want - out[:, alpha]
+    dead = m.max(axis=1) <= forbid_threshold
+    if np.any(dead):
+        dead_b = np.broadcast_to(dead[:, None], out.shape)
+        out[dead_b] = 0.0
+        first = out[:, 0]
+        first[dead] = 1.0
+    return out
+
+
+# ---------------------------------------------------------------------------
+# Speed limit and curvature (§2.2)
+# ---------------------------------------------------------------------------
+
+
+def admissible_speeds(
+    s_m: np.ndarray,
+    curvature_1pm: np.ndarray,
+    speed_limit_mps: float,
+    lat_accels_mps2: np.ndarray,
+    brake_mps2: float,
+    smoothing_m: float,
+) -> np.ndarray:
+    """v_adm(s) ``(J, n)`` for each lateral acceleration: the profile with a braking look-ahead.
+
+    v_prof(s) = min(v_limit, √(a_lat / max(|κ(s)|, 1e-4))) with κ smoothed by
+    a moving average over ``smoothing_m`` (lanelet joins give spikes), and
+    v_adm(s) = min over s' ≥ s of √(v_prof(s')² + 2b(s' − s)), computed
+    exactly as a reverse cumulative minimum of v_prof² + 2b·s'.
+    """
+    s = np.asarray(s_m, dtype=np.float64)
+    kappa = np.abs(np.asarray(curvature_1pm, dtype=np.float64))
+    kappa = np.where(np.isfinite(kappa), kappa, 0.0)
+    if s.size > 2 and smoothing_m > 0:
+        step = max(float(np.median(np.diff(s))), 1e-3)
+        half = int(round(0.5 * smoothing_m / step))
+        if half > 0:
+            kernel = np.ones(2 * half + 1) / (2 * half + 1)
+            kappa = np.convolve(np.pad(kappa, half, mode="edge"), kernel, mode="valid")
+    a_lat = np.asarray(lat_accels_mps2, dtype=np.float64)[:, None]
+    v_prof = np.minimum(speed_limit_mps, np.sqrt(a_lat / np.maximum(kappa[None, :], MIN_CURVATURE_1PM)))
+    key = v_prof**2 + 2.0 * brake_mps2 * s[None, :]
+    suffix_min = np.minimum.accumulate(key[:, ::-1], axis=1)[:, ::-1]
+    return np.sqrt(np.maximum(suffix_min - 2.0 * brake_mps2 * s[None, :], 0.0))
+
+
+def speed_restriction(
+    admissible_mps: np.ndarray,
+    profile_s_m: np.ndarray,
+    cell_s_m: np.ndarray,
+    v_centres_mps: np.ndarray,
+    input_centres_mps2: np.ndarray,
+    weights: np.ndarray,
+    tau_s: float,
+) -> np.ndarray:
+    """λ_speed ``(M, N_v, L) float32`` of one pair: Σ_j w_j · 1[v + a_α τ ≤ v_adm,j(s + vτ)].
+
+    Each input is tested over one step from the cell centres (s, v) as in
+    CORA (the ½aτ² term, at most a quarter of a 1 m cell, is left out so that
+    the threshold is one acceleration per (v, s)). ``admissible_mps`` is
+    ``(J, n)`` on ``profile_s_m``; past the profile's end its last value holds.
+    """
+    s_next = cell_s_m[None, :] + v_centres_mps[:, None] * tau_s  # (N_v, L)
+    out = np.zeros((input_centres_mps2.shape[0],) + s_next.shape, dtype=np.float32)
+    for j in range(admissible_mps.shape[0]):
+        v_adm = np.interp(s_next, profile_s_m, admissible_mps[j])
+        threshold = (v_adm - v_centres_mps[:, None]) / tau_s  # highest allowed acceleration
+        out += np.float32(weights[j]) * (input_centres_mps2[:, None, None] <= threshold[None]).astype(np.float32)
+    return out
+
+
+# ---------------------------------------------------------------------------
+# Leader (§2.3): critical gaps
+# ---------------------------------------------------------------------------
+
+
+def _held_then_braking(v0: np.ndarray, a: np.ndarray, hold_s: float, brake_mps2: float, v_max: float, t: np.ndarray):
+    """Displacement (…, T) of vehicles that hold ``a`` for ``hold_s`` then brake at ``brake_mps2`` to a stop."""
+    v0 = v0[..., None]
+    a = a[..., None]
+
+    def held(time):
+        # exact saturated motion under constant a (v clamped to [0, v_max])
+        bound = np.where(a > 0, v_max, 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_clamp = np.where(a != 0, (bound - v0) / np.where(a != 0, a, 1.0), np.inf)
+        t_clamp = np.maximum(t_clamp, 0.0)
+        tt = np.minimum(time, t_clamp)
+        x = v0 * tt + 0.5 * a * tt**2
+        v_at = np.clip(v0 + a * tt, 0.0, v_max)
+        return x + v_at * np.maximum(time - t_clamp, 0.0) * (a > 0), v_at
+
+    x_hold, v_hold = held(np.minimum(t, hold_s))
+    tb = np.maximum(t - hold_s, 0.0)
+    tb = np.minimum(tb, v_hold / brake_mps2)
+    return x_hold + v_hold * tb - 0.5 * brake_mps2 * tb**2
+
+
+@dataclass(frozen=True, eq=False)
+class CriticalGaps:
+    """g*(horizon, v_F, α_F, v_L, α_L) ``(H, N_v, M, N_v, M) float32``, metres bumper to bumper.
+
+    A follower input α_F is safe against a leader with (v_L, α_L) over the
+    horizon Δt when the gap is at least g*: both hold their inputs (cell
+    centres) for Δt, then both brake at ``brake_mps2`` to a stop, and the gap
+    must stay positive throughout (CORA's crash check with an ODE event,
+    here a dense time grid of ``dt_s``). The table depends only on the
+    discretisation, so it is built once (METHOD.md §2.3 "efficient
+    equivalent").
+    """
+
+    gaps_m: np.ndarray
+    horizons_s: tuple[float, ...]
+
+    @classmethod
+    def build(
+        cls,
+        v_centres_mps: np.ndarray,
+        input_centres_mps2: np.ndarray,
+        v_max_mps: float,
+        horizons_s: tuple[float, ...],
+        brake_mps2: float,
+        dt_s: float = 0.05,
+    ) -> "CriticalGaps":
+        n_v, n_in = v_centres_mps.shape[0], input_centres_mps2.shape[0]
+        v = np.repeat(v_centres_mps, n_in)
+        a = np.tile(input_centres_mps2, n_v)
+        out = np.empty((len(horizons_s), n_v * n_in, n_v * n_in), dtype=np.float32)
+        for h, hold_s in enumerate(horizons_s):
+            t = np.arange(0.0, hold_s + v_max_mps / brake_mps2 + 2 * dt_s, dt_s)
+            x = _held_then_braking(v, a, hold_s, brake_mps2, v_max_mps, t)  # (N, T)
+            for start in range(0, x.shape[0], 50):
+                diff = x[start : start + 50, None, :] - x[None, :, :]
+                out[h, start : start + 50] = np.maximum(diff.max(axis=2), 0.0)
+        gaps = out.reshape(len(horizons_s), n_v, n_in, n_v, n_in)
+        return cls(gaps_m=gaps, horizons_s=tuple(horizons_s))
+
+
+#: Resolution and start of the survival tables of leader displacements.
+SURVIVAL_STEP_M = 0.25
+SURVIVAL_START_M = -10.0
+SURVIVAL_LENGTH_M = 250.0
+
+
+def survival_grid() -> np.ndarray:
+    """Displacements (J,) at which leader survival functions are tabulated."""
+    return SURVIVAL_START_M + SURVIVAL_STEP_M * np.arange(int(SURVIVAL_LENGTH_M / SURVIVAL_STEP_M) + 1)
+
+
+def survival_from_cells(position_probs: np.ndarray, edges_m: np.ndarray, grid_m: np.ndarray) -> np.ndarray:
+    """P(displacement ≥ x) on ``grid_m`` from a cell distribution with ``edges_m`` (mass uniform in a cell).
+
+    Mass missing from the cells (outside the window) lies beyond the last edge.
+    """
+    cdf = np.concatenate([[0.0], np.cumsum(position_probs, dtype=np.float64)])
+    return 1.0 - np.interp(grid_m, edges_m, cdf, left=0.0, right=cdf[-1])
+
+
+def survival_constant_speed(speed_mps: float, time_s: float, spread_m: float, grid_m: np.ndarray) -> np.ndarray:
+    """P(displacement ≥ x) of an object moving at constant speed, uniform ±``spread_m`` around v·t."""
+    centre = max(speed_mps, 0.0) * time_s
+    return np.clip((centre + spread_m - grid_m) / (2.0 * spread_m), 0.0, 1.0)
+
+
+def leader_restriction(
+    gaps: CriticalGaps,
+    survival: np.ndarray,
+    offsets_m: np.ndarray,
+    leader_v_cell: np.ndarray,
+    leader_a_cell: np.ndarray,
+    epsilon: float,
+    geometric: bool = False,
+) -> np.ndarray:
+    """λ_lead ``(F, M, N_v, L) float32`` of F followers.
+
+    ``survival`` ``(F, J)``: P(leader displacement ≥ x) on ``survival_grid()``;
+    ``offsets_m`` ``(F, L)``: for each s-cell of the follower, c_F − s0_F −
+    gap0 (cell centre minus the follower's start, minus the bumper-to-bumper
+    gap at t0), so that the state is safe against a leader displacement Δ iff
+    Δ ≥ offset + g*. ``leader_v_cell``, ``leader_a_cell`` ``(F,)``: the
+    leader's mean speed and acceleration as cell indices (the cheaper
+    variant of §2.3: the leader's position enters with its whole
+    distribution, its speed and input through their means). Per horizon the
+    weight is P(safe) + ε·(1 − P(safe)); the horizons are averaged
+    arithmetically (CORA) or, with ``geometric``, geometrically, so that an
+    input unsafe over one horizon is restricted as hard as ε^(1/H) (see
+    ``conflict_restriction`` on why soft weights hardly move the chain).
+    """
+    table = gaps.gaps_m[:, :, :, leader_v_cell, leader_a_cell]  # (H, N_v, M, F)
+    table = np.moveaxis(table, -1, 0) * np.float32(1.0 / SURVIVAL_STEP_M)  # (F, H, N_v, M), in table steps
+    base = ((offsets_m - SURVIVAL_START_M) / SURVIVAL_STEP_M + 0.5).astype(np.float32)  # (F, L)
+    n_f, n_j = survival.shape
+    x = base[:, None, None, None, :] + table[..., None]  # (F, H, N_v, M, L): rounded index + 0.5
+    np.clip(x, 0.0, n_j - 1, out=x)
+    idx = x.astype(np.int32)
+    idx += (np.arange(n_f, dtype=np.int32) * n_j)[:, None, None, None, None]
+    safe = survival.astype(np.float32).reshape(-1)[idx]  # (F, H, N_v, M, L)
+    weight = safe + np.float32(epsilon) * (1.0 - safe)
+    combined = np.exp(np.log(weight).mean(axis=1)) if geometric else weight.mean(axis=1)
+    return np.ascontiguousarray(combined.astype(np.float32).transpose(0, 2, 1, 3))
+
+
+# ---------------------------------------------------------------------------
+# Crossing restriction (§2.4): occupancy windows
+# ---------------------------------------------------------------------------
+
+
+def time_to_travel(distance_m: np.ndarray, v_mps: np.ndarray, a_mps2: np.ndarray, v_max_mps: float) -> np.ndarray:
+    """Time to cover ``distance_m`` from speed v under a held acceleration a (saturated at 0 and v_max); inf if never.
+
+    The arguments broadcast; a distance ≤ 0 takes no time.
+    """
+    d, v, a = np.broadcast_arrays(
+        np.asarray(distance_m, dtype=np.float64), np.asarray(v_mps, dtype=np.float64), np.asarray(a_mps2, dtype=np.float64)
+    )
+    out = np.full(d.shape, np.inf)
+    done = d <= 0
+    out[done] = 0.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # a > 0: quadratic until v_max, then constant speed
+        acc = (a > 0) & ~done
+        t_sat = (v_max_mps - v) / np.where(acc, a, 1.0)
+        d_sat = v * t_sat + 0.5 * a * t_sat**2
+        quad = (-v + np.sqrt(v**2 + 2 * a * d)) / np.where(acc, a, 1.0)
+        out = np.where(acc & (d <= d_sat), quad, out)
+        out = np.where(acc & (d > d_sat), t_sat + (d - d_sat) / v_max_mps, out)
+        # a == 0: constant speed
+        flat = (a == 0) & ~done & (v > 0)
+        out = np.where(flat, d / np.where(v > 0, v, 1.0), out)
+        # a < 0: reaches d only if it does not stop first
+        dec = (a < 0) & ~done
+        disc = v**2 + 2 * a * d
+        reach = dec & (disc > 0)
+        out = np.where(reach, (v - np.sqrt(np.maximum(disc, 0.0))) / np.where(dec, -a, 1.0), out)
+    return out
+
+
+def zone_occupancy(interval_probs: np.ndarray, edges_m: np.ndarray, zone_m: tuple[float, float]) -> np.ndarray:
+    """P(centre in [zone_lo, zone_hi]) per step ``(K,)`` from cell distributions ``(K, N)`` (uniform in a cell)."""
+    lo, hi = zone_m
+    overlap = np.clip(np.minimum(edges_m[1:], hi) - np.maximum(edges_m[:-1], lo), 0.0, None) / np.diff(edges_m)
+    return np.clip(interval_probs @ overlap, 0.0, 1.0)
+
+
+def conflict_restriction(
+    cell_s_m: np.ndarray,
+    v_centres_mps: np.ndarray,
+    input_centres_mps2: np.ndarray,
+    v_max_mps: float,
+    zone_m: tuple[float, float],
+    now_s: float,
+    other_occupancy: np.ndarray,
+    tau_s: float,
+    margin_s: float,
+    epsilon: float,
+) -> np.ndarray:
+    """λ_conf ``(M, N_v, L) float32`` of one pair at time ``now_s`` after the frame.
+
+    For each state (cell centres s, v) and input held, the window
+    [t_in, t_out] in which the vehicle's centre is in the conflict zone is
+    widened by ``margin_s`` on both sides; with q the maximum over the
+    prediction steps j that overlap it of ``other_occupancy[j]`` (the
+    influencing vehicle's probability to be in its own zone during step j),
+    λ = ε^q: 1 when the zone is free, ``epsilon`` when it is surely taken,
+    log-linear in between. (The linear 1 − q, floored at ε, barely moves the
+    chain: Ψ keeps the current input with 0.67 and moves it two cells with
+    0.01, so only weights near ε, like the entries of CORA's Θ, redirect it
+    within the few steps before the zone.) States already in or past the
+    zone, and states that cannot stop before it even with the strongest
+    braking input (committed), are not restricted.
+    """
+    z_lo, z_hi = zone_m
+    s = cell_s_m[None, None, :]
+    v = v_centres_mps[None, :, None]
+    a = input_centres_mps2[:, None, None]
+    t_in = time_to_travel(z_lo - s, v, a, v_max_mps)
+    t_out = time_to_travel(z_hi - s, v, a, v_max_mps)
+    committed = np.isfinite(time_to_travel(z_lo - s, v, np.float64(input_centres_mps2[0]), v_max_mps))  # (1, N_v, L)
+    committed = committed | (s >= z_lo)
+    start = now_s + t_in - margin_s
+    end = now_s + t_out + margin_s
+    risk = np.zeros(t_in.shape)
+    for j, q in enumerate(np.asarray(other_occupancy, dtype=np.float64)):
+        if q <= 0:
+            continue
+        overlaps = (start < (j + 1) * tau_s) & (end > j * tau_s) & np.isfinite(t_in)
+        risk = np.where(overlaps, np.maximum(risk, q), risk)
+    out = np.power(max(epsilon, 1e-30), risk)
+    out = np.where(committed, 1.0, out)
+    return out.astype(np.float32)
+
+
+def constant_speed_occupancy(distance_m: float, speed_mps: float, half_zone_m: float, tau_s: float, n_steps: int) -> np.ndarray:
+    """Occupancy per step ``(K,)`` of an object at constant speed ``distance_m`` before its zone centre (fallback)."""
+    v = max(speed_mps, 0.0)
+    if v < 0.1:
+        inside = abs(distance_m) <= half_zone_m
+        return np.full(n_steps, 1.0 if inside else 0.0)
+    t_in = (distance_m - half_zone_m) / v
+    t_out = (distance_m + half_zone_m) / v
+    j = np.arange(n_steps)
+    return ((t_in < (j + 1) * tau_s) & (t_out > j * tau_s)).astype(np.float64)
+
+
+def zone_half_width_m(length_m: float, other_width_m: float) -> float:
+    """Half the conflict zone along a corridor: (L + w_other) / 2 (METHOD.md §2.4)."""
+    value = 0.5 * (length_m + other_width_m)
+    return value if math.isfinite(value) and value > 0 else 3.0

@@ -1,0 +1,200 @@
+"""Motion grid: corridor s-distributions rasterised onto a map-frame grid (METHOD.md §6), sparse.
+
+Each s-cell's mass is spread along the centreline piece it covers
+(``n_sub`` equally spaced sub-samples) and laterally with a Gaussian of
+σ = ``lateral_sigma_m`` (samples every half grid cell out to ±2.5σ,
+weights normalised), then binned to the nearest grid cell. A vehicle's grid
+is the probability-weighted sum over its corridors, so it sums to
+Σ_c w_c (1 − outside_c) minus what falls off the grid; vehicles combine as
+1 − Π_n (1 − G_n). Grids are kept as sorted flat keys k·(rows·cols) +
+row·cols + col with their values, never as dense arrays.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Per-vehicle cell values are clipped below 1 by this much before log(1 − G).
+_CLIP = 1e-7
+
+
+@dataclass(frozen=True, slots=True)
+class GridFrame:
+    """Cell (row, col) covers [origin_x + col·cell, …) × [origin_y + row·cell, …); row 0 in the south."""
+
+    origin_x_m: float
+    origin_y_m: float
+    cell_m: float
+    n_rows: int
+    n_cols: int
+
+    @property
+    def n_cells(self) -> int:
+        return self.n_rows * self.n_cols
+
+    @classmethod
+    def around(cls, x_m: np.ndarray, y_m: np.ndarray, cell_m: float, margin_m: float) -> "GridFrame":
+        """The smallest grid on the lattice of ``cell_m`` (multiples from 0) holding the points plus a margin."""
+        if x_m.size == 0:
+            return cls(0.0, 0.0, cell_m, 1, 1)
+        x0 = math.floor((float(np.min(x_m)) - margin_m) / cell_m) * cell_m
+        y0 = math.floor((float(np.min(y_m)) - margin_m) / cell_m) * cell_m
+        n_cols = int(math.ceil((float(np.max(x_m)) + margin_m - x0) / cell_m))
+        n_rows = int(math.ceil((float(np.max(y_m)) + margin_m - y0) / cell_m))
+        return cls(x0, y0, cell_m, max(n_rows, 1), max(n_cols, 1))
+
+    @classmethod
+    def fixed(cls, extent_m: tuple[float, float, float, float], cell_m: float) -> "GridFrame":
+        """A grid over (x_min, y_min, x_max, y_max)."""
+        x_min, y_min, x_max, y_max = extent_m
+        return cls(
+            x_min, y_min, cell_m, max(int(math.ceil((y_max - y_min) / cell_m)), 1), max(int(math.ceil((x_max - x_min) / cell_m)), 1)
+        )
+
+    def flat_index(self, x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
+        """row·n_cols + col of points, -1 off the grid (same shape as the inputs)."""
+        col = np.floor((x_m - self.origin_x_m) / self.cell_m)
+        row = np.floor((y_m - self.origin_y_m) / self.cell_m)
+        inside = (col >= 0) & (col < self.n_cols) & (row >= 0) & (row < self.n_rows) & np.isfinite(col) & np.isfinite(row)
+        return np.where(inside, row * self.n_cols + col, -1).astype(np.int64)
+
+
+def lateral_kernel(sigma_m: float, cell_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Lateral offsets (n,) every half cell out to ±2.5σ and their normalised Gaussian weights."""
+    step = 0.5 * cell_m
+    half = max(int(math.ceil(2.5 * sigma_m / step)), 0)
+    offsets = step * np.arange(-half, half + 1, dtype=np.float64)
+    weights = np.exp(-0.5 * (offsets / sigma_m) ** 2) if sigma_m > 0 else np.ones(1)
+    return offsets, weights / weights.sum()
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Footprints:
+    """Where the mass of each s-cell of one pair lands: sample points ``(L, P)`` and their weights ``(P,)`` summing to 1.
+
+    ``normal_x``, ``normal_y`` ``(L, P)``: the centreline's left normal at each
+    sample, for a lateral shift of the whole footprint.
+    """
+
+    x_m: np.ndarray
+    y_m: np.ndarray
+    weights: np.ndarray
+    normal_x: np.ndarray
+    normal_y: np.ndarray
+
+
+def cell_footprints(
+    centreline_s_m: np.ndarray,
+    centreline_x_m: np.ndarray,
+    centreline_y_m: np.ndarray,
+    centreline_heading_rad: np.ndarray,
+    cell_lower_s_m: np.ndarray,
+    ds_m: float,
+    n_sub: int,
+    lateral_offsets_m: np.ndarray,
+    lateral_weights: np.ndarray,
+) -> Footprints:
+    """Sample points of the s-cells with lower edges ``cell_lower_s_m`` (L,) along a centreline.
+
+    The centreline is interpolated linearly in s (headings unwrapped first);
+    beyond its ends it continues straight.
+    """
+    frac = (np.arange(n_sub) + 0.5) / n_sub
+    s = cell_lower_s_m[:, None] + frac[None, :] * ds_m  # (L, n_sub)
+    heading = np.unwrap(centreline_heading_rad)
+    s0, s1 = centreline_s_m[0], centreline_s_m[-1]
+    s_in = np.clip(s, s0, s1)
+    x = np.interp(s_in, centreline_s_m, centreline_x_m)
+    y = np.interp(s_in, centreline_s_m, centreline_y_m)
+    h = np.interp(s_in, centreline_s_m, heading)
+    beyond = s - s_in  # straight continuation past either end
+    x = x + beyond * np.cos(h)
+    y = y + beyond * np.sin(h)
+    nx, ny = -np.sin(h), np.cos(h)
+    px = x[:, :, None] + nx[:, :, None] * lateral_offsets_m[None, None, :]
+    py = y[:, :, None] + ny[:, :, None] * lateral_offsets_m[None, None, :]
+    n_cells = cell_lower_s_m.shape[0]
+    n_lat = lateral_offsets_m.shape[0]
+    weights = np.repeat((1.0 / n_sub) * np.ones(n_sub), n_lat) * np.tile(lateral_weights, n_sub)
+    normal_x = np.repeat(nx, n_lat, axis=1)
+    normal_y = np.repeat(ny, n_lat, axis=1)
+    return Footprints(px.reshape(n_cells, -1), py.reshape(n_cells, -1), weights, normal_x, normal_y)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SparseGrid:
+    """Sorted unique keys k·n_cells + flat cell index ``(n,) int64`` and values ``(n,) float64``."""
+
+    keys: np.ndarray
+    values: np.ndarray
+
+    def step(self, k: int, n_cells: int) -> tuple[np.ndarray, np.ndarray]:
+        """(flat cell indices, values) of step k."""
+        lo, hi = np.searchsorted(self.keys, [k * n_cells, (k + 1) * n_cells])
+        return self.keys[lo:hi] - k * n_cells, self.values[lo:hi]
+
+
+def _reduce(keys: np.ndarray, values: np.ndarray) -> SparseGrid:
+    if keys.size == 0:
+        return SparseGrid(np.zeros(0, np.int64), np.zeros(0, np.float64))
+    unique, inverse = np.unique(keys, return_inverse=True)
+    return SparseGrid(unique, np.bincount(inverse, weights=values, minlength=unique.size))
+
+
+def vehicle_grid(
+    frame: GridFrame,
+    footprints: list[Footprints],
+    probs: list[np.ndarray],
+    corridor_weights: list[float],
+    lateral_shifts_m: list[np.ndarray] | None = None,
+    min_mass: float = 1e-9,
+) -> SparseGrid:
+    """G_n for all steps: Σ_c w_c · rasterised probs_c, probs ``(K, L)`` per corridor on its footprints.
+
+    ``lateral_shifts_m`` ``(K,)`` per corridor moves the footprints of step k
+    sideways (to the left when positive).
+    """
+    all_keys, all_values = [], []
+    n_cells = frame.n_cells
+    shifts = lateral_shifts_m if lateral_shifts_m is not None else [None] * len(footprints)
+    for fp, p, w, shift in zip(footprints, probs, corridor_weights, shifts):
+        k_idx, i_idx = np.nonzero(p > min_mass)
+        if k_idx.size == 0 or w <= 0:
+            continue
+        x, y = fp.x_m[i_idx], fp.y_m[i_idx]
+        if shift is not None:
+            d = shift[k_idx][:, None]
+            x = x + d * fp.normal_x[i_idx]
+            y = y + d * fp.normal_y[i_idx]
+        cells = frame.flat_index(x, y)  # (n, P)
+        mass = (w * p[k_idx, i_idx])[:, None] * fp.weights[None, :]
+        keys = k_idx[:, None] * n_cells + cells
+        keep = cells >= 0
+        all_keys.append(keys[keep])
+        all_values.append(mass[keep])
+    if not all_keys:
+        return _reduce(np.zeros(0, np.int64), np.zeros(0))
+    return _reduce(np.concatenate(all_keys), np.concatenate(all_values))
+
+
+def fuse(grids: list[SparseGrid]) -> SparseGrid:
+    """1 − Π_n (1 − G_n) over vehicles, cell by cell."""
+    if not grids:
+        return _reduce(np.zeros(0, np.int64), np.zeros(0))
+    keys = np.concatenate([g.keys for g in grids])
+    logs = np.concatenate([np.log1p(-np.clip(g.values, 0.0, 1.0 - _CLIP)) for g in grids])
+    summed = _reduce(keys, logs)
+    return SparseGrid(summed.keys, -np.expm1(summed.values))
+
+
+def highest_density_threshold(values: np.ndarray, level: float) -> float:
+    """The smallest cell value inside the ``level`` highest-probability region (all cells if the mass is below it)."""
+    if values.size == 0:
+        return math.inf
+    ordered = np.sort(values)[::-1]
+    cumulative = np.cumsum(ordered)
+    n = int(np.searchsorted(cumulative, level, side="left"))
+    return float(ordered[min(n, ordered.size - 1)])

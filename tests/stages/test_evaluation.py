@@ -1,0 +1,91 @@
+"""``iamp eval`` on a slice of the embedded scenario: the report's keys, finite values, figures and the CLI."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from stages import cli
+from stages.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, DEFAULT_SEQUENCE
+from stages.evaluation import EVAL_MODES, EvalConfig, Evaluation, _future, format_table
+from stages.markov_prediction.rasterise import highest_density_threshold
+
+METRICS = ("windows", "mADE_m", "mFDE_m", "wADE_m", "wFDE_m", "coverage90", "nll")
+
+
+@pytest.fixture(scope="module")
+def slice_report(tmp_path_factory):
+    figures = tmp_path_factory.mktemp("figures")
+    config = EvalConfig(
+        data_dir=DEFAULT_DATA_DIR,
+        recordings=(DEFAULT_RECORDING,),
+        sequences=(DEFAULT_SEQUENCE,),
+        stride_s=0.8,
+        max_frames_per_sequence=120,
+        progress=False,
+    )
+    evaluation = Evaluation(config)
+    report = evaluation.run()
+    return report, evaluation.write_figures(figures), figures
+
+
+def test_report_has_every_key_with_finite_values(slice_report):
+    report, _, _ = slice_report
+    assert set(report["modes"]) == set(EVAL_MODES)
+    windows = {m: report["modes"][m]["overall"]["windows"] for m in EVAL_MODES}
+    assert len(set(windows.values())) == 1 and windows["baseline"] > 0, "every mode is scored on the same windows"
+    for mode, res in report["modes"].items():
+        groups = [res["overall"], res["by_speed"]["slow"], res["by_speed"]["fast"], *res["by_recording"].values()]
+        assert list(res["by_recording"]) == [DEFAULT_RECORDING]
+        for group in groups:
+            assert set(group) == set(METRICS)
+            if group["windows"]:
+                assert all(math.isfinite(group[k]) for k in METRICS), (mode, group)
+                assert 0.0 <= group["coverage90"] <= 1.0 and group["nll"] >= 0.0
+                assert group["mADE_m"] <= group["wADE_m"] + 1e-9 and group["mFDE_m"] <= group["wFDE_m"] + 1e-9
+        assert res["by_speed"]["slow"]["windows"] + res["by_speed"]["fast"]["windows"] == res["overall"]["windows"]
+        for key in ("frame_ms_median", "frame_ms_p95", "vehicles_per_frame_mean"):
+            assert math.isfinite(res[key]) and res[key] > 0
+    assert "baseline" in format_table(report)
+    json.dumps(report)
+
+
+def test_figures_are_png_files(slice_report):
+    _, written, folder = slice_report
+    names = sorted(p.name for p in written)
+    assert names == sorted(f"{kind}_{mode}.png" for kind in ("grid_4s", "means") for mode in EVAL_MODES)
+    for path in written:
+        assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "instant" in (folder / "figures.txt").read_text()
+
+
+def test_cli_writes_json(tmp_path, capsys):
+    out = tmp_path / "eval.json"
+    code = cli.main(
+        ["eval", "--recording", DEFAULT_RECORDING, "--sequence", DEFAULT_SEQUENCE, "--max-frames", "40", "--stride", "2.0",
+         "--mode", "cv", "corridor_cv", "--json", str(out), "--no-progress"]
+    )
+    assert code == 0
+    data = json.loads(out.read_text())
+    assert set(data["modes"]) == {"cv", "corridor_cv"}
+    assert "mADE" in capsys.readouterr().out
+    assert cli.main(["eval", "--data", str(tmp_path / "nothing"), "--no-progress"]) == 2
+
+
+def test_ground_truth_must_be_exact_and_complete():
+    stamps = np.arange(0, 50) * 100_000_000
+    xy = np.column_stack([np.arange(50.0), np.zeros(50)])
+    future = _future((stamps, xy), 0, 400_000_000, 10)
+    np.testing.assert_array_equal(future[:, 0], np.arange(4.0, 41.0, 4.0))
+    assert _future((stamps, xy), 1_200_000_000, 400_000_000, 10) is None  # 4 s after 1.2 s is past the track
+    holes = np.delete(np.arange(50), 8)
+    assert _future((stamps[holes], xy[holes]), 0, 400_000_000, 10) is None
+
+
+def test_highest_density_region():
+    values = np.array([0.5, 0.3, 0.15, 0.05])
+    assert highest_density_threshold(values, 0.9) == pytest.approx(0.15)
+    assert highest_density_threshold(np.array([0.4, 0.2]), 0.9) == pytest.approx(0.2)  # less than 90 %: every cell

@@ -1,0 +1,309 @@
+"""The markov_prediction stage: λ pieces, the batched chain, the baselines, the motion grid and the messages."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import bus_schemas as bs
+from stages.markov import InputPerState, MarkovGridConfig, MarkovPropagator, build_stencils, gamma_from_priority, initial_state, psi_matrix
+from stages.markov_prediction import CV_LINE_ID, MarkovPredictionConfig, MarkovPredictor
+from stages.markov_prediction import priority as pr
+from stages.markov_prediction.chain import InputPriority, PriorityPropagator
+
+STAMP = 1_000_000_000
+
+
+# --------------------------------------------------------------------------- synthetic scenes
+
+
+def _header(stamp: int = STAMP) -> bs.Header:
+    return bs.Header(run_id="test", frame_index=0, stamp_ns=stamp, producer="test")
+
+
+def _corridor(cid: int, *, vehicle_s: float = 5.0, length: float = 150.0, heading: float = 0.0, x0: float = 0.0,
+              y0: float = 0.0, limit: float = 13.89, radius: float | None = None, d0: float = 0.0) -> bs.Corridor:
+    """A straight corridor from (x0, y0) along ``heading``, or, with ``radius``, straight for 30 m then a left arc."""
+    s = np.arange(0.0, length + 0.25, 0.5)
+    if radius is None:
+        heading_s = np.full(s.shape, heading)
+        kappa = np.zeros(s.shape)
+    else:
+        kappa = np.where(s > 30.0, 1.0 / radius, 0.0)
+        heading_s = heading + np.concatenate([[0.0], np.cumsum(kappa[1:] * np.diff(s))])
+    x = x0 + np.concatenate([[0.0], np.cumsum(np.cos(heading_s[1:]) * np.diff(s))])
+    y = y0 + np.concatenate([[0.0], np.cumsum(np.sin(heading_s[1:]) * np.diff(s))])
+    return bs.Corridor(
+        corridor_id=cid, lanelet_ids=np.array([1], np.int64), lanelet_start_s_m=np.array([0.0]), x_m=x, y_m=y, s_m=s,
+        heading_rad=heading_s, curvature_1pm=kappa, width_m=np.full(s.shape, 3.5), extension_start_s_m=float(length),
+        vehicle_s_m=vehicle_s, vehicle_d_m=d0, speed_limit_mps=limit,
+    )
+
+
+def _vehicle(track_id: int, speed: float, corridors) -> bs.VehicleCorridors:
+    return bs.VehicleCorridors(
+        track_id=track_id, agent_type=bs.AgentType.CAR, status=bs.MatchStatus.MATCHED, lanelet_id=1, match_distance_m=0.0,
+        speed_mps=speed, corridors=tuple(corridors),
+    )
+
+
+def _corridor_set(*vehicles, stamp: int = STAMP) -> bs.CorridorSet:
+    return bs.CorridorSet(header=_header(stamp), scene_id="test", vehicles=tuple(vehicles))
+
+
+def _relation(track_id: int, cid: int, *, leader: int = -1, gap: float = math.nan, leader_speed: float = math.nan,
+              conflict: dict | None = None) -> bs.CorridorRelations:
+    e, ei = np.zeros(0), np.zeros(0, np.int64)
+    n = 1 if conflict else 0
+    c = conflict or {}
+
+    def f(key):
+        return np.array([c.get(key, 0.0)] * n, dtype=np.float64)
+
+    return bs.CorridorRelations(
+        track_id=track_id, corridor_id=cid, object_track_ids=ei, object_types=np.zeros(0, np.uint8), object_s_m=e,
+        object_d_m=e, object_gap_m=e, object_speed_mps=e, leader_track_id=leader, leader_gap_m=gap,
+        leader_speed_mps=leader_speed, intersection_ids=ei, intersection_entry_s_m=e, intersection_exit_s_m=e,
+        intersection_distance_m=e, intersection_entry_lanelet_ids=ei,
+        conflict_track_ids=np.array([c.get("track", 0)] * n, np.int64),
+        conflict_corridor_ids=np.array([c.get("corridor", 0)] * n, np.int64), conflict_kinds=np.ones(n, np.uint8),
+        conflict_s_m=f("s"), conflict_other_s_m=f("other_s"), conflict_x_m=f("x"), conflict_y_m=f("y"),
+        conflict_distance_m=f("distance"), conflict_other_distance_m=f("other_distance"),
+        conflict_other_speed_mps=f("other_speed"), conflict_time_s=f("t"), conflict_other_time_s=f("other_t"),
+        conflict_priority=np.array([-1] * n, np.int8), influencing_index=0 if n else -1,
+        influencing_rule="priority_other" if n else "none",
+    )
+
+
+def _relation_set(*relations, stamp: int = STAMP) -> bs.RelationSet:
+    return bs.RelationSet(header=_header(stamp), scene_id="test", relations=tuple(relations))
+
+
+@pytest.fixture(scope="module")
+def baseline() -> MarkovPredictor:
+    return MarkovPredictor(MarkovPredictionConfig())
+
+
+@pytest.fixture(scope="module")
+def baseline_torch(baseline) -> MarkovPredictor:
+    return MarkovPredictor(MarkovPredictionConfig(backend="torch"), stencils=baseline.stencils)
+
+
+def _mean_speed(prediction, b: int, predictor: MarkovPredictor) -> np.ndarray:
+    vel = prediction.velocity_probs[b]
+    return (vel @ predictor.v_centres) / vel.sum(axis=1)
+
+
+def _leader_scene(with_leader: bool):
+    """A follower at 10 m/s, 15 m (bumper to bumper) behind a leader at 2 m/s, on one straight road."""
+    cs = _corridor_set(_vehicle(1, 10.0, [_corridor(7)]), _vehicle(2, 2.0, [_corridor(8, vehicle_s=5.0 + 15.0 + 4.5)]))
+    rel = _relation(1, 7, leader=2, gap=15.0, leader_speed=2.0) if with_leader else _relation(1, 7)
+    return cs, _relation_set(rel, _relation(2, 8))
+
+
+def _conflict_scene():
+    """Ego at 8 m/s, 25 m before a crossing; the priority vehicle creeps at 1.5 m/s, 4 m before it on its own road."""
+    ego = _corridor(7)
+    other = _corridor(9, heading=math.pi / 2, x0=25.0, y0=-20.0)  # crosses the ego's road at x = 25 (ego s = 30)
+    cs = _corridor_set(_vehicle(1, 8.0, [ego]), _vehicle(3, 1.5, [other]))
+    conflict = dict(track=3, corridor=9, s=30.0, other_s=9.0, distance=25.0, other_distance=4.0, other_speed=1.5)
+    return cs, _relation_set(_relation(1, 7, conflict=conflict), _relation(3, 9))
+
+
+# --------------------------------------------------------------------------- λ pieces
+
+
+def test_speed_restriction_forbids_accelerating_over_the_limit_and_before_a_curve():
+    grid = MarkovGridConfig()
+    v, a = grid.v_centres_mps(), grid.input_centres_mps2()
+    s = np.arange(0.0, 200.0, 0.5)
+    kappa = np.where(s > 100.0, 1.0 / 20.0, 0.0)  # a 20 m radius curve from s = 100
+    adm = pr.admissible_speeds(s, kappa, 10.0, np.array([2.0]), 2.5, 0.0)
+    cells = np.array([10.5, 99.5])
+    lam = pr.speed_restriction(adm, s, cells, v, a, np.array([1.0]), 0.4)  # (M, N_v, 2)
+    at_limit = int(np.argmin(np.abs(v - 9.75)))  # just below the limit
+    slow = int(np.searchsorted(v, 5.0))
+    assert np.all(lam[a > 0.5, at_limit, 0] == 0.0) and np.all(lam[a < -0.1, at_limit, 0] == 1.0)
+    assert np.all(lam[:, slow, 0] == 1.0)  # far below the limit on the straight: everything allowed
+    v_curve = math.sqrt(2.0 * 20.0)  # 6.3 m/s
+    fast = int(np.searchsorted(v, 8.0))
+    assert np.all(lam[a >= -0.25, fast, 1] == 0.0), "at 8 m/s just before a curve of 6.3 m/s the car may not keep its speed"
+    assert adm[0, np.searchsorted(s, 150.0)] == pytest.approx(v_curve, rel=1e-6)
+
+
+def test_preference_combination_carries_cut_preference_down_and_keeps_braking_when_all_forbidden():
+    q = pr.normalised_preference((0.1, 0.2, 0.4, 0.3), 4)
+    m = np.array([1.0, 1.0, 0.0, 0.0], np.float32).reshape(1, 4, 1, 1)
+    r = pr.combine_with_preference(m, q, 1e-3)[0, :, 0, 0]
+    assert r[2] == 0 and r[3] == 0 and r[1] == pytest.approx(1.0)  # the cut 0.75 + 1.0 of the top inputs lands on input 1
+    dead = pr.combine_with_preference(np.full((1, 4, 1, 1), 1e-4, np.float32), q, 1e-3)[0, :, 0, 0]
+    assert dead.tolist() == [1.0, 0.0, 0.0, 0.0]
+
+
+def test_critical_gaps_grow_with_closing_speed():
+    grid = MarkovGridConfig()
+    gaps = pr.CriticalGaps.build(grid.v_centres_mps(), grid.input_centres_mps2(), 20.0, (1.6,), 6.0)
+    zero = 5  # input cell [-0.5, 0]
+    same = gaps.gaps_m[0, 20, zero, 20, zero]
+    closing = gaps.gaps_m[0, 20, zero, 4, zero]  # follower 10.25 m/s, leader 2.25 m/s
+    assert same < 0.5 < closing
+    assert closing == pytest.approx((10.25 - 2.25) * 1.6 + (10.25**2 - 2.25**2) / 12.0, abs=1.0)
+
+
+def test_a_close_slow_leader_shifts_mass_to_braking(baseline):
+    free, _ = baseline.process(*_leader_scene(False))
+    led, issues = baseline.process(*_leader_scene(True))
+    assert not issues
+    v_free, v_led = _mean_speed(free, 0, baseline), _mean_speed(led, 0, baseline)
+    assert v_led[3] < v_free[3] - 1.0 and v_led[-1] < 3.5
+    slow_cells = baseline.v_centres < 5.0
+    assert led.velocity_probs[0, -1, slow_cells].sum() > 0.7 > free.velocity_probs[0, -1, slow_cells].sum()
+    assert led.mean_s_m[0, -1] < free.mean_s_m[0, -1] - 8.0
+
+
+def test_an_influencing_priority_vehicle_makes_the_vehicle_stop_before_the_conflict(baseline):
+    free, _ = baseline.process(*_conflict_scene()[:1])
+    yielding, issues = baseline.process(*_conflict_scene())
+    assert not issues
+    zone_start = 30.0 - 0.5 * (4.5 + 1.8)
+    cells = yielding.pairs[0].s_first_m + np.arange(yielding.position_probs.shape[2]) + 0.5
+    beyond = cells > zone_start
+    assert free.position_probs[0, -1, beyond].sum() > 0.9
+    assert yielding.position_probs[0, -1, beyond].sum() < 0.1
+    assert _mean_speed(yielding, 0, baseline)[-1] < 2.0
+
+
+# --------------------------------------------------------------------------- the chain
+
+
+def test_input_priority_equals_the_explicit_per_state_gamma():
+    cfg = MarkovGridConfig(v_max_mps=6.0, n_s_cells=30, n_steps=4, n_state_samples=5, n_input_samples=4, n_sub_times=4)
+    stencils = build_stencils(cfg)
+    psi = psi_matrix(cfg.input_centres_mps2())
+    rng = np.random.default_rng(1)
+    lam = rng.uniform(0.0, 1.0, (2, cfg.n_inputs, cfg.n_v_cells, cfg.n_s_cells)).astype(np.float32)
+    lam[0, :, 3, 5] = 0.0  # an all-forbidden state keeps the strongest braking input
+    lam_fixed = lam.copy()
+    lam_fixed[0, 0, 3, 5] = 1.0
+    gamma = np.moveaxis(gamma_from_priority(np.moveaxis(lam_fixed, 1, -1), psi), (-2, -1), (1, 2)).astype(np.float32)
+    p0 = initial_state(cfg, s_m=np.array([3.0, 6.0]), v_mps=np.array([2.0, 4.0]), half_width_s_m=1.0, half_width_v_mps=0.5,
+                       input_probs=np.full(cfg.n_inputs, 1.0 / cfg.n_inputs))
+    reference = MarkovPropagator(stencils).run(p0, [InputPerState(gamma=gamma)] * 4, with_final_state=True)
+    for backend in ("numpy", "torch"):
+        ours = PriorityPropagator(stencils, psi, backend=backend).run(
+            p0, [InputPriority(weights=lambda lo, hi: lam_fixed[..., lo:hi])] * 4, with_final_state=True
+        )
+        np.testing.assert_allclose(ours.final_state, reference.final_state, atol=2e-6)
+
+
+def test_probability_is_conserved_for_every_pair(baseline):
+    cs, rs = _conflict_scene()
+    prediction, _ = baseline.process(cs, rs)
+    total = prediction.position_probs.sum(axis=2) + prediction.outside_mass
+    np.testing.assert_allclose(total, 1.0, atol=1e-5)
+    np.testing.assert_allclose(prediction.velocity_probs.sum(axis=2), prediction.position_probs.sum(axis=2) + prediction.outside_mass, atol=1e-5)
+
+
+def test_free_driving_on_a_straight_road_keeps_its_speed(baseline):
+    prediction, _ = baseline.process(_corridor_set(_vehicle(1, 10.0, [_corridor(7)])))
+    s_after = prediction.mean_s_m[0] - 5.0
+    assert abs(s_after[-1] - 40.0) < 1.0
+    np.testing.assert_allclose(prediction.mean_xy_m[0, -1], [5.0 + s_after[-1], 0.0], atol=1e-6)
+
+
+def test_a_standing_vehicle_mostly_stays(baseline):
+    prediction, _ = baseline.process(_corridor_set(_vehicle(1, 0.0, [_corridor(7)])))
+    assert prediction.mean_s_m[0, -1] - 5.0 < 1.0  # the standstill part (80 % at 4 s) does not creep
+    assert prediction.velocity_probs[0, -1, 0] > 0.8
+
+
+def test_numpy_and_torch_cpu_agree(baseline, baseline_torch):
+    cs, rs = _conflict_scene()
+    cs = _corridor_set(*cs.vehicles, *_leader_scene(True)[0].vehicles[1:])
+    for scene in ((cs, rs), _leader_scene(True)):
+        a, _ = baseline.process(*scene)
+        b, _ = baseline_torch.process(*scene)
+        np.testing.assert_allclose(a.position_probs, b.position_probs, atol=1e-4)
+        np.testing.assert_allclose(a.velocity_probs, b.velocity_probs, atol=1e-4)
+        np.testing.assert_allclose(a.mean_xy_m, b.mean_xy_m, atol=1e-3)
+
+
+# --------------------------------------------------------------------------- motion grid
+
+
+def test_grid_sums_to_one_minus_outside_and_stays_on_the_road():
+    predictor = MarkovPredictor(MarkovPredictionConfig(grid_distribution="point"))
+    straight, curve = _corridor(7, length=60.0), _corridor(8, length=60.0, radius=25.0)
+    prediction, issues = predictor.process(_corridor_set(_vehicle(1, 12.0, [straight, curve])))
+    assert any(i.kind == "corridor_too_short" for i in issues), "60 m is too short for 12 m/s: reported"
+    frame, grid = prediction.grid_frame, prediction.vehicle_grids[1]
+    expected = (0.5 * (1.0 - prediction.outside_mass)).sum(axis=0)
+    centres = []
+    for k in range(prediction.step_times_s.shape[0]):
+        cells, values = grid.step(k, frame.n_cells)
+        assert values.sum() == pytest.approx(expected[k], abs=1e-3)
+        rows, cols = np.divmod(cells[values > 1e-4], frame.n_cols)
+        centres.append(np.column_stack([frame.origin_x_m + (cols + 0.5) * frame.cell_m, frame.origin_y_m + (rows + 0.5) * frame.cell_m]))
+    points = np.concatenate(centres)
+    lines = [np.column_stack([c.x_m, c.y_m]) for c in (straight, curve)]
+    distance = np.min([np.min(np.hypot(*(points[:, None, :] - line[None]).transpose(2, 0, 1)), axis=1) for line in lines], axis=0)
+    band = 1.75 + 1.0 + frame.cell_m  # half the lane, 2.5 σ, one cell
+    assert distance.max() < band
+    message = prediction.motion_grid(_header(), "test")
+    assert len(message.steps) == 10 and all(np.all(s.values > 1e-5) for s in message.steps)
+    assert bs.MotionGrid.decode(message.encode()).n_cols == frame.n_cols
+
+
+# --------------------------------------------------------------------------- constant-velocity baselines
+
+
+def test_cv_and_corridor_cv_are_exact_on_a_constant_velocity_track():
+    t = 0.4 * np.arange(1, 11)
+    heading = 0.3
+    corridor = _corridor(7, heading=heading, x0=-5.0 * math.cos(heading), y0=-5.0 * math.sin(heading))
+    cs = _corridor_set(_vehicle(1, 8.0, [corridor]))
+    frame = bs.TrackFrame(
+        header=_header(), scene_id="test", track_ids=np.array([1], np.int64), agent_types=np.array([1], np.uint8),
+        x_m=np.array([0.0]), y_m=np.array([0.0]), vx_mps=np.array([8.0 * math.cos(heading)]),
+        vy_mps=np.array([8.0 * math.sin(heading)]), yaw_rad=np.array([heading]), length_m=np.array([4.5]), width_m=np.array([1.8]),
+    )
+    truth = np.column_stack([8.0 * t * math.cos(heading), 8.0 * t * math.sin(heading)])
+    for mode in ("cv", "corridor_cv"):
+        prediction, issues = MarkovPredictor(MarkovPredictionConfig(mode=mode)).process(cs, None, None, frame)
+        assert not issues
+        np.testing.assert_allclose(prediction.mean_xy_m[0], truth, atol=1e-6)
+        assert prediction.pairs[0].corridor_id == (CV_LINE_ID if mode == "cv" else 7)
+        np.testing.assert_allclose(prediction.position_probs[0].sum(axis=1) + prediction.outside_mass[0], 1.0, atol=1e-6)
+
+
+# --------------------------------------------------------------------------- stage update and issues
+
+
+def test_update_publishes_both_messages_and_reports_bad_inputs(baseline):
+    cs = _corridor_set(
+        _vehicle(1, 10.0, [_corridor(7)]),
+        _vehicle(2, math.nan, [_corridor(8)]),
+        _vehicle(4, 6.0, [_corridor(10, length=20.0)]),
+    )
+    rs = _relation_set(_relation(1, 7), _relation(1, 99), _relation(4, 10, leader=77, gap=math.nan))
+    result = baseline.update({"corridor_set": cs, "relation_set": rs})
+    kinds = {(i.kind, i.agent_id) for i in result.issues}
+    assert {("nan_state", 2), ("unknown_corridor", 1), ("corridor_too_short", 4), ("nan_relation", 4)} <= kinds
+    predictions = result.outputs["corridor_predictions"]
+    assert [(p.track_id, p.corridor_id) for p in predictions.predictions] == [(1, 7), (4, 10)]
+    decoded = bs.CorridorPredictions.decode(predictions.encode())
+    first = decoded.predictions[0]
+    assert first.s_probs.shape[0] == 10 and first.v_probs.shape == (10, 40)
+    np.testing.assert_allclose(first.s_probs.sum(axis=1) + first.outside_mass, 1.0, atol=1e-5)
+    assert result.outputs["motion_grid"].mode == "baseline"
+
+
+def test_config_refuses_modes_that_have_not_landed():
+    with pytest.raises(ValueError, match="acceleration_profiles"):
+        MarkovPredictionConfig(mode="hybrid")
+    with pytest.raises(ValueError, match="intention_belief"):
+        MarkovPredictionConfig(corridor_weights="intentions")
+    with pytest.raises(ValueError, match="numpy backend runs on cpu only"):
+        MarkovPredictionConfig.from_params({"device": "cuda"})
