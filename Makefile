@@ -26,6 +26,12 @@ run: $(STAMP)
 	$(BIN)/python launch.py $(ARGS)
 
 test: $(STAMP)
+	@# the viewer's browser test needs Debian's chromium; install it when missing and we may (root)
+	@if [ ! -x /usr/bin/chromium ] && [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+		echo "make test: installing chromium for the viewer's browser test"; \
+		(apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) \
+			|| echo "make test: could not install chromium; the browser test will fail"; \
+	fi
 	$(BIN)/python -m pytest -q -p no:cacheprovider $(ARGS)
 
 bench: $(STAMP)

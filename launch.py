@@ -24,6 +24,7 @@ import argparse
 import datetime as _dt
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -43,6 +44,7 @@ DEFAULT_PIPELINE = REPO / "pipelines" / "hybrid.toml"
 SOURCE_STAGES = {"stages.tracks_source"}
 RECORDER_STAGE = "stages.recorder"
 VIEWER_STAGE = "stages.viewer"
+VIEWER_URL_RE = re.compile(r"viewer: (https?://\S+)\s*$")
 MAX_RESTARTS = 5
 STOP_ESCALATION_S = 5.0
 
@@ -186,6 +188,8 @@ class Child:
         assert proc.stdout is not None
         for line in proc.stdout:
             say(line.rstrip("\n"), self.node.id)
+            if self.node.stage == VIEWER_STAGE and (url := VIEWER_URL_RE.search(line)):
+                say(f"viewer: {url.group(1)}")  # the one line to open in a browser
 
     def poll(self) -> int | None:
         return None if self.proc is None else self.proc.poll()

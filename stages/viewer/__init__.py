@@ -1,0 +1,89 @@
+"""Viewer stage: the live scene in the browser, served by viser on 127.0.0.1 (ARCHITECTURE.md §3, viewer).
+
+Consumes ``track_frame`` (``TrackFrame``) and the latched ``scene``
+(``SceneInfo``) and, when the pipeline binds them, ``corridor_set``
+(``CorridorSet``), ``corridor_predictions`` (``CorridorPredictions``) and
+``motion_grid`` (``MotionGrid``). It produces nothing on the bus. The
+three results take no part in the runtime's stamp join (16 stamps, 2 s),
+which would drop every frame once the predictions lag by more, as they do
+on a busy machine: the core gets the latest of each with every frame and
+joins them to their frames by stamp itself (``model.FrameHistory``). Run
+it alone with ``python -m stages.viewer``; when up it logs one line
+``viewer: http://127.0.0.1:PORT`` (the launcher repeats it as
+``[launch] viewer: ...``).
+
+What the page shows, top-down (x east, y north, metres of the scene):
+
+- the lanelet map (``stages.maps``, loaded as the corridors stage loads it):
+  car lanelets as filled dark polygons with light borders, the other
+  lanelets (walkways, crosswalks, bike lanes) outlined;
+- every object as a box sized by the track (or by its type's default),
+  coloured by its type, with its track id as a label;
+- the corridors of the chosen vehicle (or of all) as light blue
+  centrelines, each labelled with its probability ``p`` where its
+  prediction ends;
+- the predicted mean position of every corridor at every step (small black
+  dots) and at the chosen step (white dots);
+- the motion grid of the chosen step (0.4 … 4.0 s; a time between two steps
+  shows the step whose interval holds it: 1.0 s shows the step ending at
+  1.2 s) or of all steps blended (their maximum) as a heat map: an RGBA
+  image on the ground, transparent below ``grid_floor``, log (or linear) in
+  the occupancy;
+- with "ground truth" on, the display lags by the horizon (4 s): it shows the
+  frame of 4 s ago with its predictions and the tracks' true paths since.
+  The viewer keeps ``history_s`` of frames and results for this and for
+  the "look back" slider.
+
+Side panel: run, frame, stamp, mode, what is shown (live, paused, lagging),
+frames received, drawn and skipped, the draw time and the time from a
+frame's arrival to its drawing with its results, and per node (from the
+``NodeStats`` on ``iamp/<run>/_stats/*``, through a second bus session since
+the runtime has no port for wildcard keys) processing time p50/p95, latency,
+queue depth, issues, errors (decode + core) and drops (queue + join).
+"pause" freezes the display; the source keeps playing (it has no control
+key to listen to).
+
+Keeping up: ``update`` only files the inputs; a render thread draws at
+most ``max_render_hz`` times a second and always the newest complete set
+(the newest frame whose results have all arrived), counting the frames that
+were never drawn as skipped (the runtime's queue in front drops the oldest
+entries when full). When the results lag, the side panel says by how much;
+when they are more than ``max_lag_s`` late (or stop), the newest frame is
+shown without them.
+
+Parameters (``ViewerConfig``):
+
+- ``host`` "127.0.0.1", ``port`` 8080 (0: a free port; a busy port moves
+  to the next free one, and the logged URL says which);
+- ``max_render_hz`` 10, ``status_hz`` 2: draw and side-panel rates;
+- ``history_s`` 20: input sets kept for ground truth and looking back;
+- ``horizon_s`` 4: the ground truth shown when predictions do not say
+  their horizon;
+- ``max_lag_s`` 15 (stamp time): results later than this are not waited
+  for;
+- ``step_s`` 1.0, ``blend_steps`` false, ``show_ground_truth`` false: the
+  view at start;
+- ``grid_scale`` "log" (or "linear"), ``grid_floor`` 1e-3: the heat map;
+- ``stats`` true: subscribe to the run's ``NodeStats``.
+"""
+
+from __future__ import annotations
+
+from .config import ViewerConfig
+
+__all__ = ["INPUTS", "OUTPUTS", "SPEC", "ViewerApp", "ViewerConfig", "main"]
+
+_BINDING = ("SPEC", "INPUTS", "OUTPUTS", "main", "make_core")
+
+
+def __getattr__(name: str):
+    """The binding lives in ``__main__.py`` and viser in ``scene.py``: both load only when asked."""
+    if name in _BINDING:
+        from . import __main__ as binding
+
+        return getattr(binding, name)
+    if name == "ViewerApp":
+        from .scene import ViewerApp
+
+        return ViewerApp
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

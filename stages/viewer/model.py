@@ -1,0 +1,600 @@
+"""The viewer's pure part: kept input sets, which one a view shows, and the geometry to draw.
+
+Nothing here knows viser, the bus or the wall clock: the frame history is
+indexed by message stamps, the view state is plain data, and every drawing
+primitive (boxes, segments, points, the heat-map image) comes back as numpy
+arrays that ``scene.py`` hands to viser as they are.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from dataclasses import dataclass, field
+from typing import Mapping
+
+import numpy as np
+
+from bus_schemas import AgentType, CorridorPredictions, CorridorSet, MatchStatus, MotionGrid, SceneInfo, TrackFrame
+
+# --------------------------------------------------------------------------- colours (RGB, 0-255)
+
+TYPE_COLOURS: dict[int, tuple[int, int, int]] = {
+    int(AgentType.UNKNOWN): (150, 150, 150),
+    int(AgentType.CAR): (30, 144, 255),
+    int(AgentType.TRUCK): (0, 70, 200),
+    int(AgentType.BUS): (110, 70, 230),
+    int(AgentType.MOTORCYCLE): (0, 200, 200),
+    int(AgentType.BICYCLE): (0, 160, 80),
+    int(AgentType.PEDESTRIAN): (230, 60, 200),
+}
+#: Box heights and footprints for objects whose size the tracker does not report.
+TYPE_HEIGHTS_M: dict[int, float] = {1: 1.5, 2: 3.0, 3: 3.0, 4: 1.2, 5: 1.2, 6: 1.8}
+TYPE_DEFAULT_SIZE_M: dict[int, tuple[float, float]] = {0: (1.0, 1.0), 1: (4.5, 1.8), 2: (8.0, 2.5), 3: (12.0, 2.5), 4: (2.0, 0.8), 5: (1.8, 0.6), 6: (0.6, 0.6)}
+CAR_LANELET_FILL = (88, 88, 96)
+CAR_LANELET_BORDER = (200, 200, 205)
+OTHER_LANELET_OUTLINE = (150, 150, 160)
+CORRIDOR_COLOUR = (170, 225, 255)
+MEAN_COLOUR = (20, 20, 20)
+MEAN_AT_STEP_COLOUR = (255, 255, 255)
+TRUTH_COLOUR = (130, 255, 0)
+
+# Heat ramp for occupancy: dark red -> red -> orange -> light yellow, alpha rising with it.
+_RAMP_T = np.array([0.0, 0.35, 0.7, 1.0])
+_RAMP_RGB = np.array([[150, 0, 0], [255, 40, 0], [255, 160, 0], [255, 255, 90]], dtype=float)
+_RAMP_ALPHA = (120.0, 250.0)
+
+# z of each layer above the ground plane, m (the view is top-down; higher draws on top)
+Z_MAP = 0.0
+Z_OUTLINES = 0.01
+Z_CORRIDORS = 0.03
+Z_GRID = 0.05
+Z_TRUTH = 0.08
+Z_MEANS = 0.10
+
+
+# --------------------------------------------------------------------------- input sets and their history
+
+#: The inputs that arrive apart from the track frames and are joined to them here, by stamp.
+PART_PORTS: dict[str, type] = {"corridor_set": CorridorSet, "corridor_predictions": CorridorPredictions, "motion_grid": MotionGrid}
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class InputSet:
+    """What the viewer knows of one source stamp: the track frame and whichever later results have arrived for it."""
+
+    stamp_ns: int
+    frame_index: int
+    track_frame: TrackFrame
+    scene: SceneInfo | None = None
+    corridor_set: CorridorSet | None = None
+    predictions: CorridorPredictions | None = None
+    grid: MotionGrid | None = None
+    complete: bool = True  # every kind of result that is arriving at all is here
+
+    @property
+    def mode(self) -> str:
+        for msg in (self.predictions, self.grid):
+            if msg is not None:
+                return msg.mode
+        return "-"
+
+    def horizon_s(self, default_s: float) -> float:
+        for msg in (self.predictions, self.grid):
+            if msg is not None and len(msg.step_times_s):
+                return float(msg.step_times_s[-1])
+        return default_s
+
+
+class FrameHistory:
+    """Track frames of the last ``history_s`` seconds of stamps, and the results of other stages joined to them by stamp.
+
+    The runtime delivers every track frame, each with the latest corridor
+    set, predictions and grid that have arrived (those ports take no part in
+    its bounded stamp join: the predictions may lag the frames by seconds
+    when the machine is busy). ``add`` files each result under its own
+    ``header.stamp_ns``, so a frame shows with the results computed from it,
+    however late they came. A frame stamp at or before the newest one (a
+    source that started over) clears everything first.
+    """
+
+    def __init__(self, history_s: float) -> None:
+        self.history_ns = int(history_s * 1e9)
+        self._frames: list[TrackFrame] = []
+        self._stamps: list[int] = []
+        self._parts: dict[str, dict[int, object]] = {k: {} for k in PART_PORTS}
+        self.scene: SceneInfo | None = None
+        self.received = 0
+        self.restarts = 0
+
+    def add(self, inputs: Mapping[str, object]) -> bool:
+        """File one update's inputs; False (nothing filed) without a track frame."""
+        frame = inputs.get("track_frame")
+        if not isinstance(frame, TrackFrame):
+            return False
+        scene = inputs.get("scene")
+        if isinstance(scene, SceneInfo):
+            self.scene = scene
+        stamp = int(frame.header.stamp_ns)
+        if self._stamps and stamp <= self._stamps[-1]:
+            self._frames.clear()
+            self._stamps.clear()
+            for parts in self._parts.values():
+                parts.clear()
+            self.restarts += 1
+        self._frames.append(frame)
+        self._stamps.append(stamp)
+        self.received += 1
+        for kind, tp in PART_PORTS.items():
+            msg = inputs.get(kind)
+            if isinstance(msg, tp) and msg.header.stamp_ns <= stamp:
+                self._parts[kind].setdefault(int(msg.header.stamp_ns), msg)
+        cut = bisect.bisect_left(self._stamps, stamp - self.history_ns)
+        if cut:
+            del self._frames[:cut]
+            del self._stamps[:cut]
+        oldest = self._stamps[0]
+        for parts in self._parts.values():
+            for old in [t for t in parts if t < oldest]:
+                del parts[old]
+        return True
+
+    def __len__(self) -> int:
+        return len(self._stamps)
+
+    @property
+    def newest_stamp_ns(self) -> int | None:
+        return self._stamps[-1] if self._stamps else None
+
+    def expected(self) -> list[str]:
+        """The kinds of result that are arriving at all (any of them in the kept window)."""
+        return [k for k, parts in self._parts.items() if parts]
+
+    def _set(self, i: int, expected: list[str]) -> InputSet:
+        stamp, frame = self._stamps[i], self._frames[i]
+        got = {k: self._parts[k].get(stamp) for k in PART_PORTS}
+        return InputSet(
+            stamp_ns=stamp,
+            frame_index=int(frame.header.frame_index),
+            track_frame=frame,
+            scene=self.scene,
+            corridor_set=got["corridor_set"],
+            predictions=got["corridor_predictions"],
+            grid=got["motion_grid"],
+            complete=all(got[k] is not None for k in expected),
+        )
+
+    def newest_complete_stamp(self) -> int | None:
+        expected = self.expected()
+        for i in range(len(self._stamps) - 1, -1, -1):
+            if all(self._stamps[i] in self._parts[k] for k in expected):
+                return self._stamps[i]
+        return None
+
+    def at(self, stamp_ns: int, max_lag_ns: int) -> InputSet | None:
+        """The newest complete set at or before ``stamp_ns``; the newest frame there instead when that set is more than ``max_lag_ns`` older."""
+        i = bisect.bisect_right(self._stamps, stamp_ns) - 1
+        if i < 0:
+            return None
+        expected = self.expected()
+        for j in range(i, -1, -1):
+            if self._stamps[i] - self._stamps[j] > max_lag_ns:
+                break
+            if all(self._stamps[j] in self._parts[k] for k in expected):
+                return self._set(j, expected)
+        return self._set(i, expected)
+
+    def oldest(self) -> InputSet | None:
+        return self._set(0, self.expected()) if self._stamps else None
+
+    def true_futures(self, item: InputSet, horizon_s: float) -> tuple[dict[int, np.ndarray], bool]:
+        """Where every object of ``item`` really went in the ``horizon_s`` after it.
+
+        Returns {track_id: (k, 2) positions, starting at its position in
+        ``item``} and whether the history already reaches the full horizon.
+        """
+        end = item.stamp_ns + int(horizon_s * 1e9)
+        i0 = bisect.bisect_right(self._stamps, item.stamp_ns)
+        i1 = bisect.bisect_right(self._stamps, end)
+        tracks: dict[int, list[tuple[float, float]]] = {}
+        frame = item.track_frame
+        for row in range(len(frame)):
+            tracks[int(frame.track_ids[row])] = [(float(frame.x_m[row]), float(frame.y_m[row]))]
+        for f in self._frames[i0:i1]:
+            for row in range(len(f)):
+                path = tracks.get(int(f.track_ids[row]))
+                if path is not None:
+                    path.append((float(f.x_m[row]), float(f.y_m[row])))
+        complete = bool(self._stamps) and self._stamps[-1] >= end
+        return {tid: np.asarray(p, dtype=np.float64) for tid, p in tracks.items() if len(p) > 1}, complete
+
+
+# --------------------------------------------------------------------------- what the user chose
+
+
+ALL_VEHICLES = "all"
+
+
+@dataclass(slots=True)
+class ViewState:
+    """The choices of the side panel; the renderer draws what they select."""
+
+    vehicle: str = ALL_VEHICLES  # "all" or a track id
+    step_s: float = 1.0
+    blend_steps: bool = False
+    show_grid: bool = True
+    show_corridors: bool = True
+    show_means: bool = True
+    show_labels: bool = True
+    show_ground_truth: bool = False
+    paused: bool = False
+    paused_at_ns: int | None = None  # the newest stamp when pause was pressed
+    lookback_s: float = 0.0
+
+    def vehicle_id(self) -> int | None:
+        try:
+            return int(self.vehicle)
+        except ValueError:
+            return None
+
+    def target_stamp(self, newest_ns: int, horizon_s: float) -> int:
+        """The stamp to show: the newest complete one (or the one paused at), minus the look-back and, with ground truth on, the horizon."""
+        anchor = self.paused_at_ns if self.paused and self.paused_at_ns is not None else newest_ns
+        lag_s = self.lookback_s + (horizon_s if self.show_ground_truth else 0.0)
+        return anchor - int(round(lag_s * 1e9))
+
+
+def step_index(step_times_s: np.ndarray, step_s: float) -> int:
+    """Index of the first prediction step at or after ``step_s`` (its interval [t_k − τ, t_k] holds ``step_s``); the last if none."""
+    times = np.asarray(step_times_s, dtype=float)
+    if not len(times):
+        return 0
+    later = np.nonzero(times >= step_s - 1e-6)[0]
+    return int(later[0]) if len(later) else len(times) - 1
+
+
+# --------------------------------------------------------------------------- objects
+
+
+@dataclass(frozen=True, slots=True)
+class Boxes:
+    """Oriented boxes on the ground: centres (n, 3), quaternions wxyz (n, 4), sizes (n, 3) and colours (n, 3) uint8."""
+
+    track_ids: np.ndarray
+    agent_types: np.ndarray
+    centres_m: np.ndarray
+    wxyzs: np.ndarray
+    sizes_m: np.ndarray
+    colours: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.track_ids.shape[0])
+
+
+def object_boxes(frame: TrackFrame) -> Boxes:
+    """Every object of the frame with a finite position as a box, coloured by its type."""
+    x, y = np.asarray(frame.x_m, dtype=float), np.asarray(frame.y_m, dtype=float)
+    keep = np.isfinite(x) & np.isfinite(y)
+    types = np.asarray(frame.agent_types, dtype=np.int64)[keep]
+    yaw = np.nan_to_num(np.asarray(frame.yaw_rad, dtype=float)[keep])
+    length = np.asarray(frame.length_m, dtype=float)[keep]
+    width = np.asarray(frame.width_m, dtype=float)[keep]
+    default = np.array([TYPE_DEFAULT_SIZE_M.get(int(t), TYPE_DEFAULT_SIZE_M[0]) for t in types], dtype=float).reshape(-1, 2)
+    length = np.where(np.isfinite(length) & (length > 0.1), length, default[:, 0])
+    width = np.where(np.isfinite(width) & (width > 0.1), width, default[:, 1])
+    height = np.array([TYPE_HEIGHTS_M.get(int(t), 1.5) for t in types], dtype=float)
+    centres = np.stack([x[keep], y[keep], height / 2.0], axis=1) if len(types) else np.zeros((0, 3))
+    wxyzs = np.stack([np.cos(yaw / 2.0), np.zeros_like(yaw), np.zeros_like(yaw), np.sin(yaw / 2.0)], axis=1) if len(types) else np.zeros((0, 4))
+    colours = np.array([TYPE_COLOURS.get(int(t), TYPE_COLOURS[0]) for t in types], dtype=np.uint8).reshape(-1, 3)
+    return Boxes(
+        track_ids=np.asarray(frame.track_ids, dtype=np.int64)[keep],
+        agent_types=types,
+        centres_m=centres,
+        wxyzs=wxyzs,
+        sizes_m=np.stack([length, width, height], axis=1) if len(types) else np.zeros((0, 3)),
+        colours=colours,
+    )
+
+
+#: A unit cube centred on the origin: 8 vertices, 12 triangles (scaled per instance).
+CUBE_VERTICES = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)], dtype=np.float32)
+CUBE_FACES = np.array(
+    [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]],
+    dtype=np.uint32,
+)
+
+
+# --------------------------------------------------------------------------- corridors and predictions
+
+
+@dataclass(frozen=True, slots=True)
+class Label:
+    name: str
+    text: str
+    position_m: tuple[float, float, float]
+
+
+@dataclass(frozen=True, slots=True)
+class Segments:
+    """Line segments (n, 2, 3) with per-point colours (n, 2, 3) uint8."""
+
+    points_m: np.ndarray
+    colours: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.points_m.shape[0])
+
+    @staticmethod
+    def empty() -> Segments:
+        return Segments(np.zeros((0, 2, 3), dtype=np.float32), np.zeros((0, 2, 3), dtype=np.uint8))
+
+
+def polyline_segments(polylines: list[np.ndarray], colour: tuple[int, int, int], z_m: float) -> Segments:
+    """Join each (k, 2) polyline's consecutive points into segments at height ``z_m``."""
+    parts = []
+    for line in polylines:
+        line = np.asarray(line, dtype=float)
+        line = line[np.all(np.isfinite(line), axis=1)]
+        if len(line) < 2:
+            continue
+        pts = np.concatenate([line, np.full((len(line), 1), z_m)], axis=1)
+        parts.append(np.stack([pts[:-1], pts[1:]], axis=1))
+    if not parts:
+        return Segments.empty()
+    points = np.concatenate(parts).astype(np.float32)
+    colours = np.broadcast_to(np.asarray(colour, dtype=np.uint8), points.shape).copy()
+    return Segments(points, colours)
+
+
+def corridor_probabilities(predictions: CorridorPredictions | None) -> dict[tuple[int, int], float]:
+    if predictions is None:
+        return {}
+    return {(p.track_id, p.corridor_id): float(p.probability) for p in predictions.predictions}
+
+
+def matched_vehicles(corridor_set: CorridorSet | None) -> list[int]:
+    """Track ids that have corridors, sorted."""
+    if corridor_set is None:
+        return []
+    return sorted(v.track_id for v in corridor_set.vehicles if v.status == MatchStatus.MATCHED and v.corridors)
+
+
+def corridor_lines(item: InputSet, vehicle: int | None) -> tuple[Segments, list[Label]]:
+    """The corridors of one vehicle (or all) as centreline segments, and a probability label per corridor.
+
+    The label sits where the corridor's prediction has its mean at the last
+    step (the far end of the heat map), else at the corridor's end.
+    """
+    if item.corridor_set is None:
+        return Segments.empty(), []
+    probs = corridor_probabilities(item.predictions)
+    last_mean: dict[tuple[int, int], tuple[float, float]] = {}
+    if item.predictions is not None:
+        for p in item.predictions.predictions:
+            ok = np.isfinite(p.mean_x_m) & np.isfinite(p.mean_y_m)
+            if ok.any():
+                k = int(np.nonzero(ok)[0][-1])
+                last_mean[(p.track_id, p.corridor_id)] = (float(p.mean_x_m[k]), float(p.mean_y_m[k]))
+    lines, labels = [], []
+    for v in item.corridor_set.vehicles:
+        if vehicle is not None and v.track_id != vehicle:
+            continue
+        n = len(v.corridors)
+        for c in v.corridors:
+            lines.append(np.stack([c.x_m, c.y_m], axis=1))
+            key = (v.track_id, c.corridor_id)
+            p = probs.get(key, 1.0 / n if n else math.nan)
+            at = last_mean.get(key)
+            if at is None and len(c.x_m):
+                at = (float(c.x_m[-1]), float(c.y_m[-1]))
+            if at is not None:
+                labels.append(Label(f"{v.track_id}_{c.corridor_id & 0xFFFFFFFF:x}", f"p={p:.2f}", (at[0], at[1], Z_MEANS)))
+    return polyline_segments(lines, CORRIDOR_COLOUR, Z_CORRIDORS), labels
+
+
+def mean_points(item: InputSet, vehicle: int | None, k: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted mean positions: every step's (n, 3), and the chosen step ``k``'s (m, 3) (none when blending)."""
+    if item.predictions is None:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    every, chosen = [], []
+    for p in item.predictions.predictions:
+        if vehicle is not None and p.track_id != vehicle:
+            continue
+        xy = np.stack([p.mean_x_m, p.mean_y_m], axis=1)
+        ok = np.all(np.isfinite(xy), axis=1)
+        every.append(xy[ok])
+        if k is not None and k < len(xy) and ok[k]:
+            chosen.append(xy[k : k + 1])
+
+    def lift(parts: list[np.ndarray]) -> np.ndarray:
+        if not parts:
+            return np.zeros((0, 3))
+        xy = np.concatenate(parts)
+        return np.concatenate([xy, np.full((len(xy), 1), Z_MEANS)], axis=1)
+
+    return lift(every), lift(chosen)
+
+
+# --------------------------------------------------------------------------- the motion grid as an image
+
+
+@dataclass(frozen=True, slots=True)
+class GridImage:
+    """An RGBA image of the grid (row 0 = south: viser draws an image's first row at its -y edge) and where it lies on the ground."""
+
+    rgba: np.ndarray  # (h, w, 4) uint8
+    centre_m: tuple[float, float]
+    width_m: float
+    height_m: float
+    cells: int  # cells above the floor (visible)
+    max_value: float
+
+
+def grid_values(grid: MotionGrid, k: int | None) -> np.ndarray:
+    """The dense (n_rows, n_cols) occupancy of step ``k``, or the maximum over all steps for None."""
+    dense = np.zeros((grid.n_rows, grid.n_cols), dtype=np.float32)
+    steps = grid.steps if k is None else grid.steps[k : k + 1]
+    for step in steps:
+        rows, cols = np.asarray(step.rows, dtype=np.int64), np.asarray(step.cols, dtype=np.int64)
+        ok = (rows >= 0) & (rows < grid.n_rows) & (cols >= 0) & (cols < grid.n_cols)
+        np.maximum.at(dense, (rows[ok], cols[ok]), np.asarray(step.values, dtype=np.float32)[ok])
+    return dense
+
+
+def heat_colours(values: np.ndarray, *, scale: str = "log", floor: float = 1e-3) -> np.ndarray:
+    """RGBA uint8 for occupancies in [0, 1]: transparent below ``floor``, then the heat ramp (log or linear in the value)."""
+    v = np.clip(np.nan_to_num(np.asarray(values, dtype=float)), 0.0, 1.0)
+    if scale == "log":
+        t = (np.log10(np.maximum(v, floor)) - math.log10(floor)) / -math.log10(floor)
+    else:
+        t = (v - floor) / (1.0 - floor)
+    t = np.clip(t, 0.0, 1.0)
+    out = np.zeros(v.shape + (4,), dtype=np.uint8)
+    for ch in range(3):
+        out[..., ch] = np.interp(t, _RAMP_T, _RAMP_RGB[:, ch]).round().astype(np.uint8)
+    alpha = _RAMP_ALPHA[0] + (_RAMP_ALPHA[1] - _RAMP_ALPHA[0]) * t
+    out[..., 3] = np.where(v >= floor, alpha, 0.0).round().astype(np.uint8)
+    return out
+
+
+def grid_image(grid: MotionGrid, k: int | None, *, scale: str = "log", floor: float = 1e-3, upsample: int = 4) -> GridImage | None:
+    """The grid of step ``k`` (None: all steps blended by their maximum) as a heat-map image on the ground.
+
+    Each cell becomes ``upsample`` × ``upsample`` pixels so that the
+    texture's smoothing does not bleed one cell into the next.
+    """
+    if grid.n_rows <= 0 or grid.n_cols <= 0 or not grid.steps:
+        return None
+    dense = grid_values(grid, k)
+    rgba = heat_colours(dense, scale=scale, floor=floor)
+    if upsample > 1:
+        rgba = np.repeat(np.repeat(rgba, upsample, axis=0), upsample, axis=1)
+    w_m, h_m = grid.n_cols * grid.cell_m, grid.n_rows * grid.cell_m
+    return GridImage(
+        rgba=rgba,
+        centre_m=(grid.origin_x_m + w_m / 2.0, grid.origin_y_m + h_m / 2.0),
+        width_m=float(w_m),
+        height_m=float(h_m),
+        cells=int((dense >= floor).sum()),
+        max_value=float(dense.max()) if dense.size else 0.0,
+    )
+
+
+# --------------------------------------------------------------------------- the map
+
+
+def strip_mesh(left_m: np.ndarray, right_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles filling the area between a lanelet's left and right bound.
+
+    Both bounds are resampled to the same number of points by their relative
+    arc length, then each pair of neighbouring point pairs is one quad
+    (two triangles). Returns vertices (2n, 2) and faces (2(n-1), 3).
+    """
+
+    def resample(line: np.ndarray, n: int) -> np.ndarray:
+        seg = np.hypot(*np.diff(line, axis=0).T)
+        s = np.concatenate([[0.0], np.cumsum(seg)])
+        if s[-1] <= 0:
+            return np.repeat(line[:1], n, axis=0)
+        u = np.linspace(0.0, s[-1], n)
+        return np.stack([np.interp(u, s, line[:, 0]), np.interp(u, s, line[:, 1])], axis=1)
+
+    left, right = np.asarray(left_m, dtype=float), np.asarray(right_m, dtype=float)
+    n = max(len(left), len(right), 2)
+    left, right = resample(left, n), resample(right, n)
+    vertices = np.concatenate([left, right])
+    i = np.arange(n - 1)
+    faces = np.concatenate([np.stack([i, n + i, n + i + 1], axis=1), np.stack([i, n + i + 1, i + 1], axis=1)])
+    return vertices, faces
+
+
+@dataclass(frozen=True, slots=True)
+class MapGeometry:
+    """What the viewer draws of a lanelet map: car lanelets filled, the others outlined."""
+
+    scene_id: str
+    car_vertices_m: np.ndarray  # (v, 3) float32
+    car_faces: np.ndarray  # (f, 3) uint32
+    car_borders: Segments
+    other_outlines: Segments
+    n_car_lanelets: int
+    n_other_lanelets: int
+    bounds_m: tuple[float, float, float, float]  # x_min, y_min, x_max, y_max
+    problems: tuple[str, ...] = field(default=())
+
+
+def build_map_geometry(scene_id: str, car_bounds: list[tuple[np.ndarray, np.ndarray]], other_bounds: list[tuple[np.ndarray, np.ndarray]], problems: tuple[str, ...] = ()) -> MapGeometry:
+    """Meshes and outlines from (left, right) bound pairs of the car lanelets and of the others."""
+    verts, faces, offset, borders = [], [], 0, []
+    for left, right in car_bounds:
+        v, f = strip_mesh(left, right)
+        verts.append(v)
+        faces.append(f + offset)
+        offset += len(v)
+        borders += [left, right]
+    others = [line for pair in other_bounds for line in pair]
+    every = [np.asarray(p, dtype=float) for pair in car_bounds + other_bounds for p in pair if len(p)]
+    if every:
+        allp = np.concatenate(every)
+        bounds = (float(allp[:, 0].min()), float(allp[:, 1].min()), float(allp[:, 0].max()), float(allp[:, 1].max()))
+    else:
+        bounds = (-50.0, -50.0, 50.0, 50.0)
+    if verts:
+        v2 = np.concatenate(verts)
+        car_vertices = np.concatenate([v2, np.full((len(v2), 1), Z_MAP)], axis=1).astype(np.float32)
+        car_faces = np.concatenate(faces).astype(np.uint32)
+    else:
+        car_vertices, car_faces = np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32)
+    return MapGeometry(
+        scene_id=scene_id,
+        car_vertices_m=car_vertices,
+        car_faces=car_faces,
+        car_borders=polyline_segments(borders, CAR_LANELET_BORDER, Z_OUTLINES),
+        other_outlines=polyline_segments(others, OTHER_LANELET_OUTLINE, Z_OUTLINES),
+        n_car_lanelets=len(car_bounds),
+        n_other_lanelets=len(other_bounds),
+        bounds_m=bounds,
+        problems=problems,
+    )
+
+
+def load_map_geometry(scene: SceneInfo) -> MapGeometry:
+    """The scene's map as the corridors stage loads it (same file, projection and origin), plus its other lanelets."""
+    from stages.corridors.core import resolve_projection
+    from stages.maps import load_map
+
+    projection = resolve_projection("auto", scene)
+    road_map, found = load_map(scene.map_path, scene.origin_lat_deg, scene.origin_lon_deg, projection)
+    problems = tuple(f"{p.kind.name.lower()}: {p.detail}" for p in found)
+    if road_map is None:
+        return build_map_geometry(scene.scene_id, [], [], problems or ("map did not load",))
+    car = [(road_map.lanelet(i).left_bound_m, road_map.lanelet(i).right_bound_m) for i in road_map.lanelet_ids]
+    others, more = _other_lanelet_bounds(scene, projection)
+    return build_map_geometry(scene.scene_id, car, others, problems + more)
+
+
+def _other_lanelet_bounds(scene: SceneInfo, projection) -> tuple[list[tuple[np.ndarray, np.ndarray]], tuple[str, ...]]:
+    """Bounds of the lanelets that are not car lanelets (walkways, crosswalks, bike lanes), in the scene frame.
+
+    ``RoadMap`` keeps car lanelets only, so this reads the file once more
+    through the lanelet2 handles of ``stages.maps`` (the project's lanelet2
+    wrapper), projected and shifted exactly as ``maps.load_map`` does.
+    HOOK(maps): replace with a public ``maps`` function once there is one.
+    """
+    from stages import maps
+
+    try:
+        projector = maps._projector(projection, scene.origin_lat_deg, scene.origin_lon_deg)
+        lanelet_map, _errors = maps.ll_io.loadRobust(str(scene.map_path), projector)
+        origin = projector.forward(maps.ll_core.GPSPoint(scene.origin_lat_deg, scene.origin_lon_deg, 0.0))
+    except Exception as exc:  # a map we cannot read twice still draws its car lanelets
+        return [], (f"other lanelets not drawn: {exc}",)
+    out = []
+    for lanelet in lanelet_map.laneletLayer:
+        if maps.is_car_lanelet(lanelet.attributes):
+            continue
+        left = np.array([(p.x - origin.x, p.y - origin.y) for p in lanelet.leftBound], dtype=float)
+        right = np.array([(p.x - origin.x, p.y - origin.y) for p in lanelet.rightBound], dtype=float)
+        if len(left) >= 2 and len(right) >= 2:
+            out.append((left, right))
+    return out, ()

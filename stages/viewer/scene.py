@@ -1,0 +1,517 @@
+"""The viewer core: keeps the input sets and draws them in a viser scene (the only viser user).
+
+``ViewerApp.update`` runs on the runtime's loop and only stores the joined
+input set (cheap, so the runtime's queue never backs up); a render thread
+draws the set the side panel selects, at most ``max_render_hz`` times a
+second, always the newest one: sets that arrived in between are counted as
+skipped. GUI callbacks run on viser's threads and only change the
+``ViewState`` and wake the render thread.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import dataclasses
+import io
+import logging
+import math
+import threading
+import time
+from typing import Any, Callable, Mapping
+
+import numpy as np
+import viser
+
+from bus_schemas import NodeStats
+from stages._core import Issue, StageResult
+
+from .config import ViewerConfig
+from .model import (
+    ALL_VEHICLES,
+    CAR_LANELET_FILL,
+    CUBE_FACES,
+    CUBE_VERTICES,
+    MEAN_AT_STEP_COLOUR,
+    MEAN_COLOUR,
+    TRUTH_COLOUR,
+    TYPE_COLOURS,
+    Z_TRUTH,
+    FrameHistory,
+    InputSet,
+    MapGeometry,
+    ViewState,
+    corridor_lines,
+    grid_image,
+    load_map_geometry,
+    matched_vehicles,
+    mean_points,
+    object_boxes,
+    polyline_segments,
+    step_index,
+)
+
+CAMERA_FOV_RAD = math.radians(30.0)  # narrow: the top-down view is nearly orthographic
+ASSUMED_ASPECT = 1280 / 900
+STEP_MIN_S, STEP_MAX_S, STEP_S = 0.4, 4.0, 0.4
+#: Above this the runtime's latency (receive wall time minus header stamp) compares recording time with the wall clock.
+PLAUSIBLE_LATENCY_MS = 60_000.0
+_TYPE_NAMES = {0: "unknown", 1: "car", 2: "truck", 3: "bus", 4: "motorcycle", 5: "bicycle", 6: "pedestrian"}
+
+
+class StatsBoard:
+    """The latest ``NodeStats`` of every node of the run (filled from any thread)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._latest: dict[str, NodeStats] = {}
+
+    def put(self, stats: NodeStats) -> None:
+        with self._lock:
+            self._latest[stats.node_id] = stats
+
+    def snapshot(self) -> dict[str, NodeStats]:
+        with self._lock:
+            return dict(self._latest)
+
+
+@dataclasses.dataclass
+class DrawCounters:
+    drawn: int = 0
+    skipped: int = 0
+    received_at_last_draw: int = 0
+    draw_ms: collections.deque = dataclasses.field(default_factory=lambda: collections.deque(maxlen=200))
+    age_ms: collections.deque = dataclasses.field(default_factory=lambda: collections.deque(maxlen=200))  # frame's arrival to its draw with results
+
+
+class ViewerApp:
+    """The viewer core handed to the runtime: ``update`` stores, a render thread draws into viser."""
+
+    def __init__(self, config: ViewerConfig, *, run_id: str, log: logging.Logger | None = None, stats: StatsBoard | None = None) -> None:
+        self.config = config
+        self.run_id = run_id
+        self.log = log or logging.getLogger("iamp.viewer")
+        self.stats = stats
+        self.history = FrameHistory(config.history_s)
+        self.view = ViewState(step_s=config.step_s, blend_steps=config.blend_steps, show_ground_truth=config.show_ground_truth)
+        self.counters = DrawCounters()
+        self.server: viser.ViserServer | None = None
+        self.url = ""
+        self.map: MapGeometry | None = None
+        self.shown: InputSet | None = None
+        self.summary: dict[str, Any] = {}
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._drawn_cv = threading.Condition()
+        self._view_version = 0
+        self._last_key: tuple | None = None
+        self._last_draw_mono = 0.0
+        self._last_status_mono = 0.0
+        self._labels: dict[str, Any] = {}
+        self._arrived: collections.OrderedDict[int, float] = collections.OrderedDict()  # stamp -> monotonic arrival
+        self._layers: dict[str, Any] = {}
+        self._announced_complete = False
+        self._thread: threading.Thread | None = None
+        self._gui: dict[str, Any] = {}
+
+    # ------------------------------------------------------------------ life cycle
+
+    def start(self) -> str:
+        """Start the viser server and the render thread; returns the page's URL."""
+        cfg = self.config
+        logging.getLogger("websockets").setLevel(logging.WARNING)  # viser's server logs every listen/connection at INFO
+        with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner; stages log instead
+            self.server = viser.ViserServer(host=cfg.host, port=cfg.port, verbose=False)
+        port = self.server.get_port()
+        if cfg.port and port != cfg.port:
+            self.log.warning("viewer: port %d was busy, serving on %d", cfg.port, port)
+        self.url = f"http://{cfg.host}:{port}"
+        scene = self.server.scene
+        scene.configure_environment_map(None)
+        scene.configure_default_lights(enabled=False, cast_shadow=False)
+        scene.add_light_ambient("/light", intensity=math.pi)  # flat colours: diffuse colour × π/π
+        self.server.initial_camera.fov = CAMERA_FOV_RAD
+        self._build_gui()
+        self.server.on_client_connect(self._on_client_connect)
+        self.server.on_client_disconnect(lambda client: self.log.info("viewer: client disconnected: id=%d", client.client_id))
+        self._thread = threading.Thread(target=self._render_loop, name="viewer-render", daemon=True)
+        self._thread.start()
+        return self.url
+
+    def close(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+        if self.server is not None:
+            with contextlib.redirect_stdout(io.StringIO()):
+                self.server.stop()
+            self.server = None
+
+    # ------------------------------------------------------------------ the runtime's side
+
+    def update(self, inputs: Mapping[str, object]) -> StageResult:
+        """Keep one joined input set; the render thread draws it (or a newer one)."""
+        with self._lock:
+            if not self.history.add(inputs):
+                return StageResult(issues=[Issue("no_frame", -1, "input set without a track_frame")])
+            self._arrived[inputs["track_frame"].header.stamp_ns] = time.monotonic()  # for "frame to screen"
+            while len(self._arrived) > 256:
+                self._arrived.popitem(last=False)
+        self._wake.set()
+        return StageResult()
+
+    # ------------------------------------------------------------------ view changes (GUI, tests, figures)
+
+    def set_view(self, **changes: Any) -> None:
+        """Change the view as the side panel would (``step_s=4.0``, ``paused=True`` ...); the GUI follows."""
+        gui_names = {"vehicle": "vehicle", "step_s": "step", "blend_steps": "blend", "show_grid": "grid", "show_corridors": "corridors",
+                     "show_means": "means", "show_labels": "labels", "show_ground_truth": "truth", "paused": "pause", "lookback_s": "lookback"}
+        for name, value in changes.items():
+            if name not in gui_names:
+                raise ValueError(f"unknown view setting {name!r}; known: {', '.join(gui_names)}")
+            handle = self._gui.get(gui_names[name])
+            if handle is not None:
+                handle.value = str(value) if name == "vehicle" else value  # runs the same callback as a click
+            else:
+                self._change_view(name, value)
+
+    def _change_view(self, name: str, value: Any) -> None:
+        with self._lock:
+            if name == "paused":
+                self.view.paused_at_ns = self.history.newest_complete_stamp() if value else None
+            setattr(self.view, name, value)
+            self._view_version += 1
+        self._wake.set()
+
+    def wait_drawn(self, predicate: Callable[[dict[str, Any]], bool], timeout_s: float) -> dict[str, Any]:
+        """Block until the summary of the last draw satisfies ``predicate``; returns it (raises TimeoutError)."""
+        deadline = time.monotonic() + timeout_s
+        with self._drawn_cv:
+            while not predicate(self.summary):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError(f"viewer: no matching draw within {timeout_s:.0f} s; last: {self.summary}")
+                self._drawn_cv.wait(left)
+            return dict(self.summary)
+
+    def fit_camera(self, bounds_m: tuple[float, float, float, float] | None = None, margin: float = 1.1) -> None:
+        """Look straight down on ``bounds_m`` (default: the map) for new clients and every connected one."""
+        if self.server is None:
+            return
+        if bounds_m is None:
+            bounds_m = self.map.bounds_m if self.map is not None else (-50.0, -50.0, 50.0, 50.0)
+        x0, y0, x1, y1 = bounds_m
+
+        def pose(aspect: float) -> tuple[tuple[float, float, float], tuple[float, float, float], float]:
+            cx, cy = (x0 + x1) / 2.0, (y0 + y1) / 2.0
+            half = max((y1 - y0) / 2.0, (x1 - x0) / 2.0 / max(aspect, 0.1), 5.0) * margin
+            height = half / math.tan(CAMERA_FOV_RAD / 2.0)
+            return (cx, cy - 1e-3 * height, height), (cx, cy, 0.0), max(1000.0, 3.0 * height)
+
+        position, look_at, far = pose(ASSUMED_ASPECT)
+        cam = self.server.initial_camera
+        cam.far = far
+        cam.position, cam.look_at, cam.up = position, look_at, (0.0, 0.0, 1.0)
+        for client in self.server.get_clients().values():
+            try:
+                aspect = float(client.camera.aspect)
+            except Exception:  # no camera message from this client yet
+                aspect = ASSUMED_ASPECT
+            position, look_at, far = pose(aspect if math.isfinite(aspect) and aspect > 0 else ASSUMED_ASPECT)
+            client.camera.far = far
+            client.camera.position = position
+            client.camera.look_at = look_at
+
+    def objects_bounds(self, margin_m: float = 25.0) -> tuple[float, float, float, float] | None:
+        """The box around the shown objects, ``margin_m`` wider on every side."""
+        item = self.shown
+        if item is None or not len(item.track_frame):
+            return None
+        x, y = np.asarray(item.track_frame.x_m), np.asarray(item.track_frame.y_m)
+        ok = np.isfinite(x) & np.isfinite(y)
+        if not ok.any():
+            return None
+        return (float(x[ok].min()) - margin_m, float(y[ok].min()) - margin_m, float(x[ok].max()) + margin_m, float(y[ok].max()) + margin_m)
+
+    # ------------------------------------------------------------------ the side panel
+
+    def _build_gui(self) -> None:
+        gui = self.server.gui
+        gui.configure_theme(control_width="large", show_share_button=False)
+        gui.main_panel.dock_right()  # the canvas keeps the rest of the window
+        v = self.view
+        with gui.add_folder("View"):
+            g = self._gui
+            g["vehicle"] = gui.add_dropdown("vehicle", (ALL_VEHICLES,), initial_value=ALL_VEHICLES, hint="corridors and means of one vehicle, or of all")
+            g["step"] = gui.add_slider("grid step (s)", STEP_MIN_S, STEP_MAX_S, STEP_S, _snap_step(v.step_s), hint="prediction time of the heat map")
+            g["blend"] = gui.add_checkbox("blend all steps", v.blend_steps, hint="heat map: maximum over all steps")
+            g["grid"] = gui.add_checkbox("heat map", v.show_grid)
+            g["corridors"] = gui.add_checkbox("corridors", v.show_corridors)
+            g["means"] = gui.add_checkbox("predicted means", v.show_means)
+            g["labels"] = gui.add_checkbox("labels", v.show_labels)
+            g["truth"] = gui.add_checkbox("ground truth (lag 4 s)", v.show_ground_truth,
+                                          hint="show the frame of one horizon ago and where its objects really went")
+            g["pause"] = gui.add_checkbox("pause", v.paused, hint="freeze the display (the source keeps playing)")
+            g["lookback"] = gui.add_slider("look back (s)", 0.0, float(self.config.history_s), 0.1, 0.0, hint="show an older frame of the kept history")
+            fit = gui.add_button("fit view to map")
+            fit_objects = gui.add_button("fit view to objects")
+        for key, name in (("vehicle", "vehicle"), ("step", "step_s"), ("blend", "blend_steps"), ("grid", "show_grid"), ("corridors", "show_corridors"),
+                          ("means", "show_means"), ("labels", "show_labels"), ("truth", "show_ground_truth"), ("pause", "paused"), ("lookback", "lookback_s")):
+            self._gui[key].on_update(lambda event, name=name: self._change_view(name, event.target.value))
+        fit.on_click(lambda _event: self.fit_camera())
+        fit_objects.on_click(lambda _event: self.fit_camera(self.objects_bounds()))
+        with gui.add_folder("Run"):
+            self._gui["status"] = gui.add_markdown("waiting for the first frame")
+        with gui.add_folder("Stages"):
+            self._gui["stages"] = gui.add_markdown("no stats yet" if self.config.stats else "stats are off (`stats = false`)")
+        legend = " · ".join(f"<span style='color:rgb{c}'>■</span> {_TYPE_NAMES[t]}" for t, c in TYPE_COLOURS.items() if t)
+        with gui.add_folder("Legend", expand_by_default=False):
+            gui.add_markdown(legend + "<br>light blue lines: corridors (p = corridor probability) · black dots: predicted means per step, "
+                             "white: at the grid step · heat: occupancy (log scale) · yellow-green: true future")
+
+    def _on_client_connect(self, client: Any) -> None:
+        self.log.info("viewer: client connected: id=%d", client.client_id)
+        if self.map is not None:
+            self._wake.set()
+
+    # ------------------------------------------------------------------ drawing
+
+    def _render_loop(self) -> None:
+        period = 1.0 / self.config.max_render_hz
+        while not self._stop.is_set():
+            self._wake.wait(timeout=1.0 / self.config.status_hz)
+            if self._stop.is_set():
+                break
+            wait = self._last_draw_mono + period - time.monotonic()
+            if wait > 0:  # at most max_render_hz: newer sets pile up meanwhile and the newest wins
+                self._stop.wait(wait)
+            self._wake.clear()
+            try:
+                self._draw()
+                if time.monotonic() - self._last_status_mono >= 1.0 / self.config.status_hz:
+                    self._last_status_mono = time.monotonic()
+                    self._draw_status()
+            except Exception:
+                self.log.exception("viewer: draw failed (the next set is drawn anew)")
+                self._last_key = None
+
+    def _draw(self) -> None:
+        with self._lock:
+            newest_ns = self.history.newest_stamp_ns
+            if newest_ns is None:
+                return
+            max_lag_ns = int(self.config.max_lag_s * 1e9)
+            newest = self.history.at(newest_ns, max_lag_ns)
+            horizon_s = newest.horizon_s(self.config.horizon_s)
+            view = dataclasses.replace(self.view)
+            target = view.target_stamp(newest.stamp_ns, horizon_s)
+            item = self.history.at(target, max_lag_ns) or self.history.oldest()
+            futures, complete = self.history.true_futures(item, horizon_s) if view.show_ground_truth else ({}, False)
+            received = self.history.received
+            arrived = self._arrived.get(item.stamp_ns)
+            key = (item.stamp_ns, item.complete, self._view_version, self.history.restarts, len(futures))
+        if key == self._last_key:
+            return
+        t0 = time.perf_counter()
+        if not view.paused:
+            new = received - self.counters.received_at_last_draw
+            self.counters.skipped += max(0, new - 1)
+        self.counters.received_at_last_draw = received
+        scene_info = item.scene
+        if scene_info is not None and (self.map is None or self.map.scene_id != scene_info.scene_id):
+            self._draw_map(scene_info)
+        summary = self._draw_frame(item, view, futures, complete)
+        dt = (time.perf_counter() - t0) * 1e3
+        self.counters.drawn += 1
+        self.counters.draw_ms.append(dt)
+        if arrived is not None and item.stamp_ns == newest.stamp_ns and not view.paused:
+            self.counters.age_ms.append((time.monotonic() - arrived) * 1e3)
+        self._last_key = key
+        self._last_draw_mono = time.monotonic()
+        self.shown = item
+        summary.update(drawn=self.counters.drawn, skipped=self.counters.skipped, received=received)
+        with self._drawn_cv:
+            self.summary = summary
+            self._drawn_cv.notify_all()
+        if not self._announced_complete and all(summary[k] for k in ("objects", "car_lanelets", "corridors", "means", "grid_cells")):
+            self._announced_complete = True
+            self.log.info(
+                "viewer: scene drawn: frame=%d objects=%d car_lanelets=%d other_lanelets=%d corridors=%d means=%d grid_cells=%d step_s=%.1f",
+                summary["frame"], summary["objects"], summary["car_lanelets"], summary["other_lanelets"], summary["corridors"],
+                summary["means"], summary["grid_cells"], summary["step_s"],
+            )
+
+    def _draw_map(self, scene_info: Any) -> None:
+        geometry = load_map_geometry(scene_info)
+        for problem in geometry.problems:
+            self.log.warning("viewer: map problem: %s", problem)
+        scene = self.server.scene
+        with self.server.atomic():
+            if len(geometry.car_faces):
+                scene.add_mesh_simple("/map/car_lanelets", geometry.car_vertices_m, geometry.car_faces, color=CAR_LANELET_FILL, side="double",
+                                      flat_shading=True, cast_shadow=False, receive_shadow=False)
+            if len(geometry.car_borders):
+                scene.add_line_segments("/map/car_borders", geometry.car_borders.points_m, geometry.car_borders.colours, thickness=0.12)
+            if len(geometry.other_outlines):
+                scene.add_line_segments("/map/other_lanelets", geometry.other_outlines.points_m, geometry.other_outlines.colours, thickness=0.15)
+        first = self.map is None
+        self.map = geometry
+        self.log.info("viewer: map drawn: scene_id=%s car_lanelets=%d other_lanelets=%d", geometry.scene_id, geometry.n_car_lanelets, geometry.n_other_lanelets)
+        if first:
+            self.fit_camera()
+
+    def _draw_frame(self, item: InputSet, view: ViewState, futures: dict[int, np.ndarray], complete: bool) -> dict[str, Any]:
+        scene = self.server.scene
+        vehicle = view.vehicle_id()
+        boxes = object_boxes(item.track_frame)
+        grid = item.grid
+        k = None if (view.blend_steps or grid is None) else step_index(grid.step_times_s, view.step_s)
+        image = grid_image(grid, k, scale=self.config.grid_scale, floor=self.config.grid_floor) if (grid is not None and view.show_grid) else None
+        lines, p_labels = corridor_lines(item, vehicle) if view.show_corridors else (None, [])
+        k_means = None if view.blend_steps else step_index(item.predictions.step_times_s, view.step_s) if item.predictions is not None else None
+        every, chosen = mean_points(item, vehicle, k_means) if view.show_means else (np.zeros((0, 3)), np.zeros((0, 3)))
+        truth = polyline_segments(list(futures.values()), TRUTH_COLOUR, Z_TRUTH) if view.show_ground_truth else None
+        with self.server.atomic():
+            if len(boxes):
+                self._layers["boxes"] = scene.add_batched_meshes_simple(
+                    "/objects/boxes", CUBE_VERTICES, CUBE_FACES, boxes.wxyzs, boxes.centres_m, batched_scales=boxes.sizes_m,
+                    batched_colors=_srgb_to_linear(boxes.colours), lod="off", cast_shadow=False, receive_shadow=False,
+                )
+            else:
+                self._remove_layer("boxes")
+            labels = {}
+            if view.show_labels:
+                for i, tid in enumerate(boxes.track_ids):
+                    x, y, _ = boxes.centres_m[i]
+                    north_m = 0.5 * float(np.hypot(boxes.sizes_m[i, 0], boxes.sizes_m[i, 1])) + 0.8  # above the box on screen, not on it
+                    labels[f"/objects/labels/t{int(tid)}"] = (str(int(tid)), (float(x), float(y) + north_m, float(boxes.sizes_m[i, 2]) + 0.3))
+                for lab in p_labels:
+                    labels[f"/corridors/p/c{lab.name}"] = (lab.text, lab.position_m)
+            self._sync_labels(labels)
+            if lines is not None and len(lines):
+                self._layers["corridors"] = scene.add_line_segments("/corridors/lines", lines.points_m, lines.colours, thickness=0.25)
+            else:
+                self._remove_layer("corridors")
+            if len(every):
+                self._layers["means"] = scene.add_point_cloud("/predictions/means", every, colors=MEAN_COLOUR, point_size=0.2, point_shape="circle", precision="float32")
+            else:
+                self._remove_layer("means")
+            if len(chosen):
+                self._layers["means_at_step"] = scene.add_point_cloud("/predictions/at_step", chosen, colors=MEAN_AT_STEP_COLOUR, point_size=0.5, point_shape="circle", precision="float32")
+            else:
+                self._remove_layer("means_at_step")
+            if image is not None and image.cells:
+                self._layers["grid"] = scene.add_image(
+                    "/grid", image.rgba, image.width_m, image.height_m, format="png", position=(image.centre_m[0], image.centre_m[1], 0.05),
+                    cast_shadow=False, receive_shadow=False,
+                )
+            else:
+                self._remove_layer("grid")
+            if truth is not None and len(truth):
+                self._layers["truth"] = scene.add_line_segments("/truth", truth.points_m, truth.colours, thickness=0.3)
+            else:
+                self._remove_layer("truth")
+        self._update_vehicle_options(matched_vehicles(item.corridor_set), view.vehicle)
+        step_s = float(grid.step_times_s[k]) if (grid is not None and k is not None and len(grid.step_times_s)) else -1.0
+        return {
+            "frame": item.frame_index,
+            "stamp_ns": item.stamp_ns,
+            "mode": item.mode,
+            "objects": len(boxes),
+            "object_types": sorted({int(t) for t in boxes.agent_types}),
+            "car_lanelets": self.map.n_car_lanelets if self.map else 0,
+            "other_lanelets": self.map.n_other_lanelets if self.map else 0,
+            "corridors": len(p_labels),
+            "means": int(len(every)),
+            "grid_cells": image.cells if image is not None else 0,
+            "grid_max": image.max_value if image is not None else 0.0,
+            "step_s": step_s,
+            "blend": view.blend_steps,
+            "truth_tracks": len(futures),
+            "truth_complete": complete,
+            "paused": view.paused,
+        }
+
+    def _remove_layer(self, name: str) -> None:
+        handle = self._layers.pop(name, None)
+        if handle is not None:
+            handle.remove()
+
+    def _sync_labels(self, wanted: dict[str, tuple[str, tuple[float, float, float]]]) -> None:
+        for name in [n for n in self._labels if n not in wanted]:
+            self._labels.pop(name).remove()
+        for name, (text, position) in wanted.items():
+            handle = self._labels.get(name)
+            if handle is None:
+                self._labels[name] = self.server.scene.add_label(name, text, position=position, anchor="bottom-center", font_screen_scale=0.7, depth_test=False)
+            else:
+                handle.position = position
+                if handle.text != text:
+                    handle.text = text
+
+    def _update_vehicle_options(self, vehicles: list[int], selected: str) -> None:
+        options = (ALL_VEHICLES, *[str(v) for v in vehicles])
+        if selected not in options:
+            options = options + (selected,)  # keep a chosen vehicle while it is away
+        handle = self._gui["vehicle"]
+        if tuple(handle.options) != options:
+            handle.options = options
+
+    def _draw_status(self) -> None:
+        item, c = self.shown, self.counters
+        with self._lock:
+            view = dataclasses.replace(self.view)
+            received = self.history.received
+        stats = self.stats.snapshot() if self.stats is not None else {}
+        if item is None:
+            self._gui["status"].content = f"**run** {self.run_id} · waiting for the first frame"
+        else:
+            shown = "paused" if view.paused else "live"
+            newest_ns = self.history.newest_stamp_ns or item.stamp_ns
+            if not item.complete:
+                shown += f", results more than {self.config.max_lag_s:g} s late: frame shown without them"
+            elif not view.paused and not view.show_ground_truth and not view.lookback_s and newest_ns - item.stamp_ns > 5e8:
+                shown += f", results lag the frames by {(newest_ns - item.stamp_ns) / 1e9:.1f} s"
+            if view.show_ground_truth:
+                shown += f", lagging {item.horizon_s(self.config.horizon_s):.1f} s for ground truth"
+            if view.lookback_s:
+                shown += f", {view.lookback_s:.1f} s back"
+            draw_ms = float(np.median(c.draw_ms)) if c.draw_ms else 0.0
+            age_ms = float(np.median(c.age_ms)) if c.age_ms else 0.0
+            s = self.summary
+            self._gui["status"].content = "\n\n".join([
+                f"**run** {self.run_id} · **frame** {item.frame_index} · t = {item.stamp_ns / 1e9:.1f} s · **mode** {item.mode}",
+                f"showing: {shown}",
+                f"sets received {received} · drawn {c.drawn} · skipped {c.skipped}",
+                f"draw {draw_ms:.0f} ms · frame to screen {age_ms:.0f} ms (p50) · ≤ {self.config.max_render_hz:g} Hz",
+                f"objects {s.get('objects', 0)} · corridors {s.get('corridors', 0)} · grid "
+                + ("all steps" if view.blend_steps else f"{s.get('step_s', -1):.1f} s") + f": {s.get('grid_cells', 0)} cells, max {s.get('grid_max', 0):.2f}",
+            ])
+        if stats:
+            rows = ["| node | ms p50/p95 | lat ms | q | iss | err | drop |", "|:--|--:|--:|--:|--:|--:|--:|"]
+            for node_id in sorted(stats):
+                st = stats[node_id]
+                cn = st.counters
+                lat = f"{st.latency_ms_p50:.0f}" if 0 < st.latency_ms_p50 < PLAUSIBLE_LATENCY_MS else "–"
+                rows.append(
+                    f"| {node_id} | {st.proc_ms_p50:.1f}/{st.proc_ms_p95:.0f} | {lat} | {st.queue_depth} | {cn.get('issues', 0)} | "
+                    f"{cn.get('decode_errors', 0) + cn.get('core_errors', 0)} | {cn.get('queue_drops', 0) + cn.get('join_drops', 0)} |"
+                )
+            self._gui["stages"].content = "\n".join(rows) + (
+                "\n\nms: processing per input set · lat: receive time minus stamp (– when stamps are recording time) · "
+                "q: queue · iss: issues · err: decode + core errors · drop: queue + join drops"
+            )
+
+
+def _srgb_to_linear(colours: np.ndarray) -> np.ndarray:
+    """Per-instance colours of batched meshes reach three.js as linear values (measured: (30, 144, 255) showed as
+    (141, 203, 225)), unlike ``color=`` of single meshes; convert so that both look alike."""
+    c = np.asarray(colours, dtype=float) / 255.0
+    linear = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    return np.round(linear * 255.0).astype(np.uint8)
+
+
+def _snap_step(step_s: float) -> float:
+    return float(min(STEP_MAX_S, max(STEP_MIN_S, round(math.ceil(step_s / STEP_S - 1e-6) * STEP_S, 6))))
