@@ -1,0 +1,602 @@
+"""The pure part of the intentions stage: `IntentionsConfig` and `IntentionFilter`.
+
+See the package docstring for the DBN, the particle filter and the
+parameters; nothing here touches the bus or the wall clock (time comes from
+``header.stamp_ns``, random numbers from generators seeded by (seed, frame
+index, track id)).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Mapping
+
+import numpy as np
+
+from bus_schemas import (
+    Corridor,
+    CorridorBelief,
+    CorridorRelations,
+    CorridorSet,
+    Header,
+    IntentionBelief,
+    Manoeuvre,
+    MatchStatus,
+    RelationSet,
+    SceneInfo,
+    TrackFrame,
+    VehicleBelief,
+)
+from stages._core import ConfigMixin, Issue, StageResult
+from stages.corridors.core import SceneMaps
+from stages.maps import DEFAULT_SPEED_LIMIT_MPS, Projection, RoadMap, parse_projection, project_to_polyline
+
+from . import model
+from .model import ModelParams, Particles
+from .tables import PairTables, VehicleInput, build_tables, common_run, corridor_manoeuvre, corridor_ok, lanelet_shift_m, map_corridors
+
+_NS = 1e-9
+_U64 = (1 << 64) - 1
+
+
+@dataclass(frozen=True, kw_only=True)
+class IntentionsConfig(ConfigMixin):
+    """Parameters of the intentions stage (package docstring, METHOD.md §4)."""
+
+    seed: int = 0
+    particles_per_vehicle: int = 300
+    # R
+    route_switch_per_step: float = 0.005
+    route_floor_fraction: float = 0.02
+    # E
+    gap_critical_s: float = 5.0
+    gap_pass_s: float = 1.0
+    gap_scale_s: float = 0.6
+    min_time_speed_mps: float = 1.0
+    # I
+    intention_keep: float = 0.98
+    intention_adapt: float = 0.10
+    intention_floor: float = 0.01
+    # Φ
+    go_gain_per_s: float = 1.0
+    go_accel_sigma_mps2: float = 0.7
+    accel_relaxation_s: float = 0.0
+    accel_jerk_sigma_mps2: float = 0.3
+    stop_accel_sigma_mps2: float = 0.5
+    stop_margin_m: float = 1.0
+    stop_min_distance_m: float = 0.5
+    stop_offset_m: float = 14.0
+    accel_min_mps2: float = -8.0
+    accel_max_mps2: float = 4.0
+    lateral_decay: float = 0.9
+    lateral_sigma_m: float = 0.05
+    lat_accels_mps2: tuple[float, ...] = (3.0, 2.5, 2.0, 1.5)
+    lat_accel_weights: tuple[float, ...] = (0.1, 0.2, 0.4, 0.3)
+    brake_lookahead_mps2: float = 2.5
+    curvature_smoothing_m: float = 1.0
+    max_substep_s: float = 0.1
+    # Z
+    position_sigma_m: float = 0.5
+    heading_sigma_rad: float = 0.15
+    speed_sigma_mps: float = 0.5
+    heading_min_speed_mps: float = 1.0
+    # filter
+    resample_ess_fraction: float = 0.5
+    jitter_s_m: float = 0.2
+    jitter_v_mps: float = 0.1
+    min_log_weight: float = -40.0
+    birth_sigma_s_m: float = 0.5
+    birth_sigma_d_m: float = 0.2
+    birth_sigma_v_mps: float = 0.3
+    birth_sigma_a_mps2: float = 0.5
+    birth_lateral_sigma_m: float = 1.0
+    unseen_timeout_s: float = 1.0
+    lane_change_reach_m: float = 10.0
+    projection: str = "auto"
+
+    def __post_init__(self) -> None:
+        positive = (
+            "gap_critical_s", "gap_scale_s", "min_time_speed_mps", "go_accel_sigma_mps2", "stop_accel_sigma_mps2",
+            "stop_min_distance_m", "brake_lookahead_mps2", "max_substep_s", "position_sigma_m", "heading_sigma_rad",
+            "speed_sigma_mps", "birth_lateral_sigma_m", "unseen_timeout_s", "accel_max_mps2",
+        )
+        non_negative = (
+            "route_switch_per_step", "route_floor_fraction", "gap_pass_s", "go_gain_per_s", "stop_margin_m", "lateral_sigma_m",
+            "curvature_smoothing_m", "heading_min_speed_mps", "accel_relaxation_s", "accel_jerk_sigma_mps2", "jitter_s_m",
+            "jitter_v_mps", "birth_sigma_s_m", "birth_sigma_d_m",
+            "birth_sigma_v_mps", "birth_sigma_a_mps2", "lane_change_reach_m",
+        )
+        for name in positive:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"{name} = {value!r}: must be > 0")
+        for name in non_negative:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{name} = {value!r}: must be >= 0")
+        for name in ("route_switch_per_step", "intention_keep", "intention_adapt", "resample_ess_fraction", "lateral_decay"):
+            value = getattr(self, name)
+            if not (0.0 <= value <= 1.0):
+                raise ValueError(f"{name} = {value!r}: must lie in [0, 1]")
+        if not (0.0 <= self.intention_floor < 0.5):
+            raise ValueError(f"intention_floor = {self.intention_floor!r}: must lie in [0, 0.5)")
+        if self.seed < 0:
+            raise ValueError(f"seed = {self.seed}: must be >= 0")
+        if self.particles_per_vehicle < 2:
+            raise ValueError(f"particles_per_vehicle = {self.particles_per_vehicle}: must be >= 2")
+        if self.route_floor_fraction > 0.5:
+            raise ValueError(f"route_floor_fraction = {self.route_floor_fraction}: must be <= 0.5")
+        if not math.isfinite(self.stop_offset_m):
+            raise ValueError("stop_offset_m must be finite")
+        if not (math.isfinite(self.accel_min_mps2) and self.accel_min_mps2 < 0.0):
+            raise ValueError(f"accel_min_mps2 = {self.accel_min_mps2!r}: must be < 0")
+        if not (math.isfinite(self.min_log_weight) and self.min_log_weight < 0.0):
+            raise ValueError(f"min_log_weight = {self.min_log_weight!r}: must be < 0")
+        if not self.lat_accels_mps2 or len(self.lat_accels_mps2) != len(self.lat_accel_weights):
+            raise ValueError("lat_accels_mps2 and lat_accel_weights must be non-empty and of equal length")
+        if any(a <= 0 for a in self.lat_accels_mps2) or any(w < 0 for w in self.lat_accel_weights) or sum(self.lat_accel_weights) <= 0:
+            raise ValueError("lat_accels_mps2 must be > 0, lat_accel_weights >= 0 with a positive sum")
+        if parse_projection(self.projection) is Projection.UNKNOWN:
+            known = ", ".join(p.name.lower() for p in Projection if p is not Projection.UNKNOWN)
+            raise ValueError(f"projection = {self.projection!r}: expected one of {known}")
+
+    @property
+    def floor_particles(self) -> int:
+        """Particles every corridor keeps at least (2 % of N, at least 1)."""
+        return max(1, int(math.ceil(self.route_floor_fraction * self.particles_per_vehicle - 1e-9)))
+
+    def model_params(self) -> ModelParams:
+        return ModelParams(**{f: getattr(self, f) for f in ModelParams.__dataclass_fields__})
+
+
+@dataclass(slots=True, eq=False)
+class _Vehicle:
+    """What the filter keeps about one vehicle between frames: particles (one row) and its last corridors."""
+
+    last_stamp_ns: int
+    corridors: tuple[Corridor, ...]
+    particles: Particles
+    probabilities: dict[int, float] = field(default_factory=dict)
+
+
+@dataclass(slots=True, eq=False)
+class _Measurement:
+    x_m: float
+    y_m: float
+    heading_rad: float
+    speed_mps: float
+    heading_ok: bool
+    speed_ok: bool
+
+
+class IntentionFilter:
+    """TrackFrame + CorridorSet + RelationSet (+ latched SceneInfo) -> IntentionBelief; see the package docstring."""
+
+    def __init__(self, config: IntentionsConfig, *, producer: str = "intentions", scene_maps: SceneMaps | None = None) -> None:
+        self.config = config
+        self.producer = producer
+        self.scene_maps = scene_maps or SceneMaps()
+        self.params = config.model_params()
+        weights = np.asarray(config.lat_accel_weights, dtype=np.float64)
+        self._style_cdf = np.cumsum(weights / weights.sum())
+        self._vehicles: dict[int, _Vehicle] = {}
+        self._last_stamp_ns: int | None = None
+        self._scene_id: str | None = None
+        self._road_map: RoadMap | None = None
+        self._manoeuvres: dict[tuple, tuple[Manoeuvre, bool]] = {}
+
+    @property
+    def tracked_ids(self) -> frozenset[int]:
+        """Track ids with particles kept between frames (dropped after `unseen_timeout_s` unseen)."""
+        return frozenset(self._vehicles)
+
+    def reset(self) -> None:
+        """Forget every vehicle (a new recording)."""
+        self._vehicles.clear()
+        self._last_stamp_ns = None
+
+    # ----- entry point -------------------------------------------------------
+
+    def update(self, inputs: Mapping[str, object]) -> StageResult:
+        """One frame: ``track_frame``, ``corridor_set``, ``relation_set`` (same stamp) and ``scene`` (latched, may be absent)."""
+        frame = inputs.get("track_frame")
+        corridor_set = inputs.get("corridor_set")
+        relation_set = inputs.get("relation_set")
+        scene = inputs.get("scene")
+        if not isinstance(frame, TrackFrame) or not isinstance(corridor_set, CorridorSet):
+            missing = [n for n, v in (("track_frame", frame), ("corridor_set", corridor_set)) if v is None]
+            return StageResult(issues=[Issue("no_input", -1, f"update without {', '.join(missing) or 'the right types'}")])
+        belief, issues = self.process(
+            frame,
+            corridor_set,
+            relation_set if isinstance(relation_set, RelationSet) else None,
+            scene if isinstance(scene, SceneInfo) else None,
+        )
+        return StageResult(outputs={"intention_belief": belief} if belief is not None else {}, issues=issues)
+
+    def process(
+        self, frame: TrackFrame, corridor_set: CorridorSet, relation_set: RelationSet | None, scene: SceneInfo | None
+    ) -> tuple[IntentionBelief | None, list[Issue]]:
+        """The pure function behind `update`: (output, issues); output None when the stamps disagree."""
+        cfg = self.config
+        issues: list[Issue] = []
+        stamp = int(frame.header.stamp_ns)
+        stamps = {"corridor_set": corridor_set.header.stamp_ns}
+        if relation_set is not None:
+            stamps["relation_set"] = relation_set.header.stamp_ns
+        for name, other in stamps.items():
+            if int(other) != stamp:
+                issues.append(Issue("stamp_mismatch", -1, f"track_frame stamp {stamp} != {name} stamp {other}: frame skipped"))
+                return None, issues
+        if relation_set is None:
+            issues.append(Issue("no_relations", -1, "no relation_set: no stop positions or priority conflicts this frame"))
+        if self._last_stamp_ns is not None and stamp <= self._last_stamp_ns:
+            issues.append(Issue("stamp_not_increasing", -1, f"stamp {stamp} <= {self._last_stamp_ns}: every vehicle's particles reset"))
+            self._vehicles.clear()
+        self._last_stamp_ns = stamp
+        road_map = self._scene(scene, corridor_set, issues)
+        timeout_ns = int(round(cfg.unseen_timeout_s * 1e9))
+        for track_id in [t for t, v in self._vehicles.items() if stamp - v.last_stamp_ns > timeout_ns]:
+            del self._vehicles[track_id]
+        inputs, measurements = self._inputs(frame, corridor_set, issues)
+        header = Header(run_id=frame.header.run_id, frame_index=frame.header.frame_index, stamp_ns=stamp, producer=self.producer)
+        scene_id = scene.scene_id if scene is not None else corridor_set.scene_id
+        if not inputs:
+            return IntentionBelief(header=header, scene_id=scene_id, vehicles=()), issues
+        relations: dict[tuple[int, int], CorridorRelations] = {}
+        if relation_set is not None:
+            relations = {(r.track_id, r.corridor_id): r for r in relation_set.relations}
+        route_probabilities = {(t, c): p for t, v in self._vehicles.items() for c, p in v.probabilities.items()}
+        tables = build_tables(
+            inputs,
+            relations,
+            route_probabilities,
+            lat_accels_mps2=cfg.lat_accels_mps2,
+            brake_lookahead_mps2=cfg.brake_lookahead_mps2,
+            curvature_smoothing_m=cfg.curvature_smoothing_m,
+            default_speed_limit_mps=scene.speed_limit_mps if scene is not None and scene.speed_limit_mps > 0 else DEFAULT_SPEED_LIMIT_MPS,
+            stop_offset_m=cfg.stop_offset_m,
+        )
+        particles, ess = self._filter(frame.header.frame_index, stamp, inputs, measurements, tables, issues)
+        vehicles = self._beliefs(inputs, tables, particles, ess, road_map)
+        for v, item in enumerate(inputs):
+            belief = vehicles[v]
+            self._vehicles[item.track_id] = _Vehicle(
+                last_stamp_ns=stamp,
+                corridors=item.corridors,
+                particles=particles.row(v),
+                probabilities={c.corridor_id: c.probability for c in belief.corridors},
+            )
+        return IntentionBelief(header=header, scene_id=scene_id, vehicles=tuple(vehicles)), issues
+
+    # ----- scene and inputs ----------------------------------------------------
+
+    def _scene(self, scene: SceneInfo | None, corridor_set: CorridorSet, issues: list[Issue]) -> RoadMap | None:
+        if scene is None:
+            issues.append(Issue("no_map", -1, "no SceneInfo received yet: manoeuvres unknown"))
+            return None
+        if scene.scene_id != self._scene_id:
+            self._scene_id = scene.scene_id
+            scene_map = self.scene_maps.get(scene, self.config.projection)
+            self._road_map = scene_map.road_map
+            self._manoeuvres.clear()
+            self._vehicles.clear()
+            for problem in scene_map.problems:
+                kind = "map_sha256_mismatch" if problem.startswith("map_sha256_mismatch") else "map_problem"
+                issues.append(Issue(kind, -1, problem))
+        if self._road_map is None:
+            issues.append(Issue("no_map", -1, f"map {scene.map_path} unusable: manoeuvres unknown"))
+        if corridor_set.scene_id and corridor_set.scene_id != scene.scene_id:
+            detail = f"corridor_set names scene {corridor_set.scene_id}, latched scene is {scene.scene_id}"
+            issues.append(Issue("scene_mismatch", -1, detail))
+        return self._road_map
+
+    def _inputs(self, frame: TrackFrame, corridor_set: CorridorSet, issues: list[Issue]):
+        """The vehicles to update (matched, with usable corridors and a finite position) and their measurements."""
+        cfg = self.config
+        rows: dict[int, int] = {}
+        for row, track_id in enumerate(frame.track_ids.tolist()):
+            rows.setdefault(int(track_id), row)
+        inputs: list[VehicleInput] = []
+        measurements: list[_Measurement] = []
+        seen: set[int] = set()
+        for vehicle in corridor_set.vehicles:
+            if vehicle.status != MatchStatus.MATCHED or not vehicle.corridors or vehicle.track_id in seen:
+                continue
+            seen.add(vehicle.track_id)
+            good = []
+            for corridor in vehicle.corridors:
+                problem = corridor_ok(corridor)
+                if problem is None:
+                    good.append(corridor)
+                else:
+                    issues.append(Issue("bad_corridor", vehicle.track_id, f"corridor {corridor.corridor_id}: {problem}: skipped"))
+            if not good:
+                continue
+            row = rows.get(vehicle.track_id)
+            if row is None:
+                issues.append(Issue("missing_track", vehicle.track_id, "in the CorridorSet but not in the TrackFrame: skipped"))
+                continue
+            x, y = float(frame.x_m[row]), float(frame.y_m[row])
+            if not (math.isfinite(x) and math.isfinite(y)):
+                issues.append(Issue("nan_state", vehicle.track_id, f"non-finite position ({x}, {y}): not updated"))
+                continue
+            vx, vy, yaw = float(frame.vx_mps[row]), float(frame.vy_mps[row]), float(frame.yaw_rad[row])
+            speed = float(vehicle.speed_mps)
+            if not math.isfinite(speed):
+                speed = math.hypot(vx, vy)
+            speed_ok = math.isfinite(speed)
+            if not speed_ok:
+                issues.append(Issue("nan_velocity", vehicle.track_id, "no finite speed: speed term left out"))
+            heading = yaw if math.isfinite(yaw) else math.atan2(vy, vx)
+            heading_ok = math.isfinite(heading) and speed_ok and speed >= cfg.heading_min_speed_mps
+            inputs.append(VehicleInput(track_id=vehicle.track_id, corridors=tuple(good), lanelet_id=int(vehicle.lanelet_id)))
+            measurements.append(_Measurement(x, y, heading, speed, heading_ok, speed_ok))
+        return inputs, measurements
+
+    # ----- the particle filter -------------------------------------------------------
+
+    def _filter(self, frame_index: int, stamp: int, inputs, measurements, tables: PairTables, issues: list[Issue]):
+        """Birth or carry, propagate, weight, resample: particles (V, N) and the ESS (V,) before resampling."""
+        cfg, mp = self.config, self.params
+        n = cfg.particles_per_vehicle
+        n_vehicles = len(inputs)
+        first = tables.first_pair
+        rows: list[Particles] = []
+        born = np.zeros(n_vehicles, dtype=bool)
+        dt = np.zeros(n_vehicles)
+        n_sub = np.zeros(n_vehicles, dtype=np.int64)
+        for v, item in enumerate(inputs):
+            state = self._vehicles.get(item.track_id)
+            if state is None:
+                born[v] = True
+                rows.append(_empty(n))
+                continue
+            rows.append(self._carry(state, item.corridors))
+            dt[v] = (stamp - state.last_stamp_ns) * _NS
+            n_sub[v] = max(1, int(math.ceil(dt[v] / cfg.max_substep_s - 1e-9)))
+        rngs = [np.random.default_rng([cfg.seed, int(frame_index) & _U64, int(item.track_id) & _U64]) for item in inputs]
+        offsets = np.array([r.random() for r in rngs])  # systematic resampling offsets
+        frame_n = np.stack([r.standard_normal((4, n)) for r in rngs], axis=1)  # jitter s, jitter v, floor s, floor d
+        p = Particles.stack(rows)
+        names = ("x_m", "y_m", "heading_rad", "speed_mps", "heading_ok", "speed_ok")
+        z = tuple(np.array([getattr(m, f) for m in measurements]) for f in names)
+        if born.any():
+            self._birth(p, np.flatnonzero(born), rngs, tables, z)
+        steps = int(n_sub.max())
+        if steps:
+            uniforms = np.ones((steps, 3, n_vehicles, n))
+            normals = np.zeros((steps, 2, n_vehicles, n))
+            for v in np.flatnonzero(~born):
+                uniforms[: n_sub[v], :, v] = rngs[v].random((n_sub[v], 3, n))
+                normals[: n_sub[v], :, v] = rngs[v].standard_normal((n_sub[v], 2, n))
+            sub_dt = np.where(n_sub > 0, dt / np.maximum(n_sub, 1), 0.0)
+            for k in range(steps):
+                model.propagate(p, tables, first, sub_dt, (n_sub > k), (uniforms[k], normals[k]), mp)
+        log_weight = np.log(p.weight) + model.log_likelihood(p, tables, first, z, mp)
+        log_weight[born] -= 0.5 * (p.d_m[born] / cfg.birth_lateral_sigma_m) ** 2
+        p.weight, ok = model.normalise(log_weight, cfg.min_log_weight)
+        for v in np.flatnonzero(~ok):
+            issues.append(Issue("filter_degenerate", inputs[v].track_id, "no particle has a finite likelihood: weights reset to uniform"))
+        ess = 1.0 / np.sum(p.weight**2, axis=1)
+        self._inject(p, inputs, tables, frame_n[2], frame_n[3])
+        g = tables.first_pair[:, None] + p.route
+        counts = np.bincount(g.ravel(), minlength=tables.n_pairs)
+        short = np.zeros(n_vehicles, dtype=bool)
+        floor = np.minimum(cfg.floor_particles, n // tables.n_slots[tables.vehicle])
+        short[tables.vehicle[counts < floor]] = True
+        resample = np.flatnonzero((ess < cfg.resample_ess_fraction * n) | short)
+        if resample.size:
+            index, weight = model.stratified_resample(
+                p.route[resample], p.weight[resample], tables.n_slots[resample], cfg.floor_particles, offsets[resample]
+            )
+            p.take(resample, index)
+            p.weight[resample] = weight
+            p.s_m[resample] += cfg.jitter_s_m * frame_n[0, resample]
+            p.v_mps[resample] = np.maximum(p.v_mps[resample] + cfg.jitter_v_mps * frame_n[1, resample], 0.0)
+        return p, ess
+
+    def _birth(self, p: Particles, rows: np.ndarray, rngs, tables: PairTables, z) -> None:
+        """New vehicles: N particles split evenly over the corridors, placed at the measurement with noise."""
+        cfg, mp = self.config, self.params
+        n = cfg.particles_per_vehicle
+        normals = np.stack([rngs[v].standard_normal((4, n)) for v in rows], axis=1)
+        uniforms = np.stack([rngs[v].random((2, n)) for v in rows], axis=1)
+        route = np.arange(n)[None, :] % tables.n_slots[rows][:, None]
+        g = tables.first_pair[rows][:, None] + route
+        speed = np.where(z[5][rows], z[3][rows], 0.0)[:, None]
+        p.route[rows] = route
+        p.s_m[rows] = tables.vehicle_s_m[g] + cfg.birth_sigma_s_m * normals[0]
+        p.d_m[rows] = tables.vehicle_d_m[g] + cfg.birth_sigma_d_m * normals[1]
+        p.v_mps[rows] = np.maximum(speed + cfg.birth_sigma_v_mps * normals[2], 0.0)
+        p.a_mps2[rows] = cfg.birth_sigma_a_mps2 * normals[3]
+        p.stop[rows] = uniforms[0] < 0.5
+        p.style[rows] = np.minimum(np.searchsorted(self._style_cdf, uniforms[1], side="right"), len(self._style_cdf) - 1)
+        p.p_expected_stop[rows] = model.expected_stop(tables, g, p.s_m[rows], p.v_mps[rows], mp)
+        p.weight[rows] = 1.0 / n
+
+    def _carry(self, state: _Vehicle, corridors: tuple[Corridor, ...]) -> Particles:
+        """The vehicle's particles moved onto its new corridors (same id or longest common lanelet run; else by projection)."""
+        p = state.particles.row(0)
+        mapping = map_corridors(state.corridors, corridors)
+        new_slot = np.array([m[0] for m in mapping], dtype=np.int64)
+        shift = np.array([m[1] for m in mapping])
+        old = p.route[0]
+        slot, sh = new_slot[old], shift[old]
+        shifted = (slot >= 0) & np.isfinite(sh)
+        p.s_m[0] = np.where(shifted, p.s_m[0] + np.where(shifted, sh, 0.0), p.s_m[0])
+        lost = np.flatnonzero(~shifted)
+        if lost.size:
+            # no shared lanelet: project the particle's map position onto its new corridor, or the nearest new one
+            x, y = _frenet_to_xy(state.corridors, old[lost], p.s_m[0, lost], p.d_m[0, lost])
+            xy = np.column_stack([x, y])
+            projected = [project_to_polyline(xy, np.column_stack([c.x_m, c.y_m]), c.s_m) for c in corridors]
+            s_all = np.stack([f.s_m for f in projected])
+            d_all = np.stack([f.d_m for f in projected])
+            choice = np.where(slot[lost] >= 0, slot[lost], np.argmin(np.abs(d_all), axis=0))
+            cols = np.arange(lost.size)
+            slot = slot.copy()
+            slot[lost] = choice
+            p.s_m[0, lost] = s_all[choice, cols]
+            p.d_m[0, lost] = d_all[choice, cols]
+        p.route[0] = slot
+        return p
+
+    def _inject(self, p: Particles, inputs, tables: PairTables, noise_s: np.ndarray, noise_d: np.ndarray) -> None:
+        """A corridor without particles (new after a corridor-set change) gets `floor_particles` with the prior weight.
+
+        They are the lowest-weight particles of the most populated corridor;
+        each keeps its place along a lanelet both corridors hold (s shifted,
+        d kept), else it is placed at the vehicle's projection on the new
+        corridor with noise. They get the weight 1/N each and the vehicle's
+        weights are renormalised. The per-corridor floor itself is kept by
+        the stratified resampling (`model.stratified_resample`).
+        """
+        cfg = self.config
+        n = cfg.particles_per_vehicle
+        g = tables.first_pair[:, None] + p.route
+        counts = np.bincount(g.ravel(), minlength=tables.n_pairs)
+        empty = np.flatnonzero(counts == 0)
+        for v in np.unique(tables.vehicle[empty]):
+            corridors = inputs[v].corridors
+            first = int(tables.first_pair[v])
+            have = counts[first : first + len(corridors)].copy()
+            floor = min(cfg.floor_particles, n // len(corridors))
+            for k in np.flatnonzero(have == 0):
+                donor = int(np.argmax(have))
+                take = min(floor, int(have[donor]) - 1)
+                if take <= 0:
+                    continue
+                members = np.flatnonzero(p.route[v] == donor)
+                moved = members[np.argsort(p.weight[v, members], kind="stable")[:take]]
+                run, lanelet = common_run([int(x) for x in corridors[donor].lanelet_ids], [int(x) for x in corridors[k].lanelet_ids])
+                if run:
+                    p.s_m[v, moved] += lanelet_shift_m(corridors[donor], corridors[k], lanelet)
+                else:
+                    gk = first + k
+                    p.s_m[v, moved] = tables.vehicle_s_m[gk] + cfg.birth_sigma_s_m * noise_s[v, moved]
+                    p.d_m[v, moved] = tables.vehicle_d_m[gk] + cfg.birth_sigma_d_m * noise_d[v, moved]
+                p.route[v, moved] = k
+                p.weight[v, moved] = 1.0 / n
+                have[donor] -= take
+                have[k] += take
+            p.weight[v] /= p.weight[v].sum()
+
+    # ----- output ----------------------------------------------------------------------
+
+    def _beliefs(self, inputs, tables: PairTables, p: Particles, ess: np.ndarray, road_map: RoadMap | None) -> list[VehicleBelief]:
+        cfg = self.config
+        n_pairs = tables.n_pairs
+        g = (tables.first_pair[:, None] + p.route).ravel()
+        w = p.weight.ravel()
+        mass = np.bincount(g, w, minlength=n_pairs)
+        count = np.bincount(g, minlength=n_pairs)
+        safe = np.where(mass > 0, mass, 1.0)
+
+        def moments(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            x = values.ravel().astype(np.float64)
+            mean = np.bincount(g, w * x, minlength=n_pairs) / safe
+            var = np.bincount(g, w * x * x, minlength=n_pairs) / safe - mean**2
+            none = count == 0
+            return np.where(none, np.nan, mean), np.where(none, np.nan, np.sqrt(np.maximum(var, 0.0)))
+
+        s_mean, s_std = moments(p.s_m)
+        v_mean, v_std = moments(p.v_mps)
+        a_mean, a_std = moments(p.a_mps2)
+        stop_given = np.bincount(g, w * p.stop.ravel(), minlength=n_pairs) / safe
+        p_stop = np.sum(p.weight * p.stop, axis=1)
+        p_expected = np.sum(p.weight * p.p_expected_stop, axis=1)
+        p_violation = np.sum(p.weight * np.where(p.stop, 1.0 - p.p_expected_stop, p.p_expected_stop), axis=1)
+        out = []
+        for v, item in enumerate(inputs):
+            first = int(tables.first_pair[v])
+            slots = range(first, first + len(item.corridors))
+            corridors = []
+            lane_change = 0.0
+            for gk, corridor in zip(slots, item.corridors):
+                manoeuvre, changes = self._manoeuvre(road_map, corridor)
+                lane_change += float(mass[gk]) if changes else 0.0
+                corridors.append(
+                    CorridorBelief(
+                        corridor_id=corridor.corridor_id,
+                        probability=float(mass[gk]),
+                        manoeuvre=manoeuvre,
+                        particle_count=int(count[gk]),
+                        s_mean_m=float(s_mean[gk]),
+                        s_std_m=float(s_std[gk]),
+                        v_mean_mps=float(v_mean[gk]),
+                        v_std_mps=float(v_std[gk]),
+                        a_mean_mps2=float(a_mean[gk]),
+                        a_std_mps2=float(a_std[gk]),
+                        p_stop=float(stop_given[gk]) if count[gk] else math.nan,
+                        stop_distance_m=float(tables.stop_s_m[gk] - tables.vehicle_s_m[gk]),
+                    )
+                )
+            best = first + int(np.argmax(mass[first : first + len(item.corridors)]))
+            entry_distance = float(tables.entry_s_m[best] - tables.vehicle_s_m[best])
+            if p_stop[v] > 0.5 and math.isfinite(entry_distance):
+                expected = Manoeuvre.STOP
+            else:
+                expected = corridors[best - first].manoeuvre
+            out.append(
+                VehicleBelief(
+                    track_id=item.track_id,
+                    corridors=tuple(corridors),
+                    p_stop=float(p_stop[v]),
+                    p_expected_stop=float(p_expected[v]),
+                    p_violation=float(p_violation[v]),
+                    p_lane_change=min(lane_change, 1.0),
+                    expected_manoeuvre=expected,
+                    intersection_distance_m=entry_distance,
+                    effective_sample_size=float(ess[v]),
+                    particle_count=cfg.particles_per_vehicle,
+                )
+            )
+        return out
+
+    def _manoeuvre(self, road_map: RoadMap | None, corridor: Corridor) -> tuple[Manoeuvre, bool]:
+        if road_map is None:
+            return Manoeuvre.UNKNOWN, False
+        starts = np.asarray(corridor.lanelet_start_s_m)
+        here = int(np.searchsorted(starts, corridor.vehicle_s_m, side="right"))
+        key = (tuple(int(x) for x in corridor.lanelet_ids), tuple(np.round(starts - corridor.vehicle_s_m, 1).tolist()), here)
+        found = self._manoeuvres.get(key)
+        if found is None:
+            found = corridor_manoeuvre(road_map, corridor, self.config.lane_change_reach_m)
+            if len(self._manoeuvres) > 100_000:
+                self._manoeuvres.clear()
+            self._manoeuvres[key] = found
+        return found
+
+
+def _empty(n: int) -> Particles:
+    z = np.zeros((1, n))
+    return Particles(
+        route=np.zeros((1, n), dtype=np.int64),
+        s_m=z.copy(),
+        d_m=z.copy(),
+        v_mps=z.copy(),
+        a_mps2=z.copy(),
+        stop=np.zeros((1, n), dtype=bool),
+        style=np.zeros((1, n), dtype=np.int64),
+        p_expected_stop=z.copy(),
+        weight=np.full((1, n), 1.0 / n),
+    )
+
+
+def _frenet_to_xy(corridors: tuple[Corridor, ...], slot: np.ndarray, s_m: np.ndarray, d_m: np.ndarray):
+    """Map-frame x, y of Frenet points on given corridors (the end segments extended straight)."""
+    x = np.empty(len(slot))
+    y = np.empty(len(slot))
+    for k in np.unique(slot):
+        c = corridors[int(k)]
+        sel = slot == k
+        s = s_m[sel]
+        i = np.clip(np.searchsorted(c.s_m, s, side="right") - 1, 0, len(c.s_m) - 2)
+        t = (s - c.s_m[i]) / (c.s_m[i + 1] - c.s_m[i])
+        heading = np.unwrap(np.asarray(c.heading_rad))
+        h = heading[i] + np.clip(t, 0.0, 1.0) * (heading[i + 1] - heading[i])
+        x[sel] = c.x_m[i] + t * (c.x_m[i + 1] - c.x_m[i]) - d_m[sel] * np.sin(h)
+        y[sel] = c.y_m[i] + t * (c.y_m[i + 1] - c.y_m[i]) + d_m[sel] * np.cos(h)
+    return x, y

@@ -1,0 +1,366 @@
+"""Tests of the intentions stage on the real K729 map and tracks (embedded sequence 013).
+
+Real frames come from the dataset player, and the corridors and relations
+cores run in-process over the whole sequence (continuity state as on the
+bus), as ``stages.intentions.evaluation.chain_frames`` does. Cars named by
+track id were picked from that sequence: 2688 turns right at the
+intersection, 2690 brakes to a stop about 17 m before its entrance.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bus_schemas import IntentionBelief, Manoeuvre
+from stages.corridors import SceneMaps
+from stages.datasets import DEFAULT_DATA_DIR, load_recording
+from stages.intentions import IntentionFilter, IntentionsConfig
+from stages.intentions.evaluation import chain_frames, route_top1, top1_choice
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+pytestmark = pytest.mark.skipif(
+    not (DEFAULT_DATA_DIR / "maps").is_dir(), reason=f"embedded TAF-BW data not found at {DEFAULT_DATA_DIR}"
+)
+
+TURNING_CAR = 2688  # turns right (lanelet -335553) while a straight corridor is still listed
+STOPPING_CAR = 2690  # brakes from 5.6 m/s to a standstill at t = 52.1 s, 17 m before the entrance
+WINDOW = slice(760, 820)  # 76.0 to 81.9 s: several cars with two to four corridors each, 2688 from 76.4 s
+
+
+@pytest.fixture(scope="module")
+def scene_maps() -> SceneMaps:
+    return SceneMaps()
+
+
+@pytest.fixture(scope="module")
+def frames(scene_maps):
+    """Sequence 013 through TrackPlayer → CorridorBuilder → RelationExtractor (ChainFrame per frame)."""
+    recording = load_recording(DEFAULT_DATA_DIR, "k729_2022-03-16", ("013",))
+    return chain_frames(recording, recording.sequences[0], scene_maps)
+
+
+def run(frames, scene_maps, config: IntentionsConfig | None = None, edit=None):
+    """(belief, issues) per frame of a fresh filter; `edit(k, frame, corridor_set, relation_set)` may change the inputs."""
+    intentions = IntentionFilter(config or IntentionsConfig(), scene_maps=scene_maps)
+    out = []
+    for k, item in enumerate(frames):
+        inputs = (item.frame, item.corridor_set, item.relation_set)
+        if edit is not None:
+            inputs = edit(k, *inputs)
+        out.append(intentions.process(*inputs, item.scene))
+    return out, intentions
+
+
+@pytest.fixture(scope="module")
+def sequence_run(frames, scene_maps):
+    beliefs, _ = run(frames, scene_maps)
+    return beliefs
+
+
+def without_track(track_id: int, frame, corridor_set, relation_set):
+    """The three inputs with one object removed, as if the sensors lost it."""
+    keep = np.asarray(frame.track_ids) != track_id
+    arrays = {f: getattr(frame, f)[keep] for f in ("track_ids", "agent_types", "x_m", "y_m", "vx_mps", "vy_mps", "yaw_rad", "length_m", "width_m")}
+    return (
+        dataclasses.replace(frame, **arrays),
+        dataclasses.replace(corridor_set, vehicles=tuple(v for v in corridor_set.vehicles if v.track_id != track_id)),
+        dataclasses.replace(relation_set, relations=tuple(r for r in relation_set.relations if r.track_id != track_id)),
+    )
+
+
+# --------------------------------------------------------------------------- the filter on the real sequence
+
+
+def test_same_input_gives_identical_beliefs_and_another_seed_differs(frames, scene_maps):
+    part = frames[WINDOW]
+    first, _ = run(part, scene_maps)
+    again, _ = run(part, scene_maps)
+    other, _ = run(part, scene_maps, IntentionsConfig(seed=1))
+    encoded = [b.encode() for b, _ in first]
+    assert encoded == [b.encode() for b, _ in again]
+    assert sum(a != b.encode() for a, (b, _) in zip(encoded, other)) > len(part) // 2
+    assert all(issues == [] for _, issues in first)
+
+
+def test_probabilities_sum_to_one_and_the_floor_keeps_every_corridor(sequence_run):
+    config = IntentionsConfig()
+    smallest = 1.0
+    n_vehicles = 0
+    for belief, issues in sequence_run:
+        assert issues == []
+        for vehicle in belief.vehicles:
+            n_vehicles += 1
+            p = np.array([c.probability for c in vehicle.corridors])
+            assert abs(p.sum() - 1.0) < 1e-9
+            assert (p > 0.0).all()
+            smallest = min(smallest, float(p.min()))
+            counts = [c.particle_count for c in vehicle.corridors]
+            assert sum(counts) == vehicle.particle_count == config.particles_per_vehicle
+            assert min(counts) >= min(config.floor_particles, config.particles_per_vehicle // len(counts))
+            for value in (vehicle.p_stop, vehicle.p_expected_stop, vehicle.p_violation, vehicle.p_lane_change):
+                assert 0.0 <= value <= 1.0
+            assert 0.0 < vehicle.effective_sample_size <= vehicle.particle_count + 1e-9
+    assert n_vehicles > 2000
+    # corridors the measurements ruled out keep particles and a (tiny) probability: they could still recover
+    assert smallest < 1e-6
+
+
+def test_a_car_that_turns_gets_its_turning_corridor_once_past_the_branch(frames, sequence_run):
+    checked = 0
+    for item, (belief, _) in zip(frames, sequence_run):
+        vehicle = belief.vehicle(TURNING_CAR)
+        matched = next((v for v in item.corridor_set.vehicles if v.track_id == TURNING_CAR), None)
+        if vehicle is None or matched is None or len(vehicle.corridors) < 2:
+            continue
+        corridors = {c.corridor_id: c for c in matched.corridors}
+        turning = [c for c in vehicle.corridors if c.manoeuvre is Manoeuvre.TURN_RIGHT]
+        straight = [c for c in vehicle.corridors if c.manoeuvre is Manoeuvre.GO_STRAIGHT]
+        if len(turning) != 1 or not straight:
+            continue
+        # past the branch: the lanelet the car is on belongs to the turning corridor only
+        if any(matched.lanelet_id in corridors[c.corridor_id].lanelet_ids for c in straight):
+            continue
+        assert matched.lanelet_id in corridors[turning[0].corridor_id].lanelet_ids
+        assert turning[0].probability > 0.9
+        assert vehicle.expected_manoeuvre is Manoeuvre.TURN_RIGHT
+        checked += 1
+    assert checked >= 5
+
+
+def test_a_car_braking_to_a_stop_before_the_intersection_gets_p_stop_rising(frames, sequence_run):
+    stamps = np.array([item.frame.header.stamp_ns for item in frames])
+    standstill_ns = 52_100_000_000
+    seen = [k for k, (belief, _) in enumerate(sequence_run) if belief.vehicle(STOPPING_CAR) is not None]
+    first = seen[0]  # the track starts 2.7 s before the standstill, braking from 5.6 m/s
+    assert (standstill_ns - stamps[first]) * 1e-9 > 2.5
+
+    def belief_at(before_s: float):
+        k = int(np.argmin(np.abs(stamps - (standstill_ns - before_s * 1e9))))
+        return sequence_run[k][0].vehicle(STOPPING_CAR)
+
+    far, near, stopped = sequence_run[first][0].vehicle(STOPPING_CAR), belief_at(1.0), belief_at(0.0)
+    assert far.p_stop < 0.6 < 0.8 < near.p_stop and stopped.p_stop > 0.8
+    assert 10.0 < stopped.intersection_distance_m < 25.0
+    assert stopped.expected_manoeuvre is Manoeuvre.STOP
+    best = max(near.corridors, key=lambda c: c.probability)
+    assert best.a_mean_mps2 < -0.5 and best.v_mean_mps < 3.0 < far.corridors[0].v_mean_mps
+
+
+def test_expected_manoeuvre_follows_the_gap_to_a_priority_vehicle(frames):
+    from stages.intentions.model import expected_stop
+    from stages.intentions.tables import VehicleInput, build_tables
+
+    item = frames[WINDOW][10]
+    vehicle = next(v for v in item.corridor_set.vehicles if v.track_id == TURNING_CAR)
+    corridor = vehicle.corridors[0]
+    relation = next(r for r in item.relation_set.relations if r.track_id == TURNING_CAR and r.corridor_id == corridor.corridor_id)
+    s_star = corridor.vehicle_s_m + 20.0  # the ego needs T_e = 20 m / 5 m/s = 4 s
+
+    def p_expected_stop(other_time_s: float, q: float = 1.0, priority: int = -1, s_particle: float = corridor.vehicle_s_m) -> float:
+        one = lambda value, dtype=np.float64: np.array([value], dtype=dtype)  # noqa: E731
+        conflict = dataclasses.replace(
+            relation, conflict_track_ids=one(99, np.int64), conflict_corridor_ids=one(7, np.int64), conflict_kinds=one(1, np.uint8),
+            conflict_s_m=one(s_star), conflict_other_s_m=one(10.0), conflict_x_m=one(0.0), conflict_y_m=one(0.0),
+            conflict_distance_m=one(20.0), conflict_other_distance_m=one(10.0), conflict_other_speed_mps=one(5.0),
+            conflict_time_s=one(4.0), conflict_other_time_s=one(other_time_s), conflict_priority=one(priority, np.int8),
+        )
+        tables = build_tables(
+            [VehicleInput(TURNING_CAR, (corridor,), vehicle.lanelet_id)], {(TURNING_CAR, corridor.corridor_id): conflict}, {(99, 7): q},
+            lat_accels_mps2=(2.0,), brake_lookahead_mps2=2.5, curvature_smoothing_m=1.0, default_speed_limit_mps=13.9, stop_offset_m=14.0,
+        )
+        params = IntentionsConfig().model_params()
+        return float(expected_stop(tables, np.zeros((1, 1), np.int64), np.full((1, 1), s_particle), np.full((1, 1), 5.0), params)[0, 0])
+
+    assert p_expected_stop(5.0) > 0.9  # the priority car arrives 1 s after the ego: gap rejected, yield
+    assert p_expected_stop(12.0) < 0.05  # 8 s after: gap accepted
+    assert p_expected_stop(1.0) < 0.1  # 3 s before the ego: it is gone by then
+    assert abs(p_expected_stop(5.0, q=0.5) - 0.5 * p_expected_stop(5.0)) < 1e-9  # weighted by its route probability
+    assert p_expected_stop(5.0, priority=1) == 0.0  # the ego has priority
+    assert p_expected_stop(5.0, s_particle=s_star + 1.0) == 0.0  # past the conflict point
+
+
+# --------------------------------------------------------------------------- vehicles coming and going
+
+
+def test_a_vehicle_unseen_for_more_than_one_second_is_dropped(frames, scene_maps):
+    start = next(k for k, item in enumerate(frames) if any(v.track_id == TURNING_CAR and v.corridors for v in item.corridor_set.vehicles))
+    part = frames[start : start + 25]  # the car is seen at k = 0..9, gone at k = 10..21, back at k = 22
+
+    def edit(k, frame, corridor_set, relation_set):
+        return without_track(TURNING_CAR, frame, corridor_set, relation_set) if 10 <= k < 22 else (frame, corridor_set, relation_set)
+
+    assert all(any(v.track_id == TURNING_CAR and v.corridors for v in item.corridor_set.vehicles) for item in part)
+    intentions = IntentionFilter(IntentionsConfig(), scene_maps=scene_maps)
+    tracked = []
+    for k, item in enumerate(part):
+        belief, _ = intentions.process(*edit(k, item.frame, item.corridor_set, item.relation_set), item.scene)
+        tracked.append(TURNING_CAR in intentions.tracked_ids)
+        if k == 22:
+            reborn = belief.vehicle(TURNING_CAR)
+    assert tracked[:20] == [True] * 20  # 1.0 s unseen at k = 19: still kept
+    assert tracked[20] is False  # 1.1 s unseen: dropped
+    assert tracked[22] is True and reborn is not None
+    assert sum(c.particle_count for c in reborn.corridors) == IntentionsConfig().particles_per_vehicle
+
+
+def test_a_corridor_set_change_keeps_the_belief(frames, scene_maps):
+    part = frames[WINDOW]
+    renamed_from = 20
+
+    def rename(k, frame, corridor_set, relation_set):
+        if k < renamed_from:
+            return frame, corridor_set, relation_set
+        vehicles = []
+        for v in corridor_set.vehicles:
+            if v.track_id == TURNING_CAR:
+                v = dataclasses.replace(v, corridors=tuple(dataclasses.replace(c, corridor_id=c.corridor_id ^ 0x5A5A5A) for c in v.corridors))
+            vehicles.append(v)
+        relations = tuple(
+            dataclasses.replace(r, corridor_id=r.corridor_id ^ 0x5A5A5A) if r.track_id == TURNING_CAR else r for r in relation_set.relations
+        )
+        return frame, dataclasses.replace(corridor_set, vehicles=tuple(vehicles)), dataclasses.replace(relation_set, relations=relations)
+
+    plain, _ = run(part, scene_maps)
+    renamed, _ = run(part, scene_maps, edit=rename)
+    compared = 0
+    for (a, _), (b, _) in zip(plain[renamed_from:], renamed[renamed_from:]):
+        va, vb = a.vehicle(TURNING_CAR), b.vehicle(TURNING_CAR)
+        if va is None:
+            continue
+        # every corridor got a new id, yet the particles followed their lanelets: the same belief
+        assert [c.corridor_id ^ 0x5A5A5A for c in va.corridors] == [c.corridor_id for c in vb.corridors]
+        np.testing.assert_allclose([c.probability for c in va.corridors], [c.probability for c in vb.corridors], rtol=0, atol=1e-9)
+        compared += 1
+    assert compared >= 10
+
+    # a corridor that disappears hands its particles to the corridor sharing the most lanelets with it
+    k = next(k for k in range(len(part)) if (v := plain[k][0].vehicle(TURNING_CAR)) is not None and len(v.corridors) >= 3)
+    before = plain[k][0].vehicle(TURNING_CAR)
+    dropped = before.corridors[-1]
+
+    def drop(j, frame, corridor_set, relation_set):
+        if j != k + 1:
+            return frame, corridor_set, relation_set
+        vehicles = tuple(
+            dataclasses.replace(v, corridors=tuple(c for c in v.corridors if c.corridor_id != dropped.corridor_id))
+            if v.track_id == TURNING_CAR else v
+            for v in corridor_set.vehicles
+        )
+        return frame, dataclasses.replace(corridor_set, vehicles=vehicles), relation_set
+
+    changed, _ = run(part[: k + 2], scene_maps, edit=drop)
+    after = changed[k + 1][0].vehicle(TURNING_CAR)
+    normal = plain[k + 1][0].vehicle(TURNING_CAR)
+    assert dropped.corridor_id not in [c.corridor_id for c in after.corridors]
+    assert abs(sum(c.probability for c in after.corridors) - 1.0) < 1e-9
+    survivors = {c.corridor_id: c.probability for c in normal.corridors if c.corridor_id != dropped.corridor_id}
+    for c in after.corridors:
+        # the surviving routes keep (at least) their mass: not reset to a uniform prior
+        assert c.probability >= survivors[c.corridor_id] - 0.05
+
+
+def test_nan_state_is_an_issue_and_the_other_vehicles_are_processed(frames, scene_maps):
+    part = frames[WINDOW]
+    intentions = IntentionFilter(IntentionsConfig(), scene_maps=scene_maps)
+    for item in part[:10]:
+        intentions.process(item.frame, item.corridor_set, item.relation_set, item.scene)
+    item = part[10]
+    row = int(np.flatnonzero(item.frame.track_ids == TURNING_CAR)[0])
+    x = item.frame.x_m.copy()
+    x[row] = math.nan
+    others = {v.track_id for v in item.corridor_set.vehicles if v.corridors} - {TURNING_CAR}
+    belief, issues = intentions.process(dataclasses.replace(item.frame, x_m=x), item.corridor_set, item.relation_set, item.scene)
+    assert [(i.kind, i.agent_id) for i in issues] == [("nan_state", TURNING_CAR)]
+    assert {v.track_id for v in belief.vehicles} == others and others
+    assert TURNING_CAR in intentions.tracked_ids  # kept, not updated: it dies only after 1 s unseen
+    # a vehicle without any finite speed is still updated, without the speed term
+    item = part[11]
+    vehicles = tuple(dataclasses.replace(v, speed_mps=math.nan) if v.track_id == TURNING_CAR else v for v in item.corridor_set.vehicles)
+    vx = item.frame.vx_mps.copy()
+    vx[row] = math.nan
+    belief, issues = intentions.process(
+        dataclasses.replace(item.frame, vx_mps=vx), dataclasses.replace(item.corridor_set, vehicles=vehicles), item.relation_set, item.scene
+    )
+    assert [(i.kind, i.agent_id) for i in issues] == [("nan_velocity", TURNING_CAR)]
+    assert belief.vehicle(TURNING_CAR) is not None
+    # inputs of different stamps: an issue and no output
+    late = dataclasses.replace(item.relation_set, header=dataclasses.replace(item.relation_set.header, stamp_ns=item.frame.header.stamp_ns + 1))
+    result = intentions.update({"track_frame": item.frame, "corridor_set": item.corridor_set, "relation_set": late, "scene": item.scene})
+    assert [i.kind for i in result.issues] == ["stamp_mismatch"] and result.outputs == {}
+
+
+# --------------------------------------------------------------------------- configuration, evaluation helpers, binding
+
+
+def test_config_rejects_unknown_keys_and_bad_values():
+    from stages._core import ConfigError
+
+    assert IntentionsConfig.from_params({"particles_per_vehicle": 100}).floor_particles == 2
+    with pytest.raises(ConfigError, match="known: "):
+        IntentionsConfig.from_params({"particles": 100}, "hybrid.toml node intentions")
+    with pytest.raises(ConfigError, match="position_sigma_m"):
+        IntentionsConfig.from_params({"position_sigma_m": 0.0})
+
+
+def test_route_top1_breaks_ties_at_random_with_a_fixed_seed():
+    rng = np.random.default_rng(0)
+    assert top1_choice(np.array([0.2, 0.7, 0.1]), rng) == 1
+    uniform = route_top1([np.ones(2)] * 2000, [0] * 2000, np.random.default_rng(0))
+    assert abs(uniform - 0.5) < 0.05
+    assert uniform == route_top1([np.ones(2)] * 2000, [0] * 2000, np.random.default_rng(0))
+
+
+def test_binding_declares_the_ports():
+    from stages.intentions import INPUTS, OUTPUTS, SPEC
+
+    assert set(INPUTS) == {"track_frame", "corridor_set", "relation_set", "scene"} and INPUTS["scene"].latched
+    assert OUTPUTS["intention_belief"].schema is IntentionBelief and SPEC.stage == "stages.intentions"
+
+
+# --------------------------------------------------------------------------- through the bus
+
+
+def test_the_stage_on_the_bus_publishes_the_in_process_beliefs(frames, scene_maps, tmp_path):
+    import helpers as h
+    from stages.runtime import BusClient
+
+    part = frames[760:780]
+    expected = [b.encode() for b, _ in run(part, scene_maps)[0]]
+    run_id = "intentbus"
+    port = h.free_port()
+    got: list[bytes] = []
+    with BusClient(listen=[h.endpoint(port)]) as bus:
+        bus.subscribe(f"iamp/{run_id}/intentions/intention_belief", lambda _k, data: got.append(data))
+        stage = h.start_module(
+            "stages.intentions",
+            "--run-id", run_id,
+            "--connect", h.endpoint(port),
+            "--input", "track_frame=source/track_frame",
+            "--input", "corridor_set=corridors/corridor_set",
+            "--input", "relation_set=relations/relation_set",
+            "--input", "scene=source/scene",
+            log_dir=tmp_path,
+        )
+        try:
+            h.wait_until(lambda: "intentions" in bus.alive_now(f"iamp/{run_id}/_alive/*", 0.5), 60, "intentions liveliness")
+            put_scene = bus.publisher(f"iamp/{run_id}/source/scene")
+            put_frame = bus.publisher(f"iamp/{run_id}/source/track_frame")
+            put_corridors = bus.publisher(f"iamp/{run_id}/corridors/corridor_set")
+            put_relations = bus.publisher(f"iamp/{run_id}/relations/relation_set")
+            put_scene(part[0].scene.encode())
+            for k, item in enumerate(part):
+                put_frame(item.frame.encode())
+                put_corridors(item.corridor_set.encode())
+                put_relations(item.relation_set.encode())
+                h.wait_until(lambda: len(got) > k, 60, f"the belief of frame {k}\n{h.output_of(stage)[-2000:]}")
+            assert h.stop_process(stage) == 0
+        finally:
+            h.kill_all([stage])
+    assert got == expected
