@@ -7,6 +7,7 @@ runtime publishes the outputs and logs and counts the issues.
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from dataclasses import dataclass, field
@@ -111,6 +112,18 @@ def config_from_params(cls: type, params: Mapping[str, Any] | None, where: str):
         return cls(**kwargs)
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"{where}: {exc}") from None
+
+
+def check_ranges(config: Any, *, positive: tuple[str, ...] = (), non_negative: tuple[str, ...] = ()) -> None:
+    """Raise ``ValueError`` naming the field when a number is not finite and > 0 (or >= 0)."""
+    for name in positive:
+        value = getattr(config, name)
+        if not (math.isfinite(value) and value > 0.0):
+            raise ValueError(f"{name} = {value!r}: must be > 0")
+    for name in non_negative:
+        value = getattr(config, name)
+        if not (math.isfinite(value) and value >= 0.0):
+            raise ValueError(f"{name} = {value!r}: must be >= 0")
 
 
 class ConfigMixin:

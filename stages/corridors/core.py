@@ -17,7 +17,7 @@ from typing import Mapping
 import numpy as np
 
 from bus_schemas import AgentType, Corridor, CorridorSet, Header, MatchStatus, SceneInfo, TrackFrame, VehicleCorridors
-from stages._core import ConfigMixin, Issue, StageResult
+from stages._core import ConfigMixin, Issue, StageResult, check_ranges
 from stages.maps import Projection, RoadMap, load_map, parse_projection, projection_for_location, wrap_angle_rad
 
 from .matching import LaneletIndex, LaneletMatch, select_lanelets
@@ -57,14 +57,7 @@ class CorridorsConfig(ConfigMixin):
                     "heading_min_travel_m", "track_timeout_s", "match_max_heading_rad", "yaw_agreement_rad")
         non_negative = ("a_plan_mps2", "extra_length_m", "behind_m", "match_max_distance_m", "ambiguity_margin_m", "continuity_margin_m",
                         "entry_extension_m", "merge_tolerance_m")
-        for name in positive:
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0.0):
-                raise ValueError(f"{name} = {value!r}: must be > 0")
-        for name in non_negative:
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0.0):
-                raise ValueError(f"{name} = {value!r}: must be >= 0")
+        check_ranges(self, positive=positive, non_negative=non_negative)
         if self.max_corridors_per_vehicle < 1:
             raise ValueError(f"max_corridors_per_vehicle = {self.max_corridors_per_vehicle}: must be >= 1")
         if parse_projection(self.projection) is Projection.UNKNOWN:

@@ -28,7 +28,7 @@ from bus_schemas import (
     TrackFrame,
     VehicleBelief,
 )
-from stages._core import ConfigMixin, Issue, StageResult
+from stages._core import ConfigMixin, Issue, StageResult, check_ranges
 from stages.corridors.core import SceneMaps
 from stages.maps import DEFAULT_SPEED_LIMIT_MPS, Projection, RoadMap, parse_projection, project_to_polyline
 
@@ -107,14 +107,7 @@ class IntentionsConfig(ConfigMixin):
             "jitter_v_mps", "birth_sigma_s_m", "birth_sigma_d_m",
             "birth_sigma_v_mps", "birth_sigma_a_mps2", "lane_change_reach_m",
         )
-        for name in positive:
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0.0):
-                raise ValueError(f"{name} = {value!r}: must be > 0")
-        for name in non_negative:
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0.0):
-                raise ValueError(f"{name} = {value!r}: must be >= 0")
+        check_ranges(self, positive=positive, non_negative=non_negative)
         for name in ("route_switch_per_step", "intention_keep", "intention_adapt", "resample_ess_fraction", "lateral_decay"):
             value = getattr(self, name)
             if not (0.0 <= value <= 1.0):

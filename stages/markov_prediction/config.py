@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
-from stages._core import ConfigMixin
+from stages._core import ConfigMixin, check_ranges
 
 #: Modes implemented now. ``hybrid`` (AR-Net accelerations replace λ, METHOD.md §3) comes with the AR issue.
 MODES = ("baseline", "cv", "corridor_cv")
@@ -107,14 +106,7 @@ class MarkovPredictionConfig(ConfigMixin):
             "window_behind_m", "accel_window_s", "prune_threshold", "standstill_speed_mps", "standstill_start_rate_hz", "forbid_threshold", "curvature_smoothing_m", "leader_epsilon",
             "conflict_margin_s", "conflict_epsilon", "grid_margin_m", "lateral_offset_decay_s", "grid_min_value", "outside_issue_mass",
         )
-        for name in positive:
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} = {value!r}: must be > 0")
-        for name in non_negative:
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise ValueError(f"{name} = {value!r}: must be >= 0")
+        check_ranges(self, positive=positive, non_negative=non_negative)
         for name in ("n_steps", "window_cells", "grid_substeps"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} = {getattr(self, name)!r}: must be >= 1")

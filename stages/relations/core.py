@@ -24,7 +24,7 @@ from bus_schemas import (
     TrackFrame,
     VehicleCorridors,
 )
-from stages._core import ConfigMixin, Issue, StageResult
+from stages._core import ConfigMixin, Issue, StageResult, check_ranges
 from stages.corridors.core import SceneMap, SceneMaps
 from stages.datasets import DEFAULT_SIZES_M
 from stages.maps import ConflictKind as MapConflictKind
@@ -57,14 +57,7 @@ class RelationsConfig(ConfigMixin):
         positive = ("horizon_s", "min_time_speed_mps", "leader_max_heading_rad")
         non_negative = ("lateral_margin_m", "lookahead_m", "lookbehind_m", "stopped_speed_mps", "horizon_margin_s",
                         "clear_margin_m", "duplicate_conflict_m", "refine_window_m", "min_route_probability")
-        for name in positive:
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0.0):
-                raise ValueError(f"{name} = {value!r}: must be > 0")
-        for name in non_negative:
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0.0):
-                raise ValueError(f"{name} = {value!r}: must be >= 0")
+        check_ranges(self, positive=positive, non_negative=non_negative)
         if self.min_route_probability > 1.0:
             raise ValueError(f"min_route_probability = {self.min_route_probability!r}: must be <= 1")
         if parse_projection(self.projection) is Projection.UNKNOWN:
