@@ -218,7 +218,10 @@ def snapshot(browser: Chromium) -> tuple[bytes, dict[str, Any]]:
 def looks_complete(m: dict[str, Any]) -> bool:
     """Laid out (the side panel docked: the canvas narrower than the window) and the map, vehicles and heat drawn."""
     docked = m["canvas"] is not None and m["canvas"][2] < WINDOW[0]
-    return docked and m["map"] >= 0.05 * m["canvas_px"] and m["vehicles"] >= 20 and m["heat"] >= 20
+    drawn = docked and m["map"] >= 0.05 * m["canvas_px"] and m["vehicles"] >= 20 and m["heat"] >= 20
+    # a screenshot taken between two draws (e.g. as the looping source wraps) can show the new
+    # frame's vehicles over the previous frame's grid: wait for one drawn from a single frame
+    return drawn and m["heat_near_vehicles"] >= 0.8
 
 
 def inside(box: tuple[int, int, int, int] | None, outer: tuple[int, int, int, int] | None, slack: int = 0) -> bool:
