@@ -6,6 +6,7 @@ decode problem raises a ``SchemaError`` subclass.
 """
 
 from . import keys
+from .acceleration import AccelerationProfile, AccelerationProfiles
 from ._wire import MAX_PAYLOAD_BYTES, REGISTRY, Array, Message, decode_any, json_schema, peek_schema, register
 from .corridors import Corridor, CorridorSet, MatchStatus, VehicleCorridors
 from .common import VEHICLE_TYPE_VALUES, AgentType, Header
@@ -20,6 +21,8 @@ decode = decode_any
 
 __all__ = [
     "MAX_PAYLOAD_BYTES",
+    "AccelerationProfile",
+    "AccelerationProfiles",
     "REGISTRY",
     "AgentType",
     "ConflictKind",

@@ -1,12 +1,21 @@
 """Offline evaluation (``iamp eval``): the prediction modes against ground truth, in-process (METHOD.md §6).
 
-Runs source → corridors → relations → markov_prediction as plain cores, no
-bus: ``TrackPlayer`` plays each sequence of each recording (fresh cores per
-sequence, maps loaded once), the corridors and relations cores see every
-frame (their continuity state is as on the bus), every mode's
+Runs source → corridors → relations → intentions, ar_inference →
+markov_prediction as plain cores, no bus: ``TrackPlayer`` plays each
+sequence of each recording (fresh cores per sequence, maps and the AR model
+loaded once), the corridors, relations and intentions cores see every frame
+(their continuity state is as on the bus; the particle filter is seeded with
+``--seed``), the ar_inference core adds every frame to its feature
+histories and predicts at the evaluated instants, every mode's
 ``MarkovPredictor`` observes every frame (the measured acceleration) and
 predicts at the evaluated instants: the frames at multiples of ``stride_s``
 from the sequence's first stamp.
+
+Modes: ``hybrid`` (AR distributions replace λ; ``--model`` picks the
+weights, default the shipped ones), ``baseline`` (rule-based λ), ``cv``,
+``corridor_cv``. Corridor weights (``--corridor-weights``): ``intentions``
+(default: the DBN's P(R = c)) or ``uniform``; the same weights for every
+mode with corridors.
 
 Windows. At an instant, every vehicle (``AgentType.is_vehicle``; TAF-BW has
 cars only) whose track has ground truth at exactly t + k·τ, k = 1..K, and
@@ -26,6 +35,12 @@ Metrics per window (K = 10 steps of 0.4 s):
   a cell of the 90 % highest-probability region of that vehicle's grid at
   that step (the vehicle's own grid, corridors weighted, not the fused
   one; all occupied cells when the grid holds less than 90 %);
+- ``route_top1``: share of route windows where the corridor the car really
+  followed has the highest weight (a k-way tie counts 1/k); a route window
+  has at least two corridors, one of which holds the true 4 s future within
+  2 m laterally while the runner-up is at least 0.5 m worse (before the
+  branch the future does not tell routes apart: those windows do not count);
+  ``route_windows`` counts them (0 for ``cv``, which has one line);
 - ``nll``: mean over (vehicle, step) of −ln max(G(cell of the true position),
   ``nll_floor``), in nats, G the probability of the ``grid_cell_m`` cell
   (a discrete probability, not a density); the floor (1e-6 by default, so
@@ -47,7 +62,11 @@ a heat map, white to yellow to red in log scale over 1e-4…1, current vehicle
 positions blue) and ``means_<mode>.png`` (ground truth black, each corridor's
 mean positions in its own colour, one dot per step, the start in blue), PNGs
 written with numpy and zlib; ``figures.txt`` names the instant and the
-colours.
+colours. With mode ``hybrid``, ``accel_<recording>_<seq>_car<id>_<ms>.png``
+for four cars (the hardest braking, the strongest acceleration, the widest
+range, the calmest): the paper's acceleration-distribution figure — the 10
+distributions as intensity over the input cells, the AR output in red, the
+true acceleration in black; ``accel_figures.txt`` explains them.
 """
 
 from __future__ import annotations
@@ -73,10 +92,17 @@ from .datasets import DEFAULT_DATA_DIR, Recording, discover, load_recording
 from .markov import MarkovGridConfig, load_or_build_stencils
 from .markov_prediction import FramePrediction, MarkovPredictionConfig, MarkovPredictor
 from .markov_prediction.rasterise import GridFrame, highest_density_threshold
+from .intentions import IntentionFilter, IntentionsConfig
+from .intentions.evaluation import followed_corridor
 from .relations import RelationExtractor, RelationsConfig
 from .tracks_source import TrackPlayer, TracksSourceConfig, file_sha256
 
-EVAL_MODES = ("baseline", "cv", "corridor_cv")
+EVAL_MODES = ("hybrid", "baseline", "cv", "corridor_cv")
+CORRIDOR_WEIGHTS = ("intentions", "uniform")
+#: route_top1 windows: the followed corridor holds the true future within this lateral distance ...
+ROUTE_MAX_ERROR_M = 2.0
+#: ... and the runner-up is at least this much worse (else the future does not tell the routes apart).
+ROUTE_MARGIN_M = 0.5
 SLOW_SPEED_MPS = 2.0
 _MS = 1_000_000
 
@@ -91,7 +117,8 @@ class EvalConfig:
     modes: tuple[str, ...] = EVAL_MODES
     stride_s: float = 0.4
     max_frames_per_sequence: int = 0
-    corridor_weights: str = "uniform"
+    corridor_weights: str = "intentions"
+    intentions_params: tuple[tuple[str, Any], ...] = ()
     backend: str = "numpy"
     device: str = "cpu"
     coverage_level: float = 0.9
@@ -99,11 +126,15 @@ class EvalConfig:
     progress: bool = True
     figures_dir: Path | None = None
     params: tuple[tuple[str, Any], ...] = ()
+    model_path: Path | None = None
+    seed: int = 0
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.modes if m not in EVAL_MODES]
         if unknown or not self.modes:
             raise ValueError(f"modes {unknown or '(none)'}: expected one or several of {', '.join(EVAL_MODES)}")
+        if self.corridor_weights not in CORRIDOR_WEIGHTS:
+            raise ValueError(f"corridor_weights = {self.corridor_weights!r}: expected one of {', '.join(CORRIDOR_WEIGHTS)}")
         if not (math.isfinite(self.stride_s) and self.stride_s > 0):
             raise ValueError(f"stride_s = {self.stride_s!r}: must be > 0")
         if not (0 < self.coverage_level < 1) or not (0 < self.nll_floor < 1):
@@ -125,6 +156,8 @@ class _Stats:
     steps: int = 0
     covered: int = 0
     nll: float = 0.0
+    route_windows: int = 0
+    route_hits: float = 0.0
 
     def add(self, w: "_WindowResult") -> None:
         self.windows += 1
@@ -135,6 +168,9 @@ class _Stats:
         self.steps += w.steps
         self.covered += w.covered
         self.nll += w.nll
+        if w.route_hit is not None:
+            self.route_windows += 1
+            self.route_hits += w.route_hit
 
     def summary(self) -> dict[str, float | int]:
         n, k = max(self.windows, 1), max(self.steps, 1)
@@ -147,6 +183,8 @@ class _Stats:
             "wFDE_m": self.wfde / n if self.windows else nan,
             "coverage90": self.covered / k if self.steps else nan,
             "nll": self.nll / k if self.steps else nan,
+            "route_top1": self.route_hits / self.route_windows if self.route_windows else nan,
+            "route_windows": self.route_windows,
         }
 
 
@@ -159,6 +197,7 @@ class _WindowResult:
     steps: int
     covered: int
     nll: float
+    route_hit: float | None = None
 
 
 @dataclass(slots=True)
@@ -197,15 +236,15 @@ class Evaluation:
         self.config = config
         self.scene_maps = SceneMaps()
         grid = MarkovGridConfig()
-        stencils = load_or_build_stencils(grid) if "baseline" in config.modes else None
+        stencils = load_or_build_stencils(grid) if {"baseline", "hybrid"} & set(config.modes) else None
         self.predictors = {
             mode: MarkovPredictor(
                 MarkovPredictionConfig.from_params(
                     {
                         **dict(config.params),
                         "mode": mode,
-                        "backend": config.backend if mode == "baseline" else "numpy",
-                        "device": config.device if mode == "baseline" else "cpu",
+                        "backend": config.backend if mode in ("baseline", "hybrid") else "numpy",
+                        "device": config.device if mode in ("baseline", "hybrid") else "cpu",
                         "corridor_weights": config.corridor_weights,
                         "grid_distribution": "point",
                     },
@@ -217,6 +256,17 @@ class Evaluation:
             for mode in config.modes
         }
         self.acc = {mode: _ModeAccumulator() for mode in config.modes}
+        self.intentions_config = IntentionsConfig.from_params({"seed": config.seed, **dict(config.intentions_params)}, where="iamp eval --set-intentions")
+        self.ar_config = None
+        if "hybrid" in config.modes:
+            from .ar_inference import ARInferenceConfig
+
+            self.ar_config = ARInferenceConfig.from_params(
+                {"model": str(config.model_path) if config.model_path else "", "device": config.device}, where="iamp eval --model"
+            )
+        self.intentions_ms: list[float] = []
+        self.ar_ms: list[float] = []
+        self.ar_examples: list[dict[str, Any]] = []
         self.skipped: collections.Counter[str] = collections.Counter()
         self.instants = 0
         self.figure: _Figure | None = None
@@ -254,6 +304,14 @@ class Evaluation:
         )
         corridors = CorridorBuilder(CorridorsConfig(), scene_maps=self.scene_maps)
         relations = RelationExtractor(RelationsConfig(), scene_maps=self.scene_maps)
+        needs_belief = cfg.corridor_weights == "intentions" or dict(cfg.params).get("initial_box") == "particles"
+        intentions = IntentionFilter(self.intentions_config, producer="eval", scene_maps=self.scene_maps) if needs_belief else None
+        ar = None
+        if self.ar_config is not None:
+            from .ar_inference import ARInference
+
+            ar = ARInference(self.ar_config, producer="eval", model=getattr(self, "_ar_model", None))
+            self._ar_model = ar.model  # loaded once, shared by the sequences
         for predictor in self.predictors.values():
             predictor.reset()
         truth = _ground_truth(seq)
@@ -271,15 +329,27 @@ class Evaluation:
             frame: TrackFrame = result.outputs["track_frame"]
             corridor_set, _ = corridors.process(frame, scene)
             relation_set, _ = relations.process(frame, corridor_set, scene)
+            belief = None
+            if intentions is not None:
+                t0 = time.perf_counter()
+                belief, _ = intentions.process(frame, corridor_set, relation_set, scene)
+                self.intentions_ms.append((time.perf_counter() - t0) * 1e3)
             offset = stamp - first
             if offset % stride_ns > _MS and stride_ns - offset % stride_ns > _MS:
                 for predictor in self.predictors.values():
                     predictor.observe(corridor_set)
+                if ar is not None:
+                    ar.observe(corridor_set, relation_set, frame)
                 continue
-            self._instant(rec.name, seq.id, stamp, frame, corridor_set, relation_set, scene, truth, tau_ns, n_steps)
+            profiles = None
+            if ar is not None:
+                t0 = time.perf_counter()
+                profiles, _ = ar.process(corridor_set, relation_set, frame, scene)
+                self.ar_ms.append((time.perf_counter() - t0) * 1e3)
+            self._instant(rec.name, seq.id, stamp, frame, corridor_set, relation_set, scene, truth, tau_ns, n_steps, belief, profiles)
 
     def _instant(self, recording, sequence_id, stamp, frame, corridor_set: CorridorSet, relation_set: RelationSet | None,
-                 scene, truth, tau_ns, n_steps) -> None:
+                 scene, truth, tau_ns, n_steps, belief=None, profiles=None) -> None:
         self.instants += 1
         windows: dict[int, tuple[np.ndarray, float]] = {}
         statuses = {v.track_id: v for v in corridor_set.vehicles}
@@ -301,13 +371,17 @@ class Evaluation:
         predictions: dict[str, FramePrediction] = {}
         for mode, predictor in self.predictors.items():
             t0 = time.perf_counter()
-            prediction, _issues = predictor.process(corridor_set, relation_set, scene, frame)
+            prediction, _issues = predictor.process(
+                corridor_set, relation_set, scene, frame, intention_belief=belief, acceleration_profiles=profiles if mode == "hybrid" else None
+            )
             self.acc[mode].frame_ms.append((time.perf_counter() - t0) * 1e3)
             self.acc[mode].vehicles.append(len({p.track_id for p in prediction.pairs}))
             predictions[mode] = prediction
             acc = self.acc[mode]
+            if mode == "hybrid" and profiles is not None:
+                self._collect_accel_examples(recording, sequence_id, stamp, windows, statuses, truth, profiles, prediction)
             for track_id, (future, speed) in windows.items():
-                result = self._score(prediction, track_id, future, acc)
+                result = self._score(prediction, track_id, future, acc, statuses[track_id])
                 if result is None:
                     self.skipped[f"no_prediction_{mode}"] += 1
                     continue
@@ -328,7 +402,27 @@ class Evaluation:
                 starts={t: (float(frame.x_m[rows[t]]), float(frame.y_m[rows[t]])) for t in windows},
             )
 
-    def _score(self, prediction: FramePrediction, track_id: int, future: np.ndarray, acc: _ModeAccumulator) -> _WindowResult | None:
+    def _collect_accel_examples(self, recording, sequence_id, stamp, windows, statuses, truth, profiles, prediction) -> None:
+        """Keep, per window, the AR profile of the corridor the car followed and its true acceleration (the figure)."""
+        by_pair = profiles.by_pair()
+        for track_id, (future, _speed) in windows.items():
+            vehicle = statuses[track_id]
+            members = [b for b, p in enumerate(prediction.pairs) if p.track_id == track_id]
+            corridors = [c for c in vehicle.corridors if any(prediction.pairs[b].corridor_id == c.corridor_id for b in members)]
+            if not corridors:
+                continue
+            index, error, _second = followed_corridor(corridors, future)
+            profile = by_pair.get((track_id, corridors[index].corridor_id))
+            true_accel = _true_acceleration(truth.get(track_id), stamp, profile.accel_mps2.shape[0] if profile is not None else 0)
+            if profile is None or error > ROUTE_MAX_ERROR_M or true_accel is None:
+                continue
+            self.ar_examples.append({
+                "recording": recording, "sequence": sequence_id, "track_id": track_id, "stamp_ns": stamp,
+                "true": true_accel, "ar": np.asarray(profile.accel_mps2, np.float64), "probs": np.asarray(profile.input_probs, np.float64),
+                "edges": np.asarray(profiles.input_edges_mps2, np.float64), "step_s": profiles.step_s, "chunk_s": profiles.chunk_s,
+            })
+
+    def _score(self, prediction: FramePrediction, track_id: int, future: np.ndarray, acc: _ModeAccumulator, vehicle) -> _WindowResult | None:
         cfg = self.config
         members = [b for b, p in enumerate(prediction.pairs) if p.track_id == track_id]
         if not members:
@@ -362,7 +456,7 @@ class Evaluation:
             nll -= math.log(max(value, cfg.nll_floor))
         return _WindowResult(
             made=min(ade), mfde=min(fde), wade=float(np.dot(w, ade)), wfde=float(np.dot(w, fde)),
-            steps=future.shape[0], covered=covered, nll=nll,
+            steps=future.shape[0], covered=covered, nll=nll, route_hit=_route_hit(prediction, members, w, vehicle, future),
         )
 
     # ----- results ------------------------------------------------------------------
@@ -382,6 +476,9 @@ class Evaluation:
                 "frames": len(acc.frame_ms),
                 "nan_means": acc.nan_means,
             }
+            if mode == "hybrid" and self.ar_ms:
+                modes[mode]["ar_inference_ms_median"] = float(np.median(self.ar_ms))
+                modes[mode]["ar_inference_ms_p95"] = float(np.percentile(self.ar_ms, 95))
         return {
             "data": str(cfg.data_dir),
             "recordings": self.recordings,
@@ -392,6 +489,8 @@ class Evaluation:
             "params": {k: v for k, v in cfg.params},
             "instants": self.instants,
             "skipped": dict(sorted(self.skipped.items())),
+            "intentions_ms_median": float(np.median(self.intentions_ms)) if self.intentions_ms else None,
+            "model": str(self.ar_config.model) if self.ar_config is not None else None,
             "metrics": {
                 "coverage90": f"share of (vehicle, step) pairs whose true position is in the {cfg.coverage_level:.0%} highest-probability cells of the vehicle's centre-point grid",
                 "nll": f"mean -ln max(P(true cell), {cfg.nll_floor:g}) over (vehicle, step), nats, {self.predictors[cfg.modes[0]].config.grid_cell_m} m cells",
@@ -404,6 +503,38 @@ class Evaluation:
     def write_figures(self, directory: Path) -> list[Path]:
         """The figures of the module docstring; returns the files written (none without an instant)."""
         directory.mkdir(parents=True, exist_ok=True)
+        accel = self._write_accel_figures(directory)
+        return self._write_map_figures(directory) + accel
+
+    def _write_accel_figures(self, directory: Path, count: int = 4) -> list[Path]:
+        """The paper's acceleration-distribution figure for a few real cars (module docstring)."""
+        examples = self.ar_examples
+        if not examples:
+            return []
+        chosen: list[int] = []
+        for key in (lambda e: e["true"].min(), lambda e: -e["true"].max(), lambda e: -np.ptp(e["true"]), lambda e: abs(e["true"]).mean()):
+            for i in sorted(range(len(examples)), key=lambda i: key(examples[i])):
+                if all(examples[j]["track_id"] != examples[i]["track_id"] or examples[j]["recording"] != examples[i]["recording"] for j in chosen):
+                    chosen.append(i)
+                    break
+        written, lines = [], []
+        for i in chosen[:count]:
+            e = examples[i]
+            path = directory / f"accel_{e['recording']}_{e['sequence']}_car{e['track_id']}_{e['stamp_ns'] // 1_000_000}ms.png"
+            _accel_figure(e).write_png(path)
+            written.append(path)
+            err = np.abs(e["ar"] - e["true"]).mean()
+            lines.append(f"{path.name}: recording {e['recording']} sequence {e['sequence']} car {e['track_id']} at stamp_ns {e['stamp_ns']};"
+                         f" mean |AR - true| {err:.2f} m/s2")
+        (directory / "accel_figures.txt").write_text(
+            "accel_*.png: x = time after the instant, 0..4 s (tick every 0.4 s); y = acceleration, -3..2 m/s2 (the input cells; grey"
+            " line at 0); background: the 10 normal distributions of the AR profile over the input cells, one column per 0.4 s,"
+            " darker blue = more probable; red: AR output (40 values); black: true acceleration (from the smoothed true speed)\n"
+            + "\n".join(lines) + "\n"
+        )
+        return written
+
+    def _write_map_figures(self, directory: Path) -> list[Path]:
         fig = self.figure
         if fig is None:
             (directory / "figures.txt").write_text("no instant with a full-future window: no figure\n")
@@ -454,6 +585,20 @@ class Evaluation:
         return written
 
 
+def _route_hit(prediction: FramePrediction, members: list[int], weights: np.ndarray, vehicle, future: np.ndarray) -> float | None:
+    """route_top1 of one window: 1 when the followed corridor has the highest weight (1/k for a k-way tie), 0 when not;
+    None when the window does not count (fewer than two corridors, or the true future does not single one out)."""
+    by_id = {c.corridor_id: c for c in vehicle.corridors}
+    corridors = [by_id.get(prediction.pairs[b].corridor_id) for b in members]
+    if len(corridors) < 2 or any(c is None for c in corridors):
+        return None
+    index, error, second = followed_corridor(corridors, future)
+    if error > ROUTE_MAX_ERROR_M or second - error < ROUTE_MARGIN_M:
+        return None
+    best = np.flatnonzero(weights >= weights.max() - 1e-9)
+    return 1.0 / best.size if index in best else 0.0
+
+
 # --------------------------------------------------------------------------- ground truth
 
 
@@ -483,6 +628,51 @@ def _future(track: tuple[np.ndarray, np.ndarray] | None, stamp_ns: int, tau_ns: 
     return xy[i]
 
 
+def _true_acceleration(track: tuple[np.ndarray, np.ndarray] | None, stamp_ns: int, n_steps: int, step_s: float = 0.1) -> np.ndarray | None:
+    """The true longitudinal acceleration at stamp + j·step, j = 1..n (Savitzky–Golay speed and its slope), or None."""
+    from scipy.signal import savgol_filter
+
+    if track is None or n_steps <= 0:
+        return None
+    stamps, xy = track
+    step_ns = int(round(step_s * 1e9))
+    lo = int(np.searchsorted(stamps, stamp_ns - 10 * step_ns - _MS))
+    hi = int(np.searchsorted(stamps, stamp_ns + (n_steps + 10) * step_ns + _MS))
+    t, p = stamps[lo:hi], xy[lo:hi]
+    if t.size < n_steps + 12 or np.any(np.abs(np.diff(t) - step_ns) > _MS):
+        return None
+    vel = savgol_filter(p, 7, 2, deriv=1, delta=step_s, axis=0)
+    accel = savgol_filter(np.hypot(vel[:, 0], vel[:, 1]), 7, 2, deriv=1, delta=step_s)
+    want = stamp_ns + step_ns * np.arange(1, n_steps + 1)
+    i = np.searchsorted(t, want - _MS)
+    if np.any(i >= t.size) or np.any(np.abs(t[np.minimum(i, t.size - 1)] - want) > _MS):
+        return None
+    return accel[i]
+
+
+def _accel_figure(e: dict[str, Any]) -> "_Canvas":
+    """One car's acceleration figure: distributions as intensity, AR output red, truth black (x: 10 px per 0.1 s)."""
+    edges, probs, step_s, chunk_s = e["edges"], e["probs"], e["step_s"], e["chunk_s"]
+    horizon = e["ar"].shape[0] * step_s
+    a_lo, a_hi = min(edges[0], -3.0), max(edges[-1], 2.0)
+    scale = 20.0  # plot units per m/s² (x: 100 units per s)
+    canvas = _Canvas(0.0, a_lo * scale - 4, horizon * 100.0, a_hi * scale + 4, resolution_m=1.0)
+    for k in range(probs.shape[0]):
+        peak = max(probs[k].max(), 1e-9)
+        for a in range(probs.shape[1]):
+            shade = probs[k, a] / peak
+            colour = tuple(int(255 - shade * c) for c in (200, 150, 40))
+            x0, x1 = k * chunk_s * 100.0, (k + 1) * chunk_s * 100.0
+            y0, y1 = edges[a] * scale, edges[a + 1] * scale
+            canvas.fill_polygon(np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]]), colour)
+    canvas.polyline(np.array([[0.0, 0.0], [horizon * 100.0, 0.0]]), (160, 160, 160), 0.6)
+    t = np.arange(1, e["ar"].shape[0] + 1) * step_s * 100.0
+    clip = lambda a: np.clip(a, a_lo, a_hi) * scale  # noqa: E731
+    canvas.polyline(np.column_stack([t, clip(e["true"])]), (0, 0, 0), 1.2)
+    canvas.polyline(np.column_stack([t, clip(e["ar"])]), (220, 30, 30), 1.2)
+    return canvas
+
+
 def _fill_forward(means: np.ndarray, pair) -> np.ndarray:
     out = means.copy()
     last = None
@@ -502,20 +692,26 @@ def _fill_forward(means: np.ndarray, pair) -> np.ndarray:
 
 def format_table(report: dict[str, Any]) -> str:
     """The printed summary: per mode overall/slow/fast, then timing."""
-    head = f"{'mode':<12} {'split':<8} {'windows':>7} {'mADE':>7} {'mFDE':>7} {'wADE':>7} {'wFDE':>7} {'cov90':>6} {'NLL':>6}"
+    head = (f"{'mode':<12} {'split':<8} {'windows':>7} {'mADE':>7} {'mFDE':>7} {'wADE':>7} {'wFDE':>7} {'cov90':>6} {'NLL':>6}"
+            f" {'top1':>5} {'routes':>6}")
     lines = [head, "-" * len(head)]
     for mode, res in report["modes"].items():
         for split, stats in (("overall", res["overall"]), ("slow", res["by_speed"]["slow"]), ("fast", res["by_speed"]["fast"])):
             lines.append(
                 f"{mode:<12} {split:<8} {stats['windows']:>7d} {stats['mADE_m']:>7.2f} {stats['mFDE_m']:>7.2f}"
                 f" {stats['wADE_m']:>7.2f} {stats['wFDE_m']:>7.2f} {stats['coverage90']:>6.2f} {stats['nll']:>6.2f}"
+                f" {stats['route_top1']:>5.2f} {stats['route_windows']:>6d}"
             )
     lines.append("")
     for mode, res in report["modes"].items():
         lines.append(
             f"{mode:<12} frame time median {res['frame_ms_median']:.1f} ms, p95 {res['frame_ms_p95']:.1f} ms,"
             f" {res['vehicles_per_frame_mean']:.1f} vehicles per frame over {res['frames']} frames"
+            + (f"; ar_inference median {res['ar_inference_ms_median']:.1f} ms, p95 {res['ar_inference_ms_p95']:.1f} ms"
+               if "ar_inference_ms_median" in res else "")
         )
+    if report.get("intentions_ms_median") is not None:
+        lines.append(f"intentions (every frame) median {report['intentions_ms_median']:.1f} ms; corridor weights {report['corridor_weights']}")
     lines.append(f"instants {report['instants']}, skipped {report['skipped']}")
     return "\n".join(lines)
 
@@ -529,7 +725,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--sequence", action="append", default=[], help="sequence id to evaluate (repeatable; default all)")
     parser.add_argument("--mode", nargs="+", default=list(EVAL_MODES), choices=EVAL_MODES, help="prediction modes (default all)")
     parser.add_argument("--stride", type=float, default=0.4, help="seconds between evaluated instants (default 0.4)")
-    parser.add_argument("--corridor-weights", choices=["uniform"], default="uniform", help="corridor probabilities (intentions later)")
+    parser.add_argument("--corridor-weights", choices=list(CORRIDOR_WEIGHTS), default="intentions",
+                        help="corridor probabilities: the intentions stage's P(R = c) (default) or uniform")
+    parser.add_argument("--model", type=Path, default=None, help="AR model weights for mode hybrid (default: the shipped stages/ar/weights/ar_taf_bw.pt)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the intentions particle filter (default 0)")
     parser.add_argument("--backend", choices=["numpy", "torch"], default="numpy", help="Markov backend (default numpy)")
     parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
     parser.add_argument("--max-frames", type=int, default=0, help="stop each sequence after this many frames (0: all)")
@@ -538,21 +737,17 @@ def add_arguments(parser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="markov_prediction parameter for every mode (JSON value), e.g. --set speed_limit_factor=1.1")
+    parser.add_argument("--set-intentions", action="append", default=[], metavar="KEY=VALUE",
+                        help="intentions parameter (JSON value), e.g. --set-intentions particles_per_vehicle=1000")
 
 
 def run_cli(args) -> int:
     try:
-        params = []
-        for item in args.set:
-            key, sep, value = item.partition("=")
-            if not sep:
-                raise ValueError(f"--set {item!r}: expected KEY=VALUE")
-            try:
-                params.append((key.strip(), json.loads(value)))
-            except json.JSONDecodeError:
-                params.append((key.strip(), value))
         config = EvalConfig(
-            params=tuple(params),
+            params=_key_values(args.set, "--set"),
+            intentions_params=_key_values(args.set_intentions, "--set-intentions"),
+            model_path=args.model,
+            seed=args.seed,
             data_dir=args.data,
             recordings=tuple(args.recording),
             sequences=tuple(args.sequence),
@@ -579,6 +774,20 @@ def run_cli(args) -> int:
         for path in evaluation.write_figures(args.figures):
             print(f"wrote {path}")
     return 0
+
+
+def _key_values(items, flag: str) -> tuple[tuple[str, Any], ...]:
+    """KEY=VALUE options, values parsed as JSON where they parse."""
+    out = []
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"{flag} {item!r}: expected KEY=VALUE")
+        try:
+            out.append((key.strip(), json.loads(value)))
+        except json.JSONDecodeError:
+            out.append((key.strip(), value))
+    return tuple(out)
 
 
 def _json_safe(value: Any) -> Any:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from bus_schemas import CorridorPredictions, CorridorSet, MotionGrid, RelationSet, SceneInfo, TrackFrame
+from bus_schemas import AccelerationProfiles, CorridorPredictions, CorridorSet, IntentionBelief, MotionGrid, RelationSet, SceneInfo, TrackFrame
 from stages.markov_prediction.config import MarkovPredictionConfig
 from stages.markov_prediction.core import MarkovPredictor
 from stages.runtime import NodeContext, Port, StageSpec, run_stage
@@ -12,10 +12,10 @@ INPUTS = {
     "relation_set": Port(RelationSet),
     "scene": Port(SceneInfo, latched=True),
     "track_frame": Port(TrackFrame, optional=True),  # sizes, and the velocity of mode "cv"
-    # HOOK(intentions issue): "intention_belief": Port(IntentionBelief, optional=True)
-    #   -> corridor_weights = "intentions" (P(R = c)) and the initial boxes.
-    # HOOK(AR issue): "acceleration_profiles": Port(AccelerationProfiles, optional=True)
-    #   -> mode = "hybrid" (InputReplaced(λ_AR(k)), METHOD.md §3.2).
+    # corridor_weights = "intentions" (P(R = c)) and initial_box = "particles" read the DBN's belief
+    "intention_belief": Port(IntentionBelief, optional=True),
+    # mode = "hybrid": λ_AR(k) of the ar_inference stage replace the rule-based λ (METHOD.md §3.2)
+    "acceleration_profiles": Port(AccelerationProfiles, optional=True),
 }
 OUTPUTS = {"corridor_predictions": Port(CorridorPredictions), "motion_grid": Port(MotionGrid)}
 

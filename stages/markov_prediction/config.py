@@ -6,12 +6,16 @@ from dataclasses import dataclass
 
 from stages._core import ConfigMixin, check_ranges
 
-#: Modes implemented now. ``hybrid`` (AR-Net accelerations replace λ, METHOD.md §3) comes with the AR issue.
-MODES = ("baseline", "cv", "corridor_cv")
-LATER_MODES = ("hybrid",)
-#: Corridor weights implemented now; ``intentions`` (P(R = c) from the DBN) comes with the intentions issue.
-CORRIDOR_WEIGHTS = ("uniform",)
-LATER_CORRIDOR_WEIGHTS = ("intentions",)
+#: ``hybrid``: AR-Net acceleration distributions replace λ (METHOD.md §3); ``baseline``: rule-based λ (§2).
+MODES = ("hybrid", "baseline", "cv", "corridor_cv")
+#: Modes that run the Markov chain (the others are closed-form constant-velocity predictions).
+CHAIN_MODES = ("hybrid", "baseline")
+#: ``intentions``: P(R = c) from the DBN's IntentionBelief; ``uniform``: 1/C over a vehicle's corridors.
+CORRIDOR_WEIGHTS = ("intentions", "uniform")
+#: Centre and half-widths of the initial (s, v) box: the measurement ± the §1.4 defaults, or the particles of the DBN.
+INITIAL_BOXES = ("measurement", "particles")
+#: Γ in hybrid mode: colnorm(diag(λ_AR(k)) Ψ) (METHOD.md §3.2), or the memoryless ``direct`` ablation λ_AR(k)·1ᵀ.
+HYBRID_INPUTS = ("psi", "direct")
 BACKENDS = ("numpy", "torch")
 GRID_DISTRIBUTIONS = ("interval", "point")
 
@@ -27,6 +31,9 @@ class MarkovPredictionConfig(ConfigMixin):
     backend: str = "numpy"
     device: str = "cpu"
     corridor_weights: str = "uniform"
+    initial_box: str = "measurement"
+    # hybrid mode (METHOD.md §3.2): how the AR distributions enter the chain
+    hybrid_input: str = "psi"
     # discretisation (the stencils are cached per ds, dv, v_max, τ)
     ds_m: float = 1.0
     dv_mps: float = 0.5
@@ -80,14 +87,14 @@ class MarkovPredictionConfig(ConfigMixin):
     outside_issue_mass: float = 0.01
 
     def __post_init__(self) -> None:
-        if self.mode in LATER_MODES:
-            raise ValueError(f"mode = {self.mode!r} needs the acceleration_profiles input, which has not landed; use one of {', '.join(MODES)}")
         if self.mode not in MODES:
             raise ValueError(f"mode = {self.mode!r}: expected one of {', '.join(MODES)}")
-        if self.corridor_weights in LATER_CORRIDOR_WEIGHTS:
-            raise ValueError(f"corridor_weights = {self.corridor_weights!r} needs the intention_belief input, which has not landed; use 'uniform'")
         if self.corridor_weights not in CORRIDOR_WEIGHTS:
             raise ValueError(f"corridor_weights = {self.corridor_weights!r}: expected one of {', '.join(CORRIDOR_WEIGHTS)}")
+        if self.initial_box not in INITIAL_BOXES:
+            raise ValueError(f"initial_box = {self.initial_box!r}: expected one of {', '.join(INITIAL_BOXES)}")
+        if self.hybrid_input not in HYBRID_INPUTS:
+            raise ValueError(f"hybrid_input = {self.hybrid_input!r}: expected one of {', '.join(HYBRID_INPUTS)}")
         if self.backend not in BACKENDS:
             raise ValueError(f"backend = {self.backend!r}: expected one of {', '.join(BACKENDS)}")
         if self.backend == "numpy" and self.device != "cpu":

@@ -14,6 +14,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from bus_schemas import (
+    AccelerationProfiles,
     AgentType,
     CorridorPrediction,
     CorridorPredictions,
@@ -21,6 +22,7 @@ from bus_schemas import (
     CorridorSet,
     GridStep,
     Header,
+    IntentionBelief,
     MatchStatus,
     MotionGrid,
     RelationSet,
@@ -29,11 +31,11 @@ from bus_schemas import (
 )
 from stages._core import Issue, StageResult
 from stages.datasets import DEFAULT_SIZES_M
-from stages.markov import MarkovGridConfig, initial_state, load_or_build_stencils, psi_matrix
+from stages.markov import InputMatrix, InputReplaced, MarkovGridConfig, gamma_from_priority, initial_state, load_or_build_stencils, psi_matrix
 
 from . import priority as pr
 from .chain import InputPriority, PriorityPropagator
-from .config import MarkovPredictionConfig
+from .config import CHAIN_MODES, MarkovPredictionConfig
 from .rasterise import Footprints, GridFrame, SparseGrid, cell_footprints, fuse, lateral_kernel, vehicle_grid
 
 _NS = 1e-9
@@ -67,6 +69,9 @@ class _Pair:
     sigma_a0_mps2: float = 0.5
     start_rate_hz: float = 0.0  # > 0: the vehicle stands; it starts at this rate (standstill mixture)
     relation: CorridorRelations | None = None
+    half_width_s_m: float = 0.0  # > 0: the initial box's half-widths from the DBN's particles (initial_box "particles")
+    half_width_v_mps: float = 0.0
+    input_probs: np.ndarray | None = None  # (K, M) hybrid mode: λ(0..K-1) from the AR model
 
     @property
     def end_s_m(self) -> float:
@@ -216,7 +221,7 @@ class MarkovPredictor:
         self.stencils = None
         self.propagator: PriorityPropagator | None = None
         self.gaps: pr.CriticalGaps | None = None
-        if config.mode == "baseline":
+        if config.mode in CHAIN_MODES:
             if stencils is None:
                 stencils = load_or_build_stencils(cfg, config.stencil_cache_dir or None)
             self.stencils = stencils
@@ -231,18 +236,18 @@ class MarkovPredictor:
             self.gaps = pr.CriticalGaps.build(
                 self.v_centres, self.a_centres, cfg.v_max_mps, tuple(config.leader_horizons_s), config.leader_brake_mps2
             )
-        # HOOK(hybrid, intentions): mode "hybrid" will build InputReplaced(λ_AR(k)) from AccelerationProfiles
-        # (METHOD.md §3.2) instead of the rule-based λ, and corridor_weights "intentions" will take P(R = c)
-        # and the initial boxes from IntentionBelief (§4 output). Both inputs are optional ports of the stage.
 
     # ----- entry points ---------------------------------------------------------
 
     def update(self, inputs: Mapping[str, object]) -> StageResult:
-        """One frame: ``corridor_set`` and ``relation_set`` (same stamp), ``scene`` (latched), ``track_frame`` (optional)."""
+        """One frame: ``corridor_set`` and ``relation_set`` (same stamp), ``scene`` (latched), and the optional
+        ``track_frame``, ``intention_belief`` and ``acceleration_profiles`` of the same stamp."""
         corridor_set = inputs.get("corridor_set")
         relation_set = inputs.get("relation_set")
         scene = inputs.get("scene")
         frame = inputs.get("track_frame")
+        belief = inputs.get("intention_belief")
+        profiles = inputs.get("acceleration_profiles")
         if not isinstance(corridor_set, CorridorSet):
             return StageResult(issues=[Issue("no_input", -1, "update without a corridor_set")])
         prediction, issues = self.process(
@@ -250,6 +255,8 @@ class MarkovPredictor:
             relation_set if isinstance(relation_set, RelationSet) else None,
             scene if isinstance(scene, SceneInfo) else None,
             frame if isinstance(frame, TrackFrame) else None,
+            intention_belief=belief if isinstance(belief, IntentionBelief) else None,
+            acceleration_profiles=profiles if isinstance(profiles, AccelerationProfiles) else None,
         )
         h = corridor_set.header
         header = Header(run_id=h.run_id, frame_index=h.frame_index, stamp_ns=h.stamp_ns, producer=self.producer)
@@ -266,10 +273,15 @@ class MarkovPredictor:
         relation_set: RelationSet | None = None,
         scene: SceneInfo | None = None,
         track_frame: TrackFrame | None = None,
+        *,
+        intention_belief: IntentionBelief | None = None,
+        acceleration_profiles: AccelerationProfiles | None = None,
     ) -> tuple[FramePrediction, list[Issue]]:
         """The pure function behind ``update``: the frame's prediction and the issues met."""
         issues: list[Issue] = []
         stamp = int(corridor_set.header.stamp_ns)
+        beliefs = self._beliefs(intention_belief, stamp, issues)
+        profiles = self._profiles(acceleration_profiles, stamp, issues)
         self.observe(corridor_set)
         relations: dict[tuple[int, int], CorridorRelations] = {}
         if relation_set is None:
@@ -282,7 +294,7 @@ class MarkovPredictor:
         else:
             relations = {(r.track_id, r.corridor_id): r for r in relation_set.relations}
         speed_limit = scene.speed_limit_mps if scene is not None and _positive(scene.speed_limit_mps) else self.config.default_speed_limit_mps
-        pairs = self._pairs(corridor_set, track_frame, speed_limit, issues)
+        pairs = self._pairs(corridor_set, track_frame, speed_limit, issues, beliefs, profiles)
         known = {(p.track_id, p.corridor_id): p for p in pairs}
         for key, relation in relations.items():
             pair = known.get(key)
@@ -290,7 +302,7 @@ class MarkovPredictor:
                 issues.append(Issue("unknown_corridor", key[0], f"relation for corridor {key[1]}, which has no prediction: ignored"))
             else:
                 pair.relation = relation
-        if self.config.mode == "baseline":
+        if self.config.mode in CHAIN_MODES:
             arrays = self._markov(pairs, issues)
         else:
             arrays = self._constant_velocity(pairs)
@@ -345,7 +357,76 @@ class MarkovPredictor:
         edges = self.grid.input_edges()
         return float(np.clip(shrunk, edges[0], edges[-1])), math.hypot(base, min(sigma, 1.0))
 
-    def _pairs(self, corridor_set: CorridorSet, frame: TrackFrame | None, scene_limit_mps: float, issues: list[Issue]) -> list[_Pair]:
+    def _beliefs(self, belief: IntentionBelief | None, stamp: int, issues: list[Issue]) -> dict[int, dict[int, Any]] | None:
+        """Per track, its CorridorBeliefs by corridor id; None when the config does not use them or none fit."""
+        cfg = self.config
+        if cfg.corridor_weights != "intentions" and cfg.initial_box != "particles":
+            return None
+        if belief is None:
+            issues.append(Issue("no_intentions", -1, "no intention_belief: uniform corridor weights and measured boxes this frame"))
+            return None
+        if int(belief.header.stamp_ns) != stamp:
+            issues.append(Issue("stamp_mismatch", -1, f"intention_belief stamp {belief.header.stamp_ns} != corridor_set stamp {stamp}: ignored"))
+            return None
+        return {v.track_id: {c.corridor_id: c for c in v.corridors} for v in belief.vehicles}
+
+    def _profiles(self, profiles: AccelerationProfiles | None, stamp: int, issues: list[Issue]) -> dict[tuple[int, int], np.ndarray] | None:
+        """Per (track, corridor), λ(0..K-1) as a (K, M) array; None outside hybrid mode or when unusable."""
+        cfg = self.config
+        if cfg.mode != "hybrid":
+            return None
+        if profiles is None:
+            issues.append(Issue("no_acceleration_profiles", -1, "hybrid mode without acceleration_profiles: every pair falls back to its measured acceleration"))
+            return None
+        if int(profiles.header.stamp_ns) != stamp:
+            issues.append(Issue("stamp_mismatch", -1, f"acceleration_profiles stamp {profiles.header.stamp_ns} != corridor_set stamp {stamp}: ignored"))
+            return None
+        edges = self.grid.input_edges()
+        if profiles.input_edges_mps2.shape != edges.shape or not np.allclose(profiles.input_edges_mps2, edges, atol=1e-6):
+            issues.append(Issue("bad_profile", -1, f"acceleration_profiles input edges {np.round(profiles.input_edges_mps2, 3).tolist()} != the chain's {edges.tolist()}: ignored"))
+            return None
+        if abs(profiles.chunk_s - cfg.tau_s) > 1e-6:
+            issues.append(Issue("bad_profile", -1, f"acceleration_profiles chunk_s {profiles.chunk_s} != tau_s {cfg.tau_s}: ignored"))
+            return None
+        out: dict[tuple[int, int], np.ndarray] = {}
+        for p in profiles.profiles:
+            probs = np.asarray(p.input_probs, dtype=np.float64)
+            if probs.ndim != 2 or probs.shape[1] != self.grid.n_inputs or probs.shape[0] < 1:
+                issues.append(Issue("bad_profile", p.track_id, f"corridor {p.corridor_id}: input_probs shape {probs.shape}: pair falls back"))
+                continue
+            if not np.all(np.isfinite(probs)) or np.any(probs < 0) or np.any(probs.sum(axis=1) <= 0):
+                issues.append(Issue("bad_profile", p.track_id, f"corridor {p.corridor_id}: input_probs not a distribution: pair falls back"))
+                continue
+            probs = probs / probs.sum(axis=1, keepdims=True)
+            if probs.shape[0] < cfg.n_steps:  # a shorter profile holds its last distribution
+                probs = np.vstack([probs, np.repeat(probs[-1:], cfg.n_steps - probs.shape[0], axis=0)])
+            out[(p.track_id, p.corridor_id)] = probs[: cfg.n_steps]
+        return out
+
+    def _weights(self, vehicle, good: list, beliefs: dict[int, dict[int, Any]] | None, issues: list[Issue]) -> np.ndarray:
+        """P(R = c) over the vehicle's predicted corridors: the DBN's, renormalised, or uniform."""
+        uniform = np.full(len(good), 1.0 / len(good))
+        if self.config.corridor_weights != "intentions" or beliefs is None:
+            return uniform
+        mine = beliefs.get(vehicle.track_id)
+        if mine is None:
+            issues.append(Issue("no_belief", vehicle.track_id, "no intention belief for this vehicle: uniform corridor weights"))
+            return uniform
+        w = np.array([mine[c.corridor_id].probability if c.corridor_id in mine else np.nan for c in good], dtype=np.float64)
+        if np.any(~np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
+            issues.append(Issue("no_belief", vehicle.track_id, "intention belief misses some of this vehicle's corridors: uniform corridor weights"))
+            return uniform
+        return w / w.sum()
+
+    def _pairs(
+        self,
+        corridor_set: CorridorSet,
+        frame: TrackFrame | None,
+        scene_limit_mps: float,
+        issues: list[Issue],
+        beliefs: dict[int, dict[int, Any]] | None = None,
+        profiles: dict[tuple[int, int], np.ndarray] | None = None,
+    ) -> list[_Pair]:
         cfg = self.config
         stamp = int(corridor_set.header.stamp_ns)
         rows: dict[int, int] = {}
@@ -367,16 +448,30 @@ class MarkovPredictor:
                     width = float(frame.width_m[row])
             v0 = float(np.clip(vehicle.speed_mps, 0.0, cfg.v_max_mps))
             a0, sigma_a0 = self._acceleration(vehicle.track_id, stamp)
-            standing = cfg.mode == "baseline" and v0 <= cfg.standstill_speed_mps and cfg.standstill_start_rate_hz > 0
+            standing = cfg.mode in CHAIN_MODES and v0 <= cfg.standstill_speed_mps and cfg.standstill_start_rate_hz > 0
             good = [c for c in vehicle.corridors if _corridor_ok(c, vehicle.track_id, issues)]
             if not good:
                 continue
             if cfg.mode == "cv":
                 pairs.append(self._cv_line(vehicle, good[0], frame, row, v0, a0, length, width))
                 continue
-            weight = 1.0 / len(good)  # corridor_weights = "uniform"; HOOK(intentions): P(R = c)
-            for c in good:
+            weights = self._weights(vehicle, good, beliefs, issues)
+            mine = beliefs.get(vehicle.track_id, {}) if beliefs is not None and cfg.initial_box == "particles" else {}
+            for c, weight in zip(good, weights):
                 limit = c.speed_limit_mps if _positive(c.speed_limit_mps) else scene_limit_mps
+                s0, hs, hv, v_start = float(c.vehicle_s_m), 0.0, 0.0, v0
+                cb = mine.get(c.corridor_id)
+                if cb is not None and cb.particle_count > 0 and all(
+                    math.isfinite(x) for x in (cb.s_mean_m, cb.s_std_m, cb.v_mean_mps, cb.v_std_mps)
+                ):
+                    s0, v_start = float(cb.s_mean_m), float(np.clip(cb.v_mean_mps, 0.0, cfg.v_max_mps))
+                    hs = max(0.5 * cfg.ds_m, 2.0 * float(cb.s_std_m))
+                    hv = max(0.5 * cfg.dv_mps, 2.0 * float(cb.v_std_mps))
+                lam = None
+                if profiles is not None:
+                    lam = profiles.get((vehicle.track_id, c.corridor_id))
+                    if lam is None:
+                        issues.append(Issue("no_acceleration_profile", vehicle.track_id, f"corridor {c.corridor_id}: no AR profile, measured acceleration held"))
                 pairs.append(
                     _Pair(
                         track_id=vehicle.track_id,
@@ -388,15 +483,18 @@ class MarkovPredictor:
                         heading_rad=np.asarray(c.heading_rad, dtype=np.float64),
                         curvature_1pm=np.asarray(c.curvature_1pm, dtype=np.float64),
                         speed_limit_mps=float(limit) * cfg.speed_limit_factor,
-                        s0_m=float(c.vehicle_s_m),
-                        v0_mps=v0,
+                        s0_m=s0,
+                        v0_mps=v_start,
                         a0_mps2=a0,
                         sigma_a0_mps2=sigma_a0,
-                        s_first_m=float(c.vehicle_s_m) - cfg.window_behind_m,
+                        s_first_m=min(s0, float(c.vehicle_s_m)) - max(cfg.window_behind_m, hs),
                         length_m=length,
                         width_m=width,
                         d0_m=float(c.vehicle_d_m) if math.isfinite(c.vehicle_d_m) else 0.0,
                         start_rate_hz=cfg.standstill_start_rate_hz if standing else 0.0,
+                        half_width_s_m=hs,
+                        half_width_v_mps=hv,
+                        input_probs=lam,
                     )
                 )
         return pairs
@@ -477,6 +575,8 @@ class MarkovPredictor:
                     "outside": np.zeros((0, n_k), np.float32), "exact_s": None}
         cell_lower = grid.s_edges_m()[: self.n_s]
         cell_centre = cell_lower + 0.5 * cfg.ds_m
+        if cfg.mode == "hybrid":
+            return self._hybrid(pairs)
         # λ_speed per pair, static over the steps, and the combined r where nothing else restricts
         lam_speed = np.empty((n_b, n_in, n_v, self.n_s), np.float32)
         weights = np.asarray(cfg.lat_accel_weights, dtype=np.float64)
@@ -494,25 +594,8 @@ class MarkovPredictor:
         leaders = self._leaders(pairs, by_track, issues)
         conflicts = self._conflicts(pairs, index, issues)
 
-        # initial distribution (§1.4): uniform box in (s, v) × Gaussian input around the measured acceleration
-        s0_w = np.array([p.s0_m - p.s_first_m for p in pairs])
+        p0 = self._initial(pairs, self._measured_inputs(pairs))
         v0 = np.array([p.v0_mps for p in pairs])
-        a0 = np.array([p.a0_mps2 for p in pairs])
-        edges = grid.input_edges()
-        sigma_a0 = np.array([p.sigma_a0_mps2 for p in pairs])
-        cdf = _normal_cdf((edges[None, :] - a0[:, None]) / sigma_a0[:, None])
-        cdf[:, 0], cdf[:, -1] = 0.0, 1.0  # fold the tails into the end cells
-        input_probs = np.diff(cdf, axis=1)
-        p0 = initial_state(
-            grid,
-            s_m=s0_w,
-            v_mps=v0,
-            half_width_s_m=max(0.5 * cfg.ds_m, 2 * cfg.init_sigma_s_m),
-            half_width_v_mps=max(0.5 * cfg.dv_mps, 2 * cfg.init_sigma_v_mps),
-            input_probs=input_probs / input_probs.sum(axis=1, keepdims=True),
-        )
-        # window of p0 must match the propagator's window length
-        p0 = type(p0)(input_probs=p0.input_probs, velocity_probs=p0.velocity_probs, position_probs=_fit(p0.position_probs, self.n_s))
         ctx = _PassContext(
             members=np.arange(n_b),
             lam_speed=lam_speed,
@@ -555,6 +638,53 @@ class MarkovPredictor:
             if interval is not None:
                 interval = interval.copy()
                 interval[m] = mixed[2]
+        return {"position": pos, "interval": interval, "velocity": vel, "outside": outside, "exact_s": None}
+
+    def _measured_inputs(self, pairs: list[_Pair]) -> np.ndarray:
+        """(B, M): a normal distribution around each pair's measured acceleration over the input cells (tails folded)."""
+        edges = self.grid.input_edges()
+        a0 = np.array([p.a0_mps2 for p in pairs])
+        sigma_a0 = np.array([p.sigma_a0_mps2 for p in pairs])
+        cdf = _normal_cdf((edges[None, :] - a0[:, None]) / sigma_a0[:, None])
+        cdf[:, 0], cdf[:, -1] = 0.0, 1.0  # fold the tails into the end cells
+        probs = np.diff(cdf, axis=1)
+        return probs / probs.sum(axis=1, keepdims=True)
+
+    def _initial(self, pairs: list[_Pair], input_probs: np.ndarray):
+        """p(t_0) (§1.4): a uniform box in (s, v) (the measurement's, or the particles') × ``input_probs``."""
+        cfg = self.config
+        default_s, default_v = max(0.5 * cfg.ds_m, 2 * cfg.init_sigma_s_m), max(0.5 * cfg.dv_mps, 2 * cfg.init_sigma_v_mps)
+        p0 = initial_state(
+            self.grid,
+            s_m=np.array([p.s0_m - p.s_first_m for p in pairs]),
+            v_mps=np.array([p.v0_mps for p in pairs]),
+            half_width_s_m=np.array([p.half_width_s_m if p.half_width_s_m > 0 else default_s for p in pairs]),
+            half_width_v_mps=np.array([p.half_width_v_mps if p.half_width_v_mps > 0 else default_v for p in pairs]),
+            input_probs=input_probs,
+        )
+        # window of p0 must match the propagator's window length
+        return type(p0)(input_probs=p0.input_probs, velocity_probs=p0.velocity_probs, position_probs=_fit(p0.position_probs, self.n_s))
+
+    def _hybrid(self, pairs: list[_Pair]) -> dict[str, np.ndarray]:
+        """Hybrid mode (METHOD.md §3.2): λ(0) starts the input, Γ_k = colnorm(diag(λ(k)) Ψ) (or λ(k)·1ᵀ) after step k."""
+        cfg = self.config
+        measured = self._measured_inputs(pairs)
+        lam = np.stack([p.input_probs if p.input_probs is not None else np.repeat(measured[b][None], cfg.n_steps, axis=0)
+                        for b, p in enumerate(pairs)])  # (B, K, M)
+        p0 = self._initial(pairs, lam[:, 0])
+        steps: list = []
+        for k in range(cfg.n_steps):
+            if k + 1 >= cfg.n_steps:
+                steps.append(None)  # the input after the last step does not change any output
+            elif cfg.hybrid_input == "direct":
+                steps.append(InputReplaced(probs=lam[:, k + 1]))
+            else:
+                steps.append(InputMatrix(gamma=gamma_from_priority(lam[:, k + 1], self.psi)))
+        result = self.propagator.run(p0, steps, with_interval=cfg.grid_distribution == "interval")
+        pos, vel, interval, outside = self._mix_standstill(
+            pairs, np.arange(len(pairs)), p0.position_probs, result.position_probs, result.velocity_probs,
+            result.interval_position_probs, result.outside_mass,
+        )
         return {"position": pos, "interval": interval, "velocity": vel, "outside": outside, "exact_s": None}
 
     def _mix_standstill(self, pairs, members, start_probs, pos, vel, interval, outside):

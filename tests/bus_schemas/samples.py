@@ -240,3 +240,26 @@ def intention_belief() -> bs.IntentionBelief:
 
 
 SAMPLES.update({"iamp.IntentionBelief": intention_belief})
+
+
+def acceleration_profiles() -> bs.AccelerationProfiles:
+    edges = np.linspace(-3.0, 2.0, 11)
+    probs = np.zeros((10, 10), dtype=np.float32)
+    probs[:, 5] = 0.75
+    probs[:, 4] = 0.25
+    profile = bs.AccelerationProfile(
+        track_id=7,
+        corridor_id=2,
+        history_steps=23,
+        accel_mps2=np.linspace(-0.5, 0.25, 40).astype(np.float32),
+        chunk_mean_mps2=np.linspace(-0.45, 0.2, 10).astype(np.float32),
+        chunk_sigma_mps2=np.linspace(0.3, 1.0, 10).astype(np.float32),
+        input_probs=probs,
+    )
+    return bs.AccelerationProfiles(
+        header=header(), scene_id="0123456789abcdef", model="ar_taf_bw.pt@0123456789ab", step_s=0.1, chunk_s=0.4,
+        input_edges_mps2=edges, profiles=(profile,),
+    )
+
+
+SAMPLES.update({"iamp.AccelerationProfiles": acceleration_profiles})

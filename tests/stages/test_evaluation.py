@@ -10,10 +10,11 @@ import pytest
 
 from stages import cli
 from stages.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, DEFAULT_SEQUENCE
-from stages.evaluation import EVAL_MODES, EvalConfig, Evaluation, _future, format_table
+from stages.evaluation import EVAL_MODES, EvalConfig, Evaluation, _future, _route_hit, format_table
 from stages.markov_prediction.rasterise import highest_density_threshold
 
 METRICS = ("windows", "mADE_m", "mFDE_m", "wADE_m", "wFDE_m", "coverage90", "nll")
+ROUTE = ("route_top1", "route_windows")
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +42,10 @@ def test_report_has_every_key_with_finite_values(slice_report):
         groups = [res["overall"], res["by_speed"]["slow"], res["by_speed"]["fast"], *res["by_recording"].values()]
         assert list(res["by_recording"]) == [DEFAULT_RECORDING]
         for group in groups:
-            assert set(group) == set(METRICS)
+            assert set(group) == set(METRICS) | set(ROUTE)
+            assert 0 <= group["route_windows"] <= group["windows"]
+            if group["route_windows"]:
+                assert 0.0 <= group["route_top1"] <= 1.0
             if group["windows"]:
                 assert all(math.isfinite(group[k]) for k in METRICS), (mode, group)
                 assert 0.0 <= group["coverage90"] <= 1.0 and group["nll"] >= 0.0
@@ -49,14 +53,19 @@ def test_report_has_every_key_with_finite_values(slice_report):
         assert res["by_speed"]["slow"]["windows"] + res["by_speed"]["fast"]["windows"] == res["overall"]["windows"]
         for key in ("frame_ms_median", "frame_ms_p95", "vehicles_per_frame_mean"):
             assert math.isfinite(res[key]) and res[key] > 0
+    assert report["modes"]["cv"]["overall"]["route_windows"] == 0, "the cv line has no corridors to choose between"
+    assert report["corridor_weights"] == "intentions" and report["intentions_ms_median"] > 0
     assert "baseline" in format_table(report)
     json.dumps(report)
 
 
 def test_figures_are_png_files(slice_report):
     _, written, folder = slice_report
-    names = sorted(p.name for p in written)
+    names = sorted(p.name for p in written if not p.name.startswith("accel_"))
     assert names == sorted(f"{kind}_{mode}.png" for kind in ("grid_4s", "means") for mode in EVAL_MODES)
+    accel = [p for p in written if p.name.startswith("accel_")]
+    assert 1 <= len(accel) <= 4, "hybrid mode draws the acceleration-distribution figure for a few cars"
+    assert "AR output" in (folder / "accel_figures.txt").read_text()
     for path in written:
         assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "instant" in (folder / "figures.txt").read_text()
@@ -89,3 +98,28 @@ def test_highest_density_region():
     values = np.array([0.5, 0.3, 0.15, 0.05])
     assert highest_density_threshold(values, 0.9) == pytest.approx(0.15)
     assert highest_density_threshold(np.array([0.4, 0.2]), 0.9) == pytest.approx(0.2)  # less than 90 %: every cell
+
+
+def test_route_hit_scores_the_followed_corridor_and_splits_ties():
+    from types import SimpleNamespace
+
+    import bus_schemas as bs
+
+    def corridor(cid, y_end):
+        s = np.arange(0.0, 60.5, 0.5)
+        y = np.where(s > 20.0, (s - 20.0) / 40.0 * y_end, 0.0)
+        return bs.Corridor(
+            corridor_id=cid, lanelet_ids=np.array([1], np.int64), lanelet_start_s_m=np.array([0.0]), x_m=s.copy(), y_m=y, s_m=s,
+            heading_rad=np.zeros_like(s), curvature_1pm=np.zeros_like(s), width_m=np.full(s.shape, 3.5),
+            extension_start_s_m=60.0, vehicle_s_m=0.0, vehicle_d_m=0.0, speed_limit_mps=13.9,
+        )
+
+    vehicle = SimpleNamespace(corridors=(corridor(1, 0.0), corridor(2, 15.0)))
+    prediction = SimpleNamespace(pairs=(SimpleNamespace(corridor_id=1), SimpleNamespace(corridor_id=2)))
+    straight = np.column_stack([np.linspace(4, 40, 10), np.zeros(10)])
+    assert _route_hit(prediction, [0, 1], np.array([0.7, 0.3]), vehicle, straight) == 1.0
+    assert _route_hit(prediction, [0, 1], np.array([0.3, 0.7]), vehicle, straight) == 0.0
+    assert _route_hit(prediction, [0, 1], np.array([0.5, 0.5]), vehicle, straight) == 0.5
+    assert _route_hit(prediction, [0], np.array([1.0]), vehicle, straight) is None  # one corridor: nothing to choose
+    early = np.column_stack([np.linspace(1, 10, 10), np.zeros(10)])  # before the branch: the future does not decide
+    assert _route_hit(prediction, [0, 1], np.array([0.7, 0.3]), vehicle, early) is None

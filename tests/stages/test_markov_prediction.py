@@ -87,6 +87,11 @@ def baseline() -> MarkovPredictor:
 
 
 @pytest.fixture(scope="module")
+def stencils(baseline):
+    return baseline.stencils
+
+
+@pytest.fixture(scope="module")
 def baseline_torch(baseline) -> MarkovPredictor:
     return MarkovPredictor(MarkovPredictionConfig(backend="torch"), stencils=baseline.stencils)
 
@@ -300,10 +305,111 @@ def test_update_publishes_both_messages_and_reports_bad_inputs(baseline):
     assert result.outputs["motion_grid"].mode == "baseline"
 
 
-def test_config_refuses_modes_that_have_not_landed():
-    with pytest.raises(ValueError, match="acceleration_profiles"):
-        MarkovPredictionConfig(mode="hybrid")
-    with pytest.raises(ValueError, match="intention_belief"):
-        MarkovPredictionConfig(corridor_weights="intentions")
+def test_config_names_what_to_fix():
+    with pytest.raises(ValueError, match="mode = 'ar'"):
+        MarkovPredictionConfig(mode="ar")
+    with pytest.raises(ValueError, match="corridor_weights = 'dbn'"):
+        MarkovPredictionConfig(corridor_weights="dbn")
+    with pytest.raises(ValueError, match="initial_box"):
+        MarkovPredictionConfig(initial_box="wide")
+    with pytest.raises(ValueError, match="hybrid_input"):
+        MarkovPredictionConfig(hybrid_input="rules")
     with pytest.raises(ValueError, match="numpy backend runs on cpu only"):
         MarkovPredictionConfig.from_params({"device": "cuda"})
+
+
+# --------------------------------------------------------------------------- intentions and hybrid inputs
+
+
+def _belief(track_id: int, probs: dict[int, float], *, stamp: int = STAMP, s=None, v=None) -> bs.IntentionBelief:
+    s = s or {}
+    v = v or {}
+    corridors = tuple(
+        bs.CorridorBelief(
+            corridor_id=c, probability=p, manoeuvre=bs.Manoeuvre.FOLLOW_LANE, particle_count=100,
+            s_mean_m=s.get(c, (5.0, 0.1))[0], s_std_m=s.get(c, (5.0, 0.1))[1],
+            v_mean_mps=v.get(c, (10.0, 0.1))[0], v_std_mps=v.get(c, (10.0, 0.1))[1],
+            a_mean_mps2=0.0, a_std_mps2=0.3, p_stop=0.1, stop_distance_m=math.nan,
+        )
+        for c, p in probs.items()
+    )
+    vehicle = bs.VehicleBelief(
+        track_id=track_id, corridors=corridors, p_stop=0.1, p_expected_stop=0.1, p_violation=0.0, p_lane_change=0.0,
+        expected_manoeuvre=bs.Manoeuvre.FOLLOW_LANE, intersection_distance_m=math.nan, effective_sample_size=90.0,
+        particle_count=100,
+    )
+    return bs.IntentionBelief(header=_header(stamp), scene_id="test", vehicles=(vehicle,))
+
+
+def _profiles(track_id: int, cid: int, accel: float, *, sigma: float = 0.3, edges=None, stamp: int = STAMP) -> bs.AccelerationProfiles:
+    from scipy.stats import norm
+
+    edges = np.linspace(-3.0, 2.0, 11) if edges is None else edges
+    cdf = norm.cdf((edges - accel) / sigma)
+    cdf[0], cdf[-1] = 0.0, 1.0
+    row = np.diff(cdf).astype(np.float32)
+    profile = bs.AccelerationProfile(
+        track_id=track_id, corridor_id=cid, history_steps=40, accel_mps2=np.full(40, accel, np.float32),
+        chunk_mean_mps2=np.full(10, accel, np.float32), chunk_sigma_mps2=np.full(10, sigma, np.float32),
+        input_probs=np.repeat(row[None] / row.sum(), 10, axis=0),
+    )
+    return bs.AccelerationProfiles(header=_header(stamp), scene_id="test", model="test", step_s=0.1, chunk_s=0.4,
+                                   input_edges_mps2=np.asarray(edges, np.float64), profiles=(profile,))
+
+
+def test_intention_weights_replace_the_uniform_ones_and_missing_beliefs_fall_back(stencils):
+    predictor = MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv", corridor_weights="intentions"), stencils=stencils)
+    cs = _corridor_set(_vehicle(1, 10.0, [_corridor(7), _corridor(8, radius=20.0)]))
+    prediction, issues = predictor.process(cs, intention_belief=_belief(1, {7: 0.2, 8: 0.6}))
+    assert [round(p.probability, 6) for p in prediction.pairs] == [0.25, 0.75]
+    prediction, issues = predictor.process(cs, intention_belief=None)
+    assert [p.probability for p in prediction.pairs] == [0.5, 0.5] and any(i.kind == "no_intentions" for i in issues)
+    prediction, issues = predictor.process(cs, intention_belief=_belief(1, {7: 1.0}))
+    assert [p.probability for p in prediction.pairs] == [0.5, 0.5] and any(i.kind == "no_belief" for i in issues)
+    prediction, issues = predictor.process(cs, intention_belief=_belief(1, {7: 0.2, 8: 0.6}, stamp=STAMP + 1))
+    assert [p.probability for p in prediction.pairs] == [0.5, 0.5] and any(i.kind == "stamp_mismatch" for i in issues)
+
+
+def test_particle_box_widens_the_initial_spread(stencils):
+    cs = _corridor_set(_vehicle(1, 10.0, [_corridor(7)]))
+    spreads = {}
+    for box in ("measurement", "particles"):
+        predictor = MarkovPredictor(MarkovPredictionConfig(mode="baseline", corridor_weights="intentions", initial_box=box), stencils=stencils)
+        prediction, _ = predictor.process(cs, _relation_set(_relation(1, 7)), intention_belief=_belief(1, {7: 1.0}, s={7: (6.0, 2.0)}, v={7: (10.0, 1.0)}))
+        probs = prediction.position_probs[0, 0]
+        centres = prediction.pairs[0].s_first_m + (np.arange(probs.size) + 0.5) * prediction.ds_m
+        mean = float(probs @ centres / probs.sum())
+        spreads[box] = math.sqrt(float(probs @ (centres - mean) ** 2 / probs.sum()))
+    assert spreads["particles"] > spreads["measurement"] + 0.5
+
+
+def test_hybrid_follows_the_ar_distributions(stencils):
+    predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid"), stencils=stencils)
+    cs = _corridor_set(_vehicle(1, 10.0, [_corridor(7)]))
+    ends = {}
+    for accel in (-2.0, 0.0, 1.5):
+        prediction, issues = predictor.process(cs, acceleration_profiles=_profiles(1, 7, accel))
+        assert not issues
+        ends[accel] = float(prediction.mean_s_m[0, -1]) - 5.0
+        np.testing.assert_allclose(prediction.position_probs[0].sum(axis=1) + prediction.outside_mass[0], 1.0, atol=1e-5)
+    # s(4 s) = 10·4 + ½·a·16 for a held acceleration; the chain's Ψ keeps part of the previous input, so only roughly
+    assert ends[-2.0] < ends[0.0] < ends[1.5]
+    assert abs(ends[0.0] - 40.0) < 1.5 and abs(ends[-2.0] - 24.0) < 4.0 and abs(ends[1.5] - 52.0) < 4.0
+    direct = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", hybrid_input="direct"), stencils=stencils)
+    prediction, _ = direct.process(cs, acceleration_profiles=_profiles(1, 7, -2.0))
+    assert abs(float(prediction.mean_s_m[0, -1]) - 5.0 - 24.0) < 4.0
+
+
+def test_hybrid_without_a_usable_profile_falls_back_and_says_so(stencils):
+    predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid"), stencils=stencils)
+    cs = _corridor_set(_vehicle(1, 10.0, [_corridor(7)]))
+    for profiles, kind in (
+        (None, "no_acceleration_profiles"),
+        (_profiles(1, 99, 0.0), "no_acceleration_profile"),
+        (_profiles(1, 7, 0.0, edges=np.linspace(-6.0, 2.0, 11)), "bad_profile"),
+        (_profiles(1, 7, 0.0, stamp=STAMP + 5), "stamp_mismatch"),
+    ):
+        prediction, issues = predictor.process(cs, acceleration_profiles=profiles)
+        assert any(i.kind == kind for i in issues), (kind, issues)
+        assert abs(float(prediction.mean_s_m[0, -1]) - 45.0) < 2.0  # measured acceleration 0 held: ~10 m/s for 4 s
+

@@ -1,0 +1,31 @@
+"""ar_inference stage: the AR-Net acceleration profiles of every vehicle-corridor pair (METHOD.md §3).
+
+Consumes ``corridor_set`` (``CorridorSet``) and ``relation_set``
+(``RelationSet``) of the same stamp, optionally ``track_frame``; produces
+``acceleration_profiles`` (``AccelerationProfiles``). Run it alone with
+``python -m stages.ar_inference``.
+
+Per frame it adds the frame to every vehicle's 4 s feature history
+(``stages.ar.FeatureTracker``: the same code that built the training data),
+runs the model (``model``, default the shipped ``stages/ar/weights/ar_taf_bw.pt``)
+once over all (vehicle, corridor) pairs of the frame, and turns each
+40-step profile into 10 normal distributions over the chain's input cells
+(METHOD.md §3.2, ``chunk_distributions``): μ_k the mean of chunk k's four
+0.1 s values, σ_k² = var(chunk) + (``sigma_scale``·σ_res,k)² with σ_res,k
+the validation RMSE of chunk means stored with the weights, floored at
+``sigma_floor_mps2`` 0.25 m/s² (half a cell); tails beyond [-3, 2] m/s² are
+folded into the end cells. A vehicle seen for less than 4 s is predicted
+from what there is (padding and mask; ``history_steps`` says how much).
+
+Issues: ``stamp_mismatch`` (relations of another stamp: ignored),
+``nan_prediction`` (pair left out), and the feature tracker's (``nan_state``
+…). A weights file that is missing or unreadable stops the stage at start
+(exit 2) with a message naming the file.
+"""
+
+from __future__ import annotations
+
+from .config import ARInferenceConfig
+from .core import ARInference, chunk_distributions
+
+__all__ = ["ARInference", "ARInferenceConfig", "chunk_distributions"]

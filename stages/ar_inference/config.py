@@ -1,0 +1,40 @@
+"""``ARInferenceConfig``: every parameter of the ar_inference stage, with units and defaults."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from stages._core import ConfigMixin, check_ranges
+
+
+@dataclass(frozen=True, kw_only=True)
+class ARInferenceConfig(ConfigMixin):
+    """Parameters of the ar_inference stage (package docstring; METHOD.md §3.2)."""
+
+    #: weights file; empty: the shipped ``stages/ar/weights/ar_taf_bw.pt``
+    model: str = ""
+    #: torch device of the model ("cpu", "cuda", "cuda:0")
+    device: str = "cpu"
+    #: Markov step τ: one distribution per chunk of ``chunk_s`` / the profile's 0.1 s steps
+    chunk_s: float = 0.4
+    #: input cells of the chain (MarkovGridConfig's defaults: 10 cells of 0.5 m/s² on [-3, 2])
+    input_min_mps2: float = -3.0
+    input_max_mps2: float = 2.0
+    n_inputs: int = 10
+    #: σ_k = max(floor, √(var(chunk) + (scale·σ_res,k)²)): ``sigma_scale`` multiplies the validation RMSE of the weights file
+    sigma_scale: float = 1.0
+    sigma_floor_mps2: float = 0.25
+
+    def __post_init__(self) -> None:
+        check_ranges(self, positive=("chunk_s", "sigma_floor_mps2"), non_negative=("sigma_scale",))
+        if not self.input_max_mps2 > self.input_min_mps2:
+            raise ValueError(f"input_min_mps2 = {self.input_min_mps2}, input_max_mps2 = {self.input_max_mps2}: need min < max")
+        if self.n_inputs < 2:
+            raise ValueError(f"n_inputs = {self.n_inputs}: must be >= 2")
+        if not (self.device == "cpu" or self.device.startswith("cuda")):
+            raise ValueError(f"device = {self.device!r}: expected 'cpu' or 'cuda[:N]'")
+
+    def input_edges(self):
+        import numpy as np
+
+        return np.linspace(self.input_min_mps2, self.input_max_mps2, self.n_inputs + 1)

@@ -1,0 +1,158 @@
+"""``ARInference``: CorridorSet + RelationSet (+ TrackFrame) -> AccelerationProfiles (package docstring)."""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from bus_schemas import AccelerationProfile, AccelerationProfiles, CorridorSet, Header, RelationSet, SceneInfo, TrackFrame
+from stages._core import ConfigError, Issue, StageResult
+
+from .config import ARInferenceConfig
+
+
+def chunk_distributions(
+    accel_mps2: np.ndarray, chunk_steps: int, sigma_res: np.ndarray, edges: np.ndarray, *, sigma_scale: float = 1.0, sigma_floor: float = 0.25
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """METHOD.md §3.2: per chunk k, μ_k = mean of its steps, σ_k² = var(chunk) + (scale·σ_res,k)², σ_k ≥ floor,
+    and λ_α(k) = Φ((e_{α+1} − μ_k)/σ_k) − Φ((e_α − μ_k)/σ_k), the tails beyond the outer edges folded into the end cells.
+
+    ``accel_mps2`` is (B, H) with H a multiple of ``chunk_steps``; ``sigma_res`` is (H / chunk_steps,);
+    returns μ (B, K), σ (B, K) and λ (B, K, M), float64, every λ row summing to 1.
+    """
+    accel = np.asarray(accel_mps2, dtype=np.float64)
+    n_b, n_h = accel.shape
+    if n_h % chunk_steps:
+        raise ValueError(f"chunk_distributions: {n_h} steps do not split into chunks of {chunk_steps}")
+    n_k = n_h // chunk_steps
+    res = np.asarray(sigma_res, dtype=np.float64)
+    if res.shape != (n_k,):
+        raise ValueError(f"chunk_distributions: sigma_res must be ({n_k},), got {res.shape}")
+    chunks = accel.reshape(n_b, n_k, chunk_steps)
+    mu = chunks.mean(axis=2)
+    sigma = np.maximum(np.sqrt(chunks.var(axis=2) + (sigma_scale * res[None, :]) ** 2), sigma_floor)
+    z = (np.asarray(edges, dtype=np.float64)[None, None, :] - mu[..., None]) / sigma[..., None]
+    cdf = 0.5 * (1.0 + _erf(z / math.sqrt(2.0)))
+    cdf[..., 0], cdf[..., -1] = 0.0, 1.0
+    probs = np.diff(cdf, axis=-1)
+    probs = np.clip(probs, 0.0, None)
+    return mu, sigma, probs / probs.sum(axis=-1, keepdims=True)
+
+
+def _erf(x: np.ndarray) -> np.ndarray:
+    from scipy.special import erf
+
+    return erf(x)
+
+
+class ARInference:
+    """The ar_inference core: keeps every vehicle's feature history, predicts every pair of a frame in one batch.
+
+    ``model`` may be passed (an already loaded ``stages.ar.ARModel``) to share it between cores (evaluation).
+    """
+
+    def __init__(self, config: ARInferenceConfig, *, producer: str = "ar_inference", model: Any = None) -> None:
+        from stages.ar import DEFAULT_MODEL_PATH, FeatureTracker, load_model
+
+        self.config = config
+        self.producer = producer
+        path = Path(config.model) if config.model else Path(DEFAULT_MODEL_PATH)
+        if model is None:
+            if not path.is_file():
+                raise ConfigError(f"model = {str(path)!r}: no such weights file (train one with `iamp train --out FILE`)")
+            try:
+                model = load_model(path)
+            except ValueError as exc:
+                raise ConfigError(f"model = {str(path)!r}: {exc}") from exc
+            digest = hashlib.sha256(path.read_bytes()).hexdigest()[:12]
+            self.model_name = f"{path.name}@{digest}"
+        else:
+            self.model_name = getattr(model, "name", None) or f"{path.name}"
+        if config.device != "cpu":
+            import torch
+
+            if not torch.cuda.is_available():
+                raise ConfigError(f"device = {config.device!r}: no CUDA device here; use device = 'cpu'")
+        self.model = model
+        self.tracker = FeatureTracker()
+        meta = getattr(model, "metadata", {}) or {}
+        self.step_s = float(meta.get("step_s", 0.1))
+        self.history_steps = int(meta.get("history_steps", 40))
+        self.feature_names = tuple(meta.get("feature_names", ()))
+        steps = config.chunk_s / self.step_s
+        if abs(steps - round(steps)) > 1e-6 or round(steps) < 1:
+            raise ConfigError(f"chunk_s = {config.chunk_s}: must be a multiple of the model's step {self.step_s} s")
+        self.chunk_steps = int(round(steps))
+        self.edges = config.input_edges()
+        self.sigma_res = np.asarray(model.sigma_res_chunks, dtype=np.float64)
+
+    # ----- entry points ---------------------------------------------------------
+
+    def update(self, inputs: Mapping[str, object]) -> StageResult:
+        corridor_set = inputs.get("corridor_set")
+        relation_set = inputs.get("relation_set")
+        frame = inputs.get("track_frame")
+        if not isinstance(corridor_set, CorridorSet):
+            return StageResult(issues=[Issue("no_input", -1, "update without a corridor_set")])
+        profiles, issues = self.process(
+            corridor_set,
+            relation_set if isinstance(relation_set, RelationSet) else None,
+            frame if isinstance(frame, TrackFrame) else None,
+        )
+        return StageResult(outputs={"acceleration_profiles": profiles}, issues=issues)
+
+    def observe(self, corridor_set: CorridorSet, relation_set: RelationSet | None, frame: TrackFrame | None = None) -> list[Issue]:
+        """Add a frame to the histories without predicting (the evaluation between its instants)."""
+        issues: list[Issue] = []
+        if relation_set is not None and int(relation_set.header.stamp_ns) != int(corridor_set.header.stamp_ns):
+            issues.append(Issue("stamp_mismatch", -1, f"relation_set stamp {relation_set.header.stamp_ns} != corridor_set stamp {corridor_set.header.stamp_ns}: relations ignored"))
+            relation_set = None
+        if frame is not None and int(frame.header.stamp_ns) != int(corridor_set.header.stamp_ns):
+            frame = None
+        issues.extend(self.tracker.update(corridor_set, relation_set, frame) or [])
+        return issues
+
+    def process(
+        self, corridor_set: CorridorSet, relation_set: RelationSet | None, frame: TrackFrame | None = None, scene: SceneInfo | None = None
+    ) -> tuple[AccelerationProfiles, list[Issue]]:
+        """The pure function behind ``update``: observe the frame, then predict every (vehicle, corridor) pair of it."""
+        issues = self.observe(corridor_set, relation_set, frame)
+        keys, x, mask = self.tracker.batch(corridor_set)
+        profiles: list[AccelerationProfile] = []
+        if keys:
+            accel = np.asarray(self.model.predict(x, mask, device=self.config.device), dtype=np.float64)
+            bad = ~np.all(np.isfinite(accel), axis=1)
+            for b in np.flatnonzero(bad):
+                issues.append(Issue("nan_prediction", int(keys[b][0]), f"corridor {keys[b][1]}: the model gave non-finite accelerations: pair left out"))
+            mu, sigma, probs = chunk_distributions(
+                np.where(np.isfinite(accel), accel, 0.0), self.chunk_steps, self.sigma_res, self.edges,
+                sigma_scale=self.config.sigma_scale, sigma_floor=self.config.sigma_floor_mps2,
+            )
+            real = mask.sum(axis=1)
+            for b, (track_id, corridor_id) in enumerate(keys):
+                if bad[b]:
+                    continue
+                profiles.append(
+                    AccelerationProfile(
+                        track_id=int(track_id), corridor_id=int(corridor_id), history_steps=int(real[b]),
+                        accel_mps2=accel[b].astype(np.float32), chunk_mean_mps2=mu[b].astype(np.float32),
+                        chunk_sigma_mps2=sigma[b].astype(np.float32), input_probs=probs[b].astype(np.float32),
+                    )
+                )
+        h = corridor_set.header
+        header = Header(run_id=h.run_id, frame_index=h.frame_index, stamp_ns=h.stamp_ns, producer=self.producer)
+        message = AccelerationProfiles(
+            header=header, scene_id=scene.scene_id if scene is not None else corridor_set.scene_id, model=self.model_name,
+            step_s=self.step_s, chunk_s=self.config.chunk_s, input_edges_mps2=self.edges, profiles=tuple(profiles),
+        )
+        return message, issues
+
+    def reset(self) -> None:
+        """Forget every vehicle's history."""
+        from stages.ar import FeatureTracker
+
+        self.tracker = FeatureTracker()
