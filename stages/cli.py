@@ -1,4 +1,4 @@
-"""The ``iamp`` command: record, replay and inspect MCAP recordings; evaluate predictions (train follows).
+"""The ``iamp`` command: record, replay and inspect MCAP recordings; evaluate predictions; train the AR model.
 
 ::
 
@@ -7,6 +7,8 @@
     iamp inspect FILE.mcap [--json]                        channels, counts, time range, frames
     iamp eval [--data PATH] [--recording NAME]... [--mode M...] [--stride S] [--json FILE] [--figures DIR]
                                                            offline metrics of the prediction modes
+    iamp train [--data PATH] [--recording NAME...] [--split S] [--hidden N] [--out FILE] [--json FILE]
+                                                           train the AR acceleration model
 
 Exit codes: 0 success, 1 crash, 2 bad command line, configuration or file.
 Only ``record`` and ``replay`` open a Zenoh session.
@@ -97,6 +99,20 @@ def _run_eval(args: argparse.Namespace) -> int:
     return run_cli(args)
 
 
+def _add_train(sub: "argparse._SubParsersAction") -> None:
+    from .ar.cli import add_arguments
+
+    p = sub.add_parser("train", help="train the AR acceleration model on recordings (validation vs zero / last-value baselines)")
+    add_arguments(p)
+    p.set_defaults(run=_run_train)
+
+
+def _run_train(args: argparse.Namespace) -> int:
+    from .ar.cli import run_cli
+
+    return run_cli(args)
+
+
 # Subcommands, in the order `iamp --help` lists them. Later issues add theirs here:
 #   eval  -> _add_eval  (offline comparison: hybrid vs baseline vs constant velocity; mADE/mFDE table)
 #   train -> _add_train (retrain the AR acceleration model)
@@ -107,7 +123,7 @@ SUBCOMMANDS: list[Callable[["argparse._SubParsersAction"], None]] = [
     _add_replay,
     _add_inspect,
     _add_eval,
-    # _add_train,  # TODO(train issue)
+    _add_train,
 ]
 
 

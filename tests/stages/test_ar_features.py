@@ -1,0 +1,367 @@
+"""Tests of the AR features (stages.ar.features) on synthetic corridors and on real K729 frames.
+
+Real frames: the first frames of the embedded sequence 013 through the
+in-process chain (TrackPlayer → CorridorBuilder → RelationExtractor), fed to
+one FeatureTracker as the online stage and the data set builder do. Every
+expected value is computed here independently from the relations or the
+corridor arrays.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from bus_schemas import AgentType, Corridor, CorridorSet, Header, MatchStatus, RelationSet, TrackFrame, VehicleCorridors
+from stages.ar.features import (
+    ACCEL,
+    FEATURE_NAMES,
+    HISTORY_STEPS,
+    SPEED,
+    FeatureConfig,
+    FeatureTracker,
+    causal_acceleration,
+    curvature_integrals,
+)
+from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
+from stages.datasets import DEFAULT_DATA_DIR
+from stages.relations import RelationExtractor, RelationsConfig, most_influencing
+from stages.tracks_source import TrackPlayer, TracksSourceConfig
+
+F = {name: i for i, name in enumerate(FEATURE_NAMES)}
+STEP_NS = 100_000_000
+N_REAL_FRAMES = 400
+
+
+# --------------------------------------------------------------------------- synthetic corridors
+
+
+def corridor(corridor_id: int = 7, *, kappa=None, length_m: float = 80.0, vehicle_s_m: float = 5.0, step_m: float = 0.5) -> Corridor:
+    """A corridor sampled every `step_m` whose curvature is kappa(s) (s from the corridor start), geometry integrated."""
+    s = np.arange(0.0, length_m + 1e-9, step_m)
+    k = np.zeros_like(s) if kappa is None else np.asarray(kappa(s), dtype=np.float64)
+    heading = np.concatenate([[0.0], np.cumsum(0.5 * (k[1:] + k[:-1]) * np.diff(s))])
+    x = np.concatenate([[0.0], np.cumsum(np.cos(heading[:-1]) * np.diff(s))])
+    y = np.concatenate([[0.0], np.cumsum(np.sin(heading[:-1]) * np.diff(s))])
+    return Corridor(
+        corridor_id=corridor_id, lanelet_ids=np.array([1], np.int64), lanelet_start_s_m=np.array([0.0]),
+        x_m=x, y_m=y, s_m=s, heading_rad=heading, curvature_1pm=k, width_m=np.full_like(s, 3.5),
+        extension_start_s_m=float(s[-1]), vehicle_s_m=vehicle_s_m, vehicle_d_m=0.0, speed_limit_mps=13.9,
+    )
+
+
+def corridor_set(stamp_ns: int, vehicles) -> CorridorSet:
+    return CorridorSet(header=Header(run_id="t", frame_index=0, stamp_ns=stamp_ns, producer="test"), scene_id="s", vehicles=tuple(vehicles))
+
+
+def vehicle(track_id: int, speed: float, corridors=None, status=MatchStatus.MATCHED) -> VehicleCorridors:
+    corridors = (corridor(),) if corridors is None else tuple(corridors)
+    return VehicleCorridors(track_id=track_id, agent_type=AgentType.CAR, status=status, lanelet_id=1, match_distance_m=0.0,
+                            speed_mps=speed, corridors=corridors)
+
+
+def test_feature_names():
+    assert len(FEATURE_NAMES) == 23 and len(set(FEATURE_NAMES)) == 23
+    assert FEATURE_NAMES[0] == "accel_mps2" and FEATURE_NAMES[-1] == "speed_mps"
+    assert sum(n.startswith("curv_") for n in FEATURE_NAMES) == 12
+
+
+def test_curvature_integrals_of_circular_arcs():
+    # vehicle at s = 5; a left arc of radius 20 m from 20 m to 40 m ahead, a right arc of radius 10 m from 45 to 50 m ahead
+    left, right = 1 / 20.0, -1 / 10.0
+    c = corridor(kappa=lambda s: np.where((s >= 25) & (s <= 45), left, 0.0) + np.where((s >= 50) & (s <= 55), right, 0.0), length_m=90.0)
+    curv = curvature_integrals(c)
+    half_sample = 0.5 * 0.5 * max(left, -right)  # the trapezoid ramps over one 0.5 m sample at each end of an arc
+    expected_pos = [0.0, 0.0, 10 * left, 10 * left, 0.0, 0.0]
+    expected_neg = [0.0, 0.0, 0.0, 0.0, 5 * right, 0.0]
+    np.testing.assert_allclose(curv[:, 0], expected_pos, atol=half_sample + 1e-9)
+    np.testing.assert_allclose(curv[:, 1], expected_neg, atol=half_sample + 1e-9)
+    assert math.isclose(curv[:, 0].sum(), 20 * left, abs_tol=2 * half_sample)  # the whole arc: length / radius
+    assert math.isclose(curv[:, 1].sum(), 5 * right, abs_tol=2 * half_sample)
+    assert np.all(curv[:, 0] >= 0) and np.all(curv[:, 1] <= 0)
+
+
+def test_curvature_beyond_the_corridor_end_is_zero():
+    c = corridor(kappa=lambda s: np.full_like(s, 0.1), length_m=30.0, vehicle_s_m=5.0)  # 25 m ahead of the vehicle
+    curv = curvature_integrals(c)
+    np.testing.assert_allclose(curv[:, 0], [1.0, 1.0, 0.5, 0.0, 0.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(curv[:, 1], 0.0)
+
+
+def test_curvature_features_in_batch_columns():
+    c = corridor(kappa=lambda s: np.where(s >= 15, -0.05, 0.0), length_m=90.0, vehicle_s_m=5.0)
+    tracker = FeatureTracker()
+    tracker.update(corridor_set(0, [vehicle(1, 5.0, [c])]), None)
+    _keys, x, _mask = tracker.batch(corridor_set(0, [vehicle(1, 5.0, [c])]))
+    curv = curvature_integrals(c)
+    for seg in range(6):
+        name = f"{seg * 10:02d}_{(seg + 1) * 10:02d}m"
+        assert x[0, -1, F[f"curv_pos_{name}"]] == pytest.approx(curv[seg, 0], abs=1e-6)
+        assert x[0, -1, F[f"curv_neg_{name}"]] == pytest.approx(curv[seg, 1], abs=1e-6)
+    assert x[0, -1, F["curv_neg_10_20m"]] == pytest.approx(-0.5, abs=0.02)
+
+
+# --------------------------------------------------------------------------- history, mask, issues
+
+
+def test_short_history_is_padded_and_masked():
+    tracker = FeatureTracker()
+    for k in range(5):
+        cs = corridor_set(k * STEP_NS, [vehicle(3, 2.0 + 0.1 * k)])
+        assert [i.kind for i in tracker.update(cs, None)] == ["no_relations"]
+    keys, x, mask = tracker.batch(cs)
+    assert keys == [(3, 7)]
+    assert x.shape == (1, HISTORY_STEPS, len(FEATURE_NAMES)) and x.dtype == np.float32 and mask.dtype == bool
+    assert mask[0].tolist() == [False] * 35 + [True] * 5
+    np.testing.assert_allclose(x[0, :36, SPEED], 2.0)  # padding repeats the oldest real row
+    np.testing.assert_allclose(x[0, 35:, SPEED], [2.0, 2.1, 2.2, 2.3, 2.4], rtol=1e-6)
+
+
+def test_first_frame_gives_one_real_step_and_zero_acceleration():
+    tracker = FeatureTracker()
+    cs = corridor_set(7 * STEP_NS, [vehicle(3, 4.0)])
+    tracker.update(cs, None)
+    _keys, x, mask = tracker.batch(cs)
+    assert mask[0].sum() == 1 and mask[0, -1]
+    assert np.all(x[0, :, ACCEL] == 0.0) and np.all(x[0, :, SPEED] == 4.0)
+
+
+def test_nan_speed_gives_an_issue_not_an_exception():
+    tracker = FeatureTracker()
+    issues = tracker.update(corridor_set(0, [vehicle(1, math.nan), vehicle(2, 3.0)]), None)
+    assert [i.kind for i in issues if i.agent_id == 1] == ["nan_state"]
+    assert tracker.issue_counts["nan_state"] == 1
+    keys, x, _mask = tracker.batch(corridor_set(0, [vehicle(1, math.nan), vehicle(2, 3.0)]))
+    assert keys == [(2, 7)] and np.all(np.isfinite(x))  # no row at all: left out
+    # with history, a NaN frame is a masked step filled from the previous row
+    tracker.update(corridor_set(STEP_NS, [vehicle(2, 3.0)]), None)
+    issues = tracker.update(corridor_set(2 * STEP_NS, [vehicle(2, math.inf)]), None)
+    assert [i.kind for i in issues if i.agent_id == 2] == ["nan_state"]
+    keys, x, mask = tracker.batch(corridor_set(2 * STEP_NS, [vehicle(2, math.inf)]))
+    assert keys == [(2, 7)] and mask[0, -3:].tolist() == [True, True, False]
+    assert x[0, -1, SPEED] == 3.0 and np.all(np.isfinite(x))
+
+
+def test_nan_corridor_values_give_an_issue():
+    bad = corridor(kappa=lambda s: np.where(s > 20, np.nan, 0.0))
+    tracker = FeatureTracker()
+    tracker.update(corridor_set(0, [vehicle(1, 3.0, [bad])]), None)
+    _keys, x, _mask = tracker.batch(corridor_set(0, [vehicle(1, 3.0, [bad])]))
+    assert np.all(np.isfinite(x))  # NaN curvature counts as straight
+
+
+def test_skipped_stamps_leave_masked_steps_and_acceleration_uses_stamps():
+    tracker = FeatureTracker(FeatureConfig(accel_window_s=1.0))
+    stamps = [0, 1, 2, 4, 5, 6, 7, 9, 10]  # steps 3 and 8 missing
+    for k in stamps:
+        cs = corridor_set(k * STEP_NS, [vehicle(1, 5.0 + 2.0 * 0.1 * k)])  # 2 m/s² in time, whatever the frame count
+        tracker.update(cs, None)
+    _keys, x, mask = tracker.batch(cs)
+    real = mask[0, -11:]
+    assert real.tolist() == [k in stamps for k in range(11)]
+    assert x[0, -1, ACCEL] == pytest.approx(2.0, abs=1e-6)
+    assert x[0, -3, SPEED] == pytest.approx(x[0, -4, SPEED])  # step 8 repeats step 7
+
+
+def test_causal_acceleration():
+    t = np.arange(0, 11) * STEP_NS
+    assert causal_acceleration(t, 3.0 - 1.5 * t * 1e-9, 1.0) == pytest.approx(-1.5)
+    assert causal_acceleration(t[:2], np.array([1.0, 2.0]), 1.0) == 0.0  # too few samples
+    assert causal_acceleration(t[:4], np.array([1.0, 2.0, 3.0, 4.0]), 1.0) == 0.0  # 0.3 s < half the window
+    noisy = 3.0 + 0.3 * t * 1e-9 + np.random.default_rng(0).normal(0.0, 1.0, t.size)
+    assert abs(causal_acceleration(t, noisy, 1.0, shrink=True)) < abs(causal_acceleration(t, noisy, 1.0))
+
+
+def test_features_are_causal():
+    speeds = [4.0 + math.sin(0.3 * k) for k in range(60)]
+    a, b = FeatureTracker(), FeatureTracker()
+    for k in range(45):
+        a.update(corridor_set(k * STEP_NS, [vehicle(1, speeds[k])]), None)
+    for k in range(60):
+        b.update(corridor_set(k * STEP_NS, [vehicle(1, speeds[k] if k < 45 else 0.0)]), None)
+        if k == 44:
+            np.testing.assert_array_equal(a.batch(corridor_set(k * STEP_NS, [vehicle(1, speeds[k])]))[1],
+                                          b.batch(corridor_set(k * STEP_NS, [vehicle(1, speeds[k])]))[1])
+
+
+def test_tracks_unseen_for_more_than_a_second_are_forgotten():
+    tracker = FeatureTracker()
+    tracker.update(corridor_set(0, [vehicle(1, 3.0), vehicle(2, 3.0)]), None)
+    tracker.update(corridor_set(10 * STEP_NS, [vehicle(2, 3.0)]), None)
+    assert tracker.tracked_ids == {1, 2}
+    tracker.update(corridor_set(11 * STEP_NS, [vehicle(2, 3.0)]), None)
+    assert tracker.tracked_ids == {2}
+    issues = tracker.update(corridor_set(5 * STEP_NS, [vehicle(2, 3.0)]), None)
+    assert "stamp_backwards" in [i.kind for i in issues]
+
+
+def test_a_new_corridor_takes_its_first_value_for_the_past():
+    straight = corridor(7)
+    turn = corridor(8, kappa=lambda s: np.full_like(s, 0.02))
+    tracker = FeatureTracker()
+    for k in range(3):
+        tracker.update(corridor_set(k * STEP_NS, [vehicle(1, 3.0, [straight])]), None)
+    for k in range(3, 5):
+        tracker.update(corridor_set(k * STEP_NS, [vehicle(1, 3.0, [straight, turn])]), None)
+    keys, x, mask = tracker.batch(corridor_set(4 * STEP_NS, [vehicle(1, 3.0, [straight, turn])]))
+    assert keys == [(1, 7), (1, 8)]
+    assert mask[1, -5:].all()
+    col = F["curv_pos_00_10m"]
+    np.testing.assert_allclose(x[1, -5:, col], 0.2, atol=1e-6)  # back-filled from the turn's first row
+    np.testing.assert_allclose(x[0, -5:, col], 0.0)
+
+
+def test_pairs_restricts_the_batch():
+    tracker = FeatureTracker()
+    cs = corridor_set(0, [vehicle(1, 3.0, [corridor(7), corridor(8)]), vehicle(2, 3.0)])
+    tracker.update(cs, None)
+    assert tracker.batch(cs)[0] == [(1, 7), (1, 8), (2, 7)]
+    assert tracker.batch(cs, pairs={(1, 8)})[0] == [(1, 8)]
+
+
+# --------------------------------------------------------------------------- real frames
+
+
+@pytest.fixture(scope="module")
+def real_scene():
+    """(scene, scene_maps, road_map) of sequence 013."""
+    if not (DEFAULT_DATA_DIR / "maps").is_dir():
+        pytest.skip("embedded TAF-BW data not found")
+    scene_maps = SceneMaps()
+    player = TrackPlayer.open(TracksSourceConfig(), run_id="test", producer="tracks")
+    scene = next(iter(player))[1].outputs["scene"]
+    return scene, scene_maps, scene_maps.get(scene).road_map
+
+
+@pytest.fixture(scope="module")
+def real():
+    """(corridor_set, relation_set, batch) per frame of the first frames of sequence 013, one FeatureTracker throughout."""
+    if not (DEFAULT_DATA_DIR / "maps").is_dir():
+        pytest.skip("embedded TAF-BW data not found")
+    scene_maps = SceneMaps()
+    player = TrackPlayer.open(TracksSourceConfig(), run_id="test", producer="tracks")
+    builder = CorridorBuilder(CorridorsConfig(), scene_maps=scene_maps)
+    extractor = RelationExtractor(RelationsConfig(), scene_maps=scene_maps)
+    tracker = FeatureTracker()
+    scene, out = None, []
+    for n, (_stamp, result) in enumerate(player):
+        if n >= N_REAL_FRAMES:
+            break
+        scene = result.outputs.get("scene", scene)
+        frame = result.outputs["track_frame"]
+        cs, _ = builder.process(frame, scene)
+        rs, _ = extractor.process(frame, cs, scene)
+        assert tracker.update(cs, rs, frame) == []
+        out.append((cs, rs, tracker.batch(cs)))
+    return out
+
+
+def _relation_pairs(real):
+    for cs, rs, (keys, x, mask) in real:
+        rel = {(r.track_id, r.corridor_id): r for r in rs.relations}
+        speeds = {v.track_id: v.speed_mps for v in cs.vehicles}
+        for b, key in enumerate(keys):
+            yield rel[key], speeds[key[0]], x[b], mask[b]
+
+
+def test_real_batches_are_finite_and_cover_every_matched_pair(real):
+    for cs, _rs, (keys, x, mask) in real:
+        expected = [(v.track_id, c.corridor_id) for v in cs.vehicles if v.status == MatchStatus.MATCHED for c in v.corridors]
+        assert keys == expected
+        assert np.all(np.isfinite(x)) and x.shape == (len(keys), HISTORY_STEPS, len(FEATURE_NAMES))
+        assert np.all(mask[:, -1])
+
+
+def test_leader_features_equal_the_relations(real):
+    with_leader = without = 0
+    for r, speed, x, _mask in _relation_pairs(real):
+        if r.leader_track_id >= 0:
+            with_leader += 1
+            assert x[-1, F["leader_gap_m"]] == pytest.approx(min(max(r.leader_gap_m, 0.0), 100.0), abs=1e-4)
+            assert x[-1, F["leader_speed_mps"]] == pytest.approx(r.leader_speed_mps, abs=1e-4)
+        else:
+            without += 1
+            assert x[-1, F["leader_gap_m"]] == 100.0
+            assert x[-1, F["leader_speed_mps"]] == pytest.approx(speed, abs=1e-4)
+    assert with_leader > 0 and without > 0
+
+
+def test_intersection_distance_equals_the_relations(real):
+    seen = 0
+    for r, _speed, x, _mask in _relation_pairs(real):
+        if len(r.intersection_distance_m):
+            seen += 1
+            q = int(np.argmin(r.intersection_entry_s_m))
+            assert x[-1, F["intersection_distance_m"]] == pytest.approx(np.clip(r.intersection_distance_m[q], -10, 100), abs=1e-4)
+        else:
+            assert x[-1, F["intersection_distance_m"]] == 100.0
+    assert seen > 0
+
+
+def test_influencer_features_are_absent_without_conflicts(real):
+    # sequence 013 has no crossing conflicts within the horizon: every influencer is absent
+    for r, _speed, x, _mask in _relation_pairs(real):
+        if len(most_influencing(r, 2)) == 0:
+            for k in (1, 2):
+                assert (x[-1, F[f"infl{k}_distance_m"]], x[-1, F[f"infl{k}_speed_mps"]], x[-1, F[f"infl{k}_priority"]]) == (100.0, 0.0, 0.0)
+
+
+NORTH_LEFT_TURN = -335558  # K729: from the north, turns left; yields to the oncoming straight lanes
+ONCOMING_STRAIGHT_RIGHT_LANE = -335552
+ONCOMING_STRAIGHT_LEFT_LANE = -335550
+EAST_LEFT_TURN = -335540  # yields to the north left turn
+
+
+def test_influencer_features_follow_most_influencing_in_a_crossing_scene(real_scene):
+    """A left turner from the north and three crossing cars placed on the real lanelets (as in test_relations)."""
+    scene, scene_maps, road_map = real_scene
+    placed = [(1, NORTH_LEFT_TURN, 8.0, 5.0), (2, ONCOMING_STRAIGHT_RIGHT_LANE, 10.0, 1.5),
+              (3, ONCOMING_STRAIGHT_LEFT_LANE, 10.0, 5.0), (4, EAST_LEFT_TURN, 5.0, 4.6)]
+    rows = []
+    for track_id, lanelet_id, s_m, speed in placed:
+        line = road_map.lanelet(lanelet_id).centreline
+        x, y = line.to_xy(s_m)[0]
+        rows.append((track_id, float(x), float(y), float(np.atleast_1d(line.heading_at(s_m))[0]), speed))
+    frame = TrackFrame(
+        header=Header(run_id="t", frame_index=0, stamp_ns=1_000_000_000, producer="t"), scene_id=scene.scene_id,
+        track_ids=np.array([r[0] for r in rows], np.int64), agent_types=np.full(len(rows), int(AgentType.CAR), np.uint8),
+        x_m=np.array([r[1] for r in rows]), y_m=np.array([r[2] for r in rows]),
+        vx_mps=np.array([r[4] * math.cos(r[3]) for r in rows]), vy_mps=np.array([r[4] * math.sin(r[3]) for r in rows]),
+        yaw_rad=np.array([r[3] for r in rows]), length_m=np.full(len(rows), 4.6), width_m=np.full(len(rows), 2.0),
+    )
+    cs, _ = CorridorBuilder(CorridorsConfig(), scene_maps=scene_maps).process(frame, scene)
+    rs, _ = RelationExtractor(RelationsConfig(), scene_maps=scene_maps).process(frame, cs, scene)
+    tracker = FeatureTracker()
+    assert tracker.update(cs, rs, frame) == []
+    keys, x, _mask = tracker.batch(cs)
+    relations = {(r.track_id, r.corridor_id): r for r in rs.relations}
+    priorities = set()
+    for b, key in enumerate(keys):
+        r = relations[key]
+        chosen = most_influencing(r, 2).tolist()
+        for k in (1, 2):
+            got = (x[b, -1, F[f"infl{k}_distance_m"]], x[b, -1, F[f"infl{k}_speed_mps"]], x[b, -1, F[f"infl{k}_priority"]])
+            if len(chosen) >= k:
+                c = chosen[k - 1]
+                assert got[0] == pytest.approx(np.clip(r.conflict_other_distance_m[c], -10, 100), abs=1e-4)
+                assert got[1] == pytest.approx(r.conflict_other_speed_mps[c], abs=1e-4)
+                assert got[2] == -float(r.conflict_priority[c])  # +1: the other has right of way
+                if key[0] == 1:
+                    priorities.add(got[2])
+            else:
+                assert got == (100.0, 0.0, 0.0)
+    assert 1.0 in priorities  # the oncoming straight traffic has right of way over the left turner
+
+
+def test_relations_missing_gives_absent_values(real):
+    cs, _rs, _batch = real[-1]
+    tracker = FeatureTracker()
+    issues = tracker.update(cs, None)
+    assert [i.kind for i in issues] == ["no_relations"]
+    _keys, x, _mask = tracker.batch(cs)
+    assert np.all(x[:, -1, F["leader_gap_m"]] == 100.0) and np.all(x[:, -1, F["infl1_priority"]] == 0.0)
+    issues = tracker.update(cs, RelationSet(header=Header(run_id="t", frame_index=0, stamp_ns=cs.header.stamp_ns + 1, producer="x"),
+                                            scene_id="s", relations=()))
+    assert [i.kind for i in issues] == ["stamp_mismatch"]

@@ -1,0 +1,258 @@
+"""Tests of the AR data set, model file and training (stages.ar.dataset, .model, .train, ``iamp train``).
+
+A tiny data set from the first frames of the embedded sequence 013 keeps
+these fast; nothing here asserts on wall-clock time.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from stages import cli
+from stages.ar.dataset import ARDataset, DatasetConfig, build_dataset, smoothed_acceleration
+from stages.ar.features import ACCEL, FEATURE_NAMES, HISTORY_STEPS, HORIZON_STEPS
+from stages.ar.model import DEFAULT_MODEL_PATH, ARModel, ARNet, load_model, save_model
+from stages.ar.train import TrainConfig, error_table, fit, split_samples
+from stages.datasets import DEFAULT_DATA_DIR
+
+pytestmark = pytest.mark.skipif(not (DEFAULT_DATA_DIR / "maps").is_dir(), reason=f"embedded TAF-BW data not found at {DEFAULT_DATA_DIR}")
+
+TINY = DatasetConfig(data_dir=DEFAULT_DATA_DIR, recordings=("k729_2022-03-16",), sequences=("013",), max_frames_per_sequence=300)
+
+
+@pytest.fixture(scope="module")
+def tiny() -> ARDataset:
+    ds = build_dataset(TINY)
+    assert len(ds) > 50
+    return ds
+
+
+@pytest.fixture(scope="module")
+def tiny_model(tiny) -> ARModel:
+    train, val, _ = split_samples(tiny, "time", 0.3, 0)
+    model, _info = fit(TrainConfig(epochs=3, seed=0), tiny.subset(train), tiny.subset(val))
+    return model
+
+
+# --------------------------------------------------------------------------- data set
+
+
+def test_dataset_shapes_and_provenance(tiny):
+    n = len(tiny)
+    assert tiny.x.shape == (n, HISTORY_STEPS, len(FEATURE_NAMES)) and tiny.x.dtype == np.float32
+    assert tiny.mask.shape == (n, HISTORY_STEPS) and tiny.mask.dtype == bool and np.all(tiny.mask[:, -1])
+    assert tiny.y.shape == (n, HORIZON_STEPS) and np.all(np.isfinite(tiny.y)) and np.all(np.isfinite(tiny.x))
+    assert tiny.recordings == ("k729_2022-03-16",) and tiny.sequences == ("k729_2022-03-16/013",)
+    assert np.all(tiny.stamp_ns[1:] >= tiny.stamp_ns[:-1])
+    assert tiny.counts["samples"] == n and tiny.counts.get("no_full_future", 0) > 0
+    assert np.array_equal(tiny.last_acceleration, tiny.x[:, -1, ACCEL])
+
+
+def test_targets_are_the_smoothed_acceleration_of_the_true_track(tiny):
+    from stages.datasets import load_recording
+
+    seq = load_recording(DEFAULT_DATA_DIR, "k729_2022-03-16", ("013",)).sequences[0]
+    k = int(np.argmax(np.abs(tiny.y).max(axis=1)))  # the sample with the most acceleration
+    assert np.abs(tiny.y[k]).max() > 1.0
+    rows = np.flatnonzero(seq.track_id == tiny.track_id[k])
+    stamps, xy = seq.stamp_ns[rows], np.column_stack([seq.x_m[rows], seq.y_m[rows]])
+    # independent: speed from central differences of positions, then a least-squares slope over ±0.7 s
+    speed = np.hypot(*np.gradient(xy, 0.1, axis=0).T)
+    i0 = int(np.searchsorted(stamps, tiny.stamp_ns[k]))
+    slopes = []
+    for j in range(i0 + 1, i0 + HORIZON_STEPS + 1):
+        w = slice(max(j - 7, 0), j + 8)
+        slopes.append(np.polyfit(stamps[w] * 1e-9, speed[w], 1)[0])
+    assert np.corrcoef(slopes, tiny.y[k])[0, 1] > 0.9
+    assert np.max(np.abs(np.asarray(slopes) - tiny.y[k])) < 0.5
+
+
+def test_smoothed_acceleration_of_a_constant_acceleration_track():
+    t = np.arange(60) * 0.1
+    s = 2.0 * t + 0.5 * 1.5 * t**2
+    xy = np.column_stack([s * math.cos(0.3), s * math.sin(0.3)])
+    stamps = (t * 1e9).astype(np.int64)
+    np.testing.assert_allclose(smoothed_acceleration(stamps, xy, 100_000_000, 15), 1.5, atol=1e-6)
+    gap = np.concatenate([stamps[:30], stamps[30:] + 500_000_000])  # a skip: two pieces, each long enough
+    np.testing.assert_allclose(smoothed_acceleration(gap, xy, 100_000_000, 15), 1.5, atol=1e-6)
+    assert np.all(np.isnan(smoothed_acceleration(stamps[:10], xy[:10], 100_000_000, 15)))
+
+
+def test_dataset_cache_round_trip(tmp_path):
+    cfg = DatasetConfig(data_dir=DEFAULT_DATA_DIR, recordings=("k729_2022-03-16",), sequences=("013",), max_frames_per_sequence=120)
+    built = build_dataset(cfg, cache_dir=tmp_path)
+    files = list(tmp_path.glob("ar_dataset_*.npz"))
+    assert len(files) == 1 and built.key in files[0].name
+    again = build_dataset(cfg, cache_dir=tmp_path)
+    for name in ("x", "mask", "y", "track_id", "stamp_ns", "corridor_id"):
+        assert np.array_equal(getattr(built, name), getattr(again, name))
+    assert again.counts == built.counts and again.sequences == built.sequences
+
+
+# --------------------------------------------------------------------------- splits
+
+
+def test_time_split_keeps_windows_apart(tiny):
+    train, val, info = split_samples(tiny, "time", 0.3, 0)
+    cut = info["time_cuts"]["k729_2022-03-16/013"]["cut_stamp_s"] * 1e9
+    assert len(train) and len(val)
+    assert np.all(tiny.stamp_ns[train] + 4e9 <= cut + 1) and np.all(tiny.stamp_ns[val] - 4e9 >= cut - 1)
+    assert info["dropped_at_cut"] == len(tiny) - len(train) - len(val) > 0
+
+
+def test_sequence_split_never_shares_a_sequence():
+    rng = np.random.default_rng(0)
+    n = 400
+    ds = ARDataset(
+        x=np.zeros((n, HISTORY_STEPS, len(FEATURE_NAMES)), np.float32), mask=np.ones((n, HISTORY_STEPS), bool),
+        y=np.zeros((n, HORIZON_STEPS), np.float32), recording=np.repeat([0, 1], n // 2).astype(np.int32),
+        sequence=np.concatenate([rng.integers(0, 8, n // 2), np.full(n // 2, 8)]).astype(np.int32),
+        track_id=rng.integers(0, 20, n), corridor_id=np.zeros(n, np.int64), stamp_ns=np.sort(rng.integers(0, 100_000_000_000, n)),
+        recordings=("a", "b"), sequences=tuple(f"a/{i}" for i in range(8)) + ("b/0",),
+        sequence_spans=np.array([[0, 100_000_000_000]] * 9), counts={},
+    )
+    train, val, info = split_samples(ds, "sequence", 0.2, 3)
+    a_train = set(ds.sequence[train][ds.recording[train] == 0].tolist())
+    a_val = set(ds.sequence[val][ds.recording[val] == 0].tolist())
+    assert a_train and a_val and not (a_train & a_val)
+    assert "b/0" in info["time_cuts"]  # the single-sequence recording is split by time
+    assert np.all(ds.stamp_ns[train][ds.recording[train] == 1] <= info["time_cuts"]["b/0"]["cut_stamp_s"] * 1e9 - 4e9 + 1)
+    train_r, val_r, info_r = split_samples(ds, "recording", 0.2, 0)
+    assert set(ds.recording[train_r]) .isdisjoint(set(ds.recording[val_r]))
+    assert split_samples(ds, "sequence", 0.2, 3)[1].tolist() == val.tolist()  # seeded
+
+
+# --------------------------------------------------------------------------- model
+
+
+def test_same_seed_gives_identical_weights(tiny):
+    train, val, _ = split_samples(tiny, "time", 0.3, 0)
+    weights = []
+    for seed in (5, 5, 6):
+        model, _ = fit(TrainConfig(epochs=2, seed=seed, hidden=8), tiny.subset(train), tiny.subset(val))
+        weights.append({k: v.clone() for k, v in model.net.state_dict().items()})
+    assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
+    assert not all(torch.equal(weights[0][k], weights[2][k]) for k in weights[0])
+
+
+def test_predict_shapes_and_save_load_round_trip(tiny, tiny_model, tmp_path):
+    tiny_model.metadata = {"note": "test", "values": [1.0, 2.0]}
+    pred = tiny_model.predict(tiny.x, tiny.mask)
+    assert pred.shape == (len(tiny), HORIZON_STEPS) and pred.dtype == np.float32 and np.all(np.isfinite(pred))
+    assert tiny_model.predict(tiny.x[:0], tiny.mask[:0]).shape == (0, HORIZON_STEPS)
+    with pytest.raises(ValueError, match="x must have shape"):
+        tiny_model.predict(tiny.x[:, :, :5], tiny.mask)
+    with pytest.raises(ValueError, match="mask must have shape"):
+        tiny_model.predict(tiny.x, tiny.mask[:, :5])
+    path = save_model(tmp_path / "sub" / "m.pt", tiny_model)
+    loaded = load_model(path)
+    np.testing.assert_array_equal(loaded.predict(tiny.x, tiny.mask), pred)
+    np.testing.assert_array_equal(loaded.sigma_res_chunks, tiny_model.sigma_res_chunks)
+    assert loaded.metadata == {"note": "test", "values": [1.0, 2.0]} and loaded.feature_names == FEATURE_NAMES
+    assert torch.load(path, weights_only=True)["format"] == "hybrid-iamp/ar-model"
+
+
+def test_model_without_a_feature_selects_its_columns(tiny):
+    train, val, _ = split_samples(tiny, "time", 0.3, 0)
+    model, _ = fit(TrainConfig(epochs=1, drop_features=("speed_mps",)), tiny.subset(train), tiny.subset(val))
+    assert "speed_mps" not in model.feature_names and model.net.n_features == len(FEATURE_NAMES) - 1
+    changed = tiny.x.copy()
+    changed[:, :, FEATURE_NAMES.index("speed_mps")] += 5.0
+    np.testing.assert_array_equal(model.predict(changed, tiny.mask), model.predict(tiny.x, tiny.mask))
+
+
+def test_bad_model_files_give_a_value_error_naming_the_file(tiny_model, tmp_path):
+    missing = tmp_path / "missing.pt"
+    with pytest.raises(ValueError, match="missing.pt.*does not exist"):
+        load_model(missing)
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(b"this is not a torch file")
+    with pytest.raises(ValueError, match="garbage.pt.*not a readable torch file"):
+        load_model(garbage)
+    good = save_model(tmp_path / "good.pt", tiny_model)
+    truncated = tmp_path / "truncated.pt"
+    truncated.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    with pytest.raises(ValueError, match="truncated.pt"):
+        load_model(truncated)
+    other = tmp_path / "other.pt"
+    torch.save({"weights": torch.zeros(3)}, other)
+    with pytest.raises(ValueError, match="other.pt.*not an AR model"):
+        load_model(other)
+    payload = torch.load(good, weights_only=True)
+    payload["state_dict"] = {"body.0.weight": torch.zeros(2, 2)}
+    broken = tmp_path / "broken.pt"
+    torch.save(payload, broken)
+    with pytest.raises(ValueError, match="broken.pt.*inconsistent"):
+        load_model(broken)
+    payload = torch.load(good, weights_only=True)
+    del payload["sigma_res_chunks"]
+    torch.save(payload, broken)
+    with pytest.raises(ValueError, match="sigma_res_chunks"):
+        load_model(broken)
+
+
+def test_arnet_forms():
+    linear, hidden = ARNet(23), ARNet(23, hidden=16)
+    assert sum(p.numel() for p in linear.parameters()) == (40 * 24) * 40 + 40
+    z, m = torch.zeros(2, 40, 23), torch.ones(2, 40)
+    assert linear(z, m).shape == (2, 40) and hidden(z, m).shape == (2, 40)
+
+
+def test_error_table_chunks():
+    y = np.zeros((2, 40))
+    pred = np.zeros((2, 40))
+    pred[:, :4] = 1.0
+    table = error_table(pred, y)
+    assert table["mse"] == pytest.approx(0.1) and table["mse_chunks"][0] == 1.0 and table["mse_chunks"][1] == 0.0
+    assert table["chunk_mean_rmse"][0] == 1.0
+
+
+def test_shipped_model_loads_and_predicts(tiny):
+    if not DEFAULT_MODEL_PATH.is_file():
+        pytest.skip(f"no shipped model at {DEFAULT_MODEL_PATH}")
+    model = load_model()
+    assert model.feature_names == FEATURE_NAMES and model.sigma_res_chunks.shape == (10,)
+    assert np.all(model.sigma_res_chunks > 0)
+    pred = model.predict(tiny.x, tiny.mask)
+    assert np.all(np.isfinite(pred))
+    for key in ("feature_names", "recordings", "split", "seed", "validation", "date_utc", "git_commit"):
+        assert key in model.metadata
+
+
+# --------------------------------------------------------------------------- iamp train
+
+
+def test_cli_bad_arguments_exit_2(tmp_path, capsys):
+    assert cli.main(["train", "--bogus"]) == 2
+    assert cli.main(["train", "--val-fraction", "1.5", "--no-progress", "--no-cache", "--out", str(tmp_path / "m.pt")]) == 2
+    assert "val_fraction" in capsys.readouterr().err
+    assert cli.main(["train", "--data", str(tmp_path / "nothing"), "--no-progress", "--out", str(tmp_path / "m.pt")]) == 2
+    assert cli.main(["train", "--drop-feature", "nope", "--no-progress", "--out", str(tmp_path / "m.pt")]) == 2
+    assert cli.main(["train", "--split", "recording", "--sequence", "013", "--max-frames", "100", "--no-progress", "--no-cache",
+                     "--out", str(tmp_path / "m.pt")]) == 2
+    assert "two recordings" in capsys.readouterr().err
+    if not torch.cuda.is_available():
+        assert cli.main(["train", "--device", "cuda", "--no-progress", "--out", str(tmp_path / "m.pt")]) == 2
+        assert "CUDA is not available" in capsys.readouterr().err
+    assert not (tmp_path / "m.pt").exists()
+
+
+def test_cli_trains_writes_weights_and_report(tmp_path, capsys):
+    out, report = tmp_path / "m.pt", tmp_path / "r.json"
+    argv = ["train", "--sequence", "013", "--max-frames", "300", "--split", "time", "--val-fraction", "0.3", "--epochs", "3",
+            "--no-progress", "--no-cache", "--out", str(out), "--json", str(report)]
+    assert cli.main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "sigma_res" in printed and "zero" in printed and "last" in printed
+    data = json.loads(report.read_text())
+    for name in ("model", "zero", "last"):
+        assert len(data["validation"][name]["mse_chunks"]) == 10
+    assert data["sizes"]["train"] > 0 and data["sizes"]["val"] > 0 and len(data["sigma_res_chunks"]) == 10
+    model = load_model(out)
+    assert model.metadata["split"]["split"] == "time" and model.metadata["seed"] == 0
+    assert model.metadata["sequences"]["val"] == ["k729_2022-03-16/013"]
