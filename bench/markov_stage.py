@@ -125,10 +125,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"torch {torch.__version__}, threads 1, cuda {'yes: ' + torch.cuda.get_device_name(0) if torch.cuda.is_available() else 'no'}")
     except ImportError:
         pass
-    reference = MarkovPredictor(MarkovPredictionConfig())
+    reference = MarkovPredictor(MarkovPredictionConfig(corridor_weights="uniform", initial_box="measurement"))
     print(f"{'backend':<11} {'pairs':>5} {'frame ms p50':>13} {'p95':>8} {'ms/pair':>8}")
     for name, backend, device in _backends(args.backends.split(",")):
-        predictor = MarkovPredictor(MarkovPredictionConfig(backend=backend, device=device), stencils=reference.stencils)
+        predictor = MarkovPredictor(MarkovPredictionConfig(backend=backend, device=device, corridor_weights="uniform", initial_box="measurement"), stencils=reference.stencils)
         per_pair = []
         for n in sizes:
             cs, rs = scenario(n)

@@ -304,7 +304,7 @@ class Evaluation:
         )
         corridors = CorridorBuilder(CorridorsConfig(), scene_maps=self.scene_maps)
         relations = RelationExtractor(RelationsConfig(), scene_maps=self.scene_maps)
-        needs_belief = cfg.corridor_weights == "intentions" or dict(cfg.params).get("initial_box") == "particles"
+        needs_belief = any(p.config.corridor_weights == "intentions" or p.config.initial_box == "particles" for p in self.predictors.values())
         intentions = IntentionFilter(self.intentions_config, producer="eval", scene_maps=self.scene_maps) if needs_belief else None
         ar = None
         if self.ar_config is not None:
@@ -508,7 +508,9 @@ class Evaluation:
 
     def _write_accel_figures(self, directory: Path, count: int = 4) -> list[Path]:
         """The paper's acceleration-distribution figure for a few real cars (module docstring)."""
-        examples = self.ar_examples
+        # physically plausible truths only: K733's tracker jitter gives "true" accelerations of ±10 m/s² that say
+        # nothing about the model
+        examples = [e for e in self.ar_examples if np.abs(e["true"]).max() <= 4.0]
         if not examples:
             return []
         chosen: list[int] = []
@@ -527,8 +529,8 @@ class Evaluation:
             lines.append(f"{path.name}: recording {e['recording']} sequence {e['sequence']} car {e['track_id']} at stamp_ns {e['stamp_ns']};"
                          f" mean |AR - true| {err:.2f} m/s2")
         (directory / "accel_figures.txt").write_text(
-            "accel_*.png: x = time after the instant, 0..4 s (tick every 0.4 s); y = acceleration, -3..2 m/s2 (the input cells; grey"
-            " line at 0); background: the 10 normal distributions of the AR profile over the input cells, one column per 0.4 s,"
+            "accel_*.png (400 x 300 px): x = time after the instant, 0..4 s (one column per 0.4 s); y = acceleration, -3..2 m/s2"
+            " (the input cells; a grey line per m/s2, darker at 0); background: the 10 normal distributions of the AR profile over the input cells, one column per 0.4 s,"
             " darker blue = more probable; red: AR output (40 values); black: true acceleration (from the smoothed true speed)\n"
             + "\n".join(lines) + "\n"
         )
@@ -655,7 +657,7 @@ def _accel_figure(e: dict[str, Any]) -> "_Canvas":
     edges, probs, step_s, chunk_s = e["edges"], e["probs"], e["step_s"], e["chunk_s"]
     horizon = e["ar"].shape[0] * step_s
     a_lo, a_hi = min(edges[0], -3.0), max(edges[-1], 2.0)
-    scale = 20.0  # plot units per m/s² (x: 100 units per s)
+    scale = 60.0  # pixels per m/s² (x: 100 pixels per s)
     canvas = _Canvas(0.0, a_lo * scale - 4, horizon * 100.0, a_hi * scale + 4, resolution_m=1.0)
     for k in range(probs.shape[0]):
         peak = max(probs[k].max(), 1e-9)
@@ -665,7 +667,9 @@ def _accel_figure(e: dict[str, Any]) -> "_Canvas":
             x0, x1 = k * chunk_s * 100.0, (k + 1) * chunk_s * 100.0
             y0, y1 = edges[a] * scale, edges[a + 1] * scale
             canvas.fill_polygon(np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]]), colour)
-    canvas.polyline(np.array([[0.0, 0.0], [horizon * 100.0, 0.0]]), (160, 160, 160), 0.6)
+    for a in range(int(math.ceil(a_lo)), int(math.floor(a_hi)) + 1):  # a grey line per m/s² (darker at 0)
+        grey = (120, 120, 120) if a == 0 else (200, 200, 200)
+        canvas.polyline(np.array([[0.0, a * scale], [horizon * 100.0, a * scale]]), grey, 0.6 if a == 0 else 0.3)
     t = np.arange(1, e["ar"].shape[0] + 1) * step_s * 100.0
     clip = lambda a: np.clip(a, a_lo, a_hi) * scale  # noqa: E731
     canvas.polyline(np.column_stack([t, clip(e["true"])]), (0, 0, 0), 1.2)

@@ -3,12 +3,24 @@
 Consumes ``corridor_set`` (``CorridorSet``) and ``relation_set``
 (``RelationSet``) of the same stamp, the latched ``scene`` (``SceneInfo``) and,
 optionally, ``track_frame`` (``TrackFrame``: vehicle sizes, and the velocity
-of mode ``cv``). Produces ``corridor_predictions`` (``CorridorPredictions``)
+of mode ``cv``), ``intention_belief`` (``IntentionBelief``: corridor weights
+and particle boxes) and ``acceleration_profiles`` (``AccelerationProfiles``:
+mode ``hybrid``), all of the same stamp. Produces ``corridor_predictions`` (``CorridorPredictions``)
 and ``motion_grid`` (``MotionGrid``) for every frame. Run it alone with
 ``python -m stages.markov_prediction``.
 
 Modes (``mode``):
 
+- ``hybrid``: the same chain with the AR model's distributions in place of
+  the rule-based λ (METHOD.md §3.2): λ(0) of the pair's
+  ``AccelerationProfile`` is the initial input distribution, and after step
+  k the input transition is Γ_k = colnorm(diag(λ(k+1)) Ψ), one M × M matrix
+  per pair (``hybrid_input`` "psi"), or λ(k+1)·1ᵀ (``hybrid_input``
+  "direct", the memoryless ablation); no leader or crossing restriction
+  (the model saw those features), saturation kept, the standstill mixture
+  as in the baseline. A pair without a usable profile (missing, wrong input
+  cells, other stamp) holds a normal distribution around its measured
+  acceleration (issue ``no_acceleration_profile(s)``/``bad_profile``);
 - ``baseline``: the Markov chain of METHOD.md §1.4 with the rule-based
   priority vector λ of §2; all vehicle-corridor pairs of a frame propagate
   together, one batch per step (``backend`` "numpy" = scipy CSR, or
@@ -18,9 +30,15 @@ Modes (``mode``):
 - ``corridor_cv``: constant speed along each corridor.
 Every mode produces the same structures (s- and v-distributions per step,
 mean positions, outside mass, grid), so comparisons share one code path.
-``hybrid`` (AR-Net accelerations replace λ, §3) and ``corridor_weights =
-"intentions"`` come with their issues: the config refuses them until then,
-and ``HOOK(...)`` comments mark where they plug in.
+
+Corridor weights (``corridor_weights``): ``uniform`` (1/C over the vehicle's
+corridors) or ``intentions``: P(R = c) of the intentions stage's belief,
+renormalised over the corridors predicted (uniform, with an issue
+``no_intentions``/``no_belief``, when the belief is missing, of another
+stamp or misses a corridor). ``initial_box`` ``particles`` takes the
+initial box from the belief instead of the measurement: centred on the
+particles' mean s and v on that corridor, half-widths max(Δs/2, 2σ_s) and
+max(Δv/2, 2σ_v) of the particles.
 
 Initial distribution (§1.4). Per pair, a uniform box in (s, v) around the
 vehicle's arc length on the corridor and its speed, ±max(Δs/2, 2σ_s) and

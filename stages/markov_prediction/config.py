@@ -30,8 +30,8 @@ class MarkovPredictionConfig(ConfigMixin):
     mode: str = "baseline"
     backend: str = "numpy"
     device: str = "cpu"
-    corridor_weights: str = "uniform"
-    initial_box: str = "measurement"
+    corridor_weights: str = "intentions"
+    initial_box: str = "particles"
     # hybrid mode (METHOD.md §3.2): how the AR distributions enter the chain
     hybrid_input: str = "psi"
     # discretisation (the stencils are cached per ds, dv, v_max, τ)

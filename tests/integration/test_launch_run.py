@@ -95,6 +95,13 @@ def test_run_records_every_source_frame_and_replay_reproduces_it(tmp_path):
     # every frame went through corridors too (the launcher drains in dataflow order)
     cstats = _last_stats(rec, "corridors")
     assert counts["iamp/itest/corridors/corridor_set"] == frames["count"], (cstats.counters, run.text()[-3000:])
+    # the default pipeline is hybrid: intentions and ar_inference see every frame, markov_prediction predicts in mode hybrid
+    for topic in ("relations/relation_set", "intentions/intention_belief", "ar_inference/acceleration_profiles"):
+        assert counts[f"iamp/itest/{topic}"] == frames["count"], (topic, counts)
+    grids = [m for m in read_messages(str(rec)) if m.topic == "iamp/itest/markov_prediction/motion_grid"]
+    assert grids and {bs.decode(m.data).mode for m in grids} == {"hybrid"}
+    profiles = [bs.decode(m.data) for m in read_messages(str(rec)) if m.topic == "iamp/itest/ar_inference/acceleration_profiles"]
+    assert any(p.profiles for p in profiles) and profiles[0].model.startswith("ar_taf_bw.pt@")
 
     # replay the file onto the bus with a recorder attached: same payloads, same counts
     port = free_port()

@@ -14,6 +14,8 @@ from stages.markov_prediction import priority as pr
 from stages.markov_prediction.chain import InputPriority, PriorityPropagator
 
 STAMP = 1_000_000_000
+#: The chain's unit tests run without an intentions stage: uniform corridor weights, measured initial boxes.
+PLAIN = {"corridor_weights": "uniform", "initial_box": "measurement"}
 
 
 # --------------------------------------------------------------------------- synthetic scenes
@@ -83,7 +85,7 @@ def _relation_set(*relations, stamp: int = STAMP) -> bs.RelationSet:
 
 @pytest.fixture(scope="module")
 def baseline() -> MarkovPredictor:
-    return MarkovPredictor(MarkovPredictionConfig())
+    return MarkovPredictor(MarkovPredictionConfig(**PLAIN))
 
 
 @pytest.fixture(scope="module")
@@ -93,7 +95,7 @@ def stencils(baseline):
 
 @pytest.fixture(scope="module")
 def baseline_torch(baseline) -> MarkovPredictor:
-    return MarkovPredictor(MarkovPredictionConfig(backend="torch"), stencils=baseline.stencils)
+    return MarkovPredictor(MarkovPredictionConfig(backend="torch", **PLAIN), stencils=baseline.stencils)
 
 
 def _mean_speed(prediction, b: int, predictor: MarkovPredictor) -> np.ndarray:
@@ -239,7 +241,7 @@ def test_numpy_and_torch_cpu_agree(baseline, baseline_torch):
 
 
 def test_grid_sums_to_one_minus_outside_and_stays_on_the_road():
-    predictor = MarkovPredictor(MarkovPredictionConfig(grid_distribution="point"))
+    predictor = MarkovPredictor(MarkovPredictionConfig(grid_distribution="point", **PLAIN))
     straight, curve = _corridor(7, length=60.0), _corridor(8, length=60.0, radius=25.0)
     prediction, issues = predictor.process(_corridor_set(_vehicle(1, 12.0, [straight, curve])))
     assert any(i.kind == "corridor_too_short" for i in issues), "60 m is too short for 12 m/s: reported"
@@ -276,7 +278,7 @@ def test_cv_and_corridor_cv_are_exact_on_a_constant_velocity_track():
     )
     truth = np.column_stack([8.0 * t * math.cos(heading), 8.0 * t * math.sin(heading)])
     for mode in ("cv", "corridor_cv"):
-        prediction, issues = MarkovPredictor(MarkovPredictionConfig(mode=mode)).process(cs, None, None, frame)
+        prediction, issues = MarkovPredictor(MarkovPredictionConfig(mode=mode, **PLAIN)).process(cs, None, None, frame)
         assert not issues
         np.testing.assert_allclose(prediction.mean_xy_m[0], truth, atol=1e-6)
         assert prediction.pairs[0].corridor_id == (CV_LINE_ID if mode == "cv" else 7)
@@ -358,7 +360,7 @@ def _profiles(track_id: int, cid: int, accel: float, *, sigma: float = 0.3, edge
 
 
 def test_intention_weights_replace_the_uniform_ones_and_missing_beliefs_fall_back(stencils):
-    predictor = MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv", corridor_weights="intentions"), stencils=stencils)
+    predictor = MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv", corridor_weights="intentions", initial_box="measurement"), stencils=stencils)
     cs = _corridor_set(_vehicle(1, 10.0, [_corridor(7), _corridor(8, radius=20.0)]))
     prediction, issues = predictor.process(cs, intention_belief=_belief(1, {7: 0.2, 8: 0.6}))
     assert [round(p.probability, 6) for p in prediction.pairs] == [0.25, 0.75]
@@ -384,7 +386,7 @@ def test_particle_box_widens_the_initial_spread(stencils):
 
 
 def test_hybrid_follows_the_ar_distributions(stencils):
-    predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid"), stencils=stencils)
+    predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", **PLAIN), stencils=stencils)
     cs = _corridor_set(_vehicle(1, 10.0, [_corridor(7)]))
     ends = {}
     for accel in (-2.0, 0.0, 1.5):
@@ -395,13 +397,13 @@ def test_hybrid_follows_the_ar_distributions(stencils):
     # s(4 s) = 10·4 + ½·a·16 for a held acceleration; the chain's Ψ keeps part of the previous input, so only roughly
     assert ends[-2.0] < ends[0.0] < ends[1.5]
     assert abs(ends[0.0] - 40.0) < 1.5 and abs(ends[-2.0] - 24.0) < 4.0 and abs(ends[1.5] - 52.0) < 4.0
-    direct = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", hybrid_input="direct"), stencils=stencils)
+    direct = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", hybrid_input="direct", **PLAIN), stencils=stencils)
     prediction, _ = direct.process(cs, acceleration_profiles=_profiles(1, 7, -2.0))
     assert abs(float(prediction.mean_s_m[0, -1]) - 5.0 - 24.0) < 4.0
 
 
 def test_hybrid_without_a_usable_profile_falls_back_and_says_so(stencils):
-    predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid"), stencils=stencils)
+    predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", **PLAIN), stencils=stencils)
     cs = _corridor_set(_vehicle(1, 10.0, [_corridor(7)]))
     for profiles, kind in (
         (None, "no_acceleration_profiles"),
