@@ -77,9 +77,14 @@ def test_smoothed_acceleration_of_a_constant_acceleration_track():
     s = 2.0 * t + 0.5 * 1.5 * t**2
     xy = np.column_stack([s * math.cos(0.3), s * math.sin(0.3)])
     stamps = (t * 1e9).astype(np.int64)
-    np.testing.assert_allclose(smoothed_acceleration(stamps, xy, 100_000_000, 15), 1.5, atol=1e-6)
+    a = smoothed_acceleration(stamps, xy, 100_000_000, 15)
+    assert np.all(np.isnan(a[:7])) and np.all(np.isnan(a[-7:]))  # the window would not be centred
+    np.testing.assert_allclose(a[7:-7], 1.5, atol=1e-6)
+    a = smoothed_acceleration(stamps, xy, 100_000_000, 15, edge_samples=15)
+    assert np.isnan(a[14]) and np.isnan(a[-15]) and np.all(np.isfinite(a[15:-15]))
     gap = np.concatenate([stamps[:30], stamps[30:] + 500_000_000])  # a skip: two pieces, each long enough
-    np.testing.assert_allclose(smoothed_acceleration(gap, xy, 100_000_000, 15), 1.5, atol=1e-6)
+    a = smoothed_acceleration(gap, xy, 100_000_000, 15, edge_samples=0)
+    np.testing.assert_allclose(a, 1.5, atol=1e-6)
     assert np.all(np.isnan(smoothed_acceleration(stamps[:10], xy[:10], 100_000_000, 15)))
 
 
