@@ -119,6 +119,7 @@ class EvalConfig:
     max_frames_per_sequence: int = 0
     corridor_weights: str = "intentions"
     intentions_params: tuple[tuple[str, Any], ...] = ()
+    ar_params: tuple[tuple[str, Any], ...] = ()
     backend: str = "numpy"
     device: str = "cpu"
     coverage_level: float = 0.9
@@ -262,7 +263,8 @@ class Evaluation:
             from .ar_inference import ARInferenceConfig
 
             self.ar_config = ARInferenceConfig.from_params(
-                {"model": str(config.model_path) if config.model_path else "", "device": config.device}, where="iamp eval --model"
+                {"model": str(config.model_path) if config.model_path else "", "device": config.device, **dict(config.ar_params)},
+                where="iamp eval --model/--set-ar",
             )
         self.intentions_ms: list[float] = []
         self.ar_ms: list[float] = []
@@ -741,6 +743,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="markov_prediction parameter for every mode (JSON value), e.g. --set speed_limit_factor=1.1")
+    parser.add_argument("--set-ar", action="append", default=[], metavar="KEY=VALUE",
+                        help="ar_inference parameter (JSON value), e.g. --set-ar sigma_scale=1.5")
     parser.add_argument("--set-intentions", action="append", default=[], metavar="KEY=VALUE",
                         help="intentions parameter (JSON value), e.g. --set-intentions particles_per_vehicle=1000")
 
@@ -750,6 +754,7 @@ def run_cli(args) -> int:
         config = EvalConfig(
             params=_key_values(args.set, "--set"),
             intentions_params=_key_values(args.set_intentions, "--set-intentions"),
+            ar_params=_key_values(args.set_ar, "--set-ar"),
             model_path=args.model,
             seed=args.seed,
             data_dir=args.data,

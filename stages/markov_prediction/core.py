@@ -576,16 +576,9 @@ class MarkovPredictor:
         cell_lower = grid.s_edges_m()[: self.n_s]
         cell_centre = cell_lower + 0.5 * cfg.ds_m
         if cfg.mode == "hybrid":
-            return self._hybrid(pairs)
+            return self._hybrid(pairs, self._speed_restriction(pairs, cell_centre) if cfg.hybrid_speed_restriction else None)
         # λ_speed per pair, static over the steps, and the combined r where nothing else restricts
-        lam_speed = np.empty((n_b, n_in, n_v, self.n_s), np.float32)
-        weights = np.asarray(cfg.lat_accel_weights, dtype=np.float64)
-        weights = weights / weights.sum()
-        for b, p in enumerate(pairs):
-            adm = pr.admissible_speeds(
-                p.s_m, p.curvature_1pm, p.speed_limit_mps, np.asarray(cfg.lat_accels_mps2), cfg.lookahead_brake_mps2, cfg.curvature_smoothing_m
-            )
-            lam_speed[b] = pr.speed_restriction(adm, p.s_m, p.s_first_m + cell_centre, self.v_centres, self.a_centres, weights, cfg.tau_s)
+        lam_speed = self._speed_restriction(pairs, cell_centre)
         r_static = pr.combine_with_preference(lam_speed, self.preference, cfg.forbid_threshold)
         index = {(p.track_id, p.corridor_id): b for b, p in enumerate(pairs)}
         by_track: dict[int, list[int]] = collections.defaultdict(list)
@@ -640,6 +633,19 @@ class MarkovPredictor:
                 interval[m] = mixed[2]
         return {"position": pos, "interval": interval, "velocity": vel, "outside": outside, "exact_s": None}
 
+    def _speed_restriction(self, pairs: list[_Pair], cell_centre: np.ndarray) -> np.ndarray:
+        """λ_speed (B, M, N_v, N_s) per pair, static over the steps (§2.2)."""
+        cfg = self.config
+        lam_speed = np.empty((len(pairs), self.grid.n_inputs, self.grid.n_v_cells, self.n_s), np.float32)
+        weights = np.asarray(cfg.lat_accel_weights, dtype=np.float64)
+        weights = weights / weights.sum()
+        for b, p in enumerate(pairs):
+            adm = pr.admissible_speeds(
+                p.s_m, p.curvature_1pm, p.speed_limit_mps, np.asarray(cfg.lat_accels_mps2), cfg.lookahead_brake_mps2, cfg.curvature_smoothing_m
+            )
+            lam_speed[b] = pr.speed_restriction(adm, p.s_m, p.s_first_m + cell_centre, self.v_centres, self.a_centres, weights, cfg.tau_s)
+        return lam_speed
+
     def _measured_inputs(self, pairs: list[_Pair]) -> np.ndarray:
         """(B, M): a normal distribution around each pair's measured acceleration over the input cells (tails folded)."""
         edges = self.grid.input_edges()
@@ -665,8 +671,9 @@ class MarkovPredictor:
         # window of p0 must match the propagator's window length
         return type(p0)(input_probs=p0.input_probs, velocity_probs=p0.velocity_probs, position_probs=_fit(p0.position_probs, self.n_s))
 
-    def _hybrid(self, pairs: list[_Pair]) -> dict[str, np.ndarray]:
-        """Hybrid mode (METHOD.md §3.2): λ(0) starts the input, Γ_k = colnorm(diag(λ(k)) Ψ) (or λ(k)·1ᵀ) after step k."""
+    def _hybrid(self, pairs: list[_Pair], lam_speed: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """Hybrid mode (METHOD.md §3.2): λ(0) starts the input, Γ_k = colnorm(diag(λ(k)) Ψ) (or λ(k)·1ᵀ) after step k;
+        with ``lam_speed``, λ(k) (scaled to a largest entry of 1) is the preference that λ_speed cuts, per state."""
         cfg = self.config
         measured = self._measured_inputs(pairs)
         lam = np.stack([p.input_probs if p.input_probs is not None else np.repeat(measured[b][None], cfg.n_steps, axis=0)
@@ -676,6 +683,10 @@ class MarkovPredictor:
         for k in range(cfg.n_steps):
             if k + 1 >= cfg.n_steps:
                 steps.append(None)  # the input after the last step does not change any output
+            elif lam_speed is not None:
+                pref = lam[:, k + 1] / np.maximum(lam[:, k + 1].max(axis=1, keepdims=True), 1e-12)
+                r = pr.combine_with_preference(lam_speed, pref, cfg.forbid_threshold)
+                steps.append(InputPriority(weights=lambda lo, hi, r=r: r[..., lo:hi]))
             elif cfg.hybrid_input == "direct":
                 steps.append(InputReplaced(probs=lam[:, k + 1]))
             else:

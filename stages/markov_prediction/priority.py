@@ -59,14 +59,18 @@ def combine_with_preference(restriction: np.ndarray, preference: np.ndarray, for
     one). Where every m_α is at most ``forbid_threshold`` (everything
     forbidden or only ε-safe), r puts all weight on the strongest braking
     input α = 0 (METHOD.md §2.1 item 4, §8.5). The result has the shape of
-    ``restriction`` (float32) and no all-zero column.
+    ``restriction`` (float32) and no all-zero column. ``preference`` is
+    ``(M,)`` for every pair, or ``(B, M)`` per pair (hybrid mode with the speed
+    restriction: the AR distribution scaled to a largest entry of 1).
     """
     m = np.asarray(restriction, dtype=np.float32)
+    pref = np.asarray(preference, dtype=np.float32)
     n_in = m.shape[1]
     out = np.empty_like(m)
     carry = np.zeros(m.shape[:1] + m.shape[2:], dtype=np.float32)
     for alpha in range(n_in - 1, -1, -1):
-        want = carry + preference[alpha]
+        q = pref[alpha] if pref.ndim == 1 else pref[:, alpha].reshape((-1,) + (1,) * (m.ndim - 2))
+        want = carry + q
         np.minimum(m[:, alpha], want, out=out[:, alpha])
         carry = want - out[:, alpha]
     dead = m.max(axis=1) <= forbid_threshold

@@ -415,3 +415,14 @@ def test_hybrid_without_a_usable_profile_falls_back_and_says_so(stencils):
         assert any(i.kind == kind for i in issues), (kind, issues)
         assert abs(float(prediction.mean_s_m[0, -1]) - 45.0) < 2.0  # measured acceleration 0 held: ~10 m/s for 4 s
 
+
+
+def test_hybrid_speed_restriction_slows_for_a_curve_the_profile_ignores(stencils):
+    cs = _corridor_set(_vehicle(1, 12.0, [_corridor(7, radius=15.0)]))  # 12 m/s, a 15 m radius curve 25 m ahead
+    ends = {}
+    for restricted in (False, True):
+        predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", hybrid_speed_restriction=restricted, **PLAIN), stencils=stencils)
+        prediction, _ = predictor.process(cs, acceleration_profiles=_profiles(1, 7, 0.5))
+        ends[restricted] = float(prediction.mean_s_m[0, -1])
+        np.testing.assert_allclose(prediction.position_probs[0].sum(axis=1) + prediction.outside_mass[0], 1.0, atol=1e-5)
+    assert ends[True] < ends[False] - 3.0, ends
