@@ -28,4 +28,15 @@ from __future__ import annotations
 from .config import ARInferenceConfig
 from .core import ARInference, chunk_distributions
 
-__all__ = ["ARInference", "ARInferenceConfig", "chunk_distributions"]
+__all__ = ["INPUTS", "OUTPUTS", "SPEC", "ARInference", "ARInferenceConfig", "chunk_distributions", "main"]
+
+_BINDING = ("SPEC", "INPUTS", "OUTPUTS", "main", "make_core")
+
+
+def __getattr__(name: str):
+    """The binding lives in ``__main__.py``; importing it pulls in the runtime (zenoh) only when asked."""
+    if name in _BINDING:
+        from . import __main__ as binding
+
+        return getattr(binding, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
