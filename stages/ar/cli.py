@@ -32,7 +32,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--patience", type=int, default=20, help="epochs without validation improvement before stopping (default 20)")
     p.add_argument("--batch-size", type=int, default=256)
     p.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate, the cosine schedule's peak (default 1e-3)")
-    p.add_argument("--weight-decay", type=float, default=None, help="Adam L2 weight decay (default 1.0 linear, 0.1 with --hidden)")
+    p.add_argument("--weight-decay", type=float, default=None, help="Adam L2 weight decay (default 0.3 linear, 0.1 with --hidden)")
     p.add_argument("--z-clip", type=float, default=3.0, help="clip the z-scored features to ± this (default 3)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="cpu", help="cpu (default) or cuda")
