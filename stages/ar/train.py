@@ -46,7 +46,8 @@ nets fit noise within a few epochs (about 200 cars against 38 440 weights).
 Linear, weight decay 0.03 / 0.1 / 0.3 / 1 / 3: 0.972 / 0.949 / 0.942 /
 0.952 / 0.985 (MAE 0.612 / 0.599 / 0.590 / 0.582 / 0.583); lr 1e-4: 0.967.
 Hidden 256, weight decay 0.01 / 0.03 / 0.1 / 0.3: 0.939 / 0.927 / 0.925 /
-0.983 (MAE 0.569 at 0.1). Without the z-clip: 1.033 linear, 0.947 hidden.
+0.983 (MAE 0.569 at 0.1). Without the z-clip: linear 1.033 against 0.952
+(both weight decay 1), hidden 0.947 against 0.925.
 The validation set also picks the epoch, so its figures are slightly
 optimistic; a model trained on one location (``--recording``) and scored
 on the other gives an unbiased, cross-location figure.
