@@ -533,7 +533,8 @@ class Evaluation:
         (directory / "accel_figures.txt").write_text(
             "accel_*.png (400 x 300 px): x = time after the instant, 0..4 s (one column per 0.4 s); y = acceleration, -3..2 m/s2"
             " (the input cells; a grey line per m/s2, darker at 0); background: the 10 normal distributions of the AR profile over the input cells, one column per 0.4 s,"
-            " darker blue = more probable; red: AR output (40 values); black: true acceleration (from the smoothed true speed)\n"
+            " darker blue = more probable; red: AR output (40 values); black: true acceleration (the training targets' definition:"
+            " Savitzky-Golay over 1.5 s of true positions)\n"
             + "\n".join(lines) + "\n"
         )
         return written
@@ -633,25 +634,23 @@ def _future(track: tuple[np.ndarray, np.ndarray] | None, stamp_ns: int, tau_ns: 
 
 
 def _true_acceleration(track: tuple[np.ndarray, np.ndarray] | None, stamp_ns: int, n_steps: int, step_s: float = 0.1) -> np.ndarray | None:
-    """The true longitudinal acceleration at stamp + j·step, j = 1..n (Savitzky–Golay speed and its slope), or None."""
-    from scipy.signal import savgol_filter
+    """The true longitudinal acceleration at stamp + j·step, j = 1..n, as the AR training targets define it
+    (``stages.ar.dataset.smoothed_acceleration`` with its default window and edges), or None where unknown."""
+    from stages.ar.dataset import DatasetConfig, smoothed_acceleration
 
     if track is None or n_steps <= 0:
         return None
     stamps, xy = track
     step_ns = int(round(step_s * 1e9))
-    lo = int(np.searchsorted(stamps, stamp_ns - 10 * step_ns - _MS))
-    hi = int(np.searchsorted(stamps, stamp_ns + (n_steps + 10) * step_ns + _MS))
-    t, p = stamps[lo:hi], xy[lo:hi]
-    if t.size < n_steps + 12 or np.any(np.abs(np.diff(t) - step_ns) > _MS):
-        return None
-    vel = savgol_filter(p, 7, 2, deriv=1, delta=step_s, axis=0)
-    accel = savgol_filter(np.hypot(vel[:, 0], vel[:, 1]), 7, 2, deriv=1, delta=step_s)
+    cfg = DatasetConfig()
+    window = max(int(round(cfg.target_window_s / step_s)), 3) | 1
+    accel = smoothed_acceleration(stamps, xy, step_ns, window, int(round(cfg.target_edge_s / step_s)))
     want = stamp_ns + step_ns * np.arange(1, n_steps + 1)
-    i = np.searchsorted(t, want - _MS)
-    if np.any(i >= t.size) or np.any(np.abs(t[np.minimum(i, t.size - 1)] - want) > _MS):
+    i = np.searchsorted(stamps, want - _MS)
+    if np.any(i >= stamps.size) or np.any(np.abs(stamps[np.minimum(i, stamps.size - 1)] - want) > _MS):
         return None
-    return accel[i]
+    out = accel[i]
+    return out if np.all(np.isfinite(out)) else None
 
 
 def _accel_figure(e: dict[str, Any]) -> "_Canvas":
