@@ -34,7 +34,7 @@ class MarkovPredictionConfig(ConfigMixin):
     initial_box: str = "particles"
     # hybrid mode (METHOD.md §3.2): how the AR distributions enter the chain
     hybrid_input: str = "psi"
-    hybrid_speed_restriction: bool = False
+    hybrid_speed_restriction: bool = True
     # discretisation (the stencils are cached per ds, dv, v_max, τ)
     ds_m: float = 1.0
     dv_mps: float = 0.5

@@ -685,8 +685,9 @@ class MarkovPredictor:
                 steps.append(None)  # the input after the last step does not change any output
             elif lam_speed is not None:
                 pref = lam[:, k + 1] / np.maximum(lam[:, k + 1].max(axis=1, keepdims=True), 1e-12)
-                r = pr.combine_with_preference(lam_speed, pref, cfg.forbid_threshold)
-                steps.append(InputPriority(weights=lambda lo, hi, r=r: r[..., lo:hi]))
+                steps.append(InputPriority(  # built on the step's active s-window only
+                    weights=lambda lo, hi, pref=pref: pr.combine_with_preference(lam_speed[..., lo:hi], pref, cfg.forbid_threshold)
+                ))
             elif cfg.hybrid_input == "direct":
                 steps.append(InputReplaced(probs=lam[:, k + 1]))
             else:
