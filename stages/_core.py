@@ -132,3 +132,27 @@ class ConfigMixin:
     @classmethod
     def from_params(cls, params: Mapping[str, Any] | None = None, where: str = "params"):
         return config_from_params(cls, params, where)
+
+
+class _NoBar:
+    """What ``progress_bar`` returns when disabled: the tqdm methods the tools call, doing nothing."""
+
+    def update(self, n: int = 1) -> None:
+        pass
+
+    def set_postfix(self, **kwargs: Any) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def progress_bar(total: int, enabled: bool, *, unit: str, desc: str):
+    """A tqdm bar on stderr (``iamp eval``, ``iamp train``), or a silent stand-in."""
+    if not enabled:
+        return _NoBar()
+    import sys
+
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit=unit, desc=desc, file=sys.stderr, dynamic_ncols=True)

@@ -87,6 +87,8 @@ import numpy as np
 
 from bus_schemas import AgentType, CorridorSet, MatchStatus, RelationSet, SceneInfo, TrackFrame
 
+from ._core import progress_bar
+
 from .corridors import CorridorBuilder, CorridorsConfig, SceneMaps
 from .datasets import DEFAULT_DATA_DIR, Recording, discover, load_recording
 from .markov import MarkovGridConfig, load_or_build_stencils
@@ -287,7 +289,7 @@ class Evaluation:
         for rec in recordings:
             for seq in rec.sequences:
                 total += seq.n_frames if not self.config.max_frames_per_sequence else min(seq.n_frames, self.config.max_frames_per_sequence)
-        bar = _progress(total, self.config.progress)
+        bar = progress_bar(total, self.config.progress, unit="frame", desc="iamp eval")
         try:
             for rec in recordings:
                 self.recordings.append(rec.name)
@@ -812,20 +814,6 @@ def _json_safe(value: Any) -> Any:
 # --------------------------------------------------------------------------- progress and figures
 
 
-class _NoBar:
-    def update(self, n: int) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
-def _progress(total: int, enabled: bool):
-    if not enabled:
-        return _NoBar()
-    from tqdm import tqdm
-
-    return tqdm(total=total, unit="frame", desc="iamp eval", file=sys.stderr, dynamic_ncols=True)
 
 
 _PALETTE = [(228, 26, 28), (77, 175, 74), (152, 78, 163), (255, 127, 0), (166, 86, 40), (247, 129, 191), (0, 160, 160), (160, 160, 0)]

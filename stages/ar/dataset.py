@@ -74,11 +74,12 @@ feature config, ``FEATURE_NAMES`` and ``DATASET_VERSION``.
 
 from __future__ import annotations
 
+from stages._core import progress_bar
+
 import dataclasses
 import hashlib
 import json
 import math
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -430,7 +431,7 @@ def build_dataset(cfg: DatasetConfig, *, cache_dir: Path | None = None, progress
         if rec.map_path is None:
             raise DatasetError(f"recording {rec.name} has no map: expected maps/{rec.name}.osm in {cfg.data_dir}")
     total = sum(min(s.n_frames, cfg.max_frames_per_sequence) if cfg.max_frames_per_sequence else s.n_frames for r in recordings for s in r.sequences)
-    bar = _progress(total, progress)
+    bar = progress_bar(total, progress, unit="frame", desc="iamp train: features")
     out = _Collector()
     scene_maps = SceneMaps()
     seq_names: list[str] = []
@@ -467,20 +468,6 @@ def build_dataset(cfg: DatasetConfig, *, cache_dir: Path | None = None, progress
     return ds
 
 
-class _NoBar:
-    def update(self, n: int) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
-def _progress(total: int, enabled: bool):
-    if not enabled:
-        return _NoBar()
-    from tqdm import tqdm
-
-    return tqdm(total=total, unit="frame", desc="iamp train: features", file=sys.stderr, dynamic_ncols=True)
 
 
 __all__ = ["ARDataset", "DATASET_VERSION", "DatasetConfig", "build_dataset", "dataset_key", "smoothed_acceleration"]

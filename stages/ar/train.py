@@ -64,6 +64,8 @@ message says what to fix).
 
 from __future__ import annotations
 
+from stages._core import progress_bar
+
 import copy
 import dataclasses
 import datetime as _dt
@@ -302,7 +304,7 @@ def fit(cfg: TrainConfig, train: ARDataset, val: ARDataset, log=None) -> tuple[A
     iters = max(1, math.ceil(n / cfg.batch_size))
     best_loss, best_epoch, best_state, stale = math.inf, -1, None, 0
     history = []
-    bar = _epoch_bar(cfg.epochs, cfg.progress)
+    bar = progress_bar(cfg.epochs, cfg.progress, unit="epoch", desc="iamp train")
     t0 = time.perf_counter()
     try:
         for epoch in range(cfg.epochs):
@@ -478,23 +480,6 @@ def _json_safe(value: Any) -> Any:
     return value
 
 
-class _NoBar:
-    def update(self, n: int) -> None:
-        pass
-
-    def set_postfix(self, **kwargs) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
-def _epoch_bar(total: int, enabled: bool):
-    if not enabled:
-        return _NoBar()
-    from tqdm import tqdm
-
-    return tqdm(total=total, unit="epoch", desc="iamp train", file=sys.stderr, dynamic_ncols=True)
 
 
 __all__ = ["DEFAULT_CACHE_DIR", "DEFAULT_OUT", "SPLITS", "TrainConfig", "compare", "error_table", "fit",
