@@ -21,7 +21,7 @@ K729, sequence 013, the frame with the most cars, <tmp>/corridors_frame.png.
 
 matplotlib is not installed in the project's environment, so this renders
 with a small numpy rasteriser (scanline polygon fill, thick segments, a 3x5
-bitmap font) and writes the PNG with zlib and struct. Hook for later
+bitmap font) and writes the PNG with stages.raster (zlib and struct). Hook for later
 overlays (conflict points from the relations stage): `render_frame(...,
 overlays=[fn])` calls each `fn(canvas)` last; `Canvas.marker` and
 `Canvas.polyline` draw in map metres.
@@ -36,11 +36,9 @@ from __future__ import annotations
 
 import argparse
 import math
-import struct
 import sys
 import tempfile
 import xml.etree.ElementTree as ElementTree
-import zlib
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -53,6 +51,7 @@ from bus_schemas import AgentType, CorridorSet, Header, MatchStatus, SceneInfo, 
 from stages.corridors import CorridorBuilder, CorridorsConfig  # noqa: E402
 from stages.datasets import load_recording  # noqa: E402
 from stages.maps import RoadMap  # noqa: E402
+from stages.raster import MapRaster, write_png  # noqa: E402
 from stages.relations import RelationExtractor, RelationsConfig  # noqa: E402
 
 PALETTE = np.array(
@@ -76,35 +75,8 @@ _FONT = {  # 3x5 glyphs, rows top to bottom, bits left to right
 # --------------------------------------------------------------------------- raster canvas
 
 
-class Canvas:
-    """An RGB image over a map window: x east, y north, `resolution_m` metres per pixel."""
-
-    def __init__(self, x_min_m: float, y_min_m: float, x_max_m: float, y_max_m: float, resolution_m: float) -> None:
-        self.x0, self.y1, self.res = x_min_m, y_max_m, resolution_m
-        self.width = int(math.ceil((x_max_m - x_min_m) / resolution_m))
-        self.height = int(math.ceil((y_max_m - y_min_m) / resolution_m))
-        self.rgb = np.full((self.height, self.width, 3), 255, dtype=np.uint8)
-
-    def to_px(self, points_m) -> np.ndarray:
-        p = np.asarray(points_m, dtype=np.float64).reshape(-1, 2)
-        return np.column_stack([(p[:, 0] - self.x0) / self.res, (self.y1 - p[:, 1]) / self.res])
-
-    def fill_polygon(self, points_m, colour) -> None:
-        """Even-odd scanline fill of a polygon (n, 2) in metres."""
-        px = self.to_px(points_m)
-        a, b = px, np.roll(px, -1, axis=0)
-        rows = np.arange(max(0, int(px[:, 1].min())), min(self.height, int(px[:, 1].max()) + 1))
-        for row in rows:
-            yc = row + 0.5
-            straddle = (a[:, 1] > yc) != (b[:, 1] > yc)
-            if not straddle.any():
-                continue
-            aa, bb = a[straddle], b[straddle]
-            xs = np.sort(aa[:, 0] + (yc - aa[:, 1]) * (bb[:, 0] - aa[:, 0]) / (bb[:, 1] - aa[:, 1]))
-            for x_start, x_end in zip(xs[0::2], xs[1::2]):
-                c0, c1 = max(0, int(math.ceil(x_start - 0.5))), min(self.width, int(math.floor(x_end - 0.5)) + 1)
-                if c1 > c0:
-                    self.rgb[row, c0:c1] = colour
+class Canvas(MapRaster):
+    """``MapRaster`` plus pixel-width polylines, markers and a 3x5 font for labels."""
 
     def polyline(self, points_m, colour, width_px: float = 1.0, dash_px: float | None = None) -> None:
         """Thick segments (round joins); optional dashes of `dash_px` on, `dash_px` off."""
@@ -158,19 +130,6 @@ class Canvas:
         x, y = int(cx - w / 2), int(cy - 2.5 * scale)
         self.rgb[max(0, y - 1) : max(0, y + 5 * scale + 1), max(0, x - 1) : max(0, x + w)] = (255, 255, 255)
         self.text(x, y, text, colour, scale)
-
-
-def write_png(path: Path, rgb: np.ndarray) -> None:
-    """An 8-bit RGB PNG with the standard library (filter 0 on every row)."""
-    height, width, _ = rgb.shape
-    raw = b"".join(b"\x00" + rgb[row].tobytes() for row in range(height))
-
-    def chunk(tag: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
-
-    png = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0))
-    png += chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b"")
-    path.write_bytes(png)
 
 
 # --------------------------------------------------------------------------- map outlines

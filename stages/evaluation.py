@@ -75,10 +75,8 @@ import collections
 import dataclasses
 import json
 import math
-import struct
 import sys
 import time
-import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -88,6 +86,7 @@ import numpy as np
 from bus_schemas import AgentType, CorridorSet, MatchStatus, RelationSet, SceneInfo, TrackFrame
 
 from ._core import progress_bar
+from .raster import MapRaster
 
 from .corridors import CorridorBuilder, CorridorsConfig, SceneMaps
 from .datasets import DEFAULT_DATA_DIR, Recording, discover, load_recording
@@ -819,34 +818,8 @@ def _json_safe(value: Any) -> Any:
 _PALETTE = [(228, 26, 28), (77, 175, 74), (152, 78, 163), (255, 127, 0), (166, 86, 40), (247, 129, 191), (0, 160, 160), (160, 160, 0)]
 
 
-class _Canvas:
-    """An RGB image over a map window: x east, y north, ``resolution_m`` metres per pixel."""
-
-    def __init__(self, x_min_m: float, y_min_m: float, x_max_m: float, y_max_m: float, resolution_m: float) -> None:
-        self.x0, self.y1, self.res = x_min_m, y_max_m, resolution_m
-        self.width = max(int(math.ceil((x_max_m - x_min_m) / resolution_m)), 1)
-        self.height = max(int(math.ceil((y_max_m - y_min_m) / resolution_m)), 1)
-        self.rgb = np.full((self.height, self.width, 3), 255, dtype=np.uint8)
-
-    def to_px(self, points_m) -> np.ndarray:
-        p = np.asarray(points_m, dtype=np.float64).reshape(-1, 2)
-        return np.column_stack([(p[:, 0] - self.x0) / self.res, (self.y1 - p[:, 1]) / self.res])
-
-    def fill_polygon(self, points_m, colour) -> None:
-        """Even-odd scanline fill."""
-        px = self.to_px(points_m)
-        a, b = px, np.roll(px, -1, axis=0)
-        for row in range(max(0, int(px[:, 1].min())), min(self.height, int(px[:, 1].max()) + 1)):
-            yc = row + 0.5
-            straddle = (a[:, 1] > yc) != (b[:, 1] > yc)
-            if not straddle.any():
-                continue
-            aa, bb = a[straddle], b[straddle]
-            xs = np.sort(aa[:, 0] + (yc - aa[:, 1]) * (bb[:, 0] - aa[:, 0]) / (bb[:, 1] - aa[:, 1]))
-            for x_start, x_end in zip(xs[0::2], xs[1::2]):
-                c0, c1 = max(0, int(math.ceil(x_start - 0.5))), min(self.width, int(math.floor(x_end - 0.5)) + 1)
-                if c1 > c0:
-                    self.rgb[row, c0:c1] = colour
+class _Canvas(MapRaster):
+    """The evaluation's figures: ``MapRaster`` plus discs, thick polylines and grid cells."""
 
     def disc(self, x_m: float, y_m: float, radius_m: float, colour) -> None:
         (cx, cy), r = self.to_px([x_m, y_m])[0], radius_m / self.res
@@ -877,14 +850,6 @@ class _Canvas:
             if r1 > r0 and c1 > c0:
                 self.rgb[r0:r1, c0:c1] = colour
 
-    def write_png(self, path: Path) -> None:
-        raw = b"".join(b"\x00" + self.rgb[r].tobytes() for r in range(self.height))
-
-        def chunk(tag: bytes, data: bytes) -> bytes:
-            return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
-
-        header = struct.pack(">IIBBBBB", self.width, self.height, 8, 2, 0, 0, 0)
-        path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
 
 
 def _draw_grid(canvas: _Canvas, prediction: FramePrediction, step: int) -> None:
