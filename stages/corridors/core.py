@@ -18,6 +18,7 @@ import numpy as np
 
 from bus_schemas import AgentType, Corridor, CorridorSet, Header, MatchStatus, SceneInfo, TrackFrame, VehicleCorridors
 from stages._core import ConfigMixin, Issue, StageResult, check_ranges
+from stages.kinematic_state import EstimatorConfig, KinematicEstimator, KinematicState
 from stages.maps import Projection, RoadMap, load_map, parse_projection, projection_for_location, wrap_angle_rad
 
 from .matching import LaneletIndex, LaneletMatch, select_lanelets
@@ -212,6 +213,8 @@ class CorridorBuilder:
         self._map: SceneMap | None = None
         self._tracks: dict[int, _Track] = {}
         self._last_stamp_ns: int | None = None
+        self.estimator = KinematicEstimator(EstimatorConfig())
+        self._estimated_ns: dict[int, int] = {}
 
     @property
     def scene_map(self) -> SceneMap | None:
@@ -244,31 +247,43 @@ class CorridorBuilder:
         entries: list[VehicleCorridors | None] = [None] * n
         to_match: list[tuple[int, int, AgentType, _Kinematics]] = []
         seen: set[int] = set()
+        states: dict[int, KinematicState] = {}
         for row in range(n):
             track_id = int(frame.track_ids[row])
             agent_type = self._agent_type(int(frame.agent_types[row]), track_id, issues)
             vx, vy = float(frame.vx_mps[row]), float(frame.vy_mps[row])
             reported_speed = math.hypot(vx, vy) if math.isfinite(vx) and math.isfinite(vy) else math.nan
+            unknown = KinematicState(math.nan, math.nan, math.nan, math.nan, False, "unknown", reported_speed)
             if track_id in seen:
                 issues.append(Issue("duplicate_track", track_id, "track id appears twice in one frame; later row skipped"))
-                entries[row] = _entry(track_id, agent_type, MatchStatus.BAD_STATE, reported_speed)
+                entries[row] = _entry(track_id, agent_type, MatchStatus.BAD_STATE, unknown)
                 continue
             seen.add(track_id)
+            x, y = float(frame.x_m[row]), float(frame.y_m[row])
+            if math.isfinite(x) and math.isfinite(y):
+                state = self.estimator.update(track_id, stamp, x, y, vx, vy, issues)
+                self._estimated_ns[track_id] = stamp
+            else:
+                state = unknown
+            states[row] = state
             if not agent_type.is_vehicle:
-                entries[row] = _entry(track_id, agent_type, MatchStatus.NOT_A_VEHICLE, reported_speed)
+                entries[row] = _entry(track_id, agent_type, MatchStatus.NOT_A_VEHICLE, state)
                 continue
-            kin = self._kinematics(frame, row, track_id, stamp)
+            kin = self._kinematics(frame, row, track_id, stamp, state)
             if kin is None:
                 detail = f"non-finite state x={frame.x_m[row]} y={frame.y_m[row]} vx={vx} vy={vy} yaw={frame.yaw_rad[row]}"
                 issues.append(Issue("bad_state", track_id, detail))
-                entries[row] = _entry(track_id, agent_type, MatchStatus.BAD_STATE, reported_speed)
+                entries[row] = _entry(track_id, agent_type, MatchStatus.BAD_STATE, state)
                 continue
             if scene_map is None or scene_map.road_map is None:
-                entries[row] = _entry(track_id, agent_type, MatchStatus.OFF_MAP, kin.speed_mps)
+                entries[row] = _entry(track_id, agent_type, MatchStatus.OFF_MAP, state, kin.speed_mps)
                 continue
             to_match.append((row, track_id, agent_type, kin))
         if to_match:
-            self._match_and_build(frame, scene_map, to_match, entries, issues)
+            self._match_and_build(frame, scene_map, to_match, entries, issues, states)
+        warning = self.estimator.warning()
+        if warning is not None and self.log is not None:
+            self.log.warning("%s", warning)
         header = Header(
             run_id=frame.header.run_id,
             frame_index=frame.header.frame_index,
@@ -288,6 +303,8 @@ class CorridorBuilder:
             self._scene_id = scene.scene_id
             self._map = self.scene_maps.get(scene, self.config.projection)
             self._tracks.clear()
+            self.estimator.reset()
+            self._estimated_ns.clear()
             for problem in self._map.problems:
                 kind = "map_sha256_mismatch" if problem.startswith("map_sha256_mismatch") else "map_problem"
                 issues.append(Issue(kind, -1, problem))
@@ -312,11 +329,16 @@ class CorridorBuilder:
         if self._last_stamp_ns is not None and stamp_ns < self._last_stamp_ns:
             issues.append(Issue("stamp_backwards", -1, f"stamp {stamp_ns} < {self._last_stamp_ns}: track state reset"))
             self._tracks.clear()
+            self.estimator.reset()
+            self._estimated_ns.clear()
         self._last_stamp_ns = stamp_ns
         timeout_ns = self.config.track_timeout_s / _NS
         stale = [k for k, t in self._tracks.items() if stamp_ns - t.last_stamp_ns > timeout_ns]
         for k in stale:
             del self._tracks[k]
+        for k in [k for k, t in self._estimated_ns.items() if stamp_ns - t > timeout_ns]:
+            del self._estimated_ns[k]
+            self.estimator.forget(k)
 
     @staticmethod
     def _agent_type(value: int, track_id: int, issues: list[Issue]) -> AgentType:
@@ -330,8 +352,11 @@ class CorridorBuilder:
 
     # ----- kinematics ------------------------------------------------------------
 
-    def _kinematics(self, frame: TrackFrame, row: int, track_id: int, stamp: int) -> _Kinematics | None:
+    def _kinematics(self, frame: TrackFrame, row: int, track_id: int, stamp: int, state: KinematicState) -> _Kinematics | None:
         """Speed and heading for matching; heading from the track's own motion when they disagree.
+
+        The speed is the estimator's (from positions; the reported one at a
+        track's first sample).
 
         The motion heading is the chord from the newest earlier position at
         least `heading_min_travel_m` away (within `heading_window_s`). The
@@ -369,7 +394,7 @@ class CorridorBuilder:
         track.history.append((stamp, x, y))
         track.last_stamp_ns = stamp
         velocity_ok = math.isfinite(vx) and math.isfinite(vy)
-        speed = math.hypot(vx, vy) if velocity_ok else history_speed
+        speed = state.speed_mps if math.isfinite(state.speed_mps) else history_speed
         if speed is None:
             return None
         yaw_ok = math.isfinite(yaw)
@@ -390,7 +415,7 @@ class CorridorBuilder:
 
     # ----- matching and corridors -----------------------------------------------
 
-    def _match_and_build(self, frame: TrackFrame, scene_map: SceneMap, to_match, entries, issues: list[Issue]) -> None:
+    def _match_and_build(self, frame: TrackFrame, scene_map: SceneMap, to_match, entries, issues: list[Issue], states) -> None:
         cfg = self.config
         index = scene_map.index
         rows = [r for r, *_ in to_match]
@@ -417,7 +442,7 @@ class CorridorBuilder:
                     issues.append(Issue("off_map_heading", track_id, f"near car lanelets but heading {kin.heading_rad:.2f} rad agrees with none (wrong way or manoeuvring)"))
                 else:
                     issues.append(Issue("off_map", track_id, f"no car lanelet within {cfg.match_max_distance_m} m of ({points[k, 0]:.1f}, {points[k, 1]:.1f})"))
-                entries[row] = _entry(track_id, agent_type, MatchStatus.OFF_MAP, kin.speed_mps)
+                entries[row] = _entry(track_id, agent_type, MatchStatus.OFF_MAP, states[row], kin.speed_mps)
                 continue
             corridors, truncated = self._corridors(scene_map, track, points[k], kin, matches)
             if truncated:
@@ -432,6 +457,7 @@ class CorridorBuilder:
                 match_distance_m=matches[0].centre_distance_m,
                 speed_mps=kin.speed_mps,
                 corridors=corridors,
+                **_state_fields(states[row]),
             )
 
     @staticmethod
@@ -593,13 +619,28 @@ class CorridorBuilder:
                 taken_ids.add(cid)
 
 
-def _entry(track_id: int, agent_type: AgentType, status: MatchStatus, speed_mps: float) -> VehicleCorridors:
+def _state_fields(state: KinematicState) -> dict:
+    return {
+        "vx_mps": state.vx_mps,
+        "vy_mps": state.vy_mps,
+        "accel_mps2": state.accel_mps2,
+        "standing": state.standing,
+        "reported_speed_mps": state.reported_speed_mps,
+    }
+
+
+def _entry(
+    track_id: int, agent_type: AgentType, status: MatchStatus, state: KinematicState, speed_mps: float | None = None
+) -> VehicleCorridors:
+    """An entry without corridors; the speed is the state's unless given (a fallback from matching)."""
+    speed = state.speed_mps if speed_mps is None else speed_mps
     return VehicleCorridors(
         track_id=track_id,
         agent_type=agent_type,
         status=status,
         lanelet_id=-1,
         match_distance_m=-1.0,
-        speed_mps=float(speed_mps) if speed_mps is not None else math.nan,
+        speed_mps=float(speed),
         corridors=(),
+        **_state_fields(state),
     )

@@ -322,7 +322,11 @@ class IntentionFilter:
             speed_ok = math.isfinite(speed)
             if not speed_ok:
                 issues.append(Issue("nan_velocity", vehicle.track_id, "no finite speed: speed term left out"))
-            heading = yaw if math.isfinite(yaw) else math.atan2(vy, vx)
+            # heading: the direction of the velocity estimated from positions when moving, else the yaw
+            if speed_ok and speed >= cfg.heading_min_speed_mps and math.isfinite(vehicle.vx_mps) and math.isfinite(vehicle.vy_mps):
+                heading = math.atan2(vehicle.vy_mps, vehicle.vx_mps)
+            else:
+                heading = yaw if math.isfinite(yaw) else math.atan2(vy, vx)
             heading_ok = math.isfinite(heading) and speed_ok and speed >= cfg.heading_min_speed_mps
             inputs.append(VehicleInput(track_id=vehicle.track_id, corridors=tuple(good), lanelet_id=int(vehicle.lanelet_id)))
             measurements.append(_Measurement(x, y, heading, speed, heading_ok, speed_ok))
@@ -536,9 +540,9 @@ class IntentionFilter:
                 VehicleBelief(
                     track_id=item.track_id,
                     corridors=tuple(corridors),
-                    p_stop=float(p_stop[v]),
-                    p_expected_stop=float(p_expected[v]),
-                    p_violation=float(p_violation[v]),
+                    p_stop=min(float(p_stop[v]), 1.0),  # sums of particle weights may round past 1
+                    p_expected_stop=min(float(p_expected[v]), 1.0),
+                    p_violation=min(float(p_violation[v]), 1.0),
                     p_lane_change=min(lane_change, 1.0),
                     expected_manoeuvre=expected,
                     intersection_distance_m=entry_distance,

@@ -328,12 +328,17 @@ class RelationExtractor:
             except ValueError:
                 agent_type = AgentType.UNKNOWN
             length[row] = DEFAULT_SIZES_M[agent_type][0]
-        vx, vy = np.asarray(frame.vx_mps, np.float64), np.asarray(frame.vy_mps, np.float64)
+        # velocity: the corridors stage's estimate from positions where it has one, the reported one otherwise
+        vx, vy = np.array(frame.vx_mps, np.float64), np.array(frame.vy_mps, np.float64)
+        first_row = {int(track_ids[r]): int(r) for r in first}
+        for vehicle in corridor_set.vehicles:
+            row = first_row.get(vehicle.track_id)
+            if row is not None and math.isfinite(vehicle.vx_mps) and math.isfinite(vehicle.vy_mps):
+                vx[row], vy[row] = vehicle.vx_mps, vehicle.vy_mps
         speed = np.hypot(vx, vy)
         heading = np.where(speed >= self.config.stopped_speed_mps, np.arctan2(vy, vx), np.asarray(frame.yaw_rad, np.float64))
         known = np.isfinite(speed)
         speed = np.where(known, speed, 0.0)
-        first_row = {int(track_ids[r]): int(r) for r in first}
         with_corridors = np.zeros(n, dtype=bool)
         for vehicle in corridor_set.vehicles:
             row = first_row.get(vehicle.track_id)

@@ -100,10 +100,12 @@ def corridor_set() -> bs.CorridorSet:
         scene_id="0123456789abcdef",
         vehicles=(
             bs.VehicleCorridors(
-                track_id=100, agent_type=bs.AgentType.CAR, status=bs.MatchStatus.MATCHED, lanelet_id=-1001, match_distance_m=0.0, speed_mps=3.5, corridors=(cor,)
+                track_id=100, agent_type=bs.AgentType.CAR, status=bs.MatchStatus.MATCHED, lanelet_id=-1001, match_distance_m=0.0, speed_mps=3.5, corridors=(cor,),
+                vx_mps=2.5, vy_mps=2.449489742783178, accel_mps2=-0.5, standing=False, reported_speed_mps=1.75
             ),
             bs.VehicleCorridors(
-                track_id=102, agent_type=bs.AgentType.PEDESTRIAN, status=bs.MatchStatus.NOT_A_VEHICLE, lanelet_id=-1, match_distance_m=-1.0, speed_mps=1.25, corridors=()
+                track_id=102, agent_type=bs.AgentType.PEDESTRIAN, status=bs.MatchStatus.NOT_A_VEHICLE, lanelet_id=-1, match_distance_m=-1.0, speed_mps=0.0, corridors=(),
+                vx_mps=0.0, vy_mps=0.0, accel_mps2=0.0, standing=True, reported_speed_mps=1.25
             ),
         ),
     )
