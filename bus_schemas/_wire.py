@@ -14,6 +14,26 @@ the schema name, the version, that every field is present and no field is
 unknown, every type, array dtypes and shapes (named dims must agree across the
 fields of one object), and the payload size. Anything wrong raises a
 ``SchemaError`` subclass with a message that names the schema and the field.
+
+Hostile payloads. Decoding never raises anything but a ``SchemaError`` and
+never allocates more than the payload's size allows:
+
+- every message class states ``MAX_BYTES`` (default ``DEFAULT_MAX_BYTES``,
+  1 MiB), checked before msgpack unpacking; no class may state more than
+  ``MAX_PAYLOAD_BYTES``. The schema is read from the envelope's first bytes
+  (every encoder writes ``schema`` and ``v`` first), so ``decode_any`` and
+  ``unpack_envelope`` hold a payload to its own schema's limit, and one whose
+  schema cannot be read there to ``DEFAULT_MAX_BYTES``. Worst case, a payload
+  of nothing but empty containers costs about 70 bytes of memory per payload
+  byte while it is unpacked, which is why the limits are sized to the message;
+- msgpack's ``max_*_len`` options bound every string, bin, array and map;
+- an array's dtype, shape and byte length are checked before numpy sees them:
+  a known dtype string, one non-negative int per schema dim, each at most
+  ``MAX_ARRAY_DIM``, the extent (zero dims counted as 1) times the itemsize
+  at most ``MAX_PAYLOAD_BYTES``, and the product of the shape times the
+  itemsize equal to the byte length;
+- any other error while building a field (numpy, a dataclass) becomes a
+  ``MalformedPayload`` naming the schema and the field.
 """
 
 from __future__ import annotations
@@ -29,9 +49,16 @@ from typing import Any, Annotated, ClassVar
 import msgpack
 import numpy as np
 
-from .errors import MalformedPayload, PayloadTooLarge, UnknownSchema, WrongSchema, WrongVersion
+from .errors import MalformedPayload, PayloadTooLarge, SchemaError, UnknownSchema, WrongSchema, WrongVersion
 
-MAX_PAYLOAD_BYTES = 64 * 1024 * 1024
+MiB = 1024 * 1024
+MAX_PAYLOAD_BYTES = 64 * MiB  # ceiling: checked first, and no class may state a larger MAX_BYTES
+DEFAULT_MAX_BYTES = 1 * MiB  # Message.MAX_BYTES unless a class states its own
+MAX_ARRAY_DIM = 2**31 - 1  # largest size of one array dim
+MAX_STR_BYTES = 1 * MiB  # longest msgpack string (ids, modes, paths, projections)
+MAX_ARRAY_LEN = 1_000_000  # longest msgpack array (tuples of objects; ndarrays travel as bin)
+MAX_MAP_LEN = 100_000  # largest msgpack map (objects, dict fields)
+_HEAD_BYTES = 256  # where schema and version must be found to be read before unpacking
 _ALLOWED_DTYPES = frozenset(
     ["bool", "uint8", "int8", "uint16", "int16", "uint32", "int32", "uint64", "int64", "float16", "float32", "float64"]
 )
@@ -59,6 +86,10 @@ class Message:
     __slots__ = ()
     SCHEMA: ClassVar[str]
     VERSION: ClassVar[int]
+    # Largest payload of this schema, bytes, checked before unpacking (see the module
+    # docstring). Default 1 MiB; a class sized otherwise states its own with the sizes it
+    # was sized from.
+    MAX_BYTES: ClassVar[int] = DEFAULT_MAX_BYTES
 
     def encode(self) -> bytes:
         body = _encode_obj(self, type(self).SCHEMA)
@@ -67,22 +98,31 @@ class Message:
     @classmethod
     def decode(cls, data: bytes, *, where: str = "") -> "Message":
         """Decode ``data`` as exactly this class; ``where`` (a key) goes into errors."""
-        schema, version, body = unpack_envelope(data, where=where)
+        schema, version, body = unpack_envelope(data, where=where, expect=cls)
         if schema != cls.SCHEMA:
-            raise WrongSchema(f"{schema} v{version}{_at(where)}: expected {cls.SCHEMA}")
+            raise WrongSchema(f"{_short(schema)} v{version}{_at(where)}: expected {cls.SCHEMA}")
         return cls._from_body(version, body, where)
 
     @classmethod
     def _from_body(cls, version: int, body: Any, where: str) -> "Message":
         if version != cls.VERSION:
             raise WrongVersion(f"{cls.SCHEMA} v{version}{_at(where)}: this build reads v{cls.VERSION}")
-        return _decode_obj(cls, body, f"{cls.SCHEMA}", where)
+        try:
+            return _decode_obj(cls, body, f"{cls.SCHEMA}", where)
+        except SchemaError:
+            raise
+        except Exception as exc:  # a last net: field decoding converts its own errors already
+            raise MalformedPayload(f"{cls.SCHEMA}{_at(where)}: {type(exc).__name__}: {_short(exc)}") from None
 
 
 def register(cls: type[Message]) -> type[Message]:
     """Class decorator: add a message class to ``REGISTRY`` (after ``@dataclass``)."""
     if not (isinstance(getattr(cls, "SCHEMA", None), str) and isinstance(getattr(cls, "VERSION", None), int)):
         raise TypeError(f"{cls.__name__} needs SCHEMA: str and VERSION: int class constants")
+    if not (type(cls.MAX_BYTES) is int and 0 < cls.MAX_BYTES <= MAX_PAYLOAD_BYTES):
+        raise TypeError(f"{cls.__name__}.MAX_BYTES must be an int in 1..{MAX_PAYLOAD_BYTES}")
+    if len(msgpack.packb({"schema": cls.SCHEMA, "v": cls.VERSION})) > _HEAD_BYTES:
+        raise TypeError(f"{cls.__name__}.SCHEMA is too long to be read before unpacking")
     if cls.SCHEMA in REGISTRY and REGISTRY[cls.SCHEMA] is not cls:
         raise TypeError(f"schema {cls.SCHEMA} registered twice")
     REGISTRY[cls.SCHEMA] = cls
@@ -93,26 +133,78 @@ def _at(where: str) -> str:
     return f" on {where}" if where else ""
 
 
-def unpack_envelope(data: bytes, *, where: str = "") -> tuple[str, int, dict]:
-    """Return (schema, version, body) of a payload, checking only the envelope."""
+def _short(value: Any, limit: int = 120) -> str:
+    """``str(value)`` cut to ``limit`` characters: hostile values stay out of log lines whole."""
+    text = str(value)
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} chars)"
+
+
+def _read_head(data: bytes | bytearray | memoryview) -> tuple[str, int] | None:
+    """(schema, version) from the first ``_HEAD_BYTES`` of an envelope, without unpacking the body.
+
+    None unless the payload starts as every encoder writes it: a 3-entry map
+    whose first keys are ``schema`` (a str) and ``v`` (an int).
+    """
+    head = bytes(data[:_HEAD_BYTES])
+    up = msgpack.Unpacker(
+        raw=False, max_buffer_size=_HEAD_BYTES, max_str_len=_HEAD_BYTES, max_bin_len=0, max_array_len=0, max_map_len=0, max_ext_len=0
+    )
+    try:
+        up.feed(head)
+        if up.read_map_header() != 3 or up.unpack() != "schema":
+            return None
+        schema = up.unpack()
+        if up.unpack() != "v":
+            return None
+        version = up.unpack()
+    except Exception:  # out of data, wrong types, limits: just not readable here
+        return None
+    if isinstance(schema, str) and type(version) is int:
+        return schema, version
+    return None
+
+
+def unpack_envelope(data: bytes, *, where: str = "", expect: type["Message"] | None = None) -> tuple[str, int, dict]:
+    """Return (schema, version, body) of a payload, checking only the envelope.
+
+    The payload is held to ``expect.MAX_BYTES`` when given (a payload whose
+    head names another schema raises ``WrongSchema`` before unpacking), else
+    to the ``MAX_BYTES`` of the registered schema its head names, else to
+    ``DEFAULT_MAX_BYTES``; all before msgpack unpacks anything.
+    """
+    what = f"{expect.SCHEMA} payload" if expect is not None else "payload"
     if not isinstance(data, (bytes, bytearray, memoryview)):
-        raise MalformedPayload(f"payload{_at(where)} is {type(data).__name__}, not bytes")
+        raise MalformedPayload(f"{what}{_at(where)} is {type(data).__name__}, not bytes")
     if len(data) > MAX_PAYLOAD_BYTES:
-        raise PayloadTooLarge(f"payload{_at(where)} has {len(data)} bytes, limit {MAX_PAYLOAD_BYTES}")
+        raise PayloadTooLarge(f"{what}{_at(where)} has {len(data)} bytes, limit {MAX_PAYLOAD_BYTES} (MAX_PAYLOAD_BYTES)")
+    head = _read_head(data)
+    if expect is not None:
+        if head is not None and head[0] != expect.SCHEMA:
+            raise WrongSchema(f"{_short(head[0])} v{head[1]}{_at(where)}: expected {expect.SCHEMA}")
+        limit, limit_name = expect.MAX_BYTES, f"{expect.__name__}.MAX_BYTES"
+    elif head is not None and head[0] in REGISTRY:
+        cls = REGISTRY[head[0]]
+        what = f"{cls.SCHEMA} payload"
+        limit, limit_name = cls.MAX_BYTES, f"{cls.__name__}.MAX_BYTES"
+    else:
+        limit, limit_name = DEFAULT_MAX_BYTES, "DEFAULT_MAX_BYTES, schema not readable or not registered"
+    if len(data) > limit:
+        raise PayloadTooLarge(f"{what}{_at(where)} has {len(data)} bytes, limit {limit} ({limit_name})")
     try:
         env = msgpack.unpackb(
             bytes(data),
             raw=False,
             strict_map_key=True,
-            max_bin_len=MAX_PAYLOAD_BYTES,
-            max_str_len=1024 * 1024,
-            max_array_len=1_000_000,
-            max_map_len=100_000,
+            max_bin_len=limit,
+            max_str_len=min(limit, MAX_STR_BYTES),
+            max_array_len=min(limit, MAX_ARRAY_LEN),
+            max_map_len=min(limit, MAX_MAP_LEN),
+            max_ext_len=0,
         )
     except Exception as exc:  # msgpack raises several unrelated types
-        raise MalformedPayload(f"payload{_at(where)} is not valid msgpack: {type(exc).__name__}: {exc}") from None
+        raise MalformedPayload(f"{what}{_at(where)} is not valid msgpack: {type(exc).__name__}: {_short(exc)}") from None
     if not isinstance(env, dict) or set(env) != {"schema", "v", "body"}:
-        raise MalformedPayload(f"payload{_at(where)} is not an envelope {{schema, v, body}}")
+        raise MalformedPayload(f"{what}{_at(where)} is not an envelope {{schema, v, body}}")
     schema, version, body = env["schema"], env["v"], env["body"]
     if not isinstance(schema, str) or type(version) is not int or not isinstance(body, dict):
         raise MalformedPayload(f"payload{_at(where)} has an envelope with wrong types")
@@ -130,7 +222,7 @@ def decode_any(data: bytes, *, where: str = "") -> Message:
     schema, version, body = unpack_envelope(data, where=where)
     cls = REGISTRY.get(schema)
     if cls is None:
-        raise UnknownSchema(f"{schema} v{version}{_at(where)}: unknown schema")
+        raise UnknownSchema(f"{_short(schema)} v{version}{_at(where)}: unknown schema")
     return cls._from_body(version, body, where)
 
 
@@ -224,13 +316,21 @@ def _decode_obj(cls: type, body: Any, path: str, where: str) -> Any:
     if missing:
         raise MalformedPayload(f"{path}{_at(where)}: missing field(s) {', '.join(missing)}")
     if unknown:
-        raise MalformedPayload(f"{path}{_at(where)}: unknown field(s) {', '.join(map(str, unknown))}")
+        names = ", ".join(_short(n, 40) for n in unknown[:5]) + (f" and {len(unknown) - 5} more" if len(unknown) > 5 else "")
+        raise MalformedPayload(f"{path}{_at(where)}: unknown field(s) {names}")
     dims: dict[str, int] = {}
-    kwargs = {n: _decode_value(body[n], tp, f"{path}.{n}", where, dims) for n, tp in hints.items()}
+    kwargs = {}
+    for n, tp in hints.items():
+        try:
+            kwargs[n] = _decode_value(body[n], tp, f"{path}.{n}", where, dims)
+        except SchemaError:
+            raise
+        except Exception as exc:  # numpy, enum, int/float conversions: never anything but a SchemaError
+            raise _bad(f"{path}.{n}", where, f"{type(exc).__name__}: {_short(exc)}") from None
     try:
         return cls(**kwargs)
-    except (TypeError, ValueError) as exc:
-        raise MalformedPayload(f"{path}{_at(where)}: {exc}") from None
+    except Exception as exc:
+        raise MalformedPayload(f"{path}{_at(where)}: {type(exc).__name__}: {_short(exc)}") from None
 
 
 def _bad(path: str, where: str, what: str) -> MalformedPayload:
@@ -247,21 +347,26 @@ def _decode_value(raw: Any, tp: Any, path: str, where: str, dims: dict[str, int]
         if not (isinstance(raw, list) and len(raw) == 3):
             raise _bad(path, where, "expected an array [dtype, shape, bytes]")
         dtype, shape, buf = raw
-        if dtype != spec.dtype or dtype not in _ALLOWED_DTYPES:
-            raise _bad(path, where, f"array dtype {dtype!r}, schema wants {spec.dtype}")
-        if not (isinstance(shape, list) and all(type(d) is int and d >= 0 for d in shape)):
+        if type(dtype) is not str or dtype != spec.dtype or dtype not in _ALLOWED_DTYPES:
+            raise _bad(path, where, f"array dtype {_short(repr(dtype), 40)}, schema wants {spec.dtype}")
+        if not isinstance(shape, list):
             raise _bad(path, where, "array shape is not a list of non-negative ints")
+        if len(shape) != len(spec.dims):
+            raise _bad(path, where, f"array has {len(shape)} dims, schema wants {len(spec.dims)}")
+        if not all(type(d) is int and 0 <= d <= MAX_ARRAY_DIM for d in shape):
+            raise _bad(path, where, f"array shape {_short(shape, 60)} is not a list of ints in 0..{MAX_ARRAY_DIM}")
         if not isinstance(buf, bytes):
             raise _bad(path, where, "array data is not bytes")
         dt = np.dtype(dtype).newbyteorder("<")
+        if math.prod(max(d, 1) for d in shape) * dt.itemsize > MAX_PAYLOAD_BYTES:
+            raise _bad(path, where, f"array shape {shape} {dtype} is larger than any payload ({MAX_PAYLOAD_BYTES} bytes)")
         if math.prod(shape) * dt.itemsize != len(buf):
             raise _bad(path, where, f"array of shape {shape} {dtype} needs {math.prod(shape) * dt.itemsize} bytes, got {len(buf)}")
+        _check_dims(tuple(shape), spec, path + _at(where), dims, MalformedPayload)
         try:
-            _check_dims(tuple(shape), spec, path + _at(where), dims, MalformedPayload)
-        except MalformedPayload:
-            raise
-        arr = np.frombuffer(buf, dtype=dt).reshape(shape).astype(np.dtype(dtype), copy=True)
-        return arr
+            return np.frombuffer(buf, dtype=dt).reshape(shape).astype(np.dtype(dtype), copy=True)
+        except Exception as exc:  # unreachable after the checks above; kept so numpy can never escape
+            raise _bad(path, where, f"array {dtype} {shape}: {type(exc).__name__}: {_short(exc)}") from None
     if origin in (typing.Union, types.UnionType):
         if raw is None:
             if type(None) in typing.get_args(tp):
@@ -278,7 +383,9 @@ def _decode_value(raw: Any, tp: Any, path: str, where: str, dims: dict[str, int]
         _k, vt = typing.get_args(tp)
         if not isinstance(raw, dict):
             raise _bad(path, where, f"expected a map, got {type(raw).__name__}")
-        return {k: _decode_value(v, vt, f"{path}[{k}]", where, {}) for k, v in raw.items()}
+        if not all(type(k) is str for k in raw):
+            raise _bad(path, where, "map keys are not all str")
+        return {k: _decode_value(v, vt, f"{path}[{_short(k, 40)}]", where, {}) for k, v in raw.items()}
     if isinstance(tp, type) and issubclass(tp, enum.Enum):
         if type(raw) is not int:
             raise _bad(path, where, f"expected an enum value (int), got {type(raw).__name__}")

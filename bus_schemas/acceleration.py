@@ -57,6 +57,8 @@ class AccelerationProfiles(Message):
 
     SCHEMA: ClassVar[str] = "iamp.AccelerationProfiles"
     VERSION: ClassVar[int] = 1
+    # measured 0.9-1.1 kB per (vehicle, corridor) profile: 4 MiB is about 4,000 profiles
+    MAX_BYTES: ClassVar[int] = 4 * 1024 * 1024
 
     header: Header
     scene_id: str

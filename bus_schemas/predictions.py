@@ -77,6 +77,8 @@ class CorridorPredictions(Message):
 
     SCHEMA: ClassVar[str] = "iamp.CorridorPredictions"
     VERSION: ClassVar[int] = 1
+    # measured about 3.5 kB per (vehicle, corridor) prediction (K x W float32): 8 MiB is about 2,300 predictions
+    MAX_BYTES: ClassVar[int] = 8 * 1024 * 1024
 
     header: Header
     scene_id: str
@@ -114,6 +116,8 @@ class MotionGrid(Message):
 
     SCHEMA: ClassVar[str] = "iamp.MotionGrid"
     VERSION: ClassVar[int] = 1
+    # 12 B per listed cell and step (measured up to 62 kB, 5,069 cells): 16 MiB is about 1.4 million cells
+    MAX_BYTES: ClassVar[int] = 16 * 1024 * 1024
 
     header: Header
     scene_id: str

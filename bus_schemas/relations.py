@@ -95,6 +95,8 @@ class RelationSet(Message):
 
     SCHEMA: ClassVar[str] = "iamp.RelationSet"
     VERSION: ClassVar[int] = 1
+    # measured about 1 kB per (vehicle, corridor) pair with <= 5 objects; the arrays grow with objects and conflicts
+    MAX_BYTES: ClassVar[int] = 8 * 1024 * 1024
 
     header: Header
     scene_id: str
