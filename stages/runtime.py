@@ -10,13 +10,18 @@ with its ports, to ``run_stage``. The runtime owns everything else:
 - one bounded queue for all inputs: subscriber callbacks only enqueue (when
   full the oldest entry is dropped and counted) and a single loop drains it,
   so processing is ordered and single-threaded;
-- decoding through the port's message class: a ``SchemaError`` becomes one log
-  line, a counter increment and a dropped message;
+- decoding through the port's message class: a ``SchemaError`` (or any other
+  exception, which ``bus_schemas`` should never raise) becomes a counter
+  increment, a dropped message and a rate-limited log line (``ProblemLog``);
+  an exception of a core on one input set is counted and dropped the same
+  way: no payload can end a stage;
 - a bounded, counted join on ``header.stamp_ns`` for stages with several
   inputs; latched inputs (the scene) are kept and queried at start instead;
 - latched outputs: the last payload is kept and answered to queries, so a
   stage that (re)starts late still gets it;
-- issues from the core: logged and counted by kind;
+- issues from the core: every one counted by kind; logged as episodes
+  (``IssueLog``): once when an issue of one kind and agent starts, once when
+  it ends, the open ones once at stop;
 - encoding and publishing; ``NodeStats`` at ``_stats/<node>`` every second and
   ``Progress`` at ``_ack/<node>`` after every handled input set;
 - pacing of sources (recording rate times ``speed``, or ``max``: as fast as
@@ -241,6 +246,148 @@ class _Stats:
         return " ".join(parts)
 
 
+# --------------------------------------------------------------------------- logs a person can read
+
+
+@dataclass(slots=True)
+class _Episode:
+    detail: str
+    first_ns: int
+    last_ns: int
+    frames: int = 1
+    occurrences: int = 1
+
+
+class IssueLog:
+    """Issues of a core logged as episodes, not once per frame.
+
+    An episode is one issue kind for one agent (``agent_id``; -1 for issues
+    about no single agent) on consecutive frames of one scope: the node's
+    handled frames for an operator or a source, the messages of one key for a
+    raw sink (``scope=key``). It is logged when it starts, with its detail::
+
+        issue: kind=off_map_heading agent=2578 stamp_ns=26800000000 near car lanelets but heading ...
+
+    and once when a frame of its scope comes without it, with the number of
+    frames it lasted and its first and last stamps::
+
+        issue ended: kind=off_map_heading agent=2578 frames=37 first_stamp_ns=26800000000 last_stamp_ns=30400000000 duration_s=3.6
+
+    ``close()`` (node shutdown) logs the episodes still open, once each
+    (``issue open at stop: ...``, same fields). A raw sink's lines name the
+    key (``key=...``) instead of the agent, and its agent too when not -1.
+    Several occurrences in one frame count once in ``frames``; when that
+    happens the lines add ``occurrences=``. This class only logs: the node
+    counts every occurrence in NodeStats itself.
+    """
+
+    MAX_STOP_LINES = 20
+
+    def __init__(self, log: logging.Logger) -> None:
+        self.log = log
+        self._open: dict[str | None, dict[tuple[str, int], _Episode]] = {}
+
+    def frame(self, stamp_ns: int, issues: Iterable[Issue], scope: str | None = None) -> None:
+        """The issues of one handled frame (or, for a raw sink, one message on key ``scope``)."""
+        episodes = self._open.get(scope)
+        if episodes is None:
+            if not issues:
+                return
+            episodes = self._open[scope] = {}
+        seen: set[tuple[str, int]] = set()
+        for issue in issues:
+            k = (issue.kind, issue.agent_id)
+            ep = episodes.get(k)
+            if ep is None:
+                episodes[k] = _Episode(issue.detail, stamp_ns, stamp_ns)
+                self.log.warning("issue: kind=%s %s stamp_ns=%d %s", issue.kind, self._who(scope, issue.agent_id), stamp_ns, issue.detail)
+            elif k in seen:
+                ep.occurrences += 1
+            else:
+                ep.frames += 1
+                ep.occurrences += 1
+                ep.last_ns = stamp_ns
+            seen.add(k)
+        for k in [k for k in episodes if k not in seen]:
+            self._line(logging.INFO, "issue ended", scope, k, episodes.pop(k))
+        if not episodes:
+            del self._open[scope]
+
+    def open_count(self) -> int:
+        return sum(len(e) for e in self._open.values())
+
+    def close(self) -> None:
+        """Log every episode still open, once, and forget them."""
+        items = [(scope, k, ep) for scope, eps in self._open.items() for k, ep in eps.items()]
+        self._open.clear()
+        for scope, k, ep in items[: self.MAX_STOP_LINES]:
+            self._line(logging.INFO, "issue open at stop", scope, k, ep)
+        if len(items) > self.MAX_STOP_LINES:
+            self.log.info("issues open at stop: %d more not listed", len(items) - self.MAX_STOP_LINES)
+
+    @staticmethod
+    def _who(scope: str | None, agent_id: int) -> str:
+        if scope is None:
+            return f"agent={agent_id}"
+        return f"key={scope}" if agent_id == -1 else f"key={scope} agent={agent_id}"
+
+    def _line(self, level: int, what: str, scope: str | None, k: tuple[str, int], ep: _Episode) -> None:
+        extra = f" occurrences={ep.occurrences}" if ep.occurrences != ep.frames else ""
+        self.log.log(
+            level,
+            "%s: kind=%s %s frames=%d first_stamp_ns=%d last_stamp_ns=%d duration_s=%.1f%s",
+            what,
+            k[0],
+            self._who(scope, k[1]),
+            ep.frames,
+            ep.first_ns,
+            ep.last_ns,
+            (ep.last_ns - ep.first_ns) / 1e9,
+            extra,
+        )
+
+
+class ProblemLog:
+    """One log line per kind of problem, then at most one per ``period_s``.
+
+    ``report(kind, level, fmt, *args)``: the first problem of a kind is
+    logged at once (with ``first_extra``, e.g. a traceback, appended only
+    then); later ones within ``period_s`` of that kind's last line are only
+    counted, and the next line of the kind says how many were not shown::
+
+        dropped message: reason=MalformedPayload key=... detail=... [41 more of this kind in the last 10 s]
+
+    ``close()`` logs, once, the kinds with problems not shown yet. Counting
+    for NodeStats is the caller's.
+    """
+
+    def __init__(self, log: logging.Logger, period_s: float = 10.0, clock: Callable[[], float] = time.monotonic) -> None:
+        self.log = log
+        self.period_s = period_s
+        self._clock = clock
+        self._last: dict[str, float] = {}
+        self._hidden: collections.Counter[str] = collections.Counter()
+
+    def report(self, kind: str, level: int, fmt: str, *args: Any, first_extra: str | Callable[[], str] = "") -> None:
+        now = self._clock()
+        last = self._last.get(kind)
+        if last is not None and now - last < self.period_s:
+            self._hidden[kind] += 1
+            return
+        hidden = self._hidden.pop(kind, 0)
+        if last is None and first_extra:
+            fmt, args = fmt + "\n%s", (*args, first_extra() if callable(first_extra) else first_extra)
+        elif hidden:
+            fmt, args = fmt + " [%d more of this kind in the last %.0f s]", (*args, hidden, now - last)
+        self._last[kind] = now
+        self.log.log(level, fmt, *args)
+
+    def close(self) -> None:
+        for kind, n in sorted(self._hidden.items()):
+            self.log.warning("not shown at stop: %d more of kind %s", n, kind)
+        self._hidden.clear()
+
+
 # --------------------------------------------------------------------------- the bounded queue
 
 
@@ -303,6 +450,8 @@ class Node:
         self.node_id = args.node_id
         self.log = logging.getLogger(f"iamp.{self.node_id}")
         self.stats = _Stats()
+        self.issue_log = IssueLog(self.log)
+        self.problems = ProblemLog(self.log)
         self.started = time.monotonic()
         self.stop_event = threading.Event()
         self.signals = 0
@@ -438,7 +587,7 @@ class Node:
         for issue in result.issues:
             self.stats.counters["issues"] += 1
             self.stats.issues_by_kind[issue.kind] += 1
-            self.log.warning("issue: kind=%s agent=%s stamp_ns=%d %s", issue.kind, issue.agent_id, stamp_ns, issue.detail)
+        self.issue_log.frame(stamp_ns, result.issues)
         self.stats.last_stamp_ns = max(self.stats.last_stamp_ns, stamp_ns)
         self.stats.counters["processed"] += 1
         self._progress_pub.put(
@@ -458,10 +607,13 @@ class Node:
                 return bus_schemas.decode_any(data, where=key)
             return self.spec.inputs[port].schema.decode(data, where=key)
         except SchemaError as exc:
-            self.stats.counters["decode_errors"] += 1
-            self.stats.errors_by_kind[type(exc).__name__] += 1
-            self.log.warning("dropped message: reason=%s key=%s detail=%s", type(exc).__name__, key, exc)
-            return None
+            reason, kind, detail = type(exc).__name__, type(exc).__name__, str(exc)
+        except Exception as exc:  # bus_schemas raises only SchemaError; if it ever does not, the stage still goes on
+            reason, kind, detail = f"decode_exception:{type(exc).__name__}", "decode_exception", str(exc)
+        self.stats.counters["decode_errors"] += 1
+        self.stats.errors_by_kind[kind] += 1
+        self.problems.report(f"decode:{reason}:{key}", logging.WARNING, "dropped message: reason=%s key=%s detail=%s", reason, key, detail[:500])
+        return None
 
     # ---- operator loop
     def _join_ports(self) -> list[str]:
@@ -486,7 +638,7 @@ class Node:
             self._pending_since.setdefault(stamp, time.monotonic())
             if port in entry:
                 self.stats.counters["join_drops"] += 1
-                self.log.warning("duplicate input: port=%s stamp_ns=%d (older one replaced)", port, stamp)
+                self.problems.report(f"duplicate:{port}", logging.WARNING, "duplicate input: port=%s stamp_ns=%d (older one replaced)", port, stamp)
             entry[port] = msg
         self._run_ready(core, lat_ms)
         self._expire_pending()
@@ -518,7 +670,9 @@ class Node:
         self._pending_since.pop(stamp, None)
         if entry is not None:
             self.stats.counters["join_drops"] += 1
-            self.log.warning("dropped input set: reason=%s stamp_ns=%d had=%s", reason, stamp, ",".join(sorted(entry)))
+            self.problems.report(
+                f"join:{reason}", logging.WARNING, "dropped input set: reason=%s stamp_ns=%d had=%s", reason, stamp, ",".join(sorted(entry))
+            )
 
     def _expire_pending(self) -> None:
         limit = max(2, getattr(self.args, "join_window", 16))
@@ -532,10 +686,8 @@ class Node:
         t0 = time.perf_counter()
         try:
             result = core.update(inputs)
-        except Exception:
-            self.stats.counters["core_errors"] += 1
-            self.stats.errors_by_kind["core_exception"] += 1
-            self.log.error("core failed on stamp_ns=%d (input set dropped):\n%s", stamp, traceback.format_exc().rstrip())
+        except Exception as exc:
+            self._count_failure("core_exception", exc, "core failed on stamp_ns=%d (input set dropped)", stamp)
             return
         dt = (time.perf_counter() - t0) * 1e3
         self.stats.proc_ms.append(dt)
@@ -543,7 +695,24 @@ class Node:
         if not math.isnan(lat_ms):
             self.stats.latency_ms.append(lat_ms + dt)
         frame_index = _frame_index_of(inputs)
-        self.publish(result, stamp, frame_index)
+        try:
+            self.publish(result, stamp, frame_index)
+        except Exception as exc:  # an output that does not encode: that input set is lost, the stage goes on
+            self._count_failure("publish_exception", exc, "publishing failed on stamp_ns=%d (outputs of this input set dropped)", stamp)
+
+    def _count_failure(self, kind: str, exc: BaseException, fmt: str, *args: Any) -> None:
+        """Count an exception of a core (or of handling one message) and log it, rate-limited."""
+        self.stats.counters["core_errors"] += 1
+        self.stats.errors_by_kind[kind] += 1
+        self.problems.report(
+            f"{kind}:{type(exc).__name__}",
+            logging.ERROR,
+            fmt + ": %s: %s",
+            *args,
+            type(exc).__name__,
+            str(exc)[:500],
+            first_extra=lambda: traceback.format_exc().rstrip(),
+        )
 
     def run_operator(self, core: Any) -> None:
         self._serve(lambda item: self._handle_operator_item(core, item))
@@ -554,9 +723,8 @@ class Node:
             t0 = time.perf_counter()
             try:
                 issues = core.handle(key, data, recv_ns) or []
-            except Exception:
-                self.stats.counters["core_errors"] += 1
-                self.log.error("sink failed on key=%s (message dropped):\n%s", key, traceback.format_exc().rstrip())
+            except Exception as exc:
+                self._count_failure("core_exception", exc, "sink failed on key=%s (message dropped)", key)
                 return
             dt = (time.perf_counter() - t0) * 1e3
             self.stats.proc_ms.append(dt)
@@ -571,7 +739,7 @@ class Node:
             for issue in issues:
                 self.stats.counters["issues"] += 1
                 self.stats.issues_by_kind[issue.kind] += 1
-                self.log.warning("issue: kind=%s key=%s %s", issue.kind, key, issue.detail)
+            self.issue_log.frame(stamp if stamp is not None else recv_ns, issues, scope=key)
 
         try:
             self._serve(handle)
@@ -584,7 +752,10 @@ class Node:
             item = self.queue.get(timeout=0.05)
             if item is not None:
                 self._last_input_mono = time.monotonic()
-                handle(item)
+                try:
+                    handle(item)
+                except Exception as exc:  # the last net: one message never ends the stage
+                    self._count_failure("handler_exception", exc, "handling a message from key=%s failed (dropped)", item[1])
             else:
                 self._expire_pending()
             self.maybe_stats()
@@ -681,6 +852,8 @@ class Node:
             time.sleep(0.002)
 
     def close(self) -> None:
+        self.issue_log.close()
+        self.problems.close()
         self.maybe_stats(force=True)
         self.log.info("node stopping: %s", self.stats.summary())
         try:

@@ -1,0 +1,291 @@
+"""The runtime's readable logs (IssueLog, ProblemLog) and its no-crash paths, in process.
+
+Logged lines are read through a real ``logging`` logger (pytest's caplog);
+the node tests build a ``Node`` without a session and hand it payloads and
+cores directly, with stand-in publishers.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import msgpack
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bus_schemas"))
+
+import bus_schemas as bs  # noqa: E402
+from samples import SAMPLES  # noqa: E402
+from stages._core import ConfigMixin, Issue, StageResult  # noqa: E402
+from stages.runtime import IssueLog, Node, Port, ProblemLog, StageSpec, build_parser  # noqa: E402
+
+LOGGER = "iamp.test_runtime_logs"
+
+
+def _lines(caplog) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.name == LOGGER]
+
+
+@pytest.fixture
+def log(caplog):
+    caplog.set_level(logging.INFO, logger=LOGGER)
+    return logging.getLogger(LOGGER)
+
+
+def _frames(ilog: IssueLog, frames: list[list[Issue]], t0: int = 1_000_000_000, dt: int = 100_000_000) -> None:
+    for i, issues in enumerate(frames):
+        ilog.frame(t0 + i * dt, issues)
+
+
+OFF = Issue("off_map_heading", 2578, "near car lanelets but heading -2.93 rad agrees with none")
+
+
+# --------------------------------------------------------------------------- IssueLog
+
+
+def test_an_issue_on_consecutive_frames_is_logged_when_it_starts_and_when_it_ends(log, caplog):
+    ilog = IssueLog(log)
+    _frames(ilog, [[OFF]] * 37 + [[]])
+    lines = _lines(caplog)
+    assert lines == [
+        "issue: kind=off_map_heading agent=2578 stamp_ns=1000000000 near car lanelets but heading -2.93 rad agrees with none",
+        "issue ended: kind=off_map_heading agent=2578 frames=37 first_stamp_ns=1000000000 last_stamp_ns=4600000000 duration_s=3.6",
+    ]
+    assert [r.levelno for r in caplog.records if r.name == LOGGER] == [logging.WARNING, logging.INFO]
+    assert ilog.open_count() == 0
+
+
+def test_a_gap_ends_the_episode_and_a_recurrence_starts_a_new_one(log, caplog):
+    ilog = IssueLog(log)
+    _frames(ilog, [[OFF], [OFF], [], [OFF], []])
+    lines = _lines(caplog)
+    assert len(lines) == 4
+    assert lines[0].startswith("issue: kind=off_map_heading agent=2578 stamp_ns=1000000000 ")
+    assert lines[1] == "issue ended: kind=off_map_heading agent=2578 frames=2 first_stamp_ns=1000000000 last_stamp_ns=1100000000 duration_s=0.1"
+    assert lines[2].startswith("issue: kind=off_map_heading agent=2578 stamp_ns=1300000000 ")
+    assert lines[3] == "issue ended: kind=off_map_heading agent=2578 frames=1 first_stamp_ns=1300000000 last_stamp_ns=1300000000 duration_s=0.0"
+
+
+def test_two_agents_interleaved_are_separate_episodes(log, caplog):
+    a = Issue("off_map", 1, "a")
+    b = Issue("off_map", 2, "b")
+    c = Issue("nan_state", 1, "same agent, other kind")
+    ilog = IssueLog(log)
+    # a: frames 0-3; b: frames 1, 3 (a gap at 2); c: frame 2 only
+    _frames(ilog, [[a], [a, b], [c, a], [b, a], []])
+    lines = _lines(caplog)
+    starts = [ln for ln in lines if ln.startswith("issue: ")]
+    ends = [ln for ln in lines if ln.startswith("issue ended: ")]
+    assert [s.split(" stamp_ns")[0] for s in starts] == [
+        "issue: kind=off_map agent=1",
+        "issue: kind=off_map agent=2",
+        "issue: kind=nan_state agent=1",
+        "issue: kind=off_map agent=2",
+    ]
+    assert sorted(ends) == sorted(
+        [
+            "issue ended: kind=off_map agent=2 frames=1 first_stamp_ns=1100000000 last_stamp_ns=1100000000 duration_s=0.0",
+            "issue ended: kind=nan_state agent=1 frames=1 first_stamp_ns=1200000000 last_stamp_ns=1200000000 duration_s=0.0",
+            "issue ended: kind=off_map agent=1 frames=4 first_stamp_ns=1000000000 last_stamp_ns=1300000000 duration_s=0.3",
+            "issue ended: kind=off_map agent=2 frames=1 first_stamp_ns=1300000000 last_stamp_ns=1300000000 duration_s=0.0",
+        ]
+    )
+
+
+def test_an_issue_of_no_agent_is_an_episode_too_and_repeats_in_one_frame_count_once(log, caplog):
+    ilog = IssueLog(log)
+    no_frame = Issue("no_frame", -1, "input set without a track_frame")
+    _frames(ilog, [[no_frame, no_frame], [no_frame], [no_frame], []])
+    assert _lines(caplog) == [
+        "issue: kind=no_frame agent=-1 stamp_ns=1000000000 input set without a track_frame",
+        "issue ended: kind=no_frame agent=-1 frames=3 first_stamp_ns=1000000000 last_stamp_ns=1200000000 duration_s=0.2 occurrences=4",
+    ]
+
+
+def test_shutdown_logs_the_open_episodes_once(log, caplog):
+    ilog = IssueLog(log)
+    _frames(ilog, [[OFF, Issue("off_map", 7, "x")], [OFF]])
+    caplog.clear()
+    ilog.close()
+    ilog.close()  # a second close has nothing left to say
+    assert _lines(caplog) == [
+        "issue open at stop: kind=off_map_heading agent=2578 frames=2 first_stamp_ns=1000000000 last_stamp_ns=1100000000 duration_s=0.1"
+    ]
+    assert ilog.open_count() == 0
+
+
+def test_shutdown_lists_at_most_max_stop_lines(log, caplog):
+    ilog = IssueLog(log)
+    ilog.frame(5, [Issue("off_map", i, "") for i in range(IssueLog.MAX_STOP_LINES + 3)])
+    caplog.clear()
+    ilog.close()
+    lines = _lines(caplog)
+    assert len(lines) == IssueLog.MAX_STOP_LINES + 1
+    assert lines[-1] == "issues open at stop: 3 more not listed"
+
+
+def test_raw_sink_scopes_are_separate_keys(log, caplog):
+    ilog = IssueLog(log)
+    bad = Issue("not_an_envelope", -1, "not an envelope: ...")
+    ilog.frame(1, [bad], scope="iamp/r/a/x")
+    ilog.frame(2, [], scope="iamp/r/b/y")  # another key does not end the episode of the first
+    ilog.frame(3, [bad], scope="iamp/r/a/x")
+    ilog.frame(4, [], scope="iamp/r/a/x")
+    assert _lines(caplog) == [
+        "issue: kind=not_an_envelope key=iamp/r/a/x stamp_ns=1 not an envelope: ...",
+        "issue ended: kind=not_an_envelope key=iamp/r/a/x frames=2 first_stamp_ns=1 last_stamp_ns=3 duration_s=0.0",
+    ]
+
+
+# --------------------------------------------------------------------------- ProblemLog
+
+
+def test_problem_log_shows_a_kind_once_per_period_with_the_count_in_between(log, caplog):
+    now = [0.0]
+    plog = ProblemLog(log, period_s=10.0, clock=lambda: now[0])
+    for i in range(5):
+        now[0] = float(i)
+        plog.report("decode:MalformedPayload:k", logging.WARNING, "dropped message: reason=%s n=%d", "MalformedPayload", i)
+    plog.report("decode:WrongVersion:k", logging.WARNING, "dropped message: reason=%s", "WrongVersion")
+    now[0] = 12.0
+    plog.report("decode:MalformedPayload:k", logging.WARNING, "dropped message: reason=%s n=%d", "MalformedPayload", 5)
+    now[0] = 13.0
+    plog.report("decode:MalformedPayload:k", logging.WARNING, "dropped message: reason=%s n=%d", "MalformedPayload", 6)
+    plog.close()
+    assert _lines(caplog) == [
+        "dropped message: reason=MalformedPayload n=0",
+        "dropped message: reason=WrongVersion",
+        "dropped message: reason=MalformedPayload n=5 [4 more of this kind in the last 12 s]",
+        "not shown at stop: 1 more of kind decode:MalformedPayload:k",
+    ]
+
+
+def test_problem_log_appends_the_first_extra_only_to_the_first_line(log, caplog):
+    now = [0.0]
+    plog = ProblemLog(log, period_s=1.0, clock=lambda: now[0])
+    calls = []
+
+    def extra() -> str:
+        calls.append(1)
+        return "Traceback ..."
+
+    plog.report("core:ValueError", logging.ERROR, "core failed", first_extra=extra)
+    plog.report("core:ValueError", logging.ERROR, "core failed", first_extra=extra)
+    now[0] = 5.0
+    plog.report("core:ValueError", logging.ERROR, "core failed", first_extra=extra)
+    assert _lines(caplog) == ["core failed\nTraceback ...", "core failed [1 more of this kind in the last 5 s]"]
+    assert len(calls) == 1  # the traceback is only formatted when shown
+
+
+# --------------------------------------------------------------------------- the node goes on
+
+
+@dataclass(frozen=True)
+class _Cfg(ConfigMixin):
+    pass
+
+
+class _Pub:
+    def __init__(self) -> None:
+        self.sent: list[bytes] = []
+
+    def put(self, data: bytes) -> None:
+        self.sent.append(data)
+
+
+class _EchoCore:
+    """Echoes its input; raises on frame_index 13; issues on even frames."""
+
+    def update(self, inputs):
+        msg = inputs["profiles"]
+        if msg.header.frame_index == 13:
+            raise ValueError("unlucky frame")
+        issues = [Issue("even_frame", 7, "an even frame")] if msg.header.frame_index % 2 == 0 else []
+        return StageResult(outputs={"profiles": msg}, issues=issues)
+
+
+def _node(log) -> tuple[Node, _Pub]:
+    spec = StageSpec(
+        stage="tests.echo",
+        config_cls=_Cfg,
+        make_core=lambda c, ctx: _EchoCore(),
+        inputs={"profiles": Port(bs.AccelerationProfiles)},
+        outputs={"profiles": Port(bs.AccelerationProfiles)},
+    )
+    args = build_parser(spec).parse_args(["--node-id", "echo", "--run-id", "t", "--input", "profiles=src/profiles"])
+    node = Node(spec, args, _Cfg(), {"profiles": "src/profiles"})
+    node.log = log
+    node.issue_log = IssueLog(log)
+    node.problems = ProblemLog(log)
+    out = _Pub()
+    node._publishers = {"profiles": out}
+    node._progress_pub = _Pub()
+    return node, out
+
+
+def _profiles(frame_index: int) -> bytes:
+    msg = SAMPLES["iamp.AccelerationProfiles"]()
+    env = msgpack.unpackb(msg.encode(), raw=False)
+    env["body"]["header"]["frame_index"] = frame_index
+    env["body"]["header"]["stamp_ns"] = 1_000_000_000 + frame_index * 100_000_000
+    return msgpack.packb(env, use_bin_type=True)
+
+
+def _huge_dim_profiles() -> bytes:
+    """The payload that ended markov_prediction (issue 13): an empty 2-D array of shape [0, 2**63]."""
+    env = msgpack.unpackb(_profiles(1), raw=False)
+    p = env["body"]["profiles"][0]
+    for f in ("chunk_mean_mps2", "chunk_sigma_mps2"):
+        p[f] = ["float32", [0], b""]
+    p["input_probs"] = ["float32", [0, 2**63], b""]
+    return msgpack.packb(env, use_bin_type=True)
+
+
+def test_hostile_payloads_and_a_failing_core_are_counted_and_the_node_goes_on(log, caplog, monkeypatch):
+    node, out = _node(log)
+    key = "iamp/t/src/profiles"
+    items = [_profiles(0), _huge_dim_profiles(), b"\x93not an envelope", _profiles(13), _profiles(2), _profiles(3)]
+    core = _EchoCore()
+    for data in items:
+        node._handle_operator_item(core, ("profiles", key, data, 0))
+    got = [bs.AccelerationProfiles.decode(d).header.frame_index for d in out.sent]
+    assert got == [0, 2, 3]
+    c = node.stats.counters
+    assert c["decode_errors"] == 2 and c["core_errors"] == 1 and c["processed"] == 3
+    assert dict(node.stats.errors_by_kind) == {"MalformedPayload": 2, "core_exception": 1}
+    assert c["issues"] == 2 and node.stats.issues_by_kind["even_frame"] == 2
+
+    # a decoder that raises something else (it should not) is counted too
+    def boom(data, *, where=""):
+        raise RuntimeError("decoder bug")
+
+    monkeypatch.setattr(bs.AccelerationProfiles, "decode", staticmethod(boom))
+    node._handle_operator_item(core, ("profiles", key, _profiles(4), 0))
+    assert c["decode_errors"] == 3 and node.stats.errors_by_kind["decode_exception"] == 1
+    text = "\n".join(_lines(caplog))
+    assert "dropped message: reason=MalformedPayload key=iamp/t/src/profiles detail=iamp.AccelerationProfiles.profiles[0].input_probs" in text
+    assert "dropped message: reason=decode_exception:RuntimeError key=iamp/t/src/profiles detail=decoder bug" in text
+    assert "core failed on stamp_ns=2300000000 (input set dropped): ValueError: unlucky frame\nTraceback" in text
+
+
+def test_the_serve_loop_survives_a_handler_that_raises(log, caplog):
+    node, _out = _node(log)
+    handled = []
+
+    def handle(item):
+        handled.append(item[1])
+        if item[1] == "bad":
+            raise KeyError("oops")
+
+    for k in ("good", "bad", "good2"):
+        node.queue.put((None, k, b"", 0))
+    node._stats_pub = _Pub()
+    node.stop_event.set()
+    node.signals = 2  # stop as soon as the queue is empty
+    node._serve(handle)
+    assert handled == ["good", "bad", "good2"]
+    assert node.stats.errors_by_kind["handler_exception"] == 1
+    assert any("handling a message from key=bad failed (dropped): KeyError" in ln for ln in _lines(caplog))
