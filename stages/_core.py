@@ -134,6 +134,44 @@ class ConfigMixin:
         return config_from_params(cls, params, where)
 
 
+def isolate(indices: "typing.Iterable[int]", attempt: "typing.Callable[[list[int]], Any]") -> tuple[Any, list[tuple[int, Exception]]]:
+    """``attempt(indices)``; when it raises, the indices it raises on alone are found by bisection and left out.
+
+    Returns the result of ``attempt`` on the indices that remain and the
+    ``(index, exception)`` of those left out, so that one object's failure
+    does not cost a core the rest of its batch. Without a failure this is one
+    call of ``attempt``. Indices that raise only together (every half passes)
+    are all left out. An ``attempt`` that raises on no index at all (an
+    empty batch) is not an object's failure: that exception propagates.
+    """
+    todo = sorted(indices)
+    failed: list[tuple[int, Exception]] = []
+    while True:
+        try:
+            return attempt(todo), failed
+        except Exception as exc:  # noqa: BLE001 - any failure of one object is isolated
+            if not todo:
+                raise
+            culprits = _culprits(todo, attempt, exc) or [(i, exc) for i in todo]
+            failed.extend(culprits)
+            gone = {i for i, _ in culprits}
+            todo = [i for i in todo if i not in gone]
+
+
+def _culprits(group: list[int], attempt, exc: Exception) -> list[tuple[int, Exception]]:
+    """The members of ``group`` (on which ``attempt`` raised ``exc``) that make it raise, by bisection."""
+    if len(group) == 1:
+        return [(group[0], exc)]
+    out = []
+    middle = len(group) // 2
+    for half in (group[:middle], group[middle:]):
+        try:
+            attempt(half)
+        except Exception as sub:  # noqa: BLE001
+            out.extend(_culprits(half, attempt, sub))
+    return out
+
+
 class _NoBar:
     """What ``progress_bar`` returns when disabled: the tqdm methods the tools call, doing nothing."""
 

@@ -153,16 +153,43 @@ InputTransition = Union[InputMatrix, InputReplaced, InputPerState]
 # ---------------------------------------------------------------------------
 
 
-def _box_overlaps(edges: np.ndarray, centres: np.ndarray, half_widths: np.ndarray, what: str) -> np.ndarray:
-    """Overlap fractions (B, N) of boxes [c - h, c + h] with cells; the part outside the grid is dropped."""
+def _overlaps(edges: np.ndarray, centres: np.ndarray, half_widths: np.ndarray) -> np.ndarray:
+    """Overlap lengths (B, N) of boxes [c - h, c + h] with the cells between ``edges``."""
     lower = np.maximum(edges[None, :-1], (centres - half_widths)[:, None])
     upper = np.minimum(edges[None, 1:], (centres + half_widths)[:, None])
-    overlap = np.clip(upper - lower, 0.0, None)
+    return np.clip(upper - lower, 0.0, None)
+
+
+def _box_overlaps(edges: np.ndarray, centres: np.ndarray, half_widths: np.ndarray, what: str) -> np.ndarray:
+    """Overlap fractions (B, N) of boxes [c - h, c + h] with cells; the part outside the grid is dropped."""
+    overlap = _overlaps(edges, centres, half_widths)
     total = overlap.sum(axis=1, keepdims=True)
     empty = np.flatnonzero(total[:, 0] <= 0)
     if empty.size:
         raise ValueError(f"initial_state: the {what} box of pair(s) {empty.tolist()} does not intersect the grid")
     return overlap / total
+
+
+def boxes_outside_grid(
+    config: MarkovGridConfig,
+    *,
+    s_m: np.ndarray,
+    v_mps: np.ndarray,
+    half_width_s_m: np.ndarray,
+    half_width_v_mps: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(position, velocity): (B,) bool, the pairs whose box misses the window or the speed cells (or is not finite).
+
+    ``initial_state`` raises for exactly these pairs; a caller checks them
+    first to predict such a pair some other way instead of losing the batch.
+    """
+    s, v, hs, hv = (np.atleast_1d(np.asarray(x, dtype=np.float64)) for x in (s_m, v_mps, half_width_s_m, half_width_v_mps))
+    s_ok = np.isfinite(s) & np.isfinite(hs) & (hs > 0)
+    v_ok = np.isfinite(v) & np.isfinite(hv) & (hv > 0)
+    with np.errstate(invalid="ignore"):
+        s_hit = _overlaps(config.s_edges_m(), np.where(s_ok, s, 0.0), np.where(s_ok, hs, 1.0)).sum(axis=1) > 0
+        v_hit = _overlaps(config.v_edges_mps(), np.where(v_ok, v, 0.0), np.where(v_ok, hv, 1.0)).sum(axis=1) > 0
+    return ~(s_ok & s_hit), ~(v_ok & v_hit)
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)

@@ -140,6 +140,24 @@ predicted: ignored), ``nan_relation``/``bad_relation`` (a leader gap or
 conflict point that is not finite, an index out of range: that restriction
 ignored), ``stamp_mismatch`` (relations of another stamp: ignored),
 ``no_relations``.
+
+One pair's failure never costs the frame (``core.MarkovPredictor._predict``).
+Before the batch, a pair the chain cannot take is predicted by constant
+speed along its corridor, the ``corridor_cv`` mode's prediction:
+``pair_fallback_nan_input`` (a non-finite number the chain reads, e.g. the
+curvature), ``pair_fallback_speed_above_vmax`` (measured speed above
+``v_max_mps``: constant speed at the measured speed; the chain would clip
+it), ``pair_fallback_box_outside_window`` (an initial box that misses its
+window, which ``initial_state`` would raise for). A pair the batched chain
+raises on is found by bisection and falls back the same way
+(``pair_fallback_chain_failed``), the batch run again without it. A pair
+whose fallback or outputs raise is not predicted (``pair_failed``), a
+vehicle whose pairs cannot be built neither (``vehicle_failed``). The other
+pairs' predictions are exactly what they are without the failing one
+(unless they follow it). ``particle_box_rejected``: the particles' box does
+not fit the window it gets (their mean about a window length from the
+measured arc length, or as wide: a particle filter that lost the vehicle);
+the measurement's box is used, so the window always holds the initial box.
 """
 
 from __future__ import annotations

@@ -7,6 +7,7 @@ wall clock (time comes from ``header.stamp_ns``).
 from __future__ import annotations
 
 import collections
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Any, Mapping
@@ -29,9 +30,10 @@ from bus_schemas import (
     SceneInfo,
     TrackFrame,
 )
-from stages._core import Issue, StageResult
+from stages._core import Issue, StageResult, isolate
 from stages.datasets import DEFAULT_SIZES_M
 from stages.markov import InputMatrix, InputReplaced, MarkovGridConfig, gamma_from_priority, initial_state, load_or_build_stencils, psi_matrix
+from stages.markov.propagate import boxes_outside_grid
 
 from . import priority as pr
 from .chain import InputPriority, PriorityPropagator
@@ -72,6 +74,7 @@ class _Pair:
     half_width_s_m: float = 0.0  # > 0: the initial box's half-widths from the DBN's particles (initial_box "particles")
     half_width_v_mps: float = 0.0
     input_probs: np.ndarray | None = None  # (K, M) hybrid mode: λ(0..K-1) from the AR model
+    measured_v_mps: float = math.nan  # the vehicle's speed before clipping to [0, v_max] (a faster one is not chained)
 
     @property
     def end_s_m(self) -> float:
@@ -211,6 +214,10 @@ class MarkovPredictor:
         )
         cfg = self.grid
         self.n_s = config.window_cells
+        # the initial box is laid on the window itself (the stencils' grid may have another length)
+        self._window_grid = dataclasses.replace(cfg, n_s_cells=self.n_s)
+        self._default_half_s_m = max(0.5 * config.ds_m, 2 * config.init_sigma_s_m)
+        self._default_half_v_mps = max(0.5 * config.dv_mps, 2 * config.init_sigma_v_mps)
         self.v_centres = cfg.v_centres_mps()
         self.a_centres = cfg.input_centres_mps2()
         self.step_times_s = config.tau_s * np.arange(1, config.n_steps + 1)
@@ -294,7 +301,7 @@ class MarkovPredictor:
         else:
             relations = {(r.track_id, r.corridor_id): r for r in relation_set.relations}
         speed_limit = scene.speed_limit_mps if scene is not None and _positive(scene.speed_limit_mps) else self.config.default_speed_limit_mps
-        pairs = self._pairs(corridor_set, track_frame, speed_limit, issues, beliefs, profiles)
+        pairs = self._vehicle_pairs(corridor_set, track_frame, speed_limit, issues, beliefs, profiles)
         known = {(p.track_id, p.corridor_id): p for p in pairs}
         for key, relation in relations.items():
             pair = known.get(key)
@@ -302,11 +309,7 @@ class MarkovPredictor:
                 issues.append(Issue("unknown_corridor", key[0], f"relation for corridor {key[1]}, which has no prediction: ignored"))
             else:
                 pair.relation = relation
-        if self.config.mode in CHAIN_MODES:
-            arrays = self._markov(pairs, issues)
-        else:
-            arrays = self._constant_velocity(pairs)
-        return self._finish(pairs, arrays, issues), issues
+        return self._predict(pairs, issues), issues
 
     def reset(self) -> None:
         """Forget every track's history (a new sequence starts; the offline tables are kept)."""
@@ -328,6 +331,44 @@ class MarkovPredictor:
             del self._history[track_id]
 
     # ----- pairs ------------------------------------------------------------------
+
+    def _vehicle_pairs(self, corridor_set: CorridorSet, frame, scene_limit_mps: float, issues: list[Issue], beliefs, profiles) -> list[_Pair]:
+        """``_pairs`` of the frame; a vehicle whose pairs cannot be built is left out (``vehicle_failed``), not the frame."""
+        vehicles = corridor_set.vehicles
+
+        def attempt(idx: list[int]):
+            found: list[Issue] = []
+            subset = corridor_set if len(idx) == len(vehicles) else dataclasses.replace(corridor_set, vehicles=tuple(vehicles[i] for i in idx))
+            return self._pairs(subset, frame, scene_limit_mps, found, beliefs, profiles), found
+
+        (pairs, found), failed = isolate(range(len(vehicles)), attempt)
+        issues.extend(found)
+        for i, exc in failed:
+            issues.append(Issue("vehicle_failed", int(vehicles[i].track_id), f"building its pairs raised {type(exc).__name__}: {exc}: vehicle not predicted"))
+        return pairs
+
+    def _window_start(self, s0_m: float, vehicle_s_m: float, half_s_m: float) -> float:
+        """Where the pair's window starts: ``window_behind_m`` (or the box's half-width, if larger) behind the box's
+        centre or the measured arc length, whichever lies further back."""
+        return min(s0_m, vehicle_s_m) - max(self.config.window_behind_m, half_s_m)
+
+    def _particle_box_fits(self, s0_m: float, vehicle_s_m: float, half_s_m: float, track_id: int, corridor_id: int,
+                           issues: list[Issue]) -> bool:
+        """Whether the particles' box (centre ``s0_m`` ± ``half_s_m``) lies whole in the window it gets.
+
+        It does not when the particles' mean lies about a window length from
+        the measured arc length, or their spread is about as wide: a particle
+        filter that lost the vehicle (after a jump of its measured position
+        it stays where it was, frame after frame). Then ``initial_state``
+        raised and the frame was lost; now the pair takes the measurement's
+        box (``particle_box_rejected``), which always lies in its window.
+        """
+        length = self.n_s * self.config.ds_m
+        if s0_m + half_s_m <= self._window_start(s0_m, vehicle_s_m, half_s_m) + length:
+            return True
+        issues.append(Issue("particle_box_rejected", track_id, f"corridor {corridor_id}: the particles' box {s0_m - vehicle_s_m:+.1f}"
+                            f" ± {half_s_m:.1f} m from the measured arc length does not fit the {length:.0f} m window: measurement box used"))
+        return False
 
     def _acceleration(self, track_id: int, stamp_ns: int) -> tuple[float, float]:
         """(a0, σ_a0): the vehicle's measured acceleration and its uncertainty.
@@ -472,6 +513,9 @@ class MarkovPredictor:
                     lam = profiles.get((vehicle.track_id, c.corridor_id))
                     if lam is None:
                         issues.append(Issue("no_acceleration_profile", vehicle.track_id, f"corridor {c.corridor_id}: no AR profile, measured acceleration held"))
+                if hs > 0 and not self._particle_box_fits(s0, float(c.vehicle_s_m), hs, vehicle.track_id, c.corridor_id, issues):
+                    s0, hs, hv, v_start = float(c.vehicle_s_m), 0.0, 0.0, v0
+                s_first = self._window_start(s0, float(c.vehicle_s_m), hs)
                 pairs.append(
                     _Pair(
                         track_id=vehicle.track_id,
@@ -487,7 +531,7 @@ class MarkovPredictor:
                         v0_mps=v_start,
                         a0_mps2=a0,
                         sigma_a0_mps2=sigma_a0,
-                        s_first_m=min(s0, float(c.vehicle_s_m)) - max(cfg.window_behind_m, hs),
+                        s_first_m=s_first,
                         length_m=length,
                         width_m=width,
                         d0_m=float(c.vehicle_d_m) if math.isfinite(c.vehicle_d_m) else 0.0,
@@ -495,6 +539,7 @@ class MarkovPredictor:
                         half_width_s_m=hs,
                         half_width_v_mps=hv,
                         input_probs=lam,
+                        measured_v_mps=float(vehicle.speed_mps),
                     )
                 )
         return pairs
@@ -530,6 +575,95 @@ class MarkovPredictor:
             length_m=length,
             width_m=width,
         )
+
+    # ----- one pair's failure never costs the frame ----------------------------------
+
+    def _predict(self, pairs: list[_Pair], issues: list[Issue]) -> FramePrediction:
+        """The frame's prediction, each pair's failure isolated.
+
+        The mode predicts every pair it can. In the chain modes a pair the
+        chain cannot take (``_screen``), or one the batched chain raises on
+        (found by bisection, the batch run again without it), is predicted by
+        constant speed along its corridor, the ``corridor_cv`` mode (issue
+        ``pair_fallback_<reason>``); a pair that fails even so, or whose
+        outputs raise, is left out (``pair_failed``). The other pairs are
+        predicted exactly as without the failing one, unless they follow or
+        yield to it.
+        """
+        chain = self.config.mode in CHAIN_MODES
+        simple: dict[int, _Pair] = {}  # pair index -> the pair as the fallback predicts it
+        screened = self._screen(pairs) if chain else {}
+        for b, (kind, detail) in screened.items():
+            p = pairs[b]
+            issues.append(Issue(kind, p.track_id, f"corridor {p.corridor_id}: {detail}: constant speed along the corridor (corridor_cv)"))
+            if kind == "pair_fallback_speed_above_vmax":
+                p = dataclasses.replace(p, v0_mps=p.measured_v_mps)
+            elif kind == "pair_fallback_box_outside_window":  # the fallback's distributions lie on a window placed from its s
+                p = dataclasses.replace(p, s_first_m=self._window_start(p.s0_m, p.s0_m, 0.0))
+            simple[b] = p
+
+        def run(idx: list[int]):
+            found: list[Issue] = []
+            group = [pairs[b] for b in idx]
+            return (self._markov(group, found) if chain else self._constant_velocity(group)), found
+
+        (arrays, found), failed = isolate([b for b in range(len(pairs)) if b not in screened], run)
+        issues.extend(found)
+        for b, exc in failed:
+            p = pairs[b]
+            if chain:
+                issues.append(Issue("pair_fallback_chain_failed", p.track_id, f"corridor {p.corridor_id}: the chain raised"
+                                    f" {type(exc).__name__}: {exc}: constant speed along the corridor (corridor_cv)"))
+                simple[b] = p
+            else:
+                issues.append(Issue("pair_failed", p.track_id, f"corridor {p.corridor_id}: {type(exc).__name__}: {exc}: not predicted"))
+        lost = {b for b, _ in failed}
+        main = [b for b in range(len(pairs)) if b not in screened and b not in lost]
+        usable = []
+        for b in sorted(simple):
+            p = simple[b]
+            if all(math.isfinite(x) for x in (p.s0_m, p.v0_mps, p.s_first_m)):
+                usable.append(b)
+            else:
+                issues.append(Issue("pair_failed", p.track_id, f"corridor {p.corridor_id}: no finite arc length or speed for the fallback: not predicted"))
+        fallback, failed = isolate(usable, lambda idx: self._constant_velocity([simple[b] for b in idx]))
+        for b, exc in failed:
+            issues.append(Issue("pair_failed", simple[b].track_id, f"corridor {simple[b].corridor_id}: the fallback raised {type(exc).__name__}: {exc}: not predicted"))
+        gone = {b for b, _ in failed}
+        usable = [b for b in usable if b not in gone]
+        order = sorted(main + usable)
+        final = [simple.get(b, pairs[b]) for b in order]
+        merged = _merge(order, [(main, arrays), (usable, fallback)])
+
+        def finish(idx: list[int]):
+            found: list[Issue] = []
+            subset = final if len(idx) == len(final) else [final[i] for i in idx]
+            return self._finish(subset, _take(merged, idx, len(final)), found), found
+
+        (prediction, found), failed = isolate(range(len(final)), finish)
+        issues.extend(found)
+        for i, exc in failed:
+            issues.append(Issue("pair_failed", final[i].track_id, f"corridor {final[i].corridor_id}: its outputs raised {type(exc).__name__}: {exc}: not predicted"))
+        return prediction
+
+    def _screen(self, pairs: list[_Pair]) -> dict[int, tuple[str, str]]:
+        """The pairs the chain cannot take, found before the batch: pair index -> (issue kind, why)."""
+        out: dict[int, tuple[str, str]] = {}
+        if not pairs:
+            return out
+        boxes = self._boxes(pairs)
+        s_out, v_out = boxes_outside_grid(self._window_grid, **boxes)
+        v_max = self.config.v_max_mps
+        for b, p in enumerate(pairs):
+            bad = _non_finite(p)
+            if bad:
+                out[b] = ("pair_fallback_nan_input", f"non-finite {', '.join(bad)}")
+            elif p.measured_v_mps > v_max:
+                out[b] = ("pair_fallback_speed_above_vmax", f"speed {p.measured_v_mps:.1f} m/s above the chain's v_max_mps {v_max:g}")
+            elif s_out[b] or v_out[b]:
+                out[b] = ("pair_fallback_box_outside_window", f"initial box s {boxes['s_m'][b]:.1f} ± {boxes['half_width_s_m'][b]:.1f} m,"
+                          f" v {p.v0_mps:.1f} m/s misses its {self.n_s * self.config.ds_m:.0f} m window or the speed cells")
+        return out
 
     # ----- constant-velocity baselines --------------------------------------------
 
@@ -656,20 +790,19 @@ class MarkovPredictor:
         probs = np.diff(cdf, axis=1)
         return probs / probs.sum(axis=1, keepdims=True)
 
+    def _boxes(self, pairs: list[_Pair]) -> dict[str, np.ndarray]:
+        """The initial boxes (§1.4) as ``initial_state`` takes them: centres in window coordinates, half-widths
+        (the measurement's defaults, or the particles')."""
+        return {
+            "s_m": np.array([p.s0_m - p.s_first_m for p in pairs], dtype=np.float64),
+            "v_mps": np.array([p.v0_mps for p in pairs], dtype=np.float64),
+            "half_width_s_m": np.array([p.half_width_s_m if p.half_width_s_m > 0 else self._default_half_s_m for p in pairs]),
+            "half_width_v_mps": np.array([p.half_width_v_mps if p.half_width_v_mps > 0 else self._default_half_v_mps for p in pairs]),
+        }
+
     def _initial(self, pairs: list[_Pair], input_probs: np.ndarray):
-        """p(t_0) (§1.4): a uniform box in (s, v) (the measurement's, or the particles') × ``input_probs``."""
-        cfg = self.config
-        default_s, default_v = max(0.5 * cfg.ds_m, 2 * cfg.init_sigma_s_m), max(0.5 * cfg.dv_mps, 2 * cfg.init_sigma_v_mps)
-        p0 = initial_state(
-            self.grid,
-            s_m=np.array([p.s0_m - p.s_first_m for p in pairs]),
-            v_mps=np.array([p.v0_mps for p in pairs]),
-            half_width_s_m=np.array([p.half_width_s_m if p.half_width_s_m > 0 else default_s for p in pairs]),
-            half_width_v_mps=np.array([p.half_width_v_mps if p.half_width_v_mps > 0 else default_v for p in pairs]),
-            input_probs=input_probs,
-        )
-        # window of p0 must match the propagator's window length
-        return type(p0)(input_probs=p0.input_probs, velocity_probs=p0.velocity_probs, position_probs=_fit(p0.position_probs, self.n_s))
+        """p(t_0) (§1.4): a uniform box in (s, v) (the measurement's, or the particles') × ``input_probs``, on the window."""
+        return initial_state(self._window_grid, **self._boxes(pairs), input_probs=input_probs)
 
     def _hybrid(self, pairs: list[_Pair], lam_speed: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Hybrid mode (METHOD.md §3.2): λ(0) starts the input, Γ_k = colnorm(diag(λ(k)) Ψ) (or λ(k)·1ᵀ) after step k;
@@ -726,6 +859,9 @@ class MarkovPredictor:
                 continue
             members = [b for b in by_track.get(int(rel.leader_track_id), []) if b != f]
             speed = float(rel.leader_speed_mps) if math.isfinite(rel.leader_speed_mps) else 0.0
+            if not members and not math.isfinite(rel.leader_speed_mps):
+                issues.append(Issue("nan_relation", p.track_id, f"corridor {p.corridor_id}: leader {rel.leader_track_id} speed"
+                                    f" {rel.leader_speed_mps}: taken as standing"))
             out[f] = _LeaderSpec(gap_m=max(gap, 0.0), pairs=tuple(members), speed_mps=max(speed, 0.0))
         return out
 
@@ -920,7 +1056,7 @@ class MarkovPredictor:
                 mean_xy[b, ok, 1] = (pos[b][ok] @ y_c + shift[ok] * (pos[b][ok] @ ny_c)) / mass[ok]
                 mean_s[b, ok] = (pos[b][ok] @ s_abs) / mass[ok]
             exact = arrays.get("exact_s")
-            if exact is not None:  # constant-velocity modes: the exact point, not the cell average
+            if exact is not None and np.all(np.isfinite(exact[b])):  # constant velocity (a mode, or a fallback): the exact point
                 mean_s[b] = exact[b]
                 ex, ey = _corridor_xy(p, exact[b])
                 enx, eny = _corridor_normal(p, exact[b])
@@ -1054,14 +1190,51 @@ def _numpy(x: Any) -> np.ndarray:
     return np.asarray(x)
 
 
-def _fit(position_probs: np.ndarray, n_s: int) -> np.ndarray:
-    """Position probabilities cut or padded to ``n_s`` cells (``initial_state`` uses the grid's window length)."""
-    if position_probs.shape[1] == n_s:
-        return position_probs
-    out = np.zeros((position_probs.shape[0], n_s), np.float32)
-    n = min(n_s, position_probs.shape[1])
-    out[:, :n] = position_probs[:, :n]
-    return out / np.maximum(out.sum(axis=1, keepdims=True), 1e-12)
+_CHAIN_SCALARS = ("s0_m", "v0_mps", "a0_mps2", "sigma_a0_mps2", "s_first_m", "speed_limit_mps", "d0_m", "length_m", "width_m",
+                  "half_width_s_m", "half_width_v_mps", "start_rate_hz", "probability")
+_CHAIN_ARRAYS = ("s_m", "x_m", "y_m", "heading_rad", "curvature_1pm", "input_probs")
+
+
+def _non_finite(p: _Pair) -> list[str]:
+    """The names of the pair's numbers the chain reads that are not finite (none: [])."""
+    bad = [name for name in _CHAIN_SCALARS if not math.isfinite(getattr(p, name))]
+    return bad + [name for name in _CHAIN_ARRAYS if getattr(p, name) is not None and not np.all(np.isfinite(getattr(p, name)))]
+
+
+def _take(arrays: dict[str, Any], idx: list[int], n: int) -> dict[str, Any]:
+    """The rows ``idx`` of a frame's prediction arrays (all ``n`` of them: the arrays themselves)."""
+    if len(idx) == n:
+        return arrays
+    rows = np.asarray(idx, dtype=np.int64)
+    return {k: (None if v is None else np.asarray(v)[rows]) for k, v in arrays.items()}
+
+
+def _merge(order: list[int], groups: list[tuple[list[int], dict[str, Any]]]) -> dict[str, Any]:
+    """The prediction arrays of several groups of pairs as one, rows in ``order`` (every group's indices lie in it).
+
+    A group without interval distributions (constant velocity) gives its
+    time-point ones where another group has them; a group without exact
+    means (the chain) gets NaN rows in ``exact_s``.
+    """
+    live = [(idx, a) for idx, a in groups if idx]
+    if len(live) <= 1:
+        return live[0][1] if live else groups[0][1]
+    row = {b: i for i, b in enumerate(order)}
+    first = live[0][1]
+    n = len(order)
+    pos = np.zeros((n,) + np.shape(first["position"])[1:], np.float32)
+    vel = np.zeros((n,) + np.shape(first["velocity"])[1:], np.float32)
+    outside = np.zeros((n,) + np.shape(first["outside"])[1:], np.float64)
+    interval = np.zeros_like(pos) if any(a["interval"] is not None for _, a in live) else None
+    exact = np.full(outside.shape, np.nan) if any(a.get("exact_s") is not None for _, a in live) else None
+    for idx, a in live:
+        rows = np.array([row[b] for b in idx], dtype=np.int64)
+        pos[rows], vel[rows], outside[rows] = a["position"], a["velocity"], a["outside"]
+        if interval is not None:
+            interval[rows] = a["interval"] if a["interval"] is not None else a["position"]
+        if exact is not None and a.get("exact_s") is not None:
+            exact[rows] = a["exact_s"]
+    return {"position": pos, "interval": interval, "velocity": vel, "outside": outside, "exact_s": exact}
 
 
 def _normal_cdf(z: np.ndarray) -> np.ndarray:
