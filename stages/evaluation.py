@@ -23,6 +23,18 @@ that the corridors stage matched (so every mode predicts it). Vehicles
 without a full future or unmatched are counted in ``skipped``. Every mode is
 evaluated on the same windows.
 
+Nothing in the data stops the evaluation (only a bad command line or
+configuration: exit 2). What it leaves out is counted in ``skipped`` by
+reason, with the first occurrence in ``skipped_examples``, and listed under
+the table: windows ``no_full_future``, ``not_matched``,
+``no_prediction_<mode>`` (the mode left the vehicle out), ``score_error_<mode>``
+and ``prediction_error_<mode>`` (the predictor raised: the instant's windows
+are scored for no mode); frames ``<stage>_error_frames`` (a core raised on
+the frame: without corridors the frame is skipped, without relations,
+beliefs or AR profiles it is predicted without them); and
+``unreadable_sequences`` (a sequence whose files cannot be read). Each mode's
+``issues`` counts its predictor's issues by kind (fallback pairs among them).
+
 Metrics per window (K = 10 steps of 0.4 s):
 
 - ADE_c, FDE_c of each corridor's probability-weighted mean position
@@ -89,7 +101,8 @@ from ._core import progress_bar
 from .raster import MapRaster
 
 from .corridors import CorridorBuilder, CorridorsConfig, SceneMaps
-from .datasets import DEFAULT_DATA_DIR, Recording, discover, load_recording
+from .datasets import DEFAULT_DATA_DIR, DatasetError, Recording, discover, find_recording, load_ref
+from .datasets.model import same_sequence_id
 from .markov import MarkovGridConfig, load_or_build_stencils
 from .markov_prediction import FramePrediction, MarkovPredictionConfig, MarkovPredictor
 from .markov_prediction.rasterise import GridFrame, highest_density_threshold
@@ -211,6 +224,7 @@ class _ModeAccumulator:
     frame_ms: list[float] = field(default_factory=list)
     vehicles: list[int] = field(default_factory=list)
     nan_means: int = 0
+    issues: collections.Counter = field(default_factory=collections.Counter)  # the predictor's issues by kind
 
 
 @dataclass(slots=True)
@@ -271,6 +285,7 @@ class Evaluation:
         self.ar_ms: list[float] = []
         self.ar_examples: list[dict[str, Any]] = []
         self.skipped: collections.Counter[str] = collections.Counter()
+        self.skip_examples: dict[str, str] = {}  # per reason, the first occurrence (printed under the table)
         self.instants = 0
         self.figure: _Figure | None = None
         self.recordings: list[str] = []
@@ -278,9 +293,32 @@ class Evaluation:
     # ----- data ---------------------------------------------------------------------
 
     def _load(self) -> list[Recording]:
+        """The selected recordings, sequence by sequence: one whose files cannot be read is left out and counted
+        (``unreadable_sequences``). A data folder, recording or sequence that is not there raises ``DatasetError``
+        (a bad command line)."""
         cfg = self.config
-        names = list(cfg.recordings) or [ref.name for ref in discover(cfg.data_dir)]
-        return [load_recording(cfg.data_dir, name, tuple(cfg.sequences) or None) for name in names]
+        refs = {ref.name: ref for ref in discover(cfg.data_dir)}
+        out = []
+        for name in list(cfg.recordings) or list(refs):
+            ref = refs.get(name) or find_recording(cfg.data_dir, name)
+            wanted = list(dict.fromkeys(cfg.sequences)) or list(ref.sequence_ids)
+            for want in wanted:
+                if not any(same_sequence_id(s, want) for s in ref.sequence_ids):
+                    raise DatasetError(f"recording {name}: no track file for sequence {want!r}; available: {', '.join(ref.sequence_ids)}")
+            parts = []
+            for want in wanted:
+                try:
+                    parts.append(load_ref(ref, (want,), display_root=Path(cfg.data_dir)))
+                except DatasetError as exc:
+                    self._skip("unreadable_sequences", f"{name} sequence {want}: {exc}")
+            if parts:
+                out.append(dataclasses.replace(parts[0], sequences=tuple(s for p in parts for s in p.sequences)))
+        return out
+
+    def _skip(self, reason: str, detail: str, count: int = 1) -> None:
+        """Count ``count`` things skipped for ``reason``; the first one's ``detail`` is kept for the table."""
+        self.skipped[reason] += count
+        self.skip_examples.setdefault(reason, detail)
 
     def run(self) -> dict[str, Any]:
         recordings = self._load()
@@ -330,26 +368,40 @@ class Evaluation:
             if "scene" in result.outputs:
                 scene = result.outputs["scene"]
             frame: TrackFrame = result.outputs["track_frame"]
-            corridor_set, _ = corridors.process(frame, scene)
-            relation_set, _ = relations.process(frame, corridor_set, scene)
+            where = f"{rec.name} sequence {seq.id} stamp_ns {stamp}"
+            done = self._guarded("corridors_error_frames", where, lambda: corridors.process(frame, scene))
+            if done is None:
+                continue  # no corridors: nothing to predict in this frame
+            corridor_set = done[0]
+            relation_set = (self._guarded("relations_error_frames", where, lambda: relations.process(frame, corridor_set, scene)) or (None,))[0]
             belief = None
             if intentions is not None:
                 t0 = time.perf_counter()
-                belief, _ = intentions.process(frame, corridor_set, relation_set, scene)
+                belief = (self._guarded("intentions_error_frames", where,
+                                        lambda: intentions.process(frame, corridor_set, relation_set, scene)) or (None,))[0]
                 self.intentions_ms.append((time.perf_counter() - t0) * 1e3)
             offset = stamp - first
             if offset % stride_ns > _MS and stride_ns - offset % stride_ns > _MS:
                 for predictor in self.predictors.values():
                     predictor.observe(corridor_set)
                 if ar is not None:
-                    ar.observe(corridor_set, relation_set, frame)
+                    self._guarded("ar_inference_error_frames", where, lambda: ar.observe(corridor_set, relation_set, frame))
                 continue
             profiles = None
             if ar is not None:
                 t0 = time.perf_counter()
-                profiles, _ = ar.process(corridor_set, relation_set, frame, scene)
+                profiles = (self._guarded("ar_inference_error_frames", where,
+                                          lambda: ar.process(corridor_set, relation_set, frame, scene)) or (None,))[0]
                 self.ar_ms.append((time.perf_counter() - t0) * 1e3)
             self._instant(rec.name, seq.id, stamp, frame, corridor_set, relation_set, scene, truth, tau_ns, n_steps, belief, profiles)
+
+    def _guarded(self, reason: str, where: str, call):
+        """``call()``, or None when it raises: a core failing on one frame is counted under ``reason``, not fatal."""
+        try:
+            return call()
+        except Exception as exc:  # noqa: BLE001 - a data condition never ends the evaluation
+            self._skip(reason, f"{where}: {type(exc).__name__}: {exc}")
+            return None
 
     def _instant(self, recording, sequence_id, stamp, frame, corridor_set: CorridorSet, relation_set: RelationSet | None,
                  scene, truth, tau_ns, n_steps, belief=None, profiles=None) -> None:
@@ -372,19 +424,32 @@ class Evaluation:
                 speed = vehicle.speed_mps
             windows[track_id] = (future, speed)
         predictions: dict[str, FramePrediction] = {}
+        where = f"{recording} sequence {sequence_id} stamp_ns {stamp}"
         for mode, predictor in self.predictors.items():
             t0 = time.perf_counter()
-            prediction, _issues = predictor.process(
-                corridor_set, relation_set, scene, frame, intention_belief=belief, acceleration_profiles=profiles if mode == "hybrid" else None
-            )
+            try:
+                prediction, issues = predictor.process(
+                    corridor_set, relation_set, scene, frame, intention_belief=belief, acceleration_profiles=profiles if mode == "hybrid" else None
+                )
+            except Exception as exc:  # noqa: BLE001 - counted; the instant's windows are then scored for no mode
+                self._skip(f"prediction_error_{mode}", f"{where}: {type(exc).__name__}: {exc}", len(windows))
+                continue
             self.acc[mode].frame_ms.append((time.perf_counter() - t0) * 1e3)
             self.acc[mode].vehicles.append(len({p.track_id for p in prediction.pairs}))
+            self.acc[mode].issues.update(i.kind for i in issues)
             predictions[mode] = prediction
+        if len(predictions) < len(self.predictors):
+            return  # every mode is scored on the same windows
+        for mode, prediction in predictions.items():
             acc = self.acc[mode]
             if mode == "hybrid" and profiles is not None:
                 self._collect_accel_examples(recording, sequence_id, stamp, windows, statuses, truth, profiles, prediction)
             for track_id, (future, speed) in windows.items():
-                result = self._score(prediction, track_id, future, acc, statuses[track_id])
+                try:
+                    result = self._score(prediction, track_id, future, acc, statuses[track_id])
+                except Exception as exc:  # noqa: BLE001
+                    self._skip(f"score_error_{mode}", f"{where} track {track_id}: {type(exc).__name__}: {exc}")
+                    continue
                 if result is None:
                     self.skipped[f"no_prediction_{mode}"] += 1
                     continue
@@ -478,6 +543,7 @@ class Evaluation:
                 "vehicles_per_frame_mean": float(np.mean(acc.vehicles)) if acc.vehicles else float("nan"),
                 "frames": len(acc.frame_ms),
                 "nan_means": acc.nan_means,
+                "issues": dict(sorted(acc.issues.items())),
             }
             if mode == "hybrid" and self.ar_ms:
                 modes[mode]["ar_inference_ms_median"] = float(np.median(self.ar_ms))
@@ -492,6 +558,7 @@ class Evaluation:
             "params": {k: v for k, v in cfg.params},
             "instants": self.instants,
             "skipped": dict(sorted(self.skipped.items())),
+            "skipped_examples": dict(sorted(self.skip_examples.items())),
             "intentions_ms_median": float(np.median(self.intentions_ms)) if self.intentions_ms else None,
             "model": str(self.ar_config.model) if self.ar_config is not None else None,
             "metrics": {
@@ -718,7 +785,10 @@ def format_table(report: dict[str, Any]) -> str:
         )
     if report.get("intentions_ms_median") is not None:
         lines.append(f"intentions (every frame) median {report['intentions_ms_median']:.1f} ms; corridor weights {report['corridor_weights']}")
-    lines.append(f"instants {report['instants']}, skipped {report['skipped']}")
+    lines.append(f"instants {report['instants']}; skipped, by reason:" + ("" if report["skipped"] else " nothing"))
+    examples = report.get("skipped_examples", {})
+    for reason, count in report["skipped"].items():
+        lines.append(f"  {reason:<28} {count:>7d}" + (f"  first: {examples[reason]}" if reason in examples else ""))
     return "\n".join(lines)
 
 

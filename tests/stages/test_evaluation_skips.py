@@ -1,0 +1,106 @@
+"""``iamp eval`` never stops on the data: what it leaves out is counted by reason, in the JSON and under the table.
+
+Small in-process runs on the embedded K729 scenario; the failures are
+stand-ins patched into the real cores (one frame of the corridors core, some
+of the relations core, one instant of a predictor) and a sequence file that
+cannot be read.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+
+from stages import cli
+from stages.corridors import CorridorBuilder
+from stages.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING
+from stages.evaluation import EvalConfig, Evaluation, format_table
+from stages.relations import RelationExtractor
+
+pytestmark = pytest.mark.skipif(
+    not (DEFAULT_DATA_DIR / "maps").is_dir(), reason=f"embedded TAF-BW data not found at {DEFAULT_DATA_DIR}"
+)
+
+SEQUENCE = "019"  # 58 frames, up to four cars
+MODES = ("cv", "corridor_cv")
+FRAMES = 40
+STRIDE_S = 0.8  # instants every 8th frame
+
+
+def _config(**changes) -> EvalConfig:
+    base = dict(recordings=(DEFAULT_RECORDING,), sequences=(SEQUENCE,), modes=MODES, stride_s=STRIDE_S,
+                max_frames_per_sequence=FRAMES, progress=False)
+    return EvalConfig(**{**base, **changes})
+
+
+def _windows(report) -> dict[str, int]:
+    return {mode: report["modes"][mode]["overall"]["windows"] for mode in MODES}
+
+
+class _Failing:
+    """Wraps a method: raises on the calls whose number (from 0) is in ``calls``, else calls through."""
+
+    def __init__(self, method, calls):
+        self.method, self.calls, self.n = method, set(calls), 0
+
+    def __call__(self, *args, **kwargs):
+        n, self.n = self.n, self.n + 1
+        if n in self.calls:
+            raise ValueError(f"stand-in failure on call {n}")
+        return self.method(*args, **kwargs)
+
+
+def test_core_failures_are_counted_and_the_evaluation_goes_on(monkeypatch):
+    clean = Evaluation(_config()).run()
+    assert clean["skipped"].get("prediction_error_corridor_cv", 0) == 0
+    windows = _windows(clean)
+    assert windows["cv"] == windows["corridor_cv"] > 0
+
+    corridors = _Failing(CorridorBuilder.process, {FRAMES - 1})  # the last frame: not an instant, nothing after it
+    relations = _Failing(RelationExtractor.process, {2, 5, 11})
+    monkeypatch.setattr(CorridorBuilder, "process", lambda self, *a: corridors(self, *a))
+    monkeypatch.setattr(RelationExtractor, "process", lambda self, *a, **k: relations(self, *a, **k))
+    evaluation = Evaluation(_config())
+    predictor = evaluation.predictors["corridor_cv"]
+    predictor.process = _Failing(predictor.process, {1})  # the second instant
+    report = evaluation.run()
+
+    skipped = report["skipped"]
+    assert skipped["corridors_error_frames"] == 1 and skipped["relations_error_frames"] == 3
+    lost = skipped["prediction_error_corridor_cv"]
+    assert lost > 0, "the failing instant's windows are counted"
+    assert _windows(report) == {mode: n - lost for mode, n in windows.items()}, "every mode scored on the same windows"
+    assert "stand-in failure on call 1" in report["skipped_examples"]["prediction_error_corridor_cv"]
+    table = format_table(report)
+    for reason in ("corridors_error_frames", "relations_error_frames", "prediction_error_corridor_cv", "no_full_future"):
+        assert reason in table
+    json.dumps(report, allow_nan=True)
+
+
+def test_an_unreadable_sequence_is_skipped_and_counted(tmp_path, capsys):
+    data = tmp_path / "taf-bw"
+    shutil.copytree(DEFAULT_DATA_DIR, data)
+    (data / "recorded_trackfiles" / DEFAULT_RECORDING / "vehicle_tracks_022.csv").write_text("")  # empty: no header row
+    report = Evaluation(_config(data_dir=data, sequences=(SEQUENCE, "022"))).run()
+    assert report["skipped"]["unreadable_sequences"] == 1
+    assert "022" in report["skipped_examples"]["unreadable_sequences"]
+    assert _windows(report)["cv"] > 0, "the readable sequence is still evaluated"
+
+    out = tmp_path / "eval.json"
+    code = cli.main(["eval", "--data", str(data), "--recording", DEFAULT_RECORDING, "--mode", "cv", "--max-frames", "20",
+                     "--no-progress", "--json", str(out)])
+    assert code == 0
+    assert json.loads(out.read_text())["skipped"]["unreadable_sequences"] == 1
+    assert "unreadable_sequences" in capsys.readouterr().out
+
+
+def test_only_a_bad_command_line_or_configuration_stops_it(tmp_path, capsys):
+    base = ["eval", "--recording", DEFAULT_RECORDING, "--mode", "cv", "--max-frames", "5", "--no-progress"]
+    assert cli.main(base + ["--sequence", "999"]) == 2
+    assert cli.main(base + ["--set", "no_such_parameter=1"]) == 2
+    assert cli.main(["eval", "--data", str(tmp_path / "nothing"), "--no-progress"]) == 2
+    assert cli.main(base + ["--recording", "nowhere"]) == 2
+    err = capsys.readouterr().err
+    assert "999" in err and "no_such_parameter" in err and "nowhere" in err
