@@ -1,7 +1,10 @@
 """Typed decode errors. Every problem with a bus payload is a ``SchemaError``.
 
-A stage catches ``SchemaError`` around decoding, logs one line, counts it by
-class name and keeps going; nothing here is ever fatal to a process.
+Decoding raises nothing else, whatever the bytes (numpy and msgpack errors
+are turned into ``MalformedPayload``, naming the schema and the field). A
+stage catches ``SchemaError`` around decoding, counts it by class name in
+NodeStats ``errors_by_kind``, logs one line per kind (rate-limited) and keeps
+going; nothing here is ever fatal to a process.
 """
 
 from __future__ import annotations
@@ -28,4 +31,4 @@ class MalformedPayload(SchemaError):
 
 
 class PayloadTooLarge(MalformedPayload):
-    """The payload exceeds the size limit for one message."""
+    """The payload exceeds the size limit for one message (its schema's ``MAX_BYTES``), found before unpacking."""
