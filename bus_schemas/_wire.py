@@ -207,7 +207,7 @@ def unpack_envelope(data: bytes, *, where: str = "", expect: type["Message"] | N
         raise MalformedPayload(f"{what}{_at(where)} is not an envelope {{schema, v, body}}")
     schema, version, body = env["schema"], env["v"], env["body"]
     if not isinstance(schema, str) or type(version) is not int or not isinstance(body, dict):
-        raise MalformedPayload(f"payload{_at(where)} has an envelope with wrong types")
+        raise MalformedPayload(f"{what}{_at(where)} has an envelope with wrong types")
     return schema, version, body
 
 
