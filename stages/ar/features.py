@@ -327,7 +327,11 @@ class FeatureTracker:
             rows: dict[int, np.ndarray] = {}
             if vehicle.status == MatchStatus.MATCHED:
                 for corridor in vehicle.corridors:
-                    row = corridor_features(corridor, relations.get((vehicle.track_id, corridor.corridor_id)), speed, cfg)
+                    try:
+                        row = corridor_features(corridor, relations.get((vehicle.track_id, corridor.corridor_id)), speed, cfg)
+                    except Exception as exc:  # noqa: BLE001 - one corridor's failure costs only its row (no profile for it)
+                        issues.append(Issue("pair_failed", vehicle.track_id, f"corridor {corridor.corridor_id}: features raised {type(exc).__name__}: {exc}: no row"))
+                        continue
                     bad = ~np.isfinite(row)
                     if bad.any():
                         names = [FEATURE_NAMES[int(i)] for i in _CORRIDOR_COLUMNS[bad]]
@@ -380,7 +384,10 @@ class FeatureTracker:
                     src = _fill_source(has)
                     x[:, _CORRIDOR_COLUMNS] = np.stack([rows[j].corridors[cid] for j in src])
                 else:  # the corridor is in no row (its vehicle had no row this frame): geometry now, relations absent
-                    x[:, _CORRIDOR_COLUMNS] = corridor_features(by_id[cid], None, float(vehicle_values[-1, 1]), self.config)
+                    try:
+                        x[:, _CORRIDOR_COLUMNS] = corridor_features(by_id[cid], None, float(vehicle_values[-1, 1]), self.config)
+                    except Exception:  # noqa: BLE001 - its row failed in update (issue pair_failed): no profile for it
+                        continue
                 keys.append((vehicle.track_id, cid))
                 xs.append(x.astype(np.float32))
                 masks.append(present.copy())

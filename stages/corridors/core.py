@@ -17,7 +17,7 @@ from typing import Mapping
 import numpy as np
 
 from bus_schemas import AgentType, Corridor, CorridorSet, Header, MatchStatus, SceneInfo, TrackFrame, VehicleCorridors
-from stages._core import ConfigMixin, Issue, StageResult, check_ranges
+from stages._core import ConfigMixin, Issue, StageResult, check_ranges, isolate
 from stages.kinematic_state import EstimatorConfig, KinematicEstimator, KinematicState
 from stages.maps import Projection, RoadMap, load_map, parse_projection, projection_for_location, wrap_angle_rad
 
@@ -279,8 +279,18 @@ class CorridorBuilder:
                 entries[row] = _entry(track_id, agent_type, MatchStatus.OFF_MAP, state, kin.speed_mps)
                 continue
             to_match.append((row, track_id, agent_type, kin))
-        if to_match:
-            self._match_and_build(frame, scene_map, to_match, entries, issues, states)
+        if to_match:  # a vehicle whose matching or corridors raise is left out (found by bisection), not the frame
+            def attempt(idx: list[int]) -> list[Issue]:
+                found: list[Issue] = []
+                self._match_and_build(frame, scene_map, [to_match[i] for i in idx], entries, found, states)
+                return found
+
+            found, failed = isolate(range(len(to_match)), attempt)
+            issues.extend(found)
+            for i, exc in failed:
+                row, track_id, agent_type, kin = to_match[i]
+                issues.append(Issue("vehicle_failed", track_id, f"matching or building corridors raised {type(exc).__name__}: {exc}: BAD_STATE"))
+                entries[row] = _entry(track_id, agent_type, MatchStatus.BAD_STATE, states[row], kin.speed_mps)
         warning = self.estimator.warning()
         if warning is not None and self.log is not None:
             self.log.warning("%s", warning)

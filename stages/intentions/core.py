@@ -28,7 +28,7 @@ from bus_schemas import (
     TrackFrame,
     VehicleBelief,
 )
-from stages._core import ConfigMixin, Issue, StageResult, check_ranges
+from stages._core import ConfigMixin, Issue, StageResult, check_ranges, isolate
 from stages.corridors.core import SceneMaps
 from stages.maps import DEFAULT_SPEED_LIMIT_MPS, Projection, RoadMap, parse_projection, project_to_polyline
 
@@ -241,19 +241,31 @@ class IntentionFilter:
         if relation_set is not None:
             relations = {(r.track_id, r.corridor_id): r for r in relation_set.relations}
         route_probabilities = {(t, c): p for t, v in self._vehicles.items() for c, p in v.probabilities.items()}
-        tables = build_tables(
-            inputs,
-            relations,
-            route_probabilities,
-            lat_accels_mps2=cfg.lat_accels_mps2,
-            brake_lookahead_mps2=cfg.brake_lookahead_mps2,
-            curvature_smoothing_m=cfg.curvature_smoothing_m,
-            default_speed_limit_mps=scene.speed_limit_mps if scene is not None and scene.speed_limit_mps > 0 else DEFAULT_SPEED_LIMIT_MPS,
-            stop_offset_m=cfg.stop_offset_m,
-        )
-        particles, ess = self._filter(frame.header.frame_index, stamp, inputs, measurements, tables, issues)
-        vehicles = self._beliefs(inputs, tables, particles, ess, road_map)
-        for v, item in enumerate(inputs):
+
+        def attempt(idx: list[int]):  # the filter for the vehicles idx (each vehicle's random numbers are its own)
+            found: list[Issue] = []
+            sub = [inputs[i] for i in idx]
+            if not sub:
+                return sub, None, [], found
+            tables = build_tables(
+                sub,
+                relations,
+                route_probabilities,
+                lat_accels_mps2=cfg.lat_accels_mps2,
+                brake_lookahead_mps2=cfg.brake_lookahead_mps2,
+                curvature_smoothing_m=cfg.curvature_smoothing_m,
+                default_speed_limit_mps=scene.speed_limit_mps if scene is not None and scene.speed_limit_mps > 0 else DEFAULT_SPEED_LIMIT_MPS,
+                stop_offset_m=cfg.stop_offset_m,
+            )
+            particles, ess = self._filter(frame.header.frame_index, stamp, sub, [measurements[i] for i in idx], tables, found)
+            return sub, particles, self._beliefs(sub, tables, particles, ess, road_map), found
+
+        (kept, particles, vehicles, found), failed = isolate(range(len(inputs)), attempt)  # one vehicle's failure: only it
+        issues.extend(found)
+        for i, exc in failed:
+            issues.append(Issue("vehicle_failed", inputs[i].track_id, f"{type(exc).__name__}: {exc}: no belief, particles dropped"))
+            self._vehicles.pop(inputs[i].track_id, None)
+        for v, item in enumerate(kept):
             belief = vehicles[v]
             self._vehicles[item.track_id] = _Vehicle(
                 last_stamp_ns=stamp,
@@ -350,7 +362,13 @@ class IntentionFilter:
                 born[v] = True
                 rows.append(_empty(n))
                 continue
-            rows.append(self._carry(state, item.corridors))
+            try:
+                rows.append(self._carry(state, item.corridors))
+            except Exception as exc:  # noqa: BLE001 - its particles cannot follow the new corridors: born again
+                issues.append(Issue("particles_reborn", item.track_id, f"moving its particles onto the new corridors raised {type(exc).__name__}: {exc}"))
+                born[v] = True
+                rows.append(_empty(n))
+                continue
             dt[v] = (stamp - state.last_stamp_ns) * _NS
             n_sub[v] = max(1, int(math.ceil(dt[v] / cfg.max_substep_s - 1e-9)))
         rngs = [np.random.default_rng([cfg.seed, int(frame_index) & _U64, int(item.track_id) & _U64]) for item in inputs]

@@ -270,15 +270,23 @@ class RelationExtractor:
         tables = self._scene(scene, corridor_set, issues)
         objects = self._objects(frame, corridor_set, issues)
         pairs = self._pairs(corridor_set, objects, tables, issues)
-        conflicts = self._conflicts(pairs, tables) if tables is not None and pairs else None
+        conflicts = None
+        if tables is not None and pairs:
+            try:
+                conflicts = self._conflicts(pairs, tables)
+            except Exception as exc:  # noqa: BLE001 - the lateral and intersection relations are still published
+                issues.append(Issue("conflicts_failed", -1, f"{type(exc).__name__}: {exc}: no conflict points this frame"))
         relations = []
         starts = np.searchsorted(conflicts.g, np.arange(len(pairs) + 1)) if conflicts is not None else None
         projected = _project_onto_corridors(objects.xy[objects.valid], pairs) if pairs else None
         for pair in pairs:
-            lateral = self._lateral(pair, objects, projected)
-            crossings = self._intersections(pair, tables)
-            span = slice(starts[pair.g], starts[pair.g + 1]) if starts is not None else slice(0, 0)
-            relations.append(self._relations(pair, pairs, objects, lateral, crossings, conflicts, span, route_probabilities))
+            try:
+                lateral = self._lateral(pair, objects, projected)
+                crossings = self._intersections(pair, tables)
+                span = slice(starts[pair.g], starts[pair.g + 1]) if starts is not None else slice(0, 0)
+                relations.append(self._relations(pair, pairs, objects, lateral, crossings, conflicts, span, route_probabilities))
+            except Exception as exc:  # noqa: BLE001 - one pair's failure costs only its relation
+                issues.append(Issue("pair_failed", pair.vehicle.track_id, f"corridor {pair.corridor.corridor_id}: {type(exc).__name__}: {exc}: no relation"))
         header = Header(run_id=frame.header.run_id, frame_index=frame.header.frame_index, stamp_ns=stamp, producer=self.producer)
         scene_id = scene.scene_id if scene is not None else corridor_set.scene_id
         return RelationSet(header=header, scene_id=scene_id, relations=tuple(relations)), issues
