@@ -5,6 +5,7 @@
     iamp record FILE.mcap --run-id R [network flags]      record iamp/R/** until Ctrl-C
     iamp replay FILE.mcap [--speed X|max] [--run-id R]     publish a recording onto the bus
     iamp inspect FILE.mcap [--json]                        channels, counts, time range, frames
+    iamp recover FILE.mcap [OUT.mcap] [--json]             rewrite a torn recording (killed writer) into a finished file
     iamp eval [--data PATH] [--recording NAME]... [--mode M...] [--stride S] [--json FILE] [--figures DIR]
                                                            offline metrics of the prediction modes
     iamp train [--data PATH] [--recording NAME...] [--split S] [--hidden N] [--out FILE] [--json FILE]
@@ -85,6 +86,20 @@ def _run_inspect(args: argparse.Namespace) -> int:
     return run(args)
 
 
+def _add_recover(sub: "argparse._SubParsersAction") -> None:
+    from .mcap_inspect import add_recover_arguments
+
+    p = sub.add_parser("recover", help="rewrite a recording cut short by a killed writer into a finished MCAP file that any reader reads")
+    add_recover_arguments(p)
+    p.set_defaults(run=_run_recover)
+
+
+def _run_recover(args: argparse.Namespace) -> int:
+    from .mcap_inspect import run_recover
+
+    return run_recover(args)
+
+
 def _add_eval(sub: "argparse._SubParsersAction") -> None:
     from .evaluation import add_arguments
 
@@ -122,6 +137,7 @@ SUBCOMMANDS: list[Callable[["argparse._SubParsersAction"], None]] = [
     _add_record,
     _add_replay,
     _add_inspect,
+    _add_recover,
     _add_eval,
     _add_train,
 ]

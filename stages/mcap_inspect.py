@@ -11,6 +11,13 @@ recording left by ``kill -9`` reads up to its last complete chunk.
 time range, per-schema counts, TrackFrame frame indices, truncation);
 ``main(argv)`` is ``iamp inspect FILE.mcap [--json]``: a table by default,
 JSON with ``--json``, exit 2 for a missing or unreadable file.
+
+``recover(src, dst)`` rewrites a recording that its writer never finished
+(killed: no footer, no summary, maybe a partial last chunk) into a complete
+MCAP file (mcap's ``Writer``, same chunk compression) with every message of
+every complete chunk, its schemas, channels and metadata, so that any MCAP
+reader (``mcap.reader.make_reader``, Foxglove, ``mcap`` CLI) reads it whole;
+``recover_main`` is ``iamp recover FILE.mcap [OUT.mcap]``.
 """
 
 from __future__ import annotations
@@ -18,16 +25,19 @@ from __future__ import annotations
 import argparse
 import collections
 import json
+import os
 import sys
+import tempfile
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from typing import Any, Iterator
 
 from mcap.exceptions import EndOfFile, InvalidMagic
-from mcap.records import Channel, Chunk, DataEnd, Footer, Metadata, Schema, Statistics
+from mcap.records import Attachment, Channel, Chunk, DataEnd, Footer, Metadata, Schema, Statistics
 from mcap.records import Header as McapHeader
 from mcap.records import Message as McapMessage
 from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.writer import CompressionType, Writer
 
 from bus_schemas import SchemaError, TrackFrame
 
@@ -181,6 +191,193 @@ def recording_run_id(path: str) -> str | None:
     return report.metadata.get("hybrid-iamp", {}).get("run_id") or None
 
 
+# --------------------------------------------------------------------------- recover
+
+_COMPRESSION_BY_NAME = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "": CompressionType.NONE}
+
+
+@dataclass(slots=True)
+class RecoverReport:
+    """What ``recover`` copied and where it stopped reading the source."""
+
+    src: str
+    dst: str
+    messages: int = 0
+    channels: int = 0
+    schemas: int = 0
+    metadata: int = 0
+    attachments: int = 0
+    chunks: int = 0
+    orphan_messages: int = 0  # messages on a channel whose Channel record was never read (left out)
+    complete: bool = False  # the source had its footer: nothing was lost
+    stopped_at_byte: int = 0  # end of the last record taken from the source
+    source_bytes: int = 0
+    error: str = ""
+
+    def line(self) -> str:
+        state = (
+            ("source was complete" + (f" (its end past the footer is damaged: {self.error})" if self.error else ""))
+            if self.complete
+            else f"stopped at byte {self.stopped_at_byte} of {self.source_bytes} ({self.source_bytes - self.stopped_at_byte} bytes dropped): {self.error}"
+        )
+        extra = f", {self.orphan_messages} messages without channel left out" if self.orphan_messages else ""
+        return f"recovered {self.messages} messages on {self.channels} channels ({self.schemas} schemas, {self.chunks} chunks{extra}) into {self.dst}; {state}"
+
+
+def default_recovered_path(src: str) -> str:
+    """``run.mcap`` -> ``run.recovered.mcap`` next to it."""
+    root, ext = os.path.splitext(str(src))
+    return f"{root}.recovered{ext or '.mcap'}"
+
+
+def recover(src: str, dst: str | None = None) -> RecoverReport:
+    """Rewrite ``src`` into a finished MCAP file ``dst`` (default ``<src>.recovered.mcap``).
+
+    Reads ``src`` front to back with mcap's ``StreamReader`` (chunks whole,
+    CRC-checked: a chunk is taken all or nothing) and stops at the first
+    record that cannot be read, which for a killed writer is the torn tail.
+    Schemas, channels (topic, encoding, channel metadata), metadata records,
+    attachments and messages (log and publish time, sequence, payload) are
+    written in file order with mcap's ``Writer`` and the file is finished
+    (summary, indexes, footer). ``dst`` may equal ``src``: the new file is
+    written next to it and then replaces it. Raises ``RecordingError`` when
+    ``src`` is missing or not an MCAP file; nothing is written then.
+    """
+    src = str(src)
+    dst = str(dst) if dst else default_recovered_path(src)
+    report = RecoverReport(src=src, dst=dst)
+    with _open(src) as f:
+        report.source_bytes = os.fstat(f.fileno()).st_size
+        records = StreamReader(f, emit_chunks=True, record_size_limit=_RECORD_SIZE_LIMIT).records
+        try:
+            first = next(records)
+        except Exception as exc:
+            if report.source_bytes == 0:
+                raise RecordingError(f"{src}: empty file, not an MCAP recording") from None
+            what = "not an MCAP file" if isinstance(exc, InvalidMagic) else f"not a readable MCAP file ({_why(exc)})"
+            raise RecordingError(f"{src}: {what}") from None
+        out_dir = os.path.dirname(os.path.abspath(dst))
+        os.makedirs(out_dir, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=".recover-", suffix=".mcap", dir=out_dir)
+        try:
+            with os.fdopen(fd, "wb") as out:
+                _copy_records(first, records, f, out, report)
+            os.replace(tmp, dst)
+        except BaseException:
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
+            raise
+    return report
+
+
+def _copy_records(first: Any, records: Iterator[Any], f: Any, out: Any, report: RecoverReport) -> None:
+    writer: Writer | None = None
+    header: McapHeader | None = first if isinstance(first, McapHeader) else None
+    schema_ids: dict[int, int] = {}  # source id -> written id
+    channel_ids: dict[int, int] = {}
+    pending: list[Any] = [] if header is not None else [first]
+
+    deferred: list[Any] = []  # metadata/attachments before the first chunk: the writer takes that chunk's compression
+
+    def ensure_writer(compression: str = "zstd") -> Writer:
+        nonlocal writer
+        if writer is None:
+            writer = Writer(out, compression=_COMPRESSION_BY_NAME.get(compression, CompressionType.ZSTD))
+            writer.start(profile=header.profile if header else "", library=header.library if header else "")
+            for rec in deferred:
+                take(rec)
+            deferred.clear()
+        return writer
+
+    def take(rec: Any) -> None:
+        if isinstance(rec, Schema):
+            if rec.id not in schema_ids:
+                schema_ids[rec.id] = ensure_writer().register_schema(name=rec.name, encoding=rec.encoding, data=bytes(rec.data))
+                report.schemas += 1
+        elif isinstance(rec, Channel):
+            if rec.id not in channel_ids:
+                sid = schema_ids.get(rec.schema_id, 0) if rec.schema_id else 0
+                channel_ids[rec.id] = ensure_writer().register_channel(
+                    topic=rec.topic, message_encoding=rec.message_encoding, schema_id=sid, metadata=dict(rec.metadata)
+                )
+                report.channels += 1
+        elif isinstance(rec, McapMessage):
+            cid = channel_ids.get(rec.channel_id)
+            if cid is None:
+                report.orphan_messages += 1
+                return
+            ensure_writer().add_message(channel_id=cid, log_time=rec.log_time, data=bytes(rec.data), publish_time=rec.publish_time, sequence=rec.sequence)
+            report.messages += 1
+        elif isinstance(rec, (Metadata, Attachment)) and writer is None:
+            deferred.append(rec)
+        elif isinstance(rec, Metadata):
+            ensure_writer().add_metadata(rec.name, dict(rec.metadata))
+            report.metadata += 1
+        elif isinstance(rec, Attachment):
+            ensure_writer().add_attachment(create_time=rec.create_time, log_time=rec.log_time, name=rec.name, media_type=rec.media_type, data=bytes(rec.data))
+            report.attachments += 1
+        elif isinstance(rec, Footer):
+            report.complete = True
+        # Header, DataEnd, indexes, statistics and summary offsets are rewritten by the Writer.
+
+    report.stopped_at_byte = f.tell()
+    for rec in pending:
+        take(rec)
+    while True:
+        try:
+            record = next(records)
+        except StopIteration:
+            break
+        except Exception as exc:  # EndOfFile, struct.error, a length past the limit: the torn tail
+            report.error = f"{_why(exc)} reading the record after byte {report.stopped_at_byte}"
+            break
+        if isinstance(record, Chunk):
+            try:
+                inner = breakup_chunk(record, validate_crc=True)
+            except Exception as exc:
+                report.error = f"chunk {report.chunks + 1} (after byte {report.stopped_at_byte}) is damaged ({_why(exc)})"
+                break
+            ensure_writer(record.compression)
+            report.chunks += 1
+            for rec in inner:
+                take(rec)
+        else:
+            take(record)
+        report.stopped_at_byte = f.tell()
+    if report.complete:
+        report.stopped_at_byte = report.source_bytes
+    elif not report.error:
+        report.error = "file ends before its footer"
+    ensure_writer().finish()
+
+
+def add_recover_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("file", metavar="FILE.mcap", help="recording to recover (e.g. left by a killed recorder)")
+    parser.add_argument("out", metavar="OUT.mcap", nargs="?", help="file to write (default FILE.recovered.mcap; may be FILE itself)")
+    parser.add_argument("--json", action="store_true", help="print the report as JSON")
+
+
+def run_recover(args: argparse.Namespace) -> int:
+    """Run ``iamp recover`` on parsed arguments: 0 written, 2 missing or not an MCAP file."""
+    try:
+        report = recover(args.file, args.out)
+    except RecordingError as exc:
+        sys.stderr.write(f"iamp recover: {exc}\n")
+        return 2
+    except OSError as exc:
+        sys.stderr.write(f"iamp recover: cannot write {args.out or default_recovered_path(args.file)}: {exc.strerror or exc}\n")
+        return 2
+    if args.json:
+        from dataclasses import asdict
+
+        sys.stdout.write(json.dumps(asdict(report), indent=2) + "\n")
+    else:
+        sys.stdout.write(report.line() + "\n")
+    return 0
+
+
 # --------------------------------------------------------------------------- inspect
 
 
@@ -264,7 +461,7 @@ def format_table(info: dict[str, Any]) -> str:
     """The human-readable form of ``inspect``'s dict."""
     lines = [f"file: {info['path']}"]
     if info["truncated"]:
-        lines.append(f"state: TRUNCATED, read up to the last complete chunk: {info['error']}")
+        lines.append(f"state: TRUNCATED, read up to the last complete chunk: {info['error']} (`iamp recover {info['path']}` writes a finished copy)")
     else:
         lines.append(f"state: complete, summary {'present' if info['summary_present'] else 'absent'}")
     dur = (info["end_ns"] - info["start_ns"]) / 1e9 if info["start_ns"] is not None else 0.0
