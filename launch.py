@@ -8,11 +8,28 @@
 Every node runs as its own process (``python -m <stage>``); its output lines
 are prefixed with ``[node-id]``. The launcher opens the bus hub (a Zenoh peer
 on 127.0.0.1) that every node connects to, waits for every node's liveliness
-token before starting the sources, restarts processing nodes that die
-(``restart = true``), and stops everything with SIGINT -> SIGTERM -> SIGKILL.
+token before starting the sources, restarts nodes that die (``restart =
+true``, the default for processing nodes and the recorder), and stops
+everything with SIGINT -> SIGTERM -> SIGKILL.
+
+Supervision: a node gets ``--max-restarts`` restarts (default 5); one that
+has run ``--restart-reset-s`` seconds (default 60; 0: never) since its last
+start when it dies gets its budget back, so only a node that keeps dying
+stops the run. A killed recorder is restarted into the next split file
+(``run.mcap``, ``run.001.mcap``, ``run.002.mcap``, ...) while prediction goes
+on; the torn split reads with ``iamp inspect`` and ``iamp recover`` rewrites
+it into a finished file.
 When the sources end (or after ``--stop-after``), nodes are stopped in
 dataflow order so each drains what it has; the recorder stops last and
 finishes its MCAP file.
+
+With ``[bus.auth]`` in the pipeline file, the launcher writes a Zenoh config
+(``transport/auth/usrpwd``: user, password, the dictionary of accepted
+users) and the dictionary into a fresh private folder (0700, files 0600),
+passes ``--config FILE`` to every node and opens its own hub with it, so
+every link of the run is authenticated and no password is on a command line;
+the folder is removed when the run ends. A viewer ``token`` reaches the
+viewer through ``IAMP_VIEWER_TOKEN`` in its environment, not its command line.
 
 Exit codes: 0 clean run, 1 a node failed (the first failing code is
 reported), 2 bad command line or pipeline file.
@@ -25,10 +42,12 @@ import datetime as _dt
 import json
 import os
 import re
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -38,14 +57,16 @@ REPO = Path(__file__).resolve().parent
 sys.path.insert(0, str(REPO))
 
 from stages._core import ConfigError  # noqa: E402
-from stages.pipeline import Pipeline, PipelineError, load_pipeline  # noqa: E402
+from stages.pipeline import BusAuth, Pipeline, PipelineError, load_pipeline  # noqa: E402
 
 DEFAULT_PIPELINE = REPO / "pipelines" / "hybrid.toml"
 SOURCE_STAGES = {"stages.tracks_source"}
 RECORDER_STAGE = "stages.recorder"
 VIEWER_STAGE = "stages.viewer"
 VIEWER_URL_RE = re.compile(r"viewer: (https?://\S+)\s*$")
+VIEWER_TOKEN_ENV = "IAMP_VIEWER_TOKEN"  # stages.viewer.config.TOKEN_ENV
 MAX_RESTARTS = 5
+RESTART_RESET_S = 60.0  # a node that ran this long without dying gets its restart budget back
 STOP_ESCALATION_S = 5.0
 
 _print_lock = threading.Lock()
@@ -76,6 +97,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--listen", metavar="ENDPOINT", help="the hub endpoint (default from the pipeline, tcp/127.0.0.1:<free port>)")
     p.add_argument("--startup-timeout", type=float, default=90.0, metavar="SECONDS", help="how long to wait for every node's liveliness (default 90)")
     p.add_argument("--log-level", default="INFO", help="log level passed to every node")
+    p.add_argument("--max-restarts", type=int, default=MAX_RESTARTS, metavar="N", help=f"restarts a node gets before its death stops the run (default {MAX_RESTARTS})")
+    p.add_argument(
+        "--restart-reset-s",
+        type=float,
+        default=RESTART_RESET_S,
+        metavar="SECONDS",
+        help=f"a node that ran this long since its last start gets its restarts back when it dies (default {RESTART_RESET_S:g}; 0: never)",
+    )
     return p
 
 
@@ -161,23 +190,79 @@ def resolve_hub(pipeline: Pipeline, override: str | None) -> str:
     return ep
 
 
+class RestartBudget:
+    """The restarts a node has left: ``limit``, all given back once it has run ``reset_after_s`` without dying.
+
+    ``started()`` marks a (re)start; ``take()``, on a death, says whether the
+    node may be restarted and counts it. ``clock`` (monotonic seconds) is
+    injectable, so the policy is tested without waiting.
+    """
+
+    def __init__(self, limit: int = MAX_RESTARTS, reset_after_s: float = RESTART_RESET_S, clock: Any = time.monotonic) -> None:
+        self.limit = limit
+        self.reset_after_s = reset_after_s
+        self.clock = clock
+        self.used = 0
+        self.resets = 0
+        self.started_at: float | None = None
+        self.last_ran_s = 0.0  # how long the node had run when it last died
+        self.last_reset = False  # whether the last take() gave the budget back
+
+    def started(self) -> None:
+        self.started_at = self.clock()
+
+    def take(self) -> bool:
+        self.last_ran_s = 0.0 if self.started_at is None else self.clock() - self.started_at
+        self.last_reset = bool(self.used and self.reset_after_s > 0 and self.last_ran_s >= self.reset_after_s)
+        if self.last_reset:
+            self.used = 0
+            self.resets += 1
+        if self.used >= self.limit:
+            return False
+        self.used += 1
+        return True
+
+
+def _write_private(path: Path, text: str) -> None:
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+
+
+def write_auth_config(auth: BusAuth) -> tuple[Path, Path]:
+    """A private folder (0700) with the Zenoh config (usrpwd) and its dictionary (0600 each); returns (folder, config file)."""
+    folder = Path(tempfile.mkdtemp(prefix="iamp-bus-auth-"))
+    dictionary = folder / "users.txt"
+    _write_private(dictionary, f"{auth.user}:{auth.password}\n")
+    config = folder / "zenoh.json5"
+    usrpwd = {"user": auth.user, "password": auth.password, "dictionary_file": str(dictionary)}
+    _write_private(config, json.dumps({"transport": {"auth": {"usrpwd": usrpwd}}}, indent=2) + "\n")
+    return folder, config
+
+
 class Child:
-    def __init__(self, node: Any, cmd: list[str]) -> None:
+    def __init__(self, node: Any, cmd: list[str], budget: RestartBudget | None = None) -> None:
         self.node = node
         self.cmd = cmd
+        self.env: dict[str, str] = {}  # added to the launcher's environment (secrets that must not be on the command line)
         self.proc: subprocess.Popen | None = None
-        self.restarts = 0
+        self.budget = budget or RestartBudget()
         self.finished = False  # a source that ended on its own, or a node we stopped
         self.exit_code: int | None = None
 
+    @property
+    def restarts(self) -> int:
+        return self.budget.used
+
     def start(self) -> None:
+        self.budget.started()
         self.proc = subprocess.Popen(
             self.cmd,
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,
             cwd=os.getcwd(),
-            env={**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")},
+            env={**os.environ, **self.env, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")},
             start_new_session=True,  # a Ctrl-C at the terminal reaches the launcher only; it stops children in order
             text=True,
             bufsize=1,
@@ -232,8 +317,19 @@ class Launcher:
         self.alive: set[str] = set()
         self._alive_lock = threading.Lock()
         self.bus = None
+        self.auth_dir: Path | None = None
+        self.zenoh_config: str | None = None  # with [bus.auth]: the private config every session opens with
+        self.started_wall_s = time.time()  # files of this run (split recordings) are newer
 
-    def command(self, node: Any) -> list[str]:
+    def secret_env(self, node: Any) -> dict[str, str]:
+        """Secrets of a node that go through its environment, not its command line (the viewer's token)."""
+        if node.stage == VIEWER_STAGE and node.params.get("token"):
+            return {VIEWER_TOKEN_ENV: str(node.params["token"])}
+        return {}
+
+    def command(self, node: Any, params: dict[str, Any] | None = None) -> list[str]:
+        if node.stage == VIEWER_STAGE:  # its token goes through the environment (secret_env)
+            params = {k: v for k, v in (node.params if params is None else params).items() if k != "token"}
         cmd = [
             sys.executable,
             "-m",
@@ -243,7 +339,7 @@ class Launcher:
             "--run-id",
             self.p.run_id,
             "--params-json",
-            json.dumps(node.params),
+            json.dumps(node.params if params is None else params),
             "--mode",
             self.p.mode,
             "--connect",
@@ -253,6 +349,8 @@ class Launcher:
         ]
         for ep in self.p.connect + self.args.connect:
             cmd += ["--connect", ep]
+        if self.zenoh_config:
+            cmd += ["--config", self.zenoh_config]
         if node.inputs:
             cmd += ["--inputs-json", json.dumps(node.inputs)]
         if node.kind == "source":
@@ -284,8 +382,9 @@ class Launcher:
             return [i for i in ids if i not in self.alive]
 
     def spawn(self, node: Any) -> None:
-        child = self.children.get(node.id) or Child(node, self.command(node))
+        child = self.children.get(node.id) or Child(node, self.command(node), RestartBudget(self.args.max_restarts, self.args.restart_reset_s))
         self.children[node.id] = child
+        child.env = self.secret_env(node)
         child.start()
 
     def run(self) -> int:
@@ -299,7 +398,15 @@ class Launcher:
         for n in order:
             if n.stage == RECORDER_STAGE:
                 say(f"recording to {Path(n.params.get('path')).resolve()}")
-        self.bus = BusClient(mode="peer", listen=[self.hub], connect=self.p.connect + self.args.connect)
+        if self.p.auth is not None:
+            self.auth_dir, config = write_auth_config(self.p.auth)
+            self.zenoh_config = str(config)
+            say(f"bus auth: {self.p.auth.describe()}; every node gets --config {config} (mode 0600)")
+        try:
+            self.bus = BusClient(mode="peer", listen=[self.hub], connect=self.p.connect + self.args.connect, config_file=self.zenoh_config)
+        except BaseException:
+            self._remove_auth_dir()
+            raise
         self.bus.watch_alive(keys.alive_pattern(self.p.run_id), self._on_alive)
         signal.signal(signal.SIGINT, lambda *_: self.stop_requested.set())
         signal.signal(signal.SIGTERM, lambda *_: self.stop_requested.set())
@@ -320,6 +427,12 @@ class Launcher:
             return self.supervise(order, sources, t_start)
         finally:
             self.bus.close()
+            self._remove_auth_dir()
+
+    def _remove_auth_dir(self) -> None:
+        if self.auth_dir is not None:
+            shutil.rmtree(self.auth_dir, ignore_errors=True)
+            self.auth_dir = None
 
     def supervise(self, order: list[Any], sources: list[Any], t_start: float) -> int:
         while True:
@@ -340,11 +453,16 @@ class Launcher:
                     say(f"source {nid} finished")
                     continue
                 say(f"node {nid} died ({describe_code(code)})")
-                if c.node.restart and c.restarts < MAX_RESTARTS and code != 2:
-                    c.restarts += 1
-                    say(f"restarting {nid} ({c.restarts}/{MAX_RESTARTS})")
+                if c.node.restart and code != 2 and c.budget.take():
+                    if c.budget.last_reset:
+                        say(f"{nid} had run {c.budget.last_ran_s:.0f} s since its last start (>= {c.budget.reset_after_s:g} s): restart budget reset")
+                    say(f"restarting {nid} ({c.restarts}/{c.budget.limit})")
+                    if c.node.stage == RECORDER_STAGE:
+                        self.next_split(c)
                     c.start()
                     continue
+                if c.node.restart and code != 2:
+                    say(f"{nid} used its {c.budget.limit} restarts (each run shorter than {c.budget.reset_after_s:g} s)")
                 self.first_failure = code if code > 0 else 1
                 c.finished = True
                 say(f"stopping the run because {nid} failed")
@@ -353,6 +471,16 @@ class Launcher:
                 say("all sources finished; draining")
                 return self.shutdown(order)
             time.sleep(0.05)
+
+    def next_split(self, c: Child) -> None:
+        """Point a recorder that died at the split after the last one this run wrote (run.mcap -> run.001.mcap -> ...)."""
+        from stages.recorder import split_path, split_paths
+
+        base = c.node.params.get("path")
+        written = split_paths(base, since_s=self.started_wall_s - 1.0)
+        index = written[-1][0] + 1 if written else int(c.node.params.get("split_index", 0))
+        c.cmd = self.command(c.node, {**c.node.params, "split_index": index})
+        say(f"recording goes on in {split_path(base, index).resolve()}" + (f" ({written[-1][1].name} was cut by the death: iamp recover reads it whole)" if written else ""))
 
     def shutdown(self, order: list[Any]) -> int:
         """Stop sources first, then the rest in dataflow order; raw sinks last."""
@@ -376,16 +504,22 @@ class Launcher:
         return code
 
     def report_recording(self, path: str | None) -> None:
-        if not path or not Path(path).exists():
+        """One line per split file this run wrote."""
+        from stages.recorder import split_paths
+
+        files = [p for _, p in split_paths(path, since_s=self.started_wall_s - 1.0)] if path else []
+        if not files:
             say(f"recording {path}: no file written")
             return
-        try:
-            from stages.mcap_inspect import inspect
+        for f in files:
+            try:
+                from stages.mcap_inspect import inspect
 
-            info = inspect(path)
-            say(f"recording saved: {Path(path).resolve()} ({info.get('messages', '?')} messages, {len(info.get('channels', []))} channels)")
-        except Exception as exc:  # a report must never turn a good run into a failure
-            say(f"recording saved: {Path(path).resolve()} (could not inspect: {exc})")
+                info = inspect(str(f))
+                torn = f"; cut short by a kill, `iamp recover {f.resolve()}` writes a finished copy" if info.get("truncated") else ""
+                say(f"recording saved: {f.resolve()} ({info.get('messages', '?')} messages, {len(info.get('channels', []))} channels{torn})")
+            except Exception as exc:  # a report must never turn a good run into a failure
+                say(f"recording saved: {f.resolve()} (could not inspect: {exc})")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -411,6 +545,9 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.stop_after is not None and args.stop_after <= 0:
         print("launch.py: --stop-after must be > 0", file=sys.stderr)
+        return 2
+    if args.max_restarts < 0 or not args.restart_reset_s >= 0:
+        print("launch.py: --max-restarts and --restart-reset-s must be >= 0", file=sys.stderr)
         return 2
     hub = resolve_hub(pipeline, args.listen)
     return Launcher(pipeline, hub, args).run()

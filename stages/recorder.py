@@ -21,16 +21,29 @@ each closed chunk is flushed to the OS at once (``Writer.flush``). A
 up to its last complete chunk (``stages.mcap_inspect.read_messages``). A
 clean stop (SIGINT/SIGTERM) writes the summary and indexes.
 
+Split files: the recording is a sequence of files ``run.mcap``,
+``run.001.mcap``, ``run.002.mcap``, ... (``split_path``). The recorder starts
+a new file when the current one reaches ``split_bytes`` or has been open
+``split_s`` seconds (each finished with its summary, schemas and channels
+repeated: every split reads alone), and the launcher restarts a killed
+recorder into the next split (``split_index``), so a recorder crash costs
+the messages of its open chunk and of its restart, never the run. A split
+torn by a kill reads with ``stages.mcap_inspect.read_messages``, and
+``iamp recover`` rewrites it into a finished file.
+
 Parameters (``RecorderConfig``): ``path`` (empty: ``runs/<run>-<UTC
 yyyymmdd-hhmmss>.mcap`` under the current directory), ``chunk_size_bytes``,
 ``compression`` (``zstd``, ``lz4`` or ``none``), ``include_stats`` (record
-``_stats`` keys), ``flush_period_s``.
+``_stats`` keys), ``flush_period_s``, ``split_bytes`` (0: no size limit),
+``split_s`` (0: no duration limit), ``split_index`` (the split this process
+writes first; 0 is ``path`` itself).
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import re
 import sys
 import threading
 import time
@@ -83,6 +96,9 @@ class RecorderConfig(ConfigMixin):
     compression: str = "zstd"
     include_stats: bool = True
     flush_period_s: float = 1.0
+    split_bytes: int = 0
+    split_s: float = 0.0
+    split_index: int = 0
 
     def __post_init__(self) -> None:
         if self.compression not in COMPRESSIONS:
@@ -91,12 +107,43 @@ class RecorderConfig(ConfigMixin):
             raise ValueError(f"chunk_size_bytes must be >= 1, got {self.chunk_size_bytes}")
         if not self.flush_period_s > 0:
             raise ValueError(f"flush_period_s must be > 0, got {self.flush_period_s}")
+        if self.split_bytes < 0:
+            raise ValueError(f"split_bytes must be >= 0 (0: no size limit), got {self.split_bytes}")
+        if not self.split_s >= 0:
+            raise ValueError(f"split_s must be >= 0 (0: no duration limit), got {self.split_s}")
+        if self.split_index < 0:
+            raise ValueError(f"split_index must be >= 0, got {self.split_index}")
 
 
 def default_path(run_id: str, now_ns: int | None = None) -> Path:
     """``runs/<run>-<UTC yyyymmdd-hhmmss>.mcap`` under the current directory."""
     now = datetime.fromtimestamp((now_ns if now_ns is not None else time.time_ns()) / 1e9, tz=timezone.utc)
     return Path("runs") / f"{run_id}-{now.strftime('%Y%m%d-%H%M%S')}.mcap"
+
+
+def split_path(base: str | Path, index: int) -> Path:
+    """The file of split ``index`` of a recording: 0 is ``base`` (``run.mcap``), then ``run.001.mcap``, ``run.002.mcap``, ..."""
+    base = Path(base)
+    if index == 0:
+        return base
+    suffix = base.suffix or ".mcap"
+    return base.with_name(f"{base.stem if base.suffix else base.name}.{index:03d}{suffix}")
+
+
+def split_paths(base: str | Path, since_s: float | None = None) -> list[tuple[int, Path]]:
+    """The splits of ``base`` on disk as ``(index, path)``, by index; with ``since_s`` only files modified since then (epoch s)."""
+    base = Path(base)
+    stem, suffix = (base.stem, base.suffix) if base.suffix else (base.name, ".mcap")
+    rx = re.compile(re.escape(stem) + r"\.(\d{3,})" + re.escape(suffix) + "$")
+    found = [(0, base)] if base.is_file() else []
+    if base.parent.is_dir():
+        for p in base.parent.iterdir():
+            m = rx.match(p.name)
+            if m and int(m.group(1)) > 0 and p.is_file():
+                found.append((int(m.group(1)), p))
+    if since_s is not None:
+        found = [(i, p) for i, p in found if p.stat().st_mtime >= since_s]
+    return sorted(found)
 
 
 class McapRecorder:
@@ -112,16 +159,30 @@ class McapRecorder:
         self.config = config
         self.run_id = keys.check_run_id(run_id)
         self.log = log or logging.getLogger(f"iamp.{node_id}")
-        self.path = Path(config.path) if config.path else default_path(run_id)
+        self.base_path = Path(config.path) if config.path else default_path(run_id)
+        self.split_index = config.split_index
+        self.paths: list[Path] = []  # every file this recorder has written, the current one last
+        self.node_id = node_id
         self.messages = 0
         self.unrecognised = 0
         self._lock = threading.Lock()
+        self._sequences: dict[tuple[str, str], int] = {}  # per (topic, schema name), across splits
+        self._closed = threading.Event()
+        self._open_file()
+        self._timer = threading.Thread(target=self._flush_periodically, name="recorder-flush", daemon=True)
+        self._timer.start()
+        self.log.info("recording: path=%s run=%s", self.path, run_id)
+
+    def _open_file(self) -> None:
+        """Open split ``self.split_index``: a new file with its header and metadata (schemas and channels again as used)."""
+        config = self.config
+        self.path = split_path(self.base_path, self.split_index)
         self._schema_ids: dict[str, int] = {}
         self._channel_ids: dict[tuple[str, int], int] = {}
-        self._sequences: dict[int, int] = {}
         self._chunk_bytes = 0
         self._chunk_opened = 0.0  # monotonic time of the first message in the open chunk
-        self._closed = threading.Event()
+        self._file_messages = 0
+        self._file_opened = time.monotonic()
         if self.path.exists():
             self.log.warning("overwriting existing file: path=%s", self.path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -137,18 +198,33 @@ class McapRecorder:
         self._writer.add_metadata(
             METADATA_NAME,
             {
-                "run_id": run_id,
+                "run_id": self.run_id,
                 "version": version,
-                "recorder_node": node_id,
+                "recorder_node": self.node_id,
+                "split_index": str(self.split_index),
+                "base_path": str(self.base_path),
                 "start_time_ns": str(start_ns),
                 "start_time_utc": datetime.fromtimestamp(start_ns / 1e9, tz=timezone.utc).isoformat(),
                 "compression": config.compression,
             },
         )
         self._writer.flush()
-        self._timer = threading.Thread(target=self._flush_periodically, name="recorder-flush", daemon=True)
-        self._timer.start()
-        self.log.info("recording: path=%s run=%s", self.path, run_id)
+        self.paths.append(self.path)
+
+    def _split_due(self) -> bool:
+        if not self._file_messages:
+            return False  # a split always holds messages
+        if self.config.split_bytes and self._file.tell() + self._chunk_bytes >= self.config.split_bytes:
+            return True
+        return bool(self.config.split_s) and time.monotonic() - self._file_opened >= self.config.split_s
+
+    def _next_split(self) -> None:
+        """Finish the current file (summary, indexes) and go on in the next split; called with the lock held."""
+        self._writer.finish()
+        self._file.close()
+        self.log.info("split closed: path=%s messages=%d; next split %d", self.path, self._file_messages, self.split_index + 1)
+        self.split_index += 1
+        self._open_file()
 
     def __enter__(self) -> "McapRecorder":
         return self
@@ -158,7 +234,8 @@ class McapRecorder:
 
     @property
     def channels(self) -> int:
-        return len(self._channel_ids)
+        """Distinct (topic, schema) channels recorded, over all splits."""
+        return len(self._sequences)
 
     # ---- recording
     def handle(self, key: str, payload: bytes, recv_ns: int) -> list[Issue] | None:
@@ -188,13 +265,16 @@ class McapRecorder:
                 raise RuntimeError(f"recorder for {self.path} is closed")
             schema_id = self._schema_id(schema_name) if schema_name else 0
             channel_id = self._channel_id(key, schema_id)
-            seq = self._sequences[channel_id] = (self._sequences[channel_id] + 1) & 0xFFFFFFFF
+            seq = self._sequences[(key, schema_name)] = (self._sequences.get((key, schema_name), 0) + 1) & 0xFFFFFFFF
             self._writer.add_message(channel_id=channel_id, log_time=recv_ns, data=bytes(payload), publish_time=publish_ns, sequence=seq)
             self.messages += 1
+            self._file_messages += 1
             if self._chunk_bytes == 0:
                 self._chunk_opened = time.monotonic()
             self._chunk_bytes += len(payload) + _MESSAGE_OVERHEAD_BYTES
-            if self._chunk_bytes >= self.config.chunk_size_bytes or time.monotonic() - self._chunk_opened >= self.config.flush_period_s:
+            if self._split_due():
+                self._next_split()
+            elif self._chunk_bytes >= self.config.chunk_size_bytes or time.monotonic() - self._chunk_opened >= self.config.flush_period_s:
                 self._close_chunk()
         if issue is None:
             return None
@@ -213,7 +293,6 @@ class McapRecorder:
         cid = self._channel_ids.get((topic, schema_id))
         if cid is None:
             cid = self._channel_ids[(topic, schema_id)] = self._writer.register_channel(topic=topic, message_encoding=MESSAGE_ENCODING, schema_id=schema_id)
-            self._sequences[cid] = 0
             self._chunk_bytes += len(topic) + 32
         return cid
 
@@ -235,11 +314,13 @@ class McapRecorder:
             with self._lock:
                 if self._closed.is_set():
                     return
-                if self._chunk_bytes and time.monotonic() - self._chunk_opened >= period:
-                    try:
+                try:
+                    if self._split_due():
+                        self._next_split()
+                    elif self._chunk_bytes and time.monotonic() - self._chunk_opened >= period:
                         self._close_chunk()
-                    except OSError as exc:
-                        self.log.error("flush failed: path=%s error=%s", self.path, exc)
+                except OSError as exc:
+                    self.log.error("flush failed: path=%s error=%s", self.path, exc)
 
     # ---- end
     def close(self) -> None:
@@ -252,7 +333,14 @@ class McapRecorder:
                 self._writer.finish()
             finally:
                 self._file.close()
-        self.log.info("recording closed: path=%s messages=%d channels=%d", self.path, self.messages, self.channels)
+            if not self._file_messages and len(self.paths) > 1:  # opened by the last cut, never used
+                self.path.unlink(missing_ok=True)
+                self.paths.pop()
+                self.path = self.paths[-1]
+        if len(self.paths) > 1:
+            self.log.info("recording closed: path=%s messages=%d channels=%d splits=%d (%s)", self.path, self.messages, self.channels, len(self.paths), ", ".join(p.name for p in self.paths))
+        else:
+            self.log.info("recording closed: path=%s messages=%d channels=%d", self.path, self.messages, self.channels)
 
 
 def _make_core(config: RecorderConfig, ctx: NodeContext) -> McapRecorder:
@@ -266,7 +354,7 @@ SPEC = StageSpec(
     inputs={},
     outputs={},
     kind="raw_sink",
-    restart_default=False,
+    restart_default=True,  # the launcher restarts a killed recorder into the next split file
 )
 
 

@@ -168,26 +168,66 @@ def test_killed_processing_stage_is_restarted_and_keeps_processing(tmp_path):
     assert _last_stats(rec, "corridors").counters["processed"] > 0
 
 
-def test_killed_recorder_leaves_a_readable_file(tmp_path):
+def test_killed_recorder_is_restarted_into_the_next_split_and_the_run_goes_on(tmp_path):
+    from mcap.reader import make_reader
+
     rec = tmp_path / "run.mcap"
-    run = Launch("--speed", "4", "--no-viewer", "--record", str(rec), "--run-id", "killrec", "--set", "recorder.flush_period_s=0.2", cwd=tmp_path)
+    split1 = tmp_path / "run.001.mcap"
+    run = Launch("--speed", "2", "--no-viewer", "--record", str(rec), "--run-id", "killrec", "--set", "recorder.flush_period_s=0.2", cwd=tmp_path)
+
+    def grids_in(path: Path) -> int:
+        try:
+            return sum(1 for m in read_messages(str(path)) if m.topic == "iamp/killrec/markov_prediction/motion_grid")
+        except Exception:  # not created yet
+            return 0
+
     try:
         run.wait_line(r"^\[launch\] all \d+ nodes alive; starting sources")
         pid = _pid_of(run, "recorder")
-        # wait until a few chunks are on disk
-        wait_until(lambda: rec.exists() and rec.stat().st_size > 20_000, 60, "the recording to grow past 20 kB")
+        wait_until(lambda: grids_in(rec) >= 3, 120, "predictions in the first recording")
         import os
 
         os.kill(pid, signal.SIGKILL)
         run.wait_line(r"^\[launch\] node recorder died \(signal SIGKILL\)")
+        run.wait_line(r"^\[launch\] restarting recorder \(1/5\)")
+        run.wait_line(r"^\[launch\] recording goes on in " + re.escape(str(split1)))
+        assert _pid_of(run, "recorder", count=2) != pid
+        # prediction never stopped: the restarted recorder records new predictions into the next split
+        wait_until(lambda: run.proc.poll() is not None or grids_in(split1) >= 3, 120, "predictions in the second split")
+        if run.proc.poll() is None:
+            run.proc.send_signal(signal.SIGINT)
         code = run.wait()
-        assert code == 1, run.text()[-3000:]  # a sink that dies is not restarted: the run stops and says why
     finally:
         kill_all([run.proc])
+    out = run.text()
+    assert code == 0, out[-4000:]
+    assert "stopping the run" not in out and "restarting corridors" not in out and "restarting markov_prediction" not in out
+    assert f"recording saved: {split1} (" in out and f"recording saved: {rec} (" in out and "iamp recover" in out
+
+    # the first split is torn: the standard reader cannot read it, our reader reads it up to its last chunk
     info = inspect(str(rec))
     assert info["truncated"] and not info["summary_present"]
-    frames = info["frames"]["iamp/killrec/source/track_frame"]
-    assert frames["count"] > 0 and frames["first"] == 0 and frames["strictly_increasing"] and frames["missing"] == 0
+    first = info["frames"]["iamp/killrec/source/track_frame"]
+    assert first["count"] > 0 and first["first"] == 0 and first["strictly_increasing"] and first["missing"] == 0
+    with pytest.raises(Exception):
+        with open(rec, "rb") as f:
+            list(make_reader(f).iter_messages())
+    # ... and iamp recover makes it a finished file the standard reader reads whole
+    fixed = tmp_path / "run.recovered.mcap"
+    res = subprocess.run([sys.executable, "-m", "stages.cli", "recover", str(rec), str(fixed)], cwd=REPO, env=python_env(), capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0 and res.stdout.startswith(f"recovered {info['messages']} messages"), res.stdout + res.stderr
+    with open(fixed, "rb") as f:
+        recovered = [(c.topic, m.data) for _s, c, m in make_reader(f).iter_messages(log_time_order=False)]
+    assert recovered == [(m.topic, m.data) for m in read_messages(str(rec))]
+
+    # the second split was finished cleanly: the standard reader reads it whole, and it goes on where the first stopped
+    with open(split1, "rb") as f:
+        reader = make_reader(f)
+        assert reader.get_summary() is not None
+        later = [bs.TrackFrame.decode(m.data).header.frame_index for _s, c, m in reader.iter_messages(log_time_order=False) if c.topic == "iamp/killrec/source/track_frame"]
+    assert later and later == sorted(later) and later[0] > first["last"]
+    assert grids_in(split1) >= 1
+    assert not (tmp_path / "run.002.mcap").exists()
 
 
 @pytest.fixture

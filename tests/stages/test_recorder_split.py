@@ -1,0 +1,98 @@
+"""Recorder split files (``split_bytes``, ``split_s``, ``split_index``): real MCAP files read with mcap's own reader."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import helpers as h  # noqa: E402
+from test_mcap import STAMP0_NS, make_frame, make_scene  # noqa: E402
+
+from bus_schemas import TrackFrame, keys  # noqa: E402
+from stages.recorder import McapRecorder, RecorderConfig, split_path, split_paths  # noqa: E402
+
+
+def read_whole(path: Path) -> list[tuple[str, str, bytes, int]]:
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        assert reader.get_summary() is not None, f"{path} is not finished"
+        return [(c.topic, s.name if s else "", bytes(m.data), m.sequence) for s, c, m in reader.iter_messages(log_time_order=False)]
+
+
+def test_split_path_names():
+    assert split_path("runs/run.mcap", 0) == Path("runs/run.mcap")
+    assert split_path("runs/run.mcap", 1) == Path("runs/run.001.mcap")
+    assert split_path("runs/run.mcap", 12) == Path("runs/run.012.mcap")
+    assert split_path("a.b/run.x.mcap", 2) == Path("a.b/run.x.002.mcap")
+    assert split_path("rec", 3) == Path("rec.003.mcap")
+
+
+def test_split_bytes_makes_finished_files_that_each_read_alone(tmp_path):
+    base = tmp_path / "run.mcap"
+    frame_key, scene_key = keys.data_key("t1", "source", "track_frame"), keys.data_key("t1", "source", "scene")
+    sent = []
+    with McapRecorder(RecorderConfig(path=str(base), chunk_size_bytes=2000, split_bytes=6000), "t1") as rec:
+        rec.handle(scene_key, make_scene("t1").encode(), STAMP0_NS)
+        sent.append((scene_key, make_scene("t1").encode()))
+        for i in range(60):
+            data = make_frame(i, "t1").encode()
+            rec.handle(frame_key, data, STAMP0_NS + 1 + i)
+            sent.append((frame_key, data))
+    files = split_paths(base)
+    assert [i for i, _ in files] == list(range(len(files))) and len(files) >= 4, files
+    assert [p for _, p in files] == rec.paths
+    got = []
+    for i, p in files:
+        msgs = read_whole(p)
+        assert msgs, f"split {i} is empty"
+        assert all(s == "iamp.TrackFrame" for t, s, _d, _q in msgs if t == frame_key), "schemas repeated in every split"
+        with open(p, "rb") as f:
+            meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+        assert meta["hybrid-iamp"]["split_index"] == str(i) and meta["hybrid-iamp"]["base_path"] == str(base)
+        if i < len(files) - 1:
+            assert p.stat().st_size < 6000 + 4000, "a split is cut near split_bytes"
+        got += msgs
+    assert [(t, d) for t, _s, d, _q in got] == sent, "every message once, in order, over the splits"
+    assert [q for t, _s, _d, q in got if t == frame_key] == list(range(1, 61)), "sequences go on across splits"
+    assert rec.messages == 61 and rec.channels == 2
+
+
+def test_split_s_cuts_by_duration_and_never_writes_an_empty_split(tmp_path):
+    base = tmp_path / "dur.mcap"
+    frame_key = keys.data_key("t1", "source", "track_frame")
+    with McapRecorder(RecorderConfig(path=str(base), split_s=0.05, flush_period_s=0.02), "t1") as rec:
+        rec.handle(frame_key, make_frame(0, "t1").encode(), STAMP0_NS)
+        h.wait_until(lambda: len(rec.paths) >= 2, 20, "a second split after split_s")  # the timer cuts it
+        n = len(rec.paths)
+        rec.handle(frame_key, make_frame(1, "t1").encode(), STAMP0_NS + 1)
+        h.wait_until(lambda: len(rec.paths) > n, 20, "a split after the second message")
+    files = split_paths(base)
+    counts = [len(read_whole(p)) for _, p in files]
+    # the split opened by the last cut held nothing: close() removed it
+    assert counts == [1, 1], counts
+    assert [p for _, p in files] == rec.paths
+    assert [TrackFrame.decode(d).header.frame_index for _, p in files for _t, _s, d, _q in read_whole(p)] == [0, 1]
+
+
+def test_split_index_starts_at_a_later_split_and_stale_files_are_told_apart(tmp_path):
+    base = tmp_path / "run.mcap"
+    frame_key = keys.data_key("t1", "source", "track_frame")
+    with McapRecorder(RecorderConfig(path=str(base)), "t1") as rec:
+        rec.handle(frame_key, make_frame(0, "t1").encode(), STAMP0_NS)
+    with McapRecorder(RecorderConfig(path=str(base), split_index=2), "t1") as rec2:
+        rec2.handle(frame_key, make_frame(1, "t1").encode(), STAMP0_NS + 1)
+    assert rec2.paths == [tmp_path / "run.002.mcap"]
+    assert [i for i, _ in split_paths(base)] == [0, 2]
+    assert split_paths(base, since_s=base.stat().st_mtime + 3600) == []
+
+
+@pytest.mark.parametrize("bad", [{"split_bytes": -1}, {"split_s": -0.5}, {"split_index": -1}])
+def test_bad_split_parameters_are_refused(bad):
+    with pytest.raises(ValueError):
+        RecorderConfig(**bad)
