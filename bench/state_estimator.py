@@ -5,7 +5,8 @@ times T is compared with the straight-line distance the car really covers in
 the next T = 1, 2, 3, 4 s (the constant-speed displacement error, mean |e|
 in m; ``bias4`` is the signed mean at 4 s). Candidates: the reported speed,
 causal least-squares fits over the last W s of positions (degree 1 and 2),
-and ``KinematicEstimator`` (the adaptive filter every stage uses). Also
+and ``KinematicEstimator`` on positions alone and as every stage uses it
+(positions fused with the calibrated, gated reported velocity). Also
 printed: the share of standing samples (true displacement over the next 2 s
 below 0.3 m) whose estimated speed is above 0.5 m/s.
 
@@ -25,7 +26,7 @@ import numpy as np
 
 from bus_schemas import AgentType
 from stages.datasets import discover, load_recording
-from stages.kinematic_state import KinematicEstimator
+from stages.kinematic_state import EstimatorConfig, KinematicEstimator
 
 HORIZONS_S = (1.0, 2.0, 3.0, 4.0)
 
@@ -45,9 +46,9 @@ def causal_fit(t: np.ndarray, x: np.ndarray, y: np.ndarray, window_s: float, deg
     return out
 
 
-def estimator_speed(ids: np.ndarray, stamps: np.ndarray, x: np.ndarray, y: np.ndarray, vx: np.ndarray, vy: np.ndarray) -> np.ndarray:
+def estimator_speed(ids, stamps, x, y, vx, vy, config: EstimatorConfig) -> np.ndarray:
     """Speeds from one KinematicEstimator fed every row in frame order (as the corridors stage does)."""
-    est = KinematicEstimator()
+    est = KinematicEstimator(config)
     out = np.full(ids.shape[0], np.nan)
     issues: list = []
     for i in np.lexsort((ids, stamps)).tolist():
@@ -60,7 +61,9 @@ def score(recording) -> dict[str, dict[str, float]]:
     standing: dict[str, list[np.ndarray]] = {}
     for seq in recording.sequences:
         cars = seq.agent_type == int(AgentType.CAR)
-        speeds_est = estimator_speed(seq.track_id, seq.stamp_ns, seq.x_m, seq.y_m, seq.vx_mps, seq.vy_mps)
+        columns = (seq.track_id, seq.stamp_ns, seq.x_m, seq.y_m, seq.vx_mps, seq.vy_mps)
+        positions_only = estimator_speed(*columns, EstimatorConfig(fuse_reported=False))
+        fused = estimator_speed(*columns, EstimatorConfig())
         for tid in np.unique(seq.track_id[cars]).tolist():
             m = (seq.track_id == tid) & cars
             t = seq.stamp_ns[m] * 1e-9
@@ -72,7 +75,8 @@ def score(recording) -> dict[str, dict[str, float]]:
                 "linear 0.6 s": causal_fit(t, x, y, 0.6, 1),
                 "linear 1.0 s": causal_fit(t, x, y, 1.0, 1),
                 "quadratic 1.0 s": causal_fit(t, x, y, 1.0, 2),
-                "KinematicEstimator": speeds_est[m],
+                "estimator, positions": positions_only[m],
+                "estimator (default)": fused[m],
             }
             history = t - t[0] >= 1.0
             j2 = np.minimum(np.searchsorted(t, t + 2.0 - 1e-6), t.shape[0] - 1)

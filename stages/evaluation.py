@@ -101,6 +101,7 @@ from ._core import progress_bar
 from .raster import MapRaster
 
 from .corridors import CorridorBuilder, CorridorsConfig, SceneMaps
+from .kinematic_state import Consistency, EstimatorConfig, consistency_of, disagreement_line
 from .datasets import DEFAULT_DATA_DIR, DatasetError, Recording, discover, find_recording, load_ref
 from .datasets.model import same_sequence_id
 from .markov import MarkovGridConfig, load_or_build_stencils
@@ -251,6 +252,7 @@ class Evaluation:
     def __init__(self, config: EvalConfig) -> None:
         self.config = config
         self.scene_maps = SceneMaps()
+        self._estimators: dict[str, list] = {}  # per recording: the corridors stage's state estimator of each sequence
         grid = MarkovGridConfig()
         stencils = load_or_build_stencils(grid) if {"baseline", "hybrid"} & set(config.modes) else None
         self.predictors = {
@@ -355,6 +357,7 @@ class Evaluation:
             self._ar_model = ar.model  # loaded once, shared by the sequences
         for predictor in self.predictors.values():
             predictor.reset()
+        self._estimators.setdefault(rec.name, []).append(corridors.estimator)
         truth = _ground_truth(seq)
         tau_ns = int(round(self.predictors[cfg.modes[0]].config.tau_s * 1e9))
         n_steps = self.predictors[cfg.modes[0]].config.n_steps
@@ -419,10 +422,8 @@ class Evaluation:
             if vehicle is None or vehicle.status != MatchStatus.MATCHED or not vehicle.corridors:
                 self.skipped["not_matched"] += 1
                 continue
-            speed = math.hypot(float(frame.vx_mps[row]), float(frame.vy_mps[row]))
-            if not math.isfinite(speed):
-                speed = vehicle.speed_mps
-            windows[track_id] = (future, speed)
+            # the start-speed split uses the speed estimated from positions, as every mode does
+            windows[track_id] = (future, float(vehicle.speed_mps))
         predictions: dict[str, FramePrediction] = {}
         where = f"{recording} sequence {sequence_id} stamp_ns {stamp}"
         for mode, predictor in self.predictors.items():
@@ -559,6 +560,7 @@ class Evaluation:
             "instants": self.instants,
             "skipped": dict(sorted(self.skipped.items())),
             "skipped_examples": dict(sorted(self.skip_examples.items())),
+            "velocity_consistency": {name: self.velocity_consistency(name).as_dict() for name in self.recordings},
             "intentions_ms_median": float(np.median(self.intentions_ms)) if self.intentions_ms else None,
             "model": str(self.ar_config.model) if self.ar_config is not None else None,
             "metrics": {
@@ -569,6 +571,12 @@ class Evaluation:
             },
             "modes": modes,
         }
+
+    def velocity_consistency(self, recording: str) -> Consistency:
+        """Reported vs position-implied velocity over the tracks of a recording (all its sequences)."""
+        estimators = self._estimators.get(recording, [])
+        config = estimators[0].config if estimators else EstimatorConfig()
+        return consistency_of((d for e in estimators for d in e.decided), config)
 
     def write_figures(self, directory: Path) -> list[Path]:
         """The figures of the module docstring; returns the files written (none without an instant)."""
@@ -789,6 +797,10 @@ def format_table(report: dict[str, Any]) -> str:
     examples = report.get("skipped_examples", {})
     for reason, count in report["skipped"].items():
         lines.append(f"  {reason:<28} {count:>7d}" + (f"  first: {examples[reason]}" if reason in examples else ""))
+    for name, figures in report.get("velocity_consistency", {}).items():
+        line = disagreement_line(Consistency(**figures), EstimatorConfig())
+        if line is not None:
+            lines.append(f"{name}: {line}")
     return "\n".join(lines)
 
 

@@ -1,33 +1,56 @@
-"""Kinematic state of every track from its positions, causally: ``KinematicEstimator``.
+"""Kinematic state of every track, causally: positions first, the tracker's velocity as checked evidence.
 
 Why: a tracker's reported velocities are one tracker's convention. Seen so far:
 scaled (a TAF-BW recording whose ``vx, vy`` are about half the speed its
 positions imply), zero for the first frames of a track while the car already
 moves at 10-19 m/s, pointing backwards (k733_2018-05-02), lagging. Positions
 are the one field every tracker gets right to within its noise, so every
-stage takes speed, velocity and acceleration from this estimator, and the
-reported velocity is only evidence that is checked (``velocity_inconsistent``).
+stage takes speed, velocity and acceleration from ``KinematicEstimator``
+(the corridors stage runs it and publishes the state in ``CorridorSet``).
 
 Per track, a constant-velocity Kalman filter on x and y (white-noise
-acceleration of spectral density ``accel_noise_m2ps3``) whose measurement
-noise is estimated online from its own innovations (an exponentially weighted
-mean of the squared innovation less the predicted position variance, floored
-at ``min_position_noise_m``²). That one adaptive filter follows K729's clean
-positions closely and smooths K733's sample-and-hold positions (the tracker
-repeats a position for several frames, then jumps) without a per-recording
-setting. Chosen by the constant-speed displacement error at 1-4 s on both
-development locations (``bench/state_estimator.py``): a fixed linear fit over
-the last 0.6 s was best on K733 and 35 % worse than the reported speed on
-K729; a quadratic fit the reverse; the adaptive filter is within 6 % of the
-best of the candidates on each location (the figures are in README.md).
+acceleration of spectral density ``accel_noise_m2ps3``) whose position noise
+is estimated online from its own innovations (an exponentially weighted mean
+of the squared innovation less the predicted position variance, floored at
+``min_position_noise_m``²): it follows K729's clean positions closely and
+smooths K733's sample-and-hold positions (the tracker repeats a position for
+several frames, then jumps) without a per-recording setting.
 
-- The first sample of a track gives position only: its speed is the reported
-  one if finite (``source = "reported"``), else unknown (NaN). From the
-  second sample on the state is the filter's (``source = "positions"``).
+The reported velocity is checked against the positions and used only once
+it has passed:
+
+- Calibration (per stream, ``Calibration``): for every moving sample of a
+  track at least 1 s old, the mean reported velocity over the last second is
+  compared with the chord of the positions over the same second (factor of
+  the lengths, cosine of the angle; the chord does not depend on the filter,
+  so the check cannot confirm itself). Trusted when at least
+  ``calibration_min_samples`` samples from ``calibration_min_tracks`` tracks
+  agree: |median cosine| >= 0.9 and the factor's interquartile range within
+  ``calibration_max_spread`` of its median. A trusted reported velocity is
+  used as ``sign(cosine) · reported / factor``: a scale or a reversal is
+  undone, not merely detected.
+- Fusion: from a track's second sample on, the calibrated velocity is a
+  measurement of the filter's velocity with its own noise, adapted like the
+  position noise (``velocity_noise_adaptation``); a sample more than
+  ``velocity_gate_sigma`` standard deviations (+ 1 m/s) off the filter's
+  velocity is rejected (``velocity_rejected``): a zero at birth while the
+  positions move never pulls a track to a stop. ``fuse_reported = false``
+  uses positions alone.
+- The first sample of a track has a position only: its speed is the
+  calibrated reported one if trusted, else the reported one as given
+  (``source = "reported"``), else unknown (NaN); it is not fed to the filter.
+- Per track, once it has ``consistency_min_samples`` such samples, the
+  medians decide it: a factor outside ``[1 / factor_tolerance,
+  factor_tolerance]`` or a cosine below 0.5 is one ``velocity_inconsistent``
+  issue for that track. ``consistency()`` sums the decided tracks and
+  ``warning()`` returns one line, once, when enough of them disagree.
+
+Also:
+
 - Standstill dead band: a track stands (speed 0, acceleration 0) when, over
   the last ``standstill_window_s``, the median position of the newer half of
   its samples lies within ``standstill_radius_m`` of the older half's (a car
-  below about 0.5 m/s): position jitter, and the single glitches of K733's
+  below about 0.25 m/s): position jitter, and the single glitches of K733's
   tracker, never become a creeping speed.
 - Acceleration: the slope of a least-squares line through the filtered speed
   over the last ``accel_window_s`` (0 when standing or with too few samples).
@@ -35,15 +58,10 @@ best of the candidates on each location (the figures are in README.md).
   five of its standard deviations) restarts the track at the new position
   (issue ``position_jump``); so does a gap longer than ``max_gap_s`` between
   two samples (a re-used track id, issue ``track_restarted``).
-- Consistency: once a track has ``consistency_min_samples`` samples where the
-  estimated speed is at least ``consistency_min_speed_mps`` (after its first
-  second), the median of reported / estimated speed and the median cosine
-  between the two velocity vectors decide it: a factor outside
-  ``[1 / factor_tolerance, factor_tolerance]`` or a cosine below 0.5 is one
-  ``velocity_inconsistent`` issue for that track (once per track). The
-  per-stream summary (``consistency()``) counts the tracks checked and
-  inconsistent, with the median factor and cosine, and ``warning()`` returns
-  one line once, when enough tracks disagree.
+
+Chosen by the constant-speed displacement error at 1/2/4 s on both
+development locations (``bench/state_estimator.py``; figures in README.md,
+"State from positions").
 
 Pure: numpy and the standard library; time comes from the frames' stamps.
 """
@@ -71,6 +89,7 @@ class EstimatorConfig(ConfigMixin):
     noise_adaptation: float = 0.05
     initial_speed_sigma_mps: float = 10.0
     standstill_radius_m: float = 0.25
+    standstill_noise_factor: float = 0.0
     standstill_window_s: float = 1.0
     accel_window_s: float = 1.0
     jump_m: float = 5.0
@@ -80,6 +99,15 @@ class EstimatorConfig(ConfigMixin):
     factor_tolerance: float = 1.25
     warn_min_tracks: int = 3
     warn_share: float = 0.3
+    fuse_reported: bool = True
+    calibration_min_samples: int = 30
+    calibration_min_tracks: int = 2
+    calibration_max_spread: float = 0.3
+    calibration_window: int = 500
+    initial_velocity_noise_mps: float = 1.0
+    min_velocity_noise_mps: float = 0.05
+    velocity_noise_adaptation: float = 0.2
+    velocity_gate_sigma: float = 3.0
 
     def __post_init__(self) -> None:
         positive = ("accel_noise_m2ps3", "initial_position_noise_m", "min_position_noise_m", "initial_speed_sigma_mps",
@@ -123,7 +151,8 @@ class _Track:
     r: float  # measurement noise variance, adapted
     n: int = 1
     first_ns: int = 0
-    recent: collections.deque = field(default_factory=collections.deque)  # (t_ns, x, y, speed)
+    rv: float = 1.0  # variance of the calibrated reported velocity, adapted
+    recent: collections.deque = field(default_factory=collections.deque)  # (t_ns, x, y, speed, reported vx, reported vy)
     ratios: list[float] = field(default_factory=list)
     cosines: list[float] = field(default_factory=list)
     decided: bool = False
@@ -176,8 +205,54 @@ def disagreement_line(c: Consistency, config: EstimatorConfig) -> str | None:
     )
 
 
+class Calibration:
+    """Reported velocity vs the positions' 1 s chord velocity over the stream's recent moving samples.
+
+    ``factor`` the median of |mean reported velocity| / |chord velocity|,
+    ``cosine`` the median cosine between the two; ``trusted`` when there are
+    enough samples from enough tracks, the direction is consistently along or
+    against the motion (|cosine| >= 0.9) and the factor's interquartile range
+    is within ``calibration_max_spread`` of it. A trusted reported velocity is
+    used as ``sign(cosine) * reported / factor``.
+    """
+
+    def __init__(self, config: EstimatorConfig) -> None:
+        self.config = config
+        self._samples: collections.deque = collections.deque(maxlen=config.calibration_window)
+        self._tracks: collections.deque = collections.deque(maxlen=config.calibration_window)
+        self._dirty = 0
+        self.factor = math.nan
+        self.cosine = math.nan
+        self.trusted = False
+
+    def add(self, track_id: int, factor: float, cosine: float) -> None:
+        self._samples.append((factor, cosine))
+        self._tracks.append(track_id)
+        self._dirty += 1
+        if self._dirty >= 10 or not self.trusted:
+            self._refresh()
+
+    def _refresh(self) -> None:
+        cfg = self.config
+        self._dirty = 0
+        if len(self._samples) < cfg.calibration_min_samples or len(set(self._tracks)) < cfg.calibration_min_tracks:
+            return
+        arr = np.array(self._samples)
+        q1, med, q3 = np.percentile(arr[:, 0], [25, 50, 75])
+        self.factor = float(med)
+        self.cosine = float(np.median(arr[:, 1]))
+        self.trusted = bool(0.2 <= med <= 5.0 and abs(self.cosine) >= 0.9 and (q3 - q1) <= cfg.calibration_max_spread * med)
+
+    def apply(self, vx: float, vy: float) -> tuple[float, float] | None:
+        """The calibrated reported velocity, or None when it is not trusted or not finite."""
+        if not self.trusted or not (math.isfinite(vx) and math.isfinite(vy)):
+            return None
+        k = math.copysign(1.0, self.cosine) / self.factor
+        return vx * k, vy * k
+
+
 class KinematicEstimator:
-    """Causal per-track state from positions for one stream of frames (module docstring)."""
+    """Causal per-track state for one stream of frames (module docstring)."""
 
     def __init__(self, config: EstimatorConfig | None = None) -> None:
         self.config = config or EstimatorConfig()
@@ -185,6 +260,9 @@ class KinematicEstimator:
         self._factors: list[float] = []
         self._cosines: list[float] = []
         self._warned = False
+        self.calibration = Calibration(self.config)
+        self._rv_stream = self.config.initial_velocity_noise_mps**2
+        self.velocity_rejected = 0
 
     def reset(self) -> None:
         """Forget every track and the consistency figures (a new scene)."""
@@ -199,39 +277,46 @@ class KinematicEstimator:
         """The state of ``track_id`` after its sample at ``stamp_ns`` (positions must be finite)."""
         cfg = self.config
         reported = math.hypot(vx_mps, vy_mps) if math.isfinite(vx_mps) and math.isfinite(vy_mps) else math.nan
+        calibrated = self.calibration.apply(vx_mps, vy_mps) if cfg.fuse_reported else None
         track = self._tracks.get(track_id)
         if track is not None:
             dt = (stamp_ns - track.t_ns) * _NS
             if dt <= 0.0:
-                return self._state(track, reported)  # the same stamp again: nothing new
+                return self._state(track, reported, "positions")  # the same stamp again: nothing new
             if dt > cfg.max_gap_s:
                 issues.append(Issue("track_restarted", track_id, f"{dt:.1f} s since its last sample: state restarted"))
                 track = None
         if track is None:
-            return self._start(track_id, stamp_ns, x_m, y_m, vx_mps, vy_mps, reported)
+            return self._start(track_id, stamp_ns, x_m, y_m, vx_mps, vy_mps, reported, calibrated)
         if not self._step(track, dt, x_m, y_m):
             issues.append(Issue("position_jump", track_id, f"position {math.hypot(x_m - track.x[0], y_m - track.y[0]):.1f} m off its prediction: state restarted"))
-            return self._start(track_id, stamp_ns, x_m, y_m, vx_mps, vy_mps, reported)
+            return self._start(track_id, stamp_ns, x_m, y_m, vx_mps, vy_mps, reported, calibrated)
+        fused = calibrated is not None and self._fuse(track, calibrated)
         track.t_ns = stamp_ns
         track.n += 1
-        state = self._state(track, reported, x_m, y_m)
-        self._check(track_id, track, state, vx_mps, vy_mps, reported, issues)
+        state = self._state(track, reported, "fused" if fused else "positions", (x_m, y_m, vx_mps, vy_mps))
+        self._check(track_id, track, state, reported, issues)
         return state
 
     # ----- filter ----------------------------------------------------------------
 
-    def _start(self, track_id: int, stamp_ns: int, x: float, y: float, vx: float, vy: float, reported: float) -> KinematicState:
+    def _start(self, track_id, stamp_ns, x, y, vx, vy, reported, calibrated) -> KinematicState:
         cfg = self.config
         r = cfg.initial_position_noise_m**2
-        track = _Track(t_ns=stamp_ns, x=[x, 0.0], y=[y, 0.0], p=[r, 0.0, cfg.initial_speed_sigma_mps**2], r=r, first_ns=stamp_ns)
-        track.recent.append((stamp_ns, x, y, math.nan))
+        track = _Track(t_ns=stamp_ns, x=[x, 0.0], y=[y, 0.0], p=[r, 0.0, cfg.initial_speed_sigma_mps**2], r=r, first_ns=stamp_ns,
+                       rv=self._rv_stream)
+        track.recent.append((stamp_ns, x, y, math.nan, vx, vy))
         self._tracks[track_id] = track
+        # the filter starts from the position alone: a first reported velocity (zero at a track's birth,
+        # say) is never fed in without the positions to gate it; it is only this sample's answer
+        if calibrated is not None:
+            return KinematicState(calibrated[0], calibrated[1], math.hypot(*calibrated), 0.0, False, "reported", reported)
         if math.isfinite(reported):
             return KinematicState(vx, vy, reported, 0.0, False, "reported", reported)
         return KinematicState(math.nan, math.nan, math.nan, math.nan, False, "unknown", reported)
 
     def _step(self, track: _Track, dt: float, zx: float, zy: float) -> bool:
-        """Predict over ``dt`` and update with (zx, zy); False when the sample is a jump (track untouched)."""
+        """Predict over ``dt`` and update with the position (zx, zy); False when the sample is a jump (track untouched)."""
         cfg = self.config
         q = cfg.accel_noise_m2ps3
         p00, p01, p11 = track.p
@@ -248,8 +333,7 @@ class KinematicEstimator:
             return False
         # adapt the measurement noise to the innovations this track shows
         a = cfg.noise_adaptation
-        r_obs = max(innovation2 - p00, cfg.min_position_noise_m**2)
-        track.r = (1.0 - a) * track.r + a * r_obs
+        track.r = (1.0 - a) * track.r + a * max(innovation2 - p00, cfg.min_position_noise_m**2)
         s = p00 + track.r
         k0, k1 = p00 / s, p01 / s
         track.x = [px + k0 * ix, track.x[1] + k1 * ix]
@@ -257,38 +341,58 @@ class KinematicEstimator:
         track.p = [(1.0 - k0) * p00, (1.0 - k0) * p01, p11 - k1 * p01]
         return True
 
-    def _state(self, track: _Track, reported: float, x: float | None = None, y: float | None = None) -> KinematicState:
+    def _fuse(self, track: _Track, velocity: tuple[float, float]) -> bool:
+        """Update with the calibrated reported velocity, gated; False when it is rejected."""
+        cfg = self.config
+        p00, p01, p11 = track.p
+        ix, iy = velocity[0] - track.x[1], velocity[1] - track.y[1]
+        innovation2 = 0.5 * (ix * ix + iy * iy)
+        gate = cfg.velocity_gate_sigma**2 * (p11 + track.rv) + 1.0
+        if innovation2 > gate:
+            self.velocity_rejected += 1
+            return False
+        a = cfg.velocity_noise_adaptation
+        track.rv = (1.0 - a) * track.rv + a * max(innovation2 - p11, cfg.min_velocity_noise_mps**2)
+        self._rv_stream = (1.0 - 0.25 * a) * self._rv_stream + 0.25 * a * track.rv
+        s = p11 + track.rv
+        k0, k1 = p01 / s, p11 / s
+        track.x = [track.x[0] + k0 * ix, track.x[1] + k1 * ix]
+        track.y = [track.y[0] + k0 * iy, track.y[1] + k1 * iy]
+        track.p = [p00 - k0 * p01, p01 - k0 * p11, (1.0 - k1) * p11]
+        return True
+
+    def _state(self, track: _Track, reported: float, source: str, sample: tuple | None = None) -> KinematicState:
         cfg = self.config
         vx, vy = track.x[1], track.y[1]
         speed = math.hypot(vx, vy)
         recent = track.recent
-        if x is not None:
-            recent.append((track.t_ns, x, y, speed))
-            keep_ns = round(max(cfg.standstill_window_s, cfg.accel_window_s) / _NS)
+        if sample is not None:
+            recent.append((track.t_ns, sample[0], sample[1], speed, sample[2], sample[3]))
+            keep_ns = round(max(cfg.standstill_window_s, cfg.accel_window_s, 1.0) / _NS)
             while recent and track.t_ns - recent[0][0] > keep_ns:
                 recent.popleft()
-        standing = self._standing(track)
-        if standing:
-            return KinematicState(0.0, 0.0, 0.0, 0.0, True, "positions", reported)
-        return KinematicState(vx, vy, speed, self._accel(track), False, "positions", reported)
+        if self._standing(track):
+            return KinematicState(0.0, 0.0, 0.0, 0.0, True, source, reported)
+        return KinematicState(vx, vy, speed, self._accel(track), False, source, reported)
 
     def _standing(self, track: _Track) -> bool:
         """The median position of the older half of the window is within the radius of the newer half's."""
         cfg = self.config
         t_now = track.recent[-1][0]
         span_ns = round(cfg.standstill_window_s / _NS)
-        window = [(t, x, y) for t, x, y, _ in track.recent if t_now - t <= span_ns]
+        window = [(t, x, y) for t, x, y, *_ in track.recent if t_now - t <= span_ns]
         if len(window) < 4 or t_now - window[0][0] < span_ns:
             return False
         half = len(window) // 2
         old = np.median(np.array([(x, y) for _, x, y in window[:half]]), axis=0)
         new = np.median(np.array([(x, y) for _, x, y in window[half:]]), axis=0)
-        return float(np.hypot(*(new - old))) < cfg.standstill_radius_m
+        radius = max(cfg.standstill_radius_m, cfg.standstill_noise_factor * math.sqrt(track.r))
+        return float(np.hypot(*(new - old))) < radius
 
     def _accel(self, track: _Track) -> float:
         window_ns = round(self.config.accel_window_s / _NS)
         t_now = track.t_ns
-        pts = [(t, v) for t, _, _, v in track.recent if t_now - t <= window_ns and math.isfinite(v)]
+        pts = [(t, v) for t, _, _, v, *_ in track.recent if t_now - t <= window_ns and math.isfinite(v)]
         if len(pts) < 3:
             return 0.0
         t = np.array([p[0] for p in pts], dtype=np.float64) * _NS
@@ -299,14 +403,43 @@ class KinematicEstimator:
 
     # ----- reported velocity as evidence ------------------------------------------
 
-    def _check(self, track_id: int, track: _Track, state: KinematicState, vx: float, vy: float, reported: float, issues: list[Issue]) -> None:
+    def _chord(self, track: _Track) -> tuple[float, float, float, float] | None:
+        """(chord vx, vy over the last 1 s of positions, mean reported vx, vy over the same samples), or None."""
+        t_now, x_now, y_now = track.recent[-1][:3]
+        first = None
+        for item in track.recent:
+            if t_now - item[0] <= 1_000_000_000:
+                first = item
+                break
+        if first is None or t_now - first[0] < 900_000_000:
+            return None
+        dt = (t_now - first[0]) * _NS
+        reps = [(vx, vy) for t, _, _, _, vx, vy in track.recent if t >= first[0]]
+        if not all(math.isfinite(vx) and math.isfinite(vy) for vx, vy in reps):
+            return None
+        mvx = sum(v[0] for v in reps) / len(reps)
+        mvy = sum(v[1] for v in reps) / len(reps)
+        return (x_now - first[1]) / dt, (y_now - first[2]) / dt, mvx, mvy
+
+    def _check(self, track_id: int, track: _Track, state: KinematicState, reported: float, issues: list[Issue]) -> None:
+        """Reported vs positions over the last second: feeds the calibration and decides the track once."""
         cfg = self.config
-        if track.decided or state.standing or not math.isfinite(reported):
+        if state.standing or not math.isfinite(reported) or (track.t_ns - track.first_ns) * _NS < 1.0:
             return
-        if state.speed_mps < cfg.consistency_min_speed_mps or (track.t_ns - track.first_ns) * _NS < 1.0:
+        chord = self._chord(track)
+        if chord is None:
             return
-        track.ratios.append(reported / state.speed_mps)
-        track.cosines.append((vx * state.vx_mps + vy * state.vy_mps) / (max(reported, 1e-9) * state.speed_mps))
+        cvx, cvy, rvx, rvy = chord
+        chord_speed, rep_speed = math.hypot(cvx, cvy), math.hypot(rvx, rvy)
+        if chord_speed < cfg.consistency_min_speed_mps:
+            return
+        factor = rep_speed / chord_speed
+        cosine = (cvx * rvx + cvy * rvy) / (chord_speed * max(rep_speed, 1e-9))
+        self.calibration.add(track_id, factor, cosine)
+        if track.decided:
+            return
+        track.ratios.append(factor)
+        track.cosines.append(cosine)
         if len(track.ratios) < cfg.consistency_min_samples:
             return
         track.decided = True

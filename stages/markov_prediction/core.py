@@ -551,7 +551,7 @@ class MarkovPredictor:
         x0, y0 = _corridor_point(corridor, corridor.vehicle_s_m, corridor.vehicle_d_m)
         if row is not None and math.isfinite(frame.x_m[row]) and math.isfinite(frame.y_m[row]):
             x0, y0 = float(frame.x_m[row]), float(frame.y_m[row])
-            vx, vy = float(frame.vx_mps[row]), float(frame.vy_mps[row])
+            vx, vy = float(vehicle.vx_mps), float(vehicle.vy_mps)  # estimated from positions (corridors stage)
             if math.isfinite(vx) and math.isfinite(vy):
                 v0 = float(np.clip(math.hypot(vx, vy), 0.0, cfg.v_max_mps))
                 if math.hypot(vx, vy) > 0.5:

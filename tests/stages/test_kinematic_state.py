@@ -76,6 +76,32 @@ def test_scaled_velocities_are_one_counted_issue_per_track_and_one_warning_line(
     assert est.warning() is None  # once
 
 
+def test_a_calibrated_scale_is_undone_and_the_velocity_fused():
+    est = KinematicEstimator()
+    for track_id in range(3):
+        x, y, vx, vy = _straight(40, 10.0 + track_id, noise_m=0.03, seed=track_id)
+        _run(est, track_id, x, y, vx * 0.5, vy * 0.5)
+    assert est.calibration.trusted and est.calibration.factor == pytest.approx(0.5, abs=0.02)
+    x, y, vx, vy = _straight(30, 14.0, noise_m=0.03, seed=9)
+    states, _ = _run(est, 9, x, y, vx * 0.5, vy * 0.5, start_ns=10**10)
+    # the first sample answers with the calibrated report; from the second the filter fuses it
+    assert states[0].source == "reported" and states[0].speed_mps == pytest.approx(14.0, abs=0.5)
+    assert all(s.source == "fused" and abs(s.speed_mps - 14.0) < 1.0 for s in states[1:])
+
+
+def test_zero_at_birth_is_gated_out_once_the_positions_show_motion():
+    est = KinematicEstimator()
+    for track_id in range(3):
+        x, y, vx, vy = _straight(40, 10.0, noise_m=0.03, seed=track_id)
+        _run(est, track_id, x, y, vx, vy)
+    assert est.calibration.trusted
+    x, y, vx, vy = _straight(30, 15.0, noise_m=0.03, seed=5)
+    zero = np.where(np.arange(30) < 10, 0.0, 1.0)
+    states, _ = _run(est, 5, x, y, vx * zero, vy * zero, start_ns=10**10)
+    assert est.velocity_rejected > 0
+    assert all(abs(s.speed_mps - 15.0) < 1.5 for s in states[3:])
+
+
 def test_reversed_velocities_are_inconsistent_by_direction():
     x, y, vx, vy = _straight(40, 10.0)
     est = KinematicEstimator()
@@ -200,15 +226,17 @@ def _speeds(rec, seq, scene_maps, n_frames, transform):
 
 
 @pytest.mark.parametrize(
-    "name, transform",
+    "name, transform, tolerance_mps",
     [
-        ("scaled 0.5", lambda vx, vy, k: (vx * 0.5, vy * 0.5)),
-        ("scaled 2", lambda vx, vy, k: (vx * 2.0, vy * 2.0)),
-        ("reversed", lambda vx, vy, k: (-vx, -vy)),
-        ("zero for 1 s", lambda vx, vy, k: (vx * 0.0, vy * 0.0) if k < 10 else (vx, vy)),
+        # a scale or a sign is calibrated away exactly: the same figures to rounding
+        ("scaled 0.5", lambda vx, vy, k: (vx * 0.5, vy * 0.5), 1e-9),
+        ("scaled 2", lambda vx, vy, k: (vx * 2.0, vy * 2.0), 1e-9),
+        ("reversed", lambda vx, vy, k: (-vx, -vy), 1e-9),
+        # zeros are gated out or outweighed by the positions: close, not equal
+        ("zero for 1 s", lambda vx, vy, k: (vx * 0.0, vy * 0.0) if k < 10 else (vx, vy), 0.5),
     ],
 )
-def test_corridor_speeds_do_not_depend_on_the_reported_velocity(k729, name, transform):
+def test_corridor_speeds_do_not_depend_on_the_reported_velocity(k729, name, transform, tolerance_mps):
     rec, seq = k729
     maps = SceneMaps()
     base, _ = _speeds(rec, seq, maps, 300, lambda vx, vy, k: (vx, vy))
@@ -222,7 +250,7 @@ def test_corridor_speeds_do_not_depend_on_the_reported_velocity(k729, name, tran
         if key[0] == first[key[1]]:  # a track's first sample carries the reported speed
             continue
         o = other[key]
-        if math.isfinite(vx):
-            assert o[1] == pytest.approx(vx, abs=1e-9) and o[0] == pytest.approx(speed, abs=1e-9), (name, key)
+        if math.isfinite(vx) and (tolerance_mps < 1e-3 or key[0] >= 20):
+            assert o[1] == pytest.approx(vx, abs=tolerance_mps) and o[0] == pytest.approx(speed, abs=tolerance_mps), (name, key)
             compared += 1
     assert compared > 100
