@@ -370,6 +370,10 @@ class Evaluation:
             bar.update(1)
             if "scene" in result.outputs:
                 scene = result.outputs["scene"]
+                scene_map = self.scene_maps.get(scene, corridors.config.projection)
+                if scene_map.road_map is None:  # nothing could be matched: an error, never an all-NaN table
+                    problems = " ".join("; ".join(scene_map.problems).split())
+                    raise DatasetError(f"recording {rec.name}: map {scene.map_path} is unusable: {problems or 'no car lanelets'}")
             frame: TrackFrame = result.outputs["track_frame"]
             where = f"{rec.name} sequence {seq.id} stamp_ns {stamp}"
             done = self._guarded("corridors_error_frames", where, lambda: corridors.process(frame, scene))
