@@ -23,6 +23,14 @@ When the sources end (or after ``--stop-after``), nodes are stopped in
 dataflow order so each drains what it has; the recorder stops last and
 finishes its MCAP file.
 
+With ``[bus.auth]`` in the pipeline file, the launcher writes a Zenoh config
+(``transport/auth/usrpwd``: user, password, the dictionary of accepted
+users) and the dictionary into a fresh private folder (0700, files 0600),
+passes ``--config FILE`` to every node and opens its own hub with it, so
+every link of the run is authenticated and no password is on a command line;
+the folder is removed when the run ends. A viewer ``token`` reaches the
+viewer through ``IAMP_VIEWER_TOKEN`` in its environment, not its command line.
+
 Exit codes: 0 clean run, 1 a node failed (the first failing code is
 reported), 2 bad command line or pipeline file.
 """
@@ -34,10 +42,12 @@ import datetime as _dt
 import json
 import os
 import re
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -47,13 +57,14 @@ REPO = Path(__file__).resolve().parent
 sys.path.insert(0, str(REPO))
 
 from stages._core import ConfigError  # noqa: E402
-from stages.pipeline import Pipeline, PipelineError, load_pipeline  # noqa: E402
+from stages.pipeline import BusAuth, Pipeline, PipelineError, load_pipeline  # noqa: E402
 
 DEFAULT_PIPELINE = REPO / "pipelines" / "hybrid.toml"
 SOURCE_STAGES = {"stages.tracks_source"}
 RECORDER_STAGE = "stages.recorder"
 VIEWER_STAGE = "stages.viewer"
 VIEWER_URL_RE = re.compile(r"viewer: (https?://\S+)\s*$")
+VIEWER_TOKEN_ENV = "IAMP_VIEWER_TOKEN"  # stages.viewer.config.TOKEN_ENV
 MAX_RESTARTS = 5
 RESTART_RESET_S = 60.0  # a node that ran this long without dying gets its restart budget back
 STOP_ESCALATION_S = 5.0
@@ -212,10 +223,28 @@ class RestartBudget:
         return True
 
 
+def _write_private(path: Path, text: str) -> None:
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+
+
+def write_auth_config(auth: BusAuth) -> tuple[Path, Path]:
+    """A private folder (0700) with the Zenoh config (usrpwd) and its dictionary (0600 each); returns (folder, config file)."""
+    folder = Path(tempfile.mkdtemp(prefix="iamp-bus-auth-"))
+    dictionary = folder / "users.txt"
+    _write_private(dictionary, f"{auth.user}:{auth.password}\n")
+    config = folder / "zenoh.json5"
+    usrpwd = {"user": auth.user, "password": auth.password, "dictionary_file": str(dictionary)}
+    _write_private(config, json.dumps({"transport": {"auth": {"usrpwd": usrpwd}}}, indent=2) + "\n")
+    return folder, config
+
+
 class Child:
     def __init__(self, node: Any, cmd: list[str], budget: RestartBudget | None = None) -> None:
         self.node = node
         self.cmd = cmd
+        self.env: dict[str, str] = {}  # added to the launcher's environment (secrets that must not be on the command line)
         self.proc: subprocess.Popen | None = None
         self.budget = budget or RestartBudget()
         self.finished = False  # a source that ended on its own, or a node we stopped
@@ -233,7 +262,7 @@ class Child:
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,
             cwd=os.getcwd(),
-            env={**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")},
+            env={**os.environ, **self.env, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")},
             start_new_session=True,  # a Ctrl-C at the terminal reaches the launcher only; it stops children in order
             text=True,
             bufsize=1,
@@ -288,9 +317,19 @@ class Launcher:
         self.alive: set[str] = set()
         self._alive_lock = threading.Lock()
         self.bus = None
+        self.auth_dir: Path | None = None
+        self.zenoh_config: str | None = None  # with [bus.auth]: the private config every session opens with
         self.started_wall_s = time.time()  # files of this run (split recordings) are newer
 
+    def secret_env(self, node: Any) -> dict[str, str]:
+        """Secrets of a node that go through its environment, not its command line (the viewer's token)."""
+        if node.stage == VIEWER_STAGE and node.params.get("token"):
+            return {VIEWER_TOKEN_ENV: str(node.params["token"])}
+        return {}
+
     def command(self, node: Any, params: dict[str, Any] | None = None) -> list[str]:
+        if node.stage == VIEWER_STAGE:  # its token goes through the environment (secret_env)
+            params = {k: v for k, v in (node.params if params is None else params).items() if k != "token"}
         cmd = [
             sys.executable,
             "-m",
@@ -310,6 +349,8 @@ class Launcher:
         ]
         for ep in self.p.connect + self.args.connect:
             cmd += ["--connect", ep]
+        if self.zenoh_config:
+            cmd += ["--config", self.zenoh_config]
         if node.inputs:
             cmd += ["--inputs-json", json.dumps(node.inputs)]
         if node.kind == "source":
@@ -343,6 +384,7 @@ class Launcher:
     def spawn(self, node: Any) -> None:
         child = self.children.get(node.id) or Child(node, self.command(node), RestartBudget(self.args.max_restarts, self.args.restart_reset_s))
         self.children[node.id] = child
+        child.env = self.secret_env(node)
         child.start()
 
     def run(self) -> int:
@@ -356,7 +398,15 @@ class Launcher:
         for n in order:
             if n.stage == RECORDER_STAGE:
                 say(f"recording to {Path(n.params.get('path')).resolve()}")
-        self.bus = BusClient(mode="peer", listen=[self.hub], connect=self.p.connect + self.args.connect)
+        if self.p.auth is not None:
+            self.auth_dir, config = write_auth_config(self.p.auth)
+            self.zenoh_config = str(config)
+            say(f"bus auth: {self.p.auth.describe()}; every node gets --config {config} (mode 0600)")
+        try:
+            self.bus = BusClient(mode="peer", listen=[self.hub], connect=self.p.connect + self.args.connect, config_file=self.zenoh_config)
+        except BaseException:
+            self._remove_auth_dir()
+            raise
         self.bus.watch_alive(keys.alive_pattern(self.p.run_id), self._on_alive)
         signal.signal(signal.SIGINT, lambda *_: self.stop_requested.set())
         signal.signal(signal.SIGTERM, lambda *_: self.stop_requested.set())
@@ -377,6 +427,12 @@ class Launcher:
             return self.supervise(order, sources, t_start)
         finally:
             self.bus.close()
+            self._remove_auth_dir()
+
+    def _remove_auth_dir(self) -> None:
+        if self.auth_dir is not None:
+            shutil.rmtree(self.auth_dir, ignore_errors=True)
+            self.auth_dir = None
 
     def supervise(self, order: list[Any], sources: list[Any], t_start: float) -> int:
         while True:

@@ -11,6 +11,9 @@ spawned::
     mode = "peer"
     listen = ["tcp/127.0.0.1:0"]   # the launcher's hub; 0 = a free port
     connect = []                   # a remote router to join, if any
+    [bus.auth]                     # optional: Zenoh user/password authentication on every link
+    user = "iamp"
+    password_env = "IAMP_BUS_PASSWORD"   # or password = "..." (then keep the file private)
     [[nodes]]
     id = "corridors"
     stage = "stages.corridors"
@@ -37,6 +40,7 @@ from __future__ import annotations
 import copy
 import importlib
 import json
+import os
 import re
 import tomllib
 from dataclasses import dataclass, field
@@ -48,13 +52,66 @@ from bus_schemas import keys
 from ._core import ConfigError
 
 TOP_KEYS = {"name", "vars", "bus", "nodes", "description", "external"}
-BUS_KEYS = {"run_id", "mode", "listen", "connect"}
+BUS_KEYS = {"run_id", "mode", "listen", "connect", "auth"}
+AUTH_KEYS = {"user", "password", "password_env"}
+SECRET_PARAMS = {"stages.viewer": ("token",)}  # node parameters never printed nor put on a command line
 NODE_KEYS = {"id", "stage", "inputs", "outputs", "params", "restart", "queue_size", "description"}
 _VAR_RE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}")
 
 
 class PipelineError(ConfigError):
     """A descriptor that cannot run; the message says what to fix."""
+
+
+@dataclass(frozen=True)
+class BusAuth:
+    """Zenoh user/password authentication (``transport/auth/usrpwd``) for every session of a run."""
+
+    user: str
+    password: str = field(repr=False)
+    source: str  # where the password came from, for messages: "password_env IAMP_BUS_PASSWORD" or "password"
+
+    def describe(self) -> str:
+        return f"usrpwd(user={self.user}, password from {self.source})"
+
+
+def parse_auth(value: Any, where: str) -> BusAuth | None:
+    """``[bus.auth]`` -> ``BusAuth``; a message that says what to fix for anything else."""
+    if value is None:
+        return None
+    if not isinstance(value, dict):
+        raise PipelineError(f"{where}: [bus] auth must be a table: [bus.auth] user = \"...\", password_env = \"NAME\"")
+    bad = sorted(set(value) - AUTH_KEYS)
+    if bad:
+        raise PipelineError(f"{where}: unknown key(s) in [bus.auth]: {', '.join(bad)}; known: {', '.join(sorted(AUTH_KEYS))}")
+    user = value.get("user")
+    if not isinstance(user, str) or not user.strip():
+        raise PipelineError(f"{where}: [bus.auth] user must be a non-empty string (the Zenoh user name every node authenticates with)")
+    if any(c in user for c in ":\n\r") or user != user.strip():
+        raise PipelineError(f"{where}: [bus.auth] user {user!r} must not contain ':', line breaks or surrounding spaces")
+    has_pw, has_env = "password" in value, "password_env" in value
+    if has_pw == has_env:
+        raise PipelineError(f"{where}: [bus.auth] needs exactly one of password_env = \"NAME\" (an environment variable) or password = \"...\"")
+    if has_env:
+        name = value["password_env"]
+        if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name):
+            raise PipelineError(f"{where}: [bus.auth] password_env must name an environment variable, got {name!r}")
+        password, source = os.environ.get(name, ""), f"${name}"
+        if not password:
+            raise PipelineError(f"{where}: [bus.auth] password_env = {name!r}: set the environment variable {name} to the bus password")
+    else:
+        password, source = value["password"], "the pipeline file"
+        if not isinstance(password, str) or not password:
+            raise PipelineError(f"{where}: [bus.auth] password must be a non-empty string (or use password_env = \"NAME\")")
+    if any(c in password for c in "\n\r"):
+        raise PipelineError(f"{where}: [bus.auth] the password ({source}) must not contain line breaks")
+    return BusAuth(user=user, password=password, source=source)
+
+
+def public_params(stage: str, params: dict[str, Any]) -> dict[str, Any]:
+    """``params`` with secret values (the viewer's token) replaced by ``"***"``, for printing."""
+    secret = SECRET_PARAMS.get(stage, ())
+    return {k: ("***" if k in secret and v else v) for k, v in params.items()}
 
 
 @dataclass
@@ -85,6 +142,7 @@ class Pipeline:
     nodes: list[NodeDesc]
     warnings: list[str] = field(default_factory=list)
     external: dict[str, str] = field(default_factory=dict)
+    auth: BusAuth | None = None
 
     def node(self, node_id: str) -> NodeDesc:
         for n in self.nodes:
@@ -115,7 +173,8 @@ class Pipeline:
         return done
 
     def describe(self) -> str:
-        lines = [f"pipeline {self.name} ({self.path})", f"  bus: run_id={self.run_id} mode={self.mode} listen={self.listen} connect={self.connect}"]
+        lines = [f"pipeline {self.name} ({self.path})", f"  bus: run_id={self.run_id} mode={self.mode} listen={self.listen} connect={self.connect}"
+                 + (f" auth={self.auth.describe()}" if self.auth else "")]
         for n in self.topo_order():
             lines.append(f"  node {n.id}: stage={n.stage} kind={n.kind} restart={str(n.restart).lower()}")
             for port, ref in n.inputs.items():
@@ -123,7 +182,7 @@ class Pipeline:
                 lines.append(f"    in  {port:<14} <- iamp/{self.run_id}/{ref}  [{p.schema.SCHEMA} v{p.schema.VERSION}{', latched' if p.latched else ''}]")
             for port, p in n.spec.outputs.items():
                 lines.append(f"    out {port:<14} -> {self.output_key(n.id, port)}  [{p.schema.SCHEMA} v{p.schema.VERSION}{', latched' if p.latched else ''}]")
-            lines.append(f"    params {json.dumps(n.params, sort_keys=True)}")
+            lines.append(f"    params {json.dumps(public_params(n.stage, n.params), sort_keys=True)}")
         for w in self.warnings:
             lines.append(f"  warning: {w}")
         return "\n".join(lines)
@@ -208,6 +267,7 @@ def load_pipeline(
         raise PipelineError(f"{where}: [bus] mode must be 'peer' or 'client', got {mode!r}")
     listen = list(bus.get("listen", ["tcp/127.0.0.1:0"]))
     connect = list(bus.get("connect", []))
+    auth = parse_auth(bus.get("auth"), where)
     nodes_raw = raw.get("nodes")
     if not isinstance(nodes_raw, list) or not nodes_raw:
         raise PipelineError(f"{where}: no [[nodes]] defined")
@@ -316,5 +376,5 @@ def load_pipeline(
                 warnings.append(f"output {n.id}/{out} is not connected to any node")
     return Pipeline(
         name=str(raw.get("name", path.stem)), path=str(path), run_id=run_id, mode=mode, listen=listen, connect=connect, nodes=nodes, warnings=warnings,
-        external=dict(external),
+        external=dict(external), auth=auth,
     )

@@ -1,0 +1,201 @@
+"""Bus authentication ([bus.auth], Zenoh usrpwd) over real Zenoh sessions on loopback.
+
+A run of ``launch.py`` with ``[bus.auth]`` (password from an environment
+variable) and one node, the recorder (a raw sink on ``iamp/<run>/**``): a
+session of this test with the run's credentials publishes into it and the
+recorder acknowledges every message (its ``Progress``); sessions without
+credentials and with a wrong password open, find no peer, and what they
+publish never reaches the recorder (not in its MCAP file, which holds every
+credentialed message), nor do they receive the run's traffic. The password
+is on no process's command line; the config the nodes get is 0600 in a 0700
+folder that is gone after the run. Bad ``[bus.auth]`` tables stop
+``launch.py`` with exit 2 and a message that says what to fix.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import signal
+import stat
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import msgpack
+import pytest
+
+sys.path[:0] = [str(Path(__file__).resolve().parents[2]), str(Path(__file__).resolve().parents[1]), str(Path(__file__).resolve().parent)]
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bus_schemas"))
+
+import bus_schemas as bs  # noqa: E402
+from helpers import REPO, endpoint, free_port, kill_all, python_env, wait_until  # noqa: E402
+from samples import SAMPLES  # noqa: E402
+from stages.mcap_inspect import inspect  # noqa: E402
+from stages.pipeline import PipelineError, load_pipeline  # noqa: E402
+from stages.runtime import BusClient  # noqa: E402
+from test_launch_run import Launch  # noqa: E402
+
+RUN = "authrun"
+PW_ENV = "IAMP_TEST_BUS_PASSWORD"
+
+
+def _pipeline(tmp_path: Path, auth: str, port: int | None = None) -> Path:
+    rec = tmp_path / "run.mcap"
+    text = f"""name = "auth"
+[bus]
+run_id = "{RUN}"
+listen = ["{endpoint(port) if port else 'tcp/127.0.0.1:0'}"]
+{auth}
+[[nodes]]
+id = "recorder"
+stage = "stages.recorder"
+params = {{ path = "{rec}" }}
+"""
+    path = tmp_path / "auth.toml"
+    path.write_text(text)
+    return path
+
+
+def _profiles(stamp_index: int) -> bytes:
+    env = msgpack.unpackb(SAMPLES["iamp.AccelerationProfiles"]().encode(), raw=False)
+    env["body"]["header"]["frame_index"] = stamp_index
+    env["body"]["header"]["stamp_ns"] = 1_000_000_000 + stamp_index * 100_000_000
+    return msgpack.packb(env, use_bin_type=True)
+
+
+def _client_config(tmp_path: Path, name: str, user: str, password: str) -> str:
+    path = tmp_path / f"{name}.json5"
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as f:
+        json.dump({"transport": {"auth": {"usrpwd": {"user": user, "password": password}}}}, f)
+    return str(path)
+
+
+def _all_command_lines() -> list[str]:
+    out = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                out.append((entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace"))
+            except OSError:
+                pass
+    return out
+
+
+class Acks:
+    """The recorder's Progress (``last_stamp_ns`` of the newest message it handled), seen through a session."""
+
+    def __init__(self, bus: BusClient) -> None:
+        self._lock = threading.Lock()
+        self.last_stamp_ns = -1
+        bus.subscribe(bs.keys.ack_key(RUN, "recorder"), self._on)
+
+    def _on(self, _key: str, data: bytes) -> None:
+        msg = bs.Progress.decode(data)
+        with self._lock:
+            self.last_stamp_ns = max(self.last_stamp_ns, msg.last_stamp_ns)
+
+    def wait_for(self, stamp_index: int) -> None:
+        want = 1_000_000_000 + stamp_index * 100_000_000
+        wait_until(lambda: self.last_stamp_ns >= want, 30.0, f"the recorder's acknowledgement of stamp #{stamp_index} (last: {self.last_stamp_ns})")
+
+
+def test_protected_run_takes_only_credentialed_sessions(tmp_path, monkeypatch):
+    password = "pw-" + secrets.token_hex(12)
+    monkeypatch.setenv(PW_ENV, password)
+    port = free_port()
+    pipeline = _pipeline(tmp_path, f'[bus.auth]\nuser = "iamp"\npassword_env = "{PW_ENV}"', port)
+    run = Launch(str(pipeline), cwd=tmp_path)
+    sessions: list[BusClient] = []
+    try:
+        m = run.wait_line(r"^\[launch\] bus auth: usrpwd\(user=iamp, password from \$" + PW_ENV + r"\); every node gets --config (\S+) \(mode 0600\)")
+        config = Path(m.group(1))
+        run.wait_line(r"^\[launch\] all 1 nodes alive; starting sources")
+        assert stat.S_IMODE(config.stat().st_mode) == 0o600
+        assert stat.S_IMODE(config.parent.stat().st_mode) == 0o700
+        for f in config.parent.iterdir():
+            assert stat.S_IMODE(f.stat().st_mode) == 0o600, f
+        assert not [c for c in _all_command_lines() if password in c], "the bus password is on a command line"
+
+        hub = [endpoint(port)]
+        seen_by_intruders: list[str] = []
+        intruders = {
+            "none": BusClient(connect=hub),
+            "wrong": BusClient(connect=hub, config_file=_client_config(tmp_path, "wrong", "iamp", password + "x")),
+            "nouser": BusClient(connect=hub, config_file=_client_config(tmp_path, "nouser", "mallory", password)),
+        }
+        sessions += intruders.values()
+        for bus in intruders.values():  # each gets its own puts back (local delivery): those are not the run's
+            bus.subscribe(f"iamp/{RUN}/**", lambda key, _data: key.split("/")[2] in intruders or seen_by_intruders.append(key))
+        good = BusClient(connect=hub, config_file=_client_config(tmp_path, "good", "iamp", password))
+        sessions.append(good)
+        assert list(good.session.info.peers_zid()), f"the credentialed session has no peer:\n{run.text()[-3000:]}"
+        acks = Acks(good)
+        publish, matched = good.publisher_with_matching(f"iamp/{RUN}/good/profiles")
+        wait_until(matched, 30.0, "the recorder's subscription reaching the credentialed session")
+
+        for name, bus in intruders.items():  # opened after their link attempt: refused
+            assert list(bus.session.info.peers_zid()) == [], f"session {name} got a peer in the protected run"
+            for i in range(1, 4):
+                bus.put(f"iamp/{RUN}/{name}/profiles", _profiles(100 + i))
+        for i in range(1, 4):
+            publish(_profiles(i))
+        acks.wait_for(3)
+        for name, bus in intruders.items():  # later than the first good round trip, in case a link were slow
+            bus.put(f"iamp/{RUN}/{name}/profiles", _profiles(200))
+        publish(_profiles(4))
+        acks.wait_for(4)
+        assert seen_by_intruders == [], f"unauthenticated sessions received the run's traffic: {sorted(set(seen_by_intruders))[:5]}"
+
+        run.proc.send_signal(signal.SIGINT)
+        assert run.wait() == 0, run.text()[-4000:]
+        assert not config.parent.exists(), "the private auth folder outlived the run"
+    finally:
+        for bus in sessions:
+            bus.close()
+        kill_all([run.proc])
+    topics = {c["topic"]: c["count"] for c in inspect(str(tmp_path / "run.mcap"))["channels"]}
+    assert topics.get(f"iamp/{RUN}/good/profiles") == 4, topics
+    intruding = [t for t in topics if t.split("/")[2] in ("none", "wrong", "nouser")]
+    assert intruding == [], f"messages of unauthenticated sessions were recorded: {intruding}"
+
+
+@pytest.mark.parametrize(
+    "auth, message",
+    [
+        ('[bus.auth]\nuser = ""\npassword = "x"', r"\[bus.auth\] user must be a non-empty string"),
+        ('[bus.auth]\nuser = "a:b"\npassword = "x"', r"must not contain ':'"),
+        ('[bus.auth]\nuser = "iamp"', r"needs exactly one of password_env"),
+        ('[bus.auth]\nuser = "iamp"\npassword = "x"\npassword_env = "X"', r"needs exactly one of password_env"),
+        ('[bus.auth]\nuser = "iamp"\npassword = ""', r"password must be a non-empty string"),
+        ('[bus.auth]\nuser = "iamp"\npassword_env = "IAMP_TEST_UNSET_PW"', r"set the environment variable IAMP_TEST_UNSET_PW"),
+        ('[bus.auth]\nuser = "iamp"\npasswd = "x"', r"unknown key\(s\) in \[bus.auth\]: passwd"),
+    ],
+)
+def test_bad_auth_tables_say_what_to_fix(tmp_path, monkeypatch, auth, message):
+    monkeypatch.delenv("IAMP_TEST_UNSET_PW", raising=False)
+    path = _pipeline(tmp_path, auth)
+    with pytest.raises(PipelineError, match=message):
+        load_pipeline(path)
+
+
+def test_auth_given_as_a_string_is_refused(tmp_path):
+    path = tmp_path / "p.toml"
+    path.write_text(f'[bus]\nrun_id = "{RUN}"\nauth = "iamp:x"\n[[nodes]]\nid = "recorder"\nstage = "stages.recorder"\n')
+    with pytest.raises(PipelineError, match=r"\[bus\] auth must be a table"):
+        load_pipeline(path)
+
+
+def test_launcher_exits_2_on_empty_user_and_describe_hides_the_password(tmp_path, monkeypatch):
+    bad = _pipeline(tmp_path, '[bus.auth]\nuser = ""\npassword_env = "X"')
+    proc = subprocess.run([sys.executable, str(REPO / "launch.py"), str(bad), "--check"], cwd=tmp_path, env=python_env(), capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert "[bus.auth] user must be a non-empty string" in proc.stderr
+    good = _pipeline(tmp_path, '[bus.auth]\nuser = "iamp"\npassword = "s3cret-in-file"')
+    proc = subprocess.run([sys.executable, str(REPO / "launch.py"), str(good), "--describe"], cwd=tmp_path, env=python_env(), capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "auth=usrpwd(user=iamp, password from the pipeline file)" in proc.stdout
+    assert "s3cret-in-file" not in proc.stdout + proc.stderr
