@@ -91,6 +91,7 @@ class IntentionsConfig(ConfigMixin):
     birth_sigma_v_mps: float = 0.3
     birth_sigma_a_mps2: float = 0.5
     birth_lateral_sigma_m: float = 1.0
+    lost_gate_m: float = 10.0
     unseen_timeout_s: float = 1.0
     lane_change_reach_m: float = 10.0
     projection: str = "auto"
@@ -99,7 +100,7 @@ class IntentionsConfig(ConfigMixin):
         positive = (
             "gap_critical_s", "gap_scale_s", "min_time_speed_mps", "go_accel_sigma_mps2", "stop_accel_sigma_mps2",
             "stop_min_distance_m", "brake_lookahead_mps2", "max_substep_s", "position_sigma_m", "heading_sigma_rad",
-            "speed_sigma_mps", "birth_lateral_sigma_m", "unseen_timeout_s", "accel_max_mps2",
+            "speed_sigma_mps", "birth_lateral_sigma_m", "lost_gate_m", "unseen_timeout_s", "accel_max_mps2",
         )
         non_negative = (
             "route_switch_per_step", "route_floor_fraction", "gap_pass_s", "go_gain_per_s", "stop_margin_m", "lateral_sigma_m",
@@ -377,6 +378,15 @@ class IntentionFilter:
         p = Particles.stack(rows)
         names = ("x_m", "y_m", "heading_rad", "speed_mps", "heading_ok", "speed_ok")
         z = tuple(np.array([getattr(m, f) for m in measurements]) for f in names)
+        # particles that lost their vehicle (a jump, a re-used id) are born again at the measurement
+        for v in np.flatnonzero(~born):
+            ahead = p.s_m[v] - tables.vehicle_s_m[first[v] + p.route[v]]
+            allowed = cfg.lost_gate_m + max(float(z[3][v]), 0.0) * dt[v] if math.isfinite(float(z[3][v])) else cfg.lost_gate_m
+            if float(np.median(np.abs(ahead))) > allowed:
+                issues.append(Issue("particles_lost", inputs[v].track_id, f"particles a median {float(np.median(np.abs(ahead))):.0f} m from the measurement: born again"))
+                born[v] = True
+                dt[v] = 0.0
+                n_sub[v] = 0
         if born.any():
             self._birth(p, np.flatnonzero(born), rngs, tables, z)
         steps = int(n_sub.max())

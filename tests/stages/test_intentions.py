@@ -364,3 +364,31 @@ def test_the_stage_on_the_bus_publishes_the_in_process_beliefs(frames, scene_map
         finally:
             h.kill_all([stage])
     assert got == expected
+
+
+def test_particles_that_lose_their_vehicle_are_born_again_at_the_measurement(frames, scene_maps):
+    """An id switch (2686's id handed to car 2688 from frame 780 on): the particles are far from the
+    new measurement; they are born again there (particles_lost once), not left where the old car was."""
+    switch, old, new = 780, 2686, 2688
+
+    def rename(k, frame, corridor_set, relation_set):
+        if k < switch:
+            return frame, corridor_set, relation_set
+        frame, corridor_set, relation_set = without_track(old, frame, corridor_set, relation_set)
+        ids = np.where(np.asarray(frame.track_ids) == new, old, np.asarray(frame.track_ids))
+        return (
+            dataclasses.replace(frame, track_ids=ids),
+            dataclasses.replace(corridor_set, vehicles=tuple(dataclasses.replace(v, track_id=old) if v.track_id == new else v for v in corridor_set.vehicles)),
+            dataclasses.replace(relation_set, relations=tuple(dataclasses.replace(r, track_id=old) if r.track_id == new else r for r in relation_set.relations)),
+        )
+
+    out, _ = run(frames[: switch + 10], scene_maps, edit=rename)
+    lost = [(k, i) for k, (_, issues) in enumerate(out) for i in issues if i.kind == "particles_lost"]
+    assert [(k, i.agent_id) for k, i in lost] == [(switch, old)]
+    untouched, _ = run(frames[: switch + 10], scene_maps)
+    assert not any(i.kind == "particles_lost" for _, issues in untouched for i in issues)
+    belief = next(v for v in out[switch + 5][0].vehicles if v.track_id == old)
+    corridor_set = rename(switch + 5, frames[switch + 5].frame, frames[switch + 5].corridor_set, frames[switch + 5].relation_set)[1]
+    measured = {c.corridor_id: c.vehicle_s_m for v in corridor_set.vehicles if v.track_id == old for c in v.corridors}
+    for c in belief.corridors:
+        assert abs(c.s_mean_m - measured[c.corridor_id]) < 3.0
