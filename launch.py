@@ -32,7 +32,8 @@ the folder is removed when the run ends. A viewer ``token`` reaches the
 viewer through ``IAMP_VIEWER_TOKEN`` in its environment, not its command line.
 
 Exit codes: 0 clean run, 1 a node failed (the first failing code is
-reported), 2 bad command line or pipeline file.
+reported), 2 bad command line or pipeline file, or an unusable map (the
+corridors stage reports it; the run stops at once with the map's problem).
 """
 
 from __future__ import annotations
@@ -64,6 +65,11 @@ SOURCE_STAGES = {"stages.tracks_source"}
 RECORDER_STAGE = "stages.recorder"
 VIEWER_STAGE = "stages.viewer"
 VIEWER_URL_RE = re.compile(r"viewer: (https?://\S+)\s*$")
+# The corridors stage's issue line for a map it cannot use (stages/corridors/core.py, issue kind no_map):
+# nothing can be matched or predicted, so the run stops with exit 2 and this text.
+CORRIDORS_STAGE = "stages.corridors"
+MAP_UNUSABLE_RE = re.compile(r"kind=no_map\b.*?\b(map \S+ unusable: .*?)\s*$")
+EXIT_UNUSABLE_MAP = 2
 VIEWER_TOKEN_ENV = "IAMP_VIEWER_TOKEN"  # stages.viewer.config.TOKEN_ENV
 MAX_RESTARTS = 5
 RESTART_RESET_S = 60.0  # a node that ran this long without dying gets its restart budget back
@@ -247,6 +253,7 @@ class Child:
         self.env: dict[str, str] = {}  # added to the launcher's environment (secrets that must not be on the command line)
         self.proc: subprocess.Popen | None = None
         self.budget = budget or RestartBudget()
+        self.fatal: str | None = None  # a condition in the node's output that ends the run (an unusable map)
         self.finished = False  # a source that ended on its own, or a node we stopped
         self.exit_code: int | None = None
 
@@ -275,6 +282,8 @@ class Child:
             say(line.rstrip("\n"), self.node.id)
             if self.node.stage == VIEWER_STAGE and (url := VIEWER_URL_RE.search(line)):
                 say(f"viewer: {url.group(1)}")  # the one line to open in a browser
+            if self.node.stage == CORRIDORS_STAGE and self.fatal is None and (bad := MAP_UNUSABLE_RE.search(line)):
+                self.fatal = bad.group(1)  # the supervisor stops the run
 
     def poll(self) -> int | None:
         return None if self.proc is None else self.proc.poll()
@@ -443,6 +452,10 @@ class Launcher:
                 say(f"--stop-after {self.args.stop_after:g} s reached")
                 return self.shutdown(order)
             for nid, c in list(self.children.items()):
+                if c.fatal is not None:
+                    say(f"stopping the run: {nid} reports {c.fatal}")
+                    self.first_failure = EXIT_UNUSABLE_MAP
+                    return self.shutdown(order)
                 if c.finished:
                     continue
                 code = c.poll()
