@@ -33,6 +33,8 @@ def _add_record(sub: "argparse._SubParsersAction") -> None:
     p.add_argument("--compression", choices=["zstd", "lz4", "none"], default=None, help="chunk compression (default zstd)")
     p.add_argument("--chunk-size-bytes", type=int, default=None, help="close a chunk at about this size (default 262144)")
     p.add_argument("--flush-period-s", type=float, default=None, help="close the open chunk at least this often (default 1)")
+    p.add_argument("--split-bytes", type=int, default=None, help="start the next split file (FILE.001.mcap, ...) at about this size (default 0: never)")
+    p.add_argument("--split-s", type=float, default=None, help="start the next split file after this many seconds (default 0: never)")
     p.add_argument("--no-stats", action="store_true", help="leave out the _stats keys")
     p.add_argument("--log-level", default="INFO")
     from .runtime import add_network_args
@@ -45,7 +47,7 @@ def _run_record(args: argparse.Namespace) -> int:
     from . import recorder
 
     params: dict[str, object] = {"path": args.file}
-    for name in ("compression", "chunk_size_bytes", "flush_period_s"):
+    for name in ("compression", "chunk_size_bytes", "flush_period_s", "split_bytes", "split_s"):
         if getattr(args, name) is not None:
             params[name] = getattr(args, name)
     if args.no_stats:

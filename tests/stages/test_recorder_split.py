@@ -96,3 +96,50 @@ def test_split_index_starts_at_a_later_split_and_stale_files_are_told_apart(tmp_
 def test_bad_split_parameters_are_refused(bad):
     with pytest.raises(ValueError):
         RecorderConfig(**bad)
+
+
+def test_iamp_record_split_bytes_on_a_real_bus(tmp_path):
+    import signal
+
+    from stages.runtime import BusClient
+
+    base = tmp_path / "live.mcap"
+    port = h.free_port()
+    started = []
+    sent = []
+    try:
+        with BusClient(listen=[h.endpoint(port)]) as bus:
+            alive = h.AliveSet(bus, keys.alive_pattern("t1"))
+            rec = h.start_module(
+                "stages.cli", "record", str(base), "--run-id", "t1", "--connect", h.endpoint(port),
+                "--split-bytes", "8000", "--chunk-size-bytes", "2000", "--no-stats", log_dir=tmp_path,
+            )
+            started.append(rec)
+            alive.wait_for(["recorder"], 60)
+            put, matching = bus.publisher_with_matching(keys.data_key("t1", "source", "track_frame"))
+            h.wait_until(matching, 20, "the recorder's subscriber to match")
+
+            def publish_until_splits(n: int) -> bool:
+                data = make_frame(len(sent), "t1").encode()
+                put(data)
+                sent.append(data)
+                return len(split_paths(base)) >= n
+
+            h.wait_until(lambda: publish_until_splits(3), 60, "three split files")
+
+            def on_disk() -> int:  # the open split reads up to its last chunk (closed at least every second)
+                from stages.mcap_inspect import RecordingError, read_messages
+
+                try:
+                    return sum(1 for _, p in split_paths(base) for m in read_messages(str(p)) if m.topic.endswith("/track_frame"))
+                except RecordingError:  # a split just opened, not even its header on disk yet
+                    return 0
+
+            h.wait_until(lambda: on_disk() >= len(sent), 30, f"{len(sent)} frames on disk")
+            assert h.stop_process(rec, signal.SIGINT) == 0, h.output_of(rec)
+    finally:
+        h.kill_all(started)
+    files = split_paths(base)
+    got = [d for _, p in files for t, _s, d, _q in read_whole(p) if t.endswith("/track_frame")]
+    assert got == sent, "every frame once, in order, each split finished"
+    assert "splits=" in h.output_of(rec)
