@@ -64,7 +64,18 @@ Parameters (``ViewerConfig``):
 - ``step_s`` 1.0, ``blend_steps`` false, ``show_ground_truth`` false: the
   view at start;
 - ``grid_scale`` "log" (or "linear"), ``grid_floor`` 1e-3: the heat map;
-- ``stats`` true: subscribe to the run's ``NodeStats``.
+- ``stats`` true: subscribe to the run's ``NodeStats``;
+- ``token`` "" (none; or ``$IAMP_VIEWER_TOKEN``), ``"auto"`` (a fresh random
+  one) or 16+ characters of ``A-Z a-z 0-9 _ -``: the page URL then carries
+  ``?token=...`` (the logged URL has it) and requests without it get 403;
+- ``origins`` []: page origins allowed besides ``http://127.0.0.1:PORT``,
+  ``http://localhost:PORT`` and ``http://HOST:PORT``.
+
+Access (``guard.py``): a websocket handshake or request whose ``Origin`` is
+not the page's own is refused with 403 before any scene data; one without
+``Origin`` (not a browser) is let through. The check wraps viser's
+``process_request`` for the time its server starts (``guard.installed``),
+without changing viser.
 """
 
 from __future__ import annotations

@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import math
+import os
+import re
 from dataclasses import dataclass
 
 from stages._core import ConfigMixin
 
 GRID_SCALES = ("log", "linear")
+TOKEN_ENV = "IAMP_VIEWER_TOKEN"  # the token when the ``token`` parameter is empty (the launcher passes it so)
+_TOKEN_RE = re.compile(r"[A-Za-z0-9_-]{16,256}")
+_ORIGIN_RE = re.compile(r"https?://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+)(:[0-9]{1,5})?/?")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -27,6 +32,8 @@ class ViewerConfig(ConfigMixin):
     grid_floor: float = 1e-3  # occupancy below this is transparent
     stats: bool = True  # show the NodeStats of every node of the run
     status_hz: float = 2.0  # side panel refresh
+    token: str = ""  # "": none (or $IAMP_VIEWER_TOKEN); "auto": a fresh random one; else at least 16 of A-Z a-z 0-9 _ -
+    origins: tuple[str, ...] = ()  # page origins allowed besides http://127.0.0.1|localhost|HOST:PORT, e.g. "http://myhost:8080"
 
     def __post_init__(self) -> None:
         if not self.host.strip():
@@ -41,3 +48,13 @@ class ViewerConfig(ConfigMixin):
             raise ValueError(f"grid_scale = {self.grid_scale!r}: expected one of {', '.join(GRID_SCALES)}")
         if not 0.0 < self.grid_floor < 1.0:
             raise ValueError(f"grid_floor = {self.grid_floor!r}: expected 0 < grid_floor < 1")
+        for where, value in (("token", self.token), (f"${TOKEN_ENV}", os.environ.get(TOKEN_ENV, ""))):
+            if value and value != "auto" and not _TOKEN_RE.fullmatch(value):
+                raise ValueError(f"{where}: expected \"auto\" or 16 to 256 characters of A-Z a-z 0-9 _ - (got {len(value)} characters)")
+        for origin in self.origins:
+            if not _ORIGIN_RE.fullmatch(origin):
+                raise ValueError(f"origins: {origin!r} is not a page origin such as \"http://myhost:8080\" (scheme, host, port; no path)")
+
+    def effective_token(self) -> str:
+        """The token the server asks for: the parameter, else $IAMP_VIEWER_TOKEN; "" for none. "auto" stays "auto"."""
+        return self.token or os.environ.get(TOKEN_ENV, "")

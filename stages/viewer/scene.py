@@ -27,6 +27,8 @@ from bus_schemas import NodeStats
 from stages._core import Issue, StageResult
 
 from .config import ViewerConfig
+from .guard import HandshakeGuard, new_token
+from .guard import installed as guard_installed
 from .model import (
     ALL_VEHICLES,
     CAR_LANELET_FILL,
@@ -97,6 +99,8 @@ class ViewerApp:
         self.counters = DrawCounters()
         self.server: viser.ViserServer | None = None
         self.url = ""
+        self.token = ""  # what the server asks for ("": none)
+        self.guard: HandshakeGuard | None = None
         self.map: MapGeometry | None = None
         self.shown: InputSet | None = None
         self.summary: dict[str, Any] = {}
@@ -121,12 +125,15 @@ class ViewerApp:
         """Start the viser server and the render thread; returns the page's URL."""
         cfg = self.config
         logging.getLogger("websockets").setLevel(logging.WARNING)  # viser's server logs every listen/connection at INFO
-        with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner; stages log instead
+        token = cfg.effective_token()
+        self.token = new_token() if token == "auto" else token
+        self.guard = HandshakeGuard(host=cfg.host, token=self.token, origins=cfg.origins, log=self.log)
+        with contextlib.redirect_stdout(io.StringIO()), guard_installed(self.guard):  # viser prints a banner; stages log instead
             self.server = viser.ViserServer(host=cfg.host, port=cfg.port, verbose=False)
         port = self.server.get_port()
         if cfg.port and port != cfg.port:
             self.log.warning("viewer: port %d was busy, serving on %d", cfg.port, port)
-        self.url = f"http://{cfg.host}:{port}"
+        self.url = f"http://{cfg.host}:{port}" + (f"/?token={self.token}" if self.token else "")
         scene = self.server.scene
         scene.configure_environment_map(None)
         scene.configure_default_lights(enabled=False, cast_shadow=False)
