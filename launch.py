@@ -475,7 +475,8 @@ class Launcher:
                     c.start()
                     continue
                 if c.node.restart and code != 2:
-                    say(f"{nid} used its {c.budget.limit} restarts (each run shorter than {c.budget.reset_after_s:g} s)")
+                    why = f"each run shorter than {c.budget.reset_after_s:g} s" if c.budget.reset_after_s > 0 else "--restart-reset-s 0: never given back"
+                    say(f"{nid} used its {c.budget.limit} restarts ({why})")
                 self.first_failure = code if code > 0 else 1
                 c.finished = True
                 say(f"stopping the run because {nid} failed")
@@ -493,7 +494,7 @@ class Launcher:
         written = split_paths(base, since_s=self.started_wall_s - 1.0)
         index = written[-1][0] + 1 if written else int(c.node.params.get("split_index", 0))
         c.cmd = self.command(c.node, {**c.node.params, "split_index": index})
-        say(f"recording goes on in {split_path(base, index).resolve()}" + (f" ({written[-1][1].name} was cut by the death: iamp recover reads it whole)" if written else ""))
+        say(f"recording goes on in {split_path(base, index).resolve()}" + (f" ({written[-1][1].name} is torn: `iamp recover` writes a finished copy)" if written else ""))
 
     def shutdown(self, order: list[Any]) -> int:
         """Stop sources first, then the rest in dataflow order; raw sinks last."""
