@@ -114,9 +114,11 @@ class HandshakeGuard:
 
     def refusal(self, request: Request, port: int) -> tuple[str, bool] | None:
         """``None`` to let the request through, else ``(why, ...)``; the bool says a good ``?token=`` came in the query."""
-        origin = request.headers.get("Origin")
-        if origin is not None and origin.rstrip("/").lower() not in self.allowed_origins(port):
-            return f"origin {origin!r} is not this viewer's page", False
+        origins = request.headers.get_all("Origin")
+        if len(origins) > 1:
+            return "several Origin headers", False
+        if origins and origins[0].rstrip("/").lower() not in self.allowed_origins(port):
+            return f"origin {origins[0]!r} is not this viewer's page", False
         if not self.token:
             return None
         from_query, from_cookie = self._presented_tokens(request, port)

@@ -163,6 +163,31 @@ def test_protected_run_takes_only_credentialed_sessions(tmp_path, monkeypatch):
     assert intruding == [], f"messages of unauthenticated sessions were recorded: {intruding}"
 
 
+def test_without_auth_the_same_intruder_gets_in(tmp_path):
+    """The control for the test above: without [bus.auth] a session without credentials links and is recorded."""
+    port = free_port()
+    run = Launch(str(_pipeline(tmp_path, "", port)), cwd=tmp_path)
+    intruder = None
+    try:
+        run.wait_line(r"^\[launch\] all 1 nodes alive; starting sources")
+        assert "bus auth" not in run.text()
+        intruder = BusClient(connect=[endpoint(port)])
+        acks = Acks(intruder)
+        publish, matched = intruder.publisher_with_matching(f"iamp/{RUN}/none/profiles")
+        wait_until(matched, 30.0, "the recorder's subscription reaching the session")
+        assert list(intruder.session.info.peers_zid())
+        publish(_profiles(1))
+        acks.wait_for(1)
+        run.proc.send_signal(signal.SIGINT)
+        assert run.wait() == 0, run.text()[-4000:]
+    finally:
+        if intruder is not None:
+            intruder.close()
+        kill_all([run.proc])
+    topics = {c["topic"]: c["count"] for c in inspect(str(tmp_path / "run.mcap"))["channels"]}
+    assert topics.get(f"iamp/{RUN}/none/profiles") == 1, topics
+
+
 @pytest.mark.parametrize(
     "auth, message",
     [

@@ -88,6 +88,10 @@ def test_foreign_origins_are_refused_the_pages_own_are_served(monkeypatch):
         assert _get(port, origin="http://evil.example")[0] == 403
         assert _get(port)[0] == 200
         assert app.guard.refused == 4
+        with pytest.raises(InvalidStatus) as refused:  # a second, foreign Origin header does not slip through
+            with connect(f"ws://127.0.0.1:{port}/", additional_headers=[("Origin", f"http://127.0.0.1:{port}"), ("Origin", "http://evil.example")], subprotocols=[SUBPROTOCOL], open_timeout=20):
+                pass
+        assert refused.value.response.status_code == 403
     finally:
         app.close()
 
