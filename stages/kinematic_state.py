@@ -47,11 +47,14 @@ it has passed:
 
 Also:
 
-- Standstill dead band: a track stands (speed 0, acceleration 0) when, over
-  the last ``standstill_window_s``, the median position of the newer half of
-  its samples lies within ``standstill_radius_m`` of the older half's (a car
-  below about 0.25 m/s): position jitter, and the single glitches of K733's
-  tracker, never become a creeping speed.
+- Standstill dead band: a track stands (speed 0, acceleration 0) when its
+  filtered speed over the last 0.3 s is below ``standstill_max_speed_mps`` on
+  average and, over the last
+  ``standstill_window_s``, the median position of the newer half of its
+  samples lies within ``standstill_radius_m`` of the older half's: position
+  jitter, and the single glitches of K733's tracker, never become a creeping
+  speed, and a car pulling away is released as soon as the filter sees it
+  move.
 - Acceleration: the slope of a least-squares line through the filtered speed
   over the last ``accel_window_s`` (0 when standing or with too few samples).
 - A position more than ``jump_m`` off the filter's prediction (and more than
@@ -90,6 +93,7 @@ class EstimatorConfig(ConfigMixin):
     initial_speed_sigma_mps: float = 10.0
     standstill_radius_m: float = 0.25
     standstill_noise_factor: float = 0.0
+    standstill_max_speed_mps: float = 0.5
     standstill_window_s: float = 1.0
     accel_window_s: float = 1.0
     jump_m: float = 5.0
@@ -382,6 +386,10 @@ class KinematicEstimator:
         span_ns = round(cfg.standstill_window_s / _NS)
         window = [(t, x, y) for t, x, y, *_ in track.recent if t_now - t <= span_ns]
         if len(window) < 4 or t_now - window[0][0] < span_ns:
+            return False
+        # a car the filter sees move, sustained over the last 0.3 s, is released at once
+        newest = [v for t, _, _, v, *_ in track.recent if t_now - t <= 300_000_000 and math.isfinite(v)]
+        if newest and sum(newest) / len(newest) >= cfg.standstill_max_speed_mps:
             return False
         half = len(window) // 2
         old = np.median(np.array([(x, y) for _, x, y in window[:half]]), axis=0)

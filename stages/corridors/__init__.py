@@ -23,6 +23,11 @@ Parameters (``CorridorsConfig``; lengths in m, angles in rad):
   ``yaw_agreement_rad`` 0.5: the heading used for matching;
   ``track_timeout_s`` 2.0: per-track state is dropped after that long unseen
   (by stamps).
+- ``fuse_reported_velocity`` true: the kinematic state (``VehicleCorridors``
+  speed, velocity, acceleration, standing) comes from
+  ``stages.kinematic_state.KinematicEstimator``: positions, with the
+  tracker's velocity fused once it is calibrated against them; false uses
+  positions alone.
 - ``projection`` "auto": the scene's projection, and for "auto" there the
   measured one for its location (``maps.projection_for_location``: UTM for
   K729, scaled Mercator for K733).

@@ -52,6 +52,7 @@ class CorridorsConfig(ConfigMixin):
     yaw_agreement_rad: float = 0.5
     track_timeout_s: float = 2.0
     projection: str = "auto"
+    fuse_reported_velocity: bool = True
 
     def __post_init__(self) -> None:
         positive = ("horizon_s", "resample_step_m", "route_length_m", "lane_change_length_m", "frenet_window_m", "heading_window_s",
@@ -213,7 +214,7 @@ class CorridorBuilder:
         self._map: SceneMap | None = None
         self._tracks: dict[int, _Track] = {}
         self._last_stamp_ns: int | None = None
-        self.estimator = KinematicEstimator(EstimatorConfig())
+        self.estimator = KinematicEstimator(EstimatorConfig(fuse_reported=config.fuse_reported_velocity))
         self._estimated_ns: dict[int, int] = {}
 
     @property
