@@ -7,7 +7,8 @@ over Zenoh (``--speed max --no-viewer --record``), once per recording for the
 whole module; ``iamp eval`` runs in-process on the same recordings. Checked:
 
 - the launcher exits 0;
-- every frame with a TrackFrame in the MCAP has a MotionGrid;
+- every frame of the recording is in the MCAP as a TrackFrame, and each has
+  a MotionGrid;
 - no node counted a core error (its last ``NodeStats``);
 - every oddity with expected issue kinds (``ODDITIES[...].expected_kinds``)
   is counted under one of them by some node; where no stage names any of
@@ -99,7 +100,11 @@ def test_pipeline_exits_cleanly(runs, name):
 @pytest.mark.parametrize("name", RECORDINGS)
 def test_every_track_frame_gets_a_motion_grid(runs, name):
     result, summary, _ = runs.pipeline(name)
+    from stages.datasets import load_recording
+
     joins = {n: s["counters"].get("join_drops", 0) for n, s in summary.stats.items()}
+    played = load_recording(runs.data, name).n_frames
+    assert summary.track_frames == played, f"{summary.track_frames} TrackFrames recorded of {played} frames\n{_tail(result)}"
     lost = summary.frames_without_grid
     assert summary.track_frames > 0 and not lost, (
         f"{len(lost)} of {summary.track_frames} frames have no MotionGrid (first {lost[:10]}); join_drops {joins}\n{_tail(result)}"
