@@ -678,6 +678,10 @@ class Node:
         limit = max(2, getattr(self.args, "join_window", 16))
         while len(self._pending) > limit:
             self._drop_pending(next(iter(self._pending)), "join_window_full")
+        if len(self.queue):
+            # inputs still queued may complete a set: time spent in the core is not time the set waited
+            # for a missing input, so the timeout is judged only once everything received is joined
+            return
         now = time.monotonic()
         for s in [s for s, t in self._pending_since.items() if now - t > JOIN_TIMEOUT_S]:
             self._drop_pending(s, "join_timeout")
