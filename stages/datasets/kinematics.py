@@ -181,8 +181,9 @@ def yaw_modulo_pi(yaw_rad: np.ndarray, derived_vx_mps: np.ndarray, derived_vy_mp
     """
     yaw = np.asarray(yaw_rad, dtype=np.float64)
     valid = np.isfinite(yaw) & (yaw != 0.0)
-    ux = np.where(valid, np.cos(yaw), np.nan) * rule.orientation_speed_mps
-    uy = np.where(valid, np.sin(yaw), np.nan) * rule.orientation_speed_mps
+    safe = np.where(valid, yaw, 0.0)  # no cos/sin of a non-finite yaw
+    ux = np.where(valid, np.cos(safe), np.nan) * rule.orientation_speed_mps
+    uy = np.where(valid, np.sin(safe), np.nan) * rule.orientation_speed_mps
     cos = _moving_cosines(ux, uy, np.asarray(derived_vx_mps), np.asarray(derived_vy_mps), rule)
     return cos is not None and float(np.mean(cos < -0.5)) >= rule.yaw_flip_share
 
