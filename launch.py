@@ -63,6 +63,7 @@ from stages.pipeline import BusAuth, Pipeline, PipelineError, load_pipeline  # n
 DEFAULT_PIPELINE = REPO / "pipelines" / "hybrid.toml"
 SOURCE_STAGES = {"stages.tracks_source"}
 RECORDER_STAGE = "stages.recorder"
+MAP_STAGES = {"stages.corridors", "stages.relations", "stages.intentions", "stages.viewer"}  # each gets the source's data folder
 VIEWER_STAGE = "stages.viewer"
 VIEWER_URL_RE = re.compile(r"viewer: (https?://\S+)\s*$")
 # The corridors stage's issue line for a map it cannot use (stages/corridors/core.py, issue kind no_map):
@@ -168,6 +169,14 @@ def make_editor(args: argparse.Namespace):
         if args.data is not None and args.recording is None:
             for n in sources:  # another data folder: do not keep the default scenario's sequence choice
                 n.setdefault("params", {}).pop("sequences", None)
+        # the stages that load the map read it from the source's data folder (by name, checked by sha256), never from a bus path
+        data = next((n["params"]["data"] for n in sources if isinstance(n.get("params"), dict) and n["params"].get("data")), None)
+        if data is not None:
+            for n in nodes:
+                if n.get("stage") in MAP_STAGES:
+                    params = n.setdefault("params", {})
+                    if args.data is not None or not params.get("data"):
+                        params["data"] = data
         if not args.no_record:
             recs = [n for n in nodes if n.get("stage") == RECORDER_STAGE]
             if not recs and args.record:

@@ -235,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     report: dict = {"data": str(data), "config": {k: getattr(config, k) for k in config.__dataclass_fields__}, "recordings": {}}
     for name in names:
         recording = load_recording(data, name)
-        scene_maps = SceneMaps(config)
+        scene_maps = SceneMaps(config, data=data)
         tally = _Tally()
         for sequence in recording.sequences:
             if sequence.n_rows:

@@ -63,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, nargs="*", default=[0, 1, 2])
     args = parser.parse_args(argv)
 
-    scene_maps = SceneMaps()
+    scene_maps = SceneMaps(data=args.data)
     recording = load_recording(args.data, args.recording, tuple(args.sequence) or None)
     sha = file_sha256(recording.map_path)
     t0 = time.perf_counter()

@@ -286,7 +286,7 @@ def scene_for(recording, sequence) -> SceneInfo:
         scene_id=f"{recording.name}/{sequence.id}",
         recording=recording.name,
         location_id=recording.location_id,
-        map_path=str(recording.map_path),
+        map_name=recording.map_path.name,
         map_sha256="",
         projection="auto",
         origin_lat_deg=sequence.origin_lat_deg,

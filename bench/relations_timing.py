@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeat", type=int, default=200)
     args = parser.parse_args(argv)
     data = args.data or default_data_dir()
-    scene_maps = SceneMaps()
+    scene_maps = SceneMaps(data=data)
     config = RelationsConfig()
 
     # 1. one sequence, every frame once

@@ -48,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     data = args.data or default_data_dir()
     recording = load_recording(data, RECORDING)
     config = CorridorsConfig()
-    scene_maps = SceneMaps(config)
+    scene_maps = SceneMaps(config, data=data)
 
     busiest = None
     for sequence in recording.sequences:
@@ -88,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     sequence = recording.sequence("013")
     scene = scene_for(recording, sequence)
     frames = [frame for _view, frame in track_frames(sequence, scene.scene_id)]
-    for label, maps in (("first pass (route caches cold)", SceneMaps(config)), ("second pass (warm)", None)):
+    for label, maps in (("first pass (route caches cold)", SceneMaps(config, data=data)), ("second pass (warm)", None)):
         if maps is not None:
             maps.get(scene, config.projection)  # the map load is not a per-frame cost
             first_maps = maps

@@ -53,12 +53,15 @@ class SceneInfo(Message):
     Published by the source before its first frame and answered to queries
     (latched), so a stage that starts or restarts late still gets it.
     ``scene_id`` is a content hash of the map file, projection and origin.
-    ``map_path`` is absolute on the publishing host; a stage on another host
-    checks ``map_sha256`` against its own copy.
+    ``map_name`` is a bare file name (``k729_2022-03-16.osm``), never a path:
+    every stage looks it up in the ``maps/`` folder of its own local data
+    folder (its ``data`` parameter) and loads it only when that file's sha256
+    equals ``map_sha256``. Nothing on the bus names a file to open.
+    v2: ``map_path`` (an absolute path on the publishing host) became ``map_name``.
     """
 
     SCHEMA: ClassVar[str] = "iamp.SceneInfo"
-    VERSION: ClassVar[int] = 1
+    VERSION: ClassVar[int] = 2
     # strings and a few numbers (measured 417 B)
     MAX_BYTES: ClassVar[int] = 64 * 1024
 
@@ -66,7 +69,7 @@ class SceneInfo(Message):
     scene_id: str
     recording: str
     location_id: str
-    map_path: str
+    map_name: str
     map_sha256: str
     projection: str
     origin_lat_deg: float

@@ -251,7 +251,7 @@ class Evaluation:
 
     def __init__(self, config: EvalConfig) -> None:
         self.config = config
-        self.scene_maps = SceneMaps()
+        self.scene_maps = SceneMaps(data=config.data_dir)  # maps by name from the evaluated data folder
         self._estimators: dict[str, list] = {}  # per recording: the corridors stage's state estimator of each sequence
         grid = MarkovGridConfig()
         stencils = load_or_build_stencils(grid) if {"baseline", "hybrid"} & set(config.modes) else None
@@ -373,7 +373,7 @@ class Evaluation:
                 scene_map = self.scene_maps.get(scene, corridors.config.projection)
                 if scene_map.road_map is None:  # nothing could be matched: an error, never an all-NaN table
                     problems = " ".join("; ".join(scene_map.problems).split())
-                    raise DatasetError(f"recording {rec.name}: map {scene.map_path} is unusable: {problems or 'no car lanelets'}")
+                    raise DatasetError(f"recording {rec.name}: map {scene.map_name} is unusable: {problems or 'no car lanelets'}")
             frame: TrackFrame = result.outputs["track_frame"]
             where = f"{rec.name} sequence {seq.id} stamp_ns {stamp}"
             done = self._guarded("corridors_error_frames", where, lambda: corridors.process(frame, scene))

@@ -174,14 +174,14 @@ class TrackPlayer:
         return cls(config, recording, map_sha256=file_sha256(recording.map_path), run_id=run_id, producer=producer)
 
     def scene_for(self, seq: Sequence, frame_index: int, stamp_ns: int) -> SceneInfo:
-        """The ``SceneInfo`` of a sequence (map, projection and the sequence's origin)."""
+        """The ``SceneInfo`` of a sequence (map name and sha256, projection and the sequence's origin; never a path)."""
         rec = self.recording
         return SceneInfo(
             header=Header(run_id=self.run_id, frame_index=frame_index, stamp_ns=stamp_ns, producer=self.producer),
             scene_id=scene_id_of(self.map_sha256, self.config.projection, seq.origin_lat_deg, seq.origin_lon_deg),
             recording=rec.name,
             location_id=rec.location_id,
-            map_path=str(self.map_path.resolve()),
+            map_name=self.map_path.name,
             map_sha256=self.map_sha256,
             projection=self.config.projection,
             origin_lat_deg=seq.origin_lat_deg,

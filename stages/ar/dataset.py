@@ -433,7 +433,7 @@ def build_dataset(cfg: DatasetConfig, *, cache_dir: Path | None = None, progress
     total = sum(min(s.n_frames, cfg.max_frames_per_sequence) if cfg.max_frames_per_sequence else s.n_frames for r in recordings for s in r.sequences)
     bar = progress_bar(total, progress, unit="frame", desc="iamp train: features")
     out = _Collector()
-    scene_maps = SceneMaps()
+    scene_maps = SceneMaps(data=cfg.data_dir)
     seq_names: list[str] = []
     spans: list[tuple[int, int]] = []
     try:

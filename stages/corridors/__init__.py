@@ -32,10 +32,19 @@ Parameters (``CorridorsConfig``; lengths in m, angles in rad):
   measured one for its location (``maps.projection_for_location``: UTM for
   K729, scaled Mercator for K733).
 
-Map. Loaded from the latched scene when its ``scene_id`` changes (never per
-frame). A map that cannot load gives one ``no_map`` issue per frame and every
-vehicle OFF_MAP; ``map_problem``/``map_sha256_mismatch`` are reported once on
-load.
+- ``data`` "": the local data folder whose ``maps/`` holds the maps (the
+  launcher passes its ``--data``; "" the embedded ``data/taf-bw``).
+
+Map. Loaded when the latched scene's ``scene_id`` changes (never per frame),
+from the local data folder only (``core.local_map_file``): the scene's
+``map_name`` must be a plain file name (no separator, no ``..``) equal to an
+entry of ``<data>/maps``, a regular file of at most 256 MB whose sha256 equals
+the scene's ``map_sha256`` (checked before parsing); nothing on the bus names
+a path to open. A map that cannot be used (invalid name, not found, too large,
+another hash, failed to load) is cached per scene id and hash, never retried:
+``map_problem``/``map_sha256_mismatch`` once on load, then one ``no_map``
+issue per frame and every vehicle OFF_MAP. The relations, intentions and
+viewer stages resolve the map the same way (their own ``data`` parameter).
 
 Objects. Non-vehicles (pedestrians, bicycles, UNKNOWN with an
 ``unknown_type`` issue) are NOT_A_VEHICLE without corridors: obstacles for the

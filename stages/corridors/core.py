@@ -10,6 +10,9 @@ import collections
 import hashlib
 import logging
 import math
+import os
+import re
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping
@@ -53,6 +56,7 @@ class CorridorsConfig(ConfigMixin):
     track_timeout_s: float = 2.0
     projection: str = "auto"
     fuse_reported_velocity: bool = True
+    data: str = ""  # local data folder whose maps/ holds the scene's map (by name); "": the embedded data/taf-bw
 
     def __post_init__(self) -> None:
         positive = ("horizon_s", "resample_step_m", "route_length_m", "lane_change_length_m", "frenet_window_m", "heading_window_s",
@@ -95,22 +99,93 @@ def resolve_projection(configured: str, scene: SceneInfo) -> Projection:
     return projection_for_location(scene.location_id)
 
 
-class SceneMaps:
-    """Loads and caches scene maps (one lanelet2 load per file, projection and origin).
+MAP_MAX_BYTES = 256 * 1024 * 1024  # a local map file larger than this is refused before it is hashed
+_MAP_NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,199}")
 
+
+def data_folder(data: str | os.PathLike | None) -> Path:
+    """A stage's local data folder: ``data`` if given, else the embedded ``data/taf-bw``."""
+    from stages.datasets import DEFAULT_DATA_DIR
+
+    return Path(data).expanduser() if data else DEFAULT_DATA_DIR
+
+
+def shown_map_name(scene: SceneInfo) -> str:
+    """The scene's map name for logs and issues: the name if it is a valid one, else ``<invalid map name>``."""
+    name = scene.map_name
+    return name if isinstance(name, str) and _MAP_NAME_RE.fullmatch(name) and ".." not in name else "<invalid map name>"
+
+
+def local_map_file(data: str | os.PathLike | None, scene: SceneInfo, *, max_bytes: int = MAP_MAX_BYTES) -> tuple[Path | None, str]:
+    """The file of the scene's map in the local data folder, checked: ``(path, "")`` or ``(None, problem)``.
+
+    ``scene.map_name`` is only a name: it must be a plain file name (no path
+    separator, no ``..``) and equal one of the entries of ``<data>/maps``; no
+    path from the bus is ever opened. The file must be a regular file of at
+    most ``max_bytes``; when the scene names a ``map_sha256`` the file's
+    digest must equal it (checked before anything parses the file). The
+    problem starts with ``map_sha256_mismatch`` for a digest that differs.
+    """
+    name = scene.map_name
+    if not isinstance(name, str) or not _MAP_NAME_RE.fullmatch(name) or ".." in name:
+        return None, f"map_name_invalid: the scene names {name[:80]!r}, expected a plain file name in the maps folder"
+    folder = data_folder(data) / "maps"
+    try:
+        entries = set(os.listdir(folder))
+    except OSError as error:
+        return None, f"map_not_found: no maps folder {folder} ({error.strerror})"
+    if name not in entries:
+        return None, f"map_not_found: {name} is not in the local maps folder {folder}"
+    path = folder / name
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    except OSError as error:
+        return None, f"map_unreadable: {path} ({error.strerror})"
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            return None, f"map_unreadable: {path} is not a regular file"
+        if info.st_size > max_bytes:
+            return None, f"map_too_large: {path} has {info.st_size} bytes, at most {max_bytes} are read"
+        if scene.map_sha256:
+            digest = hashlib.sha256()
+            with os.fdopen(os.dup(fd), "rb") as fh:
+                for block in iter(lambda: fh.read(1 << 20), b""):
+                    digest.update(block)
+            if digest.hexdigest() != scene.map_sha256:
+                return None, f"map_sha256_mismatch: local {name} has {digest.hexdigest()[:12]}, the scene names {scene.map_sha256[:12]}: not loaded"
+    except OSError as error:
+        return None, f"map_unreadable: {path} ({error.strerror})"
+    finally:
+        os.close(fd)
+    return path, ""
+
+
+class SceneMaps:
+    """Loads and caches scene maps (one lanelet2 load per map, hash, projection and origin).
+
+    The map comes from ``<data>/maps`` (``data``: the stage's local data
+    folder, default the embedded ``data/taf-bw``), found by the scene's map
+    name and checked against its sha256 (``local_map_file``); a map that is
+    missing, too large, of another hash or that fails to load is cached as a
+    ``SceneMap`` without ``road_map`` and its problems, never retried.
     Share one between builders to load each map once (the coverage bench).
     """
 
-    def __init__(self, config: CorridorsConfig | None = None) -> None:
+    def __init__(self, config: CorridorsConfig | None = None, *, data: str | os.PathLike | None = None) -> None:
         self.config = config or CorridorsConfig()
+        self.data_dir = data_folder(data if data is not None else self.config.data)
         self._maps: dict[tuple, SceneMap] = {}
 
     def get(self, scene: SceneInfo, configured_projection: str = "auto") -> SceneMap:
         projection = resolve_projection(configured_projection, scene)
-        key = (scene.map_path, scene.map_sha256, projection, scene.origin_lat_deg, scene.origin_lon_deg, self._route_options())
+        key = (scene.scene_id, scene.map_name, scene.map_sha256, projection, scene.origin_lat_deg, scene.origin_lon_deg, self._route_options())
         found = self._maps.get(key)
         if found is None:
-            found = self._load(scene, projection)
+            try:
+                found = self._load(scene, projection)
+            except Exception as error:  # noqa: BLE001 - a map that fails to load is a cached problem, not a crash per frame
+                found = SceneMap(None, None, None, (f"map_load_failed: {type(error).__name__}: {error}",), projection)
             self._maps[key] = found
         return found
 
@@ -120,14 +195,9 @@ class SceneMaps:
 
     def _load(self, scene: SceneInfo, projection: Projection) -> SceneMap:
         problems: list[str] = []
-        path = Path(scene.map_path)
-        if scene.map_sha256 and path.is_file():
-            try:
-                digest = hashlib.sha256(path.read_bytes()).hexdigest()
-            except OSError as error:
-                digest = f"unreadable ({error})"
-            if digest != scene.map_sha256:
-                problems.append(f"map_sha256_mismatch: {path} has {digest[:12]}, the scene names {scene.map_sha256[:12]}")
+        path, problem = local_map_file(self.data_dir, scene)
+        if path is None:
+            return SceneMap(None, None, None, (problem,), projection)
         road_map, found = load_map(
             path, scene.origin_lat_deg, scene.origin_lon_deg, projection, resample_step_m=self.config.resample_step_m
         )
@@ -324,14 +394,14 @@ class CorridorBuilder:
                 self.log.info(
                     "scene loaded: scene_id=%s map=%s projection=%s car_lanelets=%d problems=%d",
                     scene.scene_id,
-                    scene.map_path,
+                    shown_map_name(scene),
                     self._map.projection.name.lower(),
                     len(road_map.lanelet_ids) if road_map is not None else 0,
                     len(self._map.problems),
                 )
         if self._map is None or self._map.road_map is None:
             detail = "; ".join(self._map.problems) if self._map is not None else "no map"
-            issues.append(Issue("no_map", -1, f"map {scene.map_path} unusable: {detail}"))
+            issues.append(Issue("no_map", -1, f"map {shown_map_name(scene)} unusable: {detail}"))
         if frame.scene_id and frame.scene_id != scene.scene_id:
             issues.append(Issue("scene_mismatch", -1, f"frame names scene {frame.scene_id}, latched scene is {scene.scene_id}"))
         return self._map

@@ -29,7 +29,7 @@ from bus_schemas import (
     VehicleBelief,
 )
 from stages._core import ConfigMixin, Issue, StageResult, check_ranges, isolate
-from stages.corridors.core import SceneMaps
+from stages.corridors.core import SceneMaps, shown_map_name
 from stages.maps import DEFAULT_SPEED_LIMIT_MPS, Projection, RoadMap, parse_projection, project_to_polyline
 
 from . import model
@@ -95,6 +95,7 @@ class IntentionsConfig(ConfigMixin):
     unseen_timeout_s: float = 1.0
     lane_change_reach_m: float = 10.0
     projection: str = "auto"
+    data: str = ""  # local data folder whose maps/ holds the scene's map (by name); "": the embedded data/taf-bw
 
     def __post_init__(self) -> None:
         positive = (
@@ -170,7 +171,7 @@ class IntentionFilter:
     def __init__(self, config: IntentionsConfig, *, producer: str = "intentions", scene_maps: SceneMaps | None = None) -> None:
         self.config = config
         self.producer = producer
-        self.scene_maps = scene_maps or SceneMaps()
+        self.scene_maps = scene_maps or SceneMaps(data=config.data)
         self.params = config.model_params()
         weights = np.asarray(config.lat_accel_weights, dtype=np.float64)
         self._style_cdf = np.cumsum(weights / weights.sum())
@@ -292,7 +293,7 @@ class IntentionFilter:
                 kind = "map_sha256_mismatch" if problem.startswith("map_sha256_mismatch") else "map_problem"
                 issues.append(Issue(kind, -1, problem))
         if self._road_map is None:
-            issues.append(Issue("no_map", -1, f"map {scene.map_path} unusable: manoeuvres unknown"))
+            issues.append(Issue("no_map", -1, f"map {shown_map_name(scene)} unusable: manoeuvres unknown"))
         if corridor_set.scene_id and corridor_set.scene_id != scene.scene_id:
             detail = f"corridor_set names scene {corridor_set.scene_id}, latched scene is {scene.scene_id}"
             issues.append(Issue("scene_mismatch", -1, detail))

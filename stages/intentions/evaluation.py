@@ -426,7 +426,7 @@ def evaluate(cfg: IntentionEvalConfig, *, progress: bool = False) -> dict[str, A
     ``route_top1_by_seed`` gives each seed's intentions column.
     """
     icfg = cfg.intentions_config()
-    scene_maps = SceneMaps()
+    scene_maps = SceneMaps(data=cfg.data_dir)
     names = list(cfg.recordings) or [ref.name for ref in discover(cfg.data_dir)]
     windows: dict[int, list[RouteWindow]] = {seed: [] for seed in cfg.seeds}
     samples = []

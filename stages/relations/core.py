@@ -25,7 +25,7 @@ from bus_schemas import (
     VehicleCorridors,
 )
 from stages._core import ConfigMixin, Issue, StageResult, check_ranges
-from stages.corridors.core import SceneMap, SceneMaps
+from stages.corridors.core import SceneMap, SceneMaps, shown_map_name
 from stages.datasets import DEFAULT_SIZES_M
 from stages.maps import ConflictKind as MapConflictKind
 from stages.maps import Projection, RoadMap, parse_projection, project_to_polyline, wrap_angle_rad
@@ -52,6 +52,7 @@ class RelationsConfig(ConfigMixin):
     refine_window_m: float = 3.0
     min_route_probability: float = 0.1
     projection: str = "auto"
+    data: str = ""  # local data folder whose maps/ holds the scene's map (by name); "": the embedded data/taf-bw
 
     def __post_init__(self) -> None:
         positive = ("horizon_s", "min_time_speed_mps", "leader_max_heading_rad")
@@ -224,7 +225,7 @@ class RelationExtractor:
     ) -> None:
         self.config = config
         self.producer = producer
-        self.scene_maps = scene_maps or SceneMaps()
+        self.scene_maps = scene_maps or SceneMaps(data=config.data)
         self._scene_id: str | None = None
         self._map: SceneMap | None = None
         self._tables: SceneTables | None = None
@@ -306,7 +307,7 @@ class RelationExtractor:
                 kind = "map_sha256_mismatch" if problem.startswith("map_sha256_mismatch") else "map_problem"
                 issues.append(Issue(kind, -1, problem))
         if self._tables is None:
-            issues.append(Issue("no_map", -1, f"map {scene.map_path} unusable: lateral relations only"))
+            issues.append(Issue("no_map", -1, f"map {shown_map_name(scene)} unusable: lateral relations only"))
         if corridor_set.scene_id and corridor_set.scene_id != scene.scene_id:
             issues.append(Issue("scene_mismatch", -1, f"corridor_set names scene {corridor_set.scene_id}, latched scene is {scene.scene_id}"))
         return self._tables

@@ -70,6 +70,10 @@ Parameters (``ViewerConfig``):
   ``?token=...`` (the logged URL has it) and requests without it get 403;
 - ``origins`` []: page origins allowed besides ``http://127.0.0.1:PORT``,
   ``http://localhost:PORT`` and ``http://HOST:PORT``.
+- ``data`` "": the local data folder whose ``maps/`` holds the scene's map
+  (the launcher passes its ``--data``; "" the embedded ``data/taf-bw``). The
+  map is found by the scene's ``map_name`` there and drawn only when its
+  sha256 matches; no path from the bus is opened (see ``stages.corridors``).
 
 Access (``guard.py``): a websocket handshake or request whose ``Origin`` is
 not the page's own is refused with 403 before any scene data; one without

@@ -558,34 +558,47 @@ def build_map_geometry(scene_id: str, car_bounds: list[tuple[np.ndarray, np.ndar
     )
 
 
-def load_map_geometry(scene: SceneInfo) -> MapGeometry:
-    """The scene's map as the corridors stage loads it (same file, projection and origin), plus its other lanelets."""
-    from stages.corridors.core import resolve_projection
+def load_map_geometry(scene: SceneInfo, data: str | None = None) -> MapGeometry:
+    """The scene's map as the corridors stage loads it (same file, projection and origin), plus its other lanelets.
+
+    The file is found as the corridors stage finds it (``local_map_file``): by
+    the scene's map name inside ``<data>/maps`` (default the embedded
+    ``data/taf-bw``), checked by size and sha256 before it is parsed; a path
+    from the bus is never opened. A map that cannot be used gives an empty
+    geometry with its problem (drawn once per scene by the caller).
+    """
+    from stages.corridors.core import local_map_file, resolve_projection
     from stages.maps import load_map
 
     projection = resolve_projection("auto", scene)
-    road_map, found = load_map(scene.map_path, scene.origin_lat_deg, scene.origin_lon_deg, projection)
+    path, problem = local_map_file(data, scene)
+    if path is None:
+        return build_map_geometry(scene.scene_id, [], [], (problem,))
+    try:
+        road_map, found = load_map(path, scene.origin_lat_deg, scene.origin_lon_deg, projection)
+    except Exception as exc:  # noqa: BLE001 - a map that fails to load draws nothing, once
+        return build_map_geometry(scene.scene_id, [], [], (f"map_load_failed: {type(exc).__name__}: {exc}",))
     problems = tuple(f"{p.kind.name.lower()}: {p.detail}" for p in found)
     if road_map is None:
         return build_map_geometry(scene.scene_id, [], [], problems or ("map did not load",))
     car = [(road_map.lanelet(i).left_bound_m, road_map.lanelet(i).right_bound_m) for i in road_map.lanelet_ids]
-    others, more = _other_lanelet_bounds(scene, projection)
+    others, more = _other_lanelet_bounds(scene, projection, path)
     return build_map_geometry(scene.scene_id, car, others, problems + more)
 
 
-def _other_lanelet_bounds(scene: SceneInfo, projection) -> tuple[list[tuple[np.ndarray, np.ndarray]], tuple[str, ...]]:
+def _other_lanelet_bounds(scene: SceneInfo, projection, path) -> tuple[list[tuple[np.ndarray, np.ndarray]], tuple[str, ...]]:
     """Bounds of the lanelets that are not car lanelets (walkways, crosswalks, bike lanes), in the scene frame.
 
     ``RoadMap`` keeps car lanelets only, so this reads the file once more
-    through the lanelet2 handles of ``stages.maps`` (the project's lanelet2
-    wrapper), projected and shifted exactly as ``maps.load_map`` does.
+    (``path``, the checked local file) through the lanelet2 handles of
+    ``stages.maps`` (the project's lanelet2 wrapper), projected and shifted exactly as ``maps.load_map`` does.
     HOOK(maps): replace with a public ``maps`` function once there is one.
     """
     from stages import maps
 
     try:
         projector = maps._projector(projection, scene.origin_lat_deg, scene.origin_lon_deg)
-        lanelet_map, _errors = maps.ll_io.loadRobust(str(scene.map_path), projector)
+        lanelet_map, _errors = maps.ll_io.loadRobust(str(path), projector)
         origin = projector.forward(maps.ll_core.GPSPoint(scene.origin_lat_deg, scene.origin_lon_deg, 0.0))
     except Exception as exc:  # a map we cannot read twice still draws its car lanelets
         return [], (f"other lanelets not drawn: {exc}",)

@@ -351,7 +351,7 @@ class ViewerApp:
             )
 
     def _draw_map(self, scene_info: Any) -> None:
-        geometry = load_map_geometry(scene_info)
+        geometry = load_map_geometry(scene_info, self.config.data)
         for problem in geometry.problems:
             self.log.warning("viewer: map problem: %s", problem)
         scene = self.server.scene

@@ -34,7 +34,7 @@ def scene_info() -> bs.SceneInfo:
         scene_id="0123456789abcdef",
         recording="k729_2022-03-16",
         location_id="K729",
-        map_path="/data/taf-bw/maps/k729_2022-03-16.osm",
+        map_name="k729_2022-03-16.osm",
         map_sha256="ab" * 32,
         projection="local_cartesian",
         origin_lat_deg=49.01160993928274,

@@ -31,6 +31,6 @@ def test_an_unusable_map_stops_the_run_with_exit_2_and_says_why(tmp_path):
     out = run.text()
     assert code == 2, out[-4000:]
     stop = [line for line in out.splitlines() if line.startswith("[launch] stopping the run: corridors reports map ")]
-    assert len(stop) == 1 and f"{osm} unusable: " in stop[0] and "lanelet2 could not read" in stop[0], out[-4000:]
+    assert len(stop) == 1 and f"map {osm.name} unusable: " in stop[0] and "lanelet2 could not read" in stop[0], out[-4000:]
     assert "[launch] run ended: exit code 2" in out
     assert "all sources finished" not in out, "stopped at once, not at the end of the data"

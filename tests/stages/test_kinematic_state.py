@@ -198,7 +198,7 @@ def _scene(rec, seq) -> SceneInfo:
         scene_id=f"{rec.name}/{seq.id}",
         recording=rec.name,
         location_id=rec.location_id,
-        map_path=str(rec.map_path),
+        map_name=rec.map_path.name,
         map_sha256="",
         projection="auto",
         origin_lat_deg=seq.origin_lat_deg,

@@ -57,7 +57,7 @@ def make_scene(run_id: str) -> SceneInfo:
         scene_id="scene0",
         recording="test",
         location_id="loc0",
-        map_path="/nonexistent/map.osm",
+        map_name="nonexistent.osm",
         map_sha256="0" * 64,
         projection="utm",
         origin_lat_deg=48.0,

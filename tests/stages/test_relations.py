@@ -196,7 +196,7 @@ def _crosswalks_m(scene):
     from lanelet2 import projection as ll_projection
 
     projector = ll_projection.UtmProjector(ll_io.Origin(scene.origin_lat_deg, scene.origin_lon_deg))
-    lanelet_map, _errors = ll_io.loadRobust(scene.map_path, projector)
+    lanelet_map, _errors = ll_io.loadRobust(str(DEFAULT_DATA_DIR / "maps" / scene.map_name), projector)
     origin = projector.forward(ll_core.GPSPoint(scene.origin_lat_deg, scene.origin_lon_deg, 0.0))
     found = []
     for lanelet in lanelet_map.laneletLayer:
