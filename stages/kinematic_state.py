@@ -33,7 +33,7 @@ it has passed:
   measurement of the filter's velocity with its own noise, adapted like the
   position noise (``velocity_noise_adaptation``); a sample more than
   ``velocity_gate_sigma`` standard deviations (+ 1 m/s) off the filter's
-  velocity is rejected (``velocity_rejected``): a zero at birth while the
+  velocity is rejected (issue ``velocity_rejected``): a zero at birth while the
   positions move never pulls a track to a stop. ``fuse_reported = false``
   uses positions alone.
 - The first sample of a track has a position only: its speed is the
@@ -295,7 +295,15 @@ class KinematicEstimator:
         if not self._step(track, dt, x_m, y_m):
             issues.append(Issue("position_jump", track_id, f"position {math.hypot(x_m - track.x[0], y_m - track.y[0]):.1f} m off its prediction: state restarted"))
             return self._start(track_id, stamp_ns, x_m, y_m, vx_mps, vy_mps, reported, calibrated)
-        fused = calibrated is not None and self._fuse(track, calibrated)
+        fused = False
+        if calibrated is not None:
+            fused = self._fuse(track, calibrated)
+            if not fused:
+                issues.append(Issue(
+                    "velocity_rejected", track_id,
+                    f"reported velocity ({calibrated[0]:.1f}, {calibrated[1]:.1f}) m/s calibrated is off the positions' "
+                    f"({track.x[1]:.1f}, {track.y[1]:.1f}): not used",
+                ))
         track.t_ns = stamp_ns
         track.n += 1
         state = self._state(track, reported, "fused" if fused else "positions", (x_m, y_m, vx_mps, vy_mps))

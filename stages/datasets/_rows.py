@@ -289,7 +289,7 @@ class RowBuffer:
         dvy = np.full(n, np.nan)
         for seg, kin in zip(segments, derived):
             dvx[seg], dvy[seg] = kin.vx_mps, kin.vy_mps
-        flip_velocity = velocity_sign_inverted(arr["vx_mps"], arr["vy_mps"], dvx, dvy, rule)
+        flip_velocity = rule.repair_velocity and velocity_sign_inverted(arr["vx_mps"], arr["vy_mps"], dvx, dvy, rule)
         resolve_yaw = yaw_modulo_pi(arr["yaw_rad"], dvx, dvy, rule)
         for seg, kin in zip(segments, derived):
             old_vx, old_vy, old_yaw = arr["vx_mps"][seg], arr["vy_mps"][seg], arr["yaw_rad"][seg]

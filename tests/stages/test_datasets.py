@@ -139,23 +139,26 @@ def test_k733_duplicates_skipped_and_kinematics_made_consistent_with_positions()
     assert dup is not None and dup.count == 104  # measured: 104 rows repeat (track, timestamp)
     assert dup.examples[0].line == 2637 and dup.examples[0].file.endswith("vehicle_tracks_000.csv")
     assert rep.rows_read == 12079 and rep.rows_kept == 12079 - 104
-    # the sign of k733's velocity is inverted and its yaw known modulo pi: both repaired
-    assert rep.count("velocity_sign_flipped") > 10_000
+    # the sign of k733's velocity is inverted and its yaw known modulo pi: the yaw is repaired; the
+    # velocity only on request (the stages' estimator calibrates the sign itself, causally)
+    assert rep.count("velocity_sign_flipped") == 0
+    assert load_recording(TAF, K733, rule=RepairRule(repair_velocity=True)).report.count("velocity_sign_flipped") > 10_000
     assert rep.count("yaw_flipped") > 1000
     seq = rec.sequences[0]
-    moving = []
+    yaw_cos, velocity_cos = [], []
     for tid in np.unique(seq.track_id):
         m = np.flatnonzero(seq.track_id == tid)
         if m.size < 5:
             continue
         kin = derive_kinematics(seq.stamp_ns[m] * 1e-9, seq.x_m[m], seq.y_m[m])
         fast = kin.speed_mps > 2.0
-        moving.append(np.cos(seq.yaw_rad[m][fast] - np.arctan2(kin.vy_mps[fast], kin.vx_mps[fast])))
-        moving.append(
+        yaw_cos.append(np.cos(seq.yaw_rad[m][fast] - np.arctan2(kin.vy_mps[fast], kin.vx_mps[fast])))
+        velocity_cos.append(
             (seq.vx_mps[m][fast] * kin.vx_mps[fast] + seq.vy_mps[m][fast] * kin.vy_mps[fast])
             / np.maximum(np.hypot(seq.vx_mps[m][fast], seq.vy_mps[m][fast]) * kin.speed_mps[fast], 1e-9)
         )
-    assert np.mean(np.concatenate(moving) > 0.5) > 0.98
+    assert np.mean(np.concatenate(yaw_cos) > 0.5) > 0.98
+    assert np.mean(np.concatenate(velocity_cos) < -0.5) > 0.98  # left as the tracker reported them
 
 
 @needs_taf
@@ -304,7 +307,7 @@ def test_ind_fixture_loads() -> None:
     (ref,) = discover(IND_SMALL)
     assert (ref.name, ref.format) == ("01", "ind")
     assert [p.name for p in ref.ignored_files] == ["01_background.png"]
-    rec = load_recording(IND_SMALL, "01")
+    rec = load_recording(IND_SMALL, "01", rule=RepairRule(repair_velocity=True))
     assert rec.map_path == IND_SMALL / "maps" / "01.osm"
     assert (rec.location_id, rec.frame_rate_hz) == ("4", 25.0)
     assert (rec.origin_lat_deg, rec.origin_lon_deg) == (50.78563, 6.12971)
@@ -362,23 +365,25 @@ def test_repair_fixes_zero_start_velocity_of_a_moving_track() -> None:
     vx[:2] = vy[:2] = 0.0  # the tracker reports 0 at the start
     yaw = np.full(12, math.atan2(4.0, 3.0))
     yaw[0] = 0.0  # and a default yaw
-    rep = repair_track(t, x, y, vx, vy, yaw)
+    assert not repair_track(t, x, y, vx, vy, yaw).start_velocity.any()  # velocities only on request
+    rule = RepairRule(repair_velocity=True)
+    rep = repair_track(t, x, y, vx, vy, yaw, rule)
     assert rep.start_velocity.tolist() == [True, True] + [False] * 10
     np.testing.assert_allclose(rep.vx_mps, 3.0, atol=1e-9)
     np.testing.assert_allclose(rep.vy_mps, 4.0, atol=1e-9)
     assert rep.yaw_from_motion.tolist() == [True] + [False] * 11
     np.testing.assert_allclose(rep.yaw_rad, math.atan2(4.0, 3.0), atol=1e-9)
     # a standing object keeps its zero velocity; raw values elsewhere are kept
-    still = repair_track(t, np.zeros(12), np.zeros(12), np.zeros(12), np.zeros(12), np.full(12, 1.0))
+    still = repair_track(t, np.zeros(12), np.zeros(12), np.zeros(12), np.zeros(12), np.full(12, 1.0), rule)
     assert not still.start_velocity.any() and not still.yaw_from_motion.any()
     later = vx.copy()
     later[6] = 0.0  # not at the start: left alone
-    assert repair_track(t, x, y, later, vy, yaw).vx_mps[6] == 0.0
+    assert repair_track(t, x, y, later, vy, yaw, rule).vx_mps[6] == 0.0
 
 
 @needs_taf
 def test_k733_zero_start_velocity_repaired_from_positions() -> None:
-    rec = load_recording(TAF, K733)
+    rec = load_recording(TAF, K733, rule=RepairRule(repair_velocity=True))
     seq = rec.sequences[0]
     raw = [r for r in read_raw(TAF / "recorded_trackfiles" / K733 / "vehicle_tracks_000.csv") if r["track_id"] == "197"]
     assert float(raw[0]["vx"]) == 0.0 and float(raw[0]["psi_rad"]) == 0.0  # the quirk
