@@ -41,7 +41,8 @@ from the local data folder only (``core.local_map_file``): the scene's
 entry of ``<data>/maps``, a regular file of at most 256 MB whose sha256 equals
 the scene's ``map_sha256`` (checked before parsing); nothing on the bus names
 a path to open. A map that cannot be used (invalid name, not found, too large,
-another hash, failed to load) is cached per scene id and hash, never retried:
+another hash, failed to load) is cached (by map name, hash, projection and
+origin; 32 scenes at most) and never retried:
 ``map_problem``/``map_sha256_mismatch`` once on load, then one ``no_map``
 issue per frame and every vehicle OFF_MAP. The relations, intentions and
 viewer stages resolve the map the same way (their own ``data`` parameter).

@@ -172,14 +172,17 @@ class SceneMaps:
     Share one between builders to load each map once (the coverage bench).
     """
 
+    MAX_ENTRIES = 32  # maps (or failures) kept; a publisher cycling through scenes cannot grow the cache without bound
+
     def __init__(self, config: CorridorsConfig | None = None, *, data: str | os.PathLike | None = None) -> None:
         self.config = config or CorridorsConfig()
         self.data_dir = data_folder(data if data is not None else self.config.data)
-        self._maps: dict[tuple, SceneMap] = {}
+        self._maps: collections.OrderedDict[tuple, SceneMap] = collections.OrderedDict()
 
     def get(self, scene: SceneInfo, configured_projection: str = "auto") -> SceneMap:
         projection = resolve_projection(configured_projection, scene)
-        key = (scene.scene_id, scene.map_name, scene.map_sha256, projection, scene.origin_lat_deg, scene.origin_lon_deg, self._route_options())
+        # the scene id is a hash of (map sha256, projection, origin): keyed by what it hashes, so equal scenes share one load
+        key = (scene.map_name, scene.map_sha256, projection, scene.origin_lat_deg, scene.origin_lon_deg, self._route_options())
         found = self._maps.get(key)
         if found is None:
             try:
@@ -187,6 +190,10 @@ class SceneMaps:
             except Exception as error:  # noqa: BLE001 - a map that fails to load is a cached problem, not a crash per frame
                 found = SceneMap(None, None, None, (f"map_load_failed: {type(error).__name__}: {error}",), projection)
             self._maps[key] = found
+            while len(self._maps) > self.MAX_ENTRIES:
+                self._maps.popitem(last=False)
+        else:
+            self._maps.move_to_end(key)
         return found
 
     def _route_options(self) -> tuple:

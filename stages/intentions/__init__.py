@@ -129,7 +129,9 @@ corridor switches lanes (consecutive lanelets that are not successors) less
 than ``lane_change_reach_m`` behind the vehicle or ahead, else FOLLOW_LANE.
 P(lane change) sums the corridors that switch lanes. The map is loaded
 through ``stages.corridors.SceneMaps`` when the scene changes (all state is
-reset then).
+reset then), from the ``data`` parameter's folder (``maps/``, by the scene's
+map name, checked by sha256 as in the corridors stage; the launcher passes
+its ``--data``; "" the embedded ``data/taf-bw``).
 
 Issues (the other vehicles are still processed): ``stamp_mismatch`` (the
 inputs differ in stamp: no output), ``stamp_not_increasing`` (all particles

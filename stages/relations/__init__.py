@@ -31,6 +31,9 @@ Parameters (``RelationsConfig``):
   ``RelationExtractor.process``);
 - ``projection`` "auto": as in the corridors stage, whose map loader
   (``stages.corridors.SceneMaps``) this stage uses, so both see one map.
+- ``data`` "": the local data folder whose ``maps/`` holds the scene's map,
+  found by name and checked by sha256 as in the corridors stage (the
+  launcher passes its ``--data``; "" the embedded ``data/taf-bw``).
 
 Map. Loaded when the scene's ``scene_id`` changes; ``SceneTables`` then turns
 the map's precomputed lanelet conflicts (``RoadMap.conflicts``), right of

@@ -225,6 +225,10 @@ def test_a_scene_of_another_hash_is_reported_once_and_not_resolved_again(played,
     second = CorridorBuilder(CorridorsConfig(data=str(data)), scene_maps=maps)
     second.process(dataclasses.replace(frames[0], scene_id="otherhash"), other)
     assert len(calls) == 1
+    # a publisher cycling through scenes does not grow the cache without bound (nor makes it resolve one scene twice in a row)
+    for k in range(3 * SceneMaps.MAX_ENTRIES):
+        maps.get(dataclasses.replace(other, scene_id=f"s{k}", origin_lat_deg=float(k)))
+    assert len(maps._maps) <= SceneMaps.MAX_ENTRIES
     # the source's own scene (its hash) loads from the same folder
     corridor_set, issues = CorridorBuilder(CorridorsConfig(data=str(data))).process(frames[0], scene)
     assert not [i for i in issues if i.kind in ("no_map", "map_problem", "map_sha256_mismatch")], issues
