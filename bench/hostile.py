@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Hostile inputs, by section; prints figures, asserts nothing (issues 12 and 13).
 
-    python bench/hostile.py [--section NAME ...] [--n 100000] [--seed 13]
+    python bench/hostile.py [--section NAME ...] [--n 100000] [--seed 13] [--objects 1000 ...] [--uncapped]
 
 Sections (``--section`` repeatable; default: all):
 
@@ -17,8 +17,24 @@ Sections (``--section`` repeatable; default: all):
   ``MAX_BYTES``: about the most memory and time a payload can cost before it
   is rejected. Decoded in a child process: time and the child's peak RSS.
 
-Other sections (bus burst, a 1,000-object frame, the viewer) are meant to be
-added as functions in ``SECTIONS``.
+- ``big-frame``: well-formed TrackFrames of ``--objects`` objects (default
+  1,000 and 500; ``tests/big_frames.py``: real K729 sequence 013 cars, the
+  sequence overlaid with itself at other instants, each copy with its own
+  track ids; three consecutive frames so tracks have a history) fed
+  in-process to each core (corridors, relations, intentions, ar_inference,
+  markov_prediction in hybrid mode), each in its own child process that
+  loads the upstream outputs (computed once, pickled) and runs only its
+  stage. Prints per stage the child's peak RSS and the ms of the last frame,
+  objects and pairs kept, the output's encoded size against its schema's
+  ``MAX_BYTES``, and issues by kind. Budget (stated in README and the stage
+  docstrings): <= 1 GB peak RSS per stage on a 1,000-object frame with the
+  default caps. ``--uncapped`` also runs corridors and relations with the
+  caps lifted, to show the memory of the computation itself (relations
+  took 6.5 GB on 1,000 objects before its projection was pruned and
+  chunked).
+
+Other sections (bus burst, the viewer) are meant to be added as functions
+in ``SECTIONS``.
 """
 
 from __future__ import annotations
@@ -141,9 +157,132 @@ def section_limits(args: argparse.Namespace) -> None:
     print(f"(a payload whose schema cannot be read from its first bytes, like {head!r}, is held to DEFAULT_MAX_BYTES = {bs._wire.DEFAULT_MAX_BYTES})")
 
 
+_BIG_PREP = """
+import pickle, sys
+sys.path.insert(0, {repo!r}); sys.path.insert(0, {tests!r})
+from big_frames import big_frames, real_frames
+from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
+from stages.relations import RelationExtractor, RelationsConfig
+from stages.intentions import IntentionFilter, IntentionsConfig
+from stages.ar_inference import ARInference, ARInferenceConfig
+source = real_frames()
+sm = SceneMaps()
+out = {{}}
+for n in {objects!r}:
+    scene, frames = big_frames(n, 3, source=source)
+    cb, re_ = CorridorBuilder(CorridorsConfig(), scene_maps=sm), RelationExtractor(RelationsConfig(), scene_maps=sm)
+    it, ar = IntentionFilter(IntentionsConfig(), scene_maps=sm), ARInference(ARInferenceConfig())
+    chain = []
+    for f in frames:
+        cs, _ = cb.process(f, scene)
+        rs, _ = re_.process(f, cs, scene)
+        belief, _ = it.process(f, cs, rs, scene)
+        profiles, _ = ar.process(cs, rs, f, scene)
+        chain.append((f, cs, rs, belief, profiles))
+    out[n] = (scene, chain)
+pickle.dump(out, open(sys.argv[1], "wb"))
+"""
+
+_BIG_STAGE = """
+import collections, pickle, resource, sys, time
+sys.path.insert(0, {repo!r})
+stage, n, uncapped = sys.argv[2], int(sys.argv[3]), sys.argv[4] == "1"
+scene, chain = pickle.load(open(sys.argv[1], "rb"))[n]
+from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
+from stages.relations import RelationExtractor, RelationsConfig
+from stages.intentions import IntentionFilter, IntentionsConfig
+from stages.ar_inference import ARInference, ARInferenceConfig
+from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
+from bus_schemas import Header
+lift = dict(max_objects=10**6) if uncapped else {{}}
+sm = SceneMaps()
+if stage == "corridors":
+    core = CorridorBuilder(CorridorsConfig(**lift), scene_maps=sm); run = lambda f, cs, rs, b, p: core.process(f, scene)
+elif stage == "relations":
+    core = RelationExtractor(RelationsConfig(**lift, **(dict(max_pairs=10**6) if uncapped else {{}})), scene_maps=sm)
+    if uncapped:  # the uncapped corridor sets, so relations sees every object's corridors
+        cb = CorridorBuilder(CorridorsConfig(**lift), scene_maps=sm)
+        chain = [(f, cb.process(f, scene)[0], rs, b, p) for f, cs, rs, b, p in chain]
+    run = lambda f, cs, rs, b, p: core.process(f, cs, scene)
+elif stage == "intentions":
+    core = IntentionFilter(IntentionsConfig(), scene_maps=sm); run = lambda f, cs, rs, b, p: core.process(f, cs, rs, scene)
+elif stage == "ar_inference":
+    core = ARInference(ARInferenceConfig()); run = lambda f, cs, rs, b, p: core.process(cs, rs, f, scene)
+else:
+    core = MarkovPredictor(MarkovPredictionConfig(mode="hybrid"))
+    def run(f, cs, rs, b, p):
+        pred, issues = core.process(cs, rs, scene, f, intention_belief=b, acceleration_profiles=p)
+        header = Header(run_id="big", frame_index=f.header.frame_index, stamp_ns=f.header.stamp_ns, producer="markov_prediction")
+        return pred.motion_grid(header, scene.scene_id), issues
+# the real sequence's 3 frames (for the map load and caches) are not what is measured: a warm-up on the first big frame
+rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+for item in chain[:-1]:
+    run(*item)
+t0 = time.perf_counter()
+out, issues = run(*chain[-1])
+ms = (time.perf_counter() - t0) * 1e3
+rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+f, cs = chain[-1][0], chain[-1][1]
+if stage == "corridors":
+    kept = f"{{sum(bool(v.corridors) for v in out.vehicles)}} vehicles with corridors, {{sum(len(v.corridors) for v in out.vehicles)}} pairs"
+elif stage == "relations":
+    kept = f"{{len(out.relations)}} pairs related"
+elif stage == "intentions":
+    kept = f"{{len(out.vehicles)}} vehicles"
+elif stage == "ar_inference":
+    kept = f"{{len(out.profiles)}} pairs"
+else:
+    kept = f"{{out.n_rows}} x {{out.n_cols}} grid, {{sum(len(step.values) for step in out.steps)}} cells listed over {{len(out.steps)}} steps"
+size = len(out.encode())
+kinds = collections.Counter(i.kind for i in issues)
+print(f"{{rss:.0f}}\t{{ms:.0f}}\t{{kept}}\t{{size}}\t{{type(out).MAX_BYTES}}\t" + ", ".join(f"{{k}} {{v}}" for k, v in sorted(kinds.items())))
+"""
+
+BIG_STAGES = ("corridors", "relations", "intentions", "ar_inference", "markov_prediction")
+BIG_BUDGET_MB = 1024.0  # peak RSS per stage on a 1,000-object frame with the default caps
+
+
+def section_big_frame(args: argparse.Namespace) -> None:
+    import tempfile
+
+    objects = tuple(args.objects or (1000, 500))
+    print(f"## big-frame: TrackFrames of {', '.join(map(str, objects))} objects (real K729 013 cars overlaid), each core in a child process")
+    with tempfile.TemporaryDirectory() as tmp:
+        data = str(Path(tmp) / "chain.pkl")
+        t0 = time.perf_counter()
+        prep = subprocess.run(
+            [sys.executable, "-c", _BIG_PREP.format(repo=str(REPO), tests=str(REPO / "tests"), objects=objects), data],
+            capture_output=True, text=True, timeout=3600,
+        )
+        if prep.returncode != 0:
+            print(f"preparing the upstream outputs failed: {prep.stderr.strip().splitlines()[-1:]}")
+            return
+        print(f"(upstream outputs prepared in {time.perf_counter() - t0:.0f} s)")
+        print(f"{'objects':>7s} {'stage':18s} {'caps':8s} {'peak RSS MB':>11s} {'ms':>7s} {'bytes':>9s} {'MAX_BYTES':>9s}  kept; issues by kind")
+        verdict = []
+        runs = [(n, stage, False) for n in objects for stage in BIG_STAGES]
+        if args.uncapped:
+            runs += [(n, stage, True) for n in objects for stage in ("corridors", "relations")]
+        for n, stage, uncapped in runs:
+            code = _BIG_STAGE.format(repo=str(REPO))
+            out = subprocess.run([sys.executable, "-c", code, data, stage, str(n), "1" if uncapped else "0"], capture_output=True, text=True, timeout=3600)
+            caps = "lifted" if uncapped else "default"
+            if out.returncode != 0:
+                print(f"{n:>7d} {stage:18s} {caps:8s} child failed: {out.stderr.strip().splitlines()[-1:]}")
+                verdict.append(f"{stage} {n} {caps}: FAILED")
+                continue
+            rss, ms, kept, size, limit, kinds = out.stdout.rstrip("\n").split("\n")[-1].split("\t")
+            print(f"{n:>7d} {stage:18s} {caps:8s} {rss:>11s} {ms:>7s} {size:>9s} {limit:>9s}  {kept}; {kinds or 'none'}")
+            if not uncapped:
+                ok = float(rss) <= BIG_BUDGET_MB and int(size) <= int(limit)
+                verdict.append(f"{stage} {n}: {'holds' if ok else 'EXCEEDED'}")
+    print(f"budget <= {BIG_BUDGET_MB:.0f} MB peak RSS per stage and output <= MAX_BYTES, default caps: " + "; ".join(verdict))
+
+
 SECTIONS: dict[str, Callable[[argparse.Namespace], None]] = {
     "fuzz": section_fuzz,
     "limits": section_limits,
+    "big-frame": section_big_frame,
 }
 
 
@@ -152,6 +291,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--section", action="append", choices=sorted(SECTIONS), help="section to run (repeatable; default all)")
     p.add_argument("--n", type=int, default=100_000, help="fuzz: number of mutated payloads (default 100000)")
     p.add_argument("--seed", type=int, default=13, help="fuzz: seed (default 13)")
+    p.add_argument("--objects", type=int, action="append", help="big-frame: objects per frame (repeatable; default 1000 and 500)")
+    p.add_argument("--uncapped", action="store_true", help="big-frame: also run corridors and relations with the caps lifted")
     args = p.parse_args(argv)
     for name in args.section or list(SECTIONS):
         SECTIONS[name](args)

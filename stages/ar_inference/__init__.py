@@ -17,6 +17,11 @@ the validation RMSE of chunk means stored with the weights, floored at
 folded into the end cells. A vehicle seen for less than 4 s is predicted
 from what there is (padding and mask; ``history_steps`` says how much).
 
+``max_pairs`` 600: bounded work per frame (issue 13): beyond it whole
+vehicles are kept in CorridorSet order while their corridors fit, the rest
+are skipped this frame (``stages.caps.cap_pairs``; one ``pairs_capped``
+issue). TAF-BW frames (at most ~20 vehicles, ~2 corridors each) never are.
+
 Issues: ``stamp_mismatch`` (relations of another stamp: ignored),
 ``nan_prediction`` (pair left out), and the feature tracker's (``nan_state``
 …). A weights file that is missing or unreadable stops the stage at start

@@ -24,11 +24,15 @@ class ARInferenceConfig(ConfigMixin):
     #: σ_k = max(floor, √(var(chunk) + (scale·σ_res,k)²)): ``sigma_scale`` multiplies the validation RMSE of the weights file
     sigma_scale: float = 1.0
     sigma_floor_mps2: float = 0.25
+    #: vehicle-corridor pairs per frame; whole vehicles beyond, in CorridorSet order, are skipped (issue ``pairs_capped``)
+    max_pairs: int = 600
 
     def __post_init__(self) -> None:
         check_ranges(self, positive=("chunk_s", "sigma_floor_mps2"), non_negative=("sigma_scale",))
         if not self.input_max_mps2 > self.input_min_mps2:
             raise ValueError(f"input_min_mps2 = {self.input_min_mps2}, input_max_mps2 = {self.input_max_mps2}: need min < max")
+        if self.max_pairs < 1:
+            raise ValueError(f"max_pairs = {self.max_pairs}: must be >= 1")
         if self.n_inputs < 2:
             raise ValueError(f"n_inputs = {self.n_inputs}: must be >= 2")
         if not (self.device == "cpu" or self.device.startswith("cuda")):

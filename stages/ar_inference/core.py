@@ -11,6 +11,7 @@ import numpy as np
 
 from bus_schemas import AccelerationProfile, AccelerationProfiles, CorridorSet, Header, RelationSet, SceneInfo, TrackFrame
 from stages._core import ConfigError, Issue, StageResult
+from stages.caps import cap_pairs
 
 from .config import ARInferenceConfig
 
@@ -120,7 +121,10 @@ class ARInference:
         self, corridor_set: CorridorSet, relation_set: RelationSet | None, frame: TrackFrame | None = None, scene: SceneInfo | None = None
     ) -> tuple[AccelerationProfiles, list[Issue]]:
         """The pure function behind ``update``: observe the frame, then predict every (vehicle, corridor) pair of it."""
+        corridor_set, dropped = cap_pairs(corridor_set, self.config.max_pairs)
         issues = self.observe(corridor_set, relation_set, frame)
+        if dropped:
+            issues.append(Issue("pairs_capped", -1, f"{dropped} vehicle-corridor pairs beyond max_pairs = {self.config.max_pairs} (whole vehicles, in CorridorSet order): skipped this frame"))
         keys, x, mask = self.tracker.batch(corridor_set)
         profiles: list[AccelerationProfile] = []
         if keys:

@@ -15,7 +15,15 @@ Parameters (``CorridorsConfig``; lengths in m, angles in rad):
 - ``match_max_distance_m`` 1.5, ``match_max_heading_rad`` 0.8,
   ``ambiguity_margin_m`` 1.0, ``continuity_margin_m`` 1.0,
   ``entry_extension_m`` 50.0: matching (below).
-- ``merge_tolerance_m`` 1.0, ``max_corridors_per_vehicle`` 8,
+- ``max_objects`` 200: bounded work per frame (issue 13; TAF-BW frames hold
+  at most ~20 objects): beyond it the objects nearest to the map's centre
+  are kept (``stages.caps``: the middle of the car lanelets' bounding box,
+  where the intersection is; non-finite positions dropped first) and the
+  others become BAD_STATE entries without corridors, nothing computed for
+  them, with one ``objects_capped`` issue per frame giving how many.
+- ``merge_tolerance_m`` 1.0, ``max_corridors_per_vehicle`` 8 (enforced:
+  beyond it the corridors are dropped after merging, issue
+  ``corridors_truncated``),
   ``route_length_m`` 150.0, ``frenet_window_m`` 10.0,
   ``lane_change_corridors`` true, ``lane_change_length_m`` 20.0: corridors
   (below).

@@ -21,6 +21,7 @@ import numpy as np
 
 from bus_schemas import AgentType, Corridor, CorridorSet, Header, MatchStatus, SceneInfo, TrackFrame, VehicleCorridors
 from stages._core import ConfigMixin, Issue, StageResult, check_ranges, isolate
+from stages.caps import keep_nearest, map_centre_m
 from stages.kinematic_state import EstimatorConfig, KinematicEstimator, KinematicState
 from stages.maps import Projection, RoadMap, load_map, parse_projection, projection_for_location, wrap_angle_rad
 
@@ -45,6 +46,7 @@ class CorridorsConfig(ConfigMixin):
     continuity_margin_m: float = 1.0
     entry_extension_m: float = 50.0
     max_corridors_per_vehicle: int = 8
+    max_objects: int = 200
     merge_tolerance_m: float = 1.0
     route_length_m: float = 150.0
     lane_change_corridors: bool = True
@@ -66,6 +68,8 @@ class CorridorsConfig(ConfigMixin):
         check_ranges(self, positive=positive, non_negative=non_negative)
         if self.max_corridors_per_vehicle < 1:
             raise ValueError(f"max_corridors_per_vehicle = {self.max_corridors_per_vehicle}: must be >= 1")
+        if self.max_objects < 1:
+            raise ValueError(f"max_objects = {self.max_objects}: must be >= 1")
         if parse_projection(self.projection) is Projection.UNKNOWN:
             known = ", ".join(p.name.lower() for p in Projection if p is not Projection.UNKNOWN)
             raise ValueError(f"projection = {self.projection!r}: expected one of {known}")
@@ -289,6 +293,8 @@ class CorridorBuilder:
         self.scene_maps = scene_maps or SceneMaps(config)
         self._scene_id: str | None = None
         self._map: SceneMap | None = None
+        self._centre_of: object = False  # the road map whose centre `_centre` is (False: none yet)
+        self._centre: np.ndarray | None = None
         self._tracks: dict[int, _Track] = {}
         self._last_stamp_ns: int | None = None
         self.estimator = KinematicEstimator(EstimatorConfig(fuse_reported=config.fuse_reported_velocity))
@@ -326,8 +332,17 @@ class CorridorBuilder:
         to_match: list[tuple[int, int, AgentType, _Kinematics]] = []
         seen: set[int] = set()
         states: dict[int, KinematicState] = {}
+        kept = self._cap(frame, scene_map, issues)
         for row in range(n):
             track_id = int(frame.track_ids[row])
+            if kept is not None and not kept[row]:  # beyond max_objects: an entry without corridors, nothing computed
+                skipped = KinematicState(math.nan, math.nan, math.nan, math.nan, False, "unknown", math.nan)
+                try:
+                    agent_type = AgentType(int(frame.agent_types[row]))
+                except ValueError:
+                    agent_type = AgentType.UNKNOWN
+                entries[row] = _entry(track_id, agent_type, MatchStatus.BAD_STATE, skipped, math.nan)
+                continue
             agent_type = self._agent_type(int(frame.agent_types[row]), track_id, issues)
             vx, vy = float(frame.vx_mps[row]), float(frame.vy_mps[row])
             reported_speed = math.hypot(vx, vy) if math.isfinite(vx) and math.isfinite(vy) else math.nan
@@ -380,6 +395,19 @@ class CorridorBuilder:
         )
         scene_id = scene.scene_id if scene is not None else frame.scene_id
         return CorridorSet(header=header, scene_id=scene_id, vehicles=tuple(entries)), issues
+
+    def _cap(self, frame: TrackFrame, scene_map: SceneMap | None, issues: list[Issue]):
+        """Mask of the rows within `max_objects` (nearest to the map's centre, `stages.caps`), or None when all are."""
+        cap = self.config.max_objects
+        if len(frame) <= cap:
+            return None
+        road_map = scene_map.road_map if scene_map is not None else None
+        if self._centre_of is not road_map:
+            self._centre_of, self._centre = road_map, map_centre_m(road_map)
+        xy = np.column_stack([np.asarray(frame.x_m, np.float64), np.asarray(frame.y_m, np.float64)])
+        kept, dropped = keep_nearest(xy, self._centre, cap)
+        issues.append(Issue("objects_capped", -1, f"{dropped} of {len(frame)} objects beyond max_objects = {cap} (the farthest from the map's centre): BAD_STATE without corridors"))
+        return kept
 
     # ----- scene and time ------------------------------------------------------
 

@@ -133,6 +133,12 @@ reset then), from the ``data`` parameter's folder (``maps/``, by the scene's
 map name, checked by sha256 as in the corridors stage; the launcher passes
 its ``--data``; "" the embedded ``data/taf-bw``).
 
+Bounded work: ``max_pairs`` 600 vehicle-corridor pairs per frame (issue
+13): beyond it whole vehicles are kept in CorridorSet order while their
+corridors fit, the rest are not updated this frame (``stages.caps.cap_pairs``;
+one ``pairs_capped`` issue; a vehicle skipped for ``unseen_timeout_s`` dies).
+TAF-BW frames (at most ~20 vehicles, ~2 corridors each) never are.
+
 Issues (the other vehicles are still processed): ``stamp_mismatch`` (the
 inputs differ in stamp: no output), ``stamp_not_increasing`` (all particles
 reset), ``no_relations``, ``missing_track``, ``nan_state``,

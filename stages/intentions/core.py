@@ -29,6 +29,7 @@ from bus_schemas import (
     VehicleBelief,
 )
 from stages._core import ConfigMixin, Issue, StageResult, check_ranges, isolate
+from stages.caps import cap_pairs
 from stages.corridors.core import SceneMaps, shown_map_name
 from stages.maps import DEFAULT_SPEED_LIMIT_MPS, Projection, RoadMap, parse_projection, project_to_polyline
 
@@ -95,6 +96,7 @@ class IntentionsConfig(ConfigMixin):
     unseen_timeout_s: float = 1.0
     lane_change_reach_m: float = 10.0
     projection: str = "auto"
+    max_pairs: int = 600
     data: str = ""  # local data folder whose maps/ holds the scene's map (by name); "": the embedded data/taf-bw
 
     def __post_init__(self) -> None:
@@ -110,6 +112,8 @@ class IntentionsConfig(ConfigMixin):
             "birth_sigma_v_mps", "birth_sigma_a_mps2", "lane_change_reach_m",
         )
         check_ranges(self, positive=positive, non_negative=non_negative)
+        if self.max_pairs < 1:
+            raise ValueError(f"max_pairs = {self.max_pairs}: must be >= 1")
         for name in ("route_switch_per_step", "intention_keep", "intention_adapt", "resample_ess_fraction", "lateral_decay"):
             value = getattr(self, name)
             if not (0.0 <= value <= 1.0):
@@ -230,6 +234,9 @@ class IntentionFilter:
             issues.append(Issue("stamp_not_increasing", -1, f"stamp {stamp} <= {self._last_stamp_ns}: every vehicle's particles reset"))
             self._vehicles.clear()
         self._last_stamp_ns = stamp
+        corridor_set, dropped = cap_pairs(corridor_set, cfg.max_pairs)
+        if dropped:
+            issues.append(Issue("pairs_capped", -1, f"{dropped} vehicle-corridor pairs beyond max_pairs = {cfg.max_pairs} (whole vehicles, in CorridorSet order): skipped this frame"))
         road_map = self._scene(scene, corridor_set, issues)
         timeout_ns = int(round(cfg.unseen_timeout_s * 1e9))
         for track_id in [t for t, v in self._vehicles.items() if stamp - v.last_stamp_ns > timeout_ns]:

@@ -131,6 +131,13 @@ and keeps cells above ``grid_min_value`` 1e-5 on a ``grid_cell_m`` 0.5 grid
 whose extent is ``grid_extent_m`` (x_min, y_min, x_max, y_max) or, when
 empty, the occupied cells plus ``grid_margin_m``.
 
+Bounded work: ``max_pairs`` 600 vehicle-corridor pairs per frame (issue
+13): beyond it whole vehicles are kept in CorridorSet order while their
+corridors fit, the rest are not predicted this frame (``stages.caps.cap_pairs``;
+one ``pairs_capped`` issue). TAF-BW frames (at most ~20 vehicles, ~2
+corridors each) never are. The grid is sparse (COO cells per step), so its
+size follows the pairs kept, not the extent.
+
 Issues (every other pair is still predicted): ``corridor_too_short`` (outside
 mass at the horizon above ``outside_issue_mass`` 1 %, per pair),
 ``nan_state`` (non-finite speed or arc length: vehicle or pair skipped),

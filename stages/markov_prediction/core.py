@@ -31,6 +31,7 @@ from bus_schemas import (
     TrackFrame,
 )
 from stages._core import Issue, StageResult, isolate
+from stages.caps import cap_pairs
 from stages.datasets import DEFAULT_SIZES_M
 from stages.markov import InputMatrix, InputReplaced, MarkovGridConfig, gamma_from_priority, initial_state, load_or_build_stencils, psi_matrix
 from stages.markov.propagate import boxes_outside_grid
@@ -287,6 +288,9 @@ class MarkovPredictor:
         """The pure function behind ``update``: the frame's prediction and the issues met."""
         issues: list[Issue] = []
         stamp = int(corridor_set.header.stamp_ns)
+        corridor_set, dropped = cap_pairs(corridor_set, self.config.max_pairs)
+        if dropped:
+            issues.append(Issue("pairs_capped", -1, f"{dropped} vehicle-corridor pairs beyond max_pairs = {self.config.max_pairs} (whole vehicles, in CorridorSet order): skipped this frame"))
         beliefs = self._beliefs(intention_belief, stamp, issues)
         profiles = self._profiles(acceleration_profiles, stamp, issues)
         self.observe(corridor_set)

@@ -29,6 +29,19 @@ Parameters (``RelationsConfig``):
 - ``min_route_probability`` 0.1: other corridors less likely than this do not
   influence (applies when the intentions give route probabilities, see
   ``RelationExtractor.process``);
+- ``max_objects`` 200 and ``max_pairs`` 600: bounded work per frame
+  (issue 13). Beyond ``max_objects`` the objects nearest to the map's
+  centre are kept (the corridors stage's rule, ``stages.caps``) and the
+  others are neither vehicles nor obstacles this frame (one
+  ``objects_capped`` issue); beyond ``max_pairs`` whole vehicles are kept
+  in CorridorSet order while their corridors fit, the rest get no relation
+  (one ``pairs_capped`` issue). TAF-BW frames (at most ~20 vehicles, ~2
+  corridors each) are never capped. Memory: the projection of objects onto
+  corridors is pruned by distance (only objects inside a corridor's
+  bounding box grown by lookbehind + half width + margin are projected) and
+  chunked; a 1,000-object frame once took 6.5 GB there as one dense
+  (pairs, objects, segments, 2) array. Budget: <= 1 GB peak RSS on a
+  1,000-object frame (``bench/hostile.py --section big-frame``);
 - ``projection`` "auto": as in the corridors stage, whose map loader
   (``stages.corridors.SceneMaps``) this stage uses, so both see one map.
 - ``data`` "": the local data folder whose ``maps/`` holds the scene's map,

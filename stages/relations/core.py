@@ -25,6 +25,7 @@ from bus_schemas import (
     VehicleCorridors,
 )
 from stages._core import ConfigMixin, Issue, StageResult, check_ranges
+from stages.caps import keep_nearest, map_centre_m
 from stages.corridors.core import SceneMap, SceneMaps, shown_map_name
 from stages.datasets import DEFAULT_SIZES_M
 from stages.maps import ConflictKind as MapConflictKind
@@ -51,6 +52,8 @@ class RelationsConfig(ConfigMixin):
     duplicate_conflict_m: float = 1.0
     refine_window_m: float = 3.0
     min_route_probability: float = 0.1
+    max_objects: int = 200
+    max_pairs: int = 600
     projection: str = "auto"
     data: str = ""  # local data folder whose maps/ holds the scene's map (by name); "": the embedded data/taf-bw
 
@@ -59,6 +62,9 @@ class RelationsConfig(ConfigMixin):
         non_negative = ("lateral_margin_m", "lookahead_m", "lookbehind_m", "stopped_speed_mps", "horizon_margin_s",
                         "clear_margin_m", "duplicate_conflict_m", "refine_window_m", "min_route_probability")
         check_ranges(self, positive=positive, non_negative=non_negative)
+        for name in ("max_objects", "max_pairs"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} = {getattr(self, name)}: must be >= 1")
         if self.min_route_probability > 1.0:
             raise ValueError(f"min_route_probability = {self.min_route_probability!r}: must be <= 1")
         if parse_projection(self.projection) is Projection.UNKNOWN:
@@ -229,6 +235,8 @@ class RelationExtractor:
         self._scene_id: str | None = None
         self._map: SceneMap | None = None
         self._tables: SceneTables | None = None
+        self._centre_of: object = False  # the road map whose centre `_centre` is (False: none yet)
+        self._centre: np.ndarray | None = None
 
     @property
     def tables(self) -> SceneTables | None:
@@ -271,6 +279,16 @@ class RelationExtractor:
         tables = self._scene(scene, corridor_set, issues)
         objects = self._objects(frame, corridor_set, issues)
         pairs = self._pairs(corridor_set, objects, tables, issues)
+        if len(pairs) > self.config.max_pairs:  # whole vehicles in CorridorSet order while they fit
+            kept: list[_Pair] = []
+            for vehicle_pairs in _by_vehicle(pairs):
+                if len(kept) + len(vehicle_pairs) > self.config.max_pairs:
+                    break
+                kept.extend(vehicle_pairs)
+            issues.append(Issue("pairs_capped", -1, f"{len(pairs) - len(kept)} of {len(pairs)} vehicle-corridor pairs beyond max_pairs = {self.config.max_pairs}: no relation"))
+            pairs = kept
+            for g, pair in enumerate(pairs):
+                pair.g = g
         conflicts = None
         if tables is not None and pairs:
             try:
@@ -279,7 +297,7 @@ class RelationExtractor:
                 issues.append(Issue("conflicts_failed", -1, f"{type(exc).__name__}: {exc}: no conflict points this frame"))
         relations = []
         starts = np.searchsorted(conflicts.g, np.arange(len(pairs) + 1)) if conflicts is not None else None
-        projected = _project_onto_corridors(objects.xy[objects.valid], pairs) if pairs else None
+        projected = _project_onto_corridors(objects.xy[objects.valid], pairs, self._reach(pairs)) if pairs else None
         for pair in pairs:
             try:
                 lateral = self._lateral(pair, objects, projected)
@@ -328,6 +346,13 @@ class RelationExtractor:
         for row in np.flatnonzero(unique & ~valid):
             issues.append(Issue("nan_state", int(track_ids[row]), f"non-finite position ({xy[row, 0]}, {xy[row, 1]}): ignored"))
         valid &= unique
+        if n > self.config.max_objects:  # beyond the cap: neither vehicle nor obstacle this frame (stages.caps)
+            road_map = self._map.road_map if self._map is not None else None
+            if self._centre_of is not road_map:
+                self._centre_of, self._centre = road_map, map_centre_m(road_map)
+            kept, dropped = keep_nearest(xy, self._centre, self.config.max_objects)
+            valid &= kept
+            issues.append(Issue("objects_capped", -1, f"{dropped} of {n} objects beyond max_objects = {self.config.max_objects} (the farthest from the map's centre): ignored"))
         types = np.asarray(frame.agent_types, dtype=np.uint8)
         length = np.asarray(frame.length_m, dtype=np.float64).copy()
         bad_length = ~(np.isfinite(length) & (length > 0.0))
@@ -409,6 +434,23 @@ class RelationExtractor:
         return pairs
 
     # ----- lateral relation --------------------------------------------------------
+
+    def _reach(self, pairs: list[_Pair]) -> np.ndarray:
+        """Per pair, how far (m) outside its centreline's bounding box an object can still be on the corridor.
+
+        `_lateral` keeps objects with |d| < half width + `lateral_margin_m`
+        and s >= vehicle s - `lookbehind_m` (possibly on the straight
+        extension before the corridor's start); anything farther from the
+        box is not projected at all (1 m slack for resampling).
+        """
+        cfg = self.config
+        return np.array(
+            [
+                cfg.lookbehind_m + max(0.0, float(p.corridor.s_m[0]) - p.corridor.vehicle_s_m)
+                + 0.5 * float(np.max(p.corridor.width_m)) + cfg.lateral_margin_m + 1.0
+                for p in pairs
+            ]
+        )
 
     def _lateral(self, pair: _Pair, objects: _Objects, projected):
         """Objects within the lane of the corridor, ordered by s, and the leader (row into them or -1).
@@ -635,13 +677,21 @@ class RelationExtractor:
         )
 
 
-def _project_onto_corridors(points_m: np.ndarray, pairs: list[_Pair]):
-    """Frenet (s, d, heading) of points (n, 2) on every pair's corridor at once; arrays (pairs, n).
+def _project_onto_corridors(points_m: np.ndarray, pairs: list[_Pair], reach_m: np.ndarray | None = None):
+    """Frenet (s, d, heading) of points (n, 2) on every pair's corridor; arrays (pairs, n).
 
     The same projection as `maps.project_to_polyline` (nearest segment, the
     end segments extended straight, d positive to the left, heading of the
     foot segment), over all corridors padded to one length, so a frame costs
     a few numpy calls instead of a few per corridor.
+
+    Only the (pair, point) combinations with the point inside the corridor's
+    bounding box grown by ``reach_m[pair]`` are projected (all of them when
+    `reach_m` is None); the others are NaN, which no relation test passes.
+    The work runs in chunks of at most ``_CHUNK_ELEMENTS`` (candidate x
+    segment) so memory stays bounded however many objects a frame holds
+    (issue 13: 1,000 objects used to take 6.5 GB here, as one dense
+    (pairs, points, segments, 2) array).
     """
     n_pairs, n = len(pairs), len(points_m)
     n_segments = np.array([len(p.xy) - 1 for p in pairs])
@@ -658,18 +708,49 @@ def _project_onto_corridors(points_m: np.ndarray, pairs: list[_Pair]):
     upper = np.ones((n_pairs, m))
     lower[:, 0] = -np.inf
     upper[np.arange(n_pairs), n_segments - 1] = np.inf
-    rel = points_m[None, :, None, :] - line[:, None, :-1, :]
-    t = np.clip((rel * segment[:, None]).sum(axis=3) / length2[:, None], lower[:, None], upper[:, None])
-    off = rel - t[..., None] * segment[:, None]
-    dist2 = np.where(valid[:, None], (off**2).sum(axis=3), np.inf)
-    j = dist2.argmin(axis=2)
-    g = np.arange(n_pairs)[:, None]
-    k = np.arange(n)[None, :]
-    seg_len = np.sqrt(length2[g, j])
-    ux, uy = segment[g, j, 0] / seg_len, segment[g, j, 1] / seg_len
-    s = arc[g, j] + t[g, k, j] * seg_len
-    d = ux * rel[g, k, j, 1] - uy * rel[g, k, j, 0]
-    return s, d, np.arctan2(uy, ux)
+    out_s = np.full((n_pairs, n), np.nan)
+    out_d = np.full((n_pairs, n), np.nan)
+    out_heading = np.full((n_pairs, n), np.nan)
+    rows_per_pair = max(1, _CHUNK_ELEMENTS // max(m * max(n, 1), 1))
+    for lo_pair in range(0, n_pairs, rows_per_pair):
+        block = np.arange(lo_pair, min(n_pairs, lo_pair + rows_per_pair))
+        if reach_m is None:
+            near = np.ones((len(block), n), dtype=bool)
+        else:
+            box_lo = np.array([pairs[g].xy.min(axis=0) for g in block]) - reach_m[block, None]
+            box_hi = np.array([pairs[g].xy.max(axis=0) for g in block]) + reach_m[block, None]
+            near = ((points_m[None, :, :] >= box_lo[:, None, :]) & (points_m[None, :, :] <= box_hi[:, None, :])).all(axis=2)
+        cand_g, cand_k = np.nonzero(near)
+        cand_g = block[cand_g]
+        per_chunk = max(1, _CHUNK_ELEMENTS // max(m, 1))
+        for lo in range(0, len(cand_g), per_chunk):
+            g, k = cand_g[lo : lo + per_chunk], cand_k[lo : lo + per_chunk]
+            rel = points_m[k][:, None, :] - line[g, :-1, :]
+            t = np.clip((rel * segment[g]).sum(axis=2) / length2[g], lower[g], upper[g])
+            off = rel - t[..., None] * segment[g]
+            dist2 = np.where(valid[g], (off**2).sum(axis=2), np.inf)
+            j = dist2.argmin(axis=1)
+            c = np.arange(len(g))
+            seg_len = np.sqrt(length2[g, j])
+            ux, uy = segment[g, j, 0] / seg_len, segment[g, j, 1] / seg_len
+            out_s[g, k] = arc[g, j] + t[c, j] * seg_len
+            out_d[g, k] = ux * rel[c, j, 1] - uy * rel[c, j, 0]
+            out_heading[g, k] = np.arctan2(uy, ux)
+    return out_s, out_d, out_heading
+
+
+_CHUNK_ELEMENTS = 1 << 19  # (candidate, segment) elements per chunk of the projection: ~8 MB per float64 (c, m, 2) array
+
+
+def _by_vehicle(pairs: list[_Pair]) -> list[list[_Pair]]:
+    """The pairs grouped by vehicle (consecutive in `_pairs`' order)."""
+    groups: list[list[_Pair]] = []
+    for pair in pairs:
+        if groups and groups[-1][0].row == pair.row:
+            groups[-1].append(pair)
+        else:
+            groups.append([pair])
+    return groups
 
 
 def _ranges(count: np.ndarray) -> np.ndarray:
