@@ -12,7 +12,6 @@ before it is hashed.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import hashlib
 import os
@@ -21,7 +20,6 @@ import sys
 import threading
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from bus_schemas import Header, SceneInfo, TrackFrame
