@@ -41,6 +41,7 @@ from pathlib import Path
 from stages.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, find_recording, load_recording
 from stages.datasets.model import same_sequence_id
 from stages.datasets.interaction import META_FILE, TRACK_FILE_RE
+from stages._core import json_safe
 from stages.evaluation import EVAL_MODES, EvalConfig, Evaluation
 
 VARIANTS = ("given", "vel_half", "vel_zero_1s", "vel_reversed")
@@ -163,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         payload = {"data": str(args.data), "recording": args.recording, "sequences": args.sequence, "results": results}
-        args.json.write_text(json.dumps(_json_safe(payload), indent=2, allow_nan=False) + "\n")
+        args.json.write_text(json.dumps(json_safe(payload), indent=2, allow_nan=False) + "\n")
         print(f"wrote {args.json}")
     return 0
 
@@ -193,14 +194,6 @@ def format_table(results: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
-def _json_safe(value):
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
 
 
 if __name__ == "__main__":

@@ -11,7 +11,10 @@ import math
 import types
 import typing
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Mapping
+
+import numpy as np
 
 
 @dataclass(frozen=True, slots=True)
@@ -194,3 +197,20 @@ def progress_bar(total: int, enabled: bool, *, unit: str, desc: str):
     from tqdm import tqdm
 
     return tqdm(total=total, unit=unit, desc=desc, file=sys.stderr, dynamic_ncols=True)
+
+
+def json_safe(value: Any) -> Any:
+    """``value`` as strict JSON: NaN/inf become null, numpy scalars and arrays plain numbers and lists, paths strings."""
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return json_safe(value.tolist())
+    if isinstance(value, (np.floating, float)):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, Path):
+        return str(value)
+    return value

@@ -98,6 +98,7 @@ import numpy as np
 from bus_schemas import AgentType, CorridorSet, MatchStatus, RelationSet, SceneInfo, TrackFrame
 
 from ._core import progress_bar
+from ._core import json_safe
 from .raster import MapRaster
 
 from .corridors import CorridorBuilder, CorridorsConfig, SceneMaps
@@ -863,7 +864,7 @@ def run_cli(args) -> int:
     print(format_table(report))
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(_json_safe(report), indent=2, allow_nan=False))
+        args.json.write_text(json.dumps(json_safe(report), indent=2, allow_nan=False))
         print(f"wrote {args.json}")
     if args.figures is not None:
         for path in evaluation.write_figures(args.figures):
@@ -885,15 +886,6 @@ def _key_values(items, flag: str) -> tuple[tuple[str, Any], ...]:
     return tuple(out)
 
 
-def _json_safe(value: Any) -> Any:
-    """The report with NaN (a split without windows) as null, so the file is strict JSON."""
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
 
 
 # --------------------------------------------------------------------------- progress and figures

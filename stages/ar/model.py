@@ -42,6 +42,8 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
+from stages._core import json_safe
+
 from .features import FEATURE_NAMES, HISTORY_STEPS, HORIZON_STEPS, STEP_S
 
 DEFAULT_MODEL_PATH = Path(__file__).resolve().parent / "weights" / "ar_taf_bw.pt"
@@ -166,7 +168,7 @@ def save_model(path: str | Path, model: ARModel) -> Path:
         "feature_std": torch.from_numpy(np.asarray(model.feature_std, dtype=np.float32).copy()),
         "sigma_res_chunks": torch.from_numpy(np.asarray(model.sigma_res_chunks, dtype=np.float32).copy()),
         "state_dict": {k: v.detach().cpu().clone() for k, v in model.net.state_dict().items()},
-        "metadata_json": json.dumps(_json_safe(model.metadata), sort_keys=True),
+        "metadata_json": json.dumps(json_safe(model.metadata), sort_keys=True),
     }
     tmp = path.with_name(path.name + ".tmp")
     torch.save(payload, tmp)
@@ -174,20 +176,6 @@ def save_model(path: str | Path, model: ARModel) -> Path:
     return path
 
 
-def _json_safe(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _json_safe(value.tolist())
-    if isinstance(value, (np.floating, float)):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, Path):
-        return str(value)
-    return value
 
 
 def load_model(path: str | Path = DEFAULT_MODEL_PATH) -> ARModel:

@@ -71,6 +71,7 @@ from stages.datasets import DEFAULT_DATA_DIR, Recording, discover, load_recordin
 from stages.maps import RoadMap, project_to_polyline
 from stages.relations import RelationExtractor, RelationsConfig
 from stages.tracks_source import TrackPlayer, TracksSourceConfig, file_sha256
+from stages._core import json_safe
 
 from .core import IntentionFilter, IntentionsConfig
 
@@ -525,14 +526,6 @@ def format_tables(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _json_safe(value: Any) -> Any:
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    return value
 
 
 def _parse_set(items: Sequence[str]) -> tuple[tuple[str, Any], ...]:
@@ -573,7 +566,7 @@ def main(argv: list[str] | None = None) -> int:
     print(format_tables(report))
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(_json_safe(report), indent=2, sort_keys=False) + "\n")
+        args.json.write_text(json.dumps(json_safe(report), indent=2, sort_keys=False) + "\n")
     return 0
 
 
