@@ -157,3 +157,14 @@ def test_markov_prediction_pairs_cap(big, big_relations):
     prediction, issues = predictor.process(results[-1][0], big_relations, scene, frames[-1])
     assert [i.kind for i in issues].count("pairs_capped") == 1
     assert 0 < len({(p.track_id, p.corridor_id) for p in prediction.pairs}) <= 20
+
+
+def test_max_corridors_per_vehicle_enforced(source, scene_maps):
+    scene, frames = source
+    builder = CorridorBuilder(CorridorsConfig(max_corridors_per_vehicle=1), scene_maps=scene_maps)
+    truncated = 0
+    for f in frames[:100]:
+        corridor_set, issues = builder.process(f, scene)
+        assert all(len(v.corridors) <= 1 for v in corridor_set.vehicles)
+        truncated += sum(i.kind == "corridors_truncated" for i in issues)
+    assert truncated > 0  # K729 013 has cars with two or more corridors
