@@ -136,7 +136,10 @@ Bounded work: ``max_pairs`` 600 vehicle-corridor pairs per frame (issue
 corridors fit, the rest are not predicted this frame (``stages.caps.cap_pairs``;
 one ``pairs_capped`` issue). TAF-BW frames (at most ~20 vehicles, ~2
 corridors each) never are. The grid is sparse (COO cells per step), so its
-size follows the pairs kept, not the extent.
+size follows the pairs kept, not the extent; the MotionGrid lists at most
+``grid_max_cells_per_step`` 100,000 cells per step (the highest values;
+12 MB for 10 steps, under its 16 MiB ``MAX_BYTES``; one ``grid_capped``
+issue with the number left out; TAF-BW frames list up to ~5,000).
 
 Issues (every other pair is still predicted): ``corridor_too_short`` (outside
 mass at the horizon above ``outside_issue_mass`` 1 %, per pair),

@@ -88,6 +88,8 @@ class MarkovPredictionConfig(ConfigMixin):
     outside_issue_mass: float = 0.01
     # bounded work per message (issue 13): pairs per frame (whole vehicles beyond, in CorridorSet order, skipped)
     max_pairs: int = 600
+    # MotionGrid cells listed per step, the highest kept (12 B each: 10 steps of 100,000 is 12 MB, under its 16 MiB MAX_BYTES)
+    grid_max_cells_per_step: int = 100_000
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -117,7 +119,7 @@ class MarkovPredictionConfig(ConfigMixin):
             "conflict_margin_s", "conflict_epsilon", "grid_margin_m", "lateral_offset_decay_s", "grid_min_value", "outside_issue_mass",
         )
         check_ranges(self, positive=positive, non_negative=non_negative)
-        for name in ("n_steps", "window_cells", "grid_substeps", "max_pairs"):
+        for name in ("n_steps", "window_cells", "grid_substeps", "max_pairs", "grid_max_cells_per_step"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} = {getattr(self, name)!r}: must be >= 1")
         if len(self.lat_accels_mps2) != len(self.lat_accel_weights) or not self.lat_accels_mps2:

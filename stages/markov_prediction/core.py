@@ -131,6 +131,7 @@ class FramePrediction:
     vehicle_grids: dict[int, SparseGrid]
     fused_grid: SparseGrid
     min_grid_value: float
+    max_cells_per_step: int = 0  # 0: no cap; else the MotionGrid lists at most this many cells per step (the highest)
 
     def corridor_predictions(self, header: Header, scene_id: str) -> CorridorPredictions:
         """The ``CorridorPredictions`` message (s-distributions cropped to the cells ever occupied)."""
@@ -166,6 +167,17 @@ class FramePrediction:
             predictions=tuple(out),
         )
 
+    def grid_cells_over_cap(self) -> int:
+        """Cells above ``min_grid_value`` that ``motion_grid`` leaves out for ``max_cells_per_step``, all steps."""
+        if not self.max_cells_per_step:
+            return 0
+        n_cells = self.grid_frame.n_cells
+        over = 0
+        for k in range(self.step_times_s.shape[0]):
+            _cells, values = self.fused_grid.step(k, n_cells)
+            over += max(0, int((values > self.min_grid_value).sum()) - self.max_cells_per_step)
+        return over
+
     def motion_grid(self, header: Header, scene_id: str) -> MotionGrid:
         """The ``MotionGrid`` message: the fused grid, cells above ``min_grid_value``, one COO layer per step."""
         frame = self.grid_frame
@@ -173,6 +185,11 @@ class FramePrediction:
         for k in range(self.step_times_s.shape[0]):
             cells, values = self.fused_grid.step(k, frame.n_cells)
             keep = values > self.min_grid_value
+            if self.max_cells_per_step and int(keep.sum()) > self.max_cells_per_step:
+                listed = np.flatnonzero(keep)
+                top = listed[np.argsort(-values[listed], kind="stable")[: self.max_cells_per_step]]
+                keep = np.zeros_like(keep)
+                keep[top] = True
             rows, cols = np.divmod(cells[keep], frame.n_cols)
             steps.append(GridStep(rows=rows.astype(np.int32), cols=cols.astype(np.int32), values=values[keep].astype(np.float32)))
         return MotionGrid(
@@ -288,7 +305,9 @@ class MarkovPredictor:
         """The pure function behind ``update``: the frame's prediction and the issues met."""
         issues: list[Issue] = []
         stamp = int(corridor_set.header.stamp_ns)
+        given = corridor_set
         corridor_set, dropped = cap_pairs(corridor_set, self.config.max_pairs)
+        skipped = {v.track_id for v, w in zip(given.vehicles, corridor_set.vehicles) if v.corridors and not w.corridors}
         if dropped:
             issues.append(Issue("pairs_capped", -1, f"{dropped} vehicle-corridor pairs beyond max_pairs = {self.config.max_pairs} (whole vehicles, in CorridorSet order): skipped this frame"))
         beliefs = self._beliefs(intention_belief, stamp, issues)
@@ -310,10 +329,15 @@ class MarkovPredictor:
         for key, relation in relations.items():
             pair = known.get(key)
             if pair is None:
-                issues.append(Issue("unknown_corridor", key[0], f"relation for corridor {key[1]}, which has no prediction: ignored"))
+                if key[0] not in skipped:  # a vehicle left out by max_pairs has relations but no prediction: no issue of its own
+                    issues.append(Issue("unknown_corridor", key[0], f"relation for corridor {key[1]}, which has no prediction: ignored"))
             else:
                 pair.relation = relation
-        return self._predict(pairs, issues), issues
+        prediction = self._predict(pairs, issues)
+        over = prediction.grid_cells_over_cap()
+        if over:
+            issues.append(Issue("grid_capped", -1, f"{over} grid cells beyond grid_max_cells_per_step = {self.config.grid_max_cells_per_step} (the lowest values) left out of the MotionGrid"))
+        return prediction, issues
 
     def reset(self) -> None:
         """Forget every track's history (a new sequence starts; the offline tables are kept)."""
@@ -1119,6 +1143,7 @@ class MarkovPredictor:
             vehicle_grids=vehicle_grids,
             fused_grid=fuse(list(vehicle_grids.values())),
             min_grid_value=cfg.grid_min_value,
+            max_cells_per_step=cfg.grid_max_cells_per_step,
         )
 
     def _grid_frame(self, footprints: list[Footprints], probs: np.ndarray) -> GridFrame:

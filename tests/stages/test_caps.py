@@ -155,8 +155,23 @@ def test_markov_prediction_pairs_cap(big, big_relations):
     scene, frames, results = big
     predictor = MarkovPredictor(MarkovPredictionConfig(max_pairs=20, corridor_weights="uniform", initial_box="measurement"))
     prediction, issues = predictor.process(results[-1][0], big_relations, scene, frames[-1])
-    assert [i.kind for i in issues].count("pairs_capped") == 1
+    kinds = [i.kind for i in issues]
+    assert kinds.count("pairs_capped") == 1 and "unknown_corridor" not in kinds
     assert 0 < len({(p.track_id, p.corridor_id) for p in prediction.pairs}) <= 20
+    assert "grid_capped" not in kinds
+
+
+def test_markov_prediction_grid_cap(big, big_relations):
+    from bus_schemas import Header
+    from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
+
+    scene, frames, results = big
+    config = MarkovPredictionConfig(max_pairs=20, grid_max_cells_per_step=50, corridor_weights="uniform", initial_box="measurement")
+    prediction, issues = MarkovPredictor(config).process(results[-1][0], big_relations, scene, frames[-1])
+    assert [i.kind for i in issues].count("grid_capped") == 1
+    header = Header(run_id="t", frame_index=0, stamp_ns=0, producer="markov_prediction")
+    grid = prediction.motion_grid(header, scene.scene_id)
+    assert all(len(step.values) <= 50 for step in grid.steps) and any(len(step.values) == 50 for step in grid.steps)
 
 
 def test_max_corridors_per_vehicle_enforced(source, scene_maps):
