@@ -540,11 +540,26 @@ class RelationExtractor:
         speed = np.array([p.speed_mps for p in pairs])
         half_length = 0.5 * np.array([p.length_m for p in pairs])
         occ_vehicle = vehicle_of[occ_g]
-        different = occ_vehicle[:, None] != occ_vehicle[None, :]
-        first = tables.pair_first[occ_lanelet[:, None], occ_lanelet[None, :]]
-        i, j = np.nonzero((first >= 0) & different)
+        # occurrence x occurrence lookups in blocks of rows (bounded memory; same order as one dense nonzero)
+        n_occ = len(occ_g)
+        rows_per_block = max(1, _CHUNK_ELEMENTS // max(n_occ, 1))
+        found: list[tuple[np.ndarray, np.ndarray]] = []
+        shared: list[tuple[np.ndarray, np.ndarray]] = []
+        for lo in range(0, n_occ, rows_per_block):
+            block = slice(lo, min(n_occ, lo + rows_per_block))
+            different = occ_vehicle[block, None] != occ_vehicle[None, :]
+            first = tables.pair_first[occ_lanelet[block, None], occ_lanelet[None, :]]
+            a, b = np.nonzero((first >= 0) & different)
+            found.append((a + lo, b))
+            same = (occ_lanelet[block, None] == occ_lanelet[None, :]) & (occ_lanelet[block, None] < tables.n_lanelets) & different
+            a, b = np.nonzero(same)
+            shared.append((a + lo, b))
+        i = np.concatenate([a for a, _ in found])
+        j = np.concatenate([b for _, b in found])
+        si = np.concatenate([a for a, _ in shared])
+        sj = np.concatenate([b for _, b in shared])
         count = tables.pair_count[occ_lanelet[i], occ_lanelet[j]]
-        point = np.repeat(first[i, j], count) + _ranges(count)
+        point = np.repeat(tables.pair_first[occ_lanelet[i], occ_lanelet[j]], count) + _ranges(count)
         i, j = np.repeat(i, count), np.repeat(j, count)
         g, other_g = occ_g[i], occ_g[j]
         s = occ_start[i] + tables.point_s_a_m[point]
@@ -559,8 +574,6 @@ class RelationExtractor:
             & (other_distance > -(half_length[other_g] + cfg.clear_margin_m))
         )
         # a shared lanelet before the point on both corridors: a following relation, not a conflict
-        same = (occ_lanelet[:, None] == occ_lanelet[None, :]) & (occ_lanelet[:, None] < tables.n_lanelets) & different
-        si, sj = np.nonzero(same)
         shared_start = np.full((len(pairs), len(pairs)), np.inf)
         np.minimum.at(shared_start, (occ_g[si], occ_g[sj]), occ_start[si])
         keep &= ~((shared_start[g, other_g] <= s) & (shared_start[other_g, g] <= other_s))

@@ -120,7 +120,9 @@ def test_real_sequence_never_capped_and_pruning_changes_nothing(source, scene_ma
     pruned = run()
     monkeypatch.setattr(RelationExtractor, "_reach", lambda self, pairs: None)  # project every object on every corridor
     assert run() == pruned
-    monkeypatch.setattr(relations_core, "_CHUNK_ELEMENTS", 1 << 10)  # many small chunks
+    monkeypatch.setattr(relations_core, "_CHUNK_ELEMENTS", 1 << 10)  # many small chunks (projection and conflict lookups)
+    assert run() == pruned
+    monkeypatch.setattr(relations_core, "_CHUNK_ELEMENTS", 1)  # one row per block
     assert run() == pruned
 
 
