@@ -36,6 +36,10 @@ it has passed:
   velocity is rejected (issue ``velocity_rejected``): a zero at birth while the
   positions move never pulls a track to a stop. ``fuse_reported = false``
   uses positions alone.
+- A reported speed below 0.1 m/s is never fused: trackers report zero at a
+  track's birth and on dropouts, and whether a car stands is for its
+  positions (the dead band) to say; while the positions show it moving at
+  2 m/s or more, each such sample is an issue ``velocity_zero_while_moving``.
 - The first sample of a track has a position only: its speed is the
   calibrated reported one if trusted, else the reported one as given
   (``source = "reported"``), else unknown (NaN); it is not fed to the filter.
@@ -80,6 +84,7 @@ import numpy as np
 from stages._core import ConfigMixin, Issue, check_ranges
 
 _NS = 1e-9
+_ZERO_MPS = 0.1  # a reported speed below this counts as "reported zero"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -296,7 +301,9 @@ class KinematicEstimator:
             issues.append(Issue("position_jump", track_id, f"position {math.hypot(x_m - track.x[0], y_m - track.y[0]):.1f} m off its prediction: state restarted"))
             return self._start(track_id, stamp_ns, x_m, y_m, vx_mps, vy_mps, reported, calibrated)
         fused = False
-        if calibrated is not None:
+        # a reported zero is no evidence (trackers report it at a track's birth and on dropouts):
+        # whether a car stands is for its positions to say
+        if calibrated is not None and reported >= _ZERO_MPS:
             fused = self._fuse(track, calibrated)
             if not fused:
                 issues.append(Issue(
@@ -307,6 +314,8 @@ class KinematicEstimator:
         track.t_ns = stamp_ns
         track.n += 1
         state = self._state(track, reported, "fused" if fused else "positions", (x_m, y_m, vx_mps, vy_mps))
+        if reported < _ZERO_MPS and state.speed_mps >= cfg.consistency_min_speed_mps:
+            issues.append(Issue("velocity_zero_while_moving", track_id, f"reported speed {reported:.2f} m/s, positions say {state.speed_mps:.1f} m/s: ignored"))
         self._check(track_id, track, state, reported, issues)
         return state
 
@@ -432,6 +441,9 @@ class KinematicEstimator:
         dt = (t_now - first[0]) * _NS
         reps = [(vx, vy) for t, _, _, _, vx, vy in track.recent if t >= first[0]]
         if not all(math.isfinite(vx) and math.isfinite(vy) for vx, vy in reps):
+            return None
+        if any(math.hypot(vx, vy) < _ZERO_MPS for vx, vy in reps):
+            # a zero while the chord moves is the birth transient the gate rejects, not the tracker's scale
             return None
         mvx = sum(v[0] for v in reps) / len(reps)
         mvy = sum(v[1] for v in reps) / len(reps)

@@ -498,7 +498,7 @@ ODDITIES: dict[str, Oddity] = {o.name: o for o in (
     Oddity("vel_half", "reported velocities x 0.5", (VELOCITY_INCONSISTENT,), lambda c, a: _velocity(c, a, _scale(0.5))),
     Oddity("vel_double", "reported velocities x 2", (VELOCITY_INCONSISTENT,), lambda c, a: _velocity(c, a, _scale(2.0))),
     Oddity("vel_zero_start", "reported velocity 0 for the first second of each track",
-           ("velocity_rejected", VELOCITY_INCONSISTENT, "repaired_start_velocity_from_positions"), lambda c, a: _velocity(c, a, _zero_first_second)),
+           ("velocity_zero_while_moving", "velocity_rejected", VELOCITY_INCONSISTENT), lambda c, a: _velocity(c, a, _zero_first_second)),
     Oddity("vel_reversed", "reported velocities negated",
            (VELOCITY_INCONSISTENT, "repaired_velocity_sign_flipped"), lambda c, a: _velocity(c, a, _scale(-1.0))),
     Oddity("fast_car", "a car at 30 m/s along a real path, then straight off the map",

@@ -89,16 +89,32 @@ def test_a_calibrated_scale_is_undone_and_the_velocity_fused():
     assert all(s.source == "fused" and abs(s.speed_mps - 14.0) < 1.0 for s in states[1:])
 
 
-def test_zero_at_birth_is_gated_out_once_the_positions_show_motion():
+def _calibrated():
     est = KinematicEstimator()
     for track_id in range(3):
         x, y, vx, vy = _straight(40, 10.0, noise_m=0.03, seed=track_id)
         _run(est, track_id, x, y, vx, vy)
     assert est.calibration.trusted
+    return est
+
+
+def test_zero_at_birth_is_never_fused_and_counted_while_the_positions_move():
+    est = _calibrated()
     x, y, vx, vy = _straight(30, 15.0, noise_m=0.03, seed=5)
     zero = np.where(np.arange(30) < 10, 0.0, 1.0)
-    states, _ = _run(est, 5, x, y, vx * zero, vy * zero, start_ns=10**10)
-    assert est.velocity_rejected > 0
+    states, issues = _run(est, 5, x, y, vx * zero, vy * zero, start_ns=10**10)
+    assert all(abs(s.speed_mps - 15.0) < 1.5 for s in states[2:])
+    assert [s.source for s in states[1:10]] == ["positions"] * 9 and states[12].source == "fused"
+    zero_issues = [k for k, _ in enumerate(issues) if issues[k].kind == "velocity_zero_while_moving"]
+    assert len(zero_issues) >= 7 and {i.kind for i in issues} == {"velocity_zero_while_moving"}
+
+
+def test_a_wrong_reported_velocity_is_gated_out_once_the_positions_show_motion():
+    est = _calibrated()
+    x, y, vx, vy = _straight(30, 15.0, noise_m=0.03, seed=5)
+    slow = np.where(np.arange(30) < 10, 0.2, 1.0)  # the tracker starts at 3 m/s for a car at 15 m/s
+    states, issues = _run(est, 5, x, y, vx * slow, vy * slow, start_ns=10**10)
+    assert est.velocity_rejected > 0 and "velocity_rejected" in {i.kind for i in issues}
     assert all(abs(s.speed_mps - 15.0) < 1.5 for s in states[3:])
 
 
