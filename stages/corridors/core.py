@@ -363,6 +363,13 @@ class CorridorBuilder:
                 entries[row] = _entry(track_id, agent_type, MatchStatus.NOT_A_VEHICLE, state)
                 continue
             kin = self._kinematics(frame, row, track_id, stamp, state)
+            if kin is None and state.source == "unknown" and math.isfinite(x) and math.isfinite(y):
+                if scene_map is None or scene_map.road_map is None:
+                    entries[row] = _entry(track_id, agent_type, MatchStatus.OFF_MAP, state)
+                    continue
+                issues.append(Issue("state_pending", track_id, "first sample with no usable speed: corridors from the next frame"))
+                entries[row] = _entry(track_id, agent_type, MatchStatus.BAD_STATE, state)
+                continue
             if kin is None:
                 detail = f"non-finite state x={frame.x_m[row]} y={frame.y_m[row]} vx={vx} vy={vy} yaw={frame.yaw_rad[row]}"
                 issues.append(Issue("bad_state", track_id, detail))

@@ -220,7 +220,14 @@ def test_off_map_bad_state_pedestrian_and_stopped_cars(k729, scene_maps):
         length_m=np.append(base.length_m, [4.5, 4.5, 1.0, 4.5]),
         width_m=np.append(base.width_m, [1.8, 1.8, 1.0, 1.8]),
     )
-    corridor_set, issues = CorridorBuilder(CorridorsConfig(), scene_maps=scene_maps).process(frame, scene)
+    builder = CorridorBuilder(CorridorsConfig(), scene_maps=scene_maps)
+    first, first_issues = builder.process(frame, scene)
+    # a car first seen with a reported zero has no speed yet: pending for one frame, corridors from the next
+    assert {v.track_id: v for v in first.vehicles}[90004].status == MatchStatus.BAD_STATE
+    assert ("state_pending", 90004) in {(i.kind, i.agent_id) for i in first_issues}
+    header = dataclasses.replace(frame.header, stamp_ns=frame.header.stamp_ns + 100_000_000, frame_index=frame.header.frame_index + 1)
+    corridor_set, issues = builder.process(dataclasses.replace(frame, header=header), scene)
+    issues = first_issues + issues
     assert len(corridor_set.vehicles) == n + 4
     by_id = {v.track_id: v for v in corridor_set.vehicles}
     assert by_id[90001].status == MatchStatus.OFF_MAP and by_id[90001].corridors == ()

@@ -43,7 +43,10 @@ def test_speed_comes_from_positions_whatever_the_tracker_reports():
     x, y, vx, vy = _straight(40, 12.0, noise_m=0.05)
     for factor in (1.0, 0.5, 2.0, 0.0, -1.0):
         states, _ = _run(KinematicEstimator(), 1, x, y, vx * factor, vy * factor)
-        assert states[0].source == "reported" and states[0].speed_mps == pytest.approx(12.0 * abs(factor))
+        if factor == 0.0:  # a reported zero at birth is no speed at all
+            assert states[0].source == "unknown" and math.isnan(states[0].speed_mps)
+        else:
+            assert states[0].source == "reported" and states[0].speed_mps == pytest.approx(12.0 * abs(factor))
         later = np.array([s.speed_mps for s in states[10:]])
         assert np.all(np.abs(later - 12.0) < 1.0), (factor, later)
         assert all(s.source == "positions" for s in states[1:])
