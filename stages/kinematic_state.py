@@ -102,7 +102,6 @@ class EstimatorConfig(ConfigMixin):
     noise_adaptation: float = 0.05
     initial_speed_sigma_mps: float = 10.0
     standstill_radius_m: float = 0.25
-    standstill_noise_factor: float = 0.0
     standstill_max_speed_mps: float = 0.5
     standstill_window_s: float = 1.0
     accel_window_s: float = 1.0
@@ -163,7 +162,6 @@ class _Track:
     y: list[float]
     p: list[float]  # shared covariance [p00, p01, p11] (same H and dt for both axes)
     r: float  # measurement noise variance, adapted
-    n: int = 1
     first_ns: int = 0
     rv: float = 1.0  # variance of the calibrated reported velocity, adapted
     recent: collections.deque = field(default_factory=collections.deque)  # (t_ns, x, y, speed, reported vx, reported vy)
@@ -317,7 +315,6 @@ class KinematicEstimator:
                     f"({track.x[1]:.1f}, {track.y[1]:.1f}): not used",
                 ))
         track.t_ns = stamp_ns
-        track.n += 1
         state = self._state(track, reported, "fused" if fused else "positions", (x_m, y_m, vx_mps, vy_mps))
         if reported < _ZERO_MPS and state.speed_mps >= cfg.consistency_min_speed_mps:
             issues.append(Issue("velocity_zero_while_moving", track_id, f"reported speed {reported:.2f} m/s, positions say {state.speed_mps:.1f} m/s: ignored"))
@@ -417,8 +414,7 @@ class KinematicEstimator:
         half = len(window) // 2
         old = np.median(np.array([(x, y) for _, x, y in window[:half]]), axis=0)
         new = np.median(np.array([(x, y) for _, x, y in window[half:]]), axis=0)
-        radius = max(cfg.standstill_radius_m, cfg.standstill_noise_factor * math.sqrt(track.r))
-        return float(np.hypot(*(new - old))) < radius
+        return float(np.hypot(*(new - old))) < cfg.standstill_radius_m
 
     def _accel(self, track: _Track) -> float:
         window_ns = round(self.config.accel_window_s / _NS)

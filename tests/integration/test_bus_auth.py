@@ -31,7 +31,7 @@ sys.path[:0] = [str(Path(__file__).resolve().parents[2]), str(Path(__file__).res
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bus_schemas"))
 
 import bus_schemas as bs  # noqa: E402
-from helpers import REPO, endpoint, free_port, kill_all, python_env, wait_until  # noqa: E402
+from helpers import REPO, all_command_lines, endpoint, free_port, kill_all, python_env, wait_until  # noqa: E402
 from samples import SAMPLES  # noqa: E402
 from stages.mcap_inspect import inspect  # noqa: E402
 from stages.pipeline import PipelineError, load_pipeline  # noqa: E402
@@ -74,17 +74,6 @@ def _client_config(tmp_path: Path, name: str, user: str, password: str) -> str:
     return str(path)
 
 
-def _all_command_lines() -> list[str]:
-    out = []
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                out.append((entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace"))
-            except OSError:
-                pass
-    return out
-
-
 class Acks:
     """The recorder's Progress (``last_stamp_ns`` of the newest message it handled), seen through a session."""
 
@@ -118,7 +107,7 @@ def test_protected_run_takes_only_credentialed_sessions(tmp_path, monkeypatch):
         assert stat.S_IMODE(config.parent.stat().st_mode) == 0o700
         for f in config.parent.iterdir():
             assert stat.S_IMODE(f.stat().st_mode) == 0o600, f
-        assert not [c for c in _all_command_lines() if password in c], "the bus password is on a command line"
+        assert not [c for c in all_command_lines() if password in c], "the bus password is on a command line"
 
         hub = [endpoint(port)]
         seen_by_intruders: list[str] = []

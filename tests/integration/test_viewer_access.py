@@ -30,7 +30,7 @@ from websockets.sync.client import connect
 
 sys.path[:0] = [str(Path(__file__).resolve().parents[2]), str(Path(__file__).resolve().parents[1]), str(Path(__file__).resolve().parent)]
 
-from helpers import kill_all  # noqa: E402
+from helpers import all_command_lines, kill_all  # noqa: E402
 from stages._core import ConfigError  # noqa: E402
 from stages.viewer.config import TOKEN_ENV, ViewerConfig  # noqa: E402
 from stages.viewer.scene import ViewerApp  # noqa: E402
@@ -169,17 +169,6 @@ def test_bad_environment_token_is_refused(monkeypatch):
         ViewerConfig.from_params({}, where="viewer")
 
 
-def _all_command_lines() -> list[str]:
-    out = []
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                out.append((entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace"))
-            except OSError:
-                pass
-    return out
-
-
 def test_launched_viewer_with_token_and_bus_auth(tmp_path, monkeypatch):
     """The launcher prints the URL with the token; neither the token nor the bus password is on a command line."""
     token = secrets.token_urlsafe(18)
@@ -208,7 +197,7 @@ params = {{ port = 0, token = "{token}" }}
         port, printed = int(m.group(1)), m.group(2)
         assert printed == token
         run.wait_line(r"^\[launch\] all 1 nodes alive")
-        lines = _all_command_lines()
+        lines = all_command_lines()
         assert not [c for c in lines if token in c], "the viewer token is on a command line"
         assert not [c for c in lines if password in c], "the bus password is on a command line"
         own = f"http://127.0.0.1:{port}"
