@@ -7,12 +7,19 @@ with its ports, to ``run_stage``. The runtime owns everything else:
   explicit endpoints; ``--mode/--connect/--listen/--config`` to join a remote
   router);
 - a liveliness token at ``iamp/<run>/_alive/<node>``;
-- one bounded queue for all inputs: subscriber callbacks only enqueue (when
-  full the oldest entry is dropped and counted) and a single loop drains it,
-  so processing is ordered and single-threaded;
-- decoding through the port's message class: a ``SchemaError`` (or any other
-  exception, which ``bus_schemas`` should never raise) becomes a counter
-  increment, a dropped message and a rate-limited log line (``ProblemLog``);
+- decoding in the subscriber callback, before anything is queued, through
+  the port's message class: a ``SchemaError`` (or any other exception, which
+  ``bus_schemas`` should never raise) becomes a counter increment
+  (``decode_errors``, and ``decode_errors.<port>``), a dropped message and a
+  rate-limited log line (``ProblemLog``); a message stamped more than
+  ``--stamp-window-s`` ahead of the newest accepted stamp is rejected
+  (``rejected_stamps``);
+- one bounded queue per input port (``--queue-size`` messages and
+  ``--queue-mib`` of payload each): when full, that port's oldest entry is
+  dropped and counted (``queue_drops``, ``queue_drops.<port>``, one warning
+  line per port and 10 s), so a burst on one key never evicts another
+  input's frames; a single loop drains the queues in arrival order, so
+  processing is ordered and single-threaded;
   an exception of a core on one input set is counted and dropped the same
   way: no payload can end a stage;
 - a bounded, counted join on ``header.stamp_ns`` for stages with several
@@ -59,6 +66,7 @@ from ._core import ConfigError, Issue, StageResult
 EXIT_OK = 0
 EXIT_CRASH = 1
 EXIT_USAGE = 2
+MiB = 1024 * 1024
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:0"
 
@@ -184,7 +192,14 @@ def build_parser(spec: StageSpec) -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one parameter (TOML value)")
     p.add_argument("--inputs-json", default=None, help='input bindings as JSON {"port": "node/output"}')
     p.add_argument("--input", action="append", default=[], metavar="PORT=NODE/OUTPUT", help="bind one input")
-    p.add_argument("--queue-size", type=int, default=256, help="bounded input queue length (default 256)")
+    p.add_argument("--queue-size", type=int, default=256, help="bounded queue length of each input (default 256 messages)")
+    p.add_argument("--queue-mib", type=float, default=64.0, help="bounded queue size of each input in MiB of payload (default 64)")
+    p.add_argument(
+        "--stamp-window-s",
+        type=float,
+        default=60.0,
+        help="reject inputs stamped more than this many seconds ahead of the newest accepted stamp (default 60)",
+    )
     p.add_argument("--stats-period", type=float, default=1.0, help="seconds between NodeStats (default 1)")
     p.add_argument("--log-level", default="INFO")
     p.add_argument(
@@ -237,7 +252,7 @@ class _Stats:
         )
 
     def summary(self) -> str:
-        parts = [f"{k}={v}" for k, v in sorted(self.counters.items())]
+        parts = [f"{k}={v}" for k, v in sorted(self.counters.items()) if v or "." not in k]  # per-port counters when not 0
         if self.issues_by_kind:
             parts.append("issues_by_kind=" + ",".join(f"{k}:{v}" for k, v in sorted(self.issues_by_kind.items())))
         if self.errors_by_kind:
@@ -367,19 +382,21 @@ class ProblemLog:
         self._clock = clock
         self._last: dict[str, float] = {}
         self._hidden: collections.Counter[str] = collections.Counter()
+        self._lock = threading.Lock()  # subscriber callbacks report too
 
     def report(self, kind: str, level: int, fmt: str, *args: Any, first_extra: str | Callable[[], str] = "") -> None:
-        now = self._clock()
-        last = self._last.get(kind)
-        if last is not None and now - last < self.period_s:
-            self._hidden[kind] += 1
-            return
-        hidden = self._hidden.pop(kind, 0)
+        with self._lock:
+            now = self._clock()
+            last = self._last.get(kind)
+            if last is not None and now - last < self.period_s:
+                self._hidden[kind] += 1
+                return
+            hidden = self._hidden.pop(kind, 0)
+            self._last[kind] = now
         if last is None and first_extra:
             fmt, args = fmt + "\n%s", (*args, first_extra() if callable(first_extra) else first_extra)
         elif hidden:
             fmt, args = fmt + " [%d more of this kind in the last %.0f s]", (*args, hidden, now - last)
-        self._last[kind] = now
         self.log.log(level, fmt, *args)
 
     def close(self) -> None:
@@ -392,44 +409,75 @@ class ProblemLog:
 
 
 class _InputQueue:
-    """Bounded FIFO.
+    """Bounded FIFOs, one per input port, drained in arrival order by one loop.
 
-    When full, an operator's queue drops its oldest entry (counted): fresh
-    frames matter more than old ones. A raw sink's queue (``block=True``, the
-    recorder) instead makes the subscriber callback wait, which pushes back
-    through Zenoh's congestion control to the publishers, so nothing is lost.
+    Each port has its own bound, ``maxlen`` entries and ``max_bytes`` of
+    payload: a burst on one key can only push out older entries of that same
+    key, never a good frame of another input. When a port is full, an
+    operator's queue drops that port's oldest entry and calls
+    ``on_drop(port, nbytes)``: fresh frames matter more than old ones. A raw
+    sink's queue (``block=True``, the recorder) instead makes the subscriber
+    callback wait, which pushes back through Zenoh's congestion control to
+    the publishers, so nothing is lost. ``get`` returns the oldest entry over
+    all ports (a global arrival sequence), so processing stays in arrival
+    order.
     """
 
-    def __init__(self, maxlen: int, on_drop: Callable[[], None], block: bool = False) -> None:
-        self._dq: collections.deque = collections.deque()
+    def __init__(self, maxlen: int, on_drop: Callable[[Any, int], None], block: bool = False, max_bytes: int = 0) -> None:
+        self._q: dict[Any, collections.deque] = {}
+        self._bytes: collections.Counter = collections.Counter()
         self._maxlen = max(1, maxlen)
+        self._max_bytes = max(0, max_bytes)  # 0: no byte bound
         self._cv = threading.Condition()
         self._on_drop = on_drop
         self._block = block
+        self._seq = 0
+        self._len = 0
         self.closed = False
 
-    def put(self, item: Any) -> None:
+    def _full(self, port: Any, nbytes: int) -> bool:
+        dq = self._q.get(port)
+        if not dq:
+            return False  # one entry always fits, however large (its size was bounded by its schema)
+        return len(dq) >= self._maxlen or (self._max_bytes > 0 and self._bytes[port] + nbytes > self._max_bytes)
+
+    def put(self, item: Any, port: Any = None, nbytes: int = 0) -> None:
         with self._cv:
             if self._block:
-                while len(self._dq) >= self._maxlen and not self.closed:
+                while self._full(port, nbytes) and not self.closed:
                     self._cv.wait(0.1)
-            elif len(self._dq) >= self._maxlen:
-                self._dq.popleft()
-                self._on_drop()
-            self._dq.append(item)
+            else:
+                while self._full(port, nbytes):
+                    _seq, _old, old_bytes = self._q[port].popleft()
+                    self._bytes[port] -= old_bytes
+                    self._len -= 1
+                    self._on_drop(port, old_bytes)
+            self._seq += 1
+            self._q.setdefault(port, collections.deque()).append((self._seq, item, nbytes))
+            self._bytes[port] += nbytes
+            self._len += 1
             self._cv.notify_all()
 
     def get(self, timeout: float) -> Any | None:
         with self._cv:
-            if not self._dq:
+            if not self._len:
                 self._cv.wait(timeout)
-            item = self._dq.popleft() if self._dq else None
-            if item is not None and self._block:
+            if not self._len:
+                return None
+            port = min((p for p, dq in self._q.items() if dq), key=lambda p: self._q[p][0][0])
+            _seq, item, nbytes = self._q[port].popleft()
+            self._bytes[port] -= nbytes
+            self._len -= 1
+            if self._block:
                 self._cv.notify_all()
             return item
 
+    def depth(self, port: Any) -> int:
+        dq = self._q.get(port)
+        return len(dq) if dq else 0
+
     def __len__(self) -> int:
-        return len(self._dq)
+        return self._len
 
 
 # --------------------------------------------------------------------------- the node
@@ -455,9 +503,19 @@ class Node:
         self.started = time.monotonic()
         self.stop_event = threading.Event()
         self.signals = 0
-        self.queue = _InputQueue(args.queue_size, self._count_queue_drop, block=spec.kind == "raw_sink")
+        self.queue = _InputQueue(
+            args.queue_size, self._count_queue_drop, block=spec.kind == "raw_sink", max_bytes=int(getattr(args, "queue_mib", 64) * MiB)
+        )
         self.bindings = bindings
         self.input_keys = {port: f"{keys.ROOT}/{self.run_id}/{ref}" for port, ref in bindings.items()}
+        # callbacks (zenoh's threads) and the loop both count: one lock, and every key made here
+        # so that copying the counters for NodeStats never meets a key being added
+        self._count_lock = threading.Lock()
+        for port in self.input_keys:
+            for k in ("received", "decode_errors", "queue_drops", "rejected_stamps"):
+                self.stats.counters[f"{k}.{port}"] = 0
+        self.stats.counters["rejected_stamps"] = 0
+        self._stamp_clock_ns: int | None = None  # newest stamp accepted on a joined input
         self.output_keys = {port: keys.data_key(self.run_id, self.node_id, port) for port in spec.outputs}
         self.session: zenoh.Session | None = None
         self._publishers: dict[str, Any] = {}
@@ -475,8 +533,24 @@ class Node:
         self._frames_published: collections.deque[int] = collections.deque(maxlen=64)
 
     # ---- counters used from callbacks
-    def _count_queue_drop(self) -> None:
-        self.stats.counters["queue_drops"] += 1
+    def _count(self, key: str, port: str | None = None, n: int = 1) -> None:
+        with self._count_lock:
+            self.stats.counters[key] += n
+            if port is not None:
+                self.stats.counters[f"{key}.{port}"] += n
+
+    def _count_queue_drop(self, port: str | None, nbytes: int) -> None:
+        """A full input queue dropped the oldest entry of ``port``: an overflow, never a malformed payload."""
+        self._count("queue_drops", port)
+        self.problems.report(
+            f"queue_overflow:{port}",
+            logging.WARNING,
+            "input queue full: port=%s dropped its oldest message (%d bytes; limits %d messages, %.0f MiB per input): the stage is behind its input",
+            port,
+            nbytes,
+            self.args.queue_size,
+            getattr(self.args, "queue_mib", 64),
+        )
 
     # ---- session and declarations
     def open(self) -> None:
@@ -531,7 +605,8 @@ class Node:
             try:
                 for reply in self.session.get(key, timeout=1.0):
                     if reply.ok is not None:
-                        self.queue.put((port, key, reply.ok.payload.to_bytes(), time.time_ns()))
+                        self._count("received", port)
+                        self._accept(port, key, reply.ok.payload.to_bytes(), time.time_ns())
                         return
             except Exception as exc:  # the session may be closing
                 self.log.debug("latched query failed: port=%s error=%s", port, exc)
@@ -542,8 +617,8 @@ class Node:
 
     def _make_input_cb(self, port: str) -> Callable[[Any], None]:
         def cb(sample: Any) -> None:
-            self.stats.counters["received"] += 1
-            self.queue.put((port, str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+            self._count("received", port)
+            self._accept(port, str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
 
         return cb
 
@@ -551,8 +626,49 @@ class Node:
         key = str(sample.key_expr)
         if f"/{keys.ACK}/" in key:
             return
-        self.stats.counters["received"] += 1
-        self.queue.put((None, key, sample.payload.to_bytes(), time.time_ns()))
+        self._count("received")
+        data = sample.payload.to_bytes()
+        self.queue.put((None, key, data, time.time_ns()), None, len(data))
+
+    def _accept(self, port: str, key: str, data: bytes, recv_ns: int) -> None:
+        """Decode one input and queue it: what does not decode never takes a queue slot.
+
+        Decoding here, on the subscriber's thread, means a burst of malformed
+        payloads is counted as such (``decode_errors``) and cannot push good
+        messages out of the queue; only well-formed messages compete for it,
+        each port within its own bound (``queue_drops``, by port). A message
+        whose stamp lies more than ``--stamp-window-s`` ahead of the newest
+        stamp accepted so far is rejected (``rejected_stamps``): one message
+        from the far future would otherwise make every later frame look
+        stale to the join.
+        """
+        msg = self._decode(port, key, data)
+        if msg is None:
+            return
+        if not self.spec.inputs[port].latched:
+            header = getattr(msg, "header", None)
+            if header is not None and not self._stamp_ok(port, key, int(header.stamp_ns)):
+                return
+        self.queue.put((port, key, msg, recv_ns), port, len(data))
+
+    def _stamp_ok(self, port: str, key: str, stamp: int) -> bool:
+        window_ns = int(getattr(self.args, "stamp_window_s", 60.0) * 1e9)
+        with self._count_lock:
+            clock = self._stamp_clock_ns
+            if clock is None or stamp <= clock + window_ns:
+                self._stamp_clock_ns = stamp if clock is None else max(clock, stamp)
+                return True
+        self._count("rejected_stamps", port)
+        self.problems.report(
+            f"stamp_window:{port}",
+            logging.WARNING,
+            "dropped message: reason=stamp_out_of_window key=%s stamp_ns=%d is %.1f s ahead of the newest accepted stamp (window %.0f s)",
+            key,
+            stamp,
+            (stamp - clock) / 1e9,
+            window_ns / 1e9,
+        )
+        return False
 
     def _on_ack(self, sample: Any) -> None:
         try:
@@ -598,7 +714,9 @@ class Node:
         now = time.monotonic()
         if force or now - self._last_stats >= self.args.stats_period:
             self._last_stats = now
-            self._stats_pub.put(self.stats.message(self.run_id, self.node_id, self.spec.stage, self.started, len(self.queue)).encode())
+            with self._count_lock:
+                msg = self.stats.message(self.run_id, self.node_id, self.spec.stage, self.started, len(self.queue))
+            self._stats_pub.put(msg.encode())
 
     # ---- decode
     def _decode(self, port: str | None, key: str, data: bytes) -> Message | None:
@@ -610,8 +728,11 @@ class Node:
             reason, kind, detail = type(exc).__name__, type(exc).__name__, str(exc)
         except Exception as exc:  # bus_schemas raises only SchemaError; if it ever does not, the stage still goes on
             reason, kind, detail = f"decode_exception:{type(exc).__name__}", "decode_exception", str(exc)
-        self.stats.counters["decode_errors"] += 1
-        self.stats.errors_by_kind[kind] += 1
+        with self._count_lock:
+            self.stats.counters["decode_errors"] += 1
+            if port is not None:
+                self.stats.counters[f"decode_errors.{port}"] += 1
+            self.stats.errors_by_kind[kind] += 1
         self.problems.report(f"decode:{reason}:{key}", logging.WARNING, "dropped message: reason=%s key=%s detail=%s", reason, key, detail[:500])
         return None
 
@@ -623,10 +744,7 @@ class Node:
         return [p for p in self.input_keys if self.spec.inputs[p].latched]
 
     def _handle_operator_item(self, core: Any, item: tuple) -> None:
-        port, key, data, recv_ns = item
-        msg = self._decode(port, key, data)
-        if msg is None:
-            return
+        port, _key, msg, recv_ns = item  # decoded by _accept
         lat_ms = math.nan
         if self.spec.inputs[port].latched:
             self._latched_in[port] = msg
@@ -859,7 +977,9 @@ class Node:
         self.issue_log.close()
         self.problems.close()
         self.maybe_stats(force=True)
-        self.log.info("node stopping: %s", self.stats.summary())
+        with self._count_lock:
+            summary = self.stats.summary()
+        self.log.info("node stopping: %s", summary)
         try:
             if self.session is not None:
                 self._token.undeclare()

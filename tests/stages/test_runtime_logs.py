@@ -226,6 +226,13 @@ def _node(log) -> tuple[Node, _Pub]:
     return node, out
 
 
+def _deliver(node: Node, core, port: str, key: str, data: bytes) -> None:
+    """What a subscriber callback does (decode, queue) and then what the loop does with the queue."""
+    node._accept(port, key, data, 0)
+    while (item := node.queue.get(timeout=0)) is not None:
+        node._handle_operator_item(core, item)
+
+
 def _profiles(frame_index: int) -> bytes:
     msg = SAMPLES["iamp.AccelerationProfiles"]()
     env = msgpack.unpackb(msg.encode(), raw=False)
@@ -250,7 +257,7 @@ def test_hostile_payloads_and_a_failing_core_are_counted_and_the_node_goes_on(lo
     items = [_profiles(0), _huge_dim_profiles(), b"\x93not an envelope", _profiles(13), _profiles(2), _profiles(3)]
     core = _EchoCore()
     for data in items:
-        node._handle_operator_item(core, ("profiles", key, data, 0))
+        _deliver(node, core, "profiles", key, data)
     got = [bs.AccelerationProfiles.decode(d).header.frame_index for d in out.sent]
     assert got == [0, 2, 3]
     c = node.stats.counters
@@ -263,7 +270,7 @@ def test_hostile_payloads_and_a_failing_core_are_counted_and_the_node_goes_on(lo
         raise RuntimeError("decoder bug")
 
     monkeypatch.setattr(bs.AccelerationProfiles, "decode", staticmethod(boom))
-    node._handle_operator_item(core, ("profiles", key, _profiles(4), 0))
+    _deliver(node, core, "profiles", key, _profiles(4))
     assert c["decode_errors"] == 3 and node.stats.errors_by_kind["decode_exception"] == 1
     text = "\n".join(_lines(caplog))
     assert "dropped message: reason=MalformedPayload key=iamp/t/src/profiles detail=iamp.AccelerationProfiles.profiles[0].input_probs" in text
@@ -281,7 +288,7 @@ def test_the_serve_loop_survives_a_handler_that_raises(log, caplog):
             raise KeyError("oops")
 
     for k in ("good", "bad", "good2"):
-        node.queue.put((None, k, b"", 0))
+        node.queue.put((None, k, b"", 0), None, 0)
     node._stats_pub = _Pub()
     node.stop_event.set()
     node.signals = 2  # stop as soon as the queue is empty
@@ -289,3 +296,69 @@ def test_the_serve_loop_survives_a_handler_that_raises(log, caplog):
     assert handled == ["good", "bad", "good2"]
     assert node.stats.errors_by_kind["handler_exception"] == 1
     assert any("handling a message from key=bad failed (dropped): KeyError" in ln for ln in _lines(caplog))
+
+
+def _two_input_node(log, queue_size: int = 8) -> Node:
+    spec = StageSpec(
+        stage="tests.echo2",
+        config_cls=_Cfg,
+        make_core=lambda c, ctx: _EchoCore(),
+        inputs={"profiles": Port(bs.AccelerationProfiles), "other": Port(bs.AccelerationProfiles, optional=True)},
+        outputs={"profiles": Port(bs.AccelerationProfiles)},
+    )
+    argv = ["--node-id", "echo", "--run-id", "t", "--input", "profiles=src/profiles", "--input", "other=src/other", "--queue-size", str(queue_size)]
+    node = Node(spec, build_parser(spec).parse_args(argv), _Cfg(), {"profiles": "src/profiles", "other": "src/other"})
+    node.log = log
+    node.issue_log = IssueLog(log)
+    node.problems = ProblemLog(log)
+    return node
+
+
+def test_a_malformed_burst_takes_no_queue_slot_and_is_counted_as_malformed(log, caplog):
+    """Issue 13 item 4: 2,000 bad payloads between two good frames evict nothing; every one is a decode error."""
+    node = _two_input_node(log)
+    node._accept("profiles", "iamp/t/src/profiles", _profiles(1), 0)
+    for i in range(2000):
+        node._accept("profiles", "iamp/t/src/profiles", b"\x93junk" + i.to_bytes(4, "little"), 0)
+    node._accept("profiles", "iamp/t/src/profiles", _profiles(2), 0)
+    c = node.stats.counters
+    assert c["decode_errors"] == 2000 and c["decode_errors.profiles"] == 2000 and c["queue_drops"] == 0
+    got = [node.queue.get(timeout=0)[2].header.frame_index for _ in range(len(node.queue))]
+    assert got == [1, 2]
+    lines = [ln for ln in _lines(caplog) if "dropped message" in ln]
+    assert len(lines) == 1  # rate-limited: one line per kind and 10 s
+
+
+def test_an_overflow_on_one_input_never_evicts_another_inputs_frames(log, caplog):
+    node = _two_input_node(log, queue_size=8)
+    node._accept("other", "iamp/t/src/other", _profiles(1), 0)
+    for i in range(100):  # well-formed flood on "profiles"
+        node._accept("profiles", "iamp/t/src/profiles", _profiles(2 + i), 0)
+    c = node.stats.counters
+    assert c["queue_drops"] == 92 and c["queue_drops.profiles"] == 92 and c["queue_drops.other"] == 0 and c["decode_errors"] == 0
+    items = [node.queue.get(timeout=0) for _ in range(len(node.queue))]
+    assert items[0][0] == "other" and items[0][2].header.frame_index == 1  # arrival order kept across ports
+    assert [it[2].header.frame_index for it in items[1:]] == list(range(94, 102))  # the newest 8 of the flood
+    assert len([ln for ln in _lines(caplog) if "input queue full: port=profiles" in ln]) == 1
+
+
+def test_the_byte_bound_of_an_input_queue_drops_by_size(log):
+    node = _two_input_node(log, queue_size=1000)
+    one = len(_profiles(1))
+    node.queue._max_bytes = 3 * one
+    for i in range(10):
+        node._accept("profiles", "iamp/t/src/profiles", _profiles(1 + i), 0)
+    assert len(node.queue) == 3 and node.stats.counters["queue_drops.profiles"] == 7
+
+
+def test_a_stamp_far_ahead_of_the_run_clock_is_rejected_and_later_frames_still_pass(log, caplog):
+    node = _two_input_node(log)
+    node._accept("profiles", "iamp/t/src/profiles", _profiles(1), 0)
+    env = msgpack.unpackb(_profiles(2), raw=False)
+    env["body"]["header"]["stamp_ns"] = 2**63 - 1
+    node._accept("profiles", "iamp/t/src/profiles", msgpack.packb(env, use_bin_type=True), 0)
+    node._accept("profiles", "iamp/t/src/profiles", _profiles(3), 0)
+    c = node.stats.counters
+    assert c["rejected_stamps"] == 1 and c["rejected_stamps.profiles"] == 1
+    assert [node.queue.get(timeout=0)[2].header.frame_index for _ in range(len(node.queue))] == [1, 3]
+    assert any("reason=stamp_out_of_window" in ln for ln in _lines(caplog))
