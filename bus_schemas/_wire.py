@@ -34,12 +34,34 @@ never allocates more than the payload's size allows:
   itemsize equal to the byte length;
 - any other error while building a field (numpy, a dataclass) becomes a
   ``MalformedPayload`` naming the schema and the field.
+
+Values. A field (scalar or array) annotated with a ``Range`` is checked after
+decoding: finite and within ``[lo, hi]``; NaN only where the range allows it
+(``nan=True``: "unknown"), infinities never. What happens to a value outside
+its range depends on where it is:
+
+- ``clear=True`` (reported evidence a stage derives otherwise, e.g. a
+  tracker's velocity or size): the value becomes NaN, "unknown";
+- in an array over the rows of a column-wise message (the class states
+  ``ROWS``, the dim name of its objects: ``TrackFrame.ROWS = "n"``): that
+  object's row is dropped from every array of that dim;
+- inside an element of a tuple field the message names in ``DROP_ELEMENTS``
+  (``CorridorSet.vehicles``): that element is dropped;
+- anywhere else (headers, stamps, grid geometry): the whole message is
+  rejected with ``OutOfRange``.
+
+Each drop or clear is recorded, when the caller passes ``report=[...]`` to
+``decode``, as an ``OutOfRangeRecord`` (action, field path with indices
+removed, how many values); the runtime turns them into issues
+(``out_of_range_dropped`` / ``out_of_range_cleared``), so none is silent.
 """
 
 from __future__ import annotations
 
+import contextvars
 import dataclasses
 import enum
+import re
 import math
 import types
 import typing
@@ -49,7 +71,7 @@ from typing import Any, Annotated, ClassVar
 import msgpack
 import numpy as np
 
-from .errors import MalformedPayload, PayloadTooLarge, SchemaError, UnknownSchema, WrongSchema, WrongVersion
+from .errors import MalformedPayload, OutOfRange, PayloadTooLarge, SchemaError, UnknownSchema, WrongSchema, WrongVersion
 
 MiB = 1024 * 1024
 MAX_PAYLOAD_BYTES = 64 * MiB  # ceiling: checked first, and no class may state a larger MAX_BYTES
@@ -77,6 +99,77 @@ class Array:
     dims: tuple[int | str | None, ...]
 
 
+@dataclass(frozen=True, slots=True)
+class Range:
+    """Annotation: the values a scalar or array field may take (see the module docstring).
+
+    Finite and within ``[lo, hi]`` (``None``: unbounded on that side, still
+    finite); ``nan``: NaN allowed (unknown); ``clear``: a value out of range
+    becomes NaN (recorded) instead of dropping its object or rejecting the
+    message. ``unit`` is documentation only.
+    """
+
+    lo: float | None = None
+    hi: float | None = None
+    nan: bool = False
+    clear: bool = False
+    unit: str = ""
+
+    def bad(self, values: np.ndarray) -> np.ndarray:
+        """Mask of the values outside this range."""
+        v = np.asarray(values)
+        if v.dtype.kind in "iub":
+            bad = np.zeros(v.shape, dtype=bool)
+        else:
+            finite = np.isfinite(v)
+            bad = ~finite if not self.nan else np.isinf(v)
+        if self.lo is not None:
+            bad |= v < self.lo
+        if self.hi is not None:
+            bad |= v > self.hi
+        return bad
+
+    def bad_scalar(self, value: int | float) -> bool:
+        """Whether one int or float lies outside this range (Python comparisons: any int size)."""
+        if isinstance(value, float) and not math.isfinite(value):
+            return not (self.nan and math.isnan(value))
+        return (self.lo is not None and value < self.lo) or (self.hi is not None and value > self.hi)
+
+    def describe(self) -> str:
+        lo = "-inf" if self.lo is None else f"{self.lo:g}"
+        hi = "inf" if self.hi is None else f"{self.hi:g}"
+        return f"[{lo}, {hi}]" + (" or NaN" if self.nan else "") + (f" {self.unit}" if self.unit else "")
+
+
+@dataclass(frozen=True, slots=True)
+class OutOfRangeRecord:
+    """One drop or clear made while decoding: ``action`` ``dropped`` or ``cleared``; ``count`` values (rows, elements)."""
+
+    action: str
+    field: str
+    count: int
+    detail: str
+
+
+_REPORT: contextvars.ContextVar[list | None] = contextvars.ContextVar("iamp_out_of_range_report", default=None)
+_INDEX = re.compile(r"\[[^\]]*\]")
+
+
+def _record(action: str, path: str, count: int, detail: str) -> None:
+    report = _REPORT.get()
+    if report is not None:
+        report.append(OutOfRangeRecord(action, _INDEX.sub("[]", path), int(count), detail))
+
+
+class _DropElement(Exception):
+    """An out-of-range value inside an element of a ``DROP_ELEMENTS`` tuple: that element goes."""
+
+    def __init__(self, path: str, detail: str) -> None:
+        super().__init__(detail)
+        self.path = path
+        self.detail = detail
+
+
 REGISTRY: dict[str, type["Message"]] = {}
 
 
@@ -90,29 +183,44 @@ class Message:
     # docstring). Default 1 MiB; a class sized otherwise states its own with the sizes it
     # was sized from.
     MAX_BYTES: ClassVar[int] = DEFAULT_MAX_BYTES
+    # tuple fields whose elements (objects) are dropped, not the message, when a value inside is out of range
+    DROP_ELEMENTS: ClassVar[tuple[str, ...]] = ()
 
     def encode(self) -> bytes:
         body = _encode_obj(self, type(self).SCHEMA)
         return msgpack.packb({"schema": self.SCHEMA, "v": self.VERSION, "body": body}, use_bin_type=True)
 
     @classmethod
-    def decode(cls, data: bytes, *, where: str = "") -> "Message":
-        """Decode ``data`` as exactly this class; ``where`` (a key) goes into errors."""
+    def decode(cls, data: bytes, *, where: str = "", report: list | None = None) -> "Message":
+        """Decode ``data`` as exactly this class; ``where`` (a key) goes into errors.
+
+        ``report``: a list that gets one ``OutOfRangeRecord`` per object
+        dropped or value cleared for being out of range.
+        """
         schema, version, body = unpack_envelope(data, where=where, expect=cls)
         if schema != cls.SCHEMA:
             raise WrongSchema(f"{_short(schema)} v{version}{_at(where)}: expected {cls.SCHEMA}")
-        return cls._from_body(version, body, where)
+        return cls._from_body(version, body, where, report)
 
     @classmethod
-    def _from_body(cls, version: int, body: Any, where: str) -> "Message":
+    def _from_body(cls, version: int, body: Any, where: str, report: list | None = None) -> "Message":
         if version != cls.VERSION:
             raise WrongVersion(f"{cls.SCHEMA} v{version}{_at(where)}: this build reads v{cls.VERSION}")
+        records: list = []
+        token = _REPORT.set(records)
         try:
-            return _decode_obj(cls, body, f"{cls.SCHEMA}", where)
+            msg = _decode_obj(cls, body, f"{cls.SCHEMA}", where)
         except SchemaError:
             raise
+        except _DropElement as exc:  # a drop outside any droppable element: the message goes
+            raise OutOfRange(f"{exc.path}{_at(where)}: {exc.detail}") from None
         except Exception as exc:  # a last net: field decoding converts its own errors already
             raise MalformedPayload(f"{cls.SCHEMA}{_at(where)}: {type(exc).__name__}: {_short(exc)}") from None
+        finally:
+            _REPORT.reset(token)
+        if report is not None:
+            report.extend(records)
+        return msg
 
 
 def register(cls: type[Message]) -> type[Message]:
@@ -217,13 +325,13 @@ def peek_schema(data: bytes) -> tuple[str, int]:
     return schema, version
 
 
-def decode_any(data: bytes, *, where: str = "") -> Message:
-    """Decode a payload of any registered schema."""
+def decode_any(data: bytes, *, where: str = "", report: list | None = None) -> Message:
+    """Decode a payload of any registered schema (``report`` as for ``Message.decode``)."""
     schema, version, body = unpack_envelope(data, where=where)
     cls = REGISTRY.get(schema)
     if cls is None:
         raise UnknownSchema(f"{_short(schema)} v{version}{_at(where)}: unknown schema")
-    return cls._from_body(version, body, where)
+    return cls._from_body(version, body, where, report)
 
 
 # --------------------------------------------------------------------------- field codec
@@ -320,27 +428,80 @@ def _decode_obj(cls: type, body: Any, path: str, where: str) -> Any:
         raise MalformedPayload(f"{path}{_at(where)}: unknown field(s) {names}")
     dims: dict[str, int] = {}
     kwargs = {}
+    rows = getattr(cls, "ROWS", None)
+    drop_fields = getattr(cls, "DROP_ELEMENTS", ())
+    bad_rows: list[np.ndarray] = []
     for n, tp in hints.items():
         try:
-            kwargs[n] = _decode_value(body[n], tp, f"{path}.{n}", where, dims)
-        except SchemaError:
+            kwargs[n] = _decode_value(body[n], tp, f"{path}.{n}", where, dims, rows=(rows, bad_rows) if rows else None, drop=n in drop_fields)
+        except (SchemaError, _DropElement):
             raise
         except Exception as exc:  # numpy, enum, int/float conversions: never anything but a SchemaError
             raise _bad(f"{path}.{n}", where, f"{type(exc).__name__}: {_short(exc)}") from None
+    if bad_rows:
+        mask = np.logical_or.reduce(bad_rows)
+        keep = ~mask
+        for n, tp in hints.items():
+            spec = _array_spec(tp)
+            if spec is not None and spec.dims and spec.dims[0] == rows:
+                kwargs[n] = kwargs[n][keep]
+        _record("dropped", path, int(mask.sum()), f"{int(mask.sum())} of {mask.size} objects with a value out of range")
     try:
         return cls(**kwargs)
     except Exception as exc:
         raise MalformedPayload(f"{path}{_at(where)}: {type(exc).__name__}: {_short(exc)}") from None
 
 
+def _array_spec(tp: Any) -> "Array | None":
+    if typing.get_origin(tp) is Annotated:
+        return next((m for m in typing.get_args(tp)[1:] if isinstance(m, Array)), None)
+    return None
+
+
+def _check_range(value: Any, rng: Range, path: str, rows: tuple | None, spec: "Array | None") -> Any:
+    """``value`` checked against ``rng``; cleared, marked for a row drop, or raised (see the module docstring)."""
+    if isinstance(value, np.ndarray):
+        bad = rng.bad(value)
+        if not bad.any():
+            return value
+        n_bad = int(bad.sum())
+        first = value[bad].flat[0]
+        what = f"{n_bad} value(s) outside {rng.describe()} (first: {_short(first, 40)})"
+        if rng.clear and value.dtype.kind == "f":
+            value = value.copy()
+            value[bad] = np.nan
+            _record("cleared", path, n_bad, what)
+            return value
+        if rows is not None and spec is not None and spec.dims and spec.dims[0] == rows[0] and value.ndim >= 1:
+            rows[1].append(bad.reshape(bad.shape[0], -1).any(axis=1) if value.ndim > 1 else bad)
+            return value
+        raise _DropElement(path, what)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return value
+    if not rng.bad_scalar(value):
+        return value
+    what = f"{_short(value, 40)} is outside {rng.describe()}"
+    if rng.clear and isinstance(value, float):
+        _record("cleared", path, 1, what)
+        return math.nan
+    raise _DropElement(path, what)
+
+
 def _bad(path: str, where: str, what: str) -> MalformedPayload:
     return MalformedPayload(f"{path}{_at(where)}: {what}")
 
 
-def _decode_value(raw: Any, tp: Any, path: str, where: str, dims: dict[str, int]) -> Any:
+def _decode_value(
+    raw: Any, tp: Any, path: str, where: str, dims: dict[str, int], rows: tuple | None = None, drop: bool = False
+) -> Any:
     origin = typing.get_origin(tp)
     if origin is Annotated:
         base, *meta = typing.get_args(tp)
+        rng = next((m for m in meta if isinstance(m, Range)), None)
+        if rng is not None:
+            spec = next((m for m in meta if isinstance(m, Array)), None)
+            inner = Annotated[(base, spec)] if spec is not None else base
+            return _check_range(_decode_value(raw, inner, path, where, dims, rows, drop), rng, path, rows, spec)
         spec = next((m for m in meta if isinstance(m, Array)), None)
         if spec is None:
             return _decode_value(raw, base, path, where, dims)
@@ -378,7 +539,15 @@ def _decode_value(raw: Any, tp: Any, path: str, where: str, dims: dict[str, int]
         (elem, _ellipsis) = typing.get_args(tp)
         if not isinstance(raw, list):
             raise _bad(path, where, f"expected a list, got {type(raw).__name__}")
-        return tuple(_decode_value(v, elem, f"{path}[{i}]", where, {}) for i, v in enumerate(raw))
+        if not drop:
+            return tuple(_decode_value(v, elem, f"{path}[{i}]", where, {}) for i, v in enumerate(raw))
+        out = []
+        for i, v in enumerate(raw):
+            try:
+                out.append(_decode_value(v, elem, f"{path}[{i}]", where, {}))
+            except _DropElement as exc:
+                _record("dropped", path, 1, f"{path}[{i}]: {_INDEX.sub('[]', exc.path)}: {exc.detail}")
+        return tuple(out)
     if origin is dict:
         _k, vt = typing.get_args(tp)
         if not isinstance(raw, dict):
@@ -426,11 +595,17 @@ def json_schema(cls: type) -> dict:
         if origin is Annotated:
             base, *meta = typing.get_args(tp)
             spec = next((m for m in meta if isinstance(m, Array)), None)
+            rng = next((m for m in meta if isinstance(m, Range)), None)
             if spec is None:
-                return describe(base)
+                out = describe(base)
+                if rng is not None:
+                    out.update({k: v for k, v in (("minimum", rng.lo), ("maximum", rng.hi)) if v is not None})
+                    out["description"] = f"range {rng.describe()}" + (", out of range: cleared to NaN" if rng.clear else "")
+                return out
             return {
                 "type": "array",
-                "description": f"ndarray as [dtype, shape, bytes]; dtype {spec.dtype}, dims {list(spec.dims)}",
+                "description": f"ndarray as [dtype, shape, bytes]; dtype {spec.dtype}, dims {list(spec.dims)}"
+                + (f"; values {rng.describe()}" + (", out of range: cleared to NaN" if rng.clear else "") if rng is not None else ""),
             }
         if origin in (typing.Union, types.UnionType):
             args = [a for a in typing.get_args(tp) if a is not type(None)]

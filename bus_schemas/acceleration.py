@@ -14,8 +14,10 @@ from typing import Annotated, ClassVar
 
 import numpy as np
 
-from ._wire import Array, Message, register
-from .common import Header
+from ._wire import Array, Message, Range, register
+from .common import MAX_ACCEL_MPS2, NON_NEG_INT, PROB, Header
+
+_ACC = Range(-MAX_ACCEL_MPS2, MAX_ACCEL_MPS2, unit="m/s2")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True, eq=False)
@@ -35,13 +37,13 @@ class AccelerationProfile:
       (the rest padded and masked: a vehicle seen for less than the history).
     """
 
-    track_id: int
-    corridor_id: int
-    history_steps: int
-    accel_mps2: Annotated[np.ndarray, Array("float32", ("h",))]
-    chunk_mean_mps2: Annotated[np.ndarray, Array("float32", ("k",))]
-    chunk_sigma_mps2: Annotated[np.ndarray, Array("float32", ("k",))]
-    input_probs: Annotated[np.ndarray, Array("float32", ("k", "m"))]
+    track_id: Annotated[int, NON_NEG_INT]
+    corridor_id: Annotated[int, NON_NEG_INT]
+    history_steps: Annotated[int, NON_NEG_INT]
+    accel_mps2: Annotated[np.ndarray, Array("float32", ("h",)), _ACC]
+    chunk_mean_mps2: Annotated[np.ndarray, Array("float32", ("k",)), _ACC]
+    chunk_sigma_mps2: Annotated[np.ndarray, Array("float32", ("k",)), Range(0.0, MAX_ACCEL_MPS2, unit="m/s2")]
+    input_probs: Annotated[np.ndarray, Array("float32", ("k", "m")), PROB]
 
 
 @register
@@ -59,13 +61,15 @@ class AccelerationProfiles(Message):
     VERSION: ClassVar[int] = 1
     # measured 0.9-1.1 kB per (vehicle, corridor) profile: 4 MiB is about 4,000 profiles
     MAX_BYTES: ClassVar[int] = 4 * 1024 * 1024
+    # a profile with a value out of range is dropped (recorded): that pair falls back as if it had none
+    DROP_ELEMENTS: ClassVar[tuple[str, ...]] = ("profiles",)
 
     header: Header
     scene_id: str
     model: str
-    step_s: float
-    chunk_s: float
-    input_edges_mps2: Annotated[np.ndarray, Array("float64", ("e",))]
+    step_s: Annotated[float, Range(1e-3, 60.0, unit="s")]
+    chunk_s: Annotated[float, Range(1e-3, 60.0, unit="s")]
+    input_edges_mps2: Annotated[np.ndarray, Array("float64", ("e",)), _ACC]
     profiles: tuple[AccelerationProfile, ...]
 
     def by_pair(self) -> dict[tuple[int, int], AccelerationProfile]:

@@ -4,6 +4,29 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
+from typing import Annotated
+
+from ._wire import Range
+
+# Value ranges shared by the schemas (see ``_wire``: checked at decoding). Generous on
+# purpose: they catch what no sensor or stage produces (inf, 1e308, negative sizes,
+# stamps past int64), not what is merely unusual.
+MAX_COORD_M = 1.0e6  # map-frame coordinates: a local frame spans kilometres, not 1,000 km
+MAX_SPEED_MPS = 150.0  # 540 km/h
+MAX_ACCEL_MPS2 = 100.0
+INT64_MAX = 2**63 - 1
+COORD = Range(-MAX_COORD_M, MAX_COORD_M, unit="m")
+COORD_OR_NAN = Range(-MAX_COORD_M, MAX_COORD_M, nan=True, unit="m")
+DIST_OR_NAN = Range(-MAX_COORD_M, MAX_COORD_M, nan=True, unit="m")
+SPEED_OR_NAN = Range(0.0, 2 * MAX_SPEED_MPS, nan=True, unit="m/s")  # a norm of two components of up to MAX_SPEED_MPS
+FINITE = Range()
+FINITE_OR_NAN = Range(nan=True)
+ANGLE_OR_NAN = Range(-100.0, 100.0, nan=True, unit="rad")
+VEL_OR_NAN = Range(-MAX_SPEED_MPS, MAX_SPEED_MPS, nan=True, unit="m/s")
+ACCEL_OR_NAN = Range(-MAX_ACCEL_MPS2, MAX_ACCEL_MPS2, nan=True, unit="m/s2")
+PROB = Range(0.0, 1.0 + 1e-5)  # float32 sums may exceed 1 by rounding
+PROB_OR_NAN = Range(0.0, 1.0 + 1e-5, nan=True)
+NON_NEG_INT = Range(0, INT64_MAX)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -16,8 +39,8 @@ class Header:
     """
 
     run_id: str
-    frame_index: int
-    stamp_ns: int
+    frame_index: Annotated[int, NON_NEG_INT]
+    stamp_ns: Annotated[int, NON_NEG_INT]
     producer: str
 
 

@@ -8,10 +8,11 @@ from typing import Annotated, ClassVar
 
 import numpy as np
 
-from ._wire import Array, Message, register
-from .common import AgentType, Header
+from ._wire import Array, Message, Range, register
+from .common import ACCEL_OR_NAN, ANGLE_OR_NAN, COORD, DIST_OR_NAN, FINITE_OR_NAN, NON_NEG_INT, SPEED_OR_NAN, VEL_OR_NAN, AgentType, Header
 
 PTS = Annotated[np.ndarray, Array("float64", ("m",))]
+M = ("m",)
 
 
 class MatchStatus(enum.IntEnum):
@@ -37,19 +38,19 @@ class Corridor:
     (d positive to the left).
     """
 
-    corridor_id: int
+    corridor_id: Annotated[int, NON_NEG_INT]
     lanelet_ids: Annotated[np.ndarray, Array("int64", ("k",))]
-    lanelet_start_s_m: Annotated[np.ndarray, Array("float64", ("k",))]
-    x_m: PTS
-    y_m: PTS
-    s_m: PTS
-    heading_rad: PTS
-    curvature_1pm: PTS
-    width_m: PTS
-    extension_start_s_m: float
-    vehicle_s_m: float
-    vehicle_d_m: float
-    speed_limit_mps: float
+    lanelet_start_s_m: Annotated[np.ndarray, Array("float64", ("k",)), DIST_OR_NAN]
+    x_m: Annotated[np.ndarray, Array("float64", M), COORD]
+    y_m: Annotated[np.ndarray, Array("float64", M), COORD]
+    s_m: Annotated[np.ndarray, Array("float64", M), COORD]
+    heading_rad: Annotated[np.ndarray, Array("float64", M), ANGLE_OR_NAN]
+    curvature_1pm: Annotated[np.ndarray, Array("float64", M), FINITE_OR_NAN]
+    width_m: Annotated[np.ndarray, Array("float64", M), Range(0.0, 1000.0, nan=True, unit="m")]
+    extension_start_s_m: Annotated[float, DIST_OR_NAN]
+    vehicle_s_m: Annotated[float, DIST_OR_NAN]
+    vehicle_d_m: Annotated[float, DIST_OR_NAN]
+    speed_limit_mps: Annotated[float, SPEED_OR_NAN]
 
 
 @dataclass(frozen=True, slots=True, kw_only=True, eq=False)
@@ -65,29 +66,35 @@ class VehicleCorridors:
     velocity the reported vector (NaN when unknown).
     """
 
-    track_id: int
+    track_id: Annotated[int, NON_NEG_INT]
     agent_type: AgentType
     status: MatchStatus
     lanelet_id: int  # the matched lanelet, -1 if none
-    match_distance_m: float
-    speed_mps: float
+    match_distance_m: Annotated[float, Range(-1.0, 1.0e6, nan=True, unit="m")]  # -1: not matched
+    speed_mps: Annotated[float, SPEED_OR_NAN]
     corridors: tuple[Corridor, ...]
-    vx_mps: float = float("nan")
-    vy_mps: float = float("nan")
-    accel_mps2: float = float("nan")
+    vx_mps: Annotated[float, VEL_OR_NAN] = float("nan")
+    vy_mps: Annotated[float, VEL_OR_NAN] = float("nan")
+    accel_mps2: Annotated[float, ACCEL_OR_NAN] = float("nan")
     standing: bool = False
-    reported_speed_mps: float = float("nan")
+    reported_speed_mps: Annotated[float, SPEED_OR_NAN] = float("nan")
 
 
 @register
 @dataclass(frozen=True, slots=True, kw_only=True, eq=False)
 class CorridorSet(Message):
-    """Every object of one frame with its corridors; objects are never dropped."""
+    """Every object of one frame with its corridors; the corridors stage never drops one.
+
+    A vehicle with a value outside its schema range (see the fields) is
+    dropped at decoding by the receiving stage (``DROP_ELEMENTS``) and
+    recorded there, never passed to its core.
+    """
 
     SCHEMA: ClassVar[str] = "iamp.CorridorSet"
     VERSION: ClassVar[int] = 2  # v2: VehicleCorridors carries the estimated state (vx, vy, accel, standing, reported speed)
     # measured 3.5-4.8 kB per corridor (0.5 m centreline samples, 6 float64 arrays): 8 MiB is about 2,000 corridors
     MAX_BYTES: ClassVar[int] = 8 * 1024 * 1024
+    DROP_ELEMENTS: ClassVar[tuple[str, ...]] = ("vehicles",)
 
     header: Header
     scene_id: str

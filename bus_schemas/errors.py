@@ -32,3 +32,7 @@ class MalformedPayload(SchemaError):
 
 class PayloadTooLarge(MalformedPayload):
     """The payload exceeds the size limit for one message (its schema's ``MAX_BYTES``), found before unpacking."""
+
+
+class OutOfRange(MalformedPayload):
+    """A value outside the range its schema states (a ``Range`` annotation): the message is rejected."""

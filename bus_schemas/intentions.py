@@ -12,10 +12,13 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
-from ._wire import Message, register
-from .common import Header
+from ._wire import Message, Range, register
+from .common import ACCEL_OR_NAN, DIST_OR_NAN, NON_NEG_INT, PROB, SPEED_OR_NAN, Header
+
+_STD = Range(0.0, 1.0e6, nan=True)
+_COUNT = Range(0, 10_000_000)
 
 
 class Manoeuvre(enum.IntEnum):
@@ -47,18 +50,18 @@ class CorridorBelief:
     ahead on it).
     """
 
-    corridor_id: int
-    probability: float
+    corridor_id: Annotated[int, NON_NEG_INT]
+    probability: Annotated[float, PROB]
     manoeuvre: Manoeuvre
-    particle_count: int
-    s_mean_m: float
-    s_std_m: float
-    v_mean_mps: float
-    v_std_mps: float
-    a_mean_mps2: float
-    a_std_mps2: float
-    p_stop: float
-    stop_distance_m: float
+    particle_count: Annotated[int, _COUNT]
+    s_mean_m: Annotated[float, DIST_OR_NAN]
+    s_std_m: Annotated[float, _STD]
+    v_mean_mps: Annotated[float, SPEED_OR_NAN]
+    v_std_mps: Annotated[float, _STD]
+    a_mean_mps2: Annotated[float, ACCEL_OR_NAN]
+    a_std_mps2: Annotated[float, _STD]
+    p_stop: Annotated[float, PROB]
+    stop_distance_m: Annotated[float, DIST_OR_NAN]
 
 
 @dataclass(frozen=True, slots=True, kw_only=True, eq=False)
@@ -78,27 +81,33 @@ class VehicleBelief:
     ``particle_count`` particles.
     """
 
-    track_id: int
+    track_id: Annotated[int, NON_NEG_INT]
     corridors: tuple[CorridorBelief, ...]
-    p_stop: float
-    p_expected_stop: float
-    p_violation: float
-    p_lane_change: float
+    p_stop: Annotated[float, PROB]
+    p_expected_stop: Annotated[float, PROB]
+    p_violation: Annotated[float, PROB]
+    p_lane_change: Annotated[float, PROB]
     expected_manoeuvre: Manoeuvre
-    intersection_distance_m: float
-    effective_sample_size: float
-    particle_count: int
+    intersection_distance_m: Annotated[float, DIST_OR_NAN]
+    effective_sample_size: Annotated[float, Range(0.0, 10_000_000.0, nan=True)]
+    particle_count: Annotated[int, _COUNT]
 
 
 @register
 @dataclass(frozen=True, slots=True, kw_only=True, eq=False)
 class IntentionBelief(Message):
-    """The beliefs of every vehicle the intentions stage updated at this stamp."""
+    """The beliefs of every vehicle the intentions stage updated at this stamp.
+
+    Probabilities lie in [0, 1]; a vehicle with a value outside its range is
+    dropped at decoding (``DROP_ELEMENTS``, recorded): it has no belief at
+    this stamp, as if the intentions stage had not updated it.
+    """
 
     SCHEMA: ClassVar[str] = "iamp.IntentionBelief"
     VERSION: ClassVar[int] = 1
     # measured 0.6-0.7 kB per vehicle: 2 MiB is about 3,000 vehicles
     MAX_BYTES: ClassVar[int] = 2 * 1024 * 1024
+    DROP_ELEMENTS: ClassVar[tuple[str, ...]] = ("vehicles",)
 
     header: Header
     scene_id: str

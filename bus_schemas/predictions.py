@@ -13,10 +13,13 @@ from typing import Annotated, ClassVar
 
 import numpy as np
 
-from ._wire import Array, Message, register
-from .common import Header
+from ._wire import Array, Message, Range, register
+from .common import COORD, COORD_OR_NAN, DIST_OR_NAN, INT64_MAX, NON_NEG_INT, PROB, Header
 
 F64_K = Annotated[np.ndarray, Array("float64", ("k",))]
+POS_K = Annotated[np.ndarray, Array("float64", ("k",)), COORD_OR_NAN]
+TIMES_K = Annotated[np.ndarray, Array("float64", ("k",)), Range(0.0, 3600.0, unit="s")]
+CELL = Range(1e-6, 1.0e3)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True, eq=False)
@@ -48,19 +51,19 @@ class CorridorPrediction:
       ``y_at_mean_s_m``: X_c(E[s]) (differs from the mean position on curves).
     """
 
-    track_id: int
-    corridor_id: int
-    probability: float
-    vehicle_s_m: float
-    s_first_m: float
-    s_probs: Annotated[np.ndarray, Array("float32", ("k", "w"))]
-    v_probs: Annotated[np.ndarray, Array("float32", ("k", "nv"))]
-    outside_mass: Annotated[np.ndarray, Array("float32", ("k",))]
-    mean_x_m: F64_K
-    mean_y_m: F64_K
-    mean_s_m: F64_K
-    x_at_mean_s_m: F64_K
-    y_at_mean_s_m: F64_K
+    track_id: Annotated[int, NON_NEG_INT]
+    corridor_id: Annotated[int, Range(-1, INT64_MAX)]
+    probability: Annotated[float, PROB]
+    vehicle_s_m: Annotated[float, DIST_OR_NAN]
+    s_first_m: Annotated[float, DIST_OR_NAN]
+    s_probs: Annotated[np.ndarray, Array("float32", ("k", "w")), PROB]
+    v_probs: Annotated[np.ndarray, Array("float32", ("k", "nv")), PROB]
+    outside_mass: Annotated[np.ndarray, Array("float32", ("k",)), PROB]
+    mean_x_m: POS_K
+    mean_y_m: POS_K
+    mean_s_m: POS_K
+    x_at_mean_s_m: POS_K
+    y_at_mean_s_m: POS_K
 
 
 @register
@@ -79,13 +82,15 @@ class CorridorPredictions(Message):
     VERSION: ClassVar[int] = 1
     # measured about 3.5 kB per (vehicle, corridor) prediction (K x W float32): 8 MiB is about 2,300 predictions
     MAX_BYTES: ClassVar[int] = 8 * 1024 * 1024
+    # a prediction with a value out of range (probabilities outside [0, 1], inf positions) is dropped, recorded
+    DROP_ELEMENTS: ClassVar[tuple[str, ...]] = ("predictions",)
 
     header: Header
     scene_id: str
     mode: str
-    step_times_s: F64_K
-    ds_m: float
-    dv_mps: float
+    step_times_s: TIMES_K
+    ds_m: Annotated[float, CELL]
+    dv_mps: Annotated[float, CELL]
     predictions: tuple[CorridorPrediction, ...]
 
 
@@ -93,9 +98,9 @@ class CorridorPredictions(Message):
 class GridStep:
     """The non-negligible cells of one step, COO: ``rows``, ``cols`` ``(n,) int32`` and ``values`` ``(n,) float32``."""
 
-    rows: Annotated[np.ndarray, Array("int32", ("n",))]
-    cols: Annotated[np.ndarray, Array("int32", ("n",))]
-    values: Annotated[np.ndarray, Array("float32", ("n",))]
+    rows: Annotated[np.ndarray, Array("int32", ("n",)), Range(0, 2**31 - 1)]
+    cols: Annotated[np.ndarray, Array("int32", ("n",)), Range(0, 2**31 - 1)]
+    values: Annotated[np.ndarray, Array("float32", ("n",)), PROB]
 
 
 @register
@@ -123,11 +128,11 @@ class MotionGrid(Message):
     scene_id: str
     mode: str
     distribution: str
-    origin_x_m: float
-    origin_y_m: float
-    cell_m: float
-    n_rows: int
-    n_cols: int
-    min_value: float
-    step_times_s: F64_K
+    origin_x_m: Annotated[float, COORD]
+    origin_y_m: Annotated[float, COORD]
+    cell_m: Annotated[float, CELL]
+    n_rows: Annotated[int, Range(0, 1_000_000)]
+    n_cols: Annotated[int, Range(0, 1_000_000)]
+    min_value: Annotated[float, PROB]
+    step_times_s: TIMES_K
     steps: tuple[GridStep, ...]

@@ -8,8 +8,8 @@ from typing import Annotated, ClassVar
 
 import numpy as np
 
-from ._wire import Array, Message, register
-from .common import Header
+from ._wire import Array, Message, Range, register
+from .common import COORD_OR_NAN, DIST_OR_NAN, INT64_MAX, NON_NEG_INT, VEL_OR_NAN, Header
 
 
 class ConflictKind(enum.IntEnum):
@@ -19,15 +19,20 @@ class ConflictKind(enum.IntEnum):
 
 
 # per-object arrays: o = surrounding objects, q = intersections, c = conflicts
-I64_O = Annotated[np.ndarray, Array("int64", ("o",))]
+I64_O = Annotated[np.ndarray, Array("int64", ("o",)), NON_NEG_INT]
 U8_O = Annotated[np.ndarray, Array("uint8", ("o",))]
-F64_O = Annotated[np.ndarray, Array("float64", ("o",))]
+F64_O = Annotated[np.ndarray, Array("float64", ("o",)), DIST_OR_NAN]
+V_O = Annotated[np.ndarray, Array("float64", ("o",)), VEL_OR_NAN]
 I64_Q = Annotated[np.ndarray, Array("int64", ("q",))]
-F64_Q = Annotated[np.ndarray, Array("float64", ("q",))]
-I64_C = Annotated[np.ndarray, Array("int64", ("c",))]
+F64_Q = Annotated[np.ndarray, Array("float64", ("q",)), DIST_OR_NAN]
+I64_C = Annotated[np.ndarray, Array("int64", ("c",)), NON_NEG_INT]
 U8_C = Annotated[np.ndarray, Array("uint8", ("c",))]
-I8_C = Annotated[np.ndarray, Array("int8", ("c",))]
-F64_C = Annotated[np.ndarray, Array("float64", ("c",))]
+I8_C = Annotated[np.ndarray, Array("int8", ("c",)), Range(-1, 1)]
+F64_C = Annotated[np.ndarray, Array("float64", ("c",)), DIST_OR_NAN]
+XY_C = Annotated[np.ndarray, Array("float64", ("c",)), COORD_OR_NAN]
+V_C = Annotated[np.ndarray, Array("float64", ("c",)), VEL_OR_NAN]
+T_C = Annotated[np.ndarray, Array("float64", ("c",)), Range(-1.0e9, 1.0e9, nan=True, unit="s")]
+ID_OR_NONE = Range(-1, INT64_MAX)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True, eq=False)
@@ -55,17 +60,17 @@ class CorridorRelations:
     says which rule chose it.
     """
 
-    track_id: int
-    corridor_id: int
+    track_id: Annotated[int, NON_NEG_INT]
+    corridor_id: Annotated[int, NON_NEG_INT]
     object_track_ids: I64_O
     object_types: U8_O
     object_s_m: F64_O
     object_d_m: F64_O
     object_gap_m: F64_O
-    object_speed_mps: F64_O
-    leader_track_id: int
-    leader_gap_m: float
-    leader_speed_mps: float
+    object_speed_mps: V_O
+    leader_track_id: Annotated[int, ID_OR_NONE]
+    leader_gap_m: Annotated[float, DIST_OR_NAN]
+    leader_speed_mps: Annotated[float, VEL_OR_NAN]
     intersection_ids: I64_Q
     intersection_entry_s_m: F64_Q
     intersection_exit_s_m: F64_Q
@@ -76,15 +81,15 @@ class CorridorRelations:
     conflict_kinds: U8_C
     conflict_s_m: F64_C
     conflict_other_s_m: F64_C
-    conflict_x_m: F64_C
-    conflict_y_m: F64_C
+    conflict_x_m: XY_C
+    conflict_y_m: XY_C
     conflict_distance_m: F64_C
     conflict_other_distance_m: F64_C
-    conflict_other_speed_mps: F64_C
-    conflict_time_s: F64_C
-    conflict_other_time_s: F64_C
+    conflict_other_speed_mps: V_C
+    conflict_time_s: T_C
+    conflict_other_time_s: T_C
     conflict_priority: I8_C
-    influencing_index: int
+    influencing_index: Annotated[int, ID_OR_NONE]
     influencing_rule: str
 
 
@@ -97,6 +102,8 @@ class RelationSet(Message):
     VERSION: ClassVar[int] = 1
     # measured about 1 kB per (vehicle, corridor) pair with <= 5 objects; the arrays grow with objects and conflicts
     MAX_BYTES: ClassVar[int] = 8 * 1024 * 1024
+    # a pair's relations with a value out of range are dropped (recorded): the pair has none at this stamp
+    DROP_ELEMENTS: ClassVar[tuple[str, ...]] = ("relations",)
 
     header: Header
     scene_id: str

@@ -7,10 +7,13 @@ from typing import Annotated, ClassVar
 
 import numpy as np
 
-from ._wire import Array, Message, register
-from .common import Header
+from ._wire import Array, Message, Range, register
+from .common import COORD_OR_NAN, MAX_SPEED_MPS, NON_NEG_INT, VEL_OR_NAN, Header
 
 F64 = Annotated[np.ndarray, Array("float64", ("n",))]
+N_OBJ = ("n",)
+# a size no road user has (0, negative, 1 km) is no size: unknown, and the stages use the agent type's default
+SIZE = Range(0.01, 100.0, nan=True, clear=True, unit="m")
 
 
 @register
@@ -22,24 +25,32 @@ class TrackFrame(Message):
     the scene's local map frame (x east, y north), velocities m/s in the same
     frame, yaw in radians from the x axis. ``scene_id`` names the ``SceneInfo``
     (map + projection) the positions refer to.
+
+    Ranges, checked at decoding (``ROWS = "n"``: an object with a value out
+    of range is dropped from the frame, recorded): track ids >= 0; positions
+    within +-1e6 m or NaN (unknown: the corridors stage marks the object
+    BAD_STATE). Reported evidence out of range is cleared to NaN (unknown)
+    instead, because the stages derive it otherwise: velocity components
+    beyond +-150 m/s, yaw beyond +-100 rad, sizes outside 0.01..100 m.
     """
 
     SCHEMA: ClassVar[str] = "iamp.TrackFrame"
     VERSION: ClassVar[int] = 1
     # about 70 B per object (9 arrays) + 150 B: 1 MiB is about 15,000 objects (measured 104-221 B/object at <= 5 objects)
     MAX_BYTES: ClassVar[int] = 1 * 1024 * 1024
+    ROWS: ClassVar[str] = "n"
 
     header: Header
     scene_id: str
-    track_ids: Annotated[np.ndarray, Array("int64", ("n",))]
-    agent_types: Annotated[np.ndarray, Array("uint8", ("n",))]
-    x_m: F64
-    y_m: F64
-    vx_mps: F64
-    vy_mps: F64
-    yaw_rad: F64
-    length_m: F64
-    width_m: F64
+    track_ids: Annotated[np.ndarray, Array("int64", N_OBJ), NON_NEG_INT]
+    agent_types: Annotated[np.ndarray, Array("uint8", N_OBJ)]
+    x_m: Annotated[np.ndarray, Array("float64", N_OBJ), COORD_OR_NAN]
+    y_m: Annotated[np.ndarray, Array("float64", N_OBJ), COORD_OR_NAN]
+    vx_mps: Annotated[np.ndarray, Array("float64", N_OBJ), Range(-MAX_SPEED_MPS, MAX_SPEED_MPS, nan=True, clear=True, unit="m/s")]
+    vy_mps: Annotated[np.ndarray, Array("float64", N_OBJ), Range(-MAX_SPEED_MPS, MAX_SPEED_MPS, nan=True, clear=True, unit="m/s")]
+    yaw_rad: Annotated[np.ndarray, Array("float64", N_OBJ), Range(-100.0, 100.0, nan=True, clear=True, unit="rad")]
+    length_m: Annotated[np.ndarray, Array("float64", N_OBJ), SIZE]
+    width_m: Annotated[np.ndarray, Array("float64", N_OBJ), SIZE]
 
     def __len__(self) -> int:
         return int(self.track_ids.shape[0])
@@ -72,8 +83,8 @@ class SceneInfo(Message):
     map_name: str
     map_sha256: str
     projection: str
-    origin_lat_deg: float
-    origin_lon_deg: float
-    frame_rate_hz: float
-    speed_limit_mps: float
-    n_frames: int
+    origin_lat_deg: Annotated[float, Range(-90.0, 90.0, unit="deg")]
+    origin_lon_deg: Annotated[float, Range(-180.0, 180.0, unit="deg")]
+    frame_rate_hz: Annotated[float, Range(0.01, 1000.0, unit="Hz")]
+    speed_limit_mps: Annotated[float, Range(0.0, MAX_SPEED_MPS, nan=True, unit="m/s")]
+    n_frames: Annotated[int, NON_NEG_INT]

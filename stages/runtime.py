@@ -11,7 +11,10 @@ with its ports, to ``run_stage``. The runtime owns everything else:
   the port's message class: a ``SchemaError`` (or any other exception, which
   ``bus_schemas`` should never raise) becomes a counter increment
   (``decode_errors``, and ``decode_errors.<port>``), a dropped message and a
-  rate-limited log line (``ProblemLog``); a message stamped more than
+  rate-limited log line (``ProblemLog``); objects with a value outside their
+  schema's range are dropped (or the value cleared) by the decoder and
+  counted as issues ``out_of_range_dropped`` / ``out_of_range_cleared``; a
+  message stamped more than
   ``--stamp-window-s`` ahead of the newest accepted stamp is rejected
   (``rejected_stamps``);
 - one bounded queue per input port (``--queue-size`` messages and
@@ -720,10 +723,15 @@ class Node:
 
     # ---- decode
     def _decode(self, port: str | None, key: str, data: bytes) -> Message | None:
+        report: list = []
         try:
             if port is None:
-                return bus_schemas.decode_any(data, where=key)
-            return self.spec.inputs[port].schema.decode(data, where=key)
+                msg = bus_schemas.decode_any(data, where=key, report=report)
+            else:
+                msg = self.spec.inputs[port].schema.decode(data, where=key, report=report)
+            if report:
+                self._count_out_of_range(key, report)
+            return msg
         except SchemaError as exc:
             reason, kind, detail = type(exc).__name__, type(exc).__name__, str(exc)
         except Exception as exc:  # bus_schemas raises only SchemaError; if it ever does not, the stage still goes on
@@ -735,6 +743,25 @@ class Node:
             self.stats.errors_by_kind[kind] += 1
         self.problems.report(f"decode:{reason}:{key}", logging.WARNING, "dropped message: reason=%s key=%s detail=%s", reason, key, detail[:500])
         return None
+
+    def _count_out_of_range(self, key: str, report: list) -> None:
+        """Objects dropped or values cleared at decoding for being out of their schema's range: issues, counted and logged."""
+        with self._count_lock:
+            for rec in report:
+                kind = f"out_of_range_{rec.action}"
+                self.stats.counters["issues"] += rec.count
+                self.stats.issues_by_kind[kind] += rec.count
+        for rec in report:
+            self.problems.report(
+                f"out_of_range:{rec.action}:{rec.field}:{key}",
+                logging.WARNING,
+                "input out of range: action=%s field=%s count=%d key=%s detail=%s",
+                rec.action,
+                rec.field,
+                rec.count,
+                key,
+                rec.detail[:300],
+            )
 
     # ---- operator loop
     def _join_ports(self) -> list[str]:

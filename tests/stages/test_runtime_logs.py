@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import msgpack
+import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bus_schemas"))
@@ -266,7 +267,7 @@ def test_hostile_payloads_and_a_failing_core_are_counted_and_the_node_goes_on(lo
     assert c["issues"] == 2 and node.stats.issues_by_kind["even_frame"] == 2
 
     # a decoder that raises something else (it should not) is counted too
-    def boom(data, *, where=""):
+    def boom(data, *, where="", report=None):
         raise RuntimeError("decoder bug")
 
     monkeypatch.setattr(bs.AccelerationProfiles, "decode", staticmethod(boom))
@@ -362,3 +363,17 @@ def test_a_stamp_far_ahead_of_the_run_clock_is_rejected_and_later_frames_still_p
     assert c["rejected_stamps"] == 1 and c["rejected_stamps.profiles"] == 1
     assert [node.queue.get(timeout=0)[2].header.frame_index for _ in range(len(node.queue))] == [1, 3]
     assert any("reason=stamp_out_of_window" in ln for ln in _lines(caplog))
+
+
+def test_out_of_range_objects_are_counted_as_issues_and_never_reach_the_core(log, caplog):
+    """Issue 13 item 2 at the runtime: a profile of 1e308 is dropped at decoding, counted, logged once."""
+    node, out = _node(log)
+    core = _EchoCore()
+    env = msgpack.unpackb(_profiles(3), raw=False)
+    good = env["body"]["profiles"][0]
+    bad = dict(good, chunk_sigma_mps2=["float32", [len(good["chunk_sigma_mps2"][2]) // 4], np.full(len(good["chunk_sigma_mps2"][2]) // 4, -1.0, "<f4").tobytes()])
+    env["body"]["profiles"] = [bad, good]
+    _deliver(node, core, "profiles", "iamp/t/src/profiles", msgpack.packb(env, use_bin_type=True))
+    assert len(out.sent) == 1 and len(bs.AccelerationProfiles.decode(out.sent[0]).profiles) == 1
+    assert node.stats.issues_by_kind["out_of_range_dropped"] == 1 and node.stats.counters["decode_errors"] == 0
+    assert any("input out of range: action=dropped field=iamp.AccelerationProfiles.profiles count=1" in ln for ln in _lines(caplog))
