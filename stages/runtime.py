@@ -274,6 +274,7 @@ class _Episode:
     last_ns: int
     frames: int = 1
     occurrences: int = 1
+    shown: bool = True  # its start was logged (else its end is not either)
 
 
 class IssueLog:
@@ -297,13 +298,36 @@ class IssueLog:
     Several occurrences in one frame count once in ``frames``; when that
     happens the lines add ``occurrences=``. This class only logs: the node
     counts every occurrence in NodeStats itself.
+
+    Episodes that start and end on every message (a burst of bad payloads
+    interleaved with good ones, 100 vehicles each with its own episode) are
+    bounded too: at most ``max_starts`` episode starts of one kind are
+    logged per ``period_s``; the others are counted, their end is not
+    logged, and the next shown start of the kind (or ``close``) says how
+    many were not shown.
     """
 
     MAX_STOP_LINES = 20
 
-    def __init__(self, log: logging.Logger) -> None:
+    def __init__(self, log: logging.Logger, max_starts: int = 20, period_s: float = 10.0, clock: Callable[[], float] = time.monotonic) -> None:
         self.log = log
         self._open: dict[str | None, dict[tuple[str, int], _Episode]] = {}
+        self.max_starts = max_starts
+        self.period_s = period_s
+        self._clock = clock
+        self._starts: dict[str, collections.deque] = {}
+        self._hidden: collections.Counter[str] = collections.Counter()
+
+    def _may_show(self, kind: str) -> bool:
+        now = self._clock()
+        recent = self._starts.setdefault(kind, collections.deque())
+        while recent and now - recent[0] >= self.period_s:
+            recent.popleft()
+        if len(recent) >= self.max_starts:
+            self._hidden[kind] += 1
+            return False
+        recent.append(now)
+        return True
 
     def frame(self, stamp_ns: int, issues: Iterable[Issue], scope: str | None = None) -> None:
         """The issues of one handled frame (or, for a raw sink, one message on key ``scope``)."""
@@ -317,8 +341,12 @@ class IssueLog:
             k = (issue.kind, issue.agent_id)
             ep = episodes.get(k)
             if ep is None:
-                episodes[k] = _Episode(issue.detail, stamp_ns, stamp_ns)
-                self.log.warning("issue: kind=%s %s stamp_ns=%d %s", issue.kind, self._who(scope, issue.agent_id), stamp_ns, issue.detail)
+                shown = self._may_show(issue.kind)
+                episodes[k] = _Episode(issue.detail, stamp_ns, stamp_ns, shown=shown)
+                if shown:
+                    hidden = self._hidden.pop(issue.kind, 0)
+                    more = f" [{hidden} more episodes of this kind not shown in the last {self.period_s:.0f} s]" if hidden else ""
+                    self.log.warning("issue: kind=%s %s stamp_ns=%d %s%s", issue.kind, self._who(scope, issue.agent_id), stamp_ns, issue.detail, more)
             elif k in seen:
                 ep.occurrences += 1
             else:
@@ -327,7 +355,9 @@ class IssueLog:
                 ep.last_ns = stamp_ns
             seen.add(k)
         for k in [k for k in episodes if k not in seen]:
-            self._line(logging.INFO, "issue ended", scope, k, episodes.pop(k))
+            ep = episodes.pop(k)
+            if ep.shown:
+                self._line(logging.INFO, "issue ended", scope, k, ep)
         if not episodes:
             del self._open[scope]
 
@@ -336,8 +366,11 @@ class IssueLog:
 
     def close(self) -> None:
         """Log every episode still open, once, and forget them."""
-        items = [(scope, k, ep) for scope, eps in self._open.items() for k, ep in eps.items()]
+        items = [(scope, k, ep) for scope, eps in self._open.items() for k, ep in eps.items() if ep.shown]
         self._open.clear()
+        for kind, n in sorted(self._hidden.items()):
+            self.log.info("issue episodes not shown: kind=%s %d (more than %d starts in %.0f s)", kind, n, self.max_starts, self.period_s)
+        self._hidden.clear()
         for scope, k, ep in items[: self.MAX_STOP_LINES]:
             self._line(logging.INFO, "issue open at stop", scope, k, ep)
         if len(items) > self.MAX_STOP_LINES:

@@ -119,7 +119,7 @@ def test_shutdown_logs_the_open_episodes_once(log, caplog):
 
 
 def test_shutdown_lists_at_most_max_stop_lines(log, caplog):
-    ilog = IssueLog(log)
+    ilog = IssueLog(log, max_starts=1000)
     ilog.frame(5, [Issue("off_map", i, "") for i in range(IssueLog.MAX_STOP_LINES + 3)])
     caplog.clear()
     ilog.close()
@@ -377,3 +377,20 @@ def test_out_of_range_objects_are_counted_as_issues_and_never_reach_the_core(log
     assert len(out.sent) == 1 and len(bs.AccelerationProfiles.decode(out.sent[0]).profiles) == 1
     assert node.stats.issues_by_kind["out_of_range_dropped"] == 1 and node.stats.counters["decode_errors"] == 0
     assert any("input out of range: action=dropped field=iamp.AccelerationProfiles.profiles count=1" in ln for ln in _lines(caplog))
+
+
+def test_episodes_that_start_and_end_on_every_message_are_bounded(log, caplog):
+    """A raw sink fed bad/good/bad/... on one key: 2 lines per bad payload before; now at most max_starts per period."""
+    clock = [0.0]
+    il = IssueLog(log, max_starts=5, period_s=10.0, clock=lambda: clock[0])
+    bad = [Issue("unrecognised_payload", -1, "recorded without schema")]
+    for i in range(1000):
+        il.frame(i, bad, scope="iamp/t/source/track_frame")
+        il.frame(i, [], scope="iamp/t/source/track_frame")
+    lines = _lines(caplog)
+    assert sum("issue: kind=unrecognised_payload" in ln for ln in lines) == 5
+    assert sum("issue ended: kind=unrecognised_payload" in ln for ln in lines) == 5
+    clock[0] = 11.0
+    il.frame(2000, bad, scope="iamp/t/source/track_frame")
+    assert "[995 more episodes of this kind not shown in the last 10 s]" in _lines(caplog)[-1]
+    il.close()
