@@ -1,6 +1,6 @@
 """Adversarial recordings through the whole streaming pipeline, one oddity at a time.
 
-For each recording written by ``tests/adversarial.py`` (``adv_clean`` plus one
+For each recording written by ``testkit/adversarial.py`` (``adv_clean`` plus one
 per oddity: velocities x0.5 / x2 / zero for the first second / negated, a car
 at 30 m/s, a car starting off the map, a wrong-way car, a 50 m teleport,
 duplicated and re-used ids, a one-frame track, NaN/inf positions, velocities,
@@ -8,7 +8,7 @@ yaws and sizes, 100 vehicles in one frame), this
 
 1. runs the default pipeline as real processes over Zenoh:
    ``python launch.py --data DIR --recording NAME --speed max --no-viewer --record NAME.mcap``;
-2. reads the MCAP with the project's reader (``stages.mcap_inspect.read_messages``):
+2. reads the MCAP with the project's reader (``stages.recorder.inspect.read_messages``):
    TrackFrames, MotionGrids, frames with a TrackFrame but no MotionGrid
    (``lost``), and each node's last ``NodeStats`` (core_errors, join_drops,
    issues by kind);
@@ -17,13 +17,13 @@ yaws and sizes, 100 vehicles in one frame), this
 
 It prints one table row per recording, then per recording the issue kinds
 counted (``node.kind=count``; ``*`` marks a kind above ``adv_clean``'s
-count), the kinds expected for its oddity (``tests/adversarial.py``,
+count), the kinds expected for its oddity (``testkit/adversarial.py``,
 ``ODDITIES``) and whether one of them was counted. Timings are printed, not
 judged. Asserts nothing; exit code 0 unless the bench itself breaks.
 
     python bench/adversarial.py [--data DIR] [--only NAME ...] [--json OUT] [--keep DIR] [--no-eval]
 
-``--data``: a folder written by ``python tests/adversarial.py DIR`` (default:
+``--data``: a folder written by ``python -m testkit.adversarial DIR`` (default:
 written afresh into a temporary folder, seed ``--seed``). ``--keep DIR``
 keeps the MCAP files and launcher logs there.
 """
@@ -31,7 +31,6 @@ keeps the MCAP files and launcher logs there.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import sys
 import tempfile
@@ -42,15 +41,10 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def load_adversarial():
-    """``tests/adversarial.py`` as a module (by file path: ``tests`` is not a package)."""
-    name = "iamp_tests_adversarial"
-    if name in sys.modules:
-        return sys.modules[name]
-    spec = importlib.util.spec_from_file_location(name, REPO / "tests" / "adversarial.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
+    """The recording generator, ``testkit.adversarial``."""
+    from testkit import adversarial
+
+    return adversarial
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -26,13 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import bus_schemas as bs
+from bus_schemas._wire import Array, Message
+from stages.runtime import BusClient
 
-import bus_schemas as bs  # noqa: E402
-from bus_schemas._wire import Array, Message  # noqa: E402
-from stages.runtime import BusClient  # noqa: E402
-
-from typing import Annotated, ClassVar  # noqa: E402
+from typing import Annotated, ClassVar
 
 
 @dataclasses.dataclass(frozen=True, slots=True, kw_only=True, eq=False)

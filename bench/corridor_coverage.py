@@ -30,7 +30,7 @@ each recording, then, per recording and overall:
 string), e.g. ``--set lane_change_corridors=false``.
 
 PATH defaults to the TAF-BW folder beside the repository
-(``<repo>/../shared/data/taf-bw``), else the embedded ``data/taf-bw``.
+(``<repo>/../shared/data/taf-bw``), else the embedded ``stages/data/taf-bw``.
 Prints figures, asserts nothing.
 """
 
@@ -47,13 +47,11 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bus_schemas import AgentType, MatchStatus  # noqa: E402
-from plot_frame import default_data_dir, scene_for, track_frames  # noqa: E402
-from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps  # noqa: E402
-from stages.datasets import discover, load_recording  # noqa: E402
+from bus_schemas import AgentType, MatchStatus
+from plot_frame import default_data_dir, scene_for, track_frames
+from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
+from stages.lib.datasets import discover, load_recording
 
 HORIZON_STEPS = 10
 STEP_FRAMES = 4  # 0.4 s at 10 Hz

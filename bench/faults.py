@@ -42,7 +42,7 @@ import time
 from pathlib import Path
 
 import bus_schemas as bs
-from stages.mcap_inspect import ReadReport, read_messages
+from stages.recorder.inspect import ReadReport, read_messages
 
 REPO = Path(__file__).resolve().parents[1]
 STAGES = ("corridors", "relations", "intentions", "ar_inference", "markov_prediction")

@@ -7,7 +7,7 @@
 Sections (``--section`` repeatable; default: all):
 
 - ``fuzz``: ``--n`` seeded mutations of the golden payloads
-  (``tests/bus_schemas/mutations.py``: byte, structure and empty-object
+  (``testkit/mutations.py``: byte, structure and empty-object
   mutations) plus the targeted hostile payloads (the ``[0, 2**63]`` shape,
   negative and huge dims, wrong dtypes, byte lengths that do not match, deep
   nesting, 64 MB payloads), each decoded with ``bus_schemas.decode``. Prints
@@ -19,7 +19,7 @@ Sections (``--section`` repeatable; default: all):
   is rejected. Decoded in a child process: time and the child's peak RSS.
 
 - ``big-frame``: well-formed TrackFrames of ``--objects`` objects (default
-  1,000 and 500; ``tests/big_frames.py``: real K729 sequence 013 cars, the
+  1,000 and 500; ``testkit/big_frames.py``: real K729 sequence 013 cars, the
   sequence overlaid with itself at other instants, each copy with its own
   track ids; three consecutive frames so tracks have a history) fed
   in-process to each core (corridors, relations, intentions, ar_inference,
@@ -35,7 +35,7 @@ Sections (``--section`` repeatable; default: all):
   chunked).
 
 - ``burst``: what a burst of malformed payloads on one bus key does to a
-  running pipeline. ``launch.py`` (``pipelines/hybrid.toml``, no viewer,
+  running pipeline. ``launch.py`` (``stages/pipelines/hybrid.toml``, no viewer,
   recorder to a temporary file, ``--speed``) plays the first ``--frames``
   frames (default 300) of the embedded scenario (K729 sequence 013, sliced
   into a temporary data folder). A second Zenoh session of this process,
@@ -82,12 +82,10 @@ from pathlib import Path
 from typing import Callable
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "tests" / "bus_schemas"))
 
-import msgpack  # noqa: E402
+import msgpack
 
-import bus_schemas as bs  # noqa: E402
+import bus_schemas as bs
 
 
 def _peak_rss_mb(who: int = resource.RUSAGE_SELF) -> float:
@@ -108,7 +106,7 @@ def _best_of(data: bytes, k: int = 5) -> float:
 
 
 def section_fuzz(args: argparse.Namespace) -> None:
-    from mutations import mutated_payloads, targeted_payloads
+    from testkit.mutations import mutated_payloads, targeted_payloads
 
     groups = {
         "mutated": lambda: mutated_payloads(args.n, seed=args.seed),
@@ -154,7 +152,6 @@ def section_fuzz(args: argparse.Namespace) -> None:
 
 _LIMIT_CHILD = """
 import resource, sys, time
-sys.path.insert(0, {repo!r})
 import msgpack
 import bus_schemas as bs
 cls = bs.REGISTRY[{schema!r}]
@@ -192,8 +189,7 @@ def section_limits(args: argparse.Namespace) -> None:
 
 _BIG_PREP = """
 import pickle, sys
-sys.path.insert(0, {repo!r}); sys.path.insert(0, {tests!r})
-from big_frames import big_frames, real_frames
+from testkit.big_frames import big_frames, real_frames
 from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
 from stages.relations import RelationExtractor, RelationsConfig
 from stages.intentions import IntentionFilter, IntentionsConfig
@@ -218,7 +214,6 @@ pickle.dump(out, open(sys.argv[1], "wb"))
 
 _BIG_STAGE = """
 import collections, pickle, resource, sys, time
-sys.path.insert(0, {repo!r})
 stage, n, uncapped = sys.argv[2], int(sys.argv[3]), sys.argv[4] == "1"
 scene, chain = pickle.load(open(sys.argv[1], "rb"))[n]
 from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
@@ -321,7 +316,7 @@ _NODE_LINE = re.compile(r"^\[(?P<tag>[a-z_]+)\] ")
 
 def _slice_scenario(dst: Path, frames: int) -> int:
     """The embedded scenario with sequence 013 cut to its first ``frames`` frames (timestamps); returns the frames kept."""
-    from stages.datasets import DEFAULT_DATA_DIR
+    from stages.lib.datasets import DEFAULT_DATA_DIR
 
     shutil.copytree(DEFAULT_DATA_DIR / "maps", dst / "maps")
     src = DEFAULT_DATA_DIR / "recorded_trackfiles" / BURST_RECORDING
@@ -342,7 +337,7 @@ def _malformed_payloads(n: int, seed: int) -> list[tuple[str, bytes]]:
     """``n`` payloads that ``bus_schemas.decode`` (and ``TrackFrame.decode``) must refuse, three kinds in turn."""
     import random
 
-    from samples import track_frame
+    from testkit.samples import track_frame
 
     rng = random.Random(seed)
     good = [track_frame(k).encode() for k in (4, 8, 16)]
@@ -458,8 +453,8 @@ class _LaunchOutput:
 def section_burst(args: argparse.Namespace) -> None:
     import tempfile
 
-    import launch
-    from stages.pipeline import load_pipeline
+    from stages.runtime import launcher as launch
+    from stages.runtime.pipeline import load_pipeline
     from stages.runtime import BusClient
 
     n_bad = args.burst

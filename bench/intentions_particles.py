@@ -4,12 +4,12 @@
     python bench/intentions_particles.py [--data DIR] [--recording NAME] [--sequence ID ...] [--particles 100 300 1000] [--seeds 0 1 2]
 
 Runs the corridors and relations cores once over the embedded K729
-recording (every sequence in ``data/taf-bw``, or those given), then the
+recording (every sequence in ``stages/data/taf-bw``, or those given), then the
 ``IntentionFilter`` for each particle count and seed over the same frames.
 Prints, per particle count: the CPU and wall time of one
 ``IntentionFilter.process`` call (all vehicles of a frame; CPU time is the
 figure to compare on a shared machine), per vehicle, and route_top1 of the
-evaluation (``stages.intentions.evaluation``) in the last frames before the
+evaluation (``stages.offline.intentions_eval``) in the last frames before the
 intersection entrance (bins 1 s and 0 s, pooled) and at 3 s and 2 s, as the
 mean over the seeds and its spread (min..max), since a particle filter's
 answer is random. Asserts nothing.
@@ -24,12 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from stages.corridors import SceneMaps  # noqa: E402
-from stages.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, load_recording  # noqa: E402
-from stages.intentions import IntentionFilter, IntentionsConfig  # noqa: E402
-from stages.intentions.evaluation import (  # noqa: E402
+from stages.corridors import SceneMaps
+from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, load_recording
+from stages.intentions import IntentionFilter, IntentionsConfig
+from stages.offline.intentions_eval import (
     IntentionEvalConfig,
     chain_frames,
     entering_events,
@@ -37,7 +35,7 @@ from stages.intentions.evaluation import (  # noqa: E402
     route_windows,
     tracks_of,
 )
-from stages.tracks_source import file_sha256  # noqa: E402
+from stages.tracks_source.core import file_sha256
 
 
 def timed_run(frames, config: IntentionsConfig, scene_maps: SceneMaps):

@@ -20,9 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from stages.markov import (  # noqa: E402
+from stages.lib.markov import (
     InputReplaced,
     MarkovGridConfig,
     MarkovPropagator,

@@ -24,10 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-import bus_schemas as bs  # noqa: E402
-from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor  # noqa: E402
+import bus_schemas as bs
+from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
 
 STAMP = 1_000_000_000
 

@@ -21,14 +21,14 @@ K729, sequence 013, the frame with the most cars, <tmp>/corridors_frame.png.
 
 matplotlib is not installed in the project's environment, so this renders
 with a small numpy rasteriser (scanline polygon fill, thick segments, a 3x5
-bitmap font) and writes the PNG with stages.raster (zlib and struct). Hook for later
+bitmap font) and writes the PNG with stages.lib.raster (zlib and struct). Hook for later
 overlays (conflict points from the relations stage): `render_frame(...,
 overlays=[fn])` calls each `fn(canvas)` last; `Canvas.marker` and
 `Canvas.polyline` draw in map metres.
 
 Other lanelets come from the OSM file (ElementTree) and are placed with the
 affine map from (lat, lon) to metres fitted on the car lanelets' bound points
-as `stages.maps` projected them (exact to millimetres over a few hundred
+as `stages.lib.maps` projected them (exact to millimetres over a few hundred
 metres), so this script does not touch lanelet2.
 """
 
@@ -44,15 +44,16 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from stages.lib.datasets import DEFAULT_DATA_DIR
 
-from bus_schemas import AgentType, CorridorSet, Header, MatchStatus, SceneInfo, TrackFrame  # noqa: E402
-from stages.corridors import CorridorBuilder, CorridorsConfig  # noqa: E402
-from stages.datasets import load_recording  # noqa: E402
-from stages.maps import RoadMap  # noqa: E402
-from stages.raster import MapRaster, write_png  # noqa: E402
-from stages.relations import RelationExtractor, RelationsConfig  # noqa: E402
+REPO = Path(__file__).resolve().parents[1]
+
+from bus_schemas import AgentType, CorridorSet, Header, MatchStatus, SceneInfo, TrackFrame
+from stages.corridors import CorridorBuilder, CorridorsConfig
+from stages.lib.datasets import load_recording
+from stages.lib.maps import RoadMap
+from stages.lib.raster import MapRaster, write_png
+from stages.relations import RelationExtractor, RelationsConfig
 
 PALETTE = np.array(
     [
@@ -148,7 +149,7 @@ def osm_lanelets(osm_path: Path, road_map: RoadMap) -> list[tuple[int, bool, np.
         members = {m.get("role"): int(m.get("ref")) for m in rel.iter("member") if m.get("type") == "way"}
         if "left" in members and "right" in members and members["left"] in ways and members["right"] in ways:
             found.append((int(rel.get("id")), ways[members["left"]], ways[members["right"]]))
-    # affine (lat, lon) -> (x, y) fitted on the car lanelets' bounds as stages.maps projected them;
+    # affine (lat, lon) -> (x, y) fitted on the car lanelets' bounds as stages.lib.maps projected them;
     # lanelet2 may hold a bound inverted relative to its OSM way, so fit, re-orient, refit
     pairs = []
     car_ids = set(road_map.lanelet_ids)
@@ -276,7 +277,7 @@ def relations_overlay(frame: TrackFrame, relation_set, colours: dict[int, tuple[
 
 def default_data_dir() -> Path:
     shared = (REPO / ".." / "shared" / "data" / "taf-bw").resolve()
-    return shared if (shared / "recorded_trackfiles").is_dir() else REPO / "data" / "taf-bw"
+    return shared if (shared / "recorded_trackfiles").is_dir() else DEFAULT_DATA_DIR
 
 
 def scene_for(recording, sequence) -> SceneInfo:

@@ -26,12 +26,11 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
-from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps  # noqa: E402
-from stages.datasets import DEFAULT_DATA_DIR  # noqa: E402
-from stages.relations import RelationExtractor, RelationsConfig, SceneTables  # noqa: E402
-from stages.tracks_source import TrackPlayer, TracksSourceConfig  # noqa: E402
+from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
+from stages.lib.datasets import DEFAULT_DATA_DIR
+from stages.relations import RelationExtractor, RelationsConfig, SceneTables
+from stages.tracks_source.core import TrackPlayer, TracksSourceConfig
 
 RECORDING = "k729_2022-03-16"
 

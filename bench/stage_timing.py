@@ -9,7 +9,7 @@
     python bench/stage_timing.py [--data PATH] [--repeats N]
 
 PATH defaults to the TAF-BW folder beside the repository, else the embedded
-``data/taf-bw``.
+``stages/data/taf-bw``.
 """
 
 from __future__ import annotations
@@ -23,13 +23,11 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bus_schemas import AgentType  # noqa: E402
-from plot_frame import default_data_dir, scene_for, track_frames  # noqa: E402
-from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps  # noqa: E402
-from stages.datasets import load_recording  # noqa: E402
+from bus_schemas import AgentType
+from plot_frame import default_data_dir, scene_for, track_frames
+from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
+from stages.lib.datasets import load_recording
 
 RECORDING = "k729_2022-03-16"
 VEHICLES = [t.value for t in AgentType if t.is_vehicle]

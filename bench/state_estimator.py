@@ -1,4 +1,4 @@
-"""Which causal speed estimate predicts a car's next seconds best? Figures for stages.kinematic_state.
+"""Which causal speed estimate predicts a car's next seconds best? Figures for stages.lib.kinematic_state.
 
 For every car sample with at least 1 s of history, each candidate's speed
 times T is compared with the straight-line distance the car really covers in
@@ -25,8 +25,8 @@ import sys
 import numpy as np
 
 from bus_schemas import AgentType
-from stages.datasets import discover, load_recording
-from stages.kinematic_state import EstimatorConfig, KinematicEstimator
+from stages.lib.datasets import discover, load_recording
+from stages.lib.kinematic_state import EstimatorConfig, KinematicEstimator
 
 HORIZONS_S = (1.0, 2.0, 3.0, 4.0)
 
@@ -102,7 +102,7 @@ def score(recording) -> dict[str, dict[str, float]]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", required=True, help="data folder laid out like data/taf-bw")
+    ap.add_argument("--data", required=True, help="data folder laid out like stages/data/taf-bw")
     ap.add_argument("--recording", nargs="*", help="recordings (default: all)")
     ap.add_argument("--json", help="write the figures here")
     args = ap.parse_args(argv)

@@ -11,7 +11,7 @@ of the recording; positions, yaw and everything else untouched):
 Each modified recording is written to a temporary folder in the same layout
 (``maps/<rec>.osm`` and ``meta_data.csv`` copied, track files rewritten by
 header name, other columns kept as text), and ``iamp eval`` runs in-process
-on it (``stages.evaluation.Evaluation``, the default modes hybrid baseline
+on it (``stages.offline.evaluation.Evaluation``, the default modes hybrid baseline
 corridor_cv cv, stride 0.4 s). Printed per variant and mode: windows, mADE,
 mFDE, coverage90, and the ratio of each to the ``given`` run (> 1 for the
 errors, < 1 for coverage: worse); the same for the fast windows (speed > 2
@@ -23,7 +23,7 @@ velocities all point against the motion is flipped back). Asserts nothing.
     python bench/velocity_robustness.py --data DIR --recording NAME [--sequence ID ...] [--mode M ...]
         [--max-frames N] [--json OUT]
 
-Defaults: the embedded ``data/taf-bw``, recording ``k729_2022-03-16``.
+Defaults: the embedded ``stages/data/taf-bw``, recording ``k729_2022-03-16``.
 """
 
 from __future__ import annotations
@@ -38,11 +38,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from stages.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, find_recording, load_recording
-from stages.datasets.model import same_sequence_id
-from stages.datasets.interaction import META_FILE, TRACK_FILE_RE
-from stages._core import json_safe
-from stages.evaluation import EVAL_MODES, EvalConfig, Evaluation
+from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, find_recording, load_recording
+from stages.lib.datasets.model import same_sequence_id
+from stages.lib.datasets.interaction import META_FILE, TRACK_FILE_RE
+from stages.lib.base import json_safe
+from stages.offline.evaluation import EVAL_MODES, EvalConfig, Evaluation
 
 VARIANTS = ("given", "vel_half", "vel_zero_1s", "vel_reversed")
 DEFAULT_MODES = ("hybrid", "baseline", "corridor_cv", "cv")
@@ -120,7 +120,7 @@ def write_variant(data: Path, recording: str, out: Path, variant: str, sequences
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--data", type=Path, default=DEFAULT_DATA_DIR, help="data folder laid out like data/taf-bw (default: the embedded one)")
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA_DIR, help="data folder laid out like stages/data/taf-bw (default: the embedded one)")
     p.add_argument("--recording", default=DEFAULT_RECORDING, help=f"recording (default {DEFAULT_RECORDING})")
     p.add_argument("--sequence", action="append", default=[], help="sequence id (repeatable; default all)")
     p.add_argument("--mode", nargs="+", default=list(DEFAULT_MODES), choices=EVAL_MODES)

@@ -37,14 +37,14 @@ def _add_record(sub: "argparse._SubParsersAction") -> None:
     p.add_argument("--split-s", type=float, default=None, help="start the next split file after this many seconds (default 0: never)")
     p.add_argument("--no-stats", action="store_true", help="leave out the _stats keys")
     p.add_argument("--log-level", default="INFO")
-    from .runtime import add_network_args
+    from stages.runtime import add_network_args
 
     add_network_args(p)
     p.set_defaults(run=_run_record)
 
 
 def _run_record(args: argparse.Namespace) -> int:
-    from . import recorder
+    from stages import recorder
 
     params: dict[str, object] = {"path": args.file}
     for name in ("compression", "chunk_size_bytes", "flush_period_s", "split_bytes", "split_s"):
@@ -61,7 +61,7 @@ def _run_record(args: argparse.Namespace) -> int:
 
 
 def _add_replay(sub: "argparse._SubParsersAction") -> None:
-    from .replay import add_cli_arguments
+    from stages.replay.core import add_cli_arguments
 
     p = sub.add_parser("replay", help="publish a recording onto the bus (original timing or --speed max)")
     add_cli_arguments(p)
@@ -69,13 +69,13 @@ def _add_replay(sub: "argparse._SubParsersAction") -> None:
 
 
 def _run_replay(args: argparse.Namespace) -> int:
-    from .replay import run_cli
+    from stages.replay.core import run_cli
 
     return run_cli(args)
 
 
 def _add_inspect(sub: "argparse._SubParsersAction") -> None:
-    from .mcap_inspect import add_arguments
+    from stages.recorder.inspect import add_arguments
 
     p = sub.add_parser("inspect", help="summarise a recording: channels, counts, time range, frames")
     add_arguments(p)
@@ -83,13 +83,13 @@ def _add_inspect(sub: "argparse._SubParsersAction") -> None:
 
 
 def _run_inspect(args: argparse.Namespace) -> int:
-    from .mcap_inspect import run
+    from stages.recorder.inspect import run
 
     return run(args)
 
 
 def _add_recover(sub: "argparse._SubParsersAction") -> None:
-    from .mcap_inspect import add_recover_arguments
+    from stages.recorder.inspect import add_recover_arguments
 
     p = sub.add_parser("recover", help="rewrite a recording cut short by a killed writer into a finished MCAP file that any reader reads")
     add_recover_arguments(p)
@@ -97,13 +97,13 @@ def _add_recover(sub: "argparse._SubParsersAction") -> None:
 
 
 def _run_recover(args: argparse.Namespace) -> int:
-    from .mcap_inspect import run_recover
+    from stages.recorder.inspect import run_recover
 
     return run_recover(args)
 
 
 def _add_eval(sub: "argparse._SubParsersAction") -> None:
-    from .evaluation import add_arguments
+    from stages.offline.evaluation import add_arguments
 
     p = sub.add_parser("eval", help="offline comparison of prediction modes against ground truth (mADE/mFDE, coverage, NLL)")
     add_arguments(p)
@@ -111,13 +111,13 @@ def _add_eval(sub: "argparse._SubParsersAction") -> None:
 
 
 def _run_eval(args: argparse.Namespace) -> int:
-    from .evaluation import run_cli
+    from stages.offline.evaluation import run_cli
 
     return run_cli(args)
 
 
 def _add_train(sub: "argparse._SubParsersAction") -> None:
-    from .ar.cli import add_arguments
+    from stages.offline.train.cli import add_arguments
 
     p = sub.add_parser("train", help="train the AR acceleration model on recordings (validation vs zero / last-value baselines)")
     add_arguments(p)
@@ -125,7 +125,7 @@ def _add_train(sub: "argparse._SubParsersAction") -> None:
 
 
 def _run_train(args: argparse.Namespace) -> int:
-    from .ar.cli import run_cli
+    from stages.offline.train.cli import run_cli
 
     return run_cli(args)
 

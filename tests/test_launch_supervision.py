@@ -7,10 +7,8 @@ from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-import launch  # noqa: E402
-from launch import MAX_RESTARTS, RESTART_RESET_S, RestartBudget  # noqa: E402
+from stages.runtime import launcher as launch
+from stages.runtime.launcher import MAX_RESTARTS, RESTART_RESET_S, RestartBudget
 
 
 class Clock:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from stages.pipeline import PipelineError, load_pipeline
+from stages.runtime.pipeline import PipelineError, load_pipeline
 
 REPO = Path(__file__).resolve().parents[1]
 FIX = REPO / "tests" / "fixtures" / "pipelines"
@@ -85,7 +85,7 @@ def test_external_outputs_are_declared_with_their_schema(tmp_path):
         load_pipeline(f)
 
 
-@pytest.mark.parametrize("pipeline", sorted((REPO / "pipelines").glob("*.toml")), ids=lambda p: p.name)
+@pytest.mark.parametrize("pipeline", sorted((REPO / "stages" / "pipelines").glob("*.toml")), ids=lambda p: p.name)
 def test_shipped_pipelines_are_valid(pipeline):
     r = subprocess.run([sys.executable, str(REPO / "launch.py"), str(pipeline), "--check"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr + r.stdout

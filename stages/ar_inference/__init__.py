@@ -6,8 +6,8 @@ Consumes ``corridor_set`` (``CorridorSet``) and ``relation_set``
 ``python -m stages.ar_inference``.
 
 Per frame it adds the frame to every vehicle's 4 s feature history
-(``stages.ar.FeatureTracker``: the same code that built the training data),
-runs the model (``model``, default the shipped ``stages/ar/weights/ar_taf_bw.pt``)
+(``stages.lib.ar.FeatureTracker``: the same code that built the training data),
+runs the model (``model``, default the shipped ``stages/lib/ar/weights/ar_taf_bw.pt``)
 once over all (vehicle, corridor) pairs of the frame, and turns each
 40-step profile into 10 normal distributions over the chain's input cells
 (METHOD.md §3.2, ``chunk_distributions``): μ_k the mean of chunk k's four
@@ -19,7 +19,7 @@ from what there is (padding and mask; ``history_steps`` says how much).
 
 ``max_pairs`` 600: bounded work per frame (issue 13): beyond it whole
 vehicles are kept in CorridorSet order while their corridors fit, the rest
-are skipped this frame (``stages.caps.cap_pairs``; one ``pairs_capped``
+are skipped this frame (``stages.lib.caps.cap_pairs``; one ``pairs_capped``
 issue). TAF-BW frames (at most ~20 vehicles, ~2 corridors each) never are.
 
 Issues: ``stamp_mismatch`` (relations of another stamp: ignored),
@@ -30,8 +30,8 @@ Issues: ``stamp_mismatch`` (relations of another stamp: ignored),
 
 from __future__ import annotations
 
-from .config import ARInferenceConfig
-from .core import ARInference, chunk_distributions
+from stages.ar_inference.config import ARInferenceConfig
+from stages.ar_inference.core import ARInference, chunk_distributions
 
 __all__ = ["INPUTS", "OUTPUTS", "SPEC", "ARInference", "ARInferenceConfig", "chunk_distributions", "main"]
 
@@ -41,7 +41,7 @@ _BINDING = ("SPEC", "INPUTS", "OUTPUTS", "main", "make_core")
 def __getattr__(name: str):
     """The binding lives in ``__main__.py``; importing it pulls in the runtime (zenoh) only when asked."""
     if name in _BINDING:
-        from . import __main__ as binding
+        from stages.ar_inference import __main__ as binding
 
         return getattr(binding, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from stages._core import ConfigMixin, check_ranges
+from stages.lib.base import ConfigMixin, check_ranges
 
 
 @dataclass(frozen=True, kw_only=True)
 class ARInferenceConfig(ConfigMixin):
     """Parameters of the ar_inference stage (package docstring; METHOD.md §3.2)."""
 
-    #: weights file; empty: the shipped ``stages/ar/weights/ar_taf_bw.pt``
+    #: weights file; empty: the shipped ``stages/lib/ar/weights/ar_taf_bw.pt``
     model: str = ""
     #: torch device of the model ("cpu", "cuda", "cuda:0")
     device: str = "cpu"

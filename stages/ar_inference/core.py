@@ -10,10 +10,10 @@ from typing import Any, Mapping
 import numpy as np
 
 from bus_schemas import AccelerationProfile, AccelerationProfiles, CorridorSet, Header, RelationSet, SceneInfo, TrackFrame
-from stages._core import ConfigError, Issue, StageResult
-from stages.caps import cap_pairs
+from stages.lib.base import ConfigError, Issue, StageResult
+from stages.lib.caps import cap_pairs
 
-from .config import ARInferenceConfig
+from stages.ar_inference.config import ARInferenceConfig
 
 
 def chunk_distributions(
@@ -53,11 +53,11 @@ def _erf(x: np.ndarray) -> np.ndarray:
 class ARInference:
     """The ar_inference core: keeps every vehicle's feature history, predicts every pair of a frame in one batch.
 
-    ``model`` may be passed (an already loaded ``stages.ar.ARModel``) to share it between cores (evaluation).
+    ``model`` may be passed (an already loaded ``stages.lib.ar.ARModel``) to share it between cores (evaluation).
     """
 
     def __init__(self, config: ARInferenceConfig, *, producer: str = "ar_inference", model: Any = None) -> None:
-        from stages.ar import DEFAULT_MODEL_PATH, FeatureTracker, load_model
+        from stages.lib.ar import DEFAULT_MODEL_PATH, FeatureTracker, load_model
 
         self.config = config
         self.producer = producer
@@ -157,6 +157,6 @@ class ARInference:
 
     def reset(self) -> None:
         """Forget every vehicle's history."""
-        from stages.ar import FeatureTracker
+        from stages.lib.ar import FeatureTracker
 
         self.tracker = FeatureTracker()

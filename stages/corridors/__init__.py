@@ -17,7 +17,7 @@ Parameters (``CorridorsConfig``; lengths in m, angles in rad):
   ``entry_extension_m`` 50.0: matching (below).
 - ``max_objects`` 200: bounded work per frame (issue 13; TAF-BW frames hold
   at most ~20 objects): beyond it the objects nearest to the map's centre
-  are kept (``stages.caps``: the middle of the car lanelets' bounding box,
+  are kept (``stages.lib.caps``: the middle of the car lanelets' bounding box,
   where the intersection is; non-finite positions dropped first) and the
   others become BAD_STATE entries without corridors, nothing computed for
   them, with one ``objects_capped`` issue per frame giving how many.
@@ -33,7 +33,7 @@ Parameters (``CorridorsConfig``; lengths in m, angles in rad):
   (by stamps).
 - ``fuse_reported_velocity`` true: the kinematic state (``VehicleCorridors``
   speed, velocity, acceleration, standing) comes from
-  ``stages.kinematic_state.KinematicEstimator``: positions, with the
+  ``stages.lib.kinematic_state.KinematicEstimator``: positions, with the
   tracker's velocity fused once it is calibrated against them; false uses
   positions alone.
 - ``projection`` "auto": the scene's projection, and for "auto" there the
@@ -41,7 +41,7 @@ Parameters (``CorridorsConfig``; lengths in m, angles in rad):
   K729, scaled Mercator for K733).
 
 - ``data`` "": the local data folder whose ``maps/`` holds the maps (the
-  launcher passes its ``--data``; "" the embedded ``data/taf-bw``).
+  launcher passes its ``--data``; "" the embedded ``stages/data/taf-bw``).
 
 Map. Loaded when the latched scene's ``scene_id`` changes (never per frame),
 from the local data folder only (``core.local_map_file``): the scene's
@@ -149,7 +149,7 @@ corridor.
 
 from __future__ import annotations
 
-from .core import CorridorBuilder, CorridorsConfig, SceneMap, SceneMaps, resolve_projection
+from stages.corridors.core import CorridorBuilder, CorridorsConfig, SceneMap, SceneMaps, resolve_projection
 
 __all__ = ["CorridorBuilder", "CorridorsConfig", "SceneMap", "SceneMaps", "resolve_projection", "SPEC", "INPUTS", "OUTPUTS", "main"]
 
@@ -159,7 +159,7 @@ _BINDING = ("SPEC", "INPUTS", "OUTPUTS", "main", "make_core")
 def __getattr__(name: str):
     """The binding lives in ``__main__.py``; importing it pulls in the runtime (zenoh) only when asked."""
     if name in _BINDING:
-        from . import __main__ as binding
+        from stages.corridors import __main__ as binding
 
         return getattr(binding, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -20,13 +20,13 @@ from typing import Mapping
 import numpy as np
 
 from bus_schemas import AgentType, Corridor, CorridorSet, Header, MatchStatus, SceneInfo, TrackFrame, VehicleCorridors
-from stages._core import ConfigMixin, Issue, StageResult, check_ranges, isolate
-from stages.caps import keep_nearest, map_centre_m
-from stages.kinematic_state import EstimatorConfig, KinematicEstimator, KinematicState
-from stages.maps import Projection, RoadMap, load_map, parse_projection, projection_for_location, wrap_angle_rad
+from stages.lib.base import ConfigMixin, Issue, StageResult, check_ranges, isolate
+from stages.lib.caps import keep_nearest, map_centre_m
+from stages.lib.kinematic_state import EstimatorConfig, KinematicEstimator, KinematicState
+from stages.lib.maps import Projection, RoadMap, load_map, parse_projection, projection_for_location, wrap_angle_rad
 
-from .matching import LaneletIndex, LaneletMatch, select_lanelets
-from .routes import RouteCache, RouteGeometry, cut_corridor, max_separation_m, project_vehicle, route_hash
+from stages.corridors.matching import LaneletIndex, LaneletMatch, select_lanelets
+from stages.corridors.routes import RouteCache, RouteGeometry, cut_corridor, max_separation_m, project_vehicle, route_hash
 
 _NS = 1e-9
 
@@ -58,7 +58,7 @@ class CorridorsConfig(ConfigMixin):
     track_timeout_s: float = 2.0
     projection: str = "auto"
     fuse_reported_velocity: bool = True
-    data: str = ""  # local data folder whose maps/ holds the scene's map (by name); "": the embedded data/taf-bw
+    data: str = ""  # local data folder whose maps/ holds the scene's map (by name); "": the embedded stages/data/taf-bw
 
     def __post_init__(self) -> None:
         positive = ("horizon_s", "resample_step_m", "route_length_m", "lane_change_length_m", "frenet_window_m", "heading_window_s",
@@ -108,8 +108,8 @@ _MAP_NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,199}")
 
 
 def data_folder(data: str | os.PathLike | None) -> Path:
-    """A stage's local data folder: ``data`` if given, else the embedded ``data/taf-bw``."""
-    from stages.datasets import DEFAULT_DATA_DIR
+    """A stage's local data folder: ``data`` if given, else the embedded ``stages/data/taf-bw``."""
+    from stages.lib.datasets import DEFAULT_DATA_DIR
 
     return Path(data).expanduser() if data else DEFAULT_DATA_DIR
 
@@ -169,7 +169,7 @@ class SceneMaps:
     """Loads and caches scene maps (one lanelet2 load per map, hash, projection and origin).
 
     The map comes from ``<data>/maps`` (``data``: the stage's local data
-    folder, default the embedded ``data/taf-bw``), found by the scene's map
+    folder, default the embedded ``stages/data/taf-bw``), found by the scene's map
     name and checked against its sha256 (``local_map_file``); a map that is
     missing, too large, of another hash or that fails to load is cached as a
     ``SceneMap`` without ``road_map`` and its problems, never retried.
@@ -404,7 +404,7 @@ class CorridorBuilder:
         return CorridorSet(header=header, scene_id=scene_id, vehicles=tuple(entries)), issues
 
     def _cap(self, frame: TrackFrame, scene_map: SceneMap | None, issues: list[Issue]):
-        """Mask of the rows within `max_objects` (nearest to the map's centre, `stages.caps`), or None when all are."""
+        """Mask of the rows within `max_objects` (nearest to the map's centre, `stages.lib.caps`), or None when all are."""
         cap = self.config.max_objects
         if len(frame) <= cap:
             return None

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stages.maps import RoadMap, wrap_angle_rad
+from stages.lib.maps import RoadMap, wrap_angle_rad
 
 INSIDE = 0
 """Candidate level: the position lies inside the lanelet's polygon."""

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bus_schemas import Corridor
-from stages.maps import Centreline, RoadMap, project_to_polyline, wrap_angle_rad
+from stages.lib.maps import Centreline, RoadMap, project_to_polyline, wrap_angle_rad
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -8,7 +8,7 @@ corridor with the particles' mean and spread of s, v and a on it (the
 Markov chain's weights and initial box), P(I = stop), P(E = stop), P(I ≠ E),
 P(lane change), the most probable manoeuvre, the distance to the next
 intersection entrance, the effective sample size. Run it alone with
-``python -m stages.intentions``; ``python -m stages.intentions.evaluation``
+``python -m stages.intentions``; ``python -m stages.offline.intentions_eval``
 scores it on recordings.
 
 The network (all numbers are ``IntentionsConfig`` fields, [R] starting values
@@ -131,11 +131,11 @@ P(lane change) sums the corridors that switch lanes. The map is loaded
 through ``stages.corridors.SceneMaps`` when the scene changes (all state is
 reset then), from the ``data`` parameter's folder (``maps/``, by the scene's
 map name, checked by sha256 as in the corridors stage; the launcher passes
-its ``--data``; "" the embedded ``data/taf-bw``).
+its ``--data``; "" the embedded ``stages/data/taf-bw``).
 
 Bounded work: ``max_pairs`` 600 vehicle-corridor pairs per frame (issue
 13): beyond it whole vehicles are kept in CorridorSet order while their
-corridors fit, the rest are not updated this frame (``stages.caps.cap_pairs``;
+corridors fit, the rest are not updated this frame (``stages.lib.caps.cap_pairs``;
 one ``pairs_capped`` issue; a vehicle skipped for ``unseen_timeout_s`` dies).
 TAF-BW frames (at most ~20 vehicles, ~2 corridors each) never are.
 
@@ -148,7 +148,7 @@ reset), ``no_relations``, ``missing_track``, ``nan_state``,
 
 from __future__ import annotations
 
-from .core import IntentionFilter, IntentionsConfig
+from stages.intentions.core import IntentionFilter, IntentionsConfig
 
 __all__ = ["IntentionFilter", "IntentionsConfig", "SPEC", "INPUTS", "OUTPUTS", "main"]
 
@@ -158,7 +158,7 @@ _BINDING = ("SPEC", "INPUTS", "OUTPUTS", "main", "make_core")
 def __getattr__(name: str):
     """The binding lives in ``__main__.py``; importing it pulls in the runtime (zenoh) only when asked."""
     if name in _BINDING:
-        from . import __main__ as binding
+        from stages.intentions import __main__ as binding
 
         return getattr(binding, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

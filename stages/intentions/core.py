@@ -28,14 +28,14 @@ from bus_schemas import (
     TrackFrame,
     VehicleBelief,
 )
-from stages._core import ConfigMixin, Issue, StageResult, check_ranges, isolate
-from stages.caps import cap_pairs
+from stages.lib.base import ConfigMixin, Issue, StageResult, check_ranges, isolate
+from stages.lib.caps import cap_pairs
 from stages.corridors.core import SceneMaps, shown_map_name
-from stages.maps import DEFAULT_SPEED_LIMIT_MPS, Projection, RoadMap, parse_projection, project_to_polyline
+from stages.lib.maps import DEFAULT_SPEED_LIMIT_MPS, Projection, RoadMap, parse_projection, project_to_polyline
 
-from . import model
-from .model import ModelParams, Particles
-from .tables import PairTables, VehicleInput, build_tables, common_run, corridor_manoeuvre, corridor_ok, lanelet_shift_m, map_corridors
+from stages.intentions import model
+from stages.intentions.model import ModelParams, Particles
+from stages.intentions.tables import PairTables, VehicleInput, build_tables, common_run, corridor_manoeuvre, corridor_ok, lanelet_shift_m, map_corridors
 
 _NS = 1e-9
 _U64 = (1 << 64) - 1
@@ -97,7 +97,7 @@ class IntentionsConfig(ConfigMixin):
     lane_change_reach_m: float = 10.0
     projection: str = "auto"
     max_pairs: int = 600
-    data: str = ""  # local data folder whose maps/ holds the scene's map (by name); "": the embedded data/taf-bw
+    data: str = ""  # local data folder whose maps/ holds the scene's map (by name); "": the embedded stages/data/taf-bw
 
     def __post_init__(self) -> None:
         positive = (

@@ -12,9 +12,9 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from stages.maps import wrap_angle_rad
+from stages.lib.maps import wrap_angle_rad
 
-from .tables import PairTables
+from stages.intentions.tables import PairTables
 
 REFERENCE_STEP_S = 0.1
 """The step the per-step probabilities and noises of METHOD.md §4 are stated for (10 Hz)."""

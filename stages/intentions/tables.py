@@ -24,7 +24,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from bus_schemas import Corridor, CorridorRelations, Manoeuvre
-from stages.maps import RoadMap, Turn
+from stages.lib.maps import RoadMap, Turn
 
 KEY_OFFSET_M = 1.0e6
 """Key spacing between pairs in `PairTables.key`: far more than any corridor's length."""

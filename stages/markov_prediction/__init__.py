@@ -133,7 +133,7 @@ empty, the occupied cells plus ``grid_margin_m``.
 
 Bounded work: ``max_pairs`` 600 vehicle-corridor pairs per frame (issue
 13): beyond it whole vehicles are kept in CorridorSet order while their
-corridors fit, the rest are not predicted this frame (``stages.caps.cap_pairs``;
+corridors fit, the rest are not predicted this frame (``stages.lib.caps.cap_pairs``;
 one ``pairs_capped`` issue). TAF-BW frames (at most ~20 vehicles, ~2
 corridors each) never are. The grid is sparse (COO cells per step), so its
 size follows the pairs kept, not the extent; the MotionGrid lists at most
@@ -172,8 +172,8 @@ the measurement's box is used, so the window always holds the initial box.
 
 from __future__ import annotations
 
-from .config import MODES, MarkovPredictionConfig
-from .core import CV_LINE_ID, FramePrediction, MarkovPredictor, PairInfo
+from stages.markov_prediction.config import MODES, MarkovPredictionConfig
+from stages.markov_prediction.core import CV_LINE_ID, FramePrediction, MarkovPredictor, PairInfo
 
 __all__ = [
     "CV_LINE_ID",
@@ -194,7 +194,7 @@ _BINDING = ("SPEC", "INPUTS", "OUTPUTS", "main", "make_core")
 def __getattr__(name: str):
     """The binding lives in ``__main__.py``; importing it pulls in the runtime (zenoh) only when asked."""
     if name in _BINDING:
-        from . import __main__ as binding
+        from stages.markov_prediction import __main__ as binding
 
         return getattr(binding, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,6 +1,6 @@
 """A per-state input transition Γ_i = colnorm(diag(λ_i) Ψ) given by λ alone (METHOD.md §2.1).
 
-``stages.markov``'s ``InputPerState`` takes the full Γ, ``(B, M, M, N_v, N_s)``:
+``stages.lib.markov``'s ``InputPerState`` takes the full Γ, ``(B, M, M, N_v, N_s)``:
 1.6 MB per pair and step at the default grid. The baseline only ever needs
 Γ of that form, whose product with p⁻ is cheap without building it::
 
@@ -12,8 +12,8 @@
 ``MarkovPropagator`` whose backend applies it; every other input transition
 goes to the backend unchanged. The wrapper relies on the backends' slab
 layouts (numpy ``(L, M, N_v, B)``, torch ``(B, M·N_v, L)``), which
-``stages/markov/propagate.py`` documents; moving ``InputPriority`` into
-``stages.markov`` would remove that coupling.
+``stages/lib/markov/propagate.py`` documents; moving ``InputPriority`` into
+``stages.lib.markov`` would remove that coupling.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from stages.markov import MarkovPropagator, TransitionStencils
+from stages.lib.markov import MarkovPropagator, TransitionStencils
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -40,7 +40,7 @@ class InputPriority:
 
 
 class _PriorityBackend:
-    """Wraps a ``stages.markov`` backend: applies ``InputPriority``, delegates everything else."""
+    """Wraps a ``stages.lib.markov`` backend: applies ``InputPriority``, delegates everything else."""
 
     def __init__(self, inner: Any, psi: np.ndarray, kind: str) -> None:
         self._inner = inner

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from stages._core import ConfigMixin, check_ranges
+from stages.lib.base import ConfigMixin, check_ranges
 
 #: ``hybrid``: AR-Net acceleration distributions replace λ (METHOD.md §3); ``baseline``: rule-based λ (§2).
 MODES = ("hybrid", "baseline", "cv", "corridor_cv")

@@ -30,16 +30,16 @@ from bus_schemas import (
     SceneInfo,
     TrackFrame,
 )
-from stages._core import Issue, StageResult, isolate
-from stages.caps import cap_pairs
-from stages.datasets import DEFAULT_SIZES_M
-from stages.markov import InputMatrix, InputReplaced, MarkovGridConfig, gamma_from_priority, initial_state, load_or_build_stencils, psi_matrix
-from stages.markov.propagate import boxes_outside_grid
+from stages.lib.base import Issue, StageResult, isolate
+from stages.lib.caps import cap_pairs
+from stages.lib.datasets import DEFAULT_SIZES_M
+from stages.lib.markov import InputMatrix, InputReplaced, MarkovGridConfig, gamma_from_priority, initial_state, load_or_build_stencils, psi_matrix
+from stages.lib.markov.propagate import boxes_outside_grid
 
-from . import priority as pr
-from .chain import InputPriority, PriorityPropagator
-from .config import CHAIN_MODES, MarkovPredictionConfig
-from .rasterise import Footprints, GridFrame, SparseGrid, cell_footprints, fuse, lateral_kernel, vehicle_grid
+from stages.markov_prediction import priority as pr
+from stages.markov_prediction.chain import InputPriority, PriorityPropagator
+from stages.markov_prediction.config import CHAIN_MODES, MarkovPredictionConfig
+from stages.markov_prediction.rasterise import Footprints, GridFrame, SparseGrid, cell_footprints, fuse, lateral_kernel, vehicle_grid
 
 _NS = 1e-9
 #: The Cartesian constant-velocity line of mode ``cv`` has this corridor id.

@@ -31,7 +31,7 @@ Parameters (``RelationsConfig``):
   ``RelationExtractor.process``);
 - ``max_objects`` 200 and ``max_pairs`` 600: bounded work per frame
   (issue 13). Beyond ``max_objects`` the objects nearest to the map's
-  centre are kept (the corridors stage's rule, ``stages.caps``) and the
+  centre are kept (the corridors stage's rule, ``stages.lib.caps``) and the
   others are neither vehicles nor obstacles this frame (one
   ``objects_capped`` issue); beyond ``max_pairs`` whole vehicles are kept
   in CorridorSet order while their corridors fit, the rest get no relation
@@ -46,7 +46,7 @@ Parameters (``RelationsConfig``):
   (``stages.corridors.SceneMaps``) this stage uses, so both see one map.
 - ``data`` "": the local data folder whose ``maps/`` holds the scene's map,
   found by name and checked by sha256 as in the corridors stage (the
-  launcher passes its ``--data``; "" the embedded ``data/taf-bw``).
+  launcher passes its ``--data``; "" the embedded ``stages/data/taf-bw``).
 
 Map. Loaded when the scene's ``scene_id`` changes; ``SceneTables`` then turns
 the map's precomputed lanelet conflicts (``RoadMap.conflicts``), right of
@@ -90,7 +90,7 @@ every corridor is looked up against every lanelet of every other vehicle's
 corridors in ``SceneTables.pair_first`` (one numpy gather): a CROSSING or
 MERGE of the map gives s* = the lanelet's start in the corridor + the arc
 length within it, on both corridors; merges are at the merge start, where the
-lanes begin to overlap (``stages.maps``); divergences are not conflicts.
+lanes begin to overlap (``stages.lib.maps``); divergences are not conflicts.
 Kept: points within both corridors that neither vehicle has cleared, and not
 after a lanelet the two corridors share (a shared prefix with a later
 divergence is a following relation); one point per corridor pair within
@@ -118,8 +118,8 @@ points, non-finite values, zero length), ``no_map``, ``map_problem``,
 
 from __future__ import annotations
 
-from .core import RelationExtractor, RelationsConfig, SceneTables
-from .influence import RULES, choose_influencing, most_influencing, rank_conflicts
+from stages.relations.core import RelationExtractor, RelationsConfig, SceneTables
+from stages.lib.influence import RULES, choose_influencing, most_influencing, rank_conflicts
 
 __all__ = [
     "RULES",
@@ -141,7 +141,7 @@ _BINDING = ("SPEC", "INPUTS", "OUTPUTS", "main", "make_core")
 def __getattr__(name: str):
     """The binding lives in ``__main__.py``; importing it pulls in the runtime (zenoh) only when asked."""
     if name in _BINDING:
-        from . import __main__ as binding
+        from stages.relations import __main__ as binding
 
         return getattr(binding, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -24,14 +24,14 @@ from bus_schemas import (
     TrackFrame,
     VehicleCorridors,
 )
-from stages._core import ConfigMixin, Issue, StageResult, check_ranges
-from stages.caps import keep_nearest, map_centre_m
+from stages.lib.base import ConfigMixin, Issue, StageResult, check_ranges
+from stages.lib.caps import keep_nearest, map_centre_m
 from stages.corridors.core import SceneMap, SceneMaps, shown_map_name
-from stages.datasets import DEFAULT_SIZES_M
-from stages.maps import ConflictKind as MapConflictKind
-from stages.maps import Projection, RoadMap, parse_projection, project_to_polyline, wrap_angle_rad
+from stages.lib.datasets import DEFAULT_SIZES_M
+from stages.lib.maps import ConflictKind as MapConflictKind
+from stages.lib.maps import Projection, RoadMap, parse_projection, project_to_polyline, wrap_angle_rad
 
-from .influence import NO_INFLUENCE, choose_influencing
+from stages.lib.influence import NO_INFLUENCE, choose_influencing
 
 _KIND_ON_BUS = {MapConflictKind.CROSSING: ConflictKind.CROSSING, MapConflictKind.MERGE: ConflictKind.MERGE}
 
@@ -55,7 +55,7 @@ class RelationsConfig(ConfigMixin):
     max_objects: int = 200
     max_pairs: int = 600
     projection: str = "auto"
-    data: str = ""  # local data folder whose maps/ holds the scene's map (by name); "": the embedded data/taf-bw
+    data: str = ""  # local data folder whose maps/ holds the scene's map (by name); "": the embedded stages/data/taf-bw
 
     def __post_init__(self) -> None:
         positive = ("horizon_s", "min_time_speed_mps", "leader_max_heading_rad")
@@ -346,7 +346,7 @@ class RelationExtractor:
         for row in np.flatnonzero(unique & ~valid):
             issues.append(Issue("nan_state", int(track_ids[row]), f"non-finite position ({xy[row, 0]}, {xy[row, 1]}): ignored"))
         valid &= unique
-        if n > self.config.max_objects:  # beyond the cap: neither vehicle nor obstacle this frame (stages.caps)
+        if n > self.config.max_objects:  # beyond the cap: neither vehicle nor obstacle this frame (stages.lib.caps)
             road_map = self._map.road_map if self._map is not None else None
             if self._centre_of is not road_map:
                 self._centre_of, self._centre = road_map, map_centre_m(road_map)

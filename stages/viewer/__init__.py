@@ -14,7 +14,7 @@ it alone with ``python -m stages.viewer``; when up it logs one line
 
 What the page shows, top-down (x east, y north, metres of the scene):
 
-- the lanelet map (``stages.maps``, loaded as the corridors stage loads it):
+- the lanelet map (``stages.lib.maps``, loaded as the corridors stage loads it):
   car lanelets as filled dark polygons with light borders, the other
   lanelets (walkways, crosswalks, bike lanes) outlined;
 - every object as a box sized by the track (or by its type's default),
@@ -71,7 +71,7 @@ Parameters (``ViewerConfig``):
 - ``origins`` []: page origins allowed besides ``http://127.0.0.1:PORT``,
   ``http://localhost:PORT`` and ``http://HOST:PORT``.
 - ``data`` "": the local data folder whose ``maps/`` holds the scene's map
-  (the launcher passes its ``--data``; "" the embedded ``data/taf-bw``). The
+  (the launcher passes its ``--data``; "" the embedded ``stages/data/taf-bw``). The
   map is found by the scene's ``map_name`` there and drawn only when its
   sha256 matches; no path from the bus is opened (see ``stages.corridors``).
 
@@ -84,7 +84,7 @@ without changing viser.
 
 from __future__ import annotations
 
-from .config import ViewerConfig
+from stages.viewer.config import ViewerConfig
 
 __all__ = ["INPUTS", "OUTPUTS", "SPEC", "ViewerApp", "ViewerConfig", "main"]
 
@@ -94,11 +94,11 @@ _BINDING = ("SPEC", "INPUTS", "OUTPUTS", "main", "make_core")
 def __getattr__(name: str):
     """The binding lives in ``__main__.py`` and viser in ``scene.py``: both load only when asked."""
     if name in _BINDING:
-        from . import __main__ as binding
+        from stages.viewer import __main__ as binding
 
         return getattr(binding, name)
     if name == "ViewerApp":
-        from .scene import ViewerApp
+        from stages.viewer.scene import ViewerApp
 
         return ViewerApp
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

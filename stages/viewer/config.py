@@ -7,7 +7,7 @@ import os
 import re
 from dataclasses import dataclass
 
-from stages._core import ConfigMixin
+from stages.lib.base import ConfigMixin
 
 GRID_SCALES = ("log", "linear")
 TOKEN_ENV = "IAMP_VIEWER_TOKEN"  # the token when the ``token`` parameter is empty (the launcher passes it so)
@@ -34,7 +34,7 @@ class ViewerConfig(ConfigMixin):
     status_hz: float = 2.0  # side panel refresh
     token: str = ""  # "": none (or $IAMP_VIEWER_TOKEN); "auto": a fresh random one; else at least 16 of A-Z a-z 0-9 _ -
     origins: tuple[str, ...] = ()  # page origins allowed besides http://127.0.0.1|localhost|HOST:PORT, e.g. "http://myhost:8080"
-    data: str = ""  # local data folder whose maps/ holds the scene's map (by name, checked by sha256); "": the embedded data/taf-bw
+    data: str = ""  # local data folder whose maps/ holds the scene's map (by name, checked by sha256); "": the embedded stages/data/taf-bw
 
     def __post_init__(self) -> None:
         if not self.host.strip():

@@ -563,12 +563,12 @@ def load_map_geometry(scene: SceneInfo, data: str | None = None) -> MapGeometry:
 
     The file is found as the corridors stage finds it (``local_map_file``): by
     the scene's map name inside ``<data>/maps`` (default the embedded
-    ``data/taf-bw``), checked by size and sha256 before it is parsed; a path
+    ``stages/data/taf-bw``), checked by size and sha256 before it is parsed; a path
     from the bus is never opened. A map that cannot be used gives an empty
     geometry with its problem (drawn once per scene by the caller).
     """
     from stages.corridors.core import local_map_file, resolve_projection
-    from stages.maps import load_map
+    from stages.lib.maps import load_map
 
     projection = resolve_projection("auto", scene)
     path, problem = local_map_file(data, scene)
@@ -591,10 +591,10 @@ def _other_lanelet_bounds(scene: SceneInfo, projection, path) -> tuple[list[tupl
 
     ``RoadMap`` keeps car lanelets only, so this reads the file once more
     (``path``, the checked local file) through the lanelet2 handles of
-    ``stages.maps`` (the project's lanelet2 wrapper), projected and shifted exactly as ``maps.load_map`` does.
+    ``stages.lib.maps`` (the project's lanelet2 wrapper), projected and shifted exactly as ``maps.load_map`` does.
     HOOK(maps): replace with a public ``maps`` function once there is one.
     """
-    from stages import maps
+    from stages.lib import maps
 
     try:
         projector = maps._projector(projection, scene.origin_lat_deg, scene.origin_lon_deg)

@@ -24,12 +24,12 @@ import numpy as np
 import viser
 
 from bus_schemas import NodeStats
-from stages._core import Issue, StageResult
+from stages.lib.base import Issue, StageResult
 
-from .config import ViewerConfig
-from .guard import HandshakeGuard, new_token
-from .guard import installed as guard_installed
-from .model import (
+from stages.viewer.config import ViewerConfig
+from stages.viewer.guard import HandshakeGuard, new_token
+from stages.viewer.guard import installed as guard_installed
+from stages.viewer.model import (
     ALL_VEHICLES,
     CAR_LANELET_FILL,
     CUBE_FACES,

@@ -11,10 +11,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
-from samples import SAMPLES  # noqa: E402
+from testkit.samples import SAMPLES
 
 GOLDEN = Path(__file__).resolve().parent / "golden"
 

@@ -14,11 +14,9 @@ from pathlib import Path
 import msgpack
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-import bus_schemas as bs  # noqa: E402
-from bus_schemas import _wire  # noqa: E402
-from mutations import golden_payloads, mutated_payloads, targeted_payloads  # noqa: E402
+import bus_schemas as bs
+from bus_schemas import _wire
+from testkit.mutations import golden_payloads, mutated_payloads, targeted_payloads
 
 FUZZ_N = 20_000
 FUZZ_SEED = 13

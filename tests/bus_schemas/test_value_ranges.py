@@ -16,7 +16,7 @@ import pytest
 import bus_schemas as bs
 from bus_schemas._wire import OutOfRangeRecord, Range
 from bus_schemas.errors import OutOfRange
-from samples import SAMPLES
+from testkit.samples import SAMPLES
 
 
 def _env(schema: str) -> dict:

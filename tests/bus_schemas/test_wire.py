@@ -11,11 +11,9 @@ import msgpack
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-import bus_schemas as bs  # noqa: E402
-from bus_schemas import keys  # noqa: E402
-from samples import SAMPLES, track_frame  # noqa: E402
+import bus_schemas as bs
+from bus_schemas import keys
+from testkit.samples import SAMPLES, track_frame
 
 GOLDEN = Path(__file__).resolve().parent / "golden"
 
@@ -36,7 +34,7 @@ def test_round_trip_is_exact(schema):
 
 
 def test_every_registered_schema_has_a_sample_and_a_golden_file():
-    assert set(bs.REGISTRY) == set(SAMPLES), "add a sample (tests/bus_schemas/samples.py) for every new schema"
+    assert set(bs.REGISTRY) == set(SAMPLES), "add a sample (testkit/samples.py) for every new schema"
     for schema, cls in bs.REGISTRY.items():
         assert (GOLDEN / f"{schema}.v{cls.VERSION}.msgpack").exists(), f"run tests/bus_schemas/make_golden.py for {schema}"
 

@@ -13,11 +13,9 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
-from bus_schemas import AccelerationProfiles  # noqa: E402
-from stages._core import ConfigMixin, Issue, StageResult  # noqa: E402
-from stages.runtime import NodeContext, Port, StageSpec, run_stage  # noqa: E402
+from bus_schemas import AccelerationProfiles
+from stages.lib.base import ConfigMixin, Issue, StageResult
+from stages.runtime import NodeContext, Port, StageSpec, run_stage
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,6 @@
 """Adversarial recordings through the whole streaming pipeline and ``iamp eval`` (issue 12, item 3).
 
-Two recordings from ``tests/adversarial.py``'s ``COMBINED`` (a 10 s K729
+Two recordings from ``testkit/adversarial.py``'s ``COMBINED`` (a 10 s K729
 clip from 76 s each, every oddity on its own tracks; the crowd of 100
 vehicles lives one frame) run through ``launch.py`` with the default pipeline as real processes
 over Zenoh (``--speed max --no-viewer --record``), once per recording for the
@@ -24,7 +24,6 @@ No wall-clock assertions.
 
 from __future__ import annotations
 
-import importlib.util
 import sys
 from pathlib import Path
 
@@ -37,17 +36,7 @@ CROWD_HALF_SPAN_S = 0.0  # the crowd lives one frame: 100 vehicles in one frame
 RUN_ID = "advtest"
 
 
-def _load_adversarial():
-    name = "iamp_tests_adversarial"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, REPO / "tests" / "adversarial.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
-
-
-adv = _load_adversarial()
+from testkit import adversarial as adv
 RECORDINGS = tuple(adv.COMBINED)
 ODDITY_CASES = [
     pytest.param(rec, odd, id=f"{rec}-{odd}")
@@ -100,7 +89,7 @@ def test_pipeline_exits_cleanly(runs, name):
 @pytest.mark.parametrize("name", RECORDINGS)
 def test_every_track_frame_gets_a_motion_grid(runs, name):
     result, summary, _ = runs.pipeline(name)
-    from stages.datasets import load_recording
+    from stages.lib.datasets import load_recording
 
     joins = {n: s["counters"].get("join_drops", 0) for n, s in summary.stats.items()}
     played = load_recording(runs.data, name).n_frames
@@ -135,7 +124,7 @@ def test_oddity_is_counted_under_an_issue_kind(runs, name, oddity):
 
 def test_crowded_frame_keeps_every_vehicle(runs):
     import bus_schemas as bs
-    from stages.mcap_inspect import read_messages
+    from stages.recorder.inspect import read_messages
 
     name = next(n for n, odd in adv.COMBINED.items() if "crowd_100" in odd)
     result, _, mcap = runs.pipeline(name)

@@ -27,16 +27,13 @@ from pathlib import Path
 import msgpack
 import pytest
 
-sys.path[:0] = [str(Path(__file__).resolve().parents[2]), str(Path(__file__).resolve().parents[1]), str(Path(__file__).resolve().parent)]
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bus_schemas"))
-
-import bus_schemas as bs  # noqa: E402
-from helpers import REPO, all_command_lines, endpoint, free_port, kill_all, python_env, wait_until  # noqa: E402
-from samples import SAMPLES  # noqa: E402
-from stages.mcap_inspect import inspect  # noqa: E402
-from stages.pipeline import PipelineError, load_pipeline  # noqa: E402
-from stages.runtime import BusClient  # noqa: E402
-from test_launch_run import Launch  # noqa: E402
+import bus_schemas as bs
+from testkit.helpers import REPO, all_command_lines, endpoint, free_port, kill_all, python_env, wait_until
+from testkit.samples import SAMPLES
+from stages.recorder.inspect import inspect
+from stages.runtime.pipeline import PipelineError, load_pipeline
+from stages.runtime import BusClient
+from test_launch_run import Launch
 
 RUN = "authrun"
 PW_ENV = "IAMP_TEST_BUS_PASSWORD"

@@ -18,12 +18,9 @@ from pathlib import Path
 
 import msgpack
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bus_schemas"))
-
-import bus_schemas as bs  # noqa: E402
-from helpers import REPO, endpoint, free_port, kill_all, output_of, python_env, stop_process, wait_until  # noqa: E402
-from samples import SAMPLES  # noqa: E402
+import bus_schemas as bs
+from testkit.helpers import REPO, endpoint, free_port, kill_all, output_of, python_env, stop_process, wait_until
+from testkit.samples import SAMPLES
 
 RUN = "hostile"
 KEY_IN = f"iamp/{RUN}/src/profiles"

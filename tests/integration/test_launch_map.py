@@ -8,12 +8,9 @@ from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_launch_run import Launch
 
-from test_launch_run import Launch  # noqa: E402
-
-from stages.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING  # noqa: E402
+from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING
 
 pytestmark = pytest.mark.skipif(not (DEFAULT_DATA_DIR / "maps").is_dir(), reason=f"embedded TAF-BW data not found at {DEFAULT_DATA_DIR}")
 

@@ -18,11 +18,9 @@ from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-import bus_schemas as bs  # noqa: E402
-from helpers import REPO, endpoint, free_port, kill_all, python_env, start_module, stop_process, wait_until  # noqa: E402
-from stages.mcap_inspect import inspect, read_messages  # noqa: E402
+import bus_schemas as bs
+from testkit.helpers import REPO, endpoint, free_port, kill_all, python_env, start_module, stop_process, wait_until
+from stages.recorder.inspect import inspect, read_messages
 
 
 class Launch:

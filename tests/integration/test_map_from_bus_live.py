@@ -21,13 +21,11 @@ from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import bus_schemas as bs
+from testkit.helpers import endpoint, free_port, kill_all, output_of, start_module, stop_process, wait_until
 
-import bus_schemas as bs  # noqa: E402
-from helpers import endpoint, free_port, kill_all, output_of, start_module, stop_process, wait_until  # noqa: E402
-
-from stages.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, load_recording  # noqa: E402
-from stages.tracks_source import TrackPlayer, TracksSourceConfig, file_sha256  # noqa: E402
+from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, load_recording
+from stages.tracks_source.core import TrackPlayer, TracksSourceConfig, file_sha256
 
 RUN = "maphostile"
 pytestmark = pytest.mark.skipif(not (DEFAULT_DATA_DIR / "maps").is_dir(), reason=f"embedded TAF-BW data not found at {DEFAULT_DATA_DIR}")

@@ -28,13 +28,11 @@ import viser
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
-sys.path[:0] = [str(Path(__file__).resolve().parents[2]), str(Path(__file__).resolve().parents[1]), str(Path(__file__).resolve().parent)]
-
-from helpers import all_command_lines, kill_all  # noqa: E402
-from stages._core import ConfigError  # noqa: E402
-from stages.viewer.config import TOKEN_ENV, ViewerConfig  # noqa: E402
-from stages.viewer.scene import ViewerApp  # noqa: E402
-from test_launch_run import Launch  # noqa: E402
+from testkit.helpers import all_command_lines, kill_all
+from stages.lib.base import ConfigError
+from stages.viewer.config import TOKEN_ENV, ViewerConfig
+from stages.viewer.scene import ViewerApp
+from test_launch_run import Launch
 
 SUBPROTOCOL = f"viser-v{viser.__version__}"
 

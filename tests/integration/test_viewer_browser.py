@@ -42,10 +42,9 @@ import numpy as np
 import pytest
 
 # the repository first (tests/bus_schemas must not shadow the package when run as a script), then tests/ and this folder
-sys.path[:0] = [str(Path(__file__).resolve().parents[2]), str(Path(__file__).resolve().parents[1]), str(Path(__file__).resolve().parent)]
 
-from helpers import REPO, free_port, kill_all, wait_until  # noqa: E402
-from test_launch_run import Launch  # noqa: E402
+from testkit.helpers import REPO, free_port, kill_all, wait_until
+from test_launch_run import Launch
 
 WINDOW = (1280, 900)
 CHROMIUM_CANDIDATES = ("/usr/bin/chromium", "chromium", "chromium-browser")

@@ -1,4 +1,4 @@
-"""Tests of the AR features (stages.ar.features) on synthetic corridors and on real K729 frames.
+"""Tests of the AR features (stages.lib.ar.features) on synthetic corridors and on real K729 frames.
 
 Real frames: the first frames of the embedded sequence 013 through the
 in-process chain (TrackPlayer → CorridorBuilder → RelationExtractor), fed to
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from bus_schemas import AgentType, Corridor, CorridorSet, Header, MatchStatus, RelationSet, TrackFrame, VehicleCorridors
-from stages.ar.features import (
+from stages.lib.ar.features import (
     ACCEL,
     FEATURE_NAMES,
     HISTORY_STEPS,
@@ -26,9 +26,9 @@ from stages.ar.features import (
     curvature_integrals,
 )
 from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
-from stages.datasets import DEFAULT_DATA_DIR
+from stages.lib.datasets import DEFAULT_DATA_DIR
 from stages.relations import RelationExtractor, RelationsConfig, most_influencing
-from stages.tracks_source import TrackPlayer, TracksSourceConfig
+from stages.tracks_source.core import TrackPlayer, TracksSourceConfig
 
 F = {name: i for i, name in enumerate(FEATURE_NAMES)}
 STEP_NS = 100_000_000

@@ -8,8 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 from stages.ar_inference import chunk_distributions
 
 EDGES = np.linspace(-3.0, 2.0, 11)
@@ -55,9 +53,9 @@ def test_chunk_distributions_refuse_bad_shapes():
 def chain():
     """The first 80 frames of the embedded K729 sequence through corridors and relations (in-process)."""
     from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
-    from stages.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, DEFAULT_SEQUENCE, load_recording
+    from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, DEFAULT_SEQUENCE, load_recording
     from stages.relations import RelationExtractor, RelationsConfig
-    from stages.tracks_source import TrackPlayer, TracksSourceConfig
+    from stages.tracks_source.core import TrackPlayer, TracksSourceConfig
 
     rec = load_recording(DEFAULT_DATA_DIR, DEFAULT_RECORDING, (DEFAULT_SEQUENCE,))
     player = TrackPlayer(TracksSourceConfig(recording=DEFAULT_RECORDING), rec, map_sha256="", run_id="t", producer="source")
@@ -98,7 +96,7 @@ def test_every_pair_gets_a_profile_with_distributions_and_history_grows(chain):
 
 
 def test_a_missing_or_corrupt_model_is_a_config_error(tmp_path):
-    from stages._core import ConfigError
+    from stages.lib.base import ConfigError
     from stages.ar_inference import ARInference, ARInferenceConfig
 
     with pytest.raises(ConfigError, match="no such weights file"):
@@ -113,7 +111,7 @@ def test_stage_exits_2_on_a_missing_model(tmp_path):
     import subprocess
     import sys
 
-    from helpers import REPO, python_env
+    from testkit.helpers import REPO, python_env
 
     proc = subprocess.run(
         [sys.executable, "-m", "stages.ar_inference", "--run-id", "t", "--params-json", f'{{"model": "{tmp_path / "none.pt"}"}}',

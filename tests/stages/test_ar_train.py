@@ -1,4 +1,4 @@
-"""Tests of the AR data set, model file and training (stages.ar.dataset, .model, .train, ``iamp train``).
+"""Tests of the AR data set, model file and training (stages.offline.train.dataset, .model, .train, ``iamp train``).
 
 A tiny data set from the first frames of the embedded sequence 013 keeps
 these fast; nothing here asserts on wall-clock time.
@@ -14,11 +14,11 @@ import pytest
 import torch
 
 from stages import cli
-from stages.ar.dataset import ARDataset, DatasetConfig, build_dataset, smoothed_acceleration
-from stages.ar.features import ACCEL, FEATURE_NAMES, HISTORY_STEPS, HORIZON_STEPS
-from stages.ar.model import DEFAULT_MODEL_PATH, ARModel, ARNet, load_model, save_model
-from stages.ar.train import TrainConfig, error_table, fit, split_samples
-from stages.datasets import DEFAULT_DATA_DIR
+from stages.offline.train.dataset import ARDataset, DatasetConfig, build_dataset, smoothed_acceleration
+from stages.lib.ar.features import ACCEL, FEATURE_NAMES, HISTORY_STEPS, HORIZON_STEPS
+from stages.lib.ar.model import DEFAULT_MODEL_PATH, ARModel, ARNet, load_model, save_model
+from stages.offline.train.fit import TrainConfig, error_table, fit, split_samples
+from stages.lib.datasets import DEFAULT_DATA_DIR
 
 pytestmark = pytest.mark.skipif(not (DEFAULT_DATA_DIR / "maps").is_dir(), reason=f"embedded TAF-BW data not found at {DEFAULT_DATA_DIR}")
 
@@ -54,7 +54,7 @@ def test_dataset_shapes_and_provenance(tiny):
 
 
 def test_targets_are_the_smoothed_acceleration_of_the_true_track(tiny):
-    from stages.datasets import load_recording
+    from stages.lib.datasets import load_recording
 
     seq = load_recording(DEFAULT_DATA_DIR, "k729_2022-03-16", ("013",)).sequences[0]
     k = int(np.argmax(np.abs(tiny.y).max(axis=1)))  # the sample with the most acceleration

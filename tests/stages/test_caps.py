@@ -1,7 +1,7 @@
 """Bounded work per message (issue 13, item 3): caps on objects and pairs per frame.
 
 A well-formed 1,000-object TrackFrame (copies of real K729 sequence 013
-cars, ``tests/big_frames.py``) through corridors and relations in-process:
+cars, ``testkit/big_frames.py``) through corridors and relations in-process:
 each finishes, returns outputs for the objects within the cap (nearest to
 the map's centre) and counts one ``objects_capped`` issue. The real
 sequence itself is never capped, and the distance pruning of the relations'
@@ -18,14 +18,12 @@ import numpy as np
 import pytest
 
 from bus_schemas import MatchStatus
-from stages.caps import keep_nearest
+from stages.lib.caps import keep_nearest
 from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
-from stages.datasets import DEFAULT_DATA_DIR
+from stages.lib.datasets import DEFAULT_DATA_DIR
 from stages.relations import RelationExtractor, RelationsConfig
 from stages.relations import core as relations_core
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from big_frames import big_frames, real_frames  # noqa: E402
+from testkit.big_frames import big_frames, real_frames
 
 pytestmark = pytest.mark.skipif(
     not (DEFAULT_DATA_DIR / "maps").is_dir(), reason=f"embedded TAF-BW data not found at {DEFAULT_DATA_DIR}"

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
-from stages.datasets import DEFAULT_DATA_DIR, load_recording
+from stages.lib.datasets import DEFAULT_DATA_DIR, load_recording
 from stages.intentions import IntentionFilter, IntentionsConfig
-from stages.intentions.evaluation import chain_frames
+from stages.offline.intentions_eval import chain_frames
 from stages.relations import RelationExtractor, RelationsConfig
 
 pytestmark = pytest.mark.skipif(
@@ -129,7 +129,7 @@ def test_intentions(frames, scene_maps, monkeypatch):
 
 
 def test_ar_inference(frames, monkeypatch):
-    import stages.ar.features as features
+    import stages.lib.ar.features as features
     from stages.ar_inference import ARInference, ARInferenceConfig
 
     clean_core = ARInference(ARInferenceConfig())

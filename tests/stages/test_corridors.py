@@ -15,9 +15,9 @@ import pytest
 
 import bus_schemas
 from bus_schemas import AgentType, CorridorSet, Header, MatchStatus, SceneInfo, TrackFrame
-from stages._core import ConfigError
+from stages.lib.base import ConfigError
 from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
-from stages.datasets import DEFAULT_DATA_DIR, load_recording
+from stages.lib.datasets import DEFAULT_DATA_DIR, load_recording
 
 REPO = Path(__file__).resolve().parents[2]
 SHARED = (REPO / ".." / "shared" / "data" / "taf-bw").resolve()

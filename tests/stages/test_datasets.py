@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from bus_schemas import AgentType
-from stages.datasets import (
+from stages.lib.datasets import (
     DEFAULT_DATA_DIR,
     DEFAULT_RECORDING,
     DatasetError,

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from stages import cli
-from stages.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, DEFAULT_SEQUENCE
-from stages.evaluation import EVAL_MODES, EvalConfig, Evaluation, _future, _route_hit, format_table
+from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, DEFAULT_SEQUENCE
+from stages.offline.evaluation import EVAL_MODES, EvalConfig, Evaluation, _future, _route_hit, format_table
 from stages.markov_prediction.rasterise import highest_density_threshold
 
 METRICS = ("windows", "mADE_m", "mFDE_m", "wADE_m", "wFDE_m", "coverage90", "nll")

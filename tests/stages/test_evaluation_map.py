@@ -7,7 +7,7 @@ import shutil
 import pytest
 
 from stages import cli
-from stages.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING
+from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING
 
 pytestmark = pytest.mark.skipif(not (DEFAULT_DATA_DIR / "maps").is_dir(), reason=f"embedded TAF-BW data not found at {DEFAULT_DATA_DIR}")
 

@@ -15,8 +15,8 @@ import pytest
 
 from stages import cli
 from stages.corridors import CorridorBuilder
-from stages.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING
-from stages.evaluation import EvalConfig, Evaluation, format_table
+from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING
+from stages.offline.evaluation import EvalConfig, Evaluation, format_table
 from stages.relations import RelationExtractor
 
 pytestmark = pytest.mark.skipif(

@@ -2,7 +2,7 @@
 
 Real frames come from the dataset player, and the corridors and relations
 cores run in-process over the whole sequence (continuity state as on the
-bus), as ``stages.intentions.evaluation.chain_frames`` does. Cars named by
+bus), as ``stages.offline.intentions_eval.chain_frames`` does. Cars named by
 track id were picked from that sequence: 2688 turns right at the
 intersection, 2690 brakes to a stop about 17 m before its entrance.
 """
@@ -19,11 +19,9 @@ import pytest
 
 from bus_schemas import IntentionBelief, Manoeuvre
 from stages.corridors import SceneMaps
-from stages.datasets import DEFAULT_DATA_DIR, load_recording
+from stages.lib.datasets import DEFAULT_DATA_DIR, load_recording
 from stages.intentions import IntentionFilter, IntentionsConfig
-from stages.intentions.evaluation import chain_frames, route_top1, top1_choice
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from stages.offline.intentions_eval import chain_frames, route_top1, top1_choice
 
 pytestmark = pytest.mark.skipif(
     not (DEFAULT_DATA_DIR / "maps").is_dir(), reason=f"embedded TAF-BW data not found at {DEFAULT_DATA_DIR}"
@@ -300,7 +298,7 @@ def test_nan_state_is_an_issue_and_the_other_vehicles_are_processed(frames, scen
 
 
 def test_config_rejects_unknown_keys_and_bad_values():
-    from stages._core import ConfigError
+    from stages.lib.base import ConfigError
 
     assert IntentionsConfig.from_params({"particles_per_vehicle": 100}).floor_particles == 2
     with pytest.raises(ConfigError, match="known: "):
@@ -328,7 +326,7 @@ def test_binding_declares_the_ports():
 
 
 def test_the_stage_on_the_bus_publishes_the_in_process_beliefs(frames, scene_maps, tmp_path):
-    import helpers as h
+    from testkit import helpers as h
     from stages.runtime import BusClient
 
     part = frames[760:780]

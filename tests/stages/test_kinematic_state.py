@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 from bus_schemas import Header, SceneInfo, TrackFrame
-from stages._core import ConfigError
+from stages.lib.base import ConfigError
 from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
-from stages.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, load_recording
-from stages.kinematic_state import EstimatorConfig, KinematicEstimator
+from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, load_recording
+from stages.lib.kinematic_state import EstimatorConfig, KinematicEstimator
 
 STEP_NS = 100_000_000
 

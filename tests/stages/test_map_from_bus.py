@@ -25,10 +25,10 @@ import pytest
 from bus_schemas import Header, SceneInfo, TrackFrame
 from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
 from stages.corridors import core as corridors_core
-from stages.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, load_recording
+from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, load_recording
 from stages.intentions import IntentionFilter, IntentionsConfig
 from stages.relations import RelationExtractor, RelationsConfig
-from stages.tracks_source import TrackPlayer, TracksSourceConfig, file_sha256
+from stages.tracks_source.core import TrackPlayer, TracksSourceConfig, file_sha256
 
 REPO = Path(__file__).resolve().parents[2]
 MAP_NAME = f"{DEFAULT_RECORDING}.osm"
@@ -244,9 +244,7 @@ def test_the_source_publishes_a_map_name_and_hash_never_a_path(played):
 
 
 def test_the_launcher_gives_every_map_stage_the_source_data_folder(tmp_path):
-    sys.path.insert(0, str(REPO))
-    import launch
-
+    from stages.runtime import launcher as launch
     args = launch.build_parser().parse_args(["--data", str(tmp_path), "--no-record"])
     raw = {"nodes": [
         {"id": "source", "stage": "stages.tracks_source", "params": {}},
@@ -263,7 +261,7 @@ def test_the_launcher_gives_every_map_stage_the_source_data_folder(tmp_path):
     for nid in ("corridors", "relations", "intentions", "viewer"):
         assert by_id[nid]["data"] == want, nid
     assert "data" not in by_id["markov_prediction"]
-    # without --data nothing is added: every stage defaults to the embedded data/taf-bw
+    # without --data nothing is added: every stage defaults to the embedded stages/data/taf-bw
     raw2 = {"nodes": [{"id": "source", "stage": "stages.tracks_source"}, {"id": "corridors", "stage": "stages.corridors"}]}
     launch.make_editor(launch.build_parser().parse_args(["--no-record"]))(raw2)
     assert "data" not in raw2["nodes"][1].get("params", {})

@@ -1,4 +1,4 @@
-"""Tests of stages.maps on the real TAF-BW maps and tracks (data beside the repository)."""
+"""Tests of stages.lib.maps on the real TAF-BW maps and tracks (data beside the repository)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stages.maps import (
+from stages.lib.maps import (
     ConflictKind,
     MapProblemKind,
     PriorityRule,

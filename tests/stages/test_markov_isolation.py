@@ -19,9 +19,9 @@ import pytest
 
 import bus_schemas as bs
 from stages.corridors import SceneMaps
-from stages.datasets import DEFAULT_DATA_DIR, load_recording
+from stages.lib.datasets import DEFAULT_DATA_DIR, load_recording
 from stages.intentions import IntentionsConfig
-from stages.intentions.evaluation import chain_frames, run_filter
+from stages.offline.intentions_eval import chain_frames, run_filter
 from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
 
 pytestmark = pytest.mark.skipif(

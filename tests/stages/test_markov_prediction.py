@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import bus_schemas as bs
-from stages.markov import InputPerState, MarkovGridConfig, MarkovPropagator, build_stencils, gamma_from_priority, initial_state, psi_matrix
+from stages.lib.markov import InputPerState, MarkovGridConfig, MarkovPropagator, build_stencils, gamma_from_priority, initial_state, psi_matrix
 from stages.markov_prediction import CV_LINE_ID, MarkovPredictionConfig, MarkovPredictor
 from stages.markov_prediction import priority as pr
 from stages.markov_prediction.chain import InputPriority, PriorityPropagator

@@ -7,7 +7,7 @@ import logging
 import numpy as np
 import pytest
 
-from stages.markov import (
+from stages.lib.markov import (
     InputMatrix,
     InputPerState,
     InputReplaced,
@@ -20,7 +20,7 @@ from stages.markov import (
     load_or_build_stencils,
     psi_matrix,
 )
-from stages.markov.transitions import cache_path, integrate_saturated, load_stencils, save_stencils
+from stages.lib.markov.transitions import cache_path, integrate_saturated, load_stencils, save_stencils
 
 KINDS = list(TransitionKind)
 
@@ -230,7 +230,7 @@ def test_cache_second_build_loads_from_disk(tmp_path, monkeypatch):
     def fail(_config):
         raise AssertionError("rebuilt although a valid cache exists")
 
-    monkeypatch.setattr("stages.markov.transitions.build_stencils", fail)
+    monkeypatch.setattr("stages.lib.markov.transitions.build_stencils", fail)
     second = load_or_build_stencils(SMALL, cache_dir=tmp_path)
     _assert_same(first, second)
     # Plain arrays only: it loads without pickle and holds no object arrays.

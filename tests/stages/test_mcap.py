@@ -19,15 +19,13 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from testkit import helpers as h
 
-import helpers as h  # noqa: E402
-
-from bus_schemas import Header, Progress, SceneInfo, TrackFrame, keys  # noqa: E402
-from stages.mcap_inspect import ReadReport, RecordingError, inspect, read_messages  # noqa: E402
-from stages.recorder import McapRecorder, RecorderConfig  # noqa: E402
-from stages.replay import MAX_SPEED_WINDOW  # noqa: E402
-from stages.runtime import BusClient  # noqa: E402
+from bus_schemas import Header, Progress, SceneInfo, TrackFrame, keys
+from stages.recorder.inspect import ReadReport, RecordingError, inspect, read_messages
+from stages.recorder.core import McapRecorder, RecorderConfig
+from stages.replay.core import MAX_SPEED_WINDOW
+from stages.runtime import BusClient
 
 N_FRAMES = 40
 STAMP0_NS = 1_700_000_000_000_000_000

@@ -18,16 +18,13 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+from testkit import helpers as h
+from test_mcap import STAMP0_NS, count_on_disk, make_frame, make_scene, recorder_args
 
-import helpers as h  # noqa: E402
-from test_mcap import STAMP0_NS, count_on_disk, make_frame, make_scene, recorder_args  # noqa: E402
-
-from bus_schemas import TrackFrame, keys  # noqa: E402
-from stages.mcap_inspect import ReadReport, RecordingError, read_messages, recover  # noqa: E402
-from stages.recorder import McapRecorder, RecorderConfig  # noqa: E402
-from stages.runtime import BusClient  # noqa: E402
+from bus_schemas import TrackFrame, keys
+from stages.recorder.inspect import ReadReport, RecordingError, read_messages, recover
+from stages.recorder.core import McapRecorder, RecorderConfig
+from stages.runtime import BusClient
 
 
 def standard_read(path: Path) -> tuple[list[tuple[str, str, bytes, int, int, int]], str]:

@@ -17,16 +17,16 @@ import pytest
 
 from bus_schemas import AgentType, ConflictKind, CorridorSet, Header, TrackFrame
 from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
-from stages.datasets import DEFAULT_DATA_DIR
-from stages.maps import Projection, segment_intersections
+from stages.lib.datasets import DEFAULT_DATA_DIR
+from stages.lib.maps import Projection, segment_intersections
 from stages.relations import RelationExtractor, RelationsConfig, choose_influencing, most_influencing, rank_conflicts
-from stages.tracks_source import TrackPlayer, TracksSourceConfig
+from stages.tracks_source.core import TrackPlayer, TracksSourceConfig
 
 pytestmark = pytest.mark.skipif(
     not (DEFAULT_DATA_DIR / "maps").is_dir(), reason=f"embedded TAF-BW data not found at {DEFAULT_DATA_DIR}"
 )
 
-# lanelets of the K729 map (stages.maps computes their relations)
+# lanelets of the K729 map (stages.lib.maps computes their relations)
 NORTH_LEFT_TURN = -335558  # from the north approach, turns left; yields to the oncoming straight lanes
 ONCOMING_STRAIGHT_RIGHT_LANE = -335552  # from the south, straight, right lane
 ONCOMING_STRAIGHT_LEFT_LANE = -335550  # from the south, straight, left lane
@@ -462,7 +462,7 @@ def test_bad_input_becomes_issues_and_the_other_vehicles_are_still_processed(seq
 
 
 def test_config_rejects_unknown_keys_and_bad_values():
-    from stages._core import ConfigError
+    from stages.lib.base import ConfigError
 
     assert RelationsConfig.from_params({"lateral_margin_m": 0.75}).lateral_margin_m == 0.75
     with pytest.raises(ConfigError, match="known: "):

@@ -16,12 +16,10 @@ import msgpack
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bus_schemas"))
-
-import bus_schemas as bs  # noqa: E402
-from samples import SAMPLES  # noqa: E402
-from stages._core import ConfigMixin, Issue, StageResult  # noqa: E402
-from stages.runtime import IssueLog, Node, Port, ProblemLog, StageSpec, build_parser  # noqa: E402
+import bus_schemas as bs
+from testkit.samples import SAMPLES
+from stages.lib.base import ConfigMixin, Issue, StageResult
+from stages.runtime import IssueLog, Node, Port, ProblemLog, StageSpec, build_parser
 
 LOGGER = "iamp.test_runtime_logs"
 

@@ -14,16 +14,10 @@ import numpy as np
 import pytest
 
 from bus_schemas import SceneInfo, TrackFrame
-from stages._core import ConfigError
-from stages.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING
-from stages.tracks_source import (
-    OUTPUTS,
-    SPEC,
-    TrackPlayer,
-    TracksSourceConfig,
-    resolve_selection,
-    scene_id_of,
-)
+from stages.lib.base import ConfigError
+from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING
+from stages.tracks_source import OUTPUTS, SPEC
+from stages.tracks_source.core import TrackPlayer, TracksSourceConfig, resolve_selection, scene_id_of
 
 REPO = Path(__file__).resolve().parents[2]
 IND_SMALL = REPO / "tests/fixtures/ind_small"

@@ -1,0 +1,500 @@
+"""Kinematic state of every track, causally: positions first, the tracker's velocity as checked evidence.
+
+Why: a tracker's reported velocities are one tracker's convention. Seen so far:
+scaled (a TAF-BW recording whose ``vx, vy`` are about half the speed its
+positions imply), zero for the first frames of a track while the car already
+moves at 10-19 m/s, pointing backwards (k733_2018-05-02), lagging. Positions
+are the one field every tracker gets right to within its noise, so every
+stage takes speed, velocity and acceleration from ``KinematicEstimator``
+(the corridors stage runs it and publishes the state in ``CorridorSet``).
+
+Per track, a constant-velocity Kalman filter on x and y (white-noise
+acceleration of spectral density ``accel_noise_m2ps3``) whose position noise
+is estimated online from its own innovations (an exponentially weighted mean
+of the squared innovation less the predicted position variance, floored at
+``min_position_noise_m``²): it follows K729's clean positions closely and
+smooths K733's sample-and-hold positions (the tracker repeats a position for
+several frames, then jumps) without a per-recording setting.
+
+The reported velocity is checked against the positions and used only once
+it has passed:
+
+- Calibration (per stream, ``Calibration``): for every moving sample of a
+  track at least 1 s old, the mean reported velocity over the last second is
+  compared with the chord of the positions over the same second (factor of
+  the lengths, cosine of the angle; the chord does not depend on the filter,
+  so the check cannot confirm itself). Trusted when at least
+  ``calibration_min_samples`` samples from ``calibration_min_tracks`` tracks
+  agree: |median cosine| >= 0.9 and the factor's interquartile range within
+  ``calibration_max_spread`` of its median. A trusted reported velocity is
+  used as ``sign(cosine) · reported / factor``: a scale or a reversal is
+  undone, not merely detected.
+- Fusion: from a track's second sample on, the calibrated velocity is a
+  measurement of the filter's velocity with its own noise, adapted like the
+  position noise (``velocity_noise_adaptation``); a sample more than
+  ``velocity_gate_sigma`` standard deviations (+ 1 m/s) off the filter's
+  velocity is rejected (issue ``velocity_rejected``): a zero at birth while the
+  positions move never pulls a track to a stop. ``fuse_reported = false``
+  uses positions alone.
+- A reported speed below 0.1 m/s is never fused: trackers report zero at a
+  track's birth and on dropouts, and whether a car stands is for its
+  positions (the dead band) to say; while the positions show it moving at
+  2 m/s or more, each such sample is an issue ``velocity_zero_while_moving``.
+- The first sample of a track has a position only: its speed is the
+  calibrated reported one if trusted, else the reported one as given
+  (``source = "reported"``); a reported zero there is unknown (NaN, ``source
+  = "unknown"``: the corridors stage reports the track ``state_pending`` for
+  that one frame) rather than a standing car that is not standing: born at
+  speed 0, K733's cars (all reported 0 at birth) cost corridor_cv 28 % mADE
+  through the intentions filter's particles and the acceleration history.
+  It is not fed to the filter.
+- Per track, once it has ``consistency_min_samples`` such samples, the
+  medians decide it: a factor outside ``[1 / factor_tolerance,
+  factor_tolerance]`` or a cosine below 0.5 is one ``velocity_inconsistent``
+  issue for that track. ``consistency()`` sums the decided tracks and
+  ``warning()`` returns one line, once, when enough of them disagree.
+
+Also:
+
+- Standstill dead band: a track stands (speed 0, acceleration 0) when its
+  filtered speed over the last 0.3 s is below ``standstill_max_speed_mps`` on
+  average and, over the last
+  ``standstill_window_s``, the median position of the newer half of its
+  samples lies within ``standstill_radius_m`` of the older half's: position
+  jitter, and the single glitches of K733's tracker, never become a creeping
+  speed, and a car pulling away is released as soon as the filter sees it
+  move.
+- Acceleration: the slope of a least-squares line through the filtered speed
+  over the last ``accel_window_s`` (0 when standing or with too few samples).
+- A position more than ``jump_m`` off the filter's prediction (and more than
+  five of its standard deviations) restarts the track at the new position
+  (issue ``position_jump``); so does a gap longer than ``max_gap_s`` between
+  two samples (a re-used track id, issue ``track_restarted``).
+
+Chosen by the constant-speed displacement error at 1/2/4 s on both
+development locations (``bench/state_estimator.py``; figures in README.md,
+"State from positions").
+
+Pure: numpy and the standard library; time comes from the frames' stamps.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from stages.lib.base import ConfigMixin, Issue, check_ranges
+
+_NS = 1e-9
+_ZERO_MPS = 0.1  # a reported speed below this counts as "reported zero"
+
+
+@dataclass(frozen=True, kw_only=True)
+class EstimatorConfig(ConfigMixin):
+    """Parameters of ``KinematicEstimator`` (module docstring)."""
+
+    accel_noise_m2ps3: float = 10.0
+    initial_position_noise_m: float = 0.1
+    min_position_noise_m: float = 0.02
+    noise_adaptation: float = 0.05
+    initial_speed_sigma_mps: float = 10.0
+    standstill_radius_m: float = 0.25
+    standstill_max_speed_mps: float = 0.5
+    standstill_window_s: float = 1.0
+    accel_window_s: float = 1.0
+    jump_m: float = 5.0
+    max_gap_s: float = 1.0
+    consistency_min_speed_mps: float = 2.0
+    consistency_min_samples: int = 10
+    factor_tolerance: float = 1.25
+    warn_min_tracks: int = 3
+    warn_share: float = 0.3
+    fuse_reported: bool = True
+    calibration_min_samples: int = 30
+    calibration_min_tracks: int = 2
+    calibration_max_spread: float = 0.3
+    calibration_window: int = 500
+    initial_velocity_noise_mps: float = 1.0
+    min_velocity_noise_mps: float = 0.05
+    velocity_noise_adaptation: float = 0.2
+    velocity_gate_sigma: float = 3.0
+
+    def __post_init__(self) -> None:
+        positive = ("accel_noise_m2ps3", "initial_position_noise_m", "min_position_noise_m", "initial_speed_sigma_mps",
+                    "standstill_window_s", "accel_window_s", "jump_m", "max_gap_s", "consistency_min_speed_mps")
+        non_negative = ("standstill_radius_m",)
+        check_ranges(self, positive=positive, non_negative=non_negative)
+        if not (0.0 < self.noise_adaptation <= 1.0):
+            raise ValueError(f"noise_adaptation must be in (0, 1], got {self.noise_adaptation}")
+        if self.factor_tolerance <= 1.0:
+            raise ValueError(f"factor_tolerance must be > 1, got {self.factor_tolerance}")
+        if self.consistency_min_samples < 1 or self.warn_min_tracks < 1 or not (0.0 < self.warn_share <= 1.0):
+            raise ValueError("consistency_min_samples and warn_min_tracks must be >= 1, warn_share in (0, 1]")
+
+
+@dataclass(frozen=True, slots=True)
+class KinematicState:
+    """One track's state at one stamp. ``source``: "positions", "reported" (first sample) or "unknown"."""
+
+    vx_mps: float
+    vy_mps: float
+    speed_mps: float
+    accel_mps2: float
+    standing: bool
+    source: str
+    reported_speed_mps: float
+
+    @property
+    def heading_rad(self) -> float:
+        """Direction of the estimated velocity (NaN when standing or unknown)."""
+        if self.standing or not (self.speed_mps > 0.0):
+            return math.nan
+        return math.atan2(self.vy_mps, self.vx_mps)
+
+
+@dataclass(slots=True, eq=False)
+class _Track:
+    t_ns: int
+    x: list[float]  # [position, velocity] along x
+    y: list[float]
+    p: list[float]  # shared covariance [p00, p01, p11] (same H and dt for both axes)
+    r: float  # measurement noise variance, adapted
+    first_ns: int = 0
+    rv: float = 1.0  # variance of the calibrated reported velocity, adapted
+    recent: collections.deque = field(default_factory=collections.deque)  # (t_ns, x, y, speed, reported vx, reported vy)
+    ratios: list[float] = field(default_factory=list)
+    cosines: list[float] = field(default_factory=list)
+    decided: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class Consistency:
+    """Reported vs position-implied velocity over the tracks decided so far."""
+
+    tracks_checked: int
+    tracks_inconsistent: int
+    median_factor: float
+    median_cosine: float
+
+    def as_dict(self) -> dict[str, float | int]:
+        return {
+            "tracks_checked": self.tracks_checked,
+            "tracks_inconsistent": self.tracks_inconsistent,
+            "median_factor": self.median_factor,
+            "median_cosine": self.median_cosine,
+        }
+
+
+def is_consistent(factor: float, cosine: float, config: EstimatorConfig) -> bool:
+    """A track's reported velocity agrees with its positions: factor within the tolerance, cosine >= 0.5."""
+    return 1.0 / config.factor_tolerance <= factor <= config.factor_tolerance and cosine >= 0.5
+
+
+def consistency_of(decided, config: EstimatorConfig) -> Consistency:
+    """The summary of (factor, cosine) pairs of decided tracks (one estimator's, or several merged)."""
+    decided = list(decided)
+    factors = [f for f, _ in decided]
+    cosines = [c for _, c in decided]
+    return Consistency(
+        tracks_checked=len(decided),
+        tracks_inconsistent=sum(not is_consistent(f, c, config) for f, c in decided),
+        median_factor=float(np.median(factors)) if factors else math.nan,
+        median_cosine=float(np.median(cosines)) if cosines else math.nan,
+    )
+
+
+def disagreement_line(c: Consistency, config: EstimatorConfig) -> str | None:
+    """One warning line when enough checked tracks disagree with their positions; else None."""
+    if c.tracks_inconsistent < config.warn_min_tracks or c.tracks_inconsistent < config.warn_share * c.tracks_checked:
+        return None
+    return (
+        f"reported velocities disagree with the positions: {c.tracks_inconsistent} of {c.tracks_checked} tracks checked, "
+        f"median reported/position speed factor {c.median_factor:.2f}, median direction cosine {c.median_cosine:.2f}; "
+        "speeds and accelerations come from the positions"
+    )
+
+
+class Calibration:
+    """Reported velocity vs the positions' 1 s chord velocity over the stream's recent moving samples.
+
+    ``factor`` the median of |mean reported velocity| / |chord velocity|,
+    ``cosine`` the median cosine between the two; ``trusted`` when there are
+    enough samples from enough tracks, the direction is consistently along or
+    against the motion (|cosine| >= 0.9) and the factor's interquartile range
+    is within ``calibration_max_spread`` of it. A trusted reported velocity is
+    used as ``sign(cosine) * reported / factor``.
+    """
+
+    def __init__(self, config: EstimatorConfig) -> None:
+        self.config = config
+        self._samples: collections.deque = collections.deque(maxlen=config.calibration_window)
+        self._tracks: collections.deque = collections.deque(maxlen=config.calibration_window)
+        self._dirty = 0
+        self.factor = math.nan
+        self.cosine = math.nan
+        self.trusted = False
+
+    def add(self, track_id: int, factor: float, cosine: float) -> None:
+        self._samples.append((factor, cosine))
+        self._tracks.append(track_id)
+        self._dirty += 1
+        if self._dirty >= 10 or not self.trusted:
+            self._refresh()
+
+    def _refresh(self) -> None:
+        cfg = self.config
+        self._dirty = 0
+        if len(self._samples) < cfg.calibration_min_samples or len(set(self._tracks)) < cfg.calibration_min_tracks:
+            return
+        arr = np.array(self._samples)
+        q1, med, q3 = np.percentile(arr[:, 0], [25, 50, 75])
+        self.factor = float(med)
+        self.cosine = float(np.median(arr[:, 1]))
+        self.trusted = bool(0.2 <= med <= 5.0 and abs(self.cosine) >= 0.9 and (q3 - q1) <= cfg.calibration_max_spread * med)
+
+    def apply(self, vx: float, vy: float) -> tuple[float, float] | None:
+        """The calibrated reported velocity, or None when it is not trusted or not finite."""
+        if not self.trusted or not (math.isfinite(vx) and math.isfinite(vy)):
+            return None
+        k = math.copysign(1.0, self.cosine) / self.factor
+        return vx * k, vy * k
+
+
+class KinematicEstimator:
+    """Causal per-track state for one stream of frames (module docstring)."""
+
+    def __init__(self, config: EstimatorConfig | None = None) -> None:
+        self.config = config or EstimatorConfig()
+        self._tracks: dict[int, _Track] = {}
+        self._factors: list[float] = []
+        self._cosines: list[float] = []
+        self._warned = False
+        self.calibration = Calibration(self.config)
+        self._rv_stream = self.config.initial_velocity_noise_mps**2
+        self.velocity_rejected = 0
+
+    def reset(self) -> None:
+        """Forget every track and the consistency figures (a new scene)."""
+        self.__init__(self.config)
+
+    def forget(self, track_id: int) -> None:
+        self._tracks.pop(int(track_id), None)
+
+    def update(
+        self, track_id: int, stamp_ns: int, x_m: float, y_m: float, vx_mps: float, vy_mps: float, issues: list[Issue]
+    ) -> KinematicState:
+        """The state of ``track_id`` after its sample at ``stamp_ns`` (positions must be finite)."""
+        cfg = self.config
+        reported = math.hypot(vx_mps, vy_mps) if math.isfinite(vx_mps) and math.isfinite(vy_mps) else math.nan
+        calibrated = self.calibration.apply(vx_mps, vy_mps) if cfg.fuse_reported else None
+        track = self._tracks.get(track_id)
+        if track is not None:
+            dt = (stamp_ns - track.t_ns) * _NS
+            if dt <= 0.0:
+                return self._state(track, reported, "positions")  # the same stamp again: nothing new
+            if dt > cfg.max_gap_s:
+                issues.append(Issue("track_restarted", track_id, f"{dt:.1f} s since its last sample: state restarted"))
+                track = None
+        if track is None:
+            return self._start(track_id, stamp_ns, x_m, y_m, vx_mps, vy_mps, reported, calibrated)
+        if not self._step(track, dt, x_m, y_m):
+            issues.append(Issue("position_jump", track_id, f"position {math.hypot(x_m - track.x[0], y_m - track.y[0]):.1f} m off its prediction: state restarted"))
+            return self._start(track_id, stamp_ns, x_m, y_m, vx_mps, vy_mps, reported, calibrated)
+        fused = False
+        # a reported zero is no evidence (trackers report it at a track's birth and on dropouts):
+        # whether a car stands is for its positions to say
+        if calibrated is not None and reported >= _ZERO_MPS:
+            fused = self._fuse(track, calibrated)
+            if not fused:
+                issues.append(Issue(
+                    "velocity_rejected", track_id,
+                    f"reported velocity ({calibrated[0]:.1f}, {calibrated[1]:.1f}) m/s calibrated is off the positions' "
+                    f"({track.x[1]:.1f}, {track.y[1]:.1f}): not used",
+                ))
+        track.t_ns = stamp_ns
+        state = self._state(track, reported, "fused" if fused else "positions", (x_m, y_m, vx_mps, vy_mps))
+        if reported < _ZERO_MPS and state.speed_mps >= cfg.consistency_min_speed_mps:
+            issues.append(Issue("velocity_zero_while_moving", track_id, f"reported speed {reported:.2f} m/s, positions say {state.speed_mps:.1f} m/s: ignored"))
+        self._check(track_id, track, state, reported, issues)
+        return state
+
+    # ----- filter ----------------------------------------------------------------
+
+    def _start(self, track_id, stamp_ns, x, y, vx, vy, reported, calibrated) -> KinematicState:
+        cfg = self.config
+        r = cfg.initial_position_noise_m**2
+        track = _Track(t_ns=stamp_ns, x=[x, 0.0], y=[y, 0.0], p=[r, 0.0, cfg.initial_speed_sigma_mps**2], r=r, first_ns=stamp_ns,
+                       rv=self._rv_stream)
+        track.recent.append((stamp_ns, x, y, math.nan, vx, vy))
+        self._tracks[track_id] = track
+        # the filter starts from the position alone: a first reported velocity (zero at a track's birth,
+        # say) is never fed in without the positions to gate it; it is only this sample's answer
+        if not (reported >= _ZERO_MPS):
+            # a reported zero (or nothing) at a track's birth says nothing: the speed waits for the second position
+            return KinematicState(math.nan, math.nan, math.nan, math.nan, False, "unknown", reported)
+        if calibrated is not None:
+            return KinematicState(calibrated[0], calibrated[1], math.hypot(*calibrated), 0.0, False, "reported", reported)
+        return KinematicState(vx, vy, reported, 0.0, False, "reported", reported)
+
+    def _step(self, track: _Track, dt: float, zx: float, zy: float) -> bool:
+        """Predict over ``dt`` and update with the position (zx, zy); False when the sample is a jump (track untouched)."""
+        cfg = self.config
+        q = cfg.accel_noise_m2ps3
+        p00, p01, p11 = track.p
+        # predict: F = [[1, dt], [0, 1]], Q = q [[dt³/3, dt²/2], [dt²/2, dt]]
+        p00 = p00 + 2.0 * dt * p01 + dt * dt * p11 + q * dt**3 / 3.0
+        p01 = p01 + dt * p11 + q * dt * dt / 2.0
+        p11 = p11 + q * dt
+        px = track.x[0] + dt * track.x[1]
+        py = track.y[0] + dt * track.y[1]
+        ix, iy = zx - px, zy - py
+        innovation2 = 0.5 * (ix * ix + iy * iy)
+        s = p00 + track.r
+        if math.sqrt(2.0 * innovation2) > cfg.jump_m and innovation2 > 25.0 * s:
+            return False
+        # adapt the measurement noise to the innovations this track shows
+        a = cfg.noise_adaptation
+        track.r = (1.0 - a) * track.r + a * max(innovation2 - p00, cfg.min_position_noise_m**2)
+        s = p00 + track.r
+        k0, k1 = p00 / s, p01 / s
+        track.x = [px + k0 * ix, track.x[1] + k1 * ix]
+        track.y = [py + k0 * iy, track.y[1] + k1 * iy]
+        track.p = [(1.0 - k0) * p00, (1.0 - k0) * p01, p11 - k1 * p01]
+        return True
+
+    def _fuse(self, track: _Track, velocity: tuple[float, float]) -> bool:
+        """Update with the calibrated reported velocity, gated; False when it is rejected."""
+        cfg = self.config
+        p00, p01, p11 = track.p
+        ix, iy = velocity[0] - track.x[1], velocity[1] - track.y[1]
+        innovation2 = 0.5 * (ix * ix + iy * iy)
+        gate = cfg.velocity_gate_sigma**2 * (p11 + track.rv) + 1.0
+        if innovation2 > gate:
+            self.velocity_rejected += 1
+            return False
+        a = cfg.velocity_noise_adaptation
+        track.rv = (1.0 - a) * track.rv + a * max(innovation2 - p11, cfg.min_velocity_noise_mps**2)
+        self._rv_stream = (1.0 - 0.25 * a) * self._rv_stream + 0.25 * a * track.rv
+        s = p11 + track.rv
+        k0, k1 = p01 / s, p11 / s
+        track.x = [track.x[0] + k0 * ix, track.x[1] + k1 * ix]
+        track.y = [track.y[0] + k0 * iy, track.y[1] + k1 * iy]
+        track.p = [p00 - k0 * p01, p01 - k0 * p11, (1.0 - k1) * p11]
+        return True
+
+    def _state(self, track: _Track, reported: float, source: str, sample: tuple | None = None) -> KinematicState:
+        cfg = self.config
+        vx, vy = track.x[1], track.y[1]
+        speed = math.hypot(vx, vy)
+        recent = track.recent
+        if sample is not None:
+            recent.append((track.t_ns, sample[0], sample[1], speed, sample[2], sample[3]))
+            keep_ns = round(max(cfg.standstill_window_s, cfg.accel_window_s, 1.0) / _NS)
+            while recent and track.t_ns - recent[0][0] > keep_ns:
+                recent.popleft()
+        if self._standing(track):
+            return KinematicState(0.0, 0.0, 0.0, 0.0, True, source, reported)
+        return KinematicState(vx, vy, speed, self._accel(track), False, source, reported)
+
+    def _standing(self, track: _Track) -> bool:
+        """The median position of the older half of the window is within the radius of the newer half's."""
+        cfg = self.config
+        t_now = track.recent[-1][0]
+        span_ns = round(cfg.standstill_window_s / _NS)
+        window = [(t, x, y) for t, x, y, *_ in track.recent if t_now - t <= span_ns]
+        if len(window) < 4 or t_now - window[0][0] < span_ns:
+            return False
+        # a car the filter sees move, sustained over the last 0.3 s, is released at once
+        newest = [v for t, _, _, v, *_ in track.recent if t_now - t <= 300_000_000 and math.isfinite(v)]
+        if newest and sum(newest) / len(newest) >= cfg.standstill_max_speed_mps:
+            return False
+        half = len(window) // 2
+        old = np.median(np.array([(x, y) for _, x, y in window[:half]]), axis=0)
+        new = np.median(np.array([(x, y) for _, x, y in window[half:]]), axis=0)
+        return float(np.hypot(*(new - old))) < cfg.standstill_radius_m
+
+    def _accel(self, track: _Track) -> float:
+        window_ns = round(self.config.accel_window_s / _NS)
+        t_now = track.t_ns
+        pts = [(t, v) for t, _, _, v, *_ in track.recent if t_now - t <= window_ns and math.isfinite(v)]
+        if len(pts) < 3:
+            return 0.0
+        t = np.array([p[0] for p in pts], dtype=np.float64) * _NS
+        v = np.array([p[1] for p in pts])
+        t -= t.mean()
+        denom = float(np.dot(t, t))
+        return float(np.dot(t, v - v.mean()) / denom) if denom > 0 else 0.0
+
+    # ----- reported velocity as evidence ------------------------------------------
+
+    def _chord(self, track: _Track) -> tuple[float, float, float, float] | None:
+        """(chord vx, vy over the last 1 s of positions, mean reported vx, vy over the same samples), or None."""
+        t_now, x_now, y_now = track.recent[-1][:3]
+        first = None
+        for item in track.recent:
+            if t_now - item[0] <= 1_000_000_000:
+                first = item
+                break
+        if first is None or t_now - first[0] < 900_000_000:
+            return None
+        dt = (t_now - first[0]) * _NS
+        reps = [(vx, vy) for t, _, _, _, vx, vy in track.recent if t >= first[0]]
+        if not all(math.isfinite(vx) and math.isfinite(vy) for vx, vy in reps):
+            return None
+        if any(math.hypot(vx, vy) < _ZERO_MPS for vx, vy in reps):
+            # a zero while the chord moves is the birth transient the gate rejects, not the tracker's scale
+            return None
+        mvx = sum(v[0] for v in reps) / len(reps)
+        mvy = sum(v[1] for v in reps) / len(reps)
+        return (x_now - first[1]) / dt, (y_now - first[2]) / dt, mvx, mvy
+
+    def _check(self, track_id: int, track: _Track, state: KinematicState, reported: float, issues: list[Issue]) -> None:
+        """Reported vs positions over the last second: feeds the calibration and decides the track once."""
+        cfg = self.config
+        if state.standing or not math.isfinite(reported) or (track.t_ns - track.first_ns) * _NS < 1.0:
+            return
+        chord = self._chord(track)
+        if chord is None:
+            return
+        cvx, cvy, rvx, rvy = chord
+        chord_speed, rep_speed = math.hypot(cvx, cvy), math.hypot(rvx, rvy)
+        if chord_speed < cfg.consistency_min_speed_mps:
+            return
+        factor = rep_speed / chord_speed
+        cosine = (cvx * rvx + cvy * rvy) / (chord_speed * max(rep_speed, 1e-9))
+        self.calibration.add(track_id, factor, cosine)
+        if track.decided:
+            return
+        track.ratios.append(factor)
+        track.cosines.append(cosine)
+        if len(track.ratios) < cfg.consistency_min_samples:
+            return
+        track.decided = True
+        factor = float(np.median(track.ratios))
+        cosine = float(np.median(track.cosines))
+        self._factors.append(factor)
+        self._cosines.append(cosine)
+        if not is_consistent(factor, cosine, cfg):
+            issues.append(
+                Issue("velocity_inconsistent", track_id, f"reported speed is {factor:.2f} x the position-implied speed, direction cosine {cosine:.2f}")
+            )
+
+    @property
+    def decided(self) -> tuple[tuple[float, float], ...]:
+        """(factor, cosine) of every track decided so far, in the order decided."""
+        return tuple(zip(self._factors, self._cosines))
+
+    def consistency(self) -> Consistency:
+        """Reported vs position-implied velocity over the tracks decided so far."""
+        return consistency_of(self.decided, self.config)
+
+    def warning(self) -> str | None:
+        """One line, returned once, when enough checked tracks disagree with their positions; else None."""
+        if self._warned:
+            return None
+        line = disagreement_line(self.consistency(), self.config)
+        self._warned = line is not None
+        return line

@@ -1,0 +1,954 @@
+"""Offline evaluation (``iamp eval``): the prediction modes against ground truth, in-process (METHOD.md §6).
+
+Runs source → corridors → relations → intentions, ar_inference →
+markov_prediction as plain cores, no bus: ``TrackPlayer`` plays each
+sequence of each recording (fresh cores per sequence, maps and the AR model
+loaded once), the corridors, relations and intentions cores see every frame
+(their continuity state is as on the bus; the particle filter is seeded with
+``--seed``), the ar_inference core adds every frame to its feature
+histories and predicts at the evaluated instants, every mode's
+``MarkovPredictor`` observes every frame (the measured acceleration) and
+predicts at the evaluated instants: the frames at multiples of ``stride_s``
+from the sequence's first stamp.
+
+Modes: ``hybrid`` (AR distributions replace λ; ``--model`` picks the
+weights, default the shipped ones), ``baseline`` (rule-based λ), ``cv``,
+``corridor_cv``. Corridor weights (``--corridor-weights``): ``intentions``
+(default: the DBN's P(R = c)) or ``uniform``; the same weights for every
+mode with corridors.
+
+Windows. At an instant, every vehicle (``AgentType.is_vehicle``; TAF-BW has
+cars only) whose track has ground truth at exactly t + k·τ, k = 1..K, and
+that the corridors stage matched (so every mode predicts it). Vehicles
+without a full future or unmatched are counted in ``skipped``. Every mode is
+evaluated on the same windows.
+
+Nothing in the data stops the evaluation (only a bad command line or
+configuration: exit 2). What it leaves out is counted in ``skipped`` by
+reason, with the first occurrence in ``skipped_examples``, and listed under
+the table: windows ``no_full_future``, ``not_matched``,
+``no_prediction_<mode>`` (the mode left the vehicle out), ``score_error_<mode>``
+and ``prediction_error_<mode>`` (the predictor raised: the instant's windows
+are scored for no mode); frames ``<stage>_error_frames`` (a core raised on
+the frame: without corridors the frame is skipped, without relations,
+beliefs or AR profiles it is predicted without them); and
+``unreadable_sequences`` (a sequence whose files cannot be read). Each mode's
+``issues`` counts its predictor's issues by kind (fallback pairs among them).
+
+Metrics per window (K = 10 steps of 0.4 s):
+
+- ADE_c, FDE_c of each corridor's probability-weighted mean position
+  (``FramePrediction.mean_xy_m``; a step whose mass has all left the corridor
+  keeps the last finite mean, counted in ``nan_means``);
+  ``mADE_m``/``mFDE_m``: minimum over the vehicle's corridors, each
+  minimised separately (the paper's oracle); ``wADE_m``/``wFDE_m``: the
+  corridor-probability-weighted mean of ADE_c/FDE_c;
+- ``coverage90``: share of (vehicle, step) pairs whose true position lies in
+  a cell of the 90 % highest-probability region of that vehicle's grid at
+  that step (the vehicle's own grid, corridors weighted, not the fused
+  one; all occupied cells when the grid holds less than 90 %);
+- ``route_top1``: share of route windows where the corridor the car really
+  followed has the highest weight (a k-way tie counts 1/k); a route window
+  has at least two corridors, one of which holds the true 4 s future within
+  2 m laterally while the runner-up is at least 0.5 m worse (before the
+  branch the future does not tell routes apart: those windows do not count);
+  ``route_windows`` counts them (0 for ``cv``, which has one line);
+- ``nll``: mean over (vehicle, step) of −ln max(G(cell of the true position),
+  ``nll_floor``), in nats, G the probability of the ``grid_cell_m`` cell
+  (a discrete probability, not a density); the floor (1e-6 by default, so
+  a miss costs 13.8 nats) keeps it finite when the truth falls outside the
+  predicted cells.
+
+In ``--json`` a split without windows has ``windows`` 0 and null metrics.
+
+The grids used here are the centre-point grids at t_k (``grid_distribution =
+"point"``, METHOD.md §6 "for calibration"); the stage publishes interval
+occupancy by default. ``frame_ms_*`` is the wall time of one
+``MarkovPredictor.process`` call (all vehicles of the frame, grid included;
+corridors and relations excluded). Splits: ``by_speed.slow`` (speed at t ≤
+2 m/s), ``by_speed.fast`` (> 2 m/s), ``by_recording.<name>``.
+
+Figures (``figures_dir``): for the instant with the most windows,
+``grid_4s_<mode>.png`` (car lanelets grey, the fused grid at the last step as
+a heat map, white to yellow to red in log scale over 1e-4…1, current vehicle
+positions blue) and ``means_<mode>.png`` (ground truth black, each corridor's
+mean positions in its own colour, one dot per step, the start in blue), PNGs
+written with numpy and zlib; ``figures.txt`` names the instant and the
+colours. With mode ``hybrid``, ``accel_<recording>_<seq>_car<id>_<ms>.png``
+for four cars (the hardest braking, the strongest acceleration, the widest
+range, the calmest): the paper's acceleration-distribution figure — the 10
+distributions as intensity over the input cells, the AR output in red, the
+true acceleration in black; ``accel_figures.txt`` explains them.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bus_schemas import AgentType, CorridorSet, MatchStatus, RelationSet, SceneInfo, TrackFrame
+
+from stages.lib.base import progress_bar
+from stages.lib.base import json_safe
+from stages.lib.raster import MapRaster
+
+from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
+from stages.lib.kinematic_state import Consistency, EstimatorConfig, consistency_of, disagreement_line
+from stages.lib.datasets import DEFAULT_DATA_DIR, DatasetError, Recording, discover, find_recording, load_ref
+from stages.lib.datasets.model import same_sequence_id
+from stages.lib.markov import MarkovGridConfig, load_or_build_stencils
+from stages.markov_prediction import FramePrediction, MarkovPredictionConfig, MarkovPredictor
+from stages.markov_prediction.rasterise import GridFrame, highest_density_threshold
+from stages.intentions import IntentionFilter, IntentionsConfig
+from stages.offline.intentions_eval import followed_corridor
+from stages.relations import RelationExtractor, RelationsConfig
+from stages.tracks_source.core import TrackPlayer, TracksSourceConfig, file_sha256
+
+EVAL_MODES = ("hybrid", "baseline", "cv", "corridor_cv")
+CORRIDOR_WEIGHTS = ("intentions", "uniform")
+#: route_top1 windows: the followed corridor holds the true future within this lateral distance ...
+ROUTE_MAX_ERROR_M = 2.0
+#: ... and the runner-up is at least this much worse (else the future does not tell the routes apart).
+ROUTE_MARGIN_M = 0.5
+SLOW_SPEED_MPS = 2.0
+_MS = 1_000_000
+
+
+@dataclass(frozen=True, kw_only=True)
+class EvalConfig:
+    """What to evaluate and how (see the module docstring)."""
+
+    data_dir: Path = DEFAULT_DATA_DIR
+    recordings: tuple[str, ...] = ()
+    sequences: tuple[str, ...] = ()
+    modes: tuple[str, ...] = EVAL_MODES
+    stride_s: float = 0.4
+    max_frames_per_sequence: int = 0
+    corridor_weights: str = "intentions"
+    intentions_params: tuple[tuple[str, Any], ...] = ()
+    ar_params: tuple[tuple[str, Any], ...] = ()
+    backend: str = "numpy"
+    device: str = "cpu"
+    coverage_level: float = 0.9
+    nll_floor: float = 1e-6
+    progress: bool = True
+    figures_dir: Path | None = None
+    params: tuple[tuple[str, Any], ...] = ()
+    model_path: Path | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        unknown = [m for m in self.modes if m not in EVAL_MODES]
+        if unknown or not self.modes:
+            raise ValueError(f"modes {unknown or '(none)'}: expected one or several of {', '.join(EVAL_MODES)}")
+        if self.corridor_weights not in CORRIDOR_WEIGHTS:
+            raise ValueError(f"corridor_weights = {self.corridor_weights!r}: expected one of {', '.join(CORRIDOR_WEIGHTS)}")
+        if not (math.isfinite(self.stride_s) and self.stride_s > 0):
+            raise ValueError(f"stride_s = {self.stride_s!r}: must be > 0")
+        if not (0 < self.coverage_level < 1) or not (0 < self.nll_floor < 1):
+            raise ValueError("coverage_level and nll_floor must lie in (0, 1)")
+
+
+# --------------------------------------------------------------------------- accumulation
+
+
+@dataclass(slots=True)
+class _Stats:
+    """Sums over windows of one (mode, split)."""
+
+    windows: int = 0
+    made: float = 0.0
+    mfde: float = 0.0
+    wade: float = 0.0
+    wfde: float = 0.0
+    steps: int = 0
+    covered: int = 0
+    nll: float = 0.0
+    route_windows: int = 0
+    route_hits: float = 0.0
+
+    def add(self, w: "_WindowResult") -> None:
+        self.windows += 1
+        self.made += w.made
+        self.mfde += w.mfde
+        self.wade += w.wade
+        self.wfde += w.wfde
+        self.steps += w.steps
+        self.covered += w.covered
+        self.nll += w.nll
+        if w.route_hit is not None:
+            self.route_windows += 1
+            self.route_hits += w.route_hit
+
+    def summary(self) -> dict[str, float | int]:
+        n, k = max(self.windows, 1), max(self.steps, 1)
+        nan = float("nan")
+        return {
+            "windows": self.windows,
+            "mADE_m": self.made / n if self.windows else nan,
+            "mFDE_m": self.mfde / n if self.windows else nan,
+            "wADE_m": self.wade / n if self.windows else nan,
+            "wFDE_m": self.wfde / n if self.windows else nan,
+            "coverage90": self.covered / k if self.steps else nan,
+            "nll": self.nll / k if self.steps else nan,
+            "route_top1": self.route_hits / self.route_windows if self.route_windows else nan,
+            "route_windows": self.route_windows,
+        }
+
+
+@dataclass(frozen=True, slots=True)
+class _WindowResult:
+    made: float
+    mfde: float
+    wade: float
+    wfde: float
+    steps: int
+    covered: int
+    nll: float
+    route_hit: float | None = None
+
+
+@dataclass(slots=True)
+class _ModeAccumulator:
+    overall: _Stats = field(default_factory=_Stats)
+    slow: _Stats = field(default_factory=_Stats)
+    fast: _Stats = field(default_factory=_Stats)
+    by_recording: dict[str, _Stats] = field(default_factory=lambda: collections.defaultdict(_Stats))
+    frame_ms: list[float] = field(default_factory=list)
+    vehicles: list[int] = field(default_factory=list)
+    nan_means: int = 0
+    issues: collections.Counter = field(default_factory=collections.Counter)  # the predictor's issues by kind
+
+
+@dataclass(slots=True)
+class _Figure:
+    """The instant drawn by ``--figures``."""
+
+    n_windows: int
+    recording: str
+    sequence: str
+    stamp_ns: int
+    scene: SceneInfo
+    scene_maps: SceneMaps
+    predictions: dict[str, FramePrediction]
+    truths: dict[int, np.ndarray]
+    starts: dict[int, tuple[float, float]]
+
+
+# --------------------------------------------------------------------------- the evaluation
+
+
+class Evaluation:
+    """Runs the cores over the selected recordings and accumulates the metrics per mode."""
+
+    def __init__(self, config: EvalConfig) -> None:
+        self.config = config
+        self.scene_maps = SceneMaps(data=config.data_dir)  # maps by name from the evaluated data folder
+        self._estimators: dict[str, list] = {}  # per recording: the corridors stage's state estimator of each sequence
+        grid = MarkovGridConfig()
+        stencils = load_or_build_stencils(grid) if {"baseline", "hybrid"} & set(config.modes) else None
+        self.predictors = {
+            mode: MarkovPredictor(
+                MarkovPredictionConfig.from_params(
+                    {
+                        **dict(config.params),
+                        "mode": mode,
+                        "backend": config.backend if mode in ("baseline", "hybrid") else "numpy",
+                        "device": config.device if mode in ("baseline", "hybrid") else "cpu",
+                        "corridor_weights": config.corridor_weights,
+                        "grid_distribution": "point",
+                    },
+                    where="iamp eval --set",
+                ),
+                producer=f"eval-{mode}",
+                stencils=stencils,
+            )
+            for mode in config.modes
+        }
+        self.acc = {mode: _ModeAccumulator() for mode in config.modes}
+        self.intentions_config = IntentionsConfig.from_params({"seed": config.seed, **dict(config.intentions_params)}, where="iamp eval --set-intentions")
+        self.ar_config = None
+        if "hybrid" in config.modes:
+            from stages.ar_inference import ARInferenceConfig
+
+            self.ar_config = ARInferenceConfig.from_params(
+                {"model": str(config.model_path) if config.model_path else "", "device": config.device, **dict(config.ar_params)},
+                where="iamp eval --model/--set-ar",
+            )
+        self.intentions_ms: list[float] = []
+        self.ar_ms: list[float] = []
+        self.ar_examples: list[dict[str, Any]] = []
+        self.skipped: collections.Counter[str] = collections.Counter()
+        self.skip_examples: dict[str, str] = {}  # per reason, the first occurrence (printed under the table)
+        self.instants = 0
+        self.figure: _Figure | None = None
+        self.recordings: list[str] = []
+
+    # ----- data ---------------------------------------------------------------------
+
+    def _load(self) -> list[Recording]:
+        """The selected recordings, sequence by sequence: one whose files cannot be read is left out and counted
+        (``unreadable_sequences``). A data folder, recording or sequence that is not there raises ``DatasetError``
+        (a bad command line)."""
+        cfg = self.config
+        refs = {ref.name: ref for ref in discover(cfg.data_dir)}
+        out = []
+        for name in list(cfg.recordings) or list(refs):
+            ref = refs.get(name) or find_recording(cfg.data_dir, name)
+            wanted = list(dict.fromkeys(cfg.sequences)) or list(ref.sequence_ids)
+            for want in wanted:
+                if not any(same_sequence_id(s, want) for s in ref.sequence_ids):
+                    raise DatasetError(f"recording {name}: no track file for sequence {want!r}; available: {', '.join(ref.sequence_ids)}")
+            parts = []
+            for want in wanted:
+                try:
+                    parts.append(load_ref(ref, (want,), display_root=Path(cfg.data_dir)))
+                except DatasetError as exc:
+                    self._skip("unreadable_sequences", f"{name} sequence {want}: {exc}")
+            if parts:
+                out.append(dataclasses.replace(parts[0], sequences=tuple(s for p in parts for s in p.sequences)))
+        return out
+
+    def _skip(self, reason: str, detail: str, count: int = 1) -> None:
+        """Count ``count`` things skipped for ``reason``; the first one's ``detail`` is kept for the table."""
+        self.skipped[reason] += count
+        self.skip_examples.setdefault(reason, detail)
+
+    def run(self) -> dict[str, Any]:
+        recordings = self._load()
+        total = 0
+        for rec in recordings:
+            for seq in rec.sequences:
+                total += seq.n_frames if not self.config.max_frames_per_sequence else min(seq.n_frames, self.config.max_frames_per_sequence)
+        bar = progress_bar(total, self.config.progress, unit="frame", desc="iamp eval")
+        try:
+            for rec in recordings:
+                self.recordings.append(rec.name)
+                sha = file_sha256(rec.map_path) if rec.map_path is not None else ""
+                for seq in rec.sequences:
+                    self._sequence(rec, seq, sha, bar)
+        finally:
+            bar.close()
+        return self.report()
+
+    def _sequence(self, rec: Recording, seq, map_sha256: str, bar) -> None:
+        cfg = self.config
+        one = dataclasses.replace(rec, sequences=(seq,))
+        player = TrackPlayer(
+            TracksSourceConfig(data=str(cfg.data_dir), recording=rec.name), one, map_sha256=map_sha256, run_id="eval", producer="source"
+        )
+        corridors = CorridorBuilder(CorridorsConfig(), scene_maps=self.scene_maps)
+        relations = RelationExtractor(RelationsConfig(), scene_maps=self.scene_maps)
+        needs_belief = any(p.config.corridor_weights == "intentions" or p.config.initial_box == "particles" for p in self.predictors.values())
+        intentions = IntentionFilter(self.intentions_config, producer="eval", scene_maps=self.scene_maps) if needs_belief else None
+        ar = None
+        if self.ar_config is not None:
+            from stages.ar_inference import ARInference
+
+            ar = ARInference(self.ar_config, producer="eval", model=getattr(self, "_ar_model", None))
+            self._ar_model = ar.model  # loaded once, shared by the sequences
+        for predictor in self.predictors.values():
+            predictor.reset()
+        self._estimators.setdefault(rec.name, []).append(corridors.estimator)
+        truth = _ground_truth(seq)
+        tau_ns = int(round(self.predictors[cfg.modes[0]].config.tau_s * 1e9))
+        n_steps = self.predictors[cfg.modes[0]].config.n_steps
+        stride_ns = int(round(cfg.stride_s * 1e9))
+        first = int(seq.stamp_ns[0]) if seq.n_rows else 0
+        scene: SceneInfo | None = None
+        for n, (stamp, result) in enumerate(player):
+            if cfg.max_frames_per_sequence and n >= cfg.max_frames_per_sequence:
+                break
+            bar.update(1)
+            if "scene" in result.outputs:
+                scene = result.outputs["scene"]
+                scene_map = self.scene_maps.get(scene, corridors.config.projection)
+                if scene_map.road_map is None:  # nothing could be matched: an error, never an all-NaN table
+                    problems = " ".join("; ".join(scene_map.problems).split())
+                    raise DatasetError(f"recording {rec.name}: map {scene.map_name} is unusable: {problems or 'no car lanelets'}")
+            frame: TrackFrame = result.outputs["track_frame"]
+            where = f"{rec.name} sequence {seq.id} stamp_ns {stamp}"
+            done = self._guarded("corridors_error_frames", where, lambda: corridors.process(frame, scene))
+            if done is None:
+                continue  # no corridors: nothing to predict in this frame
+            corridor_set = done[0]
+            relation_set = (self._guarded("relations_error_frames", where, lambda: relations.process(frame, corridor_set, scene)) or (None,))[0]
+            belief = None
+            if intentions is not None:
+                t0 = time.perf_counter()
+                belief = (self._guarded("intentions_error_frames", where,
+                                        lambda: intentions.process(frame, corridor_set, relation_set, scene)) or (None,))[0]
+                self.intentions_ms.append((time.perf_counter() - t0) * 1e3)
+            offset = stamp - first
+            if offset % stride_ns > _MS and stride_ns - offset % stride_ns > _MS:
+                for predictor in self.predictors.values():
+                    predictor.observe(corridor_set)
+                if ar is not None:
+                    self._guarded("ar_inference_error_frames", where, lambda: ar.observe(corridor_set, relation_set, frame))
+                continue
+            profiles = None
+            if ar is not None:
+                t0 = time.perf_counter()
+                profiles = (self._guarded("ar_inference_error_frames", where,
+                                          lambda: ar.process(corridor_set, relation_set, frame, scene)) or (None,))[0]
+                self.ar_ms.append((time.perf_counter() - t0) * 1e3)
+            self._instant(rec.name, seq.id, stamp, frame, corridor_set, relation_set, scene, truth, tau_ns, n_steps, belief, profiles)
+
+    def _guarded(self, reason: str, where: str, call):
+        """``call()``, or None when it raises: a core failing on one frame is counted under ``reason``, not fatal."""
+        try:
+            return call()
+        except Exception as exc:  # noqa: BLE001 - a data condition never ends the evaluation
+            self._skip(reason, f"{where}: {type(exc).__name__}: {exc}")
+            return None
+
+    def _instant(self, recording, sequence_id, stamp, frame, corridor_set: CorridorSet, relation_set: RelationSet | None,
+                 scene, truth, tau_ns, n_steps, belief=None, profiles=None) -> None:
+        self.instants += 1
+        windows: dict[int, tuple[np.ndarray, float]] = {}
+        statuses = {v.track_id: v for v in corridor_set.vehicles}
+        for row, track_id in enumerate(frame.track_ids.tolist()):
+            if not AgentType(int(frame.agent_types[row])).is_vehicle:
+                continue
+            future = _future(truth.get(track_id), stamp, tau_ns, n_steps)
+            if future is None:
+                self.skipped["no_full_future"] += 1
+                continue
+            vehicle = statuses.get(track_id)
+            if vehicle is None or vehicle.status != MatchStatus.MATCHED or not vehicle.corridors:
+                self.skipped["not_matched"] += 1
+                continue
+            # the start-speed split uses the speed estimated from positions, as every mode does
+            windows[track_id] = (future, float(vehicle.speed_mps))
+        predictions: dict[str, FramePrediction] = {}
+        where = f"{recording} sequence {sequence_id} stamp_ns {stamp}"
+        for mode, predictor in self.predictors.items():
+            t0 = time.perf_counter()
+            try:
+                prediction, issues = predictor.process(
+                    corridor_set, relation_set, scene, frame, intention_belief=belief, acceleration_profiles=profiles if mode == "hybrid" else None
+                )
+            except Exception as exc:  # noqa: BLE001 - counted; the instant's windows are then scored for no mode
+                self._skip(f"prediction_error_{mode}", f"{where}: {type(exc).__name__}: {exc}", len(windows))
+                continue
+            self.acc[mode].frame_ms.append((time.perf_counter() - t0) * 1e3)
+            self.acc[mode].vehicles.append(len({p.track_id for p in prediction.pairs}))
+            self.acc[mode].issues.update(i.kind for i in issues)
+            predictions[mode] = prediction
+        if len(predictions) < len(self.predictors):
+            return  # every mode is scored on the same windows
+        for mode, prediction in predictions.items():
+            acc = self.acc[mode]
+            if mode == "hybrid" and profiles is not None:
+                self._collect_accel_examples(recording, sequence_id, stamp, windows, statuses, truth, profiles, prediction)
+            for track_id, (future, speed) in windows.items():
+                try:
+                    result = self._score(prediction, track_id, future, acc, statuses[track_id])
+                except Exception as exc:  # noqa: BLE001
+                    self._skip(f"score_error_{mode}", f"{where} track {track_id}: {type(exc).__name__}: {exc}")
+                    continue
+                if result is None:
+                    self.skipped[f"no_prediction_{mode}"] += 1
+                    continue
+                acc.overall.add(result)
+                (acc.slow if speed <= SLOW_SPEED_MPS else acc.fast).add(result)
+                acc.by_recording[recording].add(result)
+        if windows and scene is not None and (self.figure is None or len(windows) > self.figure.n_windows):
+            rows = {int(t): i for i, t in enumerate(frame.track_ids)}
+            self.figure = _Figure(
+                n_windows=len(windows),
+                recording=recording,
+                sequence=sequence_id,
+                stamp_ns=stamp,
+                scene=scene,
+                scene_maps=self.scene_maps,
+                predictions=predictions,
+                truths={t: f for t, (f, _) in windows.items()},
+                starts={t: (float(frame.x_m[rows[t]]), float(frame.y_m[rows[t]])) for t in windows},
+            )
+
+    def _collect_accel_examples(self, recording, sequence_id, stamp, windows, statuses, truth, profiles, prediction) -> None:
+        """Keep, per window, the AR profile of the corridor the car followed and its true acceleration (the figure)."""
+        by_pair = profiles.by_pair()
+        for track_id, (future, _speed) in windows.items():
+            vehicle = statuses[track_id]
+            members = [b for b, p in enumerate(prediction.pairs) if p.track_id == track_id]
+            corridors = [c for c in vehicle.corridors if any(prediction.pairs[b].corridor_id == c.corridor_id for b in members)]
+            if not corridors:
+                continue
+            index, error, _second = followed_corridor(corridors, future)
+            profile = by_pair.get((track_id, corridors[index].corridor_id))
+            true_accel = _true_acceleration(truth.get(track_id), stamp, profile.accel_mps2.shape[0] if profile is not None else 0)
+            if profile is None or error > ROUTE_MAX_ERROR_M or true_accel is None:
+                continue
+            self.ar_examples.append({
+                "recording": recording, "sequence": sequence_id, "track_id": track_id, "stamp_ns": stamp,
+                "true": true_accel, "ar": np.asarray(profile.accel_mps2, np.float64), "probs": np.asarray(profile.input_probs, np.float64),
+                "edges": np.asarray(profiles.input_edges_mps2, np.float64), "step_s": profiles.step_s, "chunk_s": profiles.chunk_s,
+            })
+
+    def _score(self, prediction: FramePrediction, track_id: int, future: np.ndarray, acc: _ModeAccumulator, vehicle) -> _WindowResult | None:
+        cfg = self.config
+        members = [b for b, p in enumerate(prediction.pairs) if p.track_id == track_id]
+        if not members:
+            return None
+        ade, fde, weights = [], [], []
+        for b in members:
+            means = prediction.mean_xy_m[b]
+            bad = ~np.all(np.isfinite(means), axis=1)
+            if np.any(bad):
+                acc.nan_means += int(bad.sum())
+                means = _fill_forward(means, prediction.pairs[b])
+            err = np.hypot(*(means - future).T)
+            ade.append(float(err.mean()))
+            fde.append(float(err[-1]))
+            weights.append(prediction.pairs[b].probability)
+        w = np.asarray(weights)
+        w = w / w.sum() if w.sum() > 0 else np.full(len(weights), 1.0 / len(weights))
+        grid = prediction.vehicle_grids.get(track_id)
+        frame = prediction.grid_frame
+        cells_true = frame.flat_index(future[:, 0], future[:, 1])
+        covered, nll = 0, 0.0
+        for k in range(future.shape[0]):
+            cells, values = grid.step(k, frame.n_cells) if grid is not None else (np.zeros(0, np.int64), np.zeros(0))
+            value = 0.0
+            if cells_true[k] >= 0 and cells.size:
+                i = int(np.searchsorted(cells, cells_true[k]))
+                if i < cells.size and cells[i] == cells_true[k]:
+                    value = float(values[i])
+            if value > 0 and value >= highest_density_threshold(values, cfg.coverage_level):
+                covered += 1
+            nll -= math.log(max(value, cfg.nll_floor))
+        return _WindowResult(
+            made=min(ade), mfde=min(fde), wade=float(np.dot(w, ade)), wfde=float(np.dot(w, fde)),
+            steps=future.shape[0], covered=covered, nll=nll, route_hit=_route_hit(prediction, members, w, vehicle, future),
+        )
+
+    # ----- results ------------------------------------------------------------------
+
+    def report(self) -> dict[str, Any]:
+        cfg = self.config
+        modes: dict[str, Any] = {}
+        for mode, acc in self.acc.items():
+            times = np.asarray(acc.frame_ms) if acc.frame_ms else np.full(1, np.nan)
+            modes[mode] = {
+                "overall": acc.overall.summary(),
+                "by_speed": {"slow": acc.slow.summary(), "fast": acc.fast.summary()},
+                "by_recording": {name: acc.by_recording[name].summary() for name in self.recordings},
+                "frame_ms_median": float(np.median(times)),
+                "frame_ms_p95": float(np.percentile(times, 95)),
+                "vehicles_per_frame_mean": float(np.mean(acc.vehicles)) if acc.vehicles else float("nan"),
+                "frames": len(acc.frame_ms),
+                "nan_means": acc.nan_means,
+                "issues": dict(sorted(acc.issues.items())),
+            }
+            if mode == "hybrid" and self.ar_ms:
+                modes[mode]["ar_inference_ms_median"] = float(np.median(self.ar_ms))
+                modes[mode]["ar_inference_ms_p95"] = float(np.percentile(self.ar_ms, 95))
+        return {
+            "data": str(cfg.data_dir),
+            "recordings": self.recordings,
+            "stride_s": cfg.stride_s,
+            "corridor_weights": cfg.corridor_weights,
+            "backend": cfg.backend,
+            "device": cfg.device,
+            "params": {k: v for k, v in cfg.params},
+            "instants": self.instants,
+            "skipped": dict(sorted(self.skipped.items())),
+            "skipped_examples": dict(sorted(self.skip_examples.items())),
+            "velocity_consistency": {name: self.velocity_consistency(name).as_dict() for name in self.recordings},
+            "intentions_ms_median": float(np.median(self.intentions_ms)) if self.intentions_ms else None,
+            "model": str(self.ar_config.model) if self.ar_config is not None else None,
+            "metrics": {
+                "coverage90": f"share of (vehicle, step) pairs whose true position is in the {cfg.coverage_level:.0%} highest-probability cells of the vehicle's centre-point grid",
+                "nll": f"mean -ln max(P(true cell), {cfg.nll_floor:g}) over (vehicle, step), nats, {self.predictors[cfg.modes[0]].config.grid_cell_m} m cells",
+                "mADE_m": "min over corridors of the ADE of the probability-weighted mean position",
+                "wADE_m": "corridor-probability-weighted mean of the ADE",
+            },
+            "modes": modes,
+        }
+
+    def velocity_consistency(self, recording: str) -> Consistency:
+        """Reported vs position-implied velocity over the tracks of a recording (all its sequences)."""
+        estimators = self._estimators.get(recording, [])
+        config = estimators[0].config if estimators else EstimatorConfig()
+        return consistency_of((d for e in estimators for d in e.decided), config)
+
+    def write_figures(self, directory: Path) -> list[Path]:
+        """The figures of the module docstring; returns the files written (none without an instant)."""
+        directory.mkdir(parents=True, exist_ok=True)
+        accel = self._write_accel_figures(directory)
+        return self._write_map_figures(directory) + accel
+
+    def _write_accel_figures(self, directory: Path, count: int = 4) -> list[Path]:
+        """The paper's acceleration-distribution figure for a few real cars (module docstring)."""
+        # physically plausible truths only: K733's tracker jitter gives "true" accelerations of ±10 m/s² that say
+        # nothing about the model
+        examples = [e for e in self.ar_examples if np.abs(e["true"]).max() <= 4.0]
+        if not examples:
+            return []
+        chosen: list[int] = []
+        for key in (lambda e: e["true"].min(), lambda e: -e["true"].max(), lambda e: -np.ptp(e["true"]), lambda e: abs(e["true"]).mean()):
+            for i in sorted(range(len(examples)), key=lambda i: key(examples[i])):
+                if all(examples[j]["track_id"] != examples[i]["track_id"] or examples[j]["recording"] != examples[i]["recording"] for j in chosen):
+                    chosen.append(i)
+                    break
+        written, lines = [], []
+        for i in chosen[:count]:
+            e = examples[i]
+            path = directory / f"accel_{e['recording']}_{e['sequence']}_car{e['track_id']}_{e['stamp_ns'] // 1_000_000}ms.png"
+            _accel_figure(e).write_png(path)
+            written.append(path)
+            err = np.abs(e["ar"] - e["true"]).mean()
+            lines.append(f"{path.name}: recording {e['recording']} sequence {e['sequence']} car {e['track_id']} at stamp_ns {e['stamp_ns']};"
+                         f" mean |AR - true| {err:.2f} m/s2")
+        (directory / "accel_figures.txt").write_text(
+            "accel_*.png (400 x 300 px): x = time after the instant, 0..4 s (one column per 0.4 s); y = acceleration, -3..2 m/s2"
+            " (the input cells; a grey line per m/s2, darker at 0); background: the 10 normal distributions of the AR profile over the input cells, one column per 0.4 s,"
+            " darker blue = more probable; red: AR output (40 values); black: true acceleration (the training targets' definition:"
+            " Savitzky-Golay over 1.5 s of true positions)\n"
+            + "\n".join(lines) + "\n"
+        )
+        return written
+
+    def _write_map_figures(self, directory: Path) -> list[Path]:
+        fig = self.figure
+        if fig is None:
+            (directory / "figures.txt").write_text("no instant with a full-future window: no figure\n")
+            return []
+        scene_map = fig.scene_maps.get(fig.scene)
+        road = scene_map.road_map
+        written = []
+        for mode, prediction in fig.predictions.items():
+            pts = [np.array(list(fig.starts.values()))] + [f for f in fig.truths.values()]
+            pts.append(prediction.mean_xy_m[np.isfinite(prediction.mean_xy_m).all(axis=2)].reshape(-1, 2))
+            allp = np.concatenate([p.reshape(-1, 2) for p in pts if p.size])
+            lo, hi = allp.min(axis=0) - 15.0, allp.max(axis=0) + 15.0
+            for kind in ("grid_4s", "means"):
+                canvas = _Canvas(lo[0], lo[1], hi[0], hi[1], resolution_m=0.1)
+                if road is not None:
+                    for lanelet_id in road.lanelet_ids:
+                        info = road.lanelet(lanelet_id)
+                        canvas.fill_polygon(np.vstack([info.left_bound_m, info.right_bound_m[::-1]]), (225, 225, 225))
+                if kind == "grid_4s":
+                    _draw_grid(canvas, prediction, step=prediction.step_times_s.shape[0] - 1)
+                    for x, y in fig.starts.values():
+                        canvas.disc(x, y, 0.8, (40, 90, 220))
+                else:
+                    for truth in fig.truths.values():
+                        canvas.polyline(truth, (0, 0, 0), 0.25)
+                        for x, y in truth:
+                            canvas.disc(x, y, 0.35, (0, 0, 0))
+                    for b, pair in enumerate(prediction.pairs):
+                        if pair.track_id not in fig.truths:
+                            continue
+                        colour = _PALETTE[b % len(_PALETTE)]
+                        for x, y in prediction.mean_xy_m[b]:
+                            if math.isfinite(x) and math.isfinite(y):
+                                canvas.disc(x, y, 0.45, colour)
+                    for x, y in fig.starts.values():
+                        canvas.disc(x, y, 0.8, (40, 90, 220))
+                path = directory / f"{kind}_{mode}.png"
+                canvas.write_png(path)
+                written.append(path)
+        (directory / "figures.txt").write_text(
+            f"instant: recording {fig.recording} sequence {fig.sequence} stamp_ns {fig.stamp_ns}"
+            f" ({fig.n_windows} vehicles with a full 4 s future)\n"
+            "grid_4s_<mode>.png: car lanelets grey; fused motion grid (centre-point) at the last step, white-yellow-red on a"
+            " log scale 1e-4..1; vehicle positions at t blue\n"
+            "means_<mode>.png: ground truth 0.4..4 s black; per corridor its probability-weighted mean positions, one colour"
+            " per corridor, one dot per step; vehicle positions at t blue\n"
+        )
+        return written
+
+
+def _route_hit(prediction: FramePrediction, members: list[int], weights: np.ndarray, vehicle, future: np.ndarray) -> float | None:
+    """route_top1 of one window: 1 when the followed corridor has the highest weight (1/k for a k-way tie), 0 when not;
+    None when the window does not count (fewer than two corridors, or the true future does not single one out)."""
+    by_id = {c.corridor_id: c for c in vehicle.corridors}
+    corridors = [by_id.get(prediction.pairs[b].corridor_id) for b in members]
+    if len(corridors) < 2 or any(c is None for c in corridors):
+        return None
+    index, error, second = followed_corridor(corridors, future)
+    if error > ROUTE_MAX_ERROR_M or second - error < ROUTE_MARGIN_M:
+        return None
+    best = np.flatnonzero(weights >= weights.max() - 1e-9)
+    return 1.0 / best.size if index in best else 0.0
+
+
+# --------------------------------------------------------------------------- ground truth
+
+
+def _ground_truth(seq) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Per track: (stamps (n,) int64 sorted, positions (n, 2))."""
+    out = {}
+    order = np.lexsort((seq.stamp_ns, seq.track_id))
+    tid = seq.track_id[order]
+    bounds = np.flatnonzero(np.diff(tid)) + 1
+    for idx in np.split(order, bounds):
+        if idx.size:
+            out[int(seq.track_id[idx[0]])] = (seq.stamp_ns[idx], np.column_stack([seq.x_m[idx], seq.y_m[idx]]))
+    return out
+
+
+def _future(track: tuple[np.ndarray, np.ndarray] | None, stamp_ns: int, tau_ns: int, n_steps: int) -> np.ndarray | None:
+    """True positions (K, 2) at exactly stamp + k·τ (±1 ms), or None when one is missing."""
+    if track is None:
+        return None
+    stamps, xy = track
+    want = stamp_ns + tau_ns * np.arange(1, n_steps + 1)
+    i = np.searchsorted(stamps, want - _MS)
+    if np.any(i >= stamps.shape[0]):
+        return None
+    if np.any(np.abs(stamps[i] - want) > _MS):
+        return None
+    return xy[i]
+
+
+def _true_acceleration(track: tuple[np.ndarray, np.ndarray] | None, stamp_ns: int, n_steps: int, step_s: float = 0.1) -> np.ndarray | None:
+    """The true longitudinal acceleration at stamp + j·step, j = 1..n, as the AR training targets define it
+    (``stages.offline.train.dataset.smoothed_acceleration`` with its default window and edges), or None where unknown."""
+    from stages.offline.train.dataset import DatasetConfig, smoothed_acceleration
+
+    if track is None or n_steps <= 0:
+        return None
+    stamps, xy = track
+    step_ns = int(round(step_s * 1e9))
+    cfg = DatasetConfig()
+    window = max(int(round(cfg.target_window_s / step_s)), 3) | 1
+    accel = smoothed_acceleration(stamps, xy, step_ns, window, int(round(cfg.target_edge_s / step_s)))
+    want = stamp_ns + step_ns * np.arange(1, n_steps + 1)
+    i = np.searchsorted(stamps, want - _MS)
+    if np.any(i >= stamps.size) or np.any(np.abs(stamps[np.minimum(i, stamps.size - 1)] - want) > _MS):
+        return None
+    out = accel[i]
+    return out if np.all(np.isfinite(out)) else None
+
+
+def _accel_figure(e: dict[str, Any]) -> "_Canvas":
+    """One car's acceleration figure: distributions as intensity, AR output red, truth black (x: 10 px per 0.1 s)."""
+    edges, probs, step_s, chunk_s = e["edges"], e["probs"], e["step_s"], e["chunk_s"]
+    horizon = e["ar"].shape[0] * step_s
+    a_lo, a_hi = min(edges[0], -3.0), max(edges[-1], 2.0)
+    scale = 60.0  # pixels per m/s² (x: 100 pixels per s)
+    canvas = _Canvas(0.0, a_lo * scale - 4, horizon * 100.0, a_hi * scale + 4, resolution_m=1.0)
+    for k in range(probs.shape[0]):
+        peak = max(probs[k].max(), 1e-9)
+        for a in range(probs.shape[1]):
+            shade = probs[k, a] / peak
+            colour = tuple(int(255 - shade * c) for c in (200, 150, 40))
+            x0, x1 = k * chunk_s * 100.0, (k + 1) * chunk_s * 100.0
+            y0, y1 = edges[a] * scale, edges[a + 1] * scale
+            canvas.fill_polygon(np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]]), colour)
+    for a in range(int(math.ceil(a_lo)), int(math.floor(a_hi)) + 1):  # a grey line per m/s² (darker at 0)
+        grey = (120, 120, 120) if a == 0 else (200, 200, 200)
+        canvas.polyline(np.array([[0.0, a * scale], [horizon * 100.0, a * scale]]), grey, 0.6 if a == 0 else 0.3)
+    t = np.arange(1, e["ar"].shape[0] + 1) * step_s * 100.0
+    clip = lambda a: np.clip(a, a_lo, a_hi) * scale  # noqa: E731
+    canvas.polyline(np.column_stack([t, clip(e["true"])]), (0, 0, 0), 1.2)
+    canvas.polyline(np.column_stack([t, clip(e["ar"])]), (220, 30, 30), 1.2)
+    return canvas
+
+
+def _fill_forward(means: np.ndarray, pair) -> np.ndarray:
+    out = means.copy()
+    last = None
+    for k in range(out.shape[0]):
+        if np.all(np.isfinite(out[k])):
+            last = out[k].copy()
+        elif last is not None:
+            out[k] = last
+    if not np.all(np.isfinite(out)):
+        finite = out[np.isfinite(out).all(axis=1)]
+        out[~np.isfinite(out).all(axis=1)] = finite[0] if finite.size else 0.0
+    return out
+
+
+# --------------------------------------------------------------------------- table
+
+
+def format_table(report: dict[str, Any]) -> str:
+    """The printed summary: per mode overall/slow/fast, then timing."""
+    head = (f"{'mode':<12} {'split':<8} {'windows':>7} {'mADE':>7} {'mFDE':>7} {'wADE':>7} {'wFDE':>7} {'cov90':>6} {'NLL':>6}"
+            f" {'top1':>5} {'routes':>6}")
+    lines = [head, "-" * len(head)]
+    for mode, res in report["modes"].items():
+        for split, stats in (("overall", res["overall"]), ("slow", res["by_speed"]["slow"]), ("fast", res["by_speed"]["fast"])):
+            lines.append(
+                f"{mode:<12} {split:<8} {stats['windows']:>7d} {stats['mADE_m']:>7.2f} {stats['mFDE_m']:>7.2f}"
+                f" {stats['wADE_m']:>7.2f} {stats['wFDE_m']:>7.2f} {stats['coverage90']:>6.2f} {stats['nll']:>6.2f}"
+                f" {stats['route_top1']:>5.2f} {stats['route_windows']:>6d}"
+            )
+    lines.append("")
+    for mode, res in report["modes"].items():
+        lines.append(
+            f"{mode:<12} frame time median {res['frame_ms_median']:.1f} ms, p95 {res['frame_ms_p95']:.1f} ms,"
+            f" {res['vehicles_per_frame_mean']:.1f} vehicles per frame over {res['frames']} frames"
+            + (f"; ar_inference median {res['ar_inference_ms_median']:.1f} ms, p95 {res['ar_inference_ms_p95']:.1f} ms"
+               if "ar_inference_ms_median" in res else "")
+        )
+    if report.get("intentions_ms_median") is not None:
+        lines.append(f"intentions (every frame) median {report['intentions_ms_median']:.1f} ms; corridor weights {report['corridor_weights']}")
+    lines.append(f"instants {report['instants']}; skipped, by reason:" + ("" if report["skipped"] else " nothing"))
+    examples = report.get("skipped_examples", {})
+    for reason, count in report["skipped"].items():
+        lines.append(f"  {reason:<28} {count:>7d}" + (f"  first: {examples[reason]}" if reason in examples else ""))
+    for name, figures in report.get("velocity_consistency", {}).items():
+        line = disagreement_line(Consistency(**figures), EstimatorConfig())
+        if line is not None:
+            lines.append(f"{name}: {line}")
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- command line
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA_DIR, help="data folder laid out like stages/data/taf-bw (default: the embedded scenario)")
+    parser.add_argument("--recording", action="append", default=[], help="recording to evaluate (repeatable; default all)")
+    parser.add_argument("--sequence", action="append", default=[], help="sequence id to evaluate (repeatable; default all)")
+    parser.add_argument("--mode", nargs="+", default=list(EVAL_MODES), choices=EVAL_MODES, help="prediction modes (default all)")
+    parser.add_argument("--stride", type=float, default=0.4, help="seconds between evaluated instants (default 0.4)")
+    parser.add_argument("--corridor-weights", choices=list(CORRIDOR_WEIGHTS), default="intentions",
+                        help="corridor probabilities: the intentions stage's P(R = c) (default) or uniform")
+    parser.add_argument("--model", type=Path, default=None, help="AR model weights for mode hybrid (default: the shipped stages/lib/ar/weights/ar_taf_bw.pt)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the intentions particle filter (default 0)")
+    parser.add_argument("--backend", choices=["numpy", "torch"], default="numpy", help="Markov backend (default numpy)")
+    parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    parser.add_argument("--max-frames", type=int, default=0, help="stop each sequence after this many frames (0: all)")
+    parser.add_argument("--json", type=Path, default=None, help="write the results as JSON")
+    parser.add_argument("--figures", type=Path, default=None, help="write PNG figures of one instant into this folder")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="markov_prediction parameter for every mode (JSON value), e.g. --set speed_limit_factor=1.1")
+    parser.add_argument("--set-ar", action="append", default=[], metavar="KEY=VALUE",
+                        help="ar_inference parameter (JSON value), e.g. --set-ar sigma_scale=1.5")
+    parser.add_argument("--set-intentions", action="append", default=[], metavar="KEY=VALUE",
+                        help="intentions parameter (JSON value), e.g. --set-intentions particles_per_vehicle=1000")
+
+
+def run_cli(args) -> int:
+    try:
+        config = EvalConfig(
+            params=_key_values(args.set, "--set"),
+            intentions_params=_key_values(args.set_intentions, "--set-intentions"),
+            ar_params=_key_values(args.set_ar, "--set-ar"),
+            model_path=args.model,
+            seed=args.seed,
+            data_dir=args.data,
+            recordings=tuple(args.recording),
+            sequences=tuple(args.sequence),
+            modes=tuple(dict.fromkeys(args.mode)),
+            stride_s=args.stride,
+            max_frames_per_sequence=max(args.max_frames, 0),
+            corridor_weights=args.corridor_weights,
+            backend=args.backend,
+            device=args.device,
+            progress=not args.no_progress,
+            figures_dir=args.figures,
+        )
+        evaluation = Evaluation(config)
+        report = evaluation.run()
+    except ValueError as exc:  # DatasetError and bad options
+        sys.stderr.write(f"iamp eval: error: {exc}\n")
+        return 2
+    print(format_table(report))
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(json_safe(report), indent=2, allow_nan=False))
+        print(f"wrote {args.json}")
+    if args.figures is not None:
+        for path in evaluation.write_figures(args.figures):
+            print(f"wrote {path}")
+    return 0
+
+
+def _key_values(items, flag: str) -> tuple[tuple[str, Any], ...]:
+    """KEY=VALUE options, values parsed as JSON where they parse."""
+    out = []
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"{flag} {item!r}: expected KEY=VALUE")
+        try:
+            out.append((key.strip(), json.loads(value)))
+        except json.JSONDecodeError:
+            out.append((key.strip(), value))
+    return tuple(out)
+
+
+
+
+# --------------------------------------------------------------------------- progress and figures
+
+
+
+
+_PALETTE = [(228, 26, 28), (77, 175, 74), (152, 78, 163), (255, 127, 0), (166, 86, 40), (247, 129, 191), (0, 160, 160), (160, 160, 0)]
+
+
+class _Canvas(MapRaster):
+    """The evaluation's figures: ``MapRaster`` plus discs, thick polylines and grid cells."""
+
+    def disc(self, x_m: float, y_m: float, radius_m: float, colour) -> None:
+        (cx, cy), r = self.to_px([x_m, y_m])[0], radius_m / self.res
+        r0, r1 = max(0, int(cy - r)), min(self.height, int(cy + r) + 1)
+        c0, c1 = max(0, int(cx - r)), min(self.width, int(cx + r) + 1)
+        if r1 <= r0 or c1 <= c0:
+            return
+        yy, xx = np.mgrid[r0:r1, c0:c1] + 0.5
+        mask = (xx - cx) ** 2 + (yy - cy) ** 2 <= r * r
+        self.rgb[r0:r1, c0:c1][mask] = colour
+
+    def polyline(self, points_m, colour, width_m: float) -> None:
+        pts = np.asarray(points_m, dtype=np.float64).reshape(-1, 2)
+        for p, q in zip(pts[:-1], pts[1:]):
+            n = max(int(np.hypot(*(q - p)) / (0.5 * self.res)), 1)
+            for t in np.linspace(0.0, 1.0, n + 1):
+                self.disc(*(p + t * (q - p)), width_m, colour)
+
+    def cells(self, frame: GridFrame, flat: np.ndarray, rgb: np.ndarray) -> None:
+        """Paint grid cells (flat indices) in the given colours (n, 3)."""
+        rows, cols = np.divmod(flat, frame.n_cols)
+        for (row, col), colour in zip(zip(rows.tolist(), cols.tolist()), rgb):
+            x0 = frame.origin_x_m + col * frame.cell_m
+            y0 = frame.origin_y_m + row * frame.cell_m
+            (px0, py1), (px1, py0) = self.to_px([[x0, y0], [x0 + frame.cell_m, y0 + frame.cell_m]])
+            r0, r1 = max(0, int(round(py0))), min(self.height, int(round(py1)))
+            c0, c1 = max(0, int(round(px0))), min(self.width, int(round(px1)))
+            if r1 > r0 and c1 > c0:
+                self.rgb[r0:r1, c0:c1] = colour
+
+
+
+def _draw_grid(canvas: _Canvas, prediction: FramePrediction, step: int) -> None:
+    cells, values = prediction.fused_grid.step(step, prediction.grid_frame.n_cells)
+    keep = values > 1e-4
+    if not np.any(keep):
+        return
+    level = np.clip((np.log10(values[keep]) + 4.0) / 4.0, 0.0, 1.0)[:, None]  # 0 at 1e-4, 1 at 1
+    yellow, red = np.array([255, 230, 60]), np.array([200, 0, 0])
+    low = np.array([255, 250, 200])
+    rgb = np.where(level < 0.5, low + (yellow - low) * (level / 0.5), yellow + (red - yellow) * ((level - 0.5) / 0.5))
+    canvas.cells(prediction.grid_frame, cells[keep], rgb.astype(np.uint8))
+
+
+def evaluate(config: EvalConfig) -> dict[str, Any]:
+    """Run an evaluation and return its report (the dict written by ``--json``)."""
+    evaluation = Evaluation(config)
+    report = evaluation.run()
+    if config.figures_dir is not None:
+        evaluation.write_figures(config.figures_dir)
+    return report
+
+
+__all__ = ["EVAL_MODES", "EvalConfig", "Evaluation", "add_arguments", "evaluate", "format_table", "run_cli"]

@@ -1,0 +1,50 @@
+"""Command line of ``iamp train`` (see ``stages.offline.train.fit``): arguments only, nothing heavy imported.
+
+``stages.cli`` builds every subcommand's parser on each ``iamp`` call, so this
+module imports neither torch nor the data code; ``run_cli`` imports
+``stages.offline.train.fit`` when the command runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from stages.offline.train import DEFAULT_CACHE_DIR, DEFAULT_OUT, SPLITS
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``iamp train`` (module docstring of ``stages.offline.train.fit``)."""
+    from stages.lib.datasets import DEFAULT_DATA_DIR
+
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA_DIR, help=f"data folder (default the embedded {DEFAULT_DATA_DIR})")
+    p.add_argument("--recording", nargs="+", default=[], metavar="NAME", help="recordings to use (default all)")
+    p.add_argument("--sequence", nargs="+", default=[], metavar="ID", help="sequences to use (default all)")
+    p.add_argument("--split", choices=SPLITS, default="sequence", help="how to hold out validation data (default sequence)")
+    p.add_argument("--val-fraction", type=float, default=0.2, help="share held out for validation (default 0.2)")
+    p.add_argument("--hidden", type=int, default=0, help="0: linear AR-Net (default); N: one ReLU hidden layer of N units")
+    p.add_argument("--epochs", type=int, default=200, help="maximum epochs (default 200; early stopping usually ends sooner)")
+    p.add_argument("--patience", type=int, default=20, help="epochs without validation improvement before stopping (default 20)")
+    p.add_argument("--batch-size", type=int, default=256)
+    p.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate, the cosine schedule's peak (default 1e-3)")
+    p.add_argument("--weight-decay", type=float, default=None, help="Adam L2 weight decay (default 0.3 linear, 0.1 with --hidden)")
+    p.add_argument("--z-clip", type=float, default=3.0, help="clip the z-scored features to ± this (default 3)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu", help="cpu (default) or cuda")
+    p.add_argument("--drop-feature", nargs="+", default=[], metavar="NAME", help="leave features out (ablation), names as in FEATURE_NAMES")
+    p.add_argument("--accel-window", type=float, default=None, help="causal acceleration window, s (default 1.0)")
+    p.add_argument("--max-frames", type=int, default=0, help="use at most this many frames per sequence (0: all)")
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"weights file to write (default {DEFAULT_OUT})")
+    p.add_argument("--json", type=Path, default=None, help="write the report as JSON")
+    p.add_argument("--cache-dir", type=Path, default=DEFAULT_CACHE_DIR, help=f"data set cache (default {DEFAULT_CACHE_DIR})")
+    p.add_argument("--no-cache", action="store_true", help="neither read nor write the data set cache")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def run_cli(args: argparse.Namespace) -> int:
+    from stages.offline.train.fit import run_from_args
+
+    return run_from_args(args)
+
+
+__all__ = ["DEFAULT_CACHE_DIR", "DEFAULT_OUT", "SPLITS", "add_arguments", "run_cli"]

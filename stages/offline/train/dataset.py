@@ -1,0 +1,473 @@
+"""The AR training set: (x, mask, y) windows from recordings, built with the online feature code (METHOD.md §3.1).
+
+``build_dataset(config)`` plays every selected sequence through the
+in-process chain (``TrackPlayer`` → ``CorridorBuilder`` →
+``RelationExtractor``, fresh cores per sequence, maps loaded once, as in
+``iamp eval``) and feeds every frame to one ``FeatureTracker``, exactly as
+the online stage does. A sample is taken at a frame (every
+``sample_stride``-th frame, default every frame) for each matched vehicle
+that
+
+- has a full 4 s true future: positions at t + 0.1 k s, k = 1..40 (±1 ms)
+  with a finite target acceleration at each (else ``skipped.no_full_future``);
+- followed one of its corridors: the corridor with the smallest maximum
+  lateral distance |d| of the track's true positions over the next
+  ``route_future_s`` 10 s (as far as the track goes; only positions whose
+  projection falls within the corridor, at least the 40 of the 4 s
+  future), at most ``max_route_error_m`` 2 m (else
+  ``skipped.followed_no_corridor``). When another corridor holds them
+  within ``route_tie_m`` 0.5 m as well (before a branch, when the track ends
+  before the routes part) the route is undecided: the sample is dropped
+  (``route_tied``, ``skip_tied`` true). Judged on the 4 s future alone
+  (``intentions.evaluation.followed_corridor``) 41 % of the windows were
+  undecided, and a sample on an arbitrary one of the tied corridors carries
+  the curvature of a route the car may not take; with 10 s, 26 % (1 603 of
+  6 066). Keeping them (on the corridor listed first) made the nets worse on
+  the decided windows: validation MSE 0.965 against 0.942 (linear), 0.958
+  against 0.925 (hidden 256), mean of 5 splits, predicting 0: 1.09.
+
+Only 60 cars give windows (15 on K729, 45 on K733: K729's car tracks last
+4.2 s at the median, so few have 4 s of future plus the cut ends), and 75 %
+of the windows are of cars standing (below 0.5 m/s) at a signal.
+
+x and mask are ``FeatureTracker.batch`` for that (vehicle, corridor); y are
+the vehicle's longitudinal accelerations at t + 0.1 … 4.0 s from its true
+future, smoothed NON-causally: per track (split where stamps skip), the
+velocity is the Savitzky–Golay derivative (degree 2) of x and y over
+``target_window_s`` (15 samples, 1.4 s at 10 Hz), the speed its norm, and
+the acceleration the Savitzky–Golay derivative of that speed over the same
+window; the first and last ``target_edge_s`` 1.5 s of each track get none
+(NaN: no window uses them). Why the edges: on K733 the std of these
+accelerations is 5.4 m/s² at a track's first or last sample, 3.2 at 0.7 s
+from it, 2.1 at 1.5 s and 1.0 beyond 2.5 s (the tracker settling; K729:
+about 1.0 throughout). Without the cut, the validation MSE of predicting 0
+was 3.1 m²/s⁴ in the first 0.4 s chunk and 1.16 in the last against 0.95 at
+3.2 s (0.45, 0.50 and 0.50 with it): the edges dominated the error, and the
+nets were worse than 0 beyond 3.2 s. Measured on TAF-BW (std of the resulting accelerations of cars; the
+physical spread is about 1.2 m/s², K729's value):
+
+================  ========  ========  ========  ========
+window (samples)  5         11        15        21
+K729, positions   1.37      1.18      1.20      1.22
+K733, positions   6.55      3.16      2.35      1.75
+K733, reported    8.49      4.60      3.83      3.17
+================  ========  ========  ========  ========
+
+K733's reported velocity is the backward difference of its positions, and
+its positions jitter along the track by about 2.6 m/s (std of the along-track
+speed about a 3 s fit; 0.25 m/s on K729), so positions are cleaner than the
+reported speed and no short window cleans them: 15 samples is the
+compromise (K729 loses 0.34 m/s² std of detail against a 3 s fit at 15
+samples, 0.79 at 5; K733 keeps about 2 m/s² of noise, which its validation
+error and σ_res then show).
+
+Each sample carries (recording, sequence, track_id, corridor_id, stamp_ns) so
+that splits can keep tracks together; ``sequence_spans`` gives each
+sequence's first and last stamp for time splits.
+
+Cache. Building all of TAF-BW takes about a minute on 2 cores, so
+``build_dataset(..., cache_dir=...)`` keeps the arrays in
+``<cache_dir>/ar_dataset_<key>.npz``, the key a hash of the data files'
+contents (track files and maps of the selected recordings), the dataset and
+feature config, ``FEATURE_NAMES`` and ``DATASET_VERSION``.
+"""
+
+from __future__ import annotations
+
+from stages.lib.base import progress_bar
+
+import dataclasses
+import hashlib
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.signal import savgol_filter
+
+from bus_schemas import AgentType, MatchStatus, SceneInfo, TrackFrame
+from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
+from stages.lib.datasets import DEFAULT_DATA_DIR, DatasetError, Recording, discover, load_recording
+from stages.lib.maps import project_to_polyline
+from stages.relations import RelationExtractor, RelationsConfig
+from stages.tracks_source.core import TrackPlayer, TracksSourceConfig, file_sha256
+
+from stages.lib.ar.features import ACCEL, FEATURE_NAMES, HISTORY_STEPS, HORIZON_STEPS, N_FEATURES, STEP_S, FeatureConfig, FeatureTracker
+
+DATASET_VERSION = 3
+"""Bump when the sample definition changes (invalidates caches)."""
+_NS = 1e-9
+_MS_NS = 1_000_000
+
+
+@dataclass(frozen=True, kw_only=True)
+class DatasetConfig:
+    """What to build from (module docstring). Empty ``recordings``/``sequences``: all."""
+
+    data_dir: Path = DEFAULT_DATA_DIR
+    recordings: tuple[str, ...] = ()
+    sequences: tuple[str, ...] = ()
+    max_frames_per_sequence: int = 0
+    sample_stride: int = 1
+    target_window_s: float = 1.5
+    target_edge_s: float = 1.5
+    max_route_error_m: float = 2.0
+    route_tie_m: float = 0.5
+    route_future_s: float = 10.0
+    skip_tied: bool = True
+    features: FeatureConfig = field(default_factory=FeatureConfig)
+
+    def __post_init__(self) -> None:
+        if self.sample_stride < 1:
+            raise ValueError(f"sample_stride = {self.sample_stride}: must be >= 1")
+        if self.max_frames_per_sequence < 0:
+            raise ValueError(f"max_frames_per_sequence = {self.max_frames_per_sequence}: must be >= 0 (0: all)")
+        if not (math.isfinite(self.target_edge_s) and self.target_edge_s >= 0):
+            raise ValueError(f"target_edge_s = {self.target_edge_s!r}: must be >= 0")
+        for name in ("target_window_s", "max_route_error_m", "route_tie_m", "route_future_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} = {value!r}: must be > 0")
+
+    def key_dict(self) -> dict[str, Any]:
+        """Everything but the data folder's location that decides the samples."""
+        return {
+            "recordings": list(self.recordings),
+            "sequences": list(self.sequences),
+            "max_frames_per_sequence": self.max_frames_per_sequence,
+            "sample_stride": self.sample_stride,
+            "target_window_s": self.target_window_s,
+            "target_edge_s": self.target_edge_s,
+            "max_route_error_m": self.max_route_error_m,
+            "route_tie_m": self.route_tie_m,
+            "route_future_s": self.route_future_s,
+            "skip_tied": self.skip_tied,
+            "features": dataclasses.asdict(self.features),
+            "feature_names": list(FEATURE_NAMES),
+            "history": HISTORY_STEPS,
+            "horizon": HORIZON_STEPS,
+            "version": DATASET_VERSION,
+        }
+
+
+@dataclass(frozen=True, eq=False)
+class ARDataset:
+    """Samples (N of them) and where each comes from.
+
+    x (N, 40, F) float32 features (``FEATURE_NAMES``), mask (N, 40) bool,
+    y (N, 40) float32 target accelerations (m/s²) at 0.1 … 4.0 s;
+    recording/sequence (N,) int32 indices into ``recordings``/``sequences``
+    (a sequence name is ``"<recording>/<id>"``), track_id, corridor_id,
+    stamp_ns (N,) int64. ``sequence_spans`` (S, 2) int64: first and last
+    stamp of each sequence (of the frames played). ``counts``: samples kept and windows skipped, by
+    reason.
+    """
+
+    x: np.ndarray
+    mask: np.ndarray
+    y: np.ndarray
+    recording: np.ndarray
+    sequence: np.ndarray
+    track_id: np.ndarray
+    corridor_id: np.ndarray
+    stamp_ns: np.ndarray
+    recordings: tuple[str, ...]
+    sequences: tuple[str, ...]
+    sequence_spans: np.ndarray
+    counts: dict[str, int]
+    key: str = ""
+
+    def __len__(self) -> int:
+        return int(self.y.shape[0])
+
+    @property
+    def last_acceleration(self) -> np.ndarray:
+        """(N,) the last observed causal acceleration feature (the "last value held" predictor)."""
+        return self.x[:, -1, ACCEL]
+
+    def subset(self, index: np.ndarray) -> "ARDataset":
+        index = np.asarray(index, dtype=np.int64)
+        return dataclasses.replace(
+            self,
+            x=self.x[index],
+            mask=self.mask[index],
+            y=self.y[index],
+            recording=self.recording[index],
+            sequence=self.sequence[index],
+            track_id=self.track_id[index],
+            corridor_id=self.corridor_id[index],
+            stamp_ns=self.stamp_ns[index],
+        )
+
+    def save(self, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez_compressed(
+            tmp,
+            x=self.x, mask=self.mask, y=self.y, recording=self.recording, sequence=self.sequence, track_id=self.track_id,
+            corridor_id=self.corridor_id, stamp_ns=self.stamp_ns, sequence_spans=self.sequence_spans,
+            meta=np.array(json.dumps({"recordings": self.recordings, "sequences": self.sequences, "counts": self.counts, "key": self.key})),
+        )
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, path: Path) -> "ARDataset":
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(str(z["meta"]))
+            return cls(
+                x=z["x"], mask=z["mask"], y=z["y"], recording=z["recording"], sequence=z["sequence"], track_id=z["track_id"],
+                corridor_id=z["corridor_id"], stamp_ns=z["stamp_ns"], sequence_spans=z["sequence_spans"],
+                recordings=tuple(meta["recordings"]), sequences=tuple(meta["sequences"]), counts=dict(meta["counts"]), key=meta["key"],
+            )
+
+
+# --------------------------------------------------------------------------- targets
+
+
+def smoothed_acceleration(stamps_ns: np.ndarray, xy: np.ndarray, period_ns: int, window_samples: int, edge_samples: int | None = None) -> np.ndarray:
+    """(n,) longitudinal acceleration of one track from its positions, non-causal (module docstring); NaN where unknown.
+
+    The track is cut where consecutive stamps are not one period apart; a
+    piece shorter than the window gets NaN, and so do the first and last
+    `edge_samples` (default window // 2, where the window would not be
+    centred) of each piece.
+    """
+    n = stamps_ns.shape[0]
+    out = np.full(n, np.nan)
+    w = int(window_samples) | 1
+    dt = period_ns * _NS
+    cuts = np.flatnonzero(np.abs(np.diff(stamps_ns) - period_ns) > _MS_NS) + 1
+    for a, b in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [n]])):
+        if b - a < w:
+            continue
+        vx = savgol_filter(xy[a:b, 0], w, 2, deriv=1, delta=dt)
+        vy = savgol_filter(xy[a:b, 1], w, 2, deriv=1, delta=dt)
+        accel = savgol_filter(np.hypot(vx, vy), w, 2, deriv=1, delta=dt)
+        edge = w // 2 if edge_samples is None else max(int(edge_samples), 0)
+        if b - a > 2 * edge:
+            out[a + edge : b - edge] = accel[edge : len(accel) - edge]
+    return out
+
+
+@dataclass(frozen=True, slots=True)
+class _Truth:
+    stamps_ns: np.ndarray
+    xy: np.ndarray
+    accel: np.ndarray
+
+
+def _ground_truth(seq, window_s: float, edge_s: float) -> dict[int, _Truth]:
+    """Per vehicle track of a sequence: stamps, positions and the smoothed acceleration."""
+    out = {}
+    period = seq.period_ns
+    window = max(int(round(window_s * 1e9 / period)), 3) | 1
+    order = np.lexsort((seq.stamp_ns, seq.track_id))
+    ids = seq.track_id[order]
+    bounds = np.flatnonzero(np.diff(ids)) + 1
+    for a, b in zip(np.concatenate([[0], bounds]), np.concatenate([bounds, [len(ids)]])):
+        rows = order[a:b]
+        if not AgentType(int(seq.agent_type[rows[0]])).is_vehicle:
+            continue
+        stamps = seq.stamp_ns[rows]
+        xy = np.column_stack([seq.x_m[rows], seq.y_m[rows]])
+        edge = int(round(edge_s * 1e9 / period))
+        out[int(ids[a])] = _Truth(stamps, xy, smoothed_acceleration(stamps, xy, period, window, edge))
+    return out
+
+
+def followed(corridors, future_xy: np.ndarray, min_points: int = HORIZON_STEPS) -> tuple[int, float, float]:
+    """(index, max lateral distance, the runner-up's) of the corridor the future positions (n, 2) follow best.
+
+    Like ``intentions.evaluation.followed_corridor`` (smallest maximum |d|),
+    but only the positions whose projection falls within the corridor count
+    (not its straight extensions), so a future longer than the corridor can
+    be used; a corridor holding fewer than `min_points` of them gets
+    distance inf.
+    """
+    errors = np.full(len(corridors), np.inf)
+    for k, c in enumerate(corridors):
+        proj = project_to_polyline(future_xy, np.column_stack([c.x_m, c.y_m]), c.s_m)
+        inside = (proj.s_m >= c.s_m[0]) & (proj.s_m <= c.s_m[-1])
+        if int(inside.sum()) >= min_points:
+            errors[k] = float(np.max(np.abs(proj.d_m[inside])))
+    order = np.argsort(errors, kind="stable")
+    second = float(errors[order[1]]) if len(order) > 1 else math.inf
+    return int(order[0]), float(errors[order[0]]), second
+
+
+def _future(truth: _Truth, stamp_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """(positions (40, 2), accelerations (40,)) at stamp + 0.1 k s, k = 1..40, or None if not all there."""
+    want = stamp_ns + int(round(STEP_S * 1e9)) * np.arange(1, HORIZON_STEPS + 1)
+    i = np.minimum(np.searchsorted(truth.stamps_ns, want - _MS_NS), truth.stamps_ns.shape[0] - 1)
+    if not np.all(np.abs(truth.stamps_ns[i] - want) <= _MS_NS):
+        return None
+    accel = truth.accel[i]
+    if not np.all(np.isfinite(accel)):
+        return None
+    return truth.xy[i], accel
+
+
+def truth_rows_after(truth: _Truth, stamp_ns: int, seconds: float) -> np.ndarray:
+    """Positions (n, 2) of the track after `stamp_ns` up to `seconds` later."""
+    a = np.searchsorted(truth.stamps_ns, stamp_ns, side="right")
+    b = np.searchsorted(truth.stamps_ns, stamp_ns + int(round(seconds * 1e9)), side="right")
+    return truth.xy[a:b]
+
+
+# --------------------------------------------------------------------------- building
+
+
+@dataclass(slots=True)
+class _Collector:
+    x: list[np.ndarray] = field(default_factory=list)
+    mask: list[np.ndarray] = field(default_factory=list)
+    y: list[np.ndarray] = field(default_factory=list)
+    recording: list[int] = field(default_factory=list)
+    sequence: list[int] = field(default_factory=list)
+    track_id: list[int] = field(default_factory=list)
+    corridor_id: list[int] = field(default_factory=list)
+    stamp_ns: list[int] = field(default_factory=list)
+    counts: dict[str, int] = field(default_factory=dict)
+
+    def count(self, reason: str, n: int = 1) -> None:
+        self.counts[reason] = self.counts.get(reason, 0) + n
+
+
+def _sequence_samples(cfg: DatasetConfig, rec: Recording, seq, map_sha256: str, scene_maps: SceneMaps, rec_index: int,
+                      seq_index: int, out: _Collector, bar) -> tuple[int, int]:
+    """Adds the samples of one sequence to `out`; returns the first and last stamp played."""
+    one = dataclasses.replace(rec, sequences=(seq,))
+    player = TrackPlayer(TracksSourceConfig(recording=rec.name), one, map_sha256=map_sha256, run_id="ar-dataset", producer="source")
+    corridors = CorridorBuilder(CorridorsConfig(), scene_maps=scene_maps)
+    relations = RelationExtractor(RelationsConfig(), scene_maps=scene_maps)
+    tracker = FeatureTracker(cfg.features)
+    truth = _ground_truth(seq, cfg.target_window_s, cfg.target_edge_s)
+    scene: SceneInfo | None = None
+    span: list[int] = []
+    for n, (stamp, result) in enumerate(player):
+        if cfg.max_frames_per_sequence and n >= cfg.max_frames_per_sequence:
+            break
+        bar.update(1)
+        span = [span[0] if span else int(stamp), int(stamp)]
+        scene = result.outputs.get("scene", scene)
+        frame: TrackFrame = result.outputs["track_frame"]
+        corridor_set, _ = corridors.process(frame, scene)
+        relation_set, _ = relations.process(frame, corridor_set, scene)
+        for issue in tracker.update(corridor_set, relation_set, frame):
+            out.count(f"issue_{issue.kind}")
+        if n % cfg.sample_stride:
+            continue
+        wanted: dict[tuple[int, int], np.ndarray] = {}
+        for vehicle in corridor_set.vehicles:
+            if vehicle.status != MatchStatus.MATCHED or not vehicle.corridors:
+                continue
+            track = truth.get(vehicle.track_id)
+            future = _future(track, stamp) if track is not None else None
+            if future is None:
+                out.count("no_full_future")
+                continue
+            later = truth_rows_after(track, stamp, cfg.route_future_s)
+            index, error, second = followed(vehicle.corridors, later)
+            if error > cfg.max_route_error_m:
+                out.count("followed_no_corridor")
+                continue
+            if second - error < cfg.route_tie_m:
+                out.count("route_tied")
+                if cfg.skip_tied:
+                    continue
+            wanted[(vehicle.track_id, int(vehicle.corridors[index].corridor_id))] = future[1]
+        if not wanted:
+            continue
+        keys, x, mask = tracker.batch(corridor_set, pairs=wanted)
+        for k, key in enumerate(keys):
+            out.x.append(x[k])
+            out.mask.append(mask[k])
+            out.y.append(wanted[key].astype(np.float32))
+            out.recording.append(rec_index)
+            out.sequence.append(seq_index)
+            out.track_id.append(key[0])
+            out.corridor_id.append(key[1])
+            out.stamp_ns.append(int(stamp))
+        out.count("no_feature_row", len(wanted) - len(keys))
+    return (span[0], span[1]) if span else (0, 0)
+
+
+def dataset_key(cfg: DatasetConfig) -> str:
+    """Hash of the selected recordings' files (contents) and the config (module docstring), 16 hex digits."""
+    digest = hashlib.sha256(json.dumps(cfg.key_dict(), sort_keys=True).encode())
+    names = set(cfg.recordings)
+    for ref in discover(cfg.data_dir):
+        if names and ref.name not in names:
+            continue
+        digest.update(ref.name.encode())
+        for path in sorted(ref.track_files) + ([ref.meta_path] if ref.meta_path else []) + ([ref.map_path] if ref.map_path else []):
+            digest.update(path.name.encode())
+            digest.update(file_sha256(path).encode())
+    return digest.hexdigest()[:16]
+
+
+def build_dataset(cfg: DatasetConfig, *, cache_dir: Path | None = None, progress: bool = False, log=None) -> ARDataset:
+    """The samples of the module docstring; read from / written to the cache when `cache_dir` is given.
+
+    Raises ``DatasetError`` (a ValueError) for a missing folder or recording.
+    """
+    say = log or (lambda msg: None)
+    key = dataset_key(cfg)
+    cached = cache_dir / f"ar_dataset_{key}.npz" if cache_dir is not None else None
+    if cached is not None and cached.is_file():
+        try:
+            ds = ARDataset.load(cached)
+            say(f"data set from cache {cached} ({len(ds)} samples)")
+            return ds
+        except (OSError, ValueError, KeyError) as exc:
+            say(f"cache {cached} unreadable ({exc}); rebuilding")
+    t0 = time.perf_counter()
+    names = list(cfg.recordings) or [ref.name for ref in discover(cfg.data_dir)]
+    recordings = [load_recording(cfg.data_dir, name, tuple(cfg.sequences) or None) for name in names]
+    for rec in recordings:
+        if rec.map_path is None:
+            raise DatasetError(f"recording {rec.name} has no map: expected maps/{rec.name}.osm in {cfg.data_dir}")
+    total = sum(min(s.n_frames, cfg.max_frames_per_sequence) if cfg.max_frames_per_sequence else s.n_frames for r in recordings for s in r.sequences)
+    bar = progress_bar(total, progress, unit="frame", desc="iamp train: features")
+    out = _Collector()
+    scene_maps = SceneMaps(data=cfg.data_dir)
+    seq_names: list[str] = []
+    spans: list[tuple[int, int]] = []
+    try:
+        for r, rec in enumerate(recordings):
+            sha = file_sha256(rec.map_path)
+            for seq in rec.sequences:
+                seq_names.append(f"{rec.name}/{seq.id}")
+                spans.append(_sequence_samples(cfg, rec, seq, sha, scene_maps, r, len(seq_names) - 1, out, bar))
+    finally:
+        bar.close()
+    n = len(out.y)
+    out.count("samples", n)
+    ds = ARDataset(
+        x=np.stack(out.x) if n else np.zeros((0, HISTORY_STEPS, N_FEATURES), np.float32),
+        mask=np.stack(out.mask) if n else np.zeros((0, HISTORY_STEPS), bool),
+        y=np.stack(out.y) if n else np.zeros((0, HORIZON_STEPS), np.float32),
+        recording=np.asarray(out.recording, dtype=np.int32),
+        sequence=np.asarray(out.sequence, dtype=np.int32),
+        track_id=np.asarray(out.track_id, dtype=np.int64),
+        corridor_id=np.asarray(out.corridor_id, dtype=np.int64),
+        stamp_ns=np.asarray(out.stamp_ns, dtype=np.int64),
+        recordings=tuple(names),
+        sequences=tuple(seq_names),
+        sequence_spans=np.asarray(spans, dtype=np.int64).reshape(-1, 2),
+        counts=dict(sorted(out.counts.items())),
+        key=key,
+    )
+    say(f"data set built in {time.perf_counter() - t0:.1f} s: {n} samples")
+    if cached is not None:
+        ds.save(cached)
+        say(f"cached in {cached}")
+    return ds
+
+
+
+
+__all__ = ["ARDataset", "DATASET_VERSION", "DatasetConfig", "build_dataset", "dataset_key", "smoothed_acceleration"]

@@ -1,0 +1,488 @@
+"""Training the AR acceleration model (``iamp train``, METHOD.md §3.1–3.2).
+
+::
+
+    iamp train [--data DIR] [--recording NAME ...] [--split sequence|recording|time] [--val-fraction 0.2]
+               [--hidden 0|N] [--epochs 200] [--batch-size 256] [--lr 1e-3] [--seed 0] [--device cpu|cuda]
+               [--out artefacts/ar_model.pt] [--json FILE] [--no-progress]
+
+Data: ``stages.offline.train.dataset`` (the online ``FeatureTracker`` over the
+in-process chain; targets from the true future, smoothed non-causally),
+cached under ``artefacts/ar_cache``.
+
+Splits (never neighbouring windows of one track on both sides):
+
+- ``sequence`` (default): per recording, its sequences in a seeded random
+  order, each going to validation when that brings the validation part
+  nearer to ``val_fraction`` of the recording's samples (so every recording
+  is in both parts, and K729's sequence 013, 62 % of its windows, is never
+  the whole of it). A recording
+  with a single sequence (K733) is split by a time block instead: the
+  stamp that leaves ``val_fraction`` of its windows after it is the cut,
+  and the later part is validation (by time, not by samples, K733's last
+  20 % held 51 windows). Windows near the cut are dropped:
+  a training sample needs its 4 s future before the cut, a validation sample
+  its 4 s history after it (``dropped_at_cut``).
+- ``recording``: whole recordings; the set whose share of samples is
+  closest to ``val_fraction`` (with two recordings: the smaller one).
+  Needs at least two recordings with samples.
+- ``time``: every sequence split by a time block as above.
+
+Training: features z-scored with the training set's mean and std over real
+steps (std floored at 1e-3 in the feature's units; a constant feature gets
+std 1) and clipped to ±``z_clip`` 3; ``ARNet`` (linear, or one ReLU layer of
+``hidden`` units); Adam (``lr`` 1e-3, L2 ``weight_decay`` 0.3 for the
+linear net, 0.1 with a hidden layer), loss MSE + MAE (m/s², mean over the
+40 outputs), learning rate cosine-annealed with warm restarts every 10
+epochs (``CosineAnnealingWarmRestarts`` T_0 = 10, stepped per batch), batches
+of 256, at most 200 epochs, early stopping when the validation loss has not
+improved for ``patience`` 20 epochs; the best epoch's weights are kept.
+Seeded: the same seed, data and machine give the same weights.
+
+Why these (validation MSE in m²/s⁴, mean of 5 seeded sequence splits of all
+TAF-BW (seeds 0, 1, 4, 5, 7: distinct validation sets), 4 463 windows;
+predicting 0 gives MSE 1.094, MAE 0.596 m/s²): without regularisation the
+nets fit noise within a few epochs (60 cars against 38 440 weights).
+Linear, weight decay 0.03 / 0.1 / 0.3 / 1 / 3: 0.972 / 0.949 / 0.942 /
+0.952 / 0.985 (MAE 0.612 / 0.599 / 0.590 / 0.582 / 0.583); lr 1e-4: 0.967.
+Hidden 256, weight decay 0.01 / 0.03 / 0.1 / 0.3: 0.939 / 0.927 / 0.925 /
+0.983 (MAE 0.569 at 0.1). Without the z-clip: linear 1.033 against 0.952
+(both weight decay 1), hidden 0.947 against 0.925.
+The validation set also picks the epoch, so its figures are slightly
+optimistic; a model trained on one location (``--recording``) and scored
+on the other gives an unbiased, cross-location figure.
+
+Report (printed; ``--json``; and in the weights file's ``metadata``):
+validation MSE and MAE of the model against "zero" (a = 0) and "last" (the
+last observed causal acceleration feature held over 4 s), overall, per
+0.4 s chunk and per recording; ``sigma_res_chunks`` (the RMSE of the chunk
+means, METHOD.md §3.2); the sizes; epochs, the best epoch, time.
+
+Exit codes: 0 success, 2 bad command line, data or configuration (a
+message says what to fix).
+"""
+
+from __future__ import annotations
+
+from stages.lib.base import progress_bar
+
+import copy
+import dataclasses
+import datetime as _dt
+import itertools
+import json
+import math
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from stages.offline.train.dataset import ARDataset, DatasetConfig, build_dataset
+from stages.lib.ar.features import FEATURE_NAMES, HISTORY_STEPS, HORIZON_STEPS, STEP_S, FeatureConfig
+from stages.lib.ar.model import CHUNK_STEPS, N_CHUNKS, ARModel, ARNet, chunk_means, save_model
+
+from stages.offline.train import DEFAULT_CACHE_DIR, DEFAULT_OUT, SPLITS
+
+SOURCE_DIR = Path(__file__).resolve().parents[3]  # the checkout this code runs from, for the model's provenance (git commit)
+
+DEFAULT_DECAY_LINEAR = 0.3
+DEFAULT_DECAY_HIDDEN = 0.1
+_NS = 1e-9
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrainConfig:
+    """Everything a training run depends on (module docstring)."""
+
+    dataset: DatasetConfig = field(default_factory=DatasetConfig)
+    split: str = "sequence"
+    val_fraction: float = 0.2
+    hidden: int = 0
+    epochs: int = 200
+    batch_size: int = 256
+    lr: float = 1e-3
+    weight_decay: float | None = None
+    z_clip: float = 3.0
+    patience: int = 20
+    seed: int = 0
+    device: str = "cpu"
+    drop_features: tuple[str, ...] = ()
+    progress: bool = False
+
+    def __post_init__(self) -> None:
+        if self.split not in SPLITS:
+            raise ValueError(f"split = {self.split!r}: expected one of {', '.join(SPLITS)}")
+        if not (0.0 < self.val_fraction < 1.0):
+            raise ValueError(f"val_fraction = {self.val_fraction!r}: must lie in (0, 1)")
+        if self.hidden < 0:
+            raise ValueError(f"hidden = {self.hidden}: must be 0 (linear) or a number of units")
+        for name in ("epochs", "batch_size", "patience"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} = {getattr(self, name)}: must be >= 1")
+        if not (math.isfinite(self.lr) and self.lr > 0):
+            raise ValueError(f"lr = {self.lr!r}: must be > 0")
+        if self.weight_decay is not None and not (math.isfinite(self.weight_decay) and self.weight_decay >= 0):
+            raise ValueError(f"weight_decay = {self.weight_decay!r}: must be >= 0")
+        if not (math.isfinite(self.z_clip) and self.z_clip > 0):
+            raise ValueError(f"z_clip = {self.z_clip!r}: must be > 0")
+        unknown = [n for n in self.drop_features if n not in FEATURE_NAMES]
+        if unknown:
+            raise ValueError(f"drop_features {unknown}: not feature names; known: {', '.join(FEATURE_NAMES)}")
+        if len(set(self.drop_features)) >= len(FEATURE_NAMES):
+            raise ValueError("drop_features would drop every feature")
+        if self.device not in ("cpu", "cuda") and not self.device.startswith("cuda:"):
+            raise ValueError(f"device = {self.device!r}: expected cpu or cuda")
+        if self.device.startswith("cuda") and not torch.cuda.is_available():
+            raise ValueError(f"device = {self.device!r}: CUDA is not available on this machine (torch {torch.__version__}); use --device cpu")
+
+    @property
+    def decay(self) -> float:
+        """The weight decay used: as given, else 0.3 for the linear net and 0.1 with a hidden layer (module docstring)."""
+        if self.weight_decay is not None:
+            return self.weight_decay
+        return DEFAULT_DECAY_HIDDEN if self.hidden else DEFAULT_DECAY_LINEAR
+
+    @property
+    def feature_names(self) -> tuple[str, ...]:
+        return tuple(n for n in FEATURE_NAMES if n not in self.drop_features)
+
+
+# --------------------------------------------------------------------------- splits
+
+
+def _time_block(ds: ARDataset, index: np.ndarray, seq: int, val_fraction: float) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """Train/val indices of one sequence's samples `index` split in time so that the later part holds `val_fraction` of them.
+
+    Returns (train, val, dropped, cut stamp).
+    """
+    t = ds.stamp_ns[index]
+    if t.size == 0:
+        return index, index, 0, int(ds.sequence_spans[seq][1])
+    cut = int(np.quantile(t, 1.0 - val_fraction, method="inverted_cdf"))
+    horizon_ns = int(round(HORIZON_STEPS * STEP_S * 1e9))
+    history_ns = int(round(HISTORY_STEPS * STEP_S * 1e9))
+    train = index[t + horizon_ns <= cut]
+    val = index[t - history_ns >= cut]
+    return train, val, int(index.size - train.size - val.size), cut
+
+
+def split_samples(ds: ARDataset, split: str, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """(train indices, validation indices, description) for the split of the module docstring; ValueError if impossible."""
+    rng = np.random.default_rng(seed)
+    train_parts, val_parts = [], []
+    info: dict[str, Any] = {"split": split, "val_fraction": val_fraction, "seed": seed, "dropped_at_cut": 0,
+                            "val_sequences": [], "time_cuts": {}}
+
+    def block(seq: int) -> None:
+        index = np.flatnonzero(ds.sequence == seq)
+        train, val, dropped, cut = _time_block(ds, index, seq, val_fraction)
+        train_parts.append(train)
+        val_parts.append(val)
+        info["dropped_at_cut"] += dropped
+        info["time_cuts"][ds.sequences[seq]] = {"cut_stamp_s": cut * _NS, "span_s": [float(v) * _NS for v in ds.sequence_spans[seq]]}
+
+    if split == "recording":
+        present = [r for r in range(len(ds.recordings)) if np.any(ds.recording == r)]
+        if len(present) < 2:
+            raise ValueError(f"--split recording needs samples from at least two recordings; have {[ds.recordings[r] for r in present]}")
+        counts = {r: int(np.sum(ds.recording == r)) for r in present}
+        best = None
+        for k in range(1, len(present)):
+            for combo in itertools.combinations(present, k):
+                share = sum(counts[r] for r in combo) / len(ds)
+                score = (abs(share - val_fraction), combo)
+                best = score if best is None or score < best else best
+        val_recs = set(best[1])
+        val_mask = np.isin(ds.recording, list(val_recs))
+        info["val_recordings"] = [ds.recordings[r] for r in sorted(val_recs)]
+        return np.flatnonzero(~val_mask), np.flatnonzero(val_mask), info
+    for r in range(len(ds.recordings)):
+        seqs = sorted({int(s) for s in np.unique(ds.sequence[ds.recording == r])})
+        if not seqs:
+            continue
+        if split == "time" or len(seqs) == 1:
+            for s in seqs:
+                block(s)
+            continue
+        target = val_fraction * int(np.sum(ds.recording == r))
+        sizes = {s: int(np.sum(ds.sequence == s)) for s in seqs}
+        val_seqs: list[int] = []
+        n_val = 0
+        for s in [seqs[i] for i in rng.permutation(len(seqs))]:
+            if len(val_seqs) < len(seqs) - 1 and abs(n_val + sizes[s] - target) < abs(n_val - target):
+                val_seqs.append(s)
+                n_val += sizes[s]
+        if not val_seqs:  # every sequence alone overshoots the target twice: the smallest
+            val_seqs.append(min(seqs, key=lambda s: (sizes[s], s)))
+        for s in seqs:
+            (val_parts if s in val_seqs else train_parts).append(np.flatnonzero(ds.sequence == s))
+        info["val_sequences"] += [ds.sequences[s] for s in sorted(val_seqs)]
+    train = np.sort(np.concatenate(train_parts)) if train_parts else np.zeros(0, np.int64)
+    val = np.sort(np.concatenate(val_parts)) if val_parts else np.zeros(0, np.int64)
+    return train, val, info
+
+
+# --------------------------------------------------------------------------- metrics
+
+
+def error_table(pred: np.ndarray, y: np.ndarray) -> dict[str, Any]:
+    """MSE and MAE (overall and per 0.4 s chunk) of predictions (B, 40) against targets (B, 40), and the chunk-mean RMSE."""
+    err = np.asarray(pred, np.float64) - np.asarray(y, np.float64)
+    if err.shape[0] == 0:
+        nan = [math.nan] * N_CHUNKS
+        return {"mse": math.nan, "mae": math.nan, "mse_chunks": nan, "mae_chunks": nan, "chunk_mean_rmse": nan}
+    chunks = err.reshape(err.shape[0], N_CHUNKS, CHUNK_STEPS)
+    return {
+        "mse": float(np.mean(err**2)),
+        "mae": float(np.mean(np.abs(err))),
+        "mse_chunks": np.mean(chunks**2, axis=(0, 2)).tolist(),
+        "mae_chunks": np.mean(np.abs(chunks), axis=(0, 2)).tolist(),
+        "chunk_mean_rmse": np.sqrt(np.mean(chunk_means(err) ** 2, axis=0)).tolist(),
+    }
+
+
+def compare(pred: np.ndarray, ds: ARDataset) -> dict[str, Any]:
+    """The model's errors on `ds` next to the zero and last-value-held predictors."""
+    last = np.repeat(ds.last_acceleration[:, None], HORIZON_STEPS, axis=1)
+    return {"samples": len(ds), "model": error_table(pred, ds.y), "zero": error_table(np.zeros_like(ds.y), ds.y), "last": error_table(last, ds.y)}
+
+
+# --------------------------------------------------------------------------- training
+
+
+def _normalisation(x: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    real = x[mask] if mask.any() else x.reshape(-1, x.shape[-1])
+    mean = real.mean(axis=0).astype(np.float64)
+    std = real.std(axis=0).astype(np.float64)
+    std = np.where(std < 1e-9, 1.0, np.maximum(std, 1e-3))
+    return mean.astype(np.float32), std.astype(np.float32)
+
+
+def _loss(pred: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    err = pred - y
+    return (err * err).mean() + err.abs().mean()
+
+
+def _git_commit() -> str | None:
+    try:
+        out = subprocess.run(["git", "-C", str(SOURCE_DIR), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
+        if out.returncode != 0:
+            return None
+        dirty = subprocess.run(["git", "-C", str(SOURCE_DIR), "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True, timeout=10)
+        return out.stdout.strip() + ("-dirty" if dirty.returncode == 0 and dirty.stdout.strip() else "")
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def fit(cfg: TrainConfig, train: ARDataset, val: ARDataset, log=None) -> tuple[ARModel, dict[str, Any]]:
+    """Train on `train`, early-stop on `val`; the model (σ_res from `val`) and the training history."""
+    say = log or (lambda msg: None)
+    if len(train) == 0 or len(val) == 0:
+        raise ValueError(f"no samples to train on ({len(train)} training, {len(val)} validation): use more data or another --split")
+    names = cfg.feature_names
+    columns = np.array([FEATURE_NAMES.index(n) for n in names])
+    mean, std = _normalisation(train.x[:, :, columns], train.mask)
+    torch.manual_seed(cfg.seed)
+    net = ARNet(len(names), cfg.hidden)
+    model = ARModel(net=net, feature_names=names, feature_mean=mean, feature_std=std, sigma_res_chunks=np.zeros(N_CHUNKS), z_clip=cfg.z_clip)
+    device = torch.device(cfg.device)
+    net.to(device)
+
+    def tensors(ds: ARDataset):
+        return (torch.from_numpy(model.normalise(ds.x)).to(device), torch.from_numpy(ds.mask.astype(np.float32)).to(device),
+                torch.from_numpy(ds.y.astype(np.float32)).to(device))
+
+    zt, mt, yt = tensors(train)
+    zv, mv, yv = tensors(val)
+    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr, weight_decay=cfg.decay)
+    sched = torch.optim.lr_scheduler.CosineAnnealingWarmRestarts(opt, T_0=10)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    n = len(train)
+    iters = max(1, math.ceil(n / cfg.batch_size))
+    best_loss, best_epoch, best_state, stale = math.inf, -1, None, 0
+    history = []
+    bar = progress_bar(cfg.epochs, cfg.progress, unit="epoch", desc="iamp train")
+    t0 = time.perf_counter()
+    try:
+        for epoch in range(cfg.epochs):
+            net.train()
+            perm = torch.randperm(n, generator=gen).to(device)
+            total = 0.0
+            for i in range(iters):
+                idx = perm[i * cfg.batch_size : (i + 1) * cfg.batch_size]
+                opt.zero_grad()
+                loss = _loss(net(zt[idx], mt[idx]), yt[idx])
+                loss.backward()
+                opt.step()
+                sched.step(epoch + (i + 1) / iters)
+                total += float(loss.detach()) * idx.numel()
+            net.eval()
+            with torch.no_grad():
+                val_loss = float(_loss(net(zv, mv), yv))
+            history.append({"epoch": epoch, "train_loss": total / n, "val_loss": val_loss})
+            if val_loss < best_loss - 1e-6:
+                best_loss, best_epoch, stale = val_loss, epoch, 0
+                best_state = copy.deepcopy(net.state_dict())
+            else:
+                stale += 1
+            bar.update(1)
+            bar.set_postfix(val=f"{val_loss:.3f}", best=f"{best_loss:.3f}@{best_epoch}")
+            if stale >= cfg.patience:
+                break
+    finally:
+        bar.close()
+    net.load_state_dict(best_state)
+    net.to("cpu").eval()
+    seconds = time.perf_counter() - t0
+    say(f"trained {len(history)} epochs in {seconds:.1f} s, best epoch {best_epoch} (validation loss {best_loss:.4f})")
+    pred_val = model.predict(val.x, val.mask)
+    model.sigma_res_chunks = np.sqrt(np.mean(chunk_means(pred_val - val.y) ** 2, axis=0)).astype(np.float32)
+    return model, {"epochs_run": len(history), "best_epoch": best_epoch, "best_val_loss": best_loss, "train_seconds": seconds, "history": history}
+
+
+def run_training(cfg: TrainConfig, *, cache_dir: Path | None = DEFAULT_CACHE_DIR, log=None) -> tuple[ARModel, dict[str, Any]]:
+    """Build (or read) the data set, split, train, evaluate: (model with metadata, report)."""
+    say = log or (lambda msg: None)
+    t0 = time.perf_counter()
+    ds = build_dataset(cfg.dataset, cache_dir=cache_dir, progress=cfg.progress, log=say)
+    data_seconds = time.perf_counter() - t0
+    if len(ds) == 0:
+        raise ValueError(f"no training samples in {cfg.dataset.data_dir} ({ds.counts}): select recordings with vehicles that have a 4 s future")
+    train_idx, val_idx, split_info = split_samples(ds, cfg.split, cfg.val_fraction, cfg.seed)
+    train, val = ds.subset(train_idx), ds.subset(val_idx)
+    say(f"{len(train)} training and {len(val)} validation samples ({cfg.split} split)")
+    model, fitted = fit(cfg, train, val, log=say)
+    pred_val = model.predict(val.x, val.mask)
+    pred_train = model.predict(train.x, train.mask)
+    by_recording = {}
+    for r, name in enumerate(ds.recordings):
+        sel = val.recording == r
+        if sel.any():
+            by_recording[name] = compare(pred_val[sel], val.subset(np.flatnonzero(sel)))
+    report: dict[str, Any] = {
+        "data": str(cfg.dataset.data_dir),
+        "recordings": list(ds.recordings),
+        "sequences": {"train": sorted({ds.sequences[s] for s in train.sequence}), "val": sorted({ds.sequences[s] for s in val.sequence})},
+        "split": split_info,
+        "sizes": {"samples": len(ds), "train": len(train), "val": len(val), "dropped_at_cut": split_info["dropped_at_cut"],
+                  "train_tracks": len({(int(s), int(t)) for s, t in zip(train.sequence, train.track_id)}),
+                  "val_tracks": len({(int(s), int(t)) for s, t in zip(val.sequence, val.track_id)})},
+        "dataset_counts": ds.counts,
+        "dataset_key": ds.key,
+        "dataset_seconds": data_seconds,
+        "model": {"hidden": cfg.hidden, "features": list(model.feature_names), "dropped_features": list(cfg.drop_features),
+                  "parameters": int(sum(p.numel() for p in model.net.parameters()))},
+        "training": {k: v for k, v in fitted.items() if k != "history"} | {
+            "epochs_max": cfg.epochs, "batch_size": cfg.batch_size, "lr": cfg.lr, "weight_decay": cfg.decay, "z_clip": cfg.z_clip,
+            "patience": cfg.patience, "seed": cfg.seed, "device": cfg.device, "loss": "mse + mae",
+            "schedule": "CosineAnnealingWarmRestarts(T_0=10), per batch"},
+        "train_errors": {"model": error_table(pred_train, train.y)},
+        "validation": compare(pred_val, val),
+        "validation_by_recording": by_recording,
+        "sigma_res_chunks": model.sigma_res_chunks.tolist(),
+        "history": fitted["history"],
+    }
+    model.metadata = {
+        "feature_names": list(model.feature_names),
+        "all_feature_names": list(FEATURE_NAMES),
+        "history_steps": HISTORY_STEPS,
+        "horizon_steps": HORIZON_STEPS,
+        "step_s": STEP_S,
+        "feature_config": dataclasses.asdict(cfg.dataset.features),
+        "dataset_config": {k: v for k, v in cfg.dataset.key_dict().items() if k not in ("features", "feature_names")},
+        "data": report["data"],
+        "recordings": report["recordings"],
+        "sequences": report["sequences"],
+        "split": split_info,
+        "sizes": report["sizes"],
+        "seed": cfg.seed,
+        "hidden": cfg.hidden,
+        "training": report["training"],
+        "validation": report["validation"],
+        "validation_by_recording": by_recording,
+        "sigma_res_chunks": report["sigma_res_chunks"],
+        "git_commit": _git_commit(),
+        "date_utc": _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat(),
+        "torch": torch.__version__,
+    }
+    return model, report
+
+
+# --------------------------------------------------------------------------- printing and CLI
+
+
+def format_report(report: dict[str, Any]) -> str:
+    """The validation table: MSE and MAE of model, zero and last per chunk, and σ_res."""
+    v = report["validation"]
+    lines = [
+        f"data {report['data']}: {', '.join(report['recordings'])}; split {report['split']['split']}; "
+        f"{report['sizes']['train']} training / {report['sizes']['val']} validation samples "
+        f"({report['sizes']['dropped_at_cut']} dropped at time cuts)",
+        f"model hidden={report['model']['hidden']} parameters={report['model']['parameters']}; "
+        f"{report['training']['epochs_run']} epochs, best {report['training']['best_epoch']}, "
+        f"{report['training']['train_seconds']:.1f} s",
+        "",
+        f"{'validation':<12}{'MSE':>8}{'MAE':>8}   (m/s², m²/s⁴)",
+    ]
+    for name in ("model", "zero", "last"):
+        lines.append(f"{name:<12}{v[name]['mse']:>8.3f}{v[name]['mae']:>8.3f}")
+    for rec, sub in report.get("validation_by_recording", {}).items():
+        lines.append(f"  {rec} ({sub['samples']}): " + ", ".join(f"{n} {sub[n]['mse']:.3f}/{sub[n]['mae']:.3f}" for n in ("model", "zero", "last")))
+    lines += ["", "chunk (s)      " + "".join(f"{0.4 * (k + 1):>7.1f}" for k in range(N_CHUNKS))]
+    for name in ("model", "zero", "last"):
+        lines.append(f"MSE {name:<11}" + "".join(f"{e:>7.3f}" for e in v[name]["mse_chunks"]))
+    for name in ("model", "zero", "last"):
+        lines.append(f"MAE {name:<11}" + "".join(f"{e:>7.3f}" for e in v[name]["mae_chunks"]))
+    lines.append("sigma_res      " + "".join(f"{e:>7.3f}" for e in report["sigma_res_chunks"]))
+    return "\n".join(lines)
+
+
+def run_from_args(args) -> int:
+    """``iamp train``: the parsed arguments of ``stages.offline.train.cli.add_arguments`` → exit code."""
+    try:
+        features = FeatureConfig() if args.accel_window is None else FeatureConfig(accel_window_s=args.accel_window)
+        cfg = TrainConfig(
+            dataset=DatasetConfig(
+                data_dir=args.data, recordings=tuple(args.recording), sequences=tuple(args.sequence),
+                max_frames_per_sequence=args.max_frames, features=features,
+            ),
+            split=args.split, val_fraction=args.val_fraction, hidden=args.hidden, epochs=args.epochs, batch_size=args.batch_size,
+            lr=args.lr, weight_decay=args.weight_decay, z_clip=args.z_clip, patience=args.patience, seed=args.seed, device=args.device,
+            drop_features=tuple(args.drop_feature), progress=not args.no_progress,
+        )
+        model, report = run_training(cfg, cache_dir=None if args.no_cache else args.cache_dir, log=lambda m: print(m, file=sys.stderr))
+    except ValueError as exc:  # DatasetError, bad options, impossible splits
+        sys.stderr.write(f"iamp train: error: {exc}\n")
+        return 2
+    print(format_report(report))
+    path = save_model(args.out, model)
+    print(f"wrote {path}")
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(_json_safe(report), indent=2, allow_nan=False))
+        print(f"wrote {args.json}")
+    return 0
+
+
+
+def _json_safe(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+
+
+
+
+__all__ = ["DEFAULT_CACHE_DIR", "DEFAULT_OUT", "SPLITS", "TrainConfig", "compare", "error_table", "fit",
+           "format_report", "run_from_args", "run_training", "split_samples"]

@@ -1,0 +1,303 @@
+"""The recorder stage's core and binding (documented in ``stages/recorder/__init__.py``)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+import sys
+import threading
+import time
+import tomllib
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, BinaryIO
+
+from mcap.exceptions import UnsupportedCompressionError
+from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
+
+from bus_schemas import REGISTRY, SchemaError, json_schema, keys
+from bus_schemas._wire import unpack_envelope
+
+from stages.lib.recording_files import default_path, split_path, split_paths
+from stages.lib.base import ConfigError, ConfigMixin, Issue
+from stages.runtime import NodeContext, StageSpec, run_stage
+
+COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+MESSAGE_ENCODING = "msgpack"
+SCHEMA_ENCODING = "jsonschema"
+METADATA_NAME = "hybrid-iamp"
+# Bytes a message record adds to a chunk besides its payload (opcode, length, channel, sequence, two times).
+_MESSAGE_OVERHEAD_BYTES = 1 + 8 + 2 + 4 + 8 + 8
+# The mcap Writer closes a chunk by itself only past this size; the recorder closes them earlier.
+_WRITER_CHUNK_LIMIT = 1 << 62
+
+
+def iamp_version() -> str:
+    """Version of hybrid-iamp: the installed distribution's, else pyproject.toml's."""
+    try:
+        from importlib.metadata import PackageNotFoundError, version
+
+        return version("hybrid-iamp")
+    except PackageNotFoundError:
+        pass
+    try:
+        data = tomllib.loads((Path(__file__).resolve().parents[2] / "pyproject.toml").read_text())  # a source checkout, not installed
+        return str(data["project"]["version"])
+    except (OSError, KeyError, tomllib.TOMLDecodeError):
+        return "unknown"
+
+
+@dataclass(frozen=True, kw_only=True)
+class RecorderConfig(ConfigMixin):
+    """Where and how to write the MCAP file (see the module docstring)."""
+
+    path: str = ""
+    chunk_size_bytes: int = 256 * 1024
+    compression: str = "zstd"
+    include_stats: bool = True
+    flush_period_s: float = 1.0
+    split_bytes: int = 0
+    split_s: float = 0.0
+    split_index: int = 0
+
+    def __post_init__(self) -> None:
+        if self.compression not in COMPRESSIONS:
+            raise ValueError(f"compression {self.compression!r} is not one of {', '.join(COMPRESSIONS)}")
+        if self.chunk_size_bytes < 1:
+            raise ValueError(f"chunk_size_bytes must be >= 1, got {self.chunk_size_bytes}")
+        if not self.flush_period_s > 0:
+            raise ValueError(f"flush_period_s must be > 0, got {self.flush_period_s}")
+        if self.split_bytes < 0:
+            raise ValueError(f"split_bytes must be >= 0 (0: no size limit), got {self.split_bytes}")
+        if not self.split_s >= 0:
+            raise ValueError(f"split_s must be >= 0 (0: no duration limit), got {self.split_s}")
+        if self.split_index < 0:
+            raise ValueError(f"split_index must be >= 0, got {self.split_index}")
+
+
+class McapRecorder:
+    """Writes raw bus payloads into an MCAP file; a context manager that always finishes the file.
+
+    ``handle(key, payload, recv_ns)`` records one payload and returns the
+    issues it raised; ``close()`` writes the summary and closes the file.
+    Thread-safe: a background timer closes a chunk that has stayed open for
+    ``flush_period_s``.
+    """
+
+    def __init__(self, config: RecorderConfig, run_id: str, log: logging.Logger | None = None, node_id: str = "recorder") -> None:
+        self.config = config
+        self.run_id = keys.check_run_id(run_id)
+        self.log = log or logging.getLogger(f"iamp.{node_id}")
+        self.base_path = Path(config.path) if config.path else default_path(run_id)
+        self.split_index = config.split_index
+        self.paths: list[Path] = []  # every file this recorder has written, the current one last
+        self.node_id = node_id
+        self.messages = 0
+        self.unrecognised = 0
+        self._lock = threading.Lock()
+        self._sequences: dict[tuple[str, str], int] = {}  # per (topic, schema name), across splits
+        self._closed = threading.Event()
+        self._open_file()
+        self._timer = threading.Thread(target=self._flush_periodically, name="recorder-flush", daemon=True)
+        self._timer.start()
+        self.log.info("recording: path=%s run=%s", self.path, run_id)
+
+    def _open_file(self) -> None:
+        """Open split ``self.split_index``: a new file with its header and metadata (schemas and channels again as used)."""
+        config = self.config
+        self.path = split_path(self.base_path, self.split_index)
+        self._schema_ids: dict[str, int] = {}
+        self._channel_ids: dict[tuple[str, int], int] = {}
+        self._chunk_bytes = 0
+        self._chunk_opened = 0.0  # monotonic time of the first message in the open chunk
+        self._file_messages = 0
+        self._file_opened = time.monotonic()
+        if self.path.exists():
+            self.log.warning("overwriting existing file: path=%s", self.path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file: BinaryIO = open(self.path, "wb")
+        try:
+            self._writer = Writer(self._file, chunk_size=_WRITER_CHUNK_LIMIT, compression=COMPRESSIONS[config.compression])
+        except UnsupportedCompressionError as exc:
+            self._file.close()
+            raise ConfigError(f"compression {config.compression!r} is not available here: {exc}") from None
+        version = iamp_version()
+        start_ns = time.time_ns()
+        self._writer.start(profile="", library=f"hybrid-iamp/{version}; {LIBRARY_IDENTIFIER}")
+        self._writer.add_metadata(
+            METADATA_NAME,
+            {
+                "run_id": self.run_id,
+                "version": version,
+                "recorder_node": self.node_id,
+                "split_index": str(self.split_index),
+                "base_path": str(self.base_path),
+                "start_time_ns": str(start_ns),
+                "start_time_utc": datetime.fromtimestamp(start_ns / 1e9, tz=timezone.utc).isoformat(),
+                "compression": config.compression,
+            },
+        )
+        self._writer.flush()
+        self.paths.append(self.path)
+
+    def _split_due(self) -> bool:
+        if not self._file_messages:
+            return False  # a split always holds messages
+        if self.config.split_bytes and self._file.tell() + self._chunk_bytes >= self.config.split_bytes:
+            return True
+        return bool(self.config.split_s) and time.monotonic() - self._file_opened >= self.config.split_s
+
+    def _next_split(self) -> None:
+        """Finish the current file (summary, indexes) and go on in the next split; called with the lock held."""
+        self._writer.finish()
+        self._file.close()
+        self.log.info("split closed: path=%s messages=%d; next split %d", self.path, self._file_messages, self.split_index + 1)
+        self.split_index += 1
+        self._open_file()
+
+    def __enter__(self) -> "McapRecorder":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    @property
+    def channels(self) -> int:
+        """Distinct (topic, schema) channels recorded, over all splits."""
+        return len(self._sequences)
+
+    # ---- recording
+    def handle(self, key: str, payload: bytes, recv_ns: int) -> list[Issue] | None:
+        """Record one payload received on ``key`` at ``recv_ns`` (wall clock, ns)."""
+        if not self.config.include_stats and f"/{keys.STATS}/" in key:
+            return None
+        issue = None
+        schema_name = ""
+        publish_ns = recv_ns
+        try:
+            name, version, body = unpack_envelope(payload, where=key)
+        except SchemaError as exc:
+            issue = f"not an envelope: {exc}"
+        else:
+            cls = REGISTRY.get(name)
+            if cls is None:
+                issue = f"unknown schema {name} v{version}"
+            elif cls.VERSION != version:
+                issue = f"{name} v{version}, this build describes v{cls.VERSION}"
+            else:
+                schema_name = name
+                header = body.get("header")
+                if isinstance(header, dict) and type(header.get("stamp_ns")) is int and header["stamp_ns"] >= 0:
+                    publish_ns = header["stamp_ns"]
+        with self._lock:
+            if self._closed.is_set():
+                raise RuntimeError(f"recorder for {self.path} is closed")
+            schema_id = self._schema_id(schema_name) if schema_name else 0
+            channel_id = self._channel_id(key, schema_id)
+            seq = self._sequences[(key, schema_name)] = (self._sequences.get((key, schema_name), 0) + 1) & 0xFFFFFFFF
+            self._writer.add_message(channel_id=channel_id, log_time=recv_ns, data=bytes(payload), publish_time=publish_ns, sequence=seq)
+            self.messages += 1
+            self._file_messages += 1
+            if self._chunk_bytes == 0:
+                self._chunk_opened = time.monotonic()
+            self._chunk_bytes += len(payload) + _MESSAGE_OVERHEAD_BYTES
+            if self._split_due():
+                self._next_split()
+            elif self._chunk_bytes >= self.config.chunk_size_bytes or time.monotonic() - self._chunk_opened >= self.config.flush_period_s:
+                self._close_chunk()
+        if issue is None:
+            return None
+        self.unrecognised += 1
+        return [Issue(kind="unrecognised_payload", agent_id=-1, detail=f"recorded without schema: {issue}")]
+
+    def _schema_id(self, name: str) -> int:
+        sid = self._schema_ids.get(name)
+        if sid is None:
+            data = json.dumps(json_schema(REGISTRY[name]), sort_keys=True).encode()
+            sid = self._schema_ids[name] = self._writer.register_schema(name=name, encoding=SCHEMA_ENCODING, data=data)
+            self._chunk_bytes += len(data)
+        return sid
+
+    def _channel_id(self, topic: str, schema_id: int) -> int:
+        cid = self._channel_ids.get((topic, schema_id))
+        if cid is None:
+            cid = self._channel_ids[(topic, schema_id)] = self._writer.register_channel(topic=topic, message_encoding=MESSAGE_ENCODING, schema_id=schema_id)
+            self._chunk_bytes += len(topic) + 32
+        return cid
+
+    def _close_chunk(self) -> None:
+        # Writer.flush() closes the open chunk (compressed, with its message
+        # indexes) and flushes the file object, so the chunk reaches the OS now.
+        self._writer.flush()
+        self._chunk_bytes = 0
+
+    def flush(self) -> None:
+        """Close the open chunk now and hand it to the OS."""
+        with self._lock:
+            if not self._closed.is_set() and self._chunk_bytes:
+                self._close_chunk()
+
+    def _flush_periodically(self) -> None:
+        period = self.config.flush_period_s
+        while not self._closed.wait(min(period / 4, 0.25)):
+            with self._lock:
+                if self._closed.is_set():
+                    return
+                try:
+                    if self._split_due():
+                        self._next_split()
+                    elif self._chunk_bytes and time.monotonic() - self._chunk_opened >= period:
+                        self._close_chunk()
+                except OSError as exc:
+                    self.log.error("flush failed: path=%s error=%s", self.path, exc)
+
+    # ---- end
+    def close(self) -> None:
+        """Write the summary and indexes and close the file (idempotent)."""
+        with self._lock:
+            if self._closed.is_set():
+                return
+            self._closed.set()
+            try:
+                self._writer.finish()
+            finally:
+                self._file.close()
+            if not self._file_messages and len(self.paths) > 1:  # opened by the last cut, never used
+                self.path.unlink(missing_ok=True)
+                self.paths.pop()
+                self.path = self.paths[-1]
+        if len(self.paths) > 1:
+            self.log.info("recording closed: path=%s messages=%d channels=%d splits=%d (%s)", self.path, self.messages, self.channels, len(self.paths), ", ".join(p.name for p in self.paths))
+        else:
+            self.log.info("recording closed: path=%s messages=%d channels=%d", self.path, self.messages, self.channels)
+
+
+def _make_core(config: RecorderConfig, ctx: NodeContext) -> McapRecorder:
+    return McapRecorder(config, run_id=ctx.run_id, log=ctx.log, node_id=ctx.node_id)
+
+
+SPEC = StageSpec(
+    stage="stages.recorder",
+    config_cls=RecorderConfig,
+    make_core=_make_core,
+    inputs={},
+    outputs={},
+    kind="raw_sink",
+    restart_default=True,  # the launcher restarts a killed recorder into the next split file
+)
+
+
+# The runtime's input queue drops its oldest entry when full; a recorder must lose
+# nothing, so it gets a deep queue unless the command line (or the launcher's
+# queue_size) says otherwise. A burst of this many messages is absorbed.
+RECORDER_QUEUE_SIZE = 100_000
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not any(a == "--queue-size" or a.startswith("--queue-size=") for a in argv):
+        argv = ["--queue-size", str(RECORDER_QUEUE_SIZE), *argv]
+    return run_stage(SPEC, argv)
+

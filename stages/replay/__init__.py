@@ -1,0 +1,38 @@
+"""Replay an MCAP recording onto the bus, with its original timing or as fast as possible.
+
+Consumes an MCAP file written by ``stages.recorder`` and publishes every
+recorded payload, byte for byte, on its recorded key: re-homed under the
+current run id (``keys.replace_run``) unless ``run_id_from_file``. Messages
+go out in file order; with ``speed = x`` the gaps between their receive times
+(``log_time``) are divided by ``x``. With ``speed = "max"`` there are no gaps:
+publishing blocks when the transport is full (congestion control BLOCK), and,
+like the runtime's sources, replay keeps at most ``MAX_SPEED_WINDOW`` header
+stamps ahead of every live node that acks ``Progress`` (operators do; a node
+that has acked nothing within ``FIRST_ACK_GRACE_S`` of the first wait, such
+as the recorder, is not waited for and relies on its deep input queue).
+
+Infrastructure keys (``_stats``, ``_ack``) are left out unless
+``include_infra``: replayed NodeStats would describe nodes that are not
+running. Replaying a recording into a recorder therefore gives a second file
+whose data channels carry the same payloads, in the same order and number.
+``nodes`` restricts the replay to the keys of some recorded nodes (for a
+pipeline that recomputes the rest: ``nodes = ["source"]``).
+
+Replay publishes on keys it learns from the file, not on declared ports, so
+it runs its own loop on ``runtime.BusClient`` instead of ``run_stage``; it
+takes the same flags as every stage (``--node-id``, ``--run-id``,
+``--params-json``, ``--set``, ``--log-level`` and the network flags) and holds
+a liveliness token at ``iamp/<run>/_alive/<node>``, so the launcher runs it
+like a source (``SPEC.kind == "source"``). Before publishing it waits, up to
+``wait_for_subscribers_s``, until a subscriber matches one of the keys of the
+first messages. It
+exits 0 when everything was published (or on SIGINT/SIGTERM), 2 for a bad
+file or configuration. ``iamp replay FILE.mcap`` (``stages.cli``) is the same
+loop behind a friendlier command line.
+"""
+
+from __future__ import annotations
+
+from stages.replay.core import SPEC, main, RecordingPlayer, ReplayConfig, play, run_replay, parse_speed
+
+__all__ = ["SPEC", "main", 'RecordingPlayer', 'ReplayConfig', 'play', 'run_replay', 'parse_speed']

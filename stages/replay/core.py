@@ -1,0 +1,466 @@
+"""The replay stage's core and binding (documented in ``stages/replay/__init__.py``)."""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import itertools
+import json
+import logging
+import signal
+import sys
+import threading
+import time
+import traceback
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterator
+
+from bus_schemas import REGISTRY, Progress, SceneInfo, SchemaError, TrackFrame, keys
+
+from stages.lib.base import ConfigError, ConfigMixin
+from stages.recorder.inspect import ReadReport, RecordingError, read_messages, recording_run_id
+from stages.runtime import EXIT_CRASH, EXIT_OK, EXIT_USAGE, BusClient, NodeContext, Port, StageSpec, add_network_args, build_parser, parse_set, setup_logging
+
+_MATCH_POLL_S = 0.01
+_MATCH_LOOKAHEAD = 1000  # keys of the first this many messages are checked for a matching subscriber
+# speed = max: at most this many source stamps ahead of the slowest node that acks (like the runtime's sources)
+MAX_SPEED_WINDOW = 3
+CONSUMER_WAIT_S = 10.0
+FIRST_ACK_GRACE_S = 2.0
+# Stamps that nodes ack: those of messages with a header, except the latched scene (queried, never joined or acked).
+_PACED_SCHEMAS = frozenset(
+    name for name, cls in REGISTRY.items() if "header" in getattr(cls, "__dataclass_fields__", {}) and name != SceneInfo.SCHEMA
+)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReplayConfig(ConfigMixin):
+    """What to replay and how fast (see the module docstring)."""
+
+    path: str = ""
+    speed: float | str = 1.0
+    run_id_from_file: bool = False
+    include_infra: bool = False
+    wait_for_subscribers_s: float = 10.0
+    nodes: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not self.path:
+            raise ValueError("path is required: the MCAP file to replay")
+        if isinstance(self.speed, str):
+            if self.speed != "max":
+                raise ValueError(f"speed must be a number > 0 or 'max', got {self.speed!r}")
+        elif not self.speed > 0:
+            raise ValueError(f"speed must be a number > 0 or 'max', got {self.speed}")
+        if self.wait_for_subscribers_s < 0:
+            raise ValueError(f"wait_for_subscribers_s must be >= 0, got {self.wait_for_subscribers_s}")
+        for n in self.nodes:
+            keys.check_name(n, "node id")
+
+
+def parse_speed(text: str) -> float | str:
+    """``max`` or a positive number, as given on a command line."""
+    if text == "max":
+        return "max"
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"speed must be a number > 0 or 'max', got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"speed must be a number > 0 or 'max', got {text!r}")
+    return value
+
+
+@dataclass(frozen=True, slots=True)
+class Outgoing:
+    """One payload to publish: recorded receive time, key to publish on, bytes, and header stamp.
+
+    ``stamp_ns`` is the header's ``stamp_ns`` (the recorder keeps it as the
+    MCAP publish time) for messages whose stamp nodes ack (those with a
+    header, except the latched ``SceneInfo``), else None.
+    """
+
+    log_time_ns: int
+    key: str
+    data: bytes
+    stamp_ns: int | None = None
+    schema: str = ""
+
+
+class RecordingPlayer:
+    """The recording as the sequence of payloads to publish, filtered and re-homed.
+
+    ``run_id`` None keeps the recorded keys; otherwise every key is moved
+    under ``run_id``. Keys that are not of the ``iamp/<run>/<node>/<output>``
+    layout are skipped and counted, like infrastructure keys (unless
+    ``include_infra``) and keys of nodes not in ``config.nodes``. After
+    iterating, ``report`` says whether the file was truncated.
+    """
+
+    def __init__(self, config: ReplayConfig, run_id: str | None) -> None:
+        self.config = config
+        self.file_run_id = recording_run_id(config.path)  # raises RecordingError for a bad file
+        self.run_id = keys.check_run_id(run_id) if run_id is not None else None
+        self.report = ReadReport()
+        self.skipped: collections.Counter[str] = collections.Counter()
+
+    @property
+    def target_run_id(self) -> str | None:
+        return self.run_id or self.file_run_id
+
+    def __iter__(self) -> Iterator[Outgoing]:
+        wanted = set(self.config.nodes)
+        for msg in read_messages(self.config.path, self.report):
+            try:
+                parts = keys.parse_key(msg.topic)
+            except keys.KeyFormatError:
+                self.skipped["foreign_key"] += 1
+                continue
+            if parts.output == keys.ALIVE or (parts.is_infrastructure and not self.config.include_infra):
+                self.skipped["infrastructure"] += 1
+                continue
+            if wanted and parts.node_id not in wanted:
+                self.skipped["other_node"] += 1
+                continue
+            key = msg.topic if self.run_id is None else keys.replace_run(msg.topic, self.run_id)
+            stamp = msg.publish_time_ns if msg.schema in _PACED_SCHEMAS else None
+            yield Outgoing(msg.log_time_ns, key, msg.data, stamp, msg.schema)
+
+
+@dataclass(slots=True)
+class ReplaySummary:
+    published: int = 0
+    keys: int = 0
+    duration_s: float = 0.0
+    matched: bool = False
+    stopped: bool = False
+    truncated: bool = False
+    skipped: dict[str, int] = field(default_factory=dict)
+
+    def line(self) -> str:
+        skipped = ",".join(f"{k}:{v}" for k, v in sorted(self.skipped.items())) or "0"
+        return (
+            f"messages={self.published} keys={self.keys} duration_s={self.duration_s:.3f} "
+            f"skipped={skipped} truncated_file={str(self.truncated).lower()}"
+        )
+
+
+class AckWindow:
+    """In-flight window for ``speed = max``: wait for the nodes that report ``Progress``.
+
+    Before a message with a new header stamp goes out, every other live node
+    must have acked the stamp ``window`` stamps back. A node that has not
+    acked anything ``first_ack_grace_s`` after the first wait is taken for one
+    that never acks (the recorder and other raw sinks do not) and is not
+    waited for; a node that falls behind for ``wait_s`` is warned about and no
+    longer waited for. At the end, ``drain`` waits for the last stamp.
+    """
+
+    def __init__(
+        self,
+        bus: BusClient,
+        run_id: str,
+        *,
+        self_id: str = "",
+        window: int = MAX_SPEED_WINDOW,
+        wait_s: float = CONSUMER_WAIT_S,
+        first_ack_grace_s: float = FIRST_ACK_GRACE_S,
+        log: logging.Logger | None = None,
+    ) -> None:
+        self.window = window
+        self.wait_s = wait_s
+        self.first_ack_grace_s = first_ack_grace_s
+        self.self_id = self_id
+        self.log = log or logging.getLogger("iamp.replay")
+        self._lock = threading.Lock()
+        self._acks: dict[str, int] = {}
+        self._alive: set[str] = set()
+        self._ignored: set[str] = set()
+        self._first_wait: float | None = None
+        self._stamps: collections.deque[int] = collections.deque(maxlen=max(1, window))
+        bus.subscribe(keys.ack_pattern(run_id), self._on_ack)
+        bus.watch_alive(keys.alive_pattern(run_id), self._on_alive)
+        # the watcher's history may come late; a query tells who is alive now
+        alive_now = bus.alive_now(keys.alive_pattern(run_id), timeout_s=2.0)
+        with self._lock:
+            self._alive |= alive_now
+
+    def _on_ack(self, _key: str, data: bytes) -> None:
+        try:
+            msg = Progress.decode(data)
+        except SchemaError:
+            return
+        with self._lock:
+            self._acks[msg.node_id] = max(self._acks.get(msg.node_id, msg.last_stamp_ns), msg.last_stamp_ns)
+
+    def _on_alive(self, node_id: str, alive: bool) -> None:
+        with self._lock:
+            if alive:
+                self._alive.add(node_id)
+            else:
+                self._alive.discard(node_id)
+
+    def before(self, stamp_ns: int | None, stop: threading.Event) -> None:
+        """Call before publishing a message with header stamp ``stamp_ns`` (None: no header)."""
+        if stamp_ns is None or (self._stamps and self._stamps[-1] == stamp_ns):
+            return
+        if len(self._stamps) >= self.window:
+            self._wait(self._stamps[0], stop)
+        self._stamps.append(stamp_ns)
+
+    def drain(self, stop: threading.Event) -> None:
+        """Wait until the acking nodes have finished with the last stamp published."""
+        if self._stamps:
+            self._wait(self._stamps[-1], stop)
+
+    def _wait(self, target: int, stop: threading.Event) -> None:
+        now = time.monotonic()
+        if self._first_wait is None:
+            self._first_wait = now
+        deadline = now + self.wait_s
+        while not stop.is_set():
+            with self._lock:
+                others = self._alive - self._ignored - {self.self_id}
+                silent = [n for n in others if n not in self._acks]
+                behind = [n for n in others if n in self._acks and self._acks[n] < target]
+            now = time.monotonic()
+            if silent and now - self._first_wait > self.first_ack_grace_s:
+                self.log.info("pacing: not waiting for nodes that report no progress: %s", ",".join(sorted(silent)))
+                self._ignored.update(silent)
+                silent = []
+            if not silent and not behind:
+                return
+            if now > deadline:
+                self.log.warning("pacing: nodes behind after %.0f s, no longer waiting for them: %s", self.wait_s, ",".join(sorted(behind + silent)))
+                self._ignored.update(behind + silent)
+                return
+            stop.wait(0.002)
+
+
+def play(player: RecordingPlayer, bus: BusClient, *, speed: float | str, wait_for_subscribers_s: float, stop: threading.Event, log: logging.Logger, node_id: str = "replay") -> ReplaySummary:
+    """Publish the player's messages on ``bus``, paced by ``speed``; stops early when ``stop`` is set.
+
+    First it declares publishers for the keys among the first
+    ``_MATCH_LOOKAHEAD`` messages and waits until a subscriber matches any of
+    them (at most ``wait_for_subscribers_s``, then it warns and goes on).
+    """
+    summary = ReplaySummary()
+    publishers: dict[str, Callable[[bytes], None]] = {}
+    latched: dict[str, bytes] = {}
+    items = iter(player)
+    head = list(itertools.islice(items, _MATCH_LOOKAHEAD))
+    t_start = time.monotonic()
+    if head:
+        as_fast = speed == "max"
+        window = AckWindow(bus, player.target_run_id, self_id=node_id, log=log) if as_fast and player.target_run_id else None
+        matchers = []
+        for item in head:
+            if item.key not in publishers:
+                publishers[item.key], matching = bus.publisher_with_matching(item.key)
+                matchers.append(matching)
+        deadline = time.monotonic() + wait_for_subscribers_s
+        while not any(m() for m in matchers) and not stop.is_set() and time.monotonic() < deadline:
+            stop.wait(_MATCH_POLL_S)
+        summary.matched = any(m() for m in matchers)
+        if not summary.matched and not stop.is_set():
+            log.warning("no subscriber after %.1f s, publishing anyway: keys=%s", wait_for_subscribers_s, ",".join(sorted(publishers)))
+        wall0 = time.monotonic()
+        t_start = wall0
+        log0 = head[0].log_time_ns
+        for msg in itertools.chain(head, items):
+            if stop.is_set():
+                break
+            if not as_fast:
+                due = wall0 + (msg.log_time_ns - log0) / 1e9 / float(speed)
+                left = due - time.monotonic()
+                while left > 0 and not stop.is_set():
+                    stop.wait(min(left, 0.1))
+                    left = due - time.monotonic()
+                if stop.is_set():
+                    break
+            elif window is not None:
+                window.before(msg.stamp_ns, stop)
+            pub = publishers.get(msg.key)
+            if pub is None:
+                pub = publishers[msg.key] = bus.publisher(msg.key, block=True)
+            if msg.schema == SceneInfo.SCHEMA:
+                # latched, as the source's scene port: a stage that (re)starts late queries it
+                if msg.key not in latched:
+                    bus.declare_queryable(msg.key, lambda k=msg.key: latched.get(k))
+                latched[msg.key] = msg.data
+            pub(msg.data)
+            summary.published += 1
+        if window is not None and not stop.is_set():
+            window.drain(stop)
+    summary.stopped = stop.is_set()
+    summary.duration_s = time.monotonic() - t_start
+    summary.keys = len(publishers)
+    summary.truncated = player.report.truncated
+    summary.skipped = dict(player.skipped)
+    return summary
+
+
+def run_replay(
+    config: ReplayConfig,
+    *,
+    run_id: str | None,
+    node_id: str = "replay",
+    fallback_run_id: str = "demo",
+    mode: str = "peer",
+    connect: list[str] | tuple[str, ...] = (),
+    listen: list[str] | tuple[str, ...] = (),
+    config_file: str | None = None,
+    log: logging.Logger | None = None,
+    await_nodes: tuple[str, ...] = (),
+) -> int:
+    """Open a session, hold a liveliness token, replay, log a summary; returns the exit code.
+
+    ``run_id`` None keeps the recorded run id (the token then lives under it,
+    or under ``fallback_run_id`` for a recording without one).
+    """
+    log = log or logging.getLogger(f"iamp.{node_id}")
+    try:
+        keys.check_name(node_id, "node id")
+        player = RecordingPlayer(config, run_id)
+    except (RecordingError, ValueError) as exc:
+        log.error("bad configuration: %s", exc)
+        return EXIT_USAGE
+    stop = threading.Event()
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        if not stop.is_set():
+            log.info("stop requested: signal=%s", signal.Signals(signum).name)
+        stop.set()
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, on_signal)
+        signal.signal(signal.SIGTERM, on_signal)
+    token_run = player.target_run_id or fallback_run_id
+    try:
+        with BusClient(mode, connect, listen, config_file) as bus:
+            bus.declare_token(keys.alive_key(token_run, node_id))
+            if await_nodes:
+                # as the runtime's sources: publish only once the consumers' subscriptions are visible
+                seen: set[str] = set()
+                bus.watch_alive(keys.alive_pattern(token_run), lambda n, alive: seen.add(n) if alive else seen.discard(n))
+                deadline = time.monotonic() + 30.0
+                while not set(await_nodes) <= seen and not stop.is_set() and time.monotonic() < deadline:
+                    stop.wait(0.005)
+            log.info(
+                "replay up: path=%s speed=%s run=%s recorded_run=%s",
+                config.path,
+                config.speed,
+                player.run_id or "(as recorded)",
+                player.file_run_id or "-",
+            )
+            summary = play(player, bus, speed=config.speed, wait_for_subscribers_s=config.wait_for_subscribers_s, stop=stop, log=log, node_id=node_id)
+            if player.report.truncated:
+                log.warning("recording truncated, replayed up to its last complete chunk: path=%s detail=%s", config.path, player.report.error)
+            log.info("replay %s: %s", "stopped" if summary.stopped else "finished", summary.line())
+    except Exception:
+        log.error("crashed:\n%s", traceback.format_exc().rstrip())
+        return EXIT_CRASH
+    return EXIT_OK
+
+
+# --------------------------------------------------------------------------- binding
+
+
+class _NotAStageCore:
+    """Replay publishes on recorded keys, not on ports, so ``run_stage`` cannot drive it; ``main`` does."""
+
+    def __init__(self, config: ReplayConfig, ctx: NodeContext) -> None:
+        self.player = RecordingPlayer(config, None if config.run_id_from_file else ctx.run_id)
+
+    def __iter__(self):
+        raise RuntimeError("stages.replay runs through its own main(), not runtime.run_stage")
+
+
+SPEC = StageSpec(
+    stage="stages.replay",
+    config_cls=ReplayConfig,
+    make_core=_NotAStageCore,
+    inputs={},
+    # what a replayed tracks source publishes, so that pipelines can bind to "<replay node>/track_frame"
+    outputs={"track_frame": Port(TrackFrame), "scene": Port(SceneInfo, latched=True)},
+    kind="source",
+    restart_default=False,
+)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m stages.replay --params-json '{"path": ...}'``: what the launcher spawns."""
+    parser = build_parser(SPEC)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:
+        return EXIT_OK if exc.code == 0 else EXIT_USAGE
+    setup_logging(args.log_level, args.node_id)
+    log = logging.getLogger(f"iamp.{args.node_id}")
+    try:
+        keys.check_run_id(args.run_id)
+        params = json.loads(args.params_json)
+        if not isinstance(params, dict):
+            raise ConfigError("--params-json must be a JSON object")
+        params.update(parse_set(args.set))
+        config = ReplayConfig.from_params(params, where=f"node {args.node_id} ({SPEC.stage})")
+    except (ConfigError, ValueError) as exc:
+        log.error("bad configuration: %s", exc)
+        return EXIT_USAGE
+    return run_replay(
+        config,
+        run_id=None if config.run_id_from_file else args.run_id,
+        node_id=args.node_id,
+        fallback_run_id=args.run_id,
+        mode=args.mode,
+        connect=args.connect,
+        listen=args.listen,
+        config_file=args.config,
+        log=log,
+        await_nodes=tuple(n for n in args.await_nodes.split(",") if n),
+    )
+
+
+def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
+    """Flags of ``iamp replay``."""
+    parser.add_argument("file", metavar="FILE.mcap", help="recording to replay")
+    parser.add_argument("--speed", type=parse_speed, default=1.0, help="time scale (2 = twice as fast) or 'max' (default 1)")
+    parser.add_argument("--run-id", default=None, help="publish under this run id (default: the recorded run id)")
+    parser.add_argument("--node-id", default="replay", help="node id of the liveliness token (default replay)")
+    parser.add_argument("--node", action="append", default=[], metavar="NODE", help="replay only the keys of this recorded node (repeatable)")
+    parser.add_argument("--include-infra", action="store_true", help="also replay _stats/_ack keys")
+    parser.add_argument("--wait-for-subscribers-s", type=float, default=10.0, help="wait this long for a subscriber first (default 10)")
+    parser.add_argument("--log-level", default="INFO")
+    add_network_args(parser)
+
+
+def run_cli(args: argparse.Namespace) -> int:
+    """``iamp replay`` on parsed arguments."""
+    setup_logging(args.log_level, args.node_id)
+    log = logging.getLogger(f"iamp.{args.node_id}")
+    try:
+        config = ReplayConfig(
+            path=args.file,
+            speed=args.speed,
+            run_id_from_file=args.run_id is None,
+            include_infra=args.include_infra,
+            wait_for_subscribers_s=args.wait_for_subscribers_s,
+            nodes=tuple(args.node),
+        )
+    except ValueError as exc:
+        log.error("bad configuration: %s", exc)
+        return EXIT_USAGE
+    return run_replay(
+        config,
+        run_id=args.run_id,
+        node_id=args.node_id,
+        mode=args.mode,
+        connect=args.connect,
+        listen=args.listen,
+        config_file=args.config,
+        log=log,
+    )
+
+
+if __name__ == "__main__":
+    sys.exit(main())

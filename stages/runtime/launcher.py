@@ -1,0 +1,591 @@
+"""Launch a hybrid-iamp pipeline: validate, spawn, supervise, shut down cleanly.
+
+    python launch.py                              # the shipped hybrid pipeline on the embedded scenario
+    python launch.py baseline --stop-after 20 --record run.mcap
+    python launch.py my_pipeline.toml             # a pipeline file of your own
+    python launch.py --check | --describe         # validate only / print the resolved pipeline
+
+A pipeline is a TOML file, or the name of one shipped in ``stages/pipelines``
+(``hybrid``, ``baseline``, ``replay``, ``live``).
+
+Every node runs as its own process (``python -m <stage>``); its output lines
+are prefixed with ``[node-id]``. The launcher opens the bus hub (a Zenoh peer
+on 127.0.0.1) that every node connects to, waits for every node's liveliness
+token before starting the sources, restarts nodes that die (``restart =
+true``, the default for processing nodes and the recorder), and stops
+everything with SIGINT -> SIGTERM -> SIGKILL.
+
+Supervision: a node gets ``--max-restarts`` restarts (default 5); one that
+has run ``--restart-reset-s`` seconds (default 60; 0: never) since its last
+start when it dies gets its budget back, so only a node that keeps dying
+stops the run. A killed recorder is restarted into the next split file
+(``run.mcap``, ``run.001.mcap``, ``run.002.mcap``, ...) while prediction goes
+on; the torn split reads with ``iamp inspect`` and ``iamp recover`` rewrites
+it into a finished file.
+When the sources end (or after ``--stop-after``), nodes are stopped in
+dataflow order so each drains what it has; the recorder stops last and
+finishes its MCAP file.
+
+With ``[bus.auth]`` in the pipeline file, the launcher writes a Zenoh config
+(``transport/auth/usrpwd``: user, password, the dictionary of accepted
+users) and the dictionary into a fresh private folder (0700, files 0600),
+passes ``--config FILE`` to every node and opens its own hub with it, so
+every link of the run is authenticated and no password is on a command line;
+the folder is removed when the run ends. A viewer ``token`` reaches the
+viewer through ``IAMP_VIEWER_TOKEN`` in its environment, not its command line.
+
+Exit codes: 0 clean run, 1 a node failed (the first failing code is
+reported), 2 bad command line or pipeline file, or an unusable map (the
+corridors stage reports it; the run stops at once with the map's problem).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import json
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from stages.lib.base import ConfigError
+from stages.runtime.pipeline import BusAuth, Pipeline, PipelineError, load_pipeline
+
+PIPELINES_DIR = Path(__file__).resolve().parents[1] / "pipelines"
+"""The pipelines shipped with the package (``stages/pipelines/*.toml``)."""
+DEFAULT_PIPELINE = PIPELINES_DIR / "hybrid.toml"
+SOURCE_STAGES = {"stages.tracks_source"}
+RECORDER_STAGE = "stages.recorder"
+MAP_STAGES = {"stages.corridors", "stages.relations", "stages.intentions", "stages.viewer"}  # each gets the source's data folder
+VIEWER_STAGE = "stages.viewer"
+VIEWER_URL_RE = re.compile(r"viewer: (https?://\S+)\s*$")
+# The corridors stage's issue line for a map it cannot use (stages/corridors/core.py, issue kind no_map):
+# nothing can be matched or predicted, so the run stops with exit 2 and this text.
+CORRIDORS_STAGE = "stages.corridors"
+MAP_UNUSABLE_RE = re.compile(r"kind=no_map\b.*?\b(map \S+ unusable: .*?)\s*$")
+EXIT_UNUSABLE_MAP = 2
+VIEWER_TOKEN_ENV = "IAMP_VIEWER_TOKEN"  # stages.viewer.config.TOKEN_ENV
+MAX_RESTARTS = 5
+RESTART_RESET_S = 60.0  # a node that ran this long without dying gets its restart budget back
+STOP_ESCALATION_S = 5.0
+
+_print_lock = threading.Lock()
+
+
+def say(line: str, tag: str = "launch") -> None:
+    with _print_lock:
+        sys.stdout.write(f"[{tag}] {line}\n")
+        sys.stdout.flush()
+
+
+def resolve_pipeline_arg(arg: str) -> str:
+    """A pipeline file as given, or the shipped ``stages/pipelines/<arg>.toml`` when ``arg`` is a bare name that is no file here."""
+    shipped = PIPELINES_DIR / f"{arg}.toml"
+    if not Path(arg).exists() and "/" not in arg and not arg.endswith(".toml") and shipped.is_file():
+        return str(shipped)
+    return arg
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="launch.py", description="Run a hybrid-iamp pipeline (default: the shipped hybrid pipeline on the embedded scenario).")
+    names = ", ".join(sorted(p.stem for p in PIPELINES_DIR.glob("*.toml")))
+    p.add_argument("pipeline", nargs="?", default=str(DEFAULT_PIPELINE), help=f"pipeline TOML file, or the name of a shipped one ({names}; default hybrid)")
+    p.add_argument("--check", action="store_true", help="validate the pipeline and exit (0 ok, 2 error)")
+    p.add_argument("--describe", action="store_true", help="print the resolved nodes, keys, schemas and parameters, then exit")
+    p.add_argument("--stop-after", type=float, metavar="SECONDS", help="stop the run cleanly after this many seconds of playing")
+    p.add_argument("--set", action="append", default=[], metavar="NODE.KEY=VALUE", help="override a node parameter (TOML value)")
+    p.add_argument("--var", action="append", default=[], metavar="NAME=VALUE", help="set a ${NAME} variable of the pipeline file")
+    p.add_argument("--record", metavar="FILE.mcap", help="record the run to this MCAP file (default: runs/<run>-<time>.mcap)")
+    p.add_argument("--no-record", action="store_true", help="leave the recorder out")
+    p.add_argument("--no-viewer", action="store_true", help="leave the viewer out")
+    p.add_argument("--data", metavar="PATH", help="data folder laid out like shared/data/taf-bw (default: the embedded scenario)")
+    p.add_argument("--recording", metavar="NAME", help="recording to play from --data")
+    p.add_argument("--speed", metavar="X|max", help="playback speed factor of the source, or 'max'")
+    p.add_argument("--run-id", help="run id (keys under iamp/<run>/); default from the pipeline file")
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="join a remote Zenoh router/peer as well")
+    p.add_argument("--listen", metavar="ENDPOINT", help="the hub endpoint (default from the pipeline, tcp/127.0.0.1:<free port>)")
+    p.add_argument("--startup-timeout", type=float, default=90.0, metavar="SECONDS", help="how long to wait for every node's liveliness (default 90)")
+    p.add_argument("--log-level", default="INFO", help="log level passed to every node")
+    p.add_argument("--max-restarts", type=int, default=MAX_RESTARTS, metavar="N", help=f"restarts a node gets before its death stops the run (default {MAX_RESTARTS})")
+    p.add_argument(
+        "--restart-reset-s",
+        type=float,
+        default=RESTART_RESET_S,
+        metavar="SECONDS",
+        help=f"a node that ran this long since its last start gets its restarts back when it dies (default {RESTART_RESET_S:g}; 0: never)",
+    )
+    return p
+
+
+def _toml_value(text: str) -> Any:
+    import tomllib
+
+    try:
+        return tomllib.loads(f"x = {text}")["x"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def parse_overrides(items: list[str]) -> dict[str, dict[str, Any]]:
+    out: dict[str, dict[str, Any]] = {}
+    for item in items:
+        if "=" not in item or "." not in item.split("=", 1)[0]:
+            raise PipelineError(f"--set {item!r}: expected NODE.KEY=VALUE")
+        lhs, rhs = item.split("=", 1)
+        node, key = lhs.split(".", 1)
+        out.setdefault(node.strip(), {})[key.strip()] = _toml_value(rhs.strip())
+    return out
+
+
+def default_record_path(run_id: str) -> str:
+    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%d-%H%M%S")
+    return str(Path("runs") / f"{run_id}-{stamp}.mcap")
+
+
+def make_editor(args: argparse.Namespace):
+    """Apply --data/--recording/--speed/--record/--no-viewer/--run-id to the raw descriptor."""
+
+    def edit(raw: dict) -> None:
+        nodes = raw.setdefault("nodes", [])
+        if args.run_id:
+            raw.setdefault("bus", {})["run_id"] = args.run_id
+        if args.no_viewer:
+            raw["nodes"] = nodes = [n for n in nodes if n.get("stage") != VIEWER_STAGE]
+        if args.no_record:
+            raw["nodes"] = nodes = [n for n in nodes if n.get("stage") != RECORDER_STAGE]
+        sources = [n for n in nodes if n.get("stage") in SOURCE_STAGES]
+        for flag, key, value in (("--data", "data", args.data), ("--recording", "recording", args.recording), ("--speed", "speed", args.speed)):
+            if value is None:
+                continue
+            if not sources:
+                raise PipelineError(f"{flag}: the pipeline has no dataset source node ({', '.join(sorted(SOURCE_STAGES))})")
+            if key == "speed" and value != "max":
+                try:
+                    value = float(value)
+                except ValueError:
+                    raise PipelineError(f"--speed {value!r}: expected a number > 0 or 'max'") from None
+            for n in sources:
+                n.setdefault("params", {})[key] = str(Path(value).resolve()) if key == "data" else value
+                if key == "recording" and args.data is None:
+                    pass
+        if args.data is not None and args.recording is None:
+            for n in sources:  # another data folder: do not keep the default scenario's sequence choice
+                n.setdefault("params", {}).pop("sequences", None)
+        # the stages that load the map read it from the source's data folder (by name, checked by sha256), never from a bus path
+        data = next((n["params"]["data"] for n in sources if isinstance(n.get("params"), dict) and n["params"].get("data")), None)
+        if data is not None:
+            for n in nodes:
+                if n.get("stage") in MAP_STAGES:
+                    params = n.setdefault("params", {})
+                    if args.data is not None or not params.get("data"):
+                        params["data"] = data
+        if not args.no_record:
+            recs = [n for n in nodes if n.get("stage") == RECORDER_STAGE]
+            if not recs and args.record:
+                recs = [{"id": "recorder", "stage": RECORDER_STAGE, "params": {}}]
+                nodes.append(recs[0])
+            for n in recs:
+                params = n.setdefault("params", {})
+                if args.record:
+                    params["path"] = args.record
+                if not params.get("path"):
+                    params["path"] = default_record_path(raw.get("bus", {}).get("run_id", raw.get("name", "demo")))
+
+    return edit
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def resolve_hub(pipeline: Pipeline, override: str | None) -> str:
+    ep = override or (pipeline.listen[0] if pipeline.listen else "tcp/127.0.0.1:0")
+    if ep.endswith(":0"):
+        ep = ep[:-2] + f":{free_port()}"
+    return ep
+
+
+class RestartBudget:
+    """The restarts a node has left: ``limit``, all given back once it has run ``reset_after_s`` without dying.
+
+    ``started()`` marks a (re)start; ``take()``, on a death, says whether the
+    node may be restarted and counts it. ``clock`` (monotonic seconds) is
+    injectable, so the policy is tested without waiting.
+    """
+
+    def __init__(self, limit: int = MAX_RESTARTS, reset_after_s: float = RESTART_RESET_S, clock: Any = time.monotonic) -> None:
+        self.limit = limit
+        self.reset_after_s = reset_after_s
+        self.clock = clock
+        self.used = 0
+        self.resets = 0
+        self.started_at: float | None = None
+        self.last_ran_s = 0.0  # how long the node had run when it last died
+        self.last_reset = False  # whether the last take() gave the budget back
+
+    def started(self) -> None:
+        self.started_at = self.clock()
+
+    def take(self) -> bool:
+        self.last_ran_s = 0.0 if self.started_at is None else self.clock() - self.started_at
+        self.last_reset = bool(self.used and self.reset_after_s > 0 and self.last_ran_s >= self.reset_after_s)
+        if self.last_reset:
+            self.used = 0
+            self.resets += 1
+        if self.used >= self.limit:
+            return False
+        self.used += 1
+        return True
+
+
+def _write_private(path: Path, text: str) -> None:
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+
+
+def write_auth_config(auth: BusAuth) -> tuple[Path, Path]:
+    """A private folder (0700) with the Zenoh config (usrpwd) and its dictionary (0600 each); returns (folder, config file)."""
+    folder = Path(tempfile.mkdtemp(prefix="iamp-bus-auth-"))
+    dictionary = folder / "users.txt"
+    _write_private(dictionary, f"{auth.user}:{auth.password}\n")
+    config = folder / "zenoh.json5"
+    usrpwd = {"user": auth.user, "password": auth.password, "dictionary_file": str(dictionary)}
+    _write_private(config, json.dumps({"transport": {"auth": {"usrpwd": usrpwd}}}, indent=2) + "\n")
+    return folder, config
+
+
+class Child:
+    def __init__(self, node: Any, cmd: list[str], budget: RestartBudget | None = None) -> None:
+        self.node = node
+        self.cmd = cmd
+        self.env: dict[str, str] = {}  # added to the launcher's environment (secrets that must not be on the command line)
+        self.proc: subprocess.Popen | None = None
+        self.budget = budget or RestartBudget()
+        self.fatal: str | None = None  # a condition in the node's output that ends the run (an unusable map)
+        self.finished = False  # a source that ended on its own, or a node we stopped
+        self.exit_code: int | None = None
+
+    @property
+    def restarts(self) -> int:
+        return self.budget.used
+
+    def start(self) -> None:
+        self.budget.started()
+        self.proc = subprocess.Popen(
+            self.cmd,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            cwd=os.getcwd(),
+            env={**os.environ, **self.env, "PYTHONUNBUFFERED": "1"},  # the nodes import the installed package
+            start_new_session=True,  # a Ctrl-C at the terminal reaches the launcher only; it stops children in order
+            text=True,
+            bufsize=1,
+        )
+        threading.Thread(target=self._pump, args=(self.proc,), daemon=True).start()
+
+    def _pump(self, proc: subprocess.Popen) -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            say(line.rstrip("\n"), self.node.id)
+            if self.node.stage == VIEWER_STAGE and (url := VIEWER_URL_RE.search(line)):
+                say(f"viewer: {url.group(1)}")  # the one line to open in a browser
+            if self.node.stage == CORRIDORS_STAGE and self.fatal is None and (bad := MAP_UNUSABLE_RE.search(line)):
+                self.fatal = bad.group(1)  # the supervisor stops the run
+
+    def poll(self) -> int | None:
+        return None if self.proc is None else self.proc.poll()
+
+    def stop(self) -> int | None:
+        """SIGINT, then SIGTERM after 5 s, then SIGKILL after 5 s more."""
+        if self.proc is None or self.proc.poll() is not None:
+            return self.poll()
+        for sig, wait in ((signal.SIGINT, STOP_ESCALATION_S), (signal.SIGTERM, STOP_ESCALATION_S), (signal.SIGKILL, 10.0)):
+            try:
+                self.proc.send_signal(sig)
+            except ProcessLookupError:
+                break
+            try:
+                self.proc.wait(timeout=wait)
+                break
+            except subprocess.TimeoutExpired:
+                if sig != signal.SIGKILL:
+                    say(f"node {self.node.id} still running after {signal.Signals(sig).name}; escalating")
+        return self.proc.poll()
+
+
+def describe_code(code: int) -> str:
+    if code < 0:
+        try:
+            return f"signal {signal.Signals(-code).name}"
+        except ValueError:
+            return f"signal {-code}"
+    return f"exit code {code}"
+
+
+class Launcher:
+    def __init__(self, pipeline: Pipeline, hub: str, args: argparse.Namespace) -> None:
+        self.p = pipeline
+        self.hub = hub
+        self.args = args
+        self.children: dict[str, Child] = {}
+        self.stop_requested = threading.Event()
+        self.first_failure: int | None = None
+        self.alive: set[str] = set()
+        self._alive_lock = threading.Lock()
+        self.bus = None
+        self.auth_dir: Path | None = None
+        self.zenoh_config: str | None = None  # with [bus.auth]: the private config every session opens with
+        self.started_wall_s = time.time()  # files of this run (split recordings) are newer
+
+    def secret_env(self, node: Any) -> dict[str, str]:
+        """Secrets of a node that go through its environment, not its command line (the viewer's token)."""
+        if node.stage == VIEWER_STAGE and node.params.get("token"):
+            return {VIEWER_TOKEN_ENV: str(node.params["token"])}
+        return {}
+
+    def command(self, node: Any, params: dict[str, Any] | None = None) -> list[str]:
+        if node.stage == VIEWER_STAGE:  # its token goes through the environment (secret_env)
+            params = {k: v for k, v in (node.params if params is None else params).items() if k != "token"}
+        cmd = [
+            sys.executable,
+            "-m",
+            node.stage,
+            "--node-id",
+            node.id,
+            "--run-id",
+            self.p.run_id,
+            "--params-json",
+            json.dumps(node.params if params is None else params),
+            "--mode",
+            self.p.mode,
+            "--connect",
+            self.hub,
+            "--log-level",
+            self.args.log_level,
+        ]
+        for ep in self.p.connect + self.args.connect:
+            cmd += ["--connect", ep]
+        if self.zenoh_config:
+            cmd += ["--config", self.zenoh_config]
+        if node.inputs:
+            cmd += ["--inputs-json", json.dumps(node.inputs)]
+        if node.kind == "source":
+            others = [n.id for n in self.p.nodes if n.kind != "source"]
+            if others:
+                cmd += ["--await-nodes", ",".join(others)]
+        if node.queue_size:
+            cmd += ["--queue-size", str(node.queue_size)]
+        return cmd
+
+    def _on_alive(self, node_id: str, alive: bool) -> None:
+        with self._alive_lock:
+            (self.alive.add if alive else self.alive.discard)(node_id)
+
+    def wait_alive(self, ids: list[str], timeout: float) -> list[str]:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self._alive_lock:
+                missing = [i for i in ids if i not in self.alive]
+            if not missing:
+                return []
+            for i in missing:
+                c = self.children[i]
+                code = c.poll()
+                if code is not None:
+                    return missing
+            time.sleep(0.05)
+        with self._alive_lock:
+            return [i for i in ids if i not in self.alive]
+
+    def spawn(self, node: Any) -> None:
+        child = self.children.get(node.id) or Child(node, self.command(node), RestartBudget(self.args.max_restarts, self.args.restart_reset_s))
+        self.children[node.id] = child
+        child.env = self.secret_env(node)
+        child.start()
+
+    def run(self) -> int:
+        from stages.runtime import BusClient
+        from bus_schemas import keys
+
+        order = self.p.topo_order()
+        sources = [n for n in order if n.kind == "source"]
+        others = [n for n in order if n.kind != "source"]
+        say(f"pipeline {self.p.name}: run={self.p.run_id} hub={self.hub} nodes={','.join(n.id for n in order)}")
+        for n in order:
+            if n.stage == RECORDER_STAGE:
+                say(f"recording to {Path(n.params.get('path')).resolve()}")
+        if self.p.auth is not None:
+            self.auth_dir, config = write_auth_config(self.p.auth)
+            self.zenoh_config = str(config)
+            say(f"bus auth: {self.p.auth.describe()}; every node gets --config {config} (mode 0600)")
+        try:
+            self.bus = BusClient(mode="peer", listen=[self.hub], connect=self.p.connect + self.args.connect, config_file=self.zenoh_config)
+        except BaseException:
+            self._remove_auth_dir()
+            raise
+        self.bus.watch_alive(keys.alive_pattern(self.p.run_id), self._on_alive)
+        signal.signal(signal.SIGINT, lambda *_: self.stop_requested.set())
+        signal.signal(signal.SIGTERM, lambda *_: self.stop_requested.set())
+        try:
+            for n in others:
+                self.spawn(n)
+            missing = self.wait_alive([n.id for n in others], self.args.startup_timeout)
+            if missing:
+                dead = [f"{i} ({describe_code(self.children[i].poll())})" for i in missing if self.children[i].poll() is not None]
+                say(f"nodes not alive after start: {', '.join(missing)}" + (f"; exited: {', '.join(dead)}" if dead else f" (waited {self.args.startup_timeout:.0f} s)"))
+                codes = [self.children[i].poll() for i in missing if self.children[i].poll() not in (None, 0)]
+                self.first_failure = codes[0] if codes and codes[0] > 0 else 1
+                return self.shutdown(order)
+            say(f"all {len(others)} nodes alive; starting sources: {', '.join(n.id for n in sources) or '(none)'}")
+            for n in sources:
+                self.spawn(n)
+            t_start = time.monotonic()
+            return self.supervise(order, sources, t_start)
+        finally:
+            self.bus.close()
+            self._remove_auth_dir()
+
+    def _remove_auth_dir(self) -> None:
+        if self.auth_dir is not None:
+            shutil.rmtree(self.auth_dir, ignore_errors=True)
+            self.auth_dir = None
+
+    def supervise(self, order: list[Any], sources: list[Any], t_start: float) -> int:
+        while True:
+            if self.stop_requested.is_set():
+                say("stop requested")
+                return self.shutdown(order)
+            if self.args.stop_after is not None and time.monotonic() - t_start >= self.args.stop_after:
+                say(f"--stop-after {self.args.stop_after:g} s reached")
+                return self.shutdown(order)
+            for nid, c in list(self.children.items()):
+                if c.fatal is not None:
+                    say(f"stopping the run: {nid} reports {c.fatal}")
+                    self.first_failure = EXIT_UNUSABLE_MAP
+                    return self.shutdown(order)
+                if c.finished:
+                    continue
+                code = c.poll()
+                if code is None:
+                    continue
+                if c.node.kind == "source" and code == 0:
+                    c.finished = True
+                    say(f"source {nid} finished")
+                    continue
+                say(f"node {nid} died ({describe_code(code)})")
+                if c.node.restart and code != 2 and c.budget.take():
+                    if c.budget.last_reset:
+                        say(f"{nid} had run {c.budget.last_ran_s:.0f} s since its last start (>= {c.budget.reset_after_s:g} s): restart budget reset")
+                    say(f"restarting {nid} ({c.restarts}/{c.budget.limit})")
+                    if c.node.stage == RECORDER_STAGE:
+                        self.next_split(c)
+                    c.start()
+                    continue
+                if c.node.restart and code != 2:
+                    why = f"each run shorter than {c.budget.reset_after_s:g} s" if c.budget.reset_after_s > 0 else "--restart-reset-s 0: never given back"
+                    say(f"{nid} used its {c.budget.limit} restarts ({why})")
+                self.first_failure = code if code > 0 else 1
+                c.finished = True
+                say(f"stopping the run because {nid} failed")
+                return self.shutdown(order)
+            if sources and all(self.children[s.id].finished for s in sources):
+                say("all sources finished; draining")
+                return self.shutdown(order)
+            time.sleep(0.05)
+
+    def next_split(self, c: Child) -> None:
+        """Point a recorder that died at the split after the last one this run wrote (run.mcap -> run.001.mcap -> ...)."""
+        from stages.lib.recording_files import split_path, split_paths
+
+        base = c.node.params.get("path")
+        written = split_paths(base, since_s=self.started_wall_s - 1.0)
+        index = written[-1][0] + 1 if written else int(c.node.params.get("split_index", 0))
+        c.cmd = self.command(c.node, {**c.node.params, "split_index": index})
+        say(f"recording goes on in {split_path(base, index).resolve()}" + (f" ({written[-1][1].name} is torn: `iamp recover` writes a finished copy)" if written else ""))
+
+    def shutdown(self, order: list[Any]) -> int:
+        """Stop sources first, then the rest in dataflow order; raw sinks last."""
+        sinks = [n for n in order if n.kind == "raw_sink"]
+        rest = [n for n in order if n.kind != "raw_sink"]
+        for n in rest + sinks:
+            c = self.children.get(n.id)
+            if c is None or c.proc is None:
+                continue
+            code = c.stop()
+            if code not in (0, None) and not c.finished and self.first_failure is None:
+                # a non-zero code on our own SIGINT is a failure to stop cleanly
+                say(f"node {n.id} stopped with {describe_code(code)}")
+                self.first_failure = code if code > 0 else 1
+            c.finished = True
+        for n in sinks:
+            if n.stage == RECORDER_STAGE:
+                self.report_recording(n.params.get("path"))
+        code = self.first_failure or 0
+        say(f"run ended: exit code {code}")
+        return code
+
+    def report_recording(self, path: str | None) -> None:
+        """One line per split file this run wrote."""
+        from stages.lib.recording_files import split_paths
+
+        files = [p for _, p in split_paths(path, since_s=self.started_wall_s - 1.0)] if path else []
+        if not files:
+            say(f"recording {path}: no file written")
+            return
+        for f in files:
+            try:
+                from stages.recorder.inspect import inspect
+
+                info = inspect(str(f))
+                torn = f"; cut short by a kill, `iamp recover {f.resolve()}` writes a finished copy" if info.get("truncated") else ""
+                say(f"recording saved: {f.resolve()} ({info.get('messages', '?')} messages, {len(info.get('channels', []))} channels{torn})")
+            except Exception as exc:  # a report must never turn a good run into a failure
+                say(f"recording saved: {f.resolve()} (could not inspect: {exc})")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        variables = {}
+        for item in args.var:
+            if "=" not in item:
+                raise PipelineError(f"--var {item!r}: expected NAME=VALUE")
+            k, v = item.split("=", 1)
+            variables[k.strip()] = _toml_value(v.strip())
+        pipeline = load_pipeline(resolve_pipeline_arg(args.pipeline), variables=variables, overrides=parse_overrides(args.set), edit=make_editor(args))
+    except (PipelineError, ConfigError) as exc:
+        print(f"launch.py: {exc}", file=sys.stderr)
+        return 2
+    for w in pipeline.warnings:
+        say(f"warning: {w}")
+    if args.describe:
+        print(pipeline.describe())
+        return 0
+    if args.check:
+        say(f"pipeline {pipeline.path} is valid: {len(pipeline.nodes)} nodes")
+        return 0
+    if args.stop_after is not None and args.stop_after <= 0:
+        print("launch.py: --stop-after must be > 0", file=sys.stderr)
+        return 2
+    if args.max_restarts < 0 or not args.restart_reset_s >= 0:
+        print("launch.py: --max-restarts and --restart-reset-s must be >= 0", file=sys.stderr)
+        return 2
+    hub = resolve_hub(pipeline, args.listen)
+    return Launcher(pipeline, hub, args).run()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,48 @@
+"""Tracks source stage (dataset player): plays recorded tracks onto the bus, frame by frame.
+
+Consumes nothing. Produces ``scene`` (``SceneInfo``, latched: with the first
+frame, and again whenever the scene changes between sequences) and
+``track_frame`` (``TrackFrame``: every object of one recorded frame).
+
+Parameters (``TracksSourceConfig``):
+
+- ``data``: a data folder laid out like ``stages/data/taf-bw`` (INTERACTION- or
+  inD-format, see ``stages.lib.datasets``); empty: the embedded default scenario.
+- ``recording``: empty: ``k729_2022-03-16`` for the default folder, else the
+  first recording found.
+- ``sequences``: ids to play back to back; empty: ``("013",)`` for the
+  default scenario, else all sequences of the recording.
+- ``speed``: playback rate relative to recording time (> 0), or ``"max"``
+  (as fast as every live node keeps up); the runtime paces by it.
+- ``loop``: start over after the last sequence.
+- ``projection``: passed through to ``SceneInfo`` (``stages.lib.maps`` decides
+  what ``"auto"`` resolves to for a location).
+
+Time: ``stamp_ns`` is recording time. The first sequence keeps its own stamps
+(``timestamp_ms`` of the file); each following one (and each loop) is shifted
+to start one frame period after the previous one ended, so stamps strictly
+increase over a run. ``header.frame_index`` counts the frames of the run
+0, 1, 2, ...
+
+Whatever the loader skipped, flagged or repaired becomes one ``Issue`` per
+reason on the first result (kind ``bad_row_<reason>``, ``unknown_agent_type``
+or ``repaired_<reason>``, detail with count and first example), so the
+runtime logs and counts it. No METHOD.md section: this is infrastructure.
+"""
+
+from __future__ import annotations
+
+from stages.tracks_source.core import TrackPlayer, TracksSourceConfig, file_sha256, resolve_selection, scene_id_of
+
+__all__ = ['TrackPlayer', 'TracksSourceConfig', 'file_sha256', 'resolve_selection', 'scene_id_of', "SPEC", "INPUTS", "OUTPUTS", "main"]
+
+_BINDING = ("SPEC", "INPUTS", "OUTPUTS", "main", "make_core")
+
+
+def __getattr__(name: str):
+    """The binding lives in ``__main__.py``; importing it pulls in the runtime (zenoh) only when asked."""
+    if name in _BINDING:
+        from stages.tracks_source import __main__ as binding
+
+        return getattr(binding, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
