@@ -58,7 +58,7 @@ class VehicleCorridors:
     """The corridors of one tracked object (empty unless ``status`` is MATCHED).
 
     The kinematic state is estimated from the track's positions, causally
-    (``stages.kinematic_state``), never copied from the tracker: ``speed_mps``,
+    (``stages.lib.kinematic_state``), never copied from the tracker: ``speed_mps``,
     the velocity ``vx_mps``/``vy_mps`` (m/s east/north) and the longitudinal
     ``accel_mps2``; ``standing`` inside the standstill dead band (then all
     three are 0). ``reported_speed_mps`` is the tracker's own figure, kept as
