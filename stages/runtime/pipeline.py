@@ -179,7 +179,10 @@ class Pipeline:
             lines.append(f"  node {n.id}: stage={n.stage} kind={n.kind} restart={str(n.restart).lower()}")
             for port, ref in n.inputs.items():
                 p = n.spec.inputs[port]
-                lines.append(f"    in  {port:<14} <- iamp/{self.run_id}/{ref}  [{p.schema.SCHEMA} v{p.schema.VERSION}{', latched' if p.latched else ''}]")
+                lines.append(f"    in  {port:<14} <- iamp/{self.run_id}/{ref}  [{p.schema.SCHEMA} v{p.schema.VERSION}{', ' + p.kind_label() if p.kind_label() else ''}]")
+            for port, p in n.spec.inputs.items():
+                if p.pattern is not None:  # bound by the runtime
+                    lines.append(f"    in  {port:<14} <- iamp/{self.run_id}/{p.pattern}  [{p.schema.SCHEMA} v{p.schema.VERSION}, wildcard]")
             for port, p in n.spec.outputs.items():
                 lines.append(f"    out {port:<14} -> {self.output_key(n.id, port)}  [{p.schema.SCHEMA} v{p.schema.VERSION}{', latched' if p.latched else ''}]")
             lines.append(f"    params {json.dumps(public_params(n.stage, n.params), sort_keys=True)}")
@@ -344,6 +347,8 @@ def load_pipeline(
         for port, ref in n.inputs.items():
             if port not in n.spec.inputs:
                 raise PipelineError(f"{nwhere}: stage {n.stage} has no input port {port!r}; its inputs: {', '.join(n.spec.inputs) or '(none)'}")
+            if n.spec.inputs[port].pattern is not None:
+                raise PipelineError(f"{nwhere}: input {port} is a wildcard input on iamp/<run>/{n.spec.inputs[port].pattern}; the runtime binds it, remove it from inputs")
             if not isinstance(ref, str) or ref.count("/") != 1:
                 raise PipelineError(f"{nwhere}: input {port} = {ref!r}: expected \"node/output\"")
             src_id, out = ref.split("/")
@@ -365,7 +370,7 @@ def load_pipeline(
                 )
             used_outputs.add((src_id, out))
         if n.kind == "operator":
-            missing = [p for p, port in n.spec.inputs.items() if p not in n.inputs and not port.optional]
+            missing = [p for p, port in n.spec.inputs.items() if p not in n.inputs and port.needs_binding]
             if missing:
                 raise PipelineError(f"{nwhere}: input port(s) {', '.join(missing)} not connected (add inputs = {{ {missing[0]} = \"node/output\" }})")
     warnings = []

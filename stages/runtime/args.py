@@ -1,0 +1,195 @@
+"""The command line of a stage and its Zenoh session: flags, parameters, input bindings, logging, start-up.
+
+Every stage takes the same flags (``build_parser``): ``--node-id``,
+``--run-id``, ``--params-json``/``--set`` (parameters), ``--inputs-json``/
+``--input`` (bindings ``port -> node/output``), the queue and stamp-window
+bounds, ``--stats-period``, ``--log-level``, ``--await-nodes`` and the
+network flags (``add_network_args``: ``--mode/--connect/--listen/--config``).
+Sessions are peers on ``tcp/127.0.0.1`` with multicast scouting off and
+explicit endpoints (``make_zenoh_config``). ``start_stage`` is the start-up
+every stage binding shares (``run_stage`` and replay's ``main``): parse the
+command line, set up logging, check the ids, build the config; exit code 2
+for a bad command line or config.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+import threading
+from dataclasses import dataclass
+from typing import Any, Callable, Iterable
+
+import zenoh
+
+from bus_schemas import keys
+
+from stages.lib.base import ConfigError
+from stages.runtime.ports import StageSpec
+
+EXIT_OK = 0
+EXIT_CRASH = 1
+EXIT_USAGE = 2
+
+DEFAULT_LISTEN = "tcp/127.0.0.1:0"
+
+
+def add_network_args(parser: argparse.ArgumentParser) -> None:
+    """The zenoh-python network flags, shared by stages and tools."""
+    g = parser.add_argument_group("network")
+    g.add_argument("--mode", choices=["peer", "client"], default="peer", help="zenoh mode (default peer)")
+    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="endpoint to connect to, e.g. tcp/127.0.0.1:7447")
+    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT", help=f"endpoint to listen on (default {DEFAULT_LISTEN})")
+    g.add_argument("--config", metavar="FILE", help="zenoh JSON5 config file; the flags above override it")
+
+
+def make_zenoh_config(mode: str = "peer", connect: Iterable[str] = (), listen: Iterable[str] = (), config_file: str | None = None) -> zenoh.Config:
+    conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    connect = list(connect)
+    listen = list(listen) or ([DEFAULT_LISTEN] if mode == "peer" else [])
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+    return conf
+
+
+def open_session(mode: str = "peer", connect: Iterable[str] = (), listen: Iterable[str] = (), config_file: str | None = None) -> zenoh.Session:
+    """Open a zenoh session with the project's defaults (loopback, no multicast)."""
+    return zenoh.open(make_zenoh_config(mode, connect, listen, config_file))
+
+
+def session_from_args(args: argparse.Namespace) -> zenoh.Session:
+    return open_session(args.mode, args.connect, args.listen, args.config)
+
+
+def parse_set(items: list[str]) -> dict[str, Any]:
+    import tomllib
+
+    out: dict[str, Any] = {}
+    for item in items:
+        if "=" not in item:
+            raise ConfigError(f"--set {item!r}: expected key=value")
+        k, v = item.split("=", 1)
+        try:
+            out[k.strip()] = tomllib.loads(f"x = {v}")["x"]
+        except tomllib.TOMLDecodeError:
+            out[k.strip()] = v
+    return out
+
+
+def build_parser(spec: StageSpec) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=f"python -m {spec.stage}", description=(sys.modules[spec.stage].__doc__ or "").split("\n")[0] if spec.stage in sys.modules else None)
+    default_id = spec.stage.rsplit(".", 1)[-1]
+    p.add_argument("--node-id", default=default_id, help=f"node id (default {default_id})")
+    p.add_argument("--run-id", default="demo", help="run id: keys live under iamp/<run>/ (default demo)")
+    p.add_argument("--params-json", default="{}", help="parameters as a JSON object (the launcher passes them)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one parameter (TOML value)")
+    p.add_argument("--inputs-json", default=None, help='input bindings as JSON {"port": "node/output"}')
+    p.add_argument("--input", action="append", default=[], metavar="PORT=NODE/OUTPUT", help="bind one input")
+    p.add_argument("--queue-size", type=int, default=256, help="bounded queue length of each input (default 256 messages)")
+    p.add_argument("--queue-mib", type=float, default=64.0, help="bounded queue size of each input in MiB of payload (default 64)")
+    p.add_argument(
+        "--stamp-window-s",
+        type=float,
+        default=60.0,
+        help="reject inputs stamped more than this many seconds ahead of the newest accepted stamp (default 60)",
+    )
+    p.add_argument("--stats-period", type=float, default=1.0, help="seconds between NodeStats (default 1)")
+    p.add_argument("--log-level", default="INFO")
+    p.add_argument(
+        "--await-nodes",
+        default="",
+        metavar="ID,ID",
+        help="sources: wait until these nodes' liveliness tokens are visible before the first publish (the launcher passes them)",
+    )
+    add_network_args(p)
+    return p
+
+
+def parse_bindings(spec: StageSpec, args: argparse.Namespace) -> dict[str, str]:
+    """Input bindings port -> 'node/output', checked against the spec (wildcard inputs take none)."""
+    raw: dict[str, str] = json.loads(args.inputs_json) if args.inputs_json else {}
+    if not isinstance(raw, dict):
+        raise ConfigError("--inputs-json must be a JSON object {port: 'node/output'}")
+    for item in args.input:
+        if "=" not in item:
+            raise ConfigError(f"--input {item!r}: expected PORT=NODE/OUTPUT")
+        p, ref = item.split("=", 1)
+        raw[p.strip()] = ref.strip()
+    for port, ref in raw.items():
+        if port not in spec.inputs:
+            raise ConfigError(f"{spec.stage}: unknown input port {port!r}; known: {', '.join(spec.inputs) or '(none)'}")
+        if spec.inputs[port].pattern is not None:
+            raise ConfigError(f"{spec.stage}: input {port} is a wildcard input on iamp/<run>/{spec.inputs[port].pattern}; it takes no binding")
+        parts = str(ref).split("/")
+        if len(parts) != 2:
+            raise ConfigError(f"{spec.stage}: input {port} = {ref!r}: expected 'node/output'")
+        keys.check_name(parts[0], "node id")
+        keys.check_name(parts[1], "output name")
+    missing = [p for p, port in spec.inputs.items() if p not in raw and port.needs_binding]
+    if missing and spec.kind == "operator":
+        raise ConfigError(f"{spec.stage}: input port(s) {', '.join(missing)} not bound; use --input PORT=NODE/OUTPUT")
+    return raw
+
+
+def setup_logging(level: str, node_id: str) -> None:
+    logging.basicConfig(
+        level=getattr(logging, str(level).upper(), logging.INFO),
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        datefmt="%H:%M:%S",
+        stream=sys.stderr,
+        force=True,
+    )
+
+
+@dataclass(frozen=True)
+class StageStart:
+    """What ``start_stage`` read: the parsed flags, the stage's config and its logger."""
+
+    args: argparse.Namespace
+    config: Any
+    log: logging.Logger
+
+
+def start_stage(spec: StageSpec, argv: list[str] | None = None, *, bindings: bool = True) -> StageStart | int:
+    """Parse the command line, set up logging, check the ids and build the config.
+
+    Returns a ``StageStart``, or the exit code to end with: ``EXIT_OK`` for
+    ``--help``, ``EXIT_USAGE`` for a bad command line or config (logged).
+    With ``bindings`` the input bindings are checked too (``parse_bindings``;
+    ``args.bindings`` then holds them).
+    """
+    parser = build_parser(spec)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:
+        return EXIT_OK if exc.code == 0 else EXIT_USAGE
+    setup_logging(args.log_level, args.node_id)
+    log = logging.getLogger(f"iamp.{args.node_id}")
+    try:
+        keys.check_run_id(args.run_id)
+        keys.check_name(args.node_id, "node id")
+        params = json.loads(args.params_json)
+        if not isinstance(params, dict):
+            raise ConfigError("--params-json must be a JSON object")
+        params.update(parse_set(args.set))
+        config = spec.config_cls.from_params(params, where=f"node {args.node_id} ({spec.stage})")
+        args.bindings = parse_bindings(spec, args) if bindings else {}
+    except (ConfigError, ValueError, json.JSONDecodeError) as exc:
+        log.error("bad configuration: %s", exc)
+        return EXIT_USAGE
+    return StageStart(args=args, config=config, log=log)
+
+
+def on_stop_signals(handler: Callable[[int], None]) -> None:
+    """Call ``handler(signal number)`` on SIGINT and SIGTERM (only from the main thread; elsewhere nothing is installed)."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, _frame: handler(signum))

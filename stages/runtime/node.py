@@ -1,0 +1,629 @@
+"""The node: one running stage, its session, its ports and its single loop (decode, queue, join, run, publish).
+
+- decoding happens in the subscriber callback, before anything is queued,
+  through the port's message class: a ``SchemaError`` (or any other
+  exception) is counted (``decode_errors``, ``decode_errors.<port>``),
+  dropped and logged rate-limited; objects out of their schema's range are
+  dropped (or the value cleared) by the decoder and counted as issues
+  ``out_of_range_dropped`` / ``out_of_range_cleared``; a joined input stamped
+  more than ``--stamp-window-s`` ahead of the newest accepted stamp is
+  rejected (``rejected_stamps``);
+- the decoded messages wait in the per-input bounded queues (``queues.py``),
+  drained in arrival order by one loop, so processing is ordered and
+  single-threaded;
+- operators: a bounded, counted join on ``header.stamp_ns`` over the joined
+  inputs (``JOIN_TIMEOUT_S``, ``--join-window``); latched inputs are queried
+  at start and awaited; latest-value and wildcard inputs are kept as they
+  come (``ports.py``); the core sees all of them with every complete set. An
+  exception of a core on one input set is counted (``core_errors``) and that
+  set dropped: no payload can end a stage;
+- outputs are encoded and published; a latched output's last payload is
+  answered to queries; ``NodeStats`` go to ``_stats/<node>`` every
+  ``--stats-period`` and ``Progress`` to ``_ack/<node>`` after every handled
+  input set;
+- sources are paced by ``pacing.Pacer``; raw sinks (the recorder) get every
+  payload of the run, with back-pressure instead of drops;
+- ``run_stage``: start-up (``args.start_stage``), then a clean stop on
+  SIGINT/SIGTERM (drain the queue, wait until the inputs are quiet, print a
+  summary) and the exit codes 0 (clean), 1 (crash), 2 (bad command line or
+  config).
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import logging
+import math
+import os
+import signal
+import threading
+import time
+import traceback
+from types import MappingProxyType
+from typing import Any, Callable, Mapping
+
+import zenoh
+
+import bus_schemas
+from bus_schemas import Progress, SchemaError, keys
+from bus_schemas._wire import Message, unpack_envelope
+
+from stages.lib.base import ConfigError, StageResult
+from stages.runtime.args import EXIT_CRASH, EXIT_OK, EXIT_USAGE, on_stop_signals, session_from_args, start_stage
+from stages.runtime.logs import IssueLog, ProblemLog, _Stats
+from stages.runtime.pacing import AWAIT_NODES_S, CONSUMER_WAIT_S, DRAIN_WAIT_S, Consumers, Pacer
+from stages.runtime.ports import NodeContext, StageSpec, pattern_key
+from stages.runtime.queues import InputQueue
+
+MiB = 1024 * 1024
+
+
+class StopRequested(Exception):
+    pass
+
+
+class Node:
+    """One running stage: session, ports, loop. Built by ``run_stage``."""
+
+    def __init__(self, spec: StageSpec, args: argparse.Namespace, config: Any, bindings: dict[str, str]) -> None:
+        self.spec = spec
+        self.args = args
+        self.config = config
+        self.run_id = args.run_id
+        self.node_id = args.node_id
+        self.log = logging.getLogger(f"iamp.{self.node_id}")
+        self.stats = _Stats()
+        self.issue_log = IssueLog(self.log)
+        self.problems = ProblemLog(self.log)
+        self.started = time.monotonic()
+        self.stop_event = threading.Event()
+        self.signals = 0
+        self.queue = InputQueue(
+            args.queue_size, self._count_queue_drop, block=spec.kind == "raw_sink", max_bytes=int(getattr(args, "queue_mib", 64) * MiB)
+        )
+        self.bindings = bindings
+        self.input_keys = {port: f"{keys.ROOT}/{self.run_id}/{ref}" for port, ref in bindings.items()}
+        if spec.kind == "operator":  # wildcard inputs: bound by the runtime to their pattern
+            for port, p in spec.inputs.items():
+                if p.pattern is not None:
+                    self.input_keys[port] = pattern_key(self.run_id, p.pattern)
+        # callbacks (zenoh's threads) and the loop both count: one lock, and every key made here
+        # so that copying the counters for NodeStats never meets a key being added
+        self._count_lock = threading.Lock()
+        for port in self.input_keys:
+            for k in ("received", "decode_errors", "queue_drops", "rejected_stamps"):
+                self.stats.counters[f"{k}.{port}"] = 0
+        self.stats.counters["rejected_stamps"] = 0
+        wildcards = [p for p in self.input_keys if self.spec.inputs[p].pattern is not None]
+        for port in wildcards:
+            self.stats.counters[f"rejected_keys.{port}"] = 0
+        if wildcards:
+            self.stats.counters["rejected_keys"] = 0
+        self._stamp_clock_ns: int | None = None  # newest stamp accepted on a joined input
+        self.output_keys = {port: keys.data_key(self.run_id, self.node_id, port) for port in spec.outputs}
+        self.session: zenoh.Session | None = None
+        self._publishers: dict[str, Any] = {}
+        self._latched_out: dict[str, bytes] = {}
+        self._latched_in: dict[str, Message] = {}
+        self._latest_in: dict[str, Message] = {}  # latest-value inputs
+        self._wild_in: dict[str, dict[str, Message]] = {}  # wildcard inputs: port -> key -> newest
+        self._pending: "collections.OrderedDict[int, dict[str, Message]]" = collections.OrderedDict()
+        self._pending_since: dict[int, float] = {}
+        self._keepalive: list[Any] = []
+        self._last_stats = 0.0
+        self._last_input_mono = time.monotonic()
+        self._progress_pub = None
+        self.consumers = Consumers(self.node_id)  # sources: the live nodes and their acks, for pacing
+
+    # ---- counters used from callbacks
+    def _count(self, key: str, port: str | None = None, n: int = 1) -> None:
+        with self._count_lock:
+            self.stats.counters[key] += n
+            if port is not None:
+                self.stats.counters[f"{key}.{port}"] += n
+
+    def _count_queue_drop(self, port: str | None, nbytes: int) -> None:
+        """A full input queue dropped the oldest entry of ``port``: an overflow, never a malformed payload."""
+        self._count("queue_drops", port)
+        self.problems.report(
+            f"queue_overflow:{port}",
+            logging.WARNING,
+            "input queue full: port=%s dropped its oldest message (%d bytes; limits %d messages, %.0f MiB per input): the stage is behind its input",
+            port,
+            nbytes,
+            self.args.queue_size,
+            getattr(self.args, "queue_mib", 64),
+        )
+
+    # ---- session and declarations
+    def open(self) -> None:
+        self.session = session_from_args(self.args)
+        s = self.session
+        for port, key in self.output_keys.items():
+            cc = zenoh.CongestionControl.BLOCK
+            self._publishers[port] = s.declare_publisher(key, congestion_control=cc)
+            if self.spec.outputs[port].latched:
+                self._keepalive.append(s.declare_queryable(key, self._make_latched_reply(port)))
+        if self.spec.kind == "raw_sink":
+            self._keepalive.append(s.declare_subscriber(keys.run_pattern(self.run_id), self._on_raw_sample))
+        for port, key in self.input_keys.items():
+            self._keepalive.append(s.declare_subscriber(key, self._make_input_cb(port)))
+            if self.spec.inputs[port].latched:
+                threading.Thread(target=self._query_latched, args=(port, key), daemon=True).start()
+        self._stats_pub = s.declare_publisher(keys.stats_key(self.run_id, self.node_id), congestion_control=zenoh.CongestionControl.DROP)
+        self._progress_pub = s.declare_publisher(keys.ack_key(self.run_id, self.node_id), congestion_control=zenoh.CongestionControl.DROP)
+        if self.spec.kind == "source":
+            self._keepalive.append(s.declare_subscriber(keys.ack_pattern(self.run_id), self._on_ack))
+            self._keepalive.append(s.liveliness().declare_subscriber(keys.alive_pattern(self.run_id), self._on_alive, history=True))
+        self._token = s.liveliness().declare_token(keys.alive_key(self.run_id, self.node_id))
+        self.log.info(
+            "node up: stage=%s run=%s inputs=%s outputs=%s pid=%d",
+            self.spec.stage,
+            self.run_id,
+            ",".join(f"{p}<-{k}" for p, k in self.input_keys.items()) or "-",
+            ",".join(self.output_keys.values()) or "-",
+            os.getpid(),
+        )
+
+    def _make_latched_reply(self, port: str) -> Callable[[Any], None]:
+        key = self.output_keys[port]
+
+        def reply(query: Any) -> None:
+            data = self._latched_out.get(port)
+            if data is not None:
+                query.reply(key, data)
+
+        return reply
+
+    def _query_latched(self, port: str, key: str) -> None:
+        """Ask the publisher of a latched input for its last value until one arrives.
+
+        A query sent before this session knows the route to the publisher's
+        queryable gets no answer (as with puts), so it is repeated until the
+        value has come, by reply or by subscription.
+        """
+        attempt = 0
+        while port not in self._latched_in and not self.stop_event.is_set():
+            attempt += 1
+            try:
+                for reply in self.session.get(key, timeout=1.0):
+                    if reply.ok is not None:
+                        self._count("received", port)
+                        self._accept(port, key, reply.ok.payload.to_bytes(), time.time_ns())
+                        return
+            except Exception as exc:  # the session may be closing
+                self.log.debug("latched query failed: port=%s error=%s", port, exc)
+                return
+            if attempt == 10:
+                self.log.info("still waiting for latched input: port=%s key=%s", port, key)
+            self.stop_event.wait(0.2)
+
+    def _make_input_cb(self, port: str) -> Callable[[Any], None]:
+        def cb(sample: Any) -> None:
+            self._count("received", port)
+            self._accept(port, str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
+
+        return cb
+
+    def _on_raw_sample(self, sample: Any) -> None:
+        key = str(sample.key_expr)
+        if f"/{keys.ACK}/" in key:
+            return
+        self._count("received")
+        data = sample.payload.to_bytes()
+        self.queue.put((None, key, data, time.time_ns()), None, len(data))
+
+    def _accept(self, port: str, key: str, data: bytes, recv_ns: int) -> None:
+        """Decode one input and queue it: what does not decode never takes a queue slot.
+
+        Decoding here, on the subscriber's thread, means a burst of malformed
+        payloads is counted as such (``decode_errors``) and cannot push good
+        messages out of the queue; only well-formed messages compete for it,
+        each port within its own bound (``queue_drops``, by port). A message
+        whose stamp lies more than ``--stamp-window-s`` ahead of the newest
+        stamp accepted so far is rejected (``rejected_stamps``): one message
+        from the far future would otherwise make every later frame look
+        stale to the join.
+        """
+        msg = self._decode(port, key, data)
+        if msg is None:
+            return
+        if self.spec.inputs[port].joined:  # the stamp clock is the joined inputs' (a latest value may be of any age)
+            header = getattr(msg, "header", None)
+            if header is not None and not self._stamp_ok(port, key, int(header.stamp_ns)):
+                return
+        self.queue.put((port, key, msg, recv_ns), port, len(data))
+
+    def _stamp_ok(self, port: str, key: str, stamp: int) -> bool:
+        window_ns = int(getattr(self.args, "stamp_window_s", 60.0) * 1e9)
+        with self._count_lock:
+            clock = self._stamp_clock_ns
+            if clock is None or stamp <= clock + window_ns:
+                self._stamp_clock_ns = stamp if clock is None else max(clock, stamp)
+                return True
+        self._count("rejected_stamps", port)
+        self.problems.report(
+            f"stamp_window:{port}",
+            logging.WARNING,
+            "dropped message: reason=stamp_out_of_window key=%s stamp_ns=%d is %.1f s ahead of the newest accepted stamp (window %.0f s)",
+            key,
+            stamp,
+            (stamp - clock) / 1e9,
+            window_ns / 1e9,
+        )
+        return False
+
+    def _on_ack(self, sample: Any) -> None:
+        self.consumers.on_ack_payload(sample.payload.to_bytes())
+
+    def _on_alive(self, sample: Any) -> None:
+        self.consumers.on_alive(str(sample.key_expr).rsplit("/", 1)[-1], sample.kind == zenoh.SampleKind.PUT)
+
+    # ---- publishing
+    def publish(self, result: StageResult, stamp_ns: int, frame_index: int) -> None:
+        for port, msg in result.outputs.items():
+            if port not in self._publishers:
+                raise RuntimeError(f"core returned output {port!r}, which {self.spec.stage} does not declare")
+            want = self.spec.outputs[port].schema
+            if not isinstance(msg, want):
+                raise RuntimeError(f"core returned {type(msg).__name__} on {port!r}, declared {want.__name__}")
+            data = msg.encode()
+            if self.spec.outputs[port].latched:
+                self._latched_out[port] = data
+            self._publishers[port].put(data)
+            self.stats.counters["published"] += 1
+        for issue in result.issues:
+            self.stats.counters["issues"] += 1
+            self.stats.issues_by_kind[issue.kind] += 1
+        self.issue_log.frame(stamp_ns, result.issues)
+        self.stats.last_stamp_ns = max(self.stats.last_stamp_ns, stamp_ns)
+        self.stats.counters["processed"] += 1
+        self._progress_pub.put(
+            Progress(node_id=self.node_id, last_stamp_ns=stamp_ns, last_frame_index=frame_index, handled=self.stats.counters["processed"]).encode()
+        )
+
+    def maybe_stats(self, force: bool = False) -> None:
+        now = time.monotonic()
+        if force or now - self._last_stats >= self.args.stats_period:
+            self._last_stats = now
+            with self._count_lock:
+                msg = self.stats.message(self.run_id, self.node_id, self.spec.stage, self.started, len(self.queue))
+            self._stats_pub.put(msg.encode())
+
+    # ---- decode
+    def _decode(self, port: str | None, key: str, data: bytes) -> Message | None:
+        report: list = []
+        try:
+            if port is None:
+                msg = bus_schemas.decode_any(data, where=key, report=report)
+            else:
+                msg = self.spec.inputs[port].schema.decode(data, where=key, report=report)
+            if report:
+                self._count_out_of_range(key, report)
+            return msg
+        except SchemaError as exc:
+            reason, kind, detail = type(exc).__name__, type(exc).__name__, str(exc)
+        except Exception as exc:  # bus_schemas raises only SchemaError; if it ever does not, the stage still goes on
+            reason, kind, detail = f"decode_exception:{type(exc).__name__}", "decode_exception", str(exc)
+        with self._count_lock:
+            self.stats.counters["decode_errors"] += 1
+            if port is not None:
+                self.stats.counters[f"decode_errors.{port}"] += 1
+            self.stats.errors_by_kind[kind] += 1
+        self.problems.report(f"decode:{reason}:{key}", logging.WARNING, "dropped message: reason=%s key=%s detail=%s", reason, key, detail[:500])
+        return None
+
+    def _count_out_of_range(self, key: str, report: list) -> None:
+        """Objects dropped or values cleared at decoding for being out of their schema's range: issues, counted and logged."""
+        with self._count_lock:
+            for rec in report:
+                kind = f"out_of_range_{rec.action}"
+                self.stats.counters["issues"] += rec.count
+                self.stats.issues_by_kind[kind] += rec.count
+        for rec in report:
+            self.problems.report(
+                f"out_of_range:{rec.action}:{rec.field}:{key}",
+                logging.WARNING,
+                "input out of range: action=%s field=%s count=%d key=%s detail=%s",
+                rec.action,
+                rec.field,
+                rec.count,
+                key,
+                rec.detail[:300],
+            )
+
+    # ---- operator loop
+    def _join_ports(self) -> list[str]:
+        return [p for p in self.input_keys if self.spec.inputs[p].joined]
+
+    def _required_latched(self) -> list[str]:
+        return [p for p in self.input_keys if self.spec.inputs[p].latched]
+
+    def _handle_operator_item(self, core: Any, item: tuple) -> None:
+        port, key, msg, recv_ns = item  # decoded by _accept
+        lat_ms = math.nan
+        spec = self.spec.inputs[port]
+        if spec.latched:
+            self._latched_in[port] = msg
+        elif spec.latest:
+            self._latest_in[port] = msg
+        elif spec.pattern is not None:
+            if not self._keep_wildcard(port, key, msg):
+                return
+        else:
+            header = getattr(msg, "header", None)
+            stamp = int(header.stamp_ns) if header is not None else 0
+            lat_ms = (recv_ns - stamp) / 1e6 if header is not None else math.nan
+            entry = self._pending.setdefault(stamp, {})
+            self._pending_since.setdefault(stamp, time.monotonic())
+            if port in entry:
+                self.stats.counters["join_drops"] += 1
+                self.problems.report(f"duplicate:{port}", logging.WARNING, "duplicate input: port=%s stamp_ns=%d (older one replaced)", port, stamp)
+            entry[port] = msg
+        if not spec.joined and not spec.latched and not self._join_ports():
+            # no joined input bound: every latest-value or wildcard message is an update
+            if all(p in self._latched_in for p in self._required_latched()):
+                header = getattr(msg, "header", None)
+                self._run_update(core, self._not_joined_inputs(), int(header.stamp_ns) if header is not None else 0, lat_ms)
+            return
+        self._run_ready(core, lat_ms)
+        self._expire_pending()
+
+    def _keep_wildcard(self, port: str, key: str, msg: Message) -> bool:
+        """File a wildcard input's message as its key's newest; a new key beyond the port's ``max_keys`` is dropped and counted."""
+        latest = self._wild_in.setdefault(port, {})
+        if key not in latest and len(latest) >= self.spec.inputs[port].max_keys:
+            self._count("rejected_keys", port)
+            self.problems.report(
+                f"wildcard_keys:{port}",
+                logging.WARNING,
+                "dropped message: reason=too_many_keys port=%s key=%s (the port keeps at most %d keys)",
+                port,
+                key,
+                self.spec.inputs[port].max_keys,
+            )
+            return False
+        latest[key] = msg
+        return True
+
+    def _not_joined_inputs(self) -> dict[str, Any]:
+        """What the core sees besides a joined set: latched and latest values, and a copy of each wildcard's ``{key: message}``."""
+        out: dict[str, Any] = dict(self._latched_in)
+        out.update(self._latest_in)
+        for port, latest in self._wild_in.items():
+            out[port] = MappingProxyType(dict(latest))
+        return out
+
+    def _run_ready(self, core: Any, lat_ms: float) -> None:
+        """Run the core on every complete input set, oldest first.
+
+        Sets wait (bounded by the join window and timeout) while a latched
+        input has not arrived yet: a frame may overtake the scene on the wire.
+        """
+        if any(p not in self._latched_in for p in self._required_latched()):
+            return
+        join = self._join_ports()
+        ready = sorted(s for s, e in self._pending.items() if all(p in e for p in join))
+        for s in ready:
+            # a complete newer stamp makes every older incomplete one stale
+            for old in [o for o in self._pending if o < s and o not in ready]:
+                self._drop_pending(old, "superseded")
+            inputs = self._pending.pop(s)
+            self._pending_since.pop(s, None)
+            inputs.update(self._not_joined_inputs())
+            self._run_update(core, inputs, s, lat_ms)
+
+    def _drop_pending(self, stamp: int, reason: str) -> None:
+        missing_latched = [p for p in self._required_latched() if p not in self._latched_in]
+        if missing_latched:
+            reason = f"waiting_for_latched ports={','.join(missing_latched)}"
+        entry = self._pending.pop(stamp, None)
+        self._pending_since.pop(stamp, None)
+        if entry is not None:
+            self.stats.counters["join_drops"] += 1
+            self.problems.report(
+                f"join:{reason}", logging.WARNING, "dropped input set: reason=%s stamp_ns=%d had=%s", reason, stamp, ",".join(sorted(entry))
+            )
+
+    def _expire_pending(self) -> None:
+        limit = max(2, getattr(self.args, "join_window", 16))
+        while len(self._pending) > limit:
+            self._drop_pending(next(iter(self._pending)), "join_window_full")
+        if len(self.queue):
+            # inputs still queued may complete a set: time spent in the core is not time the set waited
+            # for a missing input, so the timeout is judged only once everything received is joined
+            return
+        now = time.monotonic()
+        for s in [s for s, t in self._pending_since.items() if now - t > JOIN_TIMEOUT_S]:
+            self._drop_pending(s, "join_timeout")
+
+    def _run_update(self, core: Any, inputs: dict[str, Message], stamp: int, lat_ms: float) -> None:
+        t0 = time.perf_counter()
+        try:
+            result = core.update(inputs)
+        except Exception as exc:
+            self._count_failure("core_exception", exc, "core failed on stamp_ns=%d (input set dropped)", stamp)
+            return
+        dt = (time.perf_counter() - t0) * 1e3
+        self.stats.proc_ms.append(dt)
+        self.stats.proc_ms_max = max(self.stats.proc_ms_max, dt)
+        if not math.isnan(lat_ms):
+            self.stats.latency_ms.append(lat_ms + dt)
+        frame_index = _frame_index_of(inputs)
+        try:
+            self.publish(result, stamp, frame_index)
+        except Exception as exc:  # an output that does not encode: that input set is lost, the stage goes on
+            self._count_failure("publish_exception", exc, "publishing failed on stamp_ns=%d (outputs of this input set dropped)", stamp)
+
+    def _count_failure(self, kind: str, exc: BaseException, fmt: str, *args: Any) -> None:
+        """Count an exception of a core (or of handling one message) and log it, rate-limited."""
+        self.stats.counters["core_errors"] += 1
+        self.stats.errors_by_kind[kind] += 1
+        self.problems.report(
+            f"{kind}:{type(exc).__name__}",
+            logging.ERROR,
+            fmt + ": %s: %s",
+            *args,
+            type(exc).__name__,
+            str(exc)[:500],
+            first_extra=lambda: traceback.format_exc().rstrip(),
+        )
+
+    def run_operator(self, core: Any) -> None:
+        self._serve(lambda item: self._handle_operator_item(core, item))
+
+    def run_raw_sink(self, core: Any) -> None:
+        def handle(item: tuple) -> None:
+            _port, key, data, recv_ns = item
+            t0 = time.perf_counter()
+            try:
+                issues = core.handle(key, data, recv_ns) or []
+            except Exception as exc:
+                self._count_failure("core_exception", exc, "sink failed on key=%s (message dropped)", key)
+                return
+            dt = (time.perf_counter() - t0) * 1e3
+            self.stats.proc_ms.append(dt)
+            self.stats.proc_ms_max = max(self.stats.proc_ms_max, dt)
+            self.stats.counters["processed"] += 1
+            stamp = _peek_stamp(data)
+            if stamp is not None and stamp > self.stats.last_stamp_ns:
+                self.stats.last_stamp_ns = stamp
+                self._progress_pub.put(
+                    Progress(node_id=self.node_id, last_stamp_ns=stamp, last_frame_index=-1, handled=self.stats.counters["processed"]).encode()
+                )
+            for issue in issues:
+                self.stats.counters["issues"] += 1
+                self.stats.issues_by_kind[issue.kind] += 1
+            self.issue_log.frame(stamp if stamp is not None else recv_ns, issues, scope=key)
+
+        try:
+            self._serve(handle)
+        finally:
+            core.close()
+
+    def _serve(self, handle: Callable[[tuple], None]) -> None:
+        quiet_s = DRAIN_QUIET_S
+        while True:
+            item = self.queue.get(timeout=0.05)
+            if item is not None:
+                self._last_input_mono = time.monotonic()
+                try:
+                    handle(item)
+                except Exception as exc:  # the last net: one message never ends the stage
+                    self._count_failure("handler_exception", exc, "handling a message from key=%s failed (dropped)", item[1])
+            else:
+                self._expire_pending()
+            self.maybe_stats()
+            if self.stop_event.is_set() and item is None:
+                if self.signals > 1 or time.monotonic() - self._last_input_mono >= quiet_s:
+                    break
+
+    # ---- source loop
+    def run_source(self, core: Any) -> None:
+        """Publish what the core yields, paced (``pacing.Pacer``: the stamps at ``speed`` times their rate, or ``max``)."""
+        speed = getattr(self.config, "speed", 1.0)
+        try:
+            pacer = Pacer(speed, self.consumers, self.stop_event, self.log)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+        self.consumers.await_nodes([n for n in self.args.await_nodes.split(",") if n], AWAIT_NODES_S, self.stop_event, self.log)
+        n = 0
+        for stamp, result in core:
+            if not pacer.before(stamp, stamp):
+                break
+            t0 = time.perf_counter()
+            self.publish(result, stamp, _frame_index_of(result.outputs))
+            self.stats.proc_ms.append((time.perf_counter() - t0) * 1e3)
+            n += 1
+            self.maybe_stats()
+        else:
+            self.log.info("source finished: frames=%d", n)
+        self.maybe_stats(force=True)
+        # Let every live node confirm the last frame before the session closes: a put
+        # still queued in the session would otherwise be lost with it.
+        pacer.drain(CONSUMER_WAIT_S if pacer.as_fast else DRAIN_WAIT_S, abort=lambda: self.signals > 1)
+
+    def close(self) -> None:
+        self.issue_log.close()
+        self.problems.close()
+        self.maybe_stats(force=True)
+        with self._count_lock:
+            summary = self.stats.summary()
+        self.log.info("node stopping: %s", summary)
+        try:
+            if self.session is not None:
+                self._token.undeclare()
+                time.sleep(CLOSE_LINGER_S)  # zenoh has no flush: let queued puts leave before closing
+                self.session.close()
+        except Exception as exc:
+            self.log.debug("session close failed: %s", exc)
+
+
+JOIN_TIMEOUT_S = 2.0
+DRAIN_QUIET_S = 0.3
+CLOSE_LINGER_S = 0.05
+
+
+def _peek_stamp(data: bytes) -> int | None:
+    """``header.stamp_ns`` of a payload if it has one (no full decode)."""
+    try:
+        _schema, _v, body = unpack_envelope(data)
+        stamp = body.get("header", {}).get("stamp_ns")
+    except (SchemaError, AttributeError):
+        return None
+    return stamp if type(stamp) is int else None
+
+
+def _frame_index_of(messages: Mapping[str, Any]) -> int:
+    for m in messages.values():
+        h = getattr(m, "header", None)
+        if h is not None:
+            return int(h.frame_index)
+    return -1
+
+
+def run_stage(spec: StageSpec, argv: list[str] | None = None) -> int:
+    """Parse the command line, build config and core, run until stopped.
+
+    Returns the process exit code: 0 clean stop, 1 crash, 2 bad command line
+    or config.
+    """
+    start = start_stage(spec, argv)
+    if isinstance(start, int):
+        return start
+    args, config, log = start.args, start.config, start.log
+    node = Node(spec, args, config, args.bindings)
+
+    def on_signal(signum: int) -> None:
+        node.signals += 1
+        node.stop_event.set()
+        if node.signals == 1:
+            log.info("stop requested: signal=%s, draining", signal.Signals(signum).name)
+
+    on_stop_signals(on_signal)
+    ctx = NodeContext(
+        run_id=args.run_id, node_id=args.node_id, stage=spec.stage, log=log, input_keys=node.input_keys, output_keys=node.output_keys
+    )
+    try:
+        try:
+            core = spec.make_core(config, ctx)
+        except (ConfigError, FileNotFoundError, ValueError) as exc:
+            log.error("bad configuration: %s", exc)
+            return EXIT_USAGE
+        node.open()
+        if spec.kind == "source":
+            node.run_source(core)
+        elif spec.kind == "raw_sink":
+            node.run_raw_sink(core)
+        else:
+            node.run_operator(core)
+    except ConfigError as exc:
+        log.error("bad configuration: %s", exc)
+        return EXIT_USAGE
+    except Exception:
+        log.error("crashed:\n%s", traceback.format_exc().rstrip())
+        node.close()
+        return EXIT_CRASH
+    node.close()
+    return EXIT_OK

@@ -1,0 +1,79 @@
+"""The per-input bounded queues between the subscriber callbacks and the node's single loop."""
+
+from __future__ import annotations
+
+import collections
+import threading
+from typing import Any, Callable
+
+
+class InputQueue:
+    """Bounded FIFOs, one per input port, drained in arrival order by one loop.
+
+    Each port has its own bound, ``maxlen`` entries and ``max_bytes`` of
+    payload: a burst on one key can only push out older entries of that same
+    key, never a good frame of another input. When a port is full, an
+    operator's queue drops that port's oldest entry and calls
+    ``on_drop(port, nbytes)``: fresh frames matter more than old ones. A raw
+    sink's queue (``block=True``, the recorder) instead makes the subscriber
+    callback wait, which pushes back through Zenoh's congestion control to
+    the publishers, so nothing is lost. ``get`` returns the oldest entry over
+    all ports (a global arrival sequence), so processing stays in arrival
+    order.
+    """
+
+    def __init__(self, maxlen: int, on_drop: Callable[[Any, int], None], block: bool = False, max_bytes: int = 0) -> None:
+        self._q: dict[Any, collections.deque] = {}
+        self._bytes: collections.Counter = collections.Counter()
+        self._maxlen = max(1, maxlen)
+        self._max_bytes = max(0, max_bytes)  # 0: no byte bound
+        self._cv = threading.Condition()
+        self._on_drop = on_drop
+        self._block = block
+        self._seq = 0
+        self._len = 0
+        self.closed = False
+
+    def _full(self, port: Any, nbytes: int) -> bool:
+        dq = self._q.get(port)
+        if not dq:
+            return False  # one entry always fits, however large (its size was bounded by its schema)
+        return len(dq) >= self._maxlen or (self._max_bytes > 0 and self._bytes[port] + nbytes > self._max_bytes)
+
+    def put(self, item: Any, port: Any = None, nbytes: int = 0) -> None:
+        with self._cv:
+            if self._block:
+                while self._full(port, nbytes) and not self.closed:
+                    self._cv.wait(0.1)
+            else:
+                while self._full(port, nbytes):
+                    _seq, _old, old_bytes = self._q[port].popleft()
+                    self._bytes[port] -= old_bytes
+                    self._len -= 1
+                    self._on_drop(port, old_bytes)
+            self._seq += 1
+            self._q.setdefault(port, collections.deque()).append((self._seq, item, nbytes))
+            self._bytes[port] += nbytes
+            self._len += 1
+            self._cv.notify_all()
+
+    def get(self, timeout: float) -> Any | None:
+        with self._cv:
+            if not self._len:
+                self._cv.wait(timeout)
+            if not self._len:
+                return None
+            port = min((p for p, dq in self._q.items() if dq), key=lambda p: self._q[p][0][0])
+            _seq, item, nbytes = self._q[port].popleft()
+            self._bytes[port] -= nbytes
+            self._len -= 1
+            if self._block:
+                self._cv.notify_all()
+            return item
+
+    def depth(self, port: Any) -> int:
+        dq = self._q.get(port)
+        return len(dq) if dq else 0
+
+    def __len__(self) -> int:
+        return self._len
