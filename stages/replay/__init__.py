@@ -5,11 +5,13 @@ recorded payload, byte for byte, on its recorded key: re-homed under the
 current run id (``keys.replace_run``) unless ``run_id_from_file``. Messages
 go out in file order; with ``speed = x`` the gaps between their receive times
 (``log_time``) are divided by ``x``. With ``speed = "max"`` there are no gaps:
-publishing blocks when the transport is full (congestion control BLOCK), and,
-like the runtime's sources, replay keeps at most ``MAX_SPEED_WINDOW`` header
-stamps ahead of every live node that acks ``Progress`` (operators do; a node
-that has acked nothing within ``FIRST_ACK_GRACE_S`` of the first wait, such
-as the recorder, is not waited for and relies on its deep input queue).
+publishing blocks when the transport is full (congestion control BLOCK), and
+replay keeps at most ``MAX_SPEED_WINDOW`` header stamps ahead of every live
+node that acks ``Progress``. Both are the runtime's pacing
+(``stages.runtime.pacing``, the same ``Pacer`` as a source's), with one
+difference: a node that has acked nothing within ``FIRST_ACK_GRACE_S`` of
+the first wait (a tool holding a liveliness token) is not waited for until
+it acks, and relies on its deep input queue.
 
 Infrastructure keys (``_stats``, ``_ack``) are left out unless
 ``include_infra``: replayed NodeStats would describe nodes that are not
@@ -20,8 +22,9 @@ pipeline that recomputes the rest: ``nodes = ["source"]``).
 
 Replay publishes on keys it learns from the file, not on declared ports, so
 it runs its own loop on ``runtime.BusClient`` instead of ``run_stage``; it
-takes the same flags as every stage (``--node-id``, ``--run-id``,
-``--params-json``, ``--set``, ``--log-level`` and the network flags) and holds
+starts as every stage does (``runtime.start_stage``: the same flags
+``--node-id``, ``--run-id``, ``--params-json``, ``--set``, ``--log-level``,
+``--await-nodes`` and the network flags) and holds
 a liveliness token at ``iamp/<run>/_alive/<node>``, so the launcher runs it
 like a source (``SPEC.kind == "source"``). Before publishing it waits, up to
 ``wait_for_subscribers_s``, until a subscriber matches one of the keys of the

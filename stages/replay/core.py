@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import collections
 import itertools
-import json
 import logging
 import signal
 import sys
@@ -13,20 +12,17 @@ import threading
 import time
 import traceback
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterator
+from typing import Callable, Iterator
 
-from bus_schemas import REGISTRY, Progress, SceneInfo, SchemaError, TrackFrame, keys
+from bus_schemas import REGISTRY, SceneInfo, TrackFrame, keys
 
-from stages.lib.base import ConfigError, ConfigMixin
+from stages.lib.base import ConfigMixin
 from stages.recorder.inspect import ReadReport, RecordingError, read_messages, recording_run_id
-from stages.runtime import EXIT_CRASH, EXIT_OK, EXIT_USAGE, BusClient, NodeContext, Port, StageSpec, add_network_args, build_parser, parse_set, setup_logging
+from stages.runtime import EXIT_CRASH, EXIT_OK, EXIT_USAGE, BusClient, NodeContext, Port, StageSpec, add_network_args, on_stop_signals, setup_logging, start_stage
+from stages.runtime.pacing import AWAIT_NODES_S, FIRST_ACK_GRACE_S, MAX_SPEED_WINDOW, Consumers, Pacer, parse_speed_value  # noqa: F401 (MAX_SPEED_WINDOW: for tests)
 
 _MATCH_POLL_S = 0.01
 _MATCH_LOOKAHEAD = 1000  # keys of the first this many messages are checked for a matching subscriber
-# speed = max: at most this many source stamps ahead of the slowest node that acks (like the runtime's sources)
-MAX_SPEED_WINDOW = 3
-CONSUMER_WAIT_S = 10.0
-FIRST_ACK_GRACE_S = 2.0
 # Stamps that nodes ack: those of messages with a header, except the latched scene (queried, never joined or acked).
 _PACED_SCHEMAS = frozenset(
     name for name, cls in REGISTRY.items() if "header" in getattr(cls, "__dataclass_fields__", {}) and name != SceneInfo.SCHEMA
@@ -47,11 +43,7 @@ class ReplayConfig(ConfigMixin):
     def __post_init__(self) -> None:
         if not self.path:
             raise ValueError("path is required: the MCAP file to replay")
-        if isinstance(self.speed, str):
-            if self.speed != "max":
-                raise ValueError(f"speed must be a number > 0 or 'max', got {self.speed!r}")
-        elif not self.speed > 0:
-            raise ValueError(f"speed must be a number > 0 or 'max', got {self.speed}")
+        parse_speed_value(self.speed)  # raises ValueError
         if self.wait_for_subscribers_s < 0:
             raise ValueError(f"wait_for_subscribers_s must be >= 0, got {self.wait_for_subscribers_s}")
         for n in self.nodes:
@@ -145,104 +137,37 @@ class ReplaySummary:
         )
 
 
-class AckWindow:
-    """In-flight window for ``speed = max``: wait for the nodes that report ``Progress``.
-
-    Before a message with a new header stamp goes out, every other live node
-    must have acked the stamp ``window`` stamps back. A node that has not
-    acked anything ``first_ack_grace_s`` after the first wait is taken for one
-    that never acks (the recorder and other raw sinks do not) and is not
-    waited for; a node that falls behind for ``wait_s`` is warned about and no
-    longer waited for. At the end, ``drain`` waits for the last stamp.
-    """
-
-    def __init__(
-        self,
-        bus: BusClient,
-        run_id: str,
-        *,
-        self_id: str = "",
-        window: int = MAX_SPEED_WINDOW,
-        wait_s: float = CONSUMER_WAIT_S,
-        first_ack_grace_s: float = FIRST_ACK_GRACE_S,
-        log: logging.Logger | None = None,
-    ) -> None:
-        self.window = window
-        self.wait_s = wait_s
-        self.first_ack_grace_s = first_ack_grace_s
-        self.self_id = self_id
-        self.log = log or logging.getLogger("iamp.replay")
-        self._lock = threading.Lock()
-        self._acks: dict[str, int] = {}
-        self._alive: set[str] = set()
-        self._ignored: set[str] = set()
-        self._first_wait: float | None = None
-        self._stamps: collections.deque[int] = collections.deque(maxlen=max(1, window))
-        bus.subscribe(keys.ack_pattern(run_id), self._on_ack)
-        bus.watch_alive(keys.alive_pattern(run_id), self._on_alive)
-        # the watcher's history may come late; a query tells who is alive now
-        alive_now = bus.alive_now(keys.alive_pattern(run_id), timeout_s=2.0)
-        with self._lock:
-            self._alive |= alive_now
-
-    def _on_ack(self, _key: str, data: bytes) -> None:
-        try:
-            msg = Progress.decode(data)
-        except SchemaError:
-            return
-        with self._lock:
-            self._acks[msg.node_id] = max(self._acks.get(msg.node_id, msg.last_stamp_ns), msg.last_stamp_ns)
-
-    def _on_alive(self, node_id: str, alive: bool) -> None:
-        with self._lock:
-            if alive:
-                self._alive.add(node_id)
-            else:
-                self._alive.discard(node_id)
-
-    def before(self, stamp_ns: int | None, stop: threading.Event) -> None:
-        """Call before publishing a message with header stamp ``stamp_ns`` (None: no header)."""
-        if stamp_ns is None or (self._stamps and self._stamps[-1] == stamp_ns):
-            return
-        if len(self._stamps) >= self.window:
-            self._wait(self._stamps[0], stop)
-        self._stamps.append(stamp_ns)
-
-    def drain(self, stop: threading.Event) -> None:
-        """Wait until the acking nodes have finished with the last stamp published."""
-        if self._stamps:
-            self._wait(self._stamps[-1], stop)
-
-    def _wait(self, target: int, stop: threading.Event) -> None:
-        now = time.monotonic()
-        if self._first_wait is None:
-            self._first_wait = now
-        deadline = now + self.wait_s
-        while not stop.is_set():
-            with self._lock:
-                others = self._alive - self._ignored - {self.self_id}
-                silent = [n for n in others if n not in self._acks]
-                behind = [n for n in others if n in self._acks and self._acks[n] < target]
-            now = time.monotonic()
-            if silent and now - self._first_wait > self.first_ack_grace_s:
-                self.log.info("pacing: not waiting for nodes that report no progress: %s", ",".join(sorted(silent)))
-                self._ignored.update(silent)
-                silent = []
-            if not silent and not behind:
-                return
-            if now > deadline:
-                self.log.warning("pacing: nodes behind after %.0f s, no longer waiting for them: %s", self.wait_s, ",".join(sorted(behind + silent)))
-                self._ignored.update(behind + silent)
-                return
-            stop.wait(0.002)
+def watch_consumers(bus: BusClient, run_id: str, node_id: str, *, acks: bool) -> Consumers:
+    """The run's live nodes (and, with ``acks``, their ``Progress``) as the runtime's sources follow them, on ``bus``."""
+    consumers = Consumers(node_id)
+    if acks:
+        bus.subscribe(keys.ack_pattern(run_id), lambda _key, data: consumers.on_ack_payload(data))
+    bus.watch_alive(keys.alive_pattern(run_id), consumers.on_alive)
+    # the watcher's history may come late; a query tells who is alive now
+    consumers.add_alive(bus.alive_now(keys.alive_pattern(run_id), timeout_s=2.0))
+    return consumers
 
 
-def play(player: RecordingPlayer, bus: BusClient, *, speed: float | str, wait_for_subscribers_s: float, stop: threading.Event, log: logging.Logger, node_id: str = "replay") -> ReplaySummary:
+def play(
+    player: RecordingPlayer,
+    bus: BusClient,
+    *,
+    speed: float | str,
+    wait_for_subscribers_s: float,
+    stop: threading.Event,
+    log: logging.Logger,
+    node_id: str = "replay",
+    consumers: Consumers | None = None,
+) -> ReplaySummary:
     """Publish the player's messages on ``bus``, paced by ``speed``; stops early when ``stop`` is set.
 
     First it declares publishers for the keys among the first
     ``_MATCH_LOOKAHEAD`` messages and waits until a subscriber matches any of
     them (at most ``wait_for_subscribers_s``, then it warns and goes on).
+    Pacing is the runtime's (``stages.runtime.pacing.Pacer``) on the
+    recorded receive times, or at ``max`` on the acks of ``consumers``
+    (followed here on the target run when None), with a grace of
+    ``FIRST_ACK_GRACE_S`` for nodes that never ack.
     """
     summary = ReplaySummary()
     publishers: dict[str, Callable[[bytes], None]] = {}
@@ -252,7 +177,11 @@ def play(player: RecordingPlayer, bus: BusClient, *, speed: float | str, wait_fo
     t_start = time.monotonic()
     if head:
         as_fast = speed == "max"
-        window = AckWindow(bus, player.target_run_id, self_id=node_id, log=log) if as_fast and player.target_run_id else None
+        if as_fast and player.target_run_id:
+            consumers = consumers or watch_consumers(bus, player.target_run_id, node_id, acks=True)
+        else:
+            consumers = None  # a fixed speed, or keys of no run: nobody to wait for
+        pacer = Pacer(speed, consumers, stop, log, first_ack_grace_s=FIRST_ACK_GRACE_S)
         matchers = []
         for item in head:
             if item.key not in publishers:
@@ -264,22 +193,10 @@ def play(player: RecordingPlayer, bus: BusClient, *, speed: float | str, wait_fo
         summary.matched = any(m() for m in matchers)
         if not summary.matched and not stop.is_set():
             log.warning("no subscriber after %.1f s, publishing anyway: keys=%s", wait_for_subscribers_s, ",".join(sorted(publishers)))
-        wall0 = time.monotonic()
-        t_start = wall0
-        log0 = head[0].log_time_ns
+        t_start = time.monotonic()
         for msg in itertools.chain(head, items):
-            if stop.is_set():
+            if not pacer.before(msg.log_time_ns, msg.stamp_ns):
                 break
-            if not as_fast:
-                due = wall0 + (msg.log_time_ns - log0) / 1e9 / float(speed)
-                left = due - time.monotonic()
-                while left > 0 and not stop.is_set():
-                    stop.wait(min(left, 0.1))
-                    left = due - time.monotonic()
-                if stop.is_set():
-                    break
-            elif window is not None:
-                window.before(msg.stamp_ns, stop)
             pub = publishers.get(msg.key)
             if pub is None:
                 pub = publishers[msg.key] = bus.publisher(msg.key, block=True)
@@ -290,8 +207,8 @@ def play(player: RecordingPlayer, bus: BusClient, *, speed: float | str, wait_fo
                 latched[msg.key] = msg.data
             pub(msg.data)
             summary.published += 1
-        if window is not None and not stop.is_set():
-            window.drain(stop)
+        if as_fast and not stop.is_set():
+            pacer.drain(abort=stop.is_set)
     summary.stopped = stop.is_set()
     summary.duration_s = time.monotonic() - t_start
     summary.keys = len(publishers)
@@ -327,25 +244,22 @@ def run_replay(
         return EXIT_USAGE
     stop = threading.Event()
 
-    def on_signal(signum: int, _frame: Any) -> None:
+    def on_signal(signum: int) -> None:
         if not stop.is_set():
             log.info("stop requested: signal=%s", signal.Signals(signum).name)
         stop.set()
 
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGINT, on_signal)
-        signal.signal(signal.SIGTERM, on_signal)
+    on_stop_signals(on_signal)
     token_run = player.target_run_id or fallback_run_id
     try:
         with BusClient(mode, connect, listen, config_file) as bus:
             bus.declare_token(keys.alive_key(token_run, node_id))
+            consumers = None
+            if await_nodes or (config.speed == "max" and player.target_run_id):
+                consumers = watch_consumers(bus, token_run, node_id, acks=config.speed == "max" and bool(player.target_run_id))
             if await_nodes:
                 # as the runtime's sources: publish only once the consumers' subscriptions are visible
-                seen: set[str] = set()
-                bus.watch_alive(keys.alive_pattern(token_run), lambda n, alive: seen.add(n) if alive else seen.discard(n))
-                deadline = time.monotonic() + 30.0
-                while not set(await_nodes) <= seen and not stop.is_set() and time.monotonic() < deadline:
-                    stop.wait(0.005)
+                consumers.await_nodes(await_nodes, AWAIT_NODES_S, stop, log)
             log.info(
                 "replay up: path=%s speed=%s run=%s recorded_run=%s",
                 config.path,
@@ -353,7 +267,16 @@ def run_replay(
                 player.run_id or "(as recorded)",
                 player.file_run_id or "-",
             )
-            summary = play(player, bus, speed=config.speed, wait_for_subscribers_s=config.wait_for_subscribers_s, stop=stop, log=log, node_id=node_id)
+            summary = play(
+                player,
+                bus,
+                speed=config.speed,
+                wait_for_subscribers_s=config.wait_for_subscribers_s,
+                stop=stop,
+                log=log,
+                node_id=node_id,
+                consumers=consumers,
+            )
             if player.report.truncated:
                 log.warning("recording truncated, replayed up to its last complete chunk: path=%s detail=%s", config.path, player.report.error)
             log.info("replay %s: %s", "stopped" if summary.stopped else "finished", summary.line())
@@ -390,23 +313,10 @@ SPEC = StageSpec(
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m stages.replay --params-json '{"path": ...}'``: what the launcher spawns."""
-    parser = build_parser(SPEC)
-    try:
-        args = parser.parse_args(argv)
-    except SystemExit as exc:
-        return EXIT_OK if exc.code == 0 else EXIT_USAGE
-    setup_logging(args.log_level, args.node_id)
-    log = logging.getLogger(f"iamp.{args.node_id}")
-    try:
-        keys.check_run_id(args.run_id)
-        params = json.loads(args.params_json)
-        if not isinstance(params, dict):
-            raise ConfigError("--params-json must be a JSON object")
-        params.update(parse_set(args.set))
-        config = ReplayConfig.from_params(params, where=f"node {args.node_id} ({SPEC.stage})")
-    except (ConfigError, ValueError) as exc:
-        log.error("bad configuration: %s", exc)
-        return EXIT_USAGE
+    start = start_stage(SPEC, argv, bindings=False)  # the start-up of every stage (flags, parameters, logging)
+    if isinstance(start, int):
+        return start
+    args, config, log = start.args, start.config, start.log
     return run_replay(
         config,
         run_id=None if config.run_id_from_file else args.run_id,
