@@ -21,6 +21,7 @@ import argparse
 import hashlib
 import json
 import pickle
+import runpy
 import sys
 import time
 from pathlib import Path
@@ -36,6 +37,8 @@ RUNS: dict[str, tuple[str, dict, str, int]] = {
     "baseline-point-uniform": ("baseline", {"grid_distribution": "point", "corridor_weights": "uniform", "initial_box": "measurement"}, "embedded", 60),
     "hybrid-direct": ("hybrid", {"hybrid_input": "direct", "hybrid_speed_restriction": False}, "embedded", 60),
     "hybrid-psi-unrestricted": ("hybrid", {"hybrid_speed_restriction": False}, "embedded", 60),
+    "baseline-torch": ("baseline", {"backend": "torch"}, "embedded", 30),
+    "hybrid-torch": ("hybrid", {"backend": "torch"}, "embedded", 30),
     # the embedded scenario has no crossing conflicts: bench/markov_stage.py's synthetic frames have (the second pass)
     "cv-synthetic": ("cv", {}, "synthetic", 0),
     "corridor_cv-synthetic": ("corridor_cv", {}, "synthetic", 0),
@@ -48,39 +51,25 @@ _PORTS = ("track_frame", "corridor_set", "relation_set", "scene", "intention_bel
 def upstream(n_frames: int) -> list[dict[str, bytes]]:
     """The encoded input messages of the markov stage for the first ``n_frames`` frames."""
     from stages.ar_inference import ARInference, ARInferenceConfig
-    from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
-    from stages.intentions import IntentionFilter, IntentionsConfig
+    from stages.corridors import SceneMaps
+    from stages.intentions import IntentionsConfig
     from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, DEFAULT_SEQUENCE, load_recording
-    from stages.relations import RelationExtractor, RelationsConfig
-    from stages.tracks_source.core import TrackPlayer, TracksSourceConfig
+    from stages.offline.chain import Chain
 
     rec = load_recording(DEFAULT_DATA_DIR, DEFAULT_RECORDING, (DEFAULT_SEQUENCE,))
-    player = TrackPlayer(TracksSourceConfig(recording=DEFAULT_RECORDING), rec, map_sha256="", run_id="bench", producer="source")
-    maps = SceneMaps()
-    corridors = CorridorBuilder(CorridorsConfig(), scene_maps=maps)
-    relations = RelationExtractor(RelationsConfig(), scene_maps=maps)
-    intentions = IntentionFilter(IntentionsConfig(), producer="bench", scene_maps=maps)
+    chain = Chain(rec, rec.sequences[0], SceneMaps(), intentions=IntentionsConfig(), max_frames=n_frames, map_sha256="", run_id="bench", producer="bench")
     ar = ARInference(ARInferenceConfig(), producer="bench")
-    scene, out = None, []
-    for n, (_stamp, result) in enumerate(player):
-        if n >= n_frames:
-            break
-        scene = result.outputs.get("scene", scene)
-        frame = result.outputs["track_frame"]
-        cs, _ = corridors.process(frame, scene)
-        rs, _ = relations.process(frame, cs, scene)
-        belief, _ = intentions.process(frame, cs, rs, scene)
-        profiles, _ = ar.process(cs, rs, frame, scene)
-        msgs = dict(zip(_PORTS, (frame, cs, rs, scene, belief, profiles)))
+    out = []
+    for item in chain:
+        profiles, _ = ar.process(item.corridor_set, item.relation_set, item.frame, item.scene)
+        msgs = dict(zip(_PORTS, (item.frame, item.corridor_set, item.relation_set, item.scene, item.belief, profiles)))
         out.append({k: (type(m).__name__, m.encode()) for k, m in msgs.items() if m is not None})
     return out
 
 
 def synthetic(n_frames: int = 6, n_pairs: int = 40) -> list[dict[str, bytes]]:
     """bench/markov_stage.py's platoons with crossing conflicts, one seed per frame, encoded."""
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from markov_stage import scenario
-
+    scenario = runpy.run_path(str(Path(__file__).resolve().parent / "markov_stage.py"))["scenario"]
     out = []
     for seed in range(n_frames):
         cs, rs = scenario(n_pairs, seed)

@@ -9,7 +9,8 @@ mode ``hybrid``), all of the same stamp. Produces ``corridor_predictions`` (``Co
 and ``motion_grid`` (``MotionGrid``) for every frame. Run it alone with
 ``python -m stages.markov_prediction``.
 
-Modes (``mode``):
+Modes (``mode``), one ``InputModel`` each in ``modes/`` (the contract the
+chain loop of ``core.py`` calls: ``modes/base.py``):
 
 - ``hybrid``: the same chain with the AR model's distributions in place of
   the rule-based λ (METHOD.md §3.2): λ(0) of the pair's

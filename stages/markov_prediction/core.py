@@ -1,7 +1,10 @@
-"""The pure part of the markov_prediction stage: ``MarkovPredictor`` and its ``FramePrediction``.
+"""The pure part of the markov_prediction stage: ``MarkovPredictor``, the chain loop, and its ``FramePrediction``.
 
-See the package docstring for the rules; nothing here touches the bus or the
-wall clock (time comes from ``header.stamp_ns``).
+The loop is the same for every mode: pairs, the chain (or the closed-form
+constant speed), the per-pair fallbacks, the outputs. What a mode adds is its
+``InputModel`` (``modes/``: λ(0), Γ after each step, the messages it reads),
+looked up by name in ``modes.MODELS``. See the package docstring for the
+rules; nothing here touches the bus or the wall clock.
 """
 
 from __future__ import annotations
@@ -33,59 +36,24 @@ from bus_schemas import (
 from stages.lib.base import Issue, StageResult, isolate
 from stages.lib.caps import cap_pairs
 from stages.lib.datasets import DEFAULT_SIZES_M
-from stages.lib.markov import InputMatrix, InputReplaced, MarkovGridConfig, gamma_from_priority, initial_state, load_or_build_stencils, psi_matrix
+from stages.lib.markov import MarkovGridConfig, SeparableState, initial_state, load_or_build_stencils, psi_matrix
 from stages.lib.markov.propagate import boxes_outside_grid
 
 from stages.markov_prediction import priority as pr
-from stages.markov_prediction.chain import InputPriority, PriorityPropagator
-from stages.markov_prediction.config import CHAIN_MODES, MarkovPredictionConfig
+from stages.markov_prediction.chain import PriorityPropagator
+from stages.markov_prediction.config import MarkovPredictionConfig
+from stages.markov_prediction.modes import MODELS
+from stages.markov_prediction.modes.base import InputModel, Messages, Pair, Vehicle
+from stages.markov_prediction.modes.corridor_cv import constant_speed
+from stages.markov_prediction.modes.cv import CV_LINE_ID
 from stages.markov_prediction.rasterise import Footprints, GridFrame, SparseGrid, cell_footprints, fuse, lateral_kernel, vehicle_grid
 
+__all__ = ["CV_LINE_ID", "FramePrediction", "MarkovPredictor", "PairInfo"]
+
 _NS = 1e-9
-#: The Cartesian constant-velocity line of mode ``cv`` has this corridor id.
-CV_LINE_ID = -1
 
 
-# --------------------------------------------------------------------------- pairs
-
-
-@dataclass(slots=True, eq=False)
-class _Pair:
-    """One vehicle-corridor pair of a frame, with what the chain needs (corridor arc lengths in m)."""
-
-    track_id: int
-    corridor_id: int
-    probability: float
-    s_m: np.ndarray
-    x_m: np.ndarray
-    y_m: np.ndarray
-    heading_rad: np.ndarray
-    curvature_1pm: np.ndarray
-    speed_limit_mps: float
-    s0_m: float
-    v0_mps: float
-    a0_mps2: float
-    s_first_m: float
-    length_m: float
-    width_m: float
-    d0_m: float = 0.0
-    sigma_a0_mps2: float = 0.5
-    start_rate_hz: float = 0.0  # > 0: the vehicle stands; it starts at this rate (standstill mixture)
-    relation: CorridorRelations | None = None
-    half_width_s_m: float = 0.0  # > 0: the initial box's half-widths from the DBN's particles (initial_box "particles")
-    half_width_v_mps: float = 0.0
-    input_probs: np.ndarray | None = None  # (K, M) hybrid mode: λ(0..K-1) from the AR model
-    measured_v_mps: float = math.nan  # the vehicle's speed before clipping to [0, v_max] (a faster one is not chained)
-
-    @property
-    def end_s_m(self) -> float:
-        return float(self.s_m[-1])
-
-    def stay_probability(self, t_s: float | np.ndarray):
-        """Weight of the standstill part at t (0 for a moving vehicle)."""
-        if self.start_rate_hz <= 0:
-            return 0.0 if np.ndim(t_s) == 0 else np.zeros(np.shape(t_s))
-        return np.exp(-self.start_rate_hz * np.asarray(t_s, dtype=np.float64))
+# --------------------------------------------------------------------------- outputs
 
 
 @dataclass(frozen=True, slots=True)
@@ -245,8 +213,8 @@ class MarkovPredictor:
         self._history: dict[int, _SpeedHistory] = {}
         self.stencils = None
         self.propagator: PriorityPropagator | None = None
-        self.gaps: pr.CriticalGaps | None = None
-        if config.mode in CHAIN_MODES:
+        model_cls = MODELS[config.mode]
+        if model_cls.chain:
             if stencils is None:
                 stencils = load_or_build_stencils(cfg, config.stencil_cache_dir or None)
             self.stencils = stencils
@@ -258,9 +226,8 @@ class MarkovPredictor:
                 n_s_cells=self.n_s,
                 prune_threshold=config.prune_threshold,
             )
-            self.gaps = pr.CriticalGaps.build(
-                self.v_centres, self.a_centres, cfg.v_max_mps, tuple(config.leader_horizons_s), config.leader_brake_mps2
-            )
+        #: the mode's input model (``modes/``): the only mode-specific code the loop calls
+        self.model: InputModel = model_cls(self)
 
     # ----- entry points ---------------------------------------------------------
 
@@ -311,20 +278,17 @@ class MarkovPredictor:
         if dropped:
             issues.append(Issue("pairs_capped", -1, f"{dropped} vehicle-corridor pairs beyond max_pairs = {self.config.max_pairs} (whole vehicles, in CorridorSet order): skipped this frame"))
         beliefs = self._beliefs(intention_belief, stamp, issues)
-        profiles = self._profiles(acceleration_profiles, stamp, issues)
+        frame_data = self.model.read(Messages(stamp, relation_set, track_frame, intention_belief, acceleration_profiles), issues)
         self.observe(corridor_set)
         relations: dict[tuple[int, int], CorridorRelations] = {}
-        if relation_set is None:
-            if self.config.mode == "baseline":
-                issues.append(Issue("no_relations", -1, "no relation_set: no leader or crossing restriction this frame"))
-        elif int(relation_set.header.stamp_ns) != stamp:
+        if relation_set is not None and int(relation_set.header.stamp_ns) != stamp:
             issues.append(
                 Issue("stamp_mismatch", -1, f"relation_set stamp {relation_set.header.stamp_ns} != corridor_set stamp {stamp}: relations ignored")
             )
-        else:
+        elif relation_set is not None:
             relations = {(r.track_id, r.corridor_id): r for r in relation_set.relations}
         speed_limit = scene.speed_limit_mps if scene is not None and _positive(scene.speed_limit_mps) else self.config.default_speed_limit_mps
-        pairs = self._vehicle_pairs(corridor_set, track_frame, speed_limit, issues, beliefs, profiles)
+        pairs = self._vehicle_pairs(corridor_set, track_frame, speed_limit, issues, beliefs, frame_data)
         known = {(p.track_id, p.corridor_id): p for p in pairs}
         for key, relation in relations.items():
             pair = known.get(key)
@@ -360,14 +324,14 @@ class MarkovPredictor:
 
     # ----- pairs ------------------------------------------------------------------
 
-    def _vehicle_pairs(self, corridor_set: CorridorSet, frame, scene_limit_mps: float, issues: list[Issue], beliefs, profiles) -> list[_Pair]:
+    def _vehicle_pairs(self, corridor_set: CorridorSet, frame, scene_limit_mps: float, issues: list[Issue], beliefs, frame_data) -> list[Pair]:
         """``_pairs`` of the frame; a vehicle whose pairs cannot be built is left out (``vehicle_failed``), not the frame."""
         vehicles = corridor_set.vehicles
 
         def attempt(idx: list[int]):
             found: list[Issue] = []
             subset = corridor_set if len(idx) == len(vehicles) else dataclasses.replace(corridor_set, vehicles=tuple(vehicles[i] for i in idx))
-            return self._pairs(subset, frame, scene_limit_mps, found, beliefs, profiles), found
+            return self._pairs(subset, frame, scene_limit_mps, found, beliefs, frame_data), found
 
         (pairs, found), failed = isolate(range(len(vehicles)), attempt)
         issues.extend(found)
@@ -439,39 +403,6 @@ class MarkovPredictor:
             return None
         return {v.track_id: {c.corridor_id: c for c in v.corridors} for v in belief.vehicles}
 
-    def _profiles(self, profiles: AccelerationProfiles | None, stamp: int, issues: list[Issue]) -> dict[tuple[int, int], np.ndarray] | None:
-        """Per (track, corridor), λ(0..K-1) as a (K, M) array; None outside hybrid mode or when unusable."""
-        cfg = self.config
-        if cfg.mode != "hybrid":
-            return None
-        if profiles is None:
-            issues.append(Issue("no_acceleration_profiles", -1, "hybrid mode without acceleration_profiles: every pair falls back to its measured acceleration"))
-            return None
-        if int(profiles.header.stamp_ns) != stamp:
-            issues.append(Issue("stamp_mismatch", -1, f"acceleration_profiles stamp {profiles.header.stamp_ns} != corridor_set stamp {stamp}: ignored"))
-            return None
-        edges = self.grid.input_edges()
-        if profiles.input_edges_mps2.shape != edges.shape or not np.allclose(profiles.input_edges_mps2, edges, atol=1e-6):
-            issues.append(Issue("bad_profile", -1, f"acceleration_profiles input edges {np.round(profiles.input_edges_mps2, 3).tolist()} != the chain's {edges.tolist()}: ignored"))
-            return None
-        if abs(profiles.chunk_s - cfg.tau_s) > 1e-6:
-            issues.append(Issue("bad_profile", -1, f"acceleration_profiles chunk_s {profiles.chunk_s} != tau_s {cfg.tau_s}: ignored"))
-            return None
-        out: dict[tuple[int, int], np.ndarray] = {}
-        for p in profiles.profiles:
-            probs = np.asarray(p.input_probs, dtype=np.float64)
-            if probs.ndim != 2 or probs.shape[1] != self.grid.n_inputs or probs.shape[0] < 1:
-                issues.append(Issue("bad_profile", p.track_id, f"corridor {p.corridor_id}: input_probs shape {probs.shape}: pair falls back"))
-                continue
-            if not np.all(np.isfinite(probs)) or np.any(probs < 0) or np.any(probs.sum(axis=1) <= 0):
-                issues.append(Issue("bad_profile", p.track_id, f"corridor {p.corridor_id}: input_probs not a distribution: pair falls back"))
-                continue
-            probs = probs / probs.sum(axis=1, keepdims=True)
-            if probs.shape[0] < cfg.n_steps:  # a shorter profile holds its last distribution
-                probs = np.vstack([probs, np.repeat(probs[-1:], cfg.n_steps - probs.shape[0], axis=0)])
-            out[(p.track_id, p.corridor_id)] = probs[: cfg.n_steps]
-        return out
-
     def _weights(self, vehicle, good: list, beliefs: dict[int, dict[int, Any]] | None, issues: list[Issue]) -> np.ndarray:
         """P(R = c) over the vehicle's predicted corridors: the DBN's, renormalised, or uniform."""
         uniform = np.full(len(good), 1.0 / len(good))
@@ -494,14 +425,16 @@ class MarkovPredictor:
         scene_limit_mps: float,
         issues: list[Issue],
         beliefs: dict[int, dict[int, Any]] | None = None,
-        profiles: dict[tuple[int, int], np.ndarray] | None = None,
-    ) -> list[_Pair]:
+        frame_data: Any = None,
+    ) -> list[Pair]:
+        """The frame's pairs: per matched vehicle, one per usable corridor (or the mode's own, ``vehicle_pairs``);
+        ``frame_data`` is what the mode's ``read`` returned."""
         cfg = self.config
         stamp = int(corridor_set.header.stamp_ns)
         rows: dict[int, int] = {}
         if frame is not None and int(frame.header.stamp_ns) == stamp:
             rows = {int(t): i for i, t in enumerate(frame.track_ids)}
-        pairs: list[_Pair] = []
+        pairs: list[Pair] = []
         for vehicle in corridor_set.vehicles:
             if vehicle.status != MatchStatus.MATCHED or not vehicle.corridors:
                 continue
@@ -517,12 +450,13 @@ class MarkovPredictor:
                     width = float(frame.width_m[row])
             v0 = float(np.clip(vehicle.speed_mps, 0.0, cfg.v_max_mps))
             a0, sigma_a0 = self._acceleration(vehicle.track_id, stamp)
-            standing = cfg.mode in CHAIN_MODES and v0 <= cfg.standstill_speed_mps and cfg.standstill_start_rate_hz > 0
+            standing = self.model.chain and v0 <= cfg.standstill_speed_mps and cfg.standstill_start_rate_hz > 0
             good = [c for c in vehicle.corridors if _corridor_ok(c, vehicle.track_id, issues)]
             if not good:
                 continue
-            if cfg.mode == "cv":
-                pairs.append(self._cv_line(vehicle, good[0], frame, row, v0, a0, length, width))
+            own = self.model.vehicle_pairs(Vehicle(vehicle, good, frame, row, v0, a0, length, width))
+            if own is not None:
+                pairs.extend(own)
                 continue
             weights = self._weights(vehicle, good, beliefs, issues)
             mine = beliefs.get(vehicle.track_id, {}) if beliefs is not None and cfg.initial_box == "particles" else {}
@@ -536,16 +470,12 @@ class MarkovPredictor:
                     s0, v_start = float(cb.s_mean_m), float(np.clip(cb.v_mean_mps, 0.0, cfg.v_max_mps))
                     hs = max(0.5 * cfg.ds_m, 2.0 * float(cb.s_std_m))
                     hv = max(0.5 * cfg.dv_mps, 2.0 * float(cb.v_std_mps))
-                lam = None
-                if profiles is not None:
-                    lam = profiles.get((vehicle.track_id, c.corridor_id))
-                    if lam is None:
-                        issues.append(Issue("no_acceleration_profile", vehicle.track_id, f"corridor {c.corridor_id}: no AR profile, measured acceleration held"))
+                lam = self.model.pair_input(vehicle.track_id, c.corridor_id, frame_data, issues)
                 if hs > 0 and not self._particle_box_fits(s0, float(c.vehicle_s_m), hs, vehicle.track_id, c.corridor_id, issues):
                     s0, hs, hv, v_start = float(c.vehicle_s_m), 0.0, 0.0, v0
                 s_first = self._window_start(s0, float(c.vehicle_s_m), hs)
                 pairs.append(
-                    _Pair(
+                    Pair(
                         track_id=vehicle.track_id,
                         corridor_id=c.corridor_id,
                         probability=weight,
@@ -572,41 +502,9 @@ class MarkovPredictor:
                 )
         return pairs
 
-    def _cv_line(self, vehicle, corridor, frame, row, v0, a0, length, width) -> _Pair:
-        """The straight line of mode ``cv``: from the vehicle along its velocity (the corridor's heading when unknown)."""
-        cfg = self.config
-        heading = float(np.interp(corridor.vehicle_s_m, corridor.s_m, np.unwrap(corridor.heading_rad)))
-        x0, y0 = _corridor_point(corridor, corridor.vehicle_s_m, corridor.vehicle_d_m)
-        if row is not None and math.isfinite(frame.x_m[row]) and math.isfinite(frame.y_m[row]):
-            x0, y0 = float(frame.x_m[row]), float(frame.y_m[row])
-            vx, vy = float(vehicle.vx_mps), float(vehicle.vy_mps)  # estimated from positions (corridors stage)
-            if math.isfinite(vx) and math.isfinite(vy):
-                v0 = float(np.clip(math.hypot(vx, vy), 0.0, cfg.v_max_mps))
-                if math.hypot(vx, vy) > 0.5:
-                    heading = math.atan2(vy, vx)
-        behind = cfg.window_behind_m
-        s = np.arange(0.0, behind + cfg.window_cells * cfg.ds_m + cfg.ds_m, 0.5)
-        return _Pair(
-            track_id=vehicle.track_id,
-            corridor_id=CV_LINE_ID,
-            probability=1.0,
-            s_m=s,
-            x_m=x0 + (s - behind) * math.cos(heading),
-            y_m=y0 + (s - behind) * math.sin(heading),
-            heading_rad=np.full(s.shape, heading),
-            curvature_1pm=np.zeros(s.shape),
-            speed_limit_mps=cfg.v_max_mps,
-            s0_m=behind,
-            v0_mps=v0,
-            a0_mps2=a0,
-            s_first_m=0.0,
-            length_m=length,
-            width_m=width,
-        )
-
     # ----- one pair's failure never costs the frame ----------------------------------
 
-    def _predict(self, pairs: list[_Pair], issues: list[Issue]) -> FramePrediction:
+    def _predict(self, pairs: list[Pair], issues: list[Issue]) -> FramePrediction:
         """The frame's prediction, each pair's failure isolated.
 
         The mode predicts every pair it can. In the chain modes a pair the
@@ -618,8 +516,8 @@ class MarkovPredictor:
         predicted exactly as without the failing one, unless they follow or
         yield to it.
         """
-        chain = self.config.mode in CHAIN_MODES
-        simple: dict[int, _Pair] = {}  # pair index -> the pair as the fallback predicts it
+        chain = self.model.chain
+        simple: dict[int, Pair] = {}  # pair index -> the pair as the fallback predicts it
         screened = self._screen(pairs) if chain else {}
         for b, (kind, detail) in screened.items():
             p = pairs[b]
@@ -674,7 +572,7 @@ class MarkovPredictor:
             issues.append(Issue("pair_failed", final[i].track_id, f"corridor {final[i].corridor_id}: its outputs raised {type(exc).__name__}: {exc}: not predicted"))
         return prediction
 
-    def _screen(self, pairs: list[_Pair]) -> dict[int, tuple[str, str]]:
+    def _screen(self, pairs: list[Pair]) -> dict[int, tuple[str, str]]:
         """The pairs the chain cannot take, found before the batch: pair index -> (issue kind, why)."""
         out: dict[int, tuple[str, str]] = {}
         if not pairs:
@@ -693,100 +591,38 @@ class MarkovPredictor:
                           f" v {p.v0_mps:.1f} m/s misses its {self.n_s * self.config.ds_m:.0f} m window or the speed cells")
         return out
 
-    # ----- constant-velocity baselines --------------------------------------------
+    # ----- the closed form (modes without the chain, and the fallback) ---------------
 
-    def _constant_velocity(self, pairs: list[_Pair]) -> dict[str, np.ndarray]:
-        """Constant speed along each corridor (or the cv line): exact means, Gaussian spreads for the grid.
+    def _constant_velocity(self, pairs: list[Pair]) -> dict[str, np.ndarray]:
+        """Constant speed along each pair's line (``modes.corridor_cv.constant_speed``): the closed-form modes and
+        the chain modes' fallback."""
+        return constant_speed(self, pairs)
 
-        The position at t_k is s0 + v0·t_k; the grid spreads it with
-        σ_s(t) = √(σ0² + (½σ_a t²)²) along the line and σ_v(t) = σ_a·t in
-        speed (σ_a = ``cv_accel_sigma_mps2``, σ0 = ``init_sigma_s_m``), so
-        that calibration metrics have something to measure.
-        """
-        cfg = self.config
-        t = self.step_times_s
-        n_b, n_k = len(pairs), t.shape[0]
-        edges = self.grid.s_edges_m()[: self.n_s + 1]
-        v_edges = self.grid.v_edges_mps()
-        pos = np.zeros((n_b, n_k, self.n_s), np.float32)
-        vel = np.zeros((n_b, n_k, self.grid.n_v_cells), np.float32)
-        outside = np.zeros((n_b, n_k), np.float32)
-        exact_s = np.zeros((n_b, n_k))
-        sigma_s = np.sqrt(cfg.init_sigma_s_m**2 + (0.5 * cfg.cv_accel_sigma_mps2 * t**2) ** 2)
-        sigma_v = np.maximum(cfg.cv_accel_sigma_mps2 * t, 1e-3)
-        for b, p in enumerate(pairs):
-            mean_w = p.s0_m - p.s_first_m + p.v0_mps * t  # window coordinates
-            exact_s[b] = p.s0_m + p.v0_mps * t
-            cdf = _normal_cdf((edges[None, :] - mean_w[:, None]) / sigma_s[:, None])
-            cdf[:, 0] = 0.0  # nothing behind the window's start (no reversing)
-            pos[b] = np.diff(cdf, axis=1)
-            outside[b] = 1.0 - cdf[:, -1]
-            vcdf = _normal_cdf((v_edges[None, :] - p.v0_mps) / sigma_v[:, None])
-            vcdf[:, 0], vcdf[:, -1] = 0.0, 1.0
-            vel[b] = np.diff(vcdf, axis=1)
-        return {"position": pos, "interval": None, "velocity": vel, "outside": outside, "exact_s": exact_s}
+    # ----- the chain loop --------------------------------------------------------------
 
-    # ----- the Markov chain ----------------------------------------------------------
-
-    def _markov(self, pairs: list[_Pair], issues: list[Issue]) -> dict[str, np.ndarray]:
+    def _markov(self, pairs: list[Pair], issues: list[Issue]) -> dict[str, np.ndarray]:
+        """The chain for a batch of pairs: the mode's λ(0) and Γ per step (``InputModel.start``), one pass, and
+        another over the pairs the mode names (``ChainInputs.rerun``), whose rows replace the first pass's."""
         cfg, grid = self.config, self.grid
-        n_b, n_k, n_v, n_in = len(pairs), cfg.n_steps, grid.n_v_cells, grid.n_inputs
+        n_b, n_k, n_v = len(pairs), cfg.n_steps, grid.n_v_cells
         if n_b == 0:
             empty = np.zeros((0, n_k, self.n_s), np.float32)
             return {"position": empty, "interval": empty.copy(), "velocity": np.zeros((0, n_k, n_v), np.float32),
                     "outside": np.zeros((0, n_k), np.float32), "exact_s": None}
-        cell_lower = grid.s_edges_m()[: self.n_s]
-        cell_centre = cell_lower + 0.5 * cfg.ds_m
-        if cfg.mode == "hybrid":
-            return self._hybrid(pairs, self._speed_restriction(pairs, cell_centre) if cfg.hybrid_speed_restriction else None)
-        # λ_speed per pair, static over the steps, and the combined r where nothing else restricts
-        lam_speed = self._speed_restriction(pairs, cell_centre)
-        r_static = pr.combine_with_preference(lam_speed, self.preference, cfg.forbid_threshold)
-        index = {(p.track_id, p.corridor_id): b for b, p in enumerate(pairs)}
-        by_track: dict[int, list[int]] = collections.defaultdict(list)
-        for b, p in enumerate(pairs):
-            by_track[p.track_id].append(b)
-        leaders = self._leaders(pairs, by_track, issues)
-        conflicts = self._conflicts(pairs, index, issues)
-
-        p0 = self._initial(pairs, self._measured_inputs(pairs))
-        v0 = np.array([p.v0_mps for p in pairs])
-        ctx = _PassContext(
-            members=np.arange(n_b),
-            lam_speed=lam_speed,
-            r_static=r_static,
-            leaders=leaders,
-            conflicts={},
-            stored=None,
-            cell_centre=cell_centre,
-            pairs=pairs,
-        )
-        with_interval = cfg.grid_distribution == "interval" or bool(conflicts)
-        result = self.propagator.run(p0, self._step_inputs(ctx), with_interval=with_interval)
-        everyone = np.arange(n_b)
+        inputs = self.model.start(pairs, issues)
+        p0 = self._initial(pairs, inputs.initial())
+        members = np.arange(n_b)
+        result = self.propagator.run(p0, inputs.step, with_interval=inputs.with_interval)
         pos, vel, interval, outside = self._mix_standstill(
-            pairs, everyone, p0.position_probs, result.position_probs, result.velocity_probs,
+            pairs, members, p0.position_probs, result.position_probs, result.velocity_probs,
             result.interval_position_probs, result.outside_mass,
         )
-        if conflicts:
-            members = _closure(set(conflicts), leaders)
-            m = np.array(sorted(members))
-            stored = {"position": pos, "velocity": vel, "interval": interval, "v0": v0}
-            ctx2 = _PassContext(
-                members=m,
-                lam_speed=lam_speed[m],
-                r_static=r_static[m],
-                leaders={int(np.searchsorted(m, f)): spec for f, spec in leaders.items() if f in members},
-                conflicts={int(np.searchsorted(m, e)): spec for e, spec in conflicts.items()},
-                stored=stored,
-                cell_centre=cell_centre,
-                pairs=pairs,
-            )
-            sub = type(p0)(input_probs=p0.input_probs[m], velocity_probs=p0.velocity_probs[m], position_probs=p0.position_probs[m])
-            second = self.propagator.run(sub, self._step_inputs(ctx2), with_interval=with_interval)
+        while (m := inputs.rerun({"position": pos, "velocity": vel, "interval": interval, "outside": outside})) is not None:
+            sub = SeparableState(input_probs=p0.input_probs[m], velocity_probs=p0.velocity_probs[m], position_probs=p0.position_probs[m])
+            again = self.propagator.run(sub, inputs.step, with_interval=inputs.with_interval)
             mixed = self._mix_standstill(
-                pairs, m, sub.position_probs, second.position_probs, second.velocity_probs,
-                second.interval_position_probs, second.outside_mass,
+                pairs, m, sub.position_probs, again.position_probs, again.velocity_probs,
+                again.interval_position_probs, again.outside_mass,
             )
             pos, vel, outside = pos.copy(), vel.copy(), outside.copy()
             pos[m], vel[m], outside[m] = mixed[0], mixed[1], mixed[3]
@@ -795,20 +631,7 @@ class MarkovPredictor:
                 interval[m] = mixed[2]
         return {"position": pos, "interval": interval, "velocity": vel, "outside": outside, "exact_s": None}
 
-    def _speed_restriction(self, pairs: list[_Pair], cell_centre: np.ndarray) -> np.ndarray:
-        """λ_speed (B, M, N_v, N_s) per pair, static over the steps (§2.2)."""
-        cfg = self.config
-        lam_speed = np.empty((len(pairs), self.grid.n_inputs, self.grid.n_v_cells, self.n_s), np.float32)
-        weights = np.asarray(cfg.lat_accel_weights, dtype=np.float64)
-        weights = weights / weights.sum()
-        for b, p in enumerate(pairs):
-            adm = pr.admissible_speeds(
-                p.s_m, p.curvature_1pm, p.speed_limit_mps, np.asarray(cfg.lat_accels_mps2), cfg.lookahead_brake_mps2, cfg.curvature_smoothing_m
-            )
-            lam_speed[b] = pr.speed_restriction(adm, p.s_m, p.s_first_m + cell_centre, self.v_centres, self.a_centres, weights, cfg.tau_s)
-        return lam_speed
-
-    def _measured_inputs(self, pairs: list[_Pair]) -> np.ndarray:
+    def measured_inputs(self, pairs: list[Pair]) -> np.ndarray:
         """(B, M): a normal distribution around each pair's measured acceleration over the input cells (tails folded)."""
         edges = self.grid.input_edges()
         a0 = np.array([p.a0_mps2 for p in pairs])
@@ -818,7 +641,7 @@ class MarkovPredictor:
         probs = np.diff(cdf, axis=1)
         return probs / probs.sum(axis=1, keepdims=True)
 
-    def _boxes(self, pairs: list[_Pair]) -> dict[str, np.ndarray]:
+    def _boxes(self, pairs: list[Pair]) -> dict[str, np.ndarray]:
         """The initial boxes (§1.4) as ``initial_state`` takes them: centres in window coordinates, half-widths
         (the measurement's defaults, or the particles')."""
         return {
@@ -828,37 +651,9 @@ class MarkovPredictor:
             "half_width_v_mps": np.array([p.half_width_v_mps if p.half_width_v_mps > 0 else self._default_half_v_mps for p in pairs]),
         }
 
-    def _initial(self, pairs: list[_Pair], input_probs: np.ndarray):
+    def _initial(self, pairs: list[Pair], input_probs: np.ndarray):
         """p(t_0) (§1.4): a uniform box in (s, v) (the measurement's, or the particles') × ``input_probs``, on the window."""
         return initial_state(self._window_grid, **self._boxes(pairs), input_probs=input_probs)
-
-    def _hybrid(self, pairs: list[_Pair], lam_speed: np.ndarray | None = None) -> dict[str, np.ndarray]:
-        """Hybrid mode (METHOD.md §3.2): λ(0) starts the input, Γ_k = colnorm(diag(λ(k)) Ψ) (or λ(k)·1ᵀ) after step k;
-        with ``lam_speed``, λ(k) (scaled to a largest entry of 1) is the preference that λ_speed cuts, per state."""
-        cfg = self.config
-        measured = self._measured_inputs(pairs)
-        lam = np.stack([p.input_probs if p.input_probs is not None else np.repeat(measured[b][None], cfg.n_steps, axis=0)
-                        for b, p in enumerate(pairs)])  # (B, K, M)
-        p0 = self._initial(pairs, lam[:, 0])
-        steps: list = []
-        for k in range(cfg.n_steps):
-            if k + 1 >= cfg.n_steps:
-                steps.append(None)  # the input after the last step does not change any output
-            elif lam_speed is not None:
-                pref = lam[:, k + 1] / np.maximum(lam[:, k + 1].max(axis=1, keepdims=True), 1e-12)
-                steps.append(InputPriority(  # built on the step's active s-window only
-                    weights=lambda lo, hi, pref=pref: pr.combine_with_preference(lam_speed[..., lo:hi], pref, cfg.forbid_threshold)
-                ))
-            elif cfg.hybrid_input == "direct":
-                steps.append(InputReplaced(probs=lam[:, k + 1]))
-            else:
-                steps.append(InputMatrix(gamma=gamma_from_priority(lam[:, k + 1], self.psi)))
-        result = self.propagator.run(p0, steps, with_interval=cfg.grid_distribution == "interval")
-        pos, vel, interval, outside = self._mix_standstill(
-            pairs, np.arange(len(pairs)), p0.position_probs, result.position_probs, result.velocity_probs,
-            result.interval_position_probs, result.outside_mass,
-        )
-        return {"position": pos, "interval": interval, "velocity": vel, "outside": outside, "exact_s": None}
 
     def _mix_standstill(self, pairs, members, start_probs, pos, vel, interval, outside):
         """Standing vehicles (package docstring, "Standstill"): P_stay(t)·(start box, v-cell 0) + (1 − P_stay(t))·chain."""
@@ -874,181 +669,9 @@ class MarkovPredictor:
         outside = (1.0 - stay.astype(np.float32)) * outside
         return pos.astype(np.float32), vel.astype(np.float32), None if interval is None else interval.astype(np.float32), outside
 
-    def _leaders(self, pairs: list[_Pair], by_track: dict[int, list[int]], issues: list[Issue]) -> dict[int, "_LeaderSpec"]:
-        """Leader of each follower pair: the leader's own pairs when it is predicted, else a constant-speed point."""
-        out: dict[int, _LeaderSpec] = {}
-        for f, p in enumerate(pairs):
-            rel = p.relation
-            if rel is None or rel.leader_track_id < 0:
-                continue
-            gap = float(rel.leader_gap_m)
-            if not math.isfinite(gap):
-                issues.append(Issue("nan_relation", p.track_id, f"corridor {p.corridor_id}: leader {rel.leader_track_id} with gap {gap}: ignored"))
-                continue
-            members = [b for b in by_track.get(int(rel.leader_track_id), []) if b != f]
-            speed = float(rel.leader_speed_mps) if math.isfinite(rel.leader_speed_mps) else 0.0
-            if not members and not math.isfinite(rel.leader_speed_mps):
-                issues.append(Issue("nan_relation", p.track_id, f"corridor {p.corridor_id}: leader {rel.leader_track_id} speed"
-                                    f" {rel.leader_speed_mps}: taken as standing"))
-            out[f] = _LeaderSpec(gap_m=max(gap, 0.0), pairs=tuple(members), speed_mps=max(speed, 0.0))
-        return out
-
-    def _conflicts(self, pairs: list[_Pair], index: dict[tuple[int, int], int], issues: list[Issue]) -> dict[int, "_ConflictSpec"]:
-        """The influencing corridor of each pair (§2.4), with its zone on both corridors."""
-        out: dict[int, _ConflictSpec] = {}
-        for e, p in enumerate(pairs):
-            rel = p.relation
-            if rel is None or rel.influencing_index < 0:
-                continue
-            i = int(rel.influencing_index)
-            if i >= rel.conflict_s_m.shape[0]:
-                issues.append(Issue("bad_relation", p.track_id, f"corridor {p.corridor_id}: influencing_index {i} out of range"))
-                continue
-            s_star, s_other = float(rel.conflict_s_m[i]), float(rel.conflict_other_s_m[i])
-            if not (math.isfinite(s_star) and math.isfinite(s_other)):
-                issues.append(Issue("nan_relation", p.track_id, f"corridor {p.corridor_id}: conflict point not finite: ignored"))
-                continue
-            other = index.get((int(rel.conflict_track_ids[i]), int(rel.conflict_corridor_ids[i])))
-            other_len, other_wid = DEFAULT_SIZES_M[AgentType.CAR]
-            if other is not None:
-                other_len, other_wid = pairs[other].length_m, pairs[other].width_m
-            half = pr.zone_half_width_m(p.length_m, other_wid)
-            half_other = pr.zone_half_width_m(other_len, p.width_m)
-            fallback = None
-            if other is None:
-                distance = float(rel.conflict_other_distance_m[i]) if rel.conflict_other_distance_m.shape[0] > i else math.nan
-                speed = float(rel.conflict_other_speed_mps[i]) if rel.conflict_other_speed_mps.shape[0] > i else math.nan
-                if not (math.isfinite(distance) and math.isfinite(speed)):
-                    continue
-                fallback = pr.constant_speed_occupancy(distance, speed, half_other, self.config.tau_s, self.config.n_steps)
-            out[e] = _ConflictSpec(
-                zone_m=(s_star - half, s_star + half),
-                other=other,
-                other_zone_m=(s_other - half_other, s_other + half_other),
-                fallback_occupancy=fallback,
-            )
-        return out
-
-    def _step_inputs(self, ctx: "_PassContext"):
-        """The callable the propagator asks for Γ(t_{k+1}) after step k (all pairs of the pass at once)."""
-        cfg, grid = self.config, self.grid
-        n_steps = cfg.n_steps
-        tau = cfg.tau_s
-        survival_x = pr.survival_grid()
-        edges_local = grid.s_edges_m()[: self.n_s + 1]
-        followers = np.array(sorted(ctx.leaders), dtype=np.int64)
-        conflicted = sorted(ctx.conflicts)
-        member_pos = {int(g): i for i, g in enumerate(ctx.members)}
-        pairs = ctx.pairs
-        v_centres = self.v_centres
-        # the other vehicles' zone occupancies, from the first pass (interval distributions)
-        occupancy: dict[int, np.ndarray] = {}
-        for e in conflicted:
-            spec = ctx.conflicts[e]
-            if spec.other is None or ctx.stored is None or ctx.stored["interval"] is None:
-                occupancy[e] = spec.fallback_occupancy if spec.fallback_occupancy is not None else np.zeros(n_steps)
-            else:
-                o = pairs[spec.other]
-                occupancy[e] = pr.zone_occupancy(ctx.stored["interval"][spec.other], o.s_first_m + edges_local, spec.other_zone_m)
-        all_v0 = np.array([p.v0_mps for p in pairs])
-        state = {"mean_v": all_v0.copy()}  # every pair's mean speed at the previous step
-
-        def leader_state(k: int, pos_local: np.ndarray, vel_local: np.ndarray):
-            """(survival (F, J), mean speed cell (F,), mean accel cell (F,)) of the followers' leaders at t_{k+1}.
-
-            Leaders of this pass come from its marginals, mixed with their
-            standstill part; the others from the first pass (already mixed).
-            """
-            t_next = (k + 1) * tau
-            n_f = followers.shape[0]
-            survival = np.empty((n_f, survival_x.shape[0]))
-            v_cell = np.empty(n_f, np.int64)
-            a_cell = np.empty(n_f, np.int64)
-            mean_v = state["mean_v"].copy()
-            if ctx.stored is not None:
-                mean_v[:] = _mean_speed(ctx.stored["velocity"][:, k], v_centres, all_v0)
-            local_v = _mean_speed(vel_local, v_centres, state["mean_v"][ctx.members])
-            for g, i in member_pos.items():
-                stay = pairs[g].stay_probability(t_next)
-                mean_v[g] = (1.0 - stay) * local_v[i]
-            for row, f in enumerate(followers):
-                spec = ctx.leaders[int(f)]
-                if not spec.pairs:
-                    survival[row] = pr.survival_constant_speed(spec.speed_mps, t_next, cfg.static_leader_spread_m, survival_x)
-                    v_now, v_before = spec.speed_mps, spec.speed_mps
-                else:
-                    acc = np.zeros(survival_x.shape[0])
-                    for g in spec.pairs:
-                        lp = pairs[g]
-                        if g in member_pos:
-                            moving = pr.survival_from_cells(pos_local[member_pos[g]], lp.s_first_m - lp.s0_m + edges_local, survival_x)
-                            stay = lp.stay_probability(t_next)
-                            if stay > 0:
-                                standing = pr.survival_constant_speed(0.0, t_next, 0.5 * cfg.ds_m, survival_x)
-                                moving = stay * standing + (1.0 - stay) * moving
-                            acc += moving
-                        else:
-                            acc += pr.survival_from_cells(ctx.stored["position"][g, k], lp.s_first_m - lp.s0_m + edges_local, survival_x)
-                    survival[row] = acc / len(spec.pairs)
-                    v_now = float(np.mean(mean_v[list(spec.pairs)]))
-                    v_before = float(np.mean(state["mean_v"][list(spec.pairs)]))
-                v_cell[row] = min(int(v_now / cfg.dv_mps), grid.n_v_cells - 1)
-                a_cell[row] = grid.input_cell_of((v_now - v_before) / tau)
-            state["mean_v"] = mean_v
-            return survival, v_cell, a_cell
-
-        def step(k: int, marginals) -> InputPriority | None:
-            if k >= n_steps - 1:
-                return None  # Γ after the last step shapes nothing that is reported
-            t_next = (k + 1) * tau
-            if followers.size:
-                survival, v_cell, a_cell = leader_state(k, _numpy(marginals.position), _numpy(marginals.velocity))
-            restricted = sorted(set(int(f) for f in followers) | set(conflicted))
-
-            def weights(lo: int, hi: int) -> np.ndarray:
-                r = ctx.r_static[:, :, :, lo:hi]
-                if not restricted:
-                    return r
-                r = r.copy()
-                m = ctx.lam_speed[restricted, :, :, lo:hi].copy()
-                where = {b: i for i, b in enumerate(restricted)}
-                if followers.size:
-                    offsets = np.empty((followers.size, hi - lo))
-                    for row, f in enumerate(followers):
-                        p = pairs[int(ctx.members[f])]
-                        offsets[row] = p.s_first_m + ctx.cell_centre[lo:hi] - p.s0_m - ctx.leaders[int(f)].gap_m
-                    lam_lead = pr.leader_restriction(
-                        self.gaps, survival, offsets, v_cell, a_cell, cfg.leader_epsilon, cfg.leader_horizon_mean == "geometric"
-                    )
-                    for row, f in enumerate(followers):
-                        i = where[int(f)]
-                        np.minimum(m[i], lam_lead[row], out=m[i])
-                for e in conflicted:
-                    p = pairs[int(ctx.members[e])]
-                    lam_conf = pr.conflict_restriction(
-                        p.s_first_m + ctx.cell_centre[lo:hi],
-                        v_centres,
-                        self.a_centres,
-                        grid.v_max_mps,
-                        ctx.conflicts[e].zone_m,
-                        t_next,
-                        occupancy[e],
-                        tau,
-                        cfg.conflict_margin_s,
-                        cfg.conflict_epsilon,
-                    )
-                    i = where[e]
-                    np.minimum(m[i], lam_conf, out=m[i])
-                r[restricted] = pr.combine_with_preference(m, self.preference, cfg.forbid_threshold)
-                return r
-
-            return InputPriority(weights=weights)
-
-        return step
-
     # ----- outputs --------------------------------------------------------------------
 
-    def _finish(self, pairs: list[_Pair], arrays: dict[str, Any], issues: list[Issue]) -> FramePrediction:
+    def _finish(self, pairs: list[Pair], arrays: dict[str, Any], issues: list[Issue]) -> FramePrediction:
         cfg, grid = self.config, self.grid
         n_b, n_k = len(pairs), cfg.n_steps
         pos = np.asarray(arrays["position"], dtype=np.float32)
@@ -1164,67 +787,12 @@ class MarkovPredictor:
 # --------------------------------------------------------------------------- helpers
 
 
-@dataclass(frozen=True, slots=True)
-class _LeaderSpec:
-    gap_m: float
-    pairs: tuple[int, ...]  # the leader's own pairs (global indices); empty: constant-speed point
-    speed_mps: float
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class _ConflictSpec:
-    zone_m: tuple[float, float]
-    other: int | None
-    other_zone_m: tuple[float, float]
-    fallback_occupancy: np.ndarray | None
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class _PassContext:
-    """One propagation pass: its members (global pair indices) and their restrictions, indexed locally."""
-
-    members: np.ndarray
-    lam_speed: np.ndarray
-    r_static: np.ndarray
-    leaders: dict[int, _LeaderSpec]  # local follower index -> leader (leader pairs are global indices)
-    conflicts: dict[int, _ConflictSpec]  # local index -> conflict (other is a global index)
-    stored: dict[str, np.ndarray] | None  # first-pass results, global indices
-    cell_centre: np.ndarray
-    pairs: list[_Pair]
-
-
-def _closure(seed: set[int], leaders: dict[int, _LeaderSpec]) -> set[int]:
-    """The pairs whose prediction changes when ``seed`` changes: ``seed`` and, transitively, their followers."""
-    members = set(seed)
-    changed = True
-    while changed:
-        changed = False
-        for f, spec in leaders.items():
-            if f not in members and any(g in members for g in spec.pairs):
-                members.add(f)
-                changed = True
-    return members
-
-
-def _mean_speed(velocity_probs: np.ndarray, v_centres: np.ndarray, fallback: np.ndarray) -> np.ndarray:
-    mass = velocity_probs.sum(axis=1, dtype=np.float64)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = (velocity_probs @ v_centres) / mass
-    return np.where(mass > 1e-9, mean, fallback)
-
-
-def _numpy(x: Any) -> np.ndarray:
-    if hasattr(x, "detach"):
-        return x.detach().to("cpu").numpy()
-    return np.asarray(x)
-
-
 _CHAIN_SCALARS = ("s0_m", "v0_mps", "a0_mps2", "sigma_a0_mps2", "s_first_m", "speed_limit_mps", "d0_m", "length_m", "width_m",
                   "half_width_s_m", "half_width_v_mps", "start_rate_hz", "probability")
 _CHAIN_ARRAYS = ("s_m", "x_m", "y_m", "heading_rad", "curvature_1pm", "input_probs")
 
 
-def _non_finite(p: _Pair) -> list[str]:
+def _non_finite(p: Pair) -> list[str]:
     """The names of the pair's numbers the chain reads that are not finite (none: [])."""
     bad = [name for name in _CHAIN_SCALARS if not math.isfinite(getattr(p, name))]
     return bad + [name for name in _CHAIN_ARRAYS if getattr(p, name) is not None and not np.all(np.isfinite(getattr(p, name)))]
@@ -1291,21 +859,13 @@ def _corridor_ok(corridor, track_id: int, issues: list[Issue]) -> bool:
     return True
 
 
-def _corridor_point(corridor, s_m: float, d_m: float) -> tuple[float, float]:
-    heading = float(np.interp(s_m, corridor.s_m, np.unwrap(corridor.heading_rad)))
-    x = float(np.interp(s_m, corridor.s_m, corridor.x_m))
-    y = float(np.interp(s_m, corridor.s_m, corridor.y_m))
-    d = d_m if math.isfinite(d_m) else 0.0
-    return x - d * math.sin(heading), y + d * math.cos(heading)
-
-
-def _corridor_normal(p: _Pair, s_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _corridor_normal(p: Pair, s_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The left unit normal of the centreline at s (its end headings past either end)."""
     heading = np.interp(np.clip(s_m, p.s_m[0], p.s_m[-1]), p.s_m, np.unwrap(p.heading_rad))
     return -np.sin(heading), np.cos(heading)
 
 
-def _corridor_xy(p: _Pair, s_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _corridor_xy(p: Pair, s_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """X_c(s) with straight continuation past either end."""
     s_in = np.clip(s_m, p.s_m[0], p.s_m[-1])
     heading = np.interp(s_in, p.s_m, np.unwrap(p.heading_rad))

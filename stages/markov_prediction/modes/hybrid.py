@@ -1,0 +1,104 @@
+"""Mode ``hybrid``: the Markov chain driven by the AR model's acceleration distributions λ(k) (METHOD.md §3.2).
+
+Reads the frame's ``AccelerationProfiles`` (``read``), gives each pair its
+λ(0..K-1) (``pair_input``; a pair without one holds its measured
+acceleration), starts the chain from λ(0) and after step k applies
+Γ = colnorm(diag(λ(k+1)) Ψ), λ(k+1)·1ᵀ (``hybrid_input`` "direct"), or, with
+``hybrid_speed_restriction``, λ(k+1) as the preference the baseline's
+λ_speed cuts per state.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from bus_schemas import AccelerationProfiles
+from stages.lib.base import Issue
+from stages.lib.markov import InputMatrix, InputReplaced, gamma_from_priority
+from stages.markov_prediction import priority as pr
+from stages.markov_prediction.chain import InputPriority
+from stages.markov_prediction.modes.base import ChainInputs, InputModel, Messages, Pair, Predictor
+from stages.markov_prediction.modes.baseline import speed_restriction
+
+
+class Hybrid(InputModel):
+    """λ(k) per pair from the ar_inference stage; no leader or crossing restriction (the model saw those features)."""
+
+    def read(self, messages: Messages, issues: list[Issue]) -> dict[tuple[int, int], np.ndarray] | None:
+        """Per (track, corridor), λ(0..K-1) as a (K, M) array; None when the profiles are missing or unusable."""
+        return _profiles(self.predictor, messages.acceleration_profiles, messages.stamp_ns, issues)
+
+    def pair_input(self, track_id: int, corridor_id: int, data: Any, issues: list[Issue]) -> np.ndarray | None:
+        if data is None:
+            return None
+        lam = data.get((track_id, corridor_id))
+        if lam is None:
+            issues.append(Issue("no_acceleration_profile", track_id, f"corridor {corridor_id}: no AR profile, measured acceleration held"))
+        return lam
+
+    def start(self, pairs: list[Pair], issues: list[Issue]) -> ChainInputs:
+        p = self.predictor
+        lam_speed = speed_restriction(p, pairs) if p.config.hybrid_speed_restriction else None
+        return _HybridInputs(p, pairs, lam_speed)
+
+
+class _HybridInputs(ChainInputs):
+    def __init__(self, p: Predictor, pairs: list[Pair], lam_speed: np.ndarray | None) -> None:
+        cfg = p.config
+        measured = p.measured_inputs(pairs)
+        self.lam = np.stack([q.input_probs if q.input_probs is not None else np.repeat(measured[b][None], cfg.n_steps, axis=0)
+                             for b, q in enumerate(pairs)])  # (B, K, M)
+        self.with_interval = cfg.grid_distribution == "interval"
+        lam = self.lam
+        self.steps: list = []
+        for k in range(cfg.n_steps):
+            if k + 1 >= cfg.n_steps:
+                self.steps.append(None)  # the input after the last step does not change any output
+            elif lam_speed is not None:
+                pref = lam[:, k + 1] / np.maximum(lam[:, k + 1].max(axis=1, keepdims=True), 1e-12)
+                self.steps.append(InputPriority(  # built on the step's active s-window only
+                    weights=lambda lo, hi, pref=pref: pr.combine_with_preference(lam_speed[..., lo:hi], pref, cfg.forbid_threshold)
+                ))
+            elif cfg.hybrid_input == "direct":
+                self.steps.append(InputReplaced(probs=lam[:, k + 1]))
+            else:
+                self.steps.append(InputMatrix(gamma=gamma_from_priority(lam[:, k + 1], p.psi)))
+
+    def initial(self) -> np.ndarray:
+        return self.lam[:, 0]
+
+    def step(self, k: int, marginals):
+        return self.steps[k]
+
+
+def _profiles(p, profiles: AccelerationProfiles | None, stamp: int, issues: list[Issue]) -> dict[tuple[int, int], np.ndarray] | None:
+    cfg, grid = p.config, p.grid
+    if profiles is None:
+        issues.append(Issue("no_acceleration_profiles", -1, "hybrid mode without acceleration_profiles: every pair falls back to its measured acceleration"))
+        return None
+    if int(profiles.header.stamp_ns) != stamp:
+        issues.append(Issue("stamp_mismatch", -1, f"acceleration_profiles stamp {profiles.header.stamp_ns} != corridor_set stamp {stamp}: ignored"))
+        return None
+    edges = grid.input_edges()
+    if profiles.input_edges_mps2.shape != edges.shape or not np.allclose(profiles.input_edges_mps2, edges, atol=1e-6):
+        issues.append(Issue("bad_profile", -1, f"acceleration_profiles input edges {np.round(profiles.input_edges_mps2, 3).tolist()} != the chain's {edges.tolist()}: ignored"))
+        return None
+    if abs(profiles.chunk_s - cfg.tau_s) > 1e-6:
+        issues.append(Issue("bad_profile", -1, f"acceleration_profiles chunk_s {profiles.chunk_s} != tau_s {cfg.tau_s}: ignored"))
+        return None
+    out: dict[tuple[int, int], np.ndarray] = {}
+    for prof in profiles.profiles:
+        probs = np.asarray(prof.input_probs, dtype=np.float64)
+        if probs.ndim != 2 or probs.shape[1] != grid.n_inputs or probs.shape[0] < 1:
+            issues.append(Issue("bad_profile", prof.track_id, f"corridor {prof.corridor_id}: input_probs shape {probs.shape}: pair falls back"))
+            continue
+        if not np.all(np.isfinite(probs)) or np.any(probs < 0) or np.any(probs.sum(axis=1) <= 0):
+            issues.append(Issue("bad_profile", prof.track_id, f"corridor {prof.corridor_id}: input_probs not a distribution: pair falls back"))
+            continue
+        probs = probs / probs.sum(axis=1, keepdims=True)
+        if probs.shape[0] < cfg.n_steps:  # a shorter profile holds its last distribution
+            probs = np.vstack([probs, np.repeat(probs[-1:], cfg.n_steps - probs.shape[0], axis=0)])
+        out[(prof.track_id, prof.corridor_id)] = probs[: cfg.n_steps]
+    return out
