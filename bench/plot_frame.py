@@ -26,10 +26,9 @@ overlays (conflict points from the relations stage): `render_frame(...,
 overlays=[fn])` calls each `fn(canvas)` last; `Canvas.marker` and
 `Canvas.polyline` draw in map metres.
 
-Other lanelets come from the OSM file (ElementTree) and are placed with the
-affine map from (lat, lon) to metres fitted on the car lanelets' bound points
-as `stages.lib.maps` projected them (exact to millimetres over a few hundred
-metres), so this script does not touch lanelet2.
+Other lanelets come from the OSM file through `stages.lib.maps.lanelet_bounds`
+(the map library, the one lanelet2 wrapper), projected and shifted exactly as
+the corridors stage's road map, with the scene's projection and origin.
 """
 
 from __future__ import annotations
@@ -38,7 +37,6 @@ import argparse
 import math
 import sys
 import tempfile
-import xml.etree.ElementTree as ElementTree
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -51,7 +49,7 @@ REPO = Path(__file__).resolve().parents[1]
 from bus_schemas import AgentType, CorridorSet, Header, MatchStatus, SceneInfo, TrackFrame
 from stages.corridors import CorridorBuilder, CorridorsConfig
 from stages.lib.datasets import load_recording
-from stages.lib.maps import RoadMap
+from stages.lib.maps import Projection, RoadMap, lanelet_bounds
 from stages.lib.raster import MapRaster, write_png
 from stages.relations import RelationExtractor, RelationsConfig
 
@@ -136,52 +134,13 @@ class Canvas(MapRaster):
 # --------------------------------------------------------------------------- map outlines
 
 
-def osm_lanelets(osm_path: Path, road_map: RoadMap) -> list[tuple[int, bool, np.ndarray, np.ndarray]]:
-    """Every lanelet of the OSM file as (id, is_car, left (n, 2), right (m, 2)) in map metres."""
-    root = ElementTree.parse(osm_path).getroot()
-    nodes = {int(n.get("id")): (float(n.get("lat")), float(n.get("lon"))) for n in root.iter("node")}
-    ways = {int(w.get("id")): [int(nd.get("ref")) for nd in w.iter("nd")] for w in root.iter("way")}
-    found = []
-    for rel in root.iter("relation"):
-        tags = {t.get("k"): t.get("v") for t in rel.iter("tag")}
-        if tags.get("type") != "lanelet":
-            continue
-        members = {m.get("role"): int(m.get("ref")) for m in rel.iter("member") if m.get("type") == "way"}
-        if "left" in members and "right" in members and members["left"] in ways and members["right"] in ways:
-            found.append((int(rel.get("id")), ways[members["left"]], ways[members["right"]]))
-    # affine (lat, lon) -> (x, y) fitted on the car lanelets' bounds as stages.lib.maps projected them;
-    # lanelet2 may hold a bound inverted relative to its OSM way, so fit, re-orient, refit
-    pairs = []
+def osm_lanelets(osm_path: Path, road_map: RoadMap, scene: SceneInfo, projection: Projection) -> list[tuple[int, bool, np.ndarray, np.ndarray]]:
+    """Every lanelet of the OSM file as (id, is_car, left (n, 2), right (m, 2)) in map metres; is_car: one of `road_map`'s."""
+    found, problems = lanelet_bounds(osm_path, scene.origin_lat_deg, scene.origin_lon_deg, projection)
+    if found is None:
+        raise SystemExit(f"cannot read {osm_path}: " + "; ".join(p.detail for p in problems))
     car_ids = set(road_map.lanelet_ids)
-    for lanelet_id, left, right in found:
-        if lanelet_id in car_ids:
-            info = road_map.lanelet(lanelet_id)
-            for ids, projected in ((left, info.left_bound_m), (right, info.right_bound_m)):
-                pts = np.asarray([nodes[i] for i in ids if i in nodes])
-                if len(pts) == len(projected):
-                    pairs.append((pts, np.asarray(projected)))
-    mean = np.concatenate([g for g, _ in pairs]).mean(axis=0)
-
-    def design(geo: np.ndarray) -> np.ndarray:
-        return np.column_stack([geo - mean, np.ones(len(geo))])
-
-    geo_all = np.concatenate([g for g, _ in pairs])
-    xy_all = np.concatenate([x for _, x in pairs])
-    coef, *_ = np.linalg.lstsq(design(geo_all), xy_all, rcond=None)
-    for _round in range(2):
-        oriented = []
-        for geo, xy in pairs:
-            forward = np.hypot(*(design(geo) @ coef - xy).T).mean()
-            backward = np.hypot(*(design(geo[::-1]) @ coef - xy).T).mean()
-            oriented.append((geo if forward <= backward else geo[::-1], xy))
-        coef, *_ = np.linalg.lstsq(
-            design(np.concatenate([g for g, _ in oriented])), np.concatenate([x for _, x in oriented]), rcond=None
-        )
-
-    def project(ids: list[int]) -> np.ndarray:
-        return design(np.asarray([nodes[i] for i in ids if i in nodes])) @ coef
-
-    return [(i, i in car_ids, project(left), project(right)) for i, left, right in found]
+    return [(x.lanelet_id, x.lanelet_id in car_ids, x.left_bound_m, x.right_bound_m) for x in found]
 
 
 # --------------------------------------------------------------------------- the frame
@@ -346,7 +305,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"no frame {args.frame} in {recording.name}/{sequence.id}", file=sys.stderr)
         return 2
     road_map = builder.scene_map.road_map
-    lanelets = osm_lanelets(recording.map_path, road_map)
+    lanelets = osm_lanelets(recording.map_path, road_map, scene, builder.scene_map.projection)
     xs, ys = sequence.x_m, sequence.y_m
     window = (xs.min() - args.margin_m, ys.min() - args.margin_m, xs.max() + args.margin_m, ys.max() + args.margin_m)
     frame, corridor_set = shown

@@ -44,7 +44,7 @@ Parameters (``CorridorsConfig``; lengths in m, angles in rad):
   launcher passes its ``--data``; "" the embedded ``stages/data/taf-bw``).
 
 Map. Loaded when the latched scene's ``scene_id`` changes (never per frame),
-from the local data folder only (``core.local_map_file``): the scene's
+from the local data folder only (``stages.lib.maps.local_map_file``): the scene's
 ``map_name`` must be a plain file name (no separator, no ``..``) equal to an
 entry of ``<data>/maps``, a regular file of at most 256 MB whose sha256 equals
 the scene's ``map_sha256`` (checked before parsing); nothing on the bus names
@@ -149,7 +149,8 @@ corridor.
 
 from __future__ import annotations
 
-from stages.corridors.core import CorridorBuilder, CorridorsConfig, SceneMap, SceneMaps, resolve_projection
+from stages.corridors.core import CorridorBuilder, CorridorsConfig
+from stages.lib.maps import SceneMap, SceneMaps, resolve_projection  # the library's scene-map cache, still importable from here
 
 __all__ = ["CorridorBuilder", "CorridorsConfig", "SceneMap", "SceneMaps", "resolve_projection", "SPEC", "INPUTS", "OUTPUTS", "main"]
 

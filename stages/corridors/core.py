@@ -7,14 +7,9 @@ wall clock (time comes from `header.stamp_ns`).
 from __future__ import annotations
 
 import collections
-import hashlib
 import logging
 import math
-import os
-import re
-import stat
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Mapping
 
 import numpy as np
@@ -23,7 +18,19 @@ from bus_schemas import AgentType, Corridor, CorridorSet, Header, MatchStatus, S
 from stages.lib.base import ConfigMixin, Issue, StageResult, check_ranges, isolate
 from stages.lib.caps import keep_nearest, map_centre_m
 from stages.lib.kinematic_state import EstimatorConfig, KinematicEstimator, KinematicState
-from stages.lib.maps import Projection, RoadMap, load_map, parse_projection, projection_for_location, wrap_angle_rad
+from stages.lib.maps import (  # the scene-map cache moved to the library; these names stay importable from here
+    MAP_MAX_BYTES,
+    Projection,
+    RoadMap,
+    SceneMap,
+    SceneMaps,
+    data_folder,
+    local_map_file,
+    parse_projection,
+    resolve_projection,
+    shown_map_name,
+    wrap_angle_rad,
+)
 
 from stages.corridors.matching import LaneletIndex, LaneletMatch, select_lanelets
 from stages.corridors.routes import RouteCache, RouteGeometry, cut_corridor, max_separation_m, project_vehicle, route_hash
@@ -83,146 +90,22 @@ class CorridorsConfig(ConfigMixin):
 # --------------------------------------------------------------------------- maps of scenes
 
 
-@dataclass(frozen=True, slots=True, eq=False)
-class SceneMap:
-    """A loaded map with the indices the builder needs; `road_map` None if it could not load."""
-
-    road_map: RoadMap | None
-    index: LaneletIndex | None
-    routes: RouteCache | None
-    problems: tuple[str, ...]
-    projection: Projection
+def _route_options(scene_maps: SceneMaps) -> tuple:
+    """Route options of the config the cache was made with (default `CorridorsConfig`), as when the cache lived here."""
+    cfg = scene_maps.config if isinstance(scene_maps.config, CorridorsConfig) else CorridorsConfig()
+    return (cfg.route_length_m, cfg.lane_change_corridors, cfg.lane_change_length_m, cfg.resample_step_m)
 
 
-def resolve_projection(configured: str, scene: SceneInfo) -> Projection:
-    """The configured projection, else the scene's, else the measured one for its location."""
-    for value in (configured, scene.projection):
-        chosen = parse_projection(value)
-        if chosen not in (Projection.AUTO, Projection.UNKNOWN):
-            return chosen
-    return projection_for_location(scene.location_id)
+def _matching_indices(scene_maps: SceneMaps, scene_map: SceneMap) -> tuple[LaneletIndex, RouteCache] | None:
+    """The lanelet index and route cache of a loaded map, built once per cache entry (`SceneMap.derived`)."""
+    options = _route_options(scene_maps)
+    route_length_m, lane_changes, lane_change_length_m, _step_m = options
 
+    def build(road_map: RoadMap) -> tuple[LaneletIndex, RouteCache]:
+        routes = RouteCache(road_map, route_length_m, lane_changes=lane_changes, lane_change_length_m=lane_change_length_m)
+        return LaneletIndex(road_map), routes
 
-MAP_MAX_BYTES = 256 * 1024 * 1024  # a local map file larger than this is refused before it is hashed
-_MAP_NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,199}")
-
-
-def data_folder(data: str | os.PathLike | None) -> Path:
-    """A stage's local data folder: ``data`` if given, else the embedded ``stages/data/taf-bw``."""
-    from stages.lib.datasets import DEFAULT_DATA_DIR
-
-    return Path(data).expanduser() if data else DEFAULT_DATA_DIR
-
-
-def shown_map_name(scene: SceneInfo) -> str:
-    """The scene's map name for logs and issues: the name if it is a valid one, else ``<invalid map name>``."""
-    name = scene.map_name
-    return name if isinstance(name, str) and _MAP_NAME_RE.fullmatch(name) and ".." not in name else "<invalid map name>"
-
-
-def local_map_file(data: str | os.PathLike | None, scene: SceneInfo, *, max_bytes: int = MAP_MAX_BYTES) -> tuple[Path | None, str]:
-    """The file of the scene's map in the local data folder, checked: ``(path, "")`` or ``(None, problem)``.
-
-    ``scene.map_name`` is only a name: it must be a plain file name (no path
-    separator, no ``..``) and equal one of the entries of ``<data>/maps``; no
-    path from the bus is ever opened. The file must be a regular file of at
-    most ``max_bytes``; when the scene names a ``map_sha256`` the file's
-    digest must equal it (checked before anything parses the file). The
-    problem starts with ``map_sha256_mismatch`` for a digest that differs.
-    """
-    name = scene.map_name
-    if not isinstance(name, str) or not _MAP_NAME_RE.fullmatch(name) or ".." in name:
-        return None, f"map_name_invalid: the scene names {name[:80]!r}, expected a plain file name in the maps folder"
-    folder = data_folder(data) / "maps"
-    try:
-        entries = set(os.listdir(folder))
-    except OSError as error:
-        return None, f"map_not_found: no maps folder {folder} ({error.strerror})"
-    if name not in entries:
-        return None, f"map_not_found: {name} is not in the local maps folder {folder}"
-    path = folder / name
-    try:
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
-    except OSError as error:
-        return None, f"map_unreadable: {path} ({error.strerror})"
-    try:
-        info = os.fstat(fd)
-        if not stat.S_ISREG(info.st_mode):
-            return None, f"map_unreadable: {path} is not a regular file"
-        if info.st_size > max_bytes:
-            return None, f"map_too_large: {path} has {info.st_size} bytes, at most {max_bytes} are read"
-        if scene.map_sha256:
-            digest = hashlib.sha256()
-            with os.fdopen(os.dup(fd), "rb") as fh:
-                for block in iter(lambda: fh.read(1 << 20), b""):
-                    digest.update(block)
-            if digest.hexdigest() != scene.map_sha256:
-                return None, f"map_sha256_mismatch: local {name} has {digest.hexdigest()[:12]}, the scene names {scene.map_sha256[:12]}: not loaded"
-    except OSError as error:
-        return None, f"map_unreadable: {path} ({error.strerror})"
-    finally:
-        os.close(fd)
-    return path, ""
-
-
-class SceneMaps:
-    """Loads and caches scene maps (one lanelet2 load per map, hash, projection and origin).
-
-    The map comes from ``<data>/maps`` (``data``: the stage's local data
-    folder, default the embedded ``stages/data/taf-bw``), found by the scene's map
-    name and checked against its sha256 (``local_map_file``); a map that is
-    missing, too large, of another hash or that fails to load is cached as a
-    ``SceneMap`` without ``road_map`` and its problems, never retried.
-    Share one between builders to load each map once (the coverage bench).
-    """
-
-    MAX_ENTRIES = 32  # maps (or failures) kept; a publisher cycling through scenes cannot grow the cache without bound
-
-    def __init__(self, config: CorridorsConfig | None = None, *, data: str | os.PathLike | None = None) -> None:
-        self.config = config or CorridorsConfig()
-        self.data_dir = data_folder(data if data is not None else self.config.data)
-        self._maps: collections.OrderedDict[tuple, SceneMap] = collections.OrderedDict()
-
-    def get(self, scene: SceneInfo, configured_projection: str = "auto") -> SceneMap:
-        projection = resolve_projection(configured_projection, scene)
-        # the scene id is a hash of (map sha256, projection, origin): keyed by what it hashes, so equal scenes share one load
-        key = (scene.map_name, scene.map_sha256, projection, scene.origin_lat_deg, scene.origin_lon_deg, self._route_options())
-        found = self._maps.get(key)
-        if found is None:
-            try:
-                found = self._load(scene, projection)
-            except Exception as error:  # noqa: BLE001 - a map that fails to load is a cached problem, not a crash per frame
-                found = SceneMap(None, None, None, (f"map_load_failed: {type(error).__name__}: {error}",), projection)
-            self._maps[key] = found
-            while len(self._maps) > self.MAX_ENTRIES:
-                self._maps.popitem(last=False)
-        else:
-            self._maps.move_to_end(key)
-        return found
-
-    def _route_options(self) -> tuple:
-        cfg = self.config
-        return (cfg.route_length_m, cfg.lane_change_corridors, cfg.lane_change_length_m, cfg.resample_step_m)
-
-    def _load(self, scene: SceneInfo, projection: Projection) -> SceneMap:
-        problems: list[str] = []
-        path, problem = local_map_file(self.data_dir, scene)
-        if path is None:
-            return SceneMap(None, None, None, (problem,), projection)
-        road_map, found = load_map(
-            path, scene.origin_lat_deg, scene.origin_lon_deg, projection, resample_step_m=self.config.resample_step_m
-        )
-        problems.extend(f"{p.kind.name.lower()}: {p.detail}" for p in found)
-        if road_map is None or not road_map.lanelet_ids:
-            return SceneMap(None, None, None, tuple(problems) or ("no car lanelets",), projection)
-        cfg = self.config
-        routes = RouteCache(
-            road_map,
-            cfg.route_length_m,
-            lane_changes=cfg.lane_change_corridors,
-            lane_change_length_m=cfg.lane_change_length_m,
-        )
-        return SceneMap(road_map, LaneletIndex(road_map), routes, tuple(problems), projection)
+    return scene_map.derived(("corridors", options), build)
 
 
 # --------------------------------------------------------------------------- per-track state
@@ -293,6 +176,7 @@ class CorridorBuilder:
         self.scene_maps = scene_maps or SceneMaps(config)
         self._scene_id: str | None = None
         self._map: SceneMap | None = None
+        self._indices: tuple[LaneletIndex, RouteCache] | None = None  # of `_map` (`_matching_indices`)
         self._centre_of: object = False  # the road map whose centre `_centre` is (False: none yet)
         self._centre: np.ndarray | None = None
         self._tracks: dict[int, _Track] = {}
@@ -425,6 +309,12 @@ class CorridorBuilder:
         if scene.scene_id != self._scene_id:
             self._scene_id = scene.scene_id
             self._map = self.scene_maps.get(scene, self.config.projection)
+            self._indices = None
+            if self._map.road_map is not None:
+                try:
+                    self._indices = _matching_indices(self.scene_maps, self._map)
+                except Exception as error:  # noqa: BLE001 - as a map that fails to load: unusable, not a crash per frame
+                    self._map = SceneMap(None, (f"map_load_failed: {type(error).__name__}: {error}",), self._map.projection)
             self._tracks.clear()
             self.estimator.reset()
             self._estimated_ns.clear()
@@ -540,7 +430,7 @@ class CorridorBuilder:
 
     def _match_and_build(self, frame: TrackFrame, scene_map: SceneMap, to_match, entries, issues: list[Issue], states) -> None:
         cfg = self.config
-        index = scene_map.index
+        index = self._indices[0]
         rows = [r for r, *_ in to_match]
         points = np.column_stack([np.asarray(frame.x_m)[rows], np.asarray(frame.y_m)[rows]])
         meas = index.measure(points, max_distance_m=cfg.match_max_distance_m, entry_extension_m=cfg.entry_extension_m)
@@ -625,7 +515,7 @@ class CorridorBuilder:
 
     def _corridors(self, scene_map: SceneMap, track: _Track, xy, kin: _Kinematics, matches):
         cfg = self.config
-        road_map, cache = scene_map.road_map, scene_map.routes
+        road_map, cache = scene_map.road_map, self._indices[1]
         ahead = cfg.ahead_m(kin.speed_mps)
         dt_s = 0.0
         if len(track.history) >= 2:

@@ -30,8 +30,7 @@ from bus_schemas import (
 )
 from stages.lib.base import ConfigMixin, Issue, StageResult, check_ranges, isolate
 from stages.lib.caps import cap_pairs
-from stages.corridors.core import SceneMaps, shown_map_name
-from stages.lib.maps import DEFAULT_SPEED_LIMIT_MPS, Projection, RoadMap, parse_projection, project_to_polyline
+from stages.lib.maps import DEFAULT_SPEED_LIMIT_MPS, Projection, RoadMap, SceneMaps, parse_projection, project_to_polyline, shown_map_name
 
 from stages.intentions import model
 from stages.intentions.model import ModelParams, Particles

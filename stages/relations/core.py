@@ -26,10 +26,9 @@ from bus_schemas import (
 )
 from stages.lib.base import ConfigMixin, Issue, StageResult, check_ranges
 from stages.lib.caps import keep_nearest, map_centre_m
-from stages.corridors.core import SceneMap, SceneMaps, shown_map_name
 from stages.lib.datasets import DEFAULT_SIZES_M
 from stages.lib.maps import ConflictKind as MapConflictKind
-from stages.lib.maps import Projection, RoadMap, parse_projection, project_to_polyline, wrap_angle_rad
+from stages.lib.maps import Projection, RoadMap, SceneMap, SceneMaps, parse_projection, project_to_polyline, shown_map_name, wrap_angle_rad
 
 from stages.lib.influence import NO_INFLUENCE, choose_influencing
 

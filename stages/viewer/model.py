@@ -567,8 +567,7 @@ def load_map_geometry(scene: SceneInfo, data: str | None = None) -> MapGeometry:
     from the bus is never opened. A map that cannot be used gives an empty
     geometry with its problem (drawn once per scene by the caller).
     """
-    from stages.corridors.core import local_map_file, resolve_projection
-    from stages.lib.maps import load_map
+    from stages.lib.maps import load_map, local_map_file, resolve_projection
 
     projection = resolve_projection("auto", scene)
     path, problem = local_map_file(data, scene)
@@ -590,24 +589,16 @@ def _other_lanelet_bounds(scene: SceneInfo, projection, path) -> tuple[list[tupl
     """Bounds of the lanelets that are not car lanelets (walkways, crosswalks, bike lanes), in the scene frame.
 
     ``RoadMap`` keeps car lanelets only, so this reads the file once more
-    (``path``, the checked local file) through the lanelet2 handles of
-    ``stages.lib.maps`` (the project's lanelet2 wrapper), projected and shifted exactly as ``maps.load_map`` does.
-    HOOK(maps): replace with a public ``maps`` function once there is one.
+    (``path``, the checked local file) with ``maps.lanelet_bounds``, projected
+    and shifted exactly as ``maps.load_map`` does.
     """
     from stages.lib import maps
 
     try:
-        projector = maps._projector(projection, scene.origin_lat_deg, scene.origin_lon_deg)
-        lanelet_map, _errors = maps.ll_io.loadRobust(str(path), projector)
-        origin = projector.forward(maps.ll_core.GPSPoint(scene.origin_lat_deg, scene.origin_lon_deg, 0.0))
+        lanelets, problems = maps.lanelet_bounds(path, scene.origin_lat_deg, scene.origin_lon_deg, projection)
     except Exception as exc:  # a map we cannot read twice still draws its car lanelets
         return [], (f"other lanelets not drawn: {exc}",)
-    out = []
-    for lanelet in lanelet_map.laneletLayer:
-        if maps.is_car_lanelet(lanelet.attributes):
-            continue
-        left = np.array([(p.x - origin.x, p.y - origin.y) for p in lanelet.leftBound], dtype=float)
-        right = np.array([(p.x - origin.x, p.y - origin.y) for p in lanelet.rightBound], dtype=float)
-        if len(left) >= 2 and len(right) >= 2:
-            out.append((left, right))
+    if lanelets is None:
+        return [], tuple(f"other lanelets not drawn: {p.detail}" for p in problems)
+    out = [(x.left_bound_m, x.right_bound_m) for x in lanelets if not x.is_car and len(x.left_bound_m) >= 2 and len(x.right_bound_m) >= 2]
     return out, ()

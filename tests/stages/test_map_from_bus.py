@@ -24,7 +24,7 @@ import pytest
 
 from bus_schemas import Header, SceneInfo, TrackFrame
 from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
-from stages.corridors import core as corridors_core
+from stages.lib.maps import scene as map_scene
 from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, load_recording
 from stages.intentions import IntentionFilter, IntentionsConfig
 from stages.relations import RelationExtractor, RelationsConfig
@@ -176,7 +176,7 @@ def test_a_fifo_or_symlink_inside_the_maps_folder_is_refused_without_blocking(pl
     os.mkfifo(data / "maps" / "fifo.osm")
     os.symlink(outside / "passwd", data / "maps" / "link.osm")
     for name in ("fifo.osm", "link.osm"):
-        path, problem = _in_thread(lambda: corridors_core.local_map_file(data, dataclasses.replace(scene, map_name=name)), fifos)
+        path, problem = _in_thread(lambda: map_scene.local_map_file(data, dataclasses.replace(scene, map_name=name)), fifos)
         assert path is None and problem.startswith("map_unreadable") and "not a regular file" in problem
 
 
@@ -188,8 +188,8 @@ def test_an_oversized_map_is_refused_before_it_is_hashed(played, layout, monkeyp
         fh.truncate(300 * 1024 * 1024)
     hashed = []
     real_sha256 = hashlib.sha256
-    monkeypatch.setattr(corridors_core.hashlib, "sha256", lambda *a, **k: hashed.append(a) or real_sha256(*a, **k))
-    path, problem = corridors_core.local_map_file(data, dataclasses.replace(scene, map_name="big.osm"))
+    monkeypatch.setattr(map_scene.hashlib, "sha256", lambda *a, **k: hashed.append(a) or real_sha256(*a, **k))
+    path, problem = map_scene.local_map_file(data, dataclasses.replace(scene, map_name="big.osm"))
     assert path is None and problem.startswith("map_too_large") and not hashed
     builder = CorridorBuilder(CorridorsConfig(data=str(data)))
     big_scene = dataclasses.replace(scene, scene_id="big", map_name="big.osm")
@@ -205,8 +205,8 @@ def test_a_scene_of_another_hash_is_reported_once_and_not_resolved_again(played,
     scene, frames = played
     data, _outside, _fifos = layout
     calls = []
-    real = corridors_core.local_map_file
-    monkeypatch.setattr(corridors_core, "local_map_file", lambda *a, **k: calls.append(a) or real(*a, **k))
+    real = map_scene.local_map_file
+    monkeypatch.setattr(map_scene, "local_map_file", lambda *a, **k: calls.append(a) or real(*a, **k))
     other = dataclasses.replace(scene, scene_id="otherhash", map_sha256="0" * 64)
     maps = SceneMaps(CorridorsConfig(data=str(data)))
     builder = CorridorBuilder(CorridorsConfig(data=str(data)), scene_maps=maps)

@@ -1,88 +1,18 @@
-"""Road map for hybrid IAMP: the project's only lanelet2 wrapper (METHOD.md §5).
+"""The road map: the car lanelets of a Lanelet2 map with routing, geometry and relations.
 
-`load_map` reads a Lanelet2 OSM file robustly (problems are returned, never
-raised) in the metric frame of a recording: x east and y north in metres from
-the recording's origin. `RoadMap` then holds, for the lanelets a car may drive,
-the vehicle routing graph, smoothed centrelines with arc length, heading and
-curvature, point-in-lanelet queries, the precomputed conflicts between lanelets,
-the intersections and a right-of-way rule. Nothing here knows about the bus.
-
-Car lanelets
-    A lanelet is a car lanelet when its `subtype` is absent or one of road,
-    highway, play_street, emergency_lane, unless a `participant:vehicle` (or
-    `participant:vehicle:car`) tag says no; a `participant:vehicle=yes` tag
-    admits any subtype. Everything else is not: walkway, crosswalk, bicycle_lane
-    and the TAF-BW spelling `bikelane`, stairs, exit, bus_lane, rail. The TAF-BW
-    maps have lanelets with no subtype (roads; k733 carries OSM tags such as
-    highway=primary instead), walkway, crosswalk and bikelane. Germany's vehicle
-    traffic rules accept lanelets with no subtype; a car lanelet that the rules
-    reject anyway gets `participant:vehicle=yes` on the in-memory map, so that
-    routing works, and a ROUTING_OVERRIDE problem. The routing graph is built
-    from a submap of the car lanelets only.
-
-Conflicts (`Conflict`)
-    Candidate pairs come from the routing graph's `conflicting` relation, plus
-    the pairs with a common successor or a common predecessor or the same end
-    point. Each candidate is refined with the smoothed centrelines, all segment
-    pairs at once:
-    - MERGE (common successor, or the same end point): placed at the merge
-      start, the first arc length from which the two centrelines stay closer
-      than the mean of the two lane widths, which is where the lanelets begin to
-      overlap; x, y is the mean of the two merge-start points.
-    - DIVERGE (common predecessor, or the same start point): kept for the
-      following relation, but not a conflict; it marks where the lanelets stop
-      overlapping.
-    - CROSSING: centrelines that intersect away from a merge or divergence zone
-      and from shared end points. Crossing wins over MERGE and DIVERGE.
-    - A `conflicting` pair whose centrelines neither cross, merge nor diverge
-      (polygons that only graze each other) is dropped.
-    An intersection is a connected cluster of lanelets joined by CROSSING or
-    MERGE conflicts. A member's entry and exit arc lengths are the first and last
-    conflict points on it; for a merge, the exit is the lanelet's end.
-
-Right of way (`RoadMap.priority`), in this order
-    1. Regulatory elements on the lanelet or its direct predecessors (approach
-       lanelets): RightOfWay (right_of_way lanelets over yield lanelets), a
-       TrafficSign stop or give-way sign (de205, de206, or a type naming stop or
-       yield) against a lanelet without one, AllWayStop (equal).
-    2. Geometry, from the approach heading (at s = 0) and the turn of each
-       lanelet (heading change above 30 degrees):
-       - oncoming lanelets (more than 135 degrees apart): a left turn yields to
-         a lanelet that does not turn left, otherwise equal;
-       - crossing lanelets (45 to 135 degrees): the major road first when both
-         carry OSM tags that differ (priority_road=designated, then the highway
-         class motorway > trunk > primary > secondary > tertiary > the rest),
-         else right before left;
-       - the same approach direction: the lanelet that turns less, by more than
-         15 degrees, goes first; otherwise equal (0).
-    Road tags are only compared between crossing roads because k733's tags come
-    from OSM ways and differ between the two halves of one road. The TAF-BW
-    maps have no regulatory elements, and both intersections are signalised,
-    so this rule describes who yields under the same green phase.
-
-Projection, measured on TAF-BW (share of all car rows inside a car lanelet)
-    | recording         | LOCAL_CARTESIAN | SCALED_MERCATOR | UTM    |
-    | k729, 25 seq.     | 0.9882          | 0.9891          | 0.9944 |
-    | k733, 1 seq.      | 0.8333          | 0.8360          | 0.8203 |
-    SCALED_MERCATOR is lanelet2's MercatorProjector (spherical Mercator on
-    R = 6378137 m scaled by cos(origin latitude)) minus the origin's own x, y.
-    In k733 the projection is not the cause: the moving cars fit the lane
-    centrelines with 0.82 to 0.88 m rms and a residual offset of about 0.6 m
-    under each of the three, and 91 % of the misses (1818 of 1981 rows) lie in a 3 m wide
-    unmapped lane between lanelets -103632 and -103634, the missing fourth lane
-    of Ostring's south-west approach, where two cars wait for about 75 s each.
-    Counting that strip, the share is 0.986. `projection_for_location` picks
-    UTM for K729 and SCALED_MERCATOR for K733 (the best measured, and the
-    method the dataset names); `Projection.AUTO` tries all three against given
-    car positions and keeps the best aligned. `offset_m` shifts the map: the
-    least-squares offsets of the map towards the tracks are about
-    (-0.4, -0.55) m for k729 and (+0.6, -0.1) m for k733; they raise the shares
-    to 0.998 and 0.846 but are fitted on the same data, so none is applied.
+`RoadMap` holds, for the lanelets a car may drive (`io.is_car_lanelet`), the
+lanelet2 vehicle routing graph, smoothed centrelines with arc length, heading
+and curvature, point-in-lanelet queries, the precomputed conflicts and
+intersections (`conflicts`) and the right of way (`priority`). `load_map`
+reads a file (`io.read_osm`) and builds one, robustly: problems are returned,
+never raised. Germany's vehicle traffic rules accept lanelets with no subtype;
+a car lanelet that the rules reject anyway gets `participant:vehicle=yes` on
+the in-memory map, so that routing works, and a ROUTING_OVERRIDE problem. The
+routing graph is built from a submap of the car lanelets only.
 """
 
 from __future__ import annotations
 
-import enum
 import math
 import re
 from dataclasses import dataclass
@@ -91,276 +21,17 @@ from typing import Sequence
 
 import numpy as np
 from lanelet2 import core as ll_core
-from lanelet2 import io as ll_io
-from lanelet2 import projection as ll_projection
 from lanelet2 import routing as ll_routing
 from lanelet2 import traffic_rules as ll_traffic_rules
 
+from stages.lib.maps.conflicts import Conflict, Intersection, find_intersections, find_relations
+from stages.lib.maps.geometry import Centreline, _frozen, _polygon_area_m2, concatenate_centrelines, wrap_angle_rad
+from stages.lib.maps.io import MapProblem, MapProblemKind, is_car_lanelet, read_osm
+from stages.lib.maps.priority import PriorityRule, RightOfWay, Turn, turn_of
+from stages.lib.maps.projection import _AUTO_CANDIDATES, Projection, parse_projection
+
 DEFAULT_SPEED_LIMIT_MPS = 50.0 / 3.6
-CAR_SUBTYPES = frozenset({"road", "highway", "play_street", "emergency_lane"})
-TURN_THRESHOLD_RAD = math.radians(30.0)
-_HIGHWAY_RANK = {"motorway": 6, "trunk": 5, "primary": 4, "secondary": 3, "tertiary": 2}
-_STOP_OR_YIELD_SIGNS = ("de205", "de206", "stop", "yield", "give_way")
 _MIN_LANELET_LENGTH_M = 0.05
-
-
-class Projection(enum.Enum):
-    """How the map's latitude and longitude become metres from the origin."""
-
-    UNKNOWN = 0
-    LOCAL_CARTESIAN = 1
-    SCALED_MERCATOR = 2
-    UTM = 3
-    AUTO = 4
-
-
-PROJECTION_BY_LOCATION = {"k729": Projection.UTM, "k733": Projection.SCALED_MERCATOR}
-_AUTO_CANDIDATES = (Projection.LOCAL_CARTESIAN, Projection.SCALED_MERCATOR, Projection.UTM)
-
-
-def projection_for_location(location_id: str) -> Projection:
-    """Measured best projection for a TAF-BW location id; LOCAL_CARTESIAN if unknown."""
-    return PROJECTION_BY_LOCATION.get(location_id.strip().lower(), Projection.LOCAL_CARTESIAN)
-
-
-class MapProblemKind(enum.Enum):
-    UNKNOWN = 0
-    FILE_NOT_FOUND = 1
-    UNREADABLE = 2
-    PARSE_ERROR = 3
-    BAD_ARGUMENT = 4
-    ROUTING_OVERRIDE = 5
-    DEGENERATE_LANELET = 6
-    NO_CAR_LANELETS = 7
-
-
-@dataclass(frozen=True, slots=True)
-class MapProblem:
-    kind: MapProblemKind
-    detail: str
-    element_id: int | None = None
-
-
-class ConflictKind(enum.Enum):
-    UNKNOWN = 0
-    CROSSING = 1
-    MERGE = 2
-    DIVERGE = 3
-
-
-class Turn(enum.Enum):
-    UNKNOWN = 0
-    STRAIGHT = 1
-    LEFT = 2
-    RIGHT = 3
-
-
-class PriorityRule(enum.Enum):
-    """Which rule decided `RoadMap.priority_with_rule`."""
-
-    UNKNOWN = 0
-    REGULATORY = 1
-    ROAD_CLASS = 2
-    ONCOMING_TURN = 3
-    RIGHT_BEFORE_LEFT = 4
-    LESS_TURNING = 5
-    EQUAL = 6
-
-
-def _frozen(array: np.ndarray) -> np.ndarray:
-    out = np.array(array, dtype=np.float64, copy=True)
-    out.flags.writeable = False
-    return out
-
-
-def wrap_angle_rad(angle_rad):
-    """Wrap angles to [-pi, pi)."""
-    return (np.asarray(angle_rad) + np.pi) % (2.0 * np.pi) - np.pi
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class FrenetPoints:
-    """Projections of n points onto a polyline, arrays of shape (n,) float64.
-
-    `d_m` is the signed lateral offset, positive to the left of the direction of
-    travel; `heading_rad` is the polyline's heading at `s_m`. Points beyond
-    either end project onto the straight extension of the end segment, so `s_m`
-    can be negative or exceed the length.
-    """
-
-    s_m: np.ndarray
-    d_m: np.ndarray
-    heading_rad: np.ndarray
-
-
-def project_to_polyline(
-    points_m,
-    polyline_m,
-    s_m=None,
-    heading_rad=None,
-    *,
-    s_hint_m=None,
-    window_m: float | None = None,
-) -> FrenetPoints:
-    """Project points (n, 2) onto a polyline (m, 2), vectorised over points and segments.
-
-    `s_m` (m,) is the polyline's arc length (computed if absent) and
-    `heading_rad` (m,) its heading, interpolated at the foot point when given
-    (else the segment's direction). With `s_hint_m` (scalar or (n,)) and
-    `window_m`, only segments within `window_m` of the hint are candidates,
-    which keeps projections continuous at joins and on tight curves; a point
-    with no candidate falls back to all segments.
-    """
-    points = np.atleast_2d(np.asarray(points_m, dtype=np.float64))
-    line = np.asarray(polyline_m, dtype=np.float64)
-    if line.ndim != 2 or line.shape[0] < 2 or line.shape[1] != 2:
-        raise ValueError("polyline_m must have shape (m >= 2, 2)")
-    seg = np.diff(line, axis=0)
-    seg_len = np.hypot(seg[:, 0], seg[:, 1])
-    arc = np.concatenate([[0.0], np.cumsum(seg_len)]) if s_m is None else np.asarray(s_m, np.float64)
-    seg_len2 = np.maximum(seg_len**2, 1e-18)
-    n_seg = len(seg)
-    lower = np.zeros(n_seg)
-    upper = np.ones(n_seg)
-    lower[0] = -np.inf
-    upper[-1] = np.inf
-    hints = None
-    if s_hint_m is not None and window_m is not None:
-        hints = np.broadcast_to(np.asarray(s_hint_m, np.float64), (len(points),))
-    n_pts = len(points)
-    out_s = np.empty(n_pts)
-    out_d = np.empty(n_pts)
-    out_seg = np.empty(n_pts, dtype=np.int64)
-    chunk = max(1, 2_000_000 // max(n_seg, 1))
-    for start in range(0, n_pts, chunk):
-        p = points[start : start + chunk]
-        rel = p[:, None, :] - line[None, :-1, :]
-        t = np.clip((rel * seg[None]).sum(axis=2) / seg_len2[None], lower[None], upper[None])
-        foot = line[None, :-1, :] + t[..., None] * seg[None]
-        dist2 = ((p[:, None, :] - foot) ** 2).sum(axis=2)
-        if hints is not None:
-            h = hints[start : start + chunk, None]
-            outside = (arc[None, 1:] < h - window_m) | (arc[None, :-1] > h + window_m)
-            masked = np.where(outside, np.inf, dist2)
-            usable = np.isfinite(masked).any(axis=1)
-            dist2 = np.where(usable[:, None], masked, dist2)
-        j = dist2.argmin(axis=1)
-        rows = np.arange(len(p))
-        tj = t[rows, j]
-        out_s[start : start + chunk] = arc[j] + tj * seg_len[j]
-        ux, uy = seg[j, 0] / np.sqrt(seg_len2[j]), seg[j, 1] / np.sqrt(seg_len2[j])
-        rx, ry = rel[rows, j, 0], rel[rows, j, 1]
-        out_d[start : start + chunk] = ux * ry - uy * rx
-        out_seg[start : start + chunk] = j
-    if heading_rad is None:
-        heading = np.arctan2(seg[out_seg, 1], seg[out_seg, 0])
-    else:
-        unwrapped = np.unwrap(np.asarray(heading_rad, np.float64))
-        heading = wrap_angle_rad(np.interp(out_s, arc, unwrapped))
-    return FrenetPoints(s_m=out_s, d_m=out_d, heading_rad=heading)
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class Centreline:
-    """A resampled, lightly smoothed centreline; arrays (n,) float64, read-only.
-
-    `s_m` is the cumulative arc length from 0, `heading_rad` the direction of
-    travel and `curvature_1pm` its derivative along s (positive to the left).
-    """
-
-    x_m: np.ndarray
-    y_m: np.ndarray
-    s_m: np.ndarray
-    heading_rad: np.ndarray
-    curvature_1pm: np.ndarray
-
-    @classmethod
-    def from_points(cls, points_m, step_m: float = 0.5, smoothing_m: float = 1.0) -> Centreline:
-        """Resample a polyline (m >= 2, 2) to about `step_m` and smooth it.
-
-        The smoothing is a Gaussian of standard deviation `smoothing_m` over a
-        point-reflected extension, so both end points stay where they are and
-        consecutive lanelets still meet.
-        """
-        raw = np.asarray(points_m, dtype=np.float64)[:, :2]
-        keep = np.concatenate([[True], np.hypot(*np.diff(raw, axis=0).T) > 1e-9])
-        raw = raw[keep]
-        if len(raw) < 2:
-            raise ValueError("a centreline needs two distinct points")
-        raw_s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(raw, axis=0).T))])
-        n = max(2, int(math.ceil(raw_s[-1] / step_m)) + 1)
-        s = np.linspace(0.0, raw_s[-1], n)
-        pts = np.column_stack([np.interp(s, raw_s, raw[:, 0]), np.interp(s, raw_s, raw[:, 1])])
-        sigma = smoothing_m / (raw_s[-1] / (n - 1))
-        radius = min(int(math.ceil(3.0 * sigma)), n - 1)
-        if sigma > 0.0 and radius >= 1:
-            kernel = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
-            kernel /= kernel.sum()
-            head = 2.0 * pts[0] - pts[radius:0:-1]
-            tail = 2.0 * pts[-1] - pts[-2 : -radius - 2 : -1]
-            padded = np.concatenate([head, pts, tail])
-            pts = np.column_stack([np.convolve(padded[:, k], kernel, mode="valid") for k in range(2)])
-        return cls.from_resampled(pts)
-
-    @classmethod
-    def from_resampled(cls, points_m) -> Centreline:
-        """Build from points that are already dense and smooth (no resampling)."""
-        pts = np.asarray(points_m, dtype=np.float64)
-        s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(pts, axis=0).T))])
-        dx = np.gradient(pts[:, 0], s) if len(s) > 2 else np.full(len(s), pts[-1, 0] - pts[0, 0])
-        dy = np.gradient(pts[:, 1], s) if len(s) > 2 else np.full(len(s), pts[-1, 1] - pts[0, 1])
-        heading = np.unwrap(np.arctan2(dy, dx))
-        curvature = np.gradient(heading, s) if len(s) > 2 else np.zeros(len(s))
-        return cls(
-            x_m=_frozen(pts[:, 0]),
-            y_m=_frozen(pts[:, 1]),
-            s_m=_frozen(s),
-            heading_rad=_frozen(wrap_angle_rad(heading)),
-            curvature_1pm=_frozen(curvature),
-        )
-
-    @property
-    def length_m(self) -> float:
-        return float(self.s_m[-1])
-
-    @property
-    def points_m(self) -> np.ndarray:
-        """(n, 2) float64 copy of the points."""
-        return np.column_stack([self.x_m, self.y_m])
-
-    def heading_at(self, s_m) -> np.ndarray:
-        return wrap_angle_rad(np.interp(s_m, self.s_m, np.unwrap(self.heading_rad)))
-
-    def to_xy(self, s_m, d_m=0.0) -> np.ndarray:
-        """Points (n, 2) at arc lengths `s_m` and left offsets `d_m`; straight beyond the ends."""
-        s = np.atleast_1d(np.asarray(s_m, dtype=np.float64))
-        d = np.broadcast_to(np.asarray(d_m, dtype=np.float64), s.shape)
-        heading = self.heading_at(s)
-        x = np.interp(s, self.s_m, self.x_m)
-        y = np.interp(s, self.s_m, self.y_m)
-        for beyond, s_end, idx in ((s < 0.0, 0.0, 0), (s > self.length_m, self.length_m, -1)):
-            h = self.heading_rad[idx]
-            x = np.where(beyond, self.x_m[idx] + (s - s_end) * math.cos(h), x)
-            y = np.where(beyond, self.y_m[idx] + (s - s_end) * math.sin(h), y)
-        return np.column_stack([x - d * np.sin(heading), y + d * np.cos(heading)])
-
-    def project(self, points_m, *, s_hint_m=None, window_m: float | None = None) -> FrenetPoints:
-        """Frenet coordinates of points (n, 2); see `project_to_polyline`."""
-        return project_to_polyline(
-            points_m, self.points_m, self.s_m, self.heading_rad, s_hint_m=s_hint_m, window_m=window_m
-        )
-
-
-def concatenate_centrelines(centrelines: Sequence[Centreline]) -> Centreline:
-    """Join the centrelines of a lanelet sequence into one, dropping repeated join points."""
-    parts = [centrelines[0].points_m]
-    for line in centrelines[1:]:
-        pts = line.points_m
-        if np.hypot(*(pts[0] - parts[-1][-1])) < 1e-6:
-            pts = pts[1:]
-        if len(pts):
-            parts.append(pts)
-    return Centreline.from_resampled(np.concatenate(parts))
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -396,75 +67,6 @@ class Neighbours:
     can_change_right: bool
 
 
-@dataclass(frozen=True, slots=True)
-class ConflictPoint:
-    """Where lanelets a and b meet: arc lengths on each; angle = heading b - heading a."""
-
-    x_m: float
-    y_m: float
-    s_a_m: float
-    s_b_m: float
-    angle_rad: float
-
-    def swapped(self) -> ConflictPoint:
-        return ConflictPoint(self.x_m, self.y_m, self.s_b_m, self.s_a_m, -self.angle_rad)
-
-
-@dataclass(frozen=True, slots=True)
-class Conflict:
-    """A relation between two car lanelets; `points` is ordered along lanelet a.
-
-    A positive angle means lanelet b comes from the right of lanelet a.
-    """
-
-    lanelet_a_id: int
-    lanelet_b_id: int
-    kind: ConflictKind
-    points: tuple[ConflictPoint, ...]
-
-    @property
-    def first(self) -> ConflictPoint:
-        return self.points[0]
-
-    @property
-    def is_conflict(self) -> bool:
-        return self.kind in (ConflictKind.CROSSING, ConflictKind.MERGE)
-
-    def swapped(self) -> Conflict:
-        pts = sorted((p.swapped() for p in self.points), key=lambda p: p.s_a_m)
-        return Conflict(self.lanelet_b_id, self.lanelet_a_id, self.kind, tuple(pts))
-
-
-@dataclass(frozen=True, slots=True)
-class IntersectionMember:
-    lanelet_id: int
-    entry_s_m: float
-    exit_s_m: float
-
-
-@dataclass(frozen=True, slots=True)
-class Intersection:
-    intersection_id: int
-    members: tuple[IntersectionMember, ...]
-
-    @property
-    def lanelet_ids(self) -> tuple[int, ...]:
-        return tuple(m.lanelet_id for m in self.members)
-
-    def member(self, lanelet_id: int) -> IntersectionMember | None:
-        return next((m for m in self.members if m.lanelet_id == lanelet_id), None)
-
-
-def is_car_lanelet(attributes) -> bool:
-    """The car-lanelet rule of the module docstring, on a lanelet's tag mapping."""
-    tags = {str(k): str(v) for k, v in dict(attributes).items()}
-    for key in ("participant:vehicle:car", "participant:vehicle"):
-        if key in tags:
-            return tags[key].strip().lower() in ("yes", "true", "1")
-    subtype = tags.get("subtype", "").strip().lower()
-    return subtype == "" or subtype in CAR_SUBTYPES
-
-
 def _parse_speed_mps(text: str) -> float | None:
     match = re.fullmatch(r"\s*([0-9]+(?:\.[0-9]*)?)\s*(km/h|kmh|kph|mph|m/s|mps)?\s*", text.lower())
     if not match:
@@ -483,37 +85,6 @@ def _speed_limit_element_mps(element) -> float | None:
     match = re.search(r"de274-([0-9]+)", str(element.type()).lower())
     return float(match.group(1)) / 3.6 if match else None
 
-
-def _polygon_area_m2(polygon: np.ndarray) -> float:
-    x, y = polygon[:, 0], polygon[:, 1]
-    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
-
-
-def _distance_to_polyline_m(points: np.ndarray, line: np.ndarray) -> np.ndarray:
-    seg = np.diff(line, axis=0)
-    len2 = np.maximum((seg**2).sum(axis=1), 1e-18)
-    rel = points[:, None, :] - line[None, :-1, :]
-    t = np.clip((rel * seg[None]).sum(axis=2) / len2[None], 0.0, 1.0)
-    diff = rel - t[..., None] * seg[None]
-    return np.sqrt((diff**2).sum(axis=2).min(axis=1))
-
-
-def segment_intersections(line_a: np.ndarray, line_b: np.ndarray):
-    """All intersections of two polylines, every segment pair at once.
-
-    Returns (i, j, t, u): segment indices on a and b and the fractions along
-    those segments, arrays of equal length.
-    """
-    a0, r = line_a[:-1], np.diff(line_a, axis=0)
-    b0, q = line_b[:-1], np.diff(line_b, axis=0)
-    denom = r[:, None, 0] * q[None, :, 1] - r[:, None, 1] * q[None, :, 0]
-    diff = b0[None, :, :] - a0[:, None, :]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (diff[..., 0] * q[None, :, 1] - diff[..., 1] * q[None, :, 0]) / denom
-        u = (diff[..., 0] * r[:, None, 1] - diff[..., 1] * r[:, None, 0]) / denom
-    hit = (np.abs(denom) > 1e-12) & (t >= 0.0) & (t <= 1.0) & (u >= 0.0) & (u <= 1.0)
-    i, j = np.nonzero(hit)
-    return i, j, t[i, j], u[i, j]
 
 
 class RoadMap:
@@ -570,14 +141,16 @@ class RoadMap:
         self.routing_graph = ll_routing.RoutingGraph(self.lanelet2_map, rules) if car_lanelets else None
         self._read_routing()
         self._build_polygon_edges()
-        self._relations = self._compute_relations()
+        self._relations = find_relations(
+            self.lanelet_ids, self._infos, self._successors, self._predecessors, self._lanelet2_conflicts
+        )
         self._conflict_keys: dict[int, list[tuple[int, int]]] = {x: [] for x in self.lanelet_ids}
         for key, relation in self._relations.items():
             if relation.is_conflict:
                 self._conflict_keys[key[0]].append(key)
                 self._conflict_keys[key[1]].append(key)
-        self._intersections = self._compute_intersections()
-        self._read_regulatory_elements()
+        self._intersections, self._intersection_of = find_intersections(self.lanelet_ids, self._infos, self._relations)
+        self._right_of_way = RightOfWay(self._lanelets, self._predecessors, self._infos)
 
     # ----- construction helpers -------------------------------------------
 
@@ -599,12 +172,7 @@ class RoadMap:
             if speed is None and isinstance(element, ll_core.SpeedLimit):
                 speed = _speed_limit_element_mps(element)
         turn_angle = float(wrap_angle_rad(centreline.heading_rad[-1] - centreline.heading_rad[0]))
-        if turn_angle > TURN_THRESHOLD_RAD:
-            turn = Turn.LEFT
-        elif turn_angle < -TURN_THRESHOLD_RAD:
-            turn = Turn.RIGHT
-        else:
-            turn = Turn.STRAIGHT
+        turn = turn_of(turn_angle)
         return LaneletInfo(
             lanelet_id=lanelet.id,
             centreline=centreline,
@@ -653,142 +221,6 @@ class RoadMap:
             edges.append(np.concatenate([polygon, np.roll(polygon, -1, axis=0)], axis=1))
         self._edges = np.concatenate(edges) if edges else np.zeros((0, 4))
         self._edge_starts = np.asarray(starts, dtype=np.int64)
-
-    def _compute_relations(self) -> dict[tuple[int, int], Conflict]:
-        candidates: set[tuple[int, int]] = set()
-        for a, others in self._lanelet2_conflicts.items():
-            candidates.update((min(a, b), max(a, b)) for b in others)
-        for groups in (self._successors, self._predecessors):
-            for members in groups.values():
-                candidates.update((a, b) for a in members for b in members if a < b)
-        ids = np.asarray(self.lanelet_ids)
-        for end in (0, -1):
-            ends = np.array([self._infos[x].centreline.points_m[end] for x in self.lanelet_ids]).reshape(-1, 2)
-            close = np.hypot(*(ends[:, None, :] - ends[None, :, :]).transpose(2, 0, 1)) < 0.5
-            i, j = np.nonzero(np.triu(close, k=1))
-            candidates.update((int(min(ids[p], ids[q])), int(max(ids[p], ids[q]))) for p, q in zip(i, j))
-        relations = {}
-        for a, b in sorted(candidates):
-            relation = self._relate(a, b)
-            if relation is not None:
-                relations[(a, b)] = relation
-        return relations
-
-    def _relate(self, a: int, b: int) -> Conflict | None:
-        info_a, info_b = self._infos[a], self._infos[b]
-        line_a, line_b = info_a.centreline, info_b.centreline
-        pts_a, pts_b = line_a.points_m, line_b.points_m
-        overlap_m = 0.5 * (info_a.width_m + info_b.width_m)
-        touch_m = 0.5
-        merge = bool(set(self._successors[a]) & set(self._successors[b])) or (
-            np.hypot(*(pts_a[-1] - pts_b[-1])) < touch_m
-        )
-        diverge = not merge and (
-            bool(set(self._predecessors[a]) & set(self._predecessors[b])) or np.hypot(*(pts_a[0] - pts_b[0])) < touch_m
-        )
-        zone_a = zone_b = None
-        if merge or diverge:
-            dist_a = _distance_to_polyline_m(pts_a, pts_b)
-            dist_b = _distance_to_polyline_m(pts_b, pts_a)
-            if merge:
-                zone_a = _merge_start_m(line_a.s_m, dist_a, overlap_m)
-                zone_b = _merge_start_m(line_b.s_m, dist_b, overlap_m)
-            else:
-                zone_a = _divergence_end_m(line_a.s_m, dist_a, overlap_m)
-                zone_b = _divergence_end_m(line_b.s_m, dist_b, overlap_m)
-        i, j, t, u = segment_intersections(pts_a, pts_b)
-        s_a = line_a.s_m[i] + t * np.diff(line_a.s_m)[i]
-        s_b = line_b.s_m[j] + u * np.diff(line_b.s_m)[j]
-        keep = np.ones(len(s_a), dtype=bool)
-        end_margin_m = 0.5
-        at_end_a = (s_a < end_margin_m) | (s_a > line_a.length_m - end_margin_m)
-        at_end_b = (s_b < end_margin_m) | (s_b > line_b.length_m - end_margin_m)
-        keep &= ~(at_end_a & at_end_b)
-        if merge:
-            keep &= (s_a < zone_a - end_margin_m) & (s_b < zone_b - end_margin_m)
-        if diverge:
-            keep &= (s_a > zone_a + end_margin_m) & (s_b > zone_b + end_margin_m)
-        order = np.argsort(s_a[keep])
-        s_a, s_b = s_a[keep][order], s_b[keep][order]
-        points = []
-        for sa, sb in zip(s_a, s_b):
-            if points and sa - points[-1].s_a_m < 1.0:
-                continue
-            xy = line_a.to_xy(sa)[0]
-            angle = float(wrap_angle_rad(line_b.heading_at(sb) - line_a.heading_at(sa)))
-            points.append(ConflictPoint(float(xy[0]), float(xy[1]), float(sa), float(sb), angle))
-        if points:
-            return Conflict(a, b, ConflictKind.CROSSING, tuple(points))
-        if merge or diverge:
-            xy = 0.5 * (line_a.to_xy(zone_a)[0] + line_b.to_xy(zone_b)[0])
-            angle = float(wrap_angle_rad(line_b.heading_at(zone_b) - line_a.heading_at(zone_a)))
-            point = ConflictPoint(float(xy[0]), float(xy[1]), float(zone_a), float(zone_b), angle)
-            return Conflict(a, b, ConflictKind.MERGE if merge else ConflictKind.DIVERGE, (point,))
-        return None
-
-    def _compute_intersections(self) -> tuple[Intersection, ...]:
-        parent = {lanelet_id: lanelet_id for lanelet_id in self.lanelet_ids}
-
-        def root(x: int) -> int:
-            while parent[x] != x:
-                parent[x] = parent[parent[x]]
-                x = parent[x]
-            return x
-
-        spans: dict[int, list[float]] = {}
-        for (a, b), relation in self._relations.items():
-            if not relation.is_conflict:
-                continue
-            parent[root(a)] = root(b)
-            for lanelet_id, values in (
-                (a, [p.s_a_m for p in relation.points]),
-                (b, [p.s_b_m for p in relation.points]),
-            ):
-                if relation.kind is ConflictKind.MERGE:
-                    values = values + [self._infos[lanelet_id].length_m]
-                spans.setdefault(lanelet_id, []).extend(values)
-        clusters: dict[int, list[int]] = {}
-        for lanelet_id in self.lanelet_ids:
-            if lanelet_id in spans:
-                clusters.setdefault(root(lanelet_id), []).append(lanelet_id)
-        ordered = sorted(clusters.values(), key=lambda ids: min(self._index[x] for x in ids))
-        result = []
-        for number, ids in enumerate(ordered):
-            members = tuple(
-                IntersectionMember(
-                    lanelet_id,
-                    float(max(0.0, min(spans[lanelet_id]))),
-                    float(min(self._infos[lanelet_id].length_m, max(spans[lanelet_id]))),
-                )
-                for lanelet_id in sorted(ids, key=self._index.get)
-            )
-            result.append(Intersection(number, members))
-        self._intersection_of = {m.lanelet_id: x for x in result for m in x.members}
-        return tuple(result)
-
-    def _read_regulatory_elements(self) -> None:
-        self._right_of_way: dict[int, set[int]] = {x: set() for x in self.lanelet_ids}
-        self._yields_in: dict[int, set[int]] = {x: set() for x in self.lanelet_ids}
-        self._all_way_stops: dict[int, set[int]] = {x: set() for x in self.lanelet_ids}
-        self._has_stop_sign: dict[int, bool] = {x: False for x in self.lanelet_ids}
-        self._has_regulation: dict[int, bool] = {x: False for x in self.lanelet_ids}
-        for lanelet_id, lanelet in self._lanelets.items():
-            for element in lanelet.regulatoryElements:
-                if isinstance(element, ll_core.RightOfWay):
-                    self._has_regulation[lanelet_id] = True
-                    if any(x.id == lanelet_id for x in element.rightOfWayLanelets()):
-                        self._right_of_way[lanelet_id].add(element.id)
-                    if any(x.id == lanelet_id for x in element.yieldLanelets()):
-                        self._yields_in[lanelet_id].add(element.id)
-                elif isinstance(element, ll_core.AllWayStop):
-                    self._has_regulation[lanelet_id] = True
-                    self._all_way_stops[lanelet_id].add(element.id)
-                elif isinstance(element, ll_core.TrafficSign):
-                    sign_type = str(element.type()).lower()
-                    if any(key in sign_type for key in _STOP_OR_YIELD_SIGNS):
-                        self._has_regulation[lanelet_id] = True
-                        self._has_stop_sign[lanelet_id] = True
-
     # ----- lanelets and routing -------------------------------------------
 
     def lanelet(self, lanelet_id: int) -> LaneletInfo:
@@ -902,99 +334,8 @@ class RoadMap:
         return self.priority_with_rule(lanelet_a_id, lanelet_b_id)[0]
 
     def priority_with_rule(self, lanelet_a_id: int, lanelet_b_id: int) -> tuple[int, PriorityRule]:
-        """`priority` and the rule (module docstring) that decided it."""
-        a, b = lanelet_a_id, lanelet_b_id
-        if a == b:
-            return 0, PriorityRule.EQUAL
-        regulatory = self._regulatory_priority(a, b)
-        if regulatory is not None:
-            return regulatory, PriorityRule.REGULATORY
-        info_a, info_b = self._infos[a], self._infos[b]
-        approach = float(wrap_angle_rad(info_b.centreline.heading_rad[0] - info_a.centreline.heading_rad[0]))
-        if abs(approach) >= math.radians(135.0):
-            left_a, left_b = info_a.turn is Turn.LEFT, info_b.turn is Turn.LEFT
-            if left_a != left_b:
-                return (-1 if left_a else 1), PriorityRule.ONCOMING_TURN
-            return 0, PriorityRule.EQUAL
-        if abs(approach) > math.radians(45.0):
-            rank_a, rank_b = self._road_rank(a), self._road_rank(b)
-            if rank_a is not None and rank_b is not None and rank_a != rank_b:
-                return (1 if rank_a > rank_b else -1), PriorityRule.ROAD_CLASS
-            return (-1 if approach > 0.0 else 1), PriorityRule.RIGHT_BEFORE_LEFT
-        turn_a, turn_b = abs(info_a.turn_angle_rad), abs(info_b.turn_angle_rad)
-        if abs(turn_a - turn_b) > math.radians(15.0):
-            return (1 if turn_a < turn_b else -1), PriorityRule.LESS_TURNING
-        return 0, PriorityRule.EQUAL
-
-    def _with_approaches(self, lanelet_id: int) -> tuple[int, ...]:
-        return (lanelet_id,) + self._predecessors[lanelet_id]
-
-    def _regulatory_priority(self, a: int, b: int) -> int | None:
-        group_a, group_b = self._with_approaches(a), self._with_approaches(b)
-        if not any(self._has_regulation[x] for x in group_a + group_b):
-            return None
-        row_a = set().union(*(self._right_of_way[x] for x in group_a))
-        row_b = set().union(*(self._right_of_way[x] for x in group_b))
-        yield_a = set().union(*(self._yields_in[x] for x in group_a))
-        yield_b = set().union(*(self._yields_in[x] for x in group_b))
-        if row_a & yield_b:
-            return 1
-        if row_b & yield_a:
-            return -1
-        stops_a = set().union(*(self._all_way_stops[x] for x in group_a))
-        stops_b = set().union(*(self._all_way_stops[x] for x in group_b))
-        if stops_a & stops_b:
-            return 0
-        sign_a = any(self._has_stop_sign[x] for x in group_a)
-        sign_b = any(self._has_stop_sign[x] for x in group_b)
-        if sign_a != sign_b:
-            return -1 if sign_a else 1
-        return None
-
-    def _road_rank(self, lanelet_id: int) -> tuple[int, int] | None:
-        tags = {str(k): str(v) for k, v in dict(self._lanelets[lanelet_id].attributes).items()}
-        if "highway" not in tags and "priority_road" not in tags:
-            return None
-        highway = tags.get("highway", "").removesuffix("_link")
-        designated = tags.get("priority_road", "").lower() in ("designated", "yes")
-        return (int(designated), _HIGHWAY_RANK.get(highway, 1))
-
-
-def _merge_start_m(s_m: np.ndarray, distance_m: np.ndarray, overlap_m: float) -> float:
-    """First arc length from which `distance_m` stays below `overlap_m` to the end."""
-    apart = np.nonzero(distance_m >= overlap_m)[0]
-    if not len(apart):
-        return 0.0
-    k = apart[-1]
-    if k == len(s_m) - 1:
-        return float(s_m[-1])
-    d0, d1 = distance_m[k], distance_m[k + 1]
-    frac = (d0 - overlap_m) / max(d0 - d1, 1e-12)
-    return float(s_m[k] + frac * (s_m[k + 1] - s_m[k]))
-
-
-def _divergence_end_m(s_m: np.ndarray, distance_m: np.ndarray, overlap_m: float) -> float:
-    """Last arc length up to which `distance_m` stays below `overlap_m` from the start."""
-    reversed_s = s_m[-1] - s_m[::-1]
-    return float(s_m[-1] - _merge_start_m(reversed_s, distance_m[::-1], overlap_m))
-
-
-def _projector(projection: Projection, origin_lat_deg: float, origin_lon_deg: float):
-    origin = ll_io.Origin(origin_lat_deg, origin_lon_deg)
-    if projection is Projection.LOCAL_CARTESIAN:
-        return ll_projection.LocalCartesianProjector(origin)
-    if projection is Projection.SCALED_MERCATOR:
-        return ll_projection.MercatorProjector(origin)
-    if projection is Projection.UTM:
-        return ll_projection.UtmProjector(origin)
-    raise ValueError(f"no projector for {projection}")
-
-
-def parse_projection(value: Projection | str) -> Projection:
-    """A Projection from itself or its name, case-insensitive; UNKNOWN if unrecognised."""
-    if isinstance(value, Projection):
-        return value
-    return Projection.__members__.get(str(value).strip().upper(), Projection.UNKNOWN)
+        """`priority` and the rule (`stages.lib.maps.priority`) that decided it."""
+        return self._right_of_way.priority_with_rule(lanelet_a_id, lanelet_b_id)
 
 
 def load_map(
@@ -1061,26 +402,10 @@ def load_map(
                 best = (road_map, found)
         best[0].projection_shares = tuple(shares)
         return best
-    path = Path(osm_path)
-    if not path.is_file():
-        problems.append(MapProblem(MapProblemKind.FILE_NOT_FOUND, f"no map file at {path}"))
+    lanelet_map, read_problems = read_osm(osm_path, origin_lat_deg, origin_lon_deg, chosen, offset_m=offset_m)
+    problems.extend(read_problems)
+    if lanelet_map is None:
         return None, problems
-    projector = _projector(chosen, origin_lat_deg, origin_lon_deg)
-    try:
-        lanelet_map, errors = ll_io.loadRobust(str(path), projector)
-    except RuntimeError as error:
-        problems.append(MapProblem(MapProblemKind.UNREADABLE, f"lanelet2 could not read {path}: {error}"))
-        return None, problems
-    problems.extend(
-        MapProblem(MapProblemKind.PARSE_ERROR, message.strip().removeprefix("- "))
-        for message in errors
-        if not message.startswith("Errors ocurred while parsing")
-    )
-    origin_xy = projector.forward(ll_core.GPSPoint(origin_lat_deg, origin_lon_deg, 0.0))
-    shift_x = float(offset_m[0]) - origin_xy.x
-    shift_y = float(offset_m[1]) - origin_xy.y
-    if shift_x or shift_y:
-        _shift_map(lanelet_map, shift_x, shift_y)
     road_map = RoadMap(
         lanelet_map,
         projection=chosen,
@@ -1089,13 +414,4 @@ def load_map(
         smoothing_m=smoothing_m,
     )
     return road_map, problems + list(road_map.build_problems)
-
-
-def _shift_map(lanelet_map, shift_x_m: float, shift_y_m: float) -> None:
-    """Move every point of a freshly loaded map; `RoadMap` builds new spatial indices."""
-    for point in lanelet_map.pointLayer:
-        point.x = point.x + shift_x_m
-        point.y = point.y + shift_y_m
-    for lanelet in lanelet_map.laneletLayer:
-        lanelet.resetCache()
 
