@@ -114,6 +114,8 @@ class Node:
         self._last_stats = 0.0
         self._last_input_mono = time.monotonic()
         self._progress_pub = None
+        # the inputs a stop waits to be quiet: not latest-value or wildcard ones (the run's NodeStats never are)
+        self._drain_ports = {p for p in self.input_keys if spec.inputs[p].joined or spec.inputs[p].latched}
         self.consumers = Consumers(self.node_id)  # sources: the live nodes and their acks, for pacing
 
     # ---- counters used from callbacks
@@ -506,8 +508,10 @@ class Node:
         quiet_s = DRAIN_QUIET_S
         while True:
             item = self.queue.get(timeout=0.05)
-            if item is not None:
+            drained = item is None or not (item[0] is None or item[0] in self._drain_ports)
+            if not drained:
                 self._last_input_mono = time.monotonic()
+            if item is not None:
                 try:
                     handle(item)
                 except Exception as exc:  # the last net: one message never ends the stage
@@ -515,7 +519,8 @@ class Node:
             else:
                 self._expire_pending()
             self.maybe_stats()
-            if self.stop_event.is_set() and item is None:
+            if self.stop_event.is_set() and drained and not any(self.queue.depth(p) for p in self._drain_ports | {None}):
+                # nothing of the inputs a stop waits for is queued (latest-value and wildcard messages may still come)
                 if self.signals > 1 or time.monotonic() - self._last_input_mono >= quiet_s:
                     break
 

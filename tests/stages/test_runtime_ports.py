@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import threading
+import time
 from dataclasses import dataclass
 
 import msgpack
@@ -227,3 +228,30 @@ def test_latest_and_wildcard_inputs_on_a_real_bus():
             node.signals = 2
             loop.join(10)
             node.close()
+
+
+def test_latest_and_wildcard_messages_do_not_hold_off_a_stop():
+    """A stop waits until the joined inputs are quiet; the run's NodeStats (a wildcard) never are."""
+    node, core = _node(), _Recorder()
+    node._stats_pub = _Pub()
+    done = threading.Event()
+
+    def feed() -> None:
+        i = 0
+        while not done.is_set():
+            node._accept("stats", "iamp/t/_stats/a", _stats("a", float(i)), 0)
+            node._accept("extra", "iamp/t/other/profiles", _profiles(100 + i), 0)
+            i += 1
+            done.wait(0.02)
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    feeder.start()
+    try:
+        node.stop_event.set()
+        node.signals = 1
+        t0 = time.monotonic()
+        node.run_operator(core)
+        assert time.monotonic() - t0 < 3.0
+    finally:
+        done.set()
+        feeder.join(5)
