@@ -3,11 +3,14 @@
 Consumes ``track_frame`` (``TrackFrame``) and the latched ``scene``
 (``SceneInfo``) and, when the pipeline binds them, ``corridor_set``
 (``CorridorSet``), ``corridor_predictions`` (``CorridorPredictions``) and
-``motion_grid`` (``MotionGrid``). It produces nothing on the bus. The
-three results take no part in the runtime's stamp join (16 stamps, 2 s),
-which would drop every frame once the predictions lag by more, as they do
-on a busy machine: the core gets the latest of each with every frame and
-joins them to their frames by stamp itself (``model.FrameHistory``). Run
+``motion_grid`` (``MotionGrid``), and every node's ``NodeStats`` on
+``iamp/<run>/_stats/*`` (the wildcard input ``stats``, bound by the
+runtime). It produces nothing on the bus. The three results are
+latest-value inputs (``Port(latest=True)``): they take no part in the
+runtime's stamp join (16 stamps, 2 s), which would drop every frame once
+the predictions lag by more, as they do on a busy machine, and never hold a
+frame back; the core gets the newest of each with every frame and joins
+them to their frames by stamp itself (``model.FrameHistory``). Run
 it alone with ``python -m stages.viewer``; when up it logs one line
 ``viewer: http://127.0.0.1:PORT`` (the launcher repeats it as
 ``[launch] viewer: ...``).
@@ -37,8 +40,8 @@ What the page shows, top-down (x east, y north, metres of the scene):
 Side panel: run, frame, stamp, mode, what is shown (live, paused, lagging),
 frames received, drawn and skipped, the draw time and the time from a
 frame's arrival to its drawing with its results, and per node (from the
-``NodeStats`` on ``iamp/<run>/_stats/*``, through a second bus session since
-the runtime has no port for wildcard keys) processing time p50/p95, latency,
+``NodeStats`` on ``iamp/<run>/_stats/*``, as the newest of each with every
+frame, on the stage's one session) processing time p50/p95, latency,
 queue depth, issues, errors (decode + core) and drops (queue + join).
 "pause" freezes the display; the source keeps playing (it has no control
 key to listen to).
@@ -64,7 +67,8 @@ Parameters (``ViewerConfig``):
 - ``step_s`` 1.0, ``blend_steps`` false, ``show_ground_truth`` false: the
   view at start;
 - ``grid_scale`` "log" (or "linear"), ``grid_floor`` 1e-3: the heat map;
-- ``stats`` true: subscribe to the run's ``NodeStats``;
+- ``stats`` true: show the run's ``NodeStats`` (false: the panel leaves
+  them out; the runtime still subscribes);
 - ``token`` "" (none; or ``$IAMP_VIEWER_TOKEN``), ``"auto"`` (a fresh random
   one) or 16+ characters of ``A-Z a-z 0-9 _ -``: the page URL then carries
   ``?token=...`` (the logged URL has it) and requests without it get 403;

@@ -1,6 +1,6 @@
 """The viewer core: keeps the input sets and draws them in a viser scene (the only viser user).
 
-``ViewerApp.update`` runs on the runtime's loop and only stores the joined
+``ViewerApp.update`` runs on the runtime's loop and only stores the
 input set (cheap, so the runtime's queue never backs up); a render thread
 draws the set the side panel selects, at most ``max_render_hz`` times a
 second, always the newest one: sets that arrived in between are counted as
@@ -62,7 +62,7 @@ _TYPE_NAMES = {0: "unknown", 1: "car", 2: "truck", 3: "bus", 4: "motorcycle", 5:
 
 
 class StatsBoard:
-    """The latest ``NodeStats`` of every node of the run (filled from any thread)."""
+    """The latest ``NodeStats`` of every node of the run (filled by ``update`` from the wildcard ``stats`` input, read by the render thread)."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
@@ -159,7 +159,12 @@ class ViewerApp:
     # ------------------------------------------------------------------ the runtime's side
 
     def update(self, inputs: Mapping[str, object]) -> StageResult:
-        """Keep one joined input set; the render thread draws it (or a newer one)."""
+        """Keep one input set (a frame with the newest results and NodeStats); the render thread draws it (or a newer one)."""
+        stats = inputs.get("stats")  # the wildcard input: {key: NodeStats}, absent until the first
+        if self.stats is not None and isinstance(stats, Mapping):
+            for msg in stats.values():
+                if isinstance(msg, NodeStats):
+                    self.stats.put(msg)
         with self._lock:
             if not self.history.add(inputs):
                 return StageResult(issues=[Issue("no_frame", -1, "input set without a track_frame")])
