@@ -18,6 +18,7 @@ answer is random. Asserts nothing.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -27,14 +28,9 @@ import numpy as np
 from stages.corridors import SceneMaps
 from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, load_recording
 from stages.intentions import IntentionFilter, IntentionsConfig
-from stages.offline.intentions_eval import (
-    IntentionEvalConfig,
-    chain_frames,
-    entering_events,
-    route_top1,
-    route_windows,
-    tracks_of,
-)
+from stages.offline.chain import chain_frames
+from stages.offline.intentions_eval import IntentionEvalConfig, entering_events, route_windows
+from stages.offline.truth import ground_truth, route_top1
 from stages.tracks_source.core import file_sha256
 
 
@@ -48,7 +44,7 @@ def timed_run(frames, config: IntentionsConfig, scene_maps: SceneMaps):
         cpu.append((time.process_time() - c0) * 1e3)
         wall.append((time.perf_counter() - w0) * 1e3)
         vehicles.append(len(belief.vehicles))
-        out.append(type(item)(item.frame, item.corridor_set, item.relation_set, item.scene, belief))
+        out.append(dataclasses.replace(item, belief=belief))
     return out, np.asarray(cpu), np.asarray(wall), np.asarray(vehicles)
 
 
@@ -71,9 +67,9 @@ def main(argv: list[str] | None = None) -> int:
           f" corridors + relations in {time.perf_counter() - t0:.1f} s")
     eval_cfg = IntentionEvalConfig()
     truth = []
-    for frames in sequences:
+    for seq, frames in zip(recording.sequences, sequences):
         road_map = scene_maps.get(frames[0].scene).road_map
-        truth.append((tracks_of(frames), entering_events(frames, road_map)))
+        truth.append((ground_truth(seq), entering_events(frames, road_map)))
 
     print(f"{'particles':>9} {'cpu ms/frame':>12} {'p95':>6} {'wall ms':>8} {'cpu ms/veh':>10}"
           f" {'top1 last 1 s':>16} {'top1 3 s':>16} {'top1 2 s':>16} {'windows':>8}")
@@ -89,11 +85,10 @@ def main(argv: list[str] | None = None) -> int:
                 wall_all.append(wall)
                 veh_all.append(vehicles)
                 windows += route_windows(scored, tracks, events, eval_cfg, recording.name, {})
-            rng = np.random.default_rng(0)
             pick = lambda bins: [w for w in windows if w.bin_s in bins]  # noqa: E731
-            last.append(route_top1([w.probabilities for w in pick((1.0, 0.0))], [w.truth for w in pick((1.0, 0.0))], rng))
-            at3.append(route_top1([w.probabilities for w in pick((3.0,))], [w.truth for w in pick((3.0,))], rng))
-            at2.append(route_top1([w.probabilities for w in pick((2.0,))], [w.truth for w in pick((2.0,))], rng))
+            last.append(route_top1([w.probabilities for w in pick((1.0, 0.0))], [w.truth for w in pick((1.0, 0.0))]))
+            at3.append(route_top1([w.probabilities for w in pick((3.0,))], [w.truth for w in pick((3.0,))]))
+            at2.append(route_top1([w.probabilities for w in pick((2.0,))], [w.truth for w in pick((2.0,))]))
             n_windows = len(pick((1.0, 0.0)))
         cpu = np.concatenate(cpu_all)
         wall = np.concatenate(wall_all)

@@ -9,7 +9,10 @@ loaded once), the corridors, relations and intentions cores see every frame
 histories and predicts at the evaluated instants, every mode's
 ``MarkovPredictor`` observes every frame (the measured acceleration) and
 predicts at the evaluated instants: the frames at multiples of ``stride_s``
-from the sequence's first stamp.
+from the sequence's first stamp. The chain up to intentions is
+``stages.offline.chain.Chain`` and the ground truth ``stages.offline.truth``,
+the same as ``iamp train``'s (the AR training set) and the intentions
+evaluation's.
 
 Modes: ``hybrid`` (AR distributions replace λ; ``--model`` picks the
 weights, default the shipped ones), ``baseline`` (rule-based λ), ``cv``,
@@ -51,7 +54,9 @@ Metrics per window (K = 10 steps of 0.4 s):
   followed has the highest weight (a k-way tie counts 1/k); a route window
   has at least two corridors, one of which holds the true 4 s future within
   2 m laterally while the runner-up is at least 0.5 m worse (before the
-  branch the future does not tell routes apart: those windows do not count);
+  branch the future does not tell routes apart: those windows do not count;
+  ``truth.followed_corridor`` and ``truth.route_decision``, the rule of
+  ``iamp train`` and the intentions evaluation);
   ``route_windows`` counts them (0 for ``cv``, which has one line);
 - ``nll``: mean over (vehicle, step) of −ln max(G(cell of the true position),
   ``nll_floor``), in nats, G the probability of the ``grid_cell_m`` cell
@@ -101,24 +106,29 @@ from stages.lib.base import progress_bar
 from stages.lib.base import json_safe
 from stages.lib.raster import MapRaster
 
-from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
+from stages.corridors import SceneMaps
 from stages.lib.kinematic_state import Consistency, EstimatorConfig, consistency_of, disagreement_line
 from stages.lib.datasets import DEFAULT_DATA_DIR, DatasetError, Recording, discover, find_recording, load_ref
 from stages.lib.datasets.model import same_sequence_id
 from stages.lib.markov import MarkovGridConfig, load_or_build_stencils
 from stages.markov_prediction import FramePrediction, MarkovPredictionConfig, MarkovPredictor
 from stages.markov_prediction.rasterise import GridFrame, highest_density_threshold
-from stages.intentions import IntentionFilter, IntentionsConfig
-from stages.offline.intentions_eval import followed_corridor
-from stages.relations import RelationExtractor, RelationsConfig
-from stages.tracks_source.core import TrackPlayer, TracksSourceConfig, file_sha256
+from stages.intentions import IntentionsConfig
+from stages.offline.chain import Chain
+from stages.offline.truth import (
+    ROUTE_MAX_ERROR_M,
+    ROUTE_TIE_M,
+    followed_corridor,
+    future_accelerations,
+    future_positions,
+    ground_truth,
+    route_credit,
+    route_decision,
+)
+from stages.tracks_source.core import file_sha256
 
 EVAL_MODES = ("hybrid", "baseline", "cv", "corridor_cv")
 CORRIDOR_WEIGHTS = ("intentions", "uniform")
-#: route_top1 windows: the followed corridor holds the true future within this lateral distance ...
-ROUTE_MAX_ERROR_M = 2.0
-#: ... and the runner-up is at least this much worse (else the future does not tell the routes apart).
-ROUTE_MARGIN_M = 0.5
 SLOW_SPEED_MPS = 2.0
 _MS = 1_000_000
 
@@ -342,14 +352,12 @@ class Evaluation:
 
     def _sequence(self, rec: Recording, seq, map_sha256: str, bar) -> None:
         cfg = self.config
-        one = dataclasses.replace(rec, sequences=(seq,))
-        player = TrackPlayer(
-            TracksSourceConfig(data=str(cfg.data_dir), recording=rec.name), one, map_sha256=map_sha256, run_id="eval", producer="source"
-        )
-        corridors = CorridorBuilder(CorridorsConfig(), scene_maps=self.scene_maps)
-        relations = RelationExtractor(RelationsConfig(), scene_maps=self.scene_maps)
         needs_belief = any(p.config.corridor_weights == "intentions" or p.config.initial_box == "particles" for p in self.predictors.values())
-        intentions = IntentionFilter(self.intentions_config, producer="eval", scene_maps=self.scene_maps) if needs_belief else None
+        chain = Chain(
+            rec, seq, self.scene_maps, intentions=self.intentions_config if needs_belief else None, max_frames=cfg.max_frames_per_sequence,
+            map_sha256=map_sha256, on_error=lambda stage, where, exc: self._skip(f"{stage}_error_frames", f"{where}: {type(exc).__name__}: {exc}"),
+            run_id="eval", producer="eval",
+        )
         ar = None
         if self.ar_config is not None:
             from stages.ar_inference import ARInference
@@ -358,36 +366,20 @@ class Evaluation:
             self._ar_model = ar.model  # loaded once, shared by the sequences
         for predictor in self.predictors.values():
             predictor.reset()
-        self._estimators.setdefault(rec.name, []).append(corridors.estimator)
-        truth = _ground_truth(seq)
+        self._estimators.setdefault(rec.name, []).append(chain.corridors.estimator)
+        truth = ground_truth(seq)
         tau_ns = int(round(self.predictors[cfg.modes[0]].config.tau_s * 1e9))
         n_steps = self.predictors[cfg.modes[0]].config.n_steps
         stride_ns = int(round(cfg.stride_s * 1e9))
         first = int(seq.stamp_ns[0]) if seq.n_rows else 0
-        scene: SceneInfo | None = None
-        for n, (stamp, result) in enumerate(player):
-            if cfg.max_frames_per_sequence and n >= cfg.max_frames_per_sequence:
-                break
+        for item in chain:
             bar.update(1)
-            if "scene" in result.outputs:
-                scene = result.outputs["scene"]
-                scene_map = self.scene_maps.get(scene, corridors.config.projection)
-                if scene_map.road_map is None:  # nothing could be matched: an error, never an all-NaN table
-                    problems = " ".join("; ".join(scene_map.problems).split())
-                    raise DatasetError(f"recording {rec.name}: map {scene.map_name} is unusable: {problems or 'no car lanelets'}")
-            frame: TrackFrame = result.outputs["track_frame"]
-            where = f"{rec.name} sequence {seq.id} stamp_ns {stamp}"
-            done = self._guarded("corridors_error_frames", where, lambda: corridors.process(frame, scene))
-            if done is None:
+            if item.corridor_set is None:
                 continue  # no corridors: nothing to predict in this frame
-            corridor_set = done[0]
-            relation_set = (self._guarded("relations_error_frames", where, lambda: relations.process(frame, corridor_set, scene)) or (None,))[0]
-            belief = None
-            if intentions is not None:
-                t0 = time.perf_counter()
-                belief = (self._guarded("intentions_error_frames", where,
-                                        lambda: intentions.process(frame, corridor_set, relation_set, scene)) or (None,))[0]
-                self.intentions_ms.append((time.perf_counter() - t0) * 1e3)
+            stamp, frame, scene, corridor_set, relation_set, belief = item.stamp_ns, item.frame, item.scene, item.corridor_set, item.relation_set, item.belief
+            where = f"{rec.name} sequence {seq.id} stamp_ns {stamp}"
+            if item.intentions_ms is not None:
+                self.intentions_ms.append(item.intentions_ms)
             offset = stamp - first
             if offset % stride_ns > _MS and stride_ns - offset % stride_ns > _MS:
                 for predictor in self.predictors.values():
@@ -419,7 +411,7 @@ class Evaluation:
         for row, track_id in enumerate(frame.track_ids.tolist()):
             if not AgentType(int(frame.agent_types[row])).is_vehicle:
                 continue
-            future = _future(truth.get(track_id), stamp, tau_ns, n_steps)
+            future = future_positions(truth.get(track_id), stamp, tau_ns, n_steps)
             if future is None:
                 self.skipped["no_full_future"] += 1
                 continue
@@ -487,7 +479,8 @@ class Evaluation:
                 continue
             index, error, _second = followed_corridor(corridors, future)
             profile = by_pair.get((track_id, corridors[index].corridor_id))
-            true_accel = _true_acceleration(truth.get(track_id), stamp, profile.accel_mps2.shape[0] if profile is not None else 0)
+            true_accel = future_accelerations(truth.get(track_id), stamp, int(round(profiles.step_s * 1e9)),
+                                              profile.accel_mps2.shape[0] if profile is not None else 0)
             if profile is None or error > ROUTE_MAX_ERROR_M or true_accel is None:
                 continue
             self.ar_examples.append({
@@ -672,66 +665,17 @@ class Evaluation:
 
 
 def _route_hit(prediction: FramePrediction, members: list[int], weights: np.ndarray, vehicle, future: np.ndarray) -> float | None:
-    """route_top1 of one window: 1 when the followed corridor has the highest weight (1/k for a k-way tie), 0 when not;
-    None when the window does not count (fewer than two corridors, or the true future does not single one out)."""
+    """route_top1 of one window (``stages.offline.truth.route_credit``: 1 when the followed corridor has the highest
+    weight, 1/k for a k-way tie, 0 when not); None when the window does not count (fewer than two corridors, or the
+    true future does not single one out: ``truth.route_decision``)."""
     by_id = {c.corridor_id: c for c in vehicle.corridors}
     corridors = [by_id.get(prediction.pairs[b].corridor_id) for b in members]
     if len(corridors) < 2 or any(c is None for c in corridors):
         return None
-    index, error, second = followed_corridor(corridors, future)
-    if error > ROUTE_MAX_ERROR_M or second - error < ROUTE_MARGIN_M:
+    followed = followed_corridor(corridors, future)
+    if route_decision(followed, ROUTE_MAX_ERROR_M, ROUTE_TIE_M) is not None:
         return None
-    best = np.flatnonzero(weights >= weights.max() - 1e-9)
-    return 1.0 / best.size if index in best else 0.0
-
-
-# --------------------------------------------------------------------------- ground truth
-
-
-def _ground_truth(seq) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """Per track: (stamps (n,) int64 sorted, positions (n, 2))."""
-    out = {}
-    order = np.lexsort((seq.stamp_ns, seq.track_id))
-    tid = seq.track_id[order]
-    bounds = np.flatnonzero(np.diff(tid)) + 1
-    for idx in np.split(order, bounds):
-        if idx.size:
-            out[int(seq.track_id[idx[0]])] = (seq.stamp_ns[idx], np.column_stack([seq.x_m[idx], seq.y_m[idx]]))
-    return out
-
-
-def _future(track: tuple[np.ndarray, np.ndarray] | None, stamp_ns: int, tau_ns: int, n_steps: int) -> np.ndarray | None:
-    """True positions (K, 2) at exactly stamp + k·τ (±1 ms), or None when one is missing."""
-    if track is None:
-        return None
-    stamps, xy = track
-    want = stamp_ns + tau_ns * np.arange(1, n_steps + 1)
-    i = np.searchsorted(stamps, want - _MS)
-    if np.any(i >= stamps.shape[0]):
-        return None
-    if np.any(np.abs(stamps[i] - want) > _MS):
-        return None
-    return xy[i]
-
-
-def _true_acceleration(track: tuple[np.ndarray, np.ndarray] | None, stamp_ns: int, n_steps: int, step_s: float = 0.1) -> np.ndarray | None:
-    """The true longitudinal acceleration at stamp + j·step, j = 1..n, as the AR training targets define it
-    (``stages.offline.train.dataset.smoothed_acceleration`` with its default window and edges), or None where unknown."""
-    from stages.offline.train.dataset import DatasetConfig, smoothed_acceleration
-
-    if track is None or n_steps <= 0:
-        return None
-    stamps, xy = track
-    step_ns = int(round(step_s * 1e9))
-    cfg = DatasetConfig()
-    window = max(int(round(cfg.target_window_s / step_s)), 3) | 1
-    accel = smoothed_acceleration(stamps, xy, step_ns, window, int(round(cfg.target_edge_s / step_s)))
-    want = stamp_ns + step_ns * np.arange(1, n_steps + 1)
-    i = np.searchsorted(stamps, want - _MS)
-    if np.any(i >= stamps.size) or np.any(np.abs(stamps[np.minimum(i, stamps.size - 1)] - want) > _MS):
-        return None
-    out = accel[i]
-    return out if np.all(np.isfinite(out)) else None
+    return route_credit(weights, followed.index)
 
 
 def _accel_figure(e: dict[str, Any]) -> "_Canvas":

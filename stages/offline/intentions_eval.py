@@ -3,8 +3,10 @@
     python -m stages.offline.intentions_eval --data PATH [--recording NAME] [--sequence ID] [--particles N] [--seeds 0 1 2] [--json FILE]
 
 Runs TrackPlayer → CorridorBuilder → RelationExtractor → IntentionFilter as
-plain cores over every sequence (fresh cores per sequence, maps loaded
-once), then scores the published beliefs against what the cars really did.
+plain cores over every sequence (``stages.offline.chain``, the chain of
+``iamp eval`` and ``iamp train``: fresh cores per sequence, maps loaded
+once), then scores the published beliefs against what the cars really did
+(``stages.offline.truth``, the ground truth of ``iamp eval``).
 
 Entering an intersection. A car is inside an intersection when its matched
 lanelet (``VehicleCorridors.lanelet_id``) is a member of one
@@ -18,7 +20,10 @@ least two corridors and a next entering event; τ = t_enter − t is its time
 before the entrance. The corridor it really followed is judged from its
 true future at t + 0.4k s, k = 1..10 (4 s): the corridor whose centreline
 holds the future best, i.e. with the smallest maximum lateral distance of
-the future positions (projected on the corridor, ends extended straight).
+the future positions (``truth.followed_corridor``, the rule of ``iamp
+eval`` and ``iamp train``: over the positions that project within the
+corridor, whose polyline includes its own straight extension, at least
+``min_future_steps`` of them).
 TAF-BW tracks end 1 to 3 s after the entrance (the sensors' field of
 view), so a future shorter than 4 s is used as far as it goes (at least
 ``min_future_steps`` positions; the tie rule below drops the windows it
@@ -27,9 +32,10 @@ above ``max_route_error_m`` (it followed none) or where another corridor is
 within ``route_tie_m`` of it (the future cannot tell them apart) are left
 out and counted. route_top1 is the share of windows whose true corridor
 gets the highest probability, for three predictors: the intentions (P(R =
-c)), a uniform prior and the nearest corridor (smallest |d| now); ties are
-broken at random with a fixed seed, so uniform is 1/n in expectation (also
-reported exactly as ``uniform_expected``). Reported per bin of τ: 3, 2, 1
+c)), a uniform prior and the nearest corridor (smallest |d| now); a k-way
+tie for the highest probability counts 1/k (``truth.route_top1``, as in
+``iamp eval``), so uniform is exactly 1/n (also reported as
+``uniform_expected``). Reported per bin of τ: 3, 2, 1
 and 0 s, each ± ``bin_half_width_s`` (every frame in the bin is a window).
 
 Stop/go (``stop_go``). Per entering event, the car *stopped* when its speed
@@ -58,26 +64,25 @@ import dataclasses
 import json
 import math
 import sys
-import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
-from bus_schemas import CorridorSet, IntentionBelief, MatchStatus, RelationSet, SceneInfo, TrackFrame
-from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
-from stages.lib.datasets import DEFAULT_DATA_DIR, Recording, discover, load_recording
-from stages.lib.maps import RoadMap, project_to_polyline
-from stages.relations import RelationExtractor, RelationsConfig
-from stages.tracks_source.core import TrackPlayer, TracksSourceConfig, file_sha256
+from bus_schemas import MatchStatus
+from stages.corridors import SceneMaps
+from stages.lib.datasets import DEFAULT_DATA_DIR, discover, load_recording
+from stages.lib.maps import RoadMap
+from stages.tracks_source.core import file_sha256
 from stages.lib.base import json_safe
 
-from stages.intentions.core import IntentionFilter, IntentionsConfig
+from stages.intentions.core import IntentionsConfig
+from stages.offline.chain import ChainFrame, chain_frames, with_beliefs
+from stages.offline.truth import ROUTE_MAX_ERROR_M, ROUTE_TIE_M, Track, followed_corridor, future_run, ground_truth, route_decision, route_top1
 
 BINS_S = (3.0, 2.0, 1.0, 0.0)
 _NS = 1e-9
-_MS_NS = 1_000_000
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -93,84 +98,23 @@ class IntentionEvalConfig:
     horizon_s: float = 4.0
     step_s: float = 0.4
     min_future_steps: int = 2
-    max_route_error_m: float = 2.0
-    route_tie_m: float = 0.5
+    max_route_error_m: float = ROUTE_MAX_ERROR_M
+    route_tie_m: float = ROUTE_TIE_M
     standstill_speed_mps: float = 0.5
     standstill_min_s: float = 1.0
-    tie_seed: int = 0
     seeds: tuple[int, ...] = (0,)
 
     def intentions_config(self) -> IntentionsConfig:
         return IntentionsConfig.from_params(dict(self.params), where="intentions evaluation")
 
 
-@dataclass(frozen=True, slots=True, eq=False)
-class ChainFrame:
-    """One frame through the chain: the inputs of the intentions stage and its output."""
-
-    frame: TrackFrame
-    corridor_set: CorridorSet
-    relation_set: RelationSet
-    scene: SceneInfo
-    belief: IntentionBelief | None = None
-
-
 # --------------------------------------------------------------------------- running the chain
+# ``chain_frames`` and ``ChainFrame``: ``stages.offline.chain``; ``run_filter``: a fresh filter over the frames.
+
+run_filter = with_beliefs
 
 
-def chain_frames(recording: Recording, sequence, scene_maps: SceneMaps, *, map_sha256: str = "") -> list[ChainFrame]:
-    """TrackPlayer → CorridorBuilder → RelationExtractor over one sequence (fresh cores)."""
-    one = dataclasses.replace(recording, sequences=(sequence,))
-    player = TrackPlayer(TracksSourceConfig(recording=recording.name), one, map_sha256=map_sha256, run_id="eval", producer="source")
-    corridors = CorridorBuilder(CorridorsConfig(), scene_maps=scene_maps)
-    relations = RelationExtractor(RelationsConfig(), scene_maps=scene_maps)
-    scene: SceneInfo | None = None
-    out = []
-    for _stamp, result in player:
-        scene = result.outputs.get("scene", scene)
-        frame = result.outputs["track_frame"]
-        corridor_set, _ = corridors.process(frame, scene)
-        relation_set, _ = relations.process(frame, corridor_set, scene)
-        out.append(ChainFrame(frame, corridor_set, relation_set, scene))
-    return out
-
-
-def run_filter(frames: Sequence[ChainFrame], config: IntentionsConfig, scene_maps: SceneMaps) -> tuple[list[ChainFrame], list[float]]:
-    """The frames with the beliefs of a fresh `IntentionFilter`, and its wall time per frame (ms)."""
-    intentions = IntentionFilter(config, producer="eval", scene_maps=scene_maps)
-    out, times = [], []
-    for item in frames:
-        t0 = time.perf_counter()
-        belief, _issues = intentions.process(item.frame, item.corridor_set, item.relation_set, item.scene)
-        times.append((time.perf_counter() - t0) * 1e3)
-        out.append(dataclasses.replace(item, belief=belief))
-    return out, times
-
-
-# --------------------------------------------------------------------------- ground truth
-
-
-@dataclass(slots=True, eq=False)
-class _Track:
-    stamps: list[int] = field(default_factory=list)
-    xy: list[tuple[float, float]] = field(default_factory=list)
-    speed: list[float] = field(default_factory=list)
-
-
-def tracks_of(frames: Sequence[ChainFrame]) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Per track id: stamps (n,) int64, positions (n, 2) and speeds (n,) from the TrackFrames."""
-    acc: dict[int, _Track] = {}
-    for item in frames:
-        f = item.frame
-        speed = np.hypot(f.vx_mps, f.vy_mps)
-        for row, track_id in enumerate(f.track_ids.tolist()):
-            t = acc.setdefault(int(track_id), _Track())
-            if t.stamps and t.stamps[-1] == f.header.stamp_ns:
-                continue
-            t.stamps.append(int(f.header.stamp_ns))
-            t.xy.append((float(f.x_m[row]), float(f.y_m[row])))
-            t.speed.append(float(speed[row]))
-    return {k: (np.asarray(t.stamps, np.int64), np.asarray(t.xy, np.float64).reshape(-1, 2), np.asarray(t.speed)) for k, t in acc.items()}
+# --------------------------------------------------------------------------- ground truth (``stages.offline.truth``) and entering
 
 
 def entering_events(frames: Sequence[ChainFrame], road_map: RoadMap) -> dict[int, list[tuple[int, int]]]:
@@ -197,41 +141,7 @@ def entering_events(frames: Sequence[ChainFrame], road_map: RoadMap) -> dict[int
     return events
 
 
-def future_positions(track, stamp_ns: int, step_s: float, horizon_s: float) -> np.ndarray:
-    """True positions (k, 2) at stamp + j·step (±1 ms), j = 1..k: the longest run up to the horizon (k may be 0)."""
-    stamps, xy, _speed = track
-    n_steps = int(round(horizon_s / step_s))
-    want = stamp_ns + int(round(step_s * 1e9)) * np.arange(1, n_steps + 1)
-    i = np.minimum(np.searchsorted(stamps, want - _MS_NS), stamps.shape[0] - 1)
-    found = np.abs(stamps[i] - want) <= _MS_NS
-    k = int(np.argmin(found)) if not found.all() else n_steps
-    return xy[i[:k]]
-
-
-def followed_corridor(corridors, future_xy: np.ndarray) -> tuple[int, float, float]:
-    """(index, its max lateral distance, the runner-up's) of the corridor holding the future positions best."""
-    errors = np.array([
-        float(np.max(np.abs(project_to_polyline(future_xy, np.column_stack([c.x_m, c.y_m]), c.s_m).d_m))) for c in corridors
-    ])
-    order = np.argsort(errors, kind="stable")
-    second = float(errors[order[1]]) if len(order) > 1 else math.inf
-    return int(order[0]), float(errors[order[0]]), second
-
-
 # --------------------------------------------------------------------------- metrics
-
-
-def top1_choice(scores: np.ndarray, rng: np.random.Generator) -> int:
-    """Index of the highest score, ties broken at random by `rng`."""
-    scores = np.asarray(scores, dtype=np.float64)
-    best = np.flatnonzero(scores >= scores.max() - 1e-12)
-    return int(best[0]) if best.size == 1 else int(rng.choice(best))
-
-
-def route_top1(scores: Iterable[np.ndarray], truth: Iterable[int], rng: np.random.Generator) -> float:
-    """Share of windows whose true corridor index has the highest score (ties at random); NaN without windows."""
-    hits = [top1_choice(s, rng) == t for s, t in zip(scores, truth)]
-    return float(np.mean(hits)) if hits else math.nan
 
 
 def bin_of(tau_s: float, bins_s: Sequence[float], half_width_s: float) -> float | None:
@@ -260,8 +170,13 @@ class RouteWindow:
 def route_windows(
     frames: Sequence[ChainFrame], tracks, events, cfg: IntentionEvalConfig, recording: str, skipped: dict[str, int]
 ) -> list[RouteWindow]:
-    """The route windows of one sequence (module docstring); reasons for leaving frames out are counted in `skipped`."""
+    """The route windows of one sequence (module docstring); reasons for leaving frames out are counted in `skipped`.
+
+    `tracks`: ``truth.ground_truth`` of the sequence.
+    """
     out = []
+    step_ns = int(round(cfg.step_s * 1e9))
+    n_steps = int(round(cfg.horizon_s / cfg.step_s))
     for item in frames:
         if item.belief is None:
             continue
@@ -278,19 +193,19 @@ def route_windows(
             b = bin_of(tau, cfg.bins_s, cfg.bin_half_width_s)
             if b is None:
                 continue
-            future = future_positions(tracks[vb.track_id], stamp, cfg.step_s, cfg.horizon_s)
+            future = future_run(tracks[vb.track_id], stamp, step_ns, n_steps)
             if len(future) < cfg.min_future_steps:
                 skipped["short_future"] = skipped.get("short_future", 0) + 1
                 continue
             by_id = {c.corridor_id: c for c in corridors_of.get(vb.track_id, ())}
             corridors = [by_id[c.corridor_id] for c in vb.corridors]
-            index, error, second = followed_corridor(corridors, future)
-            if error > cfg.max_route_error_m:
-                skipped["followed_no_corridor"] = skipped.get("followed_no_corridor", 0) + 1
+            followed = followed_corridor(corridors, future, min_inside=cfg.min_future_steps)
+            why = route_decision(followed, cfg.max_route_error_m, cfg.route_tie_m)
+            if why is not None:
+                why = "route_undecided_by_future" if why == "route_tied" else why
+                skipped[why] = skipped.get(why, 0) + 1
                 continue
-            if second - error < cfg.route_tie_m:
-                skipped["route_undecided_by_future"] = skipped.get("route_undecided_by_future", 0) + 1
-                continue
+            index = followed.index
             out.append(
                 RouteWindow(
                     recording=recording,
@@ -307,19 +222,18 @@ def route_windows(
     return out
 
 
-def route_table(windows: Sequence[RouteWindow], bins_s: Sequence[float], seed: int) -> dict[str, dict[str, float | int]]:
+def route_table(windows: Sequence[RouteWindow], bins_s: Sequence[float]) -> dict[str, dict[str, float | int]]:
     """route_top1 per bin for the intentions, uniform and nearest corridor (module docstring)."""
     table = {}
     for b in bins_s:
         sel = [w for w in windows if w.bin_s == b]
-        rng = np.random.default_rng(seed)
         table[f"{b:g}"] = {
             "windows": len(sel),
             "cars": len({(w.recording, w.track_id) for w in sel}),
-            "intentions": route_top1([w.probabilities for w in sel], [w.truth for w in sel], rng),
-            "uniform": route_top1([np.ones(len(w.probabilities)) for w in sel], [w.truth for w in sel], rng),
+            "intentions": route_top1([w.probabilities for w in sel], [w.truth for w in sel]),
+            "uniform": route_top1([np.ones(len(w.probabilities)) for w in sel], [w.truth for w in sel]),
             "uniform_expected": float(np.mean([1.0 / len(w.probabilities) for w in sel])) if sel else math.nan,
-            "nearest": route_top1([-w.abs_d_m for w in sel], [w.truth for w in sel], rng),
+            "nearest": route_top1([-w.abs_d_m for w in sel], [w.truth for w in sel]),
             "p_true_mean": float(np.mean([w.probabilities[w.truth] for w in sel])) if sel else math.nan,
         }
     return table
@@ -336,12 +250,12 @@ class StopGoEvent:
     enter_ns: int
 
 
-def stop_go_events(tracks, events, cfg: IntentionEvalConfig, recording: str) -> list[StopGoEvent]:
-    """Classify every entering event (module docstring)."""
+def stop_go_events(tracks: dict[int, Track], events, cfg: IntentionEvalConfig, recording: str) -> list[StopGoEvent]:
+    """Classify every entering event (module docstring); `tracks`: ``truth.ground_truth`` of the sequence."""
     out = []
     min_ns = cfg.standstill_min_s / _NS
     for track_id, track_events in events.items():
-        stamps, _xy, speed = tracks[track_id]
+        stamps, speed = tracks[track_id].stamps_ns, tracks[track_id].speed_mps
         slow = speed < cfg.standstill_speed_mps
         previous = int(stamps[0])
         for enter_ns, _isect in track_events:
@@ -446,13 +360,13 @@ def evaluate(cfg: IntentionEvalConfig, *, progress: bool = False) -> dict[str, A
             if not chain:
                 continue
             road_map = scene_maps.get(chain[0].scene, icfg.projection).road_map
-            tracks = tracks_of(chain)
+            tracks = ground_truth(seq)
             events = entering_events(chain, road_map)
             stop_events = stop_go_events(tracks, events, cfg, name)
             for e in stop_events:
                 n_events["stopped" if e.stopped else "went"] += 1
             for k, seed in enumerate(cfg.seeds):
-                frames, ms = run_filter(chain, dataclasses.replace(icfg, seed=seed), scene_maps)
+                frames, ms = with_beliefs(chain, dataclasses.replace(icfg, seed=seed), scene_maps, producer="eval")
                 times.extend(ms)
                 vehicles_per_frame.extend(len(f.belief.vehicles) if f.belief is not None else 0 for f in frames)
                 windows[seed].extend(route_windows(frames, tracks, events, cfg, name, skipped if k == 0 else {}))
@@ -467,13 +381,13 @@ def evaluate(cfg: IntentionEvalConfig, *, progress: bool = False) -> dict[str, A
         "particles_per_vehicle": icfg.particles_per_vehicle,
         "seeds": list(cfg.seeds),
         "params": {k: v for k, v in cfg.params},
-        "route_top1": route_table(pooled, cfg.bins_s, cfg.tie_seed),
+        "route_top1": route_table(pooled, cfg.bins_s),
         "route_top1_by_seed": {
-            str(seed): {b: row["intentions"] for b, row in route_table(windows[seed], cfg.bins_s, cfg.tie_seed).items()}
+            str(seed): {b: row["intentions"] for b, row in route_table(windows[seed], cfg.bins_s).items()}
             for seed in cfg.seeds
         },
         "route_top1_by_recording": {
-            name: route_table([w for w in pooled if w.recording == name], cfg.bins_s, cfg.tie_seed) for name in names
+            name: route_table([w for w in pooled if w.recording == name], cfg.bins_s) for name in names
         },
         "route_skipped": dict(sorted(skipped.items())),
         "stop_go": stop_go_table(samples, cfg.bins_s),

@@ -10,7 +10,8 @@ import pytest
 
 from stages import cli
 from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, DEFAULT_SEQUENCE
-from stages.offline.evaluation import EVAL_MODES, EvalConfig, Evaluation, _future, _route_hit, format_table
+from stages.offline.evaluation import EVAL_MODES, EvalConfig, Evaluation, _route_hit, format_table
+from stages.offline.truth import Track, future_positions
 from stages.markov_prediction.rasterise import highest_density_threshold
 
 METRICS = ("windows", "mADE_m", "mFDE_m", "wADE_m", "wFDE_m", "coverage90", "nll")
@@ -87,11 +88,16 @@ def test_cli_writes_json(tmp_path, capsys):
 def test_ground_truth_must_be_exact_and_complete():
     stamps = np.arange(0, 50) * 100_000_000
     xy = np.column_stack([np.arange(50.0), np.zeros(50)])
-    future = _future((stamps, xy), 0, 400_000_000, 10)
+    def track(rows):
+        return Track(stamps[rows], xy[rows], np.zeros(rows.size), np.zeros(rows.size))
+
+    every = np.arange(50)
+    future = future_positions(track(every), 0, 400_000_000, 10)
     np.testing.assert_array_equal(future[:, 0], np.arange(4.0, 41.0, 4.0))
-    assert _future((stamps, xy), 1_200_000_000, 400_000_000, 10) is None  # 4 s after 1.2 s is past the track
-    holes = np.delete(np.arange(50), 8)
-    assert _future((stamps[holes], xy[holes]), 0, 400_000_000, 10) is None
+    assert future_positions(track(every), 1_200_000_000, 400_000_000, 10) is None  # 4 s after 1.2 s is past the track
+    holes = np.delete(every, 8)
+    assert future_positions(track(holes), 0, 400_000_000, 10) is None
+    assert future_positions(None, 0, 400_000_000, 10) is None
 
 
 def test_highest_density_region():

@@ -2,7 +2,7 @@
 
 Real frames come from the dataset player, and the corridors and relations
 cores run in-process over the whole sequence (continuity state as on the
-bus), as ``stages.offline.intentions_eval.chain_frames`` does. Cars named by
+bus), as ``stages.offline.chain.chain_frames`` does. Cars named by
 track id were picked from that sequence: 2688 turns right at the
 intersection, 2690 brakes to a stop about 17 m before its entrance.
 """
@@ -21,7 +21,8 @@ from bus_schemas import IntentionBelief, Manoeuvre
 from stages.corridors import SceneMaps
 from stages.lib.datasets import DEFAULT_DATA_DIR, load_recording
 from stages.intentions import IntentionFilter, IntentionsConfig
-from stages.offline.intentions_eval import chain_frames, route_top1, top1_choice
+from stages.offline.chain import chain_frames
+from stages.offline.truth import route_credit, route_top1
 
 pytestmark = pytest.mark.skipif(
     not (DEFAULT_DATA_DIR / "maps").is_dir(), reason=f"embedded TAF-BW data not found at {DEFAULT_DATA_DIR}"
@@ -307,12 +308,13 @@ def test_config_rejects_unknown_keys_and_bad_values():
         IntentionsConfig.from_params({"position_sigma_m": 0.0})
 
 
-def test_route_top1_breaks_ties_at_random_with_a_fixed_seed():
-    rng = np.random.default_rng(0)
-    assert top1_choice(np.array([0.2, 0.7, 0.1]), rng) == 1
-    uniform = route_top1([np.ones(2)] * 2000, [0] * 2000, np.random.default_rng(0))
-    assert abs(uniform - 0.5) < 0.05
-    assert uniform == route_top1([np.ones(2)] * 2000, [0] * 2000, np.random.default_rng(0))
+def test_route_top1_splits_ties():
+    assert route_credit(np.array([0.2, 0.7, 0.1]), 1) == 1.0
+    assert route_credit(np.array([0.2, 0.7, 0.1]), 0) == 0.0
+    assert route_credit(np.ones(4), 2) == 0.25  # a k-way tie counts 1/k, the expectation of a random pick
+    assert route_top1([np.ones(2)] * 2000, [0] * 2000) == 0.5
+    assert route_top1([np.array([0.6, 0.4]), np.array([0.4, 0.6])], [0, 0]) == 0.5
+    assert math.isnan(route_top1([], []))
 
 
 def test_binding_declares_the_ports():

@@ -1,25 +1,27 @@
 """The AR training set: (x, mask, y) windows from recordings, built with the online feature code (METHOD.md §3.1).
 
 ``build_dataset(config)`` plays every selected sequence through the
-in-process chain (``TrackPlayer`` → ``CorridorBuilder`` →
-``RelationExtractor``, fresh cores per sequence, maps loaded once, as in
-``iamp eval``) and feeds every frame to one ``FeatureTracker``, exactly as
-the online stage does. A sample is taken at a frame (every
+in-process chain of ``iamp eval`` (``stages.offline.chain.Chain``:
+``TrackPlayer`` → ``CorridorBuilder`` → ``RelationExtractor``, fresh cores
+per sequence, maps loaded once) and feeds every frame to one
+``FeatureTracker``, exactly as the online stage does. The ground truth is
+``stages.offline.truth``'s, the one ``iamp eval`` scores against. A sample is taken at a frame (every
 ``sample_stride``-th frame, default every frame) for each matched vehicle
 that
 
 - has a full 4 s true future: positions at t + 0.1 k s, k = 1..40 (±1 ms)
   with a finite target acceleration at each (else ``skipped.no_full_future``);
-- followed one of its corridors: the corridor with the smallest maximum
-  lateral distance |d| of the track's true positions over the next
-  ``route_future_s`` 10 s (as far as the track goes; only positions whose
-  projection falls within the corridor, at least the 40 of the 4 s
-  future), at most ``max_route_error_m`` 2 m (else
+- followed one of its corridors (``stages.offline.truth.followed_corridor``):
+  the corridor with the smallest maximum lateral distance |d| of the
+  track's true positions over the next ``route_future_s`` 10 s (as far as
+  the track goes; only positions whose projection falls within the
+  corridor, at least the 40 of the 4 s future), at most
+  ``max_route_error_m`` 2 m (else
   ``skipped.followed_no_corridor``). When another corridor holds them
   within ``route_tie_m`` 0.5 m as well (before a branch, when the track ends
   before the routes part) the route is undecided: the sample is dropped
   (``route_tied``, ``skip_tied`` true). Judged on the 4 s future alone
-  (``intentions.evaluation.followed_corridor``) 41 % of the windows were
+  (``followed_corridor`` over the 4 s future) 41 % of the windows were
   undecided, and a sample on an arbitrary one of the tied corridors carries
   the curvature of a route the car may not take; with 10 s, 26 % (1 603 of
   6 066). Keeping them (on the corridor listed first) made the nets worse on
@@ -86,21 +88,30 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.signal import savgol_filter
 
-from bus_schemas import AgentType, MatchStatus, SceneInfo, TrackFrame
-from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
+from bus_schemas import MatchStatus
+from stages.corridors import SceneMaps
 from stages.lib.datasets import DEFAULT_DATA_DIR, DatasetError, Recording, discover, load_recording
-from stages.lib.maps import project_to_polyline
-from stages.relations import RelationExtractor, RelationsConfig
-from stages.tracks_source.core import TrackPlayer, TracksSourceConfig, file_sha256
+from stages.offline.chain import Chain
+from stages.offline.truth import (
+    ACCEL_EDGE_S,
+    ACCEL_WINDOW_S,
+    ROUTE_MAX_ERROR_M,
+    ROUTE_TIE_M,
+    followed_corridor,
+    future_accelerations,
+    ground_truth,
+    positions_after,
+    route_decision,
+    smoothed_acceleration,
+)
+from stages.tracks_source.core import file_sha256
 
 from stages.lib.ar.features import ACCEL, FEATURE_NAMES, HISTORY_STEPS, HORIZON_STEPS, N_FEATURES, STEP_S, FeatureConfig, FeatureTracker
 
 DATASET_VERSION = 3
 """Bump when the sample definition changes (invalidates caches)."""
-_NS = 1e-9
-_MS_NS = 1_000_000
+_STEP_NS = int(round(STEP_S * 1e9))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -112,10 +123,10 @@ class DatasetConfig:
     sequences: tuple[str, ...] = ()
     max_frames_per_sequence: int = 0
     sample_stride: int = 1
-    target_window_s: float = 1.5
-    target_edge_s: float = 1.5
-    max_route_error_m: float = 2.0
-    route_tie_m: float = 0.5
+    target_window_s: float = ACCEL_WINDOW_S
+    target_edge_s: float = ACCEL_EDGE_S
+    max_route_error_m: float = ROUTE_MAX_ERROR_M
+    route_tie_m: float = ROUTE_TIE_M
     route_future_s: float = 10.0
     skip_tied: bool = True
     features: FeatureConfig = field(default_factory=FeatureConfig)
@@ -225,96 +236,7 @@ class ARDataset:
 
 
 # --------------------------------------------------------------------------- targets
-
-
-def smoothed_acceleration(stamps_ns: np.ndarray, xy: np.ndarray, period_ns: int, window_samples: int, edge_samples: int | None = None) -> np.ndarray:
-    """(n,) longitudinal acceleration of one track from its positions, non-causal (module docstring); NaN where unknown.
-
-    The track is cut where consecutive stamps are not one period apart; a
-    piece shorter than the window gets NaN, and so do the first and last
-    `edge_samples` (default window // 2, where the window would not be
-    centred) of each piece.
-    """
-    n = stamps_ns.shape[0]
-    out = np.full(n, np.nan)
-    w = int(window_samples) | 1
-    dt = period_ns * _NS
-    cuts = np.flatnonzero(np.abs(np.diff(stamps_ns) - period_ns) > _MS_NS) + 1
-    for a, b in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [n]])):
-        if b - a < w:
-            continue
-        vx = savgol_filter(xy[a:b, 0], w, 2, deriv=1, delta=dt)
-        vy = savgol_filter(xy[a:b, 1], w, 2, deriv=1, delta=dt)
-        accel = savgol_filter(np.hypot(vx, vy), w, 2, deriv=1, delta=dt)
-        edge = w // 2 if edge_samples is None else max(int(edge_samples), 0)
-        if b - a > 2 * edge:
-            out[a + edge : b - edge] = accel[edge : len(accel) - edge]
-    return out
-
-
-@dataclass(frozen=True, slots=True)
-class _Truth:
-    stamps_ns: np.ndarray
-    xy: np.ndarray
-    accel: np.ndarray
-
-
-def _ground_truth(seq, window_s: float, edge_s: float) -> dict[int, _Truth]:
-    """Per vehicle track of a sequence: stamps, positions and the smoothed acceleration."""
-    out = {}
-    period = seq.period_ns
-    window = max(int(round(window_s * 1e9 / period)), 3) | 1
-    order = np.lexsort((seq.stamp_ns, seq.track_id))
-    ids = seq.track_id[order]
-    bounds = np.flatnonzero(np.diff(ids)) + 1
-    for a, b in zip(np.concatenate([[0], bounds]), np.concatenate([bounds, [len(ids)]])):
-        rows = order[a:b]
-        if not AgentType(int(seq.agent_type[rows[0]])).is_vehicle:
-            continue
-        stamps = seq.stamp_ns[rows]
-        xy = np.column_stack([seq.x_m[rows], seq.y_m[rows]])
-        edge = int(round(edge_s * 1e9 / period))
-        out[int(ids[a])] = _Truth(stamps, xy, smoothed_acceleration(stamps, xy, period, window, edge))
-    return out
-
-
-def followed(corridors, future_xy: np.ndarray, min_points: int = HORIZON_STEPS) -> tuple[int, float, float]:
-    """(index, max lateral distance, the runner-up's) of the corridor the future positions (n, 2) follow best.
-
-    Like ``intentions.evaluation.followed_corridor`` (smallest maximum |d|),
-    but only the positions whose projection falls within the corridor count
-    (not its straight extensions), so a future longer than the corridor can
-    be used; a corridor holding fewer than `min_points` of them gets
-    distance inf.
-    """
-    errors = np.full(len(corridors), np.inf)
-    for k, c in enumerate(corridors):
-        proj = project_to_polyline(future_xy, np.column_stack([c.x_m, c.y_m]), c.s_m)
-        inside = (proj.s_m >= c.s_m[0]) & (proj.s_m <= c.s_m[-1])
-        if int(inside.sum()) >= min_points:
-            errors[k] = float(np.max(np.abs(proj.d_m[inside])))
-    order = np.argsort(errors, kind="stable")
-    second = float(errors[order[1]]) if len(order) > 1 else math.inf
-    return int(order[0]), float(errors[order[0]]), second
-
-
-def _future(truth: _Truth, stamp_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """(positions (40, 2), accelerations (40,)) at stamp + 0.1 k s, k = 1..40, or None if not all there."""
-    want = stamp_ns + int(round(STEP_S * 1e9)) * np.arange(1, HORIZON_STEPS + 1)
-    i = np.minimum(np.searchsorted(truth.stamps_ns, want - _MS_NS), truth.stamps_ns.shape[0] - 1)
-    if not np.all(np.abs(truth.stamps_ns[i] - want) <= _MS_NS):
-        return None
-    accel = truth.accel[i]
-    if not np.all(np.isfinite(accel)):
-        return None
-    return truth.xy[i], accel
-
-
-def truth_rows_after(truth: _Truth, stamp_ns: int, seconds: float) -> np.ndarray:
-    """Positions (n, 2) of the track after `stamp_ns` up to `seconds` later."""
-    a = np.searchsorted(truth.stamps_ns, stamp_ns, side="right")
-    b = np.searchsorted(truth.stamps_ns, stamp_ns + int(round(seconds * 1e9)), side="right")
-    return truth.xy[a:b]
+# ``smoothed_acceleration`` (the targets), the tracks, their futures and the followed corridor: ``stages.offline.truth``.
 
 
 # --------------------------------------------------------------------------- building
@@ -339,46 +261,34 @@ class _Collector:
 def _sequence_samples(cfg: DatasetConfig, rec: Recording, seq, map_sha256: str, scene_maps: SceneMaps, rec_index: int,
                       seq_index: int, out: _Collector, bar) -> tuple[int, int]:
     """Adds the samples of one sequence to `out`; returns the first and last stamp played."""
-    one = dataclasses.replace(rec, sequences=(seq,))
-    player = TrackPlayer(TracksSourceConfig(recording=rec.name), one, map_sha256=map_sha256, run_id="ar-dataset", producer="source")
-    corridors = CorridorBuilder(CorridorsConfig(), scene_maps=scene_maps)
-    relations = RelationExtractor(RelationsConfig(), scene_maps=scene_maps)
+    chain = Chain(rec, seq, scene_maps, max_frames=cfg.max_frames_per_sequence, map_sha256=map_sha256, run_id="ar-dataset")
     tracker = FeatureTracker(cfg.features)
-    truth = _ground_truth(seq, cfg.target_window_s, cfg.target_edge_s)
-    scene: SceneInfo | None = None
+    truth = ground_truth(seq, accel_window_s=cfg.target_window_s, accel_edge_s=cfg.target_edge_s)
     span: list[int] = []
-    for n, (stamp, result) in enumerate(player):
-        if cfg.max_frames_per_sequence and n >= cfg.max_frames_per_sequence:
-            break
+    for item in chain:
         bar.update(1)
-        span = [span[0] if span else int(stamp), int(stamp)]
-        scene = result.outputs.get("scene", scene)
-        frame: TrackFrame = result.outputs["track_frame"]
-        corridor_set, _ = corridors.process(frame, scene)
-        relation_set, _ = relations.process(frame, corridor_set, scene)
+        stamp, frame, corridor_set, relation_set = item.stamp_ns, item.frame, item.corridor_set, item.relation_set
+        span = [span[0] if span else stamp, stamp]
         for issue in tracker.update(corridor_set, relation_set, frame):
             out.count(f"issue_{issue.kind}")
-        if n % cfg.sample_stride:
+        if item.index % cfg.sample_stride:
             continue
         wanted: dict[tuple[int, int], np.ndarray] = {}
         for vehicle in corridor_set.vehicles:
             if vehicle.status != MatchStatus.MATCHED or not vehicle.corridors:
                 continue
             track = truth.get(vehicle.track_id)
-            future = _future(track, stamp) if track is not None else None
-            if future is None:
+            accel = future_accelerations(track, stamp, _STEP_NS, HORIZON_STEPS)
+            if accel is None:  # not all 40 future stamps, or an acceleration unknown there
                 out.count("no_full_future")
                 continue
-            later = truth_rows_after(track, stamp, cfg.route_future_s)
-            index, error, second = followed(vehicle.corridors, later)
-            if error > cfg.max_route_error_m:
-                out.count("followed_no_corridor")
-                continue
-            if second - error < cfg.route_tie_m:
-                out.count("route_tied")
-                if cfg.skip_tied:
+            followed = followed_corridor(vehicle.corridors, positions_after(track, stamp, cfg.route_future_s), min_inside=HORIZON_STEPS)
+            why = route_decision(followed, cfg.max_route_error_m, cfg.route_tie_m)
+            if why is not None:
+                out.count(why)
+                if why != "route_tied" or cfg.skip_tied:
                     continue
-            wanted[(vehicle.track_id, int(vehicle.corridors[index].corridor_id))] = future[1]
+            wanted[(vehicle.track_id, int(vehicle.corridors[followed.index].corridor_id))] = accel
         if not wanted:
             continue
         keys, x, mask = tracker.batch(corridor_set, pairs=wanted)

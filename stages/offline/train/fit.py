@@ -64,7 +64,7 @@ message says what to fix).
 
 from __future__ import annotations
 
-from stages.lib.base import progress_bar
+from stages.lib.base import json_safe, progress_bar
 
 import copy
 import dataclasses
@@ -464,23 +464,9 @@ def run_from_args(args) -> int:
     print(f"wrote {path}")
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(_json_safe(report), indent=2, allow_nan=False))
+        args.json.write_text(json.dumps(json_safe(report), indent=2, allow_nan=False))
         print(f"wrote {args.json}")
     return 0
-
-
-
-def _json_safe(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, (float, np.floating)):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    return value
-
 
 
 

@@ -1,0 +1,220 @@
+"""Ground truth of the offline tools: what the cars really did (``iamp eval``, ``iamp train``, the intentions evaluation).
+
+One module for the three of them, so that the AR model is trained and
+scored against the same truth:
+
+- ``ground_truth(seq)``: per vehicle track of a sequence its stamps,
+  positions, reported speed and the smoothed longitudinal acceleration (the
+  AR training targets, ``smoothed_acceleration``);
+- ``future_positions`` / ``future_accelerations``: the true positions
+  (accelerations) at t + k·step (±1 ms), k = 1..K: all K or None, or the
+  longest run from k = 1 (``future_run``); ``positions_after``: every
+  position in (t, t + seconds];
+- ``followed_corridor``: the corridor a car followed, by ONE rule: the
+  corridor whose centreline holds the future positions best, i.e. with the
+  smallest maximum lateral distance |d| over the positions whose projection
+  falls within the corridor (its s range, which includes the corridor's own
+  straight extension; positions before its start or beyond its end do not
+  count). A corridor holding fewer than ``min_inside`` of the positions
+  (default 1; ``iamp train`` asks for the 40 of the 4 s future out of its
+  10 s) is not followed (distance inf). ``route_decision`` applies the two
+  thresholds:
+  above ``max_error_m`` the car followed none of them, and a runner-up
+  within ``tie_m`` means the future cannot tell the routes apart;
+- ``route_credit`` / ``route_top1``: whether the followed corridor got the
+  highest score; a k-way tie for the highest score counts 1/k (the
+  expectation of breaking the tie at random, without the randomness).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Iterable, NamedTuple, Sequence
+
+import numpy as np
+from scipy.signal import savgol_filter
+
+from bus_schemas import AgentType
+from stages.lib.maps import project_to_polyline
+
+#: the followed corridor holds the future within this lateral distance (m) ...
+ROUTE_MAX_ERROR_M = 2.0
+#: ... and the runner-up is at least this much worse (m), else the future does not tell the routes apart.
+ROUTE_TIE_M = 0.5
+#: Savitzky-Golay window and cut track ends of the true acceleration (s), the AR training targets' definition.
+ACCEL_WINDOW_S = 1.5
+ACCEL_EDGE_S = 1.5
+#: two scores within this are tied for the highest.
+SCORE_TIE = 1e-9
+_NS = 1e-9
+_MS_NS = 1_000_000
+
+
+# --------------------------------------------------------------------------- tracks
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Track:
+    """One vehicle track of a sequence: stamps (n,) int64 sorted, positions (n, 2), reported speed (n,), acceleration (n,).
+
+    ``accel_mps2`` is ``smoothed_acceleration`` of the positions (NaN where unknown).
+    """
+
+    stamps_ns: np.ndarray
+    xy: np.ndarray
+    speed_mps: np.ndarray
+    accel_mps2: np.ndarray
+
+
+def smoothed_acceleration(stamps_ns: np.ndarray, xy: np.ndarray, period_ns: int, window_samples: int, edge_samples: int | None = None) -> np.ndarray:
+    """(n,) longitudinal acceleration of one track from its positions, non-causal; NaN where unknown.
+
+    The track is cut where consecutive stamps are not one period apart; a
+    piece shorter than the window gets NaN, and so do the first and last
+    `edge_samples` (default window // 2, where the window would not be
+    centred) of each piece. Velocity: the Savitzky-Golay derivative (degree
+    2) of x and y; acceleration: that of the speed (``stages.offline.train.dataset``
+    explains the choice).
+    """
+    n = stamps_ns.shape[0]
+    out = np.full(n, np.nan)
+    w = int(window_samples) | 1
+    dt = period_ns * _NS
+    cuts = np.flatnonzero(np.abs(np.diff(stamps_ns) - period_ns) > _MS_NS) + 1
+    for a, b in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [n]])):
+        if b - a < w:
+            continue
+        vx = savgol_filter(xy[a:b, 0], w, 2, deriv=1, delta=dt)
+        vy = savgol_filter(xy[a:b, 1], w, 2, deriv=1, delta=dt)
+        accel = savgol_filter(np.hypot(vx, vy), w, 2, deriv=1, delta=dt)
+        edge = w // 2 if edge_samples is None else max(int(edge_samples), 0)
+        if b - a > 2 * edge:
+            out[a + edge : b - edge] = accel[edge : len(accel) - edge]
+    return out
+
+
+def ground_truth(seq, *, accel_window_s: float = ACCEL_WINDOW_S, accel_edge_s: float = ACCEL_EDGE_S) -> dict[int, Track]:
+    """Per vehicle track (``AgentType.is_vehicle``) of a sequence (``stages.lib.datasets.Sequence``): its ``Track``."""
+    out = {}
+    period = seq.period_ns
+    window = max(int(round(accel_window_s * 1e9 / period)), 3) | 1
+    edge = int(round(accel_edge_s * 1e9 / period))
+    order = np.lexsort((seq.stamp_ns, seq.track_id))
+    ids = seq.track_id[order]
+    bounds = np.flatnonzero(np.diff(ids)) + 1
+    for a, b in zip(np.concatenate([[0], bounds]), np.concatenate([bounds, [len(ids)]])):
+        if b <= a:
+            continue
+        rows = order[a:b]
+        if not AgentType(int(seq.agent_type[rows[0]])).is_vehicle:
+            continue
+        stamps = seq.stamp_ns[rows]
+        xy = np.column_stack([seq.x_m[rows], seq.y_m[rows]])
+        speed = np.hypot(seq.vx_mps[rows], seq.vy_mps[rows])
+        out[int(ids[a])] = Track(stamps, xy, speed, smoothed_acceleration(stamps, xy, period, window, edge))
+    return out
+
+
+def _future_rows(track: Track, stamp_ns: int, step_ns: int, n_steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row indices (n_steps,) of the stamps nearest t + k·step from above, and whether each is within 1 ms."""
+    want = stamp_ns + int(step_ns) * np.arange(1, n_steps + 1)
+    i = np.minimum(np.searchsorted(track.stamps_ns, want - _MS_NS), track.stamps_ns.shape[0] - 1)
+    return i, np.abs(track.stamps_ns[i] - want) <= _MS_NS
+
+
+def future_positions(track: Track | None, stamp_ns: int, step_ns: int, n_steps: int) -> np.ndarray | None:
+    """True positions (n_steps, 2) at exactly t + k·step (±1 ms), k = 1..n_steps, or None when one is missing."""
+    if track is None or n_steps <= 0:
+        return None
+    i, found = _future_rows(track, stamp_ns, step_ns, n_steps)
+    return track.xy[i] if found.all() else None
+
+
+def future_accelerations(track: Track | None, stamp_ns: int, step_ns: int, n_steps: int) -> np.ndarray | None:
+    """True accelerations (n_steps,) at exactly t + k·step (±1 ms), or None when one is missing or unknown (NaN)."""
+    if track is None or n_steps <= 0:
+        return None
+    i, found = _future_rows(track, stamp_ns, step_ns, n_steps)
+    if not found.all():
+        return None
+    accel = track.accel_mps2[i]
+    return accel if np.all(np.isfinite(accel)) else None
+
+
+def future_run(track: Track, stamp_ns: int, step_ns: int, n_steps: int) -> np.ndarray:
+    """True positions (k, 2) at t + j·step (±1 ms), j = 1..k: the longest run up to n_steps (k may be 0)."""
+    i, found = _future_rows(track, stamp_ns, step_ns, n_steps)
+    k = int(np.argmin(found)) if not found.all() else n_steps
+    return track.xy[i[:k]]
+
+
+def positions_after(track: Track, stamp_ns: int, seconds: float) -> np.ndarray:
+    """Positions (n, 2) of the track after `stamp_ns` up to `seconds` later."""
+    a = np.searchsorted(track.stamps_ns, stamp_ns, side="right")
+    b = np.searchsorted(track.stamps_ns, stamp_ns + int(round(seconds * 1e9)), side="right")
+    return track.xy[a:b]
+
+
+# --------------------------------------------------------------------------- the followed corridor
+
+
+class Followed(NamedTuple):
+    """The corridor the future followed best: its index, its max |d| (m) and the runner-up's (inf without one)."""
+
+    index: int
+    error_m: float
+    runner_up_m: float
+
+
+def followed_corridor(corridors: Sequence, future_xy: np.ndarray, *, min_inside: int = 1) -> Followed:
+    """The corridor of `corridors` (``bus_schemas.Corridor``) the future positions (n, 2) follow best (module docstring).
+
+    Only the positions whose projection falls within a corridor's s range
+    count (a car standing at the start of its corridors jitters behind it);
+    a corridor holding fewer than `min_inside` (at least 1) of them gets
+    distance inf.
+    """
+    future_xy = np.asarray(future_xy, dtype=np.float64).reshape(-1, 2)
+    need = max(int(min_inside), 1)
+    errors = np.full(len(corridors), np.inf)
+    for k, c in enumerate(corridors):
+        proj = project_to_polyline(future_xy, np.column_stack([c.x_m, c.y_m]), c.s_m)
+        inside = (proj.s_m >= c.s_m[0]) & (proj.s_m <= c.s_m[-1])
+        if int(inside.sum()) >= need:
+            errors[k] = float(np.max(np.abs(proj.d_m[inside])))
+    order = np.argsort(errors, kind="stable")
+    second = float(errors[order[1]]) if len(order) > 1 else math.inf
+    return Followed(int(order[0]), float(errors[order[0]]), second)
+
+
+def route_decision(followed: Followed, max_error_m: float = ROUTE_MAX_ERROR_M, tie_m: float = ROUTE_TIE_M) -> str | None:
+    """None when `followed` singles out one corridor; else why not: ``"followed_no_corridor"`` or ``"route_tied"``."""
+    if not followed.error_m <= max_error_m:
+        return "followed_no_corridor"
+    if followed.runner_up_m - followed.error_m < tie_m:
+        return "route_tied"
+    return None
+
+
+# --------------------------------------------------------------------------- route_top1
+
+
+def route_credit(scores: np.ndarray, truth: int) -> float:
+    """1 when corridor `truth` has the highest score alone, 1/k when it is one of k tied for it, else 0."""
+    scores = np.asarray(scores, dtype=np.float64)
+    best = np.flatnonzero(scores >= scores.max() - SCORE_TIE)
+    return 1.0 / best.size if int(truth) in best else 0.0
+
+
+def route_top1(scores: Iterable[np.ndarray], truth: Iterable[int]) -> float:
+    """Mean ``route_credit`` over windows (scores per corridor, the followed corridor's index); NaN without windows."""
+    credits = [route_credit(s, t) for s, t in zip(scores, truth)]
+    return float(np.mean(credits)) if credits else math.nan
+
+
+__all__ = [
+    "ACCEL_EDGE_S", "ACCEL_WINDOW_S", "Followed", "ROUTE_MAX_ERROR_M", "ROUTE_TIE_M", "Track", "followed_corridor",
+    "future_accelerations", "future_positions", "future_run", "ground_truth", "positions_after", "route_credit",
+    "route_decision", "route_top1", "smoothed_acceleration",
+]
