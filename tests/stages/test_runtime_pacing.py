@@ -1,0 +1,78 @@
+"""The runtime's pacing (``stages.runtime.pacing``), shared by sources and replay, without a bus: acks and liveliness are fed by hand."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import pytest
+
+from bus_schemas import Progress
+from stages.runtime.pacing import Consumers, Pacer
+
+LOG = logging.getLogger("iamp.test_pacing")
+
+
+def test_a_fixed_speed_publishes_at_the_recording_rate_times_speed():
+    pacer = Pacer(4.0, None, threading.Event(), LOG)
+    t0 = time.monotonic()
+    for i in range(5):
+        assert pacer.before(i * 100_000_000, i)  # 0.1 s apart at 4x: 25 ms
+    assert 0.09 <= time.monotonic() - t0 < 1.0
+
+
+def test_bad_speeds_are_refused():
+    for bad in (0, -1.0, "fast"):
+        with pytest.raises(ValueError):
+            Pacer(bad, None, threading.Event(), LOG)
+
+
+def test_max_keeps_at_most_the_window_ahead_of_a_node_that_acks():
+    consumers = Consumers("src")
+    consumers.on_alive("op", True)
+    consumers.on_alive("src", True)  # its own token is never waited for
+    pacer = Pacer("max", consumers, threading.Event(), LOG, window=2, wait_s=5.0)
+    assert pacer.before(1, 1) and pacer.before(2, 2)
+    threading.Timer(0.2, lambda: consumers.on_ack_payload(Progress(node_id="op", last_stamp_ns=1, last_frame_index=0, handled=1).encode())).start()
+    t0 = time.monotonic()
+    assert pacer.before(3, 3)  # waits for op's ack of stamp 1
+    assert time.monotonic() - t0 >= 0.15
+    assert pacer.before(3, 3)  # another message of the same stamp: no wait
+    consumers.on_ack("op", 3)
+    t0 = time.monotonic()
+    pacer.drain(1.0)
+    assert time.monotonic() - t0 < 0.5
+
+
+def test_a_silent_node_is_not_waited_for_after_the_grace_and_a_behind_one_after_wait_s_until_they_ack(caplog):
+    caplog.set_level(logging.INFO, logger=LOG.name)
+    consumers = Consumers("src")
+    consumers.add_alive(["silent", "slow"])
+    consumers.on_ack("slow", 0)
+    pacer = Pacer("max", consumers, threading.Event(), LOG, window=1, wait_s=0.3, first_ack_grace_s=0.05)
+    pacer.before(1, 1)
+    t0 = time.monotonic()
+    pacer.before(2, 2)
+    assert 0.25 <= time.monotonic() - t0 < 2.0
+    text = caplog.text
+    assert "not waiting for nodes that report no progress: silent" in text
+    assert "nodes behind after 0.3 s, no longer waiting for them until they ack: slow" in text
+    assert consumers.waiting_on(2) == ([], [])
+    consumers.on_ack("slow", 1)  # it acks again: waited for again
+    assert consumers.waiting_on(2) == ([], ["slow"])
+    consumers.on_alive("slow", False)
+    assert consumers.waiting_on(2) == ([], [])
+
+
+def test_a_stop_ends_a_wait_and_await_nodes_reports_the_missing():
+    stop = threading.Event()
+    consumers = Consumers("src")
+    consumers.add_alive(["op"])
+    pacer = Pacer("max", consumers, stop, LOG, window=1, wait_s=30.0)
+    pacer.before(1, 1)
+    threading.Timer(0.1, stop.set).start()
+    t0 = time.monotonic()
+    assert not pacer.before(2, 2)
+    assert time.monotonic() - t0 < 5.0
+    assert Consumers().await_nodes(["a", "b"], 0.05, threading.Event(), LOG) == ["a", "b"]
