@@ -29,8 +29,8 @@ each recording, then, per recording and overall:
 ``--set`` overrides a ``CorridorsConfig`` parameter (JSON value, else a
 string), e.g. ``--set lane_change_corridors=false``.
 
-PATH defaults to the TAF-BW folder beside the repository
-(``<repo>/../shared/data/taf-bw``), else the embedded ``stages/data/taf-bw``.
+PATH defaults to the full TAF-BW recordings named by ``$IAMP_TAF_BW``, else
+the embedded ``stages/data/taf-bw``.
 Prints figures, asserts nothing.
 """
 

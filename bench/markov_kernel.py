@@ -1,4 +1,4 @@
-"""Benchmark of the Markov propagation kernel (METHOD.md §1.3–1.5); prints figures, asserts nothing.
+"""Benchmark of the Markov propagation kernel (docs/method.md §3.3–3.5); prints figures, asserts nothing.
 
 For the default grid it prints the stencil build time, the sparse expansion
 time and nnz of Υ(τ) and Υ([0, τ]); then, for B = 1, 10, 50, 200

@@ -235,8 +235,9 @@ def relations_overlay(frame: TrackFrame, relation_set, colours: dict[int, tuple[
 
 
 def default_data_dir() -> Path:
-    shared = (REPO / ".." / "shared" / "data" / "taf-bw").resolve()
-    return shared if (shared / "recorded_trackfiles").is_dir() else DEFAULT_DATA_DIR
+    from stages.lib.datasets import full_data_dir
+
+    return full_data_dir() or DEFAULT_DATA_DIR
 
 
 def scene_for(recording, sequence) -> SceneInfo:

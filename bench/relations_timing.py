@@ -36,8 +36,10 @@ RECORDING = "k729_2022-03-16"
 
 
 def default_data_dir() -> Path:
-    shared = (REPO / ".." / "shared" / "data" / "taf-bw").resolve()
-    return shared if (shared / "recorded_trackfiles" / RECORDING).is_dir() else DEFAULT_DATA_DIR
+    from stages.lib.datasets import full_data_dir
+
+    full = full_data_dir()
+    return full if full is not None and (full / "recorded_trackfiles" / RECORDING).is_dir() else DEFAULT_DATA_DIR
 
 
 def frames_with_corridors(data: Path, sequences: tuple[str, ...], scene_maps: SceneMaps):

@@ -1,4 +1,4 @@
-"""AR acceleration profiles (``iamp.AccelerationProfiles``): the ar_inference stage's output (METHOD.md §3).
+"""AR acceleration profiles (``iamp.AccelerationProfiles``): the ar_inference stage's output (docs/method.md §8).
 
 For every vehicle-corridor pair of a frame, the AR-Net's predicted
 longitudinal acceleration at 0.1 … 4.0 s, and its conversion into one normal

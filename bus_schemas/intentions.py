@@ -1,4 +1,4 @@
-"""Intentions of every vehicle (``iamp.IntentionBelief``): the DBN's route, stop/go and manoeuvre beliefs (METHOD.md §4).
+"""Intentions of every vehicle (``iamp.IntentionBelief``): the DBN's route, stop/go and manoeuvre beliefs (docs/method.md §7).
 
 One ``VehicleBelief`` per vehicle the intentions stage updated at this stamp,
 with one ``CorridorBelief`` per corridor of the CorridorSet of the same stamp

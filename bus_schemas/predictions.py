@@ -1,4 +1,4 @@
-"""Motion predictions: per (vehicle, corridor) distributions and the fused motion grid (METHOD.md §1.4, §6).
+"""Motion predictions: per (vehicle, corridor) distributions and the fused motion grid (docs/method.md §3.4, §9).
 
 ``iamp.CorridorPredictions`` holds, for every vehicle-corridor pair of one
 frame, the Markov chain's marginals at the prediction steps t_k = k·τ
@@ -45,7 +45,7 @@ class CorridorPrediction:
     Positions at t_k, metres in the map frame, NaN when no mass is left inside:
 
     - ``mean_x_m``, ``mean_y_m``: Σ p(s_i)·X_c(s_i) / Σ p(s_i), the
-      probability-weighted mean of centreline points (METHOD.md §6, the one
+      probability-weighted mean of centreline points (docs/method.md §9, the one
       the metrics use);
     - ``mean_s_m``: E[s] over the same cells, and ``x_at_mean_s_m``,
       ``y_at_mean_s_m``: X_c(E[s]) (differs from the mean position on curves).
@@ -113,7 +113,7 @@ class MotionGrid(Message):
     southern edge. The grid has ``n_rows`` × ``n_cols`` cells; only cells
     above ``min_value`` are listed. Per vehicle n the corridors are weighted
     by their probability and the grid G_n sums to 1 − outside mass; vehicles
-    combine as 1 − Π_n (1 − G_n) (METHOD.md §6). ``distribution`` says what
+    combine as 1 − Π_n (1 − G_n) (docs/method.md §9). ``distribution`` says what
     a step holds: ``interval`` (Υ([0, τ]): occupancy during the step ending
     at t_k) or ``point`` (the position at t_k). ``steps`` has one entry per
     ``step_times_s``.

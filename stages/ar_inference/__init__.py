@@ -1,4 +1,4 @@
-"""ar_inference stage: the AR-Net acceleration profiles of every vehicle-corridor pair (METHOD.md §3).
+"""ar_inference stage: the AR-Net acceleration profiles of every vehicle-corridor pair (docs/method.md §8).
 
 Consumes ``corridor_set`` (``CorridorSet``) and ``relation_set``
 (``RelationSet``) of the same stamp, optionally ``track_frame``; produces
@@ -10,7 +10,7 @@ Per frame it adds the frame to every vehicle's 4 s feature history
 runs the model (``model``, default the shipped ``stages/lib/ar/weights/ar_taf_bw.pt``)
 once over all (vehicle, corridor) pairs of the frame, and turns each
 40-step profile into 10 normal distributions over the chain's input cells
-(METHOD.md §3.2, ``chunk_distributions``): μ_k the mean of chunk k's four
+(docs/method.md §8.5, ``chunk_distributions``): μ_k the mean of chunk k's four
 0.1 s values, σ_k² = var(chunk) + (``sigma_scale``·σ_res,k)² with σ_res,k
 the validation RMSE of chunk means stored with the weights, floored at
 ``sigma_floor_mps2`` 0.25 m/s² (half a cell); tails beyond [-3, 2] m/s² are

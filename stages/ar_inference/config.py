@@ -9,7 +9,7 @@ from stages.lib.base import ConfigMixin, check_ranges
 
 @dataclass(frozen=True, kw_only=True)
 class ARInferenceConfig(ConfigMixin):
-    """Parameters of the ar_inference stage (package docstring; METHOD.md §3.2)."""
+    """Parameters of the ar_inference stage (package docstring; docs/method.md §8.5)."""
 
     #: weights file; empty: the shipped ``stages/lib/ar/weights/ar_taf_bw.pt``
     model: str = ""

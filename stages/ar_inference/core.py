@@ -19,7 +19,7 @@ from stages.ar_inference.config import ARInferenceConfig
 def chunk_distributions(
     accel_mps2: np.ndarray, chunk_steps: int, sigma_res: np.ndarray, edges: np.ndarray, *, sigma_scale: float = 1.0, sigma_floor: float = 0.25
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """METHOD.md §3.2: per chunk k, μ_k = mean of its steps, σ_k² = var(chunk) + (scale·σ_res,k)², σ_k ≥ floor,
+    """docs/method.md §8.5: per chunk k, μ_k = mean of its steps, σ_k² = var(chunk) + (scale·σ_res,k)², σ_k ≥ floor,
     and λ_α(k) = Φ((e_{α+1} − μ_k)/σ_k) − Φ((e_α − μ_k)/σ_k), the tails beyond the outer edges folded into the end cells.
 
     ``accel_mps2`` is (B, H) with H a multiple of ``chunk_steps``; ``sigma_res`` is (H / chunk_steps,);

@@ -1,4 +1,4 @@
-"""Corridors stage: the routes each vehicle may follow (METHOD.md §5 corridor generation, §8.9-8.10).
+"""Corridors stage: the routes each vehicle may follow (docs/method.md §5.4 corridor generation, §5.5).
 
 Consumes ``track_frame`` (``TrackFrame``) and the latched ``scene``
 (``SceneInfo``: map file, origin, projection); produces ``corridor_set``
@@ -9,7 +9,7 @@ Parameters (``CorridorsConfig``; lengths in m, angles in rad):
 
 - ``horizon_s`` 4.0, ``a_plan_mps2`` 2.0, ``extra_length_m`` 10.0: a corridor
   reaches ``v0·T + ½·a_plan·T² + extra`` ahead of the vehicle (T = horizon),
-  so the Markov mass cannot run off its end (METHOD.md §5, §8.4);
+  so the Markov mass cannot run off its end (docs/method.md §5, §5.4);
   ``behind_m`` 5.0: it starts that far behind the vehicle;
   ``resample_step_m`` 0.5: its centreline sampling.
 - ``match_max_distance_m`` 1.5, ``match_max_heading_rad`` 0.8,
@@ -80,7 +80,8 @@ straight backward extension (up to ``entry_extension_m``, lateral offset
 within half the width plus ``match_max_distance_m``) of a lanelet without
 predecessor. The last matches vehicles on a lane whose first part the map
 lacks (K733's fourth lane on Ostring's south-west approach, which continues
-as lanelet -103591; without it K733's coverage drops from 0.915 to 0.665) or
+as lanelet -103591; without it K733's coverage drops sharply, measured:
+docs/method.md §5.3) or
 arriving from beyond the map's edge. If no lanelet agrees in heading, or the
 heading is stale, the previous lanelets that are still candidates by
 position count as agreeing (a heading glitch: the K733 tracker sometimes
@@ -109,9 +110,9 @@ lanelet boundary ahead, into a same-direction neighbour of the next lanelet
 (an "adjacent successor": a turn into the other exit lane, drifting into the
 next lane through the intersection), blended over ``lane_change_length_m``
 centred on the boundary (``routes.RouteCache``). The TAF-BW maps route each
-turn into one exit lane only; drivers use both. This raises the 4 s coverage
-from 0.947 to 0.963 (K729) and from 0.886 to 0.915 (K733) for about 0.8
-more corridors per car (2.0 instead of 1.25). A lane-change route is
+turn into one exit lane only; drivers use both, so these routes raise the
+4 s coverage for somewhat more corridors per car (measured: docs/method.md
+§5.4; README, Stages). A lane-change route is
 dropped when the vehicle already has a plain route ending along the same
 lanes (it was matched to both neighbouring lanes).
 
@@ -124,7 +125,7 @@ straight: ``extension_start_s_m`` marks the end part, and
 begins before the corridor). The vehicle sits at ``vehicle_s_m =
 behind_m``; its s is found by projecting onto the route within
 ``frenet_window_m`` of its previous s on the same corridor (continuity,
-METHOD.md §8.10), and ``vehicle_d_m`` is its lateral offset.
+docs/method.md §5.5), and ``vehicle_d_m`` is its lateral offset.
 ``lanelet_ids`` are the lanelets the sampled part covers,
 ``speed_limit_mps`` their lowest limit, ``width_m`` the covering lanelet's
 mean width.
@@ -133,7 +134,7 @@ Merge rule. Two corridors of a vehicle whose samples, from the vehicle to the
 corridor end (the horizon length), stay within ``merge_tolerance_m`` of each
 other (equal index = equal arc length from the vehicle) are one: parallel
 overlapping lanelets, or routes that branch only beyond the vehicle's reach
-(METHOD.md §8.9). The one kept is the one emitted last frame, else the one
+(docs/method.md §7.6). The one kept is the one emitted last frame, else the one
 with the longer mapped part, else the better match.
 
 corridor_id. A route (lanelet sequence from the matched lanelet) inherits

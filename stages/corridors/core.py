@@ -40,7 +40,7 @@ _NS = 1e-9
 
 @dataclass(frozen=True, kw_only=True)
 class CorridorsConfig(ConfigMixin):
-    """Parameters of the corridors stage (package docstring, METHOD.md §5)."""
+    """Parameters of the corridors stage (package docstring, docs/method.md §5)."""
 
     horizon_s: float = 4.0
     a_plan_mps2: float = 2.0
@@ -82,7 +82,7 @@ class CorridorsConfig(ConfigMixin):
             raise ValueError(f"projection = {self.projection!r}: expected one of {known}")
 
     def ahead_m(self, speed_mps: float) -> float:
-        """Corridor length ahead of the vehicle: v0·T + ½·a_plan·T² + extra (METHOD.md §5)."""
+        """Corridor length ahead of the vehicle: v0·T + ½·a_plan·T² + extra (docs/method.md §5)."""
         t = self.horizon_s
         return max(speed_mps, 0.0) * t + 0.5 * self.a_plan_mps2 * t * t + self.extra_length_m
 
@@ -534,7 +534,7 @@ class CorridorBuilder:
         candidates = self._drop_redundant_lane_changes(road_map, candidates)
         self._assign_ids(track, candidates)
         for cand in candidates:
-            # continuity (METHOD.md §8.10): search near the previous s of this corridor, else near the match
+            # continuity (docs/method.md §5.5): search near the previous s of this corridor, else near the match
             hint = cand.s_m
             previous = track.frenet.get(cand.corridor_id)
             if previous is not None and previous[0] in cand.geometry.lanelet_ids:

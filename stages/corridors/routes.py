@@ -1,4 +1,4 @@
-"""Routes and corridor geometry for the corridors stage (METHOD.md §5, §8.10).
+"""Routes and corridor geometry for the corridors stage (docs/method.md §5, §5.5).
 
 A *route* is a lanelet sequence from a start lanelet without lane changes,
 run to a dead end or to at least `route_length_m` (`RoadMap.possible_paths`),

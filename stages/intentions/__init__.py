@@ -1,4 +1,4 @@
-"""Intentions stage: a Dynamic Bayesian Network per vehicle, estimated with a particle filter (METHOD.md §4).
+"""Intentions stage: a Dynamic Bayesian Network per vehicle, estimated with a particle filter (docs/method.md §7).
 
 Consumes ``track_frame`` (``TrackFrame``), ``corridor_set`` (``CorridorSet``)
 and ``relation_set`` (``RelationSet``) of the same stamp, and the latched
@@ -12,7 +12,7 @@ intersection entrance, the effective sample size. Run it alone with
 scores it on recordings.
 
 The network (all numbers are ``IntentionsConfig`` fields, [R] starting values
-of METHOD.md §4 unless said otherwise), per vehicle n at every frame:
+of docs/method.md §7 unless said otherwise), per vehicle n at every frame:
 
 - R (route): the vehicle's corridor. P(R_t | R_{t−1}): stays with 1 −
   ``route_switch_per_step`` (0.005 per 0.1 s), else switches uniformly to
@@ -29,7 +29,7 @@ of METHOD.md §4 unless said otherwise), per vehicle n at every frame:
   addition to the logistic gap rule). It is weighted by the other vehicle's
   route probability from this stage's previous output. P(E = go) = Π(1 −
   q·P(conflict)). The TAF-BW maps carry no stop signs, so the stop-sign
-  rule of METHOD.md §4 is not implemented.
+  rule of docs/method.md §7 is not implemented.
 - I (intended: stop before the next intersection entrance, or go).
   P(I_t | I_{t−1}, E_t): keeps I with ``intention_keep`` (0.98) when I =
   E, takes E with ``intention_adapt`` (0.10 per 0.1 s) when not, within
@@ -43,51 +43,38 @@ of METHOD.md §4 unless said otherwise), per vehicle n at every frame:
   ``stop_accel_sigma_mps2``²) clipped to [−8, 0], where d_stop runs to the
   entrance minus ``stop_offset_m``; go (or no entrance ahead): a ~ N(k_v
   (v_adm(s) − v), ``go_accel_sigma_mps2``² = 0.7²), k_v = ``go_gain_per_s``
-  1.0 s⁻¹ (METHOD.md says 0.5; see below),
+  1.0 s⁻¹ (docs/method.md says 0.5; see below),
   v_adm = min(speed limit, √(a_lat/|κ|)) with a braking look-ahead of
-  ``brake_lookahead_mps2`` 2.5 (METHOD.md §2.2; κ smoothed over
+  ``brake_lookahead_mps2`` 2.5 (docs/method.md §4.2; κ smoothed over
   ``curvature_smoothing_m``): a turning corridor demands lower speeds
   ahead, so an early slow-down gains weight on it. Then s += v dt + ½ a dt²,
   v = max(0, v + a dt) (never backwards), d = 0.9^(dt/0.1) d + N(0,
   0.05² dt/0.1). Longer gaps are split into steps of ``max_substep_s``.
   ``accel_relaxation_s`` > 0 makes a a state relaxing to the mode's mean
-  (measured: stop/go much worse, so off).
+  (measured: stop/go much worse, so off; docs/method.md §7.5).
 - Z = (x, y, ψ, v): the particle (s, d) on its corridor gives X(s) + d·n(s)
   and ψ(s); ln P(Z | Φ, R) = −½ (|Δxy|²/0.5² + wrap(Δψ)²/0.15² + Δv²/0.5²);
   the heading term only at speeds of ``heading_min_speed_mps`` (1 m/s) and
   more (a standing car's yaw drifts), a term whose measurement is not
   finite is left out. The speed is the corridors stage's.
 
-``stop_offset_m`` 14 m was measured on TAF-BW (``evaluation``): the 11
-cars that stopped first in line stood a median 18.6 m (12 to 22 m; 15.2 m
-or more for 10 of them) before the entrance the relations report (the first
-conflict point of the entry lanelet), so the stop model brakes for the stop
-line, not the entrance. The target sits at the near end of those positions
-because a car stopping beyond its target contradicts the stop model hard
-(it predicts full braking), one stopping short of it only mildly (with
-17.5 m, K729 car 2690, which stopped 0.2 m beyond, saw its P(stop) drop
-from 0.9 to 0.55 for a second).
+``stop_offset_m`` 14 m: cars that stop first in line stand well before the
+entrance the relations report (the first conflict point of the entry
+lanelet), at the stop line; the target sits at the near end of those
+positions because a car stopping beyond its target contradicts the stop
+model hard, one stopping short of it only mildly (measured: docs/method.md
+§7.5).
 
-``go_gain_per_s`` 1.0 s⁻¹ instead of METHOD.md's 0.5: with 0.5 the
-particles' speed lagged cars pulling away from a standstill by about 1 m/s,
-and the corridor whose speed profile happened to excuse the lag gained
-weight. On all of TAF-BW (6 seeds) route_top1 averaged over the 3/2/1/0 s
-bins rose from 0.565 to 0.601 (the mean P(true corridor) from 0.54 to
-0.58), the stop/go separation stayed (stoppers equal, P(stop) of cars that
-went 0.03 higher). Also measured and not taken: a persistent acceleration
-(route +0.02, P(stop) of stoppers 0.85 → 0.64), σ_v 1.0 (route +0.03,
-stoppers 0.76), k_v 1.5 (no better than 1.0); single runs of a_lat + 0.5
-and curvature smoothing over 4 or 8 m stayed within the seed-to-seed
-spread (±0.05 per bin).
+``go_gain_per_s`` 1.0 s⁻¹ instead of the 0.5 first chosen: with 0.5 the
+particles' speed lagged cars pulling away from a standstill, and the
+corridor whose speed profile happened to excuse the lag gained weight; 1.0
+predicts routes better without hurting the stop/go separation (measured,
+with the variants not taken: docs/method.md §7.5).
 
 The particle filter, per frame (``particles_per_vehicle`` N = 300 per
-vehicle). ``bench/intentions_particles.py`` (3 seeds, route_top1 in the last
-second before the entrance; CPU ms per frame) on all of TAF-BW: K729
-(212 windows) 0.64 / 0.67 / 0.70 at 1.1 / 1.25 / 1.7 ms for N = 100 / 300 /
-1000, K733 (142 windows, 5.3 vehicles per frame) 0.49 / 0.58 / 0.58 at
-2.4 / 2.9 / 4.6 ms. 100 loses accuracy for a 15 % saving (the per-frame
-overhead dominates); 1000 costs 40 to 60 % more for a gain within the
-seed-to-seed spread; so 300 stays:
+vehicle: fewer lose route accuracy for little saving, more cost clearly
+more for no gain beyond the seed-to-seed spread; measured with
+``bench/intentions_particles.py``: docs/method.md §7.5):
 
 1. Birth: a vehicle without particles gets N split evenly over its
    corridors, at its Frenet position on each (noise ``birth_sigma_*``), its
@@ -109,9 +96,9 @@ seed-to-seed spread; so 300 stays:
    corridor c keeps its probability W_c exactly and gets the floor (2 % of
    N, at most N/C) plus a largest-remainder share ∝ W_c of the rest, each
    particle weighing W_c/n_c; then jitter (s 0.2 m, v 0.1 m/s). Plain
-   systematic resampling over all particles let P(R) wander (0.28 → 0.53 →
-   0.22 within 1.3 s for K729 car 2713) between corridors the measurements
-   could not tell apart yet: sampling noise, not evidence. Resampling
+   systematic resampling over all particles let P(R) wander between
+   corridors the measurements could not tell apart yet: sampling noise, not
+   evidence (docs/method.md §7.3). Resampling
    within corridors removes that drift and keeps the 2 % particle floor
    per corridor by construction.
 6. Death: a vehicle not updated for more than ``unseen_timeout_s`` (1 s,

@@ -42,7 +42,7 @@ _U64 = (1 << 64) - 1
 
 @dataclass(frozen=True, kw_only=True)
 class IntentionsConfig(ConfigMixin):
-    """Parameters of the intentions stage (package docstring, METHOD.md §4)."""
+    """Parameters of the intentions stage (package docstring, docs/method.md §7)."""
 
     seed: int = 0
     particles_per_vehicle: int = 300

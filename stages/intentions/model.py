@@ -3,7 +3,7 @@
 Pure functions of the particle arrays, the frame's `PairTables` and
 pre-drawn random numbers (drawn per vehicle from its own seeded generator by
 `IntentionFilter`), so no Python loop runs per particle. See the package
-docstring for the model and its parameters (METHOD.md §4).
+docstring for the model and its parameters (docs/method.md §7).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from stages.lib.maps import wrap_angle_rad
 from stages.intentions.tables import PairTables
 
 REFERENCE_STEP_S = 0.1
-"""The step the per-step probabilities and noises of METHOD.md §4 are stated for (10 Hz)."""
+"""The step the per-step probabilities and noises of docs/method.md §7 are stated for (10 Hz)."""
 
 
 @dataclass(slots=True, eq=False)

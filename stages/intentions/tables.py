@@ -4,7 +4,7 @@
 with a per-pair key offset, so that the particles of every vehicle are
 placed on their corridors by one ``searchsorted`` (`PairTables.locate`),
 whatever their number. Per pair it also holds the admissible speed profile
-of METHOD.md §2.2 (one row per lateral acceleration of the driver styles),
+of docs/method.md §4.2 (one row per lateral acceleration of the driver styles),
 the next intersection entrance and the stop position, the start of the
 vehicle's matched lanelet (route switching), and the conflicts with
 priority vehicles that drive the expected manoeuvre E.
@@ -33,7 +33,7 @@ MIN_CURVATURE_1PM = 1e-4
 
 
 def admissible_speeds(s_m, curvature_1pm, length, speed_limit_mps, lat_accels_mps2, brake_mps2: float, smoothing_m: float) -> np.ndarray:
-    """v_adm(s) ``(J, G, M)`` per lateral acceleration for G padded profiles ``(G, M)`` (METHOD.md §2.2).
+    """v_adm(s) ``(J, G, M)`` per lateral acceleration for G padded profiles ``(G, M)`` (docs/method.md §4.2).
 
     Row g holds ``length[g]`` samples (the rest is padding). v_prof(s) =
     min(v_limit, √(a_lat / max(|κ(s)|, 1e-4))) with κ smoothed by a moving

@@ -1,4 +1,4 @@
-"""Which conflicting corridor influences a corridor: the explicit rules of METHOD.md §5.
+"""Which conflicting corridor influences a corridor: the explicit rules of docs/method.md §5.
 
 Pure functions on the conflict arrays of one corridor (the ``conflict_*``
 arrays of a ``CorridorRelations``, shape ``(c,)``), so the relations core and
@@ -82,7 +82,7 @@ def choose_influencing(
 ) -> tuple[int, str]:
     """(index, rule) of the conflict influencing this corridor; (-1, ``none``) if none.
 
-    Arrays are the corridor's conflicts (c,). `horizon_s` bounds T' (METHOD.md
+    Arrays are the corridor's conflicts (c,). `horizon_s` bounds T' (docs/method.md
     §5: 4 s + 2 s). `other_probability` (c,), when given, is P(R = the other
     corridor) from the intentions; conflicts below `min_probability` are
     skipped.

@@ -44,9 +44,9 @@ it has passed:
   calibrated reported one if trusted, else the reported one as given
   (``source = "reported"``); a reported zero there is unknown (NaN, ``source
   = "unknown"``: the corridors stage reports the track ``state_pending`` for
-  that one frame) rather than a standing car that is not standing: born at
-  speed 0, K733's cars (all reported 0 at birth) cost corridor_cv 28 % mADE
-  through the intentions filter's particles and the acceleration history.
+  that one frame) rather than a standing car that is not standing: a birth
+  at speed 0 misleads the intentions filter's particles and the
+  acceleration history (measured: docs/method.md §6.3).
   It is not fed to the filter.
 - Per track, once it has ``consistency_min_samples`` such samples, the
   medians decide it: a factor outside ``[1 / factor_tolerance,

@@ -1,4 +1,4 @@
-"""Markov prediction stage: rule-based Markov-chain motion prediction and the motion grid (METHOD.md §1.4, §2, §6).
+"""Markov prediction stage: rule-based Markov-chain motion prediction and the motion grid (docs/method.md §3.4, §4, §9).
 
 Consumes ``corridor_set`` (``CorridorSet``) and ``relation_set``
 (``RelationSet``) of the same stamp, the latched ``scene`` (``SceneInfo``) and,
@@ -13,25 +13,24 @@ Modes (``mode``), one ``InputModel`` each in ``modes/`` (the contract the
 chain loop of ``core.py`` calls: ``modes/base.py``):
 
 - ``hybrid``: the same chain with the AR model's distributions in place of
-  the rule-based λ (METHOD.md §3.2): λ(0) of the pair's
+  the rule-based λ (docs/method.md §8.5): λ(0) of the pair's
   ``AccelerationProfile`` is the initial input distribution, and after step
   k the input transition is Γ_k = colnorm(diag(λ(k+1)) Ψ), one M × M matrix
   per pair (``hybrid_input`` "psi"), or λ(k+1)·1ᵀ (``hybrid_input``
   "direct", the memoryless ablation); saturation kept, the standstill
   mixture as in the baseline. ``hybrid_speed_restriction`` (default on,
-  ours; METHOD.md §3.2 suggested off because the net sees the curvature):
+  ours; docs/method.md §8.5 suggested off because the net sees the curvature):
   λ(k+1), scaled to a largest entry of 1, is the preference that the
-  baseline's λ_speed (§2.2) cuts per state, CORA's combination, so Γ is
-  per state. Measured leave-one-location-out on TAF-BW: mADE 2.92 → 2.85 m
-  on K733 (model trained on K729), 1.83 → 1.75 m on K729 (trained on K733);
-  with a model that always predicts 0 the chain alone went 3.12 → 3.02 on
-  K733: the AR model trained on so little data does not learn the slowing
-  for curves. No leader or crossing restriction (the model saw those
+  baseline's λ_speed (§4.2) cuts per state, CORA's combination, so Γ is
+  per state. It lowers mADE leave-one-location-out on both locations, also
+  with a model that always predicts 0: the AR model trained on so little
+  data does not learn the slowing for curves (measured: docs/method.md
+  §8.5). No leader or crossing restriction (the model saw those
   features). A pair without a usable profile (missing, wrong input
   cells, other stamp) holds a normal distribution around its measured
   acceleration (issue ``no_acceleration_profile(s)``/``bad_profile``);
-- ``baseline``: the Markov chain of METHOD.md §1.4 with the rule-based
-  priority vector λ of §2; all vehicle-corridor pairs of a frame propagate
+- ``baseline``: the Markov chain of docs/method.md §3.4 with the rule-based
+  priority vector λ of §4; all vehicle-corridor pairs of a frame propagate
   together, one batch per step (``backend`` "numpy" = scipy CSR, or
   "torch" on ``device`` "cpu"/"cuda");
 - ``cv``: Cartesian constant velocity, one straight line per vehicle along its
@@ -49,7 +48,7 @@ initial box from the belief instead of the measurement: centred on the
 particles' mean s and v on that corridor, half-widths max(Δs/2, 2σ_s) and
 max(Δv/2, 2σ_v) of the particles.
 
-Initial distribution (§1.4). Per pair, a uniform box in (s, v) around the
+Initial distribution (§3.4). Per pair, a uniform box in (s, v) around the
 vehicle's arc length on the corridor and its speed, ±max(Δs/2, 2σ_s) and
 ±max(Δv/2, 2σ_v) (``init_sigma_s_m`` 0.25, ``init_sigma_v_mps`` 0.25), times
 a Gaussian input distribution around the measured acceleration: the
@@ -62,23 +61,23 @@ s-cells of ``ds_m`` 1 m starts ``window_behind_m`` 3 m behind the vehicle.
 
 Standstill (ours, after CORA's standstill location). A cell-based chain
 cannot hold a vehicle at v = 0: v-cell 0 is [0, 0.5] m/s and its mass is
-re-spread over it every step, so a standing car creeps 0.5–0.8 m in 4 s even
-under braking inputs, and the preference q starts it. A vehicle at or below
+re-spread over it every step, so a standing car creeps even under braking
+inputs, and the preference q starts it (docs/method.md §3.6). A vehicle at or below
 ``standstill_speed_mps`` 0.5 is therefore predicted as the mixture
 P_stay(t)·(its start box, v = 0) + (1 − P_stay(t))·chain, P_stay(t) =
 exp(−``standstill_start_rate_hz``·t); 0.055 /s gives P(start within 4 s) =
-0.2, what TAF-BW's standing cars show (77–88 % move less than 1 m in 4 s).
+0.2, what TAF-BW's standing cars show (measured: docs/method.md §3.6).
 Followers see a standing leader through the same mixture.
 
 Lateral offset. Means and grids are placed at the vehicle's lateral offset
 from the centreline, d(t) = d0·exp(−t/``lateral_offset_decay_s``); the
 default 1e6 s keeps d0 (on TAF-BW, keeping it beat decaying it with 2 s and
-the bare centreline).
+the bare centreline; docs/method.md §3.6).
 
 Priority vector λ (baseline). At every step, for every state (s, v) and
 input α of every pair: m = min(λ_speed, λ_lead, λ_conf), then CORA's
 combination with the free-driving preference q (``free_driving_preference``,
-METHOD.md §2.1's 10-cell vector, scaled to a largest entry of 1 so that a
+docs/method.md §4.1's 10-cell vector, scaled to a largest entry of 1 so that a
 restriction below 1 cuts it; with q summing to 1 only restrictions below
 0.3 would act): from the highest input down r_α = min(m_α, q_α + carry),
 the cut carried to the next lower input; where every m_α ≤
@@ -86,13 +85,13 @@ the cut carried to the next lower input; where every m_α ≤
 colnorm(diag(r_i) Ψ) (Ψ with γ = ``psi_gamma`` 0.2) is applied without being
 built (``chain.InputPriority``).
 
-- λ_speed (§2.2): v_prof(s) = min(v_limit, √(a_lat/|κ(s)|)) with κ smoothed
+- λ_speed (§4.2): v_prof(s) = min(v_limit, √(a_lat/|κ(s)|)) with κ smoothed
   over ``curvature_smoothing_m``, v_limit the corridor's (else the scene's)
   limit × ``speed_limit_factor``; a braking look-ahead v_adm(s) = min over s'
   ≥ s of √(v_prof(s')² + 2b(s' − s)) (``lookahead_brake_mps2`` 2.5); an input
   is allowed under one profile when v + aτ ≤ v_adm(s + vτ); the four a_lat
   of ``lat_accels_mps2`` are mixed with ``lat_accel_weights``.
-- λ_lead (§2.3, critical-gap form, never a dense Θ): g*(Δt, v_F, α_F, v_L,
+- λ_lead (§4.3, critical-gap form, never a dense Θ): g*(Δt, v_F, α_F, v_L,
   α_L) is tabulated once (both hold their inputs for Δt ∈
   ``leader_horizons_s``, then both brake at ``leader_brake_mps2`` 6 m/s²; the
   gap must stay positive). λ_lead = mean over Δt of P(leader displacement ≥
@@ -103,7 +102,7 @@ built (``chain.InputPriority``).
   (averaged over its corridors) and its speed and input through their means;
   a leader without pairs (pedestrian, unmatched vehicle) moves at its
   relation speed, ±``static_leader_spread_m``.
-- λ_conf (§2.4, occupancy windows): for the pair's influencing corridor, the
+- λ_conf (§4.4, occupancy windows): for the pair's influencing corridor, the
   conflict zone s* ± (L + w_other)/2 on both corridors; for every state and
   held input the time window in the zone, widened by ``conflict_margin_s``,
   gives q = the maximum over the overlapping steps of the other vehicle's
@@ -117,7 +116,7 @@ built (``chain.InputPriority``).
   again for the restricted pairs and (transitively) their followers, with
   the other vehicles' occupancies from the first pass.
 
-Outputs (§6). Per pair the time-point s- and v-marginals at t_k = k·τ (k =
+Outputs (§9). Per pair the time-point s- and v-marginals at t_k = k·τ (k =
 1..K), the outside mass (past the window or the corridor's end, never
 renormalised), the probability-weighted mean of centreline points and
 X_c(E[s]) (both moved by the lateral offset). Constant-velocity modes report the exact s0 + v0·t instead of

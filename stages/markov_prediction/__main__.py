@@ -14,7 +14,7 @@ INPUTS = {
     "track_frame": Port(TrackFrame, optional=True),  # sizes, and the velocity of mode "cv"
     # corridor_weights = "intentions" (P(R = c)) and initial_box = "particles" read the DBN's belief
     "intention_belief": Port(IntentionBelief, optional=True),
-    # mode = "hybrid": λ_AR(k) of the ar_inference stage replace the rule-based λ (METHOD.md §3.2)
+    # mode = "hybrid": λ_AR(k) of the ar_inference stage replace the rule-based λ (docs/method.md §8.5)
     "acceleration_profiles": Port(AccelerationProfiles, optional=True),
 }
 OUTPUTS = {"corridor_predictions": Port(CorridorPredictions), "motion_grid": Port(MotionGrid)}

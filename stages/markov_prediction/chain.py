@@ -1,4 +1,4 @@
-"""A per-state input transition Γ_i = colnorm(diag(λ_i) Ψ) given by λ alone (METHOD.md §2.1).
+"""A per-state input transition Γ_i = colnorm(diag(λ_i) Ψ) given by λ alone (docs/method.md §4.1).
 
 ``stages.lib.markov``'s ``InputPerState`` takes the full Γ, ``(B, M, M, N_v, N_s)``:
 1.6 MB per pair and step at the default grid. The baseline only ever needs

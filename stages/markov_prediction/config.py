@@ -6,33 +6,33 @@ from dataclasses import dataclass
 
 from stages.lib.base import ConfigMixin, check_ranges
 
-#: ``hybrid``: AR-Net acceleration distributions replace λ (METHOD.md §3); ``baseline``: rule-based λ (§2).
+#: ``hybrid``: AR-Net acceleration distributions replace λ (docs/method.md §8); ``baseline``: rule-based λ (§4).
 MODES = ("hybrid", "baseline", "cv", "corridor_cv")
 #: Modes that run the Markov chain (the others are closed-form constant-velocity predictions).
 CHAIN_MODES = ("hybrid", "baseline")
 #: ``intentions``: P(R = c) from the DBN's IntentionBelief; ``uniform``: 1/C over a vehicle's corridors.
 CORRIDOR_WEIGHTS = ("intentions", "uniform")
-#: Centre and half-widths of the initial (s, v) box: the measurement ± the §1.4 defaults, or the particles of the DBN.
+#: Centre and half-widths of the initial (s, v) box: the measurement ± the §3.4 defaults, or the particles of the DBN.
 INITIAL_BOXES = ("measurement", "particles")
-#: Γ in hybrid mode: colnorm(diag(λ_AR(k)) Ψ) (METHOD.md §3.2), or the memoryless ``direct`` ablation λ_AR(k)·1ᵀ.
+#: Γ in hybrid mode: colnorm(diag(λ_AR(k)) Ψ) (docs/method.md §8.5), or the memoryless ``direct`` ablation λ_AR(k)·1ᵀ.
 HYBRID_INPUTS = ("psi", "direct")
 BACKENDS = ("numpy", "torch")
 GRID_DISTRIBUTIONS = ("interval", "point")
 
-#: METHOD.md §2.1 "our 10-cell free-driving preference" over [-3, 2] m/s² in 0.5 m/s² cells.
+#: docs/method.md §4.1 "our 10-cell free-driving preference" over [-3, 2] m/s² in 0.5 m/s² cells.
 DEFAULT_PREFERENCE = (0.005, 0.01, 0.02, 0.04, 0.10, 0.25, 0.30, 0.15, 0.08, 0.04)
 
 
 @dataclass(frozen=True, kw_only=True)
 class MarkovPredictionConfig(ConfigMixin):
-    """Parameters of the markov_prediction stage (package docstring; METHOD.md §0–2, §6)."""
+    """Parameters of the markov_prediction stage (package docstring; docs/method.md §2–4, §9)."""
 
     mode: str = "baseline"
     backend: str = "numpy"
     device: str = "cpu"
     corridor_weights: str = "intentions"
     initial_box: str = "particles"
-    # hybrid mode (METHOD.md §3.2): how the AR distributions enter the chain
+    # hybrid mode (docs/method.md §8.5): how the AR distributions enter the chain
     hybrid_input: str = "psi"
     hybrid_speed_restriction: bool = True
     # discretisation (the stencils are cached per ds, dv, v_max, τ)
@@ -45,7 +45,7 @@ class MarkovPredictionConfig(ConfigMixin):
     window_behind_m: float = 3.0
     prune_threshold: float = 1e-7
     stencil_cache_dir: str = ""
-    # initial distribution (§1.4)
+    # initial distribution (§3.4)
     init_sigma_s_m: float = 0.25
     init_sigma_v_mps: float = 0.25
     init_sigma_a_mps2: float = 0.5
@@ -53,29 +53,29 @@ class MarkovPredictionConfig(ConfigMixin):
     standstill_speed_mps: float = 0.5
     standstill_start_rate_hz: float = 0.055
     track_timeout_s: float = 2.0
-    # Γ = colnorm(diag(λ) Ψ) (§2.1)
+    # Γ = colnorm(diag(λ) Ψ) (§4.1)
     psi_gamma: float = 0.2
     free_driving_preference: tuple[float, ...] = DEFAULT_PREFERENCE
     forbid_threshold: float = 1e-3
-    # speed limit and curvature (§2.2)
+    # speed limit and curvature (§4.2)
     lat_accels_mps2: tuple[float, ...] = (3.0, 2.5, 2.0, 1.5)
     lat_accel_weights: tuple[float, ...] = (0.1, 0.2, 0.4, 0.3)
     lookahead_brake_mps2: float = 2.5
     speed_limit_factor: float = 1.0
     default_speed_limit_mps: float = 13.89
     curvature_smoothing_m: float = 3.0
-    # leader (§2.3)
+    # leader (§4.3)
     leader_horizons_s: tuple[float, ...] = (0.4, 1.6, 3.2)
     leader_brake_mps2: float = 6.0
     leader_epsilon: float = 1e-4
     leader_horizon_mean: str = "arithmetic"
     static_leader_spread_m: float = 1.0
-    # influencing corridor (§2.4)
+    # influencing corridor (§4.4)
     conflict_margin_s: float = 1.0
     conflict_epsilon: float = 1e-4
     # constant-velocity baselines
     cv_accel_sigma_mps2: float = 1.0
-    # motion grid (§6)
+    # motion grid (§9)
     grid_cell_m: float = 0.5
     grid_lateral_sigma_m: float = 0.4
     grid_substeps: int = 4

@@ -1,4 +1,4 @@
-"""The rule-based priority vector λ of the baseline (METHOD.md §2.1–2.4), pure numpy.
+"""The rule-based priority vector λ of the baseline (docs/method.md §4.1–4.4), pure numpy.
 
 Every array of restrictions uses the layout of the Markov chain without the
 pair axis or with it first: ``(B, M, N_v, L)`` = (pair, input cell α,
@@ -6,14 +6,14 @@ velocity cell, s-cell of the part of the window being processed). A value is
 a weight in [0, 1] per input: 1 allowed, 0 forbidden, in between soft.
 
 - ``speed_restriction``: the speed-limit and curvature profile with a braking
-  look-ahead (§2.2), four lateral accelerations mixed with weights;
+  look-ahead (§4.2), four lateral accelerations mixed with weights;
 - ``CriticalGaps`` and ``leader_restriction``: the leader interaction in its
-  critical-gap form (§2.3), never a dense Θ;
+  critical-gap form (§4.3), never a dense Θ;
 - ``conflict_restriction``: the crossing restriction as an occupancy-window
-  lookup against the influencing vehicle's predicted occupancy (§2.4);
+  lookup against the influencing vehicle's predicted occupancy (§4.4);
 - ``combine_with_preference``: the elementwise minimum of the restrictions
   combined with the free-driving preference q, CORA's carry-down rule
-  (§2.1), with the strongest braking input kept where everything is
+  (§4.1), with the strongest braking input kept where everything is
   forbidden.
 """
 
@@ -29,14 +29,14 @@ MIN_CURVATURE_1PM = 1e-4
 
 
 # ---------------------------------------------------------------------------
-# Combination with the free-driving preference (§2.1)
+# Combination with the free-driving preference (§4.1)
 # ---------------------------------------------------------------------------
 
 
 def normalised_preference(values: tuple[float, ...] | np.ndarray, n_inputs: int) -> np.ndarray:
     """q over the ``n_inputs`` cells, float32, scaled so that its largest entry is 1.
 
-    METHOD.md §2.1 gives q only up to a factor (CORA's sums to 1). Γ does not
+    docs/method.md §4.1 gives q only up to a factor (CORA's sums to 1). Γ does not
     depend on the scale, but the combination min(m_α, q_α) does: a
     restriction m_α is the probability that input α is allowed, and it
     should cut the preferred inputs whenever it is below 1. With q summing
@@ -58,7 +58,7 @@ def combine_with_preference(restriction: np.ndarray, preference: np.ndarray, for
     who may not use the preferred acceleration falls back to the next lower
     one). Where every m_α is at most ``forbid_threshold`` (everything
     forbidden or only ε-safe), r puts all weight on the strongest braking
-    input α = 0 (METHOD.md §2.1 item 4, §8.5). The result has the shape of
+    input α = 0 (docs/method.md §4.1 item 4, §4.1). The result has the shape of
     ``restriction`` (float32) and no all-zero column. ``preference`` is
     ``(M,)`` for every pair, or ``(B, M)`` per pair (hybrid mode with the speed
     restriction: the AR distribution scaled to a largest entry of 1).
@@ -83,7 +83,7 @@ def combine_with_preference(restriction: np.ndarray, preference: np.ndarray, for
 
 
 # ---------------------------------------------------------------------------
-# Speed limit and curvature (§2.2)
+# Speed limit and curvature (§4.2)
 # ---------------------------------------------------------------------------
 
 
@@ -144,7 +144,7 @@ def speed_restriction(
 
 
 # ---------------------------------------------------------------------------
-# Leader (§2.3): critical gaps
+# Leader (§4.3): critical gaps
 # ---------------------------------------------------------------------------
 
 
@@ -179,7 +179,7 @@ class CriticalGaps:
     centres) for Δt, then both brake at ``brake_mps2`` to a stop, and the gap
     must stay positive throughout (CORA's crash check with an ODE event,
     here a dense time grid of ``dt_s``). The table depends only on the
-    discretisation, so it is built once (METHOD.md §2.3 "efficient
+    discretisation, so it is built once (docs/method.md §4.3 "efficient
     equivalent").
     """
 
@@ -253,7 +253,7 @@ def leader_restriction(
     gap at t0), so that the state is safe against a leader displacement Δ iff
     Δ ≥ offset + g*. ``leader_v_cell``, ``leader_a_cell`` ``(F,)``: the
     leader's mean speed and acceleration as cell indices (the cheaper
-    variant of §2.3: the leader's position enters with its whole
+    variant of §4.3: the leader's position enters with its whole
     distribution, its speed and input through their means). Per horizon the
     weight is P(safe) + ε·(1 − P(safe)); the horizons are averaged
     arithmetically (CORA) or, with ``geometric``, geometrically, so that an
@@ -275,7 +275,7 @@ def leader_restriction(
 
 
 # ---------------------------------------------------------------------------
-# Crossing restriction (§2.4): occupancy windows
+# Crossing restriction (§4.4): occupancy windows
 # ---------------------------------------------------------------------------
 
 
@@ -377,6 +377,6 @@ def constant_speed_occupancy(distance_m: float, speed_mps: float, half_zone_m: f
 
 
 def zone_half_width_m(length_m: float, other_width_m: float) -> float:
-    """Half the conflict zone along a corridor: (L + w_other) / 2 (METHOD.md §2.4)."""
+    """Half the conflict zone along a corridor: (L + w_other) / 2 (docs/method.md §4.4)."""
     value = 0.5 * (length_m + other_width_m)
     return value if math.isfinite(value) and value > 0 else 3.0

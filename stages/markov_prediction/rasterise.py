@@ -1,4 +1,4 @@
-"""Motion grid: corridor s-distributions rasterised onto a map-frame grid (METHOD.md §6), sparse.
+"""Motion grid: corridor s-distributions rasterised onto a map-frame grid (docs/method.md §9), sparse.
 
 Each s-cell's mass is spread along the centreline piece it covers
 (``n_sub`` equally spaced sub-samples) and laterally with a Gaussian of

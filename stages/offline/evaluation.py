@@ -1,4 +1,4 @@
-"""Offline evaluation (``iamp eval``): the prediction modes against ground truth, in-process (METHOD.md §6).
+"""Offline evaluation (``iamp eval``): the prediction modes against ground truth, in-process (docs/method.md §9).
 
 Runs source → corridors → relations → intentions, ar_inference →
 markov_prediction as plain cores, no bus: ``TrackPlayer`` plays each
@@ -67,7 +67,7 @@ Metrics per window (K = 10 steps of 0.4 s):
 In ``--json`` a split without windows has ``windows`` 0 and null metrics.
 
 The grids used here are the centre-point grids at t_k (``grid_distribution =
-"point"``, METHOD.md §6 "for calibration"); the stage publishes interval
+"point"``, docs/method.md §9 "for calibration"); the stage publishes interval
 occupancy by default. ``frame_ms_*`` is the wall time of one
 ``MarkovPredictor.process`` call (all vehicles of the frame, grid included;
 corridors and relations excluded). Splits: ``by_speed.slow`` (speed at t ≤

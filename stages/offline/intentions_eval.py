@@ -1,4 +1,4 @@
-"""Evaluation of the intentions (route and stop/go) on recordings, in-process (METHOD.md §4, §8.9).
+"""Evaluation of the intentions (route and stop/go) on recordings, in-process (docs/method.md §7, §7.6).
 
     python -m stages.offline.intentions_eval --data PATH [--recording NAME] [--sequence ID] [--particles N] [--seeds 0 1 2] [--json FILE]
 

@@ -1,4 +1,4 @@
-"""Relations stage: what surrounds each vehicle on each of its corridors (METHOD.md §5).
+"""Relations stage: what surrounds each vehicle on each of its corridors (docs/method.md §5).
 
 Consumes ``track_frame`` (``TrackFrame``) and ``corridor_set``
 (``CorridorSet``) of the same stamp, and the latched ``scene``
@@ -39,8 +39,8 @@ Parameters (``RelationsConfig``):
   corridors each) are never capped. Memory: the projection of objects onto
   corridors is pruned by distance (only objects inside a corridor's
   bounding box grown by lookbehind + half width + margin are projected) and
-  chunked; a 1,000-object frame once took 6.5 GB there as one dense
-  (pairs, objects, segments, 2) array. Budget: <= 1 GB peak RSS on a
+  chunked, never one dense (pairs, objects, segments, 2) array (which ran
+  out of memory on a large frame; README, Security). Budget: <= 1 GB peak RSS on a
   1,000-object frame (``bench/hostile.py --section big-frame``);
 - ``projection`` "auto": as in the corridors stage, whose map loader
   (``stages.corridors.SceneMaps``) this stage uses, so both see one map.

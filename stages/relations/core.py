@@ -37,7 +37,7 @@ _KIND_ON_BUS = {MapConflictKind.CROSSING: ConflictKind.CROSSING, MapConflictKind
 
 @dataclass(frozen=True, kw_only=True)
 class RelationsConfig(ConfigMixin):
-    """Parameters of the relations stage (package docstring, METHOD.md §5)."""
+    """Parameters of the relations stage (package docstring, docs/method.md §5)."""
 
     lateral_margin_m: float = 0.5
     lookahead_m: float = 100.0

@@ -27,7 +27,7 @@ increase over a run. ``header.frame_index`` counts the frames of the run
 Whatever the loader skipped, flagged or repaired becomes one ``Issue`` per
 reason on the first result (kind ``bad_row_<reason>``, ``unknown_agent_type``
 or ``repaired_<reason>``, detail with count and first example), so the
-runtime logs and counts it. No METHOD.md section: this is infrastructure.
+runtime logs and counts it. No docs/method.md section: this is infrastructure.
 """
 
 from __future__ import annotations

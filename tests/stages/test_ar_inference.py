@@ -1,4 +1,4 @@
-"""ar_inference: chunk distributions (METHOD.md §3.2), the core on real frames, the stage on the bus."""
+"""ar_inference: chunk distributions (docs/method.md §8.5), the core on real frames, the stage on the bus."""
 
 from __future__ import annotations
 

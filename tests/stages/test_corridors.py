@@ -17,10 +17,10 @@ import bus_schemas
 from bus_schemas import AgentType, CorridorSet, Header, MatchStatus, SceneInfo, TrackFrame
 from stages.lib.base import ConfigError
 from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
-from stages.lib.datasets import DEFAULT_DATA_DIR, load_recording
+from stages.lib.datasets import DEFAULT_DATA_DIR, full_data_dir, load_recording
 
 REPO = Path(__file__).resolve().parents[2]
-SHARED = (REPO / ".." / "shared" / "data" / "taf-bw").resolve()
+SHARED = full_data_dir() or REPO / "no-full-data"  # $IAMP_TAF_BW: the full TAF-BW recordings, when present
 K729 = "k729_2022-03-16"
 K733 = "k733_2018-05-02"
 STEP_M = 0.5

@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from stages.lib.datasets import full_data_dir
+
 from stages.lib.maps import (
     ConflictKind,
     MapProblemKind,
@@ -22,11 +24,11 @@ from stages.lib.maps import (
     projection_for_location,
 )
 
-DATA = (Path(__file__).resolve().parents[2] / "../shared/data/taf-bw").resolve()
+DATA = full_data_dir() or Path("no-full-data")  # $IAMP_TAF_BW: the full TAF-BW recordings
 RECORDINGS = {"k729": "k729_2022-03-16", "k733": "k733_2018-05-02"}
 
 pytestmark = pytest.mark.skipif(
-    not (DATA / "maps").is_dir(), reason=f"TAF-BW data not found at {DATA} (expected beside the repository)"
+    not (DATA / "maps").is_dir(), reason="full TAF-BW data not found: set IAMP_TAF_BW to its folder"
 )
 
 

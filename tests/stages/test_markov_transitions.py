@@ -78,7 +78,7 @@ def test_every_stencil_column_sums_to_one(default_stencils, kind):
 
 
 def test_default_grid_sizes(default_stencils):
-    # METHOD.md §1.3 [M]: nnz(Υ(τ)) ≈ 1.7e5, nnz(Υ([0, τ])) ≈ 4.5e5 on the default grid.
+    # docs/method.md §3.3 [M]: nnz(Υ(τ)) ≈ 1.7e5, nnz(Υ([0, τ])) ≈ 4.5e5 on the default grid.
     point = default_stencils.expand_sparse(TransitionKind.TIME_POINT)
     interval = default_stencils.expand_sparse(TransitionKind.TIME_INTERVAL)
     assert point.shape == (40_001, 40_001)
@@ -145,7 +145,7 @@ def test_stencil_does_not_depend_on_s(small_stencils, kind):
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_standstill_keeps_mass_at_zero_speed(default_stencils, kind):
-    # METHOD.md §8.2: a cell at v ∈ [0, 0.5] under [-3, -2.5] m/s² keeps all its mass at v = 0.
+    # docs/method.md §3.2: a cell at v ∈ [0, 0.5] under [-3, -2.5] m/s² keeps all its mass at v = 0.
     ds_cells, v_targets, probs = default_stencils.stencil(kind, 0, 0)
     assert np.all(v_targets == 0)
     assert np.all(ds_cells >= 0)
@@ -167,7 +167,7 @@ def test_standstill_over_a_full_run(default_stencils):
 
 
 # ---------------------------------------------------------------------------
-# Agreement with Monte Carlo (METHOD.md §1.5)
+# Agreement with Monte Carlo (docs/method.md §3.5)
 # ---------------------------------------------------------------------------
 
 
@@ -196,7 +196,7 @@ def _monte_carlo_moments(cfg, s_lo_m, v_lo_mps, alpha, n_samples=200_000, seed=7
 
 def test_monte_carlo_cruise(default_stencils):
     # s ∈ [1, 2) m, v ∈ [10, 10.5) m/s, a ∈ [-0.5, 0] m/s² for 4 s. Measured: Markov 40.500 ± 1.82,
-    # MC 40.501 ± 0.77 (METHOD.md §1.5: 40.50 / 40.50, 1.82 / 0.77).
+    # MC 40.501 ± 0.77 (docs/method.md §3.5: 40.50 / 40.50, 1.82 / 0.77).
     markov_mean, markov_std = _markov_moments(default_stencils, 1, 20, 5)
     mc_mean, mc_std = _monte_carlo_moments(default_stencils.config, 1.0, 10.0, 5)
     assert markov_mean == pytest.approx(mc_mean, abs=0.05)

@@ -1,4 +1,4 @@
-"""AR acceleration model (METHOD.md §3): its features and the AR-Net model.
+"""AR acceleration model (docs/method.md §8): its features and the AR-Net model.
 
 - ``features``: ``FeatureTracker`` (per-vehicle feature history, the same
   code for training and online), ``FEATURE_NAMES``, ``HISTORY_STEPS``,

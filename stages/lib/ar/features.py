@@ -1,4 +1,4 @@
-"""AR input features per vehicle and corridor, one row per 0.1 s step (METHOD.md §3.1).
+"""AR input features per vehicle and corridor, one row per 0.1 s step (docs/method.md §8.1).
 
 ``FeatureTracker`` keeps each vehicle's history and turns it into the AR
 model's input. Training (``stages.offline.train.dataset``) and the online stage use this
@@ -39,26 +39,19 @@ Without a ``RelationSet`` (or one of another stamp, issue ``stamp_mismatch``)
 the relation features 13–21 take their "absent" values (issue
 ``no_relations``).
 
-Measured choices (``iamp train`` on all of TAF-BW, 4 463 windows, mean
-over 5 seeded sequence splits; validation MSE in m²/s⁴; always predicting 0
-gives 1.094; the default nets 0.942 (linear) and 0.925 (hidden 256)):
+Measured choices (``iamp train``, validation MSE; figures in
+docs/method.md §8.1):
 
-- Causal window 0.5 / 1.0 / 2.0 s: 0.951 / 0.952 / 0.948 (linear, weight
-  decay 1) and 0.925 / 0.925 / 0.925 (hidden 256): the nets rebuild what
-  they need from the speed history, so the window does not matter to them.
-  It matters to the "last value held" predictor, which it is: MSE on all
-  windows of K729 0.332 / 0.367 / 0.426 (first 0.4 s: 0.033 / 0.058 /
-  0.119; zero: 0.290, first 0.4 s 0.154), of K733 6.0 / 3.9 / 2.0 (zero
-  0.881). The K733 tracker's speeds jitter by about 1 m/s from frame to
-  frame (median; 3.3 m/s at the 90th percentile, against 0.05 and 0.37 on
-  K729), mostly along the track, so a short slope there is noise. 1.0 s is
-  the compromise, and ``markov_prediction``'s ``accel_window_s``. Shrinking
-  the slope by its standard error (``accel_shrink``): nets within 0.001,
-  K733 "last" 3.1 instead of 3.9; off.
-- Own speed (``speed_mps``, not in the paper's table): 0.952 with it, 0.957
-  without (linear, weight decay 1); 0.925 and 0.931 (hidden 256). Kept.
-- The context features (1–21): without them (acceleration and speed only,
-  each net at its best weight decay) linear 0.979, hidden 256 1.021.
+- Causal window 1.0 s: the nets rebuild what they need from the speed
+  history, so the window does not matter to them; it matters to the "last
+  value held" predictor, which it is. The K733 tracker's speeds jitter from
+  frame to frame, mostly along the track, so a short slope there is noise;
+  1.0 s is the compromise, and ``markov_prediction``'s ``accel_window_s``.
+  Shrinking the slope by its standard error (``accel_shrink``) barely
+  helped; off.
+- Own speed (``speed_mps``, not in the paper's table): slightly better with
+  it. Kept.
+- The context features (1–21): the nets are clearly worse without them.
 
 History. A vehicle's rows are kept per step index round(stamp / 0.1 s)
 (a later frame in the same step replaces the earlier one; skipped stamps

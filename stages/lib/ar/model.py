@@ -1,4 +1,4 @@
-"""The AR-Net acceleration model and its weights file (METHOD.md §3.1–3.2).
+"""The AR-Net acceleration model and its weights file (docs/method.md §8.1–8.5).
 
 ``ARNet``: y = W·[z(x) flattened, mask] + b, the AR-Net form (Triebe et al.)
 with the history of every feature as the lagged inputs: 40 steps × F
@@ -9,13 +9,13 @@ z-scored features plus the 40 mask values in, 40 accelerations (m/s², at
 ``ARModel`` wraps a trained net with what it needs to be used: the per-
 feature mean and std of the training set (over real steps) for the z-score
 (clipped to ±``z_clip`` 3: the curvature and influencer features are mostly
-0 with rare large values, up to 111 standard deviations, and unclipped they
-cost 0.03–0.05 m²/s⁴ of validation MSE, see ``stages.offline.train.fit``),
+0 with rare large values, and unclipped they cost validation MSE;
+docs/method.md §8.2, §8.4),
 the features it uses (``feature_names``, a subset of
 ``features.FEATURE_NAMES`` in that order; ``predict`` takes all of
 ``FEATURE_NAMES`` and selects them), ``sigma_res_chunks`` (10,) — the
 validation RMSE of the 0.4 s chunk means per chunk k, the σ_res,k of
-METHOD.md §3.2 — and ``metadata`` (what it was trained on and how well it
+docs/method.md §8.5 — and ``metadata`` (what it was trained on and how well it
 did, see ``stages.offline.train.fit``).
 
 File format (``save_model``/``load_model``): a ``torch.save`` of a plain

@@ -7,7 +7,7 @@ counted in a ``LoadReport``. ``kinematics`` derives velocities from positions
 and repairs implausible reported values at track starts.
 """
 
-from stages.lib.datasets.defaults import DEFAULT_DATA_DIR, DEFAULT_RECORDING, DEFAULT_SEQUENCE
+from stages.lib.datasets.defaults import DEFAULT_DATA_DIR, DEFAULT_RECORDING, DEFAULT_SEQUENCE, FULL_DATA_ENV, full_data_dir
 from stages.lib.datasets.kinematics import Kinematics, RepairRule, TrackRepair, derive_kinematics, repair_track
 from stages.lib.datasets.loader import discover, find_recording, load_recording, load_ref
 from stages.lib.datasets.model import (
@@ -27,6 +27,10 @@ from stages.lib.datasets.report import KEPT, REPAIRED, SKIPPED, LoadReport, Prob
 __all__ = [
     "AGENT_TYPES_BY_NAME",
     "DEFAULT_DATA_DIR",
+    "FULL_DATA_ENV",
+    "full_data_dir",
+    "FULL_DATA_ENV",
+    "full_data_dir",
     "DEFAULT_RECORDING",
     "DEFAULT_SEQUENCE",
     "DEFAULT_SIZES_M",

@@ -7,5 +7,19 @@ from pathlib import Path
 DEFAULT_DATA_DIR = Path(__file__).resolve().parents[2] / "data" / "taf-bw"
 """``stages/data/taf-bw`` of the repository, resolved from this package's location."""
 
+FULL_DATA_ENV = "IAMP_TAF_BW"
+"""Environment variable naming a folder of the full TAF-BW recordings (laid out like ``stages/data/taf-bw``):
+tests and bench scripts use it when set, and skip or fall back to the embedded scenario when not."""
+
+
+def full_data_dir() -> Path | None:
+    """The folder ``$IAMP_TAF_BW`` names, if it holds recordings; else None."""
+    import os
+
+    value = os.environ.get(FULL_DATA_ENV, "")
+    path = Path(value).expanduser().resolve() if value else None
+    return path if path is not None and (path / "recorded_trackfiles").is_dir() else None
+
+
 DEFAULT_RECORDING = "k729_2022-03-16"
 DEFAULT_SEQUENCE = "013"

@@ -1,4 +1,4 @@
-"""Road map for hybrid IAMP: the project's only lanelet2 wrapper (METHOD.md §5).
+"""Road map for hybrid IAMP: the project's only lanelet2 wrapper (docs/method.md §5).
 
 A Lanelet2 OSM map in the metric frame of a recording (x east, y north in
 metres from its origin), for the lanelets a car may drive. Nothing here knows

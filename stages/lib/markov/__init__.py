@@ -1,4 +1,4 @@
-"""Markov-chain motion prediction along a corridor (METHOD.md §1).
+"""Markov-chain motion prediction along a corridor (docs/method.md §3).
 
 - ``grid``: the discretisation (``MarkovGridConfig``) and its cell helpers.
 - ``transitions``: the offline stencils Υ(τ) and Υ([0, τ]) by sampled

@@ -1,4 +1,4 @@
-"""The Markov discretisation: position, velocity and input cells (METHOD.md §0, §1).
+"""The Markov discretisation: position, velocity and input cells (docs/method.md §2, §3).
 
 A Markov state of one vehicle-corridor pair is a cell (s-cell, v-cell) of a
 window of ``n_s_cells`` cells of ``ds_m`` along the corridor and of
@@ -29,13 +29,13 @@ MODEL_VERSION = 1
 _DEFAULT_INPUT_EDGES_MPS2 = tuple(-3.0 + 0.5 * i for i in range(11))
 
 #: Continuous models the stencil builder implements. ``point_mass_saturated``:
-#: s' = v, v' = a, v clamped to [0, v_max] (METHOD.md §1.1).
+#: s' = v, v' = a, v clamped to [0, v_max] (docs/method.md §3.1).
 MODEL_VARIANTS = ("point_mass_saturated",)
 
 
 @dataclass(frozen=True, kw_only=True)
 class MarkovGridConfig(ConfigMixin):
-    """Discretisation of the longitudinal Markov chain (defaults: METHOD.md §0).
+    """Discretisation of the longitudinal Markov chain (defaults: docs/method.md §2).
 
     ``n_state_samples`` is the number of push-forward samples per cell per
     state axis (s and v), ``n_input_samples`` the number of accelerations per

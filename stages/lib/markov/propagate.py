@@ -1,4 +1,4 @@
-"""Online Markov recursion for a batch of vehicle-corridor pairs (METHOD.md §1.4, §2.1, §3.2).
+"""Online Markov recursion for a batch of vehicle-corridor pairs (docs/method.md §3.4, §4.1, §8.5).
 
 **Layout.** The joint distribution of B pairs is ``p[b, α, v, s]``:
 b the vehicle-corridor pair, α the input cell, v the velocity cell, s the
@@ -26,7 +26,7 @@ Backends with one API: ``"numpy"`` (scipy CSR, single thread) and ``"torch"``
 (grouped conv1d along s on ``"cpu"`` or ``"cuda"``). Both run in float32 and
 check at the end of a run that the mass is conserved to 1e-5.
 
-Active-window cropping (METHOD.md §1.5): mass never moves backwards and
+Active-window cropping (docs/method.md §3.5): mass never moves backwards and
 moves at most D-1 cells per step, so each step only touches the s-cells from
 the first occupied cell (over the batch) to the last occupied cell + D - 1,
 rounded up to a multiple of ``crop_quantum_cells``.
@@ -57,7 +57,7 @@ Backend = Literal["numpy", "torch"]
 
 
 # ---------------------------------------------------------------------------
-# Ψ and Γ (METHOD.md §2.1)
+# Ψ and Γ (docs/method.md §4.1)
 # ---------------------------------------------------------------------------
 
 
@@ -68,7 +68,7 @@ def psi_matrix(input_centres_mps2: np.ndarray, *, gamma: float = 0.2, unit_mps2:
     columns normalised. The distance is measured in units of ``unit_mps2``
     (the nominal cell width), so that with 0.5 m/s² cells it equals the
     index distance of CORA's Ψ: the middle column of the 10-cell grid is then
-    [.005 .008 .014 .032 .111 .665 .111 .032 .014 .008] (METHOD.md §2.1).
+    [.005 .008 .014 .032 .111 .665 .111 .032 .014 .008] (docs/method.md §4.1).
     """
     centres = np.asarray(input_centres_mps2, dtype=np.float64)
     if centres.ndim != 1 or centres.size < 1:
@@ -149,7 +149,7 @@ InputTransition = Union[InputMatrix, InputReplaced, InputPerState]
 
 
 # ---------------------------------------------------------------------------
-# Initial state (§1.4 "Initialisation")
+# Initial state (§3.4 "Initialisation")
 # ---------------------------------------------------------------------------
 
 
@@ -227,7 +227,7 @@ def initial_state(
 
     ``s_m`` (position in the pair's window, 0 at its start) and ``v_mps`` are
     ``(B,)``; the half-widths are ``(B,)`` or scalars and must be positive
-    (METHOD.md suggests ±max(Δs/2, 2σ_s) and ±max(Δv/2, 2σ_v)). Each axis
+    (docs/method.md suggests ±max(Δs/2, 2σ_s) and ±max(Δv/2, 2σ_v)). Each axis
     gets the overlap fractions of its box with the cells; the part of a box
     outside the grid (v < 0, past v_max, outside the window) is dropped and
     the rest renormalised. ``input_probs`` is ``(B, M)`` or ``(M,)`` with rows

@@ -1,10 +1,10 @@
-"""Offline transition stencils Υ(τ) and Υ([0, τ]) by sampled push-forward (METHOD.md §1.1–1.3).
+"""Offline transition stencils Υ(τ) and Υ([0, τ]) by sampled push-forward (docs/method.md §3.1–3.3).
 
-Model (§1.1): s' = v, v' = a with a held constant over one step of τ; v
+Model (§3.1): s' = v, v' = a with a held constant over one step of τ; v
 saturates at 0 (the vehicle stays stopped, s frozen, no reversing) and at
 v_max. The motion is piecewise quadratic and is integrated exactly.
 
-Construction (§1.2, "sampled push-forward"): for every velocity cell j and
+Construction (§3.2, "sampled push-forward"): for every velocity cell j and
 input cell α, the box (one s-cell) × (v-cell j) × (input cell α) is filled with
 a regular grid of samples at sub-box centres; each sample is integrated to τ
 and the end points are histogrammed into (s-offset Δi_s, target v-cell j′).
@@ -14,7 +14,7 @@ samples at ``n_sub_times`` sub-times (centres of equal sub-intervals of
 [0, τ]) and averages: the probability of being in a cell at a uniformly random
 time of the step.
 
-Storage (§1.3): the dynamics do not depend on s, so one stencil per (α, j)
+Storage (§3.3): the dynamics do not depend on s, so one stencil per (α, j)
 describes every column. Both stencils are kept as dense kernels
 ``W[α, j′, j, d]`` (probability to move from v-cell j to v-cell j′ and d
 s-cells forward), float64, which are tiny (M·N_v²·D). They expand to

@@ -1,4 +1,4 @@
-"""Mode ``baseline``: the Markov chain with the rule-based priority vector λ (METHOD.md §2), CORA's combination.
+"""Mode ``baseline``: the Markov chain with the rule-based priority vector λ (docs/method.md §4), CORA's combination.
 
 λ = min(λ_speed, λ_lead, λ_conf) cut against the free-driving preference,
 applied per state without building Γ (``chain.InputPriority``). The rules
@@ -65,7 +65,7 @@ class Baseline(InputModel):
         return out
 
     def _conflicts(self, pairs: list[Pair], index: dict[tuple[int, int], int], issues: list[Issue]) -> dict[int, "_ConflictSpec"]:
-        """The influencing corridor of each pair (§2.4), with its zone on both corridors."""
+        """The influencing corridor of each pair (§4.4), with its zone on both corridors."""
         out: dict[int, _ConflictSpec] = {}
         for e, p in enumerate(pairs):
             rel = p.relation
@@ -271,7 +271,7 @@ class _BaselineInputs(ChainInputs):
 
 
 def speed_restriction(predictor: Predictor, pairs: list[Pair]) -> np.ndarray:
-    """λ_speed (B, M, N_v, N_s) per pair, static over the steps (§2.2); also the hybrid mode's cut."""
+    """λ_speed (B, M, N_v, N_s) per pair, static over the steps (§4.2); also the hybrid mode's cut."""
     cfg, grid, n_s = predictor.config, predictor.grid, predictor.n_s
     cell_centre = grid.s_edges_m()[:n_s] + 0.5 * cfg.ds_m
     lam_speed = np.empty((len(pairs), grid.n_inputs, grid.n_v_cells, n_s), np.float32)

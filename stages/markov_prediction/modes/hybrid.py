@@ -1,4 +1,4 @@
-"""Mode ``hybrid``: the Markov chain driven by the AR model's acceleration distributions λ(k) (METHOD.md §3.2).
+"""Mode ``hybrid``: the Markov chain driven by the AR model's acceleration distributions λ(k) (docs/method.md §8.5).
 
 Reads the frame's ``AccelerationProfiles`` (``read``), gives each pair its
 λ(0..K-1) (``pair_input``; a pair without one holds its measured

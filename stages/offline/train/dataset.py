@@ -1,4 +1,4 @@
-"""The AR training set: (x, mask, y) windows from recordings, built with the online feature code (METHOD.md §3.1).
+"""The AR training set: (x, mask, y) windows from recordings, built with the online feature code (docs/method.md §8.1).
 
 ``build_dataset(config)`` plays every selected sequence through the
 in-process chain of ``iamp eval`` (``stages.offline.chain.Chain``:
@@ -20,17 +20,12 @@ that
   ``skipped.followed_no_corridor``). When another corridor holds them
   within ``route_tie_m`` 0.5 m as well (before a branch, when the track ends
   before the routes part) the route is undecided: the sample is dropped
-  (``route_tied``, ``skip_tied`` true). Judged on the 4 s future alone
-  (``followed_corridor`` over the 4 s future) 41 % of the windows were
-  undecided, and a sample on an arbitrary one of the tied corridors carries
-  the curvature of a route the car may not take; with 10 s, 26 % (1 603 of
-  6 066). Keeping them (on the corridor listed first) made the nets worse on
-  the decided windows: validation MSE 0.965 against 0.942 (linear), 0.958
-  against 0.925 (hidden 256), mean of 5 splits, predicting 0: 1.09.
+  (``route_tied``, ``skip_tied`` true): a sample on an arbitrary one of
+  the tied corridors carries the curvature of a route the car may not take,
+  and keeping them made the nets worse (measured: docs/method.md §8.3).
 
-Only 60 cars give windows (15 on K729, 45 on K733: K729's car tracks last
-4.2 s at the median, so few have 4 s of future plus the cut ends), and 75 %
-of the windows are of cars standing (below 0.5 m/s) at a signal.
+Few cars give windows, most of them standing at a signal (docs/method.md
+§8.3).
 
 x and mask are ``FeatureTracker.batch`` for that (vehicle, corridor); y are
 the vehicle's longitudinal accelerations at t + 0.1 … 4.0 s from its true
@@ -39,29 +34,10 @@ velocity is the Savitzky–Golay derivative (degree 2) of x and y over
 ``target_window_s`` (15 samples, 1.4 s at 10 Hz), the speed its norm, and
 the acceleration the Savitzky–Golay derivative of that speed over the same
 window; the first and last ``target_edge_s`` 1.5 s of each track get none
-(NaN: no window uses them). Why the edges: on K733 the std of these
-accelerations is 5.4 m/s² at a track's first or last sample, 3.2 at 0.7 s
-from it, 2.1 at 1.5 s and 1.0 beyond 2.5 s (the tracker settling; K729:
-about 1.0 throughout). Without the cut, the validation MSE of predicting 0
-was 3.1 m²/s⁴ in the first 0.4 s chunk and 1.16 in the last against 0.95 at
-3.2 s (0.45, 0.50 and 0.50 with it): the edges dominated the error, and the
-nets were worse than 0 beyond 3.2 s. Measured on TAF-BW (std of the resulting accelerations of cars; the
-physical spread is about 1.2 m/s², K729's value):
-
-================  ========  ========  ========  ========
-window (samples)  5         11        15        21
-K729, positions   1.37      1.18      1.20      1.22
-K733, positions   6.55      3.16      2.35      1.75
-K733, reported    8.49      4.60      3.83      3.17
-================  ========  ========  ========  ========
-
-K733's reported velocity is the backward difference of its positions, and
-its positions jitter along the track by about 2.6 m/s (std of the along-track
-speed about a 3 s fit; 0.25 m/s on K729), so positions are cleaner than the
-reported speed and no short window cleans them: 15 samples is the
-compromise (K729 loses 0.34 m/s² std of detail against a 3 s fit at 15
-samples, 0.79 at 5; K733 keeps about 2 m/s² of noise, which its validation
-error and σ_res then show).
+(NaN: no window uses them). Why the edges: the K733 tracker settles at a
+track's ends, and there the edges dominated the error; 15 samples is the
+compromise between the noise on K733 and the detail lost on K729
+(measured: docs/method.md §8.3).
 
 Each sample carries (recording, sequence, track_id, corridor_id, stamp_ns) so
 that splits can keep tracks together; ``sequence_spans`` gives each

@@ -1,4 +1,4 @@
-"""Training the AR acceleration model (``iamp train``, METHOD.md §3.1–3.2).
+"""Training the AR acceleration model (``iamp train``, docs/method.md §8.1–8.5).
 
 ::
 
@@ -15,12 +15,11 @@ Splits (never neighbouring windows of one track on both sides):
 - ``sequence`` (default): per recording, its sequences in a seeded random
   order, each going to validation when that brings the validation part
   nearer to ``val_fraction`` of the recording's samples (so every recording
-  is in both parts, and K729's sequence 013, 62 % of its windows, is never
-  the whole of it). A recording
+  is in both parts, and K729's large sequence 013 is never the whole of it;
+  docs/method.md §8.3). A recording
   with a single sequence (K733) is split by a time block instead: the
   stamp that leaves ``val_fraction`` of its windows after it is the cut,
-  and the later part is validation (by time, not by samples, K733's last
-  20 % held 51 windows). Windows near the cut are dropped:
+  and the later part is validation (by time, not by samples). Windows near the cut are dropped:
   a training sample needs its 4 s future before the cut, a validation sample
   its 4 s history after it (``dropped_at_cut``).
 - ``recording``: whole recordings; the set whose share of samples is
@@ -39,15 +38,9 @@ of 256, at most 200 epochs, early stopping when the validation loss has not
 improved for ``patience`` 20 epochs; the best epoch's weights are kept.
 Seeded: the same seed, data and machine give the same weights.
 
-Why these (validation MSE in m²/s⁴, mean of 5 seeded sequence splits of all
-TAF-BW (seeds 0, 1, 4, 5, 7: distinct validation sets), 4 463 windows;
-predicting 0 gives MSE 1.094, MAE 0.596 m/s²): without regularisation the
-nets fit noise within a few epochs (60 cars against 38 440 weights).
-Linear, weight decay 0.03 / 0.1 / 0.3 / 1 / 3: 0.972 / 0.949 / 0.942 /
-0.952 / 0.985 (MAE 0.612 / 0.599 / 0.590 / 0.582 / 0.583); lr 1e-4: 0.967.
-Hidden 256, weight decay 0.01 / 0.03 / 0.1 / 0.3: 0.939 / 0.927 / 0.925 /
-0.983 (MAE 0.569 at 0.1). Without the z-clip: linear 1.033 against 0.952
-(both weight decay 1), hidden 0.947 against 0.925.
+Why these: without regularisation the nets fit noise within a few epochs
+(few cars against 38 440 weights); the weight decays and the z-clip are the
+best of those measured on seeded sequence splits (docs/method.md §8.4).
 The validation set also picks the epoch, so its figures are slightly
 optimistic; a model trained on one location (``--recording``) and scored
 on the other gives an unbiased, cross-location figure.
@@ -56,7 +49,7 @@ Report (printed; ``--json``; and in the weights file's ``metadata``):
 validation MSE and MAE of the model against "zero" (a = 0) and "last" (the
 last observed causal acceleration feature held over 4 s), overall, per
 0.4 s chunk and per recording; ``sigma_res_chunks`` (the RMSE of the chunk
-means, METHOD.md §3.2); the sizes; epochs, the best epoch, time.
+means, docs/method.md §8.5); the sizes; epochs, the best epoch, time.
 
 Exit codes: 0 success, 2 bad command line, data or configuration (a
 message says what to fix).
