@@ -71,7 +71,28 @@ The grids used here are the centre-point grids at t_k (``grid_distribution =
 occupancy by default. ``frame_ms_*`` is the wall time of one
 ``MarkovPredictor.process`` call (all vehicles of the frame, grid included;
 corridors and relations excluded). Splits: ``by_speed.slow`` (speed at t ≤
-2 m/s), ``by_speed.fast`` (> 2 m/s), ``by_recording.<name>``.
+2 m/s), ``by_speed.fast`` (> 2 m/s), ``by_recording.<name>``,
+``by_manoeuvre.<class>``: the class of the window's TRUE future
+(``truth.manoeuvre_class``, from positions only: ``stands``, ``turns``,
+``brakes``, ``accelerates`` (starting included), ``keeps_speed``, the first
+that applies), each with the statistics of the other splits.
+
+Along/cross-track split (``along_track_m``, ``cross_track_m`` per mode,
+``overall`` and ``by_manoeuvre.<class>``, at ``1s``…``4s``: the nearest
+prediction step, its time in ``t_s``, a tie going to the later step: 1.2 s
+and 3.2 s with 0.4 s steps): the error (predicted mean − truth) of the same
+corridor mean mADE scores (the one with the smallest ADE), split along the
+true direction of travel at that step (``truth.along_track_directions``:
+the central difference of the true positions, backward at the last step;
+where the truth moves less than 0.2 m around that time, the direction from
+the start position) and across it, so that along² + cross² is the squared
+error the ADE uses at that step. ``along_track_m``: ``mean`` (signed, + =
+the prediction is ahead of the truth) and ``rms``; ``cross_track_m``:
+``mean_abs``, ``rms`` and ``mean_left`` (signed, + = left of the truth). A
+step without a direction (the truth within 0.2 m of the start as well: most
+standing cars) counts in ``cross_track_m`` only, with its whole error; ``n``
+says how many windows each figure has. The table adds windows and mADE per
+class and the along-track bias at 4 s per class.
 
 Figures (``figures_dir``): for the instant with the most windows,
 ``grid_4s_<mode>.png`` (car lanelets grey, the fused grid at the last step as
@@ -116,12 +137,15 @@ from stages.markov_prediction.rasterise import GridFrame, highest_density_thresh
 from stages.intentions import IntentionsConfig
 from stages.offline.chain import Chain
 from stages.offline.truth import (
+    MANOEUVRES,
     ROUTE_MAX_ERROR_M,
     ROUTE_TIE_M,
+    along_track_directions,
     followed_corridor,
     future_accelerations,
     future_positions,
     ground_truth,
+    manoeuvre_class,
     route_credit,
     route_decision,
 )
@@ -130,6 +154,8 @@ from stages.tracks_source.core import file_sha256
 EVAL_MODES = ("hybrid", "baseline", "cv", "corridor_cv")
 CORRIDOR_WEIGHTS = ("intentions", "uniform")
 SLOW_SPEED_MPS = 2.0
+#: the along/cross-track split at these horizons (s), each at the nearest prediction step (a tie: the later step).
+TRACK_HORIZONS_S = (1.0, 2.0, 3.0, 4.0)
 _MS = 1_000_000
 
 
@@ -225,6 +251,44 @@ class _WindowResult:
     covered: int
     nll: float
     route_hit: float | None = None
+    error_xy: np.ndarray | None = None  # (K, 2) predicted mean − truth of the corridor mADE scores (the smallest ADE)
+
+
+@dataclass(slots=True)
+class _TrackSplit:
+    """Sums of the along/cross-track errors of one (mode, group) at the horizons ``TRACK_HORIZONS_S``."""
+
+    along_n: np.ndarray = field(default_factory=lambda: np.zeros(len(TRACK_HORIZONS_S), np.int64))
+    along_sum: np.ndarray = field(default_factory=lambda: np.zeros(len(TRACK_HORIZONS_S)))
+    along_sq: np.ndarray = field(default_factory=lambda: np.zeros(len(TRACK_HORIZONS_S)))
+    cross_n: np.ndarray = field(default_factory=lambda: np.zeros(len(TRACK_HORIZONS_S), np.int64))
+    cross_abs: np.ndarray = field(default_factory=lambda: np.zeros(len(TRACK_HORIZONS_S)))
+    cross_sum: np.ndarray = field(default_factory=lambda: np.zeros(len(TRACK_HORIZONS_S)))
+    cross_sq: np.ndarray = field(default_factory=lambda: np.zeros(len(TRACK_HORIZONS_S)))
+
+    def add(self, along: np.ndarray, cross: np.ndarray) -> None:
+        """One window's errors at the horizons: along (NaN where the direction is undefined), cross (left positive)."""
+        ok = np.isfinite(along)
+        self.along_n += ok
+        self.along_sum += np.where(ok, along, 0.0)
+        self.along_sq += np.where(ok, along, 0.0) ** 2
+        self.cross_n += 1
+        self.cross_abs += np.abs(cross)
+        self.cross_sum += cross
+        self.cross_sq += cross**2
+
+    def summary(self, steps: list[int], tau_s: float) -> tuple[dict[str, Any], dict[str, Any]]:
+        along, cross = {}, {}
+        nan = float("nan")
+        for h, (horizon, k) in enumerate(zip(TRACK_HORIZONS_S, steps)):
+            key, t_s = f"{horizon:g}s", round((k + 1) * tau_s, 6)
+            na, nc = int(self.along_n[h]), int(self.cross_n[h])
+            along[key] = {"t_s": t_s, "n": na, "mean": self.along_sum[h] / na if na else nan,
+                          "rms": math.sqrt(self.along_sq[h] / na) if na else nan}
+            cross[key] = {"t_s": t_s, "n": nc, "mean_abs": self.cross_abs[h] / nc if nc else nan,
+                          "rms": math.sqrt(self.cross_sq[h] / nc) if nc else nan,
+                          "mean_left": self.cross_sum[h] / nc if nc else nan}
+        return along, cross
 
 
 @dataclass(slots=True)
@@ -233,6 +297,9 @@ class _ModeAccumulator:
     slow: _Stats = field(default_factory=_Stats)
     fast: _Stats = field(default_factory=_Stats)
     by_recording: dict[str, _Stats] = field(default_factory=lambda: collections.defaultdict(_Stats))
+    by_manoeuvre: dict[str, _Stats] = field(default_factory=lambda: {m: _Stats() for m in MANOEUVRES})
+    track_overall: _TrackSplit = field(default_factory=_TrackSplit)
+    track_by_manoeuvre: dict[str, _TrackSplit] = field(default_factory=lambda: {m: _TrackSplit() for m in MANOEUVRES})
     frame_ms: list[float] = field(default_factory=list)
     vehicles: list[int] = field(default_factory=list)
     nan_means: int = 0
@@ -302,6 +369,10 @@ class Evaluation:
         self.instants = 0
         self.figure: _Figure | None = None
         self.recordings: list[str] = []
+        self.tau_s = self.predictors[config.modes[0]].config.tau_s
+        n_steps = self.predictors[config.modes[0]].config.n_steps
+        # the nearest prediction step to each horizon (0-based; a tie goes to the later step)
+        self.track_steps = [min(max(int(math.floor(h / self.tau_s + 0.5 + 1e-9)), 1), n_steps) - 1 for h in TRACK_HORIZONS_S]
 
     # ----- data ---------------------------------------------------------------------
 
@@ -407,6 +478,7 @@ class Evaluation:
                  scene, truth, tau_ns, n_steps, belief=None, profiles=None) -> None:
         self.instants += 1
         windows: dict[int, tuple[np.ndarray, float]] = {}
+        manoeuvres: dict[int, tuple[str, np.ndarray]] = {}  # per window: the true future's class, its along-track directions
         statuses = {v.track_id: v for v in corridor_set.vehicles}
         for row, track_id in enumerate(frame.track_ids.tolist()):
             if not AgentType(int(frame.agent_types[row])).is_vehicle:
@@ -421,6 +493,10 @@ class Evaluation:
                 continue
             # the start-speed split uses the speed estimated from positions, as every mode does
             windows[track_id] = (future, float(vehicle.speed_mps))
+            start = (float(frame.x_m[row]), float(frame.y_m[row]))  # the recorded position at t, that of the truth's track
+            if not (math.isfinite(start[0]) and math.isfinite(start[1])):
+                start = tuple(future[0])  # not reached on matched vehicles; keeps a bad row from stopping the evaluation
+            manoeuvres[track_id] = (manoeuvre_class(start, future, tau_ns * 1e-9), along_track_directions(start, future))
         predictions: dict[str, FramePrediction] = {}
         where = f"{recording} sequence {sequence_id} stamp_ns {stamp}"
         for mode, predictor in self.predictors.items():
@@ -454,6 +530,12 @@ class Evaluation:
                 acc.overall.add(result)
                 (acc.slow if speed <= SLOW_SPEED_MPS else acc.fast).add(result)
                 acc.by_recording[recording].add(result)
+                manoeuvre, directions = manoeuvres[track_id]
+                acc.by_manoeuvre[manoeuvre].add(result)
+                if result.error_xy is not None:
+                    along, cross = _along_cross(result.error_xy[self.track_steps], directions[self.track_steps])
+                    acc.track_overall.add(along, cross)
+                    acc.track_by_manoeuvre[manoeuvre].add(along, cross)
         if windows and scene is not None and (self.figure is None or len(windows) > self.figure.n_windows):
             rows = {int(t): i for i, t in enumerate(frame.track_ids)}
             self.figure = _Figure(
@@ -494,13 +576,14 @@ class Evaluation:
         members = [b for b, p in enumerate(prediction.pairs) if p.track_id == track_id]
         if not members:
             return None
-        ade, fde, weights = [], [], []
+        ade, fde, weights, errors = [], [], [], []
         for b in members:
             means = prediction.mean_xy_m[b]
             bad = ~np.all(np.isfinite(means), axis=1)
             if np.any(bad):
                 acc.nan_means += int(bad.sum())
                 means = _fill_forward(means, prediction.pairs[b])
+            errors.append(means - future)
             err = np.hypot(*(means - future).T)
             ade.append(float(err.mean()))
             fde.append(float(err[-1]))
@@ -524,6 +607,7 @@ class Evaluation:
         return _WindowResult(
             made=min(ade), mfde=min(fde), wade=float(np.dot(w, ade)), wfde=float(np.dot(w, fde)),
             steps=future.shape[0], covered=covered, nll=nll, route_hit=_route_hit(prediction, members, w, vehicle, future),
+            error_xy=errors[int(np.argmin(ade))],
         )
 
     # ----- results ------------------------------------------------------------------
@@ -537,6 +621,7 @@ class Evaluation:
                 "overall": acc.overall.summary(),
                 "by_speed": {"slow": acc.slow.summary(), "fast": acc.fast.summary()},
                 "by_recording": {name: acc.by_recording[name].summary() for name in self.recordings},
+                "by_manoeuvre": {m: acc.by_manoeuvre[m].summary() for m in MANOEUVRES},
                 "frame_ms_median": float(np.median(times)),
                 "frame_ms_p95": float(np.percentile(times, 95)),
                 "vehicles_per_frame_mean": float(np.mean(acc.vehicles)) if acc.vehicles else float("nan"),
@@ -544,6 +629,10 @@ class Evaluation:
                 "nan_means": acc.nan_means,
                 "issues": dict(sorted(acc.issues.items())),
             }
+            along, cross = acc.track_overall.summary(self.track_steps, self.tau_s)
+            split = {m: acc.track_by_manoeuvre[m].summary(self.track_steps, self.tau_s) for m in MANOEUVRES}
+            modes[mode]["along_track_m"] = {"overall": along, "by_manoeuvre": {m: a for m, (a, _) in split.items()}}
+            modes[mode]["cross_track_m"] = {"overall": cross, "by_manoeuvre": {m: c for m, (_, c) in split.items()}}
             if mode == "hybrid" and self.ar_ms:
                 modes[mode]["ar_inference_ms_median"] = float(np.median(self.ar_ms))
                 modes[mode]["ar_inference_ms_p95"] = float(np.percentile(self.ar_ms, 95))
@@ -567,6 +656,8 @@ class Evaluation:
                 "mADE_m": "min over corridors of the ADE of the probability-weighted mean position",
                 "wADE_m": "corridor-probability-weighted mean of the ADE",
             },
+            "manoeuvre_classes": _MANOEUVRE_NOTE,
+            "along_cross_track": _TRACK_NOTE,
             "modes": modes,
         }
 
@@ -678,6 +769,31 @@ def _route_hit(prediction: FramePrediction, members: list[int], weights: np.ndar
     return route_credit(weights, followed.index)
 
 
+_MANOEUVRE_NOTE = (
+    "by_manoeuvre: the class of the TRUE future of each window (stages.offline.truth.manoeuvre_class, from positions only),"
+    " first that applies: stands (no future position >= 1 m from the start), turns (end vs start heading of the path > 30 deg),"
+    " brakes / accelerates (speed over the last vs the first 0.8 s lower / higher by more than min(2 m/s, 30 % of the higher),"
+    " at least 1 m/s), keeps_speed"
+)
+_TRACK_NOTE = (
+    "along_track_m / cross_track_m: the error (predicted mean minus truth) of the corridor mADE scores (the smallest ADE),"
+    " at 1/2/3/4 s (t_s: the nearest prediction step), split along the true direction of travel (the central difference of"
+    " the true positions, backward at the last step; standing, < 0.2 m: the direction from the start) and across it;"
+    " along mean: signed, + = ahead of the truth; cross mean_abs, rms, mean_left (+ = left of the truth); along^2 + cross^2"
+    " = the squared error of the ADE; a step without a direction counts only in cross (the whole error), so along n <= cross n"
+)
+
+
+def _along_cross(error_xy: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Along-track (signed, + = ahead) and cross-track (signed, + = left) parts of errors (n, 2) given unit directions
+    (n, 2) of the true travel; where a direction is NaN the along part is NaN and the cross part is the whole |error|."""
+    ok = np.all(np.isfinite(directions), axis=1)
+    u = np.where(ok[:, None], directions, 0.0)
+    along = np.where(ok, np.einsum("ij,ij->i", error_xy, u), np.nan)
+    cross = np.where(ok, u[:, 0] * error_xy[:, 1] - u[:, 1] * error_xy[:, 0], np.hypot(error_xy[:, 0], error_xy[:, 1]))
+    return along, cross
+
+
 def _accel_figure(e: dict[str, Any]) -> "_Canvas":
     """One car's acceleration figure: distributions as intensity, AR output red, truth black (x: 10 px per 0.1 s)."""
     edges, probs, step_s, chunk_s = e["edges"], e["probs"], e["step_s"], e["chunk_s"]
@@ -732,6 +848,7 @@ def format_table(report: dict[str, Any]) -> str:
                 f" {stats['wADE_m']:>7.2f} {stats['wFDE_m']:>7.2f} {stats['coverage90']:>6.2f} {stats['nll']:>6.2f}"
                 f" {stats['route_top1']:>5.2f} {stats['route_windows']:>6d}"
             )
+    lines.extend(_manoeuvre_tables(report))
     lines.append("")
     for mode, res in report["modes"].items():
         lines.append(
@@ -751,6 +868,32 @@ def format_table(report: dict[str, Any]) -> str:
         if line is not None:
             lines.append(f"{name}: {line}")
     return "\n".join(lines)
+
+
+_SHORT = {"stands": "stands", "turns": "turns", "brakes": "brakes", "accelerates": "accel", "keeps_speed": "keeps"}
+
+
+def _manoeuvre_tables(report: dict[str, Any]) -> list[str]:
+    """The two compact tables by manoeuvre of the true future: windows and mADE; along-track bias at 4 s."""
+    modes = report["modes"]
+    if not modes or not all("by_manoeuvre" in res for res in modes.values()):
+        return []
+    classes = [m for m in MANOEUVRES if m in next(iter(modes.values()))["by_manoeuvre"]]
+    first = next(iter(modes.values()))
+    cols = "".join(f" {_SHORT.get(m, m):>7}" for m in classes)
+    lines = ["", f"{'by manoeuvre (true future)':<26} {'all':>7}{cols}"]
+    lines.append(f"{'windows':<26} {first['overall']['windows']:>7d}" + "".join(f" {first['by_manoeuvre'][m]['windows']:>7d}" for m in classes))
+    for mode, res in modes.items():
+        lines.append(f"{'mADE ' + mode:<26} {res['overall']['mADE_m']:>7.2f}" + "".join(f" {res['by_manoeuvre'][m]['mADE_m']:>7.2f}" for m in classes))
+    lines.append("")
+    lines.append(f"{'along-track bias at 4 s (m, + ahead)':<36} {'all':>7}{cols}   (windows with a direction of travel at 4 s)")
+    for mode, res in modes.items():
+        along = res.get("along_track_m")
+        if not along:
+            continue
+        cells = [along["overall"]["4s"]["mean"]] + [along["by_manoeuvre"][m]["4s"]["mean"] for m in classes]
+        lines.append(f"{mode:<36}" + "".join(f" {v:>7.2f}" for v in cells))
+    return lines
 
 
 # --------------------------------------------------------------------------- command line

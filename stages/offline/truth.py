@@ -23,7 +23,11 @@ scored against the same truth:
   within ``tie_m`` means the future cannot tell the routes apart;
 - ``route_credit`` / ``route_top1``: whether the followed corridor got the
   highest score; a k-way tie for the highest score counts 1/k (the
-  expectation of breaking the tie at random, without the randomness).
+  expectation of breaking the tie at random, without the randomness);
+- ``manoeuvre_class``: what the true future of a window does (stands,
+  turns, brakes, accelerates, keeps_speed), from positions only;
+  ``along_track_directions``: the unit tangent of the true path at each
+  future step, the along/cross-track split of ``iamp eval``.
 """
 
 from __future__ import annotations
@@ -213,8 +217,117 @@ def route_top1(scores: Iterable[np.ndarray], truth: Iterable[int]) -> float:
     return float(np.mean(credits)) if credits else math.nan
 
 
+# --------------------------------------------------------------------------- manoeuvre classes and the along-track direction
+
+#: the classes of a window's true future, in priority order (the first that applies wins).
+MANOEUVRES = ("stands", "turns", "brakes", "accelerates", "keeps_speed")
+#: stands: no true future position is this far (m) from the start position.
+STAND_MAX_DISPLACEMENT_M = 1.0
+#: turns: the heading of the true path at the end differs from that at the start by more than this (degrees).
+TURN_MIN_HEADING_DEG = 30.0
+#: the headings are those of chords of at least this length (m): start → first position this far away, and last
+#: position this far from the end → end (tracker jitter makes shorter steps' directions meaningless).
+HEADING_CHORD_M = 1.0
+#: brakes / accelerates: |v_end − v_start| exceeds min(SPEED_CHANGE_ABS_MPS, SPEED_CHANGE_REL · max(v_start, v_end)),
+#: but at least SPEED_CHANGE_MIN_MPS (m/s) ...
+SPEED_CHANGE_ABS_MPS = 2.0
+SPEED_CHANGE_REL = 0.30
+SPEED_CHANGE_MIN_MPS = 1.0
+#: ... the speeds being the mean speeds over the first and the last this many steps of the horizon (chord / time).
+SPEED_WINDOW_STEPS = 2
+#: the along-track direction at a step: the central difference of the true positions; when that moves less than this
+#: (m), the direction from the start position; when that too moves less, none (the error counts as cross-track only).
+TANGENT_MIN_MOVE_M = 0.2
+
+
+def _path(start_xy, future_xy) -> np.ndarray:
+    start = np.asarray(start_xy, dtype=np.float64).reshape(1, 2)
+    return np.vstack([start, np.asarray(future_xy, dtype=np.float64).reshape(-1, 2)])
+
+
+def manoeuvre_class(start_xy, future_xy: np.ndarray, step_s: float) -> str:
+    """The manoeuvre of a window's true future: one of ``MANOEUVRES``.
+
+    `start_xy` is the true position at the instant, `future_xy` (K, 2) the
+    true positions at t + k·`step_s`, k = 1..K. Speeds and headings come from
+    these positions only (never from the tracker's reported velocity).
+    In priority order:
+
+    - ``stands``: no future position is ``STAND_MAX_DISPLACEMENT_M`` (1 m)
+      or more from the start;
+    - ``turns``: the heading of the path at the end differs from that at the
+      start by more than ``TURN_MIN_HEADING_DEG`` (30°); the start heading is
+      that of the chord from the start to the first position at least
+      ``HEADING_CHORD_M`` (1 m) away, the end heading that of the chord from
+      the last position at least 1 m before the end to the end (no such
+      chord: not a turn);
+    - ``brakes`` / ``accelerates`` (starting included): the speed at the
+      end, v_end, is below / above the speed at the start, v_start, by more
+      than min(``SPEED_CHANGE_ABS_MPS`` = 2 m/s, ``SPEED_CHANGE_REL`` = 30 %
+      of max(v_start, v_end)), and by at least ``SPEED_CHANGE_MIN_MPS`` =
+      1 m/s (below 3.3 m/s the relative threshold would be tracker jitter);
+      v_start and v_end are the mean speeds (chord length over time) over the
+      first and the last ``SPEED_WINDOW_STEPS`` (2, 0.8 s) steps;
+    - ``keeps_speed`` otherwise.
+
+    The thresholds were chosen by looking at the true futures of the
+    embedded K729 recording only (step speeds of standing cars below
+    0.2 m/s in 99 % of the steps, step-to-step speed changes of moving
+    cars up to ~1.6 m/s over 0.4 s, hence the two-step speeds and the 1 m/s
+    floor), not tuned against any evaluation result.
+    """
+    p = _path(start_xy, future_xy)
+    k = p.shape[0] - 1
+    if k < 1 or not np.all(np.isfinite(p)):
+        raise ValueError("manoeuvre_class: needs a finite start and at least one future position")
+    from_start = np.hypot(*(p - p[0]).T)
+    if not from_start.max() >= STAND_MAX_DISPLACEMENT_M:
+        return "stands"
+    to_end = np.hypot(*(p - p[-1]).T)
+    first = int(np.argmax(from_start >= HEADING_CHORD_M))
+    before_end = np.flatnonzero(to_end >= HEADING_CHORD_M)
+    if before_end.size:
+        a, b = p[first] - p[0], p[-1] - p[before_end[-1]]
+        change = math.degrees(abs(math.remainder(math.atan2(b[1], b[0]) - math.atan2(a[1], a[0]), 2 * math.pi)))
+        if change > TURN_MIN_HEADING_DEG:
+            return "turns"
+    w = max(min(int(SPEED_WINDOW_STEPS), k), 1)
+    v_start = float(np.hypot(*(p[w] - p[0]))) / (w * step_s)
+    v_end = float(np.hypot(*(p[-1] - p[-1 - w]))) / (w * step_s)
+    threshold = max(min(SPEED_CHANGE_ABS_MPS, SPEED_CHANGE_REL * max(v_start, v_end)), SPEED_CHANGE_MIN_MPS)
+    if v_end < v_start - threshold:
+        return "brakes"
+    if v_end > v_start + threshold:
+        return "accelerates"
+    return "keeps_speed"
+
+
+def along_track_directions(start_xy, future_xy: np.ndarray) -> np.ndarray:
+    """(K, 2) unit vectors of the true direction of travel at each future step; NaN rows where there is none.
+
+    The tangent of the true path at step k: the central difference
+    p[k+1] − p[k−1] (p[0] the start position), at the last step the
+    backward difference p[K] − p[K−1]. Where that moves less than
+    ``TANGENT_MIN_MOVE_M`` (0.2 m: the car stands around that time) the
+    direction from the start, p[k] − p[0]; where that too is shorter, NaN
+    (``iamp eval`` then counts the whole error as cross-track and the step
+    not at all in the along-track figures).
+    """
+    p = _path(start_xy, future_xy)
+    k = p.shape[0] - 1
+    out = np.full((k, 2), np.nan)
+    for j in range(1, k + 1):
+        for d in (p[min(j + 1, k)] - p[j - 1], p[j] - p[0]):
+            n = float(np.hypot(*d))
+            if n >= TANGENT_MIN_MOVE_M:
+                out[j - 1] = d / n
+                break
+    return out
+
+
 __all__ = [
-    "ACCEL_EDGE_S", "ACCEL_WINDOW_S", "Followed", "ROUTE_MAX_ERROR_M", "ROUTE_TIE_M", "Track", "followed_corridor",
+    "ACCEL_EDGE_S", "MANOEUVRES", "STAND_MAX_DISPLACEMENT_M", "TURN_MIN_HEADING_DEG", "HEADING_CHORD_M", "SPEED_CHANGE_ABS_MPS",
+    "SPEED_CHANGE_REL", "SPEED_CHANGE_MIN_MPS", "SPEED_WINDOW_STEPS", "TANGENT_MIN_MOVE_M", "along_track_directions", "manoeuvre_class", "ACCEL_WINDOW_S", "Followed", "ROUTE_MAX_ERROR_M", "ROUTE_TIE_M", "Track", "followed_corridor",
     "future_accelerations", "future_positions", "future_run", "ground_truth", "positions_after", "route_credit",
     "route_decision", "route_top1", "smoothed_acceleration",
 ]

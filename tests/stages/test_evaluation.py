@@ -40,7 +40,9 @@ def test_report_has_every_key_with_finite_values(slice_report):
     windows = {m: report["modes"][m]["overall"]["windows"] for m in EVAL_MODES}
     assert len(set(windows.values())) == 1 and windows["baseline"] > 0, "every mode is scored on the same windows"
     for mode, res in report["modes"].items():
-        groups = [res["overall"], res["by_speed"]["slow"], res["by_speed"]["fast"], *res["by_recording"].values()]
+        groups = [res["overall"], res["by_speed"]["slow"], res["by_speed"]["fast"], *res["by_recording"].values(),
+                  *res["by_manoeuvre"].values()]
+        assert sum(g["windows"] for g in res["by_manoeuvre"].values()) == res["overall"]["windows"]
         assert list(res["by_recording"]) == [DEFAULT_RECORDING]
         for group in groups:
             assert set(group) == set(METRICS) | set(ROUTE)
@@ -56,7 +58,8 @@ def test_report_has_every_key_with_finite_values(slice_report):
             assert math.isfinite(res[key]) and res[key] > 0
     assert report["modes"]["cv"]["overall"]["route_windows"] == 0, "the cv line has no corridors to choose between"
     assert report["corridor_weights"] == "intentions" and report["intentions_ms_median"] > 0
-    assert "baseline" in format_table(report)
+    table = format_table(report)
+    assert "baseline" in table and "by manoeuvre (true future)" in table and "along-track bias at 4 s" in table
     json.dumps(report)
 
 
