@@ -13,6 +13,7 @@ import pytest
 from bus_schemas import AgentType
 from stages.lib.datasets import (
     DEFAULT_DATA_DIR,
+    full_data_dir,
     DEFAULT_RECORDING,
     DatasetError,
     RepairRule,
@@ -23,12 +24,12 @@ from stages.lib.datasets import (
 )
 
 REPO = Path(__file__).resolve().parents[2]
-TAF = REPO.parent / "shared/data/taf-bw"
+TAF = full_data_dir() or REPO / "no-full-data"  # $IAMP_TAF_BW: the full TAF-BW recordings
 IND_SMALL = REPO / "tests/fixtures/ind_small"
 K729 = "k729_2022-03-16"
 K733 = "k733_2018-05-02"
 
-needs_taf = pytest.mark.skipif(not (TAF / "recorded_trackfiles").is_dir(), reason=f"TAF-BW data not found at {TAF}")
+needs_taf = pytest.mark.skipif(not (TAF / "recorded_trackfiles").is_dir(), reason="full TAF-BW data not found: set IAMP_TAF_BW to its folder")
 
 META_HEADER = (
     "id,frameRate_hz,locationId,speedLimit_kmh,date,weekDay,startTime,duration,"
