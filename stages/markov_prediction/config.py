@@ -35,6 +35,11 @@ class MarkovPredictionConfig(ConfigMixin):
     # hybrid mode (docs/method.md §8.5): how the AR distributions enter the chain
     hybrid_input: str = "psi"
     hybrid_speed_restriction: bool = True
+    # true: the AR distribution λ_AR(k) is the preference inside the baseline's full rule set (speed, leader,
+    # crossing: λ = cut(min(λ_speed, λ_lead, λ_conf), λ_AR(k))) instead of the speed cut alone
+    hybrid_rules: bool = False
+    # with hybrid_rules: "rules" gives a standing vehicle the rules' own preference and its measured input, "ar" λ_AR too
+    hybrid_rules_standing: str = "ar"
     # discretisation (the stencils are cached per ds, dv, v_max, τ)
     ds_m: float = 1.0
     dv_mps: float = 0.5
@@ -98,6 +103,8 @@ class MarkovPredictionConfig(ConfigMixin):
             raise ValueError(f"corridor_weights = {self.corridor_weights!r}: expected one of {', '.join(CORRIDOR_WEIGHTS)}")
         if self.initial_box not in INITIAL_BOXES:
             raise ValueError(f"initial_box = {self.initial_box!r}: expected one of {', '.join(INITIAL_BOXES)}")
+        if self.hybrid_rules_standing not in ("ar", "rules"):
+            raise ValueError(f"hybrid_rules_standing = {self.hybrid_rules_standing!r}: expected ar or rules")
         if self.hybrid_input not in HYBRID_INPUTS:
             raise ValueError(f"hybrid_input = {self.hybrid_input!r}: expected one of {', '.join(HYBRID_INPUTS)}")
         if self.backend not in BACKENDS:

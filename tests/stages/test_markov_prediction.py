@@ -426,3 +426,19 @@ def test_hybrid_speed_restriction_slows_for_a_curve_the_profile_ignores(stencils
         ends[restricted] = float(prediction.mean_s_m[0, -1])
         np.testing.assert_allclose(prediction.position_probs[0].sum(axis=1) + prediction.outside_mass[0], 1.0, atol=1e-5)
     assert ends[True] < ends[False] - 3.0, ends
+
+
+def test_hybrid_rules_keeps_the_leader_rule_that_plain_hybrid_leaves_to_the_model(stencils):
+    """hybrid_rules: λ_AR(k) is only the preference inside the baseline's rules, so an AR profile that accelerates
+    towards a slow leader 15 m ahead is cut by the leader rule; plain hybrid follows the profile."""
+    cs, rs = _leader_scene(with_leader=True)
+    ends = {}
+    for rules in (False, True):
+        predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", hybrid_rules=rules, **PLAIN), stencils=stencils)
+        prediction, _ = predictor.process(cs, rs, acceleration_profiles=_profiles(1, 7, 1.5))
+        i = next(k for k, p in enumerate(prediction.pairs) if p.track_id == 1)
+        ends[rules] = float(prediction.mean_s_m[i, -1])
+        np.testing.assert_allclose(prediction.position_probs[i].sum(axis=1) + prediction.outside_mass[i], 1.0, atol=1e-5)
+    assert ends[True] < ends[False] - 5.0, ends
+    with pytest.raises(ValueError, match="hybrid_rules_standing"):
+        MarkovPredictionConfig(mode="hybrid", hybrid_rules=True, hybrid_rules_standing="maybe")

@@ -176,8 +176,13 @@ class Baseline(InputModel):
                 survival, v_cell, a_cell = leader_state(k, _numpy(marginals.position), _numpy(marginals.velocity))
             restricted = sorted(set(int(f) for f in followers) | set(conflicted))
 
+            pref = self.preference if ctx.preference_k is None else ctx.preference_k[:, k + 1]
+
             def weights(lo: int, hi: int) -> np.ndarray:
-                r = ctx.r_static[:, :, :, lo:hi]
+                if ctx.preference_k is None:
+                    r = ctx.r_static[:, :, :, lo:hi]
+                else:
+                    r = pr.combine_with_preference(ctx.lam_speed[:, :, :, lo:hi], pref, cfg.forbid_threshold)
                 if not restricted:
                     return r
                 r = r.copy()
@@ -210,7 +215,7 @@ class Baseline(InputModel):
                     )
                     i = where[e]
                     np.minimum(m[i], lam_conf, out=m[i])
-                r[restricted] = pr.combine_with_preference(m, self.preference, cfg.forbid_threshold)
+                r[restricted] = pr.combine_with_preference(m, pref if pref.ndim == 1 else pref[restricted], cfg.forbid_threshold)
                 return r
 
             return InputPriority(weights=weights)
@@ -222,12 +227,25 @@ class _BaselineInputs(ChainInputs):
     """One frame: λ_speed and λ_lead for every pair; then, when a pair has an influencing corridor, a second pass
     over the restricted pairs and (transitively) their followers, with the first pass's occupancies."""
 
-    def __init__(self, model: Baseline, pairs: list[Pair], issues: list[Issue]) -> None:
+    def __init__(self, model: Baseline, pairs: list[Pair], issues: list[Issue], ar_lam: np.ndarray | None = None) -> None:
         cfg, grid = model.config, model.grid
         cell_centre = grid.s_edges_m()[: model.n_s] + 0.5 * cfg.ds_m
-        # λ_speed per pair, static over the steps, and the combined r where nothing else restricts
+        # λ_speed per pair, static over the steps, and the combined r where nothing else restricts;
+        # with ``ar_lam`` (B, K, M) (hybrid_rules) the preference is λ_AR(k) scaled to a largest entry of 1, per step
         self.lam_speed = lam_speed = speed_restriction(model.predictor, pairs)
-        self.r_static = pr.combine_with_preference(lam_speed, model.preference, cfg.forbid_threshold)
+        self.ar_lam = ar_lam
+        self.pref_k = None if ar_lam is None else ar_lam / np.maximum(ar_lam.max(axis=2, keepdims=True), 1e-12)
+        self.measured = model.predictor.measured_inputs(pairs)
+        if ar_lam is not None and cfg.hybrid_rules_standing == "rules":
+            # a standing vehicle (inside the standstill band: it gets the start-rate mixture) keeps the rules'
+            # own preference and its measured input: the learned profiles start queues that do not move
+            standing = np.array([q.start_rate_hz > 0 for q in pairs], dtype=bool)
+            if standing.any():
+                self.pref_k = self.pref_k.copy()
+                self.pref_k[standing] = np.asarray(model.preference, dtype=self.pref_k.dtype)[None, None, :]
+                self.ar_lam = ar_lam.copy()
+                self.ar_lam[standing, 0] = self.measured[standing]
+        self.r_static = pr.combine_with_preference(lam_speed, model.preference, cfg.forbid_threshold) if ar_lam is None else None
         index = {(p.track_id, p.corridor_id): b for b, p in enumerate(pairs)}
         by_track: dict[int, list[int]] = collections.defaultdict(list)
         for b, p in enumerate(pairs):
@@ -235,16 +253,15 @@ class _BaselineInputs(ChainInputs):
         self.leaders = model._leaders(pairs, by_track, issues)
         self.conflicts = model._conflicts(pairs, index, issues)
         self.model, self.pairs, self.cell_centre = model, pairs, cell_centre
-        self.measured = model.predictor.measured_inputs(pairs)
         self.with_interval = cfg.grid_distribution == "interval" or bool(self.conflicts)
         self.second = False
         self._step = model._step_inputs(_PassContext(
             members=np.arange(len(pairs)), lam_speed=lam_speed, r_static=self.r_static, leaders=self.leaders,
-            conflicts={}, stored=None, cell_centre=cell_centre, pairs=pairs,
+            conflicts={}, stored=None, cell_centre=cell_centre, pairs=pairs, preference_k=self.pref_k,
         ))
 
     def initial(self) -> np.ndarray:
-        return self.measured
+        return self.measured if self.ar_lam is None else self.ar_lam[:, 0]
 
     def step(self, k: int, marginals):
         return self._step(k, marginals)
@@ -260,12 +277,13 @@ class _BaselineInputs(ChainInputs):
         self._step = self.model._step_inputs(_PassContext(
             members=m,
             lam_speed=self.lam_speed[m],
-            r_static=self.r_static[m],
+            r_static=None if self.r_static is None else self.r_static[m],
             leaders={int(np.searchsorted(m, f)): spec for f, spec in leaders.items() if f in members},
             conflicts={int(np.searchsorted(m, e)): spec for e, spec in self.conflicts.items()},
             stored=stored,
             cell_centre=self.cell_centre,
             pairs=self.pairs,
+            preference_k=None if self.pref_k is None else self.pref_k[m],
         ))
         return m
 
@@ -312,6 +330,7 @@ class _PassContext:
     stored: dict[str, np.ndarray] | None  # first-pass results, global indices
     cell_centre: np.ndarray
     pairs: list[Pair]
+    preference_k: np.ndarray | None = None  # (B, K, M) per-pair, per-step preference (hybrid_rules); None: the static one
 
 
 def _closure(seed: set[int], leaders: dict[int, _LeaderSpec]) -> set[int]:

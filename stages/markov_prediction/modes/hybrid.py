@@ -5,7 +5,11 @@ Reads the frame's ``AccelerationProfiles`` (``read``), gives each pair its
 acceleration), starts the chain from λ(0) and after step k applies
 Γ = colnorm(diag(λ(k+1)) Ψ), λ(k+1)·1ᵀ (``hybrid_input`` "direct"), or, with
 ``hybrid_speed_restriction``, λ(k+1) as the preference the baseline's
-λ_speed cuts per state.
+λ_speed cuts per state. With ``hybrid_rules``, λ_AR(k) is the preference
+inside the baseline's whole rule set (speed, leader, crossing; its
+``_BaselineInputs`` with ``ar_lam``), and ``hybrid_rules_standing`` "rules"
+keeps the rules' own preference for standing vehicles: an experiment, off by
+default (README, Evaluation: no gain on the held-out location).
 """
 
 from __future__ import annotations
@@ -20,7 +24,7 @@ from stages.lib.markov import InputMatrix, InputReplaced, gamma_from_priority
 from stages.markov_prediction import priority as pr
 from stages.markov_prediction.chain import InputPriority
 from stages.markov_prediction.modes.base import ChainInputs, InputModel, Messages, Pair, Predictor
-from stages.markov_prediction.modes.baseline import speed_restriction
+from stages.markov_prediction.modes.baseline import Baseline, _BaselineInputs, speed_restriction
 
 
 class Hybrid(InputModel):
@@ -40,6 +44,10 @@ class Hybrid(InputModel):
 
     def start(self, pairs: list[Pair], issues: list[Issue]) -> ChainInputs:
         p = self.predictor
+        if p.config.hybrid_rules:  # λ_AR(k) as the preference inside the baseline's whole rule set
+            if getattr(self, "_rules", None) is None:
+                self._rules = Baseline(p)
+            return _BaselineInputs(self._rules, pairs, issues, ar_lam=_stack_inputs(p, pairs))
         lam_speed = speed_restriction(p, pairs) if p.config.hybrid_speed_restriction else None
         return _HybridInputs(p, pairs, lam_speed)
 
@@ -47,9 +55,7 @@ class Hybrid(InputModel):
 class _HybridInputs(ChainInputs):
     def __init__(self, p: Predictor, pairs: list[Pair], lam_speed: np.ndarray | None) -> None:
         cfg = p.config
-        measured = p.measured_inputs(pairs)
-        self.lam = np.stack([q.input_probs if q.input_probs is not None else np.repeat(measured[b][None], cfg.n_steps, axis=0)
-                             for b, q in enumerate(pairs)])  # (B, K, M)
+        self.lam = _stack_inputs(p, pairs)
         self.with_interval = cfg.grid_distribution == "interval"
         lam = self.lam
         self.steps: list = []
@@ -71,6 +77,13 @@ class _HybridInputs(ChainInputs):
 
     def step(self, k: int, marginals):
         return self.steps[k]
+
+
+def _stack_inputs(p: Predictor, pairs: list[Pair]) -> np.ndarray:
+    """λ(0..K-1) of every pair as (B, K, M); a pair without a profile holds its measured acceleration."""
+    measured = p.measured_inputs(pairs)
+    return np.stack([q.input_probs if q.input_probs is not None else np.repeat(measured[b][None], p.config.n_steps, axis=0)
+                     for b, q in enumerate(pairs)])
 
 
 def _profiles(p, profiles: AccelerationProfiles | None, stamp: int, issues: list[Issue]) -> dict[tuple[int, int], np.ndarray] | None:
