@@ -133,3 +133,13 @@ def all_command_lines() -> list[str]:
             except OSError:
                 pass
     return out
+
+
+class RecordingPublisher:
+    """Stands in for a zenoh publisher in in-process Node tests: keeps every payload put."""
+
+    def __init__(self) -> None:
+        self.sent: list[bytes] = []
+
+    def put(self, data: bytes) -> None:
+        self.sent.append(data)

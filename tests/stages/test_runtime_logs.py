@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 import bus_schemas as bs
+from testkit.helpers import RecordingPublisher
 from testkit.samples import SAMPLES
 from stages.lib.base import ConfigMixin, Issue, StageResult
 from stages.runtime import IssueLog, Node, Port, ProblemLog, StageSpec, build_parser
@@ -187,14 +188,6 @@ class _Cfg(ConfigMixin):
     pass
 
 
-class _Pub:
-    def __init__(self) -> None:
-        self.sent: list[bytes] = []
-
-    def put(self, data: bytes) -> None:
-        self.sent.append(data)
-
-
 class _EchoCore:
     """Echoes its input; raises on frame_index 13; issues on even frames."""
 
@@ -206,7 +199,7 @@ class _EchoCore:
         return StageResult(outputs={"profiles": msg}, issues=issues)
 
 
-def _node(log) -> tuple[Node, _Pub]:
+def _node(log) -> tuple[Node, RecordingPublisher]:
     spec = StageSpec(
         stage="tests.echo",
         config_cls=_Cfg,
@@ -219,9 +212,9 @@ def _node(log) -> tuple[Node, _Pub]:
     node.log = log
     node.issue_log = IssueLog(log)
     node.problems = ProblemLog(log)
-    out = _Pub()
+    out = RecordingPublisher()
     node._publishers = {"profiles": out}
-    node._progress_pub = _Pub()
+    node._progress_pub = RecordingPublisher()
     return node, out
 
 
@@ -288,7 +281,7 @@ def test_the_serve_loop_survives_a_handler_that_raises(log, caplog):
 
     for k in ("good", "bad", "good2"):
         node.queue.put((None, k, b"", 0), None, 0)
-    node._stats_pub = _Pub()
+    node._stats_pub = RecordingPublisher()
     node.stop_event.set()
     node.signals = 2  # stop as soon as the queue is empty
     node._serve(handle)

@@ -19,21 +19,13 @@ import pytest
 import bus_schemas as bs
 from stages.lib.base import ConfigError, ConfigMixin, StageResult
 from stages.runtime import BusClient, Node, Port, StageSpec, build_parser, parse_bindings
-from testkit.helpers import endpoint, free_port, wait_until
+from testkit.helpers import RecordingPublisher, endpoint, free_port, wait_until
 from testkit.samples import SAMPLES
 
 
 @dataclass(frozen=True)
 class _Cfg(ConfigMixin):
     pass
-
-
-class _Pub:
-    def __init__(self) -> None:
-        self.sent: list[bytes] = []
-
-    def put(self, data: bytes) -> None:
-        self.sent.append(data)
 
 
 class _Recorder:
@@ -77,7 +69,7 @@ def _node(inputs=INPUTS, argv_inputs=("profiles=src/profiles", "extra=other/prof
     args = build_parser(spec).parse_args(argv)
     node = Node(spec, args, _Cfg(), parse_bindings(spec, args))
     node._publishers = {}
-    node._progress_pub = _Pub()
+    node._progress_pub = RecordingPublisher()
     return node
 
 
@@ -233,7 +225,7 @@ def test_latest_and_wildcard_inputs_on_a_real_bus():
 def test_latest_and_wildcard_messages_do_not_hold_off_a_stop():
     """A stop waits until the joined inputs are quiet; the run's NodeStats (a wildcard) never are."""
     node, core = _node(), _Recorder()
-    node._stats_pub = _Pub()
+    node._stats_pub = RecordingPublisher()
     done = threading.Event()
 
     def feed() -> None:
