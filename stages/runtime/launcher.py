@@ -107,7 +107,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--record", metavar="FILE.mcap", help="record the run to this MCAP file (default: runs/<run>-<time>.mcap)")
     p.add_argument("--no-record", action="store_true", help="leave the recorder out")
     p.add_argument("--no-viewer", action="store_true", help="leave the viewer out")
-    p.add_argument("--data", metavar="PATH", help="data folder laid out like shared/data/taf-bw (default: the embedded scenario)")
+    p.add_argument("--data", metavar="PATH", help="data folder laid out like stages/data/taf-bw (default: the embedded scenario)")
     p.add_argument("--recording", metavar="NAME", help="recording to play from --data")
     p.add_argument("--speed", metavar="X|max", help="playback speed factor of the source, or 'max'")
     p.add_argument("--run-id", help="run id (keys under iamp/<run>/); default from the pipeline file")
