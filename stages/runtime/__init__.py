@@ -10,7 +10,7 @@ with its ports, to ``run_stage``. The runtime owns everything else, by module:
   session (peer mode on ``tcp/127.0.0.1``, multicast scouting off, explicit
   endpoints; ``--mode/--connect/--listen/--config`` to join a remote router);
 - ``node.py``: the node (liveliness token at ``iamp/<run>/_alive/<node>``,
-  decoding in the subscriber callback, the stamp join, the core, publishing,
+  decoding (in the loop; on the subscriber thread when an input queue is full), the stamp join, the core, publishing,
   ``NodeStats`` at ``_stats/<node>`` and ``Progress`` at ``_ack/<node>``, the
   clean stop) and ``run_stage``;
 - ``queues.py``: one bounded queue per input port, drained in arrival order;

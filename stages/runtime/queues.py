@@ -40,6 +40,27 @@ class InputQueue:
             return False  # one entry always fits, however large (its size was bounded by its schema)
         return len(dq) >= self._maxlen or (self._max_bytes > 0 and self._bytes[port] + nbytes > self._max_bytes)
 
+    def full(self, port: Any, nbytes: int) -> bool:
+        """Whether putting ``nbytes`` on ``port`` now would drop (or, blocking, wait for) an older entry."""
+        with self._cv:
+            return self._full(port, nbytes)
+
+    def verify(self, port: Any, check: Callable[[Any], Any | None]) -> None:
+        """Pass every entry of ``port`` through ``check``: None drops it (malformed), anything else replaces it."""
+        with self._cv:
+            dq = self._q.get(port)
+            if not dq:
+                return
+            kept: collections.deque = collections.deque()
+            for seq, item, nbytes in dq:
+                new = check(item)
+                if new is None:
+                    self._bytes[port] -= nbytes
+                    self._len -= 1
+                else:
+                    kept.append((seq, new, nbytes))
+            self._q[port] = kept
+
     def put(self, item: Any, port: Any = None, nbytes: int = 0) -> None:
         with self._cv:
             if self._block:
@@ -47,10 +68,10 @@ class InputQueue:
                     self._cv.wait(0.1)
             else:
                 while self._full(port, nbytes):
-                    _seq, _old, old_bytes = self._q[port].popleft()
+                    _seq, old, old_bytes = self._q[port].popleft()
                     self._bytes[port] -= old_bytes
                     self._len -= 1
-                    self._on_drop(port, old_bytes)
+                    self._on_drop(port, old_bytes, old)
             self._seq += 1
             self._q.setdefault(port, collections.deque()).append((self._seq, item, nbytes))
             self._bytes[port] += nbytes
