@@ -16,7 +16,6 @@ import json
 import os
 import shutil
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -68,6 +67,12 @@ def test_a_scene_naming_a_file_outside_the_data_folder_opens_nothing_and_the_sta
 
     with BusClient(listen=[endpoint(port)]) as bus:
         bus.subscribe(f"iamp/{RUN}/corridors/corridor_set", lambda k, d: got.append(bs.CorridorSet.decode(d).header.frame_index))
+        scenes_received: list[int] = [0]  # the stage's own count of scenes, from its NodeStats
+
+        def on_stats(_key: str, data: bytes) -> None:
+            scenes_received[0] = bs.NodeStats.decode(data).counters.get("received.scene", 0)
+
+        bus.subscribe(f"iamp/{RUN}/_stats/corridors", on_stats)
         stage = start_module(
             "stages.corridors", "--node-id", "corridors", "--run-id", RUN, "--connect", endpoint(port),
             "--input", "track_frame=src/track_frame", "--input", "scene=src/scene", "--params-json", json.dumps({"data": str(data)}),
@@ -78,10 +83,10 @@ def test_a_scene_naming_a_file_outside_the_data_folder_opens_nothing_and_the_sta
             put_scene, put_frame = bus.publisher(f"iamp/{RUN}/src/scene"), bus.publisher(f"iamp/{RUN}/src/track_frame")
             for k, (sc, part) in enumerate(((hostile, frames[:3]), (wrong_hash, frames[3:]))):
                 put_scene(sc.encode())
-                time.sleep(0.5)
+                # a frame may overtake its scene on the wire: send the frames once the stage has the scene
+                wait_until(lambda: scenes_received[0] >= k + 1, 60, f"the stage received scene {k + 1}")
                 for frame in part:
                     put_frame(dataclasses.replace(frame, scene_id=sc.scene_id).encode())
-                    time.sleep(0.1)
                 try:
                     wait_until(lambda: len(got) == 3 * (k + 1), 60, "a CorridorSet for every frame")
                 except AssertionError as exc:
