@@ -374,11 +374,10 @@ class Node:
         return [p for p in self.input_keys if self.spec.inputs[p].latched]
 
     def _handle_operator_item(self, core: Any, item: tuple) -> None:
+        item = self._verified(item)  # queued undecoded by _accept unless its queue was full
+        if item is None:
+            return
         port, key, msg, recv_ns = item
-        if isinstance(msg, (bytes, bytearray)):  # queued undecoded by _accept
-            msg = self._decode(port, key, msg)
-            if msg is None or not self._stamp_accepted(port, key, msg):
-                return
         lat_ms = math.nan
         spec = self.spec.inputs[port]
         if spec.latched:
