@@ -205,8 +205,9 @@ def make_editor(args: argparse.Namespace):
                 if key == "recording" and args.data is None:
                     pass
         if args.data is not None and args.recording is None:
-            for n in sources:  # another data folder: do not keep the default scenario's sequence choice
+            for n in sources:  # another data folder: do not keep the default scenario's recording and sequence choice
                 n.setdefault("params", {}).pop("sequences", None)
+                n["params"].pop("recording", None)
         # the stages that load the map read it from the source's data folder (by name, checked by sha256), never from a bus path
         data = next((n["params"]["data"] for n in sources if isinstance(n.get("params"), dict) and n["params"].get("data")), None)
         if data is not None:
