@@ -18,6 +18,7 @@ INPUTS = {
     "corridor_predictions": Port(CorridorPredictions, latest=True, optional=True),
     "motion_grid": Port(MotionGrid, latest=True, optional=True),
     "intention_belief": Port(IntentionBelief, latest=True, optional=True),
+    "compare_predictions": Port(CorridorPredictions, latest=True, optional=True),  # a second mode (compare.toml): /<its node>/means
     "stats": Port(NodeStats, pattern="_stats/*"),
 }
 OUTPUTS: dict[str, Port] = {}

@@ -14,7 +14,7 @@ from stages.foxglove_bridge.config import FoxgloveConfig
 from stages.foxglove_bridge.scene import FoxgloveScene, parse_grid_step
 from stages.lib.base import Issue, StageResult
 
-_LATEST = (("corridor_set", CorridorSet), ("corridor_predictions", CorridorPredictions), ("motion_grid", MotionGrid), ("intention_belief", IntentionBelief))
+_LATEST = (("corridor_set", CorridorSet), ("corridor_predictions", CorridorPredictions), ("motion_grid", MotionGrid), ("intention_belief", IntentionBelief), ("compare_predictions", CorridorPredictions))
 
 
 class _Listener:

@@ -21,7 +21,8 @@ Foxglove topics (``<node>`` is the producing node of the bus key,
 - ``/<node>/corridors`` ``foxglove.SceneUpdate``: every vehicle's corridors as
   centrelines, thickness 0.15 + 1.2 * P(route) m, labelled ``p=...``;
 - ``/<node>/means`` ``foxglove.SceneUpdate``: the predicted mean of every
-  corridor at every step (a line through them, a sphere at each step);
+  corridor at every step (a line through them, a sphere at each step; blue
+  for mode hybrid, red for baseline, else black);
 - ``/<node>/motion_grid`` ``foxglove.Grid``: the motion grid (float32 field
   ``occupancy``) of the chosen step, or the maximum over steps
   (``grid_step="max"``), or one topic ``/<node>/motion_grid/<t>s`` per step
@@ -61,6 +62,7 @@ TYPE_COLOURS: dict[int, tuple[float, float, float]] = {
 }
 TYPE_HEIGHTS_M: dict[int, float] = {1: 1.5, 2: 3.0, 3: 3.0, 4: 1.2, 5: 1.2, 6: 1.8}
 TYPE_DEFAULT_SIZE_M: dict[int, tuple[float, float]] = {0: (1.0, 1.0), 1: (4.5, 1.8), 2: (8.0, 2.5), 3: (12.0, 2.5), 4: (2.0, 0.8), 5: (1.8, 0.6), 6: (0.6, 0.6)}
+MODE_COLOURS = {"hybrid": (0.12, 0.35, 1.0), "baseline": (0.9, 0.12, 0.12)}  # the means, as the viewer's compare view; other modes black
 CORRIDOR_THICKNESS_M = (0.15, 1.2)  # thickness = a + b * P(route)
 GRID_STEPS = ("max", "all")  # besides a step time in seconds
 _KEEP_STAMPS = 64  # frames and corridor sets kept for the stamp join
@@ -334,15 +336,16 @@ def corridors_entity(corridor_set: CorridorSet, pred: CorridorPredictions, ts: f
 def means_entity(pred: CorridorPredictions, ts: fm.Timestamp) -> fm.SceneEntity:
     """Each corridor's predicted means over the steps: a line through them and a small sphere at each step."""
     lines, spheres = [], []
+    colour = _colour(MODE_COLOURS.get(pred.mode, (0.05, 0.05, 0.05)))
     for p in pred.predictions:
         xy = np.stack([p.mean_x_m, p.mean_y_m], axis=1)
         xy = xy[np.all(np.isfinite(xy), axis=1)]
         if not len(xy):
             continue
         if len(xy) >= 2:
-            lines.append(fm.LinePrimitive(type=fm.LinePrimitiveLineType.LineStrip, pose=_pose(), thickness=0.1, points=_points(xy, 0.1), color=_colour((0.05, 0.05, 0.05))))
+            lines.append(fm.LinePrimitive(type=fm.LinePrimitiveLineType.LineStrip, pose=_pose(), thickness=0.1, points=_points(xy, 0.1), color=colour))
         for x, y in xy:
-            spheres.append(fm.SpherePrimitive(pose=_pose(float(x), float(y), 0.1), size=fm.Vector3(x=0.5, y=0.5, z=0.5), color=_colour((0.05, 0.05, 0.05))))
+            spheres.append(fm.SpherePrimitive(pose=_pose(float(x), float(y), 0.1), size=fm.Vector3(x=0.5, y=0.5, z=0.5), color=colour))
     return fm.SceneEntity(timestamp=ts, frame_id=FRAME_ID, id=f"means/{pred.mode}", lines=lines, spheres=spheres,
                           metadata=[fm.KeyValuePair(key="mode", value=pred.mode)])
 

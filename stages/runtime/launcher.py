@@ -166,7 +166,8 @@ def default_record_path(run_id: str) -> str:
 def foxglove_node(nodes: list[dict]) -> dict:
     """The Foxglove bridge node that ``--foxglove`` adds: the viewer's inputs (where the pipeline has a viewer), and the outputs of the first node of each producing stage."""
     viewer = next((n for n in nodes if n.get("stage") == VIEWER_STAGE), None)
-    inputs = dict(viewer.get("inputs", {})) if viewer is not None else {}
+    wanted = (*FOXGLOVE_BINDINGS, "compare_predictions")  # the bridge's inputs (stages/foxglove_bridge/__main__.py)
+    inputs = {k: v for k, v in (viewer.get("inputs", {}) if viewer is not None else {}).items() if k in wanted}
     for port, (stage, output) in FOXGLOVE_BINDINGS.items():
         node = next((n for n in nodes if n.get("stage") == stage), None)
         if node is not None and port not in inputs:
