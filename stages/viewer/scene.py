@@ -157,6 +157,10 @@ class ViewerApp:
         self._wake.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
+        if self.metrics.scores:  # the compare view's figure, for the run's log
+            self.log.info("viewer: running mADE at the end: %s", "; ".join(
+                f"{mode} {score.made:.2f} m over {score.windows} vehicle windows" for mode, score in sorted(self.metrics.scores.items())
+            ) + f" ({self.metrics.frames_scored} frames)")
         if self.server is not None:
             with contextlib.redirect_stdout(io.StringIO()):
                 self.server.stop()
