@@ -19,7 +19,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet "$(TORCH_REQ)"
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
-	$(BIN)/python -c "import torch, zenoh, lanelet2, mcap, viser, msgpack, scipy; print('setup ok: torch', torch.__version__)"
+	$(BIN)/python -c "import torch, zenoh, lanelet2, mcap, viser, msgpack, scipy, foxglove; print('setup ok: torch', torch.__version__)"
 	touch $(STAMP)
 
 run: $(STAMP)

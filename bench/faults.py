@@ -57,7 +57,7 @@ class Launch:
         self.lines: list[tuple[float, str]] = []
         self._lock = threading.Lock()
         self.proc = subprocess.Popen(
-            [sys.executable, str(REPO / "launch.py"), "--no-viewer", "--run-id", run_id, *args],
+            [sys.executable, str(REPO / "launch.py"), "--no-viewer", "--recording", "k729_2022-03-16", "--run-id", run_id, *args],
             cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
         )
         threading.Thread(target=self._pump, daemon=True).start()

@@ -6,6 +6,8 @@
     iamp replay FILE.mcap [--speed X|max] [--run-id R]     publish a recording onto the bus
     iamp inspect FILE.mcap [--json]                        channels, counts, time range, frames
     iamp recover FILE.mcap [OUT.mcap] [--json]             rewrite a torn recording (killed writer) into a finished file
+    iamp export foxglove RUN.mcap OUT.mcap [--data PATH] [--grid-step max|all|S]
+                                                           the recording in Foxglove's schemas (foxglove-sdk)
     iamp eval [--data PATH] [--recording NAME]... [--mode M...] [--stride S] [--json FILE] [--figures DIR]
                                                            offline metrics of the prediction modes
     iamp train [--data PATH] [--recording NAME...] [--split S] [--hidden N] [--out FILE] [--json FILE]
@@ -102,6 +104,32 @@ def _run_recover(args: argparse.Namespace) -> int:
     return run_recover(args)
 
 
+def _add_export(sub: "argparse._SubParsersAction") -> None:
+    p = sub.add_parser("export", help="convert a recording for another tool: `iamp export foxglove RUN.mcap OUT.mcap` (Foxglove's schemas)")
+    formats = p.add_subparsers(dest="format", metavar="FORMAT")
+    from stages.foxglove_bridge.export import add_arguments
+
+    f = formats.add_parser("foxglove", help="the recording in Foxglove's schemas (SceneUpdate, Grid, FrameTransform; JSON stats), written with foxglove-sdk")
+    add_arguments(f)
+    f.set_defaults(run=_run_export_foxglove)
+    p.set_defaults(run=_export_usage(p))
+
+
+def _export_usage(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
+    def run(args: argparse.Namespace) -> int:
+        parser.print_usage(sys.stderr)
+        sys.stderr.write("iamp export: a format is required (foxglove)\n")
+        return EXIT_USAGE
+
+    return run
+
+
+def _run_export_foxglove(args: argparse.Namespace) -> int:
+    from stages.foxglove_bridge.export import run
+
+    return run(args)
+
+
 def _add_eval(sub: "argparse._SubParsersAction") -> None:
     from stages.offline.evaluation import add_arguments
 
@@ -140,6 +168,7 @@ SUBCOMMANDS: list[Callable[["argparse._SubParsersAction"], None]] = [
     _add_replay,
     _add_inspect,
     _add_recover,
+    _add_export,
     _add_eval,
     _add_train,
 ]

@@ -9,8 +9,8 @@ level and inside functions) and checked against the layer its file lives in:
 - ``stages/<stage>/``: a process stage; it may use ``stages/lib`` and
   ``bus_schemas``, and ``stages/runtime`` only in its binding
   (``__main__.py``), except the recorder and replay, whose cores are bus
-  tools; never another stage (replay reads the recorder's files through
-  ``stages.recorder.inspect``), never the offline tools;
+  tools; never another stage (replay and the Foxglove exporter read the
+  recorder's files through ``stages.recorder.inspect``), never the offline tools;
 - ``stages/runtime/``: the runtime and the launcher; never a stage's code
   or the offline tools (stages are started by module name; the launcher
   reads the recorder's files with ``stages.recorder.inspect`` to summarise
@@ -18,7 +18,11 @@ level and inside functions) and checked against the layer its file lives in:
 - ``stages/offline/``: evaluation and training; stage cores and libraries,
   never the runtime or zenoh;
 - only ``stages/runtime`` imports zenoh, only the recorder and replay
-  import mcap, only the viewer imports viser; no import cycle anywhere.
+  import mcap, only the viewer imports viser, only ``stages/foxglove_bridge``
+  imports foxglove (foxglove-sdk: the live bridge and ``iamp export
+  foxglove``, which writes with the SDK's own MCAP writer and reads
+  recordings through the recorder's reader, so mcap keeps its home); no
+  import cycle anywhere.
 """
 
 from __future__ import annotations
@@ -30,7 +34,8 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-STAGES = ("ar_inference", "corridors", "intentions", "markov_prediction", "recorder", "relations", "replay", "tracks_source", "viewer")
+STAGES = ("ar_inference", "corridors", "foxglove_bridge", "intentions", "markov_prediction", "recorder", "relations", "replay", "tracks_source", "viewer")
+RECORDING_READERS = ("replay", "foxglove_bridge")  # stages that read recordings with stages.recorder.inspect
 BUS_TOOL_STAGES = ("recorder", "replay")  # their cores talk to the bus themselves
 
 
@@ -116,7 +121,7 @@ def test_bus_schemas_depend_on_numpy_and_msgpack_only():
         assert not extra, f"{f.relative_to(REPO)} imports {sorted(extra)}"
 
 
-@pytest.mark.parametrize("heavy,homes", [("zenoh", ("stages/runtime/",)), ("mcap", ("stages/recorder/", "stages/replay/")), ("viser", ("stages/viewer/",))])
+@pytest.mark.parametrize("heavy,homes", [("zenoh", ("stages/runtime/",)), ("mcap", ("stages/recorder/", "stages/replay/")), ("viser", ("stages/viewer/",)), ("foxglove", ("stages/foxglove_bridge/",))])
 def test_each_heavy_library_has_one_home(heavy, homes):
     users = [f.relative_to(REPO).as_posix() for f in _sources() if any(_top(m) == heavy for m in _imports(f))]
     assert users and all(u.startswith(homes) for u in users), f"{heavy} imported outside {homes}: {users}"
@@ -127,7 +132,7 @@ def test_libraries_import_no_stage_runtime_offline_or_bus_library():
         if _layer(f) != "lib":
             continue
         for m in _imports(f):
-            bad = _top(m) in ("zenoh", "mcap", "viser") or _under(m, "stages.runtime") or _under(m, "stages.offline")
+            bad = _top(m) in ("zenoh", "mcap", "viser", "foxglove") or _under(m, "stages.runtime") or _under(m, "stages.offline")
             bad |= any(_under(m, f"stages.{s}") for s in STAGES) or m == "stages.cli"
             assert not bad, f"{f.relative_to(REPO)} (library) imports {m}"
 
@@ -140,7 +145,7 @@ def test_stages_use_libraries_not_each_other_and_the_runtime_only_in_their_bindi
         for m in _imports(f):
             for other in STAGES:
                 if other != own and _under(m, f"stages.{other}"):
-                    allowed = own == "replay" and _under(m, "stages.recorder.inspect")
+                    allowed = own in RECORDING_READERS and _under(m, "stages.recorder.inspect")
                     assert allowed, f"{f.relative_to(REPO)} (stage {own}) imports stage {other}: {m}"
             assert not _under(m, "stages.offline"), f"{f.relative_to(REPO)} imports the offline tools: {m}"
             if _under(m, "stages.runtime") and f.name != "__main__.py":

@@ -129,7 +129,7 @@ from stages.lib.raster import MapRaster
 
 from stages.corridors import SceneMaps
 from stages.lib.kinematic_state import Consistency, EstimatorConfig, consistency_of, disagreement_line
-from stages.lib.datasets import DEFAULT_DATA_DIR, DatasetError, Recording, discover, find_recording, load_ref
+from stages.lib.datasets import DEFAULT_DATA_DIR, DatasetError, Recording, default_recordings, discover, find_recording, load_ref
 from stages.lib.datasets.model import same_sequence_id
 from stages.lib.markov import MarkovGridConfig, load_or_build_stencils
 from stages.markov_prediction import FramePrediction, MarkovPredictionConfig, MarkovPredictor
@@ -383,7 +383,7 @@ class Evaluation:
         cfg = self.config
         refs = {ref.name: ref for ref in discover(cfg.data_dir)}
         out = []
-        for name in list(cfg.recordings) or list(refs):
+        for name in list(cfg.recordings) or default_recordings(cfg.data_dir, list(refs)):
             ref = refs.get(name) or find_recording(cfg.data_dir, name)
             wanted = list(dict.fromkeys(cfg.sequences)) or list(ref.sequence_ids)
             for want in wanted:
@@ -901,7 +901,7 @@ def _manoeuvre_tables(report: dict[str, Any]) -> list[str]:
 
 def add_arguments(parser) -> None:
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA_DIR, help="data folder laid out like stages/data/taf-bw (default: the embedded scenario)")
-    parser.add_argument("--recording", action="append", default=[], help="recording to evaluate (repeatable; default all)")
+    parser.add_argument("--recording", action="append", default=[], help="recording to evaluate (repeatable; default all of --data; in the embedded folder its K729 recording)")
     parser.add_argument("--sequence", action="append", default=[], help="sequence id to evaluate (repeatable; default all)")
     parser.add_argument("--mode", nargs="+", default=list(EVAL_MODES), choices=EVAL_MODES, help="prediction modes (default all)")
     parser.add_argument("--stride", type=float, default=0.4, help="seconds between evaluated instants (default 0.4)")

@@ -72,7 +72,7 @@ import numpy as np
 
 from bus_schemas import MatchStatus
 from stages.corridors import SceneMaps
-from stages.lib.datasets import DEFAULT_DATA_DIR, discover, load_recording
+from stages.lib.datasets import DEFAULT_DATA_DIR, default_recordings, discover, load_recording
 from stages.lib.maps import RoadMap
 from stages.tracks_source.core import file_sha256
 from stages.lib.base import json_safe
@@ -342,7 +342,7 @@ def evaluate(cfg: IntentionEvalConfig, *, progress: bool = False) -> dict[str, A
     """
     icfg = cfg.intentions_config()
     scene_maps = SceneMaps(data=cfg.data_dir)
-    names = list(cfg.recordings) or [ref.name for ref in discover(cfg.data_dir)]
+    names = list(cfg.recordings) or default_recordings(cfg.data_dir, [ref.name for ref in discover(cfg.data_dir)])
     windows: dict[int, list[RouteWindow]] = {seed: [] for seed in cfg.seeds}
     samples = []
     positions: list[float] = []
@@ -457,7 +457,7 @@ def _parse_set(items: Sequence[str]) -> tuple[tuple[str, Any], ...]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m stages.offline.intentions_eval", description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA_DIR, help="data folder laid out like stages/data/taf-bw")
-    parser.add_argument("--recording", action="append", default=[], help="recording name (repeatable; default: all)")
+    parser.add_argument("--recording", action="append", default=[], help="recording name (repeatable; default: all of --data; in the embedded folder its K729 recording)")
     parser.add_argument("--sequence", action="append", default=[], help="sequence id (repeatable; default: all)")
     parser.add_argument("--particles", type=int, default=None, help="particles per vehicle (default: the stage's)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="filter seeds to run and pool (default: 0)")

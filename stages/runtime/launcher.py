@@ -65,9 +65,20 @@ PIPELINES_DIR = Path(__file__).resolve().parents[1] / "pipelines"
 DEFAULT_PIPELINE = PIPELINES_DIR / "hybrid.toml"
 SOURCE_STAGES = {"stages.tracks_source"}
 RECORDER_STAGE = "stages.recorder"
-MAP_STAGES = {"stages.corridors", "stages.relations", "stages.intentions", "stages.viewer"}  # each gets the source's data folder
+MAP_STAGES = {"stages.corridors", "stages.relations", "stages.intentions", "stages.viewer", "stages.foxglove_bridge"}  # each gets the source's data folder
 VIEWER_STAGE = "stages.viewer"
 VIEWER_URL_RE = re.compile(r"viewer: (https?://\S+)\s*$")
+FOXGLOVE_STAGE = "stages.foxglove_bridge"
+FOXGLOVE_URL_RE = re.compile(r"foxglove: (wss?://\S+)\s*$")
+# --foxglove binds the bridge's inputs to the outputs of the nodes of these stages (the first of each)
+FOXGLOVE_BINDINGS = {
+    "track_frame": ("stages.tracks_source", "track_frame"),
+    "scene": ("stages.tracks_source", "scene"),
+    "corridor_set": ("stages.corridors", "corridor_set"),
+    "corridor_predictions": ("stages.markov_prediction", "corridor_predictions"),
+    "motion_grid": ("stages.markov_prediction", "motion_grid"),
+    "intention_belief": ("stages.intentions", "intention_belief"),
+}
 # The corridors stage's issue line for a map it cannot use (stages/corridors/core.py, issue kind no_map):
 # nothing can be matched or predicted, so the run stops with exit 2 and this text.
 CORRIDORS_STAGE = "stages.corridors"
@@ -107,6 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--record", metavar="FILE.mcap", help="record the run to this MCAP file (default: runs/<run>-<time>.mcap)")
     p.add_argument("--no-record", action="store_true", help="leave the recorder out")
     p.add_argument("--no-viewer", action="store_true", help="leave the viewer out")
+    p.add_argument("--foxglove", action="store_true", help="add the live Foxglove bridge (node foxglove): the scene on a Foxglove WebSocket, ws://127.0.0.1:PORT printed")
     p.add_argument("--data", metavar="PATH", help="data folder laid out like stages/data/taf-bw (default: the embedded scenario)")
     p.add_argument("--recording", metavar="NAME", help="recording to play from --data")
     p.add_argument("--speed", metavar="X|max", help="playback speed factor of the source, or 'max'")
@@ -151,6 +163,20 @@ def default_record_path(run_id: str) -> str:
     return str(Path("runs") / f"{run_id}-{stamp}.mcap")
 
 
+def foxglove_node(nodes: list[dict]) -> dict:
+    """The Foxglove bridge node that ``--foxglove`` adds: the viewer's inputs (where the pipeline has a viewer), and the outputs of the first node of each producing stage."""
+    viewer = next((n for n in nodes if n.get("stage") == VIEWER_STAGE), None)
+    wanted = (*FOXGLOVE_BINDINGS, "compare_predictions")  # the bridge's inputs (stages/foxglove_bridge/__main__.py)
+    inputs = {k: v for k, v in (viewer.get("inputs", {}) if viewer is not None else {}).items() if k in wanted}
+    for port, (stage, output) in FOXGLOVE_BINDINGS.items():
+        node = next((n for n in nodes if n.get("stage") == stage), None)
+        if node is not None and port not in inputs:
+            inputs[port] = f"{node['id']}/{output}"
+    if "track_frame" not in inputs:
+        raise PipelineError(f"--foxglove: the pipeline has no viewer node nor dataset source node ({', '.join(sorted(SOURCE_STAGES))}) to take track frames from")
+    return {"id": "foxglove", "stage": FOXGLOVE_STAGE, "inputs": inputs, "params": {}}
+
+
 def make_editor(args: argparse.Namespace):
     """Apply --data/--recording/--speed/--record/--no-viewer/--run-id to the raw descriptor."""
 
@@ -158,6 +184,8 @@ def make_editor(args: argparse.Namespace):
         nodes = raw.setdefault("nodes", [])
         if args.run_id:
             raw.setdefault("bus", {})["run_id"] = args.run_id
+        if getattr(args, "foxglove", False) and not any(n.get("stage") == FOXGLOVE_STAGE for n in nodes):
+            nodes.append(foxglove_node(nodes))
         if args.no_viewer:
             raw["nodes"] = nodes = [n for n in nodes if n.get("stage") != VIEWER_STAGE]
         if args.no_record:
@@ -178,8 +206,9 @@ def make_editor(args: argparse.Namespace):
                 if key == "recording" and args.data is None:
                     pass
         if args.data is not None and args.recording is None:
-            for n in sources:  # another data folder: do not keep the default scenario's sequence choice
+            for n in sources:  # another data folder: do not keep the default scenario's recording and sequence choice
                 n.setdefault("params", {}).pop("sequences", None)
+                n["params"].pop("recording", None)
         # the stages that load the map read it from the source's data folder (by name, checked by sha256), never from a bus path
         data = next((n["params"]["data"] for n in sources if isinstance(n.get("params"), dict) and n["params"].get("data")), None)
         if data is not None:
@@ -302,6 +331,8 @@ class Child:
             say(line.rstrip("\n"), self.node.id)
             if self.node.stage == VIEWER_STAGE and (url := VIEWER_URL_RE.search(line)):
                 say(f"viewer: {url.group(1)}")  # the one line to open in a browser
+            if self.node.stage == FOXGLOVE_STAGE and (url := FOXGLOVE_URL_RE.search(line)):
+                say(f"foxglove: {url.group(1)}")  # open in Foxglove: Open connection -> Foxglove WebSocket
             if self.node.stage == CORRIDORS_STAGE and self.fatal is None and (bad := MAP_UNUSABLE_RE.search(line)):
                 self.fatal = bad.group(1)  # the supervisor stops the run
 

@@ -2,10 +2,13 @@
 
 Consumes ``track_frame`` (``TrackFrame``) and the latched ``scene``
 (``SceneInfo``) and, when the pipeline binds them, ``corridor_set``
-(``CorridorSet``), ``corridor_predictions`` (``CorridorPredictions``) and
-``motion_grid`` (``MotionGrid``), and every node's ``NodeStats`` on
+(``CorridorSet``), ``corridor_predictions`` (``CorridorPredictions``),
+``motion_grid`` (``MotionGrid``), ``compare_predictions`` (a second mode's
+``CorridorPredictions``: the compare view), ``intention_belief``
+(``IntentionBelief``) and ``acceleration_profiles``
+(``AccelerationProfiles``: the selected-vehicle panel), and every node's ``NodeStats`` on
 ``iamp/<run>/_stats/*`` (the wildcard input ``stats``, bound by the
-runtime). It produces nothing on the bus. The three results are
+runtime). It produces nothing on the bus. The results are
 latest-value inputs (``Port(latest=True)``): they take no part in the
 runtime's stamp join (16 stamps, 2 s), which would drop every frame once
 the predictions lag by more, as they do on a busy machine, and never hold a
@@ -36,6 +39,18 @@ What the page shows, top-down (x east, y north, metres of the scene):
   frame of 4 s ago with its predictions and the tracks' true paths since.
   The viewer keeps ``history_s`` of frames and results for this and for
   the "look back" slider.
+
+The compare view (``compare_predictions`` bound, ``pipelines/compare.toml``):
+the predicted means of both modes as lines, blue hybrid and red baseline
+(``panels.MODE_COLOURS``), over the true future in black, and the running
+mADE of each mode from the lagged ground truth (``panels.OnlineMADE``: every
+frame whose horizon has passed, scored on the vehicles both modes predicted).
+
+The selected vehicle (View -> vehicle): its corridors with P(route), route and
+P(stop) (intentions), P(stop) of the vehicle, the AR acceleration
+distributions of its most probable corridor for the next 4 s (a heat image:
+one row per 0.4 s step, columns -3 … 2 m/s²) and, once known (ground truth
+on), its true future with each corridor's ADE (``panels.vehicle_panel``).
 
 Side panel: run, frame, stamp, mode, what is shown (live, paused, lagging),
 frames received, drawn and skipped, the draw time and the time from a
@@ -69,6 +84,10 @@ Parameters (``ViewerConfig``):
 - ``grid_scale`` "log" (or "linear"), ``grid_floor`` 1e-3: the heat map;
 - ``stats`` true: show the run's ``NodeStats`` (false: the panel leaves
   them out; the runtime still subscribes);
+- ``initial_view`` "traffic": the page opens on the whole map and, once 3 s
+  of frames have come, zooms onto the traffic of those seconds (10th-90th
+  percentile box of the positions, 15 m around, at least 70 m); "map" keeps
+  the whole map;
 - ``token`` "" (none; or ``$IAMP_VIEWER_TOKEN``), ``"auto"`` (a fresh random
   one) or 16+ characters of ``A-Z a-z 0-9 _ -``: the page URL then carries
   ``?token=...`` (the logged URL has it) and requests without it get 403;

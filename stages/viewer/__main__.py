@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from bus_schemas import CorridorPredictions, CorridorSet, MotionGrid, NodeStats, SceneInfo, TrackFrame
+from bus_schemas import AccelerationProfiles, CorridorPredictions, CorridorSet, IntentionBelief, MotionGrid, NodeStats, SceneInfo, TrackFrame
 from stages.runtime import NodeContext, Port, StageSpec, run_stage
 from stages.viewer.config import ViewerConfig
 from stages.viewer.scene import StatsBoard, ViewerApp
@@ -19,6 +19,11 @@ INPUTS = {
     "corridor_set": Port(CorridorSet, latest=True, optional=True),
     "corridor_predictions": Port(CorridorPredictions, latest=True, optional=True),
     "motion_grid": Port(MotionGrid, latest=True, optional=True),
+    # a second prediction mode on the same frames (pipelines/compare.toml), drawn over the first with the running mADE of each
+    "compare_predictions": Port(CorridorPredictions, latest=True, optional=True),
+    # the selected-vehicle panel: P(route), P(stop) and the AR acceleration distributions
+    "intention_belief": Port(IntentionBelief, latest=True, optional=True),
+    "acceleration_profiles": Port(AccelerationProfiles, latest=True, optional=True),
     "stats": Port(NodeStats, pattern="_stats/*"),
 }
 OUTPUTS: dict[str, Port] = {}

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from stages.lib.base import ConfigMixin
 
 GRID_SCALES = ("log", "linear")
+INITIAL_VIEWS = ("traffic", "map")
 TOKEN_ENV = "IAMP_VIEWER_TOKEN"  # the token when the ``token`` parameter is empty (the launcher passes it so)
 _TOKEN_RE = re.compile(r"[A-Za-z0-9_-]{16,256}")
 _ORIGIN_RE = re.compile(r"https?://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+)(:[0-9]{1,5})?/?")
@@ -34,6 +35,7 @@ class ViewerConfig(ConfigMixin):
     status_hz: float = 2.0  # side panel refresh
     token: str = ""  # "": none (or $IAMP_VIEWER_TOKEN); "auto": a fresh random one; else at least 16 of A-Z a-z 0-9 _ -
     origins: tuple[str, ...] = ()  # page origins allowed besides http://127.0.0.1|localhost|HOST:PORT, e.g. "http://myhost:8080"
+    initial_view: str = "traffic"  # the camera at start: "traffic" (zoomed onto the objects of the first frame) or "map" (the whole map)
     data: str = ""  # local data folder whose maps/ holds the scene's map (by name, checked by sha256); "": the embedded stages/data/taf-bw
 
     def __post_init__(self) -> None:
@@ -47,6 +49,8 @@ class ViewerConfig(ConfigMixin):
                 raise ValueError(f"{name} = {value!r}: must be > 0")
         if self.grid_scale not in GRID_SCALES:
             raise ValueError(f"grid_scale = {self.grid_scale!r}: expected one of {', '.join(GRID_SCALES)}")
+        if self.initial_view not in INITIAL_VIEWS:
+            raise ValueError(f"initial_view = {self.initial_view!r}: expected one of {', '.join(INITIAL_VIEWS)}")
         if not 0.0 < self.grid_floor < 1.0:
             raise ValueError(f"grid_floor = {self.grid_floor!r}: expected 0 < grid_floor < 1")
         for where, value in (("token", self.token), (f"${TOKEN_ENV}", os.environ.get(TOKEN_ENV, ""))):

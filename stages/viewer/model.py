@@ -15,7 +15,7 @@ from typing import Mapping
 
 import numpy as np
 
-from bus_schemas import AgentType, CorridorPredictions, CorridorSet, MatchStatus, MotionGrid, SceneInfo, TrackFrame
+from bus_schemas import AccelerationProfiles, AgentType, CorridorPredictions, CorridorSet, IntentionBelief, MatchStatus, MotionGrid, SceneInfo, TrackFrame
 
 # --------------------------------------------------------------------------- colours (RGB, 0-255)
 
@@ -56,7 +56,15 @@ Z_MEANS = 0.10
 # --------------------------------------------------------------------------- input sets and their history
 
 #: The inputs that arrive apart from the track frames and are joined to them here, by stamp.
-PART_PORTS: dict[str, type] = {"corridor_set": CorridorSet, "corridor_predictions": CorridorPredictions, "motion_grid": MotionGrid}
+PART_PORTS: dict[str, type] = {
+    "corridor_set": CorridorSet,
+    "corridor_predictions": CorridorPredictions,
+    "motion_grid": MotionGrid,
+    # the compare view and the selected-vehicle panel (panels.py)
+    "compare_predictions": CorridorPredictions,
+    "intention_belief": IntentionBelief,
+    "acceleration_profiles": AccelerationProfiles,
+}
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -71,6 +79,9 @@ class InputSet:
     predictions: CorridorPredictions | None = None
     grid: MotionGrid | None = None
     complete: bool = True  # every kind of result that is arriving at all is here
+    compare: CorridorPredictions | None = None  # a second mode's predictions of the same frame (compare pipeline)
+    belief: IntentionBelief | None = None
+    profiles: AccelerationProfiles | None = None
 
     @property
     def mode(self) -> str:
@@ -162,6 +173,9 @@ class FrameHistory:
             predictions=got["corridor_predictions"],
             grid=got["motion_grid"],
             complete=all(got[k] is not None for k in expected),
+            compare=got["compare_predictions"],
+            belief=got["intention_belief"],
+            profiles=got["acceleration_profiles"],
         )
 
     def newest_complete_stamp(self) -> int | None:
@@ -186,6 +200,19 @@ class FrameHistory:
 
     def oldest(self) -> InputSet | None:
         return self._set(0, self.expected()) if self._stamps else None
+
+    def frames_between(self, first_ns: int, last_ns: int) -> list[TrackFrame]:
+        """The kept frames with stamps in [first_ns, last_ns], oldest first."""
+        i0 = bisect.bisect_left(self._stamps, first_ns)
+        i1 = bisect.bisect_right(self._stamps, last_ns)
+        return self._frames[i0:i1]
+
+    def sets_between(self, first_ns: int, last_ns: int) -> list[InputSet]:
+        """The kept input sets with stamps in [first_ns, last_ns], oldest first."""
+        expected = self.expected()
+        i0 = bisect.bisect_left(self._stamps, first_ns)
+        i1 = bisect.bisect_right(self._stamps, last_ns)
+        return [self._set(i, expected) for i in range(i0, i1)]
 
     def true_futures(self, item: InputSet, horizon_s: float) -> tuple[dict[int, np.ndarray], bool]:
         """Where every object of ``item`` really went in the ``horizon_s`` after it.

@@ -52,6 +52,7 @@ from stages.viewer.model import (
     polyline_segments,
     step_index,
 )
+from stages.viewer.panels import COMPARE_TRUTH_COLOUR, OnlineMADE, mode_colour, vehicle_panel
 
 CAMERA_FOV_RAD = math.radians(30.0)  # narrow: the top-down view is nearly orthographic
 ASSUMED_ASPECT = 1280 / 900
@@ -118,6 +119,11 @@ class ViewerApp:
         self._announced_complete = False
         self._thread: threading.Thread | None = None
         self._gui: dict[str, Any] = {}
+        self.metrics = OnlineMADE()  # running mADE of two modes (compare pipeline), from the lagged ground truth
+        self._zoomed_to_traffic = False
+        self._scored_until_ns: int | None = None  # frames up to this stamp have been scored (or could not be)
+        self._scored_restarts = 0
+        self._panel_key: tuple | None = None
 
     # ------------------------------------------------------------------ life cycle
 
@@ -151,6 +157,10 @@ class ViewerApp:
         self._wake.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
+        if self.metrics.scores:  # the compare view's figure, for the run's log
+            self.log.info("viewer: running mADE at the end: %s", "; ".join(
+                f"{mode} {score.made:.2f} m over {score.windows} vehicle windows" for mode, score in sorted(self.metrics.scores.items())
+            ) + f" ({self.metrics.frames_scored} frames)")
         if self.server is not None:
             with contextlib.redirect_stdout(io.StringIO()):
                 self.server.stop()
@@ -276,6 +286,7 @@ class ViewerApp:
         fit_objects.on_click(lambda _event: self.fit_camera(self.objects_bounds()))
         with gui.add_folder("Run"):
             self._gui["status"] = gui.add_markdown("waiting for the first frame")
+        self._build_vehicle_panel_gui(gui)
         with gui.add_folder("Stages"):
             self._gui["stages"] = gui.add_markdown("no stats yet" if self.config.stats else "stats are off (`stats = false`)")
         legend = " · ".join(f"<span style='color:rgb{c}'>■</span> {_TYPE_NAMES[t]}" for t, c in TYPE_COLOURS.items() if t)
@@ -321,6 +332,7 @@ class ViewerApp:
             target = view.target_stamp(newest.stamp_ns, horizon_s)
             item = self.history.at(target, max_lag_ns) or self.history.oldest()
             futures, complete = self.history.true_futures(item, horizon_s) if view.show_ground_truth else ({}, False)
+            self._score_compare(newest.stamp_ns, horizon_s)
             received = self.history.received
             arrived = self._arrived.get(item.stamp_ns)
             key = (item.stamp_ns, item.complete, self._view_version, self.history.restarts, len(futures))
@@ -335,6 +347,8 @@ class ViewerApp:
         if scene_info is not None and (self.map is None or self.map.scene_id != scene_info.scene_id):
             self._draw_map(scene_info)
         summary = self._draw_frame(item, view, futures, complete)
+        summary.update(self._draw_compare(item, view, futures))
+        self._zoom_to_traffic(item)
         dt = (time.perf_counter() - t0) * 1e3
         self.counters.drawn += 1
         self.counters.draw_ms.append(dt)
@@ -383,8 +397,9 @@ class ViewerApp:
         image = grid_image(grid, k, scale=self.config.grid_scale, floor=self.config.grid_floor) if (grid is not None and view.show_grid) else None
         lines, p_labels = corridor_lines(item, vehicle) if view.show_corridors else (None, [])
         k_means = None if view.blend_steps else step_index(item.predictions.step_times_s, view.step_s) if item.predictions is not None else None
-        every, chosen = mean_points(item, vehicle, k_means) if view.show_means else (np.zeros((0, 3)), np.zeros((0, 3)))
-        truth = polyline_segments(list(futures.values()), TRUTH_COLOUR, Z_TRUTH) if view.show_ground_truth else None
+        every, chosen = mean_points(item, vehicle, k_means) if (view.show_means and item.compare is None) else (np.zeros((0, 3)), np.zeros((0, 3)))
+        truth_colour = COMPARE_TRUTH_COLOUR if item.compare is not None else TRUTH_COLOUR  # the compare view: black truth, as in the paper
+        truth = polyline_segments(list(futures.values()), truth_colour, Z_TRUTH) if view.show_ground_truth else None
         with self.server.atomic():
             if len(boxes):
                 self._layers["boxes"] = scene.add_batched_meshes_simple(
@@ -501,6 +516,7 @@ class ViewerApp:
                 f"objects {s.get('objects', 0)} · corridors {s.get('corridors', 0)} · grid "
                 + ("all steps" if view.blend_steps else f"{s.get('step_s', -1):.1f} s") + f": {s.get('grid_cells', 0)} cells, max {s.get('grid_max', 0):.2f}",
             ])
+        self._draw_vehicle_panel(view)
         if stats:
             rows = ["| node | ms p50/p95 | lat ms | q | iss | err | drop |", "|:--|--:|--:|--:|--:|--:|--:|"]
             for node_id in sorted(stats):
@@ -515,6 +531,114 @@ class ViewerApp:
                 "\n\nms: processing per input set · lat: receive time minus stamp (– when stamps are recording time) · "
                 "q: queue · iss: issues · err: decode + core errors · drop: queue + join drops"
             )
+
+
+    # ------------------------------------------------------------------ compare view, selected vehicle, initial zoom (panels.py)
+
+    def _build_vehicle_panel_gui(self, gui: Any) -> None:
+        with gui.add_folder("Compare"):
+            self._gui["compare"] = gui.add_markdown("one prediction mode (pipelines/compare.toml runs two)")
+        with gui.add_folder("Selected vehicle"):
+            self._gui["vehicle_md"] = gui.add_markdown("choose a vehicle in View → vehicle")
+            self._gui["vehicle_ar"] = gui.add_image(np.full((14, 14, 3), 255, np.uint8), label="AR acceleration distributions, next 4 s", format="png", visible=False)
+
+    def _score_compare(self, newest_ns: int, horizon_s: float) -> None:
+        """Score the frames whose future is now known on both modes' predictions (called with the lock held)."""
+        ready_ns = newest_ns - int(round(horizon_s * 1e9))
+        if self.history.restarts != self._scored_restarts:  # a source that started over: its stamps begin anew
+            self._scored_restarts, self._scored_until_ns = self.history.restarts, None
+        if self._scored_until_ns is not None and ready_ns <= self._scored_until_ns:
+            return
+        first_ns = -1 if self._scored_until_ns is None else self._scored_until_ns + 1
+        for s in self.history.sets_between(max(first_ns, 0), ready_ns):
+            if s.predictions is not None and s.compare is not None:
+                frames = self.history.frames_between(s.stamp_ns, s.stamp_ns + int(round(horizon_s * 1e9)) + int(2e8))
+                self.metrics.score(s.stamp_ns, s.predictions, s.compare, frames)
+        self._scored_until_ns = ready_ns
+
+    def _draw_compare(self, item: InputSet, view: ViewState, futures: dict[int, np.ndarray]) -> dict[str, Any]:
+        """Both modes' predicted means as lines in their colours (blue hybrid, red baseline); the truth is drawn black by ``_draw_frame``."""
+        scene = self.server.scene
+        vehicle = view.vehicle_id()
+        drawn = {}
+        for name, pred in (("first", item.predictions), ("second", item.compare)):
+            layer = f"compare_{name}"
+            if item.compare is None or pred is None or not view.show_means:
+                self._remove_layer(layer)
+                continue
+            lines = []
+            for p in pred.predictions:
+                if vehicle is not None and p.track_id != vehicle:
+                    continue
+                lines.append(np.stack([p.mean_x_m, p.mean_y_m], axis=1))
+            segs = polyline_segments(lines, mode_colour(pred.mode), Z_TRUTH + 0.01)
+            if len(segs):
+                self._layers[layer] = scene.add_line_segments(f"/compare/{name}", segs.points_m, segs.colours, thickness=0.35)
+            else:
+                self._remove_layer(layer)
+            drawn[f"compare_{pred.mode}_segments"] = len(segs)
+        return drawn
+
+    def _zoom_to_traffic(self, item: InputSet) -> None:
+        """Once, with ``initial_view = "traffic"``, when 3 s of frames have come: look down on where the traffic of those seconds was.
+
+        The box holds the 10th to 90th percentiles of every object position of
+        those frames, 15 m wider on every side and at least 70 m across: the
+        junction's traffic, not a parked car at the map's edge.
+        """
+        if self._zoomed_to_traffic or self.config.initial_view != "traffic" or self.map is None:
+            return
+        with self._lock:
+            oldest = self.history.oldest()
+            newest_ns = self.history.newest_stamp_ns
+            if oldest is None or newest_ns is None or newest_ns - oldest.stamp_ns < 3_000_000_000:
+                return
+            frames = self.history.frames_between(oldest.stamp_ns, oldest.stamp_ns + 3_000_000_000)
+        xs = np.concatenate([np.asarray(f.x_m, dtype=float) for f in frames]) if frames else np.zeros(0)
+        ys = np.concatenate([np.asarray(f.y_m, dtype=float) for f in frames]) if frames else np.zeros(0)
+        ok = np.isfinite(xs) & np.isfinite(ys)
+        self._zoomed_to_traffic = True
+        if not ok.any():
+            return
+        x0, x1 = np.percentile(xs[ok], [10, 90])
+        y0, y1 = np.percentile(ys[ok], [10, 90])
+        cx, cy, half = (x0 + x1) / 2, (y0 + y1) / 2, max(x1 - x0 + 30.0, y1 - y0 + 30.0, 70.0) / 2
+        self.fit_camera((cx - half, cy - half, cx + half, cy + half), margin=1.0)
+        self.log.info("viewer: zoomed onto the traffic: centre=(%.0f, %.0f) m, %.0f m across", cx, cy, 2 * half)
+
+    def _draw_vehicle_panel(self, view: ViewState) -> None:
+        """The compare line and the selected vehicle's corridors, P(route), P(stop), AR distributions and true future."""
+        item = self.shown
+        if item is None:
+            return
+        if item.compare is not None or self.metrics.scores:
+            self._gui["compare"].content = self.metrics.line() + "<br>lines: predicted means of each corridor per mode · black: the true future"
+        vehicle = view.vehicle_id()
+        if vehicle is None:
+            if self._panel_key is not None:
+                self._gui["vehicle_md"].content = "choose a vehicle in View → vehicle"
+                self._gui["vehicle_ar"].visible = False
+                self._panel_key = None
+            return
+        with self._lock:
+            horizon_s = item.horizon_s(self.config.horizon_s)
+            frames = self.history.frames_between(item.stamp_ns, item.stamp_ns + int(round(horizon_s * 1e9)) + int(2e8))
+        key = (vehicle, item.stamp_ns, len(frames))
+        if key == self._panel_key:
+            return
+        self._panel_key = key
+        from stages.viewer.panels import truth_at
+
+        pred = item.predictions
+        times = np.asarray(pred.step_times_s, dtype=float) if pred is not None else np.zeros(0)
+        truth = truth_at(frames, item.stamp_ns, times).get(vehicle) if len(times) else None
+        text, image = vehicle_panel(vehicle, pred, item.belief, item.profiles, truth, truth is not None)
+        self._gui["vehicle_md"].content = text
+        if image is not None:
+            self._gui["vehicle_ar"].image = image
+            self._gui["vehicle_ar"].visible = True
+        else:
+            self._gui["vehicle_ar"].visible = False
 
 
 def _srgb_to_linear(colours: np.ndarray) -> np.ndarray:

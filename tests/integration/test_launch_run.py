@@ -23,6 +23,12 @@ from testkit.helpers import REPO, endpoint, free_port, kill_all, python_env, sta
 from stages.recorder.inspect import inspect, read_messages
 
 
+# These runs check the launcher, the recording and restarts on the embedded K729 scenario (sequence 013, the
+# tracks source's own default), which every stage keeps up with at these speeds on a small machine; the
+# launcher's default pipeline plays the busier K733 recording.
+K729 = ("--recording", "k729_2022-03-16")
+
+
 class Launch:
     """launch.py as a child process whose output lines are collected as they come."""
 
@@ -81,7 +87,7 @@ def _last_stats(path: Path, node: str) -> bs.NodeStats:
 
 def test_run_records_every_source_frame_and_replay_reproduces_it(tmp_path):
     rec = tmp_path / "run.mcap"
-    run = Launch("--stop-after", "6", "--speed", "3", "--no-viewer", "--record", str(rec), "--run-id", "itest", cwd=tmp_path)
+    run = Launch(*K729, "--stop-after", "6", "--speed", "3", "--no-viewer", "--record", str(rec), "--run-id", "itest", cwd=tmp_path)
     assert run.wait() == 0, run.text()[-4000:]
     out = run.text()
     assert f"recording to {rec}" in out and f"recording saved: {rec}" in out
@@ -160,7 +166,7 @@ def _pid_of(run: Launch, node: str, count: int = 1) -> int:
 
 def test_killed_processing_stage_is_restarted_and_keeps_processing(tmp_path):
     rec = tmp_path / "run.mcap"
-    run = Launch("--speed", "2", "--no-viewer", "--record", str(rec), "--run-id", "kill", cwd=tmp_path)
+    run = Launch(*K729, "--speed", "2", "--no-viewer", "--record", str(rec), "--run-id", "kill", cwd=tmp_path)
     try:
         run.wait_line(r"^\[launch\] all \d+ nodes alive; starting sources")
         run.wait_line(r"^\[corridors\] .*scene loaded")  # it is processing frames
@@ -190,7 +196,7 @@ def test_killed_recorder_is_restarted_into_the_next_split_and_the_run_goes_on(tm
 
     rec = tmp_path / "run.mcap"
     split1 = tmp_path / "run.001.mcap"
-    run = Launch("--speed", "2", "--no-viewer", "--record", str(rec), "--run-id", "killrec", "--set", "recorder.flush_period_s=0.2", cwd=tmp_path)
+    run = Launch(*K729, "--speed", "2", "--no-viewer", "--record", str(rec), "--run-id", "killrec", "--set", "recorder.flush_period_s=0.2", cwd=tmp_path)
 
     def grids_in(path: Path) -> int:
         try:

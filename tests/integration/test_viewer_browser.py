@@ -16,7 +16,9 @@ Chromium missing is a failure, not a skip: ``make test`` installs Debian's
 
     python tests/integration/test_viewer_browser.py --figures docs/figures
 
-renders the README figures: K729 at one moment with the grid at 1 s and 4 s.
+renders the README figures: K729 at one moment with the grid at 1 s and 4 s;
+with ``--features`` the default scenario's (K733 at a busy moment): the
+default view, the compare view and the selected-vehicle panel.
 """
 
 from __future__ import annotations
@@ -249,8 +251,8 @@ def test_viewer_shows_map_vehicles_and_heat_map_in_chromium(tmp_path):
         url = url_line.group(1)
         assert int(url_line.group(2)) == port, url_line.group(0)
         drawn = run.wait_line(DRAWN_RE, timeout_s=120)
-        # the server-side scene: K729 has 32 car lanelets and 37 others; something moves and is predicted
-        assert int(drawn["car"]) == 32 and int(drawn["other"]) > 0, drawn.group(0)
+        # the server-side scene: the default scenario is K733 (38 car lanelets); something moves and is predicted
+        assert int(drawn["car"]) == 38, drawn.group(0)
         assert int(drawn["objects"]) >= 1 and int(drawn["corridors"]) >= 1 and int(drawn["means"]) >= 1 and int(drawn["cells"]) > 0, drawn.group(0)
 
         browser = Chromium(binary, tmp_path / "profile")
@@ -278,9 +280,10 @@ def test_viewer_shows_map_vehicles_and_heat_map_in_chromium(tmp_path):
         x, y, w, h = m["canvas"]
         assert x == 0 and y == 0 and 0.5 * WINDOW[0] < w < WINDOW[0] and h == WINDOW[1], m
         assert m["map"] >= 0.05 * m["canvas_px"], m
-        # the camera looks down on the whole map: the map's pixels are centred in the canvas and span most of its height
-        mx0, my0, mx1, my1 = m["map_box"]
-        assert abs((mx0 + mx1) / 2 - (x + w / 2)) < 0.1 * w and abs((my0 + my1) / 2 - (y + h / 2)) < 0.1 * h and my1 - my0 > 0.7 * h, m
+        # the camera opened zoomed onto the traffic (initial_view "traffic"): the map's pixels fill the canvas's height
+        zoom = run.wait_line(r"^\[viewer\] .*viewer: zoomed onto the traffic: centre=\(\S+, \S+\) m, (\d+) m across", timeout_s=1)
+        assert 70 <= int(zoom.group(1)) < 150, zoom.group(0)  # the map of K733 is about 300 m across
+        assert m["map"] >= 0.3 * m["canvas_px"], m
         assert m["vehicles"] >= 20 and m["heat"] >= 20, m
         # regions: vehicles and heat lie on the map, and the heat is the vehicles' predicted future
         assert inside(m["vehicles_box"], m["map_box"], slack=30), m
@@ -389,6 +392,70 @@ def test_viewer_draws_the_newest_set_and_counts_the_skipped_ones(scenario_sets_3
         app.close()
 
 
+def test_compare_view_overlays_both_modes_scores_them_on_the_truth_and_fills_the_vehicle_panel():
+    """pipelines/compare.toml's viewer in-process: both modes' means drawn, the running mADE of each, the selected vehicle's panel."""
+    from stages.viewer.config import ViewerConfig
+    from stages.viewer.scene import ViewerApp
+
+    sets = compare_sets(59, recording="k729_2022-03-16")
+    app = ViewerApp(ViewerConfig(port=0, stats=False, show_ground_truth=True), run_id="t", log=logging.getLogger("iamp.viewer"))
+    app.start()
+    try:
+        for s in sets:
+            app.update(s)
+        newest = sets[-1]["track_frame"].header.frame_index
+        summary = app.wait_drawn(lambda s: s.get("frame", -1) >= newest - 40 and s.get("compare_hybrid_segments", 0) > 0, 60)
+        assert summary["compare_baseline_segments"] > 0 and summary["means"] == 0, summary  # the two modes' lines replace the black dots
+        scores = app.metrics.scores
+        assert set(scores) == {"hybrid", "baseline"} and scores["hybrid"].windows == scores["baseline"].windows > 0, scores
+        assert all(0 < s.made < 50 for s in scores.values()), scores
+        # the frames scored are exactly those whose 4 s future the history holds and that both modes predicted
+        assert app.metrics.frames_scored <= newest - 40 + 1
+        shown = app.shown
+        vehicle = max(shown.predictions.predictions, key=lambda p: p.probability).track_id
+        app.set_view(vehicle=str(vehicle))
+        wait_until(lambda: f"**vehicle {vehicle}**" in app._gui["vehicle_md"].content, 30, "the vehicle panel")
+        text = app._gui["vehicle_md"].content
+        mine = [p for p in shown.predictions.predictions if p.track_id == vehicle]
+        assert all(f"| {p.corridor_id & 0xFFFF:04x} | {p.probability:.2f} |" in text for p in mine), text
+        belief = next(v for v in shown.belief.vehicles if v.track_id == vehicle)
+        assert f"P(stop) **{belief.p_stop:.2f}**" in text and "true future (4 s): known" in text, text
+        image = app._gui["vehicle_ar"]
+        assert image.visible and image.image.shape[0] == 14 * 10 and image.image.shape[1] == 14 * (len(shown.profiles.input_edges_mps2) - 1)
+    finally:
+        app.close()
+
+
+def test_truth_at_the_steps_interpolates_and_leaves_out_tracks_that_leave():
+    import bus_schemas as bs
+    from stages.viewer.panels import OnlineMADE, truth_at
+
+    def frame(i: int, ids: list[int], xs: list[float]) -> bs.TrackFrame:
+        n = len(ids)
+        nan = np.full(n, np.nan)
+        return bs.TrackFrame(header=bs.Header(run_id="t", frame_index=i, stamp_ns=i * 100_000_000, producer="t"), scene_id="s",
+                             track_ids=np.array(ids, np.int64), agent_types=np.ones(n, np.uint8), x_m=np.array(xs, float), y_m=np.zeros(n),
+                             vx_mps=nan, vy_mps=nan, yaw_rad=nan, length_m=nan, width_m=nan)
+
+    # track 1 drives 10 m/s for 4 s; track 2 leaves after 2 s
+    frames = [frame(i, [1, 2] if i <= 20 else [1], [i * 1.0, 5.0]) for i in range(41)]
+    times = np.array([0.4 * k for k in range(1, 11)])
+    truth = truth_at(frames, 0, times)
+    assert set(truth) == {1}
+    np.testing.assert_allclose(truth[1][:, 0], 10.0 * times)
+    # a mode whose mean is the truth scores 0; one 1 m beside it scores 1 m
+    def preds(mode: str, offset: float) -> bs.CorridorPredictions:
+        k = len(times)
+        p = bs.CorridorPrediction(track_id=1, corridor_id=7, probability=1.0, vehicle_s_m=0.0, s_first_m=0.0, s_probs=np.zeros((k, 1), np.float32),
+                                  v_probs=np.zeros((k, 1), np.float32), outside_mass=np.zeros(k, np.float32), mean_x_m=10.0 * times, mean_y_m=np.full(k, offset),
+                                  mean_s_m=10.0 * times, x_at_mean_s_m=10.0 * times, y_at_mean_s_m=np.zeros(k))
+        return bs.CorridorPredictions(header=frames[0].header, scene_id="s", mode=mode, step_times_s=times, ds_m=0.5, dv_mps=0.5, predictions=(p,))
+    metric = OnlineMADE()
+    assert metric.score(0, preds("hybrid", 0.0), preds("baseline", 1.0), frames) == 1
+    assert metric.score(0, preds("hybrid", 0.0), preds("baseline", 1.0), frames) == 0  # each frame once
+    assert metric.scores["hybrid"].made == pytest.approx(0.0, abs=1e-9) and metric.scores["baseline"].made == pytest.approx(1.0)
+
+
 @pytest.fixture(scope="module")
 def scenario_sets_30() -> list[dict[str, Any]]:
     return scenario_sets(29)
@@ -416,6 +483,44 @@ def scenario_sets(last_frame: int) -> list[dict[str, Any]]:
         rs = rel.update({"track_frame": frame, "corridor_set": cs, "scene": scene}).outputs["relation_set"]
         mp = markov.update({"corridor_set": cs, "relation_set": rs, "scene": scene, "track_frame": frame}).outputs
         out.append({"track_frame": frame, "scene": scene, "corridor_set": cs, **mp})
+        if frame.header.frame_index >= last_frame:
+            break
+    return out
+
+
+def compare_sets(last_frame: int, recording: str = "k733_2018-05-02") -> list[dict[str, Any]]:
+    """The embedded ``recording`` through every stage in-process, both markov_prediction modes (as pipelines/compare.toml), frames 0..last_frame.
+
+    Each set holds what the compare pipeline's viewer receives: the hybrid
+    predictions and grid, the baseline predictions as ``compare_predictions``,
+    the intentions' belief and the AR profiles.
+    """
+    from stages import ar_inference, corridors, intentions, markov_prediction, relations, tracks_source
+    from stages.runtime import NodeContext
+
+    def core(mod: Any, **params: Any) -> Any:
+        spec = mod.SPEC
+        ctx = NodeContext(run_id="figures", node_id=spec.stage.rsplit(".", 1)[-1], stage=spec.stage, log=logging.getLogger("figures"))
+        return spec.make_core(spec.config_cls(**params), ctx)
+
+    source = core(tracks_source, recording=recording, speed="max")
+    corr, rel, intent, ar = core(corridors), core(relations), core(intentions), core(ar_inference)
+    hybrid = core(markov_prediction, mode="hybrid", corridor_weights="intentions")
+    baseline = core(markov_prediction, mode="baseline", corridor_weights="intentions")
+    scene, out = None, []
+    for _stamp, result in source:
+        scene = result.outputs.get("scene", scene)
+        frame = result.outputs["track_frame"]
+        cs = corr.update({"track_frame": frame, "scene": scene}).outputs["corridor_set"]
+        rs = rel.update({"track_frame": frame, "corridor_set": cs, "scene": scene}).outputs["relation_set"]
+        ib = intent.update({"track_frame": frame, "corridor_set": cs, "relation_set": rs, "scene": scene}).outputs["intention_belief"]
+        ap = ar.update({"corridor_set": cs, "relation_set": rs, "track_frame": frame}).outputs["acceleration_profiles"]
+        common = {"corridor_set": cs, "relation_set": rs, "scene": scene, "track_frame": frame, "intention_belief": ib}
+        h = hybrid.update({**common, "acceleration_profiles": ap}).outputs
+        b = baseline.update(common).outputs
+        out.append({"track_frame": frame, "scene": scene, "corridor_set": cs, "corridor_predictions": h["corridor_predictions"],
+                    "motion_grid": h["motion_grid"], "compare_predictions": b["corridor_predictions"], "intention_belief": ib,
+                    "acceleration_profiles": ap})
         if frame.header.frame_index >= last_frame:
             break
     return out
@@ -466,10 +571,109 @@ def make_figures(out_dir: Path, frame: int = 840, steps_s: tuple[float, ...] = (
     return paths
 
 
+def _settled(browser: "Chromium", what: str, need_heat: bool = True) -> bytes:
+    """A screenshot once the page shows the scene and two screenshots in a row are the same picture."""
+    last: list[bytes] = []
+
+    def settled() -> bytes | None:
+        png, m = snapshot(browser)
+        same = bool(last) and last[-1] == png
+        last.append(png)
+        ok = looks_complete(m) if need_heat else (m["canvas"] is not None and m["vehicles"] >= 20)
+        return png if same and ok else None
+
+    return wait_until(settled, 90, what, interval_s=1.0)
+
+
+def make_feature_figures(out_dir: Path, frame: int = 340, recording: str = "k733_2018-05-02") -> list[Path]:
+    """The README figures of the default scenario (K733) at a busy ``frame``: the default view, the compare view, the selected-vehicle panel.
+
+    The stages run in-process (``compare_sets``: every stage of the default
+    pipeline, plus the baseline mode as pipelines/compare.toml adds it) and
+    feed a ``ViewerApp``; headless chromium takes the screenshots.
+    """
+    from stages.viewer.config import ViewerConfig
+    from stages.viewer.scene import ViewerApp
+
+    binary = find_chromium()
+    if binary is None:
+        raise SystemExit("chromium not found: apt-get install chromium")
+    t0 = time.monotonic()
+    sets = compare_sets(frame + 45, recording)
+    print(f"stages in-process: {len(sets)} frames in {time.monotonic() - t0:.0f} s")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths: list[Path] = []
+    log = logging.getLogger("iamp.viewer")
+
+    # 1. the default run at a busy moment: hybrid, live (no lag), opened zoomed onto the traffic
+    app = ViewerApp(ViewerConfig(port=0, stats=False), run_id="figures", log=log)
+    url = app.start()
+    try:
+        for s in sets[: frame + 1]:
+            app.update({k: v for k, v in s.items() if k != "compare_predictions"})
+        summary = app.wait_drawn(lambda s: s.get("frame") == frame and s.get("grid_cells", 0) > 0, 60)
+        app.set_view(paused=True)
+        with tempfile.TemporaryDirectory() as tmp, Chromium(binary, Path(tmp) / "profile") as browser:
+            browser.navigate(url)
+            wait_until(lambda: app.server.get_clients(), 60, "the browser to connect")
+            app.fit_camera(app.objects_bounds(margin_m=12.0))
+            png = _settled(browser, "the default view")
+        path = out_dir / "viewer_default_busy.png"
+        path.write_bytes(png)
+        paths.append(path)
+        print(f"wrote {path}: frame {summary['frame']}, {summary['objects']} objects, {summary['corridors']} corridors, {summary['grid_cells']} grid cells")
+    finally:
+        app.close()
+
+    # 2. the compare view: both modes' means over the true future, the running mADE; 3. the selected-vehicle panel
+    app = ViewerApp(ViewerConfig(port=0, stats=False, show_ground_truth=True), run_id="figures", log=log)
+    url = app.start()
+    try:
+        shown = frame + 5  # the newest frame is frame + 45; the view lags the 4 s horizon
+        for i in range(0, len(sets), 20):  # in slices, each drawn (and scored) before the next, as a live run does
+            for s in sets[i : i + 20]:
+                app.update(s)
+            newest = sets[min(i + 20, len(sets)) - 1]["track_frame"].header.frame_index
+            app.wait_drawn(lambda s, newest=newest: s.get("frame", -1) >= newest - 40, 60)
+        summary = app.wait_drawn(lambda s: s.get("frame") == shown and s.get("compare_hybrid_segments", 0) > 0, 60)
+        app.set_view(paused=True)
+        window = (1280, 1500)
+        with tempfile.TemporaryDirectory() as tmp, Chromium(binary, Path(tmp) / "profile", window=window) as browser:
+            browser.navigate(url)
+            wait_until(lambda: app.server.get_clients(), 60, "the browser to connect")
+            app.fit_camera(app.objects_bounds(margin_m=12.0))
+            wait_until(lambda: "running mADE" in app._gui["compare"].content, 30, "the compare line")
+            png = _settled(browser, "the compare view")
+            path = out_dir / "viewer_compare.png"
+            path.write_bytes(png)
+            paths.append(path)
+            print(f"wrote {path}: frame {summary['frame']}; {app.metrics.line()}")
+            item = app.shown
+            multi = {}
+            for p in item.predictions.predictions:
+                multi[p.track_id] = multi.get(p.track_id, 0) + 1
+            vehicle = max(multi, key=lambda t: (multi[t], -t))
+            app.set_view(vehicle=str(vehicle))
+            wait_until(lambda: f"**vehicle {vehicle}**" in app._gui["vehicle_md"].content and app._gui["vehicle_ar"].visible, 30, "the vehicle panel")
+            app.fit_camera(app.objects_bounds(margin_m=12.0))
+            png = _settled(browser, "the selected vehicle", need_heat=False)
+            path = out_dir / "viewer_vehicle_panel.png"
+            path.write_bytes(png)
+            paths.append(path)
+            print(f"wrote {path}: vehicle {vehicle} ({multi[vehicle]} corridors) at frame {summary['frame']}")
+    finally:
+        app.close()
+    return paths
+
+
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--figures", type=Path, required=True, help="folder for viewer_grid_1s.png and viewer_grid_4s.png")
     parser.add_argument("--frame", type=int, default=840)
+    parser.add_argument("--features", action="store_true", help="instead: the default scenario's figures (viewer_default_busy, viewer_compare, viewer_vehicle_panel)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO)
-    make_figures(args.figures, args.frame)
+    if args.features:
+        make_feature_figures(args.figures)
+    else:
+        make_figures(args.figures, args.frame)

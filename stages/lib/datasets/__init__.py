@@ -7,7 +7,7 @@ counted in a ``LoadReport``. ``kinematics`` derives velocities from positions
 and repairs implausible reported values at track starts.
 """
 
-from stages.lib.datasets.defaults import DEFAULT_DATA_DIR, DEFAULT_RECORDING, DEFAULT_SEQUENCE, FULL_DATA_ENV, full_data_dir
+from stages.lib.datasets.defaults import DEFAULT_DATA_DIR, DEFAULT_RECORDING, DEFAULT_SEQUENCE, FULL_DATA_ENV, default_recordings, full_data_dir
 from stages.lib.datasets.kinematics import Kinematics, RepairRule, TrackRepair, derive_kinematics, repair_track
 from stages.lib.datasets.loader import discover, find_recording, load_recording, load_ref
 from stages.lib.datasets.model import (
@@ -33,6 +33,7 @@ __all__ = [
     "full_data_dir",
     "DEFAULT_RECORDING",
     "DEFAULT_SEQUENCE",
+    "default_recordings",
     "DEFAULT_SIZES_M",
     "FORMAT_IND",
     "FORMAT_INTERACTION",

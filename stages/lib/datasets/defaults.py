@@ -1,4 +1,4 @@
-"""The embedded default scenario: TAF-BW K729, sequence 013 (see stages/data/taf-bw/ATTRIBUTION.md)."""
+"""The embedded data: TAF-BW K729 (default recording, sequence 013) and K733 (the launcher's busy default run); see stages/data/taf-bw/ATTRIBUTION.md."""
 
 from __future__ import annotations
 
@@ -23,3 +23,11 @@ def full_data_dir() -> Path | None:
 
 DEFAULT_RECORDING = "k729_2022-03-16"
 DEFAULT_SEQUENCE = "013"
+
+
+def default_recordings(data_dir: str | Path, discovered: list[str]) -> list[str]:
+    """The recordings an offline tool reads when none is named: in the embedded folder the default one (K729; K733 is
+    embedded for the launcher's default run only), in any other folder all of ``discovered``."""
+    if Path(data_dir).expanduser().resolve() == DEFAULT_DATA_DIR.resolve() and DEFAULT_RECORDING in discovered:
+        return [DEFAULT_RECORDING]
+    return list(discovered)

@@ -67,7 +67,7 @@ import numpy as np
 
 from bus_schemas import MatchStatus
 from stages.corridors import SceneMaps
-from stages.lib.datasets import DEFAULT_DATA_DIR, DatasetError, Recording, discover, load_recording
+from stages.lib.datasets import DEFAULT_DATA_DIR, DatasetError, Recording, default_recordings, discover, load_recording
 from stages.offline.chain import Chain
 from stages.offline.truth import (
     ACCEL_EDGE_S,
@@ -284,8 +284,9 @@ def _sequence_samples(cfg: DatasetConfig, rec: Recording, seq, map_sha256: str, 
 def dataset_key(cfg: DatasetConfig) -> str:
     """Hash of the selected recordings' files (contents) and the config (module docstring), 16 hex digits."""
     digest = hashlib.sha256(json.dumps(cfg.key_dict(), sort_keys=True).encode())
-    names = set(cfg.recordings)
-    for ref in discover(cfg.data_dir):
+    refs = discover(cfg.data_dir)
+    names = set(cfg.recordings) or set(default_recordings(cfg.data_dir, [ref.name for ref in refs]))
+    for ref in refs:
         if names and ref.name not in names:
             continue
         digest.update(ref.name.encode())
@@ -311,7 +312,7 @@ def build_dataset(cfg: DatasetConfig, *, cache_dir: Path | None = None, progress
         except (OSError, ValueError, KeyError) as exc:
             say(f"cache {cached} unreadable ({exc}); rebuilding")
     t0 = time.perf_counter()
-    names = list(cfg.recordings) or [ref.name for ref in discover(cfg.data_dir)]
+    names = list(cfg.recordings) or default_recordings(cfg.data_dir, [ref.name for ref in discover(cfg.data_dir)])
     recordings = [load_recording(cfg.data_dir, name, tuple(cfg.sequences) or None) for name in names]
     for rec in recordings:
         if rec.map_path is None:

@@ -1,0 +1,92 @@
+"""The live Foxglove bridge's core: a ``foxglove-sdk`` WebSocket server fed by ``FoxgloveScene`` (package docstring)."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Any, Mapping
+
+import foxglove
+
+from bus_schemas import CorridorPredictions, CorridorSet, IntentionBelief, MotionGrid, NodeStats, SceneInfo, TrackFrame
+from stages.foxglove_bridge.config import FoxgloveConfig
+from stages.foxglove_bridge.scene import FoxgloveScene, parse_grid_step
+from stages.lib.base import Issue, StageResult
+
+_LATEST = (("corridor_set", CorridorSet), ("corridor_predictions", CorridorPredictions), ("motion_grid", MotionGrid), ("intention_belief", IntentionBelief), ("compare_predictions", CorridorPredictions))
+
+
+class _Listener:
+    """Asks for the map again when a client subscribes to it (the protocol has no latching)."""
+
+    def __init__(self, wanted: threading.Event) -> None:
+        self.wanted = wanted
+
+    def on_subscribe(self, client: Any, channel: Any) -> None:
+        if getattr(channel, "topic", "") in ("/map", "/tf"):
+            self.wanted.set()
+
+
+class FoxgloveBridge:
+    """Serves the run's scene on a Foxglove WebSocket; ``update`` logs what is new in one input set."""
+
+    def __init__(self, config: FoxgloveConfig, *, run_id: str, node_id: str = "foxglove", log: logging.Logger | None = None, topic_keys: Mapping[str, str] | None = None) -> None:
+        self.config = config
+        self.run_id = run_id
+        self.log = log or logging.getLogger(f"iamp.{node_id}")
+        self.context = foxglove.Context()
+        self.scene = FoxgloveScene(self.context, data=config.data or None, grid_step=parse_grid_step(config.grid_step))
+        self.topic_keys = dict(topic_keys or {})  # input port -> bus key (names the Foxglove topics by producing node)
+        self._map_wanted = threading.Event()
+        self._last: dict[str, int] = {}
+        self._stats_seen: dict[str, float] = {}
+        self.server: Any = None
+        self.port = 0
+
+    def start(self) -> str:
+        """Start the server; returns its ``ws://`` URL."""
+        kwargs = dict(name=f"hybrid-iamp {self.run_id}", host=self.config.host, context=self.context,
+                      server_listener=_Listener(self._map_wanted), message_backlog_size=self.config.message_backlog)
+        try:
+            self.server = foxglove.start_server(port=self.config.port, **kwargs)
+        except Exception as exc:  # noqa: BLE001 - a busy port moves to a free one
+            if self.config.port == 0:
+                raise
+            self.log.warning("foxglove: port %d not available (%s); taking a free port", self.config.port, exc)
+            self.server = foxglove.start_server(port=0, **kwargs)
+        self.port = int(self.server.port)
+        return f"ws://{self.config.host}:{self.port}"
+
+    def close(self) -> None:
+        if self.server is not None:
+            self.server.stop()
+            self.server = None
+
+    def _key(self, port: str, default_node: str) -> str:
+        return self.topic_keys.get(port, f"iamp/{self.run_id}/{default_node}/{port}")
+
+    def update(self, inputs: Mapping[str, object]) -> StageResult:
+        now = time.time_ns()
+        frame = inputs.get("track_frame")
+        if not isinstance(frame, TrackFrame):
+            return StageResult(issues=[Issue("no_frame", -1, "input set without a track_frame")])
+        scene = inputs.get("scene")
+        if isinstance(scene, SceneInfo):
+            self.scene.add_scene(scene, now)
+        if self._map_wanted.is_set():
+            self._map_wanted.clear()
+            self.scene.relog_map(now)
+        self.scene.add_frame(frame, now)
+        for port, cls in _LATEST:
+            msg = inputs.get(port)
+            if isinstance(msg, cls) and self._last.get(port) != msg.header.stamp_ns:
+                self._last[port] = int(msg.header.stamp_ns)
+                self.scene.add(self._key(port, port), msg, now)
+        stats = inputs.get("stats")
+        if isinstance(stats, Mapping):
+            for msg in stats.values():
+                if isinstance(msg, NodeStats) and self._stats_seen.get(msg.node_id) != msg.uptime_s:
+                    self._stats_seen[msg.node_id] = msg.uptime_s
+                    self.scene.add_stats(msg, now)
+        return StageResult()
