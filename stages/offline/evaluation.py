@@ -94,17 +94,35 @@ standing cars) counts in ``cross_track_m`` only, with its whole error; ``n``
 says how many windows each figure has. The table adds windows and mADE per
 class and the along-track bias at 4 s per class.
 
-Figures (``figures_dir``): for the instant with the most windows,
-``grid_4s_<mode>.png`` (car lanelets grey, the fused grid at the last step as
-a heat map, white to yellow to red in log scale over 1e-4…1, current vehicle
-positions blue) and ``means_<mode>.png`` (ground truth black, each corridor's
-mean positions in its own colour, one dot per step, the start in blue), PNGs
-written with numpy and zlib; ``figures.txt`` names the instant and the
-colours. With mode ``hybrid``, ``accel_<recording>_<seq>_car<id>_<ms>.png``
-for four cars (the hardest braking, the strongest acceleration, the widest
-range, the calmest): the paper's acceleration-distribution figure — the 10
-distributions as intensity over the input cells, the AR output in red, the
-true acceleration in black; ``accel_figures.txt`` explains them.
+Calibration and horizon (additive keys per mode): ``calibration`` — per
+speed split (``overall``, ``slow``, ``fast``) the coverage of the
+highest-probability regions at ``levels`` 10 %…90 % (the rule of
+``coverage90``, which equals the 90 % entry), the reliability diagram of
+``--report``; ``error_by_step_m`` — per split the mean displacement error at
+each prediction step (``t_s``) of the corridor mADE scores (its mean over
+the steps is mADE).
+
+Situations (``--situations FILE.toml``, ``stages.offline.situations``; by
+default every recording is one): ``situations`` lists them with the
+vehicles seen and the duration played in each; per mode ``by_situation.<name>``
+has the statistics of a split plus ``time_per_step_ms`` (the mean wall time
+of one prediction of all vehicles of the frame at the situation's instants,
+hybrid's AR inference included: the paper's "time") and ``instants``.
+
+Figures (``figures_dir``, ``--figures DIR``; ``stages.offline.figures``,
+matplotlib, PNG and SVG), for each recording at its instant with the most
+moving windows (start speed > 2 m/s), then the most windows: ``grid_4s_<mode>_<recording>`` for hybrid and baseline (the fused
+centre-point grid at the last step as a heat map with a log colour bar over
+the car lanelets, vehicles at t, the scored vehicles' corridors),
+``means_<recording>`` (the paper's comparison: hybrid blue, baseline red,
+each corridor's mean positions with opacity = its probability, ground truth
+black; the legend gives the instant's mADE/mFDE per mode), and
+``accel_<recording>_<seq>_car<id>_<ms>ms`` for one or two cars (the
+drawn instant's car whose true acceleration varies most, the recording's
+hardest braking car): the paper's acceleration-distribution figure (the 10
+distributions as grey intensity, the AR output red, the true acceleration
+blue). ``figures.txt`` names the instants and describes each file.
+``--report DIR`` writes these with the report (``stages.offline.report``).
 """
 
 from __future__ import annotations
@@ -342,9 +360,10 @@ class _ModeAccumulator:
 
 @dataclass(slots=True)
 class _Figure:
-    """An instant drawn by ``--figures`` / ``--report`` (one per recording: the one with the most windows)."""
+    """An instant drawn by ``--figures`` / ``--report`` (one per recording: the most moving cars, then the most windows)."""
 
     n_windows: int
+    n_moving: int  # windows starting above SLOW_SPEED_MPS: the instant drawn has the most, then the most windows
     recording: str
     sequence: str
     stamp_ns: int
@@ -605,10 +624,12 @@ class Evaluation:
                     acc.track_overall.add(along, cross)
                     acc.track_by_manoeuvre[manoeuvre].add(along, cross)
         current = self.figures.get(recording)
-        if windows and scene is not None and (current is None or len(windows) > current.n_windows):
+        n_moving = sum(1 for _f, v in windows.values() if v > SLOW_SPEED_MPS)
+        if windows and scene is not None and (current is None or (n_moving, len(windows)) > (current.n_moving, current.n_windows)):
             rows = {int(t): i for i, t in enumerate(frame.track_ids)}
             self.figures[recording] = _Figure(
                 n_windows=len(windows),
+                n_moving=n_moving,
                 recording=recording,
                 sequence=sequence_id,
                 stamp_ns=stamp,
@@ -796,7 +817,8 @@ class Evaluation:
             if fig is None:
                 lines.append(f"{recording}: no instant with a full-future window, no figure")
                 continue
-            where = f"{recording} sequence {fig.sequence} at t = {fig.stamp_ns * 1e-9:.1f} s ({fig.n_windows} vehicles with a full 4 s future)"
+            where = (f"{recording} sequence {fig.sequence} at t = {fig.stamp_ns * 1e-9:.1f} s ({fig.n_windows} vehicles with a full 4 s future,"
+                     f" {fig.n_moving} above 2 m/s)")
             lines.append(f"{recording}: instant {where}, stamp_ns {fig.stamp_ns}")
             for mode in paper:
                 emit(fg.grid_figure(fig, mode), f"grid_4s_{mode}_{recording}", kind="grid", recording=recording, mode=mode,
@@ -812,7 +834,7 @@ class Evaluation:
                      caption=f"AR acceleration distributions of car {e['track_id']}, {recording} sequence {e['sequence']} at t = "
                              f"{e['stamp_ns'] * 1e-9:.1f} s ({e['why']}): the {e['probs'].shape[0]} normal distributions over the input "
                              f"cells as grey intensity, the AR output red, the true acceleration blue; mean |AR - true| {err:.2f} m/s2.")
-        text = ["instants (one per recording: the one with the most windows):", *lines, "", "files:"]
+        text = ["instants (one per recording: the one with the most scored cars above 2 m/s, then the most scored cars):", *lines, "", "files:"]
         text += [f"{e['stem']}: {e['caption']}" for e in self.figure_index]
         (directory / "figures.txt").write_text("\n".join(text) + "\n")
         return written

@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any, Iterable, Sequence
 
 import matplotlib
+import matplotlib.ticker
 
 matplotlib.use("Agg")  # no display; before anything draws
 
@@ -49,6 +50,11 @@ MODE_LABELS = {"hybrid": "hybrid-IAMP", "baseline": "baseline (rule-based IAMP)"
 LANELET_FACE = "#e4e4e4"
 LANELET_EDGE = "#b0b0b0"
 PNG_DPI = 100
+
+
+def new_figure(size_in: tuple[float, float]) -> Figure:
+    """A Figure (no pyplot state) with constrained layout."""
+    return Figure(figsize=size_in, layout="constrained")
 
 
 def mode_colour(mode: str) -> str:
@@ -148,7 +154,7 @@ def grid_figure(fig_data, mode: str, *, min_value: float = 1e-4) -> Figure:
     prediction = fig_data.predictions[mode]
     step = prediction.step_times_s.shape[0] - 1
     t_last = float(prediction.step_times_s[step])
-    fig = Figure(figsize=(7.6, 6.4))
+    fig = Figure(figsize=(7.6, 6.4), layout="constrained")
     ax = _map_axes(fig)
     road = fig_data.scene_maps.get(fig_data.scene).road_map
     draw_lanelets(ax, road_polygons(road))
@@ -180,8 +186,8 @@ def grid_figure(fig_data, mode: str, *, min_value: float = 1e-4) -> Figure:
     others = {}
     if fig_data.frame is not None:
         others = {t: b for t, b in vehicle_boxes(fig_data.frame).items() if t not in scored and _inside(b, (x0, x1, y0, y1))}
-    draw_boxes(ax, others, face="#cfcfcf", edge="#707070", zorder=4)
-    draw_boxes(ax, scored, face="#6a8fd0", edge="black", zorder=5, labels=True)
+    draw_boxes(ax, others, face=(0.6, 0.6, 0.6, 0.3), edge="#707070", zorder=4)
+    draw_boxes(ax, scored, face=(0.25, 0.4, 0.75, 0.3), edge="#1a2f6b", zorder=5, labels=True)
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
     if mappable is not None:
@@ -190,12 +196,11 @@ def grid_figure(fig_data, mode: str, *, min_value: float = 1e-4) -> Figure:
     handles = [
         Patch(facecolor=LANELET_FACE, edgecolor=LANELET_EDGE, label="car lanelets"),
         Line2D([], [], color="#3b6ea8", lw=0.8, ls=(0, (4, 3)), label="corridors of the scored vehicles"),
-        Patch(facecolor="#6a8fd0", edgecolor="black", label="scored vehicle at t (id)"),
-        Patch(facecolor="#cfcfcf", edgecolor="#707070", label="other vehicle at t"),
+        Patch(facecolor=(0.25, 0.4, 0.75, 0.3), edgecolor="#1a2f6b", label="scored vehicle at t (id)"),
+        Patch(facecolor=(0.6, 0.6, 0.6, 0.3), edgecolor="#707070", label="other vehicle at t"),
     ]
     ax.legend(handles=handles, loc="upper left", fontsize=7, framealpha=0.9)
     ax.set_title(f"Motion grid at {t_last:.1f} s, {mode_label(mode)}\n{_instant_title(fig_data)}", fontsize=9)
-    fig.tight_layout()
     return fig
 
 
@@ -207,7 +212,7 @@ def _inside(box: np.ndarray, window) -> bool:
 
 def comparison_figure(fig_data, modes: Sequence[str]) -> Figure:
     """Predicted mean positions over the horizon of ``modes`` against the ground truth (module docstring)."""
-    fig = Figure(figsize=(7.6, 6.4))
+    fig = Figure(figsize=(7.6, 6.4), layout="constrained")
     ax = _map_axes(fig)
     road = fig_data.scene_maps.get(fig_data.scene).road_map
     draw_lanelets(ax, road_polygons(road))
@@ -232,7 +237,7 @@ def comparison_figure(fig_data, modes: Sequence[str]) -> Figure:
         ax.plot(line[:, 0], line[:, 1], "-", color="black", lw=1.2, zorder=5)
         ax.plot(truth[:, 0], truth[:, 1], "o", color="black", ms=2.4, zorder=5)
     boxes = vehicle_boxes(fig_data.frame, fig_data.truths) if fig_data.frame is not None else {}
-    draw_boxes(ax, boxes, face="white", edge="black", zorder=6, labels=True)
+    draw_boxes(ax, boxes, face="none", edge="#555555", zorder=3, labels=True)
     x0, x1, y0, y1 = _extent(pts, 6.0)
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
@@ -240,12 +245,11 @@ def comparison_figure(fig_data, modes: Sequence[str]) -> Figure:
                       label=f"{mode_label(m)}: mADE {fig_data.scores.get(m, {}).get('mADE_m', float('nan')):.2f} m,"
                             f" mFDE {fig_data.scores.get(m, {}).get('mFDE_m', float('nan')):.2f} m") for m in modes]
     handles += [Line2D([], [], color="black", marker="o", ms=3, lw=1.2, label="ground truth"),
-                Patch(facecolor="white", edgecolor="black", label="vehicle at t (id)"),
+                Patch(facecolor="none", edgecolor="#555555", label="vehicle at t (id)"),
                 Patch(facecolor=LANELET_FACE, edgecolor=LANELET_EDGE, label="car lanelets")]
     ax.legend(handles=handles, loc="upper left", fontsize=7, framealpha=0.9,
               title="mean positions every 0.4 s to 4 s; opacity = corridor probability", title_fontsize=7)
     ax.set_title(f"Predicted means vs ground truth, {' vs '.join(mode_label(m) for m in modes)}\n{_instant_title(fig_data)}", fontsize=9)
-    fig.tight_layout()
     return fig
 
 
@@ -253,7 +257,7 @@ def accel_figure(example: dict[str, Any]) -> Figure:
     """The paper's acceleration-distribution figure for one car (module docstring)."""
     edges, probs, step_s, chunk_s = example["edges"], example["probs"], example["step_s"], example["chunk_s"]
     n = example["ar"].shape[0]
-    fig = Figure(figsize=(7.0, 3.8))
+    fig = Figure(figsize=(7.0, 3.8), layout="constrained")
     ax = fig.add_subplot(111)
     t_edges = np.arange(probs.shape[0] + 1) * chunk_s
     mesh = ax.pcolormesh(t_edges, edges, probs.T, cmap="Greys", vmin=0.0, vmax=max(float(probs.max()), 1e-9), shading="flat")
@@ -272,7 +276,6 @@ def accel_figure(example: dict[str, Any]) -> Figure:
     err = float(np.abs(example["ar"] - example["true"]).mean())
     ax.set_title(f"AR acceleration distributions, {example['recording']} sequence {example['sequence']} car {example['track_id']},"
                  f" t = {example['stamp_ns'] * 1e-9:.1f} s\n{probs.shape[0]} distributions (grey), mean |AR − true| {err:.2f} m/s²", fontsize=9)
-    fig.tight_layout()
     return fig
 
 
@@ -284,7 +287,7 @@ _SPLITS = (("overall", "all cars"), ("slow", "start speed ≤ 2 m/s"), ("fast", 
 
 def reliability_figure(report: dict[str, Any]) -> Figure:
     """Observed coverage of the highest-probability regions against their nominal level, per mode and speed split."""
-    fig = Figure(figsize=(10.5, 3.8))
+    fig = Figure(figsize=(11.0, 4.3), layout="constrained")
     axes = fig.subplots(1, 3, sharey=True)
     for ax, (split, title) in zip(axes, _SPLITS):
         ax.plot([0, 1], [0, 1], color="#999999", lw=0.8, ls="--", label="calibrated (observed = nominal)")
@@ -297,20 +300,19 @@ def reliability_figure(report: dict[str, Any]) -> Figure:
         ax.axvline(0.9, color="#dddddd", lw=0.6, zorder=0)
         ax.set_xlim(0, 1)
         ax.set_ylim(0, 1)
-        ax.set_aspect("equal")
+        ax.grid(alpha=0.3)
         ax.set_xlabel("nominal level of the region")
         first = next(iter(report["modes"].values()))
         ax.set_title(f"{title} ({first['calibration'][split]['steps'] if 'calibration' in first else 0} steps)", fontsize=9)
     axes[0].set_ylabel("share of true positions inside")
     axes[0].legend(loc="upper left", fontsize=7)
     fig.suptitle("Reliability of the motion grids: highest-probability regions (centre-point grids, 0.4–4 s)", fontsize=10)
-    fig.tight_layout()
     return fig
 
 
 def horizon_figure(report: dict[str, Any]) -> Figure:
     """Mean displacement error of the mADE corridor against the prediction horizon, per mode and speed split."""
-    fig = Figure(figsize=(10.5, 3.6))
+    fig = Figure(figsize=(10.5, 3.6), layout="constrained")
     axes = fig.subplots(1, 3, sharey=True)
     for ax, (split, title) in zip(axes, _SPLITS):
         windows = 0
@@ -329,7 +331,6 @@ def horizon_figure(report: dict[str, Any]) -> Figure:
     axes[0].set_ylim(bottom=0)
     axes[0].legend(loc="upper left", fontsize=7)
     fig.suptitle("Error against horizon (the corridor with the smallest ADE, as mADE)", fontsize=10)
-    fig.tight_layout()
     return fig
 
 
@@ -338,11 +339,12 @@ def manoeuvre_figure(report: dict[str, Any]) -> Figure:
     modes = report["modes"]
     first = next(iter(modes.values()))
     classes = list(first.get("by_manoeuvre", {}))
-    fig = Figure(figsize=(11.5, 3.9))
+    fig = Figure(figsize=(11.5, 4.3), layout="constrained")
     axes = fig.subplots(1, 3)
     x = np.arange(len(classes))
     width = 0.8 / max(len(modes), 1)
-    labels = [f"{c}\n({first['by_manoeuvre'][c]['windows']})" for c in classes]
+    short = {"accelerates": "accel.", "keeps_speed": "keeps"}
+    labels = [f"{short.get(c, c)}\n({first['by_manoeuvre'][c]['windows']})" for c in classes]
     for i, (mode, res) in enumerate(modes.items()):
         off = (i - (len(modes) - 1) / 2) * width
         made = [res["by_manoeuvre"][c]["mADE_m"] for c in classes]
@@ -353,21 +355,21 @@ def manoeuvre_figure(report: dict[str, Any]) -> Figure:
     titles = ("mADE (m)", "along-track bias at 4 s (m, + = ahead of the truth)", "cross-track RMS at 4 s (m)")
     for ax, title in zip(axes, titles):
         ax.set_xticks(x)
-        ax.set_xticklabels(labels, fontsize=7)
+        ax.set_xticklabels(labels, fontsize=8)
         ax.set_xlabel("manoeuvre of the true future (windows)", fontsize=8)
         ax.set_ylabel(title.split(" (")[0] + " (m)", fontsize=8)
         ax.set_title(title, fontsize=9)
         ax.axhline(0.0, color="black", lw=0.6)
         ax.grid(axis="y", alpha=0.3)
-    axes[0].legend(fontsize=7, loc="upper left")
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=len(labels), fontsize=8)
     fig.suptitle("Error by manoeuvre class of the true future", fontsize=10)
-    fig.tight_layout()
     return fig
 
 
 def timing_figure(frame_ms: dict[str, Sequence[float]], vehicles: dict[str, Sequence[int]], ar_ms_median: float | None = None) -> Figure:
     """Compute time of one prediction frame against the vehicles predicted in it, per mode (points and medians)."""
-    fig = Figure(figsize=(7.2, 4.4))
+    fig = Figure(figsize=(7.2, 4.4), layout="constrained")
     ax = fig.add_subplot(111)
     rng = np.random.default_rng(0)
     for mode, ms in frame_ms.items():
@@ -375,18 +377,18 @@ def timing_figure(frame_ms: dict[str, Sequence[float]], vehicles: dict[str, Sequ
         if ms.size == 0 or ms.size != n.size:
             continue
         colour = mode_colour(mode)
-        ax.scatter(n + rng.uniform(-0.25, 0.25, n.size), ms, s=4, color=colour, alpha=0.25, lw=0)
+        ax.scatter(n + rng.uniform(-0.2, 0.2, n.size), ms, s=6, color=colour, alpha=0.35, lw=0)
         counts = np.unique(n)
         med = [float(np.median(ms[n == c])) for c in counts]
         ax.plot(counts, med, "o-", color=colour, ms=3.5, lw=1.6, label=f"{mode_label(mode)} (median {np.median(ms):.1f} ms)")
     ax.set_yscale("log")
+    ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
     ax.set_xlabel("vehicles predicted in the frame")
     ax.set_ylabel("prediction time per frame (ms, log)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7, loc="upper left", title="line: median per vehicle count; dots: frames", title_fontsize=7)
-    note = f"; hybrid's AR inference apart (median {ar_ms_median:.1f} ms per frame)" if ar_ms_median is not None else ""
-    ax.set_title("Compute time per frame: MarkovPredictor.process, grid included" + note, fontsize=9)
-    fig.tight_layout()
+    note = f"\nhybrid's AR inference not included (median {ar_ms_median:.1f} ms per frame)" if ar_ms_median is not None else ""
+    ax.set_title("Compute time per frame against vehicles (MarkovPredictor.process, grid included)" + note, fontsize=9)
     return fig
 
 

@@ -80,6 +80,14 @@ def _sha256(path: str | None) -> str:
         return "unreadable"
 
 
+def _short(path: str) -> str:
+    """A path relative to the repository when it lies inside it."""
+    try:
+        return Path(path).resolve().relative_to(REPO).as_posix()
+    except ValueError:
+        return str(path)
+
+
 def _table(head: list[str], rows: list[list[str]]) -> list[str]:
     return ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|", *("| " + " | ".join(r) + " |" for r in rows)]
 
@@ -158,13 +166,13 @@ def write_report(evaluation, report: dict[str, Any], directory: Path, command: s
     # ---------------------------------------------------------------- provenance
     L.append("## How it was made")
     L.append("")
-    model = report.get("model")
+    model = report.get("model") or (str(REPO / "stages" / "lib" / "ar" / "weights" / "ar_taf_bw.pt") if "hybrid" in modes else None)
     rows = [
-        ["data", f"`{report['data']}`: " + ", ".join(report["recordings"])],
+        ["data", f"`{_short(report['data'])}`: " + ", ".join(report["recordings"])],
         ["modes", ", ".join(modes)],
         ["instants", f"every {report['stride_s']:g} s from each sequence's first frame: {fmt(report['instants'])} instants,"
                      f" {fmt(first['overall']['windows'])} windows (vehicle with a full 4 s future, matched to corridors)"],
-        ["model (hybrid)", f"`{model}` (sha256 {_sha256(model)}…)" if model else "–"],
+        ["model (hybrid)", f"`{_short(model)}` (sha256 {_sha256(model)}…)" if model else "–"],
         ["corridor weights", report["corridor_weights"]],
         ["Markov backend", f"{report['backend']} on {report['device']}"],
         ["parameters (--set)", ", ".join(f"{k}={v}" for k, v in report["params"].items()) or "defaults"],
@@ -295,7 +303,7 @@ def write_report(evaluation, report: dict[str, Any], directory: Path, command: s
     # ---------------------------------------------------------------- the paper's figures
     L.append("## The paper's figures, one instant per recording")
     L.append("")
-    L.append("For each recording the instant with the most scored vehicles.")
+    L.append("For each recording the instant with the most scored vehicles above 2 m/s (then the most scored vehicles).")
     L.append("")
     for recording in report["recordings"]:
         entries = [e for e in getattr(evaluation, "figure_index", []) if e["recording"] == recording]
