@@ -126,6 +126,10 @@ def write_report(evaluation, report: dict[str, Any], directory: Path, command: s
 
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
+    for pattern in ("grid_4s_*", "means_*", "accel_*"):  # an earlier report's instant figures: their names hold the instant
+        for stale in directory.glob(pattern):
+            if stale.suffix in (".png", ".svg"):
+                stale.unlink()
     (directory / "eval.json").write_text(json.dumps(json_safe(report), indent=1, allow_nan=False))
     modes = report["modes"]
     first = next(iter(modes.values()))
@@ -287,7 +291,7 @@ def write_report(evaluation, report: dict[str, Any], directory: Path, command: s
         for key in a:
             rows.append([mode, f"{key} ({a[key]['t_s']:g} s)", fmt(a[key]["mean"]), fmt(a[key]["rms"]), fmt(c_[key]["mean_abs"]),
                          fmt(c_[key]["rms"]), fmt(a[key]["n"])])
-    L += _table(["mode", "horizon", "along mean", "along RMS", "cross mean |.|", "cross RMS", "windows with a direction"], rows)
+    L += _table(["mode", "horizon", "along mean", "along RMS", "cross mean abs", "cross RMS", "windows with a direction"], rows)
     L.append("")
     # ---------------------------------------------------------------- timing
     L.append("## Compute time")
