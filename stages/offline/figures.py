@@ -133,7 +133,7 @@ def draw_boxes(ax, boxes: dict[int, np.ndarray], face, edge="black", zorder: flo
     if labels:
         for track_id, b in boxes.items():
             centre = b.mean(axis=0)
-            ax.annotate(str(track_id), centre, xytext=(0, 6), textcoords="offset points", ha="center", fontsize=7, zorder=zorder + 0.2,
+            ax.annotate(str(track_id), centre, xytext=(0, 6), textcoords="offset points", ha="center", fontsize=7.5, zorder=zorder + 0.2,
                         bbox=dict(boxstyle="round,pad=0.1", fc="white", ec="none", alpha=0.7))
 
 
@@ -143,6 +143,21 @@ def _extent(points: Sequence[np.ndarray], margin_m: float, min_size_m: float = 4
     lo, hi = allp.min(axis=0) - margin_m, allp.max(axis=0) + margin_m
     centre, half = 0.5 * (lo + hi), np.maximum(0.5 * (hi - lo), 0.5 * min_size_m)
     return float(centre[0] - half[0]), float(centre[0] + half[0]), float(centre[1] - half[1]), float(centre[1] + half[1])
+
+
+def _fit(fig: Figure, ax, x0: float, x1: float, y0: float, y1: float, extra_width_in: float, map_height_in: float = 5.6) -> None:
+    """Set the map window, widened so that its aspect lies in [0.7, 1.6] (width / height), and size the figure to it (no
+    empty bands beside an equal-aspect map)."""
+    dx, dy = x1 - x0, y1 - y0
+    if dx / dy > 1.6:
+        grow = (dx / 1.6 - dy) / 2
+        y0, y1 = y0 - grow, y1 + grow
+    elif dx / dy < 0.7:
+        grow = (dy * 0.7 - dx) / 2
+        x0, x1 = x0 - grow, x1 + grow
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    fig.set_size_inches(map_height_in * (x1 - x0) / (y1 - y0) + extra_width_in, map_height_in + 1.3)
 
 
 def _instant_title(fig_data) -> str:
@@ -188,10 +203,9 @@ def grid_figure(fig_data, mode: str, *, min_value: float = 1e-4) -> Figure:
         others = {t: b for t, b in vehicle_boxes(fig_data.frame).items() if t not in scored and _inside(b, (x0, x1, y0, y1))}
     draw_boxes(ax, others, face=(0.6, 0.6, 0.6, 0.3), edge="#707070", zorder=4)
     draw_boxes(ax, scored, face=(0.25, 0.4, 0.75, 0.3), edge="#1a2f6b", zorder=5, labels=True)
-    ax.set_xlim(x0, x1)
-    ax.set_ylim(y0, y1)
+    _fit(fig, ax, x0, x1, y0, y1, extra_width_in=2.2 if mappable is not None else 1.0)
     if mappable is not None:
-        bar = fig.colorbar(mappable, ax=ax, shrink=0.85, pad=0.02)
+        bar = fig.colorbar(mappable, ax=ax, shrink=1.0, pad=0.02)
         bar.set_label(f"P(a vehicle centre in the {gf.cell_m:g} m cell) at t + {t_last:.1f} s (log scale)")
     handles = [
         Patch(facecolor=LANELET_FACE, edgecolor=LANELET_EDGE, label="car lanelets"),
@@ -199,8 +213,8 @@ def grid_figure(fig_data, mode: str, *, min_value: float = 1e-4) -> Figure:
         Patch(facecolor=(0.25, 0.4, 0.75, 0.3), edgecolor="#1a2f6b", label="scored vehicle at t (id)"),
         Patch(facecolor=(0.6, 0.6, 0.6, 0.3), edgecolor="#707070", label="other vehicle at t"),
     ]
-    ax.legend(handles=handles, loc="upper left", fontsize=7, framealpha=0.9)
-    ax.set_title(f"Motion grid at {t_last:.1f} s, {mode_label(mode)}\n{_instant_title(fig_data)}", fontsize=9)
+    ax.legend(handles=handles, loc="upper left", fontsize=8, framealpha=0.9)
+    ax.set_title(f"Motion grid at {t_last:.1f} s, {mode_label(mode)}\n{_instant_title(fig_data)}", fontsize=10)
     return fig
 
 
@@ -217,7 +231,8 @@ def comparison_figure(fig_data, modes: Sequence[str]) -> Figure:
     road = fig_data.scene_maps.get(fig_data.scene).road_map
     draw_lanelets(ax, road_polygons(road))
     pts = [np.array(list(fig_data.starts.values()))] + list(fig_data.truths.values())
-    for mode in modes:
+    for rank, mode in enumerate(reversed(modes)):  # the first mode (hybrid) on top; the ones below wider, so that both show
+        width = 1.4 + 1.2 * (len(modes) - 1 - rank)
         prediction = fig_data.predictions[mode]
         colour = matplotlib.colors.to_rgb(mode_colour(mode))
         for b, pair in enumerate(prediction.pairs):
@@ -229,8 +244,8 @@ def comparison_figure(fig_data, modes: Sequence[str]) -> Figure:
                 continue
             line = np.vstack([np.array(fig_data.starts[pair.track_id])[None], means[ok]])
             alpha = 0.15 + 0.85 * float(min(max(pair.probability, 0.0), 1.0))
-            ax.plot(line[:, 0], line[:, 1], "-", color=colour, alpha=alpha, lw=1.6, zorder=4)
-            ax.plot(means[ok, 0], means[ok, 1], "o", color=colour, alpha=alpha, ms=2.8, mec="none", zorder=4)
+            ax.plot(line[:, 0], line[:, 1], "-", color=colour, alpha=alpha, lw=width, zorder=4 + rank * 0.1, solid_capstyle="round")
+            ax.plot(means[ok, 0], means[ok, 1], "o", color=colour, alpha=alpha, ms=1.5 + width, mec="none", zorder=4 + rank * 0.1)
             pts.append(means[ok])
     for track_id, truth in fig_data.truths.items():
         line = np.vstack([np.array(fig_data.starts[track_id])[None], truth])
@@ -238,18 +253,16 @@ def comparison_figure(fig_data, modes: Sequence[str]) -> Figure:
         ax.plot(truth[:, 0], truth[:, 1], "o", color="black", ms=2.4, zorder=5)
     boxes = vehicle_boxes(fig_data.frame, fig_data.truths) if fig_data.frame is not None else {}
     draw_boxes(ax, boxes, face="none", edge="#555555", zorder=3, labels=True)
-    x0, x1, y0, y1 = _extent(pts, 6.0)
-    ax.set_xlim(x0, x1)
-    ax.set_ylim(y0, y1)
-    handles = [Line2D([], [], color=mode_colour(m), marker="o", ms=3, lw=1.6,
+    _fit(fig, ax, *_extent(pts, 6.0), extra_width_in=1.0)
+    handles = [Line2D([], [], color=mode_colour(m), marker="o", ms=3, lw=1.4 + 1.2 * i,
                       label=f"{mode_label(m)}: mADE {fig_data.scores.get(m, {}).get('mADE_m', float('nan')):.2f} m,"
-                            f" mFDE {fig_data.scores.get(m, {}).get('mFDE_m', float('nan')):.2f} m") for m in modes]
+                            f" mFDE {fig_data.scores.get(m, {}).get('mFDE_m', float('nan')):.2f} m") for i, m in enumerate(modes)]
     handles += [Line2D([], [], color="black", marker="o", ms=3, lw=1.2, label="ground truth"),
                 Patch(facecolor="none", edgecolor="#555555", label="vehicle at t (id)"),
                 Patch(facecolor=LANELET_FACE, edgecolor=LANELET_EDGE, label="car lanelets")]
-    ax.legend(handles=handles, loc="upper left", fontsize=7, framealpha=0.9,
-              title="mean positions every 0.4 s to 4 s; opacity = corridor probability", title_fontsize=7)
-    ax.set_title(f"Predicted means vs ground truth, {' vs '.join(mode_label(m) for m in modes)}\n{_instant_title(fig_data)}", fontsize=9)
+    ax.legend(handles=handles, loc="upper left", fontsize=8, framealpha=0.9,
+              title="mean positions every 0.4 s to 4 s; opacity = corridor probability", title_fontsize=8)
+    ax.set_title(f"Predicted means vs ground truth, {' vs '.join(mode_label(m) for m in modes)}\n{_instant_title(fig_data)}", fontsize=10)
     return fig
 
 
@@ -275,7 +288,7 @@ def accel_figure(example: dict[str, Any]) -> Figure:
     ax.legend(loc="upper right", fontsize=8, framealpha=0.9)
     err = float(np.abs(example["ar"] - example["true"]).mean())
     ax.set_title(f"AR acceleration distributions, {example['recording']} sequence {example['sequence']} car {example['track_id']},"
-                 f" t = {example['stamp_ns'] * 1e-9:.1f} s\n{probs.shape[0]} distributions (grey), mean |AR − true| {err:.2f} m/s²", fontsize=9)
+                 f" t = {example['stamp_ns'] * 1e-9:.1f} s\n{probs.shape[0]} distributions (grey), mean |AR − true| {err:.2f} m/s²", fontsize=10)
     return fig
 
 
@@ -303,9 +316,9 @@ def reliability_figure(report: dict[str, Any]) -> Figure:
         ax.grid(alpha=0.3)
         ax.set_xlabel("nominal level of the region")
         first = next(iter(report["modes"].values()))
-        ax.set_title(f"{title} ({first['calibration'][split]['steps'] if 'calibration' in first else 0} steps)", fontsize=9)
+        ax.set_title(f"{title} ({first['calibration'][split]['steps'] if 'calibration' in first else 0} steps)", fontsize=10)
     axes[0].set_ylabel("share of true positions inside")
-    axes[0].legend(loc="upper left", fontsize=7)
+    axes[0].legend(loc="upper left", fontsize=8)
     fig.suptitle("Reliability of the motion grids: highest-probability regions (centre-point grids, 0.4–4 s)", fontsize=10)
     return fig
 
@@ -326,10 +339,10 @@ def horizon_figure(report: dict[str, Any]) -> Figure:
         ax.set_xlim(0, 4.2)
         ax.set_xticks([0, 1, 2, 3, 4])
         ax.grid(alpha=0.3)
-        ax.set_title(f"{title} ({windows} windows)", fontsize=9)
+        ax.set_title(f"{title} ({windows} windows)", fontsize=10)
     axes[0].set_ylabel("mean displacement error (m)")
     axes[0].set_ylim(bottom=0)
-    axes[0].legend(loc="upper left", fontsize=7)
+    axes[0].legend(loc="upper left", fontsize=8)
     fig.suptitle("Error against horizon (the corridor with the smallest ADE, as mADE)", fontsize=10)
     return fig
 
@@ -358,7 +371,7 @@ def manoeuvre_figure(report: dict[str, Any]) -> Figure:
         ax.set_xticklabels(labels, fontsize=8)
         ax.set_xlabel("manoeuvre of the true future (windows)", fontsize=8)
         ax.set_ylabel(title.split(" (")[0] + " (m)", fontsize=8)
-        ax.set_title(title, fontsize=9)
+        ax.set_title(title, fontsize=10)
         ax.axhline(0.0, color="black", lw=0.6)
         ax.grid(axis="y", alpha=0.3)
     handles, labels = axes[0].get_legend_handles_labels()
@@ -386,9 +399,9 @@ def timing_figure(frame_ms: dict[str, Sequence[float]], vehicles: dict[str, Sequ
     ax.set_xlabel("vehicles predicted in the frame")
     ax.set_ylabel("prediction time per frame (ms, log)")
     ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=7, loc="upper left", title="line: median per vehicle count; dots: frames", title_fontsize=7)
+    ax.legend(fontsize=8, loc="upper left", title="line: median per vehicle count; dots: frames", title_fontsize=8)
     note = f"\nhybrid's AR inference not included (median {ar_ms_median:.1f} ms per frame)" if ar_ms_median is not None else ""
-    ax.set_title("Compute time per frame against vehicles (MarkovPredictor.process, grid included)" + note, fontsize=9)
+    ax.set_title("Compute time per frame against vehicles (MarkovPredictor.process, grid included)" + note, fontsize=10)
     return fig
 
 
