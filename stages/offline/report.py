@@ -81,7 +81,12 @@ def _sha256(path: str | None) -> str:
 
 
 def _short(path: str) -> str:
-    """A path relative to the repository when it lies inside it."""
+    """A path relative to the repository when it lies inside it; the development data folder as ``$IAMP_TAF_BW``."""
+    import os
+
+    data = os.environ.get("IAMP_TAF_BW")
+    if data and str(path).rstrip("/") == data.rstrip("/"):
+        return "$IAMP_TAF_BW"
     try:
         return Path(path).resolve().relative_to(REPO).as_posix()
     except ValueError:
