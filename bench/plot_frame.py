@@ -1,16 +1,19 @@
-"""Draw one frame: map lanelets, cars as oriented boxes with ids, and their corridors.
+"""Draw one frame with matplotlib: map lanelets, cars as oriented boxes with ids, and their corridors.
 
 Car lanelets are filled light grey, other lanelets (walkways, crosswalks, bike
-lanes) outlined; each car and its corridors share a colour (the straight
-extension past the map's end is drawn thinner); pedestrians are small dark
-dots. The corridors come from running the corridors core in-process over the
-sequence up to the frame, so continuity state is as on the bus.
+lanes) outlined in blue-grey, lanelet centrelines dashed; each car and its
+corridors share a colour (the straight extension past the map's end is
+drawn thinner and dashed); pedestrians are small dark dots. The corridors
+come from running the corridors core in-process over the sequence up to the
+frame, so continuity state is as on the bus. Axes in metres, a legend, a
+title that names the recording, sequence and frame.
 
     python bench/plot_frame.py [--data PATH] [--recording NAME] [--sequence SEQ]
-                               [--frame N] [--out FILE.png] [--resolution-m 0.1]
+                               [--frame N] [--out FILE.png] [--dpi 100] [--no-svg]
                                [--relations]
 
-With `--relations` the relations core runs on the shown frame and draws its
+Writes FILE.png and, beside it, FILE.svg (unless --no-svg). With
+`--relations` the relations core runs on the shown frame and draws its
 conflict points as x markers (red: crossing, blue: merge; a ring around the
 influencing conflict of some corridor, in the colour of the vehicle it
 influences) and leader links (a dark green line from each vehicle to its
@@ -19,12 +22,8 @@ leader, with a dot at the leader).
 Defaults: the TAF-BW folder beside the repository (else the embedded one),
 K729, sequence 013, the frame with the most cars, <tmp>/corridors_frame.png.
 
-matplotlib is not installed in the project's environment, so this renders
-with a small numpy rasteriser (scanline polygon fill, thick segments, a 3x5
-bitmap font) and writes the PNG with stages.lib.raster (zlib and struct). Hook for later
-overlays (conflict points from the relations stage): `render_frame(...,
-overlays=[fn])` calls each `fn(canvas)` last; `Canvas.marker` and
-`Canvas.polyline` draw in map metres.
+Hook for later overlays: `render_frame(..., overlays=[fn])` calls each
+`fn(ax)` last with the matplotlib Axes (map metres).
 
 Other lanelets come from the OSM file through `stages.lib.maps.lanelet_bounds`
 (the map library, the one lanelet2 wrapper), projected and shifted exactly as
@@ -50,88 +49,9 @@ from bus_schemas import AgentType, CorridorSet, Header, MatchStatus, SceneInfo, 
 from stages.corridors import CorridorBuilder, CorridorsConfig
 from stages.lib.datasets import load_recording
 from stages.lib.maps import Projection, RoadMap, lanelet_bounds
-from stages.lib.raster import MapRaster, write_png
 from stages.relations import RelationExtractor, RelationsConfig
 
-PALETTE = np.array(
-    [
-        (228, 26, 28), (55, 126, 184), (77, 175, 74), (152, 78, 163), (255, 127, 0),
-        (166, 86, 40), (247, 129, 191), (0, 160, 160), (160, 160, 0), (90, 90, 220),
-    ],
-    dtype=np.uint8,
-)
-
-_FONT = {  # 3x5 glyphs, rows top to bottom, bits left to right
-    "0": (7, 5, 5, 5, 7), "1": (2, 6, 2, 2, 7), "2": (7, 1, 7, 4, 7), "3": (7, 1, 7, 1, 7),
-    "4": (5, 5, 7, 1, 1), "5": (7, 4, 7, 1, 7), "6": (7, 4, 7, 5, 7), "7": (7, 1, 1, 1, 1),
-    "8": (7, 5, 7, 5, 7), "9": (7, 5, 7, 1, 7), "-": (0, 0, 7, 0, 0), " ": (0, 0, 0, 0, 0),
-    "K": (5, 5, 6, 5, 5), "F": (7, 4, 6, 4, 4), "S": (7, 4, 7, 1, 7), "N": (7, 5, 5, 5, 5),
-    "C": (7, 4, 4, 4, 7), "A": (7, 5, 7, 5, 5), "R": (6, 5, 6, 5, 5), "E": (7, 4, 6, 4, 7),
-    ":": (0, 2, 0, 2, 0), ".": (0, 0, 0, 0, 2), "M": (5, 7, 7, 5, 5), "Q": (7, 5, 5, 7, 1),
-}
-
-
-# --------------------------------------------------------------------------- raster canvas
-
-
-class Canvas(MapRaster):
-    """``MapRaster`` plus pixel-width polylines, markers and a 3x5 font for labels."""
-
-    def polyline(self, points_m, colour, width_px: float = 1.0, dash_px: float | None = None) -> None:
-        """Thick segments (round joins); optional dashes of `dash_px` on, `dash_px` off."""
-        px = self.to_px(points_m)
-        half = 0.5 * max(width_px, 1.0)
-        travelled = 0.0
-        for p, q in zip(px[:-1], px[1:]):
-            seg = q - p
-            length = float(np.hypot(*seg))
-            if dash_px and int(travelled // dash_px) % 2 == 1:
-                travelled += length
-                continue
-            travelled += length
-            c0 = max(0, int(min(p[0], q[0]) - half - 1))
-            c1 = min(self.width, int(max(p[0], q[0]) + half + 2))
-            r0 = max(0, int(min(p[1], q[1]) - half - 1))
-            r1 = min(self.height, int(max(p[1], q[1]) + half + 2))
-            if c1 <= c0 or r1 <= r0:
-                continue
-            yy, xx = np.mgrid[r0:r1, c0:c1] + 0.5
-            rel_x, rel_y = xx - p[0], yy - p[1]
-            t = np.clip((rel_x * seg[0] + rel_y * seg[1]) / max(length * length, 1e-12), 0.0, 1.0)
-            dist = np.hypot(rel_x - t * seg[0], rel_y - t * seg[1])
-            self.rgb[r0:r1, c0:c1][dist <= half] = colour
-
-    def marker(self, x_m: float, y_m: float, colour, radius_px: float = 3.0) -> None:
-        """A filled disc at a map position (the overlay hook's basic shape)."""
-        cx, cy = self.to_px([x_m, y_m])[0]
-        r0, r1 = max(0, int(cy - radius_px - 1)), min(self.height, int(cy + radius_px + 2))
-        c0, c1 = max(0, int(cx - radius_px - 1)), min(self.width, int(cx + radius_px + 2))
-        if r1 <= r0 or c1 <= c0:
-            return
-        yy, xx = np.mgrid[r0:r1, c0:c1] + 0.5
-        self.rgb[r0:r1, c0:c1][np.hypot(xx - cx, yy - cy) <= radius_px] = colour
-
-    def text(self, x_px: int, y_px: int, text: str, colour, scale: int = 2) -> None:
-        """Upper-case text in the 3x5 font at a pixel position (top left)."""
-        for k, ch in enumerate(text.upper()):
-            glyph = _FONT.get(ch, _FONT[" "])
-            for gy, bits in enumerate(glyph):
-                for gx in range(3):
-                    if bits & (4 >> gx):
-                        r = y_px + gy * scale
-                        c = x_px + (k * 4 + gx) * scale
-                        if 0 <= r and r + scale <= self.height and 0 <= c and c + scale <= self.width:
-                            self.rgb[r : r + scale, c : c + scale] = colour
-
-    def label(self, x_m: float, y_m: float, text: str, colour, scale: int = 2) -> None:
-        cx, cy = self.to_px([x_m, y_m])[0]
-        w = len(text) * 4 * scale
-        x, y = int(cx - w / 2), int(cy - 2.5 * scale)
-        self.rgb[max(0, y - 1) : max(0, y + 5 * scale + 1), max(0, x - 1) : max(0, x + w)] = (255, 255, 255)
-        self.text(x, y, text, colour, scale)
-
-
-# --------------------------------------------------------------------------- map outlines
+PALETTE = ["#e41a1c", "#377eb8", "#4daf4a", "#984ea3", "#ff7f00", "#a65628", "#f781bf", "#00a0a0", "#a0a000", "#5a5adc"]
 
 
 def osm_lanelets(osm_path: Path, road_map: RoadMap, scene: SceneInfo, projection: Projection) -> list[tuple[int, bool, np.ndarray, np.ndarray]]:
@@ -153,84 +73,108 @@ def render_frame(
     corridor_set: CorridorSet,
     *,
     window_m: tuple[float, float, float, float],
-    resolution_m: float = 0.1,
     title: str = "",
-    overlays: Sequence[Callable[[Canvas], None]] = (),
-) -> Canvas:
-    """Draw the map, the corridors and the objects of one frame; then each overlay."""
-    canvas = Canvas(*window_m, resolution_m)
-    for _id, is_car, left, right in lanelets:
-        if is_car:
-            canvas.fill_polygon(np.concatenate([left, right[::-1]]), (222, 222, 222))
-    for _id, is_car, left, right in lanelets:
-        colour = (150, 150, 150) if is_car else (120, 150, 200)
-        canvas.polyline(left, colour, 1.0)
-        canvas.polyline(right, colour, 1.0)
-    for lanelet_id in road_map.lanelet_ids:
-        canvas.polyline(road_map.lanelet(lanelet_id).centreline.points_m, (190, 190, 190), 1.0, dash_px=6)
-    colours = {}
+    overlays: Sequence[Callable] = (),
+):
+    """Draw the map, the corridors and the objects of one frame, then each overlay; returns the matplotlib Figure."""
+    from matplotlib.collections import LineCollection
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    from stages.offline.figures import LANELET_EDGE, LANELET_FACE, draw_lanelets, new_figure
+
+    fig = new_figure((9.0, 8.0))
+    ax = fig.add_subplot(111)
+    ax.set_aspect("equal", adjustable="box")
+    draw_lanelets(ax, [np.concatenate([left, right[::-1]]) for _id, is_car, left, right in lanelets if is_car])
+    others = [b for _id, is_car, left, right in lanelets if not is_car for b in (left, right)]
+    if others:
+        ax.add_collection(LineCollection(others, colors="#7896c8", linewidths=0.6, zorder=1))
+    centre = [road_map.lanelet(i).centreline.points_m for i in road_map.lanelet_ids]
+    ax.add_collection(LineCollection(centre, colors="#bebebe", linewidths=0.6, linestyles=(0, (4, 4)), zorder=1))
     cars = [v for v in corridor_set.vehicles if v.agent_type.is_vehicle]
-    for k, vehicle in enumerate(cars):
-        colours[vehicle.track_id] = tuple(int(c) for c in PALETTE[k % len(PALETTE)])
+    colours = {v.track_id: PALETTE[k % len(PALETTE)] for k, v in enumerate(cars)}
     for vehicle in cars:
         for corridor in vehicle.corridors:
             pts = np.column_stack([corridor.x_m, corridor.y_m])
             mapped = corridor.s_m <= corridor.extension_start_s_m
-            canvas.polyline(pts[mapped], colours[vehicle.track_id], 3.0)
+            ax.plot(pts[mapped, 0], pts[mapped, 1], color=colours[vehicle.track_id], lw=1.8, alpha=0.8, zorder=2)
             if (~mapped).any():
-                canvas.polyline(pts[np.flatnonzero(~mapped)[0] - 1 :], colours[vehicle.track_id], 1.5, dash_px=8)
+                ext = pts[np.flatnonzero(~mapped)[0] - 1 :]
+                ax.plot(ext[:, 0], ext[:, 1], color=colours[vehicle.track_id], lw=0.9, ls="--", alpha=0.8, zorder=2)
+    pedestrians = []
     for row in range(len(frame)):
         x, y = float(frame.x_m[row]), float(frame.y_m[row])
         track_id = int(frame.track_ids[row])
         if not (math.isfinite(x) and math.isfinite(y)):
             continue
         if int(frame.agent_types[row]) == AgentType.PEDESTRIAN:
-            canvas.marker(x, y, (40, 40, 40), 4.0)
+            pedestrians.append((x, y))
             continue
         yaw = float(frame.yaw_rad[row])
         length, width = float(frame.length_m[row]), float(frame.width_m[row])
         c, s = math.cos(yaw), math.sin(yaw)
         corners = np.array([(length / 2, width / 2), (length / 2, -width / 2), (-length / 2, -width / 2), (-length / 2, width / 2)])
         box = np.column_stack([x + corners[:, 0] * c - corners[:, 1] * s, y + corners[:, 0] * s + corners[:, 1] * c])
-        colour = colours.get(track_id, (0, 0, 0))
-        canvas.fill_polygon(box, colour)
-        canvas.polyline(np.vstack([box, box[:1]]), (0, 0, 0), 1.5)
-        canvas.polyline(np.array([(x, y), (x + 0.5 * length * c, y + 0.5 * length * s)]), (0, 0, 0), 1.5)
+        ax.fill(box[:, 0], box[:, 1], facecolor=colours.get(track_id, "black"), edgecolor="black", lw=0.8, zorder=4)
+        ax.plot([x, x + 0.5 * length * c], [y, y + 0.5 * length * s], color="black", lw=0.8, zorder=4)
+    if pedestrians:
+        p = np.array(pedestrians)
+        ax.plot(p[:, 0], p[:, 1], "o", color="#282828", ms=3, zorder=4)
     for vehicle in cars:
         row = int(np.flatnonzero(frame.track_ids == vehicle.track_id)[0])
         tag = str(vehicle.track_id) + ("" if vehicle.status == MatchStatus.MATCHED else " " + vehicle.status.name[:3])
-        canvas.label(float(frame.x_m[row]), float(frame.y_m[row]) + 3.0, tag, (0, 0, 0))
+        ax.annotate(tag, (float(frame.x_m[row]), float(frame.y_m[row])), xytext=(0, 9), textcoords="offset points", ha="center",
+                    fontsize=7, zorder=6, bbox=dict(boxstyle="round,pad=0.1", fc="white", ec="none", alpha=0.8))
     for overlay in overlays:
-        overlay(canvas)
+        overlay(ax)
+    ax.set_xlim(window_m[0], window_m[2])
+    ax.set_ylim(window_m[1], window_m[3])
+    ax.set_xlabel("x east (m)")
+    ax.set_ylabel("y north (m)")
+    handles = [
+        Patch(facecolor=LANELET_FACE, edgecolor=LANELET_EDGE, label="car lanelets"),
+        Line2D([], [], color="#7896c8", lw=0.6, label="other lanelets (walkways, crossings, bike lanes)"),
+        Line2D([], [], color="#bebebe", lw=0.6, ls=(0, (4, 4)), label="lanelet centrelines"),
+        Line2D([], [], color=PALETTE[0], lw=1.8, label="corridors (colour of their car; dashed: extension past the map)"),
+        Patch(facecolor=PALETTE[0], edgecolor="black", label="car at this frame (id; UNM/AMB: not matched)"),
+    ]
+    if pedestrians:
+        handles.append(Line2D([], [], color="#282828", marker="o", ls="none", ms=3, label="pedestrian"))
+    for overlay in overlays:
+        handles += list(getattr(overlay, "legend_handles", []))
+    ax.legend(handles=handles, loc="upper left", fontsize=7, framealpha=0.9)
     if title:
-        canvas.text(10, 10, title, (0, 0, 0), 3)
-    return canvas
+        ax.set_title(title, fontsize=10)
+    return fig
 
 
-def relations_overlay(frame: TrackFrame, relation_set, colours: dict[int, tuple[int, int, int]]) -> Callable[[Canvas], None]:
-    """Draw a RelationSet: conflict points as x markers, influencing conflicts ringed, leader links."""
+def relations_overlay(frame: TrackFrame, relation_set, colours: dict[int, str]) -> Callable:
+    """Draw a RelationSet on an Axes: conflict points as x markers, influencing conflicts ringed, leader links."""
+    from matplotlib.lines import Line2D
 
-    def draw(canvas: Canvas) -> None:
+    def draw(ax) -> None:
         rows = {int(t): k for k, t in enumerate(frame.track_ids)}
-        size = 0.9
         for rel in relation_set.relations:
             if rel.leader_track_id >= 0 and rel.leader_track_id in rows:
                 a, b = rows[rel.track_id], rows[rel.leader_track_id]
-                link = np.array([(frame.x_m[a], frame.y_m[a]), (frame.x_m[b], frame.y_m[b])])
-                canvas.polyline(link, (0, 110, 0), 2.0)
-                canvas.marker(float(frame.x_m[b]), float(frame.y_m[b]), (0, 110, 0), 3.0)
+                ax.plot([frame.x_m[a], frame.x_m[b]], [frame.y_m[a], frame.y_m[b]], color="#006e00", lw=1.4, zorder=5)
+                ax.plot(float(frame.x_m[b]), float(frame.y_m[b]), "o", color="#006e00", ms=4, zorder=5)
         for rel in relation_set.relations:
             for k in range(len(rel.conflict_x_m)):
-                x, y = float(rel.conflict_x_m[k]), float(rel.conflict_y_m[k])
-                colour = (220, 0, 0) if rel.conflict_kinds[k] == 1 else (0, 0, 230)
-                canvas.polyline(np.array([(x - size, y - size), (x + size, y + size)]), colour, 2.0)
-                canvas.polyline(np.array([(x - size, y + size), (x + size, y - size)]), colour, 2.0)
+                colour = "#dc0000" if rel.conflict_kinds[k] == 1 else "#0000e6"
+                ax.plot(float(rel.conflict_x_m[k]), float(rel.conflict_y_m[k]), "x", color=colour, ms=7, mew=1.6, zorder=5)
             if rel.influencing_index >= 0:
                 k = rel.influencing_index
-                angles = np.linspace(0.0, 2.0 * math.pi, 25)
-                ring = np.column_stack([rel.conflict_x_m[k] + 1.8 * np.cos(angles), rel.conflict_y_m[k] + 1.8 * np.sin(angles)])
-                canvas.polyline(ring, colours.get(rel.track_id, (0, 0, 0)), 2.0)
+                ax.plot(float(rel.conflict_x_m[k]), float(rel.conflict_y_m[k]), "o", mfc="none", mec=colours.get(rel.track_id, "black"),
+                        ms=14, mew=1.4, zorder=5)
 
+    draw.legend_handles = [
+        Line2D([], [], color="#006e00", lw=1.4, marker="o", ms=4, label="leader link (dot: the leader)"),
+        Line2D([], [], color="#dc0000", marker="x", ls="none", ms=7, label="conflict point: crossing"),
+        Line2D([], [], color="#0000e6", marker="x", ls="none", ms=7, label="conflict point: merge"),
+        Line2D([], [], color="black", marker="o", mfc="none", ls="none", ms=10, label="influencing conflict (colour of the car)"),
+    ]
     return draw
 
 
@@ -283,7 +227,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sequence", default="013")
     parser.add_argument("--frame", type=int, default=None, help="frame_index in the sequence (default: most cars)")
     parser.add_argument("--out", type=Path, default=Path(tempfile.gettempdir()) / "corridors_frame.png")
-    parser.add_argument("--resolution-m", type=float, default=0.1)
+    parser.add_argument("--dpi", type=int, default=100, help="PNG resolution (default 100)")
+    parser.add_argument("--no-svg", action="store_true", help="write the PNG only (default: an SVG beside it too)")
     parser.add_argument("--margin-m", type=float, default=25.0)
     parser.add_argument("--relations", action="store_true", help="draw conflict points and leader links (relations core)")
     args = parser.parse_args(argv)
@@ -310,20 +255,23 @@ def main(argv: list[str] | None = None) -> int:
     xs, ys = sequence.x_m, sequence.y_m
     window = (xs.min() - args.margin_m, ys.min() - args.margin_m, xs.max() + args.margin_m, ys.max() + args.margin_m)
     frame, corridor_set = shown
-    title = f"{recording.location_id} {sequence.id} F{args.frame}"
+    title = f"Corridors of one frame: {recording.name} ({recording.location_id}) sequence {sequence.id}, frame {args.frame}" + (
+        ", relations" if args.relations else "")
     overlays = []
     relation_set = None
     if args.relations:
         extractor = RelationExtractor(RelationsConfig(), scene_maps=builder.scene_maps)
         relation_set, _issues = extractor.process(frame, corridor_set, scene)
         cars = [v for v in corridor_set.vehicles if v.agent_type.is_vehicle]
-        colours = {v.track_id: tuple(int(c) for c in PALETTE[k % len(PALETTE)]) for k, v in enumerate(cars)}
+        colours = {v.track_id: PALETTE[k % len(PALETTE)] for k, v in enumerate(cars)}
         overlays.append(relations_overlay(frame, relation_set, colours))
-    canvas = render_frame(
-        road_map, lanelets, frame, corridor_set, window_m=window, resolution_m=args.resolution_m, title=title, overlays=overlays
-    )
-    write_png(args.out, canvas.rgb)
-    print(f"wrote {args.out} ({canvas.width}x{canvas.height} px), {recording.name}/{sequence.id} frame {args.frame}")
+    fig = render_frame(road_map, lanelets, frame, corridor_set, window_m=window, title=title, overlays=overlays)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.out, dpi=args.dpi)
+    print(f"wrote {args.out}, {recording.name}/{sequence.id} frame {args.frame}")
+    if not args.no_svg and args.out.suffix.lower() != ".svg":
+        fig.savefig(args.out.with_suffix(".svg"))
+        print(f"wrote {args.out.with_suffix('.svg')}")
     for vehicle in corridor_set.vehicles:
         routes = "; ".join(
             f"{c.corridor_id % 100000:05d}: {'>'.join(str(x) for x in c.lanelet_ids)}" + (f" +ext@{c.extension_start_s_m:.0f}m" if c.extension_start_s_m < c.s_m[-1] else "")

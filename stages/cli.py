@@ -8,7 +8,7 @@
     iamp recover FILE.mcap [OUT.mcap] [--json]             rewrite a torn recording (killed writer) into a finished file
     iamp export foxglove RUN.mcap OUT.mcap [--data PATH] [--grid-step max|all|S]
                                                            the recording in Foxglove's schemas (foxglove-sdk)
-    iamp eval [--data PATH] [--recording NAME]... [--mode M...] [--stride S] [--json FILE] [--figures DIR]
+    iamp eval [--data PATH] [--recording NAME]... [--mode M...] [--stride S] [--json FILE] [--figures DIR] [--report DIR]
                                                            offline metrics of the prediction modes
     iamp train [--data PATH] [--recording NAME...] [--split S] [--hidden N] [--out FILE] [--json FILE]
                                                            train the AR acceleration model
@@ -192,6 +192,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_usage(sys.stderr)
         sys.stderr.write("iamp: error: a command is required\n")
         return EXIT_USAGE
+    args.argv = list(argv) if argv is not None else sys.argv[1:]  # the command line as given (iamp eval --report writes it)
     return int(args.run(args))
 
 

@@ -21,8 +21,10 @@ level and inside functions) and checked against the layer its file lives in:
   import mcap, only the viewer imports viser, only ``stages/foxglove_bridge``
   imports foxglove (foxglove-sdk: the live bridge and ``iamp export
   foxglove``, which writes with the SDK's own MCAP writer and reads
-  recordings through the recorder's reader, so mcap keeps its home); no
-  import cycle anywhere.
+  recordings through the recorder's reader, so mcap keeps its home), only
+  the offline figures (``stages/offline/figures.py``, for ``iamp eval
+  --figures/--report``; the bench scripts draw through it too) import
+  matplotlib, so no process stage ever loads it; no import cycle anywhere.
 """
 
 from __future__ import annotations
@@ -121,7 +123,8 @@ def test_bus_schemas_depend_on_numpy_and_msgpack_only():
         assert not extra, f"{f.relative_to(REPO)} imports {sorted(extra)}"
 
 
-@pytest.mark.parametrize("heavy,homes", [("zenoh", ("stages/runtime/",)), ("mcap", ("stages/recorder/", "stages/replay/")), ("viser", ("stages/viewer/",)), ("foxglove", ("stages/foxglove_bridge/",))])
+@pytest.mark.parametrize("heavy,homes", [("zenoh", ("stages/runtime/",)), ("mcap", ("stages/recorder/", "stages/replay/")), ("viser", ("stages/viewer/",)),
+                                         ("foxglove", ("stages/foxglove_bridge/",)), ("matplotlib", ("stages/offline/figures.py",))])
 def test_each_heavy_library_has_one_home(heavy, homes):
     users = [f.relative_to(REPO).as_posix() for f in _sources() if any(_top(m) == heavy for m in _imports(f))]
     assert users and all(u.startswith(homes) for u in users), f"{heavy} imported outside {homes}: {users}"
@@ -170,10 +173,11 @@ def test_offline_tools_do_not_pull_in_zenoh():
     """``iamp eval`` and ``iamp train`` never load the bus (it once came in through the tracks source)."""
     import subprocess
 
-    code = "import sys, stages.offline.evaluation, stages.offline.train.fit, stages.offline.intentions_eval; print('zenoh' in sys.modules)"
+    code = ("import sys, stages.offline.evaluation, stages.offline.train.fit, stages.offline.intentions_eval;"
+            " print('zenoh' in sys.modules, 'matplotlib' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=REPO)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == "False"
+    assert out.stdout.strip() == "False False", "zenoh never; matplotlib only when figures are drawn (imported lazily)"
 
 
 def test_no_import_cycles():

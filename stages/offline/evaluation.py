@@ -94,17 +94,35 @@ standing cars) counts in ``cross_track_m`` only, with its whole error; ``n``
 says how many windows each figure has. The table adds windows and mADE per
 class and the along-track bias at 4 s per class.
 
-Figures (``figures_dir``): for the instant with the most windows,
-``grid_4s_<mode>.png`` (car lanelets grey, the fused grid at the last step as
-a heat map, white to yellow to red in log scale over 1e-4…1, current vehicle
-positions blue) and ``means_<mode>.png`` (ground truth black, each corridor's
-mean positions in its own colour, one dot per step, the start in blue), PNGs
-written with numpy and zlib; ``figures.txt`` names the instant and the
-colours. With mode ``hybrid``, ``accel_<recording>_<seq>_car<id>_<ms>.png``
-for four cars (the hardest braking, the strongest acceleration, the widest
-range, the calmest): the paper's acceleration-distribution figure — the 10
-distributions as intensity over the input cells, the AR output in red, the
-true acceleration in black; ``accel_figures.txt`` explains them.
+Calibration and horizon (additive keys per mode): ``calibration`` — per
+speed split (``overall``, ``slow``, ``fast``) the coverage of the
+highest-probability regions at ``levels`` 10 %…90 % (the rule of
+``coverage90``, which equals the 90 % entry), the reliability diagram of
+``--report``; ``error_by_step_m`` — per split the mean displacement error at
+each prediction step (``t_s``) of the corridor mADE scores (its mean over
+the steps is mADE).
+
+Situations (``--situations FILE.toml``, ``stages.offline.situations``; by
+default every recording is one): ``situations`` lists them with the
+vehicles seen and the duration played in each; per mode ``by_situation.<name>``
+has the statistics of a split plus ``time_per_step_ms`` (the mean wall time
+of one prediction of all vehicles of the frame at the situation's instants,
+hybrid's AR inference included: the paper's "time") and ``instants``.
+
+Figures (``figures_dir``, ``--figures DIR``; ``stages.offline.figures``,
+matplotlib, PNG and SVG), for each recording at its instant with the most
+moving windows (start speed > 2 m/s), then the most windows: ``grid_4s_<mode>_<recording>`` for hybrid and baseline (the fused
+centre-point grid at the last step as a heat map with a log colour bar over
+the car lanelets, vehicles at t, the scored vehicles' corridors),
+``means_<recording>`` (the paper's comparison: hybrid blue, baseline red,
+each corridor's mean positions with opacity = its probability, ground truth
+black; the legend gives the instant's mADE/mFDE per mode), and
+``accel_<recording>_<seq>_car<id>_<ms>ms`` for one or two cars (the
+drawn instant's car whose true acceleration varies most, the recording's
+hardest braking car): the paper's acceleration-distribution figure (the 10
+distributions as grey intensity, the AR output red, the true acceleration
+blue). ``figures.txt`` names the instants and describes each file.
+``--report DIR`` writes these with the report (``stages.offline.report``).
 """
 
 from __future__ import annotations
@@ -125,7 +143,6 @@ from bus_schemas import AgentType, CorridorSet, MatchStatus, RelationSet, SceneI
 
 from stages.lib.base import progress_bar
 from stages.lib.base import json_safe
-from stages.lib.raster import MapRaster
 
 from stages.corridors import SceneMaps
 from stages.lib.kinematic_state import Consistency, EstimatorConfig, consistency_of, disagreement_line
@@ -150,12 +167,15 @@ from stages.offline.truth import (
     route_decision,
 )
 from stages.tracks_source.core import file_sha256
+from stages.offline.situations import Situation, whole_recordings
 
 EVAL_MODES = ("hybrid", "baseline", "cv", "corridor_cv")
 CORRIDOR_WEIGHTS = ("intentions", "uniform")
 SLOW_SPEED_MPS = 2.0
 #: the along/cross-track split at these horizons (s), each at the nearest prediction step (a tie: the later step).
 TRACK_HORIZONS_S = (1.0, 2.0, 3.0, 4.0)
+#: nominal levels of the highest-probability regions whose coverage ``calibration`` reports (the reliability diagram).
+COVERAGE_LEVELS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
 _MS = 1_000_000
 
 
@@ -181,6 +201,7 @@ class EvalConfig:
     params: tuple[tuple[str, Any], ...] = ()
     model_path: Path | None = None
     seed: int = 0
+    situations: tuple[Situation, ...] = ()  # empty: every recording is one situation
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.modes if m not in EVAL_MODES]
@@ -252,6 +273,34 @@ class _WindowResult:
     nll: float
     route_hit: float | None = None
     error_xy: np.ndarray | None = None  # (K, 2) predicted mean − truth of the corridor mADE scores (the smallest ADE)
+    covered_levels: np.ndarray | None = None  # (len(COVERAGE_LEVELS),) steps inside each level's highest-probability region
+
+
+@dataclass(slots=True)
+class _Calibration:
+    """Sums of one (mode, speed split) for ``calibration`` and ``error_by_step_m``."""
+
+    windows: int = 0
+    steps: int = 0
+    covered: np.ndarray = field(default_factory=lambda: np.zeros(len(COVERAGE_LEVELS), np.int64))
+    error_sum: np.ndarray | None = None  # (K,) summed |error| of the mADE corridor at each step
+
+    def add(self, w: "_WindowResult") -> None:
+        if w.covered_levels is None or w.error_xy is None:
+            return
+        self.windows += 1
+        self.steps += w.steps
+        self.covered += w.covered_levels
+        err = np.hypot(w.error_xy[:, 0], w.error_xy[:, 1])
+        self.error_sum = err.copy() if self.error_sum is None else self.error_sum + err
+
+    def coverage(self) -> list[float]:
+        return [float(c) / self.steps if self.steps else float("nan") for c in self.covered]
+
+    def error_by_step(self, n_steps: int) -> list[float]:
+        if self.error_sum is None or not self.windows:
+            return [float("nan")] * n_steps
+        return [float(e) / self.windows for e in self.error_sum]
 
 
 @dataclass(slots=True)
@@ -302,15 +351,19 @@ class _ModeAccumulator:
     track_by_manoeuvre: dict[str, _TrackSplit] = field(default_factory=lambda: {m: _TrackSplit() for m in MANOEUVRES})
     frame_ms: list[float] = field(default_factory=list)
     vehicles: list[int] = field(default_factory=list)
+    calibration: dict[str, _Calibration] = field(default_factory=lambda: {k: _Calibration() for k in ("overall", "slow", "fast")})
+    by_situation: dict[str, _Stats] = field(default_factory=lambda: collections.defaultdict(_Stats))
+    situation_ms: dict[str, list] = field(default_factory=lambda: collections.defaultdict(list))  # per situation: time per step
     nan_means: int = 0
     issues: collections.Counter = field(default_factory=collections.Counter)  # the predictor's issues by kind
 
 
 @dataclass(slots=True)
 class _Figure:
-    """The instant drawn by ``--figures``."""
+    """An instant drawn by ``--figures`` / ``--report`` (one per recording: the most moving cars, then the most windows)."""
 
     n_windows: int
+    n_moving: int  # windows starting above SLOW_SPEED_MPS: the instant drawn has the most, then the most windows
     recording: str
     sequence: str
     stamp_ns: int
@@ -319,6 +372,9 @@ class _Figure:
     predictions: dict[str, FramePrediction]
     truths: dict[int, np.ndarray]
     starts: dict[int, tuple[float, float]]
+    frame: TrackFrame | None = None
+    corridor_set: CorridorSet | None = None
+    scores: dict[str, dict[str, float]] = field(default_factory=dict)  # per mode: mADE_m, mFDE_m, windows at this instant
 
 
 # --------------------------------------------------------------------------- the evaluation
@@ -367,8 +423,10 @@ class Evaluation:
         self.skipped: collections.Counter[str] = collections.Counter()
         self.skip_examples: dict[str, str] = {}  # per reason, the first occurrence (printed under the table)
         self.instants = 0
-        self.figure: _Figure | None = None
+        self.figures: dict[str, _Figure] = {}  # per recording: the instant with the most windows
         self.recordings: list[str] = []
+        self.situations: tuple[Situation, ...] = tuple(config.situations)
+        self.situation_seen: dict[str, dict[str, Any]] = {}  # per situation: vehicles seen, frames played, frame period
         self.tau_s = self.predictors[config.modes[0]].config.tau_s
         n_steps = self.predictors[config.modes[0]].config.n_steps
         # the nearest prediction step to each horizon (0-based; a tie goes to the later step)
@@ -410,6 +468,13 @@ class Evaluation:
         for rec in recordings:
             for seq in rec.sequences:
                 total += seq.n_frames if not self.config.max_frames_per_sequence else min(seq.n_frames, self.config.max_frames_per_sequence)
+        if not self.situations:
+            self.situations = whole_recordings([rec.name for rec in recordings])
+        known = {rec.name for rec in recordings}
+        for sit in self.situations:
+            if sit.recording not in known:
+                raise DatasetError(f"situation {sit.name!r}: recording {sit.recording!r} is not evaluated; evaluated: {', '.join(sorted(known))}")
+            self.situation_seen[sit.name] = {"vehicles": set(), "frames": 0, "seconds": 0.0}
         bar = progress_bar(total, self.config.progress, unit="frame", desc="iamp eval")
         try:
             for rec in recordings:
@@ -443,8 +508,17 @@ class Evaluation:
         n_steps = self.predictors[cfg.modes[0]].config.n_steps
         stride_ns = int(round(cfg.stride_s * 1e9))
         first = int(seq.stamp_ns[0]) if seq.n_rows else 0
+        situations = [s for s in self.situations if s.recording == rec.name and (not s.sequence or same_sequence_id(seq.id, s.sequence))]
+        period_s = 1.0 / seq.frame_rate_hz if seq.frame_rate_hz > 0 else 0.0
         for item in chain:
             bar.update(1)
+            inside = [s.name for s in situations if s.contains(rec.name, seq.id, item.stamp_ns)]
+            for name in inside:
+                seen = self.situation_seen[name]
+                seen["frames"] += 1
+                seen["seconds"] += period_s
+                seen["vehicles"].update((seq.id, int(t)) for t, a in zip(item.frame.track_ids.tolist(), item.frame.agent_types.tolist())
+                                        if AgentType(int(a)).is_vehicle)
             if item.corridor_set is None:
                 continue  # no corridors: nothing to predict in this frame
             stamp, frame, scene, corridor_set, relation_set, belief = item.stamp_ns, item.frame, item.scene, item.corridor_set, item.relation_set, item.belief
@@ -459,12 +533,15 @@ class Evaluation:
                     self._guarded("ar_inference_error_frames", where, lambda: ar.observe(corridor_set, relation_set, frame))
                 continue
             profiles = None
+            ar_ms = 0.0
             if ar is not None:
                 t0 = time.perf_counter()
                 profiles = (self._guarded("ar_inference_error_frames", where,
                                           lambda: ar.process(corridor_set, relation_set, frame, scene)) or (None,))[0]
-                self.ar_ms.append((time.perf_counter() - t0) * 1e3)
-            self._instant(rec.name, seq.id, stamp, frame, corridor_set, relation_set, scene, truth, tau_ns, n_steps, belief, profiles)
+                ar_ms = (time.perf_counter() - t0) * 1e3
+                self.ar_ms.append(ar_ms)
+            self._instant(rec.name, seq.id, stamp, frame, corridor_set, relation_set, scene, truth, tau_ns, n_steps, belief, profiles,
+                          situations=inside, ar_ms=ar_ms)
 
     def _guarded(self, reason: str, where: str, call):
         """``call()``, or None when it raises: a core failing on one frame is counted under ``reason``, not fatal."""
@@ -475,7 +552,7 @@ class Evaluation:
             return None
 
     def _instant(self, recording, sequence_id, stamp, frame, corridor_set: CorridorSet, relation_set: RelationSet | None,
-                 scene, truth, tau_ns, n_steps, belief=None, profiles=None) -> None:
+                 scene, truth, tau_ns, n_steps, belief=None, profiles=None, situations=(), ar_ms: float = 0.0) -> None:
         self.instants += 1
         windows: dict[int, tuple[np.ndarray, float]] = {}
         manoeuvres: dict[int, tuple[str, np.ndarray]] = {}  # per window: the true future's class, its along-track directions
@@ -508,14 +585,19 @@ class Evaluation:
             except Exception as exc:  # noqa: BLE001 - counted; the instant's windows are then scored for no mode
                 self._skip(f"prediction_error_{mode}", f"{where}: {type(exc).__name__}: {exc}", len(windows))
                 continue
-            self.acc[mode].frame_ms.append((time.perf_counter() - t0) * 1e3)
+            ms = (time.perf_counter() - t0) * 1e3
+            self.acc[mode].frame_ms.append(ms)
+            for name in situations:  # the paper's time per step: the whole prediction, the AR model's included
+                self.acc[mode].situation_ms[name].append(ms + (ar_ms if mode == "hybrid" else 0.0))
             self.acc[mode].vehicles.append(len({p.track_id for p in prediction.pairs}))
             self.acc[mode].issues.update(i.kind for i in issues)
             predictions[mode] = prediction
         if len(predictions) < len(self.predictors):
             return  # every mode is scored on the same windows
+        scores: dict[str, list[_WindowResult]] = {}
         for mode, prediction in predictions.items():
             acc = self.acc[mode]
+            scores[mode] = []
             if mode == "hybrid" and profiles is not None:
                 self._collect_accel_examples(recording, sequence_id, stamp, windows, statuses, truth, profiles, prediction)
             for track_id, (future, speed) in windows.items():
@@ -530,16 +612,24 @@ class Evaluation:
                 acc.overall.add(result)
                 (acc.slow if speed <= SLOW_SPEED_MPS else acc.fast).add(result)
                 acc.by_recording[recording].add(result)
+                acc.calibration["overall"].add(result)
+                acc.calibration["slow" if speed <= SLOW_SPEED_MPS else "fast"].add(result)
+                for name in situations:
+                    acc.by_situation[name].add(result)
+                scores[mode].append(result)
                 manoeuvre, directions = manoeuvres[track_id]
                 acc.by_manoeuvre[manoeuvre].add(result)
                 if result.error_xy is not None:
                     along, cross = _along_cross(result.error_xy[self.track_steps], directions[self.track_steps])
                     acc.track_overall.add(along, cross)
                     acc.track_by_manoeuvre[manoeuvre].add(along, cross)
-        if windows and scene is not None and (self.figure is None or len(windows) > self.figure.n_windows):
+        current = self.figures.get(recording)
+        n_moving = sum(1 for _f, v in windows.values() if v > SLOW_SPEED_MPS)
+        if windows and scene is not None and (current is None or (n_moving, len(windows)) > (current.n_moving, current.n_windows)):
             rows = {int(t): i for i, t in enumerate(frame.track_ids)}
-            self.figure = _Figure(
+            self.figures[recording] = _Figure(
                 n_windows=len(windows),
+                n_moving=n_moving,
                 recording=recording,
                 sequence=sequence_id,
                 stamp_ns=stamp,
@@ -548,6 +638,10 @@ class Evaluation:
                 predictions=predictions,
                 truths={t: f for t, (f, _) in windows.items()},
                 starts={t: (float(frame.x_m[rows[t]]), float(frame.y_m[rows[t]])) for t in windows},
+                frame=frame,
+                corridor_set=corridor_set,
+                scores={m: {"windows": len(r), "mADE_m": float(np.mean([w.made for w in r])) if r else float("nan"),
+                            "mFDE_m": float(np.mean([w.mfde for w in r])) if r else float("nan")} for m, r in scores.items()},
             )
 
     def _collect_accel_examples(self, recording, sequence_id, stamp, windows, statuses, truth, profiles, prediction) -> None:
@@ -594,6 +688,7 @@ class Evaluation:
         frame = prediction.grid_frame
         cells_true = frame.flat_index(future[:, 0], future[:, 1])
         covered, nll = 0, 0.0
+        covered_levels = np.zeros(len(COVERAGE_LEVELS), np.int64)
         for k in range(future.shape[0]):
             cells, values = grid.step(k, frame.n_cells) if grid is not None else (np.zeros(0, np.int64), np.zeros(0))
             value = 0.0
@@ -603,11 +698,13 @@ class Evaluation:
                     value = float(values[i])
             if value > 0 and value >= highest_density_threshold(values, cfg.coverage_level):
                 covered += 1
+            if value > 0:
+                covered_levels += value >= _region_thresholds(values)
             nll -= math.log(max(value, cfg.nll_floor))
         return _WindowResult(
             made=min(ade), mfde=min(fde), wade=float(np.dot(w, ade)), wfde=float(np.dot(w, fde)),
             steps=future.shape[0], covered=covered, nll=nll, route_hit=_route_hit(prediction, members, w, vehicle, future),
-            error_xy=errors[int(np.argmin(ade))],
+            error_xy=errors[int(np.argmin(ade))], covered_levels=covered_levels,
         )
 
     # ----- results ------------------------------------------------------------------
@@ -633,6 +730,23 @@ class Evaluation:
             split = {m: acc.track_by_manoeuvre[m].summary(self.track_steps, self.tau_s) for m in MANOEUVRES}
             modes[mode]["along_track_m"] = {"overall": along, "by_manoeuvre": {m: a for m, (a, _) in split.items()}}
             modes[mode]["cross_track_m"] = {"overall": cross, "by_manoeuvre": {m: c for m, (_, c) in split.items()}}
+            n_steps = self.predictors[mode].config.n_steps
+            modes[mode]["calibration"] = {
+                "levels": list(COVERAGE_LEVELS),
+                **{split: {"coverage": c.coverage(), "steps": c.steps} for split, c in acc.calibration.items()},
+            }
+            modes[mode]["error_by_step_m"] = {
+                "t_s": [round((k + 1) * self.tau_s, 6) for k in range(n_steps)],
+                **{split: {"mean": c.error_by_step(n_steps), "windows": c.windows} for split, c in acc.calibration.items()},
+            }
+            modes[mode]["by_situation"] = {}
+            for sit in self.situations:
+                ms = acc.situation_ms.get(sit.name, [])
+                modes[mode]["by_situation"][sit.name] = {
+                    **acc.by_situation[sit.name].summary(),
+                    "time_per_step_ms": float(np.mean(ms)) if ms else float("nan"),
+                    "instants": len(ms),
+                }
             if mode == "hybrid" and self.ar_ms:
                 modes[mode]["ar_inference_ms_median"] = float(np.median(self.ar_ms))
                 modes[mode]["ar_inference_ms_p95"] = float(np.percentile(self.ar_ms, 95))
@@ -644,17 +758,29 @@ class Evaluation:
             "backend": cfg.backend,
             "device": cfg.device,
             "params": {k: v for k, v in cfg.params},
+            "seed": cfg.seed,
             "instants": self.instants,
             "skipped": dict(sorted(self.skipped.items())),
             "skipped_examples": dict(sorted(self.skip_examples.items())),
             "velocity_consistency": {name: self.velocity_consistency(name).as_dict() for name in self.recordings},
             "intentions_ms_median": float(np.median(self.intentions_ms)) if self.intentions_ms else None,
             "model": str(self.ar_config.model) if self.ar_config is not None else None,
+            "situations": [
+                {**sit.as_dict(), "vehicles": len(self.situation_seen.get(sit.name, {}).get("vehicles", ())),
+                 "duration_s": round(self.situation_seen.get(sit.name, {}).get("seconds", 0.0), 3),
+                 "frames": self.situation_seen.get(sit.name, {}).get("frames", 0)}
+                for sit in self.situations
+            ],
             "metrics": {
                 "coverage90": f"share of (vehicle, step) pairs whose true position is in the {cfg.coverage_level:.0%} highest-probability cells of the vehicle's centre-point grid",
                 "nll": f"mean -ln max(P(true cell), {cfg.nll_floor:g}) over (vehicle, step), nats, {self.predictors[cfg.modes[0]].config.grid_cell_m} m cells",
                 "mADE_m": "min over corridors of the ADE of the probability-weighted mean position",
                 "wADE_m": "corridor-probability-weighted mean of the ADE",
+                "calibration": "per speed split, the share of (vehicle, step) pairs whose true position is in the highest-probability"
+                               " region of each nominal level (levels), the rule of coverage90",
+                "error_by_step_m": "per speed split, the mean displacement error at each prediction step (t_s) of the corridor mADE scores",
+                "by_situation": "per situation (situations), the statistics of a split plus time_per_step_ms: the mean wall time of one"
+                                " prediction of all vehicles of the frame at the situation's instants (hybrid: AR inference included)",
             },
             "manoeuvre_classes": _MANOEUVRE_NOTE,
             "along_cross_track": _TRACK_NOTE,
@@ -667,92 +793,72 @@ class Evaluation:
         config = estimators[0].config if estimators else EstimatorConfig()
         return consistency_of((d for e in estimators for d in e.decided), config)
 
-    def write_figures(self, directory: Path) -> list[Path]:
-        """The figures of the module docstring; returns the files written (none without an instant)."""
+    def write_figures(self, directory: Path, formats: tuple[str, ...] = ("png", "svg"), dpi: int = 100,
+                      keep: dict[str, Any] | None = None) -> list[Path]:
+        """The figures of the module docstring, one instant per recording; returns the files written (none without an
+        instant). ``self.figure_index`` lists them (kind, recording, mode, stem, caption); ``keep``, when given, receives
+        each matplotlib Figure by stem (the tests read the objects)."""
+        from stages.offline import figures as fg
+
         directory.mkdir(parents=True, exist_ok=True)
-        accel = self._write_accel_figures(directory)
-        return self._write_map_figures(directory) + accel
+        self.figure_index = []
+        written: list[Path] = []
 
-    def _write_accel_figures(self, directory: Path, count: int = 4) -> list[Path]:
-        """The paper's acceleration-distribution figure for a few real cars (module docstring)."""
-        # physically plausible truths only: K733's tracker jitter gives "true" accelerations of ±10 m/s² that say
-        # nothing about the model
-        examples = [e for e in self.ar_examples if np.abs(e["true"]).max() <= 4.0]
-        if not examples:
-            return []
-        chosen: list[int] = []
-        for key in (lambda e: e["true"].min(), lambda e: -e["true"].max(), lambda e: -np.ptp(e["true"]), lambda e: abs(e["true"]).mean()):
-            for i in sorted(range(len(examples)), key=lambda i: key(examples[i])):
-                if all(examples[j]["track_id"] != examples[i]["track_id"] or examples[j]["recording"] != examples[i]["recording"] for j in chosen):
-                    chosen.append(i)
-                    break
-        written, lines = [], []
-        for i in chosen[:count]:
-            e = examples[i]
-            path = directory / f"accel_{e['recording']}_{e['sequence']}_car{e['track_id']}_{e['stamp_ns'] // 1_000_000}ms.png"
-            _accel_figure(e).write_png(path)
-            written.append(path)
-            err = np.abs(e["ar"] - e["true"]).mean()
-            lines.append(f"{path.name}: recording {e['recording']} sequence {e['sequence']} car {e['track_id']} at stamp_ns {e['stamp_ns']};"
-                         f" mean |AR - true| {err:.2f} m/s2")
-        (directory / "accel_figures.txt").write_text(
-            "accel_*.png (400 x 300 px): x = time after the instant, 0..4 s (one column per 0.4 s); y = acceleration, -3..2 m/s2"
-            " (the input cells; a grey line per m/s2, darker at 0); background: the 10 normal distributions of the AR profile over the input cells, one column per 0.4 s,"
-            " darker blue = more probable; red: AR output (40 values); black: true acceleration (the training targets' definition:"
-            " Savitzky-Golay over 1.5 s of true positions)\n"
-            + "\n".join(lines) + "\n"
-        )
+        def emit(fig, stem: str, **entry) -> None:
+            written.extend(fg.save(fig, directory, stem, formats, dpi))
+            self.figure_index.append({"stem": stem, **entry})
+            if keep is not None:
+                keep[stem] = fig
+
+        paper = [m for m in ("hybrid", "baseline") if m in self.config.modes] or list(self.config.modes)
+        lines = []
+        for recording in self.recordings:
+            fig = self.figures.get(recording)
+            if fig is None:
+                lines.append(f"{recording}: no instant with a full-future window, no figure")
+                continue
+            where = (f"{recording} sequence {fig.sequence} at t = {fig.stamp_ns * 1e-9:.1f} s ({fig.n_windows} vehicles with a full 4 s future,"
+                     f" {fig.n_moving} above 2 m/s)")
+            lines.append(f"{recording}: instant {where}, stamp_ns {fig.stamp_ns}")
+            for mode in paper:
+                emit(fg.grid_figure(fig, mode), f"grid_4s_{mode}_{recording}", kind="grid", recording=recording, mode=mode,
+                     caption=f"Motion grid of {mode} at 4 s, {where}: the fused centre-point grid at the last step (log colour scale) "
+                             "over the car lanelets; vehicles at t (scored ones blue, with their ids) and the corridors of the scored vehicles dashed.")
+            emit(fg.comparison_figure(fig, paper), f"means_{recording}", kind="means", recording=recording, mode=" ".join(paper),
+                 caption=f"Predicted mean positions every 0.4 s to 4 s of {', '.join(paper)} against the ground truth (black), {where}; "
+                         "one line per corridor, its opacity the corridor's probability; the legend gives this instant's mADE/mFDE.")
+            for e in self._accel_choice(recording, fig):
+                err = float(np.abs(e["ar"] - e["true"]).mean())
+                emit(fg.accel_figure(e), f"accel_{e['recording']}_{e['sequence']}_car{e['track_id']}_{e['stamp_ns'] // 1_000_000}ms",
+                     kind="accel", recording=recording, mode="hybrid",
+                     caption=f"AR acceleration distributions of car {e['track_id']}, {recording} sequence {e['sequence']} at t = "
+                             f"{e['stamp_ns'] * 1e-9:.1f} s ({e['why']}): the {e['probs'].shape[0]} normal distributions over the input "
+                             f"cells as grey intensity, the AR output red, the true acceleration blue; mean |AR - true| {err:.2f} m/s2.")
+        text = ["instants (one per recording: the one with the most scored cars above 2 m/s, then the most scored cars):", *lines, "", "files:"]
+        text += [f"{e['stem']}: {e['caption']}" for e in self.figure_index]
+        (directory / "figures.txt").write_text("\n".join(text) + "\n")
         return written
 
-    def _write_map_figures(self, directory: Path) -> list[Path]:
-        fig = self.figure
-        if fig is None:
-            (directory / "figures.txt").write_text("no instant with a full-future window: no figure\n")
-            return []
-        scene_map = fig.scene_maps.get(fig.scene)
-        road = scene_map.road_map
-        written = []
-        for mode, prediction in fig.predictions.items():
-            pts = [np.array(list(fig.starts.values()))] + [f for f in fig.truths.values()]
-            pts.append(prediction.mean_xy_m[np.isfinite(prediction.mean_xy_m).all(axis=2)].reshape(-1, 2))
-            allp = np.concatenate([p.reshape(-1, 2) for p in pts if p.size])
-            lo, hi = allp.min(axis=0) - 15.0, allp.max(axis=0) + 15.0
-            for kind in ("grid_4s", "means"):
-                canvas = _Canvas(lo[0], lo[1], hi[0], hi[1], resolution_m=0.1)
-                if road is not None:
-                    for lanelet_id in road.lanelet_ids:
-                        info = road.lanelet(lanelet_id)
-                        canvas.fill_polygon(np.vstack([info.left_bound_m, info.right_bound_m[::-1]]), (225, 225, 225))
-                if kind == "grid_4s":
-                    _draw_grid(canvas, prediction, step=prediction.step_times_s.shape[0] - 1)
-                    for x, y in fig.starts.values():
-                        canvas.disc(x, y, 0.8, (40, 90, 220))
-                else:
-                    for truth in fig.truths.values():
-                        canvas.polyline(truth, (0, 0, 0), 0.25)
-                        for x, y in truth:
-                            canvas.disc(x, y, 0.35, (0, 0, 0))
-                    for b, pair in enumerate(prediction.pairs):
-                        if pair.track_id not in fig.truths:
-                            continue
-                        colour = _PALETTE[b % len(_PALETTE)]
-                        for x, y in prediction.mean_xy_m[b]:
-                            if math.isfinite(x) and math.isfinite(y):
-                                canvas.disc(x, y, 0.45, colour)
-                    for x, y in fig.starts.values():
-                        canvas.disc(x, y, 0.8, (40, 90, 220))
-                path = directory / f"{kind}_{mode}.png"
-                canvas.write_png(path)
-                written.append(path)
-        (directory / "figures.txt").write_text(
-            f"instant: recording {fig.recording} sequence {fig.sequence} stamp_ns {fig.stamp_ns}"
-            f" ({fig.n_windows} vehicles with a full 4 s future)\n"
-            "grid_4s_<mode>.png: car lanelets grey; fused motion grid (centre-point) at the last step, white-yellow-red on a"
-            " log scale 1e-4..1; vehicle positions at t blue\n"
-            "means_<mode>.png: ground truth 0.4..4 s black; per corridor its probability-weighted mean positions, one colour"
-            " per corridor, one dot per step; vehicle positions at t blue\n"
-        )
-        return written
+    def _accel_choice(self, recording: str, fig: _Figure | None) -> list[dict[str, Any]]:
+        """Up to two cars of a recording for the acceleration figure: the car of the drawn instant whose true acceleration
+        varies most, and the hardest braking car of the recording (physically plausible truths only: K733's tracker
+        jitter gives "true" accelerations of +-10 m/s2 that say nothing about the model)."""
+        examples = [e for e in self.ar_examples if e["recording"] == recording and np.abs(e["true"]).max() <= 4.0]
+        chosen: list[dict[str, Any]] = []
+        at = [e for e in examples if fig is not None and e["stamp_ns"] == fig.stamp_ns and e["sequence"] == fig.sequence]
+        if at:
+            chosen.append({**max(at, key=lambda e: float(np.ptp(e["true"]))), "why": "the drawn instant's car whose true acceleration varies most"})
+        rest = [e for e in examples if all(e["track_id"] != c["track_id"] or e["sequence"] != c["sequence"] for c in chosen)]
+        if rest:
+            chosen.append({**min(rest, key=lambda e: float(e["true"].min())), "why": "the recording's hardest braking car"})
+        return chosen
+
+
+def _region_thresholds(values: np.ndarray) -> np.ndarray:
+    """``highest_density_threshold(values, level)`` for every level of ``COVERAGE_LEVELS`` (one sort)."""
+    ordered = np.sort(values)[::-1]
+    n = np.searchsorted(np.cumsum(ordered), np.asarray(COVERAGE_LEVELS), side="left")
+    return ordered[np.minimum(n, ordered.size - 1)]
 
 
 def _route_hit(prediction: FramePrediction, members: list[int], weights: np.ndarray, vehicle, future: np.ndarray) -> float | None:
@@ -792,31 +898,6 @@ def _along_cross(error_xy: np.ndarray, directions: np.ndarray) -> tuple[np.ndarr
     along = np.where(ok, np.einsum("ij,ij->i", error_xy, u), np.nan)
     cross = np.where(ok, u[:, 0] * error_xy[:, 1] - u[:, 1] * error_xy[:, 0], np.hypot(error_xy[:, 0], error_xy[:, 1]))
     return along, cross
-
-
-def _accel_figure(e: dict[str, Any]) -> "_Canvas":
-    """One car's acceleration figure: distributions as intensity, AR output red, truth black (x: 10 px per 0.1 s)."""
-    edges, probs, step_s, chunk_s = e["edges"], e["probs"], e["step_s"], e["chunk_s"]
-    horizon = e["ar"].shape[0] * step_s
-    a_lo, a_hi = min(edges[0], -3.0), max(edges[-1], 2.0)
-    scale = 60.0  # pixels per m/s² (x: 100 pixels per s)
-    canvas = _Canvas(0.0, a_lo * scale - 4, horizon * 100.0, a_hi * scale + 4, resolution_m=1.0)
-    for k in range(probs.shape[0]):
-        peak = max(probs[k].max(), 1e-9)
-        for a in range(probs.shape[1]):
-            shade = probs[k, a] / peak
-            colour = tuple(int(255 - shade * c) for c in (200, 150, 40))
-            x0, x1 = k * chunk_s * 100.0, (k + 1) * chunk_s * 100.0
-            y0, y1 = edges[a] * scale, edges[a + 1] * scale
-            canvas.fill_polygon(np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]]), colour)
-    for a in range(int(math.ceil(a_lo)), int(math.floor(a_hi)) + 1):  # a grey line per m/s² (darker at 0)
-        grey = (120, 120, 120) if a == 0 else (200, 200, 200)
-        canvas.polyline(np.array([[0.0, a * scale], [horizon * 100.0, a * scale]]), grey, 0.6 if a == 0 else 0.3)
-    t = np.arange(1, e["ar"].shape[0] + 1) * step_s * 100.0
-    clip = lambda a: np.clip(a, a_lo, a_hi) * scale  # noqa: E731
-    canvas.polyline(np.column_stack([t, clip(e["true"])]), (0, 0, 0), 1.2)
-    canvas.polyline(np.column_stack([t, clip(e["ar"])]), (220, 30, 30), 1.2)
-    return canvas
 
 
 def _fill_forward(means: np.ndarray, pair) -> np.ndarray:
@@ -913,7 +994,16 @@ def add_arguments(parser) -> None:
     parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
     parser.add_argument("--max-frames", type=int, default=0, help="stop each sequence after this many frames (0: all)")
     parser.add_argument("--json", type=Path, default=None, help="write the results as JSON")
-    parser.add_argument("--figures", type=Path, default=None, help="write PNG figures of one instant into this folder")
+    parser.add_argument("--figures", type=Path, default=None,
+                        help="write the paper's figures (motion grid at 4 s, predicted means, acceleration distributions) of one instant"
+                             " per recording into this folder, PNG and SVG")
+    parser.add_argument("--report", type=Path, default=None, metavar="DIR",
+                        help="write a report (DIR/report.md, its figures and eval.json) of this run into DIR")
+    parser.add_argument("--situations", type=Path, default=None, metavar="FILE.toml",
+                        help="named time windows of recordings to report on ([[situation]] recording, sequence, start, end,"
+                             " description); default: every recording is one situation")
+    parser.add_argument("--svg", choices=["yes", "no"], default="yes", help="write SVG beside each PNG figure (default yes)")
+    parser.add_argument("--dpi", type=int, default=100, help="resolution of the PNG figures (default 100)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="markov_prediction parameter for every mode (JSON value), e.g. --set speed_limit_factor=1.1")
@@ -925,7 +1015,13 @@ def add_arguments(parser) -> None:
 
 def run_cli(args) -> int:
     try:
+        situations = ()
+        if getattr(args, "situations", None) is not None:
+            from stages.offline.situations import load_situations
+
+            situations = load_situations(args.situations)
         config = EvalConfig(
+            situations=situations,
             params=_key_values(args.set, "--set"),
             intentions_params=_key_values(args.set_intentions, "--set-intentions"),
             ar_params=_key_values(args.set_ar, "--set-ar"),
@@ -953,10 +1049,29 @@ def run_cli(args) -> int:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(json_safe(report), indent=2, allow_nan=False))
         print(f"wrote {args.json}")
+    formats = ("png", "svg") if getattr(args, "svg", "yes") == "yes" else ("png",)
+    dpi = max(int(getattr(args, "dpi", 100)), 20)
     if args.figures is not None:
-        for path in evaluation.write_figures(args.figures):
+        for path in evaluation.write_figures(args.figures, formats, dpi):
             print(f"wrote {path}")
+    if getattr(args, "report", None) is not None:
+        from stages.offline.report import write_report
+
+        command = "iamp " + " ".join(_quote(a) for a in getattr(args, "argv", ["eval"]))
+        path = write_report(evaluation, report, args.report, command, formats=formats, dpi=dpi)
+        print(f"wrote {path}")
     return 0
+
+
+def _quote(arg: str) -> str:
+    """A command-line word as a shell would need it; the development data folder as ``$IAMP_TAF_BW`` when it is that."""
+    import os
+    import shlex
+
+    data = os.environ.get("IAMP_TAF_BW")
+    if data and arg.rstrip("/") == data.rstrip("/"):
+        return "$IAMP_TAF_BW"
+    return shlex.quote(arg)
 
 
 def _key_values(items, flag: str) -> tuple[tuple[str, Any], ...]:
@@ -978,55 +1093,6 @@ def _key_values(items, flag: str) -> tuple[tuple[str, Any], ...]:
 # --------------------------------------------------------------------------- progress and figures
 
 
-
-
-_PALETTE = [(228, 26, 28), (77, 175, 74), (152, 78, 163), (255, 127, 0), (166, 86, 40), (247, 129, 191), (0, 160, 160), (160, 160, 0)]
-
-
-class _Canvas(MapRaster):
-    """The evaluation's figures: ``MapRaster`` plus discs, thick polylines and grid cells."""
-
-    def disc(self, x_m: float, y_m: float, radius_m: float, colour) -> None:
-        (cx, cy), r = self.to_px([x_m, y_m])[0], radius_m / self.res
-        r0, r1 = max(0, int(cy - r)), min(self.height, int(cy + r) + 1)
-        c0, c1 = max(0, int(cx - r)), min(self.width, int(cx + r) + 1)
-        if r1 <= r0 or c1 <= c0:
-            return
-        yy, xx = np.mgrid[r0:r1, c0:c1] + 0.5
-        mask = (xx - cx) ** 2 + (yy - cy) ** 2 <= r * r
-        self.rgb[r0:r1, c0:c1][mask] = colour
-
-    def polyline(self, points_m, colour, width_m: float) -> None:
-        pts = np.asarray(points_m, dtype=np.float64).reshape(-1, 2)
-        for p, q in zip(pts[:-1], pts[1:]):
-            n = max(int(np.hypot(*(q - p)) / (0.5 * self.res)), 1)
-            for t in np.linspace(0.0, 1.0, n + 1):
-                self.disc(*(p + t * (q - p)), width_m, colour)
-
-    def cells(self, frame: GridFrame, flat: np.ndarray, rgb: np.ndarray) -> None:
-        """Paint grid cells (flat indices) in the given colours (n, 3)."""
-        rows, cols = np.divmod(flat, frame.n_cols)
-        for (row, col), colour in zip(zip(rows.tolist(), cols.tolist()), rgb):
-            x0 = frame.origin_x_m + col * frame.cell_m
-            y0 = frame.origin_y_m + row * frame.cell_m
-            (px0, py1), (px1, py0) = self.to_px([[x0, y0], [x0 + frame.cell_m, y0 + frame.cell_m]])
-            r0, r1 = max(0, int(round(py0))), min(self.height, int(round(py1)))
-            c0, c1 = max(0, int(round(px0))), min(self.width, int(round(px1)))
-            if r1 > r0 and c1 > c0:
-                self.rgb[r0:r1, c0:c1] = colour
-
-
-
-def _draw_grid(canvas: _Canvas, prediction: FramePrediction, step: int) -> None:
-    cells, values = prediction.fused_grid.step(step, prediction.grid_frame.n_cells)
-    keep = values > 1e-4
-    if not np.any(keep):
-        return
-    level = np.clip((np.log10(values[keep]) + 4.0) / 4.0, 0.0, 1.0)[:, None]  # 0 at 1e-4, 1 at 1
-    yellow, red = np.array([255, 230, 60]), np.array([200, 0, 0])
-    low = np.array([255, 250, 200])
-    rgb = np.where(level < 0.5, low + (yellow - low) * (level / 0.5), yellow + (red - yellow) * ((level - 0.5) / 0.5))
-    canvas.cells(prediction.grid_frame, cells[keep], rgb.astype(np.uint8))
 
 
 def evaluate(config: EvalConfig) -> dict[str, Any]:

@@ -63,16 +63,19 @@ def test_report_has_every_key_with_finite_values(slice_report):
     json.dumps(report)
 
 
-def test_figures_are_png_files(slice_report):
+def test_figures_are_png_and_svg_files(slice_report):
     _, written, folder = slice_report
-    names = sorted(p.name for p in written if not p.name.startswith("accel_"))
-    assert names == sorted(f"{kind}_{mode}.png" for kind in ("grid_4s", "means") for mode in EVAL_MODES)
-    accel = [p for p in written if p.name.startswith("accel_")]
-    assert 1 <= len(accel) <= 4, "hybrid mode draws the acceleration-distribution figure for a few cars"
-    assert "AR output" in (folder / "accel_figures.txt").read_text()
+    stems = {p.stem for p in written}
+    assert {p.suffix for p in written} == {".png", ".svg"} and len(written) == 2 * len(stems)
+    names = sorted(s for s in stems if not s.startswith("accel_"))
+    assert names == sorted([f"grid_4s_{m}_{DEFAULT_RECORDING}" for m in ("hybrid", "baseline")] + [f"means_{DEFAULT_RECORDING}"])
+    accel = [s for s in stems if s.startswith("accel_")]
+    assert 1 <= len(accel) <= 2, "hybrid mode draws the acceleration-distribution figure for a car or two per recording"
     for path in written:
-        assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert "instant" in (folder / "figures.txt").read_text()
+        head = path.read_bytes()[:200]
+        assert head[:8] == b"\x89PNG\r\n\x1a\n" if path.suffix == ".png" else b"<svg" in head or b"<?xml" in head
+    text = (folder / "figures.txt").read_text()
+    assert "instant" in text and "AR output red" in text
 
 
 def test_cli_writes_json(tmp_path, capsys):
