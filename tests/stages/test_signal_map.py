@@ -1,0 +1,63 @@
+"""Signal groups on the real K733 map: the KML lane file matched to lanelets, routes and corridors; ``iamp signals``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stages.lib.datasets.signals import read_kml_lanes
+from stages.lib.maps import Projection, load_map
+from stages.lib.maps.signals import match_lanes
+
+FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "taf_bw_signals"
+REC = "k733_2020-09-15"
+ORIGIN = (49.005306, 8.4374089)  # the recording's meta_data.csv
+
+
+@pytest.fixture(scope="module")
+def matched():
+    road_map, _ = load_map(FIXTURE / "maps" / f"{REC}.osm", *ORIGIN, Projection.SCALED_MERCATOR)
+    lanes = read_kml_lanes(FIXTURE / "recorded_trackfiles" / REC / "k733_map.kml")
+    return road_map, match_lanes(road_map, lanes, Projection.SCALED_MERCATOR, *ORIGIN)
+
+
+def test_k733_lanes_match_their_lanelets(matched):
+    road_map, smap = matched
+    by_id = {l.lane_id: l for l in smap.lanes}
+    # the approach lanes of the north-east and south-west arms lie within ~1 m of their lanelet centrelines
+    for lane_id, lanelet in ((1, -103648), (3, -103650), (41, -103635), (42, -103634), (44, -103632)):
+        lane = by_id[lane_id]
+        assert lane.matched and lane.stop_lanelet_id == lanelet, lane_id
+        assert lane.mean_distance_m < 1.0 and lane.stop_offset_m < 1.0
+        # the stop line is at the approach lanelet's end, where the lane meets the junction
+        assert road_map.lanelet(lanelet).length_m - lane.stop_s_m < 2.5
+    # lane 43 is the unmapped fourth lane of the south-west approach; 2-point lanes are crossings (no car lanelet)
+    assert not by_id[43].matched
+    assert not any(by_id[x].matched for x in (11, 12, 31, 51, 71))
+    assert len(smap.matched) >= 22 and len(smap.signal_groups) >= 10
+
+
+def test_corridor_gets_the_group_of_its_connection(matched):
+    road_map, smap = matched
+    # lane 1 (NE approach): straight on to lane 46 is group 1, left to lane 64 is group 2
+    for route, group in (((-103648, -103596, -103641), 1), ((-103648, -103593, -104128), 2)):
+        starts = np.concatenate([[0.0], np.cumsum([road_map.lanelet(x).length_m for x in route[:-1]])])
+        stops = smap.corridor_stops(np.array(route), starts)
+        assert [s.signal_group for s in stops] == [group]
+        assert stops[0].by_route and stops[0].s_m == pytest.approx(smap.stops_by_lanelet[-103648][0].stop_s_m)
+    # a corridor that does not pass a stop lanelet has none
+    assert smap.corridor_stops(np.array([-103641]), np.array([0.0])) == []
+
+
+def test_iamp_signals_prints_report_and_writes_figure(tmp_path, capsys):
+    from stages.cli import main
+
+    fig = tmp_path / "k733.png"
+    js = tmp_path / "k733.json"
+    assert main(["signals", "--data", str(FIXTURE), "--recording", REC, "--figure", str(fig), "--json", str(js)]) == 0
+    out = capsys.readouterr().out
+    assert "lane   1 ingress matched" in out and "unmatched" in out and "SCALED_MERCATOR" in out
+    assert fig.stat().st_size > 10_000 and js.stat().st_size > 1000
+    assert main(["signals", "--data", str(tmp_path), "--recording", REC]) == 2
