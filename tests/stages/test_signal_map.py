@@ -61,3 +61,26 @@ def test_iamp_signals_prints_report_and_writes_figure(tmp_path, capsys):
     assert "lane   1 ingress matched" in out and "unmatched" in out and "SCALED_MERCATOR" in out
     assert fig.stat().st_size > 10_000 and js.stat().st_size > 1000
     assert main(["signals", "--data", str(tmp_path), "--recording", REC]) == 2
+
+
+def test_source_publishes_signal_state_when_the_recording_has_phases(tmp_path):
+    from bus_schemas import SignalPhase, SignalState
+    from stages.lib.datasets import load_recording
+    from stages.tracks_source.core import TrackPlayer, TracksSourceConfig
+    from testkit.signal_scenes import GROUP, SW_STRAIGHT, Car, signal_recording
+
+    data = signal_recording(tmp_path / "d", [Car(1, SW_STRAIGHT, 90.0, 2.0, 5.0, ((4.0, 0.0),))])
+    rec = load_recording(data, REC)
+    for signals in (True, False):
+        player = TrackPlayer(TracksSourceConfig(recording=REC, signals=signals), rec, map_sha256="", run_id="t", producer="source")
+        states = [(stamp, r.outputs.get("signal_state")) for stamp, r in player]
+        if not signals:
+            assert all(s is None for _, s in states)
+            continue
+        assert all(isinstance(s, SignalState) and len(s) == 36 and s.header.stamp_ns == stamp for stamp, s in states)
+        by_time = {stamp // 100_000_000: s for stamp, s in states}
+        assert by_time[915].phase_of(GROUP)[0] is SignalPhase.RED  # 91.5 s
+        assert by_time[922].phase_of(GROUP)[0] is SignalPhase.RED_AMBER
+        phase, held = by_time[935].phase_of(GROUP)
+        assert phase is SignalPhase.GREEN and held == pytest.approx(0.7)
+        assert SignalState.decode(by_time[935].encode()).phase_of(GROUP)[0] is SignalPhase.GREEN

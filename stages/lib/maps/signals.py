@@ -43,6 +43,7 @@ class SignalMatchConfig:
     on_map_m: float = 8.0
     max_route_lanelets: int = 6
     end_margin_m: float = 2.0  # a foot point this far beyond a lanelet's ends still counts as on it
+    approach_radius_m: float = 8.0  # lanes whose stop point lies this near a stop line share its approach (fallback groups)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -100,6 +101,10 @@ class SignalMap:
     lanes: tuple[LaneMatch, ...]
     projection: Projection
     stops_by_lanelet: dict[int, tuple[LaneMatch, ...]] = field(default_factory=dict)
+    # per stop lanelet: (feeders, group) of every connection of the lanes of its approach, matched or not (an
+    # unmapped lane's connections still say which group controls a movement); feeders: the sink lane's lanelets and
+    # those that lead into them within two successor steps
+    approach: dict[int, tuple[tuple[frozenset, int], ...]] = field(default_factory=dict)
 
     @property
     def matched(self) -> tuple[LaneMatch, ...]:
@@ -120,7 +125,7 @@ class SignalMap:
         out: list[CorridorStop] = []
         for i, lid in enumerate(ids):
             for lane in self.stops_by_lanelet.get(lid, ()):
-                group, by_route = _group_on(lane, ids[i:])
+                group, by_route = _group_on(lane, ids[i:], self.approach.get(lid, ()))
                 if group is None:
                     continue
                 out.append(CorridorStop(float(starts[i] + lane.stop_s_m), group, lane.lane_id, lid, by_route))
@@ -169,8 +174,10 @@ class SignalMap:
         return lines
 
 
-def _group_on(lane: LaneMatch, following: list[int]) -> tuple[int | None, bool]:
-    """The group of the connection whose route the corridor's lanelets (from the stop lanelet on) follow."""
+def _group_on(lane: LaneMatch, following: list[int], approach=()) -> tuple[int | None, bool]:
+    """The group of the connection whose route the corridor's lanelets (from the stop lanelet on) follow; else the
+    group of the approach's connections into a sink lane the corridor reaches (an unmapped lane's, say); else the
+    lane's only group."""
     groups = set()
     for c in lane.connections:
         if c.signal_group is None:
@@ -183,6 +190,9 @@ def _group_on(lane: LaneMatch, following: list[int]) -> tuple[int | None, bool]:
                 groups.add(c.signal_group)  # the corridor ends inside the junction on this route
     if len(groups) == 1:
         return groups.pop(), True
+    reached = {g for feeders, g in approach if any(x in feeders for x in following[1:])}
+    if len(reached) == 1:
+        return reached.pop(), False
     lane_groups = lane.signal_groups
     if len(lane_groups) == 1:
         return lane_groups[0], False
@@ -323,7 +333,27 @@ def match_lanes(
             if m.signal_groups:
                 by_lanelet.setdefault(m.stop_lanelet_id, []).append(m)
         final.append(m)
-    return SignalMap(lanes=tuple(final), projection=projection, stops_by_lanelet={k: tuple(v) for k, v in by_lanelet.items()})
+    approach: dict[int, tuple[tuple[frozenset, int], ...]] = {}
+    by_id = {m.lane_id: m for m in final}
+    for lid, stop_lanes in by_lanelet.items():
+        foot = np.array(stop_lanes[0].stop_xy_m)
+        conns = []
+        for m in final:
+            if not m.ingress or np.hypot(*(m.points_m[0] - foot)) > cfg.approach_radius_m:
+                continue
+            for c in m.connections:
+                sink = by_id.get(c.sink_lane)
+                if c.signal_group is not None and sink is not None and sink.matched:
+                    feeders = set(sink.lanelet_ids)
+                    frontier = set(sink.lanelet_ids)
+                    for _ in range(2):
+                        frontier = {x for f in frontier for x in road_map.predecessors(f)} - feeders
+                        feeders |= frontier
+                    feeders.discard(lid)
+                    conns.append((frozenset(feeders), c.signal_group))
+        approach[lid] = tuple(conns)
+    return SignalMap(lanes=tuple(final), projection=projection, stops_by_lanelet={k: tuple(v) for k, v in by_lanelet.items()},
+                     approach=approach)
 
 
 __all__ = ["ConnectionMatch", "CorridorStop", "LaneMatch", "SignalMap", "SignalMatchConfig", "kml_to_local", "match_lanes"]
