@@ -142,3 +142,26 @@ def test_signals_off_predicts_as_a_recording_without_phases(tmp_path, stop_s, ar
         np.testing.assert_array_equal(off[mode].mean_xy_m, none[mode].mean_xy_m)
         assert not np.array_equal(on[mode].mean_s_m, off[mode].mean_s_m)  # the phases do change the prediction
     assert item_off.belief.vehicles[0].p_stop == item_none.belief.vehicles[0].p_stop
+
+
+def test_iamp_eval_splits_by_signal_and_signals_off_drops_them(tmp_path, stop_s):
+    import json
+
+    from stages.cli import main
+
+    target = stop_s - 2.25 - 0.5
+    a = 100.0 / (2.0 * (target - 17.0))
+    cars = [Car(1, SW_STRAIGHT, 30.0, 2.0, 10.0, ((1.5, 0.0), (10.0 / a, -a), (6.0, 0.0))),  # at red
+            Car(2, SW_STRAIGHT, 94.0, 2.0, 10.0, ((6.0, 0.0),))]  # at green
+    data = signal_recording(tmp_path / "d", cars)
+    on, off = tmp_path / "on.json", tmp_path / "off.json"
+    base = ["eval", "--data", str(data), "--mode", "cv", "corridor_cv", "--no-progress", "--corridor-weights", "uniform"]
+    assert main(base + ["--json", str(on)]) == 0
+    assert main(base + ["--signals", "off", "--json", str(off)]) == 0
+    a_on, a_off = json.loads(on.read_text()), json.loads(off.read_text())
+    split = a_on["modes"]["cv"]["by_signal"]
+    assert set(split) == {"red", "amber", "green", "unknown"}
+    assert split["red"]["windows"] > 0 and split["green"]["windows"] > 0
+    assert sum(v["windows"] for v in split.values()) == a_on["modes"]["cv"]["overall"]["windows"]
+    assert "by_signal" not in a_off["modes"]["cv"]
+    assert a_on["modes"]["cv"]["overall"] == a_off["modes"]["cv"]["overall"]  # the references ignore the signal
