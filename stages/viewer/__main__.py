@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from bus_schemas import CorridorPredictions, CorridorSet, MotionGrid, NodeStats, SceneInfo, TrackFrame
+from bus_schemas import CorridorPredictions, CorridorSet, MotionGrid, NodeStats, SceneInfo, SignalState, TrackFrame
 from stages.runtime import NodeContext, Port, StageSpec, run_stage
 from stages.viewer.config import ViewerConfig
 from stages.viewer.scene import StatsBoard, ViewerApp
@@ -19,6 +19,7 @@ INPUTS = {
     "corridor_set": Port(CorridorSet, latest=True, optional=True),
     "corridor_predictions": Port(CorridorPredictions, latest=True, optional=True),
     "motion_grid": Port(MotionGrid, latest=True, optional=True),
+    "signal_state": Port(SignalState, latest=True, optional=True),  # colours the signalised stop lines (stages.viewer.signals)
     "stats": Port(NodeStats, pattern="_stats/*"),
 }
 OUTPUTS: dict[str, Port] = {}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -84,3 +85,29 @@ def test_source_publishes_signal_state_when_the_recording_has_phases(tmp_path):
         phase, held = by_time[935].phase_of(GROUP)
         assert phase is SignalPhase.GREEN and held == pytest.approx(0.7)
         assert SignalState.decode(by_time[935].encode()).phase_of(GROUP)[0] is SignalPhase.GREEN
+
+
+def test_viewer_colours_stop_lines_by_phase():
+    import bus_schemas as bs
+    from stages.tracks_source.core import file_sha256
+    from stages.viewer.signals import PHASE_COLOURS, UNKNOWN_COLOUR, load_stop_lines, stop_line_segments
+
+    osm = FIXTURE / "maps" / f"{REC}.osm"
+    scene = bs.SceneInfo(
+        header=bs.Header(run_id="t", frame_index=0, stamp_ns=0, producer="t"), scene_id="s", recording=REC, location_id="k733",
+        map_name=osm.name, map_sha256=file_sha256(osm), projection="auto", origin_lat_deg=ORIGIN[0], origin_lon_deg=ORIGIN[1],
+        frame_rate_hz=10.0, speed_limit_mps=13.9, n_frames=1,
+    )
+    lines, problems = load_stop_lines(scene, str(FIXTURE))
+    assert not problems and len(lines) >= 13 and {7, 8} <= {l.group for l in lines}
+    grey = stop_line_segments(lines, None)
+    assert len(grey) == len(lines) and np.all(grey.colours == np.array(UNKNOWN_COLOUR, np.uint8))
+    state = bs.SignalState(header=scene.header, scene_id="s", group_ids=np.array([7, 8], np.int64),
+                           phases=np.array([int(bs.SignalPhase.RED), int(bs.SignalPhase.GREEN)], np.uint8), held_s=np.full(2, np.nan))
+    seg = stop_line_segments(lines, state)
+    for i, line in enumerate(lines):
+        want = {7: PHASE_COLOURS[bs.SignalPhase.RED], 8: PHASE_COLOURS[bs.SignalPhase.GREEN]}.get(line.group, UNKNOWN_COLOUR)
+        assert tuple(seg.colours[i, 0]) == want
+    # a scene without a lane file (the embedded K729 data) has no stop lines
+    other = dataclasses.replace(scene, recording="k729_2022-03-16")
+    assert load_stop_lines(other, None) == ([], ())
