@@ -36,11 +36,25 @@ def ar_model():
     return ARInference(ARInferenceConfig(), producer="test").model
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _stencils():
+    from stages.lib.markov import MarkovGridConfig, load_or_build_stencils
+
+    _STENCILS.append(load_or_build_stencils(MarkovGridConfig()))  # loaded once for every predictor of this module
+    yield
+    _STENCILS.clear()
+
+
+_STENCILS: list = []
+
+
 def _play(data, at_s: float, *, signals: bool = True, modes=MODES, ar_model=None):
     """Predictions of every mode at the frame nearest ``at_s`` (seconds on the recording's clock), and that frame."""
     rec = load_recording(data, RECORDING)
     scene_maps = SceneMaps(data=data)
-    predictors = {m: MarkovPredictor(MarkovPredictionConfig.from_params({"mode": m, "grid_distribution": "point"})) for m in modes}
+    stencils = _STENCILS[0] if _STENCILS else None
+    predictors = {m: MarkovPredictor(MarkovPredictionConfig.from_params({"mode": m, "grid_distribution": "point"}), stencils=stencils)
+                  for m in modes}
     ar = ARInference(ARInferenceConfig(), producer="test", model=ar_model) if "hybrid" in modes else None
     for item in Chain(rec, rec.sequences[0], scene_maps, intentions=IntentionsConfig(), signals=signals):
         profiles = ar.process(item.corridor_set, item.relation_set, item.frame, item.scene)[0] if ar is not None else None
@@ -100,11 +114,11 @@ def test_car_at_green_is_not_slowed(tmp_path, ar_model):
 
 
 def test_queue_at_green_starts(tmp_path, stop_s, ar_model):
-    # two cars stand at the red line from 80 s; green at 92.8 s; each starts after its start-up delay
+    # two cars stand at the red line from 88 s; green at 92.8 s; each starts after its start-up delay
     first_s = stop_s - 2.25 - 0.5
     cars = [
-        Car(1, SW_STRAIGHT, 80.0, first_s, 0.0, ((14.3, 0.0), (6.0, 2.0))),  # starts 1.5 s after green
-        Car(2, SW_STRAIGHT, 80.0, first_s - 7.0, 0.0, ((15.3, 0.0), (5.0, 2.0))),  # one car back: 1 s later
+        Car(1, SW_STRAIGHT, 88.0, first_s, 0.0, ((6.3, 0.0), (6.0, 2.0))),  # starts 1.5 s after green
+        Car(2, SW_STRAIGHT, 88.0, first_s - 7.0, 0.0, ((7.3, 0.0), (5.0, 2.0))),  # one car back: 1 s later
     ]
     data = signal_recording(tmp_path / "queue", cars)
     at = GREEN_ONSET_S + 0.7
@@ -119,7 +133,7 @@ def test_queue_at_green_starts(tmp_path, stop_s, ar_model):
             moved_off = float(np.max(off[mode].mean_s_m[rows_off, -1] - off[mode].mean_s_m[rows_off, 0]))
             assert moved_on > max(2.0, 3.0 * moved_off), (mode, track, moved_on, moved_off)
     # at red the same queue is held still
-    held, item = _play(data, 90.0, ar_model=ar_model)
+    held, item = _play(data, 90.5, ar_model=ar_model)
     assert all(r.signal_phase is SignalPhase.RED for r in _signal_relations(item).values())
     for mode in MODES:
         assert float(np.max(held[mode].mean_s_m[:, -1] - held[mode].mean_s_m[:, 0])) < 0.5, mode
