@@ -155,8 +155,12 @@ class SignalMap:
                              f"  groups {groups}  [{conns}]")
                 lines.append(text)
             else:
-                lines.append(f"lane {l.lane_id:3d} {kind:7s} UNMATCHED share {l.share_matched:.2f}"
-                             f" (groups {','.join(str(g) for g in l.signal_groups) or '-'})")
+                why = ("no car lanelet in its direction on the map" if not math.isfinite(l.mean_distance_m)
+                       else f"dist mean {l.mean_distance_m:.2f} m (> {SignalMatchConfig.max_mean_distance_m:g}: another, unmapped lane)"
+                       if l.mean_distance_m > SignalMatchConfig.max_mean_distance_m
+                       else f"dist mean {l.mean_distance_m:.2f} m but only {l.share_matched:.0%} of it on a lanelet")
+                lines.append(f"lane {l.lane_id:3d} {kind:7s} UNMATCHED share {l.share_matched:.2f}: {why}"
+                             f" (groups {','.join(str(g) for g in l.signal_groups) or '-'}, {len(l.points_m)} points)")
         m = self.matched
         ing = [l for l in self.lanes if l.ingress]
         sig = [l for l in ing if l.signal_groups]
