@@ -20,7 +20,7 @@ from pathlib import Path
 
 from bus_schemas import Corridor, SceneInfo, SignalPhase, SignalState
 from stages.lib.base import Issue
-from stages.lib.datasets.signals import is_lane_file, read_kml_lanes
+from stages.lib.datasets.signals import lane_file_for, read_kml_lanes
 from stages.lib.maps import RoadMap
 from stages.lib.maps.signals import SignalMap, match_lanes
 
@@ -38,11 +38,7 @@ class SignalStops:
         self._maps: dict[str, SignalMap | None] = {}
 
     def lane_file(self, scene: SceneInfo) -> Path | None:
-        folder = self.data_dir / "recorded_trackfiles" / scene.recording
-        if not scene.recording or "/" in scene.recording or "\\" in scene.recording or scene.recording.startswith(".") or not folder.is_dir():
-            return None
-        files = [p for p in sorted(folder.iterdir()) if p.is_file() and is_lane_file(p)]
-        return files[0] if len(files) == 1 else None
+        return lane_file_for(self.data_dir, scene.recording)
 
     def signal_map(self, scene: SceneInfo | None, road_map: RoadMap | None, projection, issues: list[Issue]) -> SignalMap | None:
         if scene is None or road_map is None:

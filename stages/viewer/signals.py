@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -41,15 +40,12 @@ class StopLine:
 
 def load_stop_lines(scene: SceneInfo, data: str | None = None) -> tuple[list[StopLine], tuple[str, ...]]:
     """The scene's signalised stop lines ([] without a lane file), and problems met."""
-    from stages.lib.datasets.signals import is_lane_file, read_kml_lanes
+    from stages.lib.datasets.signals import lane_file_for, read_kml_lanes
     from stages.lib.maps import data_folder, load_map, local_map_file, resolve_projection
     from stages.lib.maps.signals import match_lanes
 
-    folder = data_folder(data) / "recorded_trackfiles" / scene.recording
-    if not scene.recording or "/" in scene.recording or scene.recording.startswith(".") or not folder.is_dir():
-        return [], ()
-    lanes_files = [p for p in sorted(folder.iterdir()) if p.is_file() and is_lane_file(p)]
-    if len(lanes_files) != 1:
+    lane_file = lane_file_for(data_folder(data), scene.recording)
+    if lane_file is None:
         return [], ()
     path, problem = local_map_file(data, scene)
     if path is None:
@@ -57,7 +53,7 @@ def load_stop_lines(scene: SceneInfo, data: str | None = None) -> tuple[list[Sto
     try:
         projection = resolve_projection("auto", scene)
         road_map, _ = load_map(path, scene.origin_lat_deg, scene.origin_lon_deg, projection)
-        smap = match_lanes(road_map, read_kml_lanes(Path(lanes_files[0])), projection, scene.origin_lat_deg, scene.origin_lon_deg)
+        smap = match_lanes(road_map, read_kml_lanes(lane_file), projection, scene.origin_lat_deg, scene.origin_lon_deg)
     except Exception as exc:  # noqa: BLE001 - no stop lines, once per scene
         return [], (f"stop lines not drawn: {type(exc).__name__}: {exc}",)
     out: list[StopLine] = []

@@ -89,3 +89,11 @@ def test_recording_folder_gets_its_signal_side(tmp_path):
     assert rec.signal_phases is not None and len(rec.signal_phases.group_ids) == 36
     assert rec.kml_lanes is not None and len(rec.kml_lanes.lanes) == 44
     assert not rec.report.ignored_files and rec.report.rows_read == 10
+
+
+def test_lane_file_is_looked_up_by_plain_recording_name_only():
+    from stages.lib.datasets.signals import lane_file_for
+
+    assert lane_file_for(FIXTURE, REC) == REC_DIR / "k733_map.kml"
+    for hostile in ("..", "../taf_bw_signals/recorded_trackfiles/" + REC, "/etc", "", ".hidden", "a/b"):
+        assert lane_file_for(FIXTURE, hostile) is None

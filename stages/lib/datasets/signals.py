@@ -57,6 +57,28 @@ BAD_LANE = "bad_lane"
 BAD_CONNECTION = "bad_connection"
 
 
+_RECORDING_NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,199}")
+MAX_LANE_FILE_BYTES = 16 * 1024 * 1024
+
+
+def lane_file_for(data_dir: Path, recording: str) -> Path | None:
+    """The one ``*.kml`` lane file of ``<data_dir>/recorded_trackfiles/<recording>/``, or None.
+
+    ``recording`` comes from the bus (``SceneInfo.recording``): only a plain
+    folder name is looked up (no path, no ``..``), inside the stage's own
+    data folder, and a file over ``MAX_LANE_FILE_BYTES`` is not read.
+    """
+    if not isinstance(recording, str) or not _RECORDING_NAME_RE.fullmatch(recording) or ".." in recording:
+        return None
+    folder = Path(data_dir) / "recorded_trackfiles" / recording
+    if not folder.is_dir():
+        return None
+    files = [p for p in sorted(folder.iterdir()) if p.is_file() and is_lane_file(p)]
+    if len(files) != 1 or files[0].stat().st_size > MAX_LANE_FILE_BYTES:
+        return None
+    return files[0]
+
+
 def is_signal_file(path: Path) -> bool:
     return SIGNAL_FILE_RE.match(path.name) is not None
 
@@ -310,6 +332,7 @@ __all__ = [
     "SignalPhases",
     "UNKNOWN_MOVEMENT_STATE",
     "is_lane_file",
+    "lane_file_for",
     "is_signal_file",
     "read_kml_lanes",
     "read_signal_phases",
