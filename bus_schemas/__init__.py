@@ -16,6 +16,7 @@ from .predictions import CorridorPrediction, CorridorPredictions, GridStep, Moti
 from .infra import NodeStats, Progress
 from .intentions import CorridorBelief, IntentionBelief, Manoeuvre, VehicleBelief
 from .tracks import SceneInfo, TrackFrame
+from .signals import SignalPhase, SignalState
 
 decode = decode_any
 
@@ -49,6 +50,8 @@ __all__ = [
     "Progress",
     "SceneInfo",
     "SchemaError",
+    "SignalPhase",
+    "SignalState",
     "TrackFrame",
     "UnknownSchema",
     "VEHICLE_TYPE_VALUES",

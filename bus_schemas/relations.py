@@ -10,6 +10,7 @@ import numpy as np
 
 from ._wire import Array, Message, Range, register
 from .common import COORD_OR_NAN, DIST_OR_NAN, INT64_MAX, NON_NEG_INT, VEL_OR_NAN, Header
+from .signals import HELD_S, SignalPhase
 
 
 class ConflictKind(enum.IntEnum):
@@ -58,6 +59,14 @@ class CorridorRelations:
     ``influencing_*`` is the one conflict (index into the arrays, -1 if none)
     that the rules chose to influence this corridor, and ``influencing_rule``
     says which rule chose it.
+
+    Corridor to signal (v2): the next signalised stop line on the corridor
+    that the vehicle's front has not passed: its ``signal_group`` (-1: none,
+    or the scene has no lane file), its arc length ``signal_stop_s_m``, the
+    distance from the vehicle's centre to it ``signal_distance_m`` (NaN: no
+    stop line), the group's ``signal_phase`` at this stamp (UNKNOWN when no
+    ``SignalState`` of about this stamp was received) and how long it has
+    shown it, ``signal_held_s`` (NaN: unknown).
     """
 
     track_id: Annotated[int, NON_NEG_INT]
@@ -91,15 +100,23 @@ class CorridorRelations:
     conflict_priority: I8_C
     influencing_index: Annotated[int, ID_OR_NONE]
     influencing_rule: str
+    signal_group: Annotated[int, ID_OR_NONE] = -1
+    signal_stop_s_m: Annotated[float, DIST_OR_NAN] = float("nan")
+    signal_distance_m: Annotated[float, DIST_OR_NAN] = float("nan")
+    signal_phase: SignalPhase = SignalPhase.UNKNOWN
+    signal_held_s: Annotated[float, HELD_S] = float("nan")
 
 
 @register
 @dataclass(frozen=True, slots=True, kw_only=True, eq=False)
 class RelationSet(Message):
-    """Relations of every (vehicle, corridor) pair of one frame."""
+    """Relations of every (vehicle, corridor) pair of one frame.
+
+    v2: each pair's next signalised stop line (``signal_*``).
+    """
 
     SCHEMA: ClassVar[str] = "iamp.RelationSet"
-    VERSION: ClassVar[int] = 1
+    VERSION: ClassVar[int] = 2
     # measured about 1 kB per (vehicle, corridor) pair with <= 5 objects; the arrays grow with objects and conflicts
     MAX_BYTES: ClassVar[int] = 8 * 1024 * 1024
     # a pair's relations with a value out of range are dropped (recorded): the pair has none at this stamp

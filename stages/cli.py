@@ -12,6 +12,8 @@
                                                            offline metrics of the prediction modes
     iamp train [--data PATH] [--recording NAME...] [--split S] [--hidden N] [--out FILE] [--json FILE]
                                                            train the AR acceleration model
+    iamp signals --data DIR --recording NAME [--map FILE.osm] [--figure FILE.png] [--json FILE]
+                                                           match a KML lane file to the map: report, figure
 
 Exit codes: 0 success, 1 crash, 2 bad command line, configuration or file.
 Only ``record`` and ``replay`` open a Zenoh session.
@@ -144,6 +146,20 @@ def _run_eval(args: argparse.Namespace) -> int:
     return run_cli(args)
 
 
+def _add_signals(sub: "argparse._SubParsersAction") -> None:
+    from stages.offline.signals import add_arguments
+
+    p = sub.add_parser("signals", help="match a recording's KML lane file to its map: report and figure of the signalised stop lines")
+    add_arguments(p)
+    p.set_defaults(run=_run_signals)
+
+
+def _run_signals(args: argparse.Namespace) -> int:
+    from stages.offline.signals import run_cli
+
+    return run_cli(args)
+
+
 def _add_train(sub: "argparse._SubParsersAction") -> None:
     from stages.offline.train.cli import add_arguments
 
@@ -171,6 +187,7 @@ SUBCOMMANDS: list[Callable[["argparse._SubParsersAction"], None]] = [
     _add_export,
     _add_eval,
     _add_train,
+    _add_signals,
 ]
 
 

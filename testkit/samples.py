@@ -147,11 +147,26 @@ def relation_set() -> bs.RelationSet:
         conflict_priority=np.array([-1], dtype=np.int8),
         influencing_index=0,
         influencing_rule="priority_other",
+        signal_group=4,
+        signal_stop_s_m=27.5,
+        signal_distance_m=26.75,
+        signal_phase=bs.SignalPhase.RED,
+        signal_held_s=12.5,
     )
     return bs.RelationSet(header=header(), scene_id="0123456789abcdef", relations=(rel,))
 
 
-SAMPLES.update({"iamp.CorridorSet": corridor_set, "iamp.RelationSet": relation_set})
+def signal_state() -> bs.SignalState:
+    return bs.SignalState(
+        header=header(),
+        scene_id="0123456789abcdef",
+        group_ids=np.array([1, 2, 4, 9], dtype=np.int64),
+        phases=np.array([1, 3, 4, 5], dtype=np.uint8),
+        held_s=np.array([12.5, 0.25, np.nan, 3.0]),
+    )
+
+
+SAMPLES.update({"iamp.CorridorSet": corridor_set, "iamp.RelationSet": relation_set, "iamp.SignalState": signal_state})
 
 
 def corridor_predictions() -> bs.CorridorPredictions:

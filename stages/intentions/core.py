@@ -34,6 +34,7 @@ from stages.lib.maps import DEFAULT_SPEED_LIMIT_MPS, Projection, RoadMap, SceneM
 
 from stages.intentions import model
 from stages.intentions.model import ModelParams, Particles
+from stages.intentions.signals import with_signals
 from stages.intentions.tables import PairTables, VehicleInput, build_tables, common_run, corridor_manoeuvre, corridor_ok, lanelet_shift_m, map_corridors
 
 _NS = 1e-9
@@ -265,6 +266,7 @@ class IntentionFilter:
                 default_speed_limit_mps=scene.speed_limit_mps if scene is not None and scene.speed_limit_mps > 0 else DEFAULT_SPEED_LIMIT_MPS,
                 stop_offset_m=cfg.stop_offset_m,
             )
+            tables = with_signals(tables, sub, relations)  # unchanged without signal phases
             particles, ess = self._filter(frame.header.frame_index, stamp, sub, [measurements[i] for i in idx], tables, found)
             return sub, particles, self._beliefs(sub, tables, particles, ess, road_map), found
 

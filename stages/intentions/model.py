@@ -15,6 +15,7 @@ import numpy as np
 from stages.lib.maps import wrap_angle_rad
 
 from stages.intentions.tables import PairTables
+from stages.intentions.signals import combine, signal_stop_probability
 
 REFERENCE_STEP_S = 0.1
 """The step the per-step probabilities and noises of docs/method.md §7 are stated for (10 Hz)."""
@@ -109,7 +110,10 @@ def expected_stop(tables: PairTables, g: np.ndarray, s_m: np.ndarray, v_mps: np.
     gap = np.where(valid, tables.conflict_other_time_s[g], 0.0) - t_ego
     p_conflict = _sigmoid((gap + mp.gap_pass_s) / mp.gap_scale_s) * (1.0 - _sigmoid((gap - mp.gap_critical_s) / mp.gap_scale_s))
     factor = np.where(valid, 1.0 - tables.conflict_weight[g] * p_conflict, 1.0)
-    return 1.0 - np.prod(factor, axis=-1)
+    p_e = 1.0 - np.prod(factor, axis=-1)
+    if getattr(tables, "signal_line_s_m", None) is None:  # no signal phases: the conflicts alone, as before issue 17
+        return p_e
+    return combine(p_e, signal_stop_probability(tables, g, s_m, v_mps))
 
 
 def switch_routes(p: Particles, tables: PairTables, first_pair: np.ndarray, dt_s: np.ndarray, u_switch, u_choice, mp: ModelParams) -> None:

@@ -119,6 +119,8 @@ class PairTables:
     conflict_s_m: np.ndarray  # (G, C) conflict points with priority corridors, NaN padding
     conflict_other_time_s: np.ndarray  # (G, C)
     conflict_weight: np.ndarray  # (G, C) P(R = the other corridor), 0 padding
+    signal_line_s_m: np.ndarray | None = None  # (G,) next signalised stop line, NaN if none; None: no signal fields (stages.intentions.signals)
+    signal_phase: np.ndarray | None = None  # (G,) uint8 SignalPhase of its group
 
     @property
     def n_pairs(self) -> int:

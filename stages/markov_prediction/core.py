@@ -47,6 +47,7 @@ from stages.markov_prediction.modes.base import InputModel, Messages, Pair, Vehi
 from stages.markov_prediction.modes.corridor_cv import constant_speed
 from stages.markov_prediction.modes.cv import CV_LINE_ID
 from stages.markov_prediction.rasterise import Footprints, GridFrame, SparseGrid, cell_footprints, fuse, lateral_kernel, vehicle_grid
+from stages.markov_prediction.signals import apply_signals, stop_line_wall
 
 __all__ = ["CV_LINE_ID", "FramePrediction", "MarkovPredictor", "PairInfo"]
 
@@ -297,6 +298,7 @@ class MarkovPredictor:
                     issues.append(Issue("unknown_corridor", key[0], f"relation for corridor {key[1]}, which has no prediction: ignored"))
             else:
                 pair.relation = relation
+        self._signal_walls = apply_signals(self, pairs, issues)  # stages.markov_prediction.signals: nothing without signal phases
         prediction = self._predict(pairs, issues)
         over = prediction.grid_cells_over_cap()
         if over:
@@ -629,6 +631,7 @@ class MarkovPredictor:
             if interval is not None:
                 interval = interval.copy()
                 interval[m] = mixed[2]
+        pos, vel, interval, outside = stop_line_wall(pairs, getattr(self, "_signal_walls", {}), cfg.ds_m, pos, vel, interval, outside)
         return {"position": pos, "interval": interval, "velocity": vel, "outside": outside, "exact_s": None}
 
     def measured_inputs(self, pairs: list[Pair]) -> np.ndarray:

@@ -20,6 +20,10 @@ reported there and the frame goes on without that output: no corridors, then
 no relations and beliefs either (``corridor_set`` None); no relations, the
 intentions still run (``relation_set`` None); no beliefs (``belief`` None).
 
+Signals: when the recording has signal phases the player's ``SignalState``
+goes to the relations core (``signals=False``: played without them, as a
+recording without phases) and rides along in ``ChainFrame.signal_state``.
+
 ``chain_frames`` plays a whole sequence into a list; ``with_beliefs`` runs a
 fresh ``IntentionFilter`` over such a list (the intentions evaluation runs
 it once per seed over the same frames).
@@ -32,7 +36,7 @@ import time
 from dataclasses import dataclass
 from typing import Callable, Iterator, Sequence
 
-from bus_schemas import CorridorSet, IntentionBelief, RelationSet, SceneInfo, TrackFrame
+from bus_schemas import CorridorSet, IntentionBelief, RelationSet, SceneInfo, SignalState, TrackFrame
 from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
 from stages.intentions import IntentionFilter, IntentionsConfig
 from stages.lib.datasets import DatasetError, Recording
@@ -60,6 +64,7 @@ class ChainFrame:
     index: int = 0
     stamp_ns: int = 0
     intentions_ms: float | None = None
+    signal_state: SignalState | None = None  # the source's SignalState of this frame (None: no phases, or signals off)
 
 
 class Chain:
@@ -79,6 +84,7 @@ class Chain:
         producer: str = "offline",
         corridors_config: CorridorsConfig | None = None,
         relations_config: RelationsConfig | None = None,
+        signals: bool = True,
     ) -> None:
         self.recording = recording
         self.sequence = sequence
@@ -88,7 +94,7 @@ class Chain:
         if map_sha256 is None:
             map_sha256 = file_sha256(recording.map_path) if recording.map_path is not None else ""
         one = dataclasses.replace(recording, sequences=(sequence,))
-        self.player = TrackPlayer(TracksSourceConfig(recording=recording.name), one, map_sha256=map_sha256, run_id=run_id, producer="source")
+        self.player = TrackPlayer(TracksSourceConfig(recording=recording.name, signals=signals), one, map_sha256=map_sha256, run_id=run_id, producer="source")
         self.corridors = CorridorBuilder(corridors_config or CorridorsConfig(), scene_maps=scene_maps)
         self.relations = RelationExtractor(relations_config or RelationsConfig(), scene_maps=scene_maps)
         self.intentions = IntentionFilter(intentions, producer=producer, scene_maps=scene_maps) if intentions is not None else None
@@ -108,16 +114,18 @@ class Chain:
                 scene = result.outputs["scene"]
                 self._check_map(scene)
             frame: TrackFrame = result.outputs["track_frame"]
+            signal_state = result.outputs.get("signal_state")
             where = f"{self.recording.name} sequence {self.sequence.id} stamp_ns {stamp}"
             corridor_set = self._run("corridors", where, lambda: self.corridors.process(frame, scene))
             relation_set = belief = ms = None
             if corridor_set is not None:
-                relation_set = self._run("relations", where, lambda: self.relations.process(frame, corridor_set, scene))
+                relation_set = self._run("relations", where, lambda: self.relations.process(frame, corridor_set, scene, signal_state=signal_state))
                 if self.intentions is not None:
                     t0 = time.perf_counter()
                     belief = self._run("intentions", where, lambda: self.intentions.process(frame, corridor_set, relation_set, scene))
                     ms = (time.perf_counter() - t0) * 1e3
-            yield ChainFrame(frame, corridor_set, relation_set, scene, belief, index=n, stamp_ns=int(stamp), intentions_ms=ms)
+            yield ChainFrame(frame, corridor_set, relation_set, scene, belief, index=n, stamp_ns=int(stamp), intentions_ms=ms,
+                             signal_state=signal_state)
 
     def _check_map(self, scene: SceneInfo) -> None:
         scene_map = self.scene_maps.get(scene, self.corridors.config.projection)

@@ -166,6 +166,7 @@ from stages.offline.truth import (
     route_credit,
     route_decision,
 )
+from stages.offline.signal_split import SIGNAL_KEYS, signal_keys
 from stages.tracks_source.core import file_sha256
 from stages.offline.situations import Situation, whole_recordings
 
@@ -202,6 +203,7 @@ class EvalConfig:
     model_path: Path | None = None
     seed: int = 0
     situations: tuple[Situation, ...] = ()  # empty: every recording is one situation
+    signals: bool = True  # play recordings with their signal phases (False: --signals off, as without them)
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.modes if m not in EVAL_MODES]
@@ -356,6 +358,7 @@ class _ModeAccumulator:
     situation_ms: dict[str, list] = field(default_factory=lambda: collections.defaultdict(list))  # per situation: time per step
     nan_means: int = 0
     issues: collections.Counter = field(default_factory=collections.Counter)  # the predictor's issues by kind
+    by_signal: dict[str, _Stats] = field(default_factory=lambda: {k: _Stats() for k in SIGNAL_KEYS})  # stages.offline.signal_split
 
 
 @dataclass(slots=True)
@@ -424,6 +427,7 @@ class Evaluation:
         self.skip_examples: dict[str, str] = {}  # per reason, the first occurrence (printed under the table)
         self.instants = 0
         self.figures: dict[str, _Figure] = {}  # per recording: the instant with the most windows
+        self.signal_split = False  # some window had signal phases (by_signal in the report)
         self.recordings: list[str] = []
         self.situations: tuple[Situation, ...] = tuple(config.situations)
         self.situation_seen: dict[str, dict[str, Any]] = {}  # per situation: vehicles seen, frames played, frame period
@@ -492,7 +496,7 @@ class Evaluation:
         chain = Chain(
             rec, seq, self.scene_maps, intentions=self.intentions_config if needs_belief else None, max_frames=cfg.max_frames_per_sequence,
             map_sha256=map_sha256, on_error=lambda stage, where, exc: self._skip(f"{stage}_error_frames", f"{where}: {type(exc).__name__}: {exc}"),
-            run_id="eval", producer="eval",
+            run_id="eval", producer="eval", signals=cfg.signals,
         )
         ar = None
         if self.ar_config is not None:
@@ -540,8 +544,12 @@ class Evaluation:
                                           lambda: ar.process(corridor_set, relation_set, frame, scene)) or (None,))[0]
                 ar_ms = (time.perf_counter() - t0) * 1e3
                 self.ar_ms.append(ar_ms)
+            keys = None
+            if item.signal_state is not None:  # the recording has phases: the window's signal state at its start
+                self.signal_split = True
+                keys = signal_keys(relation_set, belief)
             self._instant(rec.name, seq.id, stamp, frame, corridor_set, relation_set, scene, truth, tau_ns, n_steps, belief, profiles,
-                          situations=inside, ar_ms=ar_ms)
+                          situations=inside, ar_ms=ar_ms, signal_keys=keys)
 
     def _guarded(self, reason: str, where: str, call):
         """``call()``, or None when it raises: a core failing on one frame is counted under ``reason``, not fatal."""
@@ -552,7 +560,8 @@ class Evaluation:
             return None
 
     def _instant(self, recording, sequence_id, stamp, frame, corridor_set: CorridorSet, relation_set: RelationSet | None,
-                 scene, truth, tau_ns, n_steps, belief=None, profiles=None, situations=(), ar_ms: float = 0.0) -> None:
+                 scene, truth, tau_ns, n_steps, belief=None, profiles=None, situations=(), ar_ms: float = 0.0,
+                 signal_keys=None) -> None:
         self.instants += 1
         windows: dict[int, tuple[np.ndarray, float]] = {}
         manoeuvres: dict[int, tuple[str, np.ndarray]] = {}  # per window: the true future's class, its along-track directions
@@ -619,6 +628,8 @@ class Evaluation:
                 scores[mode].append(result)
                 manoeuvre, directions = manoeuvres[track_id]
                 acc.by_manoeuvre[manoeuvre].add(result)
+                if signal_keys is not None:
+                    acc.by_signal[signal_keys.get(track_id, "unknown")].add(result)
                 if result.error_xy is not None:
                     along, cross = _along_cross(result.error_xy[self.track_steps], directions[self.track_steps])
                     acc.track_overall.add(along, cross)
@@ -747,6 +758,8 @@ class Evaluation:
                     "time_per_step_ms": float(np.mean(ms)) if ms else float("nan"),
                     "instants": len(ms),
                 }
+            if self.signal_split:
+                modes[mode]["by_signal"] = {k: acc.by_signal[k].summary() for k in SIGNAL_KEYS}
             if mode == "hybrid" and self.ar_ms:
                 modes[mode]["ar_inference_ms_median"] = float(np.median(self.ar_ms))
                 modes[mode]["ar_inference_ms_p95"] = float(np.percentile(self.ar_ms, 95))
@@ -948,7 +961,21 @@ def format_table(report: dict[str, Any]) -> str:
         line = disagreement_line(Consistency(**figures), EstimatorConfig())
         if line is not None:
             lines.append(f"{name}: {line}")
+    lines += _signal_table(report)
     return "\n".join(lines)
+
+
+def _signal_table(report: dict[str, Any]) -> list[str]:
+    """mADE / windows per signal state at the window start (recordings with signal phases only)."""
+    modes = report["modes"]
+    if not modes or not all("by_signal" in res for res in modes.values()):
+        return []
+    lines = ["", "by signal state at the window start (the car's group): mADE m (windows)",
+             f"{'mode':<12} " + " ".join(f"{k:>16}" for k in SIGNAL_KEYS)]
+    for mode, res in modes.items():
+        cells = [f"{res['by_signal'][k]['mADE_m']:>7.2f} ({res['by_signal'][k]['windows']:>5d})" for k in SIGNAL_KEYS]
+        lines.append(f"{mode:<12} " + " ".join(f"{c:>16}" for c in cells))
+    return lines
 
 
 _SHORT = {"stands": "stands", "turns": "turns", "brakes": "brakes", "accelerates": "accel", "keeps_speed": "keeps"}
@@ -1009,6 +1036,8 @@ def add_arguments(parser) -> None:
                         help="markov_prediction parameter for every mode (JSON value), e.g. --set speed_limit_factor=1.1")
     parser.add_argument("--set-ar", action="append", default=[], metavar="KEY=VALUE",
                         help="ar_inference parameter (JSON value), e.g. --set-ar sigma_scale=1.5")
+    parser.add_argument("--signals", choices=["on", "off"], default="on",
+                        help="play the recordings' signal phases (default on; off: as if they had none; only recordings with phases change)")
     parser.add_argument("--set-intentions", action="append", default=[], metavar="KEY=VALUE",
                         help="intentions parameter (JSON value), e.g. --set-intentions particles_per_vehicle=1000")
 
@@ -1038,6 +1067,7 @@ def run_cli(args) -> int:
             device=args.device,
             progress=not args.no_progress,
             figures_dir=args.figures,
+            signals=args.signals == "on",
         )
         evaluation = Evaluation(config)
         report = evaluation.run()

@@ -409,3 +409,52 @@ __all__ = [
     "MODE_COLOURS", "accel_figure", "comparison_figure", "draw_boxes", "draw_lanelets", "grid_figure", "horizon_figure",
     "manoeuvre_figure", "mode_colour", "mode_label", "reliability_figure", "road_polygons", "save", "timing_figure", "vehicle_boxes",
 ]
+
+
+def signal_map_figure(smap, road_map, title: str) -> Figure:
+    """The map with the KML lanes (``stages.lib.maps.signals.SignalMap``) and the matched stop lines coloured by signal group."""
+    fig = new_figure((11, 10))
+    fig.set_dpi(110)
+    ax = fig.add_subplot()
+    for lid in road_map.lanelet_ids:
+        info = road_map.lanelet(lid)
+        poly = np.vstack([info.left_bound_m, info.right_bound_m[::-1]])
+        ax.fill(poly[:, 0], poly[:, 1], color="0.9", ec="0.6", lw=0.4, zorder=1)
+        c = info.centreline.points_m
+        ax.plot(c[:, 0], c[:, 1], color="0.75", lw=0.5, zorder=2)
+    cmap = matplotlib.colormaps["tab20"]
+    groups = smap.signal_groups
+    colour = {g: cmap(i % 20) for i, g in enumerate(groups)}
+    for lane in smap.lanes:
+        p = lane.points_m
+        style = dict(color="0.35", lw=0.9, zorder=3) if lane.matched else dict(color="tab:red", lw=0.9, ls="--", zorder=3)
+        ax.plot(p[:, 0], p[:, 1], **style)
+        ax.annotate(f"{lane.lane_id}", p[0], fontsize=6, color=style["color"], zorder=6)
+    for lane in smap.matched:
+        if not lane.signalised or lane.stop_lanelet_id is None:
+            continue
+        info = road_map.lanelet(lane.stop_lanelet_id)
+        c = info.centreline
+        xy = c.to_xy(lane.stop_s_m)[0]
+        h = float(c.heading_at(lane.stop_s_m))
+        half = 0.5 * info.width_m
+        nx, ny = -math.sin(h) * half, math.cos(h) * half
+        gs = lane.signal_groups
+        for k, g in enumerate(gs):  # a lane with two groups: the line split in two colours
+            a, b = -1 + 2 * k / len(gs), -1 + 2 * (k + 1) / len(gs)
+            ax.plot([xy[0] + a * nx, xy[0] + b * nx], [xy[1] + a * ny, xy[1] + b * ny], color=colour[g], lw=4, solid_capstyle="butt", zorder=5)
+        ax.annotate("g" + "/".join(str(g) for g in gs), (xy[0] + nx, xy[1] + ny), fontsize=7, zorder=7,
+                    xytext=(2, 2), textcoords="offset points")
+    handles = [Line2D([], [], color=colour[g], lw=4, label=f"group {g}") for g in groups]
+    handles += [Line2D([], [], color="0.35", lw=1, label="KML lane (matched)"),
+                Line2D([], [], color="tab:red", lw=1, ls="--", label="KML lane (unmatched)")]
+    ax.legend(handles=handles, fontsize=7, loc="upper left", ncol=2)
+    allp = np.vstack([road_map.lanelet(x).centreline.points_m for x in road_map.lanelet_ids])
+    lo, hi = allp.min(axis=0) - 10, allp.max(axis=0) + 10
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_aspect("equal")
+    ax.set_xlabel("x east (m)")
+    ax.set_ylabel("y north (m)")
+    ax.set_title(title, fontsize=9)
+    return fig

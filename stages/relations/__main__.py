@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
-from bus_schemas import CorridorSet, RelationSet, SceneInfo, TrackFrame
+from bus_schemas import CorridorSet, RelationSet, SceneInfo, SignalState, TrackFrame
 from stages.relations.core import RelationExtractor, RelationsConfig
 from stages.runtime import NodeContext, Port, StageSpec, run_stage
 
-INPUTS = {"track_frame": Port(TrackFrame), "corridor_set": Port(CorridorSet), "scene": Port(SceneInfo, latched=True)}
+INPUTS = {
+    "track_frame": Port(TrackFrame),
+    "corridor_set": Port(CorridorSet),
+    "scene": Port(SceneInfo, latched=True),
+    "signal_state": Port(SignalState, latest=True, optional=True),  # not joined: the newest, used when within 0.5 s
+}
 OUTPUTS = {"relation_set": Port(RelationSet)}
 
 

@@ -6,6 +6,7 @@ wall clock.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Mapping
@@ -21,6 +22,7 @@ from bus_schemas import (
     Header,
     RelationSet,
     SceneInfo,
+    SignalState,
     TrackFrame,
     VehicleCorridors,
 )
@@ -31,6 +33,7 @@ from stages.lib.maps import ConflictKind as MapConflictKind
 from stages.lib.maps import Projection, RoadMap, SceneMap, SceneMaps, parse_projection, project_to_polyline, shown_map_name, wrap_angle_rad
 
 from stages.lib.influence import NO_INFLUENCE, choose_influencing
+from stages.relations.signals import SignalStops
 
 _KIND_ON_BUS = {MapConflictKind.CROSSING: ConflictKind.CROSSING, MapConflictKind.MERGE: ConflictKind.MERGE}
 
@@ -236,6 +239,7 @@ class RelationExtractor:
         self._tables: SceneTables | None = None
         self._centre_of: object = False  # the road map whose centre `_centre` is (False: none yet)
         self._centre: np.ndarray | None = None
+        self.signals = SignalStops(self.scene_maps.data_dir)
 
     @property
     def tables(self) -> SceneTables | None:
@@ -252,7 +256,11 @@ class RelationExtractor:
         if not isinstance(frame, TrackFrame) or not isinstance(corridor_set, CorridorSet):
             missing = [n for n, v in (("track_frame", frame), ("corridor_set", corridor_set)) if v is None]
             return StageResult(issues=[Issue("no_input", -1, f"update without {', '.join(missing) or 'the right types'}")])
-        relation_set, issues = self.process(frame, corridor_set, scene if isinstance(scene, SceneInfo) else None)
+        signal_state = inputs.get("signal_state")
+        relation_set, issues = self.process(
+            frame, corridor_set, scene if isinstance(scene, SceneInfo) else None,
+            signal_state=signal_state if isinstance(signal_state, SignalState) else None,
+        )
         outputs = {"relation_set": relation_set} if relation_set is not None else {}
         return StageResult(outputs=outputs, issues=issues)
 
@@ -263,12 +271,14 @@ class RelationExtractor:
         scene: SceneInfo | None,
         *,
         route_probabilities: Mapping[tuple[int, int], float] | None = None,
+        signal_state: SignalState | None = None,
     ) -> tuple[RelationSet | None, list[Issue]]:
         """The pure function behind `update`: (output, issues); output None on a stamp mismatch.
 
         `route_probabilities` maps (track_id, corridor_id) to P(R = corridor)
         from the intentions; when given, the influencing rule skips other
-        corridors below `min_route_probability`.
+        corridors below `min_route_probability`. `signal_state` gives the
+        phases of the scene's signal groups (``stages.relations.signals``).
         """
         issues: list[Issue] = []
         stamp = int(frame.header.stamp_ns)
@@ -295,6 +305,8 @@ class RelationExtractor:
             except Exception as exc:  # noqa: BLE001 - the lateral and intersection relations are still published
                 issues.append(Issue("conflicts_failed", -1, f"{type(exc).__name__}: {exc}: no conflict points this frame"))
         relations = []
+        smap = self._signal_map(scene, issues)
+        state = self.signals.usable_state(signal_state, stamp, issues) if smap is not None else None
         starts = np.searchsorted(conflicts.g, np.arange(len(pairs) + 1)) if conflicts is not None else None
         projected = _project_onto_corridors(objects.xy[objects.valid], pairs, self._reach(pairs)) if pairs else None
         for pair in pairs:
@@ -302,12 +314,24 @@ class RelationExtractor:
                 lateral = self._lateral(pair, objects, projected)
                 crossings = self._intersections(pair, tables)
                 span = slice(starts[pair.g], starts[pair.g + 1]) if starts is not None else slice(0, 0)
-                relations.append(self._relations(pair, pairs, objects, lateral, crossings, conflicts, span, route_probabilities))
+                rel = self._relations(pair, pairs, objects, lateral, crossings, conflicts, span, route_probabilities)
+                relations.append(self._with_signal(rel, pair, smap, state))
             except Exception as exc:  # noqa: BLE001 - one pair's failure costs only its relation
                 issues.append(Issue("pair_failed", pair.vehicle.track_id, f"corridor {pair.corridor.corridor_id}: {type(exc).__name__}: {exc}: no relation"))
         header = Header(run_id=frame.header.run_id, frame_index=frame.header.frame_index, stamp_ns=stamp, producer=self.producer)
         scene_id = scene.scene_id if scene is not None else corridor_set.scene_id
         return RelationSet(header=header, scene_id=scene_id, relations=tuple(relations)), issues
+
+    # ----- signals (RelationSet v2) ---------------------------------------------
+
+    def _signal_map(self, scene: SceneInfo | None, issues: list[Issue]):
+        road_map = self._map.road_map if self._map is not None and self._tables is not None else None
+        projection = self._map.projection if self._map is not None else None
+        return self.signals.signal_map(scene, road_map, projection, issues)
+
+    def _with_signal(self, rel: CorridorRelations, pair: _Pair, smap, state: SignalState | None) -> CorridorRelations:
+        fields = self.signals.fields(smap, pair.corridor, pair.length_m, state)
+        return dataclasses.replace(rel, **fields) if fields else rel
 
     # ----- scene -------------------------------------------------------------
 

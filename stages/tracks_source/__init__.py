@@ -2,7 +2,10 @@
 
 Consumes nothing. Produces ``scene`` (``SceneInfo``, latched: with the first
 frame, and again whenever the scene changes between sequences) and
-``track_frame`` (``TrackFrame``: every object of one recorded frame).
+``track_frame`` (``TrackFrame``: every object of one recorded frame) and,
+when the recording has signal phases (``signal_phases_NNN.csv``) and
+``signals`` is on, ``signal_state`` (``SignalState``: every group's phase at
+the frame's stamp, read at the sequence's own time).
 
 Parameters (``TracksSourceConfig``):
 
@@ -15,6 +18,8 @@ Parameters (``TracksSourceConfig``):
 - ``speed``: playback rate relative to recording time (> 0), or ``"max"``
   (as fast as every live node keeps up); the runtime paces by it.
 - ``loop``: start over after the last sequence.
+- ``signals`` True: publish ``signal_state`` when the recording has phases;
+  False plays the same recording without them (for comparisons).
 - ``projection``: passed through to ``SceneInfo`` (``stages.lib.maps`` decides
   what ``"auto"`` resolves to for a location).
 

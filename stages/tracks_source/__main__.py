@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from bus_schemas import SceneInfo, TrackFrame
+from bus_schemas import SceneInfo, SignalState, TrackFrame
 from stages.runtime import NodeContext, Port, StageSpec, run_stage
 from stages.tracks_source.core import TrackPlayer, TracksSourceConfig
 
 INPUTS: dict[str, Port] = {}
-OUTPUTS = {"scene": Port(SceneInfo, latched=True), "track_frame": Port(TrackFrame)}
+OUTPUTS = {"scene": Port(SceneInfo, latched=True), "track_frame": Port(TrackFrame), "signal_state": Port(SignalState)}
 
 
 def make_core(config: TracksSourceConfig, ctx: NodeContext) -> TrackPlayer:

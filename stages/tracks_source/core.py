@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
-from bus_schemas import Header, SceneInfo, TrackFrame
+from bus_schemas import Header, SceneInfo, SignalState, TrackFrame
 
 from stages.lib.base import ConfigMixin, Issue, StageResult
 from stages.lib.datasets import (
@@ -36,6 +36,7 @@ class TracksSourceConfig(ConfigMixin):
     speed: float | str = 1.0
     loop: bool = False
     projection: str = "auto"
+    signals: bool = True  # publish signal_state when the recording has signal phases (False: play it without them)
 
     def __post_init__(self) -> None:
         if isinstance(self.speed, str):
@@ -160,6 +161,22 @@ class TrackPlayer:
             n_frames=self.n_frames_per_pass,
         )
 
+    def signal_state_at(self, sequence_stamp_ns: int, stamp_ns: int, frame_index: int, scene_id: str) -> SignalState | None:
+        """Every signal group's state at a frame (None: no signal phases, or ``signals`` off).
+
+        The phase file's clock is the recording's own (``timestamp_ms`` of the
+        tracks, 0 at its start), so it is read at the sequence's own stamp;
+        the message carries the run's stamp.
+        """
+        phases = self.recording.signal_phases
+        if phases is None or not self.config.signals:
+            return None
+        ids, states, held = phases.states(int(sequence_stamp_ns))
+        return SignalState(
+            header=Header(run_id=self.run_id, frame_index=frame_index, stamp_ns=stamp_ns, producer=self.producer),
+            scene_id=scene_id, group_ids=ids, phases=states, held_s=held,
+        )
+
     def __iter__(self) -> Iterator[tuple[int, StageResult]]:
         frame_index = 0
         last_stamp: int | None = None
@@ -192,6 +209,9 @@ class TrackPlayer:
                         length_m=view.length_m,
                         width_m=view.width_m,
                     )
+                    signal_state = self.signal_state_at(view.stamp_ns, stamp, frame_index, scene_id)
+                    if signal_state is not None:
+                        outputs["signal_state"] = signal_state
                     yield stamp, StageResult(outputs=outputs, issues=pending_issues)
                     pending_issues = []
                     frame_index += 1

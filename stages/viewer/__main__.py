@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from bus_schemas import AccelerationProfiles, CorridorPredictions, CorridorSet, IntentionBelief, MotionGrid, NodeStats, SceneInfo, TrackFrame
+from bus_schemas import AccelerationProfiles, CorridorPredictions, CorridorSet, IntentionBelief, MotionGrid, NodeStats, SceneInfo, SignalState, TrackFrame
 from stages.runtime import NodeContext, Port, StageSpec, run_stage
 from stages.viewer.config import ViewerConfig
 from stages.viewer.scene import StatsBoard, ViewerApp
@@ -24,6 +24,7 @@ INPUTS = {
     # the selected-vehicle panel: P(route), P(stop) and the AR acceleration distributions
     "intention_belief": Port(IntentionBelief, latest=True, optional=True),
     "acceleration_profiles": Port(AccelerationProfiles, latest=True, optional=True),
+    "signal_state": Port(SignalState, latest=True, optional=True),  # colours the signalised stop lines (stages.viewer.signals)
     "stats": Port(NodeStats, pattern="_stats/*"),
 }
 OUTPUTS: dict[str, Port] = {}

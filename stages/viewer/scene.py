@@ -175,6 +175,7 @@ class ViewerApp:
             for msg in stats.values():
                 if isinstance(msg, NodeStats):
                     self.stats.put(msg)
+        self._keep_signal_state(inputs)
         with self._lock:
             if not self.history.add(inputs):
                 return StageResult(issues=[Issue("no_frame", -1, "input set without a track_frame")])
@@ -349,6 +350,7 @@ class ViewerApp:
         summary = self._draw_frame(item, view, futures, complete)
         summary.update(self._draw_compare(item, view, futures))
         self._zoom_to_traffic(item)
+        summary["stop_lines"] = self._draw_stop_lines(scene_info)
         dt = (time.perf_counter() - t0) * 1e3
         self.counters.drawn += 1
         self.counters.draw_ms.append(dt)
@@ -368,6 +370,33 @@ class ViewerApp:
                 summary["frame"], summary["objects"], summary["car_lanelets"], summary["other_lanelets"], summary["corridors"],
                 summary["means"], summary["grid_cells"], summary["step_s"],
             )
+
+    # ------------------------------------------------------------------ signalised stop lines (stages.viewer.signals)
+
+    def _keep_signal_state(self, inputs: Mapping[str, object]) -> None:
+        from bus_schemas import SignalState
+
+        state = inputs.get("signal_state")
+        if isinstance(state, SignalState):
+            self._signal_state = state
+
+    def _draw_stop_lines(self, scene_info: Any) -> int:
+        """Stop lines coloured by the newest SignalState; the lines are found once per scene. Returns how many."""
+        from stages.viewer.signals import load_stop_lines, stop_line_segments
+
+        if scene_info is None:
+            return 0
+        if getattr(self, "_stop_lines_scene", None) != scene_info.scene_id:
+            self._stop_lines_scene = scene_info.scene_id
+            self._stop_lines, problems = load_stop_lines(scene_info, self.config.data)
+            for problem in problems:
+                self.log.warning("viewer: %s", problem)
+        segments = stop_line_segments(self._stop_lines, getattr(self, "_signal_state", None))
+        if len(segments):
+            self._layers["stop_lines"] = self.server.scene.add_line_segments("/map/stop_lines", segments.points_m, segments.colours, thickness=0.6)
+        else:
+            self._remove_layer("stop_lines")
+        return len(segments)
 
     def _draw_map(self, scene_info: Any) -> None:
         geometry = load_map_geometry(scene_info, self.config.data)

@@ -474,7 +474,8 @@ def test_config_rejects_unknown_keys_and_bad_values():
 def test_binding_declares_the_ports():
     from stages.relations import INPUTS, OUTPUTS, SPEC
 
-    assert set(INPUTS) == {"track_frame", "corridor_set", "scene"} and INPUTS["scene"].latched
+    assert set(INPUTS) == {"track_frame", "corridor_set", "scene", "signal_state"} and INPUTS["scene"].latched
+    assert INPUTS["signal_state"].latest and INPUTS["signal_state"].optional  # not joined: a recording without phases never sends it
     assert set(OUTPUTS) == {"relation_set"} and SPEC.stage == "stages.relations"
 
 

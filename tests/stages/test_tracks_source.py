@@ -159,7 +159,7 @@ def test_projection_changes_the_scene_id() -> None:
         ({"sequences": "013"}, "parameter sequences = '013' should be"),
         ({"sequences": [13]}, "parameter sequences = [13] should be"),
         ({"projection": ""}, "projection must not be empty"),
-        ({"speeed": 2.0}, "unknown parameter(s) speeed; known: data, loop, projection, recording, sequences, speed"),
+        ({"speeed": 2.0}, "unknown parameter(s) speeed; known: data, loop, projection, recording, sequences, signals, speed"),
     ],
 )
 def test_bad_config_values_name_the_node(params: dict, message: str) -> None:

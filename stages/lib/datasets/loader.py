@@ -5,6 +5,7 @@ A data folder is laid out like the TAF-BW subset::
     <data>/maps/<recording>.osm
     <data>/recorded_trackfiles/<recording>/
         meta_data.csv + vehicle_tracks_NNN.csv [+ pedestrian_tracks_NNN.csv]   (INTERACTION format)
+        [signal_phases_NNN.csv] [<lanes>.kml]                                  (signal side, either format)
         XX_tracks.csv + XX_tracksMeta.csv + XX_recordingMeta.csv               (inD format)
 
 Files that belong to neither format are ignored and logged at debug level. A
@@ -13,11 +14,12 @@ folder under ``recorded_trackfiles`` with no track file is not a recording.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 from typing import Iterable
 
-from stages.lib.datasets import ind, interaction
+from stages.lib.datasets import ind, interaction, signals
 from stages.lib.datasets._rows import display_path
 from stages.lib.datasets.kinematics import RepairRule
 from stages.lib.datasets.model import FORMAT_IND, FORMAT_INTERACTION, DatasetError, Recording, RecordingRef, Sequence, same_sequence_id
@@ -79,6 +81,11 @@ def _recording_ref(root: Path, folder: Path) -> RecordingRef | None:
     else:
         log.debug("not a recording (no track file): folder=%s", folder)
         return None
+    signal_files = tuple(p for p in files if signals.is_signal_file(p))
+    lane_files = [p for p in files if signals.is_lane_file(p)]
+    if len(lane_files) > 1:
+        raise DatasetError(f"{folder}: {len(lane_files)} KML lane files ({', '.join(p.name for p in lane_files)}); keep one")
+    known.update(signal_files, lane_files)
     ignored = tuple(p for p in files if p not in known)
     for p in ignored:
         log.debug("ignored file: path=%s recording=%s", p, folder.name)
@@ -94,6 +101,8 @@ def _recording_ref(root: Path, folder: Path) -> RecordingRef | None:
         meta_path=meta_path,
         sequence_ids=seq_ids,
         ignored_files=ignored,
+        signal_files=signal_files,
+        lane_file=lane_files[0] if lane_files else None,
     )
 
 
@@ -151,6 +160,14 @@ def load_ref(
         builder.add_report(seq.report)
         log.debug("sequence loaded: recording=%s sequence=%s %s", ref.name, seq.id, seq.report.summary())
     first = loaded[0]
+    phases = lanes = None
+    if ref.signal_files:
+        phases = signals.read_signal_phases(ref.signal_files, display_root)
+        builder.add_report(dataclasses.replace(phases.report, rows_read=0, rows_kept=0))  # rows_read counts track rows
+        log.debug("signal phases loaded: recording=%s groups=%d %s", ref.name, len(phases.group_ids), phases.report.summary())
+    if ref.lane_file is not None:
+        lanes = signals.read_kml_lanes(ref.lane_file, display_root)
+        builder.add_report(dataclasses.replace(lanes.report, rows_read=0, rows_kept=0))
     return Recording(
         name=ref.name,
         format=ref.format,
@@ -164,6 +181,8 @@ def load_ref(
         report=builder.build(),
         utm_origin_x_m=utm_x,
         utm_origin_y_m=utm_y,
+        signal_phases=phases,
+        kml_lanes=lanes,
     )
 
 

@@ -87,6 +87,8 @@ class RecordingRef:
     meta_path: Path | None
     sequence_ids: tuple[str, ...]
     ignored_files: tuple[Path, ...] = ()
+    signal_files: tuple[Path, ...] = ()  # signal_phases_NNN.csv beside the tracks (stages.lib.datasets.signals)
+    lane_file: Path | None = None  # the *.kml lane file beside the tracks
 
 
 @dataclass(frozen=True, slots=True, kw_only=True, eq=False)
@@ -241,7 +243,8 @@ class Recording:
     frame's origin (the origin lat/lon is inD's ``latLocation/lonLocation``,
     a reference point of the location, not the exact frame origin); they are
     None for INTERACTION-format data. ``report`` merges the sequences' reports
-    and lists ignored files.
+    and lists ignored files. ``signal_phases`` and ``kml_lanes`` hold the
+    recording's signal side when its folder has it (None otherwise).
     """
 
     name: str
@@ -256,6 +259,8 @@ class Recording:
     report: LoadReport
     utm_origin_x_m: float | None = None
     utm_origin_y_m: float | None = None
+    signal_phases: object | None = None  # stages.lib.datasets.signals.SignalPhases when the folder has signal_phases_*.csv
+    kml_lanes: object | None = None  # stages.lib.datasets.signals.KmlLanes when the folder has a *.kml lane file
 
     def sequence(self, sequence_id: str) -> Sequence:
         """The sequence with this id; raises ``DatasetError`` naming the loaded ones."""
