@@ -30,7 +30,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-STAGES = ("ar_inference", "corridors", "intentions", "markov_prediction", "recorder", "relations", "replay", "tracks_source", "viewer")
+STAGES = ("ar_inference", "corridors", "grid_fusion", "intentions", "markov_prediction", "recorder", "relations", "replay", "tracks_source", "viewer")
 BUS_TOOL_STAGES = ("recorder", "replay")  # their cores talk to the bus themselves
 
 
