@@ -5,14 +5,16 @@ whose id hashes to shard i (CRC-32 of the id, ``stages.lib.grid_fusion``);
 this stage takes the shards' ``motion_grid`` on ``grid_0`` … ``grid_3`` and
 their ``corridor_predictions`` on ``predictions_0`` … ``predictions_3``
 (bind as many as there are shards, the same index for one shard's two
-outputs) and publishes, per frame (``header.stamp_ns``), ``motion_grid`` =
+outputs; the runtime binds ``tick`` to every node's NodeStats, which run the
+core at least once per stats period) and publishes, per frame (``header.stamp_ns``), ``motion_grid`` =
 1 − Π_shards (1 − G_shard) on the union of their lattices and
 ``corridor_predictions`` = all shards' predictions. The shards may run on
 other machines (README, "Spreading stages over machines").
 
 A frame is published as soon as every shard that is up has delivered it. A
 shard that has sent nothing for ``shard_timeout_s`` (1 s; killed, stalled,
-unreachable) is down: frames are then published with the other shards'
+unreachable; one never heard from: for that long after the first message of
+any shard) is down: frames are then published with the other shards'
 vehicles only, each such frame counted as an issue ``shard_missing`` (its
 detail names the shards), instead of the frame being held back; a shard
 that comes back is waited for again. A frame that some shard that is up
@@ -72,18 +74,16 @@ class GridFusion:
         self.shards = sorted(shards)
         self.producer = producer
         self.clock = clock
-        self.started = clock()
+        self.started: float | None = None  # the first message from any shard: a shard not heard from yet is up until a timeout after it
         self.last_seen: dict[int, float] = {}
         self.frames: dict[int, _Frame] = {}
         self.last_published = -1
         self._seen: dict[tuple[str, int], int] = {}  # (kind, shard) -> newest stamp taken
 
     def _up(self, now: float) -> list[int]:
-        """Shards heard from within the timeout (before any is heard from: all of them, for one timeout after the start)."""
+        """Shards heard from within the timeout; one never heard from counts as up until a timeout after the first message."""
         limit = self.config.shard_timeout_s
-        if now - self.started < limit:
-            return list(self.shards)
-        return [s for s in self.shards if now - self.last_seen.get(s, -1e18) < limit]
+        return [s for s in self.shards if now - self.last_seen.get(s, self.started if self.started is not None else now) < limit]
 
     def update(self, inputs: Mapping[str, Any]) -> StageResult:
         issues: list[Issue] = []
@@ -98,6 +98,8 @@ class GridFusion:
                     continue  # the same latest value again
                 self._seen[(kind, shard)] = stamp
                 self.last_seen[shard] = now
+                if self.started is None:
+                    self.started = now
                 if stamp <= self.last_published:
                     issues.append(Issue("late_shard_frame", -1, f"shard {shard} {kind} of stamp {stamp} after that frame was published: dropped"))
                     continue

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
-from bus_schemas import CorridorPredictions, MotionGrid
+from bus_schemas import CorridorPredictions, MotionGrid, NodeStats
 from stages.grid_fusion import MAX_SHARDS, GridFusionConfig, make
 from stages.runtime import NodeContext, Port, StageSpec, run_stage
 
 INPUTS = {
     **{f"grid_{i}": Port(MotionGrid, latest=True, optional=True) for i in range(MAX_SHARDS)},
     **{f"predictions_{i}": Port(CorridorPredictions, latest=True, optional=True) for i in range(MAX_SHARDS)},
+    # every node's NodeStats (each node sends them every --stats-period): a clock tick, so that a frame that waits
+    # for a shard that died is published after shard_timeout_s even when no other shard sends anything
+    "tick": Port(NodeStats, pattern="_stats/*"),
 }
 OUTPUTS = {"motion_grid": Port(MotionGrid), "corridor_predictions": Port(CorridorPredictions)}
 
