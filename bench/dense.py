@@ -198,7 +198,13 @@ def main(argv: list[str] | None = None) -> int:
         res = run_one(keep, built.name, args, stencils)
         for mode in MODES:
             report["modes"][mode]["by_vehicles"][str(n)] = res[mode]
-        print(f"N={n}: {built.name}, {len(built.layers)} layers, recording mean {built.vehicles_mean:.1f} vehicles/frame")
+        print(f"N={n}: {built.name}, {len(built.layers)} layers, recording mean {built.vehicles_mean:.1f} vehicles/frame; "
+              + "; ".join(f"{m} frame p50 {res[m]['frame_ms_median']:.1f} ms, markov_prediction p50 "
+                          f"{res[m]['stages']['markov_prediction']['ms_median']:.1f} ms ({res[m]['pairs_median']:.0f} pairs)" for m in MODES),
+              flush=True)
+        if args.json:  # written after every N, so that a run cut short keeps what it measured
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps(report, indent=2))
     stage_names = [*UPSTREAM, "ar_inference", "markov_prediction"]
     print()
     print(f"{'mode':<9}{'N':>4}{'veh':>6}{'pairs':>7} | " + " ".join(f"{s[:12]:>12}" for s in stage_names) + " | frame p50    p95")
