@@ -150,4 +150,15 @@ def make(config: GridFusionConfig, input_keys: Mapping[str, str], producer: str)
     return core
 
 
-__all__ = ["MAX_SHARDS", "GridFusion", "GridFusionConfig", "make"]
+__all__ = ["INPUTS", "MAX_SHARDS", "OUTPUTS", "SPEC", "GridFusion", "GridFusionConfig", "main", "make"]
+
+_BINDING = ("SPEC", "INPUTS", "OUTPUTS", "main", "make_core")
+
+
+def __getattr__(name: str):
+    """The binding lives in ``__main__.py``; importing it pulls in the runtime (zenoh) only when asked."""
+    if name in _BINDING:
+        from stages.grid_fusion import __main__ as binding
+
+        return getattr(binding, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
