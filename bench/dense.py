@@ -27,7 +27,9 @@ Prints figures, asserts nothing; other load on the machine shows in them.
 
 ``--json FILE`` writes ``modes.<mode>.by_vehicles.<N>.frame_ms_median``,
 ``frame_ms_p95``, ``vehicles_median``, ``pairs_median`` and
-``stages.<stage>.ms_median`` / ``ms_p95``, plus ``modes.<mode>.exponent``.
+``stages.<stage>.ms_median`` / ``ms_p95`` / ``cpu_ms_median`` (CPU time of
+the process, less sensitive to other load on the machine than wall time),
+``frame_cpu_ms_median``, plus ``modes.<mode>.exponent``.
 """
 
 from __future__ import annotations
@@ -71,6 +73,7 @@ def run_one(data_dir: Path, name: str, args, stencils) -> dict:
     scene_maps = SceneMaps(data=data_dir)
     ar_model = None
     times: dict[str, list[float]] = {s: [] for s in (*UPSTREAM, "ar_inference", *(f"markov_prediction/{m}" for m in MODES))}
+    cpu: dict[str, list[float]] = {s: [] for s in ("corridors", "relations", "intentions", "ar_inference", *(f"markov_prediction/{m}" for m in MODES))}
     vehicles, pairs = [], []
     n_frames = recording.sequences[0].n_frames
     segments = max(1, int(args.segments))
@@ -107,18 +110,18 @@ def run_one(data_dir: Path, name: str, args, stencils) -> dict:
             if n < start:
                 continue  # skipped: the cores first see the frame ``start``
             frame = result.outputs["track_frame"]
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             corridor_set = corridors.process(frame, scene)[0]
-            t1 = time.perf_counter()
+            t1, c1 = time.perf_counter(), time.process_time()
             relation_set = relations.process(frame, corridor_set, scene)[0]
-            t2 = time.perf_counter()
+            t2, c2 = time.perf_counter(), time.process_time()
             belief = intentions.process(frame, corridor_set, relation_set, scene)[0]
-            t3 = time.perf_counter()
+            t3, c3 = time.perf_counter(), time.process_time()
             profiles = ar.process(corridor_set, relation_set, frame, scene)[0]
-            t4 = time.perf_counter()
-            markov_ms = {}
+            t4, c4 = time.perf_counter(), time.process_time()
+            markov_ms, markov_cpu = {}, {}
             for mode, predictor in predictors.items():
-                m0 = time.perf_counter()
+                m0, mc0 = time.perf_counter(), time.process_time()
                 prediction, _issues = predictor.process(
                     corridor_set, relation_set, scene, frame, intention_belief=belief,
                     acceleration_profiles=profiles if mode == "hybrid" else None,
@@ -127,6 +130,7 @@ def run_one(data_dir: Path, name: str, args, stencils) -> dict:
                 prediction.corridor_predictions(h, corridor_set.scene_id)
                 prediction.motion_grid(h, corridor_set.scene_id)
                 markov_ms[mode] = (time.perf_counter() - m0) * 1e3
+                markov_cpu[mode] = (time.process_time() - mc0) * 1e3
                 if mode == "hybrid" and timed:
                     pairs.append(len(prediction.pairs))
             if not timed:
@@ -139,17 +143,24 @@ def run_one(data_dir: Path, name: str, args, stencils) -> dict:
             times["ar_inference"].append((t4 - t3) * 1e3)
             for mode in MODES:
                 times[f"markov_prediction/{mode}"].append(markov_ms[mode])
+            for name, ms in (("corridors", c1 - c0), ("relations", c2 - c1), ("intentions", c3 - c2), ("ar_inference", c4 - c3)):
+                cpu[name].append(ms * 1e3)
+            for mode in MODES:
+                cpu[f"markov_prediction/{mode}"].append(markov_cpu[mode])
     out = {}
     for mode in MODES:
         stages = [*UPSTREAM, *(["ar_inference"] if mode == "hybrid" else []), f"markov_prediction/{mode}"]
         per_frame = np.sum([times[s] for s in stages], axis=0)
+        cpu_frame = np.sum([cpu[s] for s in stages if s in cpu], axis=0)
         out[mode] = {
+            "frame_cpu_ms_median": float(np.median(cpu_frame)) if cpu_frame.size else float("nan"),
             **{k: v for k, v in zip(("frame_ms_median", "frame_ms_p95"), _stats(list(per_frame)).values())},
             "frames": int(per_frame.size),
             "vehicles_median": float(np.median(vehicles)) if vehicles else 0.0,
             "vehicles_mean": float(np.mean(vehicles)) if vehicles else 0.0,
             "pairs_median": float(np.median(pairs)) if pairs else 0.0,
-            "stages": {s.split("/")[0]: _stats(times[s]) for s in stages},
+            "stages": {s.split("/")[0]: {**_stats(times[s]), **({"cpu_ms_median": float(np.median(cpu[s]))} if s in cpu and cpu[s] else {})}
+                       for s in stages},
         }
     return out
 
@@ -199,8 +210,9 @@ def main(argv: list[str] | None = None) -> int:
         for mode in MODES:
             report["modes"][mode]["by_vehicles"][str(n)] = res[mode]
         print(f"N={n}: {built.name}, {len(built.layers)} layers, recording mean {built.vehicles_mean:.1f} vehicles/frame; "
-              + "; ".join(f"{m} frame p50 {res[m]['frame_ms_median']:.1f} ms, markov_prediction p50 "
-                          f"{res[m]['stages']['markov_prediction']['ms_median']:.1f} ms ({res[m]['pairs_median']:.0f} pairs)" for m in MODES),
+              + "; ".join(f"{m} frame p50 {res[m]['frame_ms_median']:.1f} ms (cpu {res[m]['frame_cpu_ms_median']:.1f}), markov_prediction p50 "
+                          f"{res[m]['stages']['markov_prediction']['ms_median']:.1f} ms (cpu {res[m]['stages']['markov_prediction']['cpu_ms_median']:.1f}, "
+                          f"{res[m]['pairs_median']:.0f} pairs)" for m in MODES),
               flush=True)
         if args.json:  # written after every N, so that a run cut short keeps what it measured
             args.json.parent.mkdir(parents=True, exist_ok=True)
@@ -214,7 +226,15 @@ def main(argv: list[str] | None = None) -> int:
             cells = [f"{r['stages'][s]['ms_median']:12.1f}" if s in r["stages"] else f"{'-':>12}" for s in stage_names]
             print(f"{mode:<9}{n:>4}{r['vehicles_median']:>6.0f}{r['pairs_median']:>7.0f} | " + " ".join(cells)
                   + f" | {r['frame_ms_median']:9.1f} {r['frame_ms_p95']:6.1f}")
-    print("(stage columns: median ms per frame; frame = sum of the mode's stages)")
+    print("(stage columns: median wall ms per frame; frame = sum of the mode's stages)")
+    print()
+    print("CPU time of this process (time.process_time: less sensitive to other load than wall time; all threads counted)")
+    print(f"{'mode':<9}{'N':>4}{'pairs':>7} | " + " ".join(f"{s[:12]:>12}" for s in stage_names[1:]) + " | frame cpu p50")
+    for mode in MODES:
+        for n in sizes:
+            r = report["modes"][mode]["by_vehicles"][str(n)]
+            cells = [f"{r['stages'][s]['cpu_ms_median']:12.1f}" if s in r["stages"] else f"{'-':>12}" for s in stage_names[1:]]
+            print(f"{mode:<9}{n:>4}{r['pairs_median']:>7.0f} | " + " ".join(cells) + f" | {r['frame_cpu_ms_median']:9.1f}")
     print()
     for n in sizes:
         h, b = (report["modes"][m]["by_vehicles"][str(n)] for m in MODES)
@@ -226,10 +246,12 @@ def main(argv: list[str] | None = None) -> int:
             x = np.log([max(r["pairs_median"], 1.0) for r in rows])
             fits = {}
             for label, values in (("frame", [r["frame_ms_median"] for r in rows]),
-                                  ("markov_prediction", [r["stages"]["markov_prediction"]["ms_median"] for r in rows])):
+                                  ("markov_prediction", [r["stages"]["markov_prediction"]["ms_median"] for r in rows]),
+                                  ("markov_prediction_cpu", [r["stages"]["markov_prediction"]["cpu_ms_median"] for r in rows])):
                 fits[label] = float(np.polyfit(x, np.log(values), 1)[0])
             report["modes"][mode]["exponent"] = fits
-            print(f"{mode}: time ~ pairs^{fits['frame']:.2f} (frame), ^{fits['markov_prediction']:.2f} (markov_prediction)")
+            print(f"{mode}: time ~ pairs^{fits['frame']:.2f} (frame), ^{fits['markov_prediction']:.2f} (markov_prediction), "
+                  f"^{fits['markov_prediction_cpu']:.2f} (markov_prediction cpu)")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(report, indent=2))
