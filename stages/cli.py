@@ -14,6 +14,8 @@
                                                            train the AR acceleration model
     iamp signals --data DIR --recording NAME [--map FILE.osm] [--figure FILE.png] [--json FILE]
                                                            match a KML lane file to the map: report, figure
+    iamp data superimpose --data PATH --recording NAME --vehicles N --out DIR [--sequence S]... [--shift-s T] [--duration-s D] [--name NAME]
+                                                           dense traffic: time-shifted copies of real tracks of one map
 
 Exit codes: 0 success, 1 crash, 2 bad command line, configuration or file.
 Only ``record`` and ``replay`` open a Zenoh session.
@@ -174,6 +176,60 @@ def _run_train(args: argparse.Namespace) -> int:
     return run_cli(args)
 
 
+def _add_data(sub: "argparse._SubParsersAction") -> None:
+    p = sub.add_parser("data", help="build data folders from recordings (superimpose: dense traffic from real tracks)")
+    data_sub = p.add_subparsers(dest="data_command", metavar="DATA_COMMAND")
+    s = data_sub.add_parser(
+        "superimpose",
+        help="write a recording (maps/ + recorded_trackfiles/, like TAF-BW) of N vehicles per frame on average, "
+        "superimposed from time-shifted copies of a recording's sequences with fresh track ids",
+    )
+    s.add_argument("--data", required=True, help="source data folder (maps/ + recorded_trackfiles/, INTERACTION format)")
+    s.add_argument("--recording", required=True, help="source recording, e.g. k733_2018-05-02")
+    s.add_argument("--sequence", action="append", default=[], help="source sequence (repeatable; default all)")
+    s.add_argument("--vehicles", type=float, required=True, help="target mean number of vehicles per frame")
+    s.add_argument("--out", required=True, help="output data folder (created; the recording's files in it are replaced)")
+    s.add_argument("--name", default=None, help="name of the new recording (default <recording>-dense<N>)")
+    s.add_argument("--shift-s", type=float, default=None, help="time shift between copies (default: the signal cycle estimated from the tracks)")
+    s.add_argument("--duration-s", type=float, default=None, help="duration of the output (default: the longest source sequence)")
+    s.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.set_defaults(run=_run_data, parser=p)
+
+
+def _run_data(args: argparse.Namespace) -> int:
+    if getattr(args, "data_command", None) != "superimpose":
+        args.parser.print_usage(sys.stderr)
+        sys.stderr.write("iamp data: error: a data command is required (superimpose)\n")
+        return EXIT_USAGE
+    from stages.lib.datasets import DatasetError
+    from stages.lib.datasets.superimpose import build_dense
+
+    if not args.vehicles > 0 or (args.shift_s is not None and args.shift_s < 0) or (args.duration_s is not None and not args.duration_s > 0):
+        sys.stderr.write("iamp data superimpose: --vehicles and --duration-s must be positive, --shift-s non-negative\n")
+        return EXIT_USAGE
+    try:
+        result = build_dense(
+            args.data, args.recording, args.vehicles, args.out, name=args.name, sequences=args.sequence or None,
+            shift_s=args.shift_s, duration_s=args.duration_s,
+        )
+    except DatasetError as exc:
+        sys.stderr.write(f"iamp data superimpose: {exc}\n")
+        return EXIT_USAGE
+    summary = {
+        "out": str(result.out_dir), "recording": result.name, "layers": len(result.layers),
+        "shifts_s": [round(l.shift_s, 3) for l in result.layers], "duration_s": result.duration_s, "tracks": result.n_tracks,
+        "rows": result.n_rows, "vehicles_mean": result.vehicles_mean, "vehicles_median": result.vehicles_median,
+        "vehicles_max": result.vehicles_max,
+    }
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(f"{result.out_dir}: recording {result.name}, {len(result.layers)} layers, {result.duration_s:.1f} s, "
+              f"{result.n_tracks} tracks; vehicles per frame mean {result.vehicles_mean:.1f}, median {result.vehicles_median:.0f}, "
+              f"max {result.vehicles_max}")
+    return 0
+
+
 # Subcommands, in the order `iamp --help` lists them. Later issues add theirs here:
 #   eval  -> _add_eval  (offline comparison: hybrid vs baseline vs constant velocity; mADE/mFDE table)
 #   train -> _add_train (retrain the AR acceleration model)
@@ -188,6 +244,7 @@ SUBCOMMANDS: list[Callable[["argparse._SubParsersAction"], None]] = [
     _add_eval,
     _add_train,
     _add_signals,
+    _add_data,
 ]
 
 

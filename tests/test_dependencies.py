@@ -36,7 +36,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-STAGES = ("ar_inference", "corridors", "foxglove_bridge", "intentions", "markov_prediction", "recorder", "relations", "replay", "tracks_source", "viewer")
+STAGES = ("ar_inference", "corridors", "foxglove_bridge", "grid_fusion", "intentions", "markov_prediction", "recorder", "relations", "replay", "tracks_source", "viewer")
 RECORDING_READERS = ("replay", "foxglove_bridge")  # stages that read recordings with stages.recorder.inspect
 BUS_TOOL_STAGES = ("recorder", "replay")  # their cores talk to the bus themselves
 

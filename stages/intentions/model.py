@@ -106,10 +106,17 @@ def expected_stop(tables: PairTables, g: np.ndarray, s_m: np.ndarray, v_mps: np.
     cs = tables.conflict_s_m[g]  # (V, N, C)
     ahead = cs - s_m[..., None]
     valid = np.isfinite(cs) & (ahead > 0.0)
-    t_ego = np.where(valid, ahead, 0.0) / np.maximum(v_mps, mp.min_time_speed_mps)[..., None]
-    gap = np.where(valid, tables.conflict_other_time_s[g], 0.0) - t_ego
-    p_conflict = _sigmoid((gap + mp.gap_pass_s) / mp.gap_scale_s) * (1.0 - _sigmoid((gap - mp.gap_critical_s) / mp.gap_scale_s))
-    factor = np.where(valid, 1.0 - tables.conflict_weight[g] * p_conflict, 1.0)
+    # the sigmoids only where a conflict is ahead (C is the largest count over the frame's pairs: in dense traffic
+    # most entries are padding or behind); the same values there, 1 elsewhere, so the product is unchanged
+    factor = np.ones(cs.shape)
+    at = np.nonzero(valid)
+    if at[0].size:
+        g_at = np.broadcast_to(np.asarray(g)[..., None], valid.shape)[at]
+        speed = np.broadcast_to(np.maximum(v_mps, mp.min_time_speed_mps)[..., None], valid.shape)[at]
+        t_ego = ahead[at] / speed
+        gap = tables.conflict_other_time_s[g_at, at[-1]] - t_ego
+        p_conflict = _sigmoid((gap + mp.gap_pass_s) / mp.gap_scale_s) * (1.0 - _sigmoid((gap - mp.gap_critical_s) / mp.gap_scale_s))
+        factor[at] = 1.0 - tables.conflict_weight[g_at, at[-1]] * p_conflict
     p_e = 1.0 - np.prod(factor, axis=-1)
     if getattr(tables, "signal_line_s_m", None) is None:  # no signal phases: the conflicts alone, as before issue 17
         return p_e

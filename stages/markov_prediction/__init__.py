@@ -131,6 +131,12 @@ and keeps cells above ``grid_min_value`` 1e-5 on a ``grid_cell_m`` 0.5 grid
 whose extent is ``grid_extent_m`` (x_min, y_min, x_max, y_max) or, when
 empty, the occupied cells plus ``grid_margin_m``.
 
+Sharding: ``shard`` "i/n" (default "": all vehicles) predicts only the
+vehicles whose id hashes to shard i of n (CRC-32 of the decimal id,
+``stages.lib.grid_fusion.shard_of``); the others are left out without
+issues, and ``stages.grid_fusion`` merges the shards' outputs. A leader or
+crossing vehicle of another shard is seen only through its relation.
+
 Bounded work: ``max_pairs`` 600 vehicle-corridor pairs per frame (issue
 13): beyond it whole vehicles are kept in CorridorSet order while their
 corridors fit, the rest are not predicted this frame (``stages.lib.caps.cap_pairs``;

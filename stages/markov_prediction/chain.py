@@ -37,6 +37,10 @@ class InputPriority:
     """
 
     weights: Callable[[int, int], np.ndarray]
+    #: Optional: λ at given states only, ``at_states(b, v, s) -> (n, M) float32`` for n states (pair, v-cell,
+    #: s-cell of the window). When given, the numpy backend applies Γ only where p⁻ holds mass (a pair's
+    #: occupied states are a few percent of the batch's active window) instead of on the whole window.
+    at_states: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None
 
 
 class _PriorityBackend:
@@ -56,10 +60,28 @@ class _PriorityBackend:
     def apply_input(self, slab: Any, transition: Any, lo: int, hi: int, before: Any) -> tuple[Any, Any]:
         if not isinstance(transition, InputPriority):
             return self._inner.apply_input(slab, transition, lo, hi, before)
+        if self._kind == "numpy" and transition.at_states is not None:
+            return self._numpy_occupied(slab, transition, lo, before)
         lam = np.asarray(transition.weights(lo, hi), dtype=np.float32)
         if self._kind == "numpy":
             return self._numpy(slab, lam, before)
         return self._torch(slab, lam, before)
+
+    def _numpy_occupied(self, slab: np.ndarray, transition: InputPriority, lo: int, before: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+        """``_numpy`` on the states (s, v, pair) that hold mass only: the same products, gathered and scattered back."""
+        s_idx, v_idx, b_idx = np.nonzero(slab.any(axis=1))  # slab (L, M, N_v, B)
+        x = slab[s_idx, :, v_idx, b_idx]  # (n, M)
+        lam = np.asarray(transition.at_states(b_idx, v_idx, s_idx + lo), dtype=np.float32)
+        norm = lam @ self._psi  # Z[n, b] = Σ_a λ[n, a] Ψ[a, b]
+        ratio = np.divide(x, norm, out=np.zeros_like(x), where=norm > 0)
+        out = np.zeros_like(slab)
+        out[s_idx, :, v_idx, b_idx] = lam * (ratio @ self._psi.T)
+        kept = None
+        if before is not None:
+            kept = self._inner.position(slab).sum(axis=1)
+            factors = (before / np.where(kept > 0, kept, 1.0)).astype(np.float32)
+            out *= factors
+        return out, kept
 
     def _numpy(self, slab: np.ndarray, lam: np.ndarray, before: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
         # slab (L, M, N_v, B); λ (B, M, N_v, L) -> slab layout

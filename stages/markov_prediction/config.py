@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from stages.lib.grid_fusion import parse_shard
+
 from dataclasses import dataclass
 
 from stages.lib.base import ConfigMixin, check_ranges
@@ -95,8 +97,12 @@ class MarkovPredictionConfig(ConfigMixin):
     max_pairs: int = 600
     # MotionGrid cells listed per step, the highest kept (12 B each: 10 steps of 100,000 is 12 MB, under its 16 MiB MAX_BYTES)
     grid_max_cells_per_step: int = 100_000
+    # "i/n": predict only the vehicles whose id hashes to shard i of n (stages.lib.grid_fusion.shard_of, CRC-32);
+    # stages.grid_fusion merges the shards' outputs. "" (default): every vehicle
+    shard: str = ""
 
     def __post_init__(self) -> None:
+        parse_shard(self.shard)  # raises with a message saying what to write
         if self.mode not in MODES:
             raise ValueError(f"mode = {self.mode!r}: expected one of {', '.join(MODES)}")
         if self.corridor_weights not in CORRIDOR_WEIGHTS:

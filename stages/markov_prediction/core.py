@@ -36,6 +36,7 @@ from bus_schemas import (
 from stages.lib.base import Issue, StageResult, isolate
 from stages.lib.caps import cap_pairs
 from stages.lib.datasets import DEFAULT_SIZES_M
+from stages.lib.grid_fusion import parse_shard, shard_of
 from stages.lib.markov import MarkovGridConfig, SeparableState, initial_state, load_or_build_stencils, psi_matrix
 from stages.lib.markov.propagate import boxes_outside_grid
 
@@ -196,6 +197,7 @@ class MarkovPredictor:
     def __init__(self, config: MarkovPredictionConfig, *, producer: str = "markov_prediction", stencils: Any = None) -> None:
         self.config = config
         self.producer = producer
+        self._shard = parse_shard(config.shard)
         self.grid = MarkovGridConfig(
             ds_m=config.ds_m, dv_mps=config.dv_mps, v_max_mps=config.v_max_mps, tau_s=config.tau_s, n_steps=config.n_steps
         )
@@ -273,9 +275,14 @@ class MarkovPredictor:
         """The pure function behind ``update``: the frame's prediction and the issues met."""
         issues: list[Issue] = []
         stamp = int(corridor_set.header.stamp_ns)
+        others: set[int] = set()
+        if self._shard is not None:  # another shard predicts these vehicles: they are left out here, without issues
+            index, n_shards = self._shard
+            others = {v.track_id for v in corridor_set.vehicles if shard_of(v.track_id, n_shards) != index}
+            corridor_set = dataclasses.replace(corridor_set, vehicles=tuple(v for v in corridor_set.vehicles if v.track_id not in others))
         given = corridor_set
         corridor_set, dropped = cap_pairs(corridor_set, self.config.max_pairs)
-        skipped = {v.track_id for v, w in zip(given.vehicles, corridor_set.vehicles) if v.corridors and not w.corridors}
+        skipped = {v.track_id for v, w in zip(given.vehicles, corridor_set.vehicles) if v.corridors and not w.corridors} | others
         if dropped:
             issues.append(Issue("pairs_capped", -1, f"{dropped} vehicle-corridor pairs beyond max_pairs = {self.config.max_pairs} (whole vehicles, in CorridorSet order): skipped this frame"))
         beliefs = self._beliefs(intention_belief, stamp, issues)

@@ -491,3 +491,35 @@ def test_inputs_may_be_torch_tensors(small_stencils, backend):
     bad = [InputReplaced(probs=torch.full((n_pairs, 10), 0.5))] * SMALL.n_steps
     with pytest.raises(ValueError, match="must sum to 1"):
         propagator.run(p0, bad)
+
+
+@pytest.mark.parametrize("backend", ["numpy", "torch"])
+@pytest.mark.parametrize("kind", list(TransitionKind))
+def test_position_of_a_step_equals_the_position_of_the_full_step(small_stencils, backend, kind):
+    """``transition_position`` (the interval's hot path) gives the s-marginal and leak of ``transition`` without its state."""
+    if backend == "torch":
+        pytest.importorskip("torch")
+    n_pairs = 4
+    propagator = MarkovPropagator(small_stencils, backend=backend)
+    be = propagator._backend
+    p0 = _batch(SMALL, n_pairs)
+    for lo, hi in ((0, SMALL.n_s_cells), (3, 19), (SMALL.n_s_cells - 9, SMALL.n_s_cells)):
+        slab = be.initial_slab(p0, lo, hi)
+        moved, leaked = be.transition(kind, slab, lo, hi)
+        position, leaked2 = be.transition_position(kind, slab, lo, hi)
+        np.testing.assert_allclose(be.to_numpy(position), be.to_numpy(be.position(moved)), atol=1e-7)
+        np.testing.assert_allclose(be.to_numpy(leaked2), be.to_numpy(leaked), atol=0)
+
+
+def test_torch_on_cuda_agrees_with_numpy(small_stencils):
+    """The CUDA path (backend torch, device cuda): skipped where no NVIDIA GPU is present."""
+    torch = pytest.importorskip("torch")
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
+    n_pairs = 5
+    p0 = _batch(SMALL, n_pairs)
+    inputs = _input_cases(SMALL, n_pairs)["mixed"]
+    reference = MarkovPropagator(small_stencils, backend="numpy").run(p0, inputs, with_interval=True)
+    result = MarkovPropagator(small_stencils, backend="torch", device="cuda").run(p0, inputs, with_interval=True)
+    for name in ("position_probs", "velocity_probs", "interval_position_probs", "outside_mass"):
+        np.testing.assert_allclose(getattr(result, name), getattr(reference, name), atol=2e-6, err_msg=name)

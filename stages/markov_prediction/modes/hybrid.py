@@ -64,8 +64,9 @@ class _HybridInputs(ChainInputs):
                 self.steps.append(None)  # the input after the last step does not change any output
             elif lam_speed is not None:
                 pref = lam[:, k + 1] / np.maximum(lam[:, k + 1].max(axis=1, keepdims=True), 1e-12)
-                self.steps.append(InputPriority(  # built on the step's active s-window only
-                    weights=lambda lo, hi, pref=pref: pr.combine_with_preference(lam_speed[..., lo:hi], pref, cfg.forbid_threshold)
+                self.steps.append(InputPriority(  # built on the step's active s-window only, or on its occupied states
+                    weights=lambda lo, hi, pref=pref: pr.combine_with_preference(lam_speed[..., lo:hi], pref, cfg.forbid_threshold),
+                    at_states=lambda b, v, s, pref=pref: pr.combine_with_preference(lam_speed[b, :, v, s], pref[b], cfg.forbid_threshold),
                 ))
             elif cfg.hybrid_input == "direct":
                 self.steps.append(InputReplaced(probs=lam[:, k + 1]))

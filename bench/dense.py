@@ -1,0 +1,263 @@
+"""Dense traffic: time per stage and per frame of the whole in-process chain, hybrid and baseline, N = 6 .. 72 vehicles.
+
+For each N (``--vehicles``, default 6,12,18,36,72) a recording of about N
+vehicles per frame is superimposed from real tracks (``iamp data
+superimpose``, ``stages/lib/datasets/superimpose.py``): with the full data
+(``$IAMP_TAF_BW``) k733_2018-05-02 shifted by multiples of its signal cycle
+(``--source k733``, the default) or the K729 sequences together
+(``--source k729``); without it the embedded K729 scenario's sequences
+(said so on the first line). The frames are played through the cores as
+the streaming pipeline runs them, one frame at a time, every core every
+frame: source (TrackPlayer), corridors, relations, intentions,
+ar_inference (hybrid only) and markov_prediction (``process`` plus the
+CorridorPredictions and MotionGrid messages), once in mode hybrid and once
+in mode baseline on the same upstream outputs, with the pipelines' settings
+(grid of the interval distribution, intentions' corridor weights, particle
+boxes). ``--warmup`` frames are run first, untimed, then ``--frames``
+frames timed.
+
+Printed per mode and N: vehicles and vehicle-corridor pairs per frame
+(median), median and p95 ms per stage and per frame (the sum of the mode's
+stages), the hybrid/baseline ratio, and per mode the exponent of a
+least-squares fit log(time) ~ log(pairs) over the N (1 = linear).
+Prints figures, asserts nothing; other load on the machine shows in them.
+
+    python bench/dense.py [--vehicles 6,12,18,36,72] [--frames 40] [--warmup 10] [--source k733|k729]
+                          [--backend numpy|torch] [--device cpu|cuda] [--json FILE] [--keep DIR]
+
+``--json FILE`` writes ``modes.<mode>.by_vehicles.<N>.frame_ms_median``,
+``frame_ms_p95``, ``vehicles_median``, ``pairs_median`` and
+``stages.<stage>.ms_median`` / ``ms_p95`` / ``cpu_ms_median`` (CPU time of
+the process, less sensitive to other load on the machine than wall time),
+``frame_cpu_ms_median``, plus ``modes.<mode>.exponent``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from stages.lib.datasets import DEFAULT_DATA_DIR, FULL_DATA_ENV, full_data_dir, load_recording
+from stages.lib.datasets.superimpose import build_dense
+
+from bus_schemas import AgentType
+
+VEHICLE_TYPES = [t.value for t in AgentType if t.is_vehicle]
+UPSTREAM = ("source", "corridors", "relations", "intentions")
+MODES = ("hybrid", "baseline")
+SOURCES = {"k733": "k733_2018-05-02", "k729": "k729_2022-03-16"}
+
+
+def _stats(ms: list[float]) -> dict[str, float]:
+    a = np.asarray(ms, dtype=np.float64)
+    return {"ms_median": float(np.median(a)), "ms_p95": float(np.percentile(a, 95))} if a.size else {"ms_median": float("nan"), "ms_p95": float("nan")}
+
+
+def run_one(data_dir: Path, name: str, args, stencils) -> dict:
+    """Play the recording ``name`` through the cores; timings per stage and mode."""
+    from stages.ar_inference import ARInference, ARInferenceConfig
+    from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
+    from stages.intentions import IntentionFilter, IntentionsConfig
+    from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
+    from stages.relations import RelationExtractor, RelationsConfig
+    from stages.tracks_source.core import TrackPlayer, TracksSourceConfig
+
+    recording = load_recording(data_dir, name)
+    scene_maps = SceneMaps(data=data_dir)
+    ar_model = None
+    times: dict[str, list[float]] = {s: [] for s in (*UPSTREAM, "ar_inference", *(f"markov_prediction/{m}" for m in MODES))}
+    cpu: dict[str, list[float]] = {s: [] for s in ("corridors", "relations", "intentions", "ar_inference", *(f"markov_prediction/{m}" for m in MODES))}
+    vehicles, pairs = [], []
+    n_frames = recording.sequences[0].n_frames
+    segments = max(1, int(args.segments))
+    per_segment = -(-args.frames // segments)
+    for segment in range(segments):
+        # fresh cores per segment, started at an evenly spread frame: the recording's edges are sparser
+        start = int((segment + 0.5) * n_frames / segments) - args.warmup - per_segment // 2
+        start = min(max(start, 0), max(n_frames - args.warmup - per_segment, 0))
+        player = TrackPlayer(TracksSourceConfig(recording=name), recording, map_sha256="", run_id="dense", producer="source")
+        corridors = CorridorBuilder(CorridorsConfig(), scene_maps=scene_maps)
+        relations = RelationExtractor(RelationsConfig(), scene_maps=scene_maps)
+        intentions = IntentionFilter(IntentionsConfig(), producer="intentions", scene_maps=scene_maps)
+        ar = ARInference(ARInferenceConfig.from_params({"device": args.device}, where="bench/dense.py"), producer="ar_inference", model=ar_model)
+        ar_model = ar.model
+        predictors = {
+            mode: MarkovPredictor(
+                MarkovPredictionConfig.from_params({"mode": mode, "backend": args.backend, "device": args.device}, where="bench/dense.py"),
+                producer="markov_prediction", stencils=stencils,
+            )
+            for mode in MODES
+        }
+        scene = None
+        iterator = iter(player)
+        for n in range(start + args.warmup + per_segment):
+            timed = n >= start + args.warmup
+            t0 = time.perf_counter()
+            try:
+                _stamp, result = next(iterator)
+            except StopIteration:
+                break
+            t_source = time.perf_counter() - t0
+            if "scene" in result.outputs:
+                scene = result.outputs["scene"]
+            if n < start:
+                continue  # skipped: the cores first see the frame ``start``
+            frame = result.outputs["track_frame"]
+            t0, c0 = time.perf_counter(), time.process_time()
+            corridor_set = corridors.process(frame, scene)[0]
+            t1, c1 = time.perf_counter(), time.process_time()
+            relation_set = relations.process(frame, corridor_set, scene)[0]
+            t2, c2 = time.perf_counter(), time.process_time()
+            belief = intentions.process(frame, corridor_set, relation_set, scene)[0]
+            t3, c3 = time.perf_counter(), time.process_time()
+            profiles = ar.process(corridor_set, relation_set, frame, scene)[0]
+            t4, c4 = time.perf_counter(), time.process_time()
+            markov_ms, markov_cpu = {}, {}
+            for mode, predictor in predictors.items():
+                m0, mc0 = time.perf_counter(), time.process_time()
+                prediction, _issues = predictor.process(
+                    corridor_set, relation_set, scene, frame, intention_belief=belief,
+                    acceleration_profiles=profiles if mode == "hybrid" else None,
+                )
+                h = corridor_set.header
+                prediction.corridor_predictions(h, corridor_set.scene_id)
+                prediction.motion_grid(h, corridor_set.scene_id)
+                markov_ms[mode] = (time.perf_counter() - m0) * 1e3
+                markov_cpu[mode] = (time.process_time() - mc0) * 1e3
+                if mode == "hybrid" and timed:
+                    pairs.append(len(prediction.pairs))
+            if not timed:
+                continue
+            vehicles.append(int(np.isin(frame.agent_types, VEHICLE_TYPES).sum()))
+            times["source"].append(t_source * 1e3)
+            times["corridors"].append((t1 - t0) * 1e3)
+            times["relations"].append((t2 - t1) * 1e3)
+            times["intentions"].append((t3 - t2) * 1e3)
+            times["ar_inference"].append((t4 - t3) * 1e3)
+            for mode in MODES:
+                times[f"markov_prediction/{mode}"].append(markov_ms[mode])
+            for name, ms in (("corridors", c1 - c0), ("relations", c2 - c1), ("intentions", c3 - c2), ("ar_inference", c4 - c3)):
+                cpu[name].append(ms * 1e3)
+            for mode in MODES:
+                cpu[f"markov_prediction/{mode}"].append(markov_cpu[mode])
+    out = {}
+    for mode in MODES:
+        stages = [*UPSTREAM, *(["ar_inference"] if mode == "hybrid" else []), f"markov_prediction/{mode}"]
+        per_frame = np.sum([times[s] for s in stages], axis=0)
+        cpu_frame = np.sum([cpu[s] for s in stages if s in cpu], axis=0)
+        out[mode] = {
+            "frame_cpu_ms_median": float(np.median(cpu_frame)) if cpu_frame.size else float("nan"),
+            **{k: v for k, v in zip(("frame_ms_median", "frame_ms_p95"), _stats(list(per_frame)).values())},
+            "frames": int(per_frame.size),
+            "vehicles_median": float(np.median(vehicles)) if vehicles else 0.0,
+            "vehicles_mean": float(np.mean(vehicles)) if vehicles else 0.0,
+            "pairs_median": float(np.median(pairs)) if pairs else 0.0,
+            "stages": {s.split("/")[0]: {**_stats(times[s]), **({"cpu_ms_median": float(np.median(cpu[s]))} if s in cpu and cpu[s] else {})}
+                       for s in stages},
+        }
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--vehicles", default="6,12,18,36,72")
+    parser.add_argument("--frames", type=int, default=40, help="timed frames per N")
+    parser.add_argument("--warmup", type=int, default=10, help="untimed frames before each segment's timed ones (track histories, caches)")
+    parser.add_argument("--segments", type=int, default=4, help="the timed frames are split over this many stretches spread over the recording")
+    parser.add_argument("--source", choices=sorted(SOURCES), default="k733")
+    parser.add_argument("--backend", choices=("numpy", "torch"), default="numpy")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: leave torch's default)")
+    parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--keep", type=Path, default=None, help="write the dense recordings here (default a temporary folder)")
+    args = parser.parse_args(argv)
+    sizes = [int(x) for x in args.vehicles.split(",")]
+    if args.device != "cpu":
+        args.backend = "torch"
+        import torch
+
+        if args.device.startswith("cuda") and not torch.cuda.is_available():
+            print(f"--device {args.device}: no CUDA device here; nothing measured")
+            return 0
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    full = full_data_dir()
+    if full is not None:
+        data, recording, sequences = full, SOURCES[args.source], None
+        print(f"data: {full} ({FULL_DATA_ENV}), source {recording}")
+    else:
+        data, recording, sequences = DEFAULT_DATA_DIR, SOURCES["k729"], None
+        print(f"data: {FULL_DATA_ENV} not set: the embedded K729 scenario's sequences (short: figures less stable)")
+    from stages.lib.markov import MarkovGridConfig, load_or_build_stencils
+
+    stencils = load_or_build_stencils(MarkovGridConfig())
+    keep = args.keep or Path(tempfile.mkdtemp(prefix="iamp-dense-"))
+    print(f"cpu cores {os.cpu_count()}, backend {args.backend} on {args.device}; {args.warmup} warm-up + {args.frames} timed frames per N; "
+          "timings include any other load on the machine")
+    report: dict = {"source": recording, "backend": args.backend, "device": args.device, "modes": {m: {"by_vehicles": {}} for m in MODES}}
+    for n in sizes:
+        built = build_dense(data, recording, n, keep, sequences=sequences)
+        res = run_one(keep, built.name, args, stencils)
+        for mode in MODES:
+            report["modes"][mode]["by_vehicles"][str(n)] = res[mode]
+        print(f"N={n}: {built.name}, {len(built.layers)} layers, recording mean {built.vehicles_mean:.1f} vehicles/frame; "
+              + "; ".join(f"{m} frame p50 {res[m]['frame_ms_median']:.1f} ms (cpu {res[m]['frame_cpu_ms_median']:.1f}), markov_prediction p50 "
+                          f"{res[m]['stages']['markov_prediction']['ms_median']:.1f} ms (cpu {res[m]['stages']['markov_prediction']['cpu_ms_median']:.1f}, "
+                          f"{res[m]['pairs_median']:.0f} pairs)" for m in MODES),
+              flush=True)
+        if args.json:  # written after every N, so that a run cut short keeps what it measured
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps(report, indent=2))
+    stage_names = [*UPSTREAM, "ar_inference", "markov_prediction"]
+    print()
+    print(f"{'mode':<9}{'N':>4}{'veh':>6}{'pairs':>7} | " + " ".join(f"{s[:12]:>12}" for s in stage_names) + " | frame p50    p95")
+    for mode in MODES:
+        for n in sizes:
+            r = report["modes"][mode]["by_vehicles"][str(n)]
+            cells = [f"{r['stages'][s]['ms_median']:12.1f}" if s in r["stages"] else f"{'-':>12}" for s in stage_names]
+            print(f"{mode:<9}{n:>4}{r['vehicles_median']:>6.0f}{r['pairs_median']:>7.0f} | " + " ".join(cells)
+                  + f" | {r['frame_ms_median']:9.1f} {r['frame_ms_p95']:6.1f}")
+    print("(stage columns: median wall ms per frame; frame = sum of the mode's stages)")
+    print()
+    print("CPU time of this process (time.process_time: less sensitive to other load than wall time; all threads counted)")
+    print(f"{'mode':<9}{'N':>4}{'pairs':>7} | " + " ".join(f"{s[:12]:>12}" for s in stage_names[1:]) + " | frame cpu p50")
+    for mode in MODES:
+        for n in sizes:
+            r = report["modes"][mode]["by_vehicles"][str(n)]
+            cells = [f"{r['stages'][s]['cpu_ms_median']:12.1f}" if s in r["stages"] else f"{'-':>12}" for s in stage_names[1:]]
+            print(f"{mode:<9}{n:>4}{r['pairs_median']:>7.0f} | " + " ".join(cells) + f" | {r['frame_cpu_ms_median']:9.1f}")
+    print()
+    for n in sizes:
+        h, b = (report["modes"][m]["by_vehicles"][str(n)] for m in MODES)
+        print(f"N={n:>3}: hybrid/baseline frame {h['frame_ms_median'] / b['frame_ms_median']:.2f}, "
+              f"markov_prediction {h['stages']['markov_prediction']['ms_median'] / b['stages']['markov_prediction']['ms_median']:.2f}")
+    if len(sizes) > 1:
+        for mode in MODES:
+            rows = [report["modes"][mode]["by_vehicles"][str(n)] for n in sizes]
+            x = np.log([max(r["pairs_median"], 1.0) for r in rows])
+            fits = {}
+            for label, values in (("frame", [r["frame_ms_median"] for r in rows]),
+                                  ("markov_prediction", [r["stages"]["markov_prediction"]["ms_median"] for r in rows]),
+                                  ("markov_prediction_cpu", [r["stages"]["markov_prediction"]["cpu_ms_median"] for r in rows])):
+                fits[label] = float(np.polyfit(x, np.log(values), 1)[0])
+            report["modes"][mode]["exponent"] = fits
+            print(f"{mode}: time ~ pairs^{fits['frame']:.2f} (frame), ^{fits['markov_prediction']:.2f} (markov_prediction), "
+                  f"^{fits['markov_prediction_cpu']:.2f} (markov_prediction cpu)")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(report, indent=2))
+        print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

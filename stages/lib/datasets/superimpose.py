@@ -1,0 +1,337 @@
+"""Dense traffic from real tracks: superimpose time-shifted copies of recordings of one map (``iamp data superimpose``).
+
+A *layer* is one source sequence of an INTERACTION-format recording (TAF-BW)
+shifted in time by ``shift_s``: its row at time t is written at
+(t − shift) mod D_seq + m·D_seq for every m that lands in [0, D) — the
+sequence is played circularly and tiled over the output's duration D, so
+every layer contributes over the whole output. Each (layer, tile, source
+track) gets a fresh track id (a track cut by the wrap becomes two tracks:
+one leaving at the end, one entering at the start, as tracks do at a
+recording's edges). Shifting a recording by multiples of its signal cycle
+keeps every copy in phase with the lights (except at the wrap point);
+``estimate_cycle_s`` finds the cycle from the tracks (the autocorrelation of
+the number of moving vehicles).
+
+The output folder is laid out like the TAF-BW data: ``maps/<name>.osm`` (a
+copy of the source map), ``recorded_trackfiles/<name>/meta_data.csv`` (one
+sequence ``000``, the source's origin, frame rate, location and speed limit)
+and ``vehicle_tracks_000.csv`` [+ ``pedestrian_tracks_000.csv``], plus the
+source's LICENSE and an ATTRIBUTION.md saying what was derived from what
+(TAF-BW is CC BY-NC-SA 4.0: the derived recording carries the same licence).
+
+Pure: the standard library's csv and numpy; rows are copied as text except
+the track id and the timestamp (and ``frame_id``, renumbered from the new
+timestamp), so positions and velocities are the source's bit for bit.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from stages.lib.datasets.interaction import META_FILE, TRACK_FILE_RE
+from stages.lib.datasets.loader import MAPS_DIR, TRACKS_DIR, find_recording
+from stages.lib.datasets.model import FORMAT_INTERACTION, DatasetError
+
+#: Columns written, in this order, when the sources have them (``time`` of K729 is left out: it would be wrong).
+COLUMNS = ("track_id", "frame_id", "timestamp_ms", "agent_type", "x", "y", "vx", "vy", "psi_rad", "length", "width")
+META_COLUMNS = ("id", "frameRate_hz", "locationId", "speedLimit_kmh", "date", "weekDay", "startTime", "duration",
+                "originLat", "originLon", "spatAvailable", "simulated", "tracking", "timeZone")
+
+
+@dataclass(frozen=True, slots=True)
+class SourceSequence:
+    """One sequence's rows as read: header names, rows (lists of text), the meta row, and per row the time in ms."""
+
+    id: str
+    kind: str  # "vehicle" or "pedestrian"
+    columns: tuple[str, ...]
+    rows: tuple[tuple[str, ...], ...]
+    meta: dict[str, str]
+    time_ms: np.ndarray
+    track_ids: np.ndarray  # text ids as read (object array)
+
+    @property
+    def duration_ms(self) -> int:
+        """Length of the sequence: last stamp + one frame."""
+        if not self.time_ms.size:
+            return 0
+        return int(self.time_ms.max()) + self.frame_ms
+
+    @property
+    def frame_ms(self) -> int:
+        return int(round(1000.0 / float(self.meta.get("frameRate_hz") or 10)))
+
+    def mean_per_frame(self) -> float:
+        """Mean number of tracks per frame over the sequence's frames."""
+        if not self.time_ms.size:
+            return 0.0
+        return float(self.time_ms.size) / (self.duration_ms / self.frame_ms)
+
+
+@dataclass(frozen=True, slots=True)
+class Layer:
+    """One copy: source sequence index and its time shift in seconds."""
+
+    source: int
+    shift_s: float
+
+
+@dataclass(frozen=True, slots=True)
+class SuperimposeResult:
+    """What was written: the folder, the recording name, and per-frame vehicle counts (mean, median, max)."""
+
+    out_dir: Path
+    name: str
+    layers: tuple[Layer, ...]
+    duration_s: float
+    n_tracks: int
+    n_rows: int
+    vehicles_mean: float
+    vehicles_median: float
+    vehicles_max: int
+
+
+def read_sources(data_dir: str | Path, recording: str, sequences: list[str] | None = None) -> tuple[Path | None, list[SourceSequence]]:
+    """The map path and the selected sequences (default all) of an INTERACTION-format recording, as text rows."""
+    ref = find_recording(data_dir, recording)
+    if ref.format != FORMAT_INTERACTION:
+        raise DatasetError(f"recording {recording}: superimpose reads INTERACTION-format recordings (TAF-BW) only, not {ref.format}")
+    meta_path = ref.meta_path or (ref.folder / META_FILE)
+    with open(meta_path, newline="", encoding="utf-8") as f:
+        metas = {row["id"].strip(): row for row in csv.DictReader(f)}
+    wanted = list(sequences) if sequences else list(ref.sequence_ids)
+    out = []
+    for seq_id in wanted:
+        files = sorted(p for p in ref.folder.iterdir() if (m := TRACK_FILE_RE.match(p.name)) and m.group(2) == seq_id)
+        if not files:
+            raise DatasetError(f"recording {recording}: no track file for sequence {seq_id!r}; available: {', '.join(ref.sequence_ids)}")
+        meta = metas.get(seq_id) or metas.get(str(int(seq_id)).zfill(3))
+        if meta is None:
+            raise DatasetError(f"recording {recording}: {meta_path} has no row for sequence {seq_id}")
+        for path in files:
+            kind = TRACK_FILE_RE.match(path.name).group(1)
+            with open(path, newline="", encoding="utf-8") as f:
+                reader = csv.reader(f)
+                header = tuple(h.strip() for h in next(reader))
+                rows = tuple(tuple(r) for r in reader if r)
+            for need in ("track_id", "timestamp_ms", "agent_type", "x", "y"):
+                if need not in header:
+                    raise DatasetError(f"{path}: no column {need!r}")
+            it, ii = header.index("timestamp_ms"), header.index("track_id")
+            time_ms = np.array([int(round(float(r[it]))) for r in rows], dtype=np.int64)
+            out.append(SourceSequence(seq_id, kind, header, rows, dict(meta), time_ms, np.array([r[ii].strip() for r in rows], dtype=object)))
+    return ref.map_path, out
+
+
+def estimate_cycle_s(source: SourceSequence, *, low_s: float = 40.0, high_s: float = 150.0) -> float:
+    """The signal cycle (s): the lag in [low_s, high_s] of the highest autocorrelation of the number of tracks moving faster than 3 m/s."""
+    cols = source.columns
+    if "vx" not in cols or "vy" not in cols:
+        raise DatasetError(f"sequence {source.id}: no vx/vy columns to estimate the signal cycle from; give --shift-s")
+    ivx, ivy = cols.index("vx"), cols.index("vy")
+    speed = np.array([math.hypot(float(r[ivx]), float(r[ivy])) for r in source.rows])
+    frame = (source.time_ms // source.frame_ms).astype(np.int64)
+    moving = np.zeros(int(frame.max()) + 1 if frame.size else 1)
+    np.add.at(moving, frame, (speed > 3.0).astype(float))
+    x = moving - moving.mean()
+    ac = np.correlate(x, x, "full")[x.size - 1 :]
+    lags_s = np.arange(ac.size) * source.frame_ms / 1000.0
+    sel = (lags_s >= low_s) & (lags_s <= high_s)
+    if not np.any(sel):
+        raise DatasetError(f"sequence {source.id} ({source.duration_ms / 1000:.0f} s) is too short to estimate a signal cycle; give --shift-s")
+    return float(lags_s[sel][int(np.argmax(ac[sel]))])
+
+
+def plan_layers(sources: list[SourceSequence], target_vehicles: float, *, shift_s: float, duration_s: float) -> list[Layer]:
+    """Layers whose mean vehicles per frame add up to about ``target_vehicles`` (at least one).
+
+    The sources are taken in turn (all of them with shift 0 first, then again
+    shifted by ``shift_s``, 2·``shift_s``, ...), each contributing its mean
+    number of vehicles per frame (the sequence is tiled over ``duration_s``).
+    """
+    vehicle_sources = [i for i, s in enumerate(sources) if s.kind == "vehicle" and s.time_ms.size]
+    if not vehicle_sources:
+        raise DatasetError("no vehicle tracks to superimpose")
+    layers: list[Layer] = []
+    total = 0.0
+    round_no = 0
+    while True:
+        for i in vehicle_sources:
+            if layers and total + 0.5 * sources[i].mean_per_frame() > target_vehicles:
+                return layers
+            layers.append(Layer(i, round_no * shift_s))
+            total += sources[i].mean_per_frame()
+        round_no += 1
+        if round_no > 10_000:
+            return layers
+
+
+def superimpose(
+    sources: list[SourceSequence],
+    layers: list[Layer],
+    out_dir: str | Path,
+    name: str,
+    *,
+    duration_s: float,
+    map_path: Path | None,
+    licence_dir: Path | None = None,
+    description: str = "",
+) -> SuperimposeResult:
+    """Write the superimposed recording ``name`` under ``out_dir`` (module docstring); returns what was written."""
+    out_dir = Path(out_dir)
+    if not layers:
+        raise DatasetError("superimpose: no layers")
+    first = sources[layers[0].source]
+    origin = (first.meta.get("originLat"), first.meta.get("originLon"))
+    for layer in layers:
+        meta = sources[layer.source].meta
+        if (meta.get("originLat"), meta.get("originLon")) != origin:
+            raise DatasetError(f"superimpose: sequence {sources[layer.source].id} has another origin than {first.id}: not the same map frame")
+    frame_ms = first.frame_ms
+    duration_ms = int(round(duration_s * 1000.0 / frame_ms)) * frame_ms
+    if duration_ms <= 0:
+        raise DatasetError(f"superimpose: duration {duration_s} s is not positive")
+    track_dir = out_dir / TRACKS_DIR / name
+    track_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / MAPS_DIR).mkdir(parents=True, exist_ok=True)
+    for stale in track_dir.glob("*_tracks_*.csv"):
+        stale.unlink()
+    if map_path is not None:
+        shutil.copyfile(map_path, out_dir / MAPS_DIR / f"{name}.osm")
+    next_id = {"vehicle": 1, "pedestrian": 1}
+    written: dict[str, list[tuple[int, int, list[str]]]] = {"vehicle": [], "pedestrian": []}
+    for layer in layers:
+        src = sources[layer.source]
+        period = src.duration_ms
+        if period <= 0:
+            continue
+        shift_ms = (int(round(layer.shift_s * 1000.0 / frame_ms)) * frame_ms) % period
+        local = np.mod(src.time_ms - shift_ms, period)
+        wrapped = (src.time_ms - shift_ms) < 0  # rows moved to the end by the circular shift: another track part
+        cols = src.columns
+        idx = {c: cols.index(c) for c in COLUMNS if c in cols}
+        n_tiles = -(-duration_ms // period)
+        ids: dict[tuple[int, bool, str], int] = {}
+        for tile in range(n_tiles):
+            t_out = local + tile * period
+            keep = np.flatnonzero(t_out < duration_ms)
+            for r in keep:
+                key = (tile, bool(wrapped[r]), src.track_ids[r])
+                new = ids.get(key)
+                if new is None:
+                    new = ids[key] = next_id[src.kind]
+                    next_id[src.kind] += 1
+                row = src.rows[r]
+                values = []
+                for c in COLUMNS:
+                    if c not in idx:
+                        continue
+                    if c == "track_id":
+                        values.append(f"P{new}" if src.kind == "pedestrian" else str(new))
+                    elif c == "timestamp_ms":
+                        values.append(str(int(t_out[r])))
+                    elif c == "frame_id":
+                        values.append(str(int(t_out[r]) // frame_ms))
+                    else:
+                        values.append(row[idx[c]])
+                written[src.kind].append((int(t_out[r]), new, values))
+    n_rows = 0
+    header = [c for c in COLUMNS if any(c in sources[layer.source].columns for layer in layers)]
+    for kind, rows in written.items():
+        if not rows:
+            continue
+        rows.sort(key=lambda x: (x[1], x[0]))
+        cols_by_layer_ok = all(all(c in sources[layer.source].columns for c in header) for layer in layers if sources[layer.source].kind == kind)
+        if not cols_by_layer_ok:
+            raise DatasetError(f"superimpose: the {kind} sources have different columns; superimpose sequences of one recording")
+        with open(track_dir / f"{kind}_tracks_000.csv", "w", newline="", encoding="utf-8") as f:
+            w = csv.writer(f, lineterminator="\n")
+            w.writerow(header)
+            for _t, _id, values in rows:
+                w.writerow(values)
+        n_rows += len(rows)
+    meta = {c: first.meta.get(c, "") for c in META_COLUMNS}
+    meta["spatAvailable"] = first.meta.get("spatAvailable", first.meta.get("spatAvailible", "no"))
+    meta.update(id="000", duration=f"{duration_ms / 1000:.1f}", simulated="superimposed")
+    with open(track_dir / META_FILE, "w", newline="", encoding="utf-8") as f:
+        w = csv.DictWriter(f, fieldnames=list(META_COLUMNS), lineterminator="\n")
+        w.writeheader()
+        w.writerow(meta)
+    if licence_dir is not None and (licence_dir / "LICENSE").is_file():
+        shutil.copyfile(licence_dir / "LICENSE", out_dir / "LICENSE")
+    vehicle_times = np.array([t for t, _i, _v in written["vehicle"]], dtype=np.int64)
+    _u, counts = np.unique(vehicle_times, return_counts=True) if vehicle_times.size else (None, np.zeros(1))
+    n_frames = duration_ms // frame_ms
+    counts_all = np.zeros(n_frames)
+    if vehicle_times.size:
+        frames, c = np.unique(vehicle_times // frame_ms, return_counts=True)
+        counts_all[frames[frames < n_frames]] = c[frames < n_frames]
+    lines = [
+        f"# {name}: superimposed from TAF-BW tracks",
+        "",
+        "Derived data: the tracks of the sequences below, time-shifted (circularly, tiled over the duration) and",
+        "superimposed with fresh track ids by `iamp data superimpose` (stages/lib/datasets/superimpose.py).",
+        "Source: TAF-BW dataset, Karlsruhe Institute of Technology / FZI, CC BY-NC-SA 4.0 (see LICENSE);",
+        "the derived recording is under the same licence, for non-commercial use.",
+        "",
+        description,
+        "",
+        "| layer | source sequence | shift s |",
+        "|---|---|---|",
+    ]
+    lines += [f"| {k} | {sources[l.source].id} | {l.shift_s:.1f} |" for k, l in enumerate(layers)]
+    (out_dir / "ATTRIBUTION.md").write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return SuperimposeResult(
+        out_dir=out_dir,
+        name=name,
+        layers=tuple(layers),
+        duration_s=duration_ms / 1000.0,
+        n_tracks=sum(v - 1 for v in next_id.values()),
+        n_rows=n_rows,
+        vehicles_mean=float(counts_all.mean()),
+        vehicles_median=float(np.median(counts_all)),
+        vehicles_max=int(counts_all.max()),
+    )
+
+
+def build_dense(
+    data_dir: str | Path,
+    recording: str,
+    target_vehicles: float,
+    out_dir: str | Path,
+    *,
+    name: str | None = None,
+    sequences: list[str] | None = None,
+    shift_s: float | None = None,
+    duration_s: float | None = None,
+) -> SuperimposeResult:
+    """``target_vehicles`` (mean per frame) superimposed from ``recording`` into ``out_dir`` (module docstring).
+
+    ``shift_s`` default: the signal cycle estimated on the longest source
+    sequence; ``duration_s`` default: the longest selected sequence.
+    """
+    map_path, sources = read_sources(data_dir, recording, sequences)
+    vehicles = [s for s in sources if s.kind == "vehicle" and s.time_ms.size]
+    if not vehicles:
+        raise DatasetError(f"recording {recording}: no vehicle tracks")
+    longest = max(vehicles, key=lambda s: s.duration_ms)
+    if shift_s is None:
+        shift_s = estimate_cycle_s(longest)
+    if duration_s is None:
+        duration_s = longest.duration_ms / 1000.0
+    layers = plan_layers(sources, target_vehicles, shift_s=shift_s, duration_s=duration_s)
+    name = name or f"{recording}-dense{int(round(target_vehicles))}"
+    description = (f"Target: {target_vehicles:g} vehicles per frame on average; shift step {shift_s:.1f} s"
+                   f" (multiples of it per round over the sequences); duration {duration_s:.1f} s.")
+    return superimpose(sources, layers, out_dir, name, duration_s=duration_s, map_path=map_path,
+                       licence_dir=Path(data_dir), description=description)
+
+
+__all__ = ["Layer", "SourceSequence", "SuperimposeResult", "build_dense", "estimate_cycle_s", "plan_layers", "read_sources", "superimpose"]

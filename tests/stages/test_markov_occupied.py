@@ -1,0 +1,32 @@
+"""InputPriority on the occupied states only (``at_states``) gives what the dense window path gives."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from stages.lib.markov import MarkovGridConfig, build_stencils, initial_state, psi_matrix
+from stages.markov_prediction.chain import InputPriority, PriorityPropagator
+from stages.markov_prediction.priority import combine_with_preference
+
+SMALL = MarkovGridConfig(v_max_mps=6.0, n_s_cells=30, n_steps=6, n_state_samples=5, n_input_samples=4, n_sub_times=4)
+
+
+def test_occupied_states_path_equals_the_window_path():
+    stencils = build_stencils(SMALL)
+    rng = np.random.default_rng(7)
+    n_pairs, n_in = 6, SMALL.n_inputs
+    restriction = rng.uniform(0, 1, (n_pairs, n_in, SMALL.n_v_cells, SMALL.n_s_cells)).astype(np.float32)
+    restriction[:, 4:, :, 10:] *= rng.random((n_pairs, 1, SMALL.n_v_cells, SMALL.n_s_cells - 10)) > 0.5  # braking only in places
+    restriction[2, :, :, :] = 0.0  # a pair with every input forbidden everywhere
+    prefs = [rng.dirichlet(np.ones(n_in), n_pairs).astype(np.float32) for _ in range(SMALL.n_steps)]
+    dense = [InputPriority(weights=lambda lo, hi, q=q: combine_with_preference(restriction[..., lo:hi], q, 0.0)) for q in prefs]
+    occupied = [InputPriority(weights=d.weights, at_states=lambda b, v, s, q=q: combine_with_preference(restriction[b, :, v, s], q[b], 0.0))
+                for d, q in zip(dense, prefs)]
+    p0 = initial_state(SMALL, s_m=rng.uniform(1, 8, n_pairs), v_mps=rng.uniform(0, 5, n_pairs), half_width_s_m=0.5, half_width_v_mps=0.5,
+                       input_probs=rng.dirichlet(np.ones(n_in), n_pairs))
+    psi = psi_matrix(SMALL.input_centres_mps2())
+    a = PriorityPropagator(stencils, psi).run(p0, dense, with_interval=True, with_final_state=True)
+    b = PriorityPropagator(stencils, psi).run(p0, occupied, with_interval=True, with_final_state=True)
+    for name in ("position_probs", "velocity_probs", "interval_position_probs", "outside_mass", "pruned_mass", "final_state"):
+        np.testing.assert_allclose(getattr(b, name), getattr(a, name), atol=1e-6, err_msg=name)
+    assert b.mass_error.max() <= 1e-5
