@@ -131,21 +131,27 @@ def _by_pair(prediction):
 
 
 def _assert_real_cars_unchanged(clean, dirty):
-    """The real cars' pairs of ``dirty`` are exactly those of ``clean`` (arrays, means, grids)."""
+    """The real cars' pairs of ``dirty`` are those of ``clean`` (arrays, means, grids) to float32 rounding.
+
+    The chain runs all pairs of a frame as one float32 batch; a batch that also
+    holds the fallback vehicles is laid out differently, so BLAS may sum in
+    another order (differences of ~1e-8, seen with numpy 2.4). Anything a bad
+    vehicle really did to a real car would be orders of magnitude larger.
+    """
     a, b = _by_pair(clean), _by_pair(dirty)
     real = [k for k in a if k[0] in REAL]
     assert real and all(k in b for k in real)
     for key in real:
         i, j = a[key], b[key]
         for name in ("position_probs", "interval_probs", "velocity_probs", "outside_mass", "mean_xy_m", "mean_s_m", "xy_at_mean_s_m"):
-            np.testing.assert_array_equal(getattr(clean, name)[i], getattr(dirty, name)[j], err_msg=f"{name} of {key}")
+            np.testing.assert_allclose(getattr(clean, name)[i], getattr(dirty, name)[j], rtol=1e-5, atol=1e-7, err_msg=f"{name} of {key}")
     assert clean.grid_frame == dirty.grid_frame
     for track in REAL:
         for k in range(clean.step_times_s.shape[0]):
             ca, va = clean.vehicle_grids[track].step(k, clean.grid_frame.n_cells)
             cb, vb = dirty.vehicle_grids[track].step(k, dirty.grid_frame.n_cells)
             np.testing.assert_array_equal(ca, cb)
-            np.testing.assert_array_equal(va, vb)
+            np.testing.assert_allclose(va, vb, rtol=1e-5, atol=1e-7)
 
 
 def _assert_constant_speed(prediction, b: int, speed_mps: float) -> None:
