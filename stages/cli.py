@@ -8,6 +8,8 @@
     iamp recover FILE.mcap [OUT.mcap] [--json]             rewrite a torn recording (killed writer) into a finished file
     iamp eval [--data PATH] [--recording NAME]... [--mode M...] [--stride S] [--json FILE] [--figures DIR]
                                                            offline metrics of the prediction modes
+    iamp calibrate --recording NAME --out FILE [--model M] [--mode M...]
+                                                           fit the spread of the grids (coverage90 = 0.9) on one location
     iamp train [--data PATH] [--recording NAME...] [--split S] [--hidden N] [--out FILE] [--json FILE]
                                                            train the AR acceleration model
 
@@ -116,6 +118,20 @@ def _run_eval(args: argparse.Namespace) -> int:
     return run_cli(args)
 
 
+def _add_calibrate(sub: "argparse._SubParsersAction") -> None:
+    from stages.offline.calibrate import add_arguments
+
+    p = sub.add_parser("calibrate", help="fit each mode's grid spread per step and speed band so that the 90 % region holds the truth in 90 % of windows")
+    add_arguments(p)
+    p.set_defaults(run=_run_calibrate)
+
+
+def _run_calibrate(args: argparse.Namespace) -> int:
+    from stages.offline.calibrate import run_cli
+
+    return run_cli(args)
+
+
 def _add_train(sub: "argparse._SubParsersAction") -> None:
     from stages.offline.train.cli import add_arguments
 
@@ -141,6 +157,7 @@ SUBCOMMANDS: list[Callable[["argparse._SubParsersAction"], None]] = [
     _add_inspect,
     _add_recover,
     _add_eval,
+    _add_calibrate,
     _add_train,
 ]
 

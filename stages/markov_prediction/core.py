@@ -46,6 +46,7 @@ from stages.markov_prediction.modes import MODELS
 from stages.markov_prediction.modes.base import InputModel, Messages, Pair, Vehicle
 from stages.markov_prediction.modes.corridor_cv import constant_speed
 from stages.markov_prediction.modes.cv import CV_LINE_ID
+from stages.markov_prediction.spread import SpreadTable, load_spread, widen
 from stages.markov_prediction.rasterise import Footprints, GridFrame, SparseGrid, cell_footprints, fuse, lateral_kernel, vehicle_grid
 
 __all__ = ["CV_LINE_ID", "FramePrediction", "MarkovPredictor", "PairInfo"]
@@ -228,6 +229,8 @@ class MarkovPredictor:
             )
         #: the mode's input model (``modes/``): the only mode-specific code the loop calls
         self.model: InputModel = model_cls(self)
+        #: the calibrated spread of this mode's grids (``spread.py``), or None
+        self.spread: SpreadTable | None = load_spread(config.spread_calibration, config.mode, config.n_steps) if config.spread_calibration else None
 
     # ----- entry points ---------------------------------------------------------
 
@@ -297,6 +300,11 @@ class MarkovPredictor:
                     issues.append(Issue("unknown_corridor", key[0], f"relation for corridor {key[1]}, which has no prediction: ignored"))
             else:
                 pair.relation = relation
+        if self.config.mode == "hybrid" and self.config.hybrid_standstill_rates_hz:
+            for pair in pairs:
+                if pair.start_rate_hz > 0:
+                    # a rate of 0 (stays) is kept just above 0: start_rate_hz 0 marks a moving vehicle
+                    pair.start_rate_hz = max(self.config.hybrid_standstill_rates_hz[standstill_group(pair.relation, self.config)], 1e-9)
         prediction = self._predict(pairs, issues)
         over = prediction.grid_cells_over_cap()
         if over:
@@ -671,7 +679,9 @@ class MarkovPredictor:
 
     # ----- outputs --------------------------------------------------------------------
 
-    def _finish(self, pairs: list[Pair], arrays: dict[str, Any], issues: list[Issue]) -> FramePrediction:
+    def _finish(self, pairs: list[Pair], arrays: dict[str, Any], issues: list[Issue], spread_m: float | None = None) -> FramePrediction:
+        """The outputs of the frame's pairs; ``spread_m`` (``iamp calibrate``) widens every pair's grid distributions by
+        this σ at every step instead of the calibrated table."""
         cfg, grid = self.config, self.grid
         n_b, n_k = len(pairs), cfg.n_steps
         pos = np.asarray(arrays["position"], dtype=np.float32)
@@ -733,6 +743,15 @@ class MarkovPredictor:
                 )
             )
         grid_probs = interval if (cfg.grid_distribution == "interval" and interval is not None) else pos
+        if spread_m is not None or self.spread is not None:  # the means above are computed before: they do not move
+            grid_probs = grid_probs.copy()
+            for b, p in enumerate(pairs):
+                speed = p.measured_v_mps if math.isfinite(p.measured_v_mps) else p.v0_mps
+                sigmas = np.full(n_k, spread_m) if spread_m is not None else self.spread.sigmas(speed)
+                grid_probs[b] = widen(grid_probs[b], sigmas, cfg.ds_m)
+                beyond = p.s_first_m + lower >= p.end_s_m
+                if np.any(beyond):
+                    grid_probs[b][:, beyond] = 0.0
         frame = self._grid_frame(footprints, grid_probs)
         by_track: dict[int, list[int]] = collections.defaultdict(list)
         for b, p in enumerate(pairs):
@@ -790,6 +809,17 @@ class MarkovPredictor:
 _CHAIN_SCALARS = ("s0_m", "v0_mps", "a0_mps2", "sigma_a0_mps2", "s_first_m", "speed_limit_mps", "d0_m", "length_m", "width_m",
                   "half_width_s_m", "half_width_v_mps", "start_rate_hz", "probability")
 _CHAIN_ARRAYS = ("s_m", "x_m", "y_m", "heading_rad", "curvature_1pm", "input_probs")
+
+
+def standstill_group(relation: CorridorRelations | None, config: MarkovPredictionConfig) -> int:
+    """A standing vehicle's scene on one corridor: 0 no leader within ``standstill_leader_gap_m`` (or no relations),
+    1 a standing leader, 2 a leader faster than ``standstill_leader_moving_mps`` (it pulls away: the queue discharges)."""
+    if relation is None or relation.leader_track_id < 0 or not math.isfinite(relation.leader_gap_m):
+        return 0
+    if relation.leader_gap_m > config.standstill_leader_gap_m:
+        return 0
+    speed = relation.leader_speed_mps
+    return 2 if math.isfinite(speed) and speed > config.standstill_leader_moving_mps else 1
 
 
 def _non_finite(p: Pair) -> list[str]:
