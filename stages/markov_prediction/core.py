@@ -46,7 +46,7 @@ from stages.markov_prediction.modes import MODELS
 from stages.markov_prediction.modes.base import InputModel, Messages, Pair, Vehicle
 from stages.markov_prediction.modes.corridor_cv import constant_speed
 from stages.markov_prediction.modes.cv import CV_LINE_ID
-from stages.markov_prediction.spread import SpreadTable, load_spread, widen
+from stages.markov_prediction.spread import SpreadTable, blur_grid, load_spread
 from stages.markov_prediction.rasterise import Footprints, GridFrame, SparseGrid, cell_footprints, fuse, lateral_kernel, vehicle_grid
 
 __all__ = ["CV_LINE_ID", "FramePrediction", "MarkovPredictor", "PairInfo"]
@@ -679,9 +679,7 @@ class MarkovPredictor:
 
     # ----- outputs --------------------------------------------------------------------
 
-    def _finish(self, pairs: list[Pair], arrays: dict[str, Any], issues: list[Issue], spread_m: float | None = None) -> FramePrediction:
-        """The outputs of the frame's pairs; ``spread_m`` (``iamp calibrate``) widens every pair's grid distributions by
-        this σ at every step instead of the calibrated table."""
+    def _finish(self, pairs: list[Pair], arrays: dict[str, Any], issues: list[Issue]) -> FramePrediction:
         cfg, grid = self.config, self.grid
         n_b, n_k = len(pairs), cfg.n_steps
         pos = np.asarray(arrays["position"], dtype=np.float32)
@@ -743,15 +741,6 @@ class MarkovPredictor:
                 )
             )
         grid_probs = interval if (cfg.grid_distribution == "interval" and interval is not None) else pos
-        if spread_m is not None or self.spread is not None:  # the means above are computed before: they do not move
-            grid_probs = grid_probs.copy()
-            for b, p in enumerate(pairs):
-                speed = p.measured_v_mps if math.isfinite(p.measured_v_mps) else p.v0_mps
-                sigmas = np.full(n_k, spread_m) if spread_m is not None else self.spread.sigmas(speed)
-                grid_probs[b] = widen(grid_probs[b], sigmas, cfg.ds_m)
-                beyond = p.s_first_m + lower >= p.end_s_m
-                if np.any(beyond):
-                    grid_probs[b][:, beyond] = 0.0
         frame = self._grid_frame(footprints, grid_probs)
         by_track: dict[int, list[int]] = collections.defaultdict(list)
         for b, p in enumerate(pairs):
@@ -766,6 +755,11 @@ class MarkovPredictor:
             )
             for track, members in by_track.items()
         }
+        if self.spread is not None:  # calibrated spread (spread.py): each vehicle's grid blurred per step and speed band
+            for track, members in by_track.items():
+                p = pairs[members[0]]
+                speed = p.measured_v_mps if math.isfinite(p.measured_v_mps) else p.v0_mps
+                vehicle_grids[track] = blur_grid(frame, vehicle_grids[track], self.spread.sigmas(speed))
         infos = tuple(PairInfo(p.track_id, p.corridor_id, p.probability, p.s0_m, p.s_first_m, p.end_s_m) for p in pairs)
         return FramePrediction(
             mode=cfg.mode,
@@ -800,7 +794,8 @@ class MarkovPredictor:
                 ys.append(fp.y_m[used].ravel())
         if not xs:
             return GridFrame(0.0, 0.0, cfg.grid_cell_m, 1, 1)
-        return GridFrame.around(np.concatenate(xs), np.concatenate(ys), cfg.grid_cell_m, cfg.grid_margin_m)
+        margin = cfg.grid_margin_m + (3.0 * float(self.spread.sigma_m.max()) if self.spread is not None else 0.0)  # the blur stays on the grid
+        return GridFrame.around(np.concatenate(xs), np.concatenate(ys), cfg.grid_cell_m, margin)
 
 
 # --------------------------------------------------------------------------- helpers

@@ -1,20 +1,23 @@
-"""Calibrated spread of the grids: a Gaussian along the corridor added to each pair's s-distribution, per step and speed band.
+"""Calibrated spread of the grids: each vehicle's grid blurred with a Gaussian per step and start-speed band.
 
 ``iamp calibrate`` (``stages.offline.calibrate``) fits, on the windows of one
 location, the σ (m) per prediction step and start-speed band for which the
 90 % region of each mode's grid holds the truth in 90 % of the windows, and
 writes them to a JSON file; the stage reads it (``spread_calibration``) and
-widens the distributions its grids are made of with ``widen``. The mean
-positions (``CorridorPredictions`` means, mADE) are computed before and do
-not change; a σ of 0 leaves a step as it is (the spread is never narrowed).
+blurs every vehicle's grid step by step with an isotropic Gaussian of that σ
+(``blur_grid``) before the vehicles are fused: along the track (most of the
+error of moving cars) and across it (lane offsets the 0.4 m lateral kernel
+does not hold). The corridor distributions and mean positions
+(``CorridorPredictions``, mADE) do not change; a σ of 0 leaves a step as it
+is (the spread is never narrowed). Mass blurred off the grid's frame is lost.
 
 File layout (``SCHEMA``)::
 
     {"schema": "iamp-spread-calibration/1", "modes": {"hybrid": {"bands_mps": [0.5, 2.0],
-     "sigma_s_m": [[...n_steps...], [...], [...]]}, ...}, "fitted_on": {...}}
+     "sigma_m": [[...n_steps...], [...], [...]]}, ...}, "fitted_on": {...}}
 
 ``bands_mps`` are the upper start-speed edges of all bands but the last
-(speed ≤ 0.5: standing, ≤ 2: slow, above: fast); ``sigma_s_m`` has one row
+(speed ≤ 0.5: standing, ≤ 2: slow, above: fast); ``sigma_m`` has one row
 per band and one σ per step.
 """
 
@@ -23,11 +26,13 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass
-from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.ndimage import gaussian_filter
+
+from stages.markov_prediction.rasterise import GridFrame, SparseGrid
 
 SCHEMA = "iamp-spread-calibration/1"
 #: ``spread_calibration = "shipped"`` names this file
@@ -39,16 +44,16 @@ class SpreadTable:
     """σ (m) per start-speed band (rows) and step (columns) of one mode."""
 
     bands_mps: tuple[float, ...]
-    sigma_s_m: np.ndarray  # (len(bands_mps) + 1, n_steps)
+    sigma_m: np.ndarray  # (len(bands_mps) + 1, n_steps)
 
     def band(self, speed_mps: float) -> int:
         return int(np.searchsorted(np.asarray(self.bands_mps), speed_mps, side="left"))
 
     def sigmas(self, speed_mps: float) -> np.ndarray:
-        return self.sigma_s_m[self.band(speed_mps)]
+        return self.sigma_m[self.band(speed_mps)]
 
     def as_dict(self) -> dict[str, Any]:
-        return {"bands_mps": list(self.bands_mps), "sigma_s_m": np.round(self.sigma_s_m, 4).tolist()}
+        return {"bands_mps": list(self.bands_mps), "sigma_m": np.round(self.sigma_m, 4).tolist()}
 
 
 def resolve(path: str) -> Path:
@@ -70,11 +75,11 @@ def load_spread(path: str, mode: str, n_steps: int) -> SpreadTable | None:
         return None
     try:
         bands = tuple(float(b) for b in entry["bands_mps"])
-        sigma = np.asarray(entry["sigma_s_m"], dtype=np.float64)
+        sigma = np.asarray(entry["sigma_m"], dtype=np.float64)
     except (KeyError, TypeError, ValueError) as exc:
-        raise ValueError(f"{where}: mode {mode}: expected bands_mps and sigma_s_m ({exc})") from exc
+        raise ValueError(f"{where}: mode {mode}: expected bands_mps and sigma_m ({exc})") from exc
     if sigma.shape != (len(bands) + 1, n_steps) or not np.all(np.isfinite(sigma)) or np.any(sigma < 0) or list(bands) != sorted(bands):
-        raise ValueError(f"{where}: mode {mode}: sigma_s_m must be {len(bands) + 1} x {n_steps} finite values >= 0 (one row per band,"
+        raise ValueError(f"{where}: mode {mode}: sigma_m must be {len(bands) + 1} x {n_steps} finite values >= 0 (one row per band,"
                          f" one per step) and bands_mps increasing; got shape {sigma.shape}")
     return SpreadTable(bands, sigma)
 
@@ -85,19 +90,34 @@ def write_spread(path: Path, tables: dict[str, SpreadTable], fitted_on: dict[str
     path.write_text(json.dumps(blob, indent=2) + "\n")
 
 
-@lru_cache(maxsize=256)
-def _kernel(n_cells: int, sigma_cells: float) -> np.ndarray:
-    """(N, N) column-stochastic Gaussian: column j spreads cell j's mass over the window (none leaves it)."""
-    idx = np.arange(n_cells, dtype=np.float64)
-    k = np.exp(-0.5 * ((idx[:, None] - idx[None, :]) / sigma_cells) ** 2)
-    return (k / k.sum(axis=0, keepdims=True)).astype(np.float32)
-
-
-def widen(probs: np.ndarray, sigmas_m: np.ndarray, ds_m: float) -> np.ndarray:
-    """(K, N) s-distributions of one pair, each step k convolved with a Gaussian of σ = ``sigmas_m[k]`` (m; 0: unchanged)."""
-    out = np.array(probs, dtype=np.float32, copy=True)
-    n = out.shape[1]
-    for k, sigma in enumerate(np.asarray(sigmas_m, dtype=np.float64)):
-        if sigma > 0 and math.isfinite(sigma):
-            out[k] = _kernel(n, round(float(sigma) / ds_m, 3)) @ out[k]
-    return out
+def blur_grid(frame: GridFrame, grid: SparseGrid, sigmas_m: np.ndarray) -> SparseGrid:
+    """One vehicle's grid (all steps) with step k blurred by an isotropic Gaussian of σ = ``sigmas_m[k]`` (m; 0: as is)."""
+    sigmas = np.asarray(sigmas_m, dtype=np.float64)
+    if not np.any(sigmas > 0) or grid.keys.size == 0:
+        return grid
+    n_cells = frame.n_cells
+    keys, values = [], []
+    for k, sigma in enumerate(sigmas):
+        cells, vals = grid.step(k, n_cells)
+        if cells.size == 0:
+            continue
+        if not (sigma > 0 and math.isfinite(sigma)):
+            keys.append(cells + k * n_cells)
+            values.append(vals)
+            continue
+        s_cells = sigma / frame.cell_m
+        pad = int(math.ceil(3.0 * s_cells))
+        rows, cols = np.divmod(cells, frame.n_cols)
+        r0, c0 = max(int(rows.min()) - pad, 0), max(int(cols.min()) - pad, 0)
+        r1, c1 = min(int(rows.max()) + pad + 1, frame.n_rows), min(int(cols.max()) + pad + 1, frame.n_cols)
+        dense = np.zeros((r1 - r0, c1 - c0))
+        np.add.at(dense, (rows - r0, cols - c0), vals)
+        dense = gaussian_filter(dense, s_cells, mode="constant", truncate=3.0)
+        rr, cc = np.nonzero(dense > 1e-12)
+        keys.append(k * n_cells + (rr + r0) * frame.n_cols + (cc + c0))
+        values.append(dense[rr, cc])
+    if not keys:
+        return grid
+    k_all, v_all = np.concatenate(keys), np.concatenate(values)
+    order = np.argsort(k_all, kind="stable")
+    return SparseGrid(k_all[order].astype(np.int64), v_all[order])

@@ -2,10 +2,10 @@
 
 It runs ``iamp eval``'s chain and scoring (``Evaluation``, same windows,
 same centre-point grids) on the recordings given (one location: the other
-one is for reporting), and for every scored window also builds the grids
-again with each candidate σ of ``SIGMAS_M``: every pair's s-distribution at
-every step convolved with a Gaussian of that σ along its corridor
-(``markov_prediction.spread.widen``; the mean positions do not move). Per
+one is for reporting), and for every scored window also scores its grid
+with each candidate σ of ``SIGMAS_M``: the vehicle's grid at every step
+blurred by an isotropic Gaussian of that σ (``markov_prediction.spread.blur_grid``,
+what the stage does with the fitted table; the means do not move). Per
 mode, start-speed band (``BANDS_MPS``: standing ≤ 0.5 m/s, slow ≤ 2 m/s,
 fast) and step it counts how often the truth lies in the ``--level``
 highest-density region of the vehicle's grid for each candidate, and takes
@@ -24,6 +24,7 @@ what it was fitted on.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -33,7 +34,7 @@ import numpy as np
 
 from stages.lib.base import json_safe
 from stages.markov_prediction.rasterise import highest_density_threshold
-from stages.markov_prediction.spread import SpreadTable, write_spread
+from stages.markov_prediction.spread import SpreadTable, blur_grid, write_spread
 from stages.offline.evaluation import EVAL_MODES, EvalConfig, Evaluation, _key_values
 
 #: candidate σ (m) along the corridor
@@ -47,9 +48,10 @@ class SpreadCalibration(Evaluation):
     """``Evaluation`` that also scores every window's coverage under each candidate σ (per mode, band, step)."""
 
     def __init__(self, config: EvalConfig, sigmas_m: tuple[float, ...] = SIGMAS_M, level: float = 0.9) -> None:
-        if any(p for p, _ in config.params if p == "spread_calibration"):
+        if any(p == "spread_calibration" for p, _ in config.params):
             raise ValueError("iamp calibrate fits spread_calibration: do not --set it")
-        super().__init__(config)
+        margin = dict(config.params).get("grid_margin_m", 3.0) + 3.0 * max(sigmas_m)  # no candidate's blur leaves the grid
+        super().__init__(dataclasses.replace(config, params=(*config.params, ("grid_margin_m", margin))))
         self.sigmas_m = tuple(float(s) for s in sigmas_m)
         self.level = level
         n_k = self.predictors[config.modes[0]].config.n_steps
@@ -57,44 +59,19 @@ class SpreadCalibration(Evaluation):
         self.hits = {m: np.zeros(shape, np.int64) for m in config.modes}
         self.nll = {m: np.zeros(shape) for m in config.modes}
         self.count = {m: np.zeros((len(BAND_NAMES), n_k), np.int64) for m in config.modes}
-        self._last: dict[str, tuple] = {}
-        self._candidates: dict[str, tuple[int, list]] = {}
-        for mode, predictor in self.predictors.items():
-            finish = predictor._finish
-
-            def recording_finish(pairs, arrays, issues, spread_m=None, _finish=finish, _mode=mode):
-                result = _finish(pairs, arrays, issues, spread_m)
-                if spread_m is None:
-                    self._last[_mode] = (pairs, arrays, result, _finish)
-                return result
-
-            predictor._finish = recording_finish
-
-    def _candidate_predictions(self, prediction) -> list | None:
-        mode = prediction.mode
-        last = self._last.get(mode)
-        if last is None or last[2] is not prediction:
-            return None
-        cached = self._candidates.get(mode)
-        if cached is not None and cached[0] == id(prediction):
-            return cached[1]
-        pairs, arrays, _, finish = last
-        built = [finish(pairs, arrays, [], s) for s in self.sigmas_m]
-        self._candidates[mode] = (id(prediction), built)
-        return built
 
     def _score(self, prediction, track_id, future, acc, vehicle):
         result = super()._score(prediction, track_id, future, acc, vehicle)
-        if result is None:
-            return result
-        candidates = self._candidate_predictions(prediction)
-        if candidates is None:
+        grid = prediction.vehicle_grids.get(track_id)
+        if result is None or grid is None:
             return result
         mode = prediction.mode
         band = int(np.searchsorted(np.asarray(BANDS_MPS), float(vehicle.speed_mps), side="left"))
         self.count[mode][band] += 1
-        for c, cand in enumerate(candidates):
-            covered, value = truth_in_region(cand, track_id, future, self.level)
+        n_k = future.shape[0]
+        for c, sigma in enumerate(self.sigmas_m):
+            blurred = blur_grid(prediction.grid_frame, grid, np.full(n_k, sigma))
+            covered, value = truth_in_region(prediction.grid_frame, blurred, future, self.level)
             self.hits[mode][band, :, c] += covered
             self.nll[mode][band, :, c] -= np.log(np.maximum(value, self.config.nll_floor))
         return result
@@ -124,15 +101,11 @@ class SpreadCalibration(Evaluation):
         return tables, measured
 
 
-def truth_in_region(prediction, track_id: int, future: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per step: whether the true position's cell lies in the ``level`` highest-density region of the vehicle's grid,
+def truth_in_region(frame, grid, future: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per step: whether the true position's cell lies in the ``level`` highest-density region of a vehicle's grid,
     and the grid's value there (``iamp eval``'s coverage90/NLL rule)."""
     n_k = future.shape[0]
     covered, value = np.zeros(n_k, np.int64), np.zeros(n_k)
-    grid = prediction.vehicle_grids.get(track_id)
-    if grid is None:
-        return covered, value
-    frame = prediction.grid_frame
     cells_true = frame.flat_index(future[:, 0], future[:, 1])
     for k in range(n_k):
         cells, values = grid.step(k, frame.n_cells)
@@ -165,7 +138,7 @@ def format_fit(tables: dict[str, SpreadTable], measured: dict[str, Any]) -> str:
         lines.append(f"{mode}: σ (m) per step, and coverage on these windows (in-sample) before -> at σ")
         for b, name in enumerate(BAND_NAMES):
             before, after = m["coverage_uncalibrated"][name], m["coverage_at_sigma"][name]
-            lines.append(f"  {name:<9} {m['windows'][name]:>6} windows  σ " + " ".join(f"{s:4.1f}" for s in table.sigma_s_m[b])
+            lines.append(f"  {name:<9} {m['windows'][name]:>6} windows  σ " + " ".join(f"{s:4.1f}" for s in table.sigma_m[b])
                          + (f"  cov {before:.2f} -> {after:.2f}" if before is not None else "  (no windows: σ 0)"))
     return "\n".join(lines)
 
