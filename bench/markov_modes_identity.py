@@ -37,6 +37,8 @@ RUNS: dict[str, tuple[str, dict, str, int]] = {
     "baseline-point-uniform": ("baseline", {"grid_distribution": "point", "corridor_weights": "uniform", "initial_box": "measurement"}, "embedded", 60),
     "hybrid-direct": ("hybrid", {"hybrid_input": "direct", "hybrid_speed_restriction": False}, "embedded", 60),
     "hybrid-psi-unrestricted": ("hybrid", {"hybrid_speed_restriction": False}, "embedded", 60),
+    # the fixed standstill start rate of every standing car (hybrid's default before the scene rates)
+    "hybrid-standstill-fixed": ("hybrid", {"hybrid_standstill_rates_hz": ()}, "embedded", 0),
     "baseline-torch": ("baseline", {"backend": "torch"}, "embedded", 30),
     "hybrid-torch": ("hybrid", {"backend": "torch"}, "embedded", 30),
     # the embedded scenario has no crossing conflicts: bench/markov_stage.py's synthetic frames have (the second pass)

@@ -59,8 +59,9 @@ class MarkovPredictionConfig(ConfigMixin):
     standstill_start_rate_hz: float = 0.055
     # hybrid mode: a standing vehicle's start rate from the scene (README "Standing vehicles"), per group of its corridor's
     # leader: (no leader within standstill_leader_gap_m, a standing leader, a leader faster than standstill_leader_moving_mps);
-    # () = standstill_start_rate_hz for every standing vehicle
-    hybrid_standstill_rates_hz: tuple[float, ...] = ()
+    # () = standstill_start_rate_hz for every standing vehicle. Default chosen on K729 (README "Standing vehicles"): it stays
+    # unless its leader pulls away (K729: 100 % of those start within 4 s, 15 % behind a standing leader, 25 % with none)
+    hybrid_standstill_rates_hz: tuple[float, ...] = (0.0, 0.0, 1.7)
     standstill_leader_gap_m: float = 25.0
     standstill_leader_moving_mps: float = 1.0
     track_timeout_s: float = 2.0
