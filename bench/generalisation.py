@@ -34,6 +34,14 @@ direction is the closer one to a held-out test; the K733 -> K729 direction
 still evaluates on data whose statistics guided those defaults (only the AR
 model is held out there).
 
+With ``--calibrate`` each direction first fits the grids' spread on the
+training location with its model (``iamp calibrate --recording A --model
+<that model> --stride 0.8``, every mode; the file is cached beside the model,
+``--recalibrate`` fits again, as it must after a change of the modes' code or
+defaults) and the eval reads it (``--set spread_calibration=FILE``), so the
+coverage is calibrated on one location and reported on the other. ``--set
+KEY=VALUE`` passes a markov_prediction parameter to both.
+
 Models are cached under ``artefacts/generalisation/`` keyed by training
 recording, seed and a hash of the training options (data folder and the
 ``iamp train`` flags); ``--retrain`` forces training. The cache does not see
@@ -44,7 +52,8 @@ Run (full TAF-BW recordings named by ``IAMP_TAF_BW``)::
 
     IAMP_TAF_BW=/path/to/taf-bw python bench/generalisation.py
     python bench/generalisation.py --data DIR [--seed 0] [--direction k729-k733|k733-k729|both]
-        [--max-frames N] [--stride 0.4] [--retrain] [--train-opt=--hidden=256 ...] [--json OUT]
+        [--max-frames N] [--stride 0.4] [--retrain] [--train-opt=--hidden=256 ...] [--calibrate [--recalibrate]]
+        [--set KEY=VALUE ...] [--json OUT]
 
 ``--max-frames N`` is passed to ``iamp eval`` only (quick mode: each sequence
 stops after N frames); training always uses the whole training recording.
@@ -373,7 +382,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     names = list(DIRECTIONS) if args.direction == "both" else [args.direction]
     out: dict[str, Any] = {"data": str(data), "seed": args.seed, "stride_s": args.stride, "max_frames": args.max_frames,
-                           "train_options": args.train_opt, "slow_fast_split_mps": SLOW_FAST_MPS, "directions": {}}
+                           "train_options": args.train_opt, "calibrate": args.calibrate, "set": args.set, "slow_fast_split_mps": SLOW_FAST_MPS, "directions": {}}
     texts = []
     for name in names:
         a, b = DIRECTIONS[name]

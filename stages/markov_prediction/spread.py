@@ -90,6 +90,49 @@ def write_spread(path: Path, tables: dict[str, SpreadTable], fitted_on: dict[str
     path.write_text(json.dumps(blob, indent=2) + "\n")
 
 
+def blur_step(frame: GridFrame, cells: np.ndarray, values: np.ndarray, sigma_m: float):
+    """One step of one vehicle's grid blurred by σ: (patch origin row, col, block size f, (R, C) block masses).
+
+    A wide blur runs on blocks of f × f cells (f = ⌊σ / 2 cells⌋, at least 1),
+    each cell's mass split linearly between the nearest block centres (the mean
+    kept) and blurred with σ/f, so that its cost does not grow with σ; the
+    blurred mass is smooth on the scale of σ, and a block spreads its mass
+    evenly over its cells (``blur_grid``). Blocks past the
+    frame's edge hold no cells: their mass is lost.
+    """
+    s_cells = sigma_m / frame.cell_m
+    f = max(int(s_cells // 2.0), 1)
+    pad = int(math.ceil(3.0 * s_cells))
+    rows, cols = np.divmod(cells, frame.n_cols)
+    r0, c0 = int(rows.min()) - pad - f, int(cols.min()) - pad - f
+    n_r = (int(rows.max()) + pad + f + 1 - r0 + f - 1) // f + 1
+    n_c = (int(cols.max()) + pad + f + 1 - c0 + f - 1) // f + 1
+    blocks = np.zeros((n_r, n_c))
+    # cloud in cell: each cell's mass split linearly between the two nearest block centres per axis (its mean kept)
+    u = (rows - r0 - 0.5 * (f - 1)) / f
+    w = (cols - c0 - 0.5 * (f - 1)) / f
+    bu, bw = np.floor(u).astype(np.int64), np.floor(w).astype(np.int64)
+    fu, fw = u - bu, w - bw
+    for du, wu in ((0, 1.0 - fu), (1, fu)):
+        for dw, ww in ((0, 1.0 - fw), (1, fw)):
+            np.add.at(blocks, (bu + du, bw + dw), values * wu * ww)
+    return r0, c0, f, gaussian_filter(blocks, s_cells / f, mode="constant", truncate=3.0)
+
+
+def block_cells(frame: GridFrame, r0: int, c0: int, f: int, blocks: np.ndarray, min_mass: float = 1e-12):
+    """The cells (flat index) and values of ``blur_step``'s blocks, each block's mass spread evenly over its cells
+    inside the frame."""
+    br, bc = np.nonzero(blocks > min_mass)
+    if br.size == 0:
+        return np.zeros(0, np.int64), np.zeros(0)
+    dr, dc = np.divmod(np.arange(f * f), f)
+    rows = (r0 + br * f)[:, None] + dr[None, :]
+    cols = (c0 + bc * f)[:, None] + dc[None, :]
+    vals = np.repeat((blocks[br, bc] / (f * f))[:, None], f * f, axis=1)
+    inside = (rows >= 0) & (rows < frame.n_rows) & (cols >= 0) & (cols < frame.n_cols)
+    return (rows * frame.n_cols + cols)[inside].astype(np.int64), vals[inside]
+
+
 def blur_grid(frame: GridFrame, grid: SparseGrid, sigmas_m: np.ndarray) -> SparseGrid:
     """One vehicle's grid (all steps) with step k blurred by an isotropic Gaussian of σ = ``sigmas_m[k]`` (m; 0: as is)."""
     sigmas = np.asarray(sigmas_m, dtype=np.float64)
@@ -101,21 +144,10 @@ def blur_grid(frame: GridFrame, grid: SparseGrid, sigmas_m: np.ndarray) -> Spars
         cells, vals = grid.step(k, n_cells)
         if cells.size == 0:
             continue
-        if not (sigma > 0 and math.isfinite(sigma)):
-            keys.append(cells + k * n_cells)
-            values.append(vals)
-            continue
-        s_cells = sigma / frame.cell_m
-        pad = int(math.ceil(3.0 * s_cells))
-        rows, cols = np.divmod(cells, frame.n_cols)
-        r0, c0 = max(int(rows.min()) - pad, 0), max(int(cols.min()) - pad, 0)
-        r1, c1 = min(int(rows.max()) + pad + 1, frame.n_rows), min(int(cols.max()) + pad + 1, frame.n_cols)
-        dense = np.zeros((r1 - r0, c1 - c0))
-        np.add.at(dense, (rows - r0, cols - c0), vals)
-        dense = gaussian_filter(dense, s_cells, mode="constant", truncate=3.0)
-        rr, cc = np.nonzero(dense > 1e-12)
-        keys.append(k * n_cells + (rr + r0) * frame.n_cols + (cc + c0))
-        values.append(dense[rr, cc])
+        if sigma > 0 and math.isfinite(sigma):
+            cells, vals = block_cells(frame, *blur_step(frame, cells, vals, float(sigma)))
+        keys.append(cells + k * n_cells)
+        values.append(vals)
     if not keys:
         return grid
     k_all, v_all = np.concatenate(keys), np.concatenate(values)

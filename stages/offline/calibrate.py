@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -34,7 +35,7 @@ import numpy as np
 
 from stages.lib.base import json_safe
 from stages.markov_prediction.rasterise import highest_density_threshold
-from stages.markov_prediction.spread import SpreadTable, blur_grid, write_spread
+from stages.markov_prediction.spread import SpreadTable, blur_step, write_spread
 from stages.offline.evaluation import EVAL_MODES, EvalConfig, Evaluation, _key_values
 
 #: candidate σ (m) along the corridor
@@ -68,12 +69,14 @@ class SpreadCalibration(Evaluation):
         mode = prediction.mode
         band = int(np.searchsorted(np.asarray(BANDS_MPS), float(vehicle.speed_mps), side="left"))
         self.count[mode][band] += 1
-        n_k = future.shape[0]
-        for c, sigma in enumerate(self.sigmas_m):
-            blurred = blur_grid(prediction.grid_frame, grid, np.full(n_k, sigma))
-            covered, value = truth_in_region(prediction.grid_frame, blurred, future, self.level)
-            self.hits[mode][band, :, c] += covered
-            self.nll[mode][band, :, c] -= np.log(np.maximum(value, self.config.nll_floor))
+        frame = prediction.grid_frame
+        cells_true = frame.flat_index(future[:, 0], future[:, 1])
+        for k in range(future.shape[0]):
+            cells, values = grid.step(k, frame.n_cells)
+            for c, sigma in enumerate(self.sigmas_m):
+                covered, value = _truth_in_blurred(frame, cells, values, int(cells_true[k]), sigma, self.level)
+                self.hits[mode][band, k, c] += covered
+                self.nll[mode][band, k, c] -= math.log(max(value, self.config.nll_floor))
         return result
 
     def fit(self) -> tuple[dict[str, SpreadTable], dict[str, Any]]:
@@ -116,6 +119,48 @@ def truth_in_region(frame, grid, future: np.ndarray, level: float) -> tuple[np.n
             value[k] = float(values[i])
             covered[k] = value[k] > 0 and value[k] >= highest_density_threshold(values, level)
     return covered, value
+
+
+def _truth_in_blurred(frame, cells: np.ndarray, values: np.ndarray, cell_true: int, sigma: float, level: float) -> tuple[bool, float]:
+    """Whether the true cell lies in the ``level`` region of one step of a vehicle's grid blurred by σ (``blur_grid``),
+    and its value there; on the blocks themselves (a block's cells share its value: the same region, cheaper)."""
+    if cell_true < 0 or cells.size == 0:
+        return False, 0.0
+    if sigma <= 0:
+        i = int(np.searchsorted(cells, cell_true))
+        if i < cells.size and cells[i] == cell_true:
+            v = float(values[i])
+            return bool(v > 0 and v >= highest_density_threshold(values, level)), v
+        return False, 0.0
+    r0, c0, f, blocks = blur_step(frame, cells, values, sigma)
+    row, col = divmod(cell_true, frame.n_cols)
+    br, bc = (row - r0) // f, (col - c0) // f
+    if not (0 <= br < blocks.shape[0] and 0 <= bc < blocks.shape[1]):
+        return False, 0.0
+    mass = float(blocks[br, bc])
+    if mass <= 1e-12:
+        return False, 0.0
+    inside = _blocks_inside(frame, r0, c0, f, blocks.shape)  # cells of each block inside the frame
+    flat = blocks.ravel()
+    keep = (flat > 1e-12) & (inside.ravel() > 0)
+    # the region over cells: cells sorted by value, blocks' cells share block mass / f²
+    per_cell = flat[keep] / (f * f)
+    counts = inside.ravel()[keep]
+    order = np.argsort(-per_cell, kind="stable")
+    cumulative = np.cumsum(per_cell[order] * counts[order])
+    n = int(np.searchsorted(cumulative, level, side="left"))
+    threshold = float(per_cell[order][min(n, order.size - 1)])
+    value = mass / (f * f)
+    return bool(value >= threshold), value
+
+
+def _blocks_inside(frame, r0: int, c0: int, f: int, shape: tuple[int, int]) -> np.ndarray:
+    """(R, C): how many of each block's f × f cells lie inside the frame."""
+    rows = r0 + np.arange(shape[0] * f)
+    cols = c0 + np.arange(shape[1] * f)
+    r_in = ((rows >= 0) & (rows < frame.n_rows)).reshape(shape[0], f).sum(axis=1)
+    c_in = ((cols >= 0) & (cols < frame.n_cols)).reshape(shape[1], f).sum(axis=1)
+    return r_in[:, None] * c_in[None, :]
 
 
 def smallest_sigma(sigmas: np.ndarray, coverage: np.ndarray, level: float) -> float:

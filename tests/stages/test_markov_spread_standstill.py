@@ -49,6 +49,27 @@ def test_blur_grid_keeps_mass_and_centre_and_widens():
     assert np.all(np.diff(out.keys) > 0)  # still sorted unique keys
 
 
+def test_calibrate_scores_the_blocks_as_the_stage_blurs_the_grid():
+    """iamp calibrate's coverage on the blurred blocks = the coverage of the grid the stage publishes (blur_grid)."""
+    from stages.markov_prediction.rasterise import GridFrame, SparseGrid
+    from stages.offline.calibrate import _truth_in_blurred, truth_in_region
+
+    rng = np.random.default_rng(3)
+    frame = GridFrame(0.0, 0.0, 0.5, 120, 150)
+    cells = np.unique(rng.integers(50 * 150 + 40, 70 * 150 + 90, 60))
+    values = rng.random(cells.size)
+    values /= values.sum()
+    grid = SparseGrid(cells.astype(np.int64), values)
+    for sigma in (0.0, 0.7, 2.0, 5.0, 11.0):
+        blurred = blur_grid(frame, grid, np.array([sigma]))
+        for cell in rng.integers(0, frame.n_cells, 40).tolist() + cells[:10].tolist():
+            row, col = divmod(int(cell), frame.n_cols)
+            future = np.array([[(col + 0.5) * 0.5, (row + 0.5) * 0.5]])
+            covered, value = truth_in_region(frame, blurred, future, 0.9)
+            fast = _truth_in_blurred(frame, cells, values, int(cell), sigma, 0.9)
+            assert fast[0] == bool(covered[0]) and fast[1] == pytest.approx(value[0], rel=1e-9, abs=1e-15), (sigma, cell)
+
+
 def test_spread_file_is_checked_and_read_per_mode_and_band(tmp_path):
     path = _spread_file(tmp_path, "cv", 2.0)
     table = load_spread(str(path), "cv", 10)
