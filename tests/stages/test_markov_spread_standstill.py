@@ -135,10 +135,10 @@ def _standing_scene(leader_speed: float | None):
 
 def test_hybrid_standing_car_stays_unless_its_leader_pulls_away(stencils):
     """An AR profile that accelerates at 1.5 m/s²: a car behind a standing leader (or with none) stays within 0.3 m
-    over 4 s with rates (0, 0, 1.5); behind a leader that drives off it starts; without the rates the old mixture."""
+    over 4 s with rates (0, 0, 1.5); behind a leader that drives off it starts; with () the fixed rate's mixture."""
     rates = {"hybrid_standstill_rates_hz": (0.0, 0.0, 1.5)}
     scene = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", **rates, **PLAIN), stencils=stencils)
-    plain = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", **PLAIN), stencils=stencils)
+    plain = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", hybrid_standstill_rates_hz=(), **PLAIN), stencils=stencils)
     moved = {}
     for leader in (None, 0.0, 3.0):
         cs, rs = _standing_scene(leader)
