@@ -34,6 +34,14 @@ direction is the closer one to a held-out test; the K733 -> K729 direction
 still evaluates on data whose statistics guided those defaults (only the AR
 model is held out there).
 
+With ``--calibrate`` each direction first fits the grids' spread on the
+training location with its model (``iamp calibrate --recording A --model
+<that model> --stride 0.8``, every mode; the file is cached beside the model,
+``--recalibrate`` fits again, as it must after a change of the modes' code or
+defaults) and the eval reads it (``--set spread_calibration=FILE``), so the
+coverage is calibrated on one location and reported on the other. ``--set
+KEY=VALUE`` passes a markov_prediction parameter to both.
+
 Models are cached under ``artefacts/generalisation/`` keyed by training
 recording, seed and a hash of the training options (data folder and the
 ``iamp train`` flags); ``--retrain`` forces training. The cache does not see
@@ -44,7 +52,8 @@ Run (full TAF-BW recordings named by ``IAMP_TAF_BW``)::
 
     IAMP_TAF_BW=/path/to/taf-bw python bench/generalisation.py
     python bench/generalisation.py --data DIR [--seed 0] [--direction k729-k733|k733-k729|both]
-        [--max-frames N] [--stride 0.4] [--retrain] [--train-opt=--hidden=256 ...] [--json OUT]
+        [--max-frames N] [--stride 0.4] [--retrain] [--train-opt=--hidden=256 ...] [--calibrate [--recalibrate]]
+        [--set KEY=VALUE ...] [--json OUT]
 
 ``--max-frames N`` is passed to ``iamp eval`` only (quick mode: each sequence
 stops after N frames); training always uses the whole training recording.
@@ -71,7 +80,7 @@ RECORDINGS = {"k729": "k729_2022-03-16", "k733": "k733_2018-05-02"}
 DIRECTIONS = {"k729-k733": ("k729", "k733"), "k733-k729": ("k733", "k729")}
 MODES = ("hybrid", "baseline", "corridor_cv", "cv")
 SPLITS = ("overall", "slow", "fast")
-TABLE_METRICS = (("mADE", "mADE_m"), ("mFDE", "mFDE_m"), ("wADE", "wADE_m"), ("cov90", "coverage90"), ("NLL", "nll"))
+TABLE_METRICS = (("mADE", "mADE_m"), ("mFDE", "mFDE_m"), ("wADE", "wADE_m"), ("cov50", "coverage50"), ("cov90", "coverage90"), ("NLL", "nll"))
 SLOW_FAST_MPS = 2.0
 OUT_DIR = Path("artefacts") / "generalisation"
 DEFAULT_JSON = Path("artefacts") / "generalisation.json"
@@ -126,11 +135,37 @@ def train_model(data: Path, recording: str, seed: int, train_opts: list[str], re
     return info
 
 
-def eval_model(data: Path, recording: str, model: str, seed: int, stride: float, max_frames: int, tag: str) -> tuple[dict[str, Any], float, str]:
+def calibrate(data: Path, recording: str, model: str, seed: int, sets: list[str], recalibrate: bool) -> dict[str, Any]:
+    """``iamp calibrate`` on the training location with its model (every mode; stride 0.8 s): the spread file the eval reads."""
+    key = hashlib.sha256(json.dumps({"model": model, "sets": sets}, sort_keys=True).encode()).hexdigest()[:12]
+    out = OUT_DIR / f"spread_{recording}_seed{seed}_{key}.json"
+    report, log = out.with_suffix(".report.json"), out.with_suffix(".log")
+    info: dict[str, Any] = {"recording": recording, "file": str(out), "report_json": str(report)}
+    if out.is_file() and report.is_file() and not recalibrate:
+        print(f"calibrate {recording}: cached {out}")
+        info["cached"], info["seconds"] = True, None
+    else:
+        rc, seconds = _iamp(["calibrate", "--data", str(data), "--recording", recording, "--model", model, "--seed", str(seed),
+                             "--stride", "0.8", "--mode", *MODES, "--out", str(out), "--json", str(report), "--no-progress",
+                             *[f"--set={x}" for x in sets]], log)
+        if rc != 0:
+            raise SystemExit(rc)
+        info["cached"], info["seconds"] = False, seconds
+        print(f"calibrate {recording}: {seconds:.0f} s -> {out}")
+    rep = json.loads(report.read_text())
+    info["tables"] = rep.get("tables")
+    info["in_sample"] = {m: {k: v[k] for k in ("windows", "coverage_uncalibrated", "coverage_at_sigma")} for m, v in rep.get("measured", {}).items()}
+    return info
+
+
+def eval_model(data: Path, recording: str, model: str, seed: int, stride: float, max_frames: int, tag: str,
+               sets: list[str] = ()) -> tuple[dict[str, Any], float, str]:
     suffix = f"_seed{seed}_stride{stride:g}" + (f"_mf{max_frames}" if max_frames else "")
+    if sets:
+        suffix += "_" + hashlib.sha256(json.dumps(list(sets)).encode()).hexdigest()[:8]
     out, log = OUT_DIR / f"eval_{tag}{suffix}.json", OUT_DIR / f"eval_{tag}{suffix}.log"
     args = ["eval", "--data", str(data), "--recording", recording, "--model", model, "--seed", str(seed),
-            "--stride", f"{stride:g}", "--mode", *MODES, "--json", str(out), "--no-progress"]
+            "--stride", f"{stride:g}", "--mode", *MODES, "--json", str(out), "--no-progress", *[f"--set={x}" for x in sets]]
     if max_frames:
         args += ["--max-frames", str(max_frames)]
     rc, seconds = _iamp(args, log)
@@ -324,6 +359,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--retrain", action="store_true", help="train even when a cached model exists")
     p.add_argument("--train-opt", action="append", default=[], metavar="FLAG",
                    help="extra iamp train flag, e.g. --train-opt=--hidden=256 (repeatable; part of the cache key)")
+    p.add_argument("--calibrate", action="store_true",
+                   help="fit the grids' spread with iamp calibrate on the training location (its model) and evaluate with it")
+    p.add_argument("--recalibrate", action="store_true", help="with --calibrate: fit even when a cached file exists")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="markov_prediction parameter for iamp calibrate and iamp eval (repeatable)")
     p.add_argument("--json", type=Path, default=DEFAULT_JSON, help=f"write everything here (default {DEFAULT_JSON})")
     args = p.parse_args(argv)
 
@@ -342,17 +382,25 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     names = list(DIRECTIONS) if args.direction == "both" else [args.direction]
     out: dict[str, Any] = {"data": str(data), "seed": args.seed, "stride_s": args.stride, "max_frames": args.max_frames,
-                           "train_options": args.train_opt, "slow_fast_split_mps": SLOW_FAST_MPS, "directions": {}}
+                           "train_options": args.train_opt, "calibrate": args.calibrate, "set": args.set, "slow_fast_split_mps": SLOW_FAST_MPS, "directions": {}}
     texts = []
     for name in names:
         a, b = DIRECTIONS[name]
         train = train_model(data, RECORDINGS[a], args.seed, args.train_opt, args.retrain)
-        ev, ev_seconds, ev_path = eval_model(data, RECORDINGS[b], train["model"], args.seed, args.stride, args.max_frames, name)
+        sets, cal = list(args.set), None
+        if args.calibrate:
+            cal = calibrate(data, RECORDINGS[a], train["model"], args.seed, sets, args.recalibrate)
+            sets.append(f"spread_calibration={cal['file']}")
+        ev, ev_seconds, ev_path = eval_model(data, RECORDINGS[b], train["model"], args.seed, args.stride, args.max_frames, name, sets)
         summary = summarise(ev)
         text = format_direction(name, train, ev, summary)
         texts.append(text)
         print("\n" + text + "\n", flush=True)
+        if cal is not None:
+            text += "\n\nspread calibrated on " + RECORDINGS[a] + " (iamp calibrate): " + cal["file"]
+            print(text.rsplit("\n", 1)[-1], flush=True)
         out["directions"][name] = {"train_recording": RECORDINGS[a], "eval_recording": RECORDINGS[b], "train": train,
+                                   "calibration": cal, "sets": sets,
                                    "eval_seconds": ev_seconds, "eval_json": ev_path, "eval_instants": ev.get("instants"),
                                    "eval_skipped": ev.get("skipped"), **summary,
                                    **{k: {m: _find_key(ev["modes"][m], k) for m in ev.get("modes", {})} for k in NEW_KEYS}}

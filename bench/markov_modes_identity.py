@@ -35,8 +35,12 @@ RUNS: dict[str, tuple[str, dict, str, int]] = {
     "baseline": ("baseline", {}, "embedded", 0),
     "hybrid": ("hybrid", {}, "embedded", 0),
     "baseline-point-uniform": ("baseline", {"grid_distribution": "point", "corridor_weights": "uniform", "initial_box": "measurement"}, "embedded", 60),
-    "hybrid-direct": ("hybrid", {"hybrid_input": "direct", "hybrid_speed_restriction": False}, "embedded", 60),
-    "hybrid-psi-unrestricted": ("hybrid", {"hybrid_speed_restriction": False}, "embedded", 60),
+    # the first 60 embedded frames have standing cars only: with hybrid's default standstill rates they would not reach
+    # the chain, so these two keep the fixed rate (their hashes are those of before the scene rates)
+    "hybrid-direct": ("hybrid", {"hybrid_input": "direct", "hybrid_speed_restriction": False, "hybrid_standstill_rates_hz": ()}, "embedded", 60),
+    "hybrid-psi-unrestricted": ("hybrid", {"hybrid_speed_restriction": False, "hybrid_standstill_rates_hz": ()}, "embedded", 60),
+    # the fixed standstill start rate of every standing car (hybrid's default before the scene rates)
+    "hybrid-standstill-fixed": ("hybrid", {"hybrid_standstill_rates_hz": ()}, "embedded", 0),
     "baseline-torch": ("baseline", {"backend": "torch"}, "embedded", 30),
     "hybrid-torch": ("hybrid", {"backend": "torch"}, "embedded", 30),
     # the embedded scenario has no crossing conflicts: bench/markov_stage.py's synthetic frames have (the second pass)

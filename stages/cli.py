@@ -10,6 +10,8 @@
                                                            the recording in Foxglove's schemas (foxglove-sdk)
     iamp eval [--data PATH] [--recording NAME]... [--mode M...] [--stride S] [--json FILE] [--figures DIR] [--report DIR]
                                                            offline metrics of the prediction modes
+    iamp calibrate --recording NAME --out FILE [--model M] [--mode M...]
+                                                           fit the spread of the grids (coverage90 = 0.9) on one location
     iamp train [--data PATH] [--recording NAME...] [--split S] [--hidden N] [--out FILE] [--json FILE]
                                                            train the AR acceleration model
     iamp signals --data DIR --recording NAME [--map FILE.osm] [--figure FILE.png] [--json FILE]
@@ -162,6 +164,20 @@ def _run_signals(args: argparse.Namespace) -> int:
     return run_cli(args)
 
 
+def _add_calibrate(sub: "argparse._SubParsersAction") -> None:
+    from stages.offline.calibrate import add_arguments
+
+    p = sub.add_parser("calibrate", help="fit each mode's grid spread per step and speed band so that the 90 % region holds the truth in 90 % of windows")
+    add_arguments(p)
+    p.set_defaults(run=_run_calibrate)
+
+
+def _run_calibrate(args: argparse.Namespace) -> int:
+    from stages.offline.calibrate import run_cli
+
+    return run_cli(args)
+
+
 def _add_train(sub: "argparse._SubParsersAction") -> None:
     from stages.offline.train.cli import add_arguments
 
@@ -242,6 +258,7 @@ SUBCOMMANDS: list[Callable[["argparse._SubParsersAction"], None]] = [
     _add_recover,
     _add_export,
     _add_eval,
+    _add_calibrate,
     _add_train,
     _add_signals,
     _add_data,

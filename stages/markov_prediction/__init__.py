@@ -67,7 +67,16 @@ inputs, and the preference q starts it (docs/method.md §3.6). A vehicle at or b
 P_stay(t)·(its start box, v = 0) + (1 − P_stay(t))·chain, P_stay(t) =
 exp(−``standstill_start_rate_hz``·t); 0.055 /s gives P(start within 4 s) =
 0.2, what TAF-BW's standing cars show (measured: docs/method.md §3.6).
-Followers see a standing leader through the same mixture.
+Followers see a standing leader through the same mixture. In hybrid mode the
+rate comes from the scene (``hybrid_standstill_rates_hz``, per leader on the
+corridor: none within ``standstill_leader_gap_m``, standing, faster than
+``standstill_leader_moving_mps``; default 0, 0, 1.7 /s: a car stays unless
+its leader pulls away).
+
+Calibrated spread (``spread_calibration``, off by default): a file written
+by ``iamp calibrate`` gives, per mode, start-speed band and step, the σ of
+an isotropic Gaussian that blurs each vehicle's grid before fusion
+(``spread.py``; the corridor distributions and means do not change).
 
 Lateral offset. Means and grids are placed at the vehicle's lateral offset
 from the centreline, d(t) = d0·exp(−t/``lateral_offset_decay_s``); the

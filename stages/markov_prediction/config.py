@@ -59,6 +59,13 @@ class MarkovPredictionConfig(ConfigMixin):
     accel_window_s: float = 1.0
     standstill_speed_mps: float = 0.5
     standstill_start_rate_hz: float = 0.055
+    # hybrid mode: a standing vehicle's start rate from the scene (README "Standing vehicles"), per group of its corridor's
+    # leader: (no leader within standstill_leader_gap_m, a standing leader, a leader faster than standstill_leader_moving_mps);
+    # () = standstill_start_rate_hz for every standing vehicle. Default chosen on K729 (README "Standing vehicles"): it stays
+    # unless its leader pulls away (K729: 100 % of those start within 4 s, 15 % behind a standing leader, 25 % with none)
+    hybrid_standstill_rates_hz: tuple[float, ...] = (0.0, 0.0, 1.7)
+    standstill_leader_gap_m: float = 25.0
+    standstill_leader_moving_mps: float = 1.0
     track_timeout_s: float = 2.0
     # Γ = colnorm(diag(λ) Ψ) (§4.1)
     psi_gamma: float = 0.2
@@ -91,6 +98,10 @@ class MarkovPredictionConfig(ConfigMixin):
     grid_min_value: float = 1e-5
     grid_distribution: str = "interval"
     lateral_offset_decay_s: float = 1e6
+    # calibrated spread (README "Calibrated grids"): a JSON file written by ``iamp calibrate`` with, per mode, the
+    # Gaussian σ (m) along the corridor that widens each pair's s-distribution at each step, per start-speed band,
+    # for the grids only (the mean positions stay as they are); "" = none; "shipped" = stages/markov_prediction/spread.json
+    spread_calibration: str = ""
     # issues
     outside_issue_mass: float = 0.01
     # bounded work per message (issue 13): pairs per frame (whole vehicles beyond, in CorridorSet order, skipped)
@@ -129,12 +140,15 @@ class MarkovPredictionConfig(ConfigMixin):
         )
         non_negative = (
             "window_behind_m", "accel_window_s", "prune_threshold", "standstill_speed_mps", "standstill_start_rate_hz", "forbid_threshold", "curvature_smoothing_m", "leader_epsilon",
-            "conflict_margin_s", "conflict_epsilon", "grid_margin_m", "lateral_offset_decay_s", "grid_min_value", "outside_issue_mass",
+            "conflict_margin_s", "conflict_epsilon", "standstill_leader_gap_m", "standstill_leader_moving_mps", "grid_margin_m", "lateral_offset_decay_s", "grid_min_value", "outside_issue_mass",
         )
         check_ranges(self, positive=positive, non_negative=non_negative)
         for name in ("n_steps", "window_cells", "grid_substeps", "max_pairs", "grid_max_cells_per_step"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} = {getattr(self, name)!r}: must be >= 1")
+        if self.hybrid_standstill_rates_hz and (len(self.hybrid_standstill_rates_hz) != 3 or any(not (r >= 0) for r in self.hybrid_standstill_rates_hz)):
+            raise ValueError(f"hybrid_standstill_rates_hz = {self.hybrid_standstill_rates_hz!r}: expected () or three rates >= 0"
+                             " (no leader, standing leader, moving leader)")
         if len(self.lat_accels_mps2) != len(self.lat_accel_weights) or not self.lat_accels_mps2:
             raise ValueError("lat_accels_mps2 and lat_accel_weights must be non-empty and of equal length")
         if any(a <= 0 for a in self.lat_accels_mps2) or any(w < 0 for w in self.lat_accel_weights):

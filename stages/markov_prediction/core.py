@@ -47,6 +47,7 @@ from stages.markov_prediction.modes import MODELS
 from stages.markov_prediction.modes.base import InputModel, Messages, Pair, Vehicle
 from stages.markov_prediction.modes.corridor_cv import constant_speed
 from stages.markov_prediction.modes.cv import CV_LINE_ID
+from stages.markov_prediction.spread import SpreadTable, blur_grid, load_spread
 from stages.markov_prediction.rasterise import Footprints, GridFrame, SparseGrid, cell_footprints, fuse, lateral_kernel, vehicle_grid
 from stages.markov_prediction.signals import apply_signals, stop_line_wall
 
@@ -231,6 +232,8 @@ class MarkovPredictor:
             )
         #: the mode's input model (``modes/``): the only mode-specific code the loop calls
         self.model: InputModel = model_cls(self)
+        #: the calibrated spread of this mode's grids (``spread.py``), or None
+        self.spread: SpreadTable | None = load_spread(config.spread_calibration, config.mode, config.n_steps) if config.spread_calibration else None
 
     # ----- entry points ---------------------------------------------------------
 
@@ -305,6 +308,11 @@ class MarkovPredictor:
                     issues.append(Issue("unknown_corridor", key[0], f"relation for corridor {key[1]}, which has no prediction: ignored"))
             else:
                 pair.relation = relation
+        if self.config.mode == "hybrid" and self.config.hybrid_standstill_rates_hz:
+            for pair in pairs:
+                if pair.start_rate_hz > 0:
+                    # a rate of 0 (stays) is kept just above 0: start_rate_hz 0 marks a moving vehicle
+                    pair.start_rate_hz = max(self.config.hybrid_standstill_rates_hz[standstill_group(pair.relation, self.config)], 1e-9)
         self._signal_walls = apply_signals(self, pairs, issues)  # stages.markov_prediction.signals: nothing without signal phases
         prediction = self._predict(pairs, issues)
         over = prediction.grid_cells_over_cap()
@@ -757,6 +765,11 @@ class MarkovPredictor:
             )
             for track, members in by_track.items()
         }
+        if self.spread is not None:  # calibrated spread (spread.py): each vehicle's grid blurred per step and speed band
+            for track, members in by_track.items():
+                p = pairs[members[0]]
+                speed = p.measured_v_mps if math.isfinite(p.measured_v_mps) else p.v0_mps
+                vehicle_grids[track] = blur_grid(frame, vehicle_grids[track], self.spread.sigmas(speed))
         infos = tuple(PairInfo(p.track_id, p.corridor_id, p.probability, p.s0_m, p.s_first_m, p.end_s_m) for p in pairs)
         return FramePrediction(
             mode=cfg.mode,
@@ -791,7 +804,8 @@ class MarkovPredictor:
                 ys.append(fp.y_m[used].ravel())
         if not xs:
             return GridFrame(0.0, 0.0, cfg.grid_cell_m, 1, 1)
-        return GridFrame.around(np.concatenate(xs), np.concatenate(ys), cfg.grid_cell_m, cfg.grid_margin_m)
+        margin = cfg.grid_margin_m + (3.0 * float(self.spread.sigma_m.max()) if self.spread is not None else 0.0)  # the blur stays on the grid
+        return GridFrame.around(np.concatenate(xs), np.concatenate(ys), cfg.grid_cell_m, margin)
 
 
 # --------------------------------------------------------------------------- helpers
@@ -800,6 +814,17 @@ class MarkovPredictor:
 _CHAIN_SCALARS = ("s0_m", "v0_mps", "a0_mps2", "sigma_a0_mps2", "s_first_m", "speed_limit_mps", "d0_m", "length_m", "width_m",
                   "half_width_s_m", "half_width_v_mps", "start_rate_hz", "probability")
 _CHAIN_ARRAYS = ("s_m", "x_m", "y_m", "heading_rad", "curvature_1pm", "input_probs")
+
+
+def standstill_group(relation: CorridorRelations | None, config: MarkovPredictionConfig) -> int:
+    """A standing vehicle's scene on one corridor: 0 no leader within ``standstill_leader_gap_m`` (or no relations),
+    1 a standing leader, 2 a leader faster than ``standstill_leader_moving_mps`` (it pulls away: the queue discharges)."""
+    if relation is None or relation.leader_track_id < 0 or not math.isfinite(relation.leader_gap_m):
+        return 0
+    if relation.leader_gap_m > config.standstill_leader_gap_m:
+        return 0
+    speed = relation.leader_speed_mps
+    return 2 if math.isfinite(speed) and speed > config.standstill_leader_moving_mps else 1
 
 
 def _non_finite(p: Pair) -> list[str]:

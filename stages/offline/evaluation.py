@@ -50,6 +50,8 @@ Metrics per window (K = 10 steps of 0.4 s):
   a cell of the 90 % highest-probability region of that vehicle's grid at
   that step (the vehicle's own grid, corridors weighted, not the fused
   one; all occupied cells when the grid holds less than 90 %);
+- ``coverage50``: the same with the 50 % highest-probability region (a
+  calibrated grid holds the truth in about half of the pairs);
 - ``route_top1``: share of route windows where the corridor the car really
   followed has the highest weight (a k-way tie counts 1/k); a route window
   has at least two corridors, one of which holds the true 4 s future within
@@ -231,6 +233,7 @@ class _Stats:
     wfde: float = 0.0
     steps: int = 0
     covered: int = 0
+    covered50: int = 0
     nll: float = 0.0
     route_windows: int = 0
     route_hits: float = 0.0
@@ -243,6 +246,7 @@ class _Stats:
         self.wfde += w.wfde
         self.steps += w.steps
         self.covered += w.covered
+        self.covered50 += w.covered50
         self.nll += w.nll
         if w.route_hit is not None:
             self.route_windows += 1
@@ -257,6 +261,7 @@ class _Stats:
             "mFDE_m": self.mfde / n if self.windows else nan,
             "wADE_m": self.wade / n if self.windows else nan,
             "wFDE_m": self.wfde / n if self.windows else nan,
+            "coverage50": self.covered50 / k if self.steps else nan,
             "coverage90": self.covered / k if self.steps else nan,
             "nll": self.nll / k if self.steps else nan,
             "route_top1": self.route_hits / self.route_windows if self.route_windows else nan,
@@ -273,6 +278,7 @@ class _WindowResult:
     steps: int
     covered: int
     nll: float
+    covered50: int = 0
     route_hit: float | None = None
     error_xy: np.ndarray | None = None  # (K, 2) predicted mean − truth of the corridor mADE scores (the smallest ADE)
     covered_levels: np.ndarray | None = None  # (len(COVERAGE_LEVELS),) steps inside each level's highest-probability region
@@ -698,7 +704,7 @@ class Evaluation:
         grid = prediction.vehicle_grids.get(track_id)
         frame = prediction.grid_frame
         cells_true = frame.flat_index(future[:, 0], future[:, 1])
-        covered, nll = 0, 0.0
+        covered, covered50, nll = 0, 0, 0.0
         covered_levels = np.zeros(len(COVERAGE_LEVELS), np.int64)
         for k in range(future.shape[0]):
             cells, values = grid.step(k, frame.n_cells) if grid is not None else (np.zeros(0, np.int64), np.zeros(0))
@@ -709,12 +715,14 @@ class Evaluation:
                     value = float(values[i])
             if value > 0 and value >= highest_density_threshold(values, cfg.coverage_level):
                 covered += 1
+            if value > 0 and value >= highest_density_threshold(values, 0.5):
+                covered50 += 1
             if value > 0:
                 covered_levels += value >= _region_thresholds(values)
             nll -= math.log(max(value, cfg.nll_floor))
         return _WindowResult(
             made=min(ade), mfde=min(fde), wade=float(np.dot(w, ade)), wfde=float(np.dot(w, fde)),
-            steps=future.shape[0], covered=covered, nll=nll, route_hit=_route_hit(prediction, members, w, vehicle, future),
+            steps=future.shape[0], covered=covered, nll=nll, covered50=covered50, route_hit=_route_hit(prediction, members, w, vehicle, future),
             error_xy=errors[int(np.argmin(ade))], covered_levels=covered_levels,
         )
 
@@ -785,6 +793,7 @@ class Evaluation:
                 for sit in self.situations
             ],
             "metrics": {
+                "coverage50": "share of (vehicle, step) pairs whose true position is in the 50% highest-probability cells of the vehicle's centre-point grid",
                 "coverage90": f"share of (vehicle, step) pairs whose true position is in the {cfg.coverage_level:.0%} highest-probability cells of the vehicle's centre-point grid",
                 "nll": f"mean -ln max(P(true cell), {cfg.nll_floor:g}) over (vehicle, step), nats, {self.predictors[cfg.modes[0]].config.grid_cell_m} m cells",
                 "mADE_m": "min over corridors of the ADE of the probability-weighted mean position",
@@ -932,14 +941,14 @@ def _fill_forward(means: np.ndarray, pair) -> np.ndarray:
 
 def format_table(report: dict[str, Any]) -> str:
     """The printed summary: per mode overall/slow/fast, then timing."""
-    head = (f"{'mode':<12} {'split':<8} {'windows':>7} {'mADE':>7} {'mFDE':>7} {'wADE':>7} {'wFDE':>7} {'cov90':>6} {'NLL':>6}"
+    head = (f"{'mode':<12} {'split':<8} {'windows':>7} {'mADE':>7} {'mFDE':>7} {'wADE':>7} {'wFDE':>7} {'cov50':>6} {'cov90':>6} {'NLL':>6}"
             f" {'top1':>5} {'routes':>6}")
     lines = [head, "-" * len(head)]
     for mode, res in report["modes"].items():
         for split, stats in (("overall", res["overall"]), ("slow", res["by_speed"]["slow"]), ("fast", res["by_speed"]["fast"])):
             lines.append(
                 f"{mode:<12} {split:<8} {stats['windows']:>7d} {stats['mADE_m']:>7.2f} {stats['mFDE_m']:>7.2f}"
-                f" {stats['wADE_m']:>7.2f} {stats['wFDE_m']:>7.2f} {stats['coverage90']:>6.2f} {stats['nll']:>6.2f}"
+                f" {stats['wADE_m']:>7.2f} {stats['wFDE_m']:>7.2f} {stats['coverage50']:>6.2f} {stats['coverage90']:>6.2f} {stats['nll']:>6.2f}"
                 f" {stats['route_top1']:>5.2f} {stats['route_windows']:>6d}"
             )
     lines.extend(_manoeuvre_tables(report))

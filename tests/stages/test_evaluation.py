@@ -14,7 +14,7 @@ from stages.offline.evaluation import EVAL_MODES, EvalConfig, Evaluation, _route
 from stages.offline.truth import Track, future_positions
 from stages.markov_prediction.rasterise import highest_density_threshold
 
-METRICS = ("windows", "mADE_m", "mFDE_m", "wADE_m", "wFDE_m", "coverage90", "nll")
+METRICS = ("windows", "mADE_m", "mFDE_m", "wADE_m", "wFDE_m", "coverage50", "coverage90", "nll")
 ROUTE = ("route_top1", "route_windows")
 
 
@@ -51,7 +51,7 @@ def test_report_has_every_key_with_finite_values(slice_report):
                 assert 0.0 <= group["route_top1"] <= 1.0
             if group["windows"]:
                 assert all(math.isfinite(group[k]) for k in METRICS), (mode, group)
-                assert 0.0 <= group["coverage90"] <= 1.0 and group["nll"] >= 0.0
+                assert 0.0 <= group["coverage50"] <= group["coverage90"] <= 1.0 and group["nll"] >= 0.0
                 assert group["mADE_m"] <= group["wADE_m"] + 1e-9 and group["mFDE_m"] <= group["wFDE_m"] + 1e-9
         assert res["by_speed"]["slow"]["windows"] + res["by_speed"]["fast"]["windows"] == res["overall"]["windows"]
         for key in ("frame_ms_median", "frame_ms_p95", "vehicles_per_frame_mean"):

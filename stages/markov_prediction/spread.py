@@ -1,0 +1,155 @@
+"""Calibrated spread of the grids: each vehicle's grid blurred with a Gaussian per step and start-speed band.
+
+``iamp calibrate`` (``stages.offline.calibrate``) fits, on the windows of one
+location, the σ (m) per prediction step and start-speed band for which the
+90 % region of each mode's grid holds the truth in 90 % of the windows, and
+writes them to a JSON file; the stage reads it (``spread_calibration``) and
+blurs every vehicle's grid step by step with an isotropic Gaussian of that σ
+(``blur_grid``) before the vehicles are fused: along the track (most of the
+error of moving cars) and across it (lane offsets the 0.4 m lateral kernel
+does not hold). The corridor distributions and mean positions
+(``CorridorPredictions``, mADE) do not change; a σ of 0 leaves a step as it
+is (the spread is never narrowed). Mass blurred off the grid's frame is lost.
+
+File layout (``SCHEMA``)::
+
+    {"schema": "iamp-spread-calibration/1", "modes": {"hybrid": {"bands_mps": [0.5, 2.0],
+     "sigma_m": [[...n_steps...], [...], [...]]}, ...}, "fitted_on": {...}}
+
+``bands_mps`` are the upper start-speed edges of all bands but the last
+(speed ≤ 0.5: standing, ≤ 2: slow, above: fast); ``sigma_m`` has one row
+per band and one σ per step.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+
+from stages.markov_prediction.rasterise import GridFrame, SparseGrid
+
+SCHEMA = "iamp-spread-calibration/1"
+#: ``spread_calibration = "shipped"`` names this file
+SHIPPED = Path(__file__).with_name("spread.json")
+
+
+@dataclass(frozen=True)
+class SpreadTable:
+    """σ (m) per start-speed band (rows) and step (columns) of one mode."""
+
+    bands_mps: tuple[float, ...]
+    sigma_m: np.ndarray  # (len(bands_mps) + 1, n_steps)
+
+    def band(self, speed_mps: float) -> int:
+        return int(np.searchsorted(np.asarray(self.bands_mps), speed_mps, side="left"))
+
+    def sigmas(self, speed_mps: float) -> np.ndarray:
+        return self.sigma_m[self.band(speed_mps)]
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"bands_mps": list(self.bands_mps), "sigma_m": np.round(self.sigma_m, 4).tolist()}
+
+
+def resolve(path: str) -> Path:
+    return SHIPPED if path == "shipped" else Path(path).expanduser()
+
+
+def load_spread(path: str, mode: str, n_steps: int) -> SpreadTable | None:
+    """The table of ``mode`` in the file ``path`` (None when the file has none for it); a bad file raises ValueError."""
+    where = f"spread_calibration = {path!r}"
+    file = resolve(path)
+    try:
+        data = json.loads(file.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{where}: cannot read {file}: {exc}; write it with `iamp calibrate` or set spread_calibration = \"\"") from exc
+    if not isinstance(data, dict) or data.get("schema") != SCHEMA or not isinstance(data.get("modes"), dict):
+        raise ValueError(f"{where}: {file} is not a {SCHEMA} file (write it with `iamp calibrate`)")
+    entry = data["modes"].get(mode)
+    if entry is None:
+        return None
+    try:
+        bands = tuple(float(b) for b in entry["bands_mps"])
+        sigma = np.asarray(entry["sigma_m"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{where}: mode {mode}: expected bands_mps and sigma_m ({exc})") from exc
+    if sigma.shape != (len(bands) + 1, n_steps) or not np.all(np.isfinite(sigma)) or np.any(sigma < 0) or list(bands) != sorted(bands):
+        raise ValueError(f"{where}: mode {mode}: sigma_m must be {len(bands) + 1} x {n_steps} finite values >= 0 (one row per band,"
+                         f" one per step) and bands_mps increasing; got shape {sigma.shape}")
+    return SpreadTable(bands, sigma)
+
+
+def write_spread(path: Path, tables: dict[str, SpreadTable], fitted_on: dict[str, Any]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    blob = {"schema": SCHEMA, "modes": {m: t.as_dict() for m, t in tables.items()}, "fitted_on": fitted_on}
+    path.write_text(json.dumps(blob, indent=2) + "\n")
+
+
+def blur_step(frame: GridFrame, cells: np.ndarray, values: np.ndarray, sigma_m: float):
+    """One step of one vehicle's grid blurred by σ: (patch origin row, col, block size f, (R, C) block masses).
+
+    A wide blur runs on blocks of f × f cells (f = ⌊σ / 2 cells⌋, at least 1),
+    each cell's mass split linearly between the nearest block centres (the mean
+    kept) and blurred with σ/f, so that its cost does not grow with σ; the
+    blurred mass is smooth on the scale of σ, and a block spreads its mass
+    evenly over its cells (``blur_grid``). Blocks past the
+    frame's edge hold no cells: their mass is lost.
+    """
+    s_cells = sigma_m / frame.cell_m
+    f = max(int(s_cells // 2.0), 1)
+    pad = int(math.ceil(3.0 * s_cells))
+    rows, cols = np.divmod(cells, frame.n_cols)
+    r0, c0 = int(rows.min()) - pad - f, int(cols.min()) - pad - f
+    n_r = (int(rows.max()) + pad + f + 1 - r0 + f - 1) // f + 1
+    n_c = (int(cols.max()) + pad + f + 1 - c0 + f - 1) // f + 1
+    blocks = np.zeros((n_r, n_c))
+    # cloud in cell: each cell's mass split linearly between the two nearest block centres per axis (its mean kept)
+    u = (rows - r0 - 0.5 * (f - 1)) / f
+    w = (cols - c0 - 0.5 * (f - 1)) / f
+    bu, bw = np.floor(u).astype(np.int64), np.floor(w).astype(np.int64)
+    fu, fw = u - bu, w - bw
+    for du, wu in ((0, 1.0 - fu), (1, fu)):
+        for dw, ww in ((0, 1.0 - fw), (1, fw)):
+            np.add.at(blocks, (bu + du, bw + dw), values * wu * ww)
+    return r0, c0, f, gaussian_filter(blocks, s_cells / f, mode="constant", truncate=3.0)
+
+
+def block_cells(frame: GridFrame, r0: int, c0: int, f: int, blocks: np.ndarray, min_mass: float = 1e-12):
+    """The cells (flat index) and values of ``blur_step``'s blocks, each block's mass spread evenly over its cells
+    inside the frame."""
+    br, bc = np.nonzero(blocks > min_mass)
+    if br.size == 0:
+        return np.zeros(0, np.int64), np.zeros(0)
+    dr, dc = np.divmod(np.arange(f * f), f)
+    rows = (r0 + br * f)[:, None] + dr[None, :]
+    cols = (c0 + bc * f)[:, None] + dc[None, :]
+    vals = np.repeat((blocks[br, bc] / (f * f))[:, None], f * f, axis=1)
+    inside = (rows >= 0) & (rows < frame.n_rows) & (cols >= 0) & (cols < frame.n_cols)
+    return (rows * frame.n_cols + cols)[inside].astype(np.int64), vals[inside]
+
+
+def blur_grid(frame: GridFrame, grid: SparseGrid, sigmas_m: np.ndarray) -> SparseGrid:
+    """One vehicle's grid (all steps) with step k blurred by an isotropic Gaussian of σ = ``sigmas_m[k]`` (m; 0: as is)."""
+    sigmas = np.asarray(sigmas_m, dtype=np.float64)
+    if not np.any(sigmas > 0) or grid.keys.size == 0:
+        return grid
+    n_cells = frame.n_cells
+    keys, values = [], []
+    for k, sigma in enumerate(sigmas):
+        cells, vals = grid.step(k, n_cells)
+        if cells.size == 0:
+            continue
+        if sigma > 0 and math.isfinite(sigma):
+            cells, vals = block_cells(frame, *blur_step(frame, cells, vals, float(sigma)))
+        keys.append(cells + k * n_cells)
+        values.append(vals)
+    if not keys:
+        return grid
+    k_all, v_all = np.concatenate(keys), np.concatenate(values)
+    order = np.argsort(k_all, kind="stable")
+    return SparseGrid(k_all[order].astype(np.int64), v_all[order])

@@ -1,0 +1,153 @@
+"""Calibrated spread (``spread_calibration``, ``iamp calibrate``) and the hybrid standstill rates from the scene."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
+from stages.markov_prediction.spread import SCHEMA, SpreadTable, blur_grid, load_spread, write_spread
+from stages.offline.calibrate import smallest_sigma
+from tests.stages.test_markov_prediction import PLAIN, _corridor, _corridor_set, _profiles, _relation, _relation_set, _vehicle
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def stencils():
+    return MarkovPredictor(MarkovPredictionConfig(**PLAIN)).stencils
+
+
+def _spread_file(tmp_path: Path, mode: str, sigma: float) -> Path:
+    path = tmp_path / "spread.json"
+    write_spread(path, {mode: SpreadTable((0.5, 2.0), np.full((3, 10), sigma))}, {"test": True})
+    return path
+
+
+def test_blur_grid_keeps_mass_and_centre_and_widens():
+    from stages.markov_prediction.rasterise import GridFrame, SparseGrid
+
+    frame = GridFrame(0.0, 0.0, 0.5, 80, 80)
+    centre = 40 * 80 + 40
+    grid = SparseGrid(np.array([centre, frame.n_cells + centre], np.int64), np.array([0.7, 0.7]))
+    out = blur_grid(frame, grid, np.array([0.0, 3.0]))
+    cells0, values0 = out.step(0, frame.n_cells)
+    np.testing.assert_array_equal(cells0, [centre])  # σ 0: unchanged
+    cells1, values1 = out.step(1, frame.n_cells)
+    assert values1.sum() == pytest.approx(0.7, rel=1e-6)
+    rows, cols = np.divmod(cells1, frame.n_cols)
+    assert float(values1 @ rows / values1.sum()) == pytest.approx(40.0, abs=1e-6)
+    spread_m = 0.5 * math.sqrt(float(values1 @ (cols - 40.0) ** 2 / values1.sum()))
+    assert spread_m == pytest.approx(3.0, abs=0.1)
+    assert np.all(np.diff(out.keys) > 0)  # still sorted unique keys
+
+
+def test_calibrate_scores_the_blocks_as_the_stage_blurs_the_grid():
+    """iamp calibrate's coverage on the blurred blocks = the coverage of the grid the stage publishes (blur_grid)."""
+    from stages.markov_prediction.rasterise import GridFrame, SparseGrid
+    from stages.offline.calibrate import _truth_in_blurred, truth_in_region
+
+    rng = np.random.default_rng(3)
+    frame = GridFrame(0.0, 0.0, 0.5, 120, 150)
+    cells = np.unique(rng.integers(50 * 150 + 40, 70 * 150 + 90, 60))
+    values = rng.random(cells.size)
+    values /= values.sum()
+    grid = SparseGrid(cells.astype(np.int64), values)
+    for sigma in (0.0, 0.7, 2.0, 5.0, 11.0):
+        blurred = blur_grid(frame, grid, np.array([sigma]))
+        for cell in rng.integers(0, frame.n_cells, 40).tolist() + cells[:10].tolist():
+            row, col = divmod(int(cell), frame.n_cols)
+            future = np.array([[(col + 0.5) * 0.5, (row + 0.5) * 0.5]])
+            covered, value = truth_in_region(frame, blurred, future, 0.9)
+            fast = _truth_in_blurred(frame, cells, values, int(cell), sigma, 0.9)
+            assert fast[0] == bool(covered[0]) and fast[1] == pytest.approx(value[0], rel=1e-9, abs=1e-15), (sigma, cell)
+
+
+def test_spread_file_is_checked_and_read_per_mode_and_band(tmp_path):
+    path = _spread_file(tmp_path, "cv", 2.0)
+    table = load_spread(str(path), "cv", 10)
+    assert table.band(0.2) == 0 and table.band(1.0) == 1 and table.band(5.0) == 2
+    assert load_spread(str(path), "hybrid", 10) is None  # no table for that mode: nothing widened
+    with pytest.raises(ValueError, match="3 x 12 finite values"):
+        load_spread(str(path), "cv", 12)
+    (tmp_path / "bad.json").write_text(json.dumps({"schema": "other"}))
+    with pytest.raises(ValueError, match=SCHEMA):
+        MarkovPredictor(MarkovPredictionConfig(mode="cv", spread_calibration=str(tmp_path / "bad.json")))
+    with pytest.raises(ValueError, match="iamp calibrate"):
+        MarkovPredictor(MarkovPredictionConfig(mode="cv", spread_calibration=str(tmp_path / "missing.json")))
+
+
+@pytest.mark.parametrize("mode", ["baseline", "corridor_cv"])
+def test_calibrated_spread_widens_the_grid_and_leaves_the_means(tmp_path, stencils, mode):
+    cs = _corridor_set(_vehicle(1, 8.0, [_corridor(7)]))
+    plain = MarkovPredictor(MarkovPredictionConfig(mode=mode, **PLAIN), stencils=stencils)
+    wide = MarkovPredictor(MarkovPredictionConfig(mode=mode, spread_calibration=str(_spread_file(tmp_path, mode, 4.0)), **PLAIN),
+                           stencils=stencils)
+    a, _ = plain.process(cs, _relation_set(_relation(1, 7)))
+    b, _ = wide.process(cs, _relation_set(_relation(1, 7)))
+    np.testing.assert_array_equal(a.mean_xy_m, b.mean_xy_m)
+    np.testing.assert_array_equal(a.position_probs, b.position_probs)  # the CorridorPredictions stay as they were
+    for k in (0, 9):
+        cells_a, values_a = a.vehicle_grids[1].step(k, a.grid_frame.n_cells)
+        cells_b, values_b = b.vehicle_grids[1].step(k, b.grid_frame.n_cells)
+        assert (values_b > 1e-4).sum() > (values_a > 1e-4).sum() + 10
+        assert values_b.sum() == pytest.approx(values_a.sum(), rel=1e-2)
+
+
+def test_smallest_sigma_interpolates_and_never_narrows():
+    sig = np.array([0.0, 1.0, 2.0, 4.0])
+    assert smallest_sigma(sig, np.array([0.95, 0.97, 0.98, 0.99]), 0.9) == 0.0
+    assert smallest_sigma(sig, np.array([0.5, 0.7, 0.8, 1.0]), 0.9) == pytest.approx(3.0)
+    assert smallest_sigma(sig, np.array([0.5, 0.6, 0.7, 0.8]), 0.9) == 4.0
+
+
+def test_iamp_calibrate_writes_a_file_the_stage_reads(tmp_path):
+    out = tmp_path / "cal" / "spread.json"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    run = subprocess.run([sys.executable, "-m", "stages.cli", "calibrate", "--mode", "cv", "corridor_cv", "--max-frames", "40",
+                          "--stride", "0.8", "--no-progress", "--out", str(out)], cwd=ROOT, env=env, capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert "wrote" in run.stdout and out.is_file()
+    data = json.loads(out.read_text())
+    assert data["schema"] == SCHEMA and set(data["modes"]) == {"cv", "corridor_cv"}
+    assert data["fitted_on"]["recordings"] and data["fitted_on"]["level"] == 0.9
+    table = load_spread(str(out), "cv", 10)
+    assert table.sigma_m.shape == (3, 10) and np.all(np.diff(table.sigma_m, axis=1) >= 0)
+    MarkovPredictor(MarkovPredictionConfig(mode="cv", spread_calibration=str(out)))  # the stage takes it
+    bad = subprocess.run([sys.executable, "-m", "stages.cli", "calibrate", "--mode", "cv", "--out", str(out), "--set",
+                          f"spread_calibration={out}"], cwd=ROOT, env=env, capture_output=True, text=True)
+    assert bad.returncode == 2 and "do not --set it" in bad.stderr
+
+
+def _standing_scene(leader_speed: float | None):
+    """A car standing on a straight road; a leader 6 m ahead standing or pulling away (or none)."""
+    cs = _corridor_set(_vehicle(1, 0.0, [_corridor(7)]))
+    rel = _relation(1, 7) if leader_speed is None else _relation(1, 7, leader=2, gap=6.0, leader_speed=leader_speed)
+    return cs, _relation_set(rel)
+
+
+def test_hybrid_standing_car_stays_unless_its_leader_pulls_away(stencils):
+    """An AR profile that accelerates at 1.5 m/s²: a car behind a standing leader (or with none) stays within 0.3 m
+    over 4 s with rates (0, 0, 1.5); behind a leader that drives off it starts; with () the fixed rate's mixture."""
+    rates = {"hybrid_standstill_rates_hz": (0.0, 0.0, 1.5)}
+    scene = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", **rates, **PLAIN), stencils=stencils)
+    plain = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", hybrid_standstill_rates_hz=(), **PLAIN), stencils=stencils)
+    moved = {}
+    for leader in (None, 0.0, 3.0):
+        cs, rs = _standing_scene(leader)
+        prediction, issues = scene.process(cs, rs, acceleration_profiles=_profiles(1, 7, 1.5))
+        moved[leader] = float(prediction.mean_s_m[0, -1]) - 5.0
+        np.testing.assert_allclose(prediction.position_probs[0].sum(axis=1) + prediction.outside_mass[0], 1.0, atol=1e-5)
+    assert abs(moved[None]) < 0.3 and abs(moved[0.0]) < 0.3, moved
+    assert moved[3.0] > 5.0, moved
+    old, _ = plain.process(*_standing_scene(0.0), acceleration_profiles=_profiles(1, 7, 1.5))
+    assert float(old.mean_s_m[0, -1]) - 5.0 > 1.0  # the fixed rate 0.055 /s lets ~20 % start by 4 s
+    with pytest.raises(ValueError, match="three rates"):
+        MarkovPredictionConfig(mode="hybrid", hybrid_standstill_rates_hz=(0.1, 0.2))
