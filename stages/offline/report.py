@@ -60,7 +60,8 @@ def _versions() -> dict[str, str]:
     return out
 
 
-def _git() -> str:
+def _git(out_dir: Path | None = None) -> str:
+    """HEAD, and whether the tracked files differ from it (the report's own folder not counted: it is being rewritten)."""
     try:
         head = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=REPO, capture_output=True, text=True, timeout=10)
         dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO, capture_output=True, text=True, timeout=10)
@@ -68,7 +69,15 @@ def _git() -> str:
         return "unknown (no git)"
     if head.returncode != 0:
         return "unknown (not a git checkout)"
-    return head.stdout.strip() + (" with uncommitted changes" if dirty.stdout.strip() else "")
+    own = None
+    if out_dir is not None:
+        try:
+            own = Path(out_dir).resolve().relative_to(REPO).as_posix().rstrip("/") + "/"
+        except ValueError:
+            own = None
+    changed = [line[3:] for line in dirty.stdout.splitlines() if line.strip()]
+    changed = [f for f in changed if own is None or not f.startswith(own)]
+    return head.stdout.strip() + (" with uncommitted changes" if changed else "")
 
 
 def _sha256(path: str | None) -> str:
@@ -186,7 +195,7 @@ def write_report(evaluation, report: dict[str, Any], directory: Path, command: s
         ["Markov backend", f"{report['backend']} on {report['device']}"],
         ["parameters (--set)", ", ".join(f"{k}={v}" for k, v in report["params"].items()) or "defaults"],
         ["seed", str(report.get("seed", "–"))],
-        ["code", _git()],
+        ["code", _git(directory)],
         ["versions", ", ".join(f"{k} {v}" for k, v in _versions().items())],
     ]
     L += _table(["", ""], [[f"**{a}**", b] for a, b in rows])
