@@ -320,4 +320,4 @@ def test_malformed_and_wrong_version_payloads_are_counted_and_the_stage_goes_on(
             kill_all([stage])
     log = Path(stage.log_path).read_text()
     assert "dropped message: reason=MalformedPayload key=iamp/bad/source/track_frame" in log
-    assert "dropped message: reason=WrongVersion key=iamp/bad/source/track_frame detail=iamp.TrackFrame v99 on iamp/bad/source/track_frame: this build reads v1" in log
+    assert "dropped message: reason=WrongVersion key=iamp/bad/source/track_frame detail=iamp.TrackFrame v99 on iamp/bad/source/track_frame: this build reads v2 (and v1)" in log
