@@ -343,6 +343,24 @@ def peek_schema(data: bytes) -> tuple[str, int]:
     return schema, version
 
 
+def restamp_source_wall(data: bytes, wall_for: "typing.Callable[[int], int]", *, where: str = "") -> bytes:
+    """``data`` with its header's known (not 0) ``source_wall_ns`` replaced by ``wall_for(recorded value)``.
+
+    For a replay, whose recorded wall stamps are those of the recorded run:
+    republished with the replay's own publish time, end-to-end latency
+    measures the replayed run. A payload without a header or with an unknown
+    (0) or missing wall stamp (an older version) comes back unchanged; the
+    body is repacked as it is, not decoded (arrays stay bytes). Raises a
+    ``SchemaError`` for a payload that is not an envelope.
+    """
+    schema, version, body = unpack_envelope(data, where=where)
+    header = body.get("header") if isinstance(body, dict) else None
+    if not (isinstance(header, dict) and type(header.get("source_wall_ns")) is int and header["source_wall_ns"] > 0):
+        return data
+    header["source_wall_ns"] = int(wall_for(header["source_wall_ns"]))
+    return msgpack.packb({"schema": schema, "v": version, "body": body}, use_bin_type=True)
+
+
 def decode_any(data: bytes, *, where: str = "", report: list | None = None) -> Message:
     """Decode a payload of any registered schema (``report`` as for ``Message.decode``)."""
     schema, version, body = unpack_envelope(data, where=where)

@@ -547,17 +547,19 @@ class ViewerApp:
             ])
         self._draw_vehicle_panel(view)
         if stats:
-            rows = ["| node | ms p50/p95 | lat ms | q | iss | err | drop |", "|:--|--:|--:|--:|--:|--:|--:|"]
+            rows = ["| node | ms p50/p95 | e2e ms p50/p95 | lat ms | q | iss | err | drop |", "|:--|--:|--:|--:|--:|--:|--:|--:|"]
             for node_id in sorted(stats):
                 st = stats[node_id]
                 cn = st.counters
                 lat = f"{st.latency_ms_p50:.0f}" if 0 < st.latency_ms_p50 < PLAUSIBLE_LATENCY_MS else "–"
+                e2e = f"{st.e2e_ms_p50:.0f}/{st.e2e_ms_p95:.0f}" if math.isfinite(st.e2e_ms_p50) and math.isfinite(st.e2e_ms_p95) else "–"
                 rows.append(
-                    f"| {node_id} | {st.proc_ms_p50:.1f}/{st.proc_ms_p95:.0f} | {lat} | {st.queue_depth} | {cn.get('issues', 0)} | "
+                    f"| {node_id} | {st.proc_ms_p50:.1f}/{st.proc_ms_p95:.0f} | {e2e} | {lat} | {st.queue_depth} | {cn.get('issues', 0)} | "
                     f"{cn.get('decode_errors', 0) + cn.get('core_errors', 0)} | {cn.get('queue_drops', 0) + cn.get('join_drops', 0)} |"
                 )
             self._gui["stages"].content = "\n".join(rows) + (
-                "\n\nms: processing per input set · lat: receive time minus stamp (– when stamps are recording time) · "
+                "\n\nms: processing per input set · e2e: end to end, source publish to this node's publish "
+                "(– when unknown: an old recording) · lat: receive time minus stamp (– when stamps are recording time) · "
                 "q: queue · iss: issues · err: decode + core errors · drop: queue + join drops"
             )
 
