@@ -24,7 +24,7 @@ of the machine before and after: the figures include every other process's
 load; nothing is asserted.
 
     python bench/e2e_latency.py [--vehicles 0,18] [--pipeline hybrid] [--duration-s S] [--speed 1]
-                                [--source k733|k729] [--keep DIR] [--json FILE]
+                                [--source k733|k729] [--expect markov_prediction/motion_grid] [--keep DIR] [--json FILE]
 
 ``--json FILE`` writes ``runs.<label>.outputs.<node/output>.{n, e2e_ms_p50,
 e2e_ms_p95, e2e_ms_max, frames_lost}``, ``runs.<label>.source_frames``,
@@ -44,13 +44,12 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from bus_schemas import NodeStats, keys
+from bus_schemas._wire import unpack_envelope
+from stages.lib.datasets import DEFAULT_DATA_DIR, FULL_DATA_ENV, full_data_dir
+from stages.recorder.inspect import read_messages
 
-from bus_schemas import NodeStats, keys  # noqa: E402
-from bus_schemas._wire import unpack_envelope  # noqa: E402
-from stages.recorder.inspect import read_messages  # noqa: E402
-from stages.lib.datasets import DEFAULT_DATA_DIR, FULL_DATA_ENV, full_data_dir  # noqa: E402
+REPO = Path(__file__).resolve().parents[1]
 
 SOURCES = {"k733": "k733_2018-05-02", "k729": "k729_2022-03-16"}
 
@@ -75,7 +74,9 @@ def build(n: int, source: str, work: Path, duration_s: float | None) -> tuple[Pa
     if r.returncode != 0:
         sys.exit(f"iamp data superimpose failed:\n{r.stderr[-3000:]}")
     info = json.loads(r.stdout)
-    return out, str(info.get("name") or info.get("recording") or f"{recording}-dense{n}"), f"{origin}, {recording}: {info}"
+    what = (f"{origin}, {recording} superimposed: {info['layers']} layers, {info['duration_s']:.0f} s, {info['tracks']} tracks, "
+            f"vehicles per frame mean {info['vehicles_mean']:.1f} / max {info['vehicles_max']}")
+    return out, str(info["recording"]), what
 
 
 def run_pipeline(pipeline: str, data: Path | None, recording: str | None, rec: Path, speed: str, duration_s: float | None, run_id: str) -> float:
@@ -91,7 +92,7 @@ def run_pipeline(pipeline: str, data: Path | None, recording: str | None, rec: P
     return time.monotonic() - t0
 
 
-def analyse(rec: Path) -> dict:
+def analyse(rec: Path, expect: tuple[str, ...] = ()) -> dict:
     """e2e at the recorder per output, frames lost per output, the source's vehicles, the last NodeStats per node."""
     e2e: dict[str, list[float]] = {}
     frames: dict[str, set[int]] = {}
@@ -122,11 +123,13 @@ def analyse(rec: Path) -> dict:
             e2e.setdefault(name, []).append((m.log_time_ns - wall) / 1e6)
         else:
             unknown[name] = unknown.get(name, 0) + 1
+    for name in expect:  # an expected output that never came: every frame lost
+        frames.setdefault(name, set())
     outputs = {}
     for name in sorted(frames):
         a = np.asarray(e2e.get(name, []), dtype=np.float64)
         outputs[name] = {
-            "n": int(len(frames[name])),
+            "n": len(frames[name]),
             "e2e_ms_p50": float(np.median(a)) if a.size else float("nan"),
             "e2e_ms_p95": float(np.percentile(a, 95)) if a.size else float("nan"),
             "e2e_ms_max": float(a.max()) if a.size else float("nan"),
@@ -150,6 +153,7 @@ def main() -> int:
     ap.add_argument("--duration-s", type=float, default=None, help="play at most this long (default: the whole recording)")
     ap.add_argument("--source", choices=sorted(SOURCES), default="k733")
     ap.add_argument("--keep", default=None, help="keep the dense data and recordings in this folder")
+    ap.add_argument("--expect", default="markov_prediction/motion_grid", help="outputs listed even when none came (comma-separated)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="iamp-e2e-"))
@@ -166,7 +170,7 @@ def main() -> int:
         load0 = os.getloadavg()[0]
         wall_s = run_pipeline(args.pipeline, data, recording, rec, args.speed, args.duration_s if n == 0 else None, f"e2e{label}")
         load1 = os.getloadavg()[0]
-        res = analyse(rec)
+        res = analyse(rec, tuple(e for e in args.expect.split(",") if e))
         res.update({"wall_s": wall_s, "load_before": load0, "load_after": load1, "origin": origin})
         result["runs"][label] = res
         print(f"\n== {label}: {origin}")
