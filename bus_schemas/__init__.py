@@ -7,7 +7,7 @@ decode problem raises a ``SchemaError`` subclass.
 
 from . import keys
 from .acceleration import AccelerationProfile, AccelerationProfiles
-from ._wire import MAX_PAYLOAD_BYTES, REGISTRY, Array, Message, decode_any, json_schema, peek_schema, register
+from ._wire import MAX_PAYLOAD_BYTES, REGISTRY, Array, Message, decode_any, json_schema, peek_schema, register, restamp_source_wall
 from .corridors import Corridor, CorridorSet, MatchStatus, VehicleCorridors
 from .common import VEHICLE_TYPE_VALUES, AgentType, Header
 from .errors import MalformedPayload, PayloadTooLarge, SchemaError, UnknownSchema, WrongSchema, WrongVersion
@@ -25,6 +25,7 @@ __all__ = [
     "AccelerationProfile",
     "AccelerationProfiles",
     "REGISTRY",
+    "restamp_source_wall",
     "AgentType",
     "ConflictKind",
     "Corridor",

@@ -15,6 +15,14 @@ unknown, every type, array dtypes and shapes (named dims must agree across the
 fields of one object), and the payload size. Anything wrong raises a
 ``SchemaError`` subclass with a message that names the schema and the field.
 
+Versions. A format change bumps the class's ``VERSION`` and adds a golden
+payload (``tests/bus_schemas/make_golden.py``); a payload of another version
+raises ``WrongVersion``, unless the class lists that version in ``UPGRADES``:
+a function that makes an old body a body of today's version, for changes
+that lose nothing (``Header.source_wall_ns``: old payloads read with 0,
+"unknown"), so that old recordings still replay. The upgraded body is then
+decoded as strictly as any other.
+
 Hostile payloads. Decoding never raises anything but a ``SchemaError`` and
 never allocates more than the payload's size allows:
 
@@ -185,6 +193,9 @@ class Message:
     MAX_BYTES: ClassVar[int] = DEFAULT_MAX_BYTES
     # tuple fields whose elements (objects) are dropped, not the message, when a value inside is out of range
     DROP_ELEMENTS: ClassVar[tuple[str, ...]] = ()
+    # older versions this build still reads: version -> function making an old body a body of VERSION
+    # (only for changes that lose nothing, e.g. a new header field whose default means "unknown")
+    UPGRADES: ClassVar[dict[int, Any]] = {}
 
     def encode(self) -> bytes:
         body = _encode_obj(self, type(self).SCHEMA)
@@ -205,7 +216,10 @@ class Message:
     @classmethod
     def _from_body(cls, version: int, body: Any, where: str, report: list | None = None) -> "Message":
         if version != cls.VERSION:
-            raise WrongVersion(f"{cls.SCHEMA} v{version}{_at(where)}: this build reads v{cls.VERSION}")
+            upgrade = cls.UPGRADES.get(version) if type(version) is int else None
+            if upgrade is None:
+                raise WrongVersion(f"{cls.SCHEMA} v{version}{_at(where)}: this build reads v{cls.VERSION}{_also(cls)}")
+            body = upgrade(body)
         records: list = []
         token = _REPORT.set(records)
         try:
@@ -235,6 +249,10 @@ def register(cls: type[Message]) -> type[Message]:
         raise TypeError(f"schema {cls.SCHEMA} registered twice")
     REGISTRY[cls.SCHEMA] = cls
     return cls
+
+
+def _also(cls: type["Message"]) -> str:
+    return "".join(f" (and v{v})" for v in sorted(cls.UPGRADES))
 
 
 def _at(where: str) -> str:
@@ -323,6 +341,24 @@ def peek_schema(data: bytes) -> tuple[str, int]:
     """(schema, version) of a payload without decoding the body; raises SchemaError."""
     schema, version, _ = unpack_envelope(data)
     return schema, version
+
+
+def restamp_source_wall(data: bytes, wall_for: "typing.Callable[[int], int]", *, where: str = "") -> bytes:
+    """``data`` with its header's known (not 0) ``source_wall_ns`` replaced by ``wall_for(recorded value)``.
+
+    For a replay, whose recorded wall stamps are those of the recorded run:
+    republished with the replay's own publish time, end-to-end latency
+    measures the replayed run. A payload without a header or with an unknown
+    (0) or missing wall stamp (an older version) comes back unchanged; the
+    body is repacked as it is, not decoded (arrays stay bytes). Raises a
+    ``SchemaError`` for a payload that is not an envelope.
+    """
+    schema, version, body = unpack_envelope(data, where=where)
+    header = body.get("header") if isinstance(body, dict) else None
+    if not (isinstance(header, dict) and type(header.get("source_wall_ns")) is int and header["source_wall_ns"] > 0):
+        return data
+    header["source_wall_ns"] = int(wall_for(header["source_wall_ns"]))
+    return msgpack.packb({"schema": schema, "v": version, "body": body}, use_bin_type=True)
 
 
 def decode_any(data: bytes, *, where: str = "", report: list | None = None) -> Message:

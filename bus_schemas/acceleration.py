@@ -10,12 +10,12 @@ rule-based priority vector λ.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Annotated, ClassVar
+from typing import Any, Annotated, ClassVar
 
 import numpy as np
 
 from ._wire import Array, Message, Range, register
-from .common import MAX_ACCEL_MPS2, NON_NEG_INT, PROB, Header
+from .common import HEADER_WALL_UPGRADE, MAX_ACCEL_MPS2, NON_NEG_INT, PROB, Header
 
 _ACC = Range(-MAX_ACCEL_MPS2, MAX_ACCEL_MPS2, unit="m/s2")
 
@@ -58,7 +58,8 @@ class AccelerationProfiles(Message):
     """
 
     SCHEMA: ClassVar[str] = "iamp.AccelerationProfiles"
-    VERSION: ClassVar[int] = 1
+    VERSION: ClassVar[int] = 2  # v2: Header.source_wall_ns
+    UPGRADES: ClassVar[dict[int, Any]] = {1: HEADER_WALL_UPGRADE}  # v1 reads as v2 with source_wall_ns 0 (unknown)
     # measured 0.9-1.1 kB per (vehicle, corridor) profile: 4 MiB is about 4,000 profiles
     MAX_BYTES: ClassVar[int] = 4 * 1024 * 1024
     # a profile with a value out of range is dropped (recorded): that pair falls back as if it had none

@@ -36,12 +36,38 @@ class Header:
     ``stamp_ns`` is the time of the source frame (recording time for a dataset,
     sensor time for a live tracker), not the wall clock; stages with several
     inputs join on it. ``frame_index`` counts source frames from 0.
+
+    ``source_wall_ns`` is the wall clock (Unix ns) at which the source
+    published the source frame this message derives from; every stage copies
+    it from its input (a stage joining several inputs, from the source
+    frame's) into its outputs, so that any node can measure end-to-end
+    latency. 0: unknown (a recording made before the field existed, a
+    message not derived from a source frame). Added in the header-v2 bump
+    (``HEADER_WALL_UPGRADE``).
     """
 
     run_id: str
     frame_index: Annotated[int, NON_NEG_INT]
     stamp_ns: Annotated[int, NON_NEG_INT]
     producer: str
+    source_wall_ns: Annotated[int, NON_NEG_INT] = 0
+
+
+def _header_add_wall(body: object) -> object:
+    """Body of a schema version from before ``Header.source_wall_ns``, made a body of the next one (wall stamp 0: unknown).
+
+    Only a well-formed map with a header map is changed; anything else goes
+    on unchanged, for the strict decoder to reject with its usual message.
+    """
+    if isinstance(body, dict):
+        header = body.get("header")
+        if isinstance(header, dict) and "source_wall_ns" not in header:
+            return {**body, "header": {**header, "source_wall_ns": 0}}
+    return body
+
+
+HEADER_WALL_UPGRADE = _header_add_wall
+"""``Message.UPGRADES`` entry of every schema whose only change in its bump was ``Header.source_wall_ns``."""
 
 
 class AgentType(enum.IntEnum):

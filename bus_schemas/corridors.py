@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
-from typing import Annotated, ClassVar
+from typing import Any, Annotated, ClassVar
 
 import numpy as np
 
 from ._wire import Array, Message, Range, register
-from .common import ACCEL_OR_NAN, ANGLE_OR_NAN, COORD, DIST_OR_NAN, FINITE_OR_NAN, NON_NEG_INT, SPEED_OR_NAN, VEL_OR_NAN, AgentType, Header
+from .common import HEADER_WALL_UPGRADE, ACCEL_OR_NAN, ANGLE_OR_NAN, COORD, DIST_OR_NAN, FINITE_OR_NAN, NON_NEG_INT, SPEED_OR_NAN, VEL_OR_NAN, AgentType, Header
 
 PTS = Annotated[np.ndarray, Array("float64", ("m",))]
 M = ("m",)
@@ -91,7 +91,8 @@ class CorridorSet(Message):
     """
 
     SCHEMA: ClassVar[str] = "iamp.CorridorSet"
-    VERSION: ClassVar[int] = 2  # v2: VehicleCorridors carries the estimated state (vx, vy, accel, standing, reported speed)
+    VERSION: ClassVar[int] = 3  # v3: Header.source_wall_ns; v2: VehicleCorridors carries the estimated state (vx, vy, accel, standing, reported speed)
+    UPGRADES: ClassVar[dict[int, Any]] = {2: HEADER_WALL_UPGRADE}  # v2 reads as v3 with source_wall_ns 0 (unknown)
     # measured 3.5-4.8 kB per corridor (0.5 m centreline samples, 6 float64 arrays): 8 MiB is about 2,000 corridors
     MAX_BYTES: ClassVar[int] = 8 * 1024 * 1024
     DROP_ELEMENTS: ClassVar[tuple[str, ...]] = ("vehicles",)

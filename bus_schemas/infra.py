@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+import math
+from typing import Any, ClassVar
 
 from ._wire import Message, register
 
@@ -17,10 +18,20 @@ class NodeStats(Message):
     join_drops, queue_drops and issues; ``issues_by_kind`` and
     ``errors_by_kind`` break the totals down. Processing times are per handled
     input set, in milliseconds, over the whole run.
+
+    ``latency_ms_*``: receive time of the joined input minus its header's
+    ``stamp_ns``, plus the processing time: meaningful only where stamps are
+    wall-clock times (a live tracker); for recorded data it is the age of the
+    recording. ``e2e_ms_*`` (v2): end to end, from the source's publish
+    (``Header.source_wall_ns``) to this node's publish of its output (a sink:
+    to its receipt of a message), in milliseconds over the node's last
+    ``E2E_WINDOW`` outputs with a known wall stamp; NaN when none had one (an
+    old recording replayed).
     """
 
     SCHEMA: ClassVar[str] = "iamp.NodeStats"
-    VERSION: ClassVar[int] = 1
+    VERSION: ClassVar[int] = 2  # v2: e2e_ms_p50, e2e_ms_p95
+    UPGRADES: ClassVar[dict[int, Any]] = {1: lambda body: _add_e2e(body)}  # v1 reads as v2 with e2e NaN (unknown)
     # counters by kind (measured 413 B)
     MAX_BYTES: ClassVar[int] = 64 * 1024
 
@@ -39,6 +50,14 @@ class NodeStats(Message):
     latency_ms_p95: float
     queue_depth: int
     last_stamp_ns: int
+    e2e_ms_p50: float = math.nan
+    e2e_ms_p95: float = math.nan
+
+
+def _add_e2e(body: Any) -> Any:
+    if isinstance(body, dict) and "e2e_ms_p50" not in body and "e2e_ms_p95" not in body:
+        return {**body, "e2e_ms_p50": math.nan, "e2e_ms_p95": math.nan}
+    return body
 
 
 @register

@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
-from typing import Annotated, ClassVar
+from typing import Any, Annotated, ClassVar
 
 from ._wire import Message, Range, register
-from .common import ACCEL_OR_NAN, DIST_OR_NAN, NON_NEG_INT, PROB, SPEED_OR_NAN, Header
+from .common import HEADER_WALL_UPGRADE, ACCEL_OR_NAN, DIST_OR_NAN, NON_NEG_INT, PROB, SPEED_OR_NAN, Header
 
 _STD = Range(0.0, 1.0e6, nan=True)
 _COUNT = Range(0, 10_000_000)
@@ -104,7 +104,8 @@ class IntentionBelief(Message):
     """
 
     SCHEMA: ClassVar[str] = "iamp.IntentionBelief"
-    VERSION: ClassVar[int] = 1
+    VERSION: ClassVar[int] = 2  # v2: Header.source_wall_ns
+    UPGRADES: ClassVar[dict[int, Any]] = {1: HEADER_WALL_UPGRADE}  # v1 reads as v2 with source_wall_ns 0 (unknown)
     # measured 0.6-0.7 kB per vehicle: 2 MiB is about 3,000 vehicles
     MAX_BYTES: ClassVar[int] = 2 * 1024 * 1024
     DROP_ELEMENTS: ClassVar[tuple[str, ...]] = ("vehicles",)

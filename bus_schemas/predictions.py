@@ -9,12 +9,12 @@ occupancy of all vehicles fused on one map-frame grid, sparse per step.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Annotated, ClassVar
+from typing import Any, Annotated, ClassVar
 
 import numpy as np
 
 from ._wire import Array, Message, Range, register
-from .common import COORD, COORD_OR_NAN, DIST_OR_NAN, INT64_MAX, NON_NEG_INT, PROB, Header
+from .common import HEADER_WALL_UPGRADE, COORD, COORD_OR_NAN, DIST_OR_NAN, INT64_MAX, NON_NEG_INT, PROB, Header
 
 F64_K = Annotated[np.ndarray, Array("float64", ("k",))]
 POS_K = Annotated[np.ndarray, Array("float64", ("k",)), COORD_OR_NAN]
@@ -79,7 +79,8 @@ class CorridorPredictions(Message):
     """
 
     SCHEMA: ClassVar[str] = "iamp.CorridorPredictions"
-    VERSION: ClassVar[int] = 1
+    VERSION: ClassVar[int] = 2  # v2: Header.source_wall_ns
+    UPGRADES: ClassVar[dict[int, Any]] = {1: HEADER_WALL_UPGRADE}  # v1 reads as v2 with source_wall_ns 0 (unknown)
     # measured about 3.5 kB per (vehicle, corridor) prediction (K x W float32): 8 MiB is about 2,300 predictions
     MAX_BYTES: ClassVar[int] = 8 * 1024 * 1024
     # a prediction with a value out of range (probabilities outside [0, 1], inf positions) is dropped, recorded
@@ -120,7 +121,8 @@ class MotionGrid(Message):
     """
 
     SCHEMA: ClassVar[str] = "iamp.MotionGrid"
-    VERSION: ClassVar[int] = 1
+    VERSION: ClassVar[int] = 2  # v2: Header.source_wall_ns
+    UPGRADES: ClassVar[dict[int, Any]] = {1: HEADER_WALL_UPGRADE}  # v1 reads as v2 with source_wall_ns 0 (unknown)
     # 12 B per listed cell and step (measured up to 62 kB, 5,069 cells): 16 MiB is about 1.4 million cells
     MAX_BYTES: ClassVar[int] = 16 * 1024 * 1024
 

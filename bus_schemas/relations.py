@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
-from typing import Annotated, ClassVar
+from typing import Any, Annotated, ClassVar
 
 import numpy as np
 
 from ._wire import Array, Message, Range, register
-from .common import COORD_OR_NAN, DIST_OR_NAN, INT64_MAX, NON_NEG_INT, VEL_OR_NAN, Header
+from .common import HEADER_WALL_UPGRADE, COORD_OR_NAN, DIST_OR_NAN, INT64_MAX, NON_NEG_INT, VEL_OR_NAN, Header
 from .signals import HELD_S, SignalPhase
 
 
@@ -116,7 +116,8 @@ class RelationSet(Message):
     """
 
     SCHEMA: ClassVar[str] = "iamp.RelationSet"
-    VERSION: ClassVar[int] = 2
+    VERSION: ClassVar[int] = 3  # v3: Header.source_wall_ns
+    UPGRADES: ClassVar[dict[int, Any]] = {2: HEADER_WALL_UPGRADE}  # v2 reads as v3 with source_wall_ns 0 (unknown)
     # measured about 1 kB per (vehicle, corridor) pair with <= 5 objects; the arrays grow with objects and conflicts
     MAX_BYTES: ClassVar[int] = 8 * 1024 * 1024
     # a pair's relations with a value out of range are dropped (recorded): the pair has none at this stamp

@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
-from typing import Annotated, ClassVar
+from typing import Any, Annotated, ClassVar
 
 import numpy as np
 
 from ._wire import Array, Message, Range, register
-from .common import NON_NEG_INT, Header
+from .common import HEADER_WALL_UPGRADE, NON_NEG_INT, Header
 
 
 class SignalPhase(enum.IntEnum):
@@ -77,7 +77,8 @@ class SignalState(Message):
     """
 
     SCHEMA: ClassVar[str] = "iamp.SignalState"
-    VERSION: ClassVar[int] = 1
+    VERSION: ClassVar[int] = 2  # v2: Header.source_wall_ns
+    UPGRADES: ClassVar[dict[int, Any]] = {1: HEADER_WALL_UPGRADE}  # v1 reads as v2 with source_wall_ns 0 (unknown)
     # 17 B per group + ~150 B: a junction has tens of groups (TAF-BW K733: 36, measured 0.8 kB)
     MAX_BYTES: ClassVar[int] = 256 * 1024
     ROWS: ClassVar[str] = "g"

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Annotated, ClassVar
+from typing import Any, Annotated, ClassVar
 
 import numpy as np
 
 from ._wire import Array, Message, Range, register
-from .common import COORD_OR_NAN, MAX_SPEED_MPS, NON_NEG_INT, VEL_OR_NAN, Header
+from .common import HEADER_WALL_UPGRADE, COORD_OR_NAN, MAX_SPEED_MPS, NON_NEG_INT, VEL_OR_NAN, Header
 
 F64 = Annotated[np.ndarray, Array("float64", ("n",))]
 N_OBJ = ("n",)
@@ -35,7 +35,8 @@ class TrackFrame(Message):
     """
 
     SCHEMA: ClassVar[str] = "iamp.TrackFrame"
-    VERSION: ClassVar[int] = 1
+    VERSION: ClassVar[int] = 2  # v2: Header.source_wall_ns
+    UPGRADES: ClassVar[dict[int, Any]] = {1: HEADER_WALL_UPGRADE}  # v1 reads as v2 with source_wall_ns 0 (unknown)
     # about 70 B per object (9 arrays) + 150 B: 1 MiB is about 15,000 objects (measured 104-221 B/object at <= 5 objects)
     MAX_BYTES: ClassVar[int] = 1 * 1024 * 1024
     ROWS: ClassVar[str] = "n"
@@ -72,7 +73,8 @@ class SceneInfo(Message):
     """
 
     SCHEMA: ClassVar[str] = "iamp.SceneInfo"
-    VERSION: ClassVar[int] = 2
+    VERSION: ClassVar[int] = 3  # v3: Header.source_wall_ns
+    UPGRADES: ClassVar[dict[int, Any]] = {2: HEADER_WALL_UPGRADE}  # v2 reads as v3 with source_wall_ns 0 (unknown)
     # strings and a few numbers (measured 417 B)
     MAX_BYTES: ClassVar[int] = 64 * 1024
 

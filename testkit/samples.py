@@ -8,7 +8,10 @@ import bus_schemas as bs
 
 
 def header(frame_index: int = 7) -> bs.Header:
-    return bs.Header(run_id="golden", frame_index=frame_index, stamp_ns=1_700_000_000_000_000_000 + frame_index * 100_000_000, producer="source")
+    return bs.Header(
+        run_id="golden", frame_index=frame_index, stamp_ns=1_700_000_000_000_000_000 + frame_index * 100_000_000, producer="source",
+        source_wall_ns=1_767_225_600_000_000_000 + frame_index * 100_000_000 + 123_456,
+    )
 
 
 def track_frame(n: int = 4) -> bs.TrackFrame:
@@ -62,6 +65,8 @@ def node_stats() -> bs.NodeStats:
         latency_ms_p95=4.0,
         queue_depth=0,
         last_stamp_ns=1_700_000_000_700_000_000,
+        e2e_ms_p50=21.5,
+        e2e_ms_p95=48.25,
     )
 
 

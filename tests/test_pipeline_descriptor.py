@@ -98,7 +98,7 @@ def test_launcher_check_and_describe_exit_codes():
     assert "unknown parameter(s) sped" in r.stderr
     r = subprocess.run([sys.executable, str(REPO / "launch.py"), str(FIX / "good.toml"), "--describe"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
-    assert "out track_frame    -> iamp/fixture/source/track_frame  [iamp.TrackFrame v1]" in r.stdout
+    assert "out track_frame    -> iamp/fixture/source/track_frame  [iamp.TrackFrame v2]" in r.stdout
     r = subprocess.run([sys.executable, str(REPO / "launch.py"), "--stop-after", "0", "--check"], capture_output=True, text=True, timeout=120)
     assert r.returncode in (0, 2)
     r = subprocess.run([sys.executable, str(REPO / "launch.py"), "no/such/file.toml"], capture_output=True, text=True, timeout=120)

@@ -148,7 +148,7 @@ class ARInference:
                     )
                 )
         h = corridor_set.header
-        header = Header(run_id=h.run_id, frame_index=h.frame_index, stamp_ns=h.stamp_ns, producer=self.producer)
+        header = Header(run_id=h.run_id, frame_index=h.frame_index, stamp_ns=h.stamp_ns, producer=self.producer, source_wall_ns=h.source_wall_ns)
         message = AccelerationProfiles(
             header=header, scene_id=scene.scene_id if scene is not None else corridor_set.scene_id, model=self.model_name,
             step_s=self.step_s, chunk_s=self.config.chunk_s, input_edges_mps2=self.edges, profiles=tuple(profiles),

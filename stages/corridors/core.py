@@ -283,6 +283,7 @@ class CorridorBuilder:
             frame_index=frame.header.frame_index,
             stamp_ns=stamp,
             producer=self.producer,
+            source_wall_ns=frame.header.source_wall_ns,
         )
         scene_id = scene.scene_id if scene is not None else frame.scene_id
         return CorridorSet(header=header, scene_id=scene_id, vehicles=tuple(entries)), issues

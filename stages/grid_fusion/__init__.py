@@ -132,7 +132,9 @@ class GridFusion:
                 if why:
                     issues.append(Issue("incompatible_grid", -1, f"stamp {stamp}: a shard's grid left out: {why}"))
             h = good[0].header
-            header = Header(run_id=h.run_id, frame_index=h.frame_index, stamp_ns=h.stamp_ns, producer=self.producer)
+            # every shard carries the source frame's publish time; the earliest, should they ever differ
+            wall = min((g.header.source_wall_ns for g in good if g.header.source_wall_ns), default=0)
+            header = Header(run_id=h.run_id, frame_index=h.frame_index, stamp_ns=h.stamp_ns, producer=self.producer, source_wall_ns=wall)
             outputs["motion_grid"] = fuse_motion_grids(good, header)
             parts = [frame.predictions[s] for s in sorted(frame.predictions)]
             if parts:

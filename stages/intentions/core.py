@@ -242,7 +242,10 @@ class IntentionFilter:
         for track_id in [t for t, v in self._vehicles.items() if stamp - v.last_stamp_ns > timeout_ns]:
             del self._vehicles[track_id]
         inputs, measurements = self._inputs(frame, corridor_set, issues)
-        header = Header(run_id=frame.header.run_id, frame_index=frame.header.frame_index, stamp_ns=stamp, producer=self.producer)
+        header = Header(
+            run_id=frame.header.run_id, frame_index=frame.header.frame_index, stamp_ns=stamp, producer=self.producer,
+            source_wall_ns=frame.header.source_wall_ns,  # the source frame's publish time, carried for end-to-end latency
+        )
         scene_id = scene.scene_id if scene is not None else corridor_set.scene_id
         if not inputs:
             return IntentionBelief(header=header, scene_id=scene_id, vehicles=()), issues

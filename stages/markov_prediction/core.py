@@ -257,7 +257,9 @@ class MarkovPredictor:
             acceleration_profiles=profiles if isinstance(profiles, AccelerationProfiles) else None,
         )
         h = corridor_set.header
-        header = Header(run_id=h.run_id, frame_index=h.frame_index, stamp_ns=h.stamp_ns, producer=self.producer)
+        # the source frame's publish time (end-to-end latency): from the TrackFrame when joined, else as the corridors carried it
+        wall = frame.header.source_wall_ns if isinstance(frame, TrackFrame) else h.source_wall_ns
+        header = Header(run_id=h.run_id, frame_index=h.frame_index, stamp_ns=h.stamp_ns, producer=self.producer, source_wall_ns=wall)
         scene_id = scene.scene_id if isinstance(scene, SceneInfo) else corridor_set.scene_id
         outputs = {
             "corridor_predictions": prediction.corridor_predictions(header, scene_id),

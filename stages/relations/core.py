@@ -318,7 +318,10 @@ class RelationExtractor:
                 relations.append(self._with_signal(rel, pair, smap, state))
             except Exception as exc:  # noqa: BLE001 - one pair's failure costs only its relation
                 issues.append(Issue("pair_failed", pair.vehicle.track_id, f"corridor {pair.corridor.corridor_id}: {type(exc).__name__}: {exc}: no relation"))
-        header = Header(run_id=frame.header.run_id, frame_index=frame.header.frame_index, stamp_ns=stamp, producer=self.producer)
+        header = Header(
+            run_id=frame.header.run_id, frame_index=frame.header.frame_index, stamp_ns=stamp, producer=self.producer,
+            source_wall_ns=frame.header.source_wall_ns,  # the source frame's publish time, carried for end-to-end latency
+        )
         scene_id = scene.scene_id if scene is not None else corridor_set.scene_id
         return RelationSet(header=header, scene_id=scene_id, relations=tuple(relations)), issues
 

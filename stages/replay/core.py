@@ -14,7 +14,7 @@ import traceback
 from dataclasses import dataclass, field
 from typing import Callable, Iterator
 
-from bus_schemas import REGISTRY, SceneInfo, TrackFrame, keys
+from bus_schemas import REGISTRY, SceneInfo, TrackFrame, keys, restamp_source_wall
 
 from stages.lib.base import ConfigMixin
 from stages.recorder.inspect import ReadReport, RecordingError, read_messages, recording_run_id
@@ -119,6 +119,37 @@ class RecordingPlayer:
             yield Outgoing(msg.log_time_ns, key, msg.data, stamp, msg.schema)
 
 
+class WallRestamper:
+    """Recorded ``Header.source_wall_ns`` values mapped to the replay's own wall clock.
+
+    A recorded wall stamp is the recorded run's source publish time: replayed
+    as it is, every end-to-end figure would be the recording's age. The first
+    payload met with a given recorded stamp (the source frame, published
+    first) gets the wall clock now; every later payload of that stamp (the
+    stages' recorded outputs of that frame) the same value, so the replayed
+    outputs keep their recorded delay behind their frame. Payloads with no
+    wall stamp (recordings older than the field) go out unchanged: unknown.
+    """
+
+    def __init__(self, keep: int = 4096) -> None:
+        self._map: "collections.OrderedDict[int, int]" = collections.OrderedDict()
+        self._keep = keep
+
+    def __call__(self, data: bytes, key: str = "") -> bytes:
+        try:
+            return restamp_source_wall(data, self._wall_for, where=key)
+        except Exception:  # noqa: BLE001 - a payload the stages will reject anyway goes out as recorded
+            return data
+
+    def _wall_for(self, recorded: int) -> int:
+        new = self._map.get(recorded)
+        if new is None:
+            new = self._map[recorded] = time.time_ns()
+            while len(self._map) > self._keep:
+                self._map.popitem(last=False)
+        return new
+
+
 @dataclass(slots=True)
 class ReplaySummary:
     published: int = 0
@@ -194,6 +225,7 @@ def play(
         if not summary.matched and not stop.is_set():
             log.warning("no subscriber after %.1f s, publishing anyway: keys=%s", wait_for_subscribers_s, ",".join(sorted(publishers)))
         t_start = time.monotonic()
+        walls = WallRestamper()
         for msg in itertools.chain(head, items):
             if not pacer.before(msg.log_time_ns, msg.stamp_ns):
                 break
@@ -204,8 +236,10 @@ def play(
                 # latched, as the source's scene port: a stage that (re)starts late queries it
                 if msg.key not in latched:
                     bus.declare_queryable(msg.key, lambda k=msg.key: latched.get(k))
-                latched[msg.key] = msg.data
-            pub(msg.data)
+                latched[msg.key] = walls(msg.data, msg.key)
+                pub(latched[msg.key])
+            else:
+                pub(walls(msg.data, msg.key))
             summary.published += 1
         if as_fast and not stop.is_set():
             pacer.drain(abort=stop.is_set)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import os
 import threading
 import time
@@ -26,6 +27,9 @@ from bus_schemas import NodeStats
 from stages.lib.base import Issue
 
 
+E2E_WINDOW = 1024  # NodeStats.e2e_ms_*: over a node's last this many input sets with a known wall stamp (~100 s at 10 Hz)
+
+
 class _Stats:
     """The counters and timings a node reports as ``NodeStats`` (at ``_stats/<node>``) and in its stop summary."""
 
@@ -37,13 +41,15 @@ class _Stats:
         self.errors_by_kind: dict[str, int] = collections.Counter()
         self.proc_ms: collections.deque[float] = collections.deque(maxlen=4096)
         self.latency_ms: collections.deque[float] = collections.deque(maxlen=4096)
+        # source publish -> this node's publish (a sink: its receipt), ms, per input set with a known wall stamp
+        self.e2e_ms: collections.deque[float] = collections.deque(maxlen=E2E_WINDOW)
         self.proc_ms_max = 0.0
         self.last_stamp_ns = 0
 
     @staticmethod
-    def _pct(values: Iterable[float], q: float) -> float:
+    def _pct(values: Iterable[float], q: float, empty: float = 0.0) -> float:
         arr = np.fromiter(values, dtype=float)
-        return float(np.percentile(arr, q)) if arr.size else 0.0
+        return float(np.percentile(arr, q)) if arr.size else empty
 
     def message(self, run_id: str, node_id: str, stage: str, started: float, depth: int) -> NodeStats:
         return NodeStats(
@@ -60,6 +66,8 @@ class _Stats:
             proc_ms_max=self.proc_ms_max,
             latency_ms_p50=self._pct(self.latency_ms, 50),
             latency_ms_p95=self._pct(self.latency_ms, 95),
+            e2e_ms_p50=self._pct(self.e2e_ms, 50, empty=math.nan),
+            e2e_ms_p95=self._pct(self.e2e_ms, 95, empty=math.nan),
             queue_depth=depth,
             last_stamp_ns=self.last_stamp_ns,
         )
@@ -71,6 +79,8 @@ class _Stats:
         if self.errors_by_kind:
             parts.append("errors_by_kind=" + ",".join(f"{k}:{v}" for k, v in sorted(self.errors_by_kind.items())))
         parts.append(f"proc_ms_p50={self._pct(self.proc_ms, 50):.2f} proc_ms_p95={self._pct(self.proc_ms, 95):.2f}")
+        if self.e2e_ms:
+            parts.append(f"e2e_ms_p50={self._pct(self.e2e_ms, 50):.2f} e2e_ms_p95={self._pct(self.e2e_ms, 95):.2f}")
         return " ".join(parts)
 
 

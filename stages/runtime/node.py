@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import dataclasses
 import logging
 import math
 import os
@@ -295,17 +296,33 @@ class Node:
 
     # ---- publishing
     def publish(self, result: StageResult, stamp_ns: int, frame_index: int) -> None:
+        """Encode and put every output; a source stamps its headers' ``source_wall_ns`` (the wall clock now) where its core left 0.
+
+        The end-to-end latency of this input set (``NodeStats.e2e_ms_*``) is
+        the wall clock after the puts minus the outputs' ``source_wall_ns``
+        (the earliest known one), when any output carries one.
+        """
+        wall_from = 0
+        source = self.spec.kind == "source"
         for port, msg in result.outputs.items():
             if port not in self._publishers:
                 raise RuntimeError(f"core returned output {port!r}, which {self.spec.stage} does not declare")
             want = self.spec.outputs[port].schema
             if not isinstance(msg, want):
                 raise RuntimeError(f"core returned {type(msg).__name__} on {port!r}, declared {want.__name__}")
+            header = getattr(msg, "header", None)
+            if source and header is not None and not header.source_wall_ns:
+                header = dataclasses.replace(header, source_wall_ns=time.time_ns())
+                msg = dataclasses.replace(msg, header=header)
             data = msg.encode()
             if self.spec.outputs[port].latched:
                 self._latched_out[port] = data
             self._publishers[port].put(data)
             self.stats.counters["published"] += 1
+            if header is not None and header.source_wall_ns and not self.spec.outputs[port].latched:
+                wall_from = min(wall_from or header.source_wall_ns, header.source_wall_ns)
+        if wall_from:
+            self.stats.e2e_ms.append((time.time_ns() - wall_from) / 1e6)
         for issue in result.issues:
             self.stats.counters["issues"] += 1
             self.stats.issues_by_kind[issue.kind] += 1
@@ -522,7 +539,9 @@ class Node:
             self.stats.proc_ms.append(dt)
             self.stats.proc_ms_max = max(self.stats.proc_ms_max, dt)
             self.stats.counters["processed"] += 1
-            stamp = _peek_stamp(data)
+            stamp, wall = _peek_stamps(data)
+            if wall:  # a sink publishes nothing: end to end is to its receipt
+                self.stats.e2e_ms.append((recv_ns - wall) / 1e6)
             if stamp is not None and stamp > self.stats.last_stamp_ns:
                 self.stats.last_stamp_ns = stamp
                 self._progress_pub.put(
@@ -604,14 +623,15 @@ DRAIN_QUIET_S = 0.3
 CLOSE_LINGER_S = 0.05
 
 
-def _peek_stamp(data: bytes) -> int | None:
-    """``header.stamp_ns`` of a payload if it has one (no full decode)."""
+def _peek_stamps(data: bytes) -> tuple[int | None, int]:
+    """``header.stamp_ns`` (None if none) and ``header.source_wall_ns`` (0 if none) of a payload (no full decode)."""
     try:
         _schema, _v, body = unpack_envelope(data)
-        stamp = body.get("header", {}).get("stamp_ns")
+        header = body.get("header", {})
+        stamp, wall = header.get("stamp_ns"), header.get("source_wall_ns", 0)
     except (SchemaError, AttributeError):
-        return None
-    return stamp if type(stamp) is int else None
+        return None, 0
+    return (stamp if type(stamp) is int else None), (wall if type(wall) is int and wall > 0 else 0)
 
 
 def _frame_index_of(messages: Mapping[str, Any]) -> int:

@@ -54,9 +54,14 @@ on), its true future with each corridor's ADE (``panels.vehicle_panel``).
 
 Side panel: run, frame, stamp, mode, what is shown (live, paused, lagging),
 frames received, drawn and skipped, the draw time and the time from a
-frame's arrival to its drawing with its results, and per node (from the
+frame's arrival to its drawing with its results (and from the source's
+publish of the frame, "source to screen", when it carries a wall stamp),
+and per node (from the
 ``NodeStats`` on ``iamp/<run>/_stats/*``, as the newest of each with every
-frame, on the stage's one session) processing time p50/p95, latency,
+frame, on the stage's one session) processing time p50/p95, end-to-end
+latency p50/p95 (``e2e_ms_*``: the source's publish of the frame to the
+node's publish of its result; "–" for an old recording without wall
+stamps), latency,
 queue depth, issues, errors (decode + core) and drops (queue + join).
 "pause" freezes the display; the source keeps playing (it has no control
 key to listen to).

@@ -85,6 +85,7 @@ class DrawCounters:
     received_at_last_draw: int = 0
     draw_ms: collections.deque = dataclasses.field(default_factory=lambda: collections.deque(maxlen=200))
     age_ms: collections.deque = dataclasses.field(default_factory=lambda: collections.deque(maxlen=200))  # frame's arrival to its draw with results
+    e2e_ms: collections.deque = dataclasses.field(default_factory=lambda: collections.deque(maxlen=200))  # source's publish (wall) to the draw
 
 
 class ViewerApp:
@@ -114,7 +115,7 @@ class ViewerApp:
         self._last_draw_mono = 0.0
         self._last_status_mono = 0.0
         self._labels: dict[str, Any] = {}
-        self._arrived: collections.OrderedDict[int, float] = collections.OrderedDict()  # stamp -> monotonic arrival
+        self._arrived: collections.OrderedDict[int, tuple[float, int]] = collections.OrderedDict()  # stamp -> (monotonic arrival, source_wall_ns)
         self._layers: dict[str, Any] = {}
         self._announced_complete = False
         self._thread: threading.Thread | None = None
@@ -179,7 +180,8 @@ class ViewerApp:
         with self._lock:
             if not self.history.add(inputs):
                 return StageResult(issues=[Issue("no_frame", -1, "input set without a track_frame")])
-            self._arrived[inputs["track_frame"].header.stamp_ns] = time.monotonic()  # for "frame to screen"
+            fh = inputs["track_frame"].header
+            self._arrived[fh.stamp_ns] = (time.monotonic(), fh.source_wall_ns)  # for "frame to screen" and "source to screen"
             while len(self._arrived) > 256:
                 self._arrived.popitem(last=False)
         self._wake.set()
@@ -355,7 +357,9 @@ class ViewerApp:
         self.counters.drawn += 1
         self.counters.draw_ms.append(dt)
         if arrived is not None and item.stamp_ns == newest.stamp_ns and not view.paused:
-            self.counters.age_ms.append((time.monotonic() - arrived) * 1e3)
+            self.counters.age_ms.append((time.monotonic() - arrived[0]) * 1e3)
+            if arrived[1]:
+                self.counters.e2e_ms.append((time.time_ns() - arrived[1]) / 1e6)
         self._last_key = key
         self._last_draw_mono = time.monotonic()
         self.shown = item
@@ -536,28 +540,31 @@ class ViewerApp:
                 shown += f", {view.lookback_s:.1f} s back"
             draw_ms = float(np.median(c.draw_ms)) if c.draw_ms else 0.0
             age_ms = float(np.median(c.age_ms)) if c.age_ms else 0.0
+            e2e = f"{float(np.median(c.e2e_ms)):.0f} ms" if c.e2e_ms else "–"
             s = self.summary
             self._gui["status"].content = "\n\n".join([
                 f"**run** {self.run_id} · **frame** {item.frame_index} · t = {item.stamp_ns / 1e9:.1f} s · **mode** {item.mode}",
                 f"showing: {shown}",
                 f"sets received {received} · drawn {c.drawn} · skipped {c.skipped}",
-                f"draw {draw_ms:.0f} ms · frame to screen {age_ms:.0f} ms (p50) · ≤ {self.config.max_render_hz:g} Hz",
+                f"draw {draw_ms:.0f} ms · frame to screen {age_ms:.0f} ms (p50) · source to screen {e2e} (p50) · ≤ {self.config.max_render_hz:g} Hz",
                 f"objects {s.get('objects', 0)} · corridors {s.get('corridors', 0)} · grid "
                 + ("all steps" if view.blend_steps else f"{s.get('step_s', -1):.1f} s") + f": {s.get('grid_cells', 0)} cells, max {s.get('grid_max', 0):.2f}",
             ])
         self._draw_vehicle_panel(view)
         if stats:
-            rows = ["| node | ms p50/p95 | lat ms | q | iss | err | drop |", "|:--|--:|--:|--:|--:|--:|--:|"]
+            rows = ["| node | ms p50/p95 | e2e ms p50/p95 | lat ms | q | iss | err | drop |", "|:--|--:|--:|--:|--:|--:|--:|--:|"]
             for node_id in sorted(stats):
                 st = stats[node_id]
                 cn = st.counters
                 lat = f"{st.latency_ms_p50:.0f}" if 0 < st.latency_ms_p50 < PLAUSIBLE_LATENCY_MS else "–"
+                e2e = f"{st.e2e_ms_p50:.0f}/{st.e2e_ms_p95:.0f}" if math.isfinite(st.e2e_ms_p50) and math.isfinite(st.e2e_ms_p95) else "–"
                 rows.append(
-                    f"| {node_id} | {st.proc_ms_p50:.1f}/{st.proc_ms_p95:.0f} | {lat} | {st.queue_depth} | {cn.get('issues', 0)} | "
+                    f"| {node_id} | {st.proc_ms_p50:.1f}/{st.proc_ms_p95:.0f} | {e2e} | {lat} | {st.queue_depth} | {cn.get('issues', 0)} | "
                     f"{cn.get('decode_errors', 0) + cn.get('core_errors', 0)} | {cn.get('queue_drops', 0) + cn.get('join_drops', 0)} |"
                 )
             self._gui["stages"].content = "\n".join(rows) + (
-                "\n\nms: processing per input set · lat: receive time minus stamp (– when stamps are recording time) · "
+                "\n\nms: processing per input set · e2e: end to end, source publish to this node's publish "
+                "(– when unknown: an old recording) · lat: receive time minus stamp (– when stamps are recording time) · "
                 "q: queue · iss: issues · err: decode + core errors · drop: queue + join drops"
             )
 

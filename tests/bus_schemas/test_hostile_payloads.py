@@ -71,7 +71,7 @@ def test_the_issue_13_payload_names_schema_and_field():
 
 def test_an_empty_array_next_to_a_modest_dim_still_decodes():
     """Zero-size arrays with a real other dim (K steps, no cells) are valid and must stay so."""
-    env = msgpack.unpackb(dict(golden_payloads())["iamp.AccelerationProfiles.v1.msgpack"], raw=False)
+    env = msgpack.unpackb(dict(golden_payloads())["iamp.AccelerationProfiles.v2.msgpack"], raw=False)
     p = env["body"]["profiles"][0]
     p["chunk_mean_mps2"] = ["float32", [0], b""]
     p["chunk_sigma_mps2"] = ["float32", [0], b""]
@@ -120,9 +120,9 @@ def test_a_payload_one_byte_over_its_limit_is_too_large_and_at_the_limit_is_not(
 
 
 def test_wrong_schema_is_known_from_the_head_without_unpacking(monkeypatch):
-    data = dict(golden_payloads())["iamp.MotionGrid.v1.msgpack"]
+    data = dict(golden_payloads())["iamp.MotionGrid.v2.msgpack"]
     monkeypatch.setattr(_wire.msgpack, "unpackb", lambda *a, **k: (_ for _ in ()).throw(AssertionError("unpacked")))
-    with pytest.raises(bs.WrongSchema, match="iamp.MotionGrid v1 on k: expected iamp.TrackFrame"):
+    with pytest.raises(bs.WrongSchema, match="iamp.MotionGrid v2 on k: expected iamp.TrackFrame"):
         bs.TrackFrame.decode(data, where="k")
 
 
@@ -139,7 +139,7 @@ def test_register_refuses_a_limit_above_the_ceiling():
 
 def test_an_envelope_in_another_key_order_still_decodes_within_the_default_limit():
     """Every encoder writes schema, v, body; another order is valid msgpack and decodes, held to DEFAULT_MAX_BYTES."""
-    data = dict(golden_payloads())["iamp.TrackFrame.v1.msgpack"]
+    data = dict(golden_payloads())["iamp.TrackFrame.v2.msgpack"]
     env = msgpack.unpackb(data, raw=False)
     reordered = msgpack.packb({"body": env["body"], "v": env["v"], "schema": env["schema"]}, use_bin_type=True)
     assert bs.decode(reordered).encode() == data

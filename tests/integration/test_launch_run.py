@@ -154,9 +154,19 @@ def test_run_records_every_source_frame_and_replay_reproduces_it(tmp_path):
 
     first, second = payloads(rec, "itest"), payloads(rec2, "again")
     assert first.keys() == second.keys()
+    # the replay maps each recorded wall stamp (source_wall_ns) to its own publish time, one per frame: the same
+    # payloads otherwise, and every output of a frame keeps its frame's (new) stamp
+    replayed_walls: dict[int, set[int]] = {}
     for topic in first:
         assert len(first[topic]) == len(second[topic]), topic
-        assert first[topic] == second[topic], f"payloads differ on {topic}"
+        for a, b in zip(first[topic], second[topic]):
+            ha, hb = getattr(bs.decode(a), "header", None), getattr(bs.decode(b), "header", None)
+            if ha is not None:
+                assert ha.source_wall_ns > 0 and hb.source_wall_ns > 0 and hb.source_wall_ns != ha.source_wall_ns, topic
+                replayed_walls.setdefault(ha.source_wall_ns, set()).add(hb.source_wall_ns)
+            same = bs.restamp_source_wall(b, lambda _w: 1) == bs.restamp_source_wall(a, lambda _w: 1)
+            assert same, f"payloads differ on {topic}"
+    assert all(len(v) == 1 for v in replayed_walls.values())
 
 
 def _pid_of(run: Launch, node: str, count: int = 1) -> int:
@@ -320,4 +330,4 @@ def test_malformed_and_wrong_version_payloads_are_counted_and_the_stage_goes_on(
             kill_all([stage])
     log = Path(stage.log_path).read_text()
     assert "dropped message: reason=MalformedPayload key=iamp/bad/source/track_frame" in log
-    assert "dropped message: reason=WrongVersion key=iamp/bad/source/track_frame detail=iamp.TrackFrame v99 on iamp/bad/source/track_frame: this build reads v1" in log
+    assert "dropped message: reason=WrongVersion key=iamp/bad/source/track_frame detail=iamp.TrackFrame v99 on iamp/bad/source/track_frame: this build reads v2 (and v1)" in log
