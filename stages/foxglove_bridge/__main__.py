@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 from bus_schemas import CorridorPredictions, CorridorSet, IntentionBelief, MotionGrid, NodeStats, SceneInfo, TrackFrame
 from stages.foxglove_bridge.config import FoxgloveConfig
 from stages.foxglove_bridge.core import FoxgloveBridge
-from stages.runtime import NodeContext, Port, StageSpec, run_stage
+from stages.runtime import NodeContext, Port, StageSpec, run_closing_stage
 
 # As the viewer: the results are latest-value inputs (never joined, never holding a frame back); "stats" is the
 # wildcard input of every node's NodeStats.
@@ -36,13 +34,7 @@ SPEC = StageSpec(stage="stages.foxglove_bridge", config_cls=FoxgloveConfig, make
 
 
 def main(argv: list[str] | None = None) -> int:
-    opened: list = []
-    spec = dataclasses.replace(SPEC, make_core=lambda config, ctx: make_core(config, ctx, opened))
-    try:
-        return run_stage(spec, argv)
-    finally:
-        for item in reversed(opened):
-            item.close()
+    return run_closing_stage(SPEC, argv)
 
 
 if __name__ == "__main__":

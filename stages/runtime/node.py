@@ -686,3 +686,19 @@ def run_stage(spec: StageSpec, argv: list[str] | None = None) -> int:
         return EXIT_CRASH
     node.close()
     return EXIT_OK
+
+
+def run_closing_stage(spec: StageSpec, argv: list[str] | None = None) -> int:
+    """``run_stage`` for a sink whose core holds a server and threads (the viewer, the Foxglove bridge).
+
+    ``spec.make_core`` takes a third argument, a list: it appends what it
+    opened as soon as it is made (before starting it), and everything appended
+    is closed, newest first, when the stage ends, however it ends.
+    """
+    opened: list = []
+    make = spec.make_core
+    try:
+        return run_stage(dataclasses.replace(spec, make_core=lambda config, ctx: make(config, ctx, opened)), argv)
+    finally:
+        for item in reversed(opened):
+            item.close()

@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 from bus_schemas import AccelerationProfiles, CorridorPredictions, CorridorSet, IntentionBelief, MotionGrid, NodeStats, SceneInfo, SignalState, TrackFrame
-from stages.runtime import NodeContext, Port, StageSpec, run_stage
+from stages.runtime import NodeContext, Port, StageSpec, run_closing_stage
 from stages.viewer.config import ViewerConfig
 from stages.viewer.scene import StatsBoard, ViewerApp
 
@@ -43,13 +41,7 @@ SPEC = StageSpec(stage="stages.viewer", config_cls=ViewerConfig, make_core=make_
 
 
 def main(argv: list[str] | None = None) -> int:
-    opened: list = []
-    spec = dataclasses.replace(SPEC, make_core=lambda config, ctx: make_core(config, ctx, opened))
-    try:
-        return run_stage(spec, argv)
-    finally:
-        for item in reversed(opened):
-            item.close()
+    return run_closing_stage(SPEC, argv)
 
 
 if __name__ == "__main__":
