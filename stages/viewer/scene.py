@@ -669,12 +669,13 @@ class ViewerApp:
         times = np.asarray(pred.step_times_s, dtype=float) if pred is not None else np.zeros(0)
         truth = truth_at(frames, item.stamp_ns, times).get(vehicle) if len(times) else None
         text, image = vehicle_panel(vehicle, pred, item.belief, item.profiles, truth, truth is not None)
-        self._gui["vehicle_md"].content = text
+        # the image first: a reader that sees the new text sees its image too
         if image is not None:
             self._gui["vehicle_ar"].image = image
             self._gui["vehicle_ar"].visible = True
         else:
             self._gui["vehicle_ar"].visible = False
+        self._gui["vehicle_md"].content = text
 
 
 def _srgb_to_linear(colours: np.ndarray) -> np.ndarray:

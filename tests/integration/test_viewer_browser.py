@@ -414,7 +414,8 @@ def test_compare_view_overlays_both_modes_scores_them_on_the_truth_and_fills_the
         shown = app.shown
         vehicle = max(shown.predictions.predictions, key=lambda p: p.probability).track_id
         app.set_view(vehicle=str(vehicle))
-        wait_until(lambda: f"**vehicle {vehicle}**" in app._gui["vehicle_md"].content, 30, "the vehicle panel")
+        # the panel is drawn on the viewer's render thread: wait for its text and its image
+        wait_until(lambda: f"**vehicle {vehicle}**" in app._gui["vehicle_md"].content and app._gui["vehicle_ar"].visible, 30, "the vehicle panel")
         text = app._gui["vehicle_md"].content
         mine = [p for p in shown.predictions.predictions if p.track_id == vehicle]
         assert all(f"| {p.corridor_id & 0xFFFF:04x} | {p.probability:.2f} |" in text for p in mine), text
