@@ -465,15 +465,18 @@ def scenario_sets_30() -> list[dict[str, Any]]:
 # --------------------------------------------------------------------------- README figures
 
 
+def core(mod: Any, **params: Any) -> Any:
+    """The stage module's core, made as its binding makes it (``SPEC.make_core``), with ``params`` over its defaults."""
+    from stages.runtime import NodeContext
+
+    spec = mod.SPEC
+    ctx = NodeContext(run_id="figures", node_id=spec.stage.rsplit(".", 1)[-1], stage=spec.stage, log=logging.getLogger("figures"))
+    return spec.make_core(spec.config_cls(**params), ctx)
+
+
 def scenario_sets(last_frame: int) -> list[dict[str, Any]]:
     """The embedded K729 scenario through source, corridors, relations and markov_prediction in-process, frames 0..last_frame."""
     from stages import corridors, markov_prediction, relations, tracks_source
-    from stages.runtime import NodeContext
-
-    def core(mod: Any) -> Any:
-        spec = mod.SPEC
-        ctx = NodeContext(run_id="figures", node_id=spec.stage.rsplit(".", 1)[-1], stage=spec.stage, log=logging.getLogger("figures"))
-        return spec.make_core(spec.config_cls(), ctx)
 
     source, corr, rel, markov = core(tracks_source), core(corridors), core(relations), core(markov_prediction)
     scene, out = None, []
@@ -497,12 +500,6 @@ def compare_sets(last_frame: int, recording: str = "k733_2018-05-02") -> list[di
     the intentions' belief and the AR profiles.
     """
     from stages import ar_inference, corridors, intentions, markov_prediction, relations, tracks_source
-    from stages.runtime import NodeContext
-
-    def core(mod: Any, **params: Any) -> Any:
-        spec = mod.SPEC
-        ctx = NodeContext(run_id="figures", node_id=spec.stage.rsplit(".", 1)[-1], stage=spec.stage, log=logging.getLogger("figures"))
-        return spec.make_core(spec.config_cls(**params), ctx)
 
     source = core(tracks_source, recording=recording, speed="max")
     corr, rel, intent, ar = core(corridors), core(relations), core(intentions), core(ar_inference)
