@@ -14,7 +14,6 @@ import msgpack
 import bus_schemas as bs
 import stages.runtime.node as node_module
 from stages.lib.base import ConfigMixin, StageResult
-
 from stages.runtime import JOIN_TIMEOUT_S, JOIN_WINDOW, Node, Port, StageSpec, build_parser, parse_bindings
 from stages.runtime.launcher import THREAD_ENV, single_threaded_env
 from testkit.helpers import RecordingPublisher
