@@ -80,24 +80,41 @@ def project_to_polyline(
     out_d = np.empty(n_pts)
     out_seg = np.empty(n_pts, dtype=np.int64)
     chunk = max(1, 2_000_000 // max(n_seg, 1))
+    # with hints on a non-decreasing arc, the segments within the window of any hint are one range [lo, hi):
+    # only those are measured, with the same arithmetic per segment (the same nearest one, ties to the lower
+    # index); a point whose window holds no segment falls back to every segment, as in the general case
+    lo, hi = 0, n_seg
+    if hints is not None and n_pts and n_seg > 1 and np.isfinite(hints).all() and (arc[1:] >= arc[:-1]).all():
+        lo = int(np.searchsorted(arc[1:], float(hints.min()) - window_m, side="left"))
+        hi = int(np.searchsorted(arc[:-1], float(hints.max()) + window_m, side="right"))
+        if lo >= hi:
+            lo, hi = 0, n_seg
     for start in range(0, n_pts, chunk):
         p = points[start : start + chunk]
-        rel = p[:, None, :] - line[None, :-1, :]
-        t = np.clip((rel * seg[None]).sum(axis=2) / seg_len2[None], lower[None], upper[None])
-        foot = line[None, :-1, :] + t[..., None] * seg[None]
-        dist2 = ((p[:, None, :] - foot) ** 2).sum(axis=2)
-        if hints is not None:
+        a, b = lo, hi
+        while True:
+            rel = p[:, None, :] - line[None, a:b, :]
+            t = np.clip((rel * seg[None, a:b]).sum(axis=2) / seg_len2[None, a:b], lower[None, a:b], upper[None, a:b])
+            foot = line[None, a:b, :] + t[..., None] * seg[None, a:b]
+            dist2 = ((p[:, None, :] - foot) ** 2).sum(axis=2)
+            if hints is None:
+                break
             h = hints[start : start + chunk, None]
-            outside = (arc[None, 1:] < h - window_m) | (arc[None, :-1] > h + window_m)
+            outside = (arc[None, a + 1 : b + 1] < h - window_m) | (arc[None, a:b] > h + window_m)
             masked = np.where(outside, np.inf, dist2)
             usable = np.isfinite(masked).any(axis=1)
+            if (a, b) != (0, n_seg) and not usable.all():
+                a, b = 0, n_seg  # some point has no segment in its window: every segment, as the general case
+                continue
             dist2 = np.where(usable[:, None], masked, dist2)
+            break
         j = dist2.argmin(axis=1)
         rows = np.arange(len(p))
         tj = t[rows, j]
+        rx, ry = rel[rows, j, 0], rel[rows, j, 1]
+        j = j + a
         out_s[start : start + chunk] = arc[j] + tj * seg_len[j]
         ux, uy = seg[j, 0] / np.sqrt(seg_len2[j]), seg[j, 1] / np.sqrt(seg_len2[j])
-        rx, ry = rel[rows, j, 0], rel[rows, j, 1]
         out_d[start : start + chunk] = ux * ry - uy * rx
         out_seg[start : start + chunk] = j
     if heading_rad is None:
