@@ -63,6 +63,10 @@ def project_to_polyline(
     line = np.asarray(polyline_m, dtype=np.float64)
     if line.ndim != 2 or line.shape[0] < 2 or line.shape[1] != 2:
         raise ValueError("polyline_m must have shape (m >= 2, 2)")
+    if s_m is not None and s_hint_m is not None and window_m is not None:
+        windowed = _project_in_window(points, line, np.asarray(s_m, np.float64), s_hint_m, float(window_m), heading_rad)
+        if windowed is not None:
+            return windowed
     seg = np.diff(line, axis=0)
     seg_len = np.hypot(seg[:, 0], seg[:, 1])
     arc = np.concatenate([[0.0], np.cumsum(seg_len)]) if s_m is None else np.asarray(s_m, np.float64)
@@ -80,45 +84,81 @@ def project_to_polyline(
     out_d = np.empty(n_pts)
     out_seg = np.empty(n_pts, dtype=np.int64)
     chunk = max(1, 2_000_000 // max(n_seg, 1))
-    # with hints on a non-decreasing arc, the segments within the window of any hint are one range [lo, hi):
-    # only those are measured, with the same arithmetic per segment (the same nearest one, ties to the lower
-    # index); a point whose window holds no segment falls back to every segment, as in the general case
-    lo, hi = 0, n_seg
-    if hints is not None and n_pts and n_seg > 1 and np.isfinite(hints).all() and (arc[1:] >= arc[:-1]).all():
-        lo = int(np.searchsorted(arc[1:], float(hints.min()) - window_m, side="left"))
-        hi = int(np.searchsorted(arc[:-1], float(hints.max()) + window_m, side="right"))
-        if lo >= hi:
-            lo, hi = 0, n_seg
     for start in range(0, n_pts, chunk):
         p = points[start : start + chunk]
-        a, b = lo, hi
-        while True:
-            rel = p[:, None, :] - line[None, a:b, :]
-            t = np.clip((rel * seg[None, a:b]).sum(axis=2) / seg_len2[None, a:b], lower[None, a:b], upper[None, a:b])
-            foot = line[None, a:b, :] + t[..., None] * seg[None, a:b]
-            dist2 = ((p[:, None, :] - foot) ** 2).sum(axis=2)
-            if hints is None:
-                break
+        rel = p[:, None, :] - line[None, :-1, :]
+        t = np.clip((rel * seg[None]).sum(axis=2) / seg_len2[None], lower[None], upper[None])
+        foot = line[None, :-1, :] + t[..., None] * seg[None]
+        dist2 = ((p[:, None, :] - foot) ** 2).sum(axis=2)
+        if hints is not None:
             h = hints[start : start + chunk, None]
-            outside = (arc[None, a + 1 : b + 1] < h - window_m) | (arc[None, a:b] > h + window_m)
+            outside = (arc[None, 1:] < h - window_m) | (arc[None, :-1] > h + window_m)
             masked = np.where(outside, np.inf, dist2)
             usable = np.isfinite(masked).any(axis=1)
-            if (a, b) != (0, n_seg) and not usable.all():
-                a, b = 0, n_seg  # some point has no segment in its window: every segment, as the general case
-                continue
             dist2 = np.where(usable[:, None], masked, dist2)
-            break
         j = dist2.argmin(axis=1)
         rows = np.arange(len(p))
         tj = t[rows, j]
-        rx, ry = rel[rows, j, 0], rel[rows, j, 1]
-        j = j + a
         out_s[start : start + chunk] = arc[j] + tj * seg_len[j]
         ux, uy = seg[j, 0] / np.sqrt(seg_len2[j]), seg[j, 1] / np.sqrt(seg_len2[j])
+        rx, ry = rel[rows, j, 0], rel[rows, j, 1]
         out_d[start : start + chunk] = ux * ry - uy * rx
         out_seg[start : start + chunk] = j
     if heading_rad is None:
         heading = np.arctan2(seg[out_seg, 1], seg[out_seg, 0])
+    else:
+        unwrapped = np.unwrap(np.asarray(heading_rad, np.float64))
+        heading = wrap_angle_rad(np.interp(out_s, arc, unwrapped))
+    return FrenetPoints(s_m=out_s, d_m=out_d, heading_rad=heading)
+
+
+def _project_in_window(points, line, arc, s_hint_m, window_m: float, heading_rad) -> FrenetPoints | None:
+    """`project_to_polyline` with hints, measuring only the segments within some hint's window; None where it can't.
+
+    On a non-decreasing arc the segments within the window of any hint are one
+    range [lo, hi) (by searchsorted); every quantity is computed on that range
+    with the same arithmetic per segment as the general path (the end segments
+    extended only where the range holds the polyline's ends), so the nearest
+    segment and the result are the same bit for bit. None (the caller takes the
+    general path) for non-finite hints, an arc of another shape or decreasing,
+    or a point with no segment in its window (the general path falls back to
+    every segment for it).
+    """
+    n_seg = len(line) - 1
+    n_pts = len(points)
+    hints = np.broadcast_to(np.asarray(s_hint_m, np.float64), (n_pts,))
+    if not n_pts or n_seg < 2 or arc.shape != (n_seg + 1,) or not np.isfinite(hints).all() or not (arc[1:] >= arc[:-1]).all():
+        return None
+    lo = int(np.searchsorted(arc[1:], float(hints.min()) - window_m, side="left"))
+    hi = int(np.searchsorted(arc[:-1], float(hints.max()) + window_m, side="right"))
+    if lo >= hi:
+        return None
+    sub = line[lo : hi + 1]
+    seg = np.diff(sub, axis=0)
+    seg_len = np.hypot(seg[:, 0], seg[:, 1])
+    seg_len2 = np.maximum(seg_len**2, 1e-18)
+    lower = np.zeros(hi - lo)
+    upper = np.ones(hi - lo)
+    if lo == 0:
+        lower[0] = -np.inf
+    if hi == n_seg:
+        upper[-1] = np.inf
+    rel = points[:, None, :] - sub[None, :-1, :]
+    t = np.clip((rel * seg[None]).sum(axis=2) / seg_len2[None], lower[None], upper[None])
+    foot = sub[None, :-1, :] + t[..., None] * seg[None]
+    dist2 = ((points[:, None, :] - foot) ** 2).sum(axis=2)
+    h = hints[:, None]
+    outside = (arc[None, lo + 1 : hi + 1] < h - window_m) | (arc[None, lo:hi] > h + window_m)
+    masked = np.where(outside, np.inf, dist2)
+    if not np.isfinite(masked).any(axis=1).all():
+        return None
+    j = masked.argmin(axis=1)
+    rows = np.arange(n_pts)
+    out_s = arc[lo + j] + t[rows, j] * seg_len[j]
+    ux, uy = seg[j, 0] / np.sqrt(seg_len2[j]), seg[j, 1] / np.sqrt(seg_len2[j])
+    out_d = ux * rel[rows, j, 1] - uy * rel[rows, j, 0]
+    if heading_rad is None:
+        heading = np.arctan2(seg[j, 1], seg[j, 0])
     else:
         unwrapped = np.unwrap(np.asarray(heading_rad, np.float64))
         heading = wrap_angle_rad(np.interp(out_s, arc, unwrapped))
