@@ -124,6 +124,10 @@ class SceneTables:
         self.point_x_m = table[:, 3].copy()
         self.point_y_m = table[:, 4].copy()
         self.point_priority = table[:, 5].astype(np.int8)
+        # the same relation sparse, per lanelet a: the lanelets b it conflicts with (ascending), CSR over a = 0..n
+        conflict_a, conflict_b = np.nonzero(self.pair_first >= 0)
+        self.conflict_indptr = np.searchsorted(conflict_a, np.arange(n + 2)).astype(np.int64)
+        self.conflict_with = conflict_b.astype(np.int64)
         self.is_successor = np.zeros((n + 1, n + 1), dtype=bool)
         for lanelet_id in ids:
             for succ in road_map.successors(lanelet_id):
@@ -557,9 +561,11 @@ class RelationExtractor:
     def _conflicts(self, pairs: list[_Pair], tables: SceneTables) -> _Conflicts:
         """All conflict points between corridors of different vehicles, by table lookups.
 
-        Every lanelet occurrence of every corridor is looked up against every
-        other occurrence at once (`pair_first`), which gives s* = lanelet start
-        in the corridor + arc length within the lanelet on both corridors.
+        Every lanelet occurrence of every corridor is joined with the
+        occurrences of the lanelets it conflicts with (`conflict_with`, the
+        sparse form of `pair_first`; work in proportion to the pairs found),
+        which gives s* = lanelet start in the corridor + arc length within the
+        lanelet on both corridors.
         """
         cfg = self.config
         occ_g = np.concatenate([np.full(len(p.lanelet_index), p.g, dtype=np.int64) for p in pairs])
@@ -571,24 +577,23 @@ class RelationExtractor:
         speed = np.array([p.speed_mps for p in pairs])
         half_length = 0.5 * np.array([p.length_m for p in pairs])
         occ_vehicle = vehicle_of[occ_g]
-        # occurrence x occurrence lookups in blocks of rows (bounded memory; same order as one dense nonzero)
+        # occurrence pairs of different vehicles on conflicting lanelets (found) and on the same lanelet (shared), by a
+        # join over the lanelets (work in proportion to the pairs found, not occurrences squared), in the order of a
+        # dense occurrence x occurrence scan (i, then j ascending)
         n_occ = len(occ_g)
-        rows_per_block = max(1, _CHUNK_ELEMENTS // max(n_occ, 1))
-        found: list[tuple[np.ndarray, np.ndarray]] = []
-        shared: list[tuple[np.ndarray, np.ndarray]] = []
-        for lo in range(0, n_occ, rows_per_block):
-            block = slice(lo, min(n_occ, lo + rows_per_block))
-            different = occ_vehicle[block, None] != occ_vehicle[None, :]
-            first = tables.pair_first[occ_lanelet[block, None], occ_lanelet[None, :]]
-            a, b = np.nonzero((first >= 0) & different)
-            found.append((a + lo, b))
-            same = (occ_lanelet[block, None] == occ_lanelet[None, :]) & (occ_lanelet[block, None] < tables.n_lanelets) & different
-            a, b = np.nonzero(same)
-            shared.append((a + lo, b))
-        i = np.concatenate([a for a, _ in found])
-        j = np.concatenate([b for _, b in found])
-        si = np.concatenate([a for a, _ in shared])
-        sj = np.concatenate([b for _, b in shared])
+        order = np.argsort(occ_lanelet, kind="stable")
+        by_lanelet = np.searchsorted(occ_lanelet[order], np.arange(tables.n_lanelets + 2))  # occurrences of lanelet k: [k], [k + 1]
+        occ_index = np.arange(n_occ, dtype=np.int64)
+        n_neighbours = tables.conflict_indptr[occ_lanelet + 1] - tables.conflict_indptr[occ_lanelet]
+        i_nb = np.repeat(occ_index, n_neighbours)
+        b_nb = tables.conflict_with[np.repeat(tables.conflict_indptr[occ_lanelet], n_neighbours) + _ranges(n_neighbours)]
+        i, j = _join(i_nb, b_nb, order, by_lanelet)
+        keep = occ_vehicle[i] != occ_vehicle[j]
+        i, j = _row_major(i[keep], j[keep])
+        known = occ_lanelet < tables.n_lanelets
+        si, sj = _join(occ_index[known], occ_lanelet[known], order, by_lanelet)
+        keep = occ_vehicle[si] != occ_vehicle[sj]
+        si, sj = _row_major(si[keep], sj[keep])
         count = tables.pair_count[occ_lanelet[i], occ_lanelet[j]]
         point = np.repeat(tables.pair_first[occ_lanelet[i], occ_lanelet[j]], count) + _ranges(count)
         i, j = np.repeat(i, count), np.repeat(j, count)
@@ -874,6 +879,18 @@ def _by_vehicle(pairs: list[_Pair]) -> list[list[_Pair]]:
         else:
             groups.append([pair])
     return groups
+
+
+def _join(i: np.ndarray, lanelet: np.ndarray, order: np.ndarray, by_lanelet: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every (i[k], j) with j an occurrence of lanelet[k] (`order`: occurrences sorted by lanelet, `by_lanelet` their starts)."""
+    count = by_lanelet[lanelet + 1] - by_lanelet[lanelet]
+    return np.repeat(i, count), order[np.repeat(by_lanelet[lanelet], count) + _ranges(count)]
+
+
+def _row_major(i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(i, j) sorted by i, then j (the order of ``np.nonzero`` on a dense i x j mask)."""
+    o = np.lexsort((j, i))
+    return i[o], j[o]
 
 
 def _ranges(count: np.ndarray) -> np.ndarray:
