@@ -73,7 +73,9 @@ heading (the K729 yaw of a standing car drifts by up to 90 degrees): if no
 lanelet agrees with its yaw, it is matched by position alone.
 
 Matching (one vectorised measurement of every vehicle against every car
-lanelet per frame, ``matching.LaneletIndex``). A candidate lanelet agrees in
+lanelet per frame, ``matching.LaneletIndex``; a vehicle farther than
+``match_max_distance_m`` from a lanelet's bounding box is not measured
+against its centreline and polygon: it can be neither inside nor near). A candidate lanelet agrees in
 heading within ``match_max_heading_rad`` and holds the position: inside its
 polygon, outside but within ``match_max_distance_m`` of it, or on the
 straight backward extension (up to ``entry_extension_m``, lateral offset

@@ -79,6 +79,11 @@ class LaneletIndex:
             self.edge_valid[k, :e] = True
         self.seg_len2 = np.maximum((self.seg_vec**2).sum(axis=2), 1e-18)
         self.edge_len2 = np.maximum((self.edge_vec**2).sum(axis=2), 1e-18)
+        # bounding box of each lanelet's polygon and centreline: a point farther than max_distance_m from it is
+        # neither inside nor near the lanelet, so `measure` computes nothing else for it
+        corners = [np.concatenate([i.left_bound_m, i.right_bound_m, i.centreline.points_m]).reshape(-1, 2) for i in infos]
+        self.box_lo = np.array([c.min(axis=0) for c in corners]).reshape(n, 2)
+        self.box_hi = np.array([c.max(axis=0) for c in corners]).reshape(n, 2)
         self.is_entry = np.array([not road_map.predecessors(int(x)) for x in self.ids], dtype=bool)
         self.start_xy = np.array([i.centreline.points_m[0] for i in infos]).reshape(n, 2)
         self.start_heading = np.array([i.centreline.heading_rad[0] for i in infos])
@@ -86,30 +91,45 @@ class LaneletIndex:
     def measure(
         self, points_m: np.ndarray, *, max_distance_m: float, entry_extension_m: float
     ) -> Measurements:
-        """Measure points (n, 2) against every lanelet (one `inside_matrix` call)."""
+        """Measure points (n, 2) against every lanelet (one `inside_matrix` call).
+
+        Only a (point, lanelet) inside the lanelet or within ``max_distance_m``
+        of its bounding box is measured against its centreline and polygon;
+        the others (level -1, unless on an entry extension) get NaN s, d,
+        centre distance and heading, which no selection reads.
+        """
         p = np.asarray(points_m, dtype=np.float64).reshape(-1, 2)
         n_pts, n_l = len(p), len(self.ids)
         inside = self.road_map.inside_matrix(p) if n_pts else np.zeros((0, n_l), dtype=bool)
-        # centreline foot points, clipped to each lanelet
-        rel = p[:, None, None, :] - self.seg_start[None]
-        t = np.clip((rel * self.seg_vec[None]).sum(axis=3) / self.seg_len2[None], 0.0, 1.0)
-        diff = rel - t[..., None] * self.seg_vec[None]
-        dist2 = np.where(self.seg_valid[None], (diff**2).sum(axis=3), np.inf)
-        j = dist2.argmin(axis=2)
-        pi, li = np.meshgrid(np.arange(n_pts), np.arange(n_l), indexing="ij")
-        centre = np.sqrt(dist2[pi, li, j])
-        tj = t[pi, li, j]
-        seg_len = np.sqrt(self.seg_len2[li, j])
-        s = self.seg_s0[li, j] + tj * seg_len
-        vec = self.seg_vec[li, j]
-        r = rel[pi, li, j]
-        d = (vec[..., 0] * r[..., 1] - vec[..., 1] * r[..., 0]) / seg_len
-        heading = self.seg_heading[li, j]
-        # distance to the polygon boundary, for positions outside it
-        rel_e = p[:, None, None, :] - self.edge_start[None]
-        te = np.clip((rel_e * self.edge_vec[None]).sum(axis=3) / self.edge_len2[None], 0.0, 1.0)
-        de2 = ((rel_e - te[..., None] * self.edge_vec[None]) ** 2).sum(axis=3)
-        poly_dist = np.sqrt(np.where(self.edge_valid[None], de2, np.inf).min(axis=2))
+        grow = max_distance_m + 1e-6
+        near_box = ((p[:, None, :] >= self.box_lo[None] - grow) & (p[:, None, :] <= self.box_hi[None] + grow)).all(axis=2)
+        pi, li = np.nonzero(near_box | inside)
+        s = np.full((n_pts, n_l), np.nan)
+        d = np.full((n_pts, n_l), np.nan)
+        centre = np.full((n_pts, n_l), np.nan)
+        heading = np.full((n_pts, n_l), np.nan)
+        poly_dist = np.full((n_pts, n_l), np.inf)
+        if len(pi):
+            # centreline foot points, clipped to each lanelet (the candidates only; the same arithmetic per element)
+            rel = p[pi][:, None, :] - self.seg_start[li]
+            t = np.clip((rel * self.seg_vec[li]).sum(axis=2) / self.seg_len2[li], 0.0, 1.0)
+            diff = rel - t[..., None] * self.seg_vec[li]
+            dist2 = np.where(self.seg_valid[li], (diff**2).sum(axis=2), np.inf)
+            j = dist2.argmin(axis=1)
+            c = np.arange(len(pi))
+            centre[pi, li] = np.sqrt(dist2[c, j])
+            tj = t[c, j]
+            seg_len = np.sqrt(self.seg_len2[li, j])
+            s[pi, li] = self.seg_s0[li, j] + tj * seg_len
+            vec = self.seg_vec[li, j]
+            r = rel[c, j]
+            d[pi, li] = (vec[..., 0] * r[..., 1] - vec[..., 1] * r[..., 0]) / seg_len
+            heading[pi, li] = self.seg_heading[li, j]
+            # distance to the polygon boundary, for positions outside it
+            rel_e = p[pi][:, None, :] - self.edge_start[li]
+            te = np.clip((rel_e * self.edge_vec[li]).sum(axis=2) / self.edge_len2[li], 0.0, 1.0)
+            de2 = ((rel_e - te[..., None] * self.edge_vec[li]) ** 2).sum(axis=2)
+            poly_dist[pi, li] = np.sqrt(np.where(self.edge_valid[li], de2, np.inf).min(axis=1))
         level = np.full((n_pts, n_l), -1, dtype=np.int8)
         level[(poly_dist <= max_distance_m) & ~inside] = NEAR
         level[inside] = INSIDE

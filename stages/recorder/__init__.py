@@ -8,7 +8,13 @@ envelope's schema name (schema encoding ``jsonschema``, data = the JSON
 description of the message body). A payload that is no valid envelope, or of
 a schema or version this build does not know, is still recorded, on a
 channel without schema (schema id 0), and counted as the issue
-``unrecognised_payload``: a recording loses nothing. ``log_time`` is the
+``unrecognised_payload``: a recording loses nothing. A payload of an older
+version of a known schema that this build still reads (the class's
+``UPGRADES``: e.g. a v1 TrackFrame from an old recording replayed) is
+recognised: recorded as it is, also on a channel without schema (the
+registered schema describes the current version), with its header's stamp
+as ``publish_time``, counted in ``McapRecorder.old_versions`` and not an
+issue. ``log_time`` is the
 receive time, ``publish_time`` the header's ``stamp_ns`` where the message
 has a header (else the receive time). A metadata record ``hybrid-iamp``
 holds the run id, the hybrid-iamp version and the start time.

@@ -96,6 +96,7 @@ class McapRecorder:
         self.node_id = node_id
         self.messages = 0
         self.unrecognised = 0
+        self.old_versions = 0  # payloads of an older schema version this build upgrades: recorded without schema, no issue
         self._lock = threading.Lock()
         self._sequences: dict[tuple[str, str], int] = {}  # per (topic, schema name), across splits
         self._closed = threading.Event()
@@ -174,6 +175,7 @@ class McapRecorder:
         if not self.config.include_stats and f"/{keys.STATS}/" in key:
             return None
         issue = None
+        old_version = False
         schema_name = ""
         publish_ns = recv_ns
         try:
@@ -184,10 +186,13 @@ class McapRecorder:
             cls = REGISTRY.get(name)
             if cls is None:
                 issue = f"unknown schema {name} v{version}"
-            elif cls.VERSION != version:
+            elif cls.VERSION != version and not (type(version) is int and version in cls.UPGRADES):
                 issue = f"{name} v{version}, this build describes v{cls.VERSION}"
             else:
-                schema_name = name
+                if cls.VERSION == version:
+                    schema_name = name
+                else:  # an older version this build reads (upgrades): known, but the MCAP schema describes VERSION only
+                    old_version = True
                 header = body.get("header")
                 if isinstance(header, dict) and type(header.get("stamp_ns")) is int and header["stamp_ns"] >= 0:
                     publish_ns = header["stamp_ns"]
@@ -199,6 +204,7 @@ class McapRecorder:
             seq = self._sequences[(key, schema_name)] = (self._sequences.get((key, schema_name), 0) + 1) & 0xFFFFFFFF
             self._writer.add_message(channel_id=channel_id, log_time=recv_ns, data=bytes(payload), publish_time=publish_ns, sequence=seq)
             self.messages += 1
+            self.old_versions += old_version
             self._file_messages += 1
             if self._chunk_bytes == 0:
                 self._chunk_opened = time.monotonic()
@@ -269,9 +275,9 @@ class McapRecorder:
                 self.paths.pop()
                 self.path = self.paths[-1]
         if len(self.paths) > 1:
-            self.log.info("recording closed: path=%s messages=%d channels=%d splits=%d (%s)", self.path, self.messages, self.channels, len(self.paths), ", ".join(p.name for p in self.paths))
+            self.log.info("recording closed: path=%s messages=%d channels=%d old_versions=%d splits=%d (%s)", self.path, self.messages, self.channels, self.old_versions, len(self.paths), ", ".join(p.name for p in self.paths))
         else:
-            self.log.info("recording closed: path=%s messages=%d channels=%d", self.path, self.messages, self.channels)
+            self.log.info("recording closed: path=%s messages=%d channels=%d old_versions=%d", self.path, self.messages, self.channels, self.old_versions)
 
 
 def _make_core(config: RecorderConfig, ctx: NodeContext) -> McapRecorder:

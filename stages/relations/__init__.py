@@ -38,8 +38,10 @@ Parameters (``RelationsConfig``):
   (one ``pairs_capped`` issue). TAF-BW frames (at most ~20 vehicles, ~2
   corridors each) are never capped. Memory: the projection of objects onto
   corridors is pruned by distance (only objects inside a corridor's
-  bounding box grown by lookbehind + half width + margin are projected) and
-  chunked, never one dense (pairs, objects, segments, 2) array (which ran
+  bounding box grown by lookbehind + half width + margin are projected, and
+  not those provably farther than half width + margin from it; each point is
+  measured only against the blocks of 8 segments that can hold its nearest
+  segment) and chunked, never one dense (pairs, objects, segments, 2) array (which ran
   out of memory on a large frame; README, Security). Budget: <= 1 GB peak RSS on a
   1,000-object frame (``bench/hostile.py --section big-frame``);
 - ``projection`` "auto": as in the corridors stage, whose map loader
@@ -65,7 +67,7 @@ below ``stopped_speed_mps``) and the reported speed (0 with a
 Lateral relation (arrays ``(o,)``, ordered by s). All objects are projected
 onto all corridors' centrelines in one padded numpy computation (the
 projection of ``maps.project_to_polyline``: nearest segment, ends extended
-straight); those within the lane and range above are kept with s, d, the
+straight; by branch and bound over blocks of segments, exact); those within the lane and range above are kept with s, d, the
 speed along the corridor (speed × cos of the heading difference) and the
 bumper-to-bumper
 gap: g = s_o − s_v − (L_o + L_v)/2 ahead (s_o ≥ s_v), s_o − s_v + (L_o +
@@ -86,8 +88,9 @@ is the first member lanelet of the run. Intersections whose exit the vehicle
 has passed are left out.
 
 Corridor to corridor (arrays ``(c,)``, ordered by s). Every lanelet of
-every corridor is looked up against every lanelet of every other vehicle's
-corridors in ``SceneTables.pair_first`` (one numpy gather): a CROSSING or
+every corridor is joined with the lanelets of every other vehicle's
+corridors that it conflicts with (``SceneTables.conflict_with``, the sparse
+form of ``pair_first``: work in proportion to the pairs found): a CROSSING or
 MERGE of the map gives s* = the lanelet's start in the corridor + the arc
 length within it, on both corridors; merges are at the merge start, where the
 lanes begin to overlap (``stages.lib.maps``); divergences are not conflicts.

@@ -124,6 +124,10 @@ class SceneTables:
         self.point_x_m = table[:, 3].copy()
         self.point_y_m = table[:, 4].copy()
         self.point_priority = table[:, 5].astype(np.int8)
+        # the same relation sparse, per lanelet a: the lanelets b it conflicts with (ascending), CSR over a = 0..n
+        conflict_a, conflict_b = np.nonzero(self.pair_first >= 0)
+        self.conflict_indptr = np.searchsorted(conflict_a, np.arange(n + 2)).astype(np.int64)
+        self.conflict_with = conflict_b.astype(np.int64)
         self.is_successor = np.zeros((n + 1, n + 1), dtype=bool)
         for lanelet_id in ids:
             for succ in road_map.successors(lanelet_id):
@@ -308,7 +312,7 @@ class RelationExtractor:
         smap = self._signal_map(scene, issues)
         state = self.signals.usable_state(signal_state, stamp, issues) if smap is not None else None
         starts = np.searchsorted(conflicts.g, np.arange(len(pairs) + 1)) if conflicts is not None else None
-        projected = _project_onto_corridors(objects.xy[objects.valid], pairs, self._reach(pairs)) if pairs else None
+        projected = _project_onto_corridors(objects.xy[objects.valid], pairs, self._reach(pairs), self._radius(pairs)) if pairs else None
         for pair in pairs:
             try:
                 lateral = self._lateral(pair, objects, projected)
@@ -478,6 +482,11 @@ class RelationExtractor:
             ]
         )
 
+    def _radius(self, pairs: list[_Pair]) -> np.ndarray:
+        """Per pair, the largest |d| `_lateral` can keep: half the corridor's widest width + `lateral_margin_m` (+1 mm)."""
+        margin = self.config.lateral_margin_m
+        return np.array([0.5 * float(np.max(p.corridor.width_m)) + margin + 1e-3 for p in pairs])
+
     def _lateral(self, pair: _Pair, objects: _Objects, projected):
         """Objects within the lane of the corridor, ordered by s, and the leader (row into them or -1).
 
@@ -552,9 +561,11 @@ class RelationExtractor:
     def _conflicts(self, pairs: list[_Pair], tables: SceneTables) -> _Conflicts:
         """All conflict points between corridors of different vehicles, by table lookups.
 
-        Every lanelet occurrence of every corridor is looked up against every
-        other occurrence at once (`pair_first`), which gives s* = lanelet start
-        in the corridor + arc length within the lanelet on both corridors.
+        Every lanelet occurrence of every corridor is joined with the
+        occurrences of the lanelets it conflicts with (`conflict_with`, the
+        sparse form of `pair_first`; work in proportion to the pairs found),
+        which gives s* = lanelet start in the corridor + arc length within the
+        lanelet on both corridors.
         """
         cfg = self.config
         occ_g = np.concatenate([np.full(len(p.lanelet_index), p.g, dtype=np.int64) for p in pairs])
@@ -566,24 +577,23 @@ class RelationExtractor:
         speed = np.array([p.speed_mps for p in pairs])
         half_length = 0.5 * np.array([p.length_m for p in pairs])
         occ_vehicle = vehicle_of[occ_g]
-        # occurrence x occurrence lookups in blocks of rows (bounded memory; same order as one dense nonzero)
+        # occurrence pairs of different vehicles on conflicting lanelets (found) and on the same lanelet (shared), by a
+        # join over the lanelets (work in proportion to the pairs found, not occurrences squared), in the order of a
+        # dense occurrence x occurrence scan (i, then j ascending)
         n_occ = len(occ_g)
-        rows_per_block = max(1, _CHUNK_ELEMENTS // max(n_occ, 1))
-        found: list[tuple[np.ndarray, np.ndarray]] = []
-        shared: list[tuple[np.ndarray, np.ndarray]] = []
-        for lo in range(0, n_occ, rows_per_block):
-            block = slice(lo, min(n_occ, lo + rows_per_block))
-            different = occ_vehicle[block, None] != occ_vehicle[None, :]
-            first = tables.pair_first[occ_lanelet[block, None], occ_lanelet[None, :]]
-            a, b = np.nonzero((first >= 0) & different)
-            found.append((a + lo, b))
-            same = (occ_lanelet[block, None] == occ_lanelet[None, :]) & (occ_lanelet[block, None] < tables.n_lanelets) & different
-            a, b = np.nonzero(same)
-            shared.append((a + lo, b))
-        i = np.concatenate([a for a, _ in found])
-        j = np.concatenate([b for _, b in found])
-        si = np.concatenate([a for a, _ in shared])
-        sj = np.concatenate([b for _, b in shared])
+        order = np.argsort(occ_lanelet, kind="stable")
+        by_lanelet = np.searchsorted(occ_lanelet[order], np.arange(tables.n_lanelets + 2))  # occurrences of lanelet k: [k], [k + 1]
+        occ_index = np.arange(n_occ, dtype=np.int64)
+        n_neighbours = tables.conflict_indptr[occ_lanelet + 1] - tables.conflict_indptr[occ_lanelet]
+        i_nb = np.repeat(occ_index, n_neighbours)
+        b_nb = tables.conflict_with[np.repeat(tables.conflict_indptr[occ_lanelet], n_neighbours) + _ranges(n_neighbours)]
+        i, j = _join(i_nb, b_nb, order, by_lanelet)
+        keep = occ_vehicle[i] != occ_vehicle[j]
+        i, j = _row_major(i[keep], j[keep])
+        known = occ_lanelet < tables.n_lanelets
+        si, sj = _join(occ_index[known], occ_lanelet[known], order, by_lanelet)
+        keep = occ_vehicle[si] != occ_vehicle[sj]
+        si, sj = _row_major(si[keep], sj[keep])
         count = tables.pair_count[occ_lanelet[i], occ_lanelet[j]]
         point = np.repeat(tables.pair_first[occ_lanelet[i], occ_lanelet[j]], count) + _ranges(count)
         i, j = np.repeat(i, count), np.repeat(j, count)
@@ -716,24 +726,36 @@ class RelationExtractor:
         )
 
 
-def _project_onto_corridors(points_m: np.ndarray, pairs: list[_Pair], reach_m: np.ndarray | None = None):
+def _project_onto_corridors(points_m: np.ndarray, pairs: list[_Pair], reach_m: np.ndarray | None = None,
+                            radius_m: np.ndarray | None = None):
     """Frenet (s, d, heading) of points (n, 2) on every pair's corridor; arrays (pairs, n).
 
     The same projection as `maps.project_to_polyline` (nearest segment, the
     end segments extended straight, d positive to the left, heading of the
-    foot segment), over all corridors padded to one length, so a frame costs
-    a few numpy calls instead of a few per corridor.
+    foot segment), bit for bit, over all pairs at once, so a frame costs a few
+    numpy calls instead of a few per corridor.
 
     Only the (pair, point) combinations with the point inside the corridor's
     bounding box grown by ``reach_m[pair]`` are projected (all of them when
     `reach_m` is None); the others are NaN, which no relation test passes.
-    The work runs in chunks of at most ``_CHUNK_ELEMENTS`` (candidate x
-    segment) so memory stays bounded however many objects a frame holds
-    (issue 13: 1,000 objects used to take 6.5 GB here, as one dense
-    (pairs, points, segments, 2) array).
+    With ``radius_m`` (pairs,), a combination is also left NaN when the point
+    is provably farther than ``radius_m`` from the corridor in |d| (the
+    lateral test `_lateral` needs |d| < half width + margin): its distance to
+    the polyline exceeds ``radius_m / cos(θ)``, θ the corridor's sharpest
+    turn between two segments (at a vertex |d| >= distance·cos θ; a corridor
+    that turns by 60° or more, or has a zero-length segment, is not pruned).
+
+    Branch and bound, exact: the segments between the two (extended) end
+    segments are grouped in blocks of ``_BLOCK`` with their vertices'
+    bounding box; a block whose box lies farther from the point than some
+    vertex of the corridor cannot hold the nearest segment and is skipped,
+    the others are measured segment by segment with the arithmetic of the
+    dense projection (same nearest segment, ties to the lower index). The
+    work per chunk is bounded by ``_CHUNK_ELEMENTS`` (issue 13: memory stays
+    bounded however many objects a frame holds).
     """
     n_pairs, n = len(pairs), len(points_m)
-    n_segments = np.array([len(p.xy) - 1 for p in pairs])
+    n_segments = np.array([len(p.xy) - 1 for p in pairs], dtype=np.int64)
     m = int(n_segments.max())
     line = np.zeros((n_pairs, m + 1, 2))
     arc = np.zeros((n_pairs, m + 1))
@@ -750,35 +772,102 @@ def _project_onto_corridors(points_m: np.ndarray, pairs: list[_Pair], reach_m: n
     out_s = np.full((n_pairs, n), np.nan)
     out_d = np.full((n_pairs, n), np.nan)
     out_heading = np.full((n_pairs, n), np.nan)
-    rows_per_pair = max(1, _CHUNK_ELEMENTS // max(m * max(n, 1), 1))
-    for lo_pair in range(0, n_pairs, rows_per_pair):
-        block = np.arange(lo_pair, min(n_pairs, lo_pair + rows_per_pair))
-        if reach_m is None:
-            near = np.ones((len(block), n), dtype=bool)
-        else:
-            box_lo = np.array([pairs[g].xy.min(axis=0) for g in block]) - reach_m[block, None]
-            box_hi = np.array([pairs[g].xy.max(axis=0) for g in block]) + reach_m[block, None]
-            near = ((points_m[None, :, :] >= box_lo[:, None, :]) & (points_m[None, :, :] <= box_hi[:, None, :])).all(axis=2)
-        cand_g, cand_k = np.nonzero(near)
-        cand_g = block[cand_g]
-        per_chunk = max(1, _CHUNK_ELEMENTS // max(m, 1))
-        for lo in range(0, len(cand_g), per_chunk):
-            g, k = cand_g[lo : lo + per_chunk], cand_k[lo : lo + per_chunk]
-            rel = points_m[k][:, None, :] - line[g, :-1, :]
-            t = np.clip((rel * segment[g]).sum(axis=2) / length2[g], lower[g], upper[g])
-            off = rel - t[..., None] * segment[g]
-            dist2 = np.where(valid[g], (off**2).sum(axis=2), np.inf)
-            j = dist2.argmin(axis=1)
-            c = np.arange(len(g))
-            seg_len = np.sqrt(length2[g, j])
-            ux, uy = segment[g, j, 0] / seg_len, segment[g, j, 1] / seg_len
-            out_s[g, k] = arc[g, j] + t[c, j] * seg_len
-            out_d[g, k] = ux * rel[c, j, 1] - uy * rel[c, j, 0]
-            out_heading[g, k] = np.arctan2(uy, ux)
+    if n == 0:
+        return out_s, out_d, out_heading
+    # interior blocks: segments 1 .. ns-2 in blocks of _BLOCK; block i holds segments [1 + i·B, 1 + (i+1)·B) and
+    # its box the vertices 1 + i·B .. 1 + (i+1)·B (indices past the last vertex repeat it: a larger box, still a bound)
+    n_blocks = max(1, -(-max(m - 2, 0) // _BLOCK))
+    block_first = 1 + _BLOCK * np.arange(n_blocks)
+    vertex = np.minimum(block_first[:, None] + np.arange(_BLOCK + 1)[None, :], m)  # (blocks, B + 1)
+    vertex = np.minimum(vertex[None], n_segments[:, None, None])  # (pairs, blocks, B + 1)
+    corners = line[np.arange(n_pairs)[:, None, None], vertex]  # (pairs, blocks, B + 1, 2)
+    box_lo, box_hi = corners.min(axis=2), corners.max(axis=2)
+    block_end = np.minimum(block_first[None, :] + _BLOCK, (n_segments - 1)[:, None])  # exclusive; the last segment apart
+    block_used = block_first[None, :] < block_end  # (pairs, blocks)
+    start_vertex = line[np.arange(n_pairs)[:, None], np.minimum(block_first[None, :], n_segments[:, None])]  # (pairs, blocks, 2)
+    last_vertex = line[np.arange(n_pairs), n_segments]
+    # the pruning bound: |d| >= distance * cos(sharpest turn); none where a corridor turns by 60 deg or more
+    if radius_m is not None:
+        seg_len_all = np.sqrt(np.where(valid, np.maximum((segment**2).sum(axis=2), 1e-300), 1.0))
+        unit = segment / seg_len_all[..., None]
+        turn_cos = (unit[:, :-1] * unit[:, 1:]).sum(axis=2)
+        turn_cos = np.where(valid[:, 1:], turn_cos, 1.0)
+        cos_min = turn_cos.min(axis=1) if m > 1 else np.ones(n_pairs)
+        degenerate = (np.where(valid, (segment**2).sum(axis=2), 1.0) < 1e-12).any(axis=1)
+        prunable = (cos_min > 0.5) & ~degenerate & np.isfinite(radius_m)
+        limit2 = np.where(prunable, (np.asarray(radius_m, np.float64) / np.where(prunable, cos_min, 1.0)) ** 2, np.inf)
+    else:
+        limit2 = np.full(n_pairs, np.inf)
+    if reach_m is None:
+        cand_g, cand_k = np.nonzero(np.ones((n_pairs, n), dtype=bool))
+    else:
+        lo = np.array([p.xy.min(axis=0) for p in pairs]) - reach_m[:, None]
+        hi = np.array([p.xy.max(axis=0) for p in pairs]) + reach_m[:, None]
+        cand_g, cand_k = np.nonzero(((points_m[None, :, :] >= lo[:, None, :]) & (points_m[None, :, :] <= hi[:, None, :])).all(axis=2))
+    per_chunk = max(1, _CHUNK_ELEMENTS // (n_blocks + 2 * _BLOCK))
+    for first in range(0, len(cand_g), per_chunk):
+        g, k = cand_g[first : first + per_chunk], cand_k[first : first + per_chunk]
+        p = points_m[k]
+        last = n_segments[g] - 1
+        # exact squared distances to the two end segments (extended), the dense projection's arithmetic
+        d2_first = _segment_d2(p, line[g, 0], segment[g, 0], length2[g, 0], lower[g, 0], upper[g, 0])
+        d2_last = _segment_d2(p, line[g, last], segment[g, last], length2[g, last], lower[g, last], upper[g, last])
+        # interior blocks: the distance from the point to each box (a lower bound of its segments' distances)
+        dx = np.maximum(np.maximum(box_lo[g, :, 0] - p[:, None, 0], p[:, None, 0] - box_hi[g, :, 0]), 0.0)
+        dy = np.maximum(np.maximum(box_lo[g, :, 1] - p[:, None, 1], p[:, None, 1] - box_hi[g, :, 1]), 0.0)
+        box2 = np.where(block_used[g], dx * dx + dy * dy, np.inf)
+        lower_bound = np.minimum(np.minimum(d2_first, d2_last), box2.min(axis=1))
+        # an upper bound of the nearest distance: the nearest of the end segments and the blocks' first vertices
+        sv = start_vertex[g] - p[:, None, :]
+        vertex2 = np.where(block_used[g], (sv**2).sum(axis=2), np.inf)
+        lv = last_vertex[g] - p
+        upper_bound = np.minimum(np.minimum(d2_first, d2_last), np.minimum(vertex2.min(axis=1), (lv**2).sum(axis=1)))
+        wanted = lower_bound <= limit2[g] * (1.0 + 1e-9)
+        keep_block = (box2 <= upper_bound[:, None] * (1.0 + 1e-9) + 1e-12) & wanted[:, None]
+        # the segments to measure, per candidate in ascending order: 0, the kept blocks', the last (unless it is 0)
+        c_b, b_b = np.nonzero(keep_block)
+        count_b = block_end[g[c_b], b_b] - block_first[b_b]
+        c_mid = np.repeat(c_b, count_b)
+        j_mid = np.repeat(block_first[b_b], count_b) + _ranges(count_b)
+        c_end = np.flatnonzero(wanted)
+        c_tail = c_end[last[c_end] > 0]
+        cc = np.concatenate([c_end, c_mid, c_tail])
+        jj = np.concatenate([np.zeros(len(c_end), np.int64), j_mid, last[c_tail]])
+        order = np.argsort(cc, kind="stable")  # by candidate; within one, segment order is kept
+        cc, jj = cc[order], jj[order]
+        if not len(cc):
+            continue
+        ge = g[cc]
+        rel = p[cc] - line[ge, jj]
+        seg = segment[ge, jj]
+        t = np.clip((rel * seg).sum(axis=1) / length2[ge, jj], lower[ge, jj], upper[ge, jj])
+        off = rel - t[:, None] * seg
+        dist2 = (off**2).sum(axis=1)
+        # the first nearest segment of each candidate
+        starts = np.flatnonzero(np.concatenate([[True], cc[1:] != cc[:-1]]))
+        nearest = np.minimum.reduceat(dist2, starts)
+        group = np.cumsum(np.concatenate([[False], cc[1:] != cc[:-1]]))
+        hit = np.flatnonzero(dist2 == nearest[group])
+        e = hit[np.concatenate([[True], group[hit][1:] != group[hit][:-1]])]
+        gc, kc, j = ge[e], k[cc[e]], jj[e]
+        seg_len = np.sqrt(length2[gc, j])
+        ux, uy = segment[gc, j, 0] / seg_len, segment[gc, j, 1] / seg_len
+        out_s[gc, kc] = arc[gc, j] + t[e] * seg_len
+        out_d[gc, kc] = ux * rel[e, 1] - uy * rel[e, 0]
+        out_heading[gc, kc] = np.arctan2(uy, ux)
     return out_s, out_d, out_heading
 
 
-_CHUNK_ELEMENTS = 1 << 19  # (candidate, segment) elements per chunk of the projection: ~8 MB per float64 (c, m, 2) array
+def _segment_d2(p, a, seg, length2, lower, upper) -> np.ndarray:
+    """Squared distance of points p (c, 2) to segments a + t·seg, t clipped to [lower, upper] (all (c,) or (c, 2))."""
+    rel = p - a
+    t = np.clip((rel * seg).sum(axis=1) / length2, lower, upper)
+    off = rel - t[:, None] * seg
+    return (off**2).sum(axis=1)
+
+
+_CHUNK_ELEMENTS = 1 << 19  # (candidate, block) elements per chunk of the projection
+_BLOCK = 8  # segments per block of the projection's branch and bound
 
 
 def _by_vehicle(pairs: list[_Pair]) -> list[list[_Pair]]:
@@ -790,6 +879,18 @@ def _by_vehicle(pairs: list[_Pair]) -> list[list[_Pair]]:
         else:
             groups.append([pair])
     return groups
+
+
+def _join(i: np.ndarray, lanelet: np.ndarray, order: np.ndarray, by_lanelet: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every (i[k], j) with j an occurrence of lanelet[k] (`order`: occurrences sorted by lanelet, `by_lanelet` their starts)."""
+    count = by_lanelet[lanelet + 1] - by_lanelet[lanelet]
+    return np.repeat(i, count), order[np.repeat(by_lanelet[lanelet], count) + _ranges(count)]
+
+
+def _row_major(i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(i, j) sorted by i, then j (the order of ``np.nonzero`` on a dense i x j mask)."""
+    o = np.lexsort((j, i))
+    return i[o], j[o]
 
 
 def _ranges(count: np.ndarray) -> np.ndarray:

@@ -47,7 +47,7 @@ from stages.runtime.args import (
 )
 from stages.runtime.bus import BusClient
 from stages.runtime.logs import IssueLog, ProblemLog
-from stages.runtime.node import CLOSE_LINGER_S, DRAIN_QUIET_S, JOIN_TIMEOUT_S, MiB, Node, StopRequested, run_closing_stage, run_stage
+from stages.runtime.node import CLOSE_LINGER_S, DRAIN_QUIET_S, JOIN_TIMEOUT_S, JOIN_WINDOW, MiB, Node, StopRequested, run_closing_stage, run_stage
 from stages.runtime.pacing import AWAIT_NODES_S, CONSUMER_WAIT_S, DRAIN_WAIT_S, MAX_SPEED_WINDOW, Consumers, Pacer
 from stages.runtime.ports import WILDCARD_MAX_KEYS, NodeContext, OperatorCore, Port, RawSinkCore, SourceCore, StageSpec
 from stages.runtime.queues import InputQueue
@@ -67,6 +67,7 @@ __all__ = [
     "InputQueue",
     "IssueLog",
     "JOIN_TIMEOUT_S",
+    "JOIN_WINDOW",
     "MAX_SPEED_WINDOW",
     "MiB",
     "Node",

@@ -55,7 +55,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 from stages.lib.base import ConfigError
 from stages.runtime.pipeline import BusAuth, Pipeline, PipelineError, load_pipeline
@@ -295,6 +295,22 @@ def write_auth_config(auth: BusAuth) -> tuple[Path, Path]:
     return folder, config
 
 
+#: Thread pools of the numeric libraries (OpenBLAS, OpenMP: numpy, scipy, torch) a node starts with, unless the
+#: environment already sets them: one thread each. A pipeline runs a process per stage; with the libraries'
+#: default of one thread per core, every process's pool spins on every core and they preempt each other
+#: (measured on 2 cores, 18 vehicles: the AR model's 160-pair forward 24 ms with 2 threads under load, 0.7 ms
+#: with 1; README "Performance"). Set OMP_NUM_THREADS etc. before ``launch.py`` to give the nodes more.
+THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def single_threaded_env(environ: Mapping[str, str]) -> dict[str, str]:
+    """``environ`` with every ``THREAD_ENV`` variable it does not set set to "1"."""
+    env = dict(environ)
+    for name in THREAD_ENV:
+        env.setdefault(name, "1")
+    return env
+
+
 class Child:
     def __init__(self, node: Any, cmd: list[str], budget: RestartBudget | None = None) -> None:
         self.node = node
@@ -318,7 +334,7 @@ class Child:
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,
             cwd=os.getcwd(),
-            env={**os.environ, **self.env, "PYTHONUNBUFFERED": "1"},  # the nodes import the installed package
+            env={**single_threaded_env(os.environ), **self.env, "PYTHONUNBUFFERED": "1"},  # the nodes import the installed package
             start_new_session=True,  # a Ctrl-C at the terminal reaches the launcher only; it stops children in order
             text=True,
             bufsize=1,

@@ -12,7 +12,9 @@
   drained in arrival order by one loop, so processing is ordered and
   single-threaded;
 - operators: a bounded, counted join on ``header.stamp_ns`` over the joined
-  inputs (``JOIN_TIMEOUT_S``, ``--join-window``); latched inputs are queried
+  inputs (``JOIN_WINDOW`` incomplete sets at most; ``JOIN_TIMEOUT_S``: a set
+  is dropped when its missing inputs have been silent that long, never while
+  one of them is still arriving, only behind); latched inputs are queried
   at start and awaited; latest-value and wildcard inputs are kept as they
   come (``ports.py``); the core sees all of them with every complete set. An
   exception of a core on one input set is counted (``core_errors``) and that
@@ -111,6 +113,7 @@ class Node:
         self._wild_in: dict[str, dict[str, Message]] = {}  # wildcard inputs: port -> key -> newest
         self._pending: "collections.OrderedDict[int, dict[str, Message]]" = collections.OrderedDict()
         self._pending_since: dict[int, float] = {}
+        self._port_seen: dict[str, float] = {}  # joined port -> when a message of it was last joined (monotonic)
         self._keepalive: list[Any] = []
         self._last_stats = 0.0
         self._last_input_mono = time.monotonic()
@@ -409,7 +412,9 @@ class Node:
             stamp = int(header.stamp_ns) if header is not None else 0
             lat_ms = (recv_ns - stamp) / 1e6 if header is not None else math.nan
             entry = self._pending.setdefault(stamp, {})
-            self._pending_since.setdefault(stamp, time.monotonic())
+            now = time.monotonic()
+            self._pending_since.setdefault(stamp, now)
+            self._port_seen[port] = now
             if port in entry:
                 self.stats.counters["join_drops"] += 1
                 self.problems.report(f"duplicate:{port}", logging.WARNING, "duplicate input: port=%s stamp_ns=%d (older one replaced)", port, stamp)
@@ -480,7 +485,7 @@ class Node:
             )
 
     def _expire_pending(self) -> None:
-        limit = max(2, getattr(self.args, "join_window", 16))
+        limit = max(2, getattr(self.args, "join_window", JOIN_WINDOW))
         while len(self._pending) > limit:
             self._drop_pending(next(iter(self._pending)), "join_window_full")
         if len(self.queue):
@@ -488,7 +493,14 @@ class Node:
             # for a missing input, so the timeout is judged only once everything received is joined
             return
         now = time.monotonic()
+        join = self._join_ports()
         for s in [s for s, t in self._pending_since.items() if now - t > JOIN_TIMEOUT_S]:
+            # a missing input that is still arriving (for other stamps) is behind, not gone: its set waits for it
+            # (bounded by the join window; an older set is superseded once a newer one completes); only a set whose
+            # missing inputs have all been silent for the timeout is dropped
+            missing = [p for p in join if p not in self._pending.get(s, {})]
+            if any(now - self._port_seen.get(p, self._pending_since[s]) <= JOIN_TIMEOUT_S for p in missing):
+                continue
             self._drop_pending(s, "join_timeout")
 
     def _run_update(self, core: Any, inputs: dict[str, Message], stamp: int, lat_ms: float) -> None:
@@ -619,6 +631,9 @@ class Node:
 
 
 JOIN_TIMEOUT_S = 2.0
+#: Incomplete input sets an operator keeps waiting (the oldest is dropped beyond, ``join_window_full``): 64 frames
+#: = 6.4 s at 10 Hz, so that an input lagging by a few seconds on a loaded machine costs latency, not frames.
+JOIN_WINDOW = 64
 DRAIN_QUIET_S = 0.3
 CLOSE_LINGER_S = 0.05
 

@@ -63,6 +63,10 @@ def project_to_polyline(
     line = np.asarray(polyline_m, dtype=np.float64)
     if line.ndim != 2 or line.shape[0] < 2 or line.shape[1] != 2:
         raise ValueError("polyline_m must have shape (m >= 2, 2)")
+    if s_m is not None and s_hint_m is not None and window_m is not None:
+        windowed = _project_in_window(points, line, np.asarray(s_m, np.float64), s_hint_m, float(window_m), heading_rad)
+        if windowed is not None:
+            return windowed
     seg = np.diff(line, axis=0)
     seg_len = np.hypot(seg[:, 0], seg[:, 1])
     arc = np.concatenate([[0.0], np.cumsum(seg_len)]) if s_m is None else np.asarray(s_m, np.float64)
@@ -102,6 +106,60 @@ def project_to_polyline(
         out_seg[start : start + chunk] = j
     if heading_rad is None:
         heading = np.arctan2(seg[out_seg, 1], seg[out_seg, 0])
+    else:
+        unwrapped = np.unwrap(np.asarray(heading_rad, np.float64))
+        heading = wrap_angle_rad(np.interp(out_s, arc, unwrapped))
+    return FrenetPoints(s_m=out_s, d_m=out_d, heading_rad=heading)
+
+
+def _project_in_window(points, line, arc, s_hint_m, window_m: float, heading_rad) -> FrenetPoints | None:
+    """`project_to_polyline` with hints, measuring only the segments within each point's window; None where it can't.
+
+    On a non-decreasing arc the segments within the window of a hint are one
+    range [lo, hi) (by searchsorted); each point is measured against its own
+    range (padded to the longest, the padding masked) with the same arithmetic
+    per segment as the general path (the end segments extended), so the
+    nearest segment and the result are the same bit for bit. None (the caller
+    takes the general path) for non-finite hints, an arc of another shape or
+    decreasing, or a point with no segment in its window (the general path
+    falls back to every segment for it).
+    """
+    n_seg = len(line) - 1
+    n_pts = len(points)
+    hints = np.broadcast_to(np.asarray(s_hint_m, np.float64), (n_pts,))
+    if not n_pts or n_seg < 2 or arc.shape != (n_seg + 1,) or not np.isfinite(hints).all() or not (arc[1:] >= arc[:-1]).all():
+        return None
+    lo = np.searchsorted(arc[1:], hints - window_m, side="left")
+    hi = np.searchsorted(arc[:-1], hints + window_m, side="right")
+    if (lo >= hi).any():
+        return None
+    width = int((hi - lo).max())
+    idx = lo[:, None] + np.arange(width)[None, :]  # (n, width) segment indices, beyond hi masked below
+    pad = idx >= hi[:, None]
+    idx = np.minimum(idx, n_seg - 1)
+    start = line[idx]  # (n, width, 2)
+    seg = line[idx + 1] - start
+    seg_len = np.hypot(seg[..., 0], seg[..., 1])
+    seg_len2 = np.maximum(seg_len**2, 1e-18)
+    lower = np.where(idx == 0, -np.inf, 0.0)
+    upper = np.where(idx == n_seg - 1, np.inf, 1.0)
+    rel = points[:, None, :] - start
+    t = np.clip((rel * seg).sum(axis=2) / seg_len2, lower, upper)
+    foot = start + t[..., None] * seg
+    dist2 = ((points[:, None, :] - foot) ** 2).sum(axis=2)
+    h = hints[:, None]
+    outside = pad | (arc[idx + 1] < h - window_m) | (arc[idx] > h + window_m)
+    masked = np.where(outside, np.inf, dist2)
+    if not np.isfinite(masked).any(axis=1).all():
+        return None
+    j = masked.argmin(axis=1)
+    rows = np.arange(n_pts)
+    sj = seg[rows, j]
+    out_s = arc[idx[rows, j]] + t[rows, j] * seg_len[rows, j]
+    ux, uy = sj[:, 0] / np.sqrt(seg_len2[rows, j]), sj[:, 1] / np.sqrt(seg_len2[rows, j])
+    out_d = ux * rel[rows, j, 1] - uy * rel[rows, j, 0]
+    if heading_rad is None:
+        heading = np.arctan2(sj[:, 1], sj[:, 0])
     else:
         unwrapped = np.unwrap(np.asarray(heading_rad, np.float64))
         heading = wrap_angle_rad(np.interp(out_s, arc, unwrapped))

@@ -1,0 +1,47 @@
+"""``project_to_polyline`` with hints measures only the segments within the window: the same result, bit for bit,
+as measuring every segment and masking (the code before, ``_masked`` below), including the fallback to every
+segment for a point whose window holds none."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from stages.lib.maps.geometry import project_to_polyline
+
+
+def _masked(points, line, arc, hints, window):
+    """Every segment measured, those outside each point's window masked (stages/lib/maps/geometry.py at b3e0b71)."""
+    seg = np.diff(line, axis=0)
+    seg_len = np.hypot(seg[:, 0], seg[:, 1])
+    seg_len2 = np.maximum(seg_len**2, 1e-18)
+    lower, upper = np.zeros(len(seg)), np.ones(len(seg))
+    lower[0], upper[-1] = -np.inf, np.inf
+    rel = points[:, None, :] - line[None, :-1, :]
+    t = np.clip((rel * seg[None]).sum(axis=2) / seg_len2[None], lower[None], upper[None])
+    foot = line[None, :-1, :] + t[..., None] * seg[None]
+    dist2 = ((points[:, None, :] - foot) ** 2).sum(axis=2)
+    h = hints[:, None]
+    outside = (arc[None, 1:] < h - window) | (arc[None, :-1] > h + window)
+    masked = np.where(outside, np.inf, dist2)
+    usable = np.isfinite(masked).any(axis=1)
+    j = np.where(usable[:, None], masked, dist2).argmin(axis=1)
+    rows = np.arange(len(points))
+    ux, uy = seg[j, 0] / np.sqrt(seg_len2[j]), seg[j, 1] / np.sqrt(seg_len2[j])
+    return arc[j] + t[rows, j] * seg_len[j], ux * rel[rows, j, 1] - uy * rel[rows, j, 0], np.arctan2(seg[j, 1], seg[j, 0])
+
+
+def test_windowed_projection_equals_the_masked_dense_one():
+    rng = np.random.default_rng(7)
+    for trial in range(30):
+        n = int(rng.integers(2, 400))
+        heading = np.cumsum(rng.normal(0.0, 0.3 if trial % 3 == 0 else 0.05, n - 1))
+        line = np.concatenate([[[0.0, 0.0]], np.cumsum(0.5 * np.column_stack([np.cos(heading), np.sin(heading)]), axis=0)])
+        arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(line, axis=0).T))]) - rng.uniform(0, 10)
+        k = int(rng.integers(1, 6))
+        points = line[rng.integers(0, n, k)] + rng.normal(0, 2.0, (k, 2))
+        hints = rng.uniform(arc[0] - 20, arc[-1] + 20, k) if trial % 4 == 0 else rng.uniform(arc[0], arc[-1], k)
+        window = float(rng.choice([1.0, 5.0, 10.0]))
+        got = project_to_polyline(points, line, arc, s_hint_m=hints, window_m=window)
+        want = _masked(points, line, arc, hints, window)
+        for a, b in zip((got.s_m, got.d_m, got.heading_rad), want):
+            np.testing.assert_array_equal(a, b)
