@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.lib.markov import MarkovGridConfig, build_stencils, initial_state, psi_matrix
+from stages.lib.markov import MarkovGridConfig, build_stencils, initial_state, kernels, psi_matrix
 from stages.markov_prediction.chain import InputPriority, PriorityPropagator
 from stages.markov_prediction.priority import combine_with_preference
 
@@ -25,8 +25,9 @@ def test_occupied_states_path_equals_the_window_path():
     p0 = initial_state(SMALL, s_m=rng.uniform(1, 8, n_pairs), v_mps=rng.uniform(0, 5, n_pairs), half_width_s_m=0.5, half_width_v_mps=0.5,
                        input_probs=rng.dirichlet(np.ones(n_in), n_pairs))
     psi = psi_matrix(SMALL.input_centres_mps2())
-    a = PriorityPropagator(stencils, psi).run(p0, dense, with_interval=True, with_final_state=True)
-    b = PriorityPropagator(stencils, psi).run(p0, occupied, with_interval=True, with_final_state=True)
-    for name in ("position_probs", "velocity_probs", "interval_position_probs", "outside_mass", "pruned_mass", "final_state"):
-        np.testing.assert_allclose(getattr(b, name), getattr(a, name), atol=1e-6, err_msg=name)
-    assert b.mass_error.max() <= 1e-5
+    a = PriorityPropagator(stencils, psi, kernel="scipy").run(p0, dense, with_interval=True, with_final_state=True)
+    for kernel in ("scipy", *(["numba"] if kernels.available() else [])):  # numba: the compiled occupied-state kernels
+        b = PriorityPropagator(stencils, psi, kernel=kernel).run(p0, occupied, with_interval=True, with_final_state=True)
+        for name in ("position_probs", "velocity_probs", "interval_position_probs", "outside_mass", "pruned_mass", "final_state"):
+            np.testing.assert_allclose(getattr(b, name), getattr(a, name), atol=1e-6, err_msg=f"{kernel}: {name}")
+        assert b.mass_error.max() <= 1e-5

@@ -21,6 +21,7 @@ from stages.lib.markov import (
     psi_matrix,
 )
 from stages.lib.markov.transitions import cache_path, integrate_saturated, load_stencils, save_stencils
+from stages.lib.markov import kernels
 
 KINDS = list(TransitionKind)
 
@@ -375,17 +376,20 @@ def _input_cases(cfg, n_pairs, seed=4):
     return {"identity": None, "replaced": replaced, "matrix": matrix, "per_state": per_state, "mixed": mixed}
 
 
+_BACKENDS = [("numpy", "scipy"), *([("numpy", "numba")] if kernels.available() else []), ("torch", "auto")]
+
+
 @pytest.mark.parametrize("case", ["identity", "replaced", "matrix", "per_state", "mixed"])
 def test_numpy_and_torch_backends_agree(small_stencils, case):
     n_pairs = 5
     p0 = _batch(SMALL, n_pairs)
     inputs = _input_cases(SMALL, n_pairs)[case]
     results = {}
-    for backend in ("numpy", "torch"):
+    for backend, kernel in _BACKENDS:  # numpy with the compiled kernels and with the scipy products, torch
         for crop in (True, False):
-            propagator = MarkovPropagator(small_stencils, backend=backend, crop=crop)
-            results[backend, crop] = propagator.run(p0, inputs, with_interval=True, with_final_state=True)
-    reference = results["numpy", False]
+            propagator = MarkovPropagator(small_stencils, backend=backend, crop=crop, kernel=kernel)
+            results[backend, kernel, crop] = propagator.run(p0, inputs, with_interval=True, with_final_state=True)
+    reference = results["numpy", "scipy", False]
     for result in results.values():
         for name in ("position_probs", "velocity_probs", "interval_position_probs", "outside_mass",
                      "interval_outside_mass", "pruned_mass", "final_state"):
@@ -400,12 +404,12 @@ def test_numpy_and_torch_backends_agree(small_stencils, case):
         assert result.mass_error.max() <= 1e-5
 
 
-@pytest.mark.parametrize("backend", ["numpy", "torch"])
-def test_pruned_mass_is_reported_and_accounted(small_stencils, backend):
+@pytest.mark.parametrize("backend,kernel", _BACKENDS)
+def test_pruned_mass_is_reported_and_accounted(small_stencils, backend, kernel):
     n_pairs = 4
     p0 = _batch(SMALL, n_pairs)
     inputs = _input_cases(SMALL, n_pairs)["replaced"]
-    propagator = MarkovPropagator(small_stencils, backend=backend, prune_threshold=1e-4, renormalise_pruned=False)
+    propagator = MarkovPropagator(small_stencils, backend=backend, prune_threshold=1e-4, renormalise_pruned=False, kernel=kernel)
     result = propagator.run(p0, inputs, with_final_state=True)
     assert result.pruned_mass.sum() > 1e-4  # a coarse threshold really prunes
     in_grid = result.final_state.sum(axis=(1, 2, 3), dtype=np.float64)
