@@ -96,14 +96,16 @@ if numba is not None:
         return rows.reshape(n_l, n_in, n_v)
 
     @numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
-    def _fused_step(slab, lo, n_s, ptr, v_to, offset, weight, iptr, ioffset, iweight, with_interval, threshold):  # pragma: no cover - compiled
-        n_l, n_in, n_v, n_b = slab.shape
-        out = np.zeros(slab.shape, np.float32)
-        leaked = np.zeros(n_b, np.float32)
-        ipos = np.zeros((n_l, n_b), np.float32)
-        ileaked = np.zeros(n_b, np.float32)
+    def _fused_step(slab, src_lo, lo, n_l, n_s, ptr, v_to, offset, weight, iptr, ioffset, iweight, with_interval, threshold):  # pragma: no cover - compiled
+        n_src, n_in, n_v, n_b = slab.shape
+        out = np.zeros((n_l, n_in, n_v, n_b), np.float32)
+        # sums over many states accumulate in float64 (sequential float32 sums of ~10⁴ terms drift by ~1e-6)
+        leaked = np.zeros(n_b, np.float64)
+        ipos = np.zeros((n_l, n_b), np.float64)
+        ileaked = np.zeros(n_b, np.float64)
         occupied = _occupied_rows(slab)
-        for s in range(n_l):
+        moved = src_lo - lo  # the slab's cells in the output window: the window only moves forward, over empty cells
+        for s in range(n_src):
             for a in range(n_in):
                 for v in range(n_v):
                     if not occupied[s, a, v]:
@@ -111,7 +113,7 @@ if numba is not None:
                     row = slab[s, a, v]
                     r = a * n_v + v
                     for e in range(ptr[r], ptr[r + 1]):
-                        t = s + offset[e]
+                        t = s + moved + offset[e]
                         w = weight[e]
                         if t < n_l:
                             target = out[t, a, v_to[e]]
@@ -122,7 +124,7 @@ if numba is not None:
                                 leaked[b] += w * row[b]
                     if with_interval:
                         for e in range(iptr[r], iptr[r + 1]):
-                            t = s + ioffset[e]
+                            t = s + moved + ioffset[e]
                             w = iweight[e]
                             if t < n_l:
                                 target = ipos[t]
@@ -131,9 +133,9 @@ if numba is not None:
                             elif lo + t >= n_s:
                                 for b in range(n_b):
                                     ileaked[b] += w * row[b]
-        pos = np.zeros((n_l, n_b), np.float32)
-        vel = np.zeros((n_v, n_b), np.float32)
-        kept = np.zeros(n_b, np.float32)
+        pos = np.zeros((n_l, n_b), np.float64)
+        vel = np.zeros((n_v, n_b), np.float64)
+        kept = np.zeros(n_b, np.float64)
         mark = np.zeros((n_l, n_v, n_b), np.uint8)  # (s, v, pair) holding mass after pruning
         for t in range(n_l):
             for a in range(n_in):
@@ -163,7 +165,8 @@ if numba is not None:
                     if mark[t, v, b]:
                         s_idx[i], v_idx[i], b_idx[i] = t, v, b
                         i += 1
-        return out, leaked, pos, vel, ipos, ileaked, kept, s_idx, v_idx, b_idx
+        f32 = np.float32
+        return out, leaked.astype(f32), pos.astype(f32), vel.astype(f32), ipos.astype(f32), ileaked.astype(f32), kept.astype(f32), s_idx, v_idx, b_idx
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
     def _priority_occupied(slab, s_idx, v_idx, b_idx, lam, psi, factors):  # pragma: no cover - compiled
@@ -215,14 +218,15 @@ if numba is not None:
         return s_idx, v_idx, b_idx
 
 
-def fused_step(slab, lo, n_s, tables, with_interval, threshold):
-    """See the module docstring. ``tables``: ``stencil_tables`` of Υ(τ) then ``collapsed_tables`` of Υ([0, τ]).
+def fused_step(slab, src_lo, lo, hi, n_s, tables, with_interval, threshold):
+    """See the module docstring. The slab holds the s-cells [src_lo, src_lo + L) and p⁻ the cells [lo, hi) (the
+    window of this step: the slab's occupied cells lie in it), so that a moving window costs no copy. ``tables``: ``stencil_tables`` of Υ(τ) then ``collapsed_tables`` of Υ([0, τ]).
 
     Returns (p⁻ pruned (L, M, N_v, B), leaked (B,), position (L, B), velocity (N_v, B), interval position (L, B),
     interval leaked (B,), totals after pruning (B,), and the (s, v, b) index arrays of the states holding mass after
     pruning, in C order like ``occupied_states``)."""
     ptr, v_to, offset, weight, iptr, ioffset, iweight = tables
-    return _fused_step(np.ascontiguousarray(slab, dtype=np.float32), int(lo), int(n_s), ptr, v_to, offset, weight,
+    return _fused_step(np.ascontiguousarray(slab, dtype=np.float32), int(src_lo), int(lo), int(hi - lo), int(n_s), ptr, v_to, offset, weight,
                        iptr, ioffset, iweight, bool(with_interval), np.float32(threshold))
 
 

@@ -430,11 +430,13 @@ class _NumpyBackend:
         return out
 
     def fused_step(
-        self, slab: np.ndarray, lo: int, hi: int, with_interval: bool, threshold: float
+        self, slab: np.ndarray, src_lo: int, lo: int, hi: int, with_interval: bool, threshold: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None, np.ndarray]:
-        """One step in one compiled call: (p⁻ pruned, leaked (B,), position (B, L) and velocity (B, N_v) of p⁻ before
-        pruning, interval position (B, L) and its leak (B,) or None, totals after pruning (B,))."""
-        out, leaked, pos, vel, ipos, ileaked, kept, *occupied = kernels.fused_step(slab, lo, self.n_s, self._tables, with_interval, threshold)
+        """One step in one compiled call, from the slab on [src_lo, ...) to p⁻ on [lo, hi) (no ``reslab``): (p⁻ pruned,
+        leaked (B,), position (B, L) and velocity (B, N_v) of p⁻ before pruning, interval position (B, L) and its leak
+        (B,) or None, totals after pruning (B,))."""
+        out, leaked, pos, vel, ipos, ileaked, kept, *occupied = kernels.fused_step(
+            slab, src_lo, lo, hi, self.n_s, self._tables, with_interval, threshold)
         self._occupied = (out, occupied)
         return out, leaked, pos.T, vel.T, (ipos.T if with_interval else None), (ileaked if with_interval else None), kept
 
@@ -910,12 +912,14 @@ class MarkovPropagator:
         outside = be.vector(outside0)
         for k in range(k_steps):
             new_lo, new_hi = self._window(support)
-            slab = be.reslab(slab, lo, hi, new_lo, new_hi)
+            src_lo = lo
+            if not fused:  # the fused step reads the slab where it is
+                slab = be.reslab(slab, lo, hi, new_lo, new_hi)
             lo, hi = new_lo, new_hi
             kept_fused = None
             if fused:  # one compiled pass: p⁻ (pruned), leaks, marginals, interval position
                 p_minus, leaked, position, velocity, interval_position, leaked_interval, kept_fused = be.fused_step(
-                    slab, lo, hi, with_interval, self.prune_threshold)
+                    slab, src_lo, lo, hi, with_interval, self.prune_threshold)
                 if with_interval:
                     interval_positions[:, k, lo:hi] = interval_position
                     interval_outsides[:, k] = outside + leaked_interval
