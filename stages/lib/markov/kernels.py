@@ -218,6 +218,27 @@ if numba is not None:
         return s_idx, v_idx, b_idx
 
 
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _priority_at_states(restriction, preference, b_idx, v_idx, s_idx, forbid_threshold):  # pragma: no cover - compiled
+        n_in = restriction.shape[1]
+        out = np.empty((b_idx.shape[0], n_in), np.float32)
+        for n in range(b_idx.shape[0]):
+            b, v, s = b_idx[n], v_idx[n], s_idx[n]
+            carry = np.float32(0.0)
+            top = restriction[b, 0, v, s]
+            for alpha in range(n_in - 1, -1, -1):
+                m = restriction[b, alpha, v, s]
+                top = max(top, m)
+                want = carry + preference[b, alpha]
+                r = min(m, want)
+                out[n, alpha] = r
+                carry = want - r
+            if top <= forbid_threshold:
+                for alpha in range(n_in):
+                    out[n, alpha] = np.float32(0.0)
+                out[n, 0] = np.float32(1.0)
+        return out
+
 def fused_step(slab, src_lo, lo, hi, n_s, tables, with_interval, threshold):
     """See the module docstring. The slab holds the s-cells [src_lo, src_lo + L) and p⁻ the cells [lo, hi) (the
     window of this step: the slab's occupied cells lie in it), so that a moving window costs no copy. ``tables``: ``stencil_tables`` of Υ(τ) then ``collapsed_tables`` of Υ([0, τ]).
@@ -240,3 +261,17 @@ def priority_occupied(slab, s_idx, v_idx, b_idx, lam, psi, factors):
     return _priority_occupied(np.ascontiguousarray(slab, dtype=np.float32), s_idx, v_idx, b_idx,
                               np.ascontiguousarray(lam, dtype=np.float32), np.ascontiguousarray(psi, dtype=np.float32),
                               np.ascontiguousarray(factors, dtype=np.float32))
+
+
+def priority_at_states(restriction, preference, b_idx, v_idx, s_idx, forbid_threshold):
+    """The priority r = combine(m, q) of ``stages.markov_prediction.priority.combine_with_preference`` at listed states.
+
+    ``restriction`` (B, M, N_v, N_s) float32 (m per state), ``preference`` (B, M) float32 (q per pair), the states
+    ``(b, v, s)`` as index arrays; returns (n, M) float32. The same float32 arithmetic: from the highest input down
+    r_α = min(m_α, q_α + carry), the cut part carried to the next lower input; where every m_α is at most
+    ``forbid_threshold`` all weight goes to α = 0. tests/stages/test_markov_occupied.py checks it against
+    ``combine_with_preference`` (the definition).
+    """
+    return _priority_at_states(np.asarray(restriction, dtype=np.float32), np.ascontiguousarray(preference, dtype=np.float32),
+                               np.asarray(b_idx, dtype=np.int64), np.asarray(v_idx, dtype=np.int64), np.asarray(s_idx, dtype=np.int64),
+                               np.float32(forbid_threshold))
