@@ -275,3 +275,25 @@ def priority_at_states(restriction, preference, b_idx, v_idx, s_idx, forbid_thre
     return _priority_at_states(np.asarray(restriction, dtype=np.float32), np.ascontiguousarray(preference, dtype=np.float32),
                                np.asarray(b_idx, dtype=np.int64), np.asarray(v_idx, dtype=np.int64), np.asarray(s_idx, dtype=np.int64),
                                np.float32(forbid_threshold))
+
+
+_warm = False
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's on-disk cache) every kernel now, on tiny arrays: a stage pays it when it starts,
+    not on its first frame (about a second from the cache, several seconds when compiling). Once per process."""
+    global _warm
+    if _warm or numba is None:
+        return
+    slab = np.zeros((2, 2, 2, 1), np.float32)
+    slab[0, 0, 0, 0] = 1.0
+    ptr = np.array([0, 1, 1, 1, 1], np.int64)
+    one = np.zeros(1, np.int64)
+    w = np.ones(1, np.float32)
+    fused_step(slab, 0, 0, 2, 2, (ptr, one, one, w, ptr, one, w), True, 0.0)
+    s_idx, v_idx, b_idx = occupied_states(slab)
+    lam = np.ones((s_idx.shape[0], 2), np.float32)
+    priority_occupied(slab, s_idx, v_idx, b_idx, lam, np.eye(2, dtype=np.float32), np.ones(1, np.float32))
+    priority_at_states(np.ones((1, 2, 2, 2), np.float32), np.ones((1, 2), np.float32), b_idx, v_idx, s_idx, 0.0)
+    _warm = True

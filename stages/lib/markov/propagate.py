@@ -346,6 +346,7 @@ class _NumpyBackend:
         self._tables = None
         self._occupied: tuple[np.ndarray, list[np.ndarray]] | None = None
         if self.fused:
+            kernels.warm_up()  # compiled or loaded now, not on the first frame
             self._tables = (
                 *kernels.stencil_tables(stencils.kernel(TransitionKind.TIME_POINT)),
                 *kernels.collapsed_tables(stencils.kernel(TransitionKind.TIME_INTERVAL)),
