@@ -22,9 +22,11 @@ One step k → k+1 (CORA's order):
 acts at fixed (v, s)); it shapes the steps after. In hybrid mode step k is
 given ``InputReplaced(probs=λ(k+1))``.
 
-Backends with one API: ``"numpy"`` (scipy CSR, single thread) and ``"torch"``
-(grouped conv1d along s on ``"cpu"`` or ``"cuda"``). Both run in float32 and
-check at the end of a run that the mass is conserved to 1e-5.
+Backends with one API: ``"numpy"`` (single thread: numba kernels over the
+occupied states, ``stages/lib/markov/kernels.py``, or the scipy CSR products,
+``kernel="scipy"``, the reference) and ``"torch"`` (grouped conv1d along s on
+``"cpu"`` or ``"cuda"``). All run in float32 and check at the end of a run
+that the mass is conserved to 1e-5.
 
 Active-window cropping (docs/method.md §3.5): mass never moves backwards and
 moves at most D-1 cells per step, so each step only touches the s-cells from
