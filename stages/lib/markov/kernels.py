@@ -170,26 +170,42 @@ if numba is not None:
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
     def _priority_occupied(slab, s_idx, v_idx, b_idx, lam, psi, factors):  # pragma: no cover - compiled
+        """The products run input by input over all the states at once (the inner loops over the states vectorise;
+        per state they would be 10-long); each state's sums are taken in the same order as per state."""
         n_l, n_in, n_v, n_b = slab.shape
+        n = s_idx.shape[0]
         out = np.zeros(slab.shape, np.float32)
-        norm = np.empty(n_in, np.float32)
-        ratio = np.empty(n_in, np.float32)
-        for n in range(s_idx.shape[0]):
-            s, v, b = s_idx[n], v_idx[n], b_idx[n]
-            for j in range(n_in):  # Z[j] = Σ_a λ[a] Ψ[a, j]
-                z = np.float32(0.0)
-                for a in range(n_in):
-                    z += lam[n, a] * psi[a, j]
-                norm[j] = z
+        lam_t = np.ascontiguousarray(lam.T)  # (M, n)
+        x = np.empty((n_in, n), np.float32)
+        for i in range(n):
             for j in range(n_in):
-                x = slab[s, j, v, b]
-                ratio[j] = x / norm[j] if norm[j] > 0 else np.float32(0.0)
-            f = factors[b]
+                x[j, i] = slab[s_idx[i], j, v_idx[i], b_idx[i]]
+        ratio = np.empty((n_in, n), np.float32)
+        for j in range(n_in):  # Z[j] = Σ_a λ[a] Ψ[a, j]; ratio = p⁻[j] / Z[j]
+            z = np.zeros(n, np.float32)
             for a in range(n_in):
-                acc = np.float32(0.0)
-                for j in range(n_in):
-                    acc += psi[a, j] * ratio[j]
-                out[s, a, v, b] = lam[n, a] * acc * f
+                w = psi[a, j]
+                row = lam_t[a]
+                for i in range(n):
+                    z[i] += row[i] * w
+            xj = x[j]
+            rj = ratio[j]
+            for i in range(n):
+                rj[i] = xj[i] / z[i] if z[i] > 0 else np.float32(0.0)
+        f = np.empty(n, np.float32)
+        for i in range(n):
+            f[i] = factors[b_idx[i]]
+        acc = np.empty(n, np.float32)
+        for a in range(n_in):  # out[a] = λ[a] · Σ_j Ψ[a, j] ratio[j] · factor
+            acc[:] = 0.0
+            for j in range(n_in):
+                w = psi[a, j]
+                rj = ratio[j]
+                for i in range(n):
+                    acc[i] += w * rj[i]
+            la = lam_t[a]
+            for i in range(n):
+                out[s_idx[i], a, v_idx[i], b_idx[i]] = la[i] * acc[i] * f[i]
         return out
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
