@@ -3,11 +3,17 @@
 For the default grid it prints the stencil build time, the sparse expansion
 time and nnz of Υ(τ) and Υ([0, τ]); then, for B = 1, 10, 50, 200
 vehicle-corridor pairs in hybrid mode (input distribution replaced every
-step), the time per frame (K = 10 steps) and per step on the numpy/scipy
-backend, torch on CPU and torch on CUDA when available, with and without the
+step), the time per frame (K = 10 steps) and per step on the numpy backend
+with its numba kernels (``stages/lib/markov/kernels.py``, the default) and
+with the scipy CSR products (``kernel="scipy"``, the reference), torch on CPU
+and torch on CUDA when available, with and without the
 interval matrix, with and without cropping to the active s-window.
 
-    python bench/markov_kernel.py [--repeats N] [--pairs 1,10,50,200]
+    python bench/markov_kernel.py [--repeats N] [--pairs 1,10,50,200] [--threads N]
+
+``--threads`` sets torch's CPU threads (default: torch's own choice). The
+first numba call of a process compiles (or loads the on-disk cache); the
+warm-up run of every row absorbs it.
 """
 
 from __future__ import annotations
@@ -68,6 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--pairs", default="1,10,50,200")
+    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     args = parser.parse_args(argv)
     pair_counts = [int(x) for x in args.pairs.split(",")]
 
@@ -90,27 +97,35 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
 
-    targets = [("numpy", "cpu"), ("torch", "cpu")]
+    from stages.lib.markov import kernels
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    targets = [("numpy", "cpu", "scipy"), ("torch", "cpu", "auto")]
+    if kernels.available():
+        targets.insert(0, ("numpy", "cpu", "numba"))
+    else:
+        print(f"numba does not import ({kernels.unavailable_reason()}): no numba figures")
     if torch.cuda.is_available():
-        targets.append(("torch", "cuda"))
+        targets.append(("torch", "cuda", "auto"))
     else:
         print("torch.cuda.is_available() is False: no CUDA figures")
     print(f"torch {torch.__version__}, CPU threads {torch.get_num_threads()}")
     print()
-    print(f"{'backend':12s} {'crop':5s} {'interval':8s} " + " ".join(f"{'B=' + str(b):>20s}" for b in pair_counts))
-    print(f"{'':12s} {'':5s} {'':8s} " + " ".join(f"{'frame / step [ms]':>20s}" for _ in pair_counts))
-    for backend, device in targets:
+    print(f"{'backend':14s} {'crop':5s} {'interval':8s} " + " ".join(f"{'B=' + str(b):>20s}" for b in pair_counts))
+    print(f"{'':14s} {'':5s} {'':8s} " + " ".join(f"{'frame / step [ms]':>20s}" for _ in pair_counts))
+    for backend, device, kernel in targets:
         sync = (lambda: torch.cuda.synchronize()) if device == "cuda" else (lambda: None)
         for crop in (False, True):
             for with_interval in (False, True):
                 cells = []
                 for n_pairs in pair_counts:
                     p0, inputs = _scenario(config, n_pairs)
-                    propagator = MarkovPropagator(stencils, backend=backend, device=device, crop=crop)
+                    propagator = MarkovPropagator(stencils, backend=backend, device=device, crop=crop, kernel=kernel)
                     frame_s = _time_frame(propagator, p0, inputs, with_interval, args.repeats, sync)
                     cells.append(f"{frame_s * 1e3:9.1f} / {frame_s * 1e2:7.2f}")
-                label = f"{backend}-{device}"
-                print(f"{label:12s} {str(crop):5s} {str(with_interval):8s} " + " ".join(f"{c:>20s}" for c in cells))
+                label = f"{backend}-{kernel}" if backend == "numpy" else f"{backend}-{device}"
+                print(f"{label:14s} {str(crop):5s} {str(with_interval):8s} " + " ".join(f"{c:>20s}" for c in cells))
     return 0
 
 

@@ -57,15 +57,32 @@ class _PriorityBackend:
     def __getattr__(self, name: str) -> Any:
         return getattr(self._inner, name)
 
-    def apply_input(self, slab: Any, transition: Any, lo: int, hi: int, before: Any) -> tuple[Any, Any]:
+    def apply_input(self, slab: Any, transition: Any, lo: int, hi: int, before: Any, kept: Any = None) -> tuple[Any, Any]:
         if not isinstance(transition, InputPriority):
+            if kept is not None:
+                return self._inner.apply_input(slab, transition, lo, hi, before, kept=kept)
             return self._inner.apply_input(slab, transition, lo, hi, before)
         if self._kind == "numpy" and transition.at_states is not None:
+            if getattr(self._inner, "fused", False):
+                return self._numba_occupied(slab, transition, lo, before, kept)
             return self._numpy_occupied(slab, transition, lo, before)
         lam = np.asarray(transition.weights(lo, hi), dtype=np.float32)
         if self._kind == "numpy":
             return self._numpy(slab, lam, before)
         return self._torch(slab, lam, before)
+
+    def _numba_occupied(self, slab: np.ndarray, transition: InputPriority, lo: int, before: np.ndarray | None,
+                        kept: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+        """``_numpy_occupied`` with the compiled kernels (``stages.lib.markov.kernels``): no BLAS, no temporaries."""
+        s_idx, v_idx, b_idx = self._inner.occupied_states(slab)
+        lam = np.asarray(transition.at_states(b_idx, v_idx, s_idx + lo), dtype=np.float32)
+        if before is None:
+            kept, factors = None, np.ones(slab.shape[-1], np.float32)
+        else:
+            if kept is None:
+                kept = self._inner.position(slab).sum(axis=1)
+            factors = (before / np.where(kept > 0, kept, 1.0)).astype(np.float32)
+        return self._inner.priority_occupied(slab, s_idx, v_idx, b_idx, lam, self._psi, factors), kept
 
     def _numpy_occupied(self, slab: np.ndarray, transition: InputPriority, lo: int, before: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
         """``_numpy`` on the states (s, v, pair) that hold mass only: the same products, gathered and scattered back."""

@@ -48,7 +48,9 @@ from stages.markov_prediction.modes.base import InputModel, Messages, Pair, Vehi
 from stages.markov_prediction.modes.corridor_cv import constant_speed
 from stages.markov_prediction.modes.cv import CV_LINE_ID
 from stages.markov_prediction.spread import SpreadTable, blur_grid, load_spread
-from stages.markov_prediction.rasterise import Footprints, GridFrame, SparseGrid, cell_footprints, fuse, lateral_kernel, vehicle_grid
+from stages.markov_prediction.rasterise import (
+    Centrelines, Footprints, GridFrame, SparseGrid, cell_footprints_batch, fuse, lateral_kernel, vehicle_grid,
+)
 from stages.markov_prediction.signals import apply_signals, stop_line_wall
 
 __all__ = ["CV_LINE_ID", "FramePrediction", "MarkovPredictor", "PairInfo"]
@@ -702,42 +704,56 @@ class MarkovPredictor:
         mean_xy = np.full((n_b, n_k, 2), np.nan)
         mean_s = np.full((n_b, n_k), np.nan)
         xy_at_mean = np.full((n_b, n_k, 2), np.nan)
-        footprints: list[Footprints] = []
         pos = pos.copy()
         decay = cfg.lateral_offset_decay_s
         factor = np.exp(-self.step_times_s / decay) if decay > 0 else np.zeros(n_k)
         shifts = [p.d0_m * factor for p in pairs]
         if interval is not None:
             interval = np.asarray(interval, dtype=np.float32).copy()
-        for b, p in enumerate(pairs):
-            beyond = p.s_first_m + lower >= p.end_s_m  # cells past the corridor's end count as outside
-            if np.any(beyond):
-                outside[b] += pos[b][:, beyond].sum(axis=1)
-                pos[b][:, beyond] = 0.0
-                if interval is not None:
-                    interval[b][:, beyond] = 0.0
-            s_abs = p.s_first_m + centre
-            shift = shifts[b]
-            x_c, y_c = _corridor_xy(p, s_abs)
-            nx_c, ny_c = _corridor_normal(p, s_abs)
-            mass = pos[b].sum(axis=1, dtype=np.float64)
+        s_first = np.array([p.s_first_m for p in pairs], dtype=np.float64).reshape(n_b)
+        end_s = np.array([p.end_s_m for p in pairs], dtype=np.float64).reshape(n_b)
+        beyond_all = s_first[:, None] + lower[None, :] >= end_s[:, None]  # cells past the corridor's end count as outside
+        for b in np.flatnonzero(beyond_all.any(axis=1)):
+            beyond = beyond_all[b]
+            outside[b] += pos[b][:, beyond].sum(axis=1)
+            pos[b][:, beyond] = 0.0
+            if interval is not None:
+                interval[b][:, beyond] = 0.0
+        # every pair at once (rasterise.Centrelines: one np.interp per quantity over all the pairs' centrelines)
+        lines = Centrelines([p.s_m for p in pairs], [p.x_m for p in pairs], [p.y_m for p in pairs], [p.heading_rad for p in pairs])
+        shift_all = np.stack(shifts) if n_b else np.zeros((0, n_k))
+        if n_b:
+            s_abs = s_first[:, None] + centre[None, :]  # (B, L)
+            x_c, y_c, h_c = lines.xy_heading(s_abs)
+            nx_c, ny_c = -np.sin(h_c), np.cos(h_c)
+            mass = pos.sum(axis=2, dtype=np.float64)  # (B, K)
             ok = mass > 1e-9
+            pos64 = pos.astype(np.float64)
             with np.errstate(invalid="ignore", divide="ignore"):
-                mean_xy[b, ok, 0] = (pos[b][ok] @ x_c + shift[ok] * (pos[b][ok] @ nx_c)) / mass[ok]
-                mean_xy[b, ok, 1] = (pos[b][ok] @ y_c + shift[ok] * (pos[b][ok] @ ny_c)) / mass[ok]
-                mean_s[b, ok] = (pos[b][ok] @ s_abs) / mass[ok]
+                mx = (np.einsum("bkl,bl->bk", pos64, x_c) + shift_all * np.einsum("bkl,bl->bk", pos64, nx_c)) / mass
+                my = (np.einsum("bkl,bl->bk", pos64, y_c) + shift_all * np.einsum("bkl,bl->bk", pos64, ny_c)) / mass
+                ms = np.einsum("bkl,bl->bk", pos64, s_abs) / mass
+            mean_xy[..., 0] = np.where(ok, mx, np.nan)
+            mean_xy[..., 1] = np.where(ok, my, np.nan)
+            mean_s[:] = np.where(ok, ms, np.nan)
             exact = arrays.get("exact_s")
-            if exact is not None and np.all(np.isfinite(exact[b])):  # constant velocity (a mode, or a fallback): the exact point
-                mean_s[b] = exact[b]
-                ex, ey = _corridor_xy(p, exact[b])
-                enx, eny = _corridor_normal(p, exact[b])
-                mean_xy[b, :, 0], mean_xy[b, :, 1] = ex + shift * enx, ey + shift * eny
-            finite = np.isfinite(mean_s[b])
-            at = np.where(finite, mean_s[b], p.s0_m)
-            sx, sy = _corridor_xy(p, at)
-            snx, sny = _corridor_normal(p, at)
-            xy_at_mean[b, :, 0] = np.where(finite, sx + shift * snx, np.nan)
-            xy_at_mean[b, :, 1] = np.where(finite, sy + shift * sny, np.nan)
+            if exact is not None:  # constant velocity (a mode, or a fallback): the exact point
+                exact = np.asarray(exact, dtype=np.float64)
+                rows = np.flatnonzero(np.all(np.isfinite(exact), axis=1))
+                if rows.size:
+                    sub = Centrelines([pairs[b].s_m for b in rows], [pairs[b].x_m for b in rows], [pairs[b].y_m for b in rows],
+                                      [pairs[b].heading_rad for b in rows])
+                    ex, ey, eh = sub.xy_heading(exact[rows])
+                    mean_s[rows] = exact[rows]
+                    mean_xy[rows, :, 0] = ex + shift_all[rows] * -np.sin(eh)
+                    mean_xy[rows, :, 1] = ey + shift_all[rows] * np.cos(eh)
+            finite = np.isfinite(mean_s)
+            s0 = np.array([p.s0_m for p in pairs], dtype=np.float64)
+            at = np.where(finite, mean_s, s0[:, None])
+            sx, sy, sh = lines.xy_heading(at)
+            xy_at_mean[..., 0] = np.where(finite, sx + shift_all * -np.sin(sh), np.nan)
+            xy_at_mean[..., 1] = np.where(finite, sy + shift_all * np.cos(sh), np.nan)
+        for b, p in enumerate(pairs):
             if outside[b, -1] > cfg.outside_issue_mass:
                 issues.append(
                     Issue(
@@ -747,11 +763,9 @@ class MarkovPredictor:
                         f" (corridor ends {p.end_s_m - p.s0_m:.1f} m ahead, v0 {p.v0_mps:.1f} m/s)",
                     )
                 )
-            footprints.append(
-                cell_footprints(
-                    p.s_m, p.x_m, p.y_m, p.heading_rad, p.s_first_m + lower, cfg.ds_m, cfg.grid_substeps, *self._lateral
-                )
-            )
+        footprints: list[Footprints] = (
+            cell_footprints_batch(lines, s_first[:, None] + lower[None, :], cfg.ds_m, cfg.grid_substeps, *self._lateral) if n_b else []
+        )
         grid_probs = interval if (cfg.grid_distribution == "interval" and interval is not None) else pos
         frame = self._grid_frame(footprints, grid_probs)
         by_track: dict[int, list[int]] = collections.defaultdict(list)
@@ -895,17 +909,3 @@ def _corridor_ok(corridor, track_id: int, issues: list[Issue]) -> bool:
         return False
     return True
 
-
-def _corridor_normal(p: Pair, s_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The left unit normal of the centreline at s (its end headings past either end)."""
-    heading = np.interp(np.clip(s_m, p.s_m[0], p.s_m[-1]), p.s_m, np.unwrap(p.heading_rad))
-    return -np.sin(heading), np.cos(heading)
-
-
-def _corridor_xy(p: Pair, s_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """X_c(s) with straight continuation past either end."""
-    s_in = np.clip(s_m, p.s_m[0], p.s_m[-1])
-    heading = np.interp(s_in, p.s_m, np.unwrap(p.heading_rad))
-    x = np.interp(s_in, p.s_m, p.x_m) + (s_m - s_in) * np.cos(heading)
-    y = np.interp(s_in, p.s_m, p.y_m) + (s_m - s_in) * np.sin(heading)
-    return x, y

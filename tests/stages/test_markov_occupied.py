@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from stages.lib.markov import MarkovGridConfig, build_stencils, initial_state, psi_matrix
+from stages.lib.markov import MarkovGridConfig, build_stencils, initial_state, kernels, psi_matrix
 from stages.markov_prediction.chain import InputPriority, PriorityPropagator
 from stages.markov_prediction.priority import combine_with_preference
 
@@ -25,8 +26,30 @@ def test_occupied_states_path_equals_the_window_path():
     p0 = initial_state(SMALL, s_m=rng.uniform(1, 8, n_pairs), v_mps=rng.uniform(0, 5, n_pairs), half_width_s_m=0.5, half_width_v_mps=0.5,
                        input_probs=rng.dirichlet(np.ones(n_in), n_pairs))
     psi = psi_matrix(SMALL.input_centres_mps2())
-    a = PriorityPropagator(stencils, psi).run(p0, dense, with_interval=True, with_final_state=True)
-    b = PriorityPropagator(stencils, psi).run(p0, occupied, with_interval=True, with_final_state=True)
-    for name in ("position_probs", "velocity_probs", "interval_position_probs", "outside_mass", "pruned_mass", "final_state"):
-        np.testing.assert_allclose(getattr(b, name), getattr(a, name), atol=1e-6, err_msg=name)
-    assert b.mass_error.max() <= 1e-5
+    a = PriorityPropagator(stencils, psi, kernel="scipy").run(p0, dense, with_interval=True, with_final_state=True)
+    for kernel in ("scipy", *(["numba"] if kernels.available() else [])):  # numba: the compiled occupied-state kernels
+        b = PriorityPropagator(stencils, psi, kernel=kernel).run(p0, occupied, with_interval=True, with_final_state=True)
+        for name in ("position_probs", "velocity_probs", "interval_position_probs", "outside_mass", "pruned_mass", "final_state"):
+            np.testing.assert_allclose(getattr(b, name), getattr(a, name), atol=1e-6, err_msg=f"{kernel}: {name}")
+        assert b.mass_error.max() <= 1e-5
+
+
+@pytest.mark.skipif(not kernels.available(), reason="numba does not import")
+@pytest.mark.parametrize("forbid_threshold", [0.0, 0.25])
+def test_compiled_priority_at_states_equals_combine_with_preference(forbid_threshold):
+    """kernels.priority_at_states (the hybrid mode's at_states when numba imports) is combine_with_preference, bit for bit."""
+    rng = np.random.default_rng(3)
+    n_pairs, n_in, n_v, n_s = 5, 10, 7, 9
+    weights = np.float32([0.2, 0.3, 0.5])  # a restriction is a sum of lateral-acceleration weights, as speed_restriction makes it
+    cuts = rng.integers(0, n_in + 1, (3, n_pairs, n_v, n_s))
+    restriction = sum(w * (np.arange(n_in)[None, :, None, None] < c[:, None]) for w, c in zip(weights, cuts)).astype(np.float32)
+    restriction[1, :, 2, :] = 0.0  # every input forbidden
+    restriction[2] = rng.uniform(0, 1, restriction[2].shape)  # and arbitrary values
+    preference = rng.uniform(0, 1, (n_pairs, n_in)).astype(np.float32)
+    preference /= preference.max(axis=1, keepdims=True)
+    b, v, s = (rng.integers(0, n, 400) for n in (n_pairs, n_v, n_s))
+    expected = combine_with_preference(restriction[b, :, v, s], preference[b], forbid_threshold)
+    got = kernels.priority_at_states(restriction, preference, b, v, s, forbid_threshold)
+    assert got.dtype == np.float32 and got.shape == expected.shape
+    np.testing.assert_array_equal(got, expected)
+    assert np.any(got[:, 0] == 1.0) and np.any(got[:, 0] < 1.0)

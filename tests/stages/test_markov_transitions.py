@@ -21,6 +21,7 @@ from stages.lib.markov import (
     psi_matrix,
 )
 from stages.lib.markov.transitions import cache_path, integrate_saturated, load_stencils, save_stencils
+from stages.lib.markov import kernels
 
 KINDS = list(TransitionKind)
 
@@ -375,17 +376,20 @@ def _input_cases(cfg, n_pairs, seed=4):
     return {"identity": None, "replaced": replaced, "matrix": matrix, "per_state": per_state, "mixed": mixed}
 
 
+_BACKENDS = [("numpy", "scipy"), *([("numpy", "numba")] if kernels.available() else []), ("torch", "auto")]
+
+
 @pytest.mark.parametrize("case", ["identity", "replaced", "matrix", "per_state", "mixed"])
 def test_numpy_and_torch_backends_agree(small_stencils, case):
     n_pairs = 5
     p0 = _batch(SMALL, n_pairs)
     inputs = _input_cases(SMALL, n_pairs)[case]
     results = {}
-    for backend in ("numpy", "torch"):
+    for backend, kernel in _BACKENDS:  # numpy with the compiled kernels and with the scipy products, torch
         for crop in (True, False):
-            propagator = MarkovPropagator(small_stencils, backend=backend, crop=crop)
-            results[backend, crop] = propagator.run(p0, inputs, with_interval=True, with_final_state=True)
-    reference = results["numpy", False]
+            propagator = MarkovPropagator(small_stencils, backend=backend, crop=crop, kernel=kernel)
+            results[backend, kernel, crop] = propagator.run(p0, inputs, with_interval=True, with_final_state=True)
+    reference = results["numpy", "scipy", False]
     for result in results.values():
         for name in ("position_probs", "velocity_probs", "interval_position_probs", "outside_mass",
                      "interval_outside_mass", "pruned_mass", "final_state"):
@@ -400,12 +404,12 @@ def test_numpy_and_torch_backends_agree(small_stencils, case):
         assert result.mass_error.max() <= 1e-5
 
 
-@pytest.mark.parametrize("backend", ["numpy", "torch"])
-def test_pruned_mass_is_reported_and_accounted(small_stencils, backend):
+@pytest.mark.parametrize("backend,kernel", _BACKENDS)
+def test_pruned_mass_is_reported_and_accounted(small_stencils, backend, kernel):
     n_pairs = 4
     p0 = _batch(SMALL, n_pairs)
     inputs = _input_cases(SMALL, n_pairs)["replaced"]
-    propagator = MarkovPropagator(small_stencils, backend=backend, prune_threshold=1e-4, renormalise_pruned=False)
+    propagator = MarkovPropagator(small_stencils, backend=backend, prune_threshold=1e-4, renormalise_pruned=False, kernel=kernel)
     result = propagator.run(p0, inputs, with_final_state=True)
     assert result.pruned_mass.sum() > 1e-4  # a coarse threshold really prunes
     in_grid = result.final_state.sum(axis=(1, 2, 3), dtype=np.float64)
@@ -523,3 +527,23 @@ def test_torch_on_cuda_agrees_with_numpy(small_stencils):
     result = MarkovPropagator(small_stencils, backend="torch", device="cuda").run(p0, inputs, with_interval=True)
     for name in ("position_probs", "velocity_probs", "interval_position_probs", "outside_mass"):
         np.testing.assert_allclose(getattr(result, name), getattr(reference, name), atol=2e-6, err_msg=name)
+
+
+@pytest.mark.skipif(not kernels.available(), reason="numba does not import")
+@pytest.mark.parametrize("n_s", [30, 14])
+def test_numba_kernel_equals_scipy_when_the_window_moves_and_mass_leaves(small_stencils, n_s):
+    """Fast pairs: the cropped window moves forward every step (the fused step reads the previous window in place)
+    and, with a short window, mass leaves it; the compiled path gives the scipy path's numbers."""
+    cfg = _with(SMALL, n_s_cells=n_s)
+    rng = np.random.default_rng(11)
+    p0 = initial_state(cfg, s_m=rng.uniform(2.0, 4.0, 3), v_mps=rng.uniform(4.5, 5.5, 3), half_width_s_m=0.5,
+                       half_width_v_mps=0.25, input_probs=rng.dirichlet(np.ones(cfg.n_inputs), 3))
+    inputs = _input_cases(cfg, 3)["mixed"]
+    runs = {kernel: MarkovPropagator(small_stencils, n_s_cells=n_s, crop_quantum_cells=1, kernel=kernel).run(
+        p0, inputs, with_interval=True, with_final_state=True) for kernel in ("scipy", "numba")}
+    assert runs["scipy"].position_probs[:, -1, :2].max() == 0.0  # the mass has left the first cells: the window moved
+    if n_s == 14:
+        assert runs["scipy"].outside_mass[:, -1].min() > 0.05  # and some left the window
+    for name in ("position_probs", "velocity_probs", "interval_position_probs", "outside_mass", "interval_outside_mass",
+                 "pruned_mass", "final_state", "mass_error"):
+        np.testing.assert_allclose(getattr(runs["numba"], name), getattr(runs["scipy"], name), atol=1e-6, err_msg=name)

@@ -5,8 +5,10 @@
   push-forward, their sparse and convolution forms, and the disk cache.
 - ``propagate``: the batched online recursion over vehicle-corridor pairs,
   with the numpy/scipy and torch backends, Ψ and Γ helpers.
+- ``kernels``: the numpy backend's compiled (numba) step over the occupied
+  states and the input transition at occupied states.
 
-Pure numpy/scipy/torch: no bus, no wall clock.
+Pure numpy/scipy/numba/torch: no bus, no wall clock.
 """
 
 from stages.lib.markov.grid import MarkovGridConfig

@@ -22,9 +22,11 @@ One step k → k+1 (CORA's order):
 acts at fixed (v, s)); it shapes the steps after. In hybrid mode step k is
 given ``InputReplaced(probs=λ(k+1))``.
 
-Backends with one API: ``"numpy"`` (scipy CSR, single thread) and ``"torch"``
-(grouped conv1d along s on ``"cpu"`` or ``"cuda"``). Both run in float32 and
-check at the end of a run that the mass is conserved to 1e-5.
+Backends with one API: ``"numpy"`` (single thread: numba kernels over the
+occupied states, ``stages/lib/markov/kernels.py``, or the scipy CSR products,
+``kernel="scipy"``, the reference) and ``"torch"`` (grouped conv1d along s on
+``"cpu"`` or ``"cuda"``). All run in float32 and check at the end of a run
+that the mass is conserved to 1e-5.
 
 Active-window cropping (docs/method.md §3.5): mass never moves backwards and
 moves at most D-1 cells per step, so each step only touches the s-cells from
@@ -43,6 +45,7 @@ from typing import Any, Literal, Union
 import numpy as np
 import scipy.sparse as sp
 
+from stages.lib.markov import kernels
 from stages.lib.markov.grid import MarkovGridConfig
 from stages.lib.markov.transitions import TransitionKind, TransitionStencils
 
@@ -54,6 +57,10 @@ MASS_TOLERANCE = 1e-5
 _STOCHASTIC_TOLERANCE = 1e-4
 
 Backend = Literal["numpy", "torch"]
+
+#: The numpy backend's step: ``"numba"`` (``stages.lib.markov.kernels``: one compiled pass over the occupied states),
+#: ``"scipy"`` (CSR products over the whole active window: the reference), ``"auto"`` (numba where it imports).
+NumpyKernel = Literal["auto", "numba", "scipy"]
 
 
 # ---------------------------------------------------------------------------
@@ -320,17 +327,32 @@ class PropagationResult:
 
 
 class _NumpyBackend:
-    """scipy CSR products, single thread. Slab layout (L, M, N_v, B): s outermost, pairs innermost.
+    """scipy CSR products or the numba kernels, single thread. Slab layout (L, M, N_v, B): s outermost, pairs innermost.
 
     With s outermost a window is a contiguous block, and the CSR product
-    runs over all pairs at once (B right-hand sides).
+    runs over all pairs at once (B right-hand sides). With ``kernel`` numba
+    (``fused``) one compiled call per step (``kernels.fused_step``) replaces
+    the products, marginals, leak and pruning, touching occupied states only.
     """
 
-    def __init__(self, stencils: TransitionStencils, n_s: int) -> None:
+    def __init__(self, stencils: TransitionStencils, n_s: int, kernel: NumpyKernel = "auto") -> None:
         self.stencils = stencils
         self.n_s = n_s
         cfg = stencils.config
         self.n_in, self.n_v = cfg.n_inputs, cfg.n_v_cells
+        if kernel not in ("auto", "numba", "scipy"):
+            raise ValueError(f"MarkovPropagator: kernel must be 'auto', 'numba' or 'scipy', got {kernel!r}")
+        if kernel == "numba" and not kernels.available():
+            raise ValueError(f"MarkovPropagator: kernel 'numba' asked but numba does not import ({kernels.unavailable_reason()})")
+        self.fused = kernel == "numba" or (kernel == "auto" and kernels.available())
+        self._tables = None
+        self._occupied: tuple[np.ndarray, list[np.ndarray]] | None = None
+        if self.fused:
+            kernels.warm_up()  # compiled or loaded now, not on the first frame
+            self._tables = (
+                *kernels.stencil_tables(stencils.kernel(TransitionKind.TIME_POINT)),
+                *kernels.collapsed_tables(stencils.kernel(TransitionKind.TIME_INTERVAL)),
+            )
         self._matrices: dict[tuple[TransitionKind, int], sp.csr_matrix] = {}
         # Leak in the slab layout (N_s, M, N_v); non-zero only in the last D-1 cells.
         self._leak = {
@@ -410,6 +432,30 @@ class _NumpyBackend:
             out[a - new_lo : b - new_lo] = slab[a - lo : b - lo]
         return out
 
+    def fused_step(
+        self, slab: np.ndarray, src_lo: int, lo: int, hi: int, with_interval: bool, threshold: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None, np.ndarray]:
+        """One step in one compiled call, from the slab on [src_lo, ...) to p⁻ on [lo, hi) (no ``reslab``): (p⁻ pruned,
+        leaked (B,), position (B, L) and velocity (B, N_v) of p⁻ before pruning, interval position (B, L) and its leak
+        (B,) or None, totals after pruning (B,))."""
+        out, leaked, pos, vel, ipos, ileaked, kept, *occupied = kernels.fused_step(
+            slab, src_lo, lo, hi, self.n_s, self._tables, with_interval, threshold)
+        self._occupied = (out, occupied)
+        return out, leaked, pos.T, vel.T, (ipos.T if with_interval else None), (ileaked if with_interval else None), kept
+
+    def priority_occupied(self, slab: np.ndarray, s_idx: np.ndarray, v_idx: np.ndarray, b_idx: np.ndarray, lam: np.ndarray,
+                          psi: np.ndarray, factors: np.ndarray) -> np.ndarray:
+        """Γ = colnorm(diag(λ) Ψ) at the listed states (``kernels.priority_occupied``); every other state 0."""
+        return kernels.priority_occupied(slab, s_idx, v_idx, b_idx, lam, psi, factors)
+
+    def occupied_states(self, slab: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(s, v, b) of the slab's states holding mass, C order: from the last ``fused_step`` when ``slab`` is its
+        output (not changed since), else found by a scan."""
+        if self._occupied is not None and self._occupied[0] is slab:
+            s_idx, v_idx, b_idx = self._occupied[1]
+            return s_idx, v_idx, b_idx
+        return kernels.occupied_states(slab)
+
     def transition(self, kind: TransitionKind, slab: np.ndarray, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
         n_pairs = slab.shape[-1]
         flat = slab.reshape(-1, n_pairs)
@@ -427,20 +473,26 @@ class _NumpyBackend:
         np.multiply(slab, slab >= threshold, out=slab)
 
     def apply_input(
-        self, slab: np.ndarray, transition: InputTransition | None, lo: int, hi: int, before: np.ndarray | None
+        self, slab: np.ndarray, transition: InputTransition | None, lo: int, hi: int, before: np.ndarray | None,
+        kept: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray | None]:
-        """Γ p⁻ on the slab; with ``before`` (pre-pruning totals), rescale to them and return the kept totals."""
+        """Γ p⁻ on the slab; with ``before`` (pre-pruning totals), rescale to them and return the kept totals
+        (``kept``: those totals when the caller already has them)."""
         n_pairs = slab.shape[-1]
         if isinstance(transition, InputReplaced):
             q = _to_numpy(_validated(transition.probs, (n_pairs, self.n_in), "InputReplaced.probs rows", 1))
             summed = slab.sum(axis=1)  # (L, N_v, B)
             weights = q.T
-            kept = None
-            if before is not None:
-                kept = summed.sum(axis=(0, 1))
+            if before is None:
+                kept = None
+            else:
+                kept = summed.sum(axis=(0, 1)) if kept is None else kept
                 weights = weights * (before / _where_positive(kept))
             return summed[:, None] * np.ascontiguousarray(weights, dtype=np.float32)[None, :, None, :], kept
-        kept = None if before is None else self.position(slab).sum(axis=1)
+        if before is None:
+            kept = None
+        elif kept is None:
+            kept = self.position(slab).sum(axis=1)
         factors = None if kept is None else (before / _where_positive(kept)).astype(np.float32)
         if transition is None:
             out = slab
@@ -709,7 +761,9 @@ class MarkovPropagator:
     mass is put back onto the kept entries of the same pair, otherwise it is
     lost (CORA's behaviour); either way it is reported. ``crop`` limits each
     step to the active s-window, rounded up to ``crop_quantum_cells`` (the
-    same results, less work).
+    same results, less work). ``kernel`` picks the numpy backend's step
+    (``NumpyKernel``; default numba where it imports, the scipy products
+    otherwise: the same results within float32 rounding).
     """
 
     def __init__(
@@ -723,6 +777,7 @@ class MarkovPropagator:
         renormalise_pruned: bool = True,
         crop: bool = True,
         crop_quantum_cells: int = 8,
+        kernel: NumpyKernel = "auto",
     ) -> None:
         self.stencils = stencils
         self.config = stencils.config
@@ -740,8 +795,10 @@ class MarkovPropagator:
         if backend == "numpy":
             if device != "cpu":
                 raise ValueError(f"MarkovPropagator: the numpy backend runs on cpu only, got device={device!r}")
-            self._backend: Any = _NumpyBackend(stencils, self.n_s)
+            self._backend: Any = _NumpyBackend(stencils, self.n_s, kernel)
         elif backend == "torch":
+            if kernel == "numba":
+                raise ValueError("MarkovPropagator: kernel 'numba' is the numpy backend's; the torch backend has its own")
             self._backend = _TorchBackend(stencils, self.n_s, device)
         else:
             raise ValueError(f"MarkovPropagator: backend must be 'numpy' or 'torch', got {backend!r}")
@@ -852,23 +909,35 @@ class MarkovPropagator:
         interval_outsides = be.zeros((n_pairs, k_steps)) if with_interval else None
         pruned = be.zeros((n_pairs, k_steps))
 
+        fused = bool(getattr(be, "fused", False))
         lo, hi = self._window(support)
         slab = be.initial_slab(p0, lo, hi)
         outside = be.vector(outside0)
         for k in range(k_steps):
             new_lo, new_hi = self._window(support)
-            slab = be.reslab(slab, lo, hi, new_lo, new_hi)
+            src_lo = lo
+            if not fused:  # the fused step reads the slab where it is
+                slab = be.reslab(slab, lo, hi, new_lo, new_hi)
             lo, hi = new_lo, new_hi
-            p_minus, leaked = be.transition(TransitionKind.TIME_POINT, slab, lo, hi)
-            if with_interval:  # only its position marginal is returned: never the interval state itself
-                interval_position, leaked_interval = be.transition_position(TransitionKind.TIME_INTERVAL, slab, lo, hi)
-                interval_positions[:, k, lo:hi] = interval_position
-                interval_outsides[:, k] = outside + leaked_interval
+            kept_fused = None
+            if fused:  # one compiled pass: p⁻ (pruned), leaks, marginals, interval position
+                p_minus, leaked, position, velocity, interval_position, leaked_interval, kept_fused = be.fused_step(
+                    slab, src_lo, lo, hi, with_interval, self.prune_threshold)
+                if with_interval:
+                    interval_positions[:, k, lo:hi] = interval_position
+                    interval_outsides[:, k] = outside + leaked_interval
+            else:
+                p_minus, leaked = be.transition(TransitionKind.TIME_POINT, slab, lo, hi)
+                if with_interval:  # only its position marginal is returned: never the interval state itself
+                    interval_position, leaked_interval = be.transition_position(TransitionKind.TIME_INTERVAL, slab, lo, hi)
+                    interval_positions[:, k, lo:hi] = interval_position
+                    interval_outsides[:, k] = outside + leaked_interval
+                position = be.position(p_minus)
+                velocity = be.velocity(p_minus)
             outside = outside + leaked
             outsides[:, k] = outside
-            position = be.position(p_minus)
             positions[:, k, lo:hi] = position
-            velocities[:, k] = be.velocity(p_minus)
+            velocities[:, k] = velocity
             if self.crop:
                 support = be.support(position)
                 if support is not None:
@@ -876,7 +945,8 @@ class MarkovPropagator:
             before = None
             if self.prune_threshold > 0:
                 before = position.sum(1)
-                be.prune(p_minus, self.prune_threshold)
+                if not fused:
+                    be.prune(p_minus, self.prune_threshold)
             if callable(inputs):
                 marginals = StepMarginals(
                     position=positions[:, k],
@@ -887,7 +957,12 @@ class MarkovPropagator:
                 transition = inputs(k, marginals)
             else:
                 transition = None if inputs is None else inputs[k]
-            slab, kept = be.apply_input(p_minus, transition, lo, hi, before if self.renormalise_pruned else None)
+            if kept_fused is not None and before is not None and self.renormalise_pruned:
+                slab, kept = be.apply_input(p_minus, transition, lo, hi, before, kept=kept_fused)
+            else:
+                slab, kept = be.apply_input(p_minus, transition, lo, hi, before if self.renormalise_pruned else None)
+                if kept is None and kept_fused is not None and before is not None:
+                    kept = kept_fused
             if before is not None:
                 if kept is None:
                     kept = be.position(p_minus).sum(1)

@@ -20,7 +20,7 @@ import numpy as np
 
 from bus_schemas import AccelerationProfiles
 from stages.lib.base import Issue
-from stages.lib.markov import InputMatrix, InputReplaced, gamma_from_priority
+from stages.lib.markov import InputMatrix, InputReplaced, gamma_from_priority, kernels
 from stages.markov_prediction import priority as pr
 from stages.markov_prediction.chain import InputPriority
 from stages.markov_prediction.modes.base import ChainInputs, InputModel, Messages, Pair, Predictor
@@ -64,9 +64,14 @@ class _HybridInputs(ChainInputs):
                 self.steps.append(None)  # the input after the last step does not change any output
             elif lam_speed is not None:
                 pref = lam[:, k + 1] / np.maximum(lam[:, k + 1].max(axis=1, keepdims=True), 1e-12)
+                if kernels.available():  # the same numbers, compiled (kernels.priority_at_states): no gather, no per-input passes
+                    pref = pref.astype(np.float32)
+                    at_states = lambda b, v, s, pref=pref: kernels.priority_at_states(lam_speed, pref, b, v, s, cfg.forbid_threshold)  # noqa: E731
+                else:
+                    at_states = lambda b, v, s, pref=pref: pr.combine_with_preference(lam_speed[b, :, v, s], pref[b], cfg.forbid_threshold)  # noqa: E731
                 self.steps.append(InputPriority(  # built on the step's active s-window only, or on its occupied states
                     weights=lambda lo, hi, pref=pref: pr.combine_with_preference(lam_speed[..., lo:hi], pref, cfg.forbid_threshold),
-                    at_states=lambda b, v, s, pref=pref: pr.combine_with_preference(lam_speed[b, :, v, s], pref[b], cfg.forbid_threshold),
+                    at_states=at_states,
                 ))
             elif cfg.hybrid_input == "direct":
                 self.steps.append(InputReplaced(probs=lam[:, k + 1]))

@@ -1,0 +1,315 @@
+"""Compiled (numba) kernels of the numpy backend's hot path (docs/method.md §3.5).
+
+One call of ``fused_step`` does what the scipy path of
+``stages.lib.markov.propagate`` does with two CSR products, two marginals,
+the leak and the pruning, in one pass over the *occupied* states of the
+slab only:
+
+- p⁻ = Υ(τ) p (time point) on the slab ``(L, M, N_v, B)``; mass moved past
+  the window's last cell ``n_s`` is the leak (B,);
+- the position marginal (L, B) of Υ([0, τ]) p (interval; only when asked)
+  and its leak;
+- the position (L, B) and velocity (N_v, B) marginals of p⁻;
+- pruning of p⁻ (entries below ``threshold`` set to 0) and the pair totals
+  before and after it.
+
+A source row (s, α, v) whose B entries are all zero is skipped, so the cost
+grows with the occupied states (a few percent of the window), not with the
+window. The B pairs are the innermost (contiguous) axis: every stencil entry
+is one vectorisable axpy over the pairs.
+
+``priority_occupied`` applies Γ = colnorm(diag(λ) Ψ) at given occupied
+states (the hybrid mode's speed restriction, ``InputPriority.at_states``)
+without BLAS calls: on a small machine BLAS's worker threads cost more than
+the products.
+
+numba is a dependency; ``available()`` is False only where it cannot be
+imported, and the backend then uses the scipy path (the reference the tests
+compare against).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+try:  # pragma: no cover - exercised where numba is missing only
+    import numba
+
+    _NUMBA_ERROR: str | None = None
+except Exception as exc:  # noqa: BLE001 - any import failure leaves the scipy path
+    numba = None
+    _NUMBA_ERROR = f"{type(exc).__name__}: {exc}"
+
+
+def available() -> bool:
+    """True when the compiled kernels can be used."""
+    return numba is not None
+
+
+def unavailable_reason() -> str | None:
+    return _NUMBA_ERROR
+
+
+def stencil_tables(kernel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The non-zero entries of a kernel ``W[α, j′, j, d]`` grouped by source (α, j), CSR-like.
+
+    Returns ``ptr`` ((M·N_v + 1,) int64: the entries of source row α·N_v + j
+    are ptr[r]:ptr[r+1]), ``v_to``, ``offset`` (int64) and ``weight`` (float32).
+    """
+    n_in, n_v, _, _ = kernel.shape
+    src = np.transpose(kernel, (0, 2, 1, 3))  # (α, j source, j′ target, d)
+    a, j, jt, d = np.nonzero(src)
+    rows = a * n_v + j
+    order = np.lexsort((d, jt, rows))
+    rows, jt, d = rows[order], jt[order], d[order]
+    weight = src[a[order], j[order], jt, d].astype(np.float32)
+    ptr = np.zeros(n_in * n_v + 1, np.int64)
+    np.add.at(ptr, rows + 1, 1)
+    return np.cumsum(ptr), jt.astype(np.int64), d.astype(np.int64), weight
+
+
+def collapsed_tables(kernel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``W`` summed over the target velocity, per source (α, j): ``ptr``, ``offset``, ``weight`` (position only)."""
+    n_in, n_v, _, n_d = kernel.shape
+    per = kernel.sum(axis=1).reshape(n_in * n_v, n_d)  # (α·N_v + j, d)
+    rows, d = np.nonzero(per)
+    weight = per[rows, d].astype(np.float32)
+    ptr = np.zeros(n_in * n_v + 1, np.int64)
+    np.add.at(ptr, rows + 1, 1)
+    return np.cumsum(ptr), d.astype(np.int64), weight
+
+
+if numba is not None:
+
+    @numba.njit(cache=True, nogil=True, fastmath=True, boundscheck=False)
+    def _occupied_rows(slab):  # pragma: no cover - compiled
+        """(L, M, N_v) bool: rows with any mass (entries are >= 0: a row is empty iff its sum is 0; the sum vectorises,
+        an early exit on the first non-zero entry does not and costs ~10x more)."""
+        n_l, n_in, n_v, n_b = slab.shape
+        flat = slab.reshape(n_l * n_in * n_v, n_b)
+        rows = np.empty(n_l * n_in * n_v, np.bool_)
+        for r in range(flat.shape[0]):
+            acc = np.float32(0.0)
+            for b in range(n_b):
+                acc += flat[r, b]
+            rows[r] = acc > 0
+        return rows.reshape(n_l, n_in, n_v)
+
+    @numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
+    def _fused_step(slab, src_lo, lo, n_l, n_s, ptr, v_to, offset, weight, iptr, ioffset, iweight, with_interval, threshold):  # pragma: no cover - compiled
+        n_src, n_in, n_v, n_b = slab.shape
+        out = np.zeros((n_l, n_in, n_v, n_b), np.float32)
+        # sums over many states accumulate in float64 (sequential float32 sums of ~10⁴ terms drift by ~1e-6)
+        leaked = np.zeros(n_b, np.float64)
+        ipos = np.zeros((n_l, n_b), np.float64)
+        ileaked = np.zeros(n_b, np.float64)
+        occupied = _occupied_rows(slab)
+        moved = src_lo - lo  # the slab's cells in the output window: the window only moves forward, over empty cells
+        for s in range(n_src):
+            for a in range(n_in):
+                for v in range(n_v):
+                    if not occupied[s, a, v]:
+                        continue
+                    row = slab[s, a, v]
+                    r = a * n_v + v
+                    for e in range(ptr[r], ptr[r + 1]):
+                        t = s + moved + offset[e]
+                        w = weight[e]
+                        if t < n_l:
+                            target = out[t, a, v_to[e]]
+                            for b in range(n_b):
+                                target[b] += w * row[b]
+                        elif lo + t >= n_s:
+                            for b in range(n_b):
+                                leaked[b] += w * row[b]
+                    if with_interval:
+                        for e in range(iptr[r], iptr[r + 1]):
+                            t = s + moved + ioffset[e]
+                            w = iweight[e]
+                            if t < n_l:
+                                target = ipos[t]
+                                for b in range(n_b):
+                                    target[b] += w * row[b]
+                            elif lo + t >= n_s:
+                                for b in range(n_b):
+                                    ileaked[b] += w * row[b]
+        pos = np.zeros((n_l, n_b), np.float64)
+        vel = np.zeros((n_v, n_b), np.float64)
+        kept = np.zeros(n_b, np.float64)
+        mark = np.zeros((n_l, n_v, n_b), np.uint8)  # (s, v, pair) holding mass after pruning
+        for t in range(n_l):
+            for a in range(n_in):
+                for v in range(n_v):
+                    row = out[t, a, v]
+                    marks = mark[t, v]
+                    for b in range(n_b):  # branch-free: it vectorises over the pairs
+                        x = row[b]
+                        pos[t, b] += x
+                        vel[v, b] += x
+                        y = x if x >= threshold else np.float32(0.0)
+                        row[b] = y
+                        kept[b] += y
+                        marks[b] |= y > 0
+        n_marked = 0
+        for t in range(n_l):
+            for v in range(n_v):
+                for b in range(n_b):
+                    n_marked += mark[t, v, b]
+        s_idx = np.empty(n_marked, np.int64)
+        v_idx = np.empty(n_marked, np.int64)
+        b_idx = np.empty(n_marked, np.int64)
+        i = 0
+        for t in range(n_l):
+            for v in range(n_v):
+                for b in range(n_b):
+                    if mark[t, v, b]:
+                        s_idx[i], v_idx[i], b_idx[i] = t, v, b
+                        i += 1
+        f32 = np.float32
+        return out, leaked.astype(f32), pos.astype(f32), vel.astype(f32), ipos.astype(f32), ileaked.astype(f32), kept.astype(f32), s_idx, v_idx, b_idx
+
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _priority_occupied(slab, s_idx, v_idx, b_idx, lam, psi, factors):  # pragma: no cover - compiled
+        """The products run input by input over all the states at once (the inner loops over the states vectorise;
+        per state they would be 10-long); each state's sums are taken in the same order as per state."""
+        n_l, n_in, n_v, n_b = slab.shape
+        n = s_idx.shape[0]
+        out = np.zeros(slab.shape, np.float32)
+        lam_t = np.ascontiguousarray(lam.T)  # (M, n)
+        x = np.empty((n_in, n), np.float32)
+        for i in range(n):
+            for j in range(n_in):
+                x[j, i] = slab[s_idx[i], j, v_idx[i], b_idx[i]]
+        ratio = np.empty((n_in, n), np.float32)
+        for j in range(n_in):  # Z[j] = Σ_a λ[a] Ψ[a, j]; ratio = p⁻[j] / Z[j]
+            z = np.zeros(n, np.float32)
+            for a in range(n_in):
+                w = psi[a, j]
+                row = lam_t[a]
+                for i in range(n):
+                    z[i] += row[i] * w
+            xj = x[j]
+            rj = ratio[j]
+            for i in range(n):
+                rj[i] = xj[i] / z[i] if z[i] > 0 else np.float32(0.0)
+        f = np.empty(n, np.float32)
+        for i in range(n):
+            f[i] = factors[b_idx[i]]
+        acc = np.empty(n, np.float32)
+        for a in range(n_in):  # out[a] = λ[a] · Σ_j Ψ[a, j] ratio[j] · factor
+            acc[:] = 0.0
+            for j in range(n_in):
+                w = psi[a, j]
+                rj = ratio[j]
+                for i in range(n):
+                    acc[i] += w * rj[i]
+            la = lam_t[a]
+            for i in range(n):
+                out[s_idx[i], a, v_idx[i], b_idx[i]] = la[i] * acc[i] * f[i]
+        return out
+
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _occupied_states(slab):  # pragma: no cover - compiled
+        n_l, n_in, n_v, n_b = slab.shape
+        # (s, v, b) with any input holding mass, in (s, v, b) order like np.nonzero(slab.any(axis=1))
+        mark = np.zeros((n_l, n_v, n_b), np.bool_)
+        n = 0
+        for s in range(n_l):
+            for a in range(n_in):
+                for v in range(n_v):
+                    for b in range(n_b):
+                        if slab[s, a, v, b] != 0.0 and not mark[s, v, b]:
+                            mark[s, v, b] = True
+                            n += 1
+        s_idx = np.empty(n, np.int64)
+        v_idx = np.empty(n, np.int64)
+        b_idx = np.empty(n, np.int64)
+        i = 0
+        for s in range(n_l):
+            for v in range(n_v):
+                for b in range(n_b):
+                    if mark[s, v, b]:
+                        s_idx[i], v_idx[i], b_idx[i] = s, v, b
+                        i += 1
+        return s_idx, v_idx, b_idx
+
+
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _priority_at_states(restriction, preference, b_idx, v_idx, s_idx, forbid_threshold):  # pragma: no cover - compiled
+        n_in = restriction.shape[1]
+        out = np.empty((b_idx.shape[0], n_in), np.float32)
+        for n in range(b_idx.shape[0]):
+            b, v, s = b_idx[n], v_idx[n], s_idx[n]
+            carry = np.float32(0.0)
+            top = restriction[b, 0, v, s]
+            for alpha in range(n_in - 1, -1, -1):
+                m = restriction[b, alpha, v, s]
+                top = max(top, m)
+                want = carry + preference[b, alpha]
+                r = min(m, want)
+                out[n, alpha] = r
+                carry = want - r
+            if top <= forbid_threshold:
+                for alpha in range(n_in):
+                    out[n, alpha] = np.float32(0.0)
+                out[n, 0] = np.float32(1.0)
+        return out
+
+def fused_step(slab, src_lo, lo, hi, n_s, tables, with_interval, threshold):
+    """See the module docstring. The slab holds the s-cells [src_lo, src_lo + L) and p⁻ the cells [lo, hi) (the
+    window of this step: the slab's occupied cells lie in it), so that a moving window costs no copy. ``tables``: ``stencil_tables`` of Υ(τ) then ``collapsed_tables`` of Υ([0, τ]).
+
+    Returns (p⁻ pruned (L, M, N_v, B), leaked (B,), position (L, B), velocity (N_v, B), interval position (L, B),
+    interval leaked (B,), totals after pruning (B,), and the (s, v, b) index arrays of the states holding mass after
+    pruning, in C order like ``occupied_states``)."""
+    ptr, v_to, offset, weight, iptr, ioffset, iweight = tables
+    return _fused_step(np.ascontiguousarray(slab, dtype=np.float32), int(src_lo), int(lo), int(hi - lo), int(n_s), ptr, v_to, offset, weight,
+                       iptr, ioffset, iweight, bool(with_interval), np.float32(threshold))
+
+
+def occupied_states(slab):
+    """(s, v, b) indices of the slab's states where any input holds mass, in C order (``np.nonzero(slab.any(axis=1))``)."""
+    return _occupied_states(np.ascontiguousarray(slab, dtype=np.float32))
+
+
+def priority_occupied(slab, s_idx, v_idx, b_idx, lam, psi, factors):
+    """Γ = colnorm(diag(λ) Ψ) applied at the listed states (λ ``(n, M)``), scaled per pair by ``factors`` (B,)."""
+    return _priority_occupied(np.ascontiguousarray(slab, dtype=np.float32), s_idx, v_idx, b_idx,
+                              np.ascontiguousarray(lam, dtype=np.float32), np.ascontiguousarray(psi, dtype=np.float32),
+                              np.ascontiguousarray(factors, dtype=np.float32))
+
+
+def priority_at_states(restriction, preference, b_idx, v_idx, s_idx, forbid_threshold):
+    """The priority r = combine(m, q) of ``stages.markov_prediction.priority.combine_with_preference`` at listed states.
+
+    ``restriction`` (B, M, N_v, N_s) float32 (m per state), ``preference`` (B, M) float32 (q per pair), the states
+    ``(b, v, s)`` as index arrays; returns (n, M) float32. The same float32 arithmetic: from the highest input down
+    r_α = min(m_α, q_α + carry), the cut part carried to the next lower input; where every m_α is at most
+    ``forbid_threshold`` all weight goes to α = 0. tests/stages/test_markov_occupied.py checks it against
+    ``combine_with_preference`` (the definition).
+    """
+    return _priority_at_states(np.asarray(restriction, dtype=np.float32), np.ascontiguousarray(preference, dtype=np.float32),
+                               np.asarray(b_idx, dtype=np.int64), np.asarray(v_idx, dtype=np.int64), np.asarray(s_idx, dtype=np.int64),
+                               np.float32(forbid_threshold))
+
+
+_warm = False
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's on-disk cache) every kernel now, on tiny arrays: a stage pays it when it starts,
+    not on its first frame (about a second from the cache, several seconds when compiling). Once per process."""
+    global _warm
+    if _warm or numba is None:
+        return
+    slab = np.zeros((2, 2, 2, 1), np.float32)
+    slab[0, 0, 0, 0] = 1.0
+    ptr = np.array([0, 1, 1, 1, 1], np.int64)
+    one = np.zeros(1, np.int64)
+    w = np.ones(1, np.float32)
+    fused_step(slab, 0, 0, 2, 2, (ptr, one, one, w, ptr, one, w), True, 0.0)
+    s_idx, v_idx, b_idx = occupied_states(slab)
+    lam = np.ones((s_idx.shape[0], 2), np.float32)
+    priority_occupied(slab, s_idx, v_idx, b_idx, lam, np.eye(2, dtype=np.float32), np.ones(1, np.float32))
+    priority_at_states(np.ones((1, 2, 2, 2), np.float32), np.ones((1, 2), np.float32), b_idx, v_idx, s_idx, 0.0)
+    _warm = True
