@@ -260,7 +260,7 @@ def format_direction(name: str, train: dict[str, Any], ev: dict[str, Any], summa
     kind, inf = train.get("model_kind") or {}, train.get("inference_ms_per_frame") or {}
     if kind:
         lines.append(f"  model kind {kind.get('kind')} hidden {kind.get('hidden')} ({kind.get('parameters')} parameters)"
-                     + (f"; predict {_f(inf.get('median_ms'))} ms per frame of {inf.get('pairs')} pairs (cpu median)" if inf else ""))
+                     + (f"; predict {_f(inf.get('median_ms'))} ms median / {_f(inf.get('min_ms'))} ms min per frame of {inf.get('pairs')} pairs (cpu)" if inf else ""))
     lines.append(f"  eval on {b}: {ev.get('instants')} instants, skipped {ev.get('skipped')}")
     lines.append("")
     head = f"{'mode':<12} {'split':<8} {'windows':>7}" + "".join(f" {h:>6}" for h, _ in TABLE_METRICS)
