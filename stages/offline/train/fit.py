@@ -3,7 +3,7 @@
 ::
 
     iamp train [--data DIR] [--recording NAME ...] [--split sequence|recording|time] [--val-fraction 0.2]
-               [--hidden 0|N] [--epochs 200] [--batch-size 256] [--lr 1e-3] [--seed 0] [--device cpu|cuda]
+               [--kind ar|gru] [--hidden 0|N] [--tied-routes weight|drop|first] [--min-future-steps 10] [--epochs 200] [--batch-size 256] [--lr 1e-3] [--seed 0] [--device cpu|cuda]
                [--out artefacts/ar_model.pt] [--json FILE] [--no-progress]
 
 Data: ``stages.offline.train.dataset`` (the online ``FeatureTracker`` over the
@@ -29,10 +29,11 @@ Splits (never neighbouring windows of one track on both sides):
 
 Training: features z-scored with the training set's mean and std over real
 steps (std floored at 1e-3 in the feature's units; a constant feature gets
-std 1) and clipped to ±``z_clip`` 3; ``ARNet`` (linear, or one ReLU layer of
-``hidden`` units); Adam (``lr`` 1e-3, L2 ``weight_decay`` 0.3 for the
-linear net, 0.1 with a hidden layer), loss MSE + MAE (m/s², mean over the
-40 outputs), learning rate cosine-annealed with warm restarts every 10
+std 1) and clipped to ±``z_clip`` 3; the net of ``kind``: ``ar``, ``ARNet``
+(linear, or one ReLU layer of ``hidden`` units), or ``gru``, ``GRUNet``
+(``hidden`` 32 units by default); Adam (``lr`` 1e-3, L2 ``weight_decay`` 0.3 for the
+linear net, 0.1 with a hidden layer, 0.01 for the GRU, not tuned), loss MSE + MAE (m/s², mean over the
+known target steps, each sample by its weight: 1/k on one of k tied routes), learning rate cosine-annealed with warm restarts every 10
 epochs (``CosineAnnealingWarmRestarts`` T_0 = 10, stepped per batch), batches
 of 256, at most 200 epochs, early stopping when the validation loss has not
 improved for ``patience`` 20 epochs; the best epoch's weights are kept.
@@ -46,9 +47,12 @@ optimistic; a model trained on one location (``--recording``) and scored
 on the other gives an unbiased, cross-location figure.
 
 Report (printed; ``--json``; and in the weights file's ``metadata``):
-validation MSE and MAE of the model against "zero" (a = 0) and "last" (the
+validation MSE and MAE (known steps, weighted) of the model against "zero" (a = 0) and "last" (the
 last observed causal acceleration feature held over 4 s), overall, per
-0.4 s chunk and per recording; ``sigma_res_chunks`` (the RMSE of the chunk
+0.4 s chunk and per recording, and on the windows with their whole 4 s
+future (``validation_full_future``); the cars, windows and samples of the
+data set (``sizes.dataset``); the model's inference time for one frame of
+32 pairs (``inference_ms_per_frame``, median and minimum; a figure); ``sigma_res_chunks`` (the RMSE of the chunk
 means, docs/method.md §8.5); the sizes; epochs, the best epoch, time.
 
 Exit codes: 0 success, 2 bad command line, data or configuration (a
