@@ -53,7 +53,11 @@ Run (full TAF-BW recordings named by ``IAMP_TAF_BW``)::
     IAMP_TAF_BW=/path/to/taf-bw python bench/generalisation.py
     python bench/generalisation.py --data DIR [--seed 0] [--direction k729-k733|k733-k729|both]
         [--max-frames N] [--stride 0.4] [--retrain] [--train-opt=--hidden=256 ...] [--calibrate [--recalibrate]]
-        [--set KEY=VALUE ...] [--json OUT]
+        [--set KEY=VALUE ...] [--modes hybrid ...] [--json OUT]
+
+``--modes`` restricts the modes ``iamp eval`` runs (default all four); the
+ratios and goal items that need a mode not run say "unknown". Comparing AR
+models: ``--modes hybrid --train-opt=--kind=gru``, one run per candidate.
 
 ``--max-frames N`` is passed to ``iamp eval`` only (quick mode: each sequence
 stops after N frames); training always uses the whole training recording.
@@ -132,6 +136,8 @@ def train_model(data: Path, recording: str, seed: int, train_opts: list[str], re
     info["validation"] = {n: {k: rep["validation"][n].get(k) for k in ("mse", "mae")} for n in ("model", "zero", "last")
                           if n in rep.get("validation", {})}
     info["training"] = {k: rep.get("training", {}).get(k) for k in ("epochs_run", "best_epoch", "train_seconds")}
+    info["model_kind"] = {k: rep.get("model", {}).get(k) for k in ("kind", "hidden", "parameters")}
+    info["inference_ms_per_frame"] = rep.get("inference_ms_per_frame")
     return info
 
 
@@ -159,13 +165,15 @@ def calibrate(data: Path, recording: str, model: str, seed: int, sets: list[str]
 
 
 def eval_model(data: Path, recording: str, model: str, seed: int, stride: float, max_frames: int, tag: str,
-               sets: list[str] = ()) -> tuple[dict[str, Any], float, str]:
+               sets: list[str] = (), modes: tuple[str, ...] = MODES) -> tuple[dict[str, Any], float, str]:
     suffix = f"_seed{seed}_stride{stride:g}" + (f"_mf{max_frames}" if max_frames else "")
     if sets:
         suffix += "_" + hashlib.sha256(json.dumps(list(sets)).encode()).hexdigest()[:8]
+    if tuple(modes) != MODES:  # a subset of the modes, with its model: its own files (the full run's stay)
+        suffix += "_" + "-".join(modes) + "_" + Path(model).stem.rsplit("_", 1)[-1]
     out, log = OUT_DIR / f"eval_{tag}{suffix}.json", OUT_DIR / f"eval_{tag}{suffix}.log"
     args = ["eval", "--data", str(data), "--recording", recording, "--model", model, "--seed", str(seed),
-            "--stride", f"{stride:g}", "--mode", *MODES, "--json", str(out), "--no-progress", *[f"--set={x}" for x in sets]]
+            "--stride", f"{stride:g}", "--mode", *modes, "--json", str(out), "--no-progress", *[f"--set={x}" for x in sets]]
     if max_frames:
         args += ["--max-frames", str(max_frames)]
     rc, seconds = _iamp(args, log)
@@ -249,6 +257,10 @@ def format_direction(name: str, train: dict[str, Any], ev: dict[str, Any], summa
     if sizes and val:
         lines.append(f"  training on {a}: {sizes.get('train')} train / {sizes.get('val')} validation samples; "
                      "validation MSE/MAE: " + ", ".join(f"{n} {_f(val[n]['mse'], 3)}/{_f(val[n]['mae'], 3)}" for n in val))
+    kind, inf = train.get("model_kind") or {}, train.get("inference_ms_per_frame") or {}
+    if kind:
+        lines.append(f"  model kind {kind.get('kind')} hidden {kind.get('hidden')} ({kind.get('parameters')} parameters)"
+                     + (f"; predict {_f(inf.get('median_ms'))} ms median / {_f(inf.get('min_ms'))} ms min per frame of {inf.get('pairs')} pairs (cpu)" if inf else ""))
     lines.append(f"  eval on {b}: {ev.get('instants')} instants, skipped {ev.get('skipped')}")
     lines.append("")
     head = f"{'mode':<12} {'split':<8} {'windows':>7}" + "".join(f" {h:>6}" for h, _ in TABLE_METRICS)
@@ -364,6 +376,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--recalibrate", action="store_true", help="with --calibrate: fit even when a cached file exists")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="markov_prediction parameter for iamp calibrate and iamp eval (repeatable)")
+    p.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES),
+                   help="modes iamp eval runs (default all; e.g. --modes hybrid to compare AR models without re-running the others)")
     p.add_argument("--json", type=Path, default=DEFAULT_JSON, help=f"write everything here (default {DEFAULT_JSON})")
     args = p.parse_args(argv)
 
@@ -382,7 +396,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     names = list(DIRECTIONS) if args.direction == "both" else [args.direction]
     out: dict[str, Any] = {"data": str(data), "seed": args.seed, "stride_s": args.stride, "max_frames": args.max_frames,
-                           "train_options": args.train_opt, "calibrate": args.calibrate, "set": args.set, "slow_fast_split_mps": SLOW_FAST_MPS, "directions": {}}
+                           "train_options": args.train_opt, "modes": [m for m in MODES if m in args.modes], "calibrate": args.calibrate, "set": args.set, "slow_fast_split_mps": SLOW_FAST_MPS, "directions": {}}
     texts = []
     for name in names:
         a, b = DIRECTIONS[name]
@@ -391,7 +405,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.calibrate:
             cal = calibrate(data, RECORDINGS[a], train["model"], args.seed, sets, args.recalibrate)
             sets.append(f"spread_calibration={cal['file']}")
-        ev, ev_seconds, ev_path = eval_model(data, RECORDINGS[b], train["model"], args.seed, args.stride, args.max_frames, name, sets)
+        ev, ev_seconds, ev_path = eval_model(data, RECORDINGS[b], train["model"], args.seed, args.stride, args.max_frames, name, sets,
+                                             tuple(m for m in MODES if m in args.modes))
         summary = summarise(ev)
         text = format_direction(name, train, ev, summary)
         texts.append(text)

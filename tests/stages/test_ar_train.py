@@ -6,6 +6,7 @@ these fast; nothing here asserts on wall-clock time.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -14,9 +15,10 @@ import pytest
 import torch
 
 from stages import cli
-from stages.offline.train.dataset import ARDataset, DatasetConfig, build_dataset, smoothed_acceleration
+from stages.offline.train.dataset import (ARDataset, DatasetConfig, build_dataset, corridor_errors, future_targets, route_weights,
+                                          smoothed_acceleration)
 from stages.lib.ar.features import ACCEL, FEATURE_NAMES, HISTORY_STEPS, HORIZON_STEPS
-from stages.lib.ar.model import DEFAULT_MODEL_PATH, ARModel, ARNet, load_model, save_model
+from stages.lib.ar.model import DEFAULT_MODEL_PATH, ARModel, ARNet, GRUNet, load_model, save_model
 from stages.offline.train.fit import TrainConfig, error_table, fit, split_samples
 from stages.lib.datasets import DEFAULT_DATA_DIR
 
@@ -47,6 +49,9 @@ def test_dataset_shapes_and_provenance(tiny):
     assert tiny.x.shape == (n, HISTORY_STEPS, len(FEATURE_NAMES)) and tiny.x.dtype == np.float32
     assert tiny.mask.shape == (n, HISTORY_STEPS) and tiny.mask.dtype == bool and np.all(tiny.mask[:, -1])
     assert tiny.y.shape == (n, HORIZON_STEPS) and np.all(np.isfinite(tiny.y)) and np.all(np.isfinite(tiny.x))
+    assert tiny.y_mask.shape == (n, HORIZON_STEPS) and tiny.y_mask.dtype == bool and np.all(tiny.y_mask.sum(axis=1) >= TINY.min_future_steps)
+    assert np.all(tiny.y[~tiny.y_mask] == 0.0)
+    assert tiny.weight.shape == (n,) and np.all((tiny.weight > 0) & (tiny.weight <= 1))
     assert tiny.recordings == ("k729_2022-03-16",) and tiny.sequences == ("k729_2022-03-16/013",)
     assert np.all(tiny.stamp_ns[1:] >= tiny.stamp_ns[:-1])
     assert tiny.counts["samples"] == n and tiny.counts.get("no_full_future", 0) > 0
@@ -57,7 +62,8 @@ def test_targets_are_the_smoothed_acceleration_of_the_true_track(tiny):
     from stages.lib.datasets import load_recording
 
     seq = load_recording(DEFAULT_DATA_DIR, "k729_2022-03-16", ("013",)).sequences[0]
-    k = int(np.argmax(np.abs(tiny.y).max(axis=1)))  # the sample with the most acceleration
+    full = tiny.y_mask.all(axis=1)
+    k = int(np.argmax(np.where(full, np.abs(tiny.y).max(axis=1), -1.0)))  # the full-future sample with the most acceleration
     assert np.abs(tiny.y[k]).max() > 1.0
     rows = np.flatnonzero(seq.track_id == tiny.track_id[k])
     stamps, xy = seq.stamp_ns[rows], np.column_stack([seq.x_m[rows], seq.y_m[rows]])
@@ -94,9 +100,72 @@ def test_dataset_cache_round_trip(tmp_path):
     files = list(tmp_path.glob("ar_dataset_*.npz"))
     assert len(files) == 1 and built.key in files[0].name
     again = build_dataset(cfg, cache_dir=tmp_path)
-    for name in ("x", "mask", "y", "track_id", "stamp_ns", "corridor_id"):
+    for name in ("x", "mask", "y", "y_mask", "weight", "track_id", "stamp_ns", "corridor_id"):
         assert np.array_equal(getattr(built, name), getattr(again, name))
     assert again.counts == built.counts and again.sequences == built.sequences
+
+
+def test_partial_futures_short_histories_and_tied_routes_give_samples(tiny):
+    """Version 4 of the data set: windows with part of their future, with less than 4 s of history, on every tied route."""
+    assert np.any(~tiny.y_mask.all(axis=1)) and np.any(tiny.y_mask.all(axis=1))
+    assert np.any(~tiny.mask.all(axis=1))  # a history shorter than 4 s (masked)
+    partial = ~tiny.y_mask.all(axis=1)  # counted once per window (a tied window is several samples)
+    assert tiny.counts.get("partial_future", 0) == len(set(zip(tiny.stamp_ns[partial].tolist(), tiny.track_id[partial].tolist())))
+    # a tied window is one sample per tied corridor, at the same stamp and track, weights summing to 1
+    windows: dict[tuple[int, int], float] = {}
+    for t, tid, w in zip(tiny.stamp_ns.tolist(), tiny.track_id.tolist(), tiny.weight.tolist()):
+        windows[(t, tid)] = windows.get((t, tid), 0.0) + w
+    assert np.allclose(list(windows.values()), 1.0, atol=1e-5)
+    assert np.any(tiny.weight < 1) and tiny.counts.get("route_tied", 0) > 0
+    sizes = tiny.sizes()
+    assert sizes["windows"] == pytest.approx(len(windows), abs=1e-3) and sizes["samples"] == len(tiny)
+    assert sizes["cars"] == tiny.tracks > 0 and sizes["by_recording"]["k729_2022-03-16"]["samples"] == len(tiny)
+    old = build_dataset(dataclasses.replace(TINY, tied_routes="drop", min_future_steps=HORIZON_STEPS))
+    assert len(old) < len(tiny) and old.y_mask.all() and np.all(old.weight == 1)
+    assert old.tracks < tiny.tracks
+
+
+def test_future_targets_mask_missing_and_unknown_steps():
+    from stages.offline.truth import Track
+
+    stamps = np.arange(0, 30) * 100_000_000
+    accel = np.linspace(-1, 1, 30)
+    accel[:5] = np.nan
+    track = Track(stamps.astype(np.int64), np.zeros((30, 2)), np.zeros(30), accel)
+    a, known = future_targets(track, 0, 100_000_000, HORIZON_STEPS)
+    assert known.tolist() == [False] * 4 + [True] * 25 + [False] * 11
+    np.testing.assert_allclose(a[known], accel[5:30])
+    a, known = future_targets(None, 0, 100_000_000, HORIZON_STEPS)
+    assert not known.any() and np.all(np.isnan(a))
+
+
+def test_route_weights_split_tied_routes():
+    assert route_weights(np.array([0.3, 1.5, np.inf]), 2.0, 0.5, "weight") == ([(0, 1.0)], None)
+    assert route_weights(np.array([2.5, 3.0]), 2.0, 0.5, "weight") == ([], "followed_no_corridor")
+    assert route_weights(np.array([], float), 2.0, 0.5, "weight") == ([], "followed_no_corridor")
+    tied = np.array([0.9, 0.3, 0.6, 5.0])
+    assert route_weights(tied, 2.0, 0.5, "weight") == ([(1, 0.5), (2, 0.5)], "route_tied")
+    assert route_weights(tied, 2.0, 0.5, "drop") == ([], "route_tied")
+    assert route_weights(tied, 2.0, 0.5, "first") == ([(1, 1.0)], "route_tied")
+    assert route_weights(np.array([0.1, 0.2, 0.3]), 2.0, 0.5, "weight")[0] == [(0, 1 / 3), (1, 1 / 3), (2, 1 / 3)]
+
+
+def test_corridor_errors_is_the_followed_corridor_rule():
+    from types import SimpleNamespace
+
+    from stages.offline.truth import followed_corridor
+
+    s = np.linspace(0, 50, 51)
+    straight = SimpleNamespace(x_m=s, y_m=np.zeros_like(s), s_m=s)
+    offset = SimpleNamespace(x_m=s, y_m=np.full_like(s, 1.0), s_m=s)
+    short = SimpleNamespace(x_m=s[:5], y_m=np.zeros(5), s_m=s[:5])
+    future = np.column_stack([np.linspace(10, 20, 11), np.full(11, 0.2)])
+    errors = corridor_errors([straight, offset, short], future, min_inside=5)
+    np.testing.assert_allclose(errors[:2], [0.2, 0.8], atol=1e-9)
+    assert errors[2] == np.inf
+    followed = followed_corridor([straight, offset, short], future, min_inside=5)
+    assert followed.index == 0 and followed.error_m == pytest.approx(errors[0]) and followed.runner_up_m == pytest.approx(errors[1])
+    assert np.all(np.isinf(corridor_errors([straight], np.zeros((0, 2)))))
 
 
 # --------------------------------------------------------------------------- splits
@@ -115,7 +184,7 @@ def test_sequence_split_never_shares_a_sequence():
     n = 400
     ds = ARDataset(
         x=np.zeros((n, HISTORY_STEPS, len(FEATURE_NAMES)), np.float32), mask=np.ones((n, HISTORY_STEPS), bool),
-        y=np.zeros((n, HORIZON_STEPS), np.float32), recording=np.repeat([0, 1], n // 2).astype(np.int32),
+        y=np.zeros((n, HORIZON_STEPS), np.float32), y_mask=np.ones((n, HORIZON_STEPS), bool), weight=np.ones(n, np.float32), recording=np.repeat([0, 1], n // 2).astype(np.int32),
         sequence=np.concatenate([rng.integers(0, 8, n // 2), np.full(n // 2, 8)]).astype(np.int32),
         track_id=rng.integers(0, 20, n), corridor_id=np.zeros(n, np.int64), stamp_ns=np.sort(rng.integers(0, 100_000_000_000, n)),
         recordings=("a", "b"), sequences=tuple(f"a/{i}" for i in range(8)) + ("b/0",),
@@ -202,10 +271,51 @@ def test_bad_model_files_give_a_value_error_naming_the_file(tiny_model, tmp_path
 
 
 def test_arnet_forms():
-    linear, hidden = ARNet(23), ARNet(23, hidden=16)
+    linear, hidden, gru = ARNet(23), ARNet(23, hidden=16), GRUNet(23, hidden=8)
     assert sum(p.numel() for p in linear.parameters()) == (40 * 24) * 40 + 40
     z, m = torch.zeros(2, 40, 23), torch.ones(2, 40)
-    assert linear(z, m).shape == (2, 40) and hidden(z, m).shape == (2, 40)
+    assert linear(z, m).shape == (2, 40) and hidden(z, m).shape == (2, 40) and gru(z, m).shape == (2, 40)
+    assert (linear.kind, hidden.kind, gru.kind) == ("ar", "ar", "gru")
+    z2 = z.clone()
+    z2[0, 5, 3] = 1.0  # the GRU reads the whole history, not only the newest step
+    assert not torch.equal(gru(z2, m)[0], gru(z, m)[0]) and torch.equal(gru(z2, m)[1], gru(z, m)[1])
+    with pytest.raises(ValueError):
+        GRUNet(23, hidden=0)
+
+
+def test_gru_model_trains_saves_and_loads_with_its_kind(tiny, tmp_path):
+    train, val, _ = split_samples(tiny, "time", 0.3, 0)
+    model, info = fit(TrainConfig(epochs=2, seed=0, kind="gru", hidden=8), tiny.subset(train), tiny.subset(val))
+    assert model.kind == "gru" and info["epochs_run"] == 2
+    path = save_model(tmp_path / "gru.pt", model)
+    assert torch.load(path, weights_only=True)["kind"] == "gru"
+    loaded = load_model(path)
+    assert loaded.kind == "gru" and isinstance(loaded.net, GRUNet)
+    np.testing.assert_array_equal(loaded.predict(tiny.x, tiny.mask), model.predict(tiny.x, tiny.mask))
+    with pytest.raises(ValueError, match="kind"):
+        TrainConfig(kind="transformer")
+    with pytest.raises(ValueError, match="hidden"):
+        TrainConfig(kind="gru", hidden=0)
+
+
+def test_version_1_files_still_load_as_ar_nets(tiny_model, tmp_path):
+    payload = torch.load(save_model(tmp_path / "new.pt", tiny_model), weights_only=True)
+    assert payload["version"] == 2 and payload["kind"] == "ar"
+    del payload["kind"]
+    payload["version"] = 1
+    torch.save(payload, tmp_path / "v1.pt")
+    old = load_model(tmp_path / "v1.pt")
+    assert old.kind == "ar" and old.hidden == tiny_model.hidden
+    x, mask = np.zeros((3, HISTORY_STEPS, len(FEATURE_NAMES)), np.float32), np.ones((3, HISTORY_STEPS), bool)
+    np.testing.assert_array_equal(old.predict(x, mask), tiny_model.predict(x, mask))
+    payload["version"] = 3
+    torch.save(payload, tmp_path / "v3.pt")
+    with pytest.raises(ValueError, match="v3.pt.*format version 3"):
+        load_model(tmp_path / "v3.pt")
+    payload["version"], payload["kind"] = 2, "transformer"
+    torch.save(payload, tmp_path / "bad_kind.pt")
+    with pytest.raises(ValueError, match="bad_kind.pt.*transformer"):
+        load_model(tmp_path / "bad_kind.pt")
 
 
 def test_error_table_chunks():
@@ -215,6 +325,16 @@ def test_error_table_chunks():
     table = error_table(pred, y)
     assert table["mse"] == pytest.approx(0.1) and table["mse_chunks"][0] == 1.0 and table["mse_chunks"][1] == 0.0
     assert table["chunk_mean_rmse"][0] == 1.0
+    # unknown steps do not count, and each sample counts by its weight
+    known = np.ones((2, 40), bool)
+    known[0, :4] = False
+    pred[0, 4:8] = 3.0  # sample 0 is wrong in chunk 1, sample 1 in chunk 0
+    masked = error_table(pred, y, known, np.array([1.0, 1.0]))
+    assert masked["mse_chunks"][0] == 1.0 and masked["mse_chunks"][1] == pytest.approx(4.5)
+    assert masked["mse"] == pytest.approx((4 * 9 + 4 * 1) / 76)
+    assert masked["chunk_mean_rmse"][0] == pytest.approx(1.0)  # only sample 1 has chunk 0 whole
+    weighted = error_table(pred, y, known, np.array([1.0, 0.0]))
+    assert weighted["mse_chunks"][1] == pytest.approx(9.0) and math.isnan(weighted["mse_chunks"][0])
 
 
 def test_shipped_model_loads_and_predicts(tiny):
@@ -238,6 +358,10 @@ def test_cli_bad_arguments_exit_2(tmp_path, capsys):
     assert "val_fraction" in capsys.readouterr().err
     assert cli.main(["train", "--data", str(tmp_path / "nothing"), "--no-progress", "--out", str(tmp_path / "m.pt")]) == 2
     assert cli.main(["train", "--drop-feature", "nope", "--no-progress", "--out", str(tmp_path / "m.pt")]) == 2
+    assert cli.main(["train", "--kind", "gru", "--hidden", "0", "--no-progress", "--out", str(tmp_path / "m.pt")]) == 2
+    assert "hidden" in capsys.readouterr().err
+    assert cli.main(["train", "--min-future-steps", "41", "--no-progress", "--out", str(tmp_path / "m.pt")]) == 2
+    assert "min_future_steps" in capsys.readouterr().err
     assert cli.main(["train", "--split", "recording", "--sequence", "013", "--max-frames", "100", "--no-progress", "--no-cache",
                      "--out", str(tmp_path / "m.pt")]) == 2
     assert "two recordings" in capsys.readouterr().err
@@ -258,6 +382,8 @@ def test_cli_trains_writes_weights_and_report(tmp_path, capsys):
     for name in ("model", "zero", "last"):
         assert len(data["validation"][name]["mse_chunks"]) == 10
     assert data["sizes"]["train"] > 0 and data["sizes"]["val"] > 0 and len(data["sigma_res_chunks"]) == 10
+    assert data["sizes"]["dataset"]["cars"] > 0 and data["inference_ms_per_frame"]["median_ms"] > 0
+    assert data["model"]["kind"] == "ar" and load_model(out).kind == "ar"
     model = load_model(out)
     assert model.metadata["split"]["split"] == "time" and model.metadata["seed"] == 0
     assert model.metadata["sequences"]["val"] == ["k729_2022-03-16/013"]

@@ -3,9 +3,9 @@
 - ``features``: ``FeatureTracker`` (per-vehicle feature history, the same
   code for training and online), ``FEATURE_NAMES``, ``HISTORY_STEPS``,
   ``HORIZON_STEPS``, ``STEP_S``;
-- ``model``: ``ARNet``, ``ARModel`` (``predict``), ``save_model``,
-  ``load_model``, ``DEFAULT_MODEL_PATH`` (the shipped
-  ``weights/ar_taf_bw.pt``).
+- ``model``: ``ARNet`` (linear / MLP), ``GRUNet``, ``ARModel``
+  (``predict``), ``save_model``, ``load_model``, ``DEFAULT_MODEL_PATH`` (the
+  shipped ``weights/ar_taf_bw.pt``, a GRU; ``weights/MODEL_CARD.md``).
 
 Training (data set and ``iamp train``) is offline code: ``stages.offline.train``.
 
@@ -22,6 +22,7 @@ from stages.lib.ar.features import FEATURE_NAMES, HISTORY_STEPS, HORIZON_STEPS, 
 _LAZY = {
     "ARModel": "model",
     "ARNet": "model",
+    "GRUNet": "model",
     "DEFAULT_MODEL_PATH": "model",
     "load_model": "model",
     "save_model": "model",

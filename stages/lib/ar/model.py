@@ -1,10 +1,17 @@
 """The AR-Net acceleration model and its weights file (docs/method.md §8.1–8.5).
 
-``ARNet``: y = W·[z(x) flattened, mask] + b, the AR-Net form (Triebe et al.)
-with the history of every feature as the lagged inputs: 40 steps × F
-z-scored features plus the 40 mask values in, 40 accelerations (m/s², at
-0.1 … 4.0 s) out. ``hidden = 0`` is that linear map (the paper's model);
-``hidden = N`` puts one ReLU layer of N units in between (the ablation).
+Model kinds (``KINDS``, the file's ``kind``):
+
+- ``ar``, ``ARNet``: y = W·[z(x) flattened, mask] + b, the AR-Net form
+  (Triebe et al.) with the history of every feature as the lagged inputs:
+  40 steps × F z-scored features plus the 40 mask values in, 40
+  accelerations (m/s², at 0.1 … 4.0 s) out. ``hidden = 0`` is that linear
+  map (the paper's model); ``hidden = N`` puts one ReLU layer of N units in
+  between (a small MLP).
+- ``gru``, ``GRUNet``: a one-layer GRU of ``hidden`` units reads the 40
+  steps (F z-scores and the mask bit each); its last state goes through a
+  linear map to the 40 accelerations, to which a linear map of the newest
+  step's inputs is added.
 
 ``ARModel`` wraps a trained net with what it needs to be used: the per-
 feature mean and std of the training set (over real steps) for the z-score
@@ -20,7 +27,8 @@ did, see ``stages.offline.train.fit``).
 
 File format (``save_model``/``load_model``): a ``torch.save`` of a plain
 dict, loadable with ``torch.load(weights_only=True)``: ``format`` =
-``"hybrid-iamp/ar-model"``, ``version`` 1, ``hidden``, ``history_steps``,
+``"hybrid-iamp/ar-model"``, ``version`` 2, ``kind`` (``KINDS``; a version 1
+file has none and is read as ``ar``), ``hidden``, ``history_steps``,
 ``horizon_steps``, ``step_s``, ``feature_names`` (list of str), ``z_clip``,
 ``feature_mean``/``feature_std``/``sigma_res_chunks`` (float32 tensors),
 ``state_dict`` (str → tensor) and ``metadata_json`` (a JSON string). A
@@ -50,13 +58,19 @@ DEFAULT_MODEL_PATH = Path(__file__).resolve().parent / "weights" / "ar_taf_bw.pt
 """The shipped model trained on all of TAF-BW."""
 
 FILE_FORMAT = "hybrid-iamp/ar-model"
-FILE_VERSION = 1
+FILE_VERSION = 2
+READ_VERSIONS = (1, 2)
+KINDS = ("ar", "gru")
+"""Model kinds: ``ar`` (``ARNet``: linear with ``hidden`` 0, an MLP with one ReLU layer of ``hidden`` units) and
+``gru`` (``GRUNet``: a GRU of ``hidden`` units over the 40 steps)."""
 N_CHUNKS = 10
 CHUNK_STEPS = HORIZON_STEPS // N_CHUNKS
 
 
 class ARNet(torch.nn.Module):
     """Linear (``hidden`` 0) or one-hidden-layer map from (B, 40·F + 40) to (B, 40)."""
+
+    kind = "ar"
 
     def __init__(self, n_features: int, hidden: int = 0, history_steps: int = HISTORY_STEPS, horizon_steps: int = HORIZON_STEPS) -> None:
         super().__init__()
@@ -80,11 +94,46 @@ class ARNet(torch.nn.Module):
         return self.body(flat)
 
 
+class GRUNet(torch.nn.Module):
+    """A one-layer GRU of ``hidden`` units over the 40 history steps (z-scored features and the mask bit per step), its last
+    state mapped linearly to the 40 accelerations, plus the linear AR map of the newest step's inputs (a skip path, so that
+    the net starts from what the linear model sees most strongly)."""
+
+    kind = "gru"
+
+    def __init__(self, n_features: int, hidden: int = 32, history_steps: int = HISTORY_STEPS, horizon_steps: int = HORIZON_STEPS) -> None:
+        super().__init__()
+        if n_features < 1 or hidden < 1:
+            raise ValueError(f"GRUNet: n_features = {n_features} must be >= 1 and hidden = {hidden} >= 1")
+        self.n_features = int(n_features)
+        self.hidden = int(hidden)
+        self.history_steps = int(history_steps)
+        self.horizon_steps = int(horizon_steps)
+        self.gru = torch.nn.GRU(self.n_features + 1, self.hidden, batch_first=True)
+        self.head = torch.nn.Linear(self.hidden, self.horizon_steps)
+        self.skip = torch.nn.Linear(self.n_features + 1, self.horizon_steps)
+
+    def forward(self, z: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """z (B, 40, F) z-scored features, mask (B, 40) float → (B, 40) accelerations."""
+        seq = torch.cat([z, mask.unsqueeze(-1)], dim=2)
+        _, h = self.gru(seq)
+        return self.head(h[-1]) + self.skip(seq[:, -1])
+
+
+def make_net(kind: str, n_features: int, hidden: int, history_steps: int = HISTORY_STEPS, horizon_steps: int = HORIZON_STEPS) -> torch.nn.Module:
+    """The net of `kind` (``KINDS``); ValueError for an unknown kind."""
+    if kind == "ar":
+        return ARNet(n_features, hidden, history_steps, horizon_steps)
+    if kind == "gru":
+        return GRUNet(n_features, hidden, history_steps, horizon_steps)
+    raise ValueError(f"model kind {kind!r}: expected one of {', '.join(KINDS)}")
+
+
 @dataclass(eq=False)
 class ARModel:
     """A trained net with its normalisation, σ_res per chunk and metadata (module docstring)."""
 
-    net: ARNet
+    net: torch.nn.Module
     feature_names: tuple[str, ...]
     feature_mean: np.ndarray
     feature_std: np.ndarray
@@ -112,6 +161,10 @@ class ARModel:
     @property
     def hidden(self) -> int:
         return self.net.hidden
+
+    @property
+    def kind(self) -> str:
+        return self.net.kind
 
     def normalise(self, x: np.ndarray) -> np.ndarray:
         """(B, 40, len(FEATURE_NAMES)) raw features → (B, 40, F_model) z-scores clipped to ±``z_clip``, float32."""
@@ -158,6 +211,7 @@ def save_model(path: str | Path, model: ARModel) -> Path:
     payload = {
         "format": FILE_FORMAT,
         "version": FILE_VERSION,
+        "kind": str(model.net.kind),
         "hidden": int(model.net.hidden),
         "history_steps": int(model.net.history_steps),
         "horizon_steps": int(model.net.horizon_steps),
@@ -190,10 +244,12 @@ def load_model(path: str | Path = DEFAULT_MODEL_PATH) -> ARModel:
     if not isinstance(payload, dict) or payload.get("format") != FILE_FORMAT:
         found = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
         raise ValueError(f"AR model file {path}: not an AR model (format {found!r}, expected {FILE_FORMAT!r})")
-    if payload.get("version") != FILE_VERSION:
-        raise ValueError(f"AR model file {path}: format version {payload.get('version')!r}, this code reads {FILE_VERSION}")
+    if payload.get("version") not in READ_VERSIONS:
+        raise ValueError(f"AR model file {path}: format version {payload.get('version')!r}, this code reads {', '.join(map(str, READ_VERSIONS))}")
+    if payload["version"] == 1:  # version 1 had no kind: always the AR-Net
+        payload = payload | {"kind": "ar"}
     expected = {
-        "hidden": int, "history_steps": int, "horizon_steps": int, "step_s": float, "feature_names": list, "z_clip": float,
+        "kind": str, "hidden": int, "history_steps": int, "horizon_steps": int, "step_s": float, "feature_names": list, "z_clip": float,
         "feature_mean": torch.Tensor, "feature_std": torch.Tensor, "sigma_res_chunks": torch.Tensor, "state_dict": dict, "metadata_json": str,
     }
     for key, tp in expected.items():
@@ -207,7 +263,7 @@ def load_model(path: str | Path = DEFAULT_MODEL_PATH) -> ARModel:
     try:
         metadata = json.loads(payload["metadata_json"])
         names = tuple(str(n) for n in payload["feature_names"])
-        net = ARNet(len(names), payload["hidden"], payload["history_steps"], payload["horizon_steps"])
+        net = make_net(payload["kind"], len(names), payload["hidden"], payload["history_steps"], payload["horizon_steps"])
         net.load_state_dict(payload["state_dict"])
         return ARModel(
             net=net,
@@ -222,4 +278,4 @@ def load_model(path: str | Path = DEFAULT_MODEL_PATH) -> ARModel:
         raise ValueError(f"AR model file {path}: inconsistent contents ({exc})") from None
 
 
-__all__ = ["ARModel", "ARNet", "CHUNK_STEPS", "DEFAULT_MODEL_PATH", "N_CHUNKS", "chunk_means", "load_model", "save_model"]
+__all__ = ["ARModel", "ARNet", "GRUNet", "KINDS", "make_net", "CHUNK_STEPS", "DEFAULT_MODEL_PATH", "N_CHUNKS", "chunk_means", "load_model", "save_model"]

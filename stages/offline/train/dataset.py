@@ -9,23 +9,37 @@ per sequence, maps loaded once) and feeds every frame to one
 ``sample_stride``-th frame, default every frame) for each matched vehicle
 that
 
-- has a full 4 s true future: positions at t + 0.1 k s, k = 1..40 (±1 ms)
-  with a finite target acceleration at each (else ``skipped.no_full_future``);
-- followed one of its corridors (``stages.offline.truth.followed_corridor``):
-  the corridor with the smallest maximum lateral distance |d| of the
-  track's true positions over the next ``route_future_s`` 10 s (as far as
-  the track goes; only positions whose projection falls within the
-  corridor, at least the 40 of the 4 s future), at most
-  ``max_route_error_m`` 2 m (else
-  ``skipped.followed_no_corridor``). When another corridor holds them
-  within ``route_tie_m`` 0.5 m as well (before a branch, when the track ends
-  before the routes part) the route is undecided: the sample is dropped
-  (``route_tied``, ``skip_tied`` true): a sample on an arbitrary one of
-  the tied corridors carries the curvature of a route the car may not take,
-  and keeping them made the nets worse (measured: docs/method.md §8.3).
+- has at least ``min_future_steps`` (10, 1 s) known targets among the 40
+  steps of its 4 s true future: a position at t + 0.1 k s (±1 ms) with a
+  finite target acceleration there (``future_targets``; else
+  ``no_full_future`` when none is known, ``short_future`` when too few).
+  The unknown steps are masked (``y_mask`` false, y 0): the loss and the
+  validation figures count the known steps only. A window whose future is
+  cut by the track's end (or its first 1.5 s without a target) is kept
+  (``partial_future`` counts them), and so is a window whose history is
+  shorter than 4 s (the input ``mask``, as online);
+- followed one of its corridors (``corridor_errors``, the rule of
+  ``stages.offline.truth.followed_corridor``): the corridor with the
+  smallest maximum lateral distance |d| of the track's true positions over
+  the next ``route_future_s`` 10 s (as far as the track goes; only positions
+  whose projection falls within the corridor, at least 40 of them or all
+  there are), at most ``max_route_error_m`` 2 m (else
+  ``followed_no_corridor``). Every corridor that holds them within
+  ``route_tie_m`` 0.5 m of the best is tied with it (before a branch, when
+  the track ends before the routes part): the route is undecided
+  (``route_tied``) and ``tied_routes`` decides (``route_weights``):
+  ``weight`` (default) makes one sample per tied corridor with weight 1/k,
+  the probability of each route when the future cannot tell them apart (the
+  online stage predicts on every corridor of a car, so the model learns
+  each of them); ``drop`` drops the window (dataset version 3: that made
+  the linear net better than ``first``, docs/method.md §8.3); ``first``
+  keeps it on the best one. Each sample carries its ``weight`` (1 for a
+  decided route), which the loss and the validation figures use.
 
-Few cars give windows, most of them standing at a signal (docs/method.md
-§8.3).
+Dataset version 3 asked for the whole 4 s future and dropped tied routes:
+60 cars gave windows (K729's car tracks last 4.2 s at the median). With
+partial futures and weighted routes every car with at least 1 s of known
+future gives windows (counts: ``ARDataset.sizes``, docs/method.md §8.3).
 
 x and mask are ``FeatureTracker.batch`` for that (vehicle, corridor); y are
 the vehicle's longitudinal accelerations at t + 0.1 … 4.0 s from its true
@@ -74,20 +88,22 @@ from stages.offline.truth import (
     ACCEL_WINDOW_S,
     ROUTE_MAX_ERROR_M,
     ROUTE_TIE_M,
-    followed_corridor,
-    future_accelerations,
     ground_truth,
     positions_after,
-    route_decision,
     smoothed_acceleration,
 )
+from stages.lib.maps import project_to_polyline
 from stages.tracks_source.core import file_sha256
 
 from stages.lib.ar.features import ACCEL, FEATURE_NAMES, HISTORY_STEPS, HORIZON_STEPS, N_FEATURES, STEP_S, FeatureConfig, FeatureTracker
 
-DATASET_VERSION = 3
+DATASET_VERSION = 4
 """Bump when the sample definition changes (invalidates caches)."""
 _STEP_NS = int(round(STEP_S * 1e9))
+_MS_NS = 1_000_000
+TIED_ROUTES = ("weight", "drop", "first")
+"""What a window whose route the future cannot decide gives (module docstring): one sample per tied corridor with
+weight 1/k (``weight``, default), none (``drop``, version 3's behaviour) or one on the first tied corridor (``first``)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -104,12 +120,17 @@ class DatasetConfig:
     max_route_error_m: float = ROUTE_MAX_ERROR_M
     route_tie_m: float = ROUTE_TIE_M
     route_future_s: float = 10.0
-    skip_tied: bool = True
+    tied_routes: str = "weight"
+    min_future_steps: int = 10
     features: FeatureConfig = field(default_factory=FeatureConfig)
 
     def __post_init__(self) -> None:
         if self.sample_stride < 1:
             raise ValueError(f"sample_stride = {self.sample_stride}: must be >= 1")
+        if self.tied_routes not in TIED_ROUTES:
+            raise ValueError(f"tied_routes = {self.tied_routes!r}: expected one of {', '.join(TIED_ROUTES)}")
+        if not (1 <= self.min_future_steps <= HORIZON_STEPS):
+            raise ValueError(f"min_future_steps = {self.min_future_steps}: must lie in [1, {HORIZON_STEPS}]")
         if self.max_frames_per_sequence < 0:
             raise ValueError(f"max_frames_per_sequence = {self.max_frames_per_sequence}: must be >= 0 (0: all)")
         if not (math.isfinite(self.target_edge_s) and self.target_edge_s >= 0):
@@ -131,7 +152,8 @@ class DatasetConfig:
             "max_route_error_m": self.max_route_error_m,
             "route_tie_m": self.route_tie_m,
             "route_future_s": self.route_future_s,
-            "skip_tied": self.skip_tied,
+            "tied_routes": self.tied_routes,
+            "min_future_steps": self.min_future_steps,
             "features": dataclasses.asdict(self.features),
             "feature_names": list(FEATURE_NAMES),
             "history": HISTORY_STEPS,
@@ -145,7 +167,9 @@ class ARDataset:
     """Samples (N of them) and where each comes from.
 
     x (N, 40, F) float32 features (``FEATURE_NAMES``), mask (N, 40) bool,
-    y (N, 40) float32 target accelerations (m/s²) at 0.1 … 4.0 s;
+    y (N, 40) float32 target accelerations (m/s²) at 0.1 … 4.0 s (0 where
+    unknown), y_mask (N, 40) bool the known ones, weight (N,) float32 the
+    sample's weight (1, or 1/k for one of k tied routes);
     recording/sequence (N,) int32 indices into ``recordings``/``sequences``
     (a sequence name is ``"<recording>/<id>"``), track_id, corridor_id,
     stamp_ns (N,) int64. ``sequence_spans`` (S, 2) int64: first and last
@@ -156,6 +180,8 @@ class ARDataset:
     x: np.ndarray
     mask: np.ndarray
     y: np.ndarray
+    y_mask: np.ndarray
+    weight: np.ndarray
     recording: np.ndarray
     sequence: np.ndarray
     track_id: np.ndarray
@@ -171,6 +197,22 @@ class ARDataset:
         return int(self.y.shape[0])
 
     @property
+    def tracks(self) -> int:
+        """How many cars (distinct sequence and track) give samples."""
+        return len({(int(s), int(t)) for s, t in zip(self.sequence, self.track_id)})
+
+    def sizes(self) -> dict[str, Any]:
+        """Samples, windows (weighted: a tied window counts once), cars, and the full-future share, overall and per recording."""
+        def one(sel: np.ndarray) -> dict[str, Any]:
+            full = self.y_mask[sel].all(axis=1)
+            return {"samples": int(sel.sum()), "windows": round(float(self.weight[sel].sum()), 3),
+                    "cars": len({(int(s), int(t)) for s, t in zip(self.sequence[sel], self.track_id[sel])}),
+                    "full_future_samples": int(full.sum()), "short_history_samples": int((~self.mask[sel].all(axis=1)).sum()),
+                    "known_target_steps": int(self.y_mask[sel].sum())}
+        every = np.ones(len(self), dtype=bool)
+        return one(every) | {"by_recording": {name: one(self.recording == r) for r, name in enumerate(self.recordings)}}
+
+    @property
     def last_acceleration(self) -> np.ndarray:
         """(N,) the last observed causal acceleration feature (the "last value held" predictor)."""
         return self.x[:, -1, ACCEL]
@@ -182,6 +224,8 @@ class ARDataset:
             x=self.x[index],
             mask=self.mask[index],
             y=self.y[index],
+            y_mask=self.y_mask[index],
+            weight=self.weight[index],
             recording=self.recording[index],
             sequence=self.sequence[index],
             track_id=self.track_id[index],
@@ -194,7 +238,7 @@ class ARDataset:
         tmp = path.with_suffix(".tmp.npz")
         np.savez_compressed(
             tmp,
-            x=self.x, mask=self.mask, y=self.y, recording=self.recording, sequence=self.sequence, track_id=self.track_id,
+            x=self.x, mask=self.mask, y=self.y, y_mask=self.y_mask, weight=self.weight, recording=self.recording, sequence=self.sequence, track_id=self.track_id,
             corridor_id=self.corridor_id, stamp_ns=self.stamp_ns, sequence_spans=self.sequence_spans,
             meta=np.array(json.dumps({"recordings": self.recordings, "sequences": self.sequences, "counts": self.counts, "key": self.key})),
         )
@@ -205,7 +249,7 @@ class ARDataset:
         with np.load(path, allow_pickle=False) as z:
             meta = json.loads(str(z["meta"]))
             return cls(
-                x=z["x"], mask=z["mask"], y=z["y"], recording=z["recording"], sequence=z["sequence"], track_id=z["track_id"],
+                x=z["x"], mask=z["mask"], y=z["y"], y_mask=z["y_mask"], weight=z["weight"], recording=z["recording"], sequence=z["sequence"], track_id=z["track_id"],
                 corridor_id=z["corridor_id"], stamp_ns=z["stamp_ns"], sequence_spans=z["sequence_spans"],
                 recordings=tuple(meta["recordings"]), sequences=tuple(meta["sequences"]), counts=dict(meta["counts"]), key=meta["key"],
             )
@@ -213,6 +257,70 @@ class ARDataset:
 
 # --------------------------------------------------------------------------- targets
 # ``smoothed_acceleration`` (the targets), the tracks, their futures and the followed corridor: ``stages.offline.truth``.
+
+
+# --------------------------------------------------------------------------- targets and routes of one window
+
+
+def future_targets(track, stamp_ns: int, step_ns: int, n_steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """(accelerations (n_steps,), known (n_steps,) bool) of the true track at t + k·step (±1 ms), k = 1..n_steps.
+
+    A step is known when the track has a row there with a finite target
+    (``Track.accel_mps2``); unknown steps hold NaN. No track: nothing known.
+    """
+    accel = np.full(n_steps, np.nan)
+    if track is None or track.stamps_ns.shape[0] == 0:
+        return accel, np.zeros(n_steps, dtype=bool)
+    want = int(stamp_ns) + int(step_ns) * np.arange(1, n_steps + 1)
+    i = np.minimum(np.searchsorted(track.stamps_ns, want - _MS_NS), track.stamps_ns.shape[0] - 1)
+    found = np.abs(track.stamps_ns[i] - want) <= _MS_NS
+    accel[found] = track.accel_mps2[i[found]]
+    return accel, np.isfinite(accel)
+
+
+def corridor_errors(corridors, future_xy: np.ndarray, *, min_inside: int = 1) -> np.ndarray:
+    """(len(corridors),) max |d| (m) of the future positions within each corridor; inf where fewer than `min_inside` fall in it.
+
+    ``stages.offline.truth.followed_corridor``'s rule for every corridor (that one keeps the best two).
+    """
+    future_xy = np.asarray(future_xy, dtype=np.float64).reshape(-1, 2)
+    need = max(int(min_inside), 1)
+    errors = np.full(len(corridors), np.inf)
+    if future_xy.shape[0] == 0:
+        return errors
+    for k, c in enumerate(corridors):
+        proj = project_to_polyline(future_xy, np.column_stack([c.x_m, c.y_m]), c.s_m)
+        inside = (proj.s_m >= c.s_m[0]) & (proj.s_m <= c.s_m[-1])
+        if int(inside.sum()) >= need:
+            errors[k] = float(np.max(np.abs(proj.d_m[inside])))
+    return errors
+
+
+def route_weights(errors: np.ndarray, max_error_m: float, tie_m: float, tied_routes: str) -> tuple[list[tuple[int, float]], str | None]:
+    """The corridors a window is a sample on, with their weights, and why the route was not single (None when it was).
+
+    The best corridor (smallest error, the first of equals) is followed when
+    its error is at most `max_error_m` (else ``"followed_no_corridor"``, no
+    sample). Every corridor within `tie_m` of it is tied with it (``"route_tied"``,
+    ``stages.offline.truth.route_decision``'s rule); then `tied_routes`:
+    ``weight``: each of the k tied corridors with weight 1/k (the future
+    cannot tell them apart, so each is as probable); ``drop``: none;
+    ``first``: the best one with weight 1.
+    """
+    errors = np.asarray(errors, dtype=np.float64)
+    if errors.size == 0:
+        return [], "followed_no_corridor"
+    best = int(np.argmin(errors))
+    if not errors[best] <= max_error_m:
+        return [], "followed_no_corridor"
+    tied = np.flatnonzero(errors - errors[best] < tie_m)
+    if tied.size <= 1:
+        return [(best, 1.0)], None
+    if tied_routes == "drop":
+        return [], "route_tied"
+    if tied_routes == "first":
+        return [(best, 1.0)], "route_tied"
+    return [(int(i), 1.0 / tied.size) for i in tied], "route_tied"
 
 
 # --------------------------------------------------------------------------- building
@@ -223,6 +331,8 @@ class _Collector:
     x: list[np.ndarray] = field(default_factory=list)
     mask: list[np.ndarray] = field(default_factory=list)
     y: list[np.ndarray] = field(default_factory=list)
+    y_mask: list[np.ndarray] = field(default_factory=list)
+    weight: list[float] = field(default_factory=list)
     recording: list[int] = field(default_factory=list)
     sequence: list[int] = field(default_factory=list)
     track_id: list[int] = field(default_factory=list)
@@ -249,29 +359,37 @@ def _sequence_samples(cfg: DatasetConfig, rec: Recording, seq, map_sha256: str, 
             out.count(f"issue_{issue.kind}")
         if item.index % cfg.sample_stride:
             continue
-        wanted: dict[tuple[int, int], np.ndarray] = {}
+        wanted: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, float]] = {}
         for vehicle in corridor_set.vehicles:
             if vehicle.status != MatchStatus.MATCHED or not vehicle.corridors:
                 continue
             track = truth.get(vehicle.track_id)
-            accel = future_accelerations(track, stamp, _STEP_NS, HORIZON_STEPS)
-            if accel is None:  # not all 40 future stamps, or an acceleration unknown there
-                out.count("no_full_future")
+            accel, known = future_targets(track, stamp, _STEP_NS, HORIZON_STEPS)
+            n_known = int(known.sum())
+            if n_known < cfg.min_future_steps:  # too little of the 4 s future has a target
+                out.count("no_full_future" if n_known == 0 else "short_future")
                 continue
-            followed = followed_corridor(vehicle.corridors, positions_after(track, stamp, cfg.route_future_s), min_inside=HORIZON_STEPS)
-            why = route_decision(followed, cfg.max_route_error_m, cfg.route_tie_m)
+            future = positions_after(track, stamp, cfg.route_future_s)
+            errors = corridor_errors(vehicle.corridors, future, min_inside=min(HORIZON_STEPS, max(len(future), 1)))
+            chosen, why = route_weights(errors, cfg.max_route_error_m, cfg.route_tie_m, cfg.tied_routes)
             if why is not None:
                 out.count(why)
-                if why != "route_tied" or cfg.skip_tied:
-                    continue
-            wanted[(vehicle.track_id, int(vehicle.corridors[followed.index].corridor_id))] = accel
+            if not chosen:
+                continue
+            if n_known < HORIZON_STEPS:
+                out.count("partial_future")
+            for index, weight in chosen:
+                wanted[(vehicle.track_id, int(vehicle.corridors[index].corridor_id))] = (accel, known, weight)
         if not wanted:
             continue
         keys, x, mask = tracker.batch(corridor_set, pairs=wanted)
         for k, key in enumerate(keys):
             out.x.append(x[k])
             out.mask.append(mask[k])
-            out.y.append(wanted[key].astype(np.float32))
+            accel, known, weight = wanted[key]
+            out.y.append(np.where(known, accel, 0.0).astype(np.float32))
+            out.y_mask.append(known.copy())
+            out.weight.append(weight)
             out.recording.append(rec_index)
             out.sequence.append(seq_index)
             out.track_id.append(key[0])
@@ -337,6 +455,8 @@ def build_dataset(cfg: DatasetConfig, *, cache_dir: Path | None = None, progress
         x=np.stack(out.x) if n else np.zeros((0, HISTORY_STEPS, N_FEATURES), np.float32),
         mask=np.stack(out.mask) if n else np.zeros((0, HISTORY_STEPS), bool),
         y=np.stack(out.y) if n else np.zeros((0, HORIZON_STEPS), np.float32),
+        y_mask=np.stack(out.y_mask) if n else np.zeros((0, HORIZON_STEPS), bool),
+        weight=np.asarray(out.weight, dtype=np.float32),
         recording=np.asarray(out.recording, dtype=np.int32),
         sequence=np.asarray(out.sequence, dtype=np.int32),
         track_id=np.asarray(out.track_id, dtype=np.int64),

@@ -3,7 +3,7 @@
 ::
 
     iamp train [--data DIR] [--recording NAME ...] [--split sequence|recording|time] [--val-fraction 0.2]
-               [--hidden 0|N] [--epochs 200] [--batch-size 256] [--lr 1e-3] [--seed 0] [--device cpu|cuda]
+               [--kind ar|gru] [--hidden 0|N] [--tied-routes weight|drop|first] [--min-future-steps 10] [--epochs 200] [--batch-size 256] [--lr 1e-3] [--seed 0] [--device cpu|cuda]
                [--out artefacts/ar_model.pt] [--json FILE] [--no-progress]
 
 Data: ``stages.offline.train.dataset`` (the online ``FeatureTracker`` over the
@@ -29,10 +29,11 @@ Splits (never neighbouring windows of one track on both sides):
 
 Training: features z-scored with the training set's mean and std over real
 steps (std floored at 1e-3 in the feature's units; a constant feature gets
-std 1) and clipped to ±``z_clip`` 3; ``ARNet`` (linear, or one ReLU layer of
-``hidden`` units); Adam (``lr`` 1e-3, L2 ``weight_decay`` 0.3 for the
-linear net, 0.1 with a hidden layer), loss MSE + MAE (m/s², mean over the
-40 outputs), learning rate cosine-annealed with warm restarts every 10
+std 1) and clipped to ±``z_clip`` 3; the net of ``kind``: ``ar``, ``ARNet``
+(linear, or one ReLU layer of ``hidden`` units), or ``gru``, ``GRUNet``
+(``hidden`` 32 units by default); Adam (``lr`` 1e-3, L2 ``weight_decay`` 0.3 for the
+linear net, 0.1 with a hidden layer, 0.01 for the GRU, not tuned), loss MSE + MAE (m/s², mean over the
+known target steps, each sample by its weight: 1/k on one of k tied routes), learning rate cosine-annealed with warm restarts every 10
 epochs (``CosineAnnealingWarmRestarts`` T_0 = 10, stepped per batch), batches
 of 256, at most 200 epochs, early stopping when the validation loss has not
 improved for ``patience`` 20 epochs; the best epoch's weights are kept.
@@ -46,9 +47,12 @@ optimistic; a model trained on one location (``--recording``) and scored
 on the other gives an unbiased, cross-location figure.
 
 Report (printed; ``--json``; and in the weights file's ``metadata``):
-validation MSE and MAE of the model against "zero" (a = 0) and "last" (the
+validation MSE and MAE (known steps, weighted) of the model against "zero" (a = 0) and "last" (the
 last observed causal acceleration feature held over 4 s), overall, per
-0.4 s chunk and per recording; ``sigma_res_chunks`` (the RMSE of the chunk
+0.4 s chunk and per recording, and on the windows with their whole 4 s
+future (``validation_full_future``); the cars, windows and samples of the
+data set (``sizes.dataset``); the model's inference time for one frame of
+32 pairs (``inference_ms_per_frame``, median and minimum; a figure); ``sigma_res_chunks`` (the RMSE of the chunk
 means, docs/method.md §8.5); the sizes; epochs, the best epoch, time.
 
 Exit codes: 0 success, 2 bad command line, data or configuration (a
@@ -77,7 +81,7 @@ import torch
 
 from stages.offline.train.dataset import ARDataset, DatasetConfig, build_dataset
 from stages.lib.ar.features import FEATURE_NAMES, HISTORY_STEPS, HORIZON_STEPS, STEP_S, FeatureConfig
-from stages.lib.ar.model import CHUNK_STEPS, N_CHUNKS, ARModel, ARNet, chunk_means, save_model
+from stages.lib.ar.model import CHUNK_STEPS, KINDS, N_CHUNKS, ARModel, chunk_means, make_net, save_model
 
 from stages.offline.train import DEFAULT_CACHE_DIR, DEFAULT_OUT, SPLITS
 
@@ -85,6 +89,10 @@ SOURCE_DIR = Path(__file__).resolve().parents[3]  # the checkout this code runs 
 
 DEFAULT_DECAY_LINEAR = 0.3
 DEFAULT_DECAY_HIDDEN = 0.1
+DEFAULT_DECAY_GRU = 0.01
+DEFAULT_HIDDEN_GRU = 32
+INFERENCE_PAIRS = 32
+"""Pairs per frame of the inference timing in the report (a busy K733 frame has about this many vehicle-corridor pairs)."""
 _NS = 1e-9
 
 
@@ -95,6 +103,7 @@ class TrainConfig:
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     split: str = "sequence"
     val_fraction: float = 0.2
+    kind: str = "ar"
     hidden: int = 0
     epochs: int = 200
     batch_size: int = 256
@@ -112,8 +121,10 @@ class TrainConfig:
             raise ValueError(f"split = {self.split!r}: expected one of {', '.join(SPLITS)}")
         if not (0.0 < self.val_fraction < 1.0):
             raise ValueError(f"val_fraction = {self.val_fraction!r}: must lie in (0, 1)")
-        if self.hidden < 0:
-            raise ValueError(f"hidden = {self.hidden}: must be 0 (linear) or a number of units")
+        if self.kind not in KINDS:
+            raise ValueError(f"kind = {self.kind!r}: expected one of {', '.join(KINDS)}")
+        if self.hidden < 0 or (self.kind == "gru" and self.hidden < 1):
+            raise ValueError(f"hidden = {self.hidden}: must be 0 (linear) or a number of units (at least 1 for kind gru)")
         for name in ("epochs", "batch_size", "patience"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} = {getattr(self, name)}: must be >= 1")
@@ -138,6 +149,8 @@ class TrainConfig:
         """The weight decay used: as given, else 0.3 for the linear net and 0.1 with a hidden layer (module docstring)."""
         if self.weight_decay is not None:
             return self.weight_decay
+        if self.kind == "gru":
+            return DEFAULT_DECAY_GRU
         return DEFAULT_DECAY_HIDDEN if self.hidden else DEFAULT_DECAY_LINEAR
 
     @property
@@ -223,26 +236,65 @@ def split_samples(ds: ARDataset, split: str, val_fraction: float, seed: int) -> 
 # --------------------------------------------------------------------------- metrics
 
 
-def error_table(pred: np.ndarray, y: np.ndarray) -> dict[str, Any]:
-    """MSE and MAE (overall and per 0.4 s chunk) of predictions (B, 40) against targets (B, 40), and the chunk-mean RMSE."""
+def error_table(pred: np.ndarray, y: np.ndarray, known: np.ndarray | None = None, weight: np.ndarray | None = None) -> dict[str, Any]:
+    """MSE and MAE (overall and per 0.4 s chunk) of predictions (B, 40) against targets (B, 40), and the chunk-mean RMSE.
+
+    Only the `known` steps (B, 40) count (default all), each sample with its
+    `weight` (B,) (default 1); the chunk-mean RMSE takes the chunks whose 4
+    steps are all known.
+    """
     err = np.asarray(pred, np.float64) - np.asarray(y, np.float64)
+    nan = [math.nan] * N_CHUNKS
     if err.shape[0] == 0:
-        nan = [math.nan] * N_CHUNKS
         return {"mse": math.nan, "mae": math.nan, "mse_chunks": nan, "mae_chunks": nan, "chunk_mean_rmse": nan}
-    chunks = err.reshape(err.shape[0], N_CHUNKS, CHUNK_STEPS)
+    known = np.ones(err.shape, bool) if known is None else np.asarray(known, bool)
+    w = np.ones(err.shape[0]) if weight is None else np.asarray(weight, np.float64)
+    wk = known * w[:, None]
+    err = np.where(known, err, 0.0)
+
+    def mean(values: np.ndarray, weights: np.ndarray, axis) -> Any:
+        total = weights.sum(axis=axis)
+        return np.where(total > 0, (values * weights).sum(axis=axis) / np.where(total > 0, total, 1.0), np.nan)
+
+    chunks, wchunks = err.reshape(err.shape[0], N_CHUNKS, CHUNK_STEPS), wk.reshape(err.shape[0], N_CHUNKS, CHUNK_STEPS)
+    full = known.reshape(err.shape[0], N_CHUNKS, CHUNK_STEPS).all(axis=2) * w[:, None]
     return {
-        "mse": float(np.mean(err**2)),
-        "mae": float(np.mean(np.abs(err))),
-        "mse_chunks": np.mean(chunks**2, axis=(0, 2)).tolist(),
-        "mae_chunks": np.mean(np.abs(chunks), axis=(0, 2)).tolist(),
-        "chunk_mean_rmse": np.sqrt(np.mean(chunk_means(err) ** 2, axis=0)).tolist(),
+        "mse": float(mean(err**2, wk, None)),
+        "mae": float(mean(np.abs(err), wk, None)),
+        "mse_chunks": mean(chunks**2, wchunks, (0, 2)).tolist(),
+        "mae_chunks": mean(np.abs(chunks), wchunks, (0, 2)).tolist(),
+        "chunk_mean_rmse": np.sqrt(mean(chunk_means(err) ** 2, full, 0)).tolist(),
     }
 
 
 def compare(pred: np.ndarray, ds: ARDataset) -> dict[str, Any]:
-    """The model's errors on `ds` next to the zero and last-value-held predictors."""
+    """The model's errors on `ds` next to the zero and last-value-held predictors (known steps, weighted)."""
     last = np.repeat(ds.last_acceleration[:, None], HORIZON_STEPS, axis=1)
-    return {"samples": len(ds), "model": error_table(pred, ds.y), "zero": error_table(np.zeros_like(ds.y), ds.y), "last": error_table(last, ds.y)}
+    return {"samples": len(ds), "windows": float(ds.weight.sum()), "model": error_table(pred, ds.y, ds.y_mask, ds.weight),
+            "zero": error_table(np.zeros_like(ds.y), ds.y, ds.y_mask, ds.weight), "last": error_table(last, ds.y, ds.y_mask, ds.weight)}
+
+
+def compare_full(pred: np.ndarray, ds: ARDataset) -> dict[str, Any]:
+    """``compare`` on the windows with their whole 4 s future known (the windows of dataset version 3's kind)."""
+    sel = np.flatnonzero(ds.y_mask.all(axis=1))
+    return compare(pred[sel], ds.subset(sel))
+
+
+def inference_ms(model: ARModel, ds: ARDataset, pairs: int = INFERENCE_PAIRS, repeats: int = 50) -> dict[str, float]:
+    """Median and minimum wall time (ms) of ``model.predict`` on `pairs` windows of `ds` (one frame's batch), CPU.
+
+    A figure, not a check: on a shared machine the median moves with the
+    load (torch's threads wait for cores), the minimum much less.
+    """
+    take = np.arange(pairs) % max(len(ds), 1)
+    x, mask = ds.x[take], ds.mask[take]
+    model.predict(x, mask)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        model.predict(x, mask)
+        times.append(time.perf_counter() - t0)
+    return {"median_ms": float(np.median(times) * 1e3), "min_ms": float(np.min(times) * 1e3)}
 
 
 # --------------------------------------------------------------------------- training
@@ -256,9 +308,11 @@ def _normalisation(x: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndar
     return mean.astype(np.float32), std.astype(np.float32)
 
 
-def _loss(pred: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+def _loss(pred: torch.Tensor, y: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """MSE + MAE over the known steps, each sample by its weight: `w` (B, 40) = weight × known."""
     err = pred - y
-    return (err * err).mean() + err.abs().mean()
+    total = w.sum().clamp_min(1e-9)
+    return ((err * err) * w).sum() / total + (err.abs() * w).sum() / total
 
 
 def _git_commit() -> str | None:
@@ -281,17 +335,18 @@ def fit(cfg: TrainConfig, train: ARDataset, val: ARDataset, log=None) -> tuple[A
     columns = np.array([FEATURE_NAMES.index(n) for n in names])
     mean, std = _normalisation(train.x[:, :, columns], train.mask)
     torch.manual_seed(cfg.seed)
-    net = ARNet(len(names), cfg.hidden)
+    net = make_net(cfg.kind, len(names), cfg.hidden)
     model = ARModel(net=net, feature_names=names, feature_mean=mean, feature_std=std, sigma_res_chunks=np.zeros(N_CHUNKS), z_clip=cfg.z_clip)
     device = torch.device(cfg.device)
     net.to(device)
 
     def tensors(ds: ARDataset):
+        w = ds.y_mask.astype(np.float32) * ds.weight.astype(np.float32)[:, None]
         return (torch.from_numpy(model.normalise(ds.x)).to(device), torch.from_numpy(ds.mask.astype(np.float32)).to(device),
-                torch.from_numpy(ds.y.astype(np.float32)).to(device))
+                torch.from_numpy(ds.y.astype(np.float32)).to(device), torch.from_numpy(w).to(device))
 
-    zt, mt, yt = tensors(train)
-    zv, mv, yv = tensors(val)
+    zt, mt, yt, wt = tensors(train)
+    zv, mv, yv, wv = tensors(val)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr, weight_decay=cfg.decay)
     sched = torch.optim.lr_scheduler.CosineAnnealingWarmRestarts(opt, T_0=10)
     gen = torch.Generator().manual_seed(cfg.seed)
@@ -309,14 +364,14 @@ def fit(cfg: TrainConfig, train: ARDataset, val: ARDataset, log=None) -> tuple[A
             for i in range(iters):
                 idx = perm[i * cfg.batch_size : (i + 1) * cfg.batch_size]
                 opt.zero_grad()
-                loss = _loss(net(zt[idx], mt[idx]), yt[idx])
+                loss = _loss(net(zt[idx], mt[idx]), yt[idx], wt[idx])
                 loss.backward()
                 opt.step()
                 sched.step(epoch + (i + 1) / iters)
-                total += float(loss.detach()) * idx.numel()
+                total += float(loss.detach()) * idx.numel()  # per-batch loss × batch size: the epoch figure is approximate
             net.eval()
             with torch.no_grad():
-                val_loss = float(_loss(net(zv, mv), yv))
+                val_loss = float(_loss(net(zv, mv), yv, wv))
             history.append({"epoch": epoch, "train_loss": total / n, "val_loss": val_loss})
             if val_loss < best_loss - 1e-6:
                 best_loss, best_epoch, stale = val_loss, epoch, 0
@@ -334,7 +389,7 @@ def fit(cfg: TrainConfig, train: ARDataset, val: ARDataset, log=None) -> tuple[A
     seconds = time.perf_counter() - t0
     say(f"trained {len(history)} epochs in {seconds:.1f} s, best epoch {best_epoch} (validation loss {best_loss:.4f})")
     pred_val = model.predict(val.x, val.mask)
-    model.sigma_res_chunks = np.sqrt(np.mean(chunk_means(pred_val - val.y) ** 2, axis=0)).astype(np.float32)
+    model.sigma_res_chunks = np.asarray(error_table(pred_val, val.y, val.y_mask, val.weight)["chunk_mean_rmse"], dtype=np.float32)
     return model, {"epochs_run": len(history), "best_epoch": best_epoch, "best_val_loss": best_loss, "train_seconds": seconds, "history": history}
 
 
@@ -363,19 +418,22 @@ def run_training(cfg: TrainConfig, *, cache_dir: Path | None = DEFAULT_CACHE_DIR
         "sequences": {"train": sorted({ds.sequences[s] for s in train.sequence}), "val": sorted({ds.sequences[s] for s in val.sequence})},
         "split": split_info,
         "sizes": {"samples": len(ds), "train": len(train), "val": len(val), "dropped_at_cut": split_info["dropped_at_cut"],
-                  "train_tracks": len({(int(s), int(t)) for s, t in zip(train.sequence, train.track_id)}),
-                  "val_tracks": len({(int(s), int(t)) for s, t in zip(val.sequence, val.track_id)})},
+                  "train_tracks": train.tracks, "val_tracks": val.tracks,
+                  "train_windows": float(train.weight.sum()), "val_windows": float(val.weight.sum()), "dataset": ds.sizes()},
         "dataset_counts": ds.counts,
         "dataset_key": ds.key,
         "dataset_seconds": data_seconds,
-        "model": {"hidden": cfg.hidden, "features": list(model.feature_names), "dropped_features": list(cfg.drop_features),
+        "model": {"kind": cfg.kind, "hidden": cfg.hidden, "features": list(model.feature_names), "dropped_features": list(cfg.drop_features),
                   "parameters": int(sum(p.numel() for p in model.net.parameters()))},
         "training": {k: v for k, v in fitted.items() if k != "history"} | {
             "epochs_max": cfg.epochs, "batch_size": cfg.batch_size, "lr": cfg.lr, "weight_decay": cfg.decay, "z_clip": cfg.z_clip,
             "patience": cfg.patience, "seed": cfg.seed, "device": cfg.device, "loss": "mse + mae",
             "schedule": "CosineAnnealingWarmRestarts(T_0=10), per batch"},
-        "train_errors": {"model": error_table(pred_train, train.y)},
+        "train_errors": {"model": error_table(pred_train, train.y, train.y_mask, train.weight)},
         "validation": compare(pred_val, val),
+        "validation_full_future": compare_full(pred_val, val),
+        "inference_ms_per_frame": {"pairs": INFERENCE_PAIRS, **inference_ms(model, val), "device": "cpu", "threads": torch.get_num_threads(),
+                                   "note": "model.predict only, one frame's batch; measured while the machine may be shared"},
         "validation_by_recording": by_recording,
         "sigma_res_chunks": model.sigma_res_chunks.tolist(),
         "history": fitted["history"],
@@ -394,9 +452,11 @@ def run_training(cfg: TrainConfig, *, cache_dir: Path | None = DEFAULT_CACHE_DIR
         "split": split_info,
         "sizes": report["sizes"],
         "seed": cfg.seed,
+        "kind": cfg.kind,
         "hidden": cfg.hidden,
         "training": report["training"],
         "validation": report["validation"],
+        "validation_full_future": report["validation_full_future"],
         "validation_by_recording": by_recording,
         "sigma_res_chunks": report["sigma_res_chunks"],
         "git_commit": _git_commit(),
@@ -416,7 +476,9 @@ def format_report(report: dict[str, Any]) -> str:
         f"data {report['data']}: {', '.join(report['recordings'])}; split {report['split']['split']}; "
         f"{report['sizes']['train']} training / {report['sizes']['val']} validation samples "
         f"({report['sizes']['dropped_at_cut']} dropped at time cuts)",
-        f"model hidden={report['model']['hidden']} parameters={report['model']['parameters']}; "
+        f"cars with samples: {report['sizes']['dataset']['cars']}; windows {report['sizes']['dataset']['windows']:g} "
+        f"({report['sizes']['dataset']['samples']} samples, tied routes split by weight)",
+        f"model kind={report['model']['kind']} hidden={report['model']['hidden']} parameters={report['model']['parameters']}; "
         f"{report['training']['epochs_run']} epochs, best {report['training']['best_epoch']}, "
         f"{report['training']['train_seconds']:.1f} s",
         "",
@@ -432,6 +494,13 @@ def format_report(report: dict[str, Any]) -> str:
     for name in ("model", "zero", "last"):
         lines.append(f"MAE {name:<11}" + "".join(f"{e:>7.3f}" for e in v[name]["mae_chunks"]))
     lines.append("sigma_res      " + "".join(f"{e:>7.3f}" for e in report["sigma_res_chunks"]))
+    full = report.get("validation_full_future")
+    if full:
+        lines.append(f"windows with their whole 4 s future ({full['samples']}): MSE/MAE " +
+                     ", ".join(f"{n} {full[n]['mse']:.3f}/{full[n]['mae']:.3f}" for n in ("model", "zero", "last")))
+    inf = report.get("inference_ms_per_frame")
+    if inf:
+        lines.append(f"inference: {inf['median_ms']:.2f} ms median, {inf['min_ms']:.2f} ms min per frame of {inf['pairs']} pairs (cpu)")
     return "\n".join(lines)
 
 
@@ -442,9 +511,11 @@ def run_from_args(args) -> int:
         cfg = TrainConfig(
             dataset=DatasetConfig(
                 data_dir=args.data, recordings=tuple(args.recording), sequences=tuple(args.sequence),
-                max_frames_per_sequence=args.max_frames, features=features,
+                max_frames_per_sequence=args.max_frames, features=features, tied_routes=args.tied_routes,
+                min_future_steps=args.min_future_steps,
             ),
-            split=args.split, val_fraction=args.val_fraction, hidden=args.hidden, epochs=args.epochs, batch_size=args.batch_size,
+            split=args.split, val_fraction=args.val_fraction, kind=args.kind,
+            hidden=DEFAULT_HIDDEN_GRU if args.hidden is None and args.kind == "gru" else (args.hidden or 0), epochs=args.epochs, batch_size=args.batch_size,
             lr=args.lr, weight_decay=args.weight_decay, z_clip=args.z_clip, patience=args.patience, seed=args.seed, device=args.device,
             drop_features=tuple(args.drop_feature), progress=not args.no_progress,
         )
