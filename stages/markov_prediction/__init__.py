@@ -44,7 +44,9 @@ corridors) or ``intentions``: P(R = c) of the intentions stage's belief,
 renormalised over the corridors predicted (uniform, with an issue
 ``no_intentions``/``no_belief``, when the belief is missing, of another
 stamp or misses a corridor). ``initial_box`` ``particles`` takes the
-initial box from the belief instead of the measurement: centred on the
+initial box from the belief instead of the measurement (``auto``, the
+default: ``measurement`` for hybrid and corridor_cv, ``particles`` for the
+baseline, ``config.MODE_INITIAL_BOX``): centred on the
 particles' mean s and v on that corridor, half-widths max(Δs/2, 2σ_s) and
 max(Δv/2, 2σ_v) of the particles.
 

@@ -68,7 +68,15 @@ class MarkovPredictionConfig(ConfigMixin):
     # leader: (no leader within standstill_leader_gap_m, a standing leader, a leader faster than standstill_leader_moving_mps);
     # () = standstill_start_rate_hz for every standing vehicle. Default chosen on K729 (README "Standing vehicles"): it stays
     # unless its leader pulls away (K729: 100 % of those start within 4 s, 15 % behind a standing leader, 25 % with none)
+    # a fourth rate: a standing vehicle inside an intersection or less than standstill_intersection_m before its entry,
+    # without a leader that pulls away (it waits for a gap, not in a queue)
     hybrid_standstill_rates_hz: tuple[float, ...] = (0.0, 0.0, 1.7)
+    standstill_intersection_m: float = 8.0
+    # hybrid mode: > 0: the part of a standing vehicle's mixture that starts accelerates at this rate (a normal of σ
+    # hybrid_start_sigma_mps2 over the input cells, every step) instead of the AR distributions (which, for standing
+    # cars, do not tell starting from staying); 0: the AR distributions
+    hybrid_start_accel_mps2: float = 0.0
+    hybrid_start_sigma_mps2: float = 0.5
     standstill_leader_gap_m: float = 25.0
     standstill_leader_moving_mps: float = 1.0
     track_timeout_s: float = 2.0
@@ -143,19 +151,19 @@ class MarkovPredictionConfig(ConfigMixin):
             "ds_m", "dv_mps", "v_max_mps", "tau_s", "init_sigma_s_m", "init_sigma_v_mps", "init_sigma_a_mps2",
             "track_timeout_s", "psi_gamma", "lookahead_brake_mps2", "speed_limit_factor",
             "default_speed_limit_mps", "leader_brake_mps2", "static_leader_spread_m", "grid_cell_m",
-            "grid_lateral_sigma_m", "cv_accel_sigma_mps2",
+            "grid_lateral_sigma_m", "cv_accel_sigma_mps2", "hybrid_start_sigma_mps2",
         )
         non_negative = (
             "window_behind_m", "accel_window_s", "prune_threshold", "standstill_speed_mps", "standstill_start_rate_hz", "forbid_threshold", "curvature_smoothing_m", "leader_epsilon",
-            "conflict_margin_s", "conflict_epsilon", "standstill_leader_gap_m", "standstill_leader_moving_mps", "grid_margin_m", "lateral_offset_decay_s", "grid_min_value", "outside_issue_mass",
+            "conflict_margin_s", "conflict_epsilon", "standstill_leader_gap_m", "standstill_leader_moving_mps", "hybrid_start_accel_mps2", "grid_margin_m", "lateral_offset_decay_s", "grid_min_value", "outside_issue_mass",
         )
         check_ranges(self, positive=positive, non_negative=non_negative)
         for name in ("n_steps", "window_cells", "grid_substeps", "max_pairs", "grid_max_cells_per_step"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} = {getattr(self, name)!r}: must be >= 1")
-        if self.hybrid_standstill_rates_hz and (len(self.hybrid_standstill_rates_hz) != 3 or any(not (r >= 0) for r in self.hybrid_standstill_rates_hz)):
+        if self.hybrid_standstill_rates_hz and (len(self.hybrid_standstill_rates_hz) not in (3, 4) or any(not (r >= 0) for r in self.hybrid_standstill_rates_hz)):
             raise ValueError(f"hybrid_standstill_rates_hz = {self.hybrid_standstill_rates_hz!r}: expected () or three rates >= 0"
-                             " (no leader, standing leader, moving leader)")
+                             " (no leader, standing leader, moving leader) and optionally a fourth (at an intersection)")
         if len(self.lat_accels_mps2) != len(self.lat_accel_weights) or not self.lat_accels_mps2:
             raise ValueError("lat_accels_mps2 and lat_accel_weights must be non-empty and of equal length")
         if any(a <= 0 for a in self.lat_accels_mps2) or any(w < 0 for w in self.lat_accel_weights):

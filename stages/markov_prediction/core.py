@@ -820,13 +820,25 @@ _CHAIN_ARRAYS = ("s_m", "x_m", "y_m", "heading_rad", "curvature_1pm", "input_pro
 
 def standstill_group(relation: CorridorRelations | None, config: MarkovPredictionConfig) -> int:
     """A standing vehicle's scene on one corridor: 0 no leader within ``standstill_leader_gap_m`` (or no relations),
-    1 a standing leader, 2 a leader faster than ``standstill_leader_moving_mps`` (it pulls away: the queue discharges)."""
-    if relation is None or relation.leader_track_id < 0 or not math.isfinite(relation.leader_gap_m):
-        return 0
-    if relation.leader_gap_m > config.standstill_leader_gap_m:
-        return 0
-    speed = relation.leader_speed_mps
-    return 2 if math.isfinite(speed) and speed > config.standstill_leader_moving_mps else 1
+    1 a standing leader, 2 a leader faster than ``standstill_leader_moving_mps`` (it pulls away: the queue discharges);
+    with a fourth rate in ``hybrid_standstill_rates_hz``, 3 (instead of 0 or 1): the vehicle stands inside an
+    intersection of the corridor or less than ``standstill_intersection_m`` before its entry (it waits for a gap)."""
+    group = 0
+    if relation is not None and relation.leader_track_id >= 0 and math.isfinite(relation.leader_gap_m) \
+            and relation.leader_gap_m <= config.standstill_leader_gap_m:
+        speed = relation.leader_speed_mps
+        group = 2 if math.isfinite(speed) and speed > config.standstill_leader_moving_mps else 1
+    if group != 2 and len(config.hybrid_standstill_rates_hz) == 4 and relation is not None and at_intersection(relation, config.standstill_intersection_m):
+        return 3
+    return group
+
+
+def at_intersection(relation: CorridorRelations, within_m: float) -> bool:
+    """The vehicle is inside one of the corridor's intersections or less than ``within_m`` before its entry."""
+    d = np.asarray(relation.intersection_distance_m, dtype=np.float64)
+    length = np.asarray(relation.intersection_exit_s_m, dtype=np.float64) - np.asarray(relation.intersection_entry_s_m, dtype=np.float64)
+    ok = np.isfinite(d) & np.isfinite(length)
+    return bool(np.any(ok & (d < within_m) & (d + length > 0)))
 
 
 def _non_finite(p: Pair) -> list[str]:

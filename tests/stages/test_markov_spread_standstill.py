@@ -151,3 +151,54 @@ def test_hybrid_standing_car_stays_unless_its_leader_pulls_away(stencils):
     assert float(old.mean_s_m[0, -1]) - 5.0 > 1.0  # the fixed rate 0.055 /s lets ~20 % start by 4 s
     with pytest.raises(ValueError, match="three rates"):
         MarkovPredictionConfig(mode="hybrid", hybrid_standstill_rates_hz=(0.1, 0.2))
+
+
+def _at_intersection(rel, distance_m: float, length_m: float = 20.0):
+    """``rel`` with one intersection whose entry lies ``distance_m`` ahead of the vehicle (negative: inside)."""
+    import dataclasses
+
+    entry = 5.0 + distance_m
+    return dataclasses.replace(rel, intersection_ids=np.array([1], np.int64), intersection_entry_s_m=np.array([entry]),
+                               intersection_exit_s_m=np.array([entry + length_m]), intersection_distance_m=np.array([distance_m]),
+                               intersection_entry_lanelet_ids=np.array([1], np.int64))
+
+
+def test_hybrid_standing_car_at_an_intersection_starts_with_the_fourth_rate(stencils):
+    """A fourth rate is that of a car standing inside an intersection or within standstill_intersection_m of its entry
+    (it waits for a gap); further back it stays; with three rates the intersection makes no difference."""
+    from stages.markov_prediction.core import standstill_group
+
+    four = MarkovPredictionConfig(mode="hybrid", hybrid_standstill_rates_hz=(0.0, 0.0, 1.5, 1.0), standstill_intersection_m=8.0, **PLAIN)
+    three = MarkovPredictionConfig(mode="hybrid", hybrid_standstill_rates_hz=(0.0, 0.0, 1.5), **PLAIN)
+    cs, _ = _standing_scene(None)
+    near, inside, far, passed = (_at_intersection(_relation(1, 7), d) for d in (3.0, -5.0, 15.0, -30.0))
+    standing_leader = _at_intersection(_relation(1, 7, leader=2, gap=6.0, leader_speed=0.0), 3.0)
+    moving_leader = _at_intersection(_relation(1, 7, leader=2, gap=6.0, leader_speed=3.0), 3.0)
+    assert [standstill_group(r, four) for r in (near, inside, far, passed, standing_leader, moving_leader)] == [3, 3, 0, 0, 3, 2]
+    assert [standstill_group(r, three) for r in (near, inside, far, standing_leader)] == [0, 0, 0, 1]
+    moved = {}
+    for name, config in (("four", four), ("three", three)):
+        predictor = MarkovPredictor(config, stencils=stencils)
+        for where, rel in (("near", near), ("far", far)):
+            prediction, _ = predictor.process(cs, _relation_set(rel), acceleration_profiles=_profiles(1, 7, 1.5))
+            moved[name, where] = float(prediction.mean_s_m[0, -1]) - 5.0
+    assert moved["four", "near"] > 4.0 and abs(moved["four", "far"]) < 0.3, moved
+    assert abs(moved["three", "near"]) < 0.3, moved
+    with pytest.raises(ValueError, match="three rates"):
+        MarkovPredictionConfig(mode="hybrid", hybrid_standstill_rates_hz=(0.1, 0.2, 0.3, 0.4, 0.5))
+
+
+def test_hybrid_start_accel_replaces_the_ar_inputs_of_standing_cars_only(stencils):
+    """With hybrid_start_accel_mps2 the starting part of a standing car accelerates at that rate whatever the AR says
+    (here -1 m/s²: it would not move); a moving car keeps its AR distributions."""
+    rates = {"hybrid_standstill_rates_hz": (0.0, 0.0, 50.0)}  # behind a leader that pulls away: starts at once
+    ar = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", **rates, **PLAIN), stencils=stencils)
+    start = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", hybrid_start_accel_mps2=1.5, **rates, **PLAIN), stencils=stencils)
+    cs, rs = _standing_scene(3.0)
+    moved = {name: float(p.process(cs, rs, acceleration_profiles=_profiles(1, 7, -1.0))[0].mean_s_m[0, -1]) - 5.0
+             for name, p in (("ar", ar), ("start", start))}
+    assert moved["ar"] < 2.0 and 8.0 < moved["start"] < 14.0, moved  # ½·1.5·16 = 12 m
+    moving = _corridor_set(_vehicle(1, 10.0, [_corridor(7)]))
+    a = ar.process(moving, _relation_set(_relation(1, 7)), acceleration_profiles=_profiles(1, 7, -1.0))[0]
+    b = start.process(moving, _relation_set(_relation(1, 7)), acceleration_profiles=_profiles(1, 7, -1.0))[0]
+    np.testing.assert_allclose(a.mean_s_m, b.mean_s_m)

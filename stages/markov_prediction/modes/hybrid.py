@@ -17,6 +17,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from scipy.special import ndtr
 
 from bus_schemas import AccelerationProfiles
 from stages.lib.base import Issue
@@ -81,10 +82,24 @@ class _HybridInputs(ChainInputs):
 
 
 def _stack_inputs(p: Predictor, pairs: list[Pair]) -> np.ndarray:
-    """λ(0..K-1) of every pair as (B, K, M); a pair without a profile holds its measured acceleration."""
+    """λ(0..K-1) of every pair as (B, K, M); a pair without a profile holds its measured acceleration; with
+    ``hybrid_start_accel_mps2`` > 0 a standing pair's (the part of its mixture that starts) is ``start_inputs``."""
     measured = p.measured_inputs(pairs)
-    return np.stack([q.input_probs if q.input_probs is not None else np.repeat(measured[b][None], p.config.n_steps, axis=0)
-                     for b, q in enumerate(pairs)])
+    lam = np.stack([q.input_probs if q.input_probs is not None else np.repeat(measured[b][None], p.config.n_steps, axis=0)
+                    for b, q in enumerate(pairs)])
+    standing = np.array([q.start_rate_hz > 0 for q in pairs])
+    if p.config.hybrid_start_accel_mps2 > 0 and np.any(standing):
+        lam = lam.copy()
+        lam[standing] = start_inputs(p.grid.input_edges(), p.config.hybrid_start_accel_mps2, p.config.hybrid_start_sigma_mps2)[None, None]
+    return lam
+
+
+def start_inputs(edges: np.ndarray, accel_mps2: float, sigma_mps2: float) -> np.ndarray:
+    """(M,): a normal of mean ``accel_mps2`` and σ ``sigma_mps2`` over the input cells of ``edges`` (tails folded)."""
+    cdf = ndtr((np.asarray(edges, dtype=np.float64) - accel_mps2) / sigma_mps2)
+    cdf[0], cdf[-1] = 0.0, 1.0
+    probs = np.diff(cdf)
+    return probs / probs.sum()
 
 
 def _profiles(p, profiles: AccelerationProfiles | None, stamp: int, issues: list[Issue]) -> dict[tuple[int, int], np.ndarray] | None:
