@@ -54,6 +54,8 @@ from stages.markov_prediction.signals import apply_signals, stop_line_wall
 __all__ = ["CV_LINE_ID", "FramePrediction", "MarkovPredictor", "PairInfo"]
 
 _NS = 1e-9
+#: ``MarkovPredictor.speed_noise`` is capped here (m/s): the calibrated spread's widest blur, and so the grid's margin, stays bounded
+SPEED_NOISE_CAP_MPS = 2.0
 
 
 # --------------------------------------------------------------------------- outputs
@@ -409,6 +411,24 @@ class MarkovPredictor:
         edges = self.grid.input_edges()
         return float(np.clip(shrunk, edges[0], edges[-1])), math.hypot(base, min(sigma, 1.0))
 
+    def speed_noise(self, track_id: int, stamp_ns: int) -> float:
+        """The scatter (m/s) of the vehicle's measured speeds over the last ``accel_window_s``: the standard deviation
+        of their residuals around the least-squares line (0 with fewer than 3 samples); capped at
+        ``SPEED_NOISE_CAP_MPS``. Read by a calibrated spread with ``speed_noise_gain`` (spread.py)."""
+        hist = self._history.get(track_id)
+        if hist is None or self.config.accel_window_s <= 0:
+            return 0.0
+        window = int(self.config.accel_window_s / _NS)
+        pts = [(t, v) for t, v in hist.samples if stamp_ns - window <= t <= stamp_ns]
+        if len(pts) < 3:
+            return 0.0
+        t = np.array([p[0] for p in pts], dtype=np.float64) * _NS
+        v = np.array([p[1] for p in pts])
+        t -= t.mean()
+        slope = float((t * (v - v.mean())).sum() / max(float((t * t).sum()), 1e-12))
+        residual = v - v.mean() - slope * t
+        return min(math.sqrt(float((residual**2).sum()) / (len(pts) - 2)), SPEED_NOISE_CAP_MPS)
+
     def _beliefs(self, belief: IntentionBelief | None, stamp: int, issues: list[Issue]) -> dict[int, dict[int, Any]] | None:
         """Per track, its CorridorBeliefs by corridor id; None when the config does not use them or none fit."""
         cfg = self.config
@@ -469,12 +489,15 @@ class MarkovPredictor:
                     width = float(frame.width_m[row])
             v0 = float(np.clip(vehicle.speed_mps, 0.0, cfg.v_max_mps))
             a0, sigma_a0 = self._acceleration(vehicle.track_id, stamp)
+            noise = self.speed_noise(vehicle.track_id, stamp) if self.spread is not None and self.spread.speed_noise_gain > 0 else 0.0
             standing = self.model.chain and v0 <= cfg.standstill_speed_mps and cfg.standstill_start_rate_hz > 0
             good = [c for c in vehicle.corridors if _corridor_ok(c, vehicle.track_id, issues)]
             if not good:
                 continue
             own = self.model.vehicle_pairs(Vehicle(vehicle, good, frame, row, v0, a0, length, width))
             if own is not None:
+                for q in own:
+                    q.speed_noise_mps = noise
                 pairs.extend(own)
                 continue
             weights = self._weights(vehicle, good, beliefs, issues)
@@ -517,6 +540,7 @@ class MarkovPredictor:
                         half_width_v_mps=hv,
                         input_probs=lam,
                         measured_v_mps=float(vehicle.speed_mps),
+                        speed_noise_mps=noise,
                     )
                 )
         return pairs
@@ -771,7 +795,7 @@ class MarkovPredictor:
             for track, members in by_track.items():
                 p = pairs[members[0]]
                 speed = p.measured_v_mps if math.isfinite(p.measured_v_mps) else p.v0_mps
-                vehicle_grids[track] = blur_grid(frame, vehicle_grids[track], self.spread.sigmas(speed))
+                vehicle_grids[track] = blur_grid(frame, vehicle_grids[track], self.spread.sigmas(speed, p.speed_noise_mps, self.step_times_s))
         infos = tuple(PairInfo(p.track_id, p.corridor_id, p.probability, p.s0_m, p.s_first_m, p.end_s_m) for p in pairs)
         return FramePrediction(
             mode=cfg.mode,
@@ -806,7 +830,7 @@ class MarkovPredictor:
                 ys.append(fp.y_m[used].ravel())
         if not xs:
             return GridFrame(0.0, 0.0, cfg.grid_cell_m, 1, 1)
-        margin = cfg.grid_margin_m + (3.0 * float(self.spread.sigma_m.max()) if self.spread is not None else 0.0)  # the blur stays on the grid
+        margin = cfg.grid_margin_m + (3.0 * float(self.spread.max_sigma_m(self.step_times_s, SPEED_NOISE_CAP_MPS)) if self.spread is not None else 0.0)  # the blur stays on the grid
         return GridFrame.around(np.concatenate(xs), np.concatenate(ys), cfg.grid_cell_m, margin)
 
 

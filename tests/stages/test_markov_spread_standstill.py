@@ -15,7 +15,7 @@ import pytest
 from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
 from stages.markov_prediction.spread import SCHEMA, SpreadTable, blur_grid, load_spread, write_spread
 from stages.offline.calibrate import smallest_sigma
-from tests.stages.test_markov_prediction import PLAIN, _corridor, _corridor_set, _profiles, _relation, _relation_set, _vehicle
+from tests.stages.test_markov_prediction import PLAIN, STAMP, _corridor, _corridor_set, _profiles, _relation, _relation_set, _vehicle
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -120,6 +120,7 @@ def test_iamp_calibrate_writes_a_file_the_stage_reads(tmp_path):
     assert data["fitted_on"]["recordings"] and data["fitted_on"]["level"] == 0.9
     table = load_spread(str(out), "cv", 10)
     assert table.sigma_m.shape == (3, 10) and np.all(np.diff(table.sigma_m, axis=1) >= 0)
+    assert table.speed_noise_gain == 1.0 and data["fitted_on"]["speed_noise_gain"] == 1.0  # the default gain is written
     MarkovPredictor(MarkovPredictionConfig(mode="cv", spread_calibration=str(out)))  # the stage takes it
     bad = subprocess.run([sys.executable, "-m", "stages.cli", "calibrate", "--mode", "cv", "--out", str(out), "--set",
                           f"spread_calibration={out}"], cwd=ROOT, env=env, capture_output=True, text=True)
@@ -202,3 +203,37 @@ def test_hybrid_start_accel_replaces_the_ar_inputs_of_standing_cars_only(stencil
     a = ar.process(moving, _relation_set(_relation(1, 7)), acceleration_profiles=_profiles(1, 7, -1.0))[0]
     b = start.process(moving, _relation_set(_relation(1, 7)), acceleration_profiles=_profiles(1, 7, -1.0))[0]
     np.testing.assert_allclose(a.mean_s_m, b.mean_s_m)
+
+
+def test_speed_noise_widens_the_calibrated_spread_of_a_scattering_track_only(tmp_path, stencils):
+    """With speed_noise_gain the σ of a vehicle whose speeds scatter grows by σ_v·t; a smooth track keeps the table's σ;
+    the means never move; a file without the key (gain 0) ignores the scatter."""
+    from stages.markov_prediction.core import SPEED_NOISE_CAP_MPS
+
+    table = SpreadTable((0.5, 2.0), np.full((3, 10), 1.0), speed_noise_gain=1.0)
+    t = (np.arange(10) + 1) * 0.4
+    np.testing.assert_allclose(table.sigmas(8.0, 0.5, t), np.hypot(1.0, 0.5 * t))
+    np.testing.assert_allclose(table.sigmas(8.0, 0.0, t), 1.0)
+    path = tmp_path / "noise.json"
+    write_spread(path, {"corridor_cv": table}, {"test": True})
+    assert load_spread(str(path), "corridor_cv", 10).speed_noise_gain == 1.0
+    plain_path = _spread_file(tmp_path, "corridor_cv", 1.0)
+    assert load_spread(str(plain_path), "corridor_cv", 10).speed_noise_gain == 0.0
+
+    def run(spread: Path, speeds) -> tuple:
+        predictor = MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv", spread_calibration=str(spread), **PLAIN), stencils=stencils)
+        for i, v in enumerate(speeds):  # 0.1 s apart; the last frame is predicted
+            pred, _ = predictor.process(_corridor_set(_vehicle(1, v, [_corridor(7)]), stamp=STAMP + i * 100_000_000),
+                                        _relation_set(_relation(1, 7), stamp=STAMP + i * 100_000_000))
+        noise = predictor.speed_noise(1, STAMP + (len(speeds) - 1) * 100_000_000)
+        cells, values = pred.vehicle_grids[1].step(9, pred.grid_frame.n_cells)
+        return noise, int((values > 1e-4).sum()), pred.mean_xy_m
+
+    smooth, scatter = [8.0] * 11, [8.0 + (1.5 if i % 2 else -1.5) for i in range(10)] + [8.0]
+    n_smooth, cells_smooth, mean_smooth = run(path, smooth)
+    n_scatter, cells_scatter, mean_scatter = run(path, scatter)
+    assert n_smooth == pytest.approx(0.0, abs=1e-9) and 1.0 < n_scatter <= SPEED_NOISE_CAP_MPS
+    assert cells_scatter > 2 * cells_smooth  # σ at 4 s √(1 + (1.6·4)²) ≈ 6.5 m against 1 m
+    np.testing.assert_allclose(mean_scatter, mean_smooth)
+    _, cells_plain, _ = run(plain_path, scatter)
+    assert cells_plain == cells_smooth
