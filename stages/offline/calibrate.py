@@ -14,12 +14,18 @@ largest candidate when none does; 0 when the grid already reaches it: the
 spread is never narrowed), made non-decreasing over the steps. It writes the
 table to ``--out`` (the file the stage's ``spread_calibration`` reads) with
 the coverage it measured at the chosen σ on these windows (in-sample) and
-what it was fitted on.
+what it was fitted on. With ``--speed-noise-gain`` g (default 1) every
+candidate is first widened per vehicle to √(σ² + (g·σ_v·t_k)²), σ_v the
+scatter of the vehicle's measured speeds (``MarkovPredictor.speed_noise``),
+as the stage then blurs with the table (``speed_noise_gain`` in the file),
+so that the table holds what the vehicles' own speed noise does not; its
+"before" coverage is then that of the noise term alone.
 
 ::
 
     iamp calibrate --data $IAMP_TAF_BW --recording k729_2022-03-16 --model M.pt --out spread_k729.json
-        [--mode hybrid baseline corridor_cv cv] [--stride 0.8] [--seed 0] [--level 0.9] [--max-frames N] [--set K=V]...
+        [--mode hybrid baseline corridor_cv cv] [--stride 0.8] [--seed 0] [--level 0.9] [--max-frames N]
+        [--speed-noise-gain 1] [--set K=V]...
 """
 
 from __future__ import annotations
