@@ -502,6 +502,7 @@ class MarkovPredictor:
                 continue
             weights = self._weights(vehicle, good, beliefs, issues)
             mine = beliefs.get(vehicle.track_id, {}) if beliefs is not None and cfg.initial_box == "particles" else {}
+            stops = beliefs.get(vehicle.track_id, {}) if beliefs is not None else {}  # P(stop) per corridor (hybrid_stop_mixture)
             for c, weight in zip(good, weights):
                 limit = c.speed_limit_mps if _positive(c.speed_limit_mps) else scene_limit_mps
                 s0, hs, hv, v_start = float(c.vehicle_s_m), 0.0, 0.0, v0
@@ -541,6 +542,8 @@ class MarkovPredictor:
                         input_probs=lam,
                         measured_v_mps=float(vehicle.speed_mps),
                         speed_noise_mps=noise,
+                        p_stop=float(stops[c.corridor_id].p_stop) if c.corridor_id in stops else math.nan,
+                        stop_distance_m=float(stops[c.corridor_id].stop_distance_m) if c.corridor_id in stops else math.nan,
                     )
                 )
         return pairs

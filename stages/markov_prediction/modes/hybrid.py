@@ -88,10 +88,33 @@ def _stack_inputs(p: Predictor, pairs: list[Pair]) -> np.ndarray:
     lam = np.stack([q.input_probs if q.input_probs is not None else np.repeat(measured[b][None], p.config.n_steps, axis=0)
                     for b, q in enumerate(pairs)])
     standing = np.array([q.start_rate_hz > 0 for q in pairs])
+    if p.config.hybrid_stop_mixture:
+        lam = stop_mixture(p, pairs, lam, standing)
     if p.config.hybrid_start_accel_mps2 > 0 and np.any(standing):
         lam = lam.copy()
         lam[standing] = start_inputs(p.grid.input_edges(), p.config.hybrid_start_accel_mps2, p.config.hybrid_start_sigma_mps2)[None, None]
     return lam
+
+
+def stop_mixture(p: Predictor, pairs: list[Pair], lam: np.ndarray, standing: np.ndarray) -> np.ndarray:
+    """(1 − P(stop))·λ_AR(k) + P(stop)·(a braking input that stops the pair at its stop position or behind its leader)
+    for every moving pair with a P(stop) of the intentions stage (``hybrid_stop_mixture``)."""
+    cfg = p.config
+    edges = p.grid.input_edges()
+    out = lam
+    for b, q in enumerate(pairs):
+        if standing[b] or not (q.p_stop > 0) or q.v0_mps <= cfg.standstill_speed_mps:
+            continue
+        d = q.stop_distance_m if np.isfinite(q.stop_distance_m) else np.inf
+        rel = q.relation
+        if rel is not None and rel.leader_track_id >= 0 and np.isfinite(rel.leader_gap_m):
+            d = min(d, float(rel.leader_gap_m) - cfg.hybrid_stop_gap_m)
+        a = 3.0 if d <= 0.5 else float(np.clip(q.v0_mps**2 / (2.0 * d), 0.5, 3.0)) if np.isfinite(d) else 0.5
+        if out is lam:
+            out = lam.copy()
+        w = float(min(q.p_stop, 1.0))
+        out[b] = (1.0 - w) * lam[b] + w * start_inputs(edges, -a, cfg.hybrid_start_sigma_mps2)[None]
+    return out
 
 
 def start_inputs(edges: np.ndarray, accel_mps2: float, sigma_mps2: float) -> np.ndarray:
