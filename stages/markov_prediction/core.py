@@ -432,7 +432,7 @@ class MarkovPredictor:
     def _beliefs(self, belief: IntentionBelief | None, stamp: int, issues: list[Issue]) -> dict[int, dict[int, Any]] | None:
         """Per track, its CorridorBeliefs by corridor id; None when the config does not use them or none fit."""
         cfg = self.config
-        if cfg.corridor_weights != "intentions" and cfg.initial_box != "particles":
+        if cfg.corridor_weights != "intentions" and cfg.initial_box != "particles" and not (cfg.mode == "hybrid" and cfg.hybrid_stop_mixture):
             return None
         if belief is None:
             issues.append(Issue("no_intentions", -1, "no intention_belief: uniform corridor weights and measured boxes this frame"))
