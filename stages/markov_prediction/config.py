@@ -82,9 +82,9 @@ class MarkovPredictionConfig(ConfigMixin):
     hybrid_start_sigma_mps2: float = 0.5
     # hybrid mode: a moving pair's λ_AR(k) mixed with a braking input by the intentions stage's P(stop | corridor):
     # (1 − P)·λ_AR(k) + P·N(−a, hybrid_start_sigma_mps2), a = v0² / (2 d) to stop within the distance d to the stop
-    # position (or behind the leader, hybrid_stop_gap_m short of it), clipped to [0.5, 3] m/s². Chosen on K729 with the
-    # K733-trained model (README "Stop or go by P(stop)"): hybrid mADE 1.60 -> 1.43, braking cars 3.51 -> 1.22
-    hybrid_stop_mixture: bool = True
+    # position (or behind the leader, hybrid_stop_gap_m short of it), clipped to [0.5, 3] m/s². An experiment, off: on
+    # K729 (K733-trained model, where it was chosen) hybrid mADE 1.60 -> 1.43, on the held-out K733 2.86 -> 3.07 (README)
+    hybrid_stop_mixture: bool = False
     hybrid_stop_gap_m: float = 2.0
     standstill_leader_gap_m: float = 25.0
     standstill_leader_moving_mps: float = 1.0

@@ -10,7 +10,7 @@ inside the baseline's whole rule set (speed, leader, crossing; its
 ``_BaselineInputs`` with ``ar_lam``), and ``hybrid_rules_standing`` "rules"
 keeps the rules' own preference for standing vehicles: an experiment, off by
 default (README, Evaluation: no gain on the held-out location). With
-``hybrid_stop_mixture`` (default on) a moving pair's λ_AR(k) is mixed with a
+``hybrid_stop_mixture`` (an experiment, off by default) a moving pair's λ_AR(k) is mixed with a
 braking input by the intentions stage's P(stop) on its corridor
 (``stop_mixture``; docs/method.md §8.5).
 """
