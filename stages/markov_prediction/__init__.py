@@ -44,7 +44,9 @@ corridors) or ``intentions``: P(R = c) of the intentions stage's belief,
 renormalised over the corridors predicted (uniform, with an issue
 ``no_intentions``/``no_belief``, when the belief is missing, of another
 stamp or misses a corridor). ``initial_box`` ``particles`` takes the
-initial box from the belief instead of the measurement: centred on the
+initial box from the belief instead of the measurement (``auto``, the
+default: ``measurement`` for hybrid and corridor_cv, ``particles`` for the
+baseline, ``config.MODE_INITIAL_BOX``): centred on the
 particles' mean s and v on that corridor, half-widths max(Δs/2, 2σ_s) and
 max(Δv/2, 2σ_v) of the particles.
 
@@ -70,13 +72,16 @@ exp(−``standstill_start_rate_hz``·t); 0.055 /s gives P(start within 4 s) =
 Followers see a standing leader through the same mixture. In hybrid mode the
 rate comes from the scene (``hybrid_standstill_rates_hz``, per leader on the
 corridor: none within ``standstill_leader_gap_m``, standing, faster than
-``standstill_leader_moving_mps``; default 0, 0, 1.7 /s: a car stays unless
-its leader pulls away).
+``standstill_leader_moving_mps``; a fourth rate for a car standing inside
+an intersection or less than ``standstill_intersection_m`` before its entry;
+default 0, 0, 1.7, 1.0 /s: a car stays unless its leader pulls away or it
+waits at the intersection for a gap).
 
 Calibrated spread (``spread_calibration``, off by default): a file written
 by ``iamp calibrate`` gives, per mode, start-speed band and step, the σ of
 an isotropic Gaussian that blurs each vehicle's grid before fusion
-(``spread.py``; the corridor distributions and means do not change).
+(``spread.py``; the corridor distributions and means do not change), widened
+per vehicle by its own speed noise when the file has a ``speed_noise_gain``.
 
 Lateral offset. Means and grids are placed at the vehicle's lateral offset
 from the centreline, d(t) = d0·exp(−t/``lateral_offset_decay_s``); the

@@ -12,7 +12,7 @@ INPUTS = {
     "relation_set": Port(RelationSet),
     "scene": Port(SceneInfo, latched=True),
     "track_frame": Port(TrackFrame, optional=True),  # sizes, and the velocity of mode "cv"
-    # corridor_weights = "intentions" (P(R = c)) and initial_box = "particles" read the DBN's belief
+    # corridor_weights = "intentions" (P(R = c)), initial_box = "particles" and hybrid_stop_mixture (P(stop)) read the DBN's belief
     "intention_belief": Port(IntentionBelief, optional=True),
     # mode = "hybrid": λ_AR(k) of the ar_inference stage replace the rule-based λ (docs/method.md §8.5)
     "acceleration_profiles": Port(AccelerationProfiles, optional=True),

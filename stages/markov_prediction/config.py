@@ -14,8 +14,13 @@ MODES = ("hybrid", "baseline", "cv", "corridor_cv")
 CHAIN_MODES = ("hybrid", "baseline")
 #: ``intentions``: P(R = c) from the DBN's IntentionBelief; ``uniform``: 1/C over a vehicle's corridors.
 CORRIDOR_WEIGHTS = ("intentions", "uniform")
-#: Centre and half-widths of the initial (s, v) box: the measurement ± the §3.4 defaults, or the particles of the DBN.
-INITIAL_BOXES = ("measurement", "particles")
+#: Centre and half-widths of the initial (s, v) box: the measurement ± the §3.4 defaults, or the particles of the DBN;
+#: ``auto`` (the default): the mode's own, ``MODE_INITIAL_BOX``.
+INITIAL_BOXES = ("auto", "measurement", "particles")
+#: ``initial_box = "auto"`` per mode. Chosen on K729 (the K733-trained AR model; in-sample for the choice), reported on
+#: K733 (README "Initial box per mode"): the measured start speed helped hybrid (mADE 1.73 -> 1.68) and corridor_cv
+#: (2.01 -> 1.86), the particles' box the baseline (1.61 with the measurement vs 1.63, but worse on fast cars of K733)
+MODE_INITIAL_BOX = {"hybrid": "measurement", "corridor_cv": "measurement", "baseline": "particles", "cv": "measurement"}
 #: Γ in hybrid mode: colnorm(diag(λ_AR(k)) Ψ) (docs/method.md §8.5), or the memoryless ``direct`` ablation λ_AR(k)·1ᵀ.
 HYBRID_INPUTS = ("psi", "direct")
 BACKENDS = ("numpy", "torch")
@@ -33,7 +38,7 @@ class MarkovPredictionConfig(ConfigMixin):
     backend: str = "numpy"
     device: str = "cpu"
     corridor_weights: str = "intentions"
-    initial_box: str = "particles"
+    initial_box: str = "auto"  # "auto": MODE_INITIAL_BOX[mode]; after construction always the box in use
     # hybrid mode (docs/method.md §8.5): how the AR distributions enter the chain
     hybrid_input: str = "psi"
     hybrid_speed_restriction: bool = True
@@ -63,7 +68,24 @@ class MarkovPredictionConfig(ConfigMixin):
     # leader: (no leader within standstill_leader_gap_m, a standing leader, a leader faster than standstill_leader_moving_mps);
     # () = standstill_start_rate_hz for every standing vehicle. Default chosen on K729 (README "Standing vehicles"): it stays
     # unless its leader pulls away (K729: 100 % of those start within 4 s, 15 % behind a standing leader, 25 % with none)
-    hybrid_standstill_rates_hz: tuple[float, ...] = (0.0, 0.0, 1.7)
+    # the fourth rate: a standing vehicle inside an intersection or less than standstill_intersection_m before its entry,
+    # without a leader that pulls away (it waits for a gap, not in a queue; K729: 60 of 61 such windows start within 4 s,
+    # 13 % of those 10-20 m before the entry). Chosen on K729 with the K733-trained model: hybrid mADE 1.68 -> 1.60
+    # (0.3 /s 1.61, 0.5 /s 1.60, 1.0 /s 1.60, the maximum-likelihood rate; 8 m and 12 m the same)
+    hybrid_standstill_rates_hz: tuple[float, ...] = (0.0, 0.0, 1.7, 1.0)
+    standstill_intersection_m: float = 8.0
+    # hybrid mode: > 0: the part of a standing vehicle's mixture that starts accelerates at this rate (a normal of σ
+    # hybrid_start_sigma_mps2 over the input cells, every step) instead of the AR distributions (which, for standing
+    # cars, do not tell starting from staying); 0: the AR distributions. Measured on K729 (rates above): 1.5 m/s² gives
+    # the same mADE (1.61 with the fourth rate 0.3 /s: accelerating cars better, cars that keep a low speed worse): off
+    hybrid_start_accel_mps2: float = 0.0
+    hybrid_start_sigma_mps2: float = 0.5
+    # hybrid mode: a moving pair's λ_AR(k) mixed with a braking input by the intentions stage's P(stop | corridor):
+    # (1 − P)·λ_AR(k) + P·N(−a, hybrid_start_sigma_mps2), a = v0² / (2 d) to stop within the distance d to the stop
+    # position (or behind the leader, hybrid_stop_gap_m short of it), clipped to [0.5, 3] m/s². An experiment, off: on
+    # K729 (K733-trained model, where it was chosen) hybrid mADE 1.60 -> 1.43, on the held-out K733 2.86 -> 3.07 (README)
+    hybrid_stop_mixture: bool = False
+    hybrid_stop_gap_m: float = 2.0
     standstill_leader_gap_m: float = 25.0
     standstill_leader_moving_mps: float = 1.0
     track_timeout_s: float = 2.0
@@ -120,6 +142,8 @@ class MarkovPredictionConfig(ConfigMixin):
             raise ValueError(f"corridor_weights = {self.corridor_weights!r}: expected one of {', '.join(CORRIDOR_WEIGHTS)}")
         if self.initial_box not in INITIAL_BOXES:
             raise ValueError(f"initial_box = {self.initial_box!r}: expected one of {', '.join(INITIAL_BOXES)}")
+        if self.initial_box == "auto":  # resolved here so that every reader sees the box in use
+            object.__setattr__(self, "initial_box", MODE_INITIAL_BOX[self.mode])
         if self.hybrid_rules_standing not in ("ar", "rules"):
             raise ValueError(f"hybrid_rules_standing = {self.hybrid_rules_standing!r}: expected ar or rules")
         if self.hybrid_input not in HYBRID_INPUTS:
@@ -136,19 +160,19 @@ class MarkovPredictionConfig(ConfigMixin):
             "ds_m", "dv_mps", "v_max_mps", "tau_s", "init_sigma_s_m", "init_sigma_v_mps", "init_sigma_a_mps2",
             "track_timeout_s", "psi_gamma", "lookahead_brake_mps2", "speed_limit_factor",
             "default_speed_limit_mps", "leader_brake_mps2", "static_leader_spread_m", "grid_cell_m",
-            "grid_lateral_sigma_m", "cv_accel_sigma_mps2",
+            "grid_lateral_sigma_m", "cv_accel_sigma_mps2", "hybrid_start_sigma_mps2",
         )
         non_negative = (
             "window_behind_m", "accel_window_s", "prune_threshold", "standstill_speed_mps", "standstill_start_rate_hz", "forbid_threshold", "curvature_smoothing_m", "leader_epsilon",
-            "conflict_margin_s", "conflict_epsilon", "standstill_leader_gap_m", "standstill_leader_moving_mps", "grid_margin_m", "lateral_offset_decay_s", "grid_min_value", "outside_issue_mass",
+            "conflict_margin_s", "conflict_epsilon", "standstill_leader_gap_m", "standstill_leader_moving_mps", "hybrid_start_accel_mps2", "grid_margin_m", "lateral_offset_decay_s", "grid_min_value", "outside_issue_mass",
         )
         check_ranges(self, positive=positive, non_negative=non_negative)
         for name in ("n_steps", "window_cells", "grid_substeps", "max_pairs", "grid_max_cells_per_step"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} = {getattr(self, name)!r}: must be >= 1")
-        if self.hybrid_standstill_rates_hz and (len(self.hybrid_standstill_rates_hz) != 3 or any(not (r >= 0) for r in self.hybrid_standstill_rates_hz)):
+        if self.hybrid_standstill_rates_hz and (len(self.hybrid_standstill_rates_hz) not in (3, 4) or any(not (r >= 0) for r in self.hybrid_standstill_rates_hz)):
             raise ValueError(f"hybrid_standstill_rates_hz = {self.hybrid_standstill_rates_hz!r}: expected () or three rates >= 0"
-                             " (no leader, standing leader, moving leader)")
+                             " (no leader, standing leader, moving leader) and optionally a fourth (at an intersection)")
         if len(self.lat_accels_mps2) != len(self.lat_accel_weights) or not self.lat_accels_mps2:
             raise ValueError("lat_accels_mps2 and lat_accel_weights must be non-empty and of equal length")
         if any(a <= 0 for a in self.lat_accels_mps2) or any(w < 0 for w in self.lat_accel_weights):

@@ -56,6 +56,8 @@ from stages.markov_prediction.signals import apply_signals, stop_line_wall
 __all__ = ["CV_LINE_ID", "FramePrediction", "MarkovPredictor", "PairInfo"]
 
 _NS = 1e-9
+#: ``MarkovPredictor.speed_noise`` is capped here (m/s): the calibrated spread's widest blur, and so the grid's margin, stays bounded
+SPEED_NOISE_CAP_MPS = 2.0
 
 
 # --------------------------------------------------------------------------- outputs
@@ -411,10 +413,28 @@ class MarkovPredictor:
         edges = self.grid.input_edges()
         return float(np.clip(shrunk, edges[0], edges[-1])), math.hypot(base, min(sigma, 1.0))
 
+    def speed_noise(self, track_id: int, stamp_ns: int) -> float:
+        """The scatter (m/s) of the vehicle's measured speeds over the last ``accel_window_s``: the standard deviation
+        of their residuals around the least-squares line (0 with fewer than 3 samples); capped at
+        ``SPEED_NOISE_CAP_MPS``. Read by a calibrated spread with ``speed_noise_gain`` (spread.py)."""
+        hist = self._history.get(track_id)
+        if hist is None or self.config.accel_window_s <= 0:
+            return 0.0
+        window = int(self.config.accel_window_s / _NS)
+        pts = [(t, v) for t, v in hist.samples if stamp_ns - window <= t <= stamp_ns]
+        if len(pts) < 3:
+            return 0.0
+        t = np.array([p[0] for p in pts], dtype=np.float64) * _NS
+        v = np.array([p[1] for p in pts])
+        t -= t.mean()
+        slope = float((t * (v - v.mean())).sum() / max(float((t * t).sum()), 1e-12))
+        residual = v - v.mean() - slope * t
+        return min(math.sqrt(float((residual**2).sum()) / (len(pts) - 2)), SPEED_NOISE_CAP_MPS)
+
     def _beliefs(self, belief: IntentionBelief | None, stamp: int, issues: list[Issue]) -> dict[int, dict[int, Any]] | None:
         """Per track, its CorridorBeliefs by corridor id; None when the config does not use them or none fit."""
         cfg = self.config
-        if cfg.corridor_weights != "intentions" and cfg.initial_box != "particles":
+        if cfg.corridor_weights != "intentions" and cfg.initial_box != "particles" and not (cfg.mode == "hybrid" and cfg.hybrid_stop_mixture):
             return None
         if belief is None:
             issues.append(Issue("no_intentions", -1, "no intention_belief: uniform corridor weights and measured boxes this frame"))
@@ -471,16 +491,20 @@ class MarkovPredictor:
                     width = float(frame.width_m[row])
             v0 = float(np.clip(vehicle.speed_mps, 0.0, cfg.v_max_mps))
             a0, sigma_a0 = self._acceleration(vehicle.track_id, stamp)
+            noise = self.speed_noise(vehicle.track_id, stamp) if self.spread is not None and self.spread.speed_noise_gain > 0 else 0.0
             standing = self.model.chain and v0 <= cfg.standstill_speed_mps and cfg.standstill_start_rate_hz > 0
             good = [c for c in vehicle.corridors if _corridor_ok(c, vehicle.track_id, issues)]
             if not good:
                 continue
             own = self.model.vehicle_pairs(Vehicle(vehicle, good, frame, row, v0, a0, length, width))
             if own is not None:
+                for q in own:
+                    q.speed_noise_mps = noise
                 pairs.extend(own)
                 continue
             weights = self._weights(vehicle, good, beliefs, issues)
             mine = beliefs.get(vehicle.track_id, {}) if beliefs is not None and cfg.initial_box == "particles" else {}
+            stops = beliefs.get(vehicle.track_id, {}) if beliefs is not None else {}  # P(stop) per corridor (hybrid_stop_mixture)
             for c, weight in zip(good, weights):
                 limit = c.speed_limit_mps if _positive(c.speed_limit_mps) else scene_limit_mps
                 s0, hs, hv, v_start = float(c.vehicle_s_m), 0.0, 0.0, v0
@@ -519,6 +543,9 @@ class MarkovPredictor:
                         half_width_v_mps=hv,
                         input_probs=lam,
                         measured_v_mps=float(vehicle.speed_mps),
+                        speed_noise_mps=noise,
+                        p_stop=float(stops[c.corridor_id].p_stop) if c.corridor_id in stops else math.nan,
+                        stop_distance_m=float(stops[c.corridor_id].stop_distance_m) if c.corridor_id in stops else math.nan,
                     )
                 )
         return pairs
@@ -785,7 +812,7 @@ class MarkovPredictor:
             for track, members in by_track.items():
                 p = pairs[members[0]]
                 speed = p.measured_v_mps if math.isfinite(p.measured_v_mps) else p.v0_mps
-                vehicle_grids[track] = blur_grid(frame, vehicle_grids[track], self.spread.sigmas(speed))
+                vehicle_grids[track] = blur_grid(frame, vehicle_grids[track], self.spread.sigmas(speed, p.speed_noise_mps, self.step_times_s))
         infos = tuple(PairInfo(p.track_id, p.corridor_id, p.probability, p.s0_m, p.s_first_m, p.end_s_m) for p in pairs)
         return FramePrediction(
             mode=cfg.mode,
@@ -820,7 +847,7 @@ class MarkovPredictor:
                 ys.append(fp.y_m[used].ravel())
         if not xs:
             return GridFrame(0.0, 0.0, cfg.grid_cell_m, 1, 1)
-        margin = cfg.grid_margin_m + (3.0 * float(self.spread.sigma_m.max()) if self.spread is not None else 0.0)  # the blur stays on the grid
+        margin = cfg.grid_margin_m + (3.0 * float(self.spread.max_sigma_m(self.step_times_s, SPEED_NOISE_CAP_MPS)) if self.spread is not None else 0.0)  # the blur stays on the grid
         return GridFrame.around(np.concatenate(xs), np.concatenate(ys), cfg.grid_cell_m, margin)
 
 
@@ -834,13 +861,25 @@ _CHAIN_ARRAYS = ("s_m", "x_m", "y_m", "heading_rad", "curvature_1pm", "input_pro
 
 def standstill_group(relation: CorridorRelations | None, config: MarkovPredictionConfig) -> int:
     """A standing vehicle's scene on one corridor: 0 no leader within ``standstill_leader_gap_m`` (or no relations),
-    1 a standing leader, 2 a leader faster than ``standstill_leader_moving_mps`` (it pulls away: the queue discharges)."""
-    if relation is None or relation.leader_track_id < 0 or not math.isfinite(relation.leader_gap_m):
-        return 0
-    if relation.leader_gap_m > config.standstill_leader_gap_m:
-        return 0
-    speed = relation.leader_speed_mps
-    return 2 if math.isfinite(speed) and speed > config.standstill_leader_moving_mps else 1
+    1 a standing leader, 2 a leader faster than ``standstill_leader_moving_mps`` (it pulls away: the queue discharges);
+    with a fourth rate in ``hybrid_standstill_rates_hz``, 3 (instead of 0 or 1): the vehicle stands inside an
+    intersection of the corridor or less than ``standstill_intersection_m`` before its entry (it waits for a gap)."""
+    group = 0
+    if relation is not None and relation.leader_track_id >= 0 and math.isfinite(relation.leader_gap_m) \
+            and relation.leader_gap_m <= config.standstill_leader_gap_m:
+        speed = relation.leader_speed_mps
+        group = 2 if math.isfinite(speed) and speed > config.standstill_leader_moving_mps else 1
+    if group != 2 and len(config.hybrid_standstill_rates_hz) == 4 and relation is not None and at_intersection(relation, config.standstill_intersection_m):
+        return 3
+    return group
+
+
+def at_intersection(relation: CorridorRelations, within_m: float) -> bool:
+    """The vehicle is inside one of the corridor's intersections or less than ``within_m`` before its entry."""
+    d = np.asarray(relation.intersection_distance_m, dtype=np.float64)
+    length = np.asarray(relation.intersection_exit_s_m, dtype=np.float64) - np.asarray(relation.intersection_entry_s_m, dtype=np.float64)
+    ok = np.isfinite(d) & np.isfinite(length)
+    return bool(np.any(ok & (d < within_m) & (d + length > 0)))
 
 
 def _non_finite(p: Pair) -> list[str]:

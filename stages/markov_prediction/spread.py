@@ -14,11 +14,13 @@ is (the spread is never narrowed). Mass blurred off the grid's frame is lost.
 File layout (``SCHEMA``)::
 
     {"schema": "iamp-spread-calibration/1", "modes": {"hybrid": {"bands_mps": [0.5, 2.0],
-     "sigma_m": [[...n_steps...], [...], [...]]}, ...}, "fitted_on": {...}}
+     "sigma_m": [[...n_steps...], [...], [...]], "speed_noise_gain": 1.0}, ...}, "fitted_on": {...}}
 
 ``bands_mps`` are the upper start-speed edges of all bands but the last
 (speed ≤ 0.5: standing, ≤ 2: slow, above: fast); ``sigma_m`` has one row
-per band and one σ per step.
+per band and one σ per step. ``speed_noise_gain`` (optional, 0 when absent)
+widens a vehicle's σ by its own speed noise (``SpreadTable``): a table fitted
+on a location with smooth tracks carries over to one whose speeds scatter.
 """
 
 from __future__ import annotations
@@ -41,19 +43,41 @@ SHIPPED = Path(__file__).with_name("spread.json")
 
 @dataclass(frozen=True)
 class SpreadTable:
-    """σ (m) per start-speed band (rows) and step (columns) of one mode."""
+    """σ (m) per start-speed band (rows) and step (columns) of one mode, and the gain of the vehicle's speed noise.
+
+    With ``speed_noise_gain`` g > 0 a vehicle whose measured speed scatters by
+    σ_v (m/s, the residual of its speeds around their straight-line fit over the
+    last ``accel_window_s``) gets σ_k = √(table_k² + (g·σ_v·t_k)²) at step k
+    (t_k = (k + 1)·τ): a speed known to ±σ_v puts the position ±σ_v·t off.
+    """
 
     bands_mps: tuple[float, ...]
     sigma_m: np.ndarray  # (len(bands_mps) + 1, n_steps)
+    speed_noise_gain: float = 0.0
 
     def band(self, speed_mps: float) -> int:
         return int(np.searchsorted(np.asarray(self.bands_mps), speed_mps, side="left"))
 
-    def sigmas(self, speed_mps: float) -> np.ndarray:
-        return self.sigma_m[self.band(speed_mps)]
+    def sigmas(self, speed_mps: float, speed_noise_mps: float = 0.0, step_times_s: np.ndarray | None = None) -> np.ndarray:
+        table = self.sigma_m[self.band(speed_mps)]
+        if self.speed_noise_gain <= 0 or step_times_s is None or not (speed_noise_mps > 0):
+            return table
+        return with_speed_noise(table, self.speed_noise_gain * speed_noise_mps, step_times_s)
+
+    def max_sigma_m(self, step_times_s: np.ndarray, noise_cap_mps: float) -> float:
+        """The widest σ this table gives (with the speed noise at its cap)."""
+        return float(with_speed_noise(self.sigma_m.max(axis=0), self.speed_noise_gain * noise_cap_mps, step_times_s).max())
 
     def as_dict(self) -> dict[str, Any]:
-        return {"bands_mps": list(self.bands_mps), "sigma_m": np.round(self.sigma_m, 4).tolist()}
+        out = {"bands_mps": list(self.bands_mps), "sigma_m": np.round(self.sigma_m, 4).tolist()}
+        if self.speed_noise_gain > 0:
+            out["speed_noise_gain"] = float(self.speed_noise_gain)
+        return out
+
+
+def with_speed_noise(sigmas_m: np.ndarray, noise_mps: float, step_times_s: np.ndarray) -> np.ndarray:
+    """√(σ_k² + (noise·t_k)²) per step."""
+    return np.hypot(np.asarray(sigmas_m, dtype=np.float64), noise_mps * np.asarray(step_times_s, dtype=np.float64))
 
 
 def resolve(path: str) -> Path:
@@ -76,12 +100,15 @@ def load_spread(path: str, mode: str, n_steps: int) -> SpreadTable | None:
     try:
         bands = tuple(float(b) for b in entry["bands_mps"])
         sigma = np.asarray(entry["sigma_m"], dtype=np.float64)
+        gain = float(entry.get("speed_noise_gain", 0.0))
     except (KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"{where}: mode {mode}: expected bands_mps and sigma_m ({exc})") from exc
+    if not (math.isfinite(gain) and gain >= 0):
+        raise ValueError(f"{where}: mode {mode}: speed_noise_gain must be a number >= 0, got {gain}")
     if sigma.shape != (len(bands) + 1, n_steps) or not np.all(np.isfinite(sigma)) or np.any(sigma < 0) or list(bands) != sorted(bands):
         raise ValueError(f"{where}: mode {mode}: sigma_m must be {len(bands) + 1} x {n_steps} finite values >= 0 (one row per band,"
                          f" one per step) and bands_mps increasing; got shape {sigma.shape}")
-    return SpreadTable(bands, sigma)
+    return SpreadTable(bands, sigma, gain)
 
 
 def write_spread(path: Path, tables: dict[str, SpreadTable], fitted_on: dict[str, Any]) -> None:

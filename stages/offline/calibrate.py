@@ -14,12 +14,18 @@ largest candidate when none does; 0 when the grid already reaches it: the
 spread is never narrowed), made non-decreasing over the steps. It writes the
 table to ``--out`` (the file the stage's ``spread_calibration`` reads) with
 the coverage it measured at the chosen σ on these windows (in-sample) and
-what it was fitted on.
+what it was fitted on. With ``--speed-noise-gain`` g (default 1) every
+candidate is first widened per vehicle to √(σ² + (g·σ_v·t_k)²), σ_v the
+scatter of the vehicle's measured speeds (``MarkovPredictor.speed_noise``),
+as the stage then blurs with the table (``speed_noise_gain`` in the file),
+so that the table holds what the vehicles' own speed noise does not; its
+"before" coverage is then that of the noise term alone.
 
 ::
 
     iamp calibrate --data $IAMP_TAF_BW --recording k729_2022-03-16 --model M.pt --out spread_k729.json
-        [--mode hybrid baseline corridor_cv cv] [--stride 0.8] [--seed 0] [--level 0.9] [--max-frames N] [--set K=V]...
+        [--mode hybrid baseline corridor_cv cv] [--stride 0.8] [--seed 0] [--level 0.9] [--max-frames N]
+        [--speed-noise-gain 1] [--set K=V]...
 """
 
 from __future__ import annotations
@@ -35,7 +41,8 @@ import numpy as np
 
 from stages.lib.base import json_safe
 from stages.markov_prediction.rasterise import highest_density_threshold
-from stages.markov_prediction.spread import SpreadTable, blur_step, write_spread
+from stages.markov_prediction.core import SPEED_NOISE_CAP_MPS
+from stages.markov_prediction.spread import SpreadTable, blur_step, with_speed_noise, write_spread
 from stages.offline.evaluation import EVAL_MODES, EvalConfig, Evaluation, _key_values
 
 #: candidate σ (m) along the corridor
@@ -43,23 +50,39 @@ SIGMAS_M = (0.0, 0.5, 1.0, 2.0, 3.0, 4.5, 6.0, 8.0, 11.0)
 #: upper start-speed edges of the bands but the last (standing, slow, fast); the slow/fast edge is iamp eval's
 BANDS_MPS = (0.5, 2.0)
 BAND_NAMES = ("standing", "slow", "fast")
+#: σ_v·t per vehicle (its own speed noise, ``MarkovPredictor.speed_noise``) added to every candidate and written as the
+#: table's ``speed_noise_gain``: physics (a speed known to ±σ_v puts the position ±σ_v·t off), not fitted. Chosen by
+#: what the two locations' tracks show (README "Calibrated grids"): K729's fast cars' speeds scatter by 0.03 m/s
+#: (median), K733's by 1.2 m/s, so a table fitted on one alone over- or under-covers the other
+SPEED_NOISE_GAIN = 1.0
 
 
 class SpreadCalibration(Evaluation):
     """``Evaluation`` that also scores every window's coverage under each candidate σ (per mode, band, step)."""
 
-    def __init__(self, config: EvalConfig, sigmas_m: tuple[float, ...] = SIGMAS_M, level: float = 0.9) -> None:
+    def __init__(self, config: EvalConfig, sigmas_m: tuple[float, ...] = SIGMAS_M, level: float = 0.9,
+                 speed_noise_gain: float = SPEED_NOISE_GAIN) -> None:
         if any(p == "spread_calibration" for p, _ in config.params):
             raise ValueError("iamp calibrate fits spread_calibration: do not --set it")
-        margin = dict(config.params).get("grid_margin_m", 3.0) + 3.0 * max(sigmas_m)  # no candidate's blur leaves the grid
+        if not (math.isfinite(speed_noise_gain) and speed_noise_gain >= 0):
+            raise ValueError(f"--speed-noise-gain {speed_noise_gain}: must be a number >= 0")
+        n_steps, tau = 10, 0.4  # the margin's bound; the predictors' own steps are read below
+        widest = math.hypot(max(sigmas_m), speed_noise_gain * SPEED_NOISE_CAP_MPS * n_steps * tau)
+        margin = dict(config.params).get("grid_margin_m", 3.0) + 3.0 * widest  # no candidate's blur leaves the grid
         super().__init__(dataclasses.replace(config, params=(*config.params, ("grid_margin_m", margin))))
         self.sigmas_m = tuple(float(s) for s in sigmas_m)
         self.level = level
+        self.speed_noise_gain = float(speed_noise_gain)
+        self._stamp = 0
         n_k = self.predictors[config.modes[0]].config.n_steps
         shape = (len(BAND_NAMES), n_k, len(self.sigmas_m))
         self.hits = {m: np.zeros(shape, np.int64) for m in config.modes}
         self.nll = {m: np.zeros(shape) for m in config.modes}
         self.count = {m: np.zeros((len(BAND_NAMES), n_k), np.int64) for m in config.modes}
+
+    def _instant(self, recording, sequence_id, stamp, *args, **kwargs) -> None:
+        self._stamp = int(stamp)  # for the vehicles' speed noise in _score
+        return super()._instant(recording, sequence_id, stamp, *args, **kwargs)
 
     def _score(self, prediction, track_id, future, acc, vehicle):
         result = super()._score(prediction, track_id, future, acc, vehicle)
@@ -71,9 +94,13 @@ class SpreadCalibration(Evaluation):
         self.count[mode][band] += 1
         frame = prediction.grid_frame
         cells_true = frame.flat_index(future[:, 0], future[:, 1])
+        noise = self.speed_noise_gain * self.predictors[mode].speed_noise(track_id, self._stamp) if self.speed_noise_gain > 0 else 0.0
+        times = prediction.step_times_s
         for k in range(future.shape[0]):
             cells, values = grid.step(k, frame.n_cells)
             for c, sigma in enumerate(self.sigmas_m):
+                # the candidate with the vehicle's own speed-noise term, as the stage blurs with the fitted table
+                sigma = float(with_speed_noise(sigma, noise, times[k])) if noise > 0 else sigma
                 covered, value = _truth_in_blurred(frame, cells, values, int(cells_true[k]), sigma, self.level)
                 self.hits[mode][band, k, c] += covered
                 self.nll[mode][band, k, c] -= math.log(max(value, self.config.nll_floor))
@@ -91,7 +118,7 @@ class SpreadCalibration(Evaluation):
                 for k in range(n.shape[1]):
                     chosen[b, k] = smallest_sigma(sig, cov[b, k], self.level) if n[b, k] else 0.0
                 chosen[b] = np.maximum.accumulate(chosen[b])
-            tables[mode] = SpreadTable(BANDS_MPS, chosen)
+            tables[mode] = SpreadTable(BANDS_MPS, chosen, self.speed_noise_gain)
             at = np.array([[np.interp(chosen[b, k], sig, cov[b, k]) for k in range(n.shape[1])] for b in range(n.shape[0])])
             nll = self.nll[mode] / np.maximum(n[..., None], 1)
             measured[mode] = {
@@ -200,6 +227,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the intentions particle filter (default 0)")
     parser.add_argument("--level", type=float, default=0.9, help="coverage the region of that level should reach (default 0.9)")
     parser.add_argument("--max-frames", type=int, default=0, help="stop each sequence after this many frames (0: all)")
+    parser.add_argument("--speed-noise-gain", type=float, default=SPEED_NOISE_GAIN,
+                        help=f"each vehicle's σ also grows by this × its speed noise × t (default {SPEED_NOISE_GAIN:g}; 0: the table alone)")
     parser.add_argument("--out", type=Path, required=True, help="calibration file to write (the stage's spread_calibration)")
     parser.add_argument("--json", type=Path, default=None, help="also write what was measured as JSON")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -219,7 +248,7 @@ def run_cli(args) -> int:
             stride_s=args.stride, max_frames_per_sequence=max(args.max_frames, 0), progress=not args.no_progress,
             coverage_level=args.level,
         )
-        cal = SpreadCalibration(config, level=args.level)
+        cal = SpreadCalibration(config, level=args.level, speed_noise_gain=args.speed_noise_gain)
         cal.run()
     except ValueError as exc:
         sys.stderr.write(f"iamp calibrate: error: {exc}\n")
@@ -227,6 +256,7 @@ def run_cli(args) -> int:
     tables, measured = cal.fit()
     fitted_on = {"data": str(args.data), "recordings": cal.recordings, "stride_s": args.stride, "seed": args.seed,
                  "model": str(args.model) if args.model else "shipped", "level": args.level, "sigmas_m": list(cal.sigmas_m),
+                 "speed_noise_gain": cal.speed_noise_gain,
                  "params": {k: v for k, v in config.params}, "windows": {m: measured[m]["windows"] for m in tables}}
     write_spread(args.out, tables, fitted_on)
     print(format_fit(tables, measured))

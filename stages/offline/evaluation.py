@@ -498,7 +498,8 @@ class Evaluation:
 
     def _sequence(self, rec: Recording, seq, map_sha256: str, bar) -> None:
         cfg = self.config
-        needs_belief = any(p.config.corridor_weights == "intentions" or p.config.initial_box == "particles" for p in self.predictors.values())
+        needs_belief = any(p.config.corridor_weights == "intentions" or p.config.initial_box == "particles"
+                           or (p.config.mode == "hybrid" and p.config.hybrid_stop_mixture) for p in self.predictors.values())
         chain = Chain(
             rec, seq, self.scene_maps, intentions=self.intentions_config if needs_belief else None, max_frames=cfg.max_frames_per_sequence,
             map_sha256=map_sha256, on_error=lambda stage, where, exc: self._skip(f"{stage}_error_frames", f"{where}: {type(exc).__name__}: {exc}"),

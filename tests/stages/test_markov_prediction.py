@@ -385,6 +385,26 @@ def test_particle_box_widens_the_initial_spread(stencils):
     assert spreads["particles"] > spreads["measurement"] + 0.5
 
 
+def test_initial_box_default_is_per_mode_and_decides_where_the_chain_starts(stencils):
+    # "auto" (the default) resolves to the mode's box: the measurement for hybrid and corridor_cv, the particles for baseline
+    assert MarkovPredictionConfig().initial_box == "particles"  # baseline is the default mode
+    assert {m: MarkovPredictionConfig(mode=m).initial_box for m in ("hybrid", "corridor_cv", "baseline", "cv")} == {
+        "hybrid": "measurement", "corridor_cv": "measurement", "baseline": "particles", "cv": "measurement"}
+    assert MarkovPredictionConfig(mode="hybrid", initial_box="particles").initial_box == "particles"  # an explicit box wins
+    assert MarkovPredictionConfig.from_params({"mode": "corridor_cv", "initial_box": "auto"}).initial_box == "measurement"
+    # the particles say 6 m/s at s = 9 m, the measurement 10 m/s at s = 5 m: the default box of each mode decides the start
+    cs = _corridor_set(_vehicle(1, 10.0, [_corridor(7)]))
+    belief = _belief(1, {7: 1.0}, s={7: (9.0, 0.1)}, v={7: (6.0, 0.1)})
+    starts = {}
+    for mode in ("hybrid", "corridor_cv", "baseline"):
+        predictor = MarkovPredictor(MarkovPredictionConfig(mode=mode), stencils=stencils)
+        prediction, _ = predictor.process(cs, _relation_set(_relation(1, 7)), intention_belief=belief,
+                                          acceleration_profiles=_profiles(1, 7, 0.0) if mode == "hybrid" else None)
+        starts[mode] = float(prediction.mean_s_m[0, -1])  # s at 4 s
+    assert abs(starts["corridor_cv"] - (5.0 + 40.0)) < 1.0 and abs(starts["hybrid"] - (5.0 + 40.0)) < 2.0
+    assert abs(starts["baseline"] - (9.0 + 24.0)) < 3.0
+
+
 def test_hybrid_follows_the_ar_distributions(stencils):
     predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", **PLAIN), stencils=stencils)
     cs = _corridor_set(_vehicle(1, 10.0, [_corridor(7)]))
@@ -442,3 +462,27 @@ def test_hybrid_rules_keeps_the_leader_rule_that_plain_hybrid_leaves_to_the_mode
     assert ends[True] < ends[False] - 5.0, ends
     with pytest.raises(ValueError, match="hybrid_rules_standing"):
         MarkovPredictionConfig(mode="hybrid", hybrid_rules=True, hybrid_rules_standing="maybe")
+
+
+def test_hybrid_stop_mixture_brakes_by_the_intentions_p_stop(stencils):
+    """hybrid_stop_mixture: a moving car with P(stop) 0.9 on its corridor and the stop position 20 m ahead is predicted
+    to brake (mean at 4 s well short of the AR's constant speed), with P(stop) 0 as the AR says; off: P(stop) unused."""
+    import dataclasses
+
+    cs = _corridor_set(_vehicle(1, 8.0, [_corridor(7)]))
+
+    def belief(p_stop: float) -> bs.IntentionBelief:
+        b = _belief(1, {7: 1.0})
+        c = dataclasses.replace(b.vehicles[0].corridors[0], p_stop=p_stop, stop_distance_m=20.0)
+        return dataclasses.replace(b, vehicles=(dataclasses.replace(b.vehicles[0], corridors=(c,)),))
+
+    ends = {}
+    for mix in (False, True):
+        predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", hybrid_stop_mixture=mix), stencils=stencils)
+        for p in (0.0, 0.9):
+            prediction, _ = predictor.process(cs, _relation_set(_relation(1, 7)), intention_belief=belief(p),
+                                              acceleration_profiles=_profiles(1, 7, 0.0))
+            ends[mix, p] = float(prediction.mean_s_m[0, -1]) - 5.0
+    assert abs(ends[True, 0.0] - ends[False, 0.0]) < 1e-6 and abs(ends[False, 0.9] - ends[False, 0.0]) < 1e-6
+    assert abs(ends[False, 0.0] - 32.0) < 2.0  # 8 m/s for 4 s
+    assert ends[True, 0.9] < 26.0, ends  # braking at a = 8² / 40 = 1.6 m/s² with weight 0.9 stops after ~20 m

@@ -15,7 +15,7 @@ import pytest
 from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
 from stages.markov_prediction.spread import SCHEMA, SpreadTable, blur_grid, load_spread, write_spread
 from stages.offline.calibrate import smallest_sigma
-from tests.stages.test_markov_prediction import PLAIN, _corridor, _corridor_set, _profiles, _relation, _relation_set, _vehicle
+from tests.stages.test_markov_prediction import PLAIN, STAMP, _corridor, _corridor_set, _profiles, _relation, _relation_set, _vehicle
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -120,6 +120,7 @@ def test_iamp_calibrate_writes_a_file_the_stage_reads(tmp_path):
     assert data["fitted_on"]["recordings"] and data["fitted_on"]["level"] == 0.9
     table = load_spread(str(out), "cv", 10)
     assert table.sigma_m.shape == (3, 10) and np.all(np.diff(table.sigma_m, axis=1) >= 0)
+    assert table.speed_noise_gain == 1.0 and data["fitted_on"]["speed_noise_gain"] == 1.0  # the default gain is written
     MarkovPredictor(MarkovPredictionConfig(mode="cv", spread_calibration=str(out)))  # the stage takes it
     bad = subprocess.run([sys.executable, "-m", "stages.cli", "calibrate", "--mode", "cv", "--out", str(out), "--set",
                           f"spread_calibration={out}"], cwd=ROOT, env=env, capture_output=True, text=True)
@@ -151,3 +152,88 @@ def test_hybrid_standing_car_stays_unless_its_leader_pulls_away(stencils):
     assert float(old.mean_s_m[0, -1]) - 5.0 > 1.0  # the fixed rate 0.055 /s lets ~20 % start by 4 s
     with pytest.raises(ValueError, match="three rates"):
         MarkovPredictionConfig(mode="hybrid", hybrid_standstill_rates_hz=(0.1, 0.2))
+
+
+def _at_intersection(rel, distance_m: float, length_m: float = 20.0):
+    """``rel`` with one intersection whose entry lies ``distance_m`` ahead of the vehicle (negative: inside)."""
+    import dataclasses
+
+    entry = 5.0 + distance_m
+    return dataclasses.replace(rel, intersection_ids=np.array([1], np.int64), intersection_entry_s_m=np.array([entry]),
+                               intersection_exit_s_m=np.array([entry + length_m]), intersection_distance_m=np.array([distance_m]),
+                               intersection_entry_lanelet_ids=np.array([1], np.int64))
+
+
+def test_hybrid_standing_car_at_an_intersection_starts_with_the_fourth_rate(stencils):
+    """A fourth rate is that of a car standing inside an intersection or within standstill_intersection_m of its entry
+    (it waits for a gap); further back it stays; with three rates the intersection makes no difference."""
+    from stages.markov_prediction.core import standstill_group
+
+    four = MarkovPredictionConfig(mode="hybrid", hybrid_standstill_rates_hz=(0.0, 0.0, 1.5, 1.0), standstill_intersection_m=8.0, **PLAIN)
+    three = MarkovPredictionConfig(mode="hybrid", hybrid_standstill_rates_hz=(0.0, 0.0, 1.5), **PLAIN)
+    cs, _ = _standing_scene(None)
+    near, inside, far, passed = (_at_intersection(_relation(1, 7), d) for d in (3.0, -5.0, 15.0, -30.0))
+    standing_leader = _at_intersection(_relation(1, 7, leader=2, gap=6.0, leader_speed=0.0), 3.0)
+    moving_leader = _at_intersection(_relation(1, 7, leader=2, gap=6.0, leader_speed=3.0), 3.0)
+    assert [standstill_group(r, four) for r in (near, inside, far, passed, standing_leader, moving_leader)] == [3, 3, 0, 0, 3, 2]
+    assert [standstill_group(r, three) for r in (near, inside, far, standing_leader)] == [0, 0, 0, 1]
+    moved = {}
+    for name, config in (("four", four), ("three", three)):
+        predictor = MarkovPredictor(config, stencils=stencils)
+        for where, rel in (("near", near), ("far", far)):
+            prediction, _ = predictor.process(cs, _relation_set(rel), acceleration_profiles=_profiles(1, 7, 1.5))
+            moved[name, where] = float(prediction.mean_s_m[0, -1]) - 5.0
+    assert moved["four", "near"] > 4.0 and abs(moved["four", "far"]) < 0.3, moved
+    assert abs(moved["three", "near"]) < 0.3, moved
+    with pytest.raises(ValueError, match="three rates"):
+        MarkovPredictionConfig(mode="hybrid", hybrid_standstill_rates_hz=(0.1, 0.2, 0.3, 0.4, 0.5))
+
+
+def test_hybrid_start_accel_replaces_the_ar_inputs_of_standing_cars_only(stencils):
+    """With hybrid_start_accel_mps2 the starting part of a standing car accelerates at that rate whatever the AR says
+    (here -1 m/s²: it would not move); a moving car keeps its AR distributions."""
+    rates = {"hybrid_standstill_rates_hz": (0.0, 0.0, 50.0)}  # behind a leader that pulls away: starts at once
+    ar = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", **rates, **PLAIN), stencils=stencils)
+    start = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", hybrid_start_accel_mps2=1.5, **rates, **PLAIN), stencils=stencils)
+    cs, rs = _standing_scene(3.0)
+    moved = {name: float(p.process(cs, rs, acceleration_profiles=_profiles(1, 7, -1.0))[0].mean_s_m[0, -1]) - 5.0
+             for name, p in (("ar", ar), ("start", start))}
+    assert moved["ar"] < 2.0 and 8.0 < moved["start"] < 14.0, moved  # ½·1.5·16 = 12 m
+    moving = _corridor_set(_vehicle(1, 10.0, [_corridor(7)]))
+    a = ar.process(moving, _relation_set(_relation(1, 7)), acceleration_profiles=_profiles(1, 7, -1.0))[0]
+    b = start.process(moving, _relation_set(_relation(1, 7)), acceleration_profiles=_profiles(1, 7, -1.0))[0]
+    np.testing.assert_allclose(a.mean_s_m, b.mean_s_m)
+
+
+def test_speed_noise_widens_the_calibrated_spread_of_a_scattering_track_only(tmp_path, stencils):
+    """With speed_noise_gain the σ of a vehicle whose speeds scatter grows by σ_v·t; a smooth track keeps the table's σ;
+    the means never move; a file without the key (gain 0) ignores the scatter."""
+    from stages.markov_prediction.core import SPEED_NOISE_CAP_MPS
+
+    table = SpreadTable((0.5, 2.0), np.full((3, 10), 1.0), speed_noise_gain=1.0)
+    t = (np.arange(10) + 1) * 0.4
+    np.testing.assert_allclose(table.sigmas(8.0, 0.5, t), np.hypot(1.0, 0.5 * t))
+    np.testing.assert_allclose(table.sigmas(8.0, 0.0, t), 1.0)
+    path = tmp_path / "noise.json"
+    write_spread(path, {"corridor_cv": table}, {"test": True})
+    assert load_spread(str(path), "corridor_cv", 10).speed_noise_gain == 1.0
+    plain_path = _spread_file(tmp_path, "corridor_cv", 1.0)
+    assert load_spread(str(plain_path), "corridor_cv", 10).speed_noise_gain == 0.0
+
+    def run(spread: Path, speeds) -> tuple:
+        predictor = MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv", spread_calibration=str(spread), **PLAIN), stencils=stencils)
+        for i, v in enumerate(speeds):  # 0.1 s apart; the last frame is predicted
+            pred, _ = predictor.process(_corridor_set(_vehicle(1, v, [_corridor(7)]), stamp=STAMP + i * 100_000_000),
+                                        _relation_set(_relation(1, 7), stamp=STAMP + i * 100_000_000))
+        noise = predictor.speed_noise(1, STAMP + (len(speeds) - 1) * 100_000_000)
+        cells, values = pred.vehicle_grids[1].step(9, pred.grid_frame.n_cells)
+        return noise, int((values > 1e-4).sum()), pred.mean_xy_m
+
+    smooth, scatter = [8.0] * 11, [8.0 + (1.5 if i % 2 else -1.5) for i in range(10)] + [8.0]
+    n_smooth, cells_smooth, mean_smooth = run(path, smooth)
+    n_scatter, cells_scatter, mean_scatter = run(path, scatter)
+    assert n_smooth == pytest.approx(0.0, abs=1e-9) and 1.0 < n_scatter <= SPEED_NOISE_CAP_MPS
+    assert cells_scatter > 2 * cells_smooth  # σ at 4 s √(1 + (1.6·4)²) ≈ 6.5 m against 1 m
+    np.testing.assert_allclose(mean_scatter, mean_smooth)
+    _, cells_plain, _ = run(plain_path, scatter)
+    assert cells_plain == cells_smooth

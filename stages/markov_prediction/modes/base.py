@@ -51,6 +51,9 @@ class Pair:
     half_width_v_mps: float = 0.0
     input_probs: np.ndarray | None = None  # (K, M) hybrid mode: λ(0..K-1) from the AR model
     measured_v_mps: float = math.nan  # the vehicle's speed before clipping to [0, v_max] (a faster one is not chained)
+    speed_noise_mps: float = 0.0  # scatter of its measured speeds (MarkovPredictor.speed_noise); read by a spread with speed_noise_gain
+    p_stop: float = math.nan  # the intentions stage's P(stop | this corridor), NaN without a belief
+    stop_distance_m: float = math.nan  # ... and the distance to the stop position on it
 
     @property
     def end_s_m(self) -> float:

@@ -9,7 +9,10 @@ acceleration), starts the chain from λ(0) and after step k applies
 inside the baseline's whole rule set (speed, leader, crossing; its
 ``_BaselineInputs`` with ``ar_lam``), and ``hybrid_rules_standing`` "rules"
 keeps the rules' own preference for standing vehicles: an experiment, off by
-default (README, Evaluation: no gain on the held-out location).
+default (README, Evaluation: no gain on the held-out location). With
+``hybrid_stop_mixture`` (an experiment, off by default) a moving pair's λ_AR(k) is mixed with a
+braking input by the intentions stage's P(stop) on its corridor
+(``stop_mixture``; docs/method.md §8.5).
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from scipy.special import ndtr
 
 from bus_schemas import AccelerationProfiles
 from stages.lib.base import Issue
@@ -86,10 +90,47 @@ class _HybridInputs(ChainInputs):
 
 
 def _stack_inputs(p: Predictor, pairs: list[Pair]) -> np.ndarray:
-    """λ(0..K-1) of every pair as (B, K, M); a pair without a profile holds its measured acceleration."""
+    """λ(0..K-1) of every pair as (B, K, M); a pair without a profile holds its measured acceleration; with
+    ``hybrid_start_accel_mps2`` > 0 a standing pair's (the part of its mixture that starts) is ``start_inputs``."""
     measured = p.measured_inputs(pairs)
-    return np.stack([q.input_probs if q.input_probs is not None else np.repeat(measured[b][None], p.config.n_steps, axis=0)
-                     for b, q in enumerate(pairs)])
+    lam = np.stack([q.input_probs if q.input_probs is not None else np.repeat(measured[b][None], p.config.n_steps, axis=0)
+                    for b, q in enumerate(pairs)])
+    standing = np.array([q.start_rate_hz > 0 for q in pairs])
+    if p.config.hybrid_stop_mixture:
+        lam = stop_mixture(p, pairs, lam, standing)
+    if p.config.hybrid_start_accel_mps2 > 0 and np.any(standing):
+        lam = lam.copy()
+        lam[standing] = start_inputs(p.grid.input_edges(), p.config.hybrid_start_accel_mps2, p.config.hybrid_start_sigma_mps2)[None, None]
+    return lam
+
+
+def stop_mixture(p: Predictor, pairs: list[Pair], lam: np.ndarray, standing: np.ndarray) -> np.ndarray:
+    """(1 − P(stop))·λ_AR(k) + P(stop)·(a braking input that stops the pair at its stop position or behind its leader)
+    for every moving pair with a P(stop) of the intentions stage (``hybrid_stop_mixture``)."""
+    cfg = p.config
+    edges = p.grid.input_edges()
+    out = lam
+    for b, q in enumerate(pairs):
+        if standing[b] or not (q.p_stop > 0) or q.v0_mps <= cfg.standstill_speed_mps:
+            continue
+        d = q.stop_distance_m if np.isfinite(q.stop_distance_m) else np.inf
+        rel = q.relation
+        if rel is not None and rel.leader_track_id >= 0 and np.isfinite(rel.leader_gap_m):
+            d = min(d, float(rel.leader_gap_m) - cfg.hybrid_stop_gap_m)
+        a = 3.0 if d <= 0.5 else float(np.clip(q.v0_mps**2 / (2.0 * d), 0.5, 3.0)) if np.isfinite(d) else 0.5
+        if out is lam:
+            out = lam.copy()
+        w = float(min(q.p_stop, 1.0))
+        out[b] = (1.0 - w) * lam[b] + w * start_inputs(edges, -a, cfg.hybrid_start_sigma_mps2)[None]
+    return out
+
+
+def start_inputs(edges: np.ndarray, accel_mps2: float, sigma_mps2: float) -> np.ndarray:
+    """(M,): a normal of mean ``accel_mps2`` and σ ``sigma_mps2`` over the input cells of ``edges`` (tails folded)."""
+    cdf = ndtr((np.asarray(edges, dtype=np.float64) - accel_mps2) / sigma_mps2)
+    cdf[0], cdf[-1] = 0.0, 1.0
+    probs = np.diff(cdf)
+    return probs / probs.sum()
 
 
 def _profiles(p, profiles: AccelerationProfiles | None, stamp: int, issues: list[Issue]) -> dict[tuple[int, int], np.ndarray] | None:
