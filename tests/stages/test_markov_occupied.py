@@ -53,3 +53,34 @@ def test_compiled_priority_at_states_equals_combine_with_preference(forbid_thres
     assert got.dtype == np.float32 and got.shape == expected.shape
     np.testing.assert_array_equal(got, expected)
     assert np.any(got[:, 0] == 1.0) and np.any(got[:, 0] < 1.0)
+
+
+@pytest.mark.skipif(not kernels.available(), reason="numba does not import")
+def test_compiled_speed_restriction_equals_the_numpy_definition():
+    """kernels.speed_restriction (all pairs in one pass) is priority.speed_restriction per pair, bit for bit: profiles of
+    different lengths (shorter and longer than the N_v·L queries), curves, queries on knots and past both ends."""
+    from stages.markov_prediction import priority as pr
+
+    grid = MarkovGridConfig()
+    v, a = grid.v_centres_mps(), grid.input_centres_mps2()
+    rng = np.random.default_rng(3)
+    lat = np.array([3.0, 2.5, 2.0, 1.5])
+    weights = np.array([0.1, 0.2, 0.4, 0.3])
+    profiles, adms, cells = [], [], []
+    for b, n in enumerate([2, 7, 150, 400, 5000]):
+        s = np.cumsum(rng.uniform(0.2, 1.5, n)) - rng.uniform(0, 20)  # irregular knots
+        if b == 2:
+            s = np.round(s * 2) / 2  # knots on the half metre: cell centres + v·τ land on them
+            s = np.unique(s)
+        kappa = np.where((s > 30) & (s < 60), 1.0 / rng.uniform(8, 40), 0.0) + rng.normal(0, 1e-3, s.size)
+        adm = pr.admissible_speeds(s, kappa, rng.uniform(8, 17), lat, 2.0, 4.0)
+        profiles.append(s)
+        adms.append(adm)
+        cells.append(rng.uniform(-25, 10) + 0.5 + np.arange(grid.n_s_cells) * 1.0)
+    cells = np.array(cells)
+    cells[2, :20] = profiles[2][5:25] - v[0] * 0.4  # queries exactly on knots
+    got = kernels.speed_restriction(profiles, adms, cells, v, a, weights, 0.4)
+    for b in range(len(profiles)):
+        want = pr.speed_restriction(adms[b], profiles[b], cells[b], v, a, weights, 0.4)
+        np.testing.assert_array_equal(got[b], want, err_msg=f"pair {b}")
+    assert 0.0 < got.mean() < 1.0 and np.any(got == 0.0) and np.any(got == np.float32(1.0))  # the cases restrict something

@@ -255,6 +255,61 @@ if numba is not None:
                 out[n, 0] = np.float32(1.0)
         return out
 
+    @numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
+    def _speed_restriction(xp, fp, start, cell_s, v_c, a_c, w32, tau):  # pragma: no cover - compiled
+        n_b, n_l = cell_s.shape
+        n_j, n_v, n_in = fp.shape[0], v_c.shape[0], a_c.shape[0]
+        out = np.zeros((n_b, n_in, n_v, n_l), np.float32)
+        for b in range(n_b):
+            lo, n = start[b], start[b + 1] - start[b]
+            n_query = n_v * n_l
+            for v in range(n_v):
+                for l in range(n_l):
+                    x = cell_s[b, l] + v_c[v] * tau
+                    # np.interp's search: j = -1 left of the knots, n right of them, else the last knot <= x
+                    if np.isnan(x):
+                        j = -2
+                    elif x > xp[lo + n - 1]:
+                        j = n
+                    elif x < xp[lo]:
+                        j = -1
+                    else:
+                        i0, i1 = 0, n - 1  # xp[i0] <= x, find the largest such index
+                        while i1 > i0:
+                            mid = (i0 + i1 + 1) // 2
+                            if xp[lo + mid] <= x:
+                                i0 = mid
+                            else:
+                                i1 = mid - 1
+                        j = i0
+                    for jj in range(n_j):
+                        if j == -2:
+                            val = x
+                        elif j == -1:
+                            val = fp[jj, lo]
+                        elif j >= n - 1:
+                            val = fp[jj, lo + n - 1]
+                        elif xp[lo + j] == x:
+                            val = fp[jj, lo + j]
+                        else:
+                            y0, y1 = fp[jj, lo + j], fp[jj, lo + j + 1]
+                            if n <= n_query:  # np.interp precomputes the slopes with 1/dx then
+                                slope = (y1 - y0) * (1.0 / (xp[lo + j + 1] - xp[lo + j]))
+                            else:
+                                slope = (y1 - y0) / (xp[lo + j + 1] - xp[lo + j])
+                            val = slope * (x - xp[lo + j]) + y0
+                            if np.isnan(val):
+                                val = slope * (x - xp[lo + j + 1]) + y1
+                                if np.isnan(val) and y0 == y1:
+                                    val = y0
+                        threshold = (val - v_c[v]) / tau
+                        wj = w32[jj]
+                        for a in range(n_in):
+                            if a_c[a] <= threshold:
+                                out[b, a, v, l] += wj
+        return out
+
+
 def fused_step(slab, src_lo, lo, hi, n_s, tables, with_interval, threshold):
     """See the module docstring. The slab holds the s-cells [src_lo, src_lo + L) and p⁻ the cells [lo, hi) (the
     window of this step: the slab's occupied cells lie in it), so that a moving window costs no copy. ``tables``: ``stencil_tables`` of Υ(τ) then ``collapsed_tables`` of Υ([0, τ]).
@@ -293,6 +348,29 @@ def priority_at_states(restriction, preference, b_idx, v_idx, s_idx, forbid_thre
                                np.float32(forbid_threshold))
 
 
+def speed_restriction(profile_s_m, admissible_mps, cell_s_m, v_centres_mps, input_centres_mps2, weights, tau_s):
+    """λ_speed ``(B, M, N_v, L) float32`` of B pairs, the numbers of ``stages.markov_prediction.priority.speed_restriction``
+    per pair (Σ_j w_j · 1[a_α ≤ (v_adm,j(s + vτ) − v)/τ], float32 sums in the order of j, v_adm interpolated as
+    ``np.interp`` does), in one pass without the (J, M, N_v, L) temporaries.
+
+    ``profile_s_m`` and ``admissible_mps`` are lists of the pairs' profiles ((n_b,) and (J, n_b)), ``cell_s_m`` (B, L)
+    the s-cell centres of each pair. tests/stages/test_markov_occupied.py checks it bit for bit against the numpy
+    definition on real frames and synthetic profiles.
+    """
+    n_b = len(profile_s_m)
+    n_j = int(np.shape(weights)[0])
+    start = np.zeros(n_b + 1, np.int64)
+    if n_b:
+        start[1:] = np.cumsum([len(s) for s in profile_s_m])
+        xp = np.concatenate([np.asarray(s, dtype=np.float64) for s in profile_s_m])
+        fp = np.concatenate([np.asarray(a, dtype=np.float64).reshape(n_j, -1) for a in admissible_mps], axis=1)
+    else:
+        xp, fp = np.zeros(0), np.zeros((n_j, 0))
+    return _speed_restriction(xp, np.ascontiguousarray(fp), start, np.ascontiguousarray(cell_s_m, dtype=np.float64).reshape(n_b, -1),
+                              np.asarray(v_centres_mps, dtype=np.float64), np.asarray(input_centres_mps2, dtype=np.float64),
+                              np.asarray(weights, dtype=np.float64).astype(np.float32), float(tau_s))
+
+
 _warm = False
 
 
@@ -312,4 +390,5 @@ def warm_up() -> None:
     lam = np.ones((s_idx.shape[0], 2), np.float32)
     priority_occupied(slab, s_idx, v_idx, b_idx, lam, np.eye(2, dtype=np.float32), np.ones(1, np.float32))
     priority_at_states(np.ones((1, 2, 2, 2), np.float32), np.ones((1, 2), np.float32), b_idx, v_idx, s_idx, 0.0)
+    speed_restriction([np.arange(3.0)], [np.ones((1, 3))], np.zeros((1, 2)), np.ones(2), np.zeros(2), np.ones(1), 0.4)
     _warm = True

@@ -20,6 +20,7 @@ import numpy as np
 from bus_schemas import AgentType
 from stages.lib.base import Issue
 from stages.lib.datasets import DEFAULT_SIZES_M
+from stages.lib.markov import kernels
 from stages.markov_prediction import priority as pr
 from stages.markov_prediction.chain import InputPriority
 from stages.markov_prediction.modes.base import ChainInputs, InputModel, Messages, Pair, Predictor
@@ -292,14 +293,17 @@ def speed_restriction(predictor: Predictor, pairs: list[Pair]) -> np.ndarray:
     """λ_speed (B, M, N_v, N_s) per pair, static over the steps (§4.2); also the hybrid mode's cut."""
     cfg, grid, n_s = predictor.config, predictor.grid, predictor.n_s
     cell_centre = grid.s_edges_m()[:n_s] + 0.5 * cfg.ds_m
-    lam_speed = np.empty((len(pairs), grid.n_inputs, grid.n_v_cells, n_s), np.float32)
     weights = np.asarray(cfg.lat_accel_weights, dtype=np.float64)
     weights = weights / weights.sum()
+    lat_accels = np.asarray(cfg.lat_accels_mps2)
+    adm = [pr.admissible_speeds(p.s_m, p.curvature_1pm, p.speed_limit_mps, lat_accels, cfg.lookahead_brake_mps2, cfg.curvature_smoothing_m)
+           for p in pairs]
+    if kernels.available() and pairs:  # the same numbers, compiled, all pairs in one pass (kernels.speed_restriction)
+        cells = np.array([p.s_first_m for p in pairs])[:, None] + cell_centre[None, :]
+        return kernels.speed_restriction([p.s_m for p in pairs], adm, cells, predictor.v_centres, predictor.a_centres, weights, cfg.tau_s)
+    lam_speed = np.empty((len(pairs), grid.n_inputs, grid.n_v_cells, n_s), np.float32)
     for b, p in enumerate(pairs):
-        adm = pr.admissible_speeds(
-            p.s_m, p.curvature_1pm, p.speed_limit_mps, np.asarray(cfg.lat_accels_mps2), cfg.lookahead_brake_mps2, cfg.curvature_smoothing_m
-        )
-        lam_speed[b] = pr.speed_restriction(adm, p.s_m, p.s_first_m + cell_centre, predictor.v_centres, predictor.a_centres, weights, cfg.tau_s)
+        lam_speed[b] = pr.speed_restriction(adm[b], p.s_m, p.s_first_m + cell_centre, predictor.v_centres, predictor.a_centres, weights, cfg.tau_s)
     return lam_speed
 
 
