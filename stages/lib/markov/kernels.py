@@ -30,6 +30,8 @@ compare against).
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
 try:  # pragma: no cover - exercised where numba is missing only
@@ -375,6 +377,32 @@ if numba is not None:
                 out[n, 0] = np.float32(1.0)
         return out
 
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _sum_by_key(keys, values, slot):  # pragma: no cover - compiled
+        """Sorted unique keys and the sum of their values, each sum taken in the order of the input from 0.0 (as
+        np.bincount adds); ``slot`` (> max key, all -1) is scratch, left all -1."""
+        n = keys.shape[0]
+        uniq = np.empty(n, np.int64)
+        sums = np.empty(n, np.float64)
+        m = 0
+        for i in range(n):
+            k = keys[i]
+            j = slot[k]
+            if j < 0:
+                j = m
+                slot[k] = m
+                uniq[m] = k
+                sums[m] = 0.0
+                m += 1
+            sums[j] += values[i]
+        ordered = np.sort(uniq[:m])
+        out = np.empty(m, np.float64)
+        for i in range(m):
+            out[i] = sums[slot[ordered[i]]]
+        for i in range(m):
+            slot[uniq[i]] = -1
+        return ordered, out
+
 
 def fused_step(slab, src_lo, lo, hi, n_s, tables, with_interval, threshold):
     """See the module docstring. The slab holds the s-cells [src_lo, src_lo + L) and p⁻ the cells [lo, hi) (the
@@ -487,6 +515,32 @@ def speed_restriction(profile_s_m, admissible_mps, cell_s_m, v_centres_mps, inpu
     return SpeedRestriction(profile_s_m, admissible_mps, cell_s_m, v_centres_mps, input_centres_mps2, weights, tau_s).full()
 
 
+#: ``sum_by_key`` uses its compiled scratch for keys below this (an int32 per key), np.unique above.
+SUM_BY_KEY_MAX_KEY = 1 << 24
+_slots = threading.local()
+
+
+def sum_by_key(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(sorted unique keys, sum of the values of each), the numbers of ``u, inv = np.unique(keys,
+    return_inverse=True); np.bincount(inv, weights=values)`` (each sum in input order), without the sort of every key:
+    one pass through a scratch table of slots per key (per thread, kept between calls), then a sort of the unique keys
+    only. Keys must be non-negative integers; at or above ``SUM_BY_KEY_MAX_KEY`` (or without numba) np.unique."""
+    keys = np.asarray(keys, dtype=np.int64)
+    values = np.asarray(values, dtype=np.float64)
+    if keys.size == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.float64)
+    top = int(keys.max())
+    if numba is None or top >= SUM_BY_KEY_MAX_KEY or int(keys.min()) < 0:
+        unique, inverse = np.unique(keys, return_inverse=True)
+        return unique, np.bincount(inverse.reshape(-1), weights=values.reshape(-1), minlength=unique.size)
+    slot = getattr(_slots, "table", None)
+    if slot is None or slot.shape[0] <= top:
+        slot = np.full(max(top + 1, 1 << 16, 2 * (0 if slot is None else slot.shape[0])), -1, np.int32)
+        slot = slot[: min(slot.shape[0], SUM_BY_KEY_MAX_KEY)]
+        _slots.table = slot
+    return _sum_by_key(np.ascontiguousarray(keys.reshape(-1)), np.ascontiguousarray(values.reshape(-1)), slot)
+
+
 _warm = False
 
 
@@ -509,4 +563,5 @@ def warm_up() -> None:
     lazy = SpeedRestriction([np.arange(3.0)], [np.ones((1, 3))], np.zeros((1, 2)), np.ones(2), np.arange(2.0), np.ones(1), 0.4)
     lazy.priority_at_states(np.ones((1, 2), np.float32), np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64), 0.0)
     lazy.full()
+    sum_by_key(np.array([3, 1, 3], np.int64), np.ones(3))
     _warm = True
