@@ -92,3 +92,7 @@ def test_compiled_speed_restriction_equals_the_numpy_definition():
             np.testing.assert_array_equal(got, combine_with_preference(want[b_idx, :, v_idx, s_idx], pref[b_idx], threshold))
     np.testing.assert_array_equal(lazy.full(), want)
     assert not kernels.SpeedRestriction.supports(np.array([0.0, 2.0, 1.0])) and not kernels.SpeedRestriction.supports(np.zeros(0))
+    for bad in (np.array([0.0, 2.0, 1.0]), np.zeros(0), np.array([0.0, np.nan])):  # np.interp reads these otherwise: refused
+        with pytest.raises(ValueError):
+            kernels.SpeedRestriction([profiles[0], bad], [adms[0], np.ones((4, bad.size))], cells[:2], v, a, weights, 0.4)
+    kernels.SpeedRestriction([np.array([5.0, 6.0]), np.array([0.0, 1.0])], [np.ones((4, 2))] * 2, cells[:2], v, a, weights, 0.4)  # a drop between pairs is fine

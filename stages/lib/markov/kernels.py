@@ -460,11 +460,12 @@ class SpeedRestriction:
         a_c = np.asarray(input_centres_mps2, dtype=np.float64)
         if np.any(np.diff(a_c) <= 0):
             raise ValueError("SpeedRestriction: the input centres must be ascending")
-        if not all(self.supports(s) for s in profile_s_m):
-            raise ValueError("SpeedRestriction: every profile needs at least one knot, non-decreasing and finite")
         start = np.zeros(n_b + 1, np.int64)
         start[1:] = np.cumsum([len(s) for s in profile_s_m])
-        xp = np.concatenate([np.asarray(s, dtype=np.float64) for s in profile_s_m]) if n_b else np.zeros(0)
+        xp = np.concatenate([np.asarray(s, dtype=np.float64).reshape(-1) for s in profile_s_m]) if n_b else np.zeros(0)
+        if n_b and (np.any(start[1:] == start[:-1]) or not np.all(np.isfinite(xp))
+                    or not np.all(np.delete(np.diff(xp), start[1:-1] - 1) >= 0)):  # (the steps between pairs left out)
+            raise ValueError("SpeedRestriction: every profile needs at least one knot, non-decreasing and finite")
         fp = np.concatenate([np.asarray(a, dtype=np.float64).reshape(n_j, -1) for a in admissible_mps], axis=1) if n_b else np.zeros((n_j, 0))
         # per pair: buckets of the knots' mean spacing h over [s_0, s_n) and the last knot at or before each bucket's start
         bucket = np.zeros(xp.shape[0], np.int64)

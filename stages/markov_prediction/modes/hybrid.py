@@ -54,17 +54,20 @@ class Hybrid(InputModel):
             return _BaselineInputs(self._rules, pairs, issues, ar_lam=_stack_inputs(p, pairs))
         lam_speed = None
         if p.config.hybrid_speed_restriction:
-            if kernels.available() and p.config.backend == "numpy" and all(kernels.SpeedRestriction.supports(q.s_m) for q in pairs):
+            if kernels.available() and p.config.backend == "numpy":
                 # the same numbers, compiled, computed only at the states the chain visits (the numpy backend asks for no others)
                 adm, cells, weights = speed_profiles(p, pairs)
-                lam_speed = kernels.SpeedRestriction([q.s_m for q in pairs], adm, cells, p.v_centres, p.a_centres, weights, p.config.tau_s)
-            else:
+                try:
+                    lam_speed = kernels.SpeedRestriction([q.s_m for q in pairs], adm, cells, p.v_centres, p.a_centres, weights, p.config.tau_s)
+                except ValueError:  # a profile np.interp would read differently (not increasing): the numpy definition
+                    lam_speed = speed_restriction(p, pairs)
+            if lam_speed is None:
                 lam_speed = speed_restriction(p, pairs)
         return _HybridInputs(p, pairs, lam_speed)
 
 
 class _HybridInputs(ChainInputs):
-    def __init__(self, p: Predictor, pairs: list[Pair], lam_speed: np.ndarray | None) -> None:
+    def __init__(self, p: Predictor, pairs: list[Pair], lam_speed: np.ndarray | kernels.SpeedRestriction | None) -> None:
         cfg = p.config
         self.lam = _stack_inputs(p, pairs)
         self.with_interval = cfg.grid_distribution == "interval"
