@@ -50,3 +50,20 @@ def test_batched_footprints_equal_single():
         one = cell_footprints(*line, lower[b], 1.0, 3, offsets, weights)
         for name in ("x_m", "y_m", "weights", "normal_x", "normal_y"):
             np.testing.assert_allclose(getattr(batch[b], name), getattr(one, name), rtol=0, atol=1e-9, err_msg=name)
+
+
+def test_sum_by_key_equals_unique_and_bincount():
+    """kernels.sum_by_key (rasterise._reduce: grids and their fusion) gives np.unique + np.bincount's keys and sums bit
+    for bit, call after call (its scratch table is left clean), and falls back above its key bound."""
+    from stages.lib.markov import kernels
+
+    rng = np.random.default_rng(5)
+    for size, top in ((0, 10), (1, 10), (50, 7), (20000, 833_000), (5000, 3_000_000), (300, 2 * kernels.SUM_BY_KEY_MAX_KEY)):
+        keys = rng.integers(0, top, size)
+        keys = np.concatenate([keys, keys[: size // 2]])  # repeated keys, sums of several values
+        values = rng.normal(0, 1, keys.size) * 10.0 ** rng.integers(-8, 3, keys.size)  # sums whose order shows in the bits
+        unique, inverse = np.unique(keys, return_inverse=True)
+        got_keys, got_sums = kernels.sum_by_key(keys, values)
+        np.testing.assert_array_equal(got_keys, unique)
+        np.testing.assert_array_equal(got_sums, np.bincount(inverse, weights=values, minlength=unique.size))
+        assert got_keys.dtype == np.int64 and got_sums.dtype == np.float64

@@ -53,3 +53,46 @@ def test_compiled_priority_at_states_equals_combine_with_preference(forbid_thres
     assert got.dtype == np.float32 and got.shape == expected.shape
     np.testing.assert_array_equal(got, expected)
     assert np.any(got[:, 0] == 1.0) and np.any(got[:, 0] < 1.0)
+
+
+@pytest.mark.skipif(not kernels.available(), reason="numba does not import")
+def test_compiled_speed_restriction_equals_the_numpy_definition():
+    """kernels.SpeedRestriction (the hybrid mode's λ_speed, filled on demand) is priority.speed_restriction per pair, bit
+    for bit, in full and at listed states (through the priority): profiles of one knot, of repeated knots, of irregular
+    knots, shorter and longer than the N_v·L queries, curves, queries on knots and past both ends."""
+    from stages.markov_prediction import priority as pr
+
+    grid = MarkovGridConfig()
+    v, a = grid.v_centres_mps(), grid.input_centres_mps2()
+    rng = np.random.default_rng(3)
+    lat = np.array([3.0, 2.5, 2.0, 1.5])
+    weights = np.array([0.1, 0.2, 0.4, 0.3])
+    profiles, adms, cells = [], [], []
+    for b, n in enumerate([1, 2, 7, 150, 300, 400, 5000]):
+        s = np.cumsum(rng.uniform(0.2, 1.5, n) * (rng.random(n) < 0.8 if b == 4 else 1.0)) - rng.uniform(0, 20)  # irregular knots
+        if b == 3:
+            s = np.unique(np.round(s * 2) / 2)  # knots on the half metre: cell centres + v·τ land on them
+        kappa = np.where((s > 30) & (s < 60), 1.0 / rng.uniform(8, 40), 0.0) + rng.normal(0, 1e-3, s.size)
+        adm = pr.admissible_speeds(s, kappa, rng.uniform(8, 17), lat, 2.0, 4.0)
+        profiles.append(s)
+        adms.append(adm)
+        cells.append(rng.uniform(-25, 10) + 0.5 + np.arange(grid.n_s_cells) * 1.0)
+    cells = np.array(cells)
+    cells[3, :20] = profiles[3][5:25] - v[0] * 0.4  # queries on knots
+    want = np.stack([pr.speed_restriction(adms[b], profiles[b], cells[b], v, a, weights, 0.4) for b in range(len(profiles))])
+    assert 0.05 < want.mean() < 0.95 and np.any(want == 0.0) and np.any(want == np.float32(1.0))  # the cases restrict something
+    np.testing.assert_array_equal(kernels.speed_restriction(profiles, adms, cells, v, a, weights, 0.4), want)
+    lazy = kernels.SpeedRestriction(profiles, adms, cells, v, a, weights, 0.4)
+    pref = rng.dirichlet(np.ones(grid.n_inputs), len(profiles)).astype(np.float32)
+    for _ in range(4):  # states in any order, repeated, some asked for again in a later call
+        n = 3000
+        b_idx, v_idx, s_idx = rng.integers(0, len(profiles), n), rng.integers(0, grid.n_v_cells, n), rng.integers(0, grid.n_s_cells, n)
+        for threshold in (0.0, 0.25):
+            got = lazy.priority_at_states(pref, b_idx, v_idx, s_idx, threshold)
+            np.testing.assert_array_equal(got, combine_with_preference(want[b_idx, :, v_idx, s_idx], pref[b_idx], threshold))
+    np.testing.assert_array_equal(lazy.full(), want)
+    assert not kernels.SpeedRestriction.supports(np.array([0.0, 2.0, 1.0])) and not kernels.SpeedRestriction.supports(np.zeros(0))
+    for bad in (np.array([0.0, 2.0, 1.0]), np.zeros(0), np.array([0.0, np.nan])):  # np.interp reads these otherwise: refused
+        with pytest.raises(ValueError):
+            kernels.SpeedRestriction([profiles[0], bad], [adms[0], np.ones((4, bad.size))], cells[:2], v, a, weights, 0.4)
+    kernels.SpeedRestriction([np.array([5.0, 6.0]), np.array([0.0, 1.0])], [np.ones((4, 2))] * 2, cells[:2], v, a, weights, 0.4)  # a drop between pairs is fine

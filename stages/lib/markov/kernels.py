@@ -30,6 +30,8 @@ compare against).
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
 try:  # pragma: no cover - exercised where numba is missing only
@@ -255,6 +257,153 @@ if numba is not None:
                 out[n, 0] = np.float32(1.0)
         return out
 
+    @numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
+    def _speed_fill(xp, fp, start, bucket, inv_h, cell_s, v_c, a_c, w32, tau, values, done, b_idx, v_idx, s_idx):  # pragma: no cover - compiled
+        """λ_speed into values (B, N_v, L, M) at every state (b_idx empty) or at the listed states, where not yet
+        ``done`` (then marked): v_adm,j(x) at x = s + vτ as np.interp gives it for every profile j, the inputs up to
+        (v_adm − v)/τ allowed, Σ_j w_j in the order of j. One loop body for both (a helper per state costs 3x)."""
+        n_b, n_l = cell_s.shape
+        n_v, n_in, n_j = v_c.shape[0], a_c.shape[0], fp.shape[0]
+        n_query = n_v * n_l
+        count = np.empty(n_j, np.int64)
+        a0 = a_c[0]
+        inv_da = (n_in - 1) / (a_c[n_in - 1] - a_c[0]) if n_in > 1 else 0.0
+        total = np.float32(0.0)  # Σ_j w_j, all of them, in the order of j
+        for jj in range(n_j):
+            total += w32[jj]
+        every = b_idx.shape[0] == 0
+        n_states = n_b * n_v * n_l if every else b_idx.shape[0]
+        for i in range(n_states):
+            if every:
+                b, rest = divmod(i, n_v * n_l)
+                vi, l = divmod(rest, n_l)
+            else:
+                b, vi, l = b_idx[i], v_idx[i], s_idx[i]
+            if done[b, vi, l]:
+                continue
+            done[b, vi, l] = True
+            lo, n = start[b], start[b + 1] - start[b]
+            v = v_c[vi]
+            x = cell_s[b, l] + v * tau
+            # np.interp's search: -2 for a NaN x, -1 left of the knots, n right of them, else the last knot <= x
+            # (xp non-decreasing: from the knot its bucket of the knots' mean spacing holds, walked back and on)
+            if np.isnan(x):
+                j = -2
+            elif x > xp[lo + n - 1]:
+                j = n
+            elif x < xp[lo]:
+                j = -1
+            else:
+                k = int((x - xp[lo]) * inv_h[lo])
+                k = min(max(k, 0), n - 1)
+                j = bucket[lo + k]
+                while j > 0 and xp[lo + j] > x:
+                    j -= 1
+                while j + 1 < n and xp[lo + j + 1] <= x:
+                    j += 1
+            inner = j >= 0 and j < n - 1 and xp[lo + j] != x
+            dx, rdx, off = 1.0, 0.0, 0.0
+            if inner:
+                dx = xp[lo + j + 1] - xp[lo + j]
+                rdx = 1.0 / dx
+                off = x - xp[lo + j]
+            c_min = n_in
+            for jj in range(n_j):
+                if inner:
+                    y0, y1 = fp[jj, lo + j], fp[jj, lo + j + 1]
+                    if n <= n_query:  # np.interp precomputes the slopes with 1/dx then
+                        slope = (y1 - y0) * rdx
+                    else:
+                        slope = (y1 - y0) / dx
+                    val = slope * off + y0
+                    if np.isnan(val):
+                        val = slope * (x - xp[lo + j + 1]) + y1
+                        if np.isnan(val) and y0 == y1:
+                            val = y0
+                elif j == -2:
+                    val = x
+                elif j == -1:
+                    val = fp[jj, lo]
+                elif j >= n - 1:
+                    val = fp[jj, lo + n - 1]
+                else:  # on a knot
+                    val = fp[jj, lo + j]
+                threshold = (val - v) / tau
+                # the inputs are ascending: those allowed (a_α <= threshold) are the first c; a guess from their mean
+                # spacing, then exact
+                g = (threshold - a0) * inv_da
+                if g < 0.0:
+                    c = 0
+                elif g >= n_in:
+                    c = n_in
+                else:
+                    c = int(g) + 1
+                while c > 0 and not (a_c[c - 1] <= threshold):
+                    c -= 1
+                while c < n_in and a_c[c] <= threshold:
+                    c += 1
+                count[jj] = c
+                c_min = min(c_min, c)
+            for a in range(n_in):
+                if a < c_min:
+                    values[b, vi, l, a] = total
+                else:
+                    acc = np.float32(0.0)  # Σ_j w_j in the order of j, as the numpy definition adds them
+                    for jj in range(n_j):
+                        if a < count[jj]:
+                            acc += w32[jj]
+                    values[b, vi, l, a] = acc
+
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _priority_from_states(values, preference, b_idx, v_idx, s_idx, forbid_threshold):  # pragma: no cover - compiled
+        """``_priority_at_states`` with the restriction stored per state, (B, N_v, L, M)."""
+        n_in = values.shape[3]
+        out = np.empty((b_idx.shape[0], n_in), np.float32)
+        for n in range(b_idx.shape[0]):
+            m_all = values[b_idx[n], v_idx[n], s_idx[n]]
+            b = b_idx[n]
+            carry = np.float32(0.0)
+            top = m_all[0]
+            for alpha in range(n_in - 1, -1, -1):
+                m = m_all[alpha]
+                top = max(top, m)
+                want = carry + preference[b, alpha]
+                r = min(m, want)
+                out[n, alpha] = r
+                carry = want - r
+            if top <= forbid_threshold:
+                for alpha in range(n_in):
+                    out[n, alpha] = np.float32(0.0)
+                out[n, 0] = np.float32(1.0)
+        return out
+
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _sum_by_key(keys, values, slot):  # pragma: no cover - compiled
+        """Sorted unique keys and the sum of their values, each sum taken in the order of the input from 0.0 (as
+        np.bincount adds); ``slot`` (> max key, all -1) is scratch, left all -1."""
+        n = keys.shape[0]
+        uniq = np.empty(n, np.int64)
+        sums = np.empty(n, np.float64)
+        m = 0
+        for i in range(n):
+            k = keys[i]
+            j = slot[k]
+            if j < 0:
+                j = m
+                slot[k] = m
+                uniq[m] = k
+                sums[m] = 0.0
+                m += 1
+            sums[j] += values[i]
+        ordered = np.sort(uniq[:m])
+        out = np.empty(m, np.float64)
+        for i in range(m):
+            out[i] = sums[slot[ordered[i]]]
+        for i in range(m):
+            slot[uniq[i]] = -1
+        return ordered, out
+
+
 def fused_step(slab, src_lo, lo, hi, n_s, tables, with_interval, threshold):
     """See the module docstring. The slab holds the s-cells [src_lo, src_lo + L) and p⁻ the cells [lo, hi) (the
     window of this step: the slab's occupied cells lie in it), so that a moving window costs no copy. ``tables``: ``stencil_tables`` of Υ(τ) then ``collapsed_tables`` of Υ([0, τ]).
@@ -293,6 +442,106 @@ def priority_at_states(restriction, preference, b_idx, v_idx, s_idx, forbid_thre
                                np.float32(forbid_threshold))
 
 
+class SpeedRestriction:
+    """λ_speed of B pairs, the numbers of ``stages.markov_prediction.priority.speed_restriction`` per pair
+    (Σ_j w_j · 1[a_α ≤ (v_adm,j(s + vτ) − v)/τ], float32 sums in the order of j, v_adm interpolated as ``np.interp``
+    does), compiled and computed on demand: ``priority_at_states`` fills only the states it is asked for that are not
+    yet (the hybrid mode needs λ_speed only where the chain holds mass, a few percent of the states); ``full()`` is
+    every state as ``(B, M, N_v, L)``.
+
+    ``profile_s_m`` and ``admissible_mps`` are lists of the pairs' profiles ((n_b,) non-decreasing, and (J, n_b)),
+    ``cell_s_m`` (B, L) the s-cell centres of each pair, ``input_centres_mps2`` ascending (ValueError otherwise).
+    tests/stages/test_markov_occupied.py checks it bit for bit against the numpy definition.
+    """
+
+    def __init__(self, profile_s_m, admissible_mps, cell_s_m, v_centres_mps, input_centres_mps2, weights, tau_s) -> None:
+        n_b = len(profile_s_m)
+        n_j = int(np.shape(weights)[0])
+        a_c = np.asarray(input_centres_mps2, dtype=np.float64)
+        if np.any(np.diff(a_c) <= 0):
+            raise ValueError("SpeedRestriction: the input centres must be ascending")
+        start = np.zeros(n_b + 1, np.int64)
+        start[1:] = np.cumsum([len(s) for s in profile_s_m])
+        xp = np.concatenate([np.asarray(s, dtype=np.float64).reshape(-1) for s in profile_s_m]) if n_b else np.zeros(0)
+        if n_b and (np.any(start[1:] == start[:-1]) or not np.all(np.isfinite(xp))
+                    or not np.all(np.delete(np.diff(xp), start[1:-1] - 1) >= 0)):  # (the steps between pairs left out)
+            raise ValueError("SpeedRestriction: every profile needs at least one knot, non-decreasing and finite")
+        fp = np.concatenate([np.asarray(a, dtype=np.float64).reshape(n_j, -1) for a in admissible_mps], axis=1) if n_b else np.zeros((n_j, 0))
+        # per pair: buckets of the knots' mean spacing h over [s_0, s_n) and the last knot at or before each bucket's start
+        bucket = np.zeros(xp.shape[0], np.int64)
+        inv_h = np.zeros(xp.shape[0], np.float64)
+        for b in range(n_b):
+            lo, hi = start[b], start[b + 1]
+            s = xp[lo:hi]
+            span = s[-1] - s[0]
+            if hi - lo > 1 and span > 0:
+                h = span / (hi - lo)
+                inv_h[lo] = 1.0 / h
+                bucket[lo:hi] = np.maximum(np.searchsorted(s, s[0] + h * np.arange(hi - lo), side="right") - 1, 0)
+        cell_s = np.ascontiguousarray(cell_s_m, dtype=np.float64).reshape(n_b, -1)
+        v_c = np.asarray(v_centres_mps, dtype=np.float64)
+        self._args = (xp, np.ascontiguousarray(fp), start, bucket, inv_h, cell_s, v_c, a_c,
+                      np.asarray(weights, dtype=np.float64).astype(np.float32), float(tau_s))
+        self._values = np.empty((n_b, v_c.shape[0], cell_s.shape[1], a_c.shape[0]), np.float32)  # valid where _done
+        self._done = np.zeros((n_b, v_c.shape[0], cell_s.shape[1]), np.bool_)
+        self._dense: np.ndarray | None = None
+
+    @staticmethod
+    def supports(profile_s_m) -> bool:
+        """True for a profile this class interpolates exactly as np.interp: at least one knot, finite, non-decreasing."""
+        s = np.asarray(profile_s_m, dtype=np.float64)
+        return s.ndim == 1 and s.size > 0 and bool(np.all(np.isfinite(s))) and bool(np.all(np.diff(s) >= 0))
+
+    def priority_at_states(self, preference, b_idx, v_idx, s_idx, forbid_threshold) -> np.ndarray:
+        """``priority_at_states`` (module function) of λ_speed, computed first where it is not yet."""
+        b_idx = np.asarray(b_idx, dtype=np.int64)
+        v_idx = np.asarray(v_idx, dtype=np.int64)
+        s_idx = np.asarray(s_idx, dtype=np.int64)
+        if b_idx.shape[0]:
+            _speed_fill(*self._args, self._values, self._done, b_idx, v_idx, s_idx)
+        return _priority_from_states(self._values, np.ascontiguousarray(preference, dtype=np.float32), b_idx, v_idx, s_idx,
+                                     np.float32(forbid_threshold))
+
+    def full(self) -> np.ndarray:
+        """λ_speed at every state, ``(B, M, N_v, L) float32``."""
+        if self._dense is None:
+            empty = np.zeros(0, np.int64)
+            _speed_fill(*self._args, self._values, self._done, empty, empty, empty)
+            self._dense = np.ascontiguousarray(np.moveaxis(self._values, 3, 1))
+        return self._dense
+
+
+def speed_restriction(profile_s_m, admissible_mps, cell_s_m, v_centres_mps, input_centres_mps2, weights, tau_s):
+    """``SpeedRestriction(...).full()``: every state of every pair."""
+    return SpeedRestriction(profile_s_m, admissible_mps, cell_s_m, v_centres_mps, input_centres_mps2, weights, tau_s).full()
+
+
+#: ``sum_by_key`` uses its compiled scratch for keys below this (an int32 per key), np.unique above.
+SUM_BY_KEY_MAX_KEY = 1 << 24
+_slots = threading.local()
+
+
+def sum_by_key(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(sorted unique keys, sum of the values of each), the numbers of ``u, inv = np.unique(keys,
+    return_inverse=True); np.bincount(inv, weights=values)`` (each sum in input order), without the sort of every key:
+    one pass through a scratch table of slots per key (per thread, kept between calls), then a sort of the unique keys
+    only. Keys must be non-negative integers; at or above ``SUM_BY_KEY_MAX_KEY`` (or without numba) np.unique."""
+    keys = np.asarray(keys, dtype=np.int64)
+    values = np.asarray(values, dtype=np.float64)
+    if keys.size == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.float64)
+    top = int(keys.max())
+    if numba is None or top >= SUM_BY_KEY_MAX_KEY or int(keys.min()) < 0:
+        unique, inverse = np.unique(keys, return_inverse=True)
+        return unique, np.bincount(inverse.reshape(-1), weights=values.reshape(-1), minlength=unique.size)
+    slot = getattr(_slots, "table", None)
+    if slot is None or slot.shape[0] <= top:
+        slot = np.full(max(top + 1, 1 << 16, 2 * (0 if slot is None else slot.shape[0])), -1, np.int32)
+        slot = slot[: min(slot.shape[0], SUM_BY_KEY_MAX_KEY)]
+        _slots.table = slot
+    return _sum_by_key(np.ascontiguousarray(keys.reshape(-1)), np.ascontiguousarray(values.reshape(-1)), slot)
+
+
 _warm = False
 
 
@@ -312,4 +561,8 @@ def warm_up() -> None:
     lam = np.ones((s_idx.shape[0], 2), np.float32)
     priority_occupied(slab, s_idx, v_idx, b_idx, lam, np.eye(2, dtype=np.float32), np.ones(1, np.float32))
     priority_at_states(np.ones((1, 2, 2, 2), np.float32), np.ones((1, 2), np.float32), b_idx, v_idx, s_idx, 0.0)
+    lazy = SpeedRestriction([np.arange(3.0)], [np.ones((1, 3))], np.zeros((1, 2)), np.ones(2), np.arange(2.0), np.ones(1), 0.4)
+    lazy.priority_at_states(np.ones((1, 2), np.float32), np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64), 0.0)
+    lazy.full()
+    sum_by_key(np.array([3, 1, 3], np.int64), np.ones(3))
     _warm = True

@@ -290,17 +290,26 @@ class _BaselineInputs(ChainInputs):
 
 def speed_restriction(predictor: Predictor, pairs: list[Pair]) -> np.ndarray:
     """λ_speed (B, M, N_v, N_s) per pair, static over the steps (§4.2); also the hybrid mode's cut."""
+    grid, cfg = predictor.grid, predictor.config
+    adm, cells, weights = speed_profiles(predictor, pairs)
+    lam_speed = np.empty((len(pairs), grid.n_inputs, grid.n_v_cells, predictor.n_s), np.float32)
+    for b, p in enumerate(pairs):
+        lam_speed[b] = pr.speed_restriction(adm[b], p.s_m, cells[b], predictor.v_centres, predictor.a_centres, weights, cfg.tau_s)
+    return lam_speed
+
+
+def speed_profiles(predictor: Predictor, pairs: list[Pair]) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+    """What λ_speed is made of: v_adm (J, n) on each pair's profile ``p.s_m``, the s-cell centres (B, N_s) and the
+    normalised weights (J,) of the lateral accelerations."""
     cfg, grid, n_s = predictor.config, predictor.grid, predictor.n_s
     cell_centre = grid.s_edges_m()[:n_s] + 0.5 * cfg.ds_m
-    lam_speed = np.empty((len(pairs), grid.n_inputs, grid.n_v_cells, n_s), np.float32)
     weights = np.asarray(cfg.lat_accel_weights, dtype=np.float64)
     weights = weights / weights.sum()
-    for b, p in enumerate(pairs):
-        adm = pr.admissible_speeds(
-            p.s_m, p.curvature_1pm, p.speed_limit_mps, np.asarray(cfg.lat_accels_mps2), cfg.lookahead_brake_mps2, cfg.curvature_smoothing_m
-        )
-        lam_speed[b] = pr.speed_restriction(adm, p.s_m, p.s_first_m + cell_centre, predictor.v_centres, predictor.a_centres, weights, cfg.tau_s)
-    return lam_speed
+    lat_accels = np.asarray(cfg.lat_accels_mps2)
+    adm = [pr.admissible_speeds(p.s_m, p.curvature_1pm, p.speed_limit_mps, lat_accels, cfg.lookahead_brake_mps2, cfg.curvature_smoothing_m)
+           for p in pairs]
+    cells = np.array([p.s_first_m for p in pairs], dtype=np.float64).reshape(-1, 1) + cell_centre[None, :]
+    return adm, cells, weights
 
 
 @dataclass(frozen=True, slots=True)

@@ -28,7 +28,7 @@ from stages.lib.markov import InputMatrix, InputReplaced, gamma_from_priority, k
 from stages.markov_prediction import priority as pr
 from stages.markov_prediction.chain import InputPriority
 from stages.markov_prediction.modes.base import ChainInputs, InputModel, Messages, Pair, Predictor
-from stages.markov_prediction.modes.baseline import Baseline, _BaselineInputs, speed_restriction
+from stages.markov_prediction.modes.baseline import Baseline, _BaselineInputs, speed_profiles, speed_restriction
 
 
 class Hybrid(InputModel):
@@ -52,12 +52,22 @@ class Hybrid(InputModel):
             if getattr(self, "_rules", None) is None:
                 self._rules = Baseline(p)
             return _BaselineInputs(self._rules, pairs, issues, ar_lam=_stack_inputs(p, pairs))
-        lam_speed = speed_restriction(p, pairs) if p.config.hybrid_speed_restriction else None
+        lam_speed = None
+        if p.config.hybrid_speed_restriction:
+            if kernels.available() and p.config.backend == "numpy":
+                # the same numbers, compiled, computed only at the states the chain visits (the numpy backend asks for no others)
+                adm, cells, weights = speed_profiles(p, pairs)
+                try:
+                    lam_speed = kernels.SpeedRestriction([q.s_m for q in pairs], adm, cells, p.v_centres, p.a_centres, weights, p.config.tau_s)
+                except ValueError:  # a profile np.interp would read differently (not increasing): the numpy definition
+                    lam_speed = speed_restriction(p, pairs)
+            if lam_speed is None:
+                lam_speed = speed_restriction(p, pairs)
         return _HybridInputs(p, pairs, lam_speed)
 
 
 class _HybridInputs(ChainInputs):
-    def __init__(self, p: Predictor, pairs: list[Pair], lam_speed: np.ndarray | None) -> None:
+    def __init__(self, p: Predictor, pairs: list[Pair], lam_speed: np.ndarray | kernels.SpeedRestriction | None) -> None:
         cfg = p.config
         self.lam = _stack_inputs(p, pairs)
         self.with_interval = cfg.grid_distribution == "interval"
@@ -68,13 +78,19 @@ class _HybridInputs(ChainInputs):
                 self.steps.append(None)  # the input after the last step does not change any output
             elif lam_speed is not None:
                 pref = lam[:, k + 1] / np.maximum(lam[:, k + 1].max(axis=1, keepdims=True), 1e-12)
-                if kernels.available():  # the same numbers, compiled (kernels.priority_at_states): no gather, no per-input passes
+                if isinstance(lam_speed, kernels.SpeedRestriction):  # compiled (kernels.SpeedRestriction): λ_speed filled on demand
+                    pref = pref.astype(np.float32)
+                    at_states = lambda b, v, s, pref=pref: lam_speed.priority_at_states(pref, b, v, s, cfg.forbid_threshold)  # noqa: E731
+                    window = lambda lo, hi: lam_speed.full()[..., lo:hi]  # noqa: E731
+                elif kernels.available():  # the same numbers, compiled (kernels.priority_at_states): no gather, no per-input passes
                     pref = pref.astype(np.float32)
                     at_states = lambda b, v, s, pref=pref: kernels.priority_at_states(lam_speed, pref, b, v, s, cfg.forbid_threshold)  # noqa: E731
+                    window = lambda lo, hi: lam_speed[..., lo:hi]  # noqa: E731
                 else:
                     at_states = lambda b, v, s, pref=pref: pr.combine_with_preference(lam_speed[b, :, v, s], pref[b], cfg.forbid_threshold)  # noqa: E731
+                    window = lambda lo, hi: lam_speed[..., lo:hi]  # noqa: E731
                 self.steps.append(InputPriority(  # built on the step's active s-window only, or on its occupied states
-                    weights=lambda lo, hi, pref=pref: pr.combine_with_preference(lam_speed[..., lo:hi], pref, cfg.forbid_threshold),
+                    weights=lambda lo, hi, pref=pref, window=window: pr.combine_with_preference(window(lo, hi), pref, cfg.forbid_threshold),
                     at_states=at_states,
                 ))
             elif cfg.hybrid_input == "direct":
