@@ -97,6 +97,23 @@ if numba is not None:
             rows[r] = acc > 0
         return rows.reshape(n_l, n_in, n_v)
 
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _marked_indices(mark, n):  # pragma: no cover - compiled
+        """The (s, v, b) indices of the n marked cells of mark (n_l, n_v, n_b), in (s, v, b) order
+        (np.nonzero's order)."""
+        n_l, n_v, n_b = mark.shape
+        s_idx = np.empty(n, np.int64)
+        v_idx = np.empty(n, np.int64)
+        b_idx = np.empty(n, np.int64)
+        i = 0
+        for s in range(n_l):
+            for v in range(n_v):
+                for b in range(n_b):
+                    if mark[s, v, b]:
+                        s_idx[i], v_idx[i], b_idx[i] = s, v, b
+                        i += 1
+        return s_idx, v_idx, b_idx
+
     @numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
     def _fused_step(slab, src_lo, lo, n_l, n_s, ptr, v_to, offset, weight, iptr, ioffset, iweight, with_interval, threshold):  # pragma: no cover - compiled
         n_src, n_in, n_v, n_b = slab.shape
@@ -157,16 +174,7 @@ if numba is not None:
             for v in range(n_v):
                 for b in range(n_b):
                     n_marked += mark[t, v, b]
-        s_idx = np.empty(n_marked, np.int64)
-        v_idx = np.empty(n_marked, np.int64)
-        b_idx = np.empty(n_marked, np.int64)
-        i = 0
-        for t in range(n_l):
-            for v in range(n_v):
-                for b in range(n_b):
-                    if mark[t, v, b]:
-                        s_idx[i], v_idx[i], b_idx[i] = t, v, b
-                        i += 1
+        s_idx, v_idx, b_idx = _marked_indices(mark, n_marked)
         f32 = np.float32
         return out, leaked.astype(f32), pos.astype(f32), vel.astype(f32), ipos.astype(f32), ileaked.astype(f32), kept.astype(f32), s_idx, v_idx, b_idx
 
@@ -223,17 +231,7 @@ if numba is not None:
                         if slab[s, a, v, b] != 0.0 and not mark[s, v, b]:
                             mark[s, v, b] = True
                             n += 1
-        s_idx = np.empty(n, np.int64)
-        v_idx = np.empty(n, np.int64)
-        b_idx = np.empty(n, np.int64)
-        i = 0
-        for s in range(n_l):
-            for v in range(n_v):
-                for b in range(n_b):
-                    if mark[s, v, b]:
-                        s_idx[i], v_idx[i], b_idx[i] = s, v, b
-                        i += 1
-        return s_idx, v_idx, b_idx
+        return _marked_indices(mark, n)
 
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
