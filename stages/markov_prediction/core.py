@@ -395,20 +395,11 @@ class MarkovPredictor:
         are smooth. σ_a0 = √(``init_sigma_a_mps2``² + min(σ, 1)²).
         """
         base = self.config.init_sigma_a_mps2
-        hist = self._history.get(track_id)
-        if hist is None or self.config.accel_window_s <= 0:
+        fit = self._speed_line(track_id, stamp_ns)
+        if fit is None or fit[1] < 0.5 * self.config.accel_window_s:
             return 0.0, base
-        window = int(self.config.accel_window_s / _NS)
-        pts = [(t, v) for t, v in hist.samples if stamp_ns - window <= t <= stamp_ns]
-        if len(pts) < 3 or (pts[-1][0] - pts[0][0]) * _NS < 0.5 * self.config.accel_window_s:
-            return 0.0, base
-        t = np.array([p[0] for p in pts], dtype=np.float64) * _NS
-        v = np.array([p[1] for p in pts])
-        t -= t.mean()
-        sxx = float((t * t).sum())
-        slope = float((t * (v - v.mean())).sum() / sxx)
-        residual = v - v.mean() - slope * t
-        sigma = math.sqrt(float((residual**2).sum()) / max(len(pts) - 2, 1) / sxx)
+        n, _, slope, rss, sxx = fit
+        sigma = math.sqrt(rss / (n - 2) / sxx)
         shrunk = slope * max(0.0, 1.0 - sigma**2 / max(slope**2, 1e-12))
         edges = self.grid.input_edges()
         return float(np.clip(shrunk, edges[0], edges[-1])), math.hypot(base, min(sigma, 1.0))
@@ -417,19 +408,30 @@ class MarkovPredictor:
         """The scatter (m/s) of the vehicle's measured speeds over the last ``accel_window_s``: the standard deviation
         of their residuals around the least-squares line (0 with fewer than 3 samples); capped at
         ``SPEED_NOISE_CAP_MPS``. Read by a calibrated spread with ``speed_noise_gain`` (spread.py)."""
+        fit = self._speed_line(track_id, stamp_ns)
+        if fit is None:
+            return 0.0
+        n, _, _, rss, _ = fit
+        return min(math.sqrt(rss / (n - 2)), SPEED_NOISE_CAP_MPS)
+
+    def _speed_line(self, track_id: int, stamp_ns: int) -> tuple[int, float, float, float, float] | None:
+        """The least-squares line through the vehicle's measured speeds over the last ``accel_window_s``:
+        (samples n, their time span s, slope m/s², residual sum of squares, Σ(t − t̄)²); None with fewer than 3
+        samples or ``accel_window_s`` 0. Shared by ``_acceleration`` and ``speed_noise``."""
         hist = self._history.get(track_id)
         if hist is None or self.config.accel_window_s <= 0:
-            return 0.0
+            return None
         window = int(self.config.accel_window_s / _NS)
         pts = [(t, v) for t, v in hist.samples if stamp_ns - window <= t <= stamp_ns]
         if len(pts) < 3:
-            return 0.0
+            return None
         t = np.array([p[0] for p in pts], dtype=np.float64) * _NS
         v = np.array([p[1] for p in pts])
         t -= t.mean()
-        slope = float((t * (v - v.mean())).sum() / max(float((t * t).sum()), 1e-12))
+        sxx = max(float((t * t).sum()), 1e-12)
+        slope = float((t * (v - v.mean())).sum() / sxx)
         residual = v - v.mean() - slope * t
-        return min(math.sqrt(float((residual**2).sum()) / (len(pts) - 2)), SPEED_NOISE_CAP_MPS)
+        return len(pts), (pts[-1][0] - pts[0][0]) * _NS, slope, float((residual**2).sum()), sxx
 
     def _beliefs(self, belief: IntentionBelief | None, stamp: int, issues: list[Issue]) -> dict[int, dict[int, Any]] | None:
         """Per track, its CorridorBeliefs by corridor id; None when the config does not use them or none fit."""
