@@ -164,8 +164,10 @@ def test_k733_duplicates_skipped_and_kinematics_made_consistent_with_positions()
 
 @needs_taf
 def test_embedded_scenario_loads_only_sequences_that_have_a_track_file() -> None:
-    (ref,) = discover(DEFAULT_DATA_DIR)
-    assert ref.name == DEFAULT_RECORDING and ref.map_path is not None
+    refs = {r.name: r for r in discover(DEFAULT_DATA_DIR)}
+    assert sorted(refs) == [DEFAULT_RECORDING, "k733_2018-05-02"]  # K729 (the default) and K733
+    ref = refs[DEFAULT_RECORDING]
+    assert ref.map_path is not None
     assert len(read_raw(ref.meta_path)) == 25  # meta_data.csv kept whole
     assert ref.sequence_ids == ("002", "013", "019", "022")
     rec = load_recording(DEFAULT_DATA_DIR, DEFAULT_RECORDING)
@@ -173,7 +175,7 @@ def test_embedded_scenario_loads_only_sequences_that_have_a_track_file() -> None
     with pytest.raises(DatasetError, match="no track file for sequence '005'.*available: 002, 013, 019, 022"):
         load_recording(DEFAULT_DATA_DIR, DEFAULT_RECORDING, ["005"])
     # the embedded files are byte-identical copies
-    for p in [ref.map_path, ref.meta_path, *ref.track_files]:
+    for p in [p for r in refs.values() for p in (r.map_path, r.meta_path, *r.track_files)]:
         assert p.read_bytes() == (TAF / p.relative_to(DEFAULT_DATA_DIR)).read_bytes()
 
 
