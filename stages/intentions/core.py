@@ -35,7 +35,7 @@ from stages.lib.maps import DEFAULT_SPEED_LIMIT_MPS, Projection, RoadMap, SceneM
 from stages.intentions import model
 from stages.intentions.model import ModelParams, Particles
 from stages.intentions.signals import with_signals
-from stages.intentions.tables import PairTables, VehicleInput, build_tables, common_run, corridor_manoeuvre, corridor_ok, lanelet_shift_m, map_corridors
+from stages.intentions.tables import PairTables, VehicleInput, build_tables, common_run, corridor_manoeuvre, corridors_ok, lanelet_ids_of, lanelet_shift_m, map_corridors
 
 _NS = 1e-9
 _U64 = (1 << 64) - 1
@@ -319,13 +319,17 @@ class IntentionFilter:
         inputs: list[VehicleInput] = []
         measurements: list[_Measurement] = []
         seen: set[int] = set()
+        candidates = []
         for vehicle in corridor_set.vehicles:
             if vehicle.status != MatchStatus.MATCHED or not vehicle.corridors or vehicle.track_id in seen:
                 continue
             seen.add(vehicle.track_id)
+            candidates.append(vehicle)
+        problems = iter(corridors_ok([c for vehicle in candidates for c in vehicle.corridors]))
+        for vehicle in candidates:
             good = []
             for corridor in vehicle.corridors:
-                problem = corridor_ok(corridor)
+                problem = next(problems)
                 if problem is None:
                     good.append(corridor)
                 else:
@@ -391,11 +395,14 @@ class IntentionFilter:
         names = ("x_m", "y_m", "heading_rad", "speed_mps", "heading_ok", "speed_ok")
         z = tuple(np.array([getattr(m, f) for m in measurements]) for f in names)
         # particles that lost their vehicle (a jump, a re-used id) are born again at the measurement
-        for v in np.flatnonzero(~born):
-            ahead = p.s_m[v] - tables.vehicle_s_m[first[v] + p.route[v]]
-            allowed = cfg.lost_gate_m + max(float(z[3][v]), 0.0) * dt[v] if math.isfinite(float(z[3][v])) else cfg.lost_gate_m
-            if float(np.median(np.abs(ahead))) > allowed:
-                issues.append(Issue("particles_lost", inputs[v].track_id, f"particles a median {float(np.median(np.abs(ahead))):.0f} m from the measurement: born again"))
+        carried = np.flatnonzero(~born)
+        if carried.size:
+            ahead = p.s_m[carried] - tables.vehicle_s_m[first[carried, None] + p.route[carried]]
+            distance = np.median(np.abs(ahead), axis=1)  # per row as np.median of the row alone
+            speed = z[3][carried]
+            allowed = np.where(np.isfinite(speed), cfg.lost_gate_m + np.maximum(np.where(np.isfinite(speed), speed, 0.0), 0.0) * dt[carried], cfg.lost_gate_m)
+            for v, median in zip(carried[distance > allowed].tolist(), distance[distance > allowed].tolist()):
+                issues.append(Issue("particles_lost", inputs[v].track_id, f"particles a median {median:.0f} m from the measurement: born again"))
                 born[v] = True
                 dt[v] = 0.0
                 n_sub[v] = 0
@@ -507,7 +514,7 @@ class IntentionFilter:
                     continue
                 members = np.flatnonzero(p.route[v] == donor)
                 moved = members[np.argsort(p.weight[v, members], kind="stable")[:take]]
-                run, lanelet = common_run([int(x) for x in corridors[donor].lanelet_ids], [int(x) for x in corridors[k].lanelet_ids])
+                run, lanelet = common_run(lanelet_ids_of(corridors[donor]), lanelet_ids_of(corridors[k]))
                 if run:
                     p.s_m[v, moved] += lanelet_shift_m(corridors[donor], corridors[k], lanelet)
                 else:
@@ -597,7 +604,7 @@ class IntentionFilter:
             return Manoeuvre.UNKNOWN, False
         starts = np.asarray(corridor.lanelet_start_s_m)
         here = int(np.searchsorted(starts, corridor.vehicle_s_m, side="right"))
-        key = (tuple(int(x) for x in corridor.lanelet_ids), tuple(np.round(starts - corridor.vehicle_s_m, 1).tolist()), here)
+        key = (tuple(lanelet_ids_of(corridor)), tuple(np.round(starts - corridor.vehicle_s_m, 1).tolist()), here)
         found = self._manoeuvres.get(key)
         if found is None:
             found = corridor_manoeuvre(road_map, corridor, self.config.lane_change_reach_m)

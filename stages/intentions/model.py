@@ -44,16 +44,19 @@ class Particles:
 
     @classmethod
     def stack(cls, rows: list["Particles"]) -> "Particles":
-        return cls(**{f.name: np.concatenate([getattr(r, f.name) for r in rows], axis=0) for f in fields(cls)})
+        return cls(*(np.concatenate([getattr(r, name) for r in rows], axis=0) for name in _PARTICLE_FIELDS))
 
     def row(self, v: int) -> "Particles":
-        return Particles(**{f.name: getattr(self, f.name)[v : v + 1].copy() for f in fields(self)})
+        return Particles(*(getattr(self, name)[v : v + 1].copy() for name in _PARTICLE_FIELDS))
 
     def take(self, rows: np.ndarray, index: np.ndarray) -> None:
         """Replace rows `rows` (R,) by the particles `index` (R, N) of themselves (resampling)."""
-        for f in fields(self):
-            arr = getattr(self, f.name)
+        for name in _PARTICLE_FIELDS:
+            arr = getattr(self, name)
             arr[rows] = np.take_along_axis(arr[rows], index, axis=1)
+
+
+_PARTICLE_FIELDS = tuple(f.name for f in fields(Particles))
 
 
 @dataclass(frozen=True, slots=True)

@@ -392,3 +392,37 @@ def test_particles_that_lose_their_vehicle_are_born_again_at_the_measurement(fra
     measured = {c.corridor_id: c.vehicle_s_m for v in corridor_set.vehicles if v.track_id == old for c in v.corridors}
     for c in belief.corridors:
         assert abs(c.s_mean_m - measured[c.corridor_id]) < 3.0
+
+
+def test_batched_table_helpers_equal_their_one_corridor_forms(frames):
+    """corridors_ok and unwrap_parts run on all of a frame's corridors at once; each answer is the one-corridor one exactly."""
+    from stages.intentions.tables import corridor_ok, corridors_ok, unwrap_parts
+
+    corridors = [c for item in frames[WINDOW] for v in item.corridor_set.vehicles for c in v.corridors]
+    assert len(corridors) > 50
+    assert corridors_ok(corridors) == [None] * len(corridors) == [corridor_ok(c) for c in corridors]
+
+    def edited(c, **changes):
+        return dataclasses.replace(c, **changes)
+
+    c = corridors[0]
+    odd = [
+        edited(c, x_m=np.where(np.arange(len(c.x_m)) == 3, np.nan, c.x_m)),
+        edited(c, s_m=c.s_m[::-1].copy()),
+        edited(c, vehicle_d_m=math.inf),
+        edited(c, y_m=c.y_m[:-1]),
+        edited(c, s_m=c.s_m[:1], x_m=c.x_m[:1], y_m=c.y_m[:1], heading_rad=c.heading_rad[:1]),
+    ]
+    mixed = corridors[:5] + odd + corridors[5:9]
+    found = corridors_ok(mixed)
+    assert found == [corridor_ok(m) for m in mixed]
+    assert all(f is None for f in found[:5] + found[-4:]) and all(f is not None for f in found[5:10])
+
+    rng = np.random.default_rng(3)
+    parts = [np.asarray(c.heading_rad, dtype=np.float64) for c in corridors[:20]]
+    parts += [np.cumsum(rng.uniform(-4.0, 4.0, 30)), np.array([2.0]), np.array([0.5, np.nan, 0.7, 7.0]), np.array([-0.0, 3.0, -3.0])]
+    rng.shuffle(parts)
+    want = np.concatenate([np.unwrap(p) for p in parts])
+    got = unwrap_parts(parts)
+    assert np.array_equal(got, want, equal_nan=True)
+    assert np.array_equal(np.signbit(got), np.signbit(want))  # even the sign of zeros
