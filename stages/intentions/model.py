@@ -44,19 +44,20 @@ class Particles:
 
     @classmethod
     def stack(cls, rows: list["Particles"]) -> "Particles":
-        return cls(*(np.concatenate([getattr(r, name) for r in rows], axis=0) for name in _PARTICLE_FIELDS))
+        return cls(*(np.concatenate([getattr(r, name) for r in rows], axis=0) for name in PARTICLE_FIELDS))
 
     def row(self, v: int) -> "Particles":
-        return Particles(*(getattr(self, name)[v : v + 1].copy() for name in _PARTICLE_FIELDS))
+        return Particles(*(getattr(self, name)[v : v + 1].copy() for name in PARTICLE_FIELDS))
 
     def take(self, rows: np.ndarray, index: np.ndarray) -> None:
         """Replace rows `rows` (R,) by the particles `index` (R, N) of themselves (resampling)."""
-        for name in _PARTICLE_FIELDS:
+        for name in PARTICLE_FIELDS:
             arr = getattr(self, name)
             arr[rows] = np.take_along_axis(arr[rows], index, axis=1)
 
 
-_PARTICLE_FIELDS = tuple(f.name for f in fields(Particles))
+PARTICLE_FIELDS = tuple(f.name for f in fields(Particles))
+"""The field names of `Particles`, in order."""
 
 
 @dataclass(frozen=True, slots=True)
