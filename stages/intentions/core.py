@@ -578,13 +578,14 @@ class IntentionFilter:
         stop_distance_l = (tables.stop_s_m - tables.vehicle_s_m).tolist()
         entry_distance_l = (tables.entry_s_m - tables.vehicle_s_m).tolist()
         p_stop_l, p_expected_l, p_violation_l, ess_l = p_stop.tolist(), p_expected.tolist(), p_violation.tolist(), ess.tolist()
+        found = self._manoeuvres_of([c for item in inputs for c in item.corridors], road_map)
         out = []
         for v, (item, first) in enumerate(zip(inputs, tables.first_pair.tolist())):
             slots = range(first, first + len(item.corridors))
             corridors = []
             lane_change = 0.0
             for gk, corridor in zip(slots, item.corridors):
-                manoeuvre, changes = self._manoeuvre(road_map, corridor)
+                manoeuvre, changes = found[gk]
                 lane_change += mass_l[gk] if changes else 0.0
                 corridors.append(
                     CorridorBelief(
@@ -624,19 +625,31 @@ class IntentionFilter:
             )
         return out
 
-    def _manoeuvre(self, road_map: RoadMap | None, corridor: Corridor) -> tuple[Manoeuvre, bool]:
+    def _manoeuvres_of(self, corridors: list[Corridor], road_map: RoadMap | None) -> list[tuple[Manoeuvre, bool]]:
+        """(manoeuvre, changes lane) per corridor, cached by its lanelets, their starts relative to the vehicle (0.1 m) and
+        the lanelet the vehicle is on (the starts of all corridors rounded at once)."""
         if road_map is None:
-            return Manoeuvre.UNKNOWN, False
-        starts = np.asarray(corridor.lanelet_start_s_m)
-        here = int(np.searchsorted(starts, corridor.vehicle_s_m, side="right"))
-        key = (tuple(lanelet_ids_of(corridor)), tuple(np.round(starts - corridor.vehicle_s_m, 1).tolist()), here)
-        found = self._manoeuvres.get(key)
-        if found is None:
-            found = corridor_manoeuvre(road_map, corridor, self.config.lane_change_reach_m)
-            if len(self._manoeuvres) > 100_000:
-                self._manoeuvres.clear()
-            self._manoeuvres[key] = found
-        return found
+            return [(Manoeuvre.UNKNOWN, False)] * len(corridors)
+        if not corridors:
+            return []
+        starts = [np.asarray(c.lanelet_start_s_m) for c in corridors]
+        vehicle_s = [c.vehicle_s_m for c in corridors]
+        lengths = [len(x) for x in starts]
+        relative = np.round(np.concatenate(starts) - np.repeat(vehicle_s, lengths), 1).tolist()
+        out = []
+        at = 0
+        for corridor, start, s_v, n in zip(corridors, starts, vehicle_s, lengths):
+            here = int(np.searchsorted(start, s_v, side="right")) if n else 0
+            key = (tuple(lanelet_ids_of(corridor)), tuple(relative[at : at + n]), here)
+            at += n
+            found = self._manoeuvres.get(key)
+            if found is None:
+                found = corridor_manoeuvre(road_map, corridor, self.config.lane_change_reach_m)
+                if len(self._manoeuvres) > 100_000:
+                    self._manoeuvres.clear()
+                self._manoeuvres[key] = found
+            out.append(found)
+        return out
 
 
 def _mapping(state: _Vehicle, corridors: tuple[Corridor, ...]) -> list[tuple[int, float]]:

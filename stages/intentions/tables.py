@@ -180,9 +180,8 @@ def next_entry_s_m(relations: CorridorRelations | None, vehicle_s_m: float) -> f
     """Arc length of the first intersection entrance ahead of the vehicle on a corridor, NaN if none."""
     if relations is None:
         return math.nan
-    entries = np.asarray(relations.intersection_entry_s_m, dtype=np.float64)
-    ahead = entries[np.isfinite(entries) & (entries > vehicle_s_m)]
-    return float(ahead.min()) if ahead.size else math.nan
+    entries = np.asarray(relations.intersection_entry_s_m, dtype=np.float64).tolist()
+    return min((e for e in entries if math.isfinite(e) and e > vehicle_s_m), default=math.nan)
 
 
 def build_tables(

@@ -278,20 +278,29 @@ def pair_features(
     for row, rel in enumerate(relations):
         if rel is None:
             continue
-        entry = np.asarray(rel.intersection_entry_s_m, dtype=np.float64)
-        if entry.size:
-            q = int(np.argmin(np.where(np.isfinite(entry), entry, np.inf)))
-            full[row, _INTERSECTION] = np.clip(rel.intersection_distance_m[q], lo, absent)
+        entry = np.asarray(rel.intersection_entry_s_m, dtype=np.float64).tolist()
+        if entry:
+            ahead = [e if math.isfinite(e) else math.inf for e in entry]
+            q = ahead.index(min(ahead))  # the first smallest, as np.argmin
+            full[row, _INTERSECTION] = _clip(float(rel.intersection_distance_m[q]), lo, absent)
         if rel.leader_track_id >= 0 and math.isfinite(rel.leader_gap_m):
-            full[row, _LEADER_GAP] = np.clip(rel.leader_gap_m, 0.0, absent)
+            full[row, _LEADER_GAP] = _clip(float(rel.leader_gap_m), 0.0, absent)
             if math.isfinite(rel.leader_speed_mps):
                 full[row, _LEADER_SPEED] = rel.leader_speed_mps
         if len(rel.conflict_time_s):  # most_influencing of no conflicts: none
             for (distance, speed, priority), c in zip(_INFLUENCER, most_influencing(rel, 2).tolist()):
-                full[row, distance] = np.clip(rel.conflict_other_distance_m[c], lo, absent)
+                full[row, distance] = _clip(float(rel.conflict_other_distance_m[c]), lo, absent)
                 full[row, speed] = rel.conflict_other_speed_mps[c]
                 full[row, priority] = -float(rel.conflict_priority[c])
     return full[:, _CORRIDOR_COLUMNS]
+
+
+def _clip(x: float, lo: float, hi: float) -> float:
+    """``np.clip`` of one number, in Python (NaN stays NaN; a bound is taken unless x is strictly inside, as numpy does)."""
+    if math.isnan(x):
+        return x
+    x = x if x > lo else lo
+    return x if x < hi else hi
 
 
 # --------------------------------------------------------------------------- the tracker
