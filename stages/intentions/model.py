@@ -98,7 +98,7 @@ def _sigmoid(x):
 
 
 def expected_stop(tables: PairTables, g: np.ndarray, s_m: np.ndarray, v_mps: np.ndarray, mp: ModelParams) -> np.ndarray:
-    """P(E = stop) per particle from the conflicts with priority corridors on its route.
+    """P(E = stop) per particle from the conflicts with priority corridors on its route (`g`, `s_m`, `v_mps`: one shape).
 
     T_e = (s* − s)/max(v, 1) for every conflict point still ahead of the
     particle; a priority vehicle (time T' from the relations, route
@@ -107,21 +107,27 @@ def expected_stop(tables: PairTables, g: np.ndarray, s_m: np.ndarray, v_mps: np.
     less than t_c after the ego and not more than t_pass before it.
     P(E = go) = Π (1 − q·P_c).
     """
-    cs = tables.conflict_s_m[g]  # (V, N, C)
-    ahead = cs - s_m[..., None]
-    valid = np.isfinite(cs) & (ahead > 0.0)
-    # the sigmoids only where a conflict is ahead (C is the largest count over the frame's pairs: in dense traffic
-    # most entries are padding or behind); the same values there, 1 elsewhere, so the product is unchanged
-    factor = np.ones(cs.shape)
-    at = np.nonzero(valid)
-    if at[0].size:
-        g_at = np.broadcast_to(np.asarray(g)[..., None], valid.shape)[at]
-        speed = np.broadcast_to(np.maximum(v_mps, mp.min_time_speed_mps)[..., None], valid.shape)[at]
-        t_ego = ahead[at] / speed
-        gap = tables.conflict_other_time_s[g_at, at[-1]] - t_ego
-        p_conflict = _sigmoid((gap + mp.gap_pass_s) / mp.gap_scale_s) * (1.0 - _sigmoid((gap - mp.gap_critical_s) / mp.gap_scale_s))
-        factor[at] = 1.0 - tables.conflict_weight[g_at, at[-1]] * p_conflict
-    p_e = 1.0 - np.prod(factor, axis=-1)
+    g = np.asarray(g)
+    # only the particles on a pair with a priority conflict at all (the others: no factor, P(E = stop) = 1 − 1 = 0), and
+    # of those the sigmoids only where a conflict is ahead (C is the largest count over the frame's pairs: in dense
+    # traffic most entries are padding or behind); the same values there, 1 elsewhere, so each product is unchanged
+    p_e = np.zeros(g.shape)
+    on = np.isfinite(tables.conflict_s_m).any(axis=1)[g]
+    if on.any():
+        g_on = g[on]
+        cs = tables.conflict_s_m[g_on]  # (K, C)
+        ahead = cs - s_m[on][:, None]
+        valid = np.isfinite(cs) & (ahead > 0.0)
+        factor = np.ones(cs.shape)
+        at = np.nonzero(valid)
+        if at[0].size:
+            g_at = g_on[at[0]]
+            speed = np.maximum(v_mps[on], mp.min_time_speed_mps)[at[0]]
+            t_ego = ahead[at] / speed
+            gap = tables.conflict_other_time_s[g_at, at[1]] - t_ego
+            p_conflict = _sigmoid((gap + mp.gap_pass_s) / mp.gap_scale_s) * (1.0 - _sigmoid((gap - mp.gap_critical_s) / mp.gap_scale_s))
+            factor[at] = 1.0 - tables.conflict_weight[g_at, at[1]] * p_conflict
+        p_e[on] = 1.0 - np.prod(factor, axis=-1)
     if getattr(tables, "signal_line_s_m", None) is None:  # no signal phases: the conflicts alone, as before issue 17
         return p_e
     return combine(p_e, signal_stop_probability(tables, g, s_m, v_mps))
