@@ -12,7 +12,9 @@ priority vehicles that drive the expected manoeuvre E.
 `corridor_manoeuvre` classifies a corridor (turn, straight, lane change,
 follow lane) from the map; `map_corridors` maps the corridors of a
 vehicle's previous update onto its new ones (same id, else the longest
-common lanelet run). Pure: no bus, no clock.
+common lanelet run). `corridors_ok` and `unwrap_parts` check and unwrap the
+corridors of a whole frame at once, with exactly the per-corridor results of
+`corridor_ok` and ``np.unwrap``. Pure: no bus, no clock.
 """
 
 from __future__ import annotations
@@ -286,11 +288,17 @@ def _priority_conflicts(rel: CorridorRelations | None, route_probabilities: Mapp
     """(s*, T', P(R = other corridor)) of the conflicts where the other corridor has priority (c,)."""
     if rel is None or not len(rel.conflict_priority):
         return np.zeros(0), np.zeros(0), np.zeros(0)
-    keep = np.flatnonzero((np.asarray(rel.conflict_priority) < 0) & np.isfinite(rel.conflict_s_m) & np.isfinite(rel.conflict_other_time_s))
+    priority, s_star, t_other = rel.conflict_priority, rel.conflict_s_m, rel.conflict_other_time_s
+    if len(priority) == len(s_star) == len(t_other):  # on Python numbers: few conflicts per pair
+        keep = [k for k, (pr, s, t) in enumerate(zip(np.asarray(priority).tolist(), np.asarray(s_star, np.float64).tolist(),
+                                                     np.asarray(t_other, np.float64).tolist())) if pr < 0 and math.isfinite(s) and math.isfinite(t)]
+    else:  # numpy's broadcasting (or its error) as before
+        keep = np.flatnonzero((np.asarray(priority) < 0) & np.isfinite(s_star) & np.isfinite(t_other)).tolist()
     weights = np.array(
         [route_probabilities.get((int(rel.conflict_track_ids[k]), int(rel.conflict_corridor_ids[k])), 1.0) for k in keep], dtype=np.float64
     )
-    return np.asarray(rel.conflict_s_m, np.float64)[keep], np.asarray(rel.conflict_other_time_s, np.float64)[keep], weights.reshape(-1)
+    index = np.asarray(keep, dtype=np.int64)
+    return np.asarray(rel.conflict_s_m, np.float64)[index], np.asarray(rel.conflict_other_time_s, np.float64)[index], weights.reshape(-1)
 
 
 # --------------------------------------------------------------------------- corridor changes

@@ -24,6 +24,7 @@ from stages.lib.ar.features import (
     FeatureTracker,
     causal_acceleration,
     curvature_integrals,
+    corridor_features,
     curvature_rows,
     pair_features,
 )
@@ -229,6 +230,24 @@ def test_nan_speed_gives_an_issue_not_an_exception():
     keys, x, mask = tracker.batch(corridor_set(2 * STEP_NS, [vehicle(2, math.inf)]))
     assert keys == [(2, 7)] and mask[0, -3:].tolist() == [True, True, False]
     assert x[0, -1, SPEED] == 3.0 and np.all(np.isfinite(x))
+
+
+def test_a_corridor_in_no_row_takes_its_geometry_now_for_every_step():
+    straight, turn = corridor(7), corridor(9, kappa=lambda s: np.full_like(s, 0.02))
+    tracker = FeatureTracker()
+    for k in range(3):
+        tracker.update(corridor_set(k * STEP_NS, [vehicle(1, 2.0), vehicle(2, 3.0 + k)]), None)
+    cs = corridor_set(3 * STEP_NS, [vehicle(1, 2.0), vehicle(2, math.nan, [turn, straight])])  # no row for 2 this frame
+    tracker.update(cs, None)
+    keys, x, mask = tracker.batch(cs)
+    assert keys == [(1, 7), (2, 9), (2, 7)]
+    expected = corridor_features(turn, None, 5.0, FeatureConfig())  # relations absent, the speed of its last row
+    np.testing.assert_array_equal(x[1][:, 1:22], np.broadcast_to(expected.astype(np.float32), (HISTORY_STEPS, 21)))
+    assert x[1, -1, F["curv_pos_00_10m"]] == pytest.approx(0.2, abs=1e-6)
+    np.testing.assert_array_equal(x[2][:, 1:13], x[0][:, 1:13])  # 7 from its rows: the same straight corridor as vehicle 1's
+    np.testing.assert_array_equal(x[2][:, F["leader_speed_mps"]], np.float32([3.0] * 37 + [4.0, 5.0, 5.0]))  # no leader: own speed
+    assert mask[1].tolist() == mask[2].tolist() == [False] * 36 + [True] * 3 + [False]
+    np.testing.assert_array_equal(x[1][:, SPEED], np.float32([3.0] * 37 + [4.0, 5.0, 5.0]))
 
 
 def test_nan_corridor_values_give_an_issue():

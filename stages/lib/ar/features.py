@@ -61,7 +61,13 @@ stamps) is forgotten. A stamp going backwards resets everything (issue
 ``stamp_backwards``). A row holds the vehicle's acceleration and speed and,
 when it was matched, the 21 corridor features of each of its corridors by
 ``corridor_id`` (ids are stable from frame to frame while the route
-continues: ``stages.corridors`` inherits them).
+continues: ``stages.corridors`` inherits them). The rows live in ring
+buffers of ``HISTORY_STEPS`` slots (slot = step mod 40), one for the vehicle
+and one per corridor id, so ``batch`` gathers a pair's 40 steps by index
+arrays. ``update`` computes the corridor features of all pairs of a frame
+in one batch (``pair_features``: row p exactly what pair p alone gives);
+when the batch raises, each pair is computed alone so that only the
+failing ones lose their row (issue ``pair_failed``).
 
 ``batch(corridor_set)``: for each matched vehicle with at least one row and
 each of its corridors, the 40 steps ending at the set's stamp, oldest first.
@@ -117,6 +123,8 @@ ACCEL = FEATURE_NAMES.index("accel_mps2")
 SPEED = FEATURE_NAMES.index("speed_mps")
 _VEHICLE_COLUMNS = np.array([ACCEL, SPEED])
 _CORRIDOR_COLUMNS = np.array([i for i in range(N_FEATURES) if i not in (ACCEL, SPEED)])
+_CORRIDOR_SLICE = slice(int(_CORRIDOR_COLUMNS[0]), int(_CORRIDOR_COLUMNS[-1]) + 1)  # the corridor columns are contiguous
+assert np.array_equal(np.arange(N_FEATURES)[_CORRIDOR_SLICE], _CORRIDOR_COLUMNS)
 _VEHICLE_TYPES = frozenset(int(t) for t in AgentType if t.is_vehicle)
 
 
@@ -357,12 +365,12 @@ class _Track:
 
 
 def _fill_source(present: np.ndarray) -> np.ndarray:
-    """For each position, the index of the nearest present one: the previous, else the first. (n,) int."""
-    n = present.shape[0]
+    """For each position, the index of the nearest present one: the previous, else the first. (..., n) int, per row."""
+    n = present.shape[-1]
     idx = np.where(present, np.arange(n), -1)
-    idx = np.maximum.accumulate(idx)
-    first = int(np.argmax(present))
-    return np.where(idx < 0, first, idx)
+    idx = np.maximum.accumulate(idx, axis=-1)
+    first = np.argmax(present, axis=-1)
+    return np.where(idx < 0, np.expand_dims(first, -1), idx)
 
 
 class FeatureTracker:
@@ -493,8 +501,11 @@ class FeatureTracker:
         slots = steps % HISTORY_STEPS
         keys: list[tuple[int, int]] = []
         vehicle_x: list[np.ndarray] = []
-        corridor_x: list[np.ndarray] = []
         masks: list[np.ndarray] = []
+        has_rows: list[np.ndarray] = []  # pairs whose corridor is in some row: where, and that corridor's ring
+        ring_values: list[np.ndarray] = []
+        from_rings: list[int] = []
+        now: dict[int, np.ndarray] = {}  # the other pairs (corridor in no row): geometry now, relations absent
         for vehicle in corridor_set.vehicles:
             if vehicle.status != MatchStatus.MATCHED or not vehicle.corridors:
                 continue
@@ -516,21 +527,26 @@ class FeatureTracker:
                 ring = track.corridors.get(cid)
                 has = (ring.step[slots] == steps) & kept if ring is not None else None
                 if has is not None and has.any():
-                    values = ring.values[slots[_fill_source(has)]]
-                else:  # the corridor is in no row (its vehicle had no row this frame): geometry now, relations absent
+                    from_rings.append(len(keys))
+                    has_rows.append(has)
+                    ring_values.append(ring.values)
+                else:
                     try:
-                        values = np.broadcast_to(corridor_features(by_id[cid], None, float(vehicle_values[-1, 1]), self.config), (HISTORY_STEPS, N_CORRIDOR_FEATURES))
+                        now[len(keys)] = corridor_features(by_id[cid], None, float(vehicle_values[-1, 1]), self.config)
                     except Exception:  # noqa: BLE001 - its row failed in update (issue pair_failed): no profile for it
                         continue
                 keys.append((vehicle.track_id, cid))
                 vehicle_x.append(vehicle_values)
-                corridor_x.append(values)
                 masks.append(present)
         if not keys:
             return [], np.zeros((0, HISTORY_STEPS, N_FEATURES), np.float32), np.zeros((0, HISTORY_STEPS), bool)
         x = np.empty((len(keys), HISTORY_STEPS, N_FEATURES), dtype=np.float32)  # float64 values rounded as by astype
         x[:, :, _VEHICLE_COLUMNS] = np.stack(vehicle_x)
-        x[:, :, _CORRIDOR_COLUMNS] = np.stack(corridor_x)
+        if from_rings:  # each pair's 40 steps from its ring, all pairs in one gather
+            source = slots[_fill_source(np.stack(has_rows))]
+            x[from_rings, :, _CORRIDOR_SLICE] = np.stack(ring_values)[np.arange(len(from_rings))[:, None], source]
+        for b, row in now.items():
+            x[b, :, _CORRIDOR_SLICE] = row
         return keys, x, np.stack(masks)
 
 
