@@ -51,9 +51,11 @@ class Particles:
 
     def take(self, rows: np.ndarray, index: np.ndarray) -> None:
         """Replace rows `rows` (R,) by the particles `index` (R, N) of themselves (resampling)."""
+        n = index.shape[1]
+        flat = (np.asarray(rows)[:, None] * n + index).ravel()  # one gather per field over the (V·N) particles
         for name in PARTICLE_FIELDS:
             arr = getattr(self, name)
-            arr[rows] = np.take_along_axis(arr[rows], index, axis=1)
+            arr[rows] = arr.reshape(-1)[flat].reshape(index.shape)
 
 
 PARTICLE_FIELDS = tuple(f.name for f in fields(Particles))
