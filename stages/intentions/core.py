@@ -33,9 +33,9 @@ from stages.lib.caps import cap_pairs
 from stages.lib.maps import DEFAULT_SPEED_LIMIT_MPS, Projection, RoadMap, SceneMaps, parse_projection, project_to_polyline, shown_map_name
 
 from stages.intentions import model
-from stages.intentions.model import ModelParams, Particles
+from stages.intentions.model import PARTICLE_FIELDS, ModelParams, Particles
 from stages.intentions.signals import with_signals
-from stages.intentions.tables import PairTables, VehicleInput, build_tables, common_run, corridor_manoeuvre, corridor_ok, lanelet_shift_m, map_corridors
+from stages.intentions.tables import PairTables, VehicleInput, build_tables, common_run, corridor_manoeuvre, corridors_ok, lanelet_ids_of, lanelet_shift_m, map_corridors
 
 _NS = 1e-9
 _U64 = (1 << 64) - 1
@@ -319,13 +319,17 @@ class IntentionFilter:
         inputs: list[VehicleInput] = []
         measurements: list[_Measurement] = []
         seen: set[int] = set()
+        candidates = []
         for vehicle in corridor_set.vehicles:
             if vehicle.status != MatchStatus.MATCHED or not vehicle.corridors or vehicle.track_id in seen:
                 continue
             seen.add(vehicle.track_id)
+            candidates.append(vehicle)
+        problems = iter(corridors_ok([c for vehicle in candidates for c in vehicle.corridors]))
+        for vehicle in candidates:
             good = []
             for corridor in vehicle.corridors:
-                problem = corridor_ok(corridor)
+                problem = next(problems)
                 if problem is None:
                     good.append(corridor)
                 else:
@@ -369,6 +373,8 @@ class IntentionFilter:
         born = np.zeros(n_vehicles, dtype=bool)
         dt = np.zeros(n_vehicles)
         n_sub = np.zeros(n_vehicles, dtype=np.int64)
+        mappings: dict[int, tuple[tuple[Corridor, ...], list[tuple[int, float]]]] = {}
+        reborn: list[tuple[int, Exception]] = []
         for v, item in enumerate(inputs):
             state = self._vehicles.get(item.track_id)
             if state is None:
@@ -376,26 +382,37 @@ class IntentionFilter:
                 rows.append(_empty(n))
                 continue
             try:
-                rows.append(self._carry(state, item.corridors))
+                mappings[v] = (state.corridors, _mapping(state, item.corridors))
             except Exception as exc:  # noqa: BLE001 - its particles cannot follow the new corridors: born again
-                issues.append(Issue("particles_reborn", item.track_id, f"moving its particles onto the new corridors raised {type(exc).__name__}: {exc}"))
+                reborn.append((v, exc))
                 born[v] = True
                 rows.append(_empty(n))
                 continue
+            rows.append(state.particles)
             dt[v] = (stamp - state.last_stamp_ns) * _NS
             n_sub[v] = max(1, int(math.ceil(dt[v] / cfg.max_substep_s - 1e-9)))
-        rngs = [np.random.default_rng([cfg.seed, int(frame_index) & _U64, int(item.track_id) & _U64]) for item in inputs]
+        p = Particles.stack(rows)  # a copy: the kept particles change only when the frame is done
+        for v, exc in self._carry(p, mappings, inputs):
+            reborn.append((v, exc))
+            born[v] = True
+            dt[v] = 0.0
+            n_sub[v] = 0
+        for v, exc in sorted(reborn, key=lambda item: item[0]):
+            issues.append(Issue("particles_reborn", inputs[v].track_id, f"moving its particles onto the new corridors raised {type(exc).__name__}: {exc}"))
+        rngs = [_rng(cfg.seed, int(frame_index) & _U64, int(item.track_id) & _U64) for item in inputs]
         offsets = np.array([r.random() for r in rngs])  # systematic resampling offsets
         frame_n = np.stack([r.standard_normal((4, n)) for r in rngs], axis=1)  # jitter s, jitter v, floor s, floor d
-        p = Particles.stack(rows)
         names = ("x_m", "y_m", "heading_rad", "speed_mps", "heading_ok", "speed_ok")
         z = tuple(np.array([getattr(m, f) for m in measurements]) for f in names)
         # particles that lost their vehicle (a jump, a re-used id) are born again at the measurement
-        for v in np.flatnonzero(~born):
-            ahead = p.s_m[v] - tables.vehicle_s_m[first[v] + p.route[v]]
-            allowed = cfg.lost_gate_m + max(float(z[3][v]), 0.0) * dt[v] if math.isfinite(float(z[3][v])) else cfg.lost_gate_m
-            if float(np.median(np.abs(ahead))) > allowed:
-                issues.append(Issue("particles_lost", inputs[v].track_id, f"particles a median {float(np.median(np.abs(ahead))):.0f} m from the measurement: born again"))
+        carried = np.flatnonzero(~born)
+        if carried.size:
+            ahead = p.s_m[carried] - tables.vehicle_s_m[first[carried, None] + p.route[carried]]
+            distance = np.median(np.abs(ahead), axis=1)  # per row as np.median of the row alone
+            speed = z[3][carried]
+            allowed = np.where(np.isfinite(speed), cfg.lost_gate_m + np.maximum(np.where(np.isfinite(speed), speed, 0.0), 0.0) * dt[carried], cfg.lost_gate_m)
+            for v, median in zip(carried[distance > allowed].tolist(), distance[distance > allowed].tolist()):
+                issues.append(Issue("particles_lost", inputs[v].track_id, f"particles a median {median:.0f} m from the measurement: born again"))
                 born[v] = True
                 dt[v] = 0.0
                 n_sub[v] = 0
@@ -453,32 +470,42 @@ class IntentionFilter:
         p.p_expected_stop[rows] = model.expected_stop(tables, g, p.s_m[rows], p.v_mps[rows], mp)
         p.weight[rows] = 1.0 / n
 
-    def _carry(self, state: _Vehicle, corridors: tuple[Corridor, ...]) -> Particles:
-        """The vehicle's particles moved onto its new corridors (same id or longest common lanelet run; else by projection)."""
-        p = state.particles.row(0)
-        mapping = map_corridors(state.corridors, corridors)
-        new_slot = np.array([m[0] for m in mapping], dtype=np.int64)
-        shift = np.array([m[1] for m in mapping])
-        old = p.route[0]
-        slot, sh = new_slot[old], shift[old]
+    def _carry(self, p: Particles, mappings: dict[int, tuple[tuple[Corridor, ...], list[tuple[int, float]]]], inputs) -> list[tuple[int, Exception]]:
+        """The particles of the rows `mappings` (row -> its vehicle's last corridors and `map_corridors` of them onto its new
+        ones) moved onto the new corridors: same id or longest common lanelet run (s shifted, all rows at once); else by
+        projection.
+
+        Returns (row, exception) of the rows whose projection raised: they are reset (the caller has them born again).
+        """
+        if not mappings:
+            return []
+        carried = np.fromiter(mappings, dtype=np.int64, count=len(mappings))
+        width = max(len(m) for _old, m in mappings.values())
+        new_slot = np.full((carried.size, width), -1, dtype=np.int64)
+        shift = np.full((carried.size, width), np.nan)
+        for i, (_old, mapping) in enumerate(mappings.values()):
+            new_slot[i, : len(mapping)] = [m[0] for m in mapping]
+            shift[i, : len(mapping)] = [m[1] for m in mapping]
+        old = p.route[carried]
+        rows = np.arange(carried.size)[:, None]
+        slot, sh = new_slot[rows, old], shift[rows, old]
         shifted = (slot >= 0) & np.isfinite(sh)
-        p.s_m[0] = np.where(shifted, p.s_m[0] + np.where(shifted, sh, 0.0), p.s_m[0])
-        lost = np.flatnonzero(~shifted)
-        if lost.size:
-            # no shared lanelet: project the particle's map position onto its new corridor, or the nearest new one
-            x, y = _frenet_to_xy(state.corridors, old[lost], p.s_m[0, lost], p.d_m[0, lost])
-            xy = np.column_stack([x, y])
-            projected = [project_to_polyline(xy, np.column_stack([c.x_m, c.y_m]), c.s_m) for c in corridors]
-            s_all = np.stack([f.s_m for f in projected])
-            d_all = np.stack([f.d_m for f in projected])
-            choice = np.where(slot[lost] >= 0, slot[lost], np.argmin(np.abs(d_all), axis=0))
-            cols = np.arange(lost.size)
-            slot = slot.copy()
-            slot[lost] = choice
-            p.s_m[0, lost] = s_all[choice, cols]
-            p.d_m[0, lost] = d_all[choice, cols]
-        p.route[0] = slot
-        return p
+        s_m = p.s_m[carried]
+        p.s_m[carried] = np.where(shifted, s_m + np.where(shifted, sh, 0.0), s_m)
+        failed = []
+        for i in np.flatnonzero(~shifted.all(axis=1)).tolist():
+            v = int(carried[i])
+            try:
+                # no shared lanelet: project the particle's map position onto its new corridor, or the nearest new one
+                slot[i] = _project(p, v, mappings[v][0], old[i], slot[i], ~shifted[i], inputs[v].corridors)
+            except Exception as exc:  # noqa: BLE001 - its particles cannot follow the new corridors: born again
+                failed.append((v, exc))
+                empty = _empty(p.route.shape[1])
+                for name in PARTICLE_FIELDS:
+                    getattr(p, name)[v] = getattr(empty, name)[0]
+                slot[i] = 0
+        p.route[carried] = slot
+        return failed
 
     def _inject(self, p: Particles, inputs, tables: PairTables, noise_s: np.ndarray, noise_d: np.ndarray) -> None:
         """A corridor without particles (new after a corridor-set change) gets `floor_particles` with the prior weight.
@@ -507,7 +534,7 @@ class IntentionFilter:
                     continue
                 members = np.flatnonzero(p.route[v] == donor)
                 moved = members[np.argsort(p.weight[v, members], kind="stable")[:take]]
-                run, lanelet = common_run([int(x) for x in corridors[donor].lanelet_ids], [int(x) for x in corridors[k].lanelet_ids])
+                run, lanelet = common_run(lanelet_ids_of(corridors[donor]), lanelet_ids_of(corridors[k]))
                 if run:
                     p.s_m[v, moved] += lanelet_shift_m(corridors[donor], corridors[k], lanelet)
                 else:
@@ -545,34 +572,40 @@ class IntentionFilter:
         p_stop = np.sum(p.weight * p.stop, axis=1)
         p_expected = np.sum(p.weight * p.p_expected_stop, axis=1)
         p_violation = np.sum(p.weight * np.where(p.stop, 1.0 - p.p_expected_stop, p.p_expected_stop), axis=1)
+        # per pair and per vehicle as Python numbers once (the same values float()/int() of each element gives)
+        mass_l, count_l, stop_given_l = mass.tolist(), count.tolist(), stop_given.tolist()
+        s_mean_l, s_std_l, v_mean_l, v_std_l, a_mean_l, a_std_l = (a.tolist() for a in (s_mean, s_std, v_mean, v_std, a_mean, a_std))
+        stop_distance_l = (tables.stop_s_m - tables.vehicle_s_m).tolist()
+        entry_distance_l = (tables.entry_s_m - tables.vehicle_s_m).tolist()
+        p_stop_l, p_expected_l, p_violation_l, ess_l = p_stop.tolist(), p_expected.tolist(), p_violation.tolist(), ess.tolist()
+        found = self._manoeuvres_of([c for item in inputs for c in item.corridors], road_map)
         out = []
-        for v, item in enumerate(inputs):
-            first = int(tables.first_pair[v])
+        for v, (item, first) in enumerate(zip(inputs, tables.first_pair.tolist())):
             slots = range(first, first + len(item.corridors))
             corridors = []
             lane_change = 0.0
             for gk, corridor in zip(slots, item.corridors):
-                manoeuvre, changes = self._manoeuvre(road_map, corridor)
-                lane_change += float(mass[gk]) if changes else 0.0
+                manoeuvre, changes = found[gk]
+                lane_change += mass_l[gk] if changes else 0.0
                 corridors.append(
                     CorridorBelief(
                         corridor_id=corridor.corridor_id,
-                        probability=float(mass[gk]),
+                        probability=mass_l[gk],
                         manoeuvre=manoeuvre,
-                        particle_count=int(count[gk]),
-                        s_mean_m=float(s_mean[gk]),
-                        s_std_m=float(s_std[gk]),
-                        v_mean_mps=float(v_mean[gk]),
-                        v_std_mps=float(v_std[gk]),
-                        a_mean_mps2=float(a_mean[gk]),
-                        a_std_mps2=float(a_std[gk]),
-                        p_stop=float(stop_given[gk]) if count[gk] else math.nan,
-                        stop_distance_m=float(tables.stop_s_m[gk] - tables.vehicle_s_m[gk]),
+                        particle_count=count_l[gk],
+                        s_mean_m=s_mean_l[gk],
+                        s_std_m=s_std_l[gk],
+                        v_mean_mps=v_mean_l[gk],
+                        v_std_mps=v_std_l[gk],
+                        a_mean_mps2=a_mean_l[gk],
+                        a_std_mps2=a_std_l[gk],
+                        p_stop=stop_given_l[gk] if count_l[gk] else math.nan,
+                        stop_distance_m=stop_distance_l[gk],
                     )
                 )
             best = first + int(np.argmax(mass[first : first + len(item.corridors)]))
-            entry_distance = float(tables.entry_s_m[best] - tables.vehicle_s_m[best])
-            if p_stop[v] > 0.5 and math.isfinite(entry_distance):
+            entry_distance = entry_distance_l[best]
+            if p_stop_l[v] > 0.5 and math.isfinite(entry_distance):
                 expected = Manoeuvre.STOP
             else:
                 expected = corridors[best - first].manoeuvre
@@ -580,31 +613,76 @@ class IntentionFilter:
                 VehicleBelief(
                     track_id=item.track_id,
                     corridors=tuple(corridors),
-                    p_stop=min(float(p_stop[v]), 1.0),  # sums of particle weights may round past 1
-                    p_expected_stop=min(float(p_expected[v]), 1.0),
-                    p_violation=min(float(p_violation[v]), 1.0),
+                    p_stop=min(p_stop_l[v], 1.0),  # sums of particle weights may round past 1
+                    p_expected_stop=min(p_expected_l[v], 1.0),
+                    p_violation=min(p_violation_l[v], 1.0),
                     p_lane_change=min(lane_change, 1.0),
                     expected_manoeuvre=expected,
                     intersection_distance_m=entry_distance,
-                    effective_sample_size=float(ess[v]),
+                    effective_sample_size=ess_l[v],
                     particle_count=cfg.particles_per_vehicle,
                 )
             )
         return out
 
-    def _manoeuvre(self, road_map: RoadMap | None, corridor: Corridor) -> tuple[Manoeuvre, bool]:
+    def _manoeuvres_of(self, corridors: list[Corridor], road_map: RoadMap | None) -> list[tuple[Manoeuvre, bool]]:
+        """(manoeuvre, changes lane) per corridor, cached by its lanelets, their starts relative to the vehicle (0.1 m) and
+        the lanelet the vehicle is on (the starts of all corridors rounded at once)."""
         if road_map is None:
-            return Manoeuvre.UNKNOWN, False
-        starts = np.asarray(corridor.lanelet_start_s_m)
-        here = int(np.searchsorted(starts, corridor.vehicle_s_m, side="right"))
-        key = (tuple(int(x) for x in corridor.lanelet_ids), tuple(np.round(starts - corridor.vehicle_s_m, 1).tolist()), here)
-        found = self._manoeuvres.get(key)
-        if found is None:
-            found = corridor_manoeuvre(road_map, corridor, self.config.lane_change_reach_m)
-            if len(self._manoeuvres) > 100_000:
-                self._manoeuvres.clear()
-            self._manoeuvres[key] = found
-        return found
+            return [(Manoeuvre.UNKNOWN, False)] * len(corridors)
+        if not corridors:
+            return []
+        starts = [np.asarray(c.lanelet_start_s_m) for c in corridors]
+        vehicle_s = [c.vehicle_s_m for c in corridors]
+        lengths = [len(x) for x in starts]
+        relative = np.round(np.concatenate(starts) - np.repeat(vehicle_s, lengths), 1).tolist()
+        out = []
+        at = 0
+        for corridor, start, s_v, n in zip(corridors, starts, vehicle_s, lengths):
+            here = int(np.searchsorted(start, s_v, side="right")) if n else 0
+            key = (tuple(lanelet_ids_of(corridor)), tuple(relative[at : at + n]), here)
+            at += n
+            found = self._manoeuvres.get(key)
+            if found is None:
+                found = corridor_manoeuvre(road_map, corridor, self.config.lane_change_reach_m)
+                if len(self._manoeuvres) > 100_000:
+                    self._manoeuvres.clear()
+                self._manoeuvres[key] = found
+            out.append(found)
+        return out
+
+
+def _mapping(state: _Vehicle, corridors: tuple[Corridor, ...]) -> list[tuple[int, float]]:
+    """`map_corridors` of the vehicle's last corridors onto `corridors`; IndexError when a particle's slot has no entry."""
+    mapping = map_corridors(state.corridors, corridors)
+    route = state.particles.route
+    if route.size and not (0 <= int(route.min()) and int(route.max()) < len(mapping)):
+        raise IndexError(f"particle slots {int(route.min())}..{int(route.max())} for {len(mapping)} corridors")
+    return mapping
+
+
+def _project(p: Particles, v: int, before: tuple[Corridor, ...], old: np.ndarray, slot: np.ndarray, lost_mask: np.ndarray,
+             corridors: tuple[Corridor, ...]) -> np.ndarray:
+    """Row v's particles `lost_mask` (no lanelet shared with their new corridor) projected from their map position on the
+    corridors `before` (slots `old`) onto their new corridor, or the nearest new one; returns the row's new slots."""
+    lost = np.flatnonzero(lost_mask)
+    x, y = _frenet_to_xy(before, old[lost], p.s_m[v, lost], p.d_m[v, lost])
+    xy = np.column_stack([x, y])
+    projected = [project_to_polyline(xy, np.column_stack([c.x_m, c.y_m]), c.s_m) for c in corridors]
+    s_all = np.stack([f.s_m for f in projected])
+    d_all = np.stack([f.d_m for f in projected])
+    choice = np.where(slot[lost] >= 0, slot[lost], np.argmin(np.abs(d_all), axis=0))
+    cols = np.arange(lost.size)
+    slot = slot.copy()
+    slot[lost] = choice
+    p.s_m[v, lost] = s_all[choice, cols]
+    p.d_m[v, lost] = d_all[choice, cols]
+    return slot
+
+
+def _rng(*entropy: int) -> np.random.Generator:
+    """``np.random.default_rng(list(entropy))`` (the same stream), built without its argument dispatch."""
+    return np.random.Generator(np.random.PCG64(np.random.SeedSequence(list(entropy))))
 
 
 def _empty(n: int) -> Particles:

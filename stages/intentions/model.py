@@ -44,16 +44,22 @@ class Particles:
 
     @classmethod
     def stack(cls, rows: list["Particles"]) -> "Particles":
-        return cls(**{f.name: np.concatenate([getattr(r, f.name) for r in rows], axis=0) for f in fields(cls)})
+        return cls(*(np.concatenate([getattr(r, name) for r in rows], axis=0) for name in PARTICLE_FIELDS))
 
     def row(self, v: int) -> "Particles":
-        return Particles(**{f.name: getattr(self, f.name)[v : v + 1].copy() for f in fields(self)})
+        return Particles(*(getattr(self, name)[v : v + 1].copy() for name in PARTICLE_FIELDS))
 
     def take(self, rows: np.ndarray, index: np.ndarray) -> None:
         """Replace rows `rows` (R,) by the particles `index` (R, N) of themselves (resampling)."""
-        for f in fields(self):
-            arr = getattr(self, f.name)
-            arr[rows] = np.take_along_axis(arr[rows], index, axis=1)
+        n = index.shape[1]
+        flat = (np.asarray(rows)[:, None] * n + index).ravel()  # one gather per field over the (V·N) particles
+        for name in PARTICLE_FIELDS:
+            arr = getattr(self, name)
+            arr[rows] = arr.reshape(-1)[flat].reshape(index.shape)
+
+
+PARTICLE_FIELDS = tuple(f.name for f in fields(Particles))
+"""The field names of `Particles`, in order."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -94,7 +100,7 @@ def _sigmoid(x):
 
 
 def expected_stop(tables: PairTables, g: np.ndarray, s_m: np.ndarray, v_mps: np.ndarray, mp: ModelParams) -> np.ndarray:
-    """P(E = stop) per particle from the conflicts with priority corridors on its route.
+    """P(E = stop) per particle from the conflicts with priority corridors on its route (`g`, `s_m`, `v_mps`: one shape).
 
     T_e = (s* − s)/max(v, 1) for every conflict point still ahead of the
     particle; a priority vehicle (time T' from the relations, route
@@ -103,21 +109,27 @@ def expected_stop(tables: PairTables, g: np.ndarray, s_m: np.ndarray, v_mps: np.
     less than t_c after the ego and not more than t_pass before it.
     P(E = go) = Π (1 − q·P_c).
     """
-    cs = tables.conflict_s_m[g]  # (V, N, C)
-    ahead = cs - s_m[..., None]
-    valid = np.isfinite(cs) & (ahead > 0.0)
-    # the sigmoids only where a conflict is ahead (C is the largest count over the frame's pairs: in dense traffic
-    # most entries are padding or behind); the same values there, 1 elsewhere, so the product is unchanged
-    factor = np.ones(cs.shape)
-    at = np.nonzero(valid)
-    if at[0].size:
-        g_at = np.broadcast_to(np.asarray(g)[..., None], valid.shape)[at]
-        speed = np.broadcast_to(np.maximum(v_mps, mp.min_time_speed_mps)[..., None], valid.shape)[at]
-        t_ego = ahead[at] / speed
-        gap = tables.conflict_other_time_s[g_at, at[-1]] - t_ego
-        p_conflict = _sigmoid((gap + mp.gap_pass_s) / mp.gap_scale_s) * (1.0 - _sigmoid((gap - mp.gap_critical_s) / mp.gap_scale_s))
-        factor[at] = 1.0 - tables.conflict_weight[g_at, at[-1]] * p_conflict
-    p_e = 1.0 - np.prod(factor, axis=-1)
+    g = np.asarray(g)
+    # only the particles on a pair with a priority conflict at all (the others: no factor, P(E = stop) = 1 − 1 = 0), and
+    # of those the sigmoids only where a conflict is ahead (C is the largest count over the frame's pairs: in dense
+    # traffic most entries are padding or behind); the same values there, 1 elsewhere, so each product is unchanged
+    p_e = np.zeros(g.shape)
+    on = np.isfinite(tables.conflict_s_m).any(axis=1)[g]
+    if on.any():
+        g_on = g[on]
+        cs = tables.conflict_s_m[g_on]  # (K, C)
+        ahead = cs - s_m[on][:, None]
+        valid = np.isfinite(cs) & (ahead > 0.0)
+        factor = np.ones(cs.shape)
+        at = np.nonzero(valid)
+        if at[0].size:
+            g_at = g_on[at[0]]
+            speed = np.maximum(v_mps[on], mp.min_time_speed_mps)[at[0]]
+            t_ego = ahead[at] / speed
+            gap = tables.conflict_other_time_s[g_at, at[1]] - t_ego
+            p_conflict = _sigmoid((gap + mp.gap_pass_s) / mp.gap_scale_s) * (1.0 - _sigmoid((gap - mp.gap_critical_s) / mp.gap_scale_s))
+            factor[at] = 1.0 - tables.conflict_weight[g_at, at[1]] * p_conflict
+        p_e[on] = 1.0 - np.prod(factor, axis=-1)
     if getattr(tables, "signal_line_s_m", None) is None:  # no signal phases: the conflicts alone, as before issue 17
         return p_e
     return combine(p_e, signal_stop_probability(tables, g, s_m, v_mps))

@@ -12,7 +12,9 @@ priority vehicles that drive the expected manoeuvre E.
 `corridor_manoeuvre` classifies a corridor (turn, straight, lane change,
 follow lane) from the map; `map_corridors` maps the corridors of a
 vehicle's previous update onto its new ones (same id, else the longest
-common lanelet run). Pure: no bus, no clock.
+common lanelet run). `corridors_ok` and `unwrap_parts` check and unwrap the
+corridors of a whole frame at once, with exactly the per-corridor results of
+`corridor_ok` and ``np.unwrap``. Pure: no bus, no clock.
 """
 
 from __future__ import annotations
@@ -81,6 +83,27 @@ def corridor_ok(corridor: Corridor) -> str | None:
     if not (math.isfinite(corridor.vehicle_s_m) and math.isfinite(corridor.vehicle_d_m)):
         return "non-finite vehicle s/d"
     return None
+
+
+def corridors_ok(corridors: Sequence[Corridor]) -> list[str | None]:
+    """`corridor_ok` of several corridors: the checks run on all of them at once, the reason is worded for the failing ones."""
+    if not corridors:
+        return []
+    try:
+        lengths = [len(c.s_m) for c in corridors]
+        if min(lengths) >= 2 and all(len(a) == n for c, n in zip(corridors, lengths) for a in (c.x_m, c.y_m, c.heading_rad)):
+            s = np.concatenate([c.s_m for c in corridors])
+            finite = bool(np.isfinite(s).all()) and all(bool(np.isfinite(np.concatenate(parts)).all()) for parts in (
+                [c.x_m for c in corridors], [c.y_m for c in corridors], [c.heading_rad for c in corridors]))
+            ends = np.cumsum(lengths)[:-1]
+            increasing = np.diff(s) > 0.0
+            increasing[ends - 1] = True  # from one corridor's last sample to the next one's first: no step
+            vehicle = np.array([(c.vehicle_s_m, c.vehicle_d_m) for c in corridors], dtype=np.float64)
+            if finite and bool(increasing.all()) and bool(np.isfinite(vehicle).all()):
+                return [None] * len(corridors)
+    except (TypeError, ValueError):  # odd arrays: worded one by one below
+        pass
+    return [corridor_ok(c) for c in corridors]
 
 
 @dataclass(frozen=True, slots=True)
@@ -159,9 +182,8 @@ def next_entry_s_m(relations: CorridorRelations | None, vehicle_s_m: float) -> f
     """Arc length of the first intersection entrance ahead of the vehicle on a corridor, NaN if none."""
     if relations is None:
         return math.nan
-    entries = np.asarray(relations.intersection_entry_s_m, dtype=np.float64)
-    ahead = entries[np.isfinite(entries) & (entries > vehicle_s_m)]
-    return float(ahead.min()) if ahead.size else math.nan
+    entries = np.asarray(relations.intersection_entry_s_m, dtype=np.float64).tolist()
+    return min((e for e in entries if math.isfinite(e) and e > vehicle_s_m), default=math.nan)
 
 
 def build_tables(
@@ -188,7 +210,7 @@ def build_tables(
             s_parts.append(np.asarray(corridor.s_m, dtype=np.float64))
             x_parts.append(np.asarray(corridor.x_m, dtype=np.float64))
             y_parts.append(np.asarray(corridor.y_m, dtype=np.float64))
-            h_parts.append(np.unwrap(np.asarray(corridor.heading_rad, dtype=np.float64)))
+            h_parts.append(np.asarray(corridor.heading_rad, dtype=np.float64))
             k_parts.append(np.asarray(corridor.curvature_1pm, dtype=np.float64))
             ok = math.isfinite(corridor.speed_limit_mps) and corridor.speed_limit_mps > 0
             limits.append(corridor.speed_limit_mps if ok else default_speed_limit_mps)
@@ -196,8 +218,8 @@ def build_tables(
             vehicle_d.append(float(corridor.vehicle_d_m))
             rel = relations.get((vehicle.track_id, corridor.corridor_id))
             entry.append(next_entry_s_m(rel, float(corridor.vehicle_s_m)))
-            hit = np.flatnonzero(np.asarray(corridor.lanelet_ids) == vehicle.lanelet_id)
-            switch.append(float(corridor.lanelet_start_s_m[hit[0]]) if hit.size else math.nan)
+            ids = lanelet_ids_of(corridor)
+            switch.append(float(corridor.lanelet_start_s_m[ids.index(vehicle.lanelet_id)]) if vehicle.lanelet_id in ids else math.nan)
             conflicts.append(_priority_conflicts(rel, route_probabilities))
     n_pairs = len(pair_vehicle)
     lengths = np.array([len(s) for s in s_parts], dtype=np.int64)
@@ -232,7 +254,7 @@ def build_tables(
         s_m=cat(s_parts),
         x_m=cat(x_parts),
         y_m=cat(y_parts),
-        heading_rad=cat(h_parts),
+        heading_rad=unwrap_parts(h_parts) if n_pairs else np.zeros(0),
         v_adm_mps=v_adm,
         vehicle_s_m=np.asarray(vehicle_s, dtype=np.float64),
         vehicle_d_m=np.asarray(vehicle_d, dtype=np.float64),
@@ -245,15 +267,38 @@ def build_tables(
     )
 
 
+def unwrap_parts(parts: Sequence[np.ndarray]) -> np.ndarray:
+    """The arrays concatenated, each ``np.unwrap``-ped on its own (exactly): those without a jump of π or more between
+    neighbours are what ``np.unwrap`` makes of them (unchanged, the samples after the first plus 0.0) in one pass."""
+    flat = np.concatenate(parts)
+    out = flat + 0.0
+    lengths = np.array([len(p) for p in parts], dtype=np.int64)
+    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    out[starts[lengths > 0]] = flat[starts[lengths > 0]]
+    jump = ~(np.abs(np.diff(flat)) < np.pi)  # NaN counts as a jump
+    jump[(starts + lengths - 1)[(lengths > 0) & (starts + lengths < flat.size)]] = False  # across two parts
+    if jump.any():
+        owner = np.searchsorted(starts, np.flatnonzero(jump), side="right") - 1
+        for k in np.unique(owner).tolist():
+            out[starts[k] : starts[k] + lengths[k]] = np.unwrap(parts[k])
+    return out
+
+
 def _priority_conflicts(rel: CorridorRelations | None, route_probabilities: Mapping[tuple[int, int], float]):
     """(s*, T', P(R = other corridor)) of the conflicts where the other corridor has priority (c,)."""
-    if rel is None:
+    if rel is None or not len(rel.conflict_priority):
         return np.zeros(0), np.zeros(0), np.zeros(0)
-    keep = np.flatnonzero((np.asarray(rel.conflict_priority) < 0) & np.isfinite(rel.conflict_s_m) & np.isfinite(rel.conflict_other_time_s))
+    priority, s_star, t_other = rel.conflict_priority, rel.conflict_s_m, rel.conflict_other_time_s
+    if len(priority) == len(s_star) == len(t_other):  # on Python numbers: few conflicts per pair
+        keep = [k for k, (pr, s, t) in enumerate(zip(np.asarray(priority).tolist(), np.asarray(s_star, np.float64).tolist(),
+                                                     np.asarray(t_other, np.float64).tolist())) if pr < 0 and math.isfinite(s) and math.isfinite(t)]
+    else:  # numpy's broadcasting (or its error) as before
+        keep = np.flatnonzero((np.asarray(priority) < 0) & np.isfinite(s_star) & np.isfinite(t_other)).tolist()
     weights = np.array(
         [route_probabilities.get((int(rel.conflict_track_ids[k]), int(rel.conflict_corridor_ids[k])), 1.0) for k in keep], dtype=np.float64
     )
-    return np.asarray(rel.conflict_s_m, np.float64)[keep], np.asarray(rel.conflict_other_time_s, np.float64)[keep], weights.reshape(-1)
+    index = np.asarray(keep, dtype=np.int64)
+    return np.asarray(rel.conflict_s_m, np.float64)[index], np.asarray(rel.conflict_other_time_s, np.float64)[index], weights.reshape(-1)
 
 
 # --------------------------------------------------------------------------- corridor changes
@@ -278,10 +323,17 @@ def common_run(old: Sequence[int], new: Sequence[int]) -> tuple[int, int]:
     return best, lanelet
 
 
-def lanelet_shift_m(old: Corridor, new: Corridor, lanelet_id: int) -> float:
-    """s_new − s_old for a point on `lanelet_id`, which both corridors hold."""
-    i = int(np.flatnonzero(np.asarray(old.lanelet_ids) == lanelet_id)[0])
-    j = int(np.flatnonzero(np.asarray(new.lanelet_ids) == lanelet_id)[0])
+def lanelet_ids_of(corridor: Corridor) -> list[int]:
+    """The corridor's lanelet ids as Python ints."""
+    ids = corridor.lanelet_ids
+    return ids.tolist() if isinstance(ids, np.ndarray) else [int(x) for x in ids]
+
+
+def lanelet_shift_m(old: Corridor, new: Corridor, lanelet_id: int, old_ids: list[int] | None = None, new_ids: list[int] | None = None) -> float:
+    """s_new − s_old for a point on `lanelet_id`, which both corridors hold (their first entry of it); `old_ids`/`new_ids`:
+    the corridors' lanelet ids when at hand."""
+    i = (old_ids if old_ids is not None else lanelet_ids_of(old)).index(lanelet_id)
+    j = (new_ids if new_ids is not None else lanelet_ids_of(new)).index(lanelet_id)
     return float(new.lanelet_start_s_m[j]) - float(old.lanelet_start_s_m[i])
 
 
@@ -296,14 +348,14 @@ def map_corridors(old: Sequence[Corridor], new: Sequence[Corridor]) -> list[tupl
     """
     out = []
     ids = {c.corridor_id: j for j, c in enumerate(new)}
-    new_lanelets = [[int(x) for x in c.lanelet_ids] for c in new]
+    new_lanelets = [lanelet_ids_of(c) for c in new]
     for corridor in old:
-        old_lanelets = [int(x) for x in corridor.lanelet_ids]
+        old_lanelets = lanelet_ids_of(corridor)
         j = ids.get(corridor.corridor_id, -1)
         if j >= 0:
             shared = set(new_lanelets[j])
             lanelet = next((x for x in old_lanelets if x in shared), None)
-            out.append((j, math.nan if lanelet is None else lanelet_shift_m(corridor, new[j], lanelet)))
+            out.append((j, math.nan if lanelet is None else lanelet_shift_m(corridor, new[j], lanelet, old_lanelets, new_lanelets[j])))
             continue
         runs = [common_run(old_lanelets, lanelets) for lanelets in new_lanelets]
         lengths = [n for n, _ in runs]
@@ -311,7 +363,7 @@ def map_corridors(old: Sequence[Corridor], new: Sequence[Corridor]) -> list[tupl
             out.append((-1, math.nan))
             continue
         j = int(np.argmax(lengths))
-        out.append((j, lanelet_shift_m(corridor, new[j], runs[j][1])))
+        out.append((j, lanelet_shift_m(corridor, new[j], runs[j][1], old_lanelets, new_lanelets[j])))
     return out
 
 
@@ -332,7 +384,7 @@ def corridor_manoeuvre(road_map: RoadMap | None, corridor: Corridor, lane_change
     """
     if road_map is None:
         return Manoeuvre.UNKNOWN, False
-    ids = [int(x) for x in corridor.lanelet_ids]
+    ids = lanelet_ids_of(corridor)
     starts = np.asarray(corridor.lanelet_start_s_m, dtype=np.float64)
     s_v = float(corridor.vehicle_s_m)
     known = [road_map.has_lanelet(x) for x in ids]

@@ -24,6 +24,9 @@ from stages.lib.ar.features import (
     FeatureTracker,
     causal_acceleration,
     curvature_integrals,
+    corridor_features,
+    curvature_rows,
+    pair_features,
 )
 from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
 from stages.lib.datasets import DEFAULT_DATA_DIR
@@ -103,6 +106,91 @@ def test_curvature_features_in_batch_columns():
     assert x[0, -1, F["curv_neg_10_20m"]] == pytest.approx(-0.5, abs=0.02)
 
 
+def _curvature_alone(c: Corridor, lookahead_m: float = 60.0, n_segments: int = 6) -> np.ndarray:
+    """The integrals of one corridor written out directly (nan_to_num, trapezoid cumsum, np.interp at the bounds)."""
+    s = np.asarray(c.s_m, dtype=np.float64)
+    kappa = np.nan_to_num(np.asarray(c.curvature_1pm, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    out = np.zeros((n_segments, 2))
+    if s.size < 2 or not math.isfinite(c.vehicle_s_m):
+        return out
+    bounds = c.vehicle_s_m + np.linspace(0.0, lookahead_m, n_segments + 1)
+    for col, part in enumerate((np.maximum(kappa, 0.0), np.minimum(kappa, 0.0))):
+        cumulative = np.concatenate([[0.0], np.cumsum(0.5 * (part[1:] + part[:-1]) * np.diff(s))])
+        out[:, col] = np.diff(np.interp(bounds, s, cumulative))
+    return out
+
+
+def test_curvature_rows_of_a_batch_are_exactly_each_corridor_alone():
+    rng = np.random.default_rng(5)
+    wavy = [corridor(k, kappa=lambda s, a=rng.normal(0, 0.05), f=rng.uniform(0.02, 0.3): a * np.sin(f * s),
+                     length_m=float(rng.uniform(3.0, 120.0)), vehicle_s_m=float(rng.uniform(-5.0, 40.0)), step_m=float(rng.uniform(0.3, 1.5)))
+            for k in range(12)]
+    odd = corridor(90, kappa=lambda s: np.where(s > 10, np.nan, 0.05))
+    odd.curvature_1pm[3] = np.inf
+    one_sample = corridor(91, length_m=0.0)
+    lost = corridor(92, kappa=lambda s: np.full_like(s, 0.03), vehicle_s_m=math.nan)
+    corridors = [*wavy[:5], odd, one_sample, *wavy[5:], lost]
+    rows = curvature_rows(corridors)
+    assert rows.shape == (len(corridors), 6, 2)
+    for c, row in zip(corridors, rows):
+        assert np.array_equal(row, _curvature_alone(c)), c.corridor_id  # bit for bit: the batch changes no figure
+    assert np.any(rows[0] != 0.0) and np.all(rows[corridors.index(lost)] == 0.0)
+
+
+def test_pair_features_of_a_batch_equal_each_pair_alone(real):
+    cfg = FeatureConfig()
+    with_leaders = 0  # (the influencer columns from a batch: test_influencer_features_follow_most_influencing_in_a_crossing_scene)
+    for cs, rs, _ in real[::4]:
+        rel = {(r.track_id, r.corridor_id): r for r in rs.relations}
+        pairs = [(c, rel.get((v.track_id, c.corridor_id)), float(v.speed_mps)) for v in cs.vehicles if v.status == MatchStatus.MATCHED for c in v.corridors]
+        if not pairs:
+            continue
+        with_leaders += any(r is not None and r.leader_track_id >= 0 for _c, r, _s in pairs)
+        batch = pair_features(*zip(*pairs), cfg)
+        for row, (c, r, speed) in zip(batch, pairs):
+            assert np.array_equal(row, pair_features([c], [r], [speed], cfg)[0])
+            assert np.array_equal(row[:12].reshape(6, 2), _curvature_alone(c))
+    assert with_leaders > 5
+
+
+def test_a_mismatched_curvature_array_fails_only_its_pair():
+    good, bad = corridor(7), corridor(8)
+    bad = Corridor(**{**{f: getattr(bad, f) for f in bad.__dataclass_fields__}, "curvature_1pm": bad.curvature_1pm[:-3]})
+    tracker = FeatureTracker()
+    cs = corridor_set(0, [vehicle(1, 3.0, [good, bad]), vehicle(2, 4.0)])
+    issues = tracker.update(cs, None)
+    assert [(i.kind, i.agent_id) for i in issues if i.kind != "no_relations"] == [("pair_failed", 1)]
+    assert tracker.batch(cs)[0] == [(1, 7), (2, 7)]
+
+
+def test_a_row_replaced_within_its_step_drops_the_corridors_it_lacks():
+    straight, turn = corridor(7), corridor(8, kappa=lambda s: np.full_like(s, 0.02))
+    later_turn = corridor(8, kappa=lambda s: np.full_like(s, 0.04))
+    tracker = FeatureTracker()
+    tracker.update(corridor_set(0, [vehicle(1, 3.0, [straight, turn])]), None)
+    tracker.update(corridor_set(STEP_NS // 3, [vehicle(1, 3.0, [straight])]), None)  # same step: replaces the row without 8
+    cs = corridor_set(STEP_NS, [vehicle(1, 3.0, [straight, later_turn])])
+    tracker.update(cs, None)
+    keys, x, mask = tracker.batch(cs)
+    assert keys == [(1, 7), (1, 8)] and mask[1, -2:].all()
+    col = F["curv_pos_00_10m"]
+    np.testing.assert_allclose(x[1, -2:, col], 0.4, atol=1e-6)  # step 0 holds no corridor 8 any more: back-filled from step 1
+
+
+def test_rows_older_than_the_history_are_not_used():
+    tracker = FeatureTracker()
+    for k in range(0, 46, 9):  # rows at steps 0, 9, ..., 45 (gaps below the 1 s timeout)
+        cs = corridor_set(k * STEP_NS, [vehicle(3, float(k))])
+        tracker.update(cs, None)
+    _keys, x, mask = tracker.batch(cs)
+    assert np.flatnonzero(mask[0]).tolist() == [3, 12, 21, 30, 39]  # steps 9 .. 45 of the window 6 .. 45
+    np.testing.assert_array_equal(x[0, :, SPEED], np.repeat(np.float32([9, 18, 27, 36, 45]), [12, 9, 9, 9, 1]))
+    # an earlier frame's batch sees only the rows the track still keeps (steps after 45 - 40): step 9, not step 0
+    _keys, x, mask = tracker.batch(corridor_set(10 * STEP_NS, [vehicle(3, 0.0)]))
+    assert np.flatnonzero(mask[0]).tolist() == [38]
+    np.testing.assert_array_equal(x[0, :, SPEED], 9.0)
+
+
 # --------------------------------------------------------------------------- history, mask, issues
 
 
@@ -142,6 +230,24 @@ def test_nan_speed_gives_an_issue_not_an_exception():
     keys, x, mask = tracker.batch(corridor_set(2 * STEP_NS, [vehicle(2, math.inf)]))
     assert keys == [(2, 7)] and mask[0, -3:].tolist() == [True, True, False]
     assert x[0, -1, SPEED] == 3.0 and np.all(np.isfinite(x))
+
+
+def test_a_corridor_in_no_row_takes_its_geometry_now_for_every_step():
+    straight, turn = corridor(7), corridor(9, kappa=lambda s: np.full_like(s, 0.02))
+    tracker = FeatureTracker()
+    for k in range(3):
+        tracker.update(corridor_set(k * STEP_NS, [vehicle(1, 2.0), vehicle(2, 3.0 + k)]), None)
+    cs = corridor_set(3 * STEP_NS, [vehicle(1, 2.0), vehicle(2, math.nan, [turn, straight])])  # no row for 2 this frame
+    tracker.update(cs, None)
+    keys, x, mask = tracker.batch(cs)
+    assert keys == [(1, 7), (2, 9), (2, 7)]
+    expected = corridor_features(turn, None, 5.0, FeatureConfig())  # relations absent, the speed of its last row
+    np.testing.assert_array_equal(x[1][:, 1:22], np.broadcast_to(expected.astype(np.float32), (HISTORY_STEPS, 21)))
+    assert x[1, -1, F["curv_pos_00_10m"]] == pytest.approx(0.2, abs=1e-6)
+    np.testing.assert_array_equal(x[2][:, 1:13], x[0][:, 1:13])  # 7 from its rows: the same straight corridor as vehicle 1's
+    np.testing.assert_array_equal(x[2][:, F["leader_speed_mps"]], np.float32([3.0] * 37 + [4.0, 5.0, 5.0]))  # no leader: own speed
+    assert mask[1].tolist() == mask[2].tolist() == [False] * 36 + [True] * 3 + [False]
+    np.testing.assert_array_equal(x[1][:, SPEED], np.float32([3.0] * 37 + [4.0, 5.0, 5.0]))
 
 
 def test_nan_corridor_values_give_an_issue():

@@ -140,14 +140,14 @@ def test_ar_inference(frames, monkeypatch):
     last = frames[FRAME]
     clean, _ = clean_core.process(last.corridor_set, last.relation_set, last.frame, last.scene)
     failing = {id(c) for v in last.corridor_set.vehicles if v.track_id == FAILING for c in v.corridors}
-    compute = features.corridor_features
+    compute = features.pair_features
 
-    def bad(corridor, *args):
-        if id(corridor) in failing:
+    def bad(corridors, *args):  # the frame's batch fails while it holds the corridor; then each pair is computed alone
+        if any(id(c) in failing for c in corridors):
             raise Boom("stand-in failure of one corridor's features")
-        return compute(corridor, *args)
+        return compute(corridors, *args)
 
-    monkeypatch.setattr(features, "corridor_features", bad)
+    monkeypatch.setattr(features, "pair_features", bad)
     dirty, issues = dirty_core.process(last.corridor_set, last.relation_set, last.frame, last.scene)
     assert _kinds(issues, FAILING) == ["pair_failed"] * len(failing)
     a = {(p.track_id, p.corridor_id): p for p in clean.profiles}

@@ -392,3 +392,100 @@ def test_particles_that_lose_their_vehicle_are_born_again_at_the_measurement(fra
     measured = {c.corridor_id: c.vehicle_s_m for v in corridor_set.vehicles if v.track_id == old for c in v.corridors}
     for c in belief.corridors:
         assert abs(c.s_mean_m - measured[c.corridor_id]) < 3.0
+
+
+def test_batched_table_helpers_equal_their_one_corridor_forms(frames):
+    """corridors_ok and unwrap_parts run on all of a frame's corridors at once; each answer is the one-corridor one exactly."""
+    from stages.intentions.tables import corridor_ok, corridors_ok, unwrap_parts
+
+    corridors = [c for item in frames[WINDOW] for v in item.corridor_set.vehicles for c in v.corridors]
+    assert len(corridors) > 50
+    assert corridors_ok(corridors) == [None] * len(corridors) == [corridor_ok(c) for c in corridors]
+
+    def edited(c, **changes):
+        return dataclasses.replace(c, **changes)
+
+    c = corridors[0]
+    odd = [
+        edited(c, x_m=np.where(np.arange(len(c.x_m)) == 3, np.nan, c.x_m)),
+        edited(c, s_m=c.s_m[::-1].copy()),
+        edited(c, vehicle_d_m=math.inf),
+        edited(c, y_m=c.y_m[:-1]),
+        edited(c, s_m=c.s_m[:1], x_m=c.x_m[:1], y_m=c.y_m[:1], heading_rad=c.heading_rad[:1]),
+    ]
+    mixed = corridors[:5] + odd + corridors[5:9]
+    found = corridors_ok(mixed)
+    assert found == [corridor_ok(m) for m in mixed]
+    assert all(f is None for f in found[:5] + found[-4:]) and all(f is not None for f in found[5:10])
+
+    rng = np.random.default_rng(3)
+    parts = [np.asarray(c.heading_rad, dtype=np.float64) for c in corridors[:20]]
+    parts += [np.cumsum(rng.uniform(-4.0, 4.0, 30)), np.array([2.0]), np.array([0.5, np.nan, 0.7, 7.0]), np.array([-0.0, 3.0, -3.0])]
+    rng.shuffle(parts)
+    want = np.concatenate([np.unwrap(p) for p in parts])
+    got = unwrap_parts(parts)
+    assert np.array_equal(got, want, equal_nan=True)
+    assert np.array_equal(np.signbit(got), np.signbit(want))  # even the sign of zeros
+
+
+def test_particles_that_cannot_follow_their_corridors_are_born_again(frames, scene_maps, monkeypatch):
+    """Corridors sharing no lanelet with the last ones: the particles are projected onto them; when that (or mapping the
+    corridors) raises, only that vehicle's particles are born again (issue particles_reborn), the others are untouched."""
+    import stages.intentions.core as core
+
+    part, k = frames[WINDOW], 15
+    assert all(any(v.track_id == TURNING_CAR and v.corridors for v in item.corridor_set.vehicles) for item in part[k - 1 : k + 1])
+    marker = 0x5A5A5A
+
+    def strange(j, frame, corridor_set, relation_set):  # at frame k the turning car's corridors hold lanelets never seen
+        if j != k:
+            return frame, corridor_set, relation_set
+        vehicles = tuple(
+            dataclasses.replace(v, corridors=tuple(
+                dataclasses.replace(c, corridor_id=c.corridor_id ^ marker, lanelet_ids=np.asarray(c.lanelet_ids) + 2 * 10**9) for c in v.corridors))
+            if v.track_id == TURNING_CAR else v for v in corridor_set.vehicles
+        )
+        relations = tuple(dataclasses.replace(r, corridor_id=r.corridor_id ^ marker) if r.track_id == TURNING_CAR else r for r in relation_set.relations)
+        return frame, dataclasses.replace(corridor_set, vehicles=vehicles), dataclasses.replace(relation_set, relations=relations)
+
+    def by_track(belief):
+        return {v.track_id: v for v in belief.vehicles}
+
+    projected, _ = run(part[: k + 1], scene_maps, edit=strange)
+    belief, issues = projected[k]
+    assert not [i for i in issues if i.kind == "particles_reborn"]
+    car = by_track(belief)[TURNING_CAR]
+    assert sum(c.particle_count for c in car.corridors) == IntentionsConfig().particles_per_vehicle
+
+    real_project, real_map = core._project, core.map_corridors
+
+    def unseen(corridors):
+        return any(int(np.min(c.lanelet_ids)) >= 10**9 for c in corridors)
+
+    def project_fails(p, v, before, old, slot, lost, corridors):
+        if unseen(corridors):
+            raise RuntimeError("stand-in projection failure")
+        return real_project(p, v, before, old, slot, lost, corridors)
+
+    calls = []
+
+    def map_fails(old, new):
+        if unseen(new):
+            calls.append(len(new))
+            raise RuntimeError("stand-in mapping failure")
+        return real_map(old, new)
+
+    for name, stand_in in (("_project", project_fails), ("map_corridors", map_fails)):
+        with monkeypatch.context() as patch:
+            patch.setattr(core, name, stand_in)
+            failed, _ = run(part[: k + 1], scene_maps, edit=strange)
+        belief_f, issues_f = failed[k]
+        assert [(i.kind, i.agent_id) for i in issues_f if i.kind == "particles_reborn"] == [("particles_reborn", TURNING_CAR)], name
+        reborn = by_track(belief_f)[TURNING_CAR]
+        assert sum(c.particle_count for c in reborn.corridors) == IntentionsConfig().particles_per_vehicle
+        assert reborn.corridors != car.corridors  # born at the measurement instead of projected
+        others, others_f = by_track(belief), by_track(belief_f)
+        assert set(others) == set(others_f)
+        for track_id in set(others) - {TURNING_CAR}:
+            assert repr(others_f[track_id]) == repr(others[track_id]), (name, track_id)  # repr: NaN fields compare equal
+    assert calls  # the stand-in mapping ran

@@ -61,7 +61,13 @@ stamps) is forgotten. A stamp going backwards resets everything (issue
 ``stamp_backwards``). A row holds the vehicle's acceleration and speed and,
 when it was matched, the 21 corridor features of each of its corridors by
 ``corridor_id`` (ids are stable from frame to frame while the route
-continues: ``stages.corridors`` inherits them).
+continues: ``stages.corridors`` inherits them). The rows live in ring
+buffers of ``HISTORY_STEPS`` slots (slot = step mod 40), one for the vehicle
+and one per corridor id, so ``batch`` gathers a pair's 40 steps by index
+arrays. ``update`` computes the corridor features of all pairs of a frame
+in one batch (``pair_features``: row p exactly what pair p alone gives);
+when the batch raises, each pair is computed alone so that only the
+failing ones lose their row (issue ``pair_failed``).
 
 ``batch(corridor_set)``: for each matched vehicle with at least one row and
 each of its corridors, the 40 steps ending at the set's stamp, oldest first.
@@ -84,7 +90,7 @@ from __future__ import annotations
 import collections
 import math
 from dataclasses import dataclass, field
-from typing import Iterable
+from typing import Iterable, Sequence
 
 import numpy as np
 
@@ -117,6 +123,17 @@ ACCEL = FEATURE_NAMES.index("accel_mps2")
 SPEED = FEATURE_NAMES.index("speed_mps")
 _VEHICLE_COLUMNS = np.array([ACCEL, SPEED])
 _CORRIDOR_COLUMNS = np.array([i for i in range(N_FEATURES) if i not in (ACCEL, SPEED)])
+_CORRIDOR_SLICE = slice(int(_CORRIDOR_COLUMNS[0]), int(_CORRIDOR_COLUMNS[-1]) + 1)  # the corridor columns are contiguous
+assert np.array_equal(np.arange(N_FEATURES)[_CORRIDOR_SLICE], _CORRIDOR_COLUMNS)
+_VEHICLE_TYPES = frozenset(int(t) for t in AgentType if t.is_vehicle)
+
+
+def _is_vehicle(agent_type) -> bool:
+    """``AgentType(agent_type).is_vehicle``, False for a value that is no AgentType."""
+    try:
+        return int(agent_type) in _VEHICLE_TYPES
+    except ValueError:
+        return False
 N_CORRIDOR_FEATURES = len(_CORRIDOR_COLUMNS)
 _NS = 1e-9
 
@@ -181,71 +198,179 @@ def curvature_integrals(corridor: Corridor, lookahead_m: float = N_SEGMENTS * SE
     """(n_segments, 2): ∫max(κ, 0) ds and ∫min(κ, 0) ds (rad) over equal segments ahead of the vehicle's s.
 
     Trapezoidal integration on the corridor's samples; the corridor is
-    straight (κ = 0) beyond its ends.
+    straight (κ = 0) beyond its ends. One corridor of `curvature_rows`.
     """
-    s = np.asarray(corridor.s_m, dtype=np.float64)
-    kappa = np.nan_to_num(np.asarray(corridor.curvature_1pm, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    out = np.zeros((n_segments, 2))
-    if s.size < 2 or not math.isfinite(corridor.vehicle_s_m):
+    return curvature_rows([corridor], lookahead_m, n_segments)[0]
+
+
+def curvature_rows(corridors: Sequence[Corridor], lookahead_m: float = N_SEGMENTS * SEGMENT_M, n_segments: int = N_SEGMENTS) -> np.ndarray:
+    """`curvature_integrals` of several corridors at once: (P, n_segments, 2), float64.
+
+    The element-wise work and the cumulative sums run on all corridors
+    together (rows padded to the longest); each row then takes its own
+    ``np.interp``, so every row is exactly what one corridor alone gives. A
+    corridor whose curvature and arc-length arrays differ in length raises
+    ``ValueError`` (the caller isolates the pair).
+    """
+    n_rows = len(corridors)
+    out = np.zeros((n_rows, n_segments, 2))
+    s_parts = [np.asarray(c.s_m, dtype=np.float64) for c in corridors]
+    k_parts = [np.asarray(c.curvature_1pm, dtype=np.float64) for c in corridors]
+    for c, s, k in zip(corridors, s_parts, k_parts):
+        if s.shape != k.shape or s.ndim != 1:
+            raise ValueError(f"corridor {c.corridor_id}: curvature has {k.shape} samples, arc length {s.shape}")
+    lengths = np.array([s.size for s in s_parts], dtype=np.int64)
+    vehicle_s = np.array([float(c.vehicle_s_m) for c in corridors], dtype=np.float64)
+    usable = (lengths >= 2) & np.isfinite(vehicle_s)
+    if not usable.any():
         return out
-    ds = np.diff(s)
-    bounds = corridor.vehicle_s_m + np.linspace(0.0, lookahead_m, n_segments + 1)
-    for col, part in enumerate((np.maximum(kappa, 0.0), np.minimum(kappa, 0.0))):
-        cumulative = np.concatenate([[0.0], np.cumsum(0.5 * (part[1:] + part[:-1]) * ds)])
-        out[:, col] = np.diff(np.interp(bounds, s, cumulative))
+    width = int(lengths.max())
+    valid = np.arange(width)[None, :] < lengths[:, None]
+    s = np.zeros((n_rows, width))
+    kappa = np.zeros((n_rows, width))
+    s[valid] = np.concatenate(s_parts)
+    kappa[valid] = np.concatenate(k_parts)
+    kappa = np.where(np.isfinite(kappa), kappa, 0.0)  # as np.nan_to_num(nan=0, posinf=0, neginf=0)
+    ds = np.diff(s, axis=1)
+    parts = np.stack([np.maximum(kappa, 0.0), np.minimum(kappa, 0.0)])  # (2, P, W)
+    cumulative = np.zeros(parts.shape)
+    np.cumsum(0.5 * (parts[..., 1:] + parts[..., :-1]) * ds, axis=-1, out=cumulative[..., 1:])  # sequential: per row as alone
+    bounds = vehicle_s[:, None] + _segment_bounds(lookahead_m, n_segments)[None, :]
+    at = np.zeros((2, n_rows, n_segments + 1))
+    for row in np.flatnonzero(usable).tolist():
+        n = int(lengths[row])
+        for col in (0, 1):
+            at[col, row] = np.interp(bounds[row], s[row, :n], cumulative[col, row, :n])
+    out[usable] = np.moveaxis(np.diff(at, axis=-1), 0, -1)[usable]
     return out
+
+
+_BOUNDS: dict[tuple[float, int], np.ndarray] = {}
+
+
+def _segment_bounds(lookahead_m: float, n_segments: int) -> np.ndarray:
+    """``np.linspace(0, lookahead_m, n_segments + 1)``, computed once per (lookahead, segments)."""
+    key = (float(lookahead_m), int(n_segments))
+    found = _BOUNDS.get(key)
+    if found is None:
+        found = _BOUNDS[key] = np.linspace(0.0, lookahead_m, n_segments + 1)
+        found.flags.writeable = False
+    return found
+
+
+_INTERSECTION = FEATURE_NAMES.index("intersection_distance_m")
+_LEADER_GAP = FEATURE_NAMES.index("leader_gap_m")
+_LEADER_SPEED = FEATURE_NAMES.index("leader_speed_mps")
+_INFLUENCER = tuple(
+    (FEATURE_NAMES.index(f"infl{k}_distance_m"), FEATURE_NAMES.index(f"infl{k}_speed_mps"), FEATURE_NAMES.index(f"infl{k}_priority")) for k in (1, 2)
+)
 
 
 def corridor_features(corridor: Corridor, relations: CorridorRelations | None, speed_mps: float, config: FeatureConfig) -> np.ndarray:
     """The 21 corridor features (FEATURE_NAMES without accel and speed) of one pair at one frame, float64."""
-    full = np.zeros(N_FEATURES)
-    curv = curvature_integrals(corridor, config.lookahead_m)
-    full[1 : 1 + 2 * N_SEGMENTS] = curv.reshape(-1)
+    return pair_features([corridor], [relations], [speed_mps], config)[0]
+
+
+def pair_features(
+    corridors: Sequence[Corridor], relations: Sequence[CorridorRelations | None], speeds_mps: Sequence[float], config: FeatureConfig
+) -> np.ndarray:
+    """`corridor_features` of several pairs at once: (P, 21) float64, row p exactly what pair p alone gives."""
+    full = np.zeros((len(corridors), N_FEATURES))
+    full[:, 1 : 1 + 2 * N_SEGMENTS] = curvature_rows(corridors, config.lookahead_m).reshape(len(corridors), -1)
     absent, lo = config.absent_distance_m, config.min_distance_m
-    full[FEATURE_NAMES.index("intersection_distance_m")] = absent
-    full[FEATURE_NAMES.index("leader_gap_m")] = absent
-    full[FEATURE_NAMES.index("leader_speed_mps")] = speed_mps
-    for k in (1, 2):
-        full[FEATURE_NAMES.index(f"infl{k}_distance_m")] = absent
-    if relations is not None:
-        entry = np.asarray(relations.intersection_entry_s_m, dtype=np.float64)
-        if entry.size:
-            q = int(np.argmin(np.where(np.isfinite(entry), entry, np.inf)))
-            full[FEATURE_NAMES.index("intersection_distance_m")] = np.clip(relations.intersection_distance_m[q], lo, absent)
-        if relations.leader_track_id >= 0 and math.isfinite(relations.leader_gap_m):
-            full[FEATURE_NAMES.index("leader_gap_m")] = np.clip(relations.leader_gap_m, 0.0, absent)
-            if math.isfinite(relations.leader_speed_mps):
-                full[FEATURE_NAMES.index("leader_speed_mps")] = relations.leader_speed_mps
-        for k, c in enumerate(most_influencing(relations, 2).tolist(), start=1):
-            full[FEATURE_NAMES.index(f"infl{k}_distance_m")] = np.clip(relations.conflict_other_distance_m[c], lo, absent)
-            full[FEATURE_NAMES.index(f"infl{k}_speed_mps")] = relations.conflict_other_speed_mps[c]
-            full[FEATURE_NAMES.index(f"infl{k}_priority")] = -float(relations.conflict_priority[c])
-    return full[_CORRIDOR_COLUMNS]
+    full[:, _INTERSECTION] = absent
+    full[:, _LEADER_GAP] = absent
+    full[:, _LEADER_SPEED] = speeds_mps
+    full[:, _INFLUENCER[0][0]] = absent
+    full[:, _INFLUENCER[1][0]] = absent
+    for row, rel in enumerate(relations):
+        if rel is None:
+            continue
+        entry = np.asarray(rel.intersection_entry_s_m, dtype=np.float64).tolist()
+        if entry:
+            ahead = [e if math.isfinite(e) else math.inf for e in entry]
+            q = ahead.index(min(ahead))  # the first smallest, as np.argmin
+            full[row, _INTERSECTION] = _clip(float(rel.intersection_distance_m[q]), lo, absent)
+        if rel.leader_track_id >= 0 and math.isfinite(rel.leader_gap_m):
+            full[row, _LEADER_GAP] = _clip(float(rel.leader_gap_m), 0.0, absent)
+            if math.isfinite(rel.leader_speed_mps):
+                full[row, _LEADER_SPEED] = rel.leader_speed_mps
+        if len(rel.conflict_time_s):  # most_influencing of no conflicts: none
+            for (distance, speed, priority), c in zip(_INFLUENCER, most_influencing(rel, 2).tolist()):
+                full[row, distance] = _clip(float(rel.conflict_other_distance_m[c]), lo, absent)
+                full[row, speed] = rel.conflict_other_speed_mps[c]
+                full[row, priority] = -float(rel.conflict_priority[c])
+    return full[:, _CORRIDOR_COLUMNS]
+
+
+def _clip(x: float, lo: float, hi: float) -> float:
+    """``np.clip`` of one number, in Python (NaN stays NaN; a bound is taken unless x is strictly inside, as numpy does)."""
+    if math.isnan(x):
+        return x
+    x = x if x > lo else lo
+    return x if x < hi else hi
 
 
 # --------------------------------------------------------------------------- the tracker
 
 
+_NO_STEP = np.iinfo(np.int64).min
+
+
 @dataclass(slots=True)
-class _Row:
-    vehicle: np.ndarray  # (2,): accel, speed
-    corridors: dict[int, np.ndarray]  # corridor_id -> (21,)
+class _Ring:
+    """Rows by step in ``HISTORY_STEPS`` slots: slot ``k % HISTORY_STEPS`` holds the row of step ``step[slot]`` (``_NO_STEP``: none)."""
+
+    step: np.ndarray  # (HISTORY_STEPS,) int64
+    values: np.ndarray  # (HISTORY_STEPS, width) float64
+
+    @classmethod
+    def empty(cls, width: int) -> "_Ring":
+        return cls(np.full(HISTORY_STEPS, _NO_STEP, dtype=np.int64), np.zeros((HISTORY_STEPS, width)))
 
 
 @dataclass(slots=True)
 class _Track:
+    """One vehicle's history: its rows (accel, speed) and, per corridor id, the corridor features of the rows that hold it.
+
+    A row of step k is kept while k lies in (last_step − HISTORY_STEPS, last_step]; a corridor ring's slot holds a
+    step only if that step's row holds the corridor (a row replaced within its step clears the corridors it lacks).
+    """
+
     last_stamp_ns: int
+    last_step: int = _NO_STEP
+    stamps: collections.deque = field(default_factory=lambda: collections.deque(maxlen=64))
     speeds: collections.deque = field(default_factory=lambda: collections.deque(maxlen=64))
-    rows: dict[int, _Row] = field(default_factory=dict)
+    vehicle: _Ring = field(default_factory=lambda: _Ring.empty(len(_VEHICLE_COLUMNS)))
+    corridors: dict[int, _Ring] = field(default_factory=dict)
+
+    def put(self, step: int, accel: float, speed: float, rows: dict[int, np.ndarray]) -> None:
+        """The row of `step` (replacing one of the same step): vehicle values and the corridor features by id."""
+        slot = step % HISTORY_STEPS
+        self.last_step = step
+        self.vehicle.step[slot] = step
+        self.vehicle.values[slot] = (accel, speed)
+        for cid in list(self.corridors):
+            if cid not in rows:
+                ring = self.corridors[cid]
+                ring.step[slot] = _NO_STEP
+                if int(ring.step.max()) <= step - HISTORY_STEPS:  # in no kept row any more
+                    del self.corridors[cid]
+        for cid, row in rows.items():
+            ring = self.corridors.get(cid)
+            if ring is None:
+                ring = self.corridors[cid] = _Ring.empty(N_CORRIDOR_FEATURES)
+            ring.step[slot] = step
+            ring.values[slot] = row
 
 
 def _fill_source(present: np.ndarray) -> np.ndarray:
-    """For each position, the index of the nearest present one: the previous, else the first. (n,) int."""
-    n = present.shape[0]
+    """For each position, the index of the nearest present one: the previous, else the first. (..., n) int, per row."""
+    n = present.shape[-1]
     idx = np.where(present, np.arange(n), -1)
-    idx = np.maximum.accumulate(idx)
-    first = int(np.argmax(present))
-    return np.where(idx < 0, first, idx)
+    idx = np.maximum.accumulate(idx, axis=-1)
+    first = np.argmax(present, axis=-1)
+    return np.where(idx < 0, np.expand_dims(first, -1), idx)
 
 
 class FeatureTracker:
@@ -298,32 +423,40 @@ class FeatureTracker:
         else:
             relations = {(r.track_id, r.corridor_id): r for r in relation_set.relations}
         step = self.step_index(stamp)
+        entries: list[tuple] = []  # (vehicle, speed or None when not finite), in the set's order
+        pairs: list[tuple] = []  # (corridor, relations, speed) of the matched vehicles' corridors
         for vehicle in corridor_set.vehicles:
-            try:
-                is_vehicle = AgentType(int(vehicle.agent_type)).is_vehicle
-            except ValueError:
-                is_vehicle = False
-            if not is_vehicle or vehicle.status in (MatchStatus.NOT_A_VEHICLE, MatchStatus.BAD_STATE):
+            if not _is_vehicle(vehicle.agent_type) or vehicle.status in (MatchStatus.NOT_A_VEHICLE, MatchStatus.BAD_STATE):
                 continue
             speed = float(vehicle.speed_mps)
             if not math.isfinite(speed):
+                entries.append((vehicle, None))
+                continue
+            entries.append((vehicle, speed))
+            if vehicle.status == MatchStatus.MATCHED:
+                pairs.extend((c, relations.get((vehicle.track_id, c.corridor_id)), speed) for c in vehicle.corridors)
+        features, failures = self._pair_features(pairs)
+        k = 0
+        for vehicle, speed in entries:
+            if speed is None:
                 issues.append(Issue("nan_state", vehicle.track_id, f"speed {vehicle.speed_mps}: no feature row this frame"))
                 continue
             track = self._tracks.get(vehicle.track_id)
             if track is None:
                 track = self._tracks[vehicle.track_id] = _Track(last_stamp_ns=stamp)
             track.last_stamp_ns = stamp
-            track.speeds.append((stamp, speed))
-            t = np.fromiter((p[0] for p in track.speeds), dtype=np.int64, count=len(track.speeds))
-            v = np.fromiter((p[1] for p in track.speeds), dtype=np.float64, count=len(track.speeds))
+            track.stamps.append(stamp)
+            track.speeds.append(speed)
+            t = np.fromiter(track.stamps, dtype=np.int64, count=len(track.stamps))
+            v = np.fromiter(track.speeds, dtype=np.float64, count=len(track.speeds))
             accel = float(np.clip(causal_acceleration(t, v, cfg.accel_window_s, cfg.accel_shrink), -cfg.accel_clip_mps2, cfg.accel_clip_mps2))
             rows: dict[int, np.ndarray] = {}
             if vehicle.status == MatchStatus.MATCHED:
                 for corridor in vehicle.corridors:
-                    try:
-                        row = corridor_features(corridor, relations.get((vehicle.track_id, corridor.corridor_id)), speed, cfg)
-                    except Exception as exc:  # noqa: BLE001 - one corridor's failure costs only its row (no profile for it)
-                        issues.append(Issue("pair_failed", vehicle.track_id, f"corridor {corridor.corridor_id}: features raised {type(exc).__name__}: {exc}: no row"))
+                    failure, row = failures.get(k), features[k]
+                    k += 1
+                    if failure is not None:
+                        issues.append(Issue("pair_failed", vehicle.track_id, f"corridor {corridor.corridor_id}: features raised {type(failure).__name__}: {failure}: no row"))
                         continue
                     bad = ~np.isfinite(row)
                     if bad.any():
@@ -331,11 +464,28 @@ class FeatureTracker:
                         issues.append(Issue("nan_feature", vehicle.track_id, f"corridor {corridor.corridor_id}: non-finite {', '.join(names)}; absent value used"))
                         row[bad] = cfg.absent_row()[bad]
                     rows[int(corridor.corridor_id)] = row
-            track.rows[step] = _Row(np.array([accel, speed]), rows)
-            for old in [k for k in track.rows if k <= step - HISTORY_STEPS or k > step]:
-                del track.rows[old]
+            track.put(step, accel, speed, rows)
         self.issue_counts.update(i.kind for i in issues)
         return issues
+
+    def _pair_features(self, pairs: list[tuple]) -> tuple[np.ndarray, dict[int, Exception]]:
+        """(P, 21) corridor features of the pairs (corridor, relations, speed) in one batch, and the failed pairs' exceptions
+        by index: when the batch raises, each pair is computed alone so that only the failing ones lose their row."""
+        if not pairs:
+            return np.zeros((0, N_CORRIDOR_FEATURES)), {}
+        corridors, relations, speeds = zip(*pairs)
+        try:
+            return pair_features(corridors, relations, speeds, self.config), {}
+        except Exception:  # noqa: BLE001 - found pair by pair below
+            pass
+        out = np.zeros((len(pairs), N_CORRIDOR_FEATURES))
+        failures: dict[int, Exception] = {}
+        for k, (corridor, rel, speed) in enumerate(pairs):
+            try:
+                out[k] = pair_features([corridor], [rel], [speed], self.config)[0]
+            except Exception as exc:  # noqa: BLE001 - one corridor's failure costs only its row (no profile for it)
+                failures[k] = exc
+        return out, failures
 
     def batch(
         self, corridor_set: CorridorSet, pairs: Iterable[tuple[int, int]] | None = None
@@ -348,45 +498,56 @@ class FeatureTracker:
         wanted = None if pairs is None else set(pairs)
         anchor = self.step_index(int(corridor_set.header.stamp_ns))
         steps = np.arange(anchor - HISTORY_STEPS + 1, anchor + 1)
+        slots = steps % HISTORY_STEPS
         keys: list[tuple[int, int]] = []
-        xs: list[np.ndarray] = []
+        vehicle_x: list[np.ndarray] = []
         masks: list[np.ndarray] = []
+        has_rows: list[np.ndarray] = []  # pairs whose corridor is in some row: where, and that corridor's ring
+        ring_values: list[np.ndarray] = []
+        from_rings: list[int] = []
+        now: dict[int, np.ndarray] = {}  # the other pairs (corridor in no row): geometry now, relations absent
         for vehicle in corridor_set.vehicles:
             if vehicle.status != MatchStatus.MATCHED or not vehicle.corridors:
                 continue
             track = self._tracks.get(vehicle.track_id)
-            if track is None or not track.rows:
+            if track is None or track.last_step == _NO_STEP:
                 continue
             ids = [int(c.corridor_id) for c in vehicle.corridors]
             if wanted is not None:
                 ids = [c for c in ids if (vehicle.track_id, c) in wanted]
                 if not ids:
                     continue
-            rows = [track.rows.get(int(k)) for k in steps]
-            present = np.array([r is not None for r in rows])
+            kept = (steps > track.last_step - HISTORY_STEPS) & (steps <= track.last_step)  # the rows the track keeps
+            present = (track.vehicle.step[slots] == steps) & kept
             if not present.any():
                 continue
-            source = _fill_source(present)
-            vehicle_values = np.stack([rows[j].vehicle for j in source])
+            vehicle_values = track.vehicle.values[slots[_fill_source(present)]]
             by_id = {c.corridor_id: c for c in vehicle.corridors}
             for cid in ids:
-                has = np.array([r is not None and cid in r.corridors for r in rows])
-                x = np.empty((HISTORY_STEPS, N_FEATURES), dtype=np.float64)
-                x[:, _VEHICLE_COLUMNS] = vehicle_values
-                if has.any():
-                    src = _fill_source(has)
-                    x[:, _CORRIDOR_COLUMNS] = np.stack([rows[j].corridors[cid] for j in src])
-                else:  # the corridor is in no row (its vehicle had no row this frame): geometry now, relations absent
+                ring = track.corridors.get(cid)
+                has = (ring.step[slots] == steps) & kept if ring is not None else None
+                if has is not None and has.any():
+                    from_rings.append(len(keys))
+                    has_rows.append(has)
+                    ring_values.append(ring.values)
+                else:
                     try:
-                        x[:, _CORRIDOR_COLUMNS] = corridor_features(by_id[cid], None, float(vehicle_values[-1, 1]), self.config)
+                        now[len(keys)] = corridor_features(by_id[cid], None, float(vehicle_values[-1, 1]), self.config)
                     except Exception:  # noqa: BLE001 - its row failed in update (issue pair_failed): no profile for it
                         continue
                 keys.append((vehicle.track_id, cid))
-                xs.append(x.astype(np.float32))
-                masks.append(present.copy())
+                vehicle_x.append(vehicle_values)
+                masks.append(present)
         if not keys:
             return [], np.zeros((0, HISTORY_STEPS, N_FEATURES), np.float32), np.zeros((0, HISTORY_STEPS), bool)
-        return keys, np.stack(xs), np.stack(masks)
+        x = np.empty((len(keys), HISTORY_STEPS, N_FEATURES), dtype=np.float32)  # float64 values rounded as by astype
+        x[:, :, _VEHICLE_COLUMNS] = np.stack(vehicle_x)
+        if from_rings:  # each pair's 40 steps from its ring, all pairs in one gather
+            source = slots[_fill_source(np.stack(has_rows))]
+            x[from_rings, :, _CORRIDOR_SLICE] = np.stack(ring_values)[np.arange(len(from_rings))[:, None], source]
+        for b, row in now.items():
+            x[b, :, _CORRIDOR_SLICE] = row
+        return keys, x, np.stack(masks)
 
 
 __all__ = [

@@ -174,7 +174,7 @@ class ARModel:
     def predict(self, x: np.ndarray, mask: np.ndarray, device: str | torch.device = "cpu", batch_size: int = 65536) -> np.ndarray:
         """Accelerations (B, 40) float32 at 0.1 … 4.0 s for features x (B, 40, F) and mask (B, 40), F = len(FEATURE_NAMES).
 
-        No gradients; the net is moved to `device` for the call.
+        No gradients (inference mode); the net is moved to `device` when it is not there from the last call.
         """
         x = np.asarray(x)
         mask = np.asarray(mask)
@@ -185,9 +185,11 @@ class ARModel:
         if x.shape[0] == 0:
             return np.zeros((0, self.net.horizon_steps), dtype=np.float32)
         dev = torch.device(device)
-        net = self.net.to(dev)
+        if next(self.net.parameters()).device != dev:  # moved when elsewhere, not on every call
+            self.net.to(dev)
+        net = self.net
         out = []
-        with torch.no_grad():
+        with torch.inference_mode():
             for a in range(0, x.shape[0], batch_size):
                 z = torch.from_numpy(self.normalise(x[a : a + batch_size])).to(dev)
                 m = torch.from_numpy(mask[a : a + batch_size].astype(np.float32)).to(dev)
