@@ -313,9 +313,15 @@ class RelationExtractor:
         state = self.signals.usable_state(signal_state, stamp, issues) if smap is not None else None
         starts = np.searchsorted(conflicts.g, np.arange(len(pairs) + 1)) if conflicts is not None else None
         projected = _project_onto_corridors(objects.xy[objects.valid], pairs, self._reach(pairs), self._radius(pairs)) if pairs else None
+        batched = None
+        if pairs:
+            try:
+                batched = self._lateral_batched(pairs, objects, projected)
+            except Exception:  # noqa: BLE001 - then pair by pair (`_lateral`), where a failure costs one pair's relation
+                batched = None
         for pair in pairs:
             try:
-                lateral = self._lateral(pair, objects, projected)
+                lateral = self._lateral(pair, objects, projected, batched)
                 crossings = self._intersections(pair, tables)
                 span = slice(starts[pair.g], starts[pair.g + 1]) if starts is not None else slice(0, 0)
                 rel = self._relations(pair, pairs, objects, lateral, crossings, conflicts, span, route_probabilities)
@@ -487,12 +493,17 @@ class RelationExtractor:
         margin = self.config.lateral_margin_m
         return np.array([0.5 * float(np.max(p.corridor.width_m)) + margin + 1e-3 for p in pairs])
 
-    def _lateral(self, pair: _Pair, objects: _Objects, projected):
+    def _lateral(self, pair: _Pair, objects: _Objects, projected, batched=None):
         """Objects within the lane of the corridor, ordered by s, and the leader (row into them or -1).
 
         `projected` is (s, d, heading) of every valid object on every
         corridor, arrays (pairs, valid objects), from `_project_onto_corridors`.
+        `batched` is `_lateral_batched`'s list (the same values for every
+        pair at once), taken when given; this pair-by-pair code is its
+        reference and its fallback.
         """
+        if batched is not None:
+            return batched[pair.g]
         cfg = self.config
         corridor = pair.corridor
         candidates = np.flatnonzero(objects.valid)
@@ -521,6 +532,62 @@ class RelationExtractor:
         )
         leader = int(np.flatnonzero(can_lead)[0]) if can_lead.any() else -1
         return rows, s, d, gap, along, leader
+
+    def _lateral_batched(self, pairs: list[_Pair], objects: _Objects, projected) -> list[tuple]:
+        """`_lateral` of every pair at once: the same tests and values element by element, a few numpy calls per frame.
+
+        Only the (pair, object) combinations with a finite projection inside
+        the pair's s range are looked at (the others fail `_lateral`'s tests:
+        NaN compares false); the half width is interpolated on each pair's
+        corridor for those; the kept objects are ordered by (pair, s, object)
+        as `_lateral`'s stable sort by s orders them per pair.
+        """
+        cfg = self.config
+        candidates = np.flatnonzero(objects.valid)
+        all_s, all_d, all_heading = projected
+        n_pairs = len(pairs)
+        s_v = np.array([p.corridor.vehicle_s_m for p in pairs], dtype=np.float64)
+        own = np.array([p.vehicle.track_id for p in pairs], dtype=np.int64)
+        lo = s_v - cfg.lookbehind_m
+        hi = np.array([min(p.corridor.vehicle_s_m + cfg.lookahead_m, float(p.corridor.s_m[-1])) for p in pairs], dtype=np.float64)
+        g, k = np.nonzero((all_s >= lo[:, None]) & (all_s <= hi[:, None]))
+        keep = objects.track_ids[candidates[k]] != own[g]
+        g, k = g[keep], k[keep]
+        s = all_s[g, k]
+        d = all_d[g, k]
+        half_width = np.empty(len(g))
+        bounds = np.searchsorted(g, np.arange(n_pairs + 1))
+        for q in np.flatnonzero(bounds[1:] > bounds[:-1]):
+            corridor = pairs[q].corridor
+            part = slice(bounds[q], bounds[q + 1])
+            half_width[part] = 0.5 * np.interp(s[part], corridor.s_m, corridor.width_m)
+        inside = np.abs(d) < half_width + cfg.lateral_margin_m
+        g, k, s, d = g[inside], k[inside], s[inside], d[inside]
+        order = np.lexsort((k, s, g))
+        g, k, s, d = g[order], k[order], s[order], d[order]
+        rows = candidates[k]
+        relative = wrap_angle_rad(objects.heading_rad[rows] - all_heading[g, k])
+        along = objects.speed_mps[rows] * np.cos(relative)
+        along = np.where(np.isfinite(along), along, 0.0)
+        pair_length = np.array([p.length_m for p in pairs], dtype=np.float64)
+        half_lengths = 0.5 * (objects.length_m[rows] + pair_length[g])
+        sv = s_v[g]
+        ahead = s >= sv
+        gap = np.where(ahead, np.maximum(s - sv - half_lengths, 0.0), np.minimum(s - sv + half_lengths, 0.0))
+        can_lead = ahead & (
+            (np.abs(np.nan_to_num(relative, nan=math.pi)) <= cfg.leader_max_heading_rad)
+            | (objects.speed_mps[rows] < cfg.stopped_speed_mps)
+        )
+        bounds = np.searchsorted(g, np.arange(n_pairs + 1))
+        leads = np.flatnonzero(can_lead)
+        first_lead = np.searchsorted(leads, bounds[:-1])  # the first leader candidate at or after each pair's start
+        out = []
+        for q in range(n_pairs):
+            a, b = int(bounds[q]), int(bounds[q + 1])
+            f = int(first_lead[q])
+            leader = int(leads[f]) - a if f < len(leads) and leads[f] < b else -1
+            out.append((rows[a:b], s[a:b], d[a:b], gap[a:b], along[a:b], leader))
+        return out
 
     # ----- corridor to intersection ------------------------------------------------
 

@@ -488,3 +488,27 @@ def test_relation_set_round_trips_on_the_wire(crossing_scene):
     for a, b in zip(decoded.relations, relation_set.relations):
         assert a.influencing_rule == b.influencing_rule
         np.testing.assert_array_equal(a.conflict_s_m, b.conflict_s_m)
+
+
+def test_batched_lateral_relations_equal_the_pair_by_pair_ones_bit_for_bit(sequence, scene_maps, monkeypatch):
+    """`_lateral_batched` (every pair at once) gives the messages of `_lateral` pair by pair (its fallback), every frame."""
+    batched = RelationExtractor(RelationsConfig(), scene_maps=scene_maps)
+    calls = []
+    original = RelationExtractor._lateral_batched
+
+    def counted(self, *args):
+        calls.append(1)
+        return original(self, *args)
+
+    monkeypatch.setattr(RelationExtractor, "_lateral_batched", counted)
+    per_pair = RelationExtractor(RelationsConfig(), scene_maps=scene_maps)
+    monkeypatch.setattr(per_pair, "_lateral_batched", lambda *args: (_ for _ in ()).throw(RuntimeError("off")))
+    leaders = 0
+    for frame, corridor_set in sequence["frames"]:
+        a, issues_a = batched.process(frame, corridor_set, sequence["scene"])
+        b, issues_b = per_pair.process(frame, corridor_set, sequence["scene"])
+        assert issues_a == issues_b == []
+        assert a.encode() == b.encode()
+        leaders += sum(r.leader_track_id >= 0 for r in a.relations)
+    with_pairs = sum(any(v.corridors for v in corridor_set.vehicles) for _frame, corridor_set in sequence["frames"])
+    assert len(calls) == with_pairs > 1000 and leaders > 100
