@@ -30,7 +30,7 @@ from stages.lib.base import ConfigMixin, Issue, StageResult, check_ranges
 from stages.lib.caps import keep_nearest, map_centre_m
 from stages.lib.datasets import DEFAULT_SIZES_M
 from stages.lib.maps import ConflictKind as MapConflictKind
-from stages.lib.maps import Projection, RoadMap, SceneMap, SceneMaps, parse_projection, project_to_polyline, shown_map_name, wrap_angle_rad
+from stages.lib.maps import Projection, RoadMap, SceneMap, SceneMaps, kernels, parse_projection, project_to_polyline, shown_map_name, wrap_angle_rad
 
 from stages.lib.influence import NO_INFLUENCE, choose_influencing
 from stages.relations.signals import SignalStops
@@ -794,7 +794,7 @@ class RelationExtractor:
 
 
 def _project_onto_corridors(points_m: np.ndarray, pairs: list[_Pair], reach_m: np.ndarray | None = None,
-                            radius_m: np.ndarray | None = None):
+                            radius_m: np.ndarray | None = None, *, compiled: bool = True):
     """Frenet (s, d, heading) of points (n, 2) on every pair's corridor; arrays (pairs, n).
 
     The same projection as `maps.project_to_polyline` (nearest segment, the
@@ -820,6 +820,12 @@ def _project_onto_corridors(points_m: np.ndarray, pairs: list[_Pair], reach_m: n
     dense projection (same nearest segment, ties to the lower index). The
     work per chunk is bounded by ``_CHUNK_ELEMENTS`` (issue 13: memory stays
     bounded however many objects a frame holds).
+
+    With ``compiled`` (and numba), the branch and bound runs candidate by
+    candidate in the kernel ``stages.lib.maps.kernels.project_candidates``:
+    the same bounds, the same segments measured in the same order with the
+    same arithmetic, so the same values bit for bit without the numpy
+    calls per chunk (the numpy code below is its reference and fallback).
     """
     n_pairs, n = len(pairs), len(points_m)
     n_segments = np.array([len(p.xy) - 1 for p in pairs], dtype=np.int64)
@@ -871,6 +877,17 @@ def _project_onto_corridors(points_m: np.ndarray, pairs: list[_Pair], reach_m: n
         lo = np.array([p.xy.min(axis=0) for p in pairs]) - reach_m[:, None]
         hi = np.array([p.xy.max(axis=0) for p in pairs]) + reach_m[:, None]
         cand_g, cand_k = np.nonzero(((points_m[None, :, :] >= lo[:, None, :]) & (points_m[None, :, :] <= hi[:, None, :])).all(axis=2))
+    if compiled and len(cand_g) and np.isfinite(points_m).all():
+        found = kernels.project_candidates(
+            np.ascontiguousarray(points_m, dtype=np.float64), cand_g, cand_k, line, segment, length2, lower, upper, arc, n_segments,
+            box_lo, box_hi, block_used, block_first, block_end, start_vertex, last_vertex, np.asarray(limit2, np.float64), out_s, out_d,
+        )
+        if found is not None:
+            hit_g, hit_k, ux, uy = found
+            out_heading[hit_g, hit_k] = np.arctan2(uy, ux)
+            return out_s, out_d, out_heading
+        out_s[:] = np.nan  # a NaN on the way: the numpy code decides, from scratch
+        out_d[:] = np.nan
     per_chunk = max(1, _CHUNK_ELEMENTS // (n_blocks + 2 * _BLOCK))
     for first in range(0, len(cand_g), per_chunk):
         g, k = cand_g[first : first + per_chunk], cand_k[first : first + per_chunk]

@@ -122,10 +122,104 @@ def _project_window(points, line, arc, hints, window_m, out_s, out_d, out_seg):
     return True
 
 
+def _segment_d2(px, py, ax, ay, vx, vy, length2, lower, upper):
+    """Squared distance of (px, py) to the segment a + t·v, t clipped to [lower, upper] (relations' `_segment_d2`)."""
+    rx = px - ax
+    ry = py - ay
+    t = min(max((rx * vx + ry * vy) / length2, lower), upper)
+    ox = rx - t * vx
+    oy = ry - t * vy
+    return ox * ox + oy * oy, t
+
+
+def _project_candidates(points, cand_g, cand_k, line, segment, length2, lower, upper, arc, n_segments,
+                        box_lo, box_hi, block_used, block_first, block_end, start_vertex, last_vertex, limit2,
+                        out_s, out_d, hit_g, hit_k, hit_ux, hit_uy):
+    """The branch and bound of `stages.relations.core._project_onto_corridors`, candidate by candidate.
+
+    Fills out_s, out_d (pairs, points) of the wanted candidates and
+    hit_g, hit_k, hit_ux, hit_uy (their unit foot segments, for the
+    heading); returns how many hits, -1 where a NaN appears (the numpy
+    path decides then).
+    """
+    n_blocks = block_first.shape[0]
+    box2 = np.empty(n_blocks)
+    slack = 1.0 + 1e-9
+    hits = 0
+    for c in range(cand_g.shape[0]):
+        g = cand_g[c]
+        k = cand_k[c]
+        px = points[k, 0]
+        py = points[k, 1]
+        last = n_segments[g] - 1
+        d2_first, t_first = _segment_d2(px, py, line[g, 0, 0], line[g, 0, 1], segment[g, 0, 0], segment[g, 0, 1],
+                                        length2[g, 0], lower[g, 0], upper[g, 0])
+        d2_last, t_last = _segment_d2(px, py, line[g, last, 0], line[g, last, 1], segment[g, last, 0], segment[g, last, 1],
+                                      length2[g, last], lower[g, last], upper[g, last])
+        if d2_first != d2_first or d2_last != d2_last:
+            return -1
+        box_min = math.inf
+        vertex_min = math.inf
+        for b in range(n_blocks):
+            if block_used[g, b]:
+                dx = max(max(box_lo[g, b, 0] - px, px - box_hi[g, b, 0]), 0.0)
+                dy = max(max(box_lo[g, b, 1] - py, py - box_hi[g, b, 1]), 0.0)
+                v = dx * dx + dy * dy
+                sx = start_vertex[g, b, 0] - px
+                sy = start_vertex[g, b, 1] - py
+                w = sx * sx + sy * sy
+                if v != v or w != w:
+                    return -1
+                box2[b] = v
+                box_min = min(box_min, v)
+                vertex_min = min(vertex_min, w)
+            else:
+                box2[b] = math.inf
+        lx = last_vertex[g, 0] - px
+        ly = last_vertex[g, 1] - py
+        ends = min(d2_first, d2_last)
+        lower_bound = min(ends, box_min)
+        upper_bound = min(ends, min(vertex_min, lx * lx + ly * ly))
+        if not (lower_bound <= limit2[g] * slack):
+            continue
+        threshold = upper_bound * slack + 1e-12
+        # segment 0, the kept blocks' segments, the last: ascending; the first nearest wins
+        best = 0
+        best_d2 = d2_first
+        best_t = t_first
+        for b in range(n_blocks):
+            if box2[b] <= threshold:
+                for j in range(block_first[b], block_end[g, b]):
+                    d2, t = _segment_d2(px, py, line[g, j, 0], line[g, j, 1], segment[g, j, 0], segment[g, j, 1],
+                                        length2[g, j], lower[g, j], upper[g, j])
+                    if d2 != d2:
+                        return -1
+                    if d2 < best_d2:
+                        best, best_d2, best_t = j, d2, t
+        if last > 0 and d2_last < best_d2:
+            best, best_d2, best_t = last, d2_last, t_last
+        j = best
+        seg_len = math.sqrt(length2[g, j])
+        ux = segment[g, j, 0] / seg_len
+        uy = segment[g, j, 1] / seg_len
+        out_s[g, k] = arc[g, j] + best_t * seg_len
+        out_d[g, k] = ux * (py - line[g, j, 1]) - uy * (px - line[g, j, 0])
+        hit_g[hits] = g
+        hit_k[hits] = k
+        hit_ux[hits] = ux
+        hit_uy[hits] = uy
+        hits += 1
+    return hits
+
+
 if numba is not None:
-    _project_window_compiled = numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)(_project_window)
+    _jit = numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
+    _project_window_compiled = _jit(_project_window)
+    _segment_d2 = _jit(_segment_d2)
+    _project_candidates_compiled = _jit(_project_candidates)
 else:  # pragma: no cover
     _project_window_compiled = None
+    _project_candidates_compiled = None
 
 
 def project_window(points: np.ndarray, line: np.ndarray, arc: np.ndarray, hints: np.ndarray, window_m: float):
@@ -138,3 +232,21 @@ def project_window(points: np.ndarray, line: np.ndarray, arc: np.ndarray, hints:
     out_seg = np.empty(n, dtype=np.int64)
     ok = _project_window_compiled(points, line, arc, hints, float(window_m), out_s, out_d, out_seg)
     return (out_s, out_d, out_seg) if ok else None
+
+
+def project_candidates(points, cand_g, cand_k, line, segment, length2, lower, upper, arc, n_segments,
+                       box_lo, box_hi, block_used, block_first, block_end, start_vertex, last_vertex, limit2, out_s, out_d):
+    """`_project_candidates` compiled: fills out_s, out_d; returns (g, k, ux, uy) of the projected candidates, None: take the numpy path."""
+    if _project_candidates_compiled is None:
+        return None
+    n = len(cand_g)
+    hit_g = np.empty(n, np.int64)
+    hit_k = np.empty(n, np.int64)
+    hit_ux = np.empty(n)
+    hit_uy = np.empty(n)
+    hits = _project_candidates_compiled(points, cand_g, cand_k, line, segment, length2, lower, upper, arc, n_segments,
+                                        box_lo, box_hi, block_used, block_first, block_end, start_vertex, last_vertex, limit2,
+                                        out_s, out_d, hit_g, hit_k, hit_ux, hit_uy)
+    if hits < 0:
+        return None
+    return hit_g[:hits], hit_k[:hits], hit_ux[:hits], hit_uy[:hits]
