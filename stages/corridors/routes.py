@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bus_schemas import Corridor
-from stages.lib.maps import Centreline, RoadMap, kernels, project_to_polyline, wrap_angle_rad
+from stages.lib.maps import Centreline, RoadMap, project_in_window, wrap_angle_rad
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -207,25 +207,9 @@ class RouteCache:
 
 
 def project_vehicle(route: RouteGeometry, xy_m, s_hint_m: float, window_m: float) -> tuple[float, float]:
-    """Frenet (s, d) of a position on a route, searching within `window_m` of `s_hint_m` first.
-
-    The compiled kernel (`maps.kernels.project_window`, the windowed path of
-    `project_to_polyline` bit for bit) is called directly: this runs for
-    every route of every vehicle each frame; `project_to_polyline` decides
-    where the kernel cannot.
-    """
-    point = np.asarray(xy_m, dtype=np.float64).reshape(1, 2)
-    found = kernels.project_window(point, route.points_m, route.s_m, np.array([float(s_hint_m)]), window_m)
-    if found is not None:
-        return float(found[0][0]), float(found[1][0])
-    fr = project_to_polyline(
-        np.asarray(xy_m, dtype=np.float64).reshape(1, 2),
-        route.points_m,
-        route.s_m,
-        s_hint_m=s_hint_m,
-        window_m=window_m,
-    )
-    return float(fr.s_m[0]), float(fr.d_m[0])
+    """Frenet (s, d) of a position on a route, searching within `window_m` of `s_hint_m` first (`maps.project_in_window`)."""
+    s, d = project_in_window(np.asarray(xy_m, dtype=np.float64).reshape(1, 2), route.points_m, route.s_m, s_hint_m, window_m)
+    return float(s[0]), float(d[0])
 
 
 def cut_corridor(

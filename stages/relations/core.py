@@ -30,7 +30,7 @@ from stages.lib.base import ConfigMixin, Issue, StageResult, check_ranges
 from stages.lib.caps import keep_nearest, map_centre_m
 from stages.lib.datasets import DEFAULT_SIZES_M
 from stages.lib.maps import ConflictKind as MapConflictKind
-from stages.lib.maps import Projection, RoadMap, SceneMap, SceneMaps, kernels, parse_projection, project_to_polyline, shown_map_name, wrap_angle_rad
+from stages.lib.maps import Projection, RoadMap, SceneMap, SceneMaps, kernels, parse_projection, project_in_window, shown_map_name, wrap_angle_rad
 
 from stages.lib.influence import NO_INFLUENCE, choose_influencing
 from stages.relations.signals import SignalStops
@@ -713,16 +713,16 @@ class RelationExtractor:
         can be off by up to a metre there; elsewhere lookups are exact.
         """
         window = self.config.refine_window_m
-        for k in np.unique(g):
+        if window <= 0.0 or not len(g):
+            return
+        changes_lane = np.array([not p.follows_lanelets for p in pairs], dtype=bool)
+        for k in np.unique(g[changes_lane[g]]):
             pair = pairs[k]
-            if pair.follows_lanelets or window <= 0.0:
-                continue
             rows = np.flatnonzero((g == k) & (s > -window) & (s < pair.corridor.s_m[-1] + window))
             if not len(rows):
                 continue
             xy = np.column_stack([tables.point_x_m[point[rows]], tables.point_y_m[point[rows]]])
-            frenet = project_to_polyline(xy, pair.xy, pair.corridor.s_m, s_hint_m=s[rows], window_m=window)
-            s[rows] = frenet.s_m
+            s[rows] = project_in_window(xy, pair.xy, pair.corridor.s_m, s[rows], window)[0]
 
     # ----- assembly ------------------------------------------------------------------
 

@@ -114,6 +114,25 @@ def project_to_polyline(
     return FrenetPoints(s_m=out_s, d_m=out_d, heading_rad=heading)
 
 
+def project_in_window(points_m, polyline_m, s_m, s_hint_m, window_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(s, d) (n,) of `project_to_polyline(points, polyline, s_m, s_hint_m=..., window_m=...)`, without the heading.
+
+    For the hot loops (a vehicle on each of its routes, conflict points on
+    lane-change corridors): the compiled kernel is called directly, with
+    `project_to_polyline` where it declines; the values are the same bit for bit.
+    """
+    points = np.atleast_2d(np.asarray(points_m, dtype=np.float64))
+    line = np.asarray(polyline_m, dtype=np.float64)
+    arc = np.asarray(s_m, dtype=np.float64)
+    hints = np.ascontiguousarray(np.broadcast_to(np.asarray(s_hint_m, np.float64), (len(points),)))
+    if line.ndim == 2 and line.shape[0] >= 2 and line.shape[1] == 2:
+        found = kernels.project_window(points, line, arc, hints, window_m)
+        if found is not None:
+            return found[0], found[1]
+    fr = project_to_polyline(points, line, arc, s_hint_m=hints, window_m=window_m)
+    return fr.s_m, fr.d_m
+
+
 def _project_in_window(points, line, arc, s_hint_m, window_m: float, heading_rad, *, compiled: bool = True) -> FrenetPoints | None:
     """`project_to_polyline` with hints, measuring only the segments within each point's window; None where it can't.
 
