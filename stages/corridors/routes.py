@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bus_schemas import Corridor
-from stages.lib.maps import Centreline, RoadMap, project_in_window, wrap_angle_rad
+from stages.lib.maps import Centreline, RoadMap, kernels, project_in_window, wrap_angle_rad
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -221,6 +221,7 @@ def cut_corridor(
     behind_m: float,
     ahead_m: float,
     step_m: float,
+    compiled: bool = True,
 ) -> Corridor:
     """Sample a route from `behind_m` behind to `ahead_m` ahead of the vehicle.
 
@@ -228,24 +229,15 @@ def cut_corridor(
     vehicle sits at s = `behind_m` on every corridor of a vehicle and their
     samples can be compared index by index. Before the route's start and past
     its end the centreline continues straight with the end heading, zero
-    curvature and the end lanelet's width.
+    curvature and the end lanelet's width. With `compiled` (and numba) the
+    samples come from the kernel `maps.kernels.sample_route`, the numpy
+    code's values bit for bit (`_sample` keeps that code as the reference
+    and the fallback).
     """
     n = int(math.ceil((behind_m + ahead_m) / step_m - 1e-9)) + 1
     offset = vehicle_s_m - behind_m
-    s_route = offset + np.arange(n) * step_m
-    s_line = route.s_m
-    pts = route.points_m
-    x = np.interp(s_route, s_line, pts[:, 0])
-    y = np.interp(s_route, s_line, pts[:, 1])
-    heading = np.interp(s_route, s_line, route.heading_unwrapped_rad)
-    curvature = np.interp(s_route, s_line, route.curvature_1pm)
-    for beyond, s_end, k in ((s_route < 0.0, 0.0, 0), (s_route > route.length_m, route.length_m, -1)):
-        if beyond.any():
-            h = route.heading_unwrapped_rad[k]
-            x = np.where(beyond, pts[k, 0] + (s_route - s_end) * math.cos(h), x)
-            y = np.where(beyond, pts[k, 1] + (s_route - s_end) * math.sin(h), y)
-            curvature = np.where(beyond, 0.0, curvature)
-    which = np.clip(np.searchsorted(route.lanelet_start_s_m, s_route, side="right") - 1, 0, len(route.lanelet_ids) - 1)
+    sampled = _sample(route, offset, step_m, n, compiled)
+    s_route, x, y, heading, curvature, which = sampled
     width = route.widths_m[which]
     end_s = s_route[-1]
     covered = (route.lanelet_start_s_m < end_s) & (route.lanelet_end_s_m > offset)
@@ -266,6 +258,31 @@ def cut_corridor(
         vehicle_d_m=float(vehicle_d_m),
         speed_limit_mps=float(route.speed_limits_mps[covered].min()),
     )
+
+
+def _sample(route: RouteGeometry, offset: float, step_m: float, n: int, compiled: bool = True):
+    """(s, x, y, unwrapped heading, curvature, lanelet index) (n,) of the route at offset + i·step (`cut_corridor`)."""
+    h_first, h_last = float(route.heading_unwrapped_rad[0]), float(route.heading_unwrapped_rad[-1])
+    if compiled:
+        pts = route.points_m
+        found = kernels.sample_route(route.s_m, pts[:, 0], pts[:, 1], route.heading_unwrapped_rad, route.curvature_1pm,
+                                     route.lanelet_start_s_m, offset, step_m, n, h_first, h_last)
+        if found is not None:
+            return found
+    s_route = offset + np.arange(n) * step_m
+    s_line = route.s_m
+    pts = route.points_m
+    x = np.interp(s_route, s_line, pts[:, 0])
+    y = np.interp(s_route, s_line, pts[:, 1])
+    heading = np.interp(s_route, s_line, route.heading_unwrapped_rad)
+    curvature = np.interp(s_route, s_line, route.curvature_1pm)
+    for beyond, s_end, k, h in ((s_route < 0.0, 0.0, 0, h_first), (s_route > route.length_m, route.length_m, -1, h_last)):
+        if beyond.any():
+            x = np.where(beyond, pts[k, 0] + (s_route - s_end) * math.cos(h), x)
+            y = np.where(beyond, pts[k, 1] + (s_route - s_end) * math.sin(h), y)
+            curvature = np.where(beyond, 0.0, curvature)
+    which = np.clip(np.searchsorted(route.lanelet_start_s_m, s_route, side="right") - 1, 0, len(route.lanelet_ids) - 1)
+    return s_route, x, y, heading, curvature, which
 
 
 def max_separation_m(a: Corridor, b: Corridor, from_index: int) -> float:

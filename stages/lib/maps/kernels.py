@@ -1,4 +1,4 @@
-"""Compiled (numba) kernel of the map library's hot path: the windowed Frenet projection.
+"""Compiled (numba) kernels of the map library's hot paths: Frenet projections and route sampling.
 
 ``project_window`` is `geometry._project_in_window`'s arithmetic, point by
 point and segment by segment, without numpy's per-call overhead: the
@@ -212,14 +212,91 @@ def _project_candidates(points, cand_g, cand_k, line, segment, length2, lower, u
     return hits
 
 
+def _interp(x, xp, fp):
+    """``np.interp(x, xp, fp)`` for one x (numpy's arr_interp: the last xp[j] <= x, then the slope from the left, and
+    from the right where that gives NaN); xp non-decreasing with at least two values, ends held outside."""
+    n = xp.shape[0]
+    if x != x:
+        return x
+    if x < xp[0]:
+        return fp[0]
+    if x > xp[n - 1]:
+        return fp[n - 1]
+    a, b = 0, n
+    while a < b:  # the first index with xp > x, so j = a - 1 is the last with xp[j] <= x
+        mid = (a + b) >> 1
+        if xp[mid] <= x:
+            a = mid + 1
+        else:
+            b = mid
+    j = a - 1
+    if j == n - 1 or xp[j] == x:
+        return fp[j]
+    slope = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j])
+    r = slope * (x - xp[j]) + fp[j]
+    if r != r:
+        r = slope * (x - xp[j + 1]) + fp[j + 1]
+        if r != r and fp[j] == fp[j + 1]:
+            r = fp[j]
+    return r
+
+
+def _sample_route(s_line, x_line, y_line, heading_line, curvature_line, starts, offset, step, n,
+                  cos_first, sin_first, cos_last, sin_last, s_out, x_out, y_out, heading_out, curvature_out, which_out):
+    """`stages.corridors.routes.cut_corridor`'s sampling, sample by sample; False where the numpy code must decide."""
+    m = s_line.shape[0]
+    k = starts.shape[0]
+    if m < 2 or k < 1:
+        return False
+    for i in range(m - 1):
+        if not (s_line[i + 1] >= s_line[i]):
+            return False
+    for i in range(k - 1):
+        if not (starts[i + 1] >= starts[i]):
+            return False
+    length = s_line[m - 1]
+    for i in range(n):
+        s = offset + i * step
+        if s != s:
+            return False
+        s_out[i] = s
+        x = _interp(s, s_line, x_line)
+        y = _interp(s, s_line, y_line)
+        curvature = _interp(s, s_line, curvature_line)
+        heading_out[i] = _interp(s, s_line, heading_line)
+        if s < 0.0:  # straight on before the route's start
+            x = x_line[0] + (s - 0.0) * cos_first
+            y = y_line[0] + (s - 0.0) * sin_first
+            curvature = 0.0
+        elif s > length:  # and past its end
+            x = x_line[m - 1] + (s - length) * cos_last
+            y = y_line[m - 1] + (s - length) * sin_last
+            curvature = 0.0
+        x_out[i] = x
+        y_out[i] = y
+        curvature_out[i] = curvature
+        a, b = 0, k
+        while a < b:  # searchsorted(starts, s, "right") - 1, clipped to [0, k - 1]
+            mid = (a + b) >> 1
+            if starts[mid] <= s:
+                a = mid + 1
+            else:
+                b = mid
+        which_out[i] = min(max(a - 1, 0), k - 1)
+    return True
+
+
 if numba is not None:
     _jit = numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
+    _interp = _jit(_interp)
+    _sample_route_compiled = _jit(_sample_route)
     _project_window_compiled = _jit(_project_window)
     _segment_d2 = _jit(_segment_d2)
     _project_candidates_compiled = _jit(_project_candidates)
 else:  # pragma: no cover
     _project_window_compiled = None
     _project_candidates_compiled = None
+    _sample_route_compiled = None
 
 
 def project_window(points: np.ndarray, line: np.ndarray, arc: np.ndarray, hints: np.ndarray, window_m: float):
@@ -250,3 +327,16 @@ def project_candidates(points, cand_g, cand_k, line, segment, length2, lower, up
     if hits < 0:
         return None
     return hit_g[:hits], hit_k[:hits], hit_ux[:hits], hit_uy[:hits]
+
+
+def sample_route(s_line, x_line, y_line, heading_line, curvature_line, starts, offset: float, step: float, n: int,
+                 first_heading: float, last_heading: float):
+    """`_sample_route` compiled: (s, x, y, heading, curvature, lanelet index) (n,) of a route's uniform samples; None: numpy."""
+    if _sample_route_compiled is None:
+        return None
+    s_out, x_out, y_out, heading_out, curvature_out = (np.empty(n) for _ in range(5))
+    which = np.empty(n, np.int64)
+    ok = _sample_route_compiled(s_line, x_line, y_line, heading_line, curvature_line, starts, float(offset), float(step), int(n),
+                                math.cos(first_heading), math.sin(first_heading), math.cos(last_heading), math.sin(last_heading),
+                                s_out, x_out, y_out, heading_out, curvature_out, which)
+    return (s_out, x_out, y_out, heading_out, curvature_out, which) if ok else None
