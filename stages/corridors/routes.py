@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -38,6 +38,14 @@ class RouteGeometry:
     s_m: np.ndarray
     heading_unwrapped_rad: np.ndarray
     curvature_1pm: np.ndarray
+    samples_table: np.ndarray = field(init=False, repr=False)  # (4, m) x, y, heading, curvature: `cut_corridor`'s kernel
+    end_directions: tuple[float, float, float, float] = field(init=False, repr=False)  # cos, sin of the first and last heading
+
+    def __post_init__(self) -> None:
+        table = np.ascontiguousarray(np.stack([self.points_m[:, 0], self.points_m[:, 1], self.heading_unwrapped_rad, self.curvature_1pm]))
+        first, last = float(self.heading_unwrapped_rad[0]), float(self.heading_unwrapped_rad[-1])
+        object.__setattr__(self, "samples_table", table)
+        object.__setattr__(self, "end_directions", (math.cos(first), math.sin(first), math.cos(last), math.sin(last)))
 
     @property
     def length_m(self) -> float:
@@ -262,13 +270,11 @@ def cut_corridor(
 
 def _sample(route: RouteGeometry, offset: float, step_m: float, n: int, compiled: bool = True):
     """(s, x, y, unwrapped heading, curvature, lanelet index) (n,) of the route at offset + i·step (`cut_corridor`)."""
-    h_first, h_last = float(route.heading_unwrapped_rad[0]), float(route.heading_unwrapped_rad[-1])
     if compiled:
-        pts = route.points_m
-        found = kernels.sample_route(route.s_m, pts[:, 0], pts[:, 1], route.heading_unwrapped_rad, route.curvature_1pm,
-                                     route.lanelet_start_s_m, offset, step_m, n, h_first, h_last)
+        found = kernels.sample_route(route.samples_table, route.s_m, route.lanelet_start_s_m, offset, step_m, n, route.end_directions)
         if found is not None:
             return found
+    h_first, h_last = float(route.heading_unwrapped_rad[0]), float(route.heading_unwrapped_rad[-1])
     s_route = offset + np.arange(n) * step_m
     s_line = route.s_m
     pts = route.points_m

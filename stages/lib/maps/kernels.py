@@ -212,38 +212,16 @@ def _project_candidates(points, cand_g, cand_k, line, segment, length2, lower, u
     return hits
 
 
-def _interp(x, xp, fp):
-    """``np.interp(x, xp, fp)`` for one x (numpy's arr_interp: the last xp[j] <= x, then the slope from the left, and
-    from the right where that gives NaN); xp non-decreasing with at least two values, ends held outside."""
-    n = xp.shape[0]
-    if x != x:
-        return x
-    if x < xp[0]:
-        return fp[0]
-    if x > xp[n - 1]:
-        return fp[n - 1]
-    a, b = 0, n
-    while a < b:  # the first index with xp > x, so j = a - 1 is the last with xp[j] <= x
-        mid = (a + b) >> 1
-        if xp[mid] <= x:
-            a = mid + 1
-        else:
-            b = mid
-    j = a - 1
-    if j == n - 1 or xp[j] == x:
-        return fp[j]
-    slope = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j])
-    r = slope * (x - xp[j]) + fp[j]
-    if r != r:
-        r = slope * (x - xp[j + 1]) + fp[j + 1]
-        if r != r and fp[j] == fp[j + 1]:
-            r = fp[j]
-    return r
+def _sample_route(table, s_line, starts, offset, step, n, cos_first, sin_first, cos_last, sin_last, out, which_out):
+    """`stages.corridors.routes.cut_corridor`'s sampling, sample by sample; False where the numpy code must decide.
 
-
-def _sample_route(s_line, x_line, y_line, heading_line, curvature_line, starts, offset, step, n,
-                  cos_first, sin_first, cos_last, sin_last, s_out, x_out, y_out, heading_out, curvature_out, which_out):
-    """`stages.corridors.routes.cut_corridor`'s sampling, sample by sample; False where the numpy code must decide."""
+    ``table`` (4, m): x, y, unwrapped heading, curvature at the arc lengths
+    ``s_line``; ``out`` (5, n): s, x, y, heading, curvature at
+    s = offset + i·step, each as ``np.interp`` gives it (the segment found
+    once per sample and shared: the four share ``s_line``), x and y
+    extended straight and curvature 0 outside the route; ``which_out`` the
+    lanelet of each sample (searchsorted in ``starts``, clipped).
+    """
     m = s_line.shape[0]
     k = starts.shape[0]
     if m < 2 or k < 1:
@@ -255,40 +233,52 @@ def _sample_route(s_line, x_line, y_line, heading_line, curvature_line, starts, 
         if not (starts[i + 1] >= starts[i]):
             return False
     length = s_line[m - 1]
+    j = 0  # the last index with s_line[j] <= s, walked forward while s grows
+    w = 0  # the first index with starts[w] > s
+    previous = -math.inf
     for i in range(n):
         s = offset + i * step
         if s != s:
             return False
-        s_out[i] = s
-        x = _interp(s, s_line, x_line)
-        y = _interp(s, s_line, y_line)
-        curvature = _interp(s, s_line, curvature_line)
-        heading_out[i] = _interp(s, s_line, heading_line)
-        if s < 0.0:  # straight on before the route's start
-            x = x_line[0] + (s - 0.0) * cos_first
-            y = y_line[0] + (s - 0.0) * sin_first
-            curvature = 0.0
-        elif s > length:  # and past its end
-            x = x_line[m - 1] + (s - length) * cos_last
-            y = y_line[m - 1] + (s - length) * sin_last
-            curvature = 0.0
-        x_out[i] = x
-        y_out[i] = y
-        curvature_out[i] = curvature
-        a, b = 0, k
-        while a < b:  # searchsorted(starts, s, "right") - 1, clipped to [0, k - 1]
-            mid = (a + b) >> 1
-            if starts[mid] <= s:
-                a = mid + 1
+        if s < previous:  # not increasing (step <= 0): start the walks over
+            j = 0
+            w = 0
+        previous = s
+        out[0, i] = s
+        while j + 1 < m and s_line[j + 1] <= s:
+            j += 1
+        while w < k and starts[w] <= s:
+            w += 1
+        which_out[i] = min(max(w - 1, 0), k - 1)
+        for c in range(4):
+            fp = table[c]
+            if s < s_line[0]:
+                v = fp[0]
+            elif s > length:
+                v = fp[m - 1]
+            elif j == m - 1 or s_line[j] == s:
+                v = fp[j]
             else:
-                b = mid
-        which_out[i] = min(max(a - 1, 0), k - 1)
+                slope = (fp[j + 1] - fp[j]) / (s_line[j + 1] - s_line[j])
+                v = slope * (s - s_line[j]) + fp[j]
+                if v != v:
+                    v = slope * (s - s_line[j + 1]) + fp[j + 1]
+                    if v != v and fp[j] == fp[j + 1]:
+                        v = fp[j]
+            out[c + 1, i] = v
+        if s < 0.0:  # straight on before the route's start
+            out[1, i] = table[0, 0] + (s - 0.0) * cos_first
+            out[2, i] = table[1, 0] + (s - 0.0) * sin_first
+            out[4, i] = 0.0
+        elif s > length:  # and past its end
+            out[1, i] = table[0, m - 1] + (s - length) * cos_last
+            out[2, i] = table[1, m - 1] + (s - length) * sin_last
+            out[4, i] = 0.0
     return True
 
 
 if numba is not None:
     _jit = numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
-    _interp = _jit(_interp)
     _sample_route_compiled = _jit(_sample_route)
     _project_window_compiled = _jit(_project_window)
     _segment_d2 = _jit(_segment_d2)
@@ -329,14 +319,16 @@ def project_candidates(points, cand_g, cand_k, line, segment, length2, lower, up
     return hit_g[:hits], hit_k[:hits], hit_ux[:hits], hit_uy[:hits]
 
 
-def sample_route(s_line, x_line, y_line, heading_line, curvature_line, starts, offset: float, step: float, n: int,
-                 first_heading: float, last_heading: float):
-    """`_sample_route` compiled: (s, x, y, heading, curvature, lanelet index) (n,) of a route's uniform samples; None: numpy."""
+def sample_route(table, s_line, starts, offset: float, step: float, n: int, end_directions):
+    """`_sample_route` compiled: (s, x, y, heading, curvature, lanelet index) (n,) of a route's samples; None: numpy.
+
+    ``end_directions``: cos and sin of the route's first and last heading.
+    """
     if _sample_route_compiled is None:
         return None
-    s_out, x_out, y_out, heading_out, curvature_out = (np.empty(n) for _ in range(5))
+    out = np.empty((5, n))
     which = np.empty(n, np.int64)
-    ok = _sample_route_compiled(s_line, x_line, y_line, heading_line, curvature_line, starts, float(offset), float(step), int(n),
-                                math.cos(first_heading), math.sin(first_heading), math.cos(last_heading), math.sin(last_heading),
-                                s_out, x_out, y_out, heading_out, curvature_out, which)
-    return (s_out, x_out, y_out, heading_out, curvature_out, which) if ok else None
+    cos_first, sin_first, cos_last, sin_last = end_directions
+    if not _sample_route_compiled(table, s_line, starts, offset, step, n, cos_first, sin_first, cos_last, sin_last, out, which):
+        return None
+    return out[0], out[1], out[2], out[3], out[4], which
