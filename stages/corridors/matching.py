@@ -88,6 +88,12 @@ class LaneletIndex:
         self.start_xy = np.array([i.centreline.points_m[0] for i in infos]).reshape(n, 2)
         self.start_heading = np.array([i.centreline.heading_rad[0] for i in infos])
 
+    def columns_of(self, lanelet_ids) -> np.ndarray:
+        """Mask (n_lanelets,) of the columns of the given lanelet ids (ids the index lacks are ignored): ``np.isin(ids, ...)``."""
+        mask = np.zeros(len(self.ids), dtype=bool)
+        mask[[self.column[x] for x in lanelet_ids if x in self.column]] = True
+        return mask
+
     def measure(
         self, points_m: np.ndarray, *, max_distance_m: float, entry_extension_m: float
     ) -> Measurements:
@@ -211,7 +217,7 @@ def select_lanelets(
     ok = near & (errors <= max_heading_rad)
     if previous and (not heading_confident or not ok.any()):
         # a heading glitch (yaw noise of a slow car, a tracker jump) does not move a car out of its lane
-        ok |= near & np.isin(index.ids, np.fromiter(previous, dtype=np.int64, count=len(previous)))
+        ok |= near & index.columns_of(previous)
     if not heading_known and not ok.any():
         # a standing car seen for the first time: its yaw may be anything (K729), go by position
         ok = near
@@ -219,7 +225,7 @@ def select_lanelets(
         return (), True
     pool = ok
     if allowed:
-        cont = pool & np.isin(index.ids, np.fromiter(allowed, dtype=np.int64, count=len(allowed)))
+        cont = pool & index.columns_of(allowed)
         centre = meas.centre_distance_m[row]
         if cont.any() and centre[cont].min() <= centre[pool].min() + continuity_margin_m:
             pool = cont

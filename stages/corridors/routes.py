@@ -40,12 +40,14 @@ class RouteGeometry:
     curvature_1pm: np.ndarray
     samples_table: np.ndarray = field(init=False, repr=False)  # (4, m) x, y, heading, curvature: `cut_corridor`'s kernel
     end_directions: tuple[float, float, float, float] = field(init=False, repr=False)  # cos, sin of the first and last heading
+    lanelet_id_array: np.ndarray = field(init=False, repr=False)  # `lanelet_ids` (k,) int64
 
     def __post_init__(self) -> None:
         table = np.ascontiguousarray(np.stack([self.points_m[:, 0], self.points_m[:, 1], self.heading_unwrapped_rad, self.curvature_1pm]))
         first, last = float(self.heading_unwrapped_rad[0]), float(self.heading_unwrapped_rad[-1])
         object.__setattr__(self, "samples_table", table)
         object.__setattr__(self, "end_directions", (math.cos(first), math.sin(first), math.cos(last), math.sin(last)))
+        object.__setattr__(self, "lanelet_id_array", np.asarray(self.lanelet_ids, dtype=np.int64))
 
     @property
     def length_m(self) -> float:
@@ -253,7 +255,7 @@ def cut_corridor(
     heading_wrapped = (heading + math.pi) % (2.0 * math.pi) - math.pi
     return Corridor(
         corridor_id=int(corridor_id),
-        lanelet_ids=np.asarray(route.lanelet_ids, dtype=np.int64)[covered],
+        lanelet_ids=route.lanelet_id_array[covered],
         lanelet_start_s_m=route.lanelet_start_s_m[covered] - offset,
         x_m=x,
         y_m=y,
