@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stages.lib.maps import RoadMap, wrap_angle_rad
+from stages.lib.maps import RoadMap, kernels, wrap_angle_rad
 
 INSIDE = 0
 """Candidate level: the position lies inside the lanelet's polygon."""
@@ -77,6 +77,8 @@ class LaneletIndex:
             self.edge_start[k, :e] = polygon
             self.edge_vec[k, :e] = np.roll(polygon, -1, axis=0) - polygon
             self.edge_valid[k, :e] = True
+        self.seg_count = self.seg_valid.sum(axis=1).astype(np.int64)  # the valid segments are a prefix of each row
+        self.edge_count = self.edge_valid.sum(axis=1).astype(np.int64)
         self.seg_len2 = np.maximum((self.seg_vec**2).sum(axis=2), 1e-18)
         self.edge_len2 = np.maximum((self.edge_vec**2).sum(axis=2), 1e-18)
         # bounding box of each lanelet's polygon and centreline: a point farther than max_distance_m from it is
@@ -95,14 +97,17 @@ class LaneletIndex:
         return mask
 
     def measure(
-        self, points_m: np.ndarray, *, max_distance_m: float, entry_extension_m: float
+        self, points_m: np.ndarray, *, max_distance_m: float, entry_extension_m: float, compiled: bool = True
     ) -> Measurements:
         """Measure points (n, 2) against every lanelet (one `inside_matrix` call).
 
         Only a (point, lanelet) inside the lanelet or within ``max_distance_m``
         of its bounding box is measured against its centreline and polygon;
         the others (level -1, unless on an entry extension) get NaN s, d,
-        centre distance and heading, which no selection reads.
+        centre distance and heading, which no selection reads. With
+        `compiled` (and numba) the kernel ``maps.kernels.measure_lanelets``
+        measures them, the numpy code's values bit for bit (that code
+        stays as the reference and the fallback).
         """
         p = np.asarray(points_m, dtype=np.float64).reshape(-1, 2)
         n_pts, n_l = len(p), len(self.ids)
@@ -115,7 +120,11 @@ class LaneletIndex:
         centre = np.full((n_pts, n_l), np.nan)
         heading = np.full((n_pts, n_l), np.nan)
         poly_dist = np.full((n_pts, n_l), np.inf)
-        if len(pi):
+        measured = len(pi) and compiled and kernels.measure_lanelets(
+            p, pi, li, self.seg_start, self.seg_vec, self.seg_len2, self.seg_s0, self.seg_heading, self.seg_count,
+            self.edge_start, self.edge_vec, self.edge_len2, self.edge_count, s, d, centre, heading, poly_dist,
+        )
+        if len(pi) and not measured:
             # centreline foot points, clipped to each lanelet (the candidates only; the same arithmetic per element)
             rel = p[pi][:, None, :] - self.seg_start[li]
             t = np.clip((rel * self.seg_vec[li]).sum(axis=2) / self.seg_len2[li], 0.0, 1.0)

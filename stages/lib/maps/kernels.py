@@ -277,8 +277,66 @@ def _sample_route(table, s_line, starts, offset, step, n, cos_first, sin_first, 
     return True
 
 
+def _measure_lanelets(p, pi, li, seg_start, seg_vec, seg_len2, seg_s0, seg_heading, seg_count,
+                      edge_start, edge_vec, edge_len2, edge_count, s, d, centre, heading, poly_dist):
+    """`stages.corridors.matching.LaneletIndex.measure`'s centreline and polygon measurements, candidate by candidate.
+
+    For each (point pi[c], lanelet li[c]): the first nearest centreline
+    segment (clipped), its foot's arc length, signed offset and heading, the
+    distance to the centreline, and the distance to the polygon's boundary;
+    False (the numpy code decides) where a NaN appears.
+    """
+    for c in range(pi.shape[0]):
+        a = pi[c]
+        k = li[c]
+        px = p[a, 0]
+        py = p[a, 1]
+        best = -1
+        best_d2 = math.inf
+        best_t = 0.0
+        for j in range(seg_count[k]):
+            rx = px - seg_start[k, j, 0]
+            ry = py - seg_start[k, j, 1]
+            vx = seg_vec[k, j, 0]
+            vy = seg_vec[k, j, 1]
+            t = min(max((rx * vx + ry * vy) / seg_len2[k, j], 0.0), 1.0)
+            ex = rx - t * vx
+            ey = ry - t * vy
+            d2 = ex * ex + ey * ey
+            if d2 != d2:
+                return False
+            if d2 < best_d2:
+                best, best_d2, best_t = j, d2, t
+        if best < 0:
+            return False
+        j = best
+        rx = px - seg_start[k, j, 0]
+        ry = py - seg_start[k, j, 1]
+        seg_len = math.sqrt(seg_len2[k, j])
+        centre[a, k] = math.sqrt(best_d2)
+        s[a, k] = seg_s0[k, j] + best_t * seg_len
+        d[a, k] = (seg_vec[k, j, 0] * ry - seg_vec[k, j, 1] * rx) / seg_len
+        heading[a, k] = seg_heading[k, j]
+        nearest = math.inf
+        for e in range(edge_count[k]):
+            rx = px - edge_start[k, e, 0]
+            ry = py - edge_start[k, e, 1]
+            vx = edge_vec[k, e, 0]
+            vy = edge_vec[k, e, 1]
+            t = min(max((rx * vx + ry * vy) / edge_len2[k, e], 0.0), 1.0)
+            ex = rx - t * vx
+            ey = ry - t * vy
+            d2 = ex * ex + ey * ey
+            if d2 != d2:
+                return False
+            nearest = min(nearest, d2)
+        poly_dist[a, k] = math.sqrt(nearest)
+    return True
+
+
 if numba is not None:
     _jit = numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
+    _measure_lanelets_compiled = _jit(_measure_lanelets)
     _sample_route_compiled = _jit(_sample_route)
     _project_window_compiled = _jit(_project_window)
     _segment_d2 = _jit(_segment_d2)
@@ -287,6 +345,7 @@ else:  # pragma: no cover
     _project_window_compiled = None
     _project_candidates_compiled = None
     _sample_route_compiled = None
+    _measure_lanelets_compiled = None
 
 
 def project_window(points: np.ndarray, line: np.ndarray, arc: np.ndarray, hints: np.ndarray, window_m: float):
@@ -332,3 +391,12 @@ def sample_route(table, s_line, starts, offset: float, step: float, n: int, end_
     if not _sample_route_compiled(table, s_line, starts, offset, step, n, cos_first, sin_first, cos_last, sin_last, out, which):
         return None
     return out[0], out[1], out[2], out[3], out[4], which
+
+
+def measure_lanelets(p, pi, li, seg_start, seg_vec, seg_len2, seg_s0, seg_heading, seg_count,
+                     edge_start, edge_vec, edge_len2, edge_count, s, d, centre, heading, poly_dist) -> bool:
+    """`_measure_lanelets` compiled: fills s, d, centre, heading, poly_dist (points, lanelets) at the candidates; False: numpy."""
+    if _measure_lanelets_compiled is None:
+        return False
+    return bool(_measure_lanelets_compiled(p, pi, li, seg_start, seg_vec, seg_len2, seg_s0, seg_heading, seg_count,
+                                           edge_start, edge_vec, edge_len2, edge_count, s, d, centre, heading, poly_dist))
