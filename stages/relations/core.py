@@ -222,6 +222,78 @@ _EMPTY_I64 = np.zeros(0, dtype=np.int64)
 _EMPTY_F64 = np.zeros(0, dtype=np.float64)
 
 
+def _checked_corridors(corridor_set: CorridorSet, tables: SceneTables | None) -> dict[int, tuple]:
+    """Per corridor of the set (by ``id``): (`_corridor_problem`, table indices of its lanelets, whether they follow each other).
+
+    All corridors of the frame at once: one finiteness test and one
+    arc-length test over their concatenated arrays, the lanelet ids mapped
+    by one sorted lookup; a corridor these say is sound has no problem
+    (the conditions of `_corridor_problem`), any other is asked
+    `_corridor_problem` itself for its message; if anything here raises,
+    every corridor is checked one by one.
+    """
+    corridors = [c for v in corridor_set.vehicles for c in v.corridors]
+    try:
+        return _checked_batch(corridors, tables)
+    except Exception:  # noqa: BLE001 - odd arrays: corridor by corridor, as `_corridor_problem` handles them
+        out = {}
+        for corridor in corridors:
+            problem = _corridor_problem(corridor)
+            if problem is not None:
+                out[id(corridor)] = (problem, _EMPTY_I64, True)
+                continue
+            lanelet_index = tables.indices(corridor.lanelet_ids) if tables is not None else _EMPTY_I64
+            follows = tables is None or bool(tables.is_successor[lanelet_index[:-1], lanelet_index[1:]].all())
+            out[id(corridor)] = (None, lanelet_index, follows)
+        return out
+
+
+def _checked_batch(corridors: list[Corridor], tables: SceneTables | None) -> dict[int, tuple]:
+    if not corridors:
+        return {}
+    shaped = np.array([
+        len(c.x_m) >= 2 and all(len(a) == len(c.x_m) for a in (c.y_m, c.s_m, c.heading_rad, c.width_m))
+        and len(c.lanelet_ids) == len(c.lanelet_start_s_m) and math.isfinite(c.vehicle_s_m)
+        for c in corridors
+    ], dtype=bool)
+    fields = [a for c in corridors for a in (c.x_m, c.y_m, c.s_m, c.heading_rad, c.width_m, c.lanelet_start_s_m)]
+    sizes = np.array([len(a) for a in fields], dtype=np.int64).reshape(len(corridors), 6).sum(axis=1)
+    bad = np.concatenate([[0], np.cumsum(~np.isfinite(np.concatenate(fields).astype(np.float64, copy=False)))])
+    ends = np.cumsum(sizes)
+    finite = bad[ends] == bad[ends - sizes]
+    # s: increasing (no step back) and of positive length
+    s_len = np.array([len(c.s_m) for c in corridors], dtype=np.int64)
+    s_all = np.concatenate([np.asarray(c.s_m, np.float64) for c in corridors])
+    s_end = np.cumsum(s_len)
+    s_start = s_end - s_len
+    back = np.concatenate([[0], np.cumsum(np.diff(s_all) < 0.0)])
+    has = s_len > 0
+    s_ok = np.zeros(len(corridors), dtype=bool)
+    s_ok[has] = back[s_end[has] - 1] == back[s_start[has]]  # steps back inside a corridor (not across the joins)
+    s_ok[has] &= (s_all[s_end[has] - 1] - s_all[s_start[has]]) > 0.0
+    sound = shaped & finite & s_ok
+    if tables is not None:
+        k_len = np.array([len(c.lanelet_ids) for c in corridors], dtype=np.int64)
+        all_index = tables.indices(np.concatenate([np.asarray(c.lanelet_ids, np.int64) for c in corridors]))
+        k_end = np.cumsum(k_len)
+        k_start = k_end - k_len
+        step_ok = tables.is_successor[all_index[:-1], all_index[1:]] if len(all_index) > 1 else np.zeros(0, dtype=bool)
+        breaks = np.concatenate([[0], np.cumsum(~step_ok)])
+        long = k_len >= 2
+        follows = np.ones(len(corridors), dtype=bool)
+        follows[long] = breaks[k_end[long] - 1] == breaks[k_start[long]]
+    out = {}
+    for i, corridor in enumerate(corridors):
+        problem = None if sound[i] else _corridor_problem(corridor)
+        if problem is not None:
+            out[id(corridor)] = (problem, _EMPTY_I64, True)
+        elif tables is None:
+            out[id(corridor)] = (None, _EMPTY_I64, True)
+        else:
+            out[id(corridor)] = (None, all_index[k_start[i] : k_end[i]], bool(follows[i]))
+    return out
+
+
 # --------------------------------------------------------------------------- the core
 
 
@@ -435,6 +507,7 @@ class RelationExtractor:
         for track_id in sorted(all_rows - listed):
             issues.append(Issue("missing_corridors", track_id, "in the TrackFrame but not in the CorridorSet: obstacle only"))
         pairs: list[_Pair] = []
+        checked = _checked_corridors(corridor_set, tables)
         for vehicle in corridor_set.vehicles:
             if not vehicle.corridors:
                 continue
@@ -448,12 +521,10 @@ class RelationExtractor:
                 continue
             speed = float(objects.speed_mps[row])
             for corridor in vehicle.corridors:
-                problem = _corridor_problem(corridor)
+                problem, lanelet_index, follows = checked[id(corridor)]
                 if problem is not None:
                     issues.append(Issue("bad_corridor", vehicle.track_id, f"corridor {corridor.corridor_id}: {problem}: skipped"))
                     continue
-                lanelet_index = tables.indices(corridor.lanelet_ids) if tables is not None else _EMPTY_I64
-                follows = tables is None or bool(tables.is_successor[lanelet_index[:-1], lanelet_index[1:]].all())
                 pairs.append(
                     _Pair(
                         g=len(pairs),

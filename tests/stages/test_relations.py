@@ -512,3 +512,48 @@ def test_batched_lateral_relations_equal_the_pair_by_pair_ones_bit_for_bit(seque
         leaders += sum(r.leader_track_id >= 0 for r in a.relations)
     with_pairs = sum(any(v.corridors for v in corridor_set.vehicles) for _frame, corridor_set in sequence["frames"])
     assert len(calls) == with_pairs > 1000 and leaders > 100
+
+
+def test_batched_corridor_checks_equal_the_corridor_by_corridor_ones(sequence, scene_maps):
+    """`_checked_corridors` (every corridor of a frame at once) gives `_corridor_problem`'s verdicts and messages, the
+    table indices and the lanelet-succession flag of each corridor, for sound and broken corridors side by side."""
+    from stages.relations.core import SceneTables, _checked_corridors, _corridor_problem
+
+    tables = SceneTables(sequence["road_map"])
+    frame, corridor_set = max(sequence["frames"], key=lambda fc: sum(len(v.corridors) for v in fc[1].vehicles))
+    sound = [c for v in corridor_set.vehicles for c in v.corridors]
+    c = sound[0]
+    s_back = c.s_m.copy()
+    s_back[5] = s_back[3]
+    broken = [
+        dataclasses.replace(c, x_m=np.where(np.arange(len(c.x_m)) == 4, np.nan, c.x_m)),
+        dataclasses.replace(c, width_m=np.full(len(c.x_m), np.inf)),
+        dataclasses.replace(c, s_m=s_back),
+        dataclasses.replace(c, s_m=np.zeros(len(c.s_m))),
+        dataclasses.replace(c, vehicle_s_m=math.nan),
+        dataclasses.replace(c, lanelet_start_s_m=c.lanelet_start_s_m[:-1]),
+        dataclasses.replace(c, lanelet_start_s_m=np.full(len(c.lanelet_ids), np.nan)),
+        dataclasses.replace(c, x_m=c.x_m[:1], y_m=c.y_m[:1], s_m=c.s_m[:1], heading_rad=c.heading_rad[:1], width_m=c.width_m[:1]),
+        dataclasses.replace(c, y_m=c.y_m[:-1]),
+        dataclasses.replace(c, lanelet_ids=np.array([999, *c.lanelet_ids[::-1]], dtype=np.int64), lanelet_start_s_m=np.zeros(len(c.lanelet_ids) + 1)),
+        dataclasses.replace(c, lanelet_ids=np.zeros(0, np.int64), lanelet_start_s_m=np.zeros(0)),
+    ]
+    mixed = []
+    for k, corridor in enumerate(sound):
+        mixed.append(corridor)
+        if k < len(broken):
+            mixed.append(broken[k])
+    mixed.extend(broken[len(sound):])
+    vehicle = dataclasses.replace(corridor_set.vehicles[0], corridors=tuple(mixed))
+    checked = _checked_corridors(dataclasses.replace(corridor_set, vehicles=(vehicle,)), tables)
+    problems = 0
+    for corridor in mixed:
+        problem, index, follows = checked[id(corridor)]
+        assert problem == _corridor_problem(corridor)
+        if problem is None:
+            want = tables.indices(corridor.lanelet_ids)
+            np.testing.assert_array_equal(index, want)
+            assert follows == bool(tables.is_successor[want[:-1], want[1:]].all())
+        problems += problem is not None
+    assert problems == 9
+    assert not checked[id(broken[-2])][2] and checked[id(broken[-1])][2]  # unknown and reversed lanelets do not follow; none do
