@@ -892,15 +892,31 @@ def _project_onto_corridors(points_m: np.ndarray, pairs: list[_Pair], reach_m: n
     work per chunk is bounded by ``_CHUNK_ELEMENTS`` (issue 13: memory stays
     bounded however many objects a frame holds).
 
-    With ``compiled`` (and numba), the branch and bound runs candidate by
-    candidate in the kernel ``stages.lib.maps.kernels.project_candidates``:
-    the same bounds, the same segments measured in the same order with the
-    same arithmetic, so the same values bit for bit without the numpy
-    calls per chunk (the numpy code below is its reference and fallback).
+    With ``compiled`` (and numba), all of it (boxes, bounds, candidates)
+    runs pair by pair and candidate by candidate in the kernel
+    ``stages.lib.maps.kernels.project_polylines`` on the concatenated
+    corridors: the same bounds, the same segments measured in the same
+    order with the same arithmetic, so the same values bit for bit without
+    the padded arrays and the numpy calls (the numpy code below is its
+    reference, and the fallback where the kernel meets a NaN).
     """
     n_pairs, n = len(pairs), len(points_m)
     n_segments = np.array([len(p.xy) - 1 for p in pairs], dtype=np.int64)
     m = int(n_segments.max())
+    n_blocks = max(1, -(-max(m - 2, 0) // _BLOCK))
+    if (compiled and n and np.isfinite(points_m).all() and all(p.g == g and len(p.corridor.s_m) == len(p.xy) for g, p in enumerate(pairs))):
+        out_s = np.full((n_pairs, n), np.nan)
+        out_d = np.full((n_pairs, n), np.nan)
+        found = kernels.project_polylines(
+            np.ascontiguousarray(points_m, dtype=np.float64), np.concatenate([p.xy for p in pairs]).astype(np.float64, copy=False),
+            np.concatenate([np.asarray(p.corridor.s_m, np.float64) for p in pairs]), np.concatenate([[0], np.cumsum(n_segments + 1)]),
+            reach_m, radius_m, _BLOCK, n_blocks, m, out_s, out_d,
+        )
+        if found is not None:
+            hit_g, hit_k, ux, uy = found
+            out_heading = np.full((n_pairs, n), np.nan)
+            out_heading[hit_g, hit_k] = np.arctan2(uy, ux)
+            return out_s, out_d, out_heading
     line = np.zeros((n_pairs, m + 1, 2))
     arc = np.zeros((n_pairs, m + 1))
     for p in pairs:
@@ -920,7 +936,6 @@ def _project_onto_corridors(points_m: np.ndarray, pairs: list[_Pair], reach_m: n
         return out_s, out_d, out_heading
     # interior blocks: segments 1 .. ns-2 in blocks of _BLOCK; block i holds segments [1 + i·B, 1 + (i+1)·B) and
     # its box the vertices 1 + i·B .. 1 + (i+1)·B (indices past the last vertex repeat it: a larger box, still a bound)
-    n_blocks = max(1, -(-max(m - 2, 0) // _BLOCK))
     block_first = 1 + _BLOCK * np.arange(n_blocks)
     vertex = np.minimum(block_first[:, None] + np.arange(_BLOCK + 1)[None, :], m)  # (blocks, B + 1)
     vertex = np.minimum(vertex[None], n_segments[:, None, None])  # (pairs, blocks, B + 1)
@@ -948,17 +963,6 @@ def _project_onto_corridors(points_m: np.ndarray, pairs: list[_Pair], reach_m: n
         lo = np.array([p.xy.min(axis=0) for p in pairs]) - reach_m[:, None]
         hi = np.array([p.xy.max(axis=0) for p in pairs]) + reach_m[:, None]
         cand_g, cand_k = np.nonzero(((points_m[None, :, :] >= lo[:, None, :]) & (points_m[None, :, :] <= hi[:, None, :])).all(axis=2))
-    if compiled and len(cand_g) and np.isfinite(points_m).all():
-        found = kernels.project_candidates(
-            np.ascontiguousarray(points_m, dtype=np.float64), cand_g, cand_k, line, segment, length2, lower, upper, arc, n_segments,
-            box_lo, box_hi, block_used, block_first, block_end, start_vertex, last_vertex, np.asarray(limit2, np.float64), out_s, out_d,
-        )
-        if found is not None:
-            hit_g, hit_k, ux, uy = found
-            out_heading[hit_g, hit_k] = np.arctan2(uy, ux)
-            return out_s, out_d, out_heading
-        out_s[:] = np.nan  # a NaN on the way: the numpy code decides, from scratch
-        out_d[:] = np.nan
     per_chunk = max(1, _CHUNK_ELEMENTS // (n_blocks + 2 * _BLOCK))
     for first in range(0, len(cand_g), per_chunk):
         g, k = cand_g[first : first + per_chunk], cand_k[first : first + per_chunk]

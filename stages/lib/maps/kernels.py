@@ -132,83 +132,179 @@ def _segment_d2(px, py, ax, ay, vx, vy, length2, lower, upper):
     return ox * ox + oy * oy, t
 
 
-def _project_candidates(points, cand_g, cand_k, line, segment, length2, lower, upper, arc, n_segments,
-                        box_lo, box_hi, block_used, block_first, block_end, start_vertex, last_vertex, limit2,
-                        out_s, out_d, hit_g, hit_k, hit_ux, hit_uy):
-    """The branch and bound of `stages.relations.core._project_onto_corridors`, candidate by candidate.
+def _project_polylines(points, xy, arc, offsets, reach, use_reach, radius, use_radius, block, n_blocks, m,
+                       out_s, out_d, hit_g, hit_k, hit_ux, hit_uy):
+    """`stages.relations.core._project_onto_corridors` (its numpy code: reach boxes, pruning bound, branch and bound)
+    pair by pair and candidate by candidate, on the polylines concatenated (pair g: xy[offsets[g]:offsets[g + 1]]).
 
-    Fills out_s, out_d (pairs, points) of the wanted candidates and
-    hit_g, hit_k, hit_ux, hit_uy (their unit foot segments, for the
-    heading); returns how many hits, -1 where a NaN appears (the numpy
-    path decides then).
+    The padded numpy arrays are not built; every value they would hold is
+    computed where it is read, with the same operations: segment g, j is
+    xy[o + j + 1] - xy[o + j], its squared length at least 1e-18, t free
+    below on segment 0 and above on the last; the pruning limit from the
+    sharpest turn (1.0 among the turns when the pair is shorter than the
+    longest, `m` segments, as the padding gives it); block b of a pair holds
+    segments [1 + b·block, min(1 + (b + 1)·block, n - 1)) and its box the
+    vertices from 1 + b·block to 1 + (b + 1)·block, clipped to the last.
+    Fills out_s, out_d and (hit_g, hit_k, hit_ux, hit_uy); returns the
+    number of hits, -1 where a NaN appears (the numpy code decides then).
     """
-    n_blocks = block_first.shape[0]
+    n_pairs = offsets.shape[0] - 1
+    n_points = points.shape[0]
+    box_lo_x = np.empty(n_blocks)
+    box_lo_y = np.empty(n_blocks)
+    box_hi_x = np.empty(n_blocks)
+    box_hi_y = np.empty(n_blocks)
+    used = np.zeros(n_blocks, dtype=np.bool_)
     box2 = np.empty(n_blocks)
     slack = 1.0 + 1e-9
     hits = 0
-    for c in range(cand_g.shape[0]):
-        g = cand_g[c]
-        k = cand_k[c]
-        px = points[k, 0]
-        py = points[k, 1]
-        last = n_segments[g] - 1
-        d2_first, t_first = _segment_d2(px, py, line[g, 0, 0], line[g, 0, 1], segment[g, 0, 0], segment[g, 0, 1],
-                                        length2[g, 0], lower[g, 0], upper[g, 0])
-        d2_last, t_last = _segment_d2(px, py, line[g, last, 0], line[g, last, 1], segment[g, last, 0], segment[g, last, 1],
-                                      length2[g, last], lower[g, last], upper[g, last])
-        if d2_first != d2_first or d2_last != d2_last:
-            return -1
-        box_min = math.inf
-        vertex_min = math.inf
+    for g in range(n_pairs):
+        o = offsets[g]
+        ns = offsets[g + 1] - o - 1
+        last = ns - 1
+        # the pruning limit: |d| >= distance * cos(sharpest turn)
+        limit2 = math.inf
+        if use_radius:
+            cos_min = 1.0
+            if m > 1:
+                cos_min = 1.0 if ns < m else math.inf
+                prev_ux = 0.0
+                prev_uy = 0.0
+                for j in range(ns):
+                    vx = xy[o + j + 1, 0] - xy[o + j, 0]
+                    vy = xy[o + j + 1, 1] - xy[o + j, 1]
+                    length = math.sqrt(max(vx * vx + vy * vy, 1e-300))
+                    ux = vx / length
+                    uy = vy / length
+                    if j > 0:
+                        c = prev_ux * ux + prev_uy * uy
+                        if c != c:
+                            return -1
+                        cos_min = min(cos_min, c)
+                    prev_ux = ux
+                    prev_uy = uy
+            degenerate = False
+            for j in range(ns):
+                vx = xy[o + j + 1, 0] - xy[o + j, 0]
+                vy = xy[o + j + 1, 1] - xy[o + j, 1]
+                if vx * vx + vy * vy < 1e-12:
+                    degenerate = True
+            r = radius[g]
+            if cos_min > 0.5 and not degenerate and math.isfinite(r):
+                q = r / cos_min
+                limit2 = q * q
+        # the blocks' boxes and first vertices
         for b in range(n_blocks):
-            if block_used[g, b]:
-                dx = max(max(box_lo[g, b, 0] - px, px - box_hi[g, b, 0]), 0.0)
-                dy = max(max(box_lo[g, b, 1] - py, py - box_hi[g, b, 1]), 0.0)
-                v = dx * dx + dy * dy
-                sx = start_vertex[g, b, 0] - px
-                sy = start_vertex[g, b, 1] - py
-                w = sx * sx + sy * sy
-                if v != v or w != w:
-                    return -1
-                box2[b] = v
-                box_min = min(box_min, v)
-                vertex_min = min(vertex_min, w)
-            else:
-                box2[b] = math.inf
-        lx = last_vertex[g, 0] - px
-        ly = last_vertex[g, 1] - py
-        ends = min(d2_first, d2_last)
-        lower_bound = min(ends, box_min)
-        upper_bound = min(ends, min(vertex_min, lx * lx + ly * ly))
-        if not (lower_bound <= limit2[g] * slack):
-            continue
-        threshold = upper_bound * slack + 1e-12
-        # segment 0, the kept blocks' segments, the last: ascending; the first nearest wins
-        best = 0
-        best_d2 = d2_first
-        best_t = t_first
-        for b in range(n_blocks):
-            if box2[b] <= threshold:
-                for j in range(block_first[b], block_end[g, b]):
-                    d2, t = _segment_d2(px, py, line[g, j, 0], line[g, j, 1], segment[g, j, 0], segment[g, j, 1],
-                                        length2[g, j], lower[g, j], upper[g, j])
-                    if d2 != d2:
+            bf = 1 + block * b
+            used[b] = bf < min(bf + block, ns - 1)
+            if used[b]:
+                lx = math.inf
+                ly = math.inf
+                hx = -math.inf
+                hy = -math.inf
+                for i in range(block + 1):
+                    v = min(bf + i, ns)
+                    lx = min(lx, xy[o + v, 0])
+                    ly = min(ly, xy[o + v, 1])
+                    hx = max(hx, xy[o + v, 0])
+                    hy = max(hy, xy[o + v, 1])
+                box_lo_x[b] = lx
+                box_lo_y[b] = ly
+                box_hi_x[b] = hx
+                box_hi_y[b] = hy
+        # the reach box
+        if use_reach:
+            lx = math.inf
+            ly = math.inf
+            hx = -math.inf
+            hy = -math.inf
+            for v in range(ns + 1):
+                lx = min(lx, xy[o + v, 0])
+                ly = min(ly, xy[o + v, 1])
+                hx = max(hx, xy[o + v, 0])
+                hy = max(hy, xy[o + v, 1])
+            lx -= reach[g]
+            ly -= reach[g]
+            hx += reach[g]
+            hy += reach[g]
+        for k in range(n_points):
+            px = points[k, 0]
+            py = points[k, 1]
+            if use_reach and not (px >= lx and py >= ly and px <= hx and py <= hy):
+                continue
+            ax = xy[o, 0]
+            ay = xy[o, 1]
+            vx = xy[o + 1, 0] - ax
+            vy = xy[o + 1, 1] - ay
+            d2_first, t_first = _segment_d2(px, py, ax, ay, vx, vy, max(vx * vx + vy * vy, 1e-18), -math.inf,
+                                            math.inf if last == 0 else 1.0)
+            ax = xy[o + last, 0]
+            ay = xy[o + last, 1]
+            vx = xy[o + last + 1, 0] - ax
+            vy = xy[o + last + 1, 1] - ay
+            d2_last, t_last = _segment_d2(px, py, ax, ay, vx, vy, max(vx * vx + vy * vy, 1e-18),
+                                          -math.inf if last == 0 else 0.0, math.inf)
+            if d2_first != d2_first or d2_last != d2_last:
+                return -1
+            box_min = math.inf
+            vertex_min = math.inf
+            for b in range(n_blocks):
+                if used[b]:
+                    dx = max(max(box_lo_x[b] - px, px - box_hi_x[b]), 0.0)
+                    dy = max(max(box_lo_y[b] - py, py - box_hi_y[b]), 0.0)
+                    v = dx * dx + dy * dy
+                    bf = 1 + block * b
+                    sx = xy[o + bf, 0] - px
+                    sy = xy[o + bf, 1] - py
+                    w = sx * sx + sy * sy
+                    if v != v or w != w:
                         return -1
-                    if d2 < best_d2:
-                        best, best_d2, best_t = j, d2, t
-        if last > 0 and d2_last < best_d2:
-            best, best_d2, best_t = last, d2_last, t_last
-        j = best
-        seg_len = math.sqrt(length2[g, j])
-        ux = segment[g, j, 0] / seg_len
-        uy = segment[g, j, 1] / seg_len
-        out_s[g, k] = arc[g, j] + best_t * seg_len
-        out_d[g, k] = ux * (py - line[g, j, 1]) - uy * (px - line[g, j, 0])
-        hit_g[hits] = g
-        hit_k[hits] = k
-        hit_ux[hits] = ux
-        hit_uy[hits] = uy
-        hits += 1
+                    box2[b] = v
+                    box_min = min(box_min, v)
+                    vertex_min = min(vertex_min, w)
+                else:
+                    box2[b] = math.inf
+            lx2 = xy[o + ns, 0] - px
+            ly2 = xy[o + ns, 1] - py
+            ends = min(d2_first, d2_last)
+            lower_bound = min(ends, box_min)
+            upper_bound = min(ends, min(vertex_min, lx2 * lx2 + ly2 * ly2))
+            if not (lower_bound <= limit2 * slack):
+                continue
+            threshold = upper_bound * slack + 1e-12
+            best = 0
+            best_d2 = d2_first
+            best_t = t_first
+            for b in range(n_blocks):
+                if box2[b] <= threshold:
+                    bf = 1 + block * b
+                    for j in range(bf, min(bf + block, ns - 1)):
+                        ax = xy[o + j, 0]
+                        ay = xy[o + j, 1]
+                        vx = xy[o + j + 1, 0] - ax
+                        vy = xy[o + j + 1, 1] - ay
+                        d2, t = _segment_d2(px, py, ax, ay, vx, vy, max(vx * vx + vy * vy, 1e-18), 0.0, 1.0)
+                        if d2 != d2:
+                            return -1
+                        if d2 < best_d2:
+                            best, best_d2, best_t = j, d2, t
+            if last > 0 and d2_last < best_d2:
+                best, best_d2, best_t = last, d2_last, t_last
+            j = best
+            ax = xy[o + j, 0]
+            ay = xy[o + j, 1]
+            vx = xy[o + j + 1, 0] - ax
+            vy = xy[o + j + 1, 1] - ay
+            seg_len = math.sqrt(max(vx * vx + vy * vy, 1e-18))
+            ux = vx / seg_len
+            uy = vy / seg_len
+            out_s[g, k] = arc[o + j] + best_t * seg_len
+            out_d[g, k] = ux * (py - ay) - uy * (px - ax)
+            hit_g[hits] = g
+            hit_k[hits] = k
+            hit_ux[hits] = ux
+            hit_uy[hits] = uy
+            hits += 1
     return hits
 
 
@@ -340,10 +436,10 @@ if numba is not None:
     _sample_route_compiled = _jit(_sample_route)
     _project_window_compiled = _jit(_project_window)
     _segment_d2 = _jit(_segment_d2)
-    _project_candidates_compiled = _jit(_project_candidates)
+    _project_polylines_compiled = _jit(_project_polylines)
 else:  # pragma: no cover
     _project_window_compiled = None
-    _project_candidates_compiled = None
+    _project_polylines_compiled = None
     _sample_route_compiled = None
     _measure_lanelets_compiled = None
 
@@ -360,19 +456,23 @@ def project_window(points: np.ndarray, line: np.ndarray, arc: np.ndarray, hints:
     return (out_s, out_d, out_seg) if ok else None
 
 
-def project_candidates(points, cand_g, cand_k, line, segment, length2, lower, upper, arc, n_segments,
-                       box_lo, box_hi, block_used, block_first, block_end, start_vertex, last_vertex, limit2, out_s, out_d):
-    """`_project_candidates` compiled: fills out_s, out_d; returns (g, k, ux, uy) of the projected candidates, None: take the numpy path."""
-    if _project_candidates_compiled is None:
+def project_polylines(points, xy, arc, offsets, reach, radius, block: int, n_blocks: int, m: int, out_s, out_d):
+    """`_project_polylines` compiled (``reach``, ``radius`` (pairs,) or None): fills out_s, out_d (pairs, points);
+    returns (g, k, ux, uy) of the projected (pair, point), the foot segments' directions; None: take the numpy path."""
+    if _project_polylines_compiled is None:
         return None
-    n = len(cand_g)
+    n = out_s.size
     hit_g = np.empty(n, np.int64)
     hit_k = np.empty(n, np.int64)
     hit_ux = np.empty(n)
     hit_uy = np.empty(n)
-    hits = _project_candidates_compiled(points, cand_g, cand_k, line, segment, length2, lower, upper, arc, n_segments,
-                                        box_lo, box_hi, block_used, block_first, block_end, start_vertex, last_vertex, limit2,
-                                        out_s, out_d, hit_g, hit_k, hit_ux, hit_uy)
+    n_pairs = len(offsets) - 1
+    hits = _project_polylines_compiled(
+        points, xy, arc, offsets,
+        np.zeros(n_pairs) if reach is None else np.asarray(reach, np.float64), reach is not None,
+        np.zeros(n_pairs) if radius is None else np.asarray(radius, np.float64), radius is not None,
+        int(block), int(n_blocks), int(m), out_s, out_d, hit_g, hit_k, hit_ux, hit_uy,
+    )
     if hits < 0:
         return None
     return hit_g[:hits], hit_k[:hits], hit_ux[:hits], hit_uy[:hits]
