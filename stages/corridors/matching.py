@@ -121,7 +121,7 @@ class LaneletIndex:
         heading = np.full((n_pts, n_l), np.nan)
         poly_dist = np.full((n_pts, n_l), np.inf)
         measured = len(pi) and compiled and kernels.measure_lanelets(
-            p, pi, li, self.seg_start, self.seg_vec, self.seg_len2, self.seg_s0, self.seg_heading, self.seg_count,
+            p, np.ascontiguousarray(pi), np.ascontiguousarray(li), self.seg_start, self.seg_vec, self.seg_len2, self.seg_s0, self.seg_heading, self.seg_count,
             self.edge_start, self.edge_vec, self.edge_len2, self.edge_count, s, d, centre, heading, poly_dist,
         )
         if len(pi) and not measured:

@@ -316,6 +316,7 @@ class RelationExtractor:
         self._centre_of: object = False  # the road map whose centre `_centre` is (False: none yet)
         self._centre: np.ndarray | None = None
         self.signals = SignalStops(self.scene_maps.data_dir)
+        kernels.warm_up()  # the compiled kernels loaded now, not on the first frame
 
     @property
     def tables(self) -> SceneTables | None:

@@ -124,7 +124,7 @@ def project_in_window(points_m, polyline_m, s_m, s_hint_m, window_m: float) -> t
     points = np.atleast_2d(np.asarray(points_m, dtype=np.float64))
     line = np.asarray(polyline_m, dtype=np.float64)
     arc = np.asarray(s_m, dtype=np.float64)
-    hints = np.ascontiguousarray(np.broadcast_to(np.asarray(s_hint_m, np.float64), (len(points),)))
+    hints = np.array(np.broadcast_to(np.asarray(s_hint_m, np.float64), (len(points),)))  # a writable copy: one kernel signature
     if line.ndim == 2 and line.shape[0] >= 2 and line.shape[1] == 2:
         found = kernels.project_window(points, line, arc, hints, window_m)
         if found is not None:
@@ -150,7 +150,7 @@ def _project_in_window(points, line, arc, s_hint_m, window_m: float, heading_rad
     n_seg = len(line) - 1
     n_pts = len(points)
     hints = np.broadcast_to(np.asarray(s_hint_m, np.float64), (n_pts,))
-    found = kernels.project_window(points, line, arc, np.ascontiguousarray(hints), window_m) if compiled else None
+    found = kernels.project_window(points, line, arc, np.array(hints), window_m) if compiled else None
     if found is not None:  # the same arithmetic, compiled (stages.lib.maps.kernels)
         out_s, out_d, j = found
         if heading_rad is None:

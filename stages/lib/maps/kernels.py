@@ -500,3 +500,33 @@ def measure_lanelets(p, pi, li, seg_start, seg_vec, seg_len2, seg_s0, seg_headin
         return False
     return bool(_measure_lanelets_compiled(p, pi, li, seg_start, seg_vec, seg_len2, seg_s0, seg_heading, seg_count,
                                            edge_start, edge_vec, edge_len2, edge_count, s, d, centre, heading, poly_dist))
+
+
+_warm = False
+
+
+def warm_up() -> None:
+    """Load every kernel from numba's on-disk cache (compile it the first time) now, on tiny arrays laid out as the
+    stages pass them (the routes' arc lengths are read-only, a corridor's are not): the corridors and relations
+    stages pay it when they start (about a second), not on their first frame. Once per process."""
+    global _warm
+    if _warm or numba is None:
+        return
+    line = np.column_stack([np.arange(4.0), np.zeros(4)])
+    arc = np.arange(4.0)
+    frozen = arc.copy()
+    frozen.flags.writeable = False
+    point = np.array([[1.5, 0.5]])
+    for s_m in (arc, frozen):
+        project_window(point, line, s_m, np.array([1.0]), 2.0)
+    table = np.ascontiguousarray(np.stack([line[:, 0], line[:, 1], np.zeros(4), np.zeros(4)]))
+    sample_route(table, frozen, np.array([0.0, 2.0]), -1.0, 0.5, 12, (1.0, 0.0, 1.0, 0.0))
+    seg = np.zeros((1, 3, 2))
+    seg[0, :, 0] = 1.0
+    out = [np.full((1, 1), np.nan) for _ in range(4)]
+    measure_lanelets(point, np.zeros(1, np.int64), np.zeros(1, np.int64), line[None, :3].copy(), seg, np.ones((1, 3)),
+                     np.zeros((1, 3)), np.zeros((1, 3)), np.array([3], np.int64), line[None, :3].copy(), seg, np.ones((1, 3)),
+                     np.array([3], np.int64), *out, np.full((1, 1), np.inf))
+    project_polylines(point, line, arc, np.array([0, 4], np.int64), np.ones(1), np.ones(1), 8, 1, 3,
+                      np.full((1, 1), np.nan), np.full((1, 1), np.nan))
+    _warm = True
