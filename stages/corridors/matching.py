@@ -218,44 +218,47 @@ def select_lanelets(
     distance is kept. A kept lanelet whose predecessor is also kept is
     dropped (the route from the predecessor contains it).
     """
-    level = meas.level[row]
-    near = level >= 0
-    if not near.any():
+    # only the columns near by position can be candidates: the rule in plain Python over those few (the same
+    # float operations as `heading_errors_rad` and the masks over every column would do, value for value)
+    near = np.flatnonzero(meas.level[row] >= 0)
+    if not len(near):
         return (), False
-    errors = heading_errors_rad(heading_rad, meas.heading_rad[row], heading_ambiguous)
-    ok = near & (errors <= max_heading_rad)
-    if previous and (not heading_confident or not ok.any()):
+    ids = index.ids[near].tolist()
+    centre = meas.centre_distance_m[row, near].tolist()
+    errors = []
+    for lane_heading in meas.heading_rad[row, near].tolist():
+        err = abs((lane_heading - heading_rad + math.pi) % (2.0 * math.pi) - math.pi)
+        errors.append(min(err, math.pi - err) if heading_ambiguous else err)
+    ok = [e <= max_heading_rad for e in errors]
+    if previous and (not heading_confident or not any(ok)):
         # a heading glitch (yaw noise of a slow car, a tracker jump) does not move a car out of its lane
-        ok |= near & index.columns_of(previous)
-    if not heading_known and not ok.any():
+        ok = [o or x in previous for o, x in zip(ok, ids)]
+    if not heading_known and not any(ok):
         # a standing car seen for the first time: its yaw may be anything (K729), go by position
-        ok = near
-    if not ok.any():
+        ok = [True] * len(ids)
+    if not any(ok):
         return (), True
     pool = ok
     if allowed:
-        cont = pool & index.columns_of(allowed)
-        centre = meas.centre_distance_m[row]
-        if cont.any() and centre[cont].min() <= centre[pool].min() + continuity_margin_m:
+        cont = [o and x in allowed for o, x in zip(pool, ids)]
+        if any(cont) and min(c for c, o in zip(centre, cont) if o) <= min(c for c, o in zip(centre, pool) if o) + continuity_margin_m:
             pool = cont
-    dist = np.where(pool, meas.centre_distance_m[row], np.inf)
-    keep = pool & (dist <= dist.min() + ambiguity_margin_m)
-    cols = np.flatnonzero(keep)
-    cols = cols[np.lexsort((index.ids[cols], dist[cols]))]
-    kept_ids = {int(index.ids[c]) for c in cols}
+    best = min(c for c, o in zip(centre, pool) if o)
+    keep = sorted((centre[i], ids[i], i) for i in range(len(ids)) if pool[i] and centre[i] <= best + ambiguity_margin_m)
+    kept_ids = {x for _c, x, _i in keep}
     matches = []
-    for c in cols:
-        lanelet_id = int(index.ids[c])
+    for _c, lanelet_id, i in keep:
         if any(p in kept_ids for p in index.road_map.predecessors(lanelet_id)):
             continue
+        col = near[i]
         matches.append(
             LaneletMatch(
                 lanelet_id=lanelet_id,
-                level=int(level[c]),
-                s_m=float(meas.s_m[row, c]),
-                d_m=float(meas.d_m[row, c]),
-                centre_distance_m=float(meas.centre_distance_m[row, c]),
-                heading_error_rad=float(errors[c]),
+                level=int(meas.level[row, col]),
+                s_m=float(meas.s_m[row, col]),
+                d_m=float(meas.d_m[row, col]),
+                centre_distance_m=centre[i],
+                heading_error_rad=errors[i],
             )
         )
     return tuple(matches), True
