@@ -788,9 +788,13 @@ class RelationExtractor:
         if window <= 0.0 or not len(g):
             return
         changes_lane = np.array([not p.follows_lanelets for p in pairs], dtype=bool)
-        for k in np.unique(g[changes_lane[g]]):
-            pair = pairs[k]
-            rows = np.flatnonzero((g == k) & (s > -window) & (s < pair.corridor.s_m[-1] + window))
+        candidates = np.flatnonzero(changes_lane[g] & (s > -window))
+        candidates = candidates[np.argsort(g[candidates], kind="stable")]  # by pair, ascending rows within one
+        starts = np.flatnonzero(np.concatenate([[True], g[candidates][1:] != g[candidates][:-1]])) if len(candidates) else candidates
+        for a, b in zip(starts, [*starts[1:], len(candidates)]):
+            pair = pairs[g[candidates[a]]]
+            rows = candidates[a:b]
+            rows = rows[s[rows] < pair.corridor.s_m[-1] + window]
             if not len(rows):
                 continue
             xy = np.column_stack([tables.point_x_m[point[rows]], tables.point_y_m[point[rows]]])
