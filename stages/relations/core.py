@@ -32,7 +32,7 @@ from stages.lib.datasets import DEFAULT_SIZES_M
 from stages.lib.maps import ConflictKind as MapConflictKind
 from stages.lib.maps import Projection, RoadMap, SceneMap, SceneMaps, kernels, parse_projection, project_in_window, shown_map_name, wrap_angle_rad
 
-from stages.lib.influence import NO_INFLUENCE, choose_influencing
+from stages.lib.influence import NO_INFLUENCE, RULES, choose_influencing, choose_influencing_grouped
 from stages.relations.signals import SignalStops
 
 _KIND_ON_BUS = {MapConflictKind.CROSSING: ConflictKind.CROSSING, MapConflictKind.MERGE: ConflictKind.MERGE}
@@ -392,12 +392,18 @@ class RelationExtractor:
                 batched = self._lateral_batched(pairs, objects, projected)
             except Exception:  # noqa: BLE001 - then pair by pair (`_lateral`), where a failure costs one pair's relation
                 batched = None
+        owners = None
+        if conflicts is not None and len(conflicts.g):
+            try:
+                owners = self._conflict_owners(pairs, conflicts, route_probabilities)
+            except Exception:  # noqa: BLE001 - then pair by pair (`_relations`), where a failure costs one pair's relation
+                owners = None
         for pair in pairs:
             try:
                 lateral = self._lateral(pair, objects, projected, batched)
                 crossings = self._intersections(pair, tables)
                 span = slice(starts[pair.g], starts[pair.g + 1]) if starts is not None else slice(0, 0)
-                rel = self._relations(pair, pairs, objects, lateral, crossings, conflicts, span, route_probabilities)
+                rel = self._relations(pair, pairs, objects, lateral, crossings, conflicts, span, route_probabilities, owners)
                 relations.append(self._with_signal(rel, pair, smap, state))
             except Exception as exc:  # noqa: BLE001 - one pair's failure costs only its relation
                 issues.append(Issue("pair_failed", pair.vehicle.track_id, f"corridor {pair.corridor.corridor_id}: {type(exc).__name__}: {exc}: no relation"))
@@ -802,8 +808,27 @@ class RelationExtractor:
 
     # ----- assembly ------------------------------------------------------------------
 
-    def _relations(self, pair, pairs, objects, lateral, crossings, conflicts, span, route_probabilities) -> CorridorRelations:
-        """One corridor's message part, with the influencing conflict chosen by the rules."""
+    def _conflict_owners(self, pairs: list[_Pair], conflicts: _Conflicts, route_probabilities) -> tuple[np.ndarray, ...]:
+        """For every conflict of the frame at once: the influencing choice of every pair (`choose_influencing_grouped`:
+        index within the pair's conflicts, rule), and the other vehicle's track and corridor id of each conflict."""
+        track_of = np.array([p.vehicle.track_id for p in pairs], dtype=np.int64)
+        corridor_of = np.array([p.corridor.corridor_id for p in pairs], dtype=np.int64)
+        probability = None
+        if route_probabilities is not None:
+            probability = np.array([route_probabilities.get((int(track_of[k]), int(corridor_of[k])), 1.0) for k in conflicts.other_g])
+        index, rule = choose_influencing_grouped(
+            conflicts.g, len(pairs), conflicts.kind, conflicts.priority, conflicts.distance_m, conflicts.other_distance_m,
+            conflicts.time_s, conflicts.other_time_s,
+            horizon_s=self.config.conflict_horizon_s, other_probability=probability, min_probability=self.config.min_route_probability,
+        )
+        return index, rule, track_of[conflicts.other_g], corridor_of[conflicts.other_g]
+
+    def _relations(self, pair, pairs, objects, lateral, crossings, conflicts, span, route_probabilities, owners=None) -> CorridorRelations:
+        """One corridor's message part, with the influencing conflict chosen by the rules.
+
+        `owners` is `_conflict_owners`' result for the frame (taken when
+        given); the pair-by-pair code here is its reference and fallback.
+        """
         rows, s, d, gap, along, leader = lateral
         corridor = pair.corridor
         isect_ids, entry, exit_, entry_lanelets = crossings
@@ -811,7 +836,10 @@ class RelationExtractor:
             c = {name: getattr(conflicts, name)[span] for name in _Conflicts.__dataclass_fields__}
         else:
             c = None
-        if c is not None:
+        if c is not None and owners is not None:
+            index, rule = int(owners[0][pair.g]), RULES[int(owners[1][pair.g])]
+            conflict_tracks, conflict_corridors = owners[2][span], owners[3][span]
+        elif c is not None:
             other_pairs = [pairs[k] for k in c["other_g"]]
             probability = None
             if route_probabilities is not None:
