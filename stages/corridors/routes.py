@@ -246,24 +246,21 @@ def cut_corridor(
     """
     n = int(math.ceil((behind_m + ahead_m) / step_m - 1e-9)) + 1
     offset = vehicle_s_m - behind_m
-    sampled = _sample(route, offset, step_m, n, compiled)
-    s_route, x, y, heading, curvature, which = sampled
-    width = route.widths_m[which]
-    end_s = s_route[-1]
+    s_corridor, x, y, heading_wrapped, curvature, width = _sample(route, offset, step_m, n, compiled)
+    end_s = offset + (n - 1) * step_m  # the last sample's s on the route
     covered = (route.lanelet_start_s_m < end_s) & (route.lanelet_end_s_m > offset)
     covered[0] |= not covered.any()
-    heading_wrapped = (heading + math.pi) % (2.0 * math.pi) - math.pi
     return Corridor(
         corridor_id=int(corridor_id),
         lanelet_ids=route.lanelet_id_array[covered],
         lanelet_start_s_m=route.lanelet_start_s_m[covered] - offset,
         x_m=x,
         y_m=y,
-        s_m=s_route - offset,
+        s_m=s_corridor,
         heading_rad=heading_wrapped,
         curvature_1pm=curvature,
-        width_m=width.astype(np.float64),
-        extension_start_s_m=float(min(route.length_m - offset, s_route[-1] - offset)),
+        width_m=width,
+        extension_start_s_m=float(min(route.length_m - offset, end_s - offset)),
         vehicle_s_m=float(vehicle_s_m - offset),
         vehicle_d_m=float(vehicle_d_m),
         speed_limit_mps=float(route.speed_limits_mps[covered].min()),
@@ -271,9 +268,11 @@ def cut_corridor(
 
 
 def _sample(route: RouteGeometry, offset: float, step_m: float, n: int, compiled: bool = True):
-    """(s, x, y, unwrapped heading, curvature, lanelet index) (n,) of the route at offset + i·step (`cut_corridor`)."""
+    """The corridor's arrays (n,) at route s = offset + i·step (`cut_corridor`): s from the corridor's start, x, y,
+    heading wrapped to [-pi, pi), curvature, width."""
     if compiled:
-        found = kernels.sample_route(route.samples_table, route.s_m, route.lanelet_start_s_m, offset, step_m, n, route.end_directions)
+        found = kernels.sample_route(route.samples_table, route.s_m, route.lanelet_start_s_m, route.widths_m, offset, step_m, n,
+                                     route.end_directions)
         if found is not None:
             return found
     h_first, h_last = float(route.heading_unwrapped_rad[0]), float(route.heading_unwrapped_rad[-1])
@@ -290,7 +289,8 @@ def _sample(route: RouteGeometry, offset: float, step_m: float, n: int, compiled
             y = np.where(beyond, pts[k, 1] + (s_route - s_end) * math.sin(h), y)
             curvature = np.where(beyond, 0.0, curvature)
     which = np.clip(np.searchsorted(route.lanelet_start_s_m, s_route, side="right") - 1, 0, len(route.lanelet_ids) - 1)
-    return s_route, x, y, heading, curvature, which
+    heading_wrapped = (heading + math.pi) % (2.0 * math.pi) - math.pi
+    return s_route - offset, x, y, heading_wrapped, curvature, route.widths_m[which].astype(np.float64)
 
 
 def max_separation_m(a: Corridor, b: Corridor, from_index: int) -> float:

@@ -308,15 +308,16 @@ def _project_polylines(points, xy, arc, offsets, reach, use_reach, radius, use_r
     return hits
 
 
-def _sample_route(table, s_line, starts, offset, step, n, cos_first, sin_first, cos_last, sin_last, out, which_out):
+def _sample_route(table, s_line, starts, widths, offset, step, n, cos_first, sin_first, cos_last, sin_last, out):
     """`stages.corridors.routes.cut_corridor`'s sampling, sample by sample; False where the numpy code must decide.
 
     ``table`` (4, m): x, y, unwrapped heading, curvature at the arc lengths
-    ``s_line``; ``out`` (5, n): s, x, y, heading, curvature at
-    s = offset + i·step, each as ``np.interp`` gives it (the segment found
-    once per sample and shared: the four share ``s_line``), x and y
-    extended straight and curvature 0 outside the route; ``which_out`` the
-    lanelet of each sample (searchsorted in ``starts``, clipped).
+    ``s_line``; at s = offset + i·step, ``out`` (6, n) gets s - offset, then
+    x, y, the heading wrapped to [-pi, pi) and the curvature, each as
+    ``np.interp`` gives it (the segment found once per sample and shared:
+    the four share ``s_line``), x and y extended straight and curvature 0
+    outside the route, and the width of the sample's lanelet (searchsorted
+    in ``starts``, clipped).
     """
     m = s_line.shape[0]
     k = starts.shape[0]
@@ -340,12 +341,12 @@ def _sample_route(table, s_line, starts, offset, step, n, cos_first, sin_first, 
             j = 0
             w = 0
         previous = s
-        out[0, i] = s
+        out[0, i] = s - offset
         while j + 1 < m and s_line[j + 1] <= s:
             j += 1
         while w < k and starts[w] <= s:
             w += 1
-        which_out[i] = min(max(w - 1, 0), k - 1)
+        out[5, i] = widths[min(max(w - 1, 0), k - 1)]
         for c in range(4):
             fp = table[c]
             if s < s_line[0]:
@@ -370,6 +371,7 @@ def _sample_route(table, s_line, starts, offset, step, n, cos_first, sin_first, 
             out[1, i] = table[0, m - 1] + (s - length) * cos_last
             out[2, i] = table[1, m - 1] + (s - length) * sin_last
             out[4, i] = 0.0
+        out[3, i] = (out[3, i] + math.pi) % (2.0 * math.pi) - math.pi
     return True
 
 
@@ -478,19 +480,18 @@ def project_polylines(points, xy, arc, offsets, reach, radius, block: int, n_blo
     return hit_g[:hits], hit_k[:hits], hit_ux[:hits], hit_uy[:hits]
 
 
-def sample_route(table, s_line, starts, offset: float, step: float, n: int, end_directions):
-    """`_sample_route` compiled: (s, x, y, heading, curvature, lanelet index) (n,) of a route's samples; None: numpy.
+def sample_route(table, s_line, starts, widths, offset: float, step: float, n: int, end_directions):
+    """`_sample_route` compiled: the corridor's (s - offset, x, y, wrapped heading, curvature, width) (n,); None: numpy.
 
     ``end_directions``: cos and sin of the route's first and last heading.
     """
     if _sample_route_compiled is None:
         return None
-    out = np.empty((5, n))
-    which = np.empty(n, np.int64)
+    out = np.empty((6, n))
     cos_first, sin_first, cos_last, sin_last = end_directions
-    if not _sample_route_compiled(table, s_line, starts, offset, step, n, cos_first, sin_first, cos_last, sin_last, out, which):
+    if not _sample_route_compiled(table, s_line, starts, widths, offset, step, n, cos_first, sin_first, cos_last, sin_last, out):
         return None
-    return out[0], out[1], out[2], out[3], out[4], which
+    return out[0], out[1], out[2], out[3], out[4], out[5]
 
 
 def measure_lanelets(p, pi, li, seg_start, seg_vec, seg_len2, seg_s0, seg_heading, seg_count,
@@ -520,7 +521,7 @@ def warm_up() -> None:
     for s_m in (arc, frozen):
         project_window(point, line, s_m, np.array([1.0]), 2.0)
     table = np.ascontiguousarray(np.stack([line[:, 0], line[:, 1], np.zeros(4), np.zeros(4)]))
-    sample_route(table, frozen, np.array([0.0, 2.0]), -1.0, 0.5, 12, (1.0, 0.0, 1.0, 0.0))
+    sample_route(table, frozen, np.array([0.0, 2.0]), np.array([3.0, 3.5]), -1.0, 0.5, 12, (1.0, 0.0, 1.0, 0.0))
     seg = np.zeros((1, 3, 2))
     seg[0, :, 0] = 1.0
     out = [np.full((1, 1), np.nan) for _ in range(4)]
