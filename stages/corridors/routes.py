@@ -218,6 +218,10 @@ class RouteCache:
 
 def project_vehicle(route: RouteGeometry, xy_m, s_hint_m: float, window_m: float) -> tuple[float, float]:
     """Frenet (s, d) of a position on a route, searching within `window_m` of `s_hint_m` first (`maps.project_in_window`)."""
+    point = np.asarray(xy_m, dtype=np.float64).reshape(2)
+    found = kernels.project_point(point[0], point[1], route.points_m, route.s_m, s_hint_m, window_m)
+    if found is not None:  # the kernel of project_in_window, called with numbers
+        return float(found[0]), float(found[1])
     s, d = project_in_window(np.asarray(xy_m, dtype=np.float64).reshape(1, 2), route.points_m, route.s_m, s_hint_m, window_m)
     return float(s[0]), float(d[0])
 

@@ -432,15 +432,31 @@ def _measure_lanelets(p, pi, li, seg_start, seg_vec, seg_len2, seg_s0, seg_headi
     return True
 
 
+def _project_point(px, py, line, arc, hint, window_m):
+    """`_project_window` for one point given as numbers: (ok, s, d)."""
+    points = np.empty((1, 2))
+    points[0, 0] = px
+    points[0, 1] = py
+    hints = np.empty(1)
+    hints[0] = hint
+    out_s = np.empty(1)
+    out_d = np.empty(1)
+    out_seg = np.empty(1, np.int64)
+    ok = _project_window_compiled(points, line, arc, hints, window_m, out_s, out_d, out_seg)
+    return ok, out_s[0], out_d[0]
+
+
 if numba is not None:
     _jit = numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
     _measure_lanelets_compiled = _jit(_measure_lanelets)
     _sample_route_compiled = _jit(_sample_route)
     _project_window_compiled = _jit(_project_window)
+    _project_point_compiled = _jit(_project_point)
     _segment_d2 = _jit(_segment_d2)
     _project_polylines_compiled = _jit(_project_polylines)
 else:  # pragma: no cover
     _project_window_compiled = None
+    _project_point_compiled = None
     _project_polylines_compiled = None
     _sample_route_compiled = None
     _measure_lanelets_compiled = None
@@ -456,6 +472,14 @@ def project_window(points: np.ndarray, line: np.ndarray, arc: np.ndarray, hints:
     out_seg = np.empty(n, dtype=np.int64)
     ok = _project_window_compiled(points, line, arc, hints, float(window_m), out_s, out_d, out_seg)
     return (out_s, out_d, out_seg) if ok else None
+
+
+def project_point(x: float, y: float, line: np.ndarray, arc: np.ndarray, s_hint_m: float, window_m: float):
+    """(s, d) of one point as `project_window` gives them, without arrays on the way in or out; None: take the numpy path."""
+    if _project_point_compiled is None:
+        return None
+    ok, s, d = _project_point_compiled(float(x), float(y), line, arc, float(s_hint_m), float(window_m))
+    return (s, d) if ok else None
 
 
 def project_polylines(points, xy, arc, offsets, reach, radius, block: int, n_blocks: int, m: int, out_s, out_d):
@@ -520,6 +544,7 @@ def warm_up() -> None:
     point = np.array([[1.5, 0.5]])
     for s_m in (arc, frozen):
         project_window(point, line, s_m, np.array([1.0]), 2.0)
+    project_point(1.5, 0.5, line, frozen, 1.0, 2.0)
     table = np.ascontiguousarray(np.stack([line[:, 0], line[:, 1], np.zeros(4), np.zeros(4)]))
     sample_route(table, frozen, np.array([0.0, 2.0]), np.array([3.0, 3.5]), -1.0, 0.5, 12, (1.0, 0.0, 1.0, 0.0))
     seg = np.zeros((1, 3, 2))
