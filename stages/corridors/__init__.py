@@ -72,8 +72,8 @@ only about half the time). A car below 1 m/s never seen moving has no usable
 heading (the K729 yaw of a standing car drifts by up to 90 degrees): if no
 lanelet agrees with its yaw, it is matched by position alone.
 
-Matching (one vectorised measurement of every vehicle against every car
-lanelet per frame, ``matching.LaneletIndex``; a vehicle farther than
+Matching (one measurement of every vehicle against every car lanelet per
+frame, ``matching.LaneletIndex``, compiled: ``maps.kernels``; a vehicle farther than
 ``match_max_distance_m`` from a lanelet's bounding box is not measured
 against its centreline and polygon: it can be neither inside nor near). A candidate lanelet agrees in
 heading within ``match_max_heading_rad`` and holds the position: inside its
@@ -130,7 +130,11 @@ behind_m``; its s is found by projecting onto the route within
 docs/method.md §5.5), and ``vehicle_d_m`` is its lateral offset.
 ``lanelet_ids`` are the lanelets the sampled part covers,
 ``speed_limit_mps`` their lowest limit, ``width_m`` the covering lanelet's
-mean width.
+mean width. The projection and the sampling run in compiled kernels
+(``stages.lib.maps.kernels``, loaded when the core is made: about 1 s once
+per process), the same values bit for bit as the numpy code they replace
+(kept as their reference and fallback; ``bench/upstream.py --check``
+compares whole CorridorSets and RelationSets with a saved run).
 
 Merge rule. Two corridors of a vehicle whose samples, from the vehicle to the
 corridor end (the horizon length), stay within ``merge_tolerance_m`` of each

@@ -25,6 +25,7 @@ from stages.lib.maps import (  # the scene-map cache moved to the library; these
     SceneMap,
     SceneMaps,
     data_folder,
+    kernels,
     local_map_file,
     parse_projection,
     resolve_projection,
@@ -183,6 +184,7 @@ class CorridorBuilder:
         self._last_stamp_ns: int | None = None
         self.estimator = KinematicEstimator(EstimatorConfig(fuse_reported=config.fuse_reported_velocity))
         self._estimated_ns: dict[int, int] = {}
+        kernels.warm_up()  # the compiled kernels loaded now, not on the first frame
 
     @property
     def scene_map(self) -> SceneMap | None:

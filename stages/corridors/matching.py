@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stages.lib.maps import RoadMap, wrap_angle_rad
+from stages.lib.maps import RoadMap, kernels, wrap_angle_rad
 
 INSIDE = 0
 """Candidate level: the position lies inside the lanelet's polygon."""
@@ -77,6 +77,8 @@ class LaneletIndex:
             self.edge_start[k, :e] = polygon
             self.edge_vec[k, :e] = np.roll(polygon, -1, axis=0) - polygon
             self.edge_valid[k, :e] = True
+        self.seg_count = self.seg_valid.sum(axis=1).astype(np.int64)  # the valid segments are a prefix of each row
+        self.edge_count = self.edge_valid.sum(axis=1).astype(np.int64)
         self.seg_len2 = np.maximum((self.seg_vec**2).sum(axis=2), 1e-18)
         self.edge_len2 = np.maximum((self.edge_vec**2).sum(axis=2), 1e-18)
         # bounding box of each lanelet's polygon and centreline: a point farther than max_distance_m from it is
@@ -88,15 +90,24 @@ class LaneletIndex:
         self.start_xy = np.array([i.centreline.points_m[0] for i in infos]).reshape(n, 2)
         self.start_heading = np.array([i.centreline.heading_rad[0] for i in infos])
 
+    def columns_of(self, lanelet_ids) -> np.ndarray:
+        """Mask (n_lanelets,) of the columns of the given lanelet ids (ids the index lacks are ignored): ``np.isin(ids, ...)``."""
+        mask = np.zeros(len(self.ids), dtype=bool)
+        mask[[self.column[x] for x in lanelet_ids if x in self.column]] = True
+        return mask
+
     def measure(
-        self, points_m: np.ndarray, *, max_distance_m: float, entry_extension_m: float
+        self, points_m: np.ndarray, *, max_distance_m: float, entry_extension_m: float, compiled: bool = True
     ) -> Measurements:
         """Measure points (n, 2) against every lanelet (one `inside_matrix` call).
 
         Only a (point, lanelet) inside the lanelet or within ``max_distance_m``
         of its bounding box is measured against its centreline and polygon;
         the others (level -1, unless on an entry extension) get NaN s, d,
-        centre distance and heading, which no selection reads.
+        centre distance and heading, which no selection reads. With
+        `compiled` (and numba) the kernel ``maps.kernels.measure_lanelets``
+        measures them, the numpy code's values bit for bit (that code
+        stays as the reference and the fallback).
         """
         p = np.asarray(points_m, dtype=np.float64).reshape(-1, 2)
         n_pts, n_l = len(p), len(self.ids)
@@ -109,7 +120,11 @@ class LaneletIndex:
         centre = np.full((n_pts, n_l), np.nan)
         heading = np.full((n_pts, n_l), np.nan)
         poly_dist = np.full((n_pts, n_l), np.inf)
-        if len(pi):
+        measured = len(pi) and compiled and kernels.measure_lanelets(
+            p, np.ascontiguousarray(pi), np.ascontiguousarray(li), self.seg_start, self.seg_vec, self.seg_len2, self.seg_s0, self.seg_heading, self.seg_count,
+            self.edge_start, self.edge_vec, self.edge_len2, self.edge_count, s, d, centre, heading, poly_dist,
+        )
+        if len(pi) and not measured:
             # centreline foot points, clipped to each lanelet (the candidates only; the same arithmetic per element)
             rel = p[pi][:, None, :] - self.seg_start[li]
             t = np.clip((rel * self.seg_vec[li]).sum(axis=2) / self.seg_len2[li], 0.0, 1.0)
@@ -203,44 +218,47 @@ def select_lanelets(
     distance is kept. A kept lanelet whose predecessor is also kept is
     dropped (the route from the predecessor contains it).
     """
-    level = meas.level[row]
-    near = level >= 0
-    if not near.any():
+    # only the columns near by position can be candidates: the rule in plain Python over those few (the same
+    # float operations as `heading_errors_rad` and the masks over every column would do, value for value)
+    near = np.flatnonzero(meas.level[row] >= 0)
+    if not len(near):
         return (), False
-    errors = heading_errors_rad(heading_rad, meas.heading_rad[row], heading_ambiguous)
-    ok = near & (errors <= max_heading_rad)
-    if previous and (not heading_confident or not ok.any()):
+    ids = index.ids[near].tolist()
+    centre = meas.centre_distance_m[row, near].tolist()
+    errors = []
+    for lane_heading in meas.heading_rad[row, near].tolist():
+        err = abs((lane_heading - heading_rad + math.pi) % (2.0 * math.pi) - math.pi)
+        errors.append(min(err, math.pi - err) if heading_ambiguous else err)
+    ok = [e <= max_heading_rad for e in errors]
+    if previous and (not heading_confident or not any(ok)):
         # a heading glitch (yaw noise of a slow car, a tracker jump) does not move a car out of its lane
-        ok |= near & np.isin(index.ids, np.fromiter(previous, dtype=np.int64, count=len(previous)))
-    if not heading_known and not ok.any():
+        ok = [o or x in previous for o, x in zip(ok, ids)]
+    if not heading_known and not any(ok):
         # a standing car seen for the first time: its yaw may be anything (K729), go by position
-        ok = near
-    if not ok.any():
+        ok = [True] * len(ids)
+    if not any(ok):
         return (), True
     pool = ok
     if allowed:
-        cont = pool & np.isin(index.ids, np.fromiter(allowed, dtype=np.int64, count=len(allowed)))
-        centre = meas.centre_distance_m[row]
-        if cont.any() and centre[cont].min() <= centre[pool].min() + continuity_margin_m:
+        cont = [o and x in allowed for o, x in zip(pool, ids)]
+        if any(cont) and min(c for c, o in zip(centre, cont) if o) <= min(c for c, o in zip(centre, pool) if o) + continuity_margin_m:
             pool = cont
-    dist = np.where(pool, meas.centre_distance_m[row], np.inf)
-    keep = pool & (dist <= dist.min() + ambiguity_margin_m)
-    cols = np.flatnonzero(keep)
-    cols = cols[np.lexsort((index.ids[cols], dist[cols]))]
-    kept_ids = {int(index.ids[c]) for c in cols}
+    best = min(c for c, o in zip(centre, pool) if o)
+    keep = sorted((centre[i], ids[i], i) for i in range(len(ids)) if pool[i] and centre[i] <= best + ambiguity_margin_m)
+    kept_ids = {x for _c, x, _i in keep}
     matches = []
-    for c in cols:
-        lanelet_id = int(index.ids[c])
+    for _c, lanelet_id, i in keep:
         if any(p in kept_ids for p in index.road_map.predecessors(lanelet_id)):
             continue
+        col = near[i]
         matches.append(
             LaneletMatch(
                 lanelet_id=lanelet_id,
-                level=int(level[c]),
-                s_m=float(meas.s_m[row, c]),
-                d_m=float(meas.d_m[row, c]),
-                centre_distance_m=float(meas.centre_distance_m[row, c]),
-                heading_error_rad=float(errors[c]),
+                level=int(meas.level[row, col]),
+                s_m=float(meas.s_m[row, col]),
+                d_m=float(meas.d_m[row, col]),
+                centre_distance_m=centre[i],
+                heading_error_rad=errors[i],
             )
         )
     return tuple(matches), True

@@ -12,12 +12,12 @@ from __future__ import annotations
 
 import hashlib
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from bus_schemas import Corridor
-from stages.lib.maps import Centreline, RoadMap, project_to_polyline, wrap_angle_rad
+from stages.lib.maps import Centreline, RoadMap, kernels, project_in_window, wrap_angle_rad
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -38,6 +38,16 @@ class RouteGeometry:
     s_m: np.ndarray
     heading_unwrapped_rad: np.ndarray
     curvature_1pm: np.ndarray
+    samples_table: np.ndarray = field(init=False, repr=False)  # (4, m) x, y, heading, curvature: `cut_corridor`'s kernel
+    end_directions: tuple[float, float, float, float] = field(init=False, repr=False)  # cos, sin of the first and last heading
+    lanelet_id_array: np.ndarray = field(init=False, repr=False)  # `lanelet_ids` (k,) int64
+
+    def __post_init__(self) -> None:
+        table = np.ascontiguousarray(np.stack([self.points_m[:, 0], self.points_m[:, 1], self.heading_unwrapped_rad, self.curvature_1pm]))
+        first, last = float(self.heading_unwrapped_rad[0]), float(self.heading_unwrapped_rad[-1])
+        object.__setattr__(self, "samples_table", table)
+        object.__setattr__(self, "end_directions", (math.cos(first), math.sin(first), math.cos(last), math.sin(last)))
+        object.__setattr__(self, "lanelet_id_array", np.asarray(self.lanelet_ids, dtype=np.int64))
 
     @property
     def length_m(self) -> float:
@@ -207,15 +217,13 @@ class RouteCache:
 
 
 def project_vehicle(route: RouteGeometry, xy_m, s_hint_m: float, window_m: float) -> tuple[float, float]:
-    """Frenet (s, d) of a position on a route, searching within `window_m` of `s_hint_m` first."""
-    fr = project_to_polyline(
-        np.asarray(xy_m, dtype=np.float64).reshape(1, 2),
-        route.points_m,
-        route.s_m,
-        s_hint_m=s_hint_m,
-        window_m=window_m,
-    )
-    return float(fr.s_m[0]), float(fr.d_m[0])
+    """Frenet (s, d) of a position on a route, searching within `window_m` of `s_hint_m` first (`maps.project_in_window`)."""
+    point = np.asarray(xy_m, dtype=np.float64).reshape(2)
+    found = kernels.project_point(point[0], point[1], route.points_m, route.s_m, s_hint_m, window_m)
+    if found is not None:  # the kernel of project_in_window, called with numbers
+        return float(found[0]), float(found[1])
+    s, d = project_in_window(np.asarray(xy_m, dtype=np.float64).reshape(1, 2), route.points_m, route.s_m, s_hint_m, window_m)
+    return float(s[0]), float(d[0])
 
 
 def cut_corridor(
@@ -227,6 +235,7 @@ def cut_corridor(
     behind_m: float,
     ahead_m: float,
     step_m: float,
+    compiled: bool = True,
 ) -> Corridor:
     """Sample a route from `behind_m` behind to `ahead_m` ahead of the vehicle.
 
@@ -234,10 +243,43 @@ def cut_corridor(
     vehicle sits at s = `behind_m` on every corridor of a vehicle and their
     samples can be compared index by index. Before the route's start and past
     its end the centreline continues straight with the end heading, zero
-    curvature and the end lanelet's width.
+    curvature and the end lanelet's width. With `compiled` (and numba) the
+    samples come from the kernel `maps.kernels.sample_route`, the numpy
+    code's values bit for bit (`_sample` keeps that code as the reference
+    and the fallback).
     """
     n = int(math.ceil((behind_m + ahead_m) / step_m - 1e-9)) + 1
     offset = vehicle_s_m - behind_m
+    s_corridor, x, y, heading_wrapped, curvature, width = _sample(route, offset, step_m, n, compiled)
+    end_s = offset + (n - 1) * step_m  # the last sample's s on the route
+    covered = (route.lanelet_start_s_m < end_s) & (route.lanelet_end_s_m > offset)
+    covered[0] |= not covered.any()
+    return Corridor(
+        corridor_id=int(corridor_id),
+        lanelet_ids=route.lanelet_id_array[covered],
+        lanelet_start_s_m=route.lanelet_start_s_m[covered] - offset,
+        x_m=x,
+        y_m=y,
+        s_m=s_corridor,
+        heading_rad=heading_wrapped,
+        curvature_1pm=curvature,
+        width_m=width,
+        extension_start_s_m=float(min(route.length_m - offset, end_s - offset)),
+        vehicle_s_m=float(vehicle_s_m - offset),
+        vehicle_d_m=float(vehicle_d_m),
+        speed_limit_mps=float(route.speed_limits_mps[covered].min()),
+    )
+
+
+def _sample(route: RouteGeometry, offset: float, step_m: float, n: int, compiled: bool = True):
+    """The corridor's arrays (n,) at route s = offset + i·step (`cut_corridor`): s from the corridor's start, x, y,
+    heading wrapped to [-pi, pi), curvature, width."""
+    if compiled:
+        found = kernels.sample_route(route.samples_table, route.s_m, route.lanelet_start_s_m, route.widths_m, offset, step_m, n,
+                                     route.end_directions)
+        if found is not None:
+            return found
+    h_first, h_last = float(route.heading_unwrapped_rad[0]), float(route.heading_unwrapped_rad[-1])
     s_route = offset + np.arange(n) * step_m
     s_line = route.s_m
     pts = route.points_m
@@ -245,33 +287,14 @@ def cut_corridor(
     y = np.interp(s_route, s_line, pts[:, 1])
     heading = np.interp(s_route, s_line, route.heading_unwrapped_rad)
     curvature = np.interp(s_route, s_line, route.curvature_1pm)
-    for beyond, s_end, k in ((s_route < 0.0, 0.0, 0), (s_route > route.length_m, route.length_m, -1)):
+    for beyond, s_end, k, h in ((s_route < 0.0, 0.0, 0, h_first), (s_route > route.length_m, route.length_m, -1, h_last)):
         if beyond.any():
-            h = route.heading_unwrapped_rad[k]
             x = np.where(beyond, pts[k, 0] + (s_route - s_end) * math.cos(h), x)
             y = np.where(beyond, pts[k, 1] + (s_route - s_end) * math.sin(h), y)
             curvature = np.where(beyond, 0.0, curvature)
     which = np.clip(np.searchsorted(route.lanelet_start_s_m, s_route, side="right") - 1, 0, len(route.lanelet_ids) - 1)
-    width = route.widths_m[which]
-    end_s = s_route[-1]
-    covered = (route.lanelet_start_s_m < end_s) & (route.lanelet_end_s_m > offset)
-    covered[0] |= not covered.any()
     heading_wrapped = (heading + math.pi) % (2.0 * math.pi) - math.pi
-    return Corridor(
-        corridor_id=int(corridor_id),
-        lanelet_ids=np.asarray(route.lanelet_ids, dtype=np.int64)[covered],
-        lanelet_start_s_m=route.lanelet_start_s_m[covered] - offset,
-        x_m=x,
-        y_m=y,
-        s_m=s_route - offset,
-        heading_rad=heading_wrapped,
-        curvature_1pm=curvature,
-        width_m=width.astype(np.float64),
-        extension_start_s_m=float(min(route.length_m - offset, s_route[-1] - offset)),
-        vehicle_s_m=float(vehicle_s_m - offset),
-        vehicle_d_m=float(vehicle_d_m),
-        speed_limit_mps=float(route.speed_limits_mps[covered].min()),
-    )
+    return s_route - offset, x, y, heading_wrapped, curvature, route.widths_m[which].astype(np.float64)
 
 
 def max_separation_m(a: Corridor, b: Corridor, from_index: int) -> float:

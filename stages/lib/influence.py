@@ -87,15 +87,55 @@ def choose_influencing(
     corridor) from the intentions; conflicts below `min_probability` are
     skipped.
     """
+    index, rule = choose_influencing_grouped(
+        np.zeros(len(np.asarray(kinds)), dtype=np.int64), 1, kinds, priority, distance_m, other_distance_m, time_s, other_time_s,
+        horizon_s=horizon_s, other_probability=other_probability, min_probability=min_probability,
+    )
+    return int(index[0]), RULES[int(rule[0])]
+
+
+def choose_influencing_grouped(
+    group,
+    n_groups: int,
+    kinds,
+    priority,
+    distance_m,
+    other_distance_m,
+    time_s,
+    other_time_s,
+    *,
+    horizon_s: float,
+    other_probability=None,
+    min_probability: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """`choose_influencing` of many corridors at once: (index, rule) per group, arrays (n_groups,).
+
+    The conflicts of corridor g are those with ``group == g``, contiguous
+    (``group`` non-decreasing, as the relations core lists them); ``index``
+    counts from the group's first conflict (-1 where none is eligible) and
+    ``rule`` indexes `RULES`. The ranking (`rank_conflicts`: |T' − T|, ties
+    to the smaller T', then the order) and the filters are applied per
+    element, so each group gets what `choose_influencing` on its own arrays
+    gives.
+    """
+    group = np.asarray(group, dtype=np.int64)
     rule = eligibility(kinds, priority, distance_m, other_distance_m, time_s, other_time_s)
+    t = np.asarray(time_s, dtype=np.float64)
     t_other = np.asarray(other_time_s, dtype=np.float64)
     ok = (rule != RULES.index(NO_INFLUENCE)) & (t_other < horizon_s)
     if other_probability is not None:
         ok &= np.asarray(other_probability, dtype=np.float64) >= min_probability
-    for k in rank_conflicts(time_s, other_time_s):
-        if ok[k]:
-            return int(k), RULES[int(rule[k])]
-    return -1, NO_INFLUENCE
+    index = np.full(n_groups, -1, dtype=np.int64)
+    chosen_rule = np.full(n_groups, RULES.index(NO_INFLUENCE), dtype=np.int8)
+    order = np.lexsort((np.arange(len(t)), t_other, np.abs(t_other - t), group))
+    eligible = order[ok[order]]  # ranked within each group
+    if len(eligible):
+        first = np.concatenate([[True], group[eligible][1:] != group[eligible][:-1]])
+        best = eligible[first]
+        group_start = np.searchsorted(group, np.arange(n_groups))
+        index[group[best]] = best - group_start[group[best]]
+        chosen_rule[group[best]] = rule[best]
+    return index, chosen_rule
 
 
 def most_influencing(relations: CorridorRelations, n: int = 2, *, horizon_s: float = 6.0) -> np.ndarray:

@@ -65,9 +65,12 @@ below ``stopped_speed_mps``) and the reported speed (0 with a
 ``nan_velocity`` issue when not finite).
 
 Lateral relation (arrays ``(o,)``, ordered by s). All objects are projected
-onto all corridors' centrelines in one padded numpy computation (the
-projection of ``maps.project_to_polyline``: nearest segment, ends extended
-straight; by branch and bound over blocks of segments, exact); those within the lane and range above are kept with s, d, the
+onto all corridors' centrelines in one call (the projection of
+``maps.project_to_polyline``: nearest segment, ends extended straight; by
+branch and bound over blocks of segments, exact), compiled
+(``maps.kernels.project_polylines``; the padded numpy computation is its
+reference and fallback); the lane, range and leader tests run over every
+pair at once; those within the lane and range above are kept with s, d, the
 speed along the corridor (speed × cos of the heading difference) and the
 bumper-to-bumper
 gap: g = s_o − s_v − (L_o + L_v)/2 ahead (s_o ≥ s_v), s_o − s_v + (L_o +

@@ -30,9 +30,9 @@ from stages.lib.base import ConfigMixin, Issue, StageResult, check_ranges
 from stages.lib.caps import keep_nearest, map_centre_m
 from stages.lib.datasets import DEFAULT_SIZES_M
 from stages.lib.maps import ConflictKind as MapConflictKind
-from stages.lib.maps import Projection, RoadMap, SceneMap, SceneMaps, parse_projection, project_to_polyline, shown_map_name, wrap_angle_rad
+from stages.lib.maps import Projection, RoadMap, SceneMap, SceneMaps, kernels, parse_projection, project_in_window, shown_map_name, wrap_angle_rad
 
-from stages.lib.influence import NO_INFLUENCE, choose_influencing
+from stages.lib.influence import NO_INFLUENCE, RULES, choose_influencing, choose_influencing_grouped
 from stages.relations.signals import SignalStops
 
 _KIND_ON_BUS = {MapConflictKind.CROSSING: ConflictKind.CROSSING, MapConflictKind.MERGE: ConflictKind.MERGE}
@@ -222,6 +222,78 @@ _EMPTY_I64 = np.zeros(0, dtype=np.int64)
 _EMPTY_F64 = np.zeros(0, dtype=np.float64)
 
 
+def _checked_corridors(corridor_set: CorridorSet, tables: SceneTables | None) -> dict[int, tuple]:
+    """Per corridor of the set (by ``id``): (`_corridor_problem`, table indices of its lanelets, whether they follow each other).
+
+    All corridors of the frame at once: one finiteness test and one
+    arc-length test over their concatenated arrays, the lanelet ids mapped
+    by one sorted lookup; a corridor these say is sound has no problem
+    (the conditions of `_corridor_problem`), any other is asked
+    `_corridor_problem` itself for its message; if anything here raises,
+    every corridor is checked one by one.
+    """
+    corridors = [c for v in corridor_set.vehicles for c in v.corridors]
+    try:
+        return _checked_batch(corridors, tables)
+    except Exception:  # noqa: BLE001 - odd arrays: corridor by corridor, as `_corridor_problem` handles them
+        out = {}
+        for corridor in corridors:
+            problem = _corridor_problem(corridor)
+            if problem is not None:
+                out[id(corridor)] = (problem, _EMPTY_I64, True)
+                continue
+            lanelet_index = tables.indices(corridor.lanelet_ids) if tables is not None else _EMPTY_I64
+            follows = tables is None or bool(tables.is_successor[lanelet_index[:-1], lanelet_index[1:]].all())
+            out[id(corridor)] = (None, lanelet_index, follows)
+        return out
+
+
+def _checked_batch(corridors: list[Corridor], tables: SceneTables | None) -> dict[int, tuple]:
+    if not corridors:
+        return {}
+    shaped = np.array([
+        len(c.x_m) >= 2 and all(len(a) == len(c.x_m) for a in (c.y_m, c.s_m, c.heading_rad, c.width_m))
+        and len(c.lanelet_ids) == len(c.lanelet_start_s_m) and math.isfinite(c.vehicle_s_m)
+        for c in corridors
+    ], dtype=bool)
+    fields = [a for c in corridors for a in (c.x_m, c.y_m, c.s_m, c.heading_rad, c.width_m, c.lanelet_start_s_m)]
+    sizes = np.array([len(a) for a in fields], dtype=np.int64).reshape(len(corridors), 6).sum(axis=1)
+    bad = np.concatenate([[0], np.cumsum(~np.isfinite(np.concatenate(fields).astype(np.float64, copy=False)))])
+    ends = np.cumsum(sizes)
+    finite = bad[ends] == bad[ends - sizes]
+    # s: increasing (no step back) and of positive length
+    s_len = np.array([len(c.s_m) for c in corridors], dtype=np.int64)
+    s_all = np.concatenate([np.asarray(c.s_m, np.float64) for c in corridors])
+    s_end = np.cumsum(s_len)
+    s_start = s_end - s_len
+    back = np.concatenate([[0], np.cumsum(np.diff(s_all) < 0.0)])
+    has = s_len > 0
+    s_ok = np.zeros(len(corridors), dtype=bool)
+    s_ok[has] = back[s_end[has] - 1] == back[s_start[has]]  # steps back inside a corridor (not across the joins)
+    s_ok[has] &= (s_all[s_end[has] - 1] - s_all[s_start[has]]) > 0.0
+    sound = shaped & finite & s_ok
+    if tables is not None:
+        k_len = np.array([len(c.lanelet_ids) for c in corridors], dtype=np.int64)
+        all_index = tables.indices(np.concatenate([np.asarray(c.lanelet_ids, np.int64) for c in corridors]))
+        k_end = np.cumsum(k_len)
+        k_start = k_end - k_len
+        step_ok = tables.is_successor[all_index[:-1], all_index[1:]] if len(all_index) > 1 else np.zeros(0, dtype=bool)
+        breaks = np.concatenate([[0], np.cumsum(~step_ok)])
+        long = k_len >= 2
+        follows = np.ones(len(corridors), dtype=bool)
+        follows[long] = breaks[k_end[long] - 1] == breaks[k_start[long]]
+    out = {}
+    for i, corridor in enumerate(corridors):
+        problem = None if sound[i] else _corridor_problem(corridor)
+        if problem is not None:
+            out[id(corridor)] = (problem, _EMPTY_I64, True)
+        elif tables is None:
+            out[id(corridor)] = (None, _EMPTY_I64, True)
+        else:
+            out[id(corridor)] = (None, all_index[k_start[i] : k_end[i]], bool(follows[i]))
+    return out
+
+
 # --------------------------------------------------------------------------- the core
 
 
@@ -244,6 +316,7 @@ class RelationExtractor:
         self._centre_of: object = False  # the road map whose centre `_centre` is (False: none yet)
         self._centre: np.ndarray | None = None
         self.signals = SignalStops(self.scene_maps.data_dir)
+        kernels.warm_up()  # the compiled kernels loaded now, not on the first frame
 
     @property
     def tables(self) -> SceneTables | None:
@@ -313,12 +386,24 @@ class RelationExtractor:
         state = self.signals.usable_state(signal_state, stamp, issues) if smap is not None else None
         starts = np.searchsorted(conflicts.g, np.arange(len(pairs) + 1)) if conflicts is not None else None
         projected = _project_onto_corridors(objects.xy[objects.valid], pairs, self._reach(pairs), self._radius(pairs)) if pairs else None
+        batched = None
+        if pairs:
+            try:
+                batched = self._lateral_batched(pairs, objects, projected)
+            except Exception:  # noqa: BLE001 - then pair by pair (`_lateral`), where a failure costs one pair's relation
+                batched = None
+        owners = None
+        if conflicts is not None and len(conflicts.g):
+            try:
+                owners = self._conflict_owners(pairs, conflicts, route_probabilities)
+            except Exception:  # noqa: BLE001 - then pair by pair (`_relations`), where a failure costs one pair's relation
+                owners = None
         for pair in pairs:
             try:
-                lateral = self._lateral(pair, objects, projected)
+                lateral = self._lateral(pair, objects, projected, batched)
                 crossings = self._intersections(pair, tables)
                 span = slice(starts[pair.g], starts[pair.g + 1]) if starts is not None else slice(0, 0)
-                rel = self._relations(pair, pairs, objects, lateral, crossings, conflicts, span, route_probabilities)
+                rel = self._relations(pair, pairs, objects, lateral, crossings, conflicts, span, route_probabilities, owners)
                 relations.append(self._with_signal(rel, pair, smap, state))
             except Exception as exc:  # noqa: BLE001 - one pair's failure costs only its relation
                 issues.append(Issue("pair_failed", pair.vehicle.track_id, f"corridor {pair.corridor.corridor_id}: {type(exc).__name__}: {exc}: no relation"))
@@ -429,6 +514,7 @@ class RelationExtractor:
         for track_id in sorted(all_rows - listed):
             issues.append(Issue("missing_corridors", track_id, "in the TrackFrame but not in the CorridorSet: obstacle only"))
         pairs: list[_Pair] = []
+        checked = _checked_corridors(corridor_set, tables)
         for vehicle in corridor_set.vehicles:
             if not vehicle.corridors:
                 continue
@@ -442,12 +528,10 @@ class RelationExtractor:
                 continue
             speed = float(objects.speed_mps[row])
             for corridor in vehicle.corridors:
-                problem = _corridor_problem(corridor)
+                problem, lanelet_index, follows = checked[id(corridor)]
                 if problem is not None:
                     issues.append(Issue("bad_corridor", vehicle.track_id, f"corridor {corridor.corridor_id}: {problem}: skipped"))
                     continue
-                lanelet_index = tables.indices(corridor.lanelet_ids) if tables is not None else _EMPTY_I64
-                follows = tables is None or bool(tables.is_successor[lanelet_index[:-1], lanelet_index[1:]].all())
                 pairs.append(
                     _Pair(
                         g=len(pairs),
@@ -487,12 +571,17 @@ class RelationExtractor:
         margin = self.config.lateral_margin_m
         return np.array([0.5 * float(np.max(p.corridor.width_m)) + margin + 1e-3 for p in pairs])
 
-    def _lateral(self, pair: _Pair, objects: _Objects, projected):
+    def _lateral(self, pair: _Pair, objects: _Objects, projected, batched=None):
         """Objects within the lane of the corridor, ordered by s, and the leader (row into them or -1).
 
         `projected` is (s, d, heading) of every valid object on every
         corridor, arrays (pairs, valid objects), from `_project_onto_corridors`.
+        `batched` is `_lateral_batched`'s list (the same values for every
+        pair at once), taken when given; this pair-by-pair code is its
+        reference and its fallback.
         """
+        if batched is not None:
+            return batched[pair.g]
         cfg = self.config
         corridor = pair.corridor
         candidates = np.flatnonzero(objects.valid)
@@ -521,6 +610,62 @@ class RelationExtractor:
         )
         leader = int(np.flatnonzero(can_lead)[0]) if can_lead.any() else -1
         return rows, s, d, gap, along, leader
+
+    def _lateral_batched(self, pairs: list[_Pair], objects: _Objects, projected) -> list[tuple]:
+        """`_lateral` of every pair at once: the same tests and values element by element, a few numpy calls per frame.
+
+        Only the (pair, object) combinations with a finite projection inside
+        the pair's s range are looked at (the others fail `_lateral`'s tests:
+        NaN compares false); the half width is interpolated on each pair's
+        corridor for those; the kept objects are ordered by (pair, s, object)
+        as `_lateral`'s stable sort by s orders them per pair.
+        """
+        cfg = self.config
+        candidates = np.flatnonzero(objects.valid)
+        all_s, all_d, all_heading = projected
+        n_pairs = len(pairs)
+        s_v = np.array([p.corridor.vehicle_s_m for p in pairs], dtype=np.float64)
+        own = np.array([p.vehicle.track_id for p in pairs], dtype=np.int64)
+        lo = s_v - cfg.lookbehind_m
+        hi = np.array([min(p.corridor.vehicle_s_m + cfg.lookahead_m, float(p.corridor.s_m[-1])) for p in pairs], dtype=np.float64)
+        g, k = np.nonzero((all_s >= lo[:, None]) & (all_s <= hi[:, None]))
+        keep = objects.track_ids[candidates[k]] != own[g]
+        g, k = g[keep], k[keep]
+        s = all_s[g, k]
+        d = all_d[g, k]
+        half_width = np.empty(len(g))
+        bounds = np.searchsorted(g, np.arange(n_pairs + 1))
+        for q in np.flatnonzero(bounds[1:] > bounds[:-1]):
+            corridor = pairs[q].corridor
+            part = slice(bounds[q], bounds[q + 1])
+            half_width[part] = 0.5 * np.interp(s[part], corridor.s_m, corridor.width_m)
+        inside = np.abs(d) < half_width + cfg.lateral_margin_m
+        g, k, s, d = g[inside], k[inside], s[inside], d[inside]
+        order = np.lexsort((k, s, g))
+        g, k, s, d = g[order], k[order], s[order], d[order]
+        rows = candidates[k]
+        relative = wrap_angle_rad(objects.heading_rad[rows] - all_heading[g, k])
+        along = objects.speed_mps[rows] * np.cos(relative)
+        along = np.where(np.isfinite(along), along, 0.0)
+        pair_length = np.array([p.length_m for p in pairs], dtype=np.float64)
+        half_lengths = 0.5 * (objects.length_m[rows] + pair_length[g])
+        sv = s_v[g]
+        ahead = s >= sv
+        gap = np.where(ahead, np.maximum(s - sv - half_lengths, 0.0), np.minimum(s - sv + half_lengths, 0.0))
+        can_lead = ahead & (
+            (np.abs(np.nan_to_num(relative, nan=math.pi)) <= cfg.leader_max_heading_rad)
+            | (objects.speed_mps[rows] < cfg.stopped_speed_mps)
+        )
+        bounds = np.searchsorted(g, np.arange(n_pairs + 1))
+        leads = np.flatnonzero(can_lead)
+        first_lead = np.searchsorted(leads, bounds[:-1])  # the first leader candidate at or after each pair's start
+        out = []
+        for q in range(n_pairs):
+            a, b = int(bounds[q]), int(bounds[q + 1])
+            f = int(first_lead[q])
+            leader = int(leads[f]) - a if f < len(leads) and leads[f] < b else -1
+            out.append((rows[a:b], s[a:b], d[a:b], gap[a:b], along[a:b], leader))
+        return out
 
     # ----- corridor to intersection ------------------------------------------------
 
@@ -646,21 +791,44 @@ class RelationExtractor:
         can be off by up to a metre there; elsewhere lookups are exact.
         """
         window = self.config.refine_window_m
-        for k in np.unique(g):
-            pair = pairs[k]
-            if pair.follows_lanelets or window <= 0.0:
-                continue
-            rows = np.flatnonzero((g == k) & (s > -window) & (s < pair.corridor.s_m[-1] + window))
+        if window <= 0.0 or not len(g):
+            return
+        changes_lane = np.array([not p.follows_lanelets for p in pairs], dtype=bool)
+        candidates = np.flatnonzero(changes_lane[g] & (s > -window))
+        candidates = candidates[np.argsort(g[candidates], kind="stable")]  # by pair, ascending rows within one
+        starts = np.flatnonzero(np.concatenate([[True], g[candidates][1:] != g[candidates][:-1]])) if len(candidates) else candidates
+        for a, b in zip(starts, [*starts[1:], len(candidates)]):
+            pair = pairs[g[candidates[a]]]
+            rows = candidates[a:b]
+            rows = rows[s[rows] < pair.corridor.s_m[-1] + window]
             if not len(rows):
                 continue
             xy = np.column_stack([tables.point_x_m[point[rows]], tables.point_y_m[point[rows]]])
-            frenet = project_to_polyline(xy, pair.xy, pair.corridor.s_m, s_hint_m=s[rows], window_m=window)
-            s[rows] = frenet.s_m
+            s[rows] = project_in_window(xy, pair.xy, pair.corridor.s_m, s[rows], window)[0]
 
     # ----- assembly ------------------------------------------------------------------
 
-    def _relations(self, pair, pairs, objects, lateral, crossings, conflicts, span, route_probabilities) -> CorridorRelations:
-        """One corridor's message part, with the influencing conflict chosen by the rules."""
+    def _conflict_owners(self, pairs: list[_Pair], conflicts: _Conflicts, route_probabilities) -> tuple[np.ndarray, ...]:
+        """For every conflict of the frame at once: the influencing choice of every pair (`choose_influencing_grouped`:
+        index within the pair's conflicts, rule), and the other vehicle's track and corridor id of each conflict."""
+        track_of = np.array([p.vehicle.track_id for p in pairs], dtype=np.int64)
+        corridor_of = np.array([p.corridor.corridor_id for p in pairs], dtype=np.int64)
+        probability = None
+        if route_probabilities is not None:
+            probability = np.array([route_probabilities.get((int(track_of[k]), int(corridor_of[k])), 1.0) for k in conflicts.other_g])
+        index, rule = choose_influencing_grouped(
+            conflicts.g, len(pairs), conflicts.kind, conflicts.priority, conflicts.distance_m, conflicts.other_distance_m,
+            conflicts.time_s, conflicts.other_time_s,
+            horizon_s=self.config.conflict_horizon_s, other_probability=probability, min_probability=self.config.min_route_probability,
+        )
+        return index, rule, track_of[conflicts.other_g], corridor_of[conflicts.other_g]
+
+    def _relations(self, pair, pairs, objects, lateral, crossings, conflicts, span, route_probabilities, owners=None) -> CorridorRelations:
+        """One corridor's message part, with the influencing conflict chosen by the rules.
+
+        `owners` is `_conflict_owners`' result for the frame (taken when
+        given); the pair-by-pair code here is its reference and fallback.
+        """
         rows, s, d, gap, along, leader = lateral
         corridor = pair.corridor
         isect_ids, entry, exit_, entry_lanelets = crossings
@@ -668,7 +836,10 @@ class RelationExtractor:
             c = {name: getattr(conflicts, name)[span] for name in _Conflicts.__dataclass_fields__}
         else:
             c = None
-        if c is not None:
+        if c is not None and owners is not None:
+            index, rule = int(owners[0][pair.g]), RULES[int(owners[1][pair.g])]
+            conflict_tracks, conflict_corridors = owners[2][span], owners[3][span]
+        elif c is not None:
             other_pairs = [pairs[k] for k in c["other_g"]]
             probability = None
             if route_probabilities is not None:
@@ -727,7 +898,7 @@ class RelationExtractor:
 
 
 def _project_onto_corridors(points_m: np.ndarray, pairs: list[_Pair], reach_m: np.ndarray | None = None,
-                            radius_m: np.ndarray | None = None):
+                            radius_m: np.ndarray | None = None, *, compiled: bool = True):
     """Frenet (s, d, heading) of points (n, 2) on every pair's corridor; arrays (pairs, n).
 
     The same projection as `maps.project_to_polyline` (nearest segment, the
@@ -753,10 +924,32 @@ def _project_onto_corridors(points_m: np.ndarray, pairs: list[_Pair], reach_m: n
     dense projection (same nearest segment, ties to the lower index). The
     work per chunk is bounded by ``_CHUNK_ELEMENTS`` (issue 13: memory stays
     bounded however many objects a frame holds).
+
+    With ``compiled`` (and numba), all of it (boxes, bounds, candidates)
+    runs pair by pair and candidate by candidate in the kernel
+    ``stages.lib.maps.kernels.project_polylines`` on the concatenated
+    corridors: the same bounds, the same segments measured in the same
+    order with the same arithmetic, so the same values bit for bit without
+    the padded arrays and the numpy calls (the numpy code below is its
+    reference, and the fallback where the kernel meets a NaN).
     """
     n_pairs, n = len(pairs), len(points_m)
     n_segments = np.array([len(p.xy) - 1 for p in pairs], dtype=np.int64)
     m = int(n_segments.max())
+    n_blocks = max(1, -(-max(m - 2, 0) // _BLOCK))
+    if (compiled and n and np.isfinite(points_m).all() and all(p.g == g and len(p.corridor.s_m) == len(p.xy) for g, p in enumerate(pairs))):
+        out_s = np.full((n_pairs, n), np.nan)
+        out_d = np.full((n_pairs, n), np.nan)
+        found = kernels.project_polylines(
+            np.ascontiguousarray(points_m, dtype=np.float64), np.concatenate([p.xy for p in pairs]).astype(np.float64, copy=False),
+            np.concatenate([np.asarray(p.corridor.s_m, np.float64) for p in pairs]), np.concatenate([[0], np.cumsum(n_segments + 1)]),
+            reach_m, radius_m, _BLOCK, n_blocks, m, out_s, out_d,
+        )
+        if found is not None:
+            hit_g, hit_k, ux, uy = found
+            out_heading = np.full((n_pairs, n), np.nan)
+            out_heading[hit_g, hit_k] = np.arctan2(uy, ux)
+            return out_s, out_d, out_heading
     line = np.zeros((n_pairs, m + 1, 2))
     arc = np.zeros((n_pairs, m + 1))
     for p in pairs:
@@ -776,7 +969,6 @@ def _project_onto_corridors(points_m: np.ndarray, pairs: list[_Pair], reach_m: n
         return out_s, out_d, out_heading
     # interior blocks: segments 1 .. ns-2 in blocks of _BLOCK; block i holds segments [1 + i·B, 1 + (i+1)·B) and
     # its box the vertices 1 + i·B .. 1 + (i+1)·B (indices past the last vertex repeat it: a larger box, still a bound)
-    n_blocks = max(1, -(-max(m - 2, 0) // _BLOCK))
     block_first = 1 + _BLOCK * np.arange(n_blocks)
     vertex = np.minimum(block_first[:, None] + np.arange(_BLOCK + 1)[None, :], m)  # (blocks, B + 1)
     vertex = np.minimum(vertex[None], n_segments[:, None, None])  # (pairs, blocks, B + 1)

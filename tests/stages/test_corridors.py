@@ -342,3 +342,30 @@ def test_k733_car_in_the_unmapped_fourth_lane_is_matched_to_its_continuation():
                     assert corridor.lanelet_start_s_m[0] > corridor.vehicle_s_m  # starts on the backward extension
                     assert abs(corridor.vehicle_d_m) < 1.5
     assert statuses and statuses.count(MatchStatus.MATCHED) >= 0.95 * len(statuses)
+
+
+def test_compiled_kernels_give_the_numpy_corridors_bit_for_bit(k729, monkeypatch):
+    """Sequence 013 through the corridors core with the numba kernels (lanelet matching, projection onto routes, route
+    sampling) and with the numpy code they replace (the kernels declining): the same CorridorSet bytes and issues every frame."""
+    from stages.lib.maps import kernels
+
+    if not kernels.available():
+        pytest.skip("numba not importable")
+    counts = {"project_point": 0, "sample_route": 0, "measure_lanelets": 0}
+    for name in counts:
+        original = getattr(kernels, name)
+
+        def counted(*args, _original=original, _name=name):
+            found = _original(*args)
+            counts[_name] += found is not None and found is not False
+            return found
+
+        monkeypatch.setattr(kernels, name, counted)
+    compiled = _run(k729, 0, 10_000)
+    assert min(counts.values()) > 1000, counts
+    for name in (*counts, "project_window"):
+        monkeypatch.setattr(kernels, name, lambda *args: None)
+    reference = _run(k729, 0, 10_000)
+    assert len(compiled) == len(reference) > 1000
+    for (_i, _f, a, issues_a), (_j, _g, b, issues_b) in zip(compiled, reference):
+        assert a.encode() == b.encode() and issues_a == issues_b

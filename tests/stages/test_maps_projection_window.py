@@ -45,3 +45,48 @@ def test_windowed_projection_equals_the_masked_dense_one():
         want = _masked(points, line, arc, hints, window)
         for a, b in zip((got.s_m, got.d_m, got.heading_rad), want):
             np.testing.assert_array_equal(a, b)
+
+
+def test_compiled_window_kernel_equals_the_numpy_window_path():
+    """The numba kernel (stages.lib.maps.kernels) gives the numpy windowed path's values bit for bit, and leaves
+    to the numpy paths (None) what they decide otherwise: non-finite hints or points, a decreasing arc, empty windows."""
+    from stages.lib.maps import kernels
+    from stages.lib.maps.geometry import _project_in_window
+
+    if not kernels.available():
+        import pytest
+
+        pytest.skip("numba not importable")
+    rng = np.random.default_rng(11)
+    compared = 0
+    for trial in range(200):
+        n = int(rng.integers(2, 300))
+        heading = np.cumsum(rng.normal(0.0, 0.5 if trial % 3 == 0 else 0.05, n - 1))
+        step = rng.choice([0.5, 1.0]) * (np.where(rng.random(n - 1) < 0.05, 0.0, 1.0) if trial % 5 == 0 else np.ones(n - 1))  # some zero-length segments
+        line = np.concatenate([[[0.0, 0.0]], np.cumsum(step[:, None] * np.column_stack([np.cos(heading), np.sin(heading)]), axis=0)])
+        arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(line, axis=0).T))]) - rng.uniform(0, 10)
+        k = int(rng.integers(1, 8))
+        points = line[rng.integers(0, n, k)] + rng.normal(0, 3.0, (k, 2))
+        if trial % 7 == 0:
+            points[0] = line[int(rng.integers(0, n))]  # on a vertex: ties between two segments
+        hints = rng.uniform(arc[0] - 20, arc[-1] + 20, k) if trial % 4 == 0 else rng.uniform(arc[0], arc[-1], k)
+        window = float(rng.choice([0.2, 1.0, 5.0, 10.0]))
+        given_heading = np.arctan2(np.gradient(line[:, 1]), np.gradient(line[:, 0])) if trial % 2 else None
+        want = _project_in_window(points, line, arc, hints, window, given_heading, compiled=False)
+        got = _project_in_window(points, line, arc, hints, window, given_heading, compiled=True)
+        assert (got is None) == (want is None)
+        if want is not None:
+            compared += 1
+            for a, b in zip((got.s_m, got.d_m, got.heading_rad), (want.s_m, want.d_m, want.heading_rad)):
+                np.testing.assert_array_equal(a, b)
+    assert compared > 100
+    line = np.column_stack([np.arange(10.0), np.zeros(10)])
+    arc = np.arange(10.0)
+    assert kernels.project_window(np.array([[1.0, 1.0]]), line, arc, np.array([np.nan]), 2.0) is None
+    assert kernels.project_window(np.array([[np.nan, 1.0]]), line, arc, np.array([3.0]), 2.0) is None
+    assert kernels.project_window(np.array([[1.0, 1.0]]), line, arc[::-1].copy(), np.array([3.0]), 2.0) is None
+    assert kernels.project_window(np.array([[1.0, 1.0]]), line, arc, np.array([30.0]), 2.0) is None  # nothing in the window
+    s, d, seg = kernels.project_window(np.array([[2.5, 1.0], [-1.0, -2.0]]), line, arc, np.array([3.0, 0.0]), 2.0)
+    np.testing.assert_array_equal(s, [2.5, -1.0])  # the first segment extended backwards
+    np.testing.assert_array_equal(d, [1.0, -2.0])
+    np.testing.assert_array_equal(seg, [2, 0])

@@ -488,3 +488,130 @@ def test_relation_set_round_trips_on_the_wire(crossing_scene):
     for a, b in zip(decoded.relations, relation_set.relations):
         assert a.influencing_rule == b.influencing_rule
         np.testing.assert_array_equal(a.conflict_s_m, b.conflict_s_m)
+
+
+def test_batched_lateral_relations_equal_the_pair_by_pair_ones_bit_for_bit(sequence, scene_maps, crossing_scene, monkeypatch):
+    """`_lateral_batched` and `_conflict_owners` (every pair at once) give the messages of `_lateral` and `_relations`
+    pair by pair (their fallbacks), every frame, with and without route probabilities."""
+    batched = RelationExtractor(RelationsConfig(), scene_maps=scene_maps)
+    calls = []
+    original = RelationExtractor._lateral_batched
+
+    def counted(self, *args):
+        calls.append(1)
+        return original(self, *args)
+
+    monkeypatch.setattr(RelationExtractor, "_lateral_batched", counted)
+    per_pair = RelationExtractor(RelationsConfig(), scene_maps=scene_maps)
+    monkeypatch.setattr(per_pair, "_lateral_batched", lambda *args: (_ for _ in ()).throw(RuntimeError("off")))
+    monkeypatch.setattr(per_pair, "_conflict_owners", lambda *args: (_ for _ in ()).throw(RuntimeError("off")))
+    rng = np.random.default_rng(3)
+    leaders = influenced = 0
+    for n, (frame, corridor_set) in enumerate(sequence["frames"]):
+        probabilities = None
+        if n % 2:
+            probabilities = {(v.track_id, c.corridor_id): float(rng.choice([0.05, 0.5, 1.0])) for v in corridor_set.vehicles for c in v.corridors}
+        a, issues_a = batched.process(frame, corridor_set, sequence["scene"], route_probabilities=probabilities)
+        b, issues_b = per_pair.process(frame, corridor_set, sequence["scene"], route_probabilities=probabilities)
+        assert issues_a == issues_b == []
+        assert a.encode() == b.encode()
+        leaders += sum(r.leader_track_id >= 0 for r in a.relations)
+        influenced += sum(r.influencing_index >= 0 for r in a.relations)
+    frame, corridor_set, _relation_set = crossing_scene  # conflicts and influencing choices (sequence 013 has none)
+    for probabilities in (None, {(v.track_id, c.corridor_id): p for v in corridor_set.vehicles for c, p in zip(v.corridors, (0.05, 1.0, 0.3))}):
+        a, _ = batched.process(frame, corridor_set, sequence["scene"], route_probabilities=probabilities)
+        b, _ = per_pair.process(frame, corridor_set, sequence["scene"], route_probabilities=probabilities)
+        assert a.encode() == b.encode()
+        influenced += sum(r.influencing_index >= 0 for r in a.relations)
+    assert influenced >= 4
+    with_pairs = sum(any(v.corridors for v in corridor_set.vehicles) for _frame, corridor_set in sequence["frames"])
+    assert len(calls) == with_pairs + 2 > 1000 and leaders > 100
+
+
+def test_batched_corridor_checks_equal_the_corridor_by_corridor_ones(sequence, scene_maps):
+    """`_checked_corridors` (every corridor of a frame at once) gives `_corridor_problem`'s verdicts and messages, the
+    table indices and the lanelet-succession flag of each corridor, for sound and broken corridors side by side."""
+    from stages.relations.core import SceneTables, _checked_corridors, _corridor_problem
+
+    tables = SceneTables(sequence["road_map"])
+    frame, corridor_set = max(sequence["frames"], key=lambda fc: sum(len(v.corridors) for v in fc[1].vehicles))
+    sound = [c for v in corridor_set.vehicles for c in v.corridors]
+    c = sound[0]
+    s_back = c.s_m.copy()
+    s_back[5] = s_back[3]
+    broken = [
+        dataclasses.replace(c, x_m=np.where(np.arange(len(c.x_m)) == 4, np.nan, c.x_m)),
+        dataclasses.replace(c, width_m=np.full(len(c.x_m), np.inf)),
+        dataclasses.replace(c, s_m=s_back),
+        dataclasses.replace(c, s_m=np.zeros(len(c.s_m))),
+        dataclasses.replace(c, vehicle_s_m=math.nan),
+        dataclasses.replace(c, lanelet_start_s_m=c.lanelet_start_s_m[:-1]),
+        dataclasses.replace(c, lanelet_start_s_m=np.full(len(c.lanelet_ids), np.nan)),
+        dataclasses.replace(c, x_m=c.x_m[:1], y_m=c.y_m[:1], s_m=c.s_m[:1], heading_rad=c.heading_rad[:1], width_m=c.width_m[:1]),
+        dataclasses.replace(c, y_m=c.y_m[:-1]),
+        dataclasses.replace(c, lanelet_ids=np.array([999, *c.lanelet_ids[::-1]], dtype=np.int64), lanelet_start_s_m=np.zeros(len(c.lanelet_ids) + 1)),
+        dataclasses.replace(c, lanelet_ids=np.zeros(0, np.int64), lanelet_start_s_m=np.zeros(0)),
+    ]
+    mixed = []
+    for k, corridor in enumerate(sound):
+        mixed.append(corridor)
+        if k < len(broken):
+            mixed.append(broken[k])
+    mixed.extend(broken[len(sound):])
+    vehicle = dataclasses.replace(corridor_set.vehicles[0], corridors=tuple(mixed))
+    checked = _checked_corridors(dataclasses.replace(corridor_set, vehicles=(vehicle,)), tables)
+    problems = 0
+    for corridor in mixed:
+        problem, index, follows = checked[id(corridor)]
+        assert problem == _corridor_problem(corridor)
+        if problem is None:
+            want = tables.indices(corridor.lanelet_ids)
+            np.testing.assert_array_equal(index, want)
+            assert follows == bool(tables.is_successor[want[:-1], want[1:]].all())
+        problems += problem is not None
+    assert problems == 9
+    assert not checked[id(broken[-2])][2] and checked[id(broken[-1])][2]  # unknown and reversed lanelets do not follow; none do
+
+
+def _one_corridor_choice(kinds, priority, distance_m, other_distance_m, time_s, other_time_s, *, horizon_s, other_probability, min_probability):
+    """The influencing choice for one corridor as `choose_influencing` made it before the grouped form: rank, then the first eligible."""
+    from stages.lib.influence import NO_INFLUENCE, RULES, eligibility
+
+    rule = eligibility(kinds, priority, distance_m, other_distance_m, time_s, other_time_s)
+    ok = (rule != RULES.index(NO_INFLUENCE)) & (np.asarray(other_time_s, np.float64) < horizon_s)
+    if other_probability is not None:
+        ok &= np.asarray(other_probability, np.float64) >= min_probability
+    for k in rank_conflicts(time_s, other_time_s):
+        if ok[k]:
+            return int(k), RULES[int(rule[k])]
+    return -1, NO_INFLUENCE
+
+
+def test_grouped_influencing_choice_equals_the_choice_per_corridor():
+    """`choose_influencing_grouped` (every corridor's conflicts at once) picks per group what `choose_influencing` picks
+    on the group's own arrays, with ties in |T' - T|, NaN times, the horizon and route probabilities."""
+    from stages.lib.influence import RULES, choose_influencing_grouped
+
+    rng = np.random.default_rng(5)
+    sizes = rng.integers(0, 7, 300)
+    group = np.repeat(np.arange(len(sizes)), sizes)
+    n = len(group)
+    kinds = rng.choice([int(ConflictKind.CROSSING), int(ConflictKind.MERGE)], n).astype(np.uint8)
+    priority = rng.integers(-1, 2, n).astype(np.int8)
+    time_s = rng.choice([0.5, 1.0, 2.0, 3.0, np.nan, 9.0], n)
+    other_time_s = rng.choice([0.5, 1.0, 2.5, 3.0, 7.0, np.nan], n)
+    distance = rng.uniform(-2, 30, n)
+    other_distance = rng.uniform(-2, 30, n)
+    probability = rng.choice([0.05, 0.5, 1.0], n)
+    for prob in (None, probability):
+        index, rule = choose_influencing_grouped(group, len(sizes), kinds, priority, distance, other_distance, time_s, other_time_s,
+                                                 horizon_s=6.0, other_probability=prob, min_probability=0.1)
+        chosen = 0
+        for g in range(len(sizes)):
+            span = group == g
+            args = (kinds[span], priority[span], distance[span], other_distance[span], time_s[span], other_time_s[span])
+            want = _one_corridor_choice(*args, horizon_s=6.0, other_probability=None if prob is None else prob[span], min_probability=0.1)
+            assert (int(index[g]), RULES[int(rule[g])]) == want
+            assert choose_influencing(*args, horizon_s=6.0, other_probability=None if prob is None else prob[span], min_probability=0.1) == want
+            chosen += want[0] >= 0
+        assert 50 < chosen < len(sizes)

@@ -88,3 +88,37 @@ def test_reach_box_leaves_far_points_nan_and_no_points_is_fine():
     assert d[0, 0] == 1.0
     empty = _project_onto_corridors(np.zeros((0, 2)), pairs, np.array([5.0]), np.array([2.0]))
     assert all(a.shape == (1, 0) for a in empty)
+
+
+def test_compiled_branch_and_bound_equals_the_numpy_one_bit_for_bit(monkeypatch):
+    """The numba kernel (stages.lib.maps.kernels.project_polylines) gives the numpy code's values and NaNs exactly,
+    with reach boxes and radius pruning, and a frame with a non-finite point goes to the numpy code."""
+    import pytest
+
+    from stages.lib.maps import kernels
+
+    if not kernels.available():
+        pytest.skip("numba not importable")
+    used = []
+    original = kernels.project_polylines
+    monkeypatch.setattr(kernels, "project_polylines", lambda *a: used.append(original(*a)) or used[-1])
+    rng = np.random.default_rng(23)
+    for trial in range(12):
+        lines = _corridors(rng)
+        if trial % 4 == 3:
+            lines = lines[:3]  # the longest corridor short: padded turns count as 1.0 in the numpy code
+        elif trial % 4 == 2:
+            lines = [lines[-3], lines[-2]]  # the longest corridor has no padding
+        pairs = [_pair(g, xy) for g, xy in enumerate(lines)]
+        points = np.concatenate([rng.uniform(-60, 60, (200, 2)), np.concatenate(lines) + rng.normal(0, 2.0, (sum(map(len, lines)), 2))])
+        reach = rng.uniform(1.0, 30.0, len(pairs)) if trial % 2 else None
+        radius = rng.uniform(0.5, 4.0, len(pairs)) if trial % 3 else None
+        got = _project_onto_corridors(points, pairs, reach, radius)
+        want = _project_onto_corridors(points, pairs, reach, radius, compiled=False)
+        for a, b in zip(got, want):
+            np.testing.assert_array_equal(a, b)
+    assert len(used) == 12 and all(u is not None for u in used)
+    points[3] = np.nan
+    got = _project_onto_corridors(points, pairs, None, np.full(len(pairs), 2.0))
+    assert len(used) == 12  # not called: the numpy code handles the frame
+    assert np.isnan(got[0][:, 3]).all()

@@ -8,6 +8,8 @@ Split along Lanelet2's own seams; import the names from here:
 - `projection`: `Projection`, the lanelet2 projector, the measured choice per location;
 - `io`: reading the OSM file with lanelet2, `MapProblem`, the car-lanelet rule, `lanelet_bounds`;
 - `geometry`: angles, Frenet projection, `Centreline`, segment intersections, polygons;
+- `kernels`: numba kernels of the corridors and relations hot paths (projections, route sampling, lanelet
+  measurement), the numpy code's values bit for bit, with `warm_up`;
 - `road_map`: `RoadMap` (routing, point queries, relations, right of way) and `load_map`;
 - `conflicts`: crossings, merges, divergences and intersections between car lanelets;
 - `priority`: `Turn`, `PriorityRule`, the right-of-way rule;
@@ -19,6 +21,7 @@ from stages.lib.maps.geometry import (
     Centreline,
     FrenetPoints,
     concatenate_centrelines,
+    project_in_window,
     project_to_polyline,
     segment_intersections,
     wrap_angle_rad,
@@ -69,6 +72,7 @@ __all__ = [
     "load_map",
     "local_map_file",
     "parse_projection",
+    "project_in_window",
     "project_to_polyline",
     "projection_for_location",
     "projector",

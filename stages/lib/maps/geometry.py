@@ -1,6 +1,6 @@
 """Plane geometry of the map library: angles, polylines, centrelines, polygons.
 
-Numpy only, no lanelet2: `wrap_angle_rad`, Frenet projection onto a polyline
+Numpy (and the numba kernel of `kernels` for the windowed projection), no lanelet2: `wrap_angle_rad`, Frenet projection onto a polyline
 (`project_to_polyline`, `FrenetPoints`), the smoothed `Centreline` with arc
 length, heading and curvature, and the segment and polygon helpers the road
 map and the conflict search share. Stages use these directly for corridors.
@@ -13,6 +13,8 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
+
+from stages.lib.maps import kernels
 
 
 def _frozen(array: np.ndarray) -> np.ndarray:
@@ -112,7 +114,26 @@ def project_to_polyline(
     return FrenetPoints(s_m=out_s, d_m=out_d, heading_rad=heading)
 
 
-def _project_in_window(points, line, arc, s_hint_m, window_m: float, heading_rad) -> FrenetPoints | None:
+def project_in_window(points_m, polyline_m, s_m, s_hint_m, window_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(s, d) (n,) of `project_to_polyline(points, polyline, s_m, s_hint_m=..., window_m=...)`, without the heading.
+
+    For the hot loops (a vehicle on each of its routes, conflict points on
+    lane-change corridors): the compiled kernel is called directly, with
+    `project_to_polyline` where it declines; the values are the same bit for bit.
+    """
+    points = np.atleast_2d(np.asarray(points_m, dtype=np.float64))
+    line = np.asarray(polyline_m, dtype=np.float64)
+    arc = np.asarray(s_m, dtype=np.float64)
+    hints = np.array(np.broadcast_to(np.asarray(s_hint_m, np.float64), (len(points),)))  # a writable copy: one kernel signature
+    if line.ndim == 2 and line.shape[0] >= 2 and line.shape[1] == 2:
+        found = kernels.project_window(points, line, arc, hints, window_m)
+        if found is not None:
+            return found[0], found[1]
+    fr = project_to_polyline(points, line, arc, s_hint_m=hints, window_m=window_m)
+    return fr.s_m, fr.d_m
+
+
+def _project_in_window(points, line, arc, s_hint_m, window_m: float, heading_rad, *, compiled: bool = True) -> FrenetPoints | None:
     """`project_to_polyline` with hints, measuring only the segments within each point's window; None where it can't.
 
     On a non-decreasing arc the segments within the window of a hint are one
@@ -122,11 +143,22 @@ def _project_in_window(points, line, arc, s_hint_m, window_m: float, heading_rad
     nearest segment and the result are the same bit for bit. None (the caller
     takes the general path) for non-finite hints, an arc of another shape or
     decreasing, or a point with no segment in its window (the general path
-    falls back to every segment for it).
+    falls back to every segment for it). With `compiled` (and numba) the
+    numba kernel `kernels.project_window` does the same arithmetic point by
+    point (the numpy code below is its reference and its fallback).
     """
     n_seg = len(line) - 1
     n_pts = len(points)
     hints = np.broadcast_to(np.asarray(s_hint_m, np.float64), (n_pts,))
+    found = kernels.project_window(points, line, arc, np.array(hints), window_m) if compiled else None
+    if found is not None:  # the same arithmetic, compiled (stages.lib.maps.kernels)
+        out_s, out_d, j = found
+        if heading_rad is None:
+            sj = line[j + 1] - line[j]
+            heading = np.arctan2(sj[:, 1], sj[:, 0])
+        else:
+            heading = wrap_angle_rad(np.interp(out_s, arc, np.unwrap(np.asarray(heading_rad, np.float64))))
+        return FrenetPoints(s_m=out_s, d_m=out_d, heading_rad=heading)
     if not n_pts or n_seg < 2 or arc.shape != (n_seg + 1,) or not np.isfinite(hints).all() or not (arc[1:] >= arc[:-1]).all():
         return None
     lo = np.searchsorted(arc[1:], hints - window_m, side="left")
