@@ -191,3 +191,8 @@ class MarkovPredictionConfig(ConfigMixin):
         if self.grid_extent_m and (len(self.grid_extent_m) != 4 or self.grid_extent_m[2] <= self.grid_extent_m[0]
                                    or self.grid_extent_m[3] <= self.grid_extent_m[1]):
             raise ValueError(f"grid_extent_m = {self.grid_extent_m!r}: expected () (auto) or (x_min, y_min, x_max, y_max)")
+
+    def input_cells(self) -> dict[str, float | int]:
+        """The input cells as ar_inference's parameters (``input_min_mps2``, ``input_max_mps2``, ``n_inputs``): the AR
+        stage that feeds this one must use these."""
+        return {"input_min_mps2": self.input_min_mps2, "input_max_mps2": self.input_max_mps2, "n_inputs": self.n_inputs}

@@ -422,9 +422,9 @@ class Evaluation:
         if "hybrid" in config.modes:
             from stages.ar_inference import ARInferenceConfig
 
-            cells = {k: getattr(first, k) for k in ("input_min_mps2", "input_max_mps2", "n_inputs")}  # the chain's input cells
-            self.ar_config = ARInferenceConfig.from_params(
-                {"model": str(config.model_path) if config.model_path else "", "device": config.device, **cells, **dict(config.ar_params)},
+            self.ar_config = ARInferenceConfig.from_params(  # over the chain's input cells unless --set-ar says otherwise
+                {"model": str(config.model_path) if config.model_path else "", "device": config.device, **first.input_cells(),
+                 **dict(config.ar_params)},
                 where="iamp eval --model/--set-ar",
             )
         self.intentions_ms: list[float] = []
