@@ -23,7 +23,11 @@ least-squares fit log(time) ~ log(pairs) over the N (1 = linear).
 Prints figures, asserts nothing; other load on the machine shows in them.
 
     python bench/dense.py [--vehicles 6,12,18,36,72] [--frames 40] [--warmup 10] [--source k733|k729]
-                          [--backend numpy|torch] [--device cpu|cuda] [--json FILE] [--keep DIR]
+                          [--backend numpy|torch] [--device cpu|cuda] [--json FILE] [--keep DIR] [--set KEY=VALUE ...]
+
+``--set KEY=VALUE`` sets a markov_prediction parameter for both modes (the
+input cells ``input_min_mps2``, ``input_max_mps2``, ``n_inputs`` go to
+ar_inference too, and the stencils are built for them).
 
 ``--json FILE`` writes ``modes.<mode>.by_vehicles.<N>.frame_ms_median``,
 ``frame_ms_p95``, ``vehicles_median``, ``pairs_median`` and
@@ -60,12 +64,20 @@ def _stats(ms: list[float]) -> dict[str, float]:
     return {"ms_median": float(np.median(a)), "ms_p95": float(np.percentile(a, 95))} if a.size else {"ms_median": float("nan"), "ms_p95": float("nan")}
 
 
+def markov_config(args, mode: str):
+    """markov_prediction's configuration of ``mode``: the pipelines' settings plus ``--set``."""
+    from stages.markov_prediction import MarkovPredictionConfig
+
+    return MarkovPredictionConfig.from_params({**dict(args.set), "mode": mode, "backend": args.backend, "device": args.device},
+                                              where="bench/dense.py --set")
+
+
 def run_one(data_dir: Path, name: str, args, stencils) -> dict:
     """Play the recording ``name`` through the cores; timings per stage and mode."""
     from stages.ar_inference import ARInference, ARInferenceConfig
     from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
     from stages.intentions import IntentionFilter, IntentionsConfig
-    from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
+    from stages.markov_prediction import MarkovPredictor
     from stages.relations import RelationExtractor, RelationsConfig
     from stages.tracks_source.core import TrackPlayer, TracksSourceConfig
 
@@ -86,15 +98,11 @@ def run_one(data_dir: Path, name: str, args, stencils) -> dict:
         corridors = CorridorBuilder(CorridorsConfig(), scene_maps=scene_maps)
         relations = RelationExtractor(RelationsConfig(), scene_maps=scene_maps)
         intentions = IntentionFilter(IntentionsConfig(), producer="intentions", scene_maps=scene_maps)
-        ar = ARInference(ARInferenceConfig.from_params({"device": args.device}, where="bench/dense.py"), producer="ar_inference", model=ar_model)
+        configs = {mode: markov_config(args, mode) for mode in MODES}
+        ar = ARInference(ARInferenceConfig.from_params({"device": args.device, **configs["hybrid"].input_cells()}, where="bench/dense.py"),
+                         producer="ar_inference", model=ar_model)
         ar_model = ar.model
-        predictors = {
-            mode: MarkovPredictor(
-                MarkovPredictionConfig.from_params({"mode": mode, "backend": args.backend, "device": args.device}, where="bench/dense.py"),
-                producer="markov_prediction", stencils=stencils,
-            )
-            for mode in MODES
-        }
+        predictors = {mode: MarkovPredictor(configs[mode], producer="markov_prediction", stencils=stencils) for mode in MODES}
         scene = None
         iterator = iter(player)
         for n in range(start + args.warmup + per_segment):
@@ -177,7 +185,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: leave torch's default)")
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--keep", type=Path, default=None, help="write the dense recordings here (default a temporary folder)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="markov_prediction parameter (JSON value) for both modes, e.g. --set n_inputs=12; the input cells go to ar_inference too")
     args = parser.parse_args(argv)
+    from stages.offline.evaluation import _key_values
+
+    args.set = _key_values(args.set, "--set")
     sizes = [int(x) for x in args.vehicles.split(",")]
     if args.device != "cpu":
         args.backend = "torch"
@@ -197,9 +210,10 @@ def main(argv: list[str] | None = None) -> int:
     else:
         data, recording, sequences = DEFAULT_DATA_DIR, SOURCES["k729"], None
         print(f"data: {FULL_DATA_ENV} not set: the embedded K729 scenario's sequences (short: figures less stable)")
-    from stages.lib.markov import MarkovGridConfig, load_or_build_stencils
+    from stages.lib.markov import load_or_build_stencils
+    from stages.markov_prediction.core import grid_config
 
-    stencils = load_or_build_stencils(MarkovGridConfig())
+    stencils = load_or_build_stencils(grid_config(markov_config(args, "baseline")))  # --set applies to both modes: one grid
     keep = args.keep or Path(tempfile.mkdtemp(prefix="iamp-dense-"))
     print(f"cpu cores {os.cpu_count()}, backend {args.backend} on {args.device}; {args.warmup} warm-up + {args.frames} timed frames per N; "
           "timings include any other load on the machine")

@@ -103,3 +103,14 @@ def test_launcher_check_and_describe_exit_codes():
     assert r.returncode in (0, 2)
     r = subprocess.run([sys.executable, str(REPO / "launch.py"), "no/such/file.toml"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "pipeline file no/such/file.toml does not exist" in r.stderr
+
+
+def test_ar_inference_and_markov_prediction_must_share_the_input_cells():
+    hybrid = Path(__file__).resolve().parents[1] / "stages" / "pipelines" / "hybrid.toml"
+    with pytest.raises(PipelineError, match=r"markov_prediction: input acceleration_profiles.*n_inputs = 12 here but 10 in ar_inference"):
+        load_pipeline(hybrid, overrides={"markov_prediction": {"n_inputs": 12}})
+    p = load_pipeline(hybrid, overrides={"markov_prediction": {"n_inputs": 12, "input_max_mps2": 3.0},
+                                         "ar_inference": {"n_inputs": 12, "input_max_mps2": 3.0}})
+    ar = p.node("ar_inference").config
+    assert p.node("markov_prediction").config.input_cells() == {k: getattr(ar, k) for k in ("input_min_mps2", "input_max_mps2", "n_inputs")} == {
+        "input_min_mps2": -3.0, "input_max_mps2": 3.0, "n_inputs": 12}

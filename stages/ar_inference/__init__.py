@@ -13,8 +13,11 @@ once over all (vehicle, corridor) pairs of the frame, and turns each
 (docs/method.md §8.5, ``chunk_distributions``): μ_k the mean of chunk k's four
 0.1 s values, σ_k² = var(chunk) + (``sigma_scale``·σ_res,k)² with σ_res,k
 the validation RMSE of chunk means stored with the weights, floored at
-``sigma_floor_mps2`` 0.25 m/s² (half a cell); tails beyond [-3, 2] m/s² are
-folded into the end cells. A vehicle seen for less than 4 s is predicted
+``sigma_floor_mps2`` 0.25 m/s² (half a cell); tails beyond the outer edges
+are folded into the end cells. The cells (``input_min_mps2``,
+``input_max_mps2``, ``n_inputs``) must be markov_prediction's: both default
+to ``stages.lib.markov.grid``'s, and profiles over other cells are ignored
+there (issue ``bad_profile``). A vehicle seen for less than 4 s is predicted
 from what there is (padding and mask; ``history_steps`` says how much).
 
 ``max_pairs`` 600: bounded work per frame (issue 13): beyond it whole

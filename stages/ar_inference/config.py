@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from stages.lib.base import ConfigMixin, check_ranges
+from stages.lib.markov.grid import DEFAULT_INPUT_MAX_MPS2, DEFAULT_INPUT_MIN_MPS2, DEFAULT_N_INPUTS, uniform_input_edges
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -17,10 +18,12 @@ class ARInferenceConfig(ConfigMixin):
     device: str = "cpu"
     #: Markov step τ: one distribution per chunk of ``chunk_s`` / the profile's 0.1 s steps
     chunk_s: float = 0.4
-    #: input cells of the chain (MarkovGridConfig's defaults: 10 cells of 0.5 m/s² on [-3, 2])
-    input_min_mps2: float = -3.0
-    input_max_mps2: float = 2.0
-    n_inputs: int = 10
+    #: input cells of the chain: ``n_inputs`` equal cells on [input_min, input_max] m/s². Must be the markov_prediction
+    #: stage's (same three parameters, same defaults from ``stages.lib.markov.grid``); profiles over other cells are
+    #: ignored there with a ``bad_profile`` issue
+    input_min_mps2: float = DEFAULT_INPUT_MIN_MPS2
+    input_max_mps2: float = DEFAULT_INPUT_MAX_MPS2
+    n_inputs: int = DEFAULT_N_INPUTS
     #: σ_k = max(floor, √(var(chunk) + (scale·σ_res,k)²)): ``sigma_scale`` multiplies the validation RMSE of the weights file
     sigma_scale: float = 1.0
     sigma_floor_mps2: float = 0.25
@@ -39,6 +42,7 @@ class ARInferenceConfig(ConfigMixin):
             raise ValueError(f"device = {self.device!r}: expected 'cpu' or 'cuda[:N]'")
 
     def input_edges(self):
+        """Edges of the input cells, ``(n_inputs + 1,) float64`` m/s² (``stages.lib.markov.grid.uniform_input_edges``)."""
         import numpy as np
 
-        return np.linspace(self.input_min_mps2, self.input_max_mps2, self.n_inputs + 1)
+        return np.asarray(uniform_input_edges(self.input_min_mps2, self.input_max_mps2, self.n_inputs), dtype=np.float64)

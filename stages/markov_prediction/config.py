@@ -7,6 +7,7 @@ from stages.lib.grid_fusion import parse_shard
 from dataclasses import dataclass
 
 from stages.lib.base import ConfigMixin, check_ranges
+from stages.lib.markov.grid import DEFAULT_INPUT_MAX_MPS2, DEFAULT_INPUT_MIN_MPS2, DEFAULT_N_INPUTS, uniform_input_edges
 
 #: ``hybrid``: AR-Net acceleration distributions replace λ (docs/method.md §8); ``baseline``: rule-based λ (§4).
 MODES = ("hybrid", "baseline", "cv", "corridor_cv")
@@ -26,7 +27,9 @@ HYBRID_INPUTS = ("psi", "direct")
 BACKENDS = ("numpy", "torch")
 GRID_DISTRIBUTIONS = ("interval", "point")
 
-#: docs/method.md §4.1 "our 10-cell free-driving preference" over [-3, 2] m/s² in 0.5 m/s² cells.
+#: docs/method.md §4.1 "our 10-cell free-driving preference" over [-3, 2] m/s² in 0.5 m/s² cells. On other input
+#: cells the default is carried over by acceleration (``priority.preference_on_cells``); a preference set by hand must
+#: have one value per input cell.
 DEFAULT_PREFERENCE = (0.005, 0.01, 0.02, 0.04, 0.10, 0.25, 0.30, 0.15, 0.08, 0.04)
 
 
@@ -53,6 +56,11 @@ class MarkovPredictionConfig(ConfigMixin):
     v_max_mps: float = 20.0
     tau_s: float = 0.4
     n_steps: int = 10
+    # input (acceleration) cells: n_inputs equal cells on [input_min, input_max] m/s² (defaults: stages.lib.markov.grid,
+    # the one source that ar_inference's defaults read too; its profiles must be over the same cells, else bad_profile)
+    input_min_mps2: float = DEFAULT_INPUT_MIN_MPS2
+    input_max_mps2: float = DEFAULT_INPUT_MAX_MPS2
+    n_inputs: int = DEFAULT_N_INPUTS
     window_cells: int = 100
     window_behind_m: float = 3.0
     prune_threshold: float = 1e-7
@@ -167,6 +175,7 @@ class MarkovPredictionConfig(ConfigMixin):
             "conflict_margin_s", "conflict_epsilon", "standstill_leader_gap_m", "standstill_leader_moving_mps", "hybrid_start_accel_mps2", "grid_margin_m", "lateral_offset_decay_s", "grid_min_value", "outside_issue_mass",
         )
         check_ranges(self, positive=positive, non_negative=non_negative)
+        uniform_input_edges(self.input_min_mps2, self.input_max_mps2, self.n_inputs)  # ValueError on a bad range
         for name in ("n_steps", "window_cells", "grid_substeps", "max_pairs", "grid_max_cells_per_step"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} = {getattr(self, name)!r}: must be >= 1")
@@ -182,3 +191,8 @@ class MarkovPredictionConfig(ConfigMixin):
         if self.grid_extent_m and (len(self.grid_extent_m) != 4 or self.grid_extent_m[2] <= self.grid_extent_m[0]
                                    or self.grid_extent_m[3] <= self.grid_extent_m[1]):
             raise ValueError(f"grid_extent_m = {self.grid_extent_m!r}: expected () (auto) or (x_min, y_min, x_max, y_max)")
+
+    def input_cells(self) -> dict[str, float | int]:
+        """The input cells as ar_inference's parameters (``input_min_mps2``, ``input_max_mps2``, ``n_inputs``): the AR
+        stage that feeds this one must use these."""
+        return {"input_min_mps2": self.input_min_mps2, "input_max_mps2": self.input_max_mps2, "n_inputs": self.n_inputs}

@@ -38,11 +38,12 @@ from stages.lib.caps import cap_pairs
 from stages.lib.datasets import DEFAULT_SIZES_M
 from stages.lib.grid_fusion import parse_shard, shard_of
 from stages.lib.markov import MarkovGridConfig, SeparableState, initial_state, load_or_build_stencils, psi_matrix
+from stages.lib.markov.grid import uniform_input_edges
 from stages.lib.markov.propagate import boxes_outside_grid
 
 from stages.markov_prediction import priority as pr
 from stages.markov_prediction.chain import PriorityPropagator
-from stages.markov_prediction.config import MarkovPredictionConfig
+from stages.markov_prediction.config import DEFAULT_PREFERENCE, MarkovPredictionConfig
 from stages.markov_prediction.modes import MODELS
 from stages.markov_prediction.modes.base import InputModel, Messages, Pair, Vehicle
 from stages.markov_prediction.modes.corridor_cv import constant_speed
@@ -192,6 +193,19 @@ class _SpeedHistory:
     last_stamp_ns: int = 0
 
 
+def grid_config(config: MarkovPredictionConfig) -> MarkovGridConfig:
+    """The Markov discretisation of a markov_prediction configuration (its stencils: ``load_or_build_stencils`` of it)."""
+    return MarkovGridConfig(
+        ds_m=config.ds_m, dv_mps=config.dv_mps, v_max_mps=config.v_max_mps, tau_s=config.tau_s, n_steps=config.n_steps,
+        input_edges_mps2=uniform_input_edges(config.input_min_mps2, config.input_max_mps2, config.n_inputs),
+    )
+
+
+def _stencil_grid(grid: MarkovGridConfig) -> tuple:
+    """What of a grid the stencils depend on, apart from the window length (a stencil is translation-invariant)."""
+    return (grid.ds_m, grid.dv_mps, grid.v_max_mps, grid.tau_s, grid.input_edges_mps2)
+
+
 class MarkovPredictor:
     """CorridorSet + RelationSet (+ latched SceneInfo, optional TrackFrame) -> CorridorPredictions + MotionGrid.
 
@@ -203,9 +217,7 @@ class MarkovPredictor:
         self.config = config
         self.producer = producer
         self._shard = parse_shard(config.shard)
-        self.grid = MarkovGridConfig(
-            ds_m=config.ds_m, dv_mps=config.dv_mps, v_max_mps=config.v_max_mps, tau_s=config.tau_s, n_steps=config.n_steps
-        )
+        self.grid = grid_config(config)
         cfg = self.grid
         self.n_s = config.window_cells
         # the initial box is laid on the window itself (the stencils' grid may have another length)
@@ -215,7 +227,10 @@ class MarkovPredictor:
         self.v_centres = cfg.v_centres_mps()
         self.a_centres = cfg.input_centres_mps2()
         self.step_times_s = config.tau_s * np.arange(1, config.n_steps + 1)
-        self.preference = pr.normalised_preference(config.free_driving_preference, cfg.n_inputs)
+        preference = config.free_driving_preference
+        if tuple(preference) == DEFAULT_PREFERENCE:  # the default is over [-3, 2] in 0.5 cells: carried over to these cells
+            preference = pr.preference_on_cells(preference, uniform_input_edges(), cfg.input_edges())
+        self.preference = pr.normalised_preference(preference, cfg.n_inputs)
         self.psi = psi_matrix(self.a_centres, gamma=config.psi_gamma)
         self._lateral = lateral_kernel(config.grid_lateral_sigma_m, config.grid_cell_m)
         self._history: dict[int, _SpeedHistory] = {}
@@ -225,6 +240,9 @@ class MarkovPredictor:
         if model_cls.chain:
             if stencils is None:
                 stencils = load_or_build_stencils(cfg, config.stencil_cache_dir or None)
+            elif _stencil_grid(stencils.config) != _stencil_grid(cfg):
+                raise ValueError(f"markov_prediction: the stencils given are for another grid ({_stencil_grid(stencils.config)})"
+                                 f" than this configuration's ({_stencil_grid(cfg)}); build them with grid_config(config)")
             self.stencils = stencils
             self.propagator = PriorityPropagator(
                 stencils,

@@ -50,6 +50,36 @@ def normalised_preference(values: tuple[float, ...] | np.ndarray, n_inputs: int)
     return (q / q.max()).astype(np.float32)
 
 
+def preference_on_cells(values, from_edges, to_edges, tail_halving_mps2: float = 0.5) -> np.ndarray:
+    """A preference given per cell of ``from_edges`` carried over to the cells of ``to_edges`` (both m/s², increasing).
+
+    Read as a step function of the acceleration: each new cell gets the mean
+    of the old steps over it (weighted by overlap). Beyond the old range the
+    end values halve every ``tail_halving_mps2`` (as the default's own tails
+    do, 0.15 → 0.08 → 0.04 and 0.02 → 0.01 → 0.005 per 0.5 m/s² cell), so a
+    wider range adds ever less preferred inputs. On the same cells it returns
+    ``values``. (M_to,) float64.
+    """
+    q = np.asarray(values, dtype=np.float64)
+    a = np.asarray(from_edges, dtype=np.float64)
+    b = np.asarray(to_edges, dtype=np.float64)
+    if q.shape != (a.size - 1,):
+        raise ValueError(f"preference_on_cells: {q.size} values for {a.size - 1} cells")
+    if a.shape == b.shape and np.allclose(a, b, rtol=0.0, atol=1e-9):
+        return q.copy()
+    # fine steps over the union, each carrying the old value (or the halving tail) at its midpoint
+    knots = np.unique(np.concatenate([a, b]))
+    fine = np.unique(np.concatenate([knots, np.arange(min(a[0], b[0]), max(a[-1], b[-1]), tail_halving_mps2 / 8)]))
+    mid, width = 0.5 * (fine[:-1] + fine[1:]), np.diff(fine)
+    idx = np.clip(np.searchsorted(a, mid, side="right") - 1, 0, q.size - 1)
+    val = q[idx] * np.exp2(-np.maximum(a[0] - mid, 0.0) / tail_halving_mps2 - np.maximum(mid - a[-1], 0.0) / tail_halving_mps2)
+    out = np.empty(b.size - 1)
+    for k in range(out.size):
+        inside = (mid > b[k]) & (mid < b[k + 1])
+        out[k] = float(np.sum(val[inside] * width[inside]) / np.sum(width[inside]))
+    return out
+
+
 def combine_with_preference(restriction: np.ndarray, preference: np.ndarray, forbid_threshold: float) -> np.ndarray:
     """The priority vector r from the restriction m and the preference q, along axis 1 (inputs).
 

@@ -150,8 +150,9 @@ from stages.corridors import SceneMaps
 from stages.lib.kinematic_state import Consistency, EstimatorConfig, consistency_of, disagreement_line
 from stages.lib.datasets import DEFAULT_DATA_DIR, DatasetError, Recording, default_recordings, discover, find_recording, load_ref
 from stages.lib.datasets.model import same_sequence_id
-from stages.lib.markov import MarkovGridConfig, load_or_build_stencils
+from stages.lib.markov import load_or_build_stencils
 from stages.markov_prediction import FramePrediction, MarkovPredictionConfig, MarkovPredictor
+from stages.markov_prediction.core import grid_config
 from stages.markov_prediction.rasterise import GridFrame, highest_density_threshold
 from stages.intentions import IntentionsConfig
 from stages.offline.chain import Chain
@@ -396,25 +397,24 @@ class Evaluation:
         self.config = config
         self.scene_maps = SceneMaps(data=config.data_dir)  # maps by name from the evaluated data folder
         self._estimators: dict[str, list] = {}  # per recording: the corridors stage's state estimator of each sequence
-        grid = MarkovGridConfig()
-        stencils = load_or_build_stencils(grid) if {"baseline", "hybrid"} & set(config.modes) else None
-        self.predictors = {
-            mode: MarkovPredictor(
-                MarkovPredictionConfig.from_params(
-                    {
-                        **dict(config.params),
-                        "mode": mode,
-                        "backend": config.backend if mode in ("baseline", "hybrid") else "numpy",
-                        "device": config.device if mode in ("baseline", "hybrid") else "cpu",
-                        "corridor_weights": config.corridor_weights,
-                        "grid_distribution": "point",
-                    },
-                    where="iamp eval --set",
-                ),
-                producer=f"eval-{mode}",
-                stencils=stencils,
+        mode_configs = {
+            mode: MarkovPredictionConfig.from_params(
+                {
+                    **dict(config.params),
+                    "mode": mode,
+                    "backend": config.backend if mode in ("baseline", "hybrid") else "numpy",
+                    "device": config.device if mode in ("baseline", "hybrid") else "cpu",
+                    "corridor_weights": config.corridor_weights,
+                    "grid_distribution": "point",
+                },
+                where="iamp eval --set",
             )
             for mode in config.modes
+        }
+        first = mode_configs[config.modes[0]]  # --set applies to every mode: one grid, one set of stencils
+        stencils = load_or_build_stencils(grid_config(first)) if {"baseline", "hybrid"} & set(config.modes) else None
+        self.predictors = {
+            mode: MarkovPredictor(mode_config, producer=f"eval-{mode}", stencils=stencils) for mode, mode_config in mode_configs.items()
         }
         self.acc = {mode: _ModeAccumulator() for mode in config.modes}
         self.intentions_config = IntentionsConfig.from_params({"seed": config.seed, **dict(config.intentions_params)}, where="iamp eval --set-intentions")
@@ -422,8 +422,9 @@ class Evaluation:
         if "hybrid" in config.modes:
             from stages.ar_inference import ARInferenceConfig
 
-            self.ar_config = ARInferenceConfig.from_params(
-                {"model": str(config.model_path) if config.model_path else "", "device": config.device, **dict(config.ar_params)},
+            self.ar_config = ARInferenceConfig.from_params(  # over the chain's input cells unless --set-ar says otherwise
+                {"model": str(config.model_path) if config.model_path else "", "device": config.device, **first.input_cells(),
+                 **dict(config.ar_params)},
                 where="iamp eval --model/--set-ar",
             )
         self.intentions_ms: list[float] = []

@@ -226,6 +226,11 @@ def _load_stage(stage: str, where: str) -> Any:
     return spec
 
 
+#: Parameters that a node and the node it reads from must agree on where both have them: the chain's input cells
+#: (ar_inference's AccelerationProfiles are over markov_prediction's cells, docs/method.md §2.3).
+SHARED_PARAMS = ("input_min_mps2", "input_max_mps2", "n_inputs")
+
+
 def load_pipeline(
     path: str | Path,
     *,
@@ -368,6 +373,11 @@ def load_pipeline(
                 raise PipelineError(
                     f"{nwhere}: input {port} wants {want.schema.SCHEMA} but {ref} carries {have.schema.SCHEMA}"
                 )
+            shared = [k for k in SHARED_PARAMS if hasattr(n.config, k) and hasattr(src.config, k) and getattr(n.config, k) != getattr(src.config, k)]
+            if shared:
+                raise PipelineError(f"{nwhere}: input {port} = {ref!r}: " + ", ".join(
+                    f"{k} = {getattr(n.config, k)!r} here but {getattr(src.config, k)!r} in {src_id}" for k in shared)
+                    + " (a message over other cells would be ignored): set them alike on both nodes")
             used_outputs.add((src_id, out))
         if n.kind == "operator":
             missing = [p for p, port in n.spec.inputs.items() if p not in n.inputs and port.needs_binding]

@@ -26,7 +26,26 @@ from stages.lib.base import ConfigMixin
 #: that a cache written by an older build is never read as current.
 MODEL_VERSION = 1
 
-_DEFAULT_INPUT_EDGES_MPS2 = tuple(-3.0 + 0.5 * i for i in range(11))
+#: The chain's input (acceleration) cells: ``DEFAULT_N_INPUTS`` equal cells on
+#: [``DEFAULT_INPUT_MIN_MPS2``, ``DEFAULT_INPUT_MAX_MPS2``]. The one source of the
+#: defaults of ``MarkovGridConfig``, ``MarkovPredictionConfig`` and
+#: ``ARInferenceConfig`` (whose distributions are over these cells).
+DEFAULT_INPUT_MIN_MPS2 = -3.0
+DEFAULT_INPUT_MAX_MPS2 = 2.0
+DEFAULT_N_INPUTS = 10
+
+
+def uniform_input_edges(lo_mps2: float = DEFAULT_INPUT_MIN_MPS2, hi_mps2: float = DEFAULT_INPUT_MAX_MPS2,
+                        n_inputs: int = DEFAULT_N_INPUTS) -> tuple[float, ...]:
+    """Edges of ``n_inputs`` equal input cells on [lo, hi] (m/s²), ``n_inputs + 1`` floats; ValueError on a bad range."""
+    if not (isinstance(n_inputs, int) and not isinstance(n_inputs, bool) and n_inputs >= 2):
+        raise ValueError(f"n_inputs = {n_inputs!r}: must be an int >= 2")
+    if not (math.isfinite(lo_mps2) and math.isfinite(hi_mps2) and hi_mps2 > lo_mps2):
+        raise ValueError(f"input cells [{lo_mps2}, {hi_mps2}] m/s²: need finite min < max")
+    return tuple(float(lo_mps2 + (hi_mps2 - lo_mps2) * i / n_inputs) for i in range(n_inputs + 1))
+
+
+_DEFAULT_INPUT_EDGES_MPS2 = uniform_input_edges()
 
 #: Continuous models the stencil builder implements. ``point_mass_saturated``:
 #: s' = v, v' = a, v clamped to [0, v_max] (docs/method.md §3.1).
