@@ -662,7 +662,8 @@ class MarkovPredictor:
         inputs = self.model.start(pairs, issues)
         p0 = self._initial(pairs, inputs.initial())
         members = np.arange(n_b)
-        result = self.propagator.run(p0, inputs.step, with_interval=inputs.with_interval)
+        steps = inputs.fixed_steps()
+        result = self.propagator.run(p0, inputs.step if steps is None else steps, with_interval=inputs.with_interval)
         pos, vel, interval, outside = self._mix_standstill(
             pairs, members, p0.position_probs, result.position_probs, result.velocity_probs,
             result.interval_position_probs, result.outside_mass,

@@ -402,6 +402,217 @@ if numba is not None:
         return ordered, out
 
 
+    @numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
+    def _speed_priority_run(inp, vel0, pos0, outside0, n_steps, ptr, v_to, offset, weight, iptr, ioffset, iweight, with_interval,
+                            threshold, psi, prefs, has_input, forbid_threshold, xp, fp, start, bucket, inv_h, cell_s, v_c, a_c, w32,
+                            tau, values, done):  # pragma: no cover - compiled
+        """The whole chain of ``speed_priority_run``, pair by pair on the pair's own occupied cells (see there): per
+        s-row of the state the velocity cells [vlo, vhi] that may hold mass, per row of p⁻ those its sources reach."""
+        n_b, n_in = inp.shape
+        n_v, n_s = vel0.shape[1], pos0.shape[1]
+        n_d = 1  # the furthest any stencil moves mass, + 1
+        for e in range(offset.shape[0]):
+            n_d = max(n_d, offset[e] + 1)
+        for e in range(ioffset.shape[0]):
+            n_d = max(n_d, ioffset[e] + 1)
+        dv_lo, dv_hi = 0, 0  # how far a target's velocity cell lies from its source's
+        for a in range(n_in):
+            for v in range(n_v):
+                r = a * n_v + v
+                for e in range(ptr[r], ptr[r + 1]):
+                    dv_lo = min(dv_lo, v_to[e] - v)
+                    dv_hi = max(dv_hi, v_to[e] - v)
+        f32 = np.float32
+        positions = np.zeros((n_b, n_steps, n_s), f32)
+        velocities = np.zeros((n_b, n_steps, n_v), f32)
+        ipositions = np.zeros((n_b, n_steps if with_interval else 0, n_s), f32)
+        outsides = np.zeros((n_b, n_steps), f32)
+        ioutsides = np.zeros((n_b, n_steps), f32)
+        pruned = np.zeros((n_b, n_steps), f32)
+        totals = np.zeros(n_b, np.float64)
+        cur = np.zeros((n_s, n_in, n_v), f32)  # the pair's state: rows [first, last], in row s the cells [vlo[s], vhi[s]]
+        nxt = np.zeros((n_s, n_in, n_v), f32)  # p⁻: in row t the cells [tlo[t], thi[t]]
+        vlo = np.zeros(n_s, np.int64)
+        vhi = np.zeros(n_s, np.int64)
+        tlo = np.zeros(n_s, np.int64)
+        thi = np.zeros(n_s, np.int64)
+        pos = np.zeros(n_s, np.float64)
+        ipos = np.zeros(n_s, np.float64)
+        vel = np.zeros(n_v, np.float64)
+        mark = np.zeros((n_s, n_v), np.bool_)
+        s_buf = np.empty(n_s * n_v, np.int64)
+        v_buf = np.empty(n_s * n_v, np.int64)
+        b_buf = np.empty(n_s * n_v, np.int64)
+        x_t = np.empty((n_in, n_s * n_v), f32)
+        lam_t = np.empty((n_in, n_s * n_v), f32)
+        ratio_t = np.empty((n_in, n_s * n_v), f32)
+        z = np.empty(n_s * n_v, f32)
+        acc = np.empty(n_s * n_v, f32)
+        for b in range(n_b):
+            outside = outside0[b]
+            first, last, v_first, v_last = -1, -1, -1, -1
+            for s in range(n_s):
+                if pos0[b, s] > 0:
+                    if first < 0:
+                        first = s
+                    last = s
+            for v in range(n_v):
+                if vel0[b, v] > 0:
+                    if v_first < 0:
+                        v_first = v
+                    v_last = v
+            if v_first < 0:
+                first, last = -1, -1
+            for s in range(max(first, 0), last + 1):  # p(t_0) = position · input · velocity, in that order (initial_slab's)
+                vlo[s], vhi[s] = v_first, v_last
+                for a in range(n_in):
+                    pa = pos0[b, s] * inp[b, a]
+                    for v in range(v_first, v_last + 1):
+                        cur[s, a, v] = pa * vel0[b, v]
+            for k in range(n_steps):
+                if first < 0:  # no mass left in the window
+                    outsides[b, k] = outside
+                    ioutsides[b, k] = outside
+                    continue
+                hi = min(last + n_d, n_s)  # every target of the rows [first, last]
+                for t in range(first, hi):
+                    tlo[t], thi[t] = n_v, -1
+                for s in range(first, last + 1):
+                    if vhi[s] >= vlo[s]:
+                        lo_v, hi_v = max(vlo[s] + dv_lo, 0), min(vhi[s] + dv_hi, n_v - 1)
+                        for t in range(s, min(s + n_d, n_s)):
+                            tlo[t] = min(tlo[t], lo_v)
+                            thi[t] = max(thi[t], hi_v)
+                for t in range(first, hi):
+                    pos[t] = 0.0
+                    ipos[t] = 0.0
+                    for a in range(n_in):
+                        for v in range(tlo[t], thi[t] + 1):
+                            nxt[t, a, v] = 0.0
+                vel[:] = 0.0
+                leaked = 0.0
+                ileaked = 0.0
+                # sources in (s, α, v, entry) order, the order of _fused_step: every sum gets its non-zero terms in the
+                # same order (the zero ones it adds change nothing)
+                for s in range(first, last + 1):
+                    for a in range(n_in):
+                        for v in range(vlo[s], vhi[s] + 1):
+                            x0 = cur[s, a, v]
+                            if x0 == 0:
+                                continue
+                            r = a * n_v + v
+                            for e in range(ptr[r], ptr[r + 1]):
+                                t = s + offset[e]
+                                if t < n_s:
+                                    nxt[t, a, v_to[e]] += weight[e] * x0
+                                else:
+                                    leaked += weight[e] * x0
+                            if with_interval:
+                                for e in range(iptr[r], iptr[r + 1]):
+                                    t = s + ioffset[e]
+                                    if t < n_s:
+                                        ipos[t] += iweight[e] * x0
+                                    else:
+                                        ileaked += iweight[e] * x0
+                kept = 0.0
+                new_first, new_last = -1, -1
+                for t in range(first, hi):  # marginals, then pruning; the rows' cells holding mass after it
+                    marks = mark[t]
+                    marks[:] = False
+                    for a in range(n_in):
+                        row = nxt[t, a]
+                        for v in range(tlo[t], thi[t] + 1):
+                            y = row[v]
+                            pos[t] += y
+                            vel[v] += y
+                            if not y >= threshold:
+                                y = f32(0.0)
+                                row[v] = y
+                            kept += y
+                            if y > 0:
+                                marks[v] = True
+                    vlo[t], vhi[t] = n_v, -1
+                    for v in range(tlo[t], thi[t] + 1):
+                        if marks[v]:
+                            vlo[t] = min(vlo[t], v)
+                            vhi[t] = v
+                    if vhi[t] >= 0:
+                        if new_first < 0:
+                            new_first = t
+                        new_last = t
+                if with_interval:
+                    ioutsides[b, k] = outside + f32(ileaked)
+                outside = outside + f32(leaked)
+                outsides[b, k] = outside
+                before = f32(0.0)  # the pair's position total, summed as numpy sums the (B, L) marginal over L (B > 1)
+                for t in range(first, hi):
+                    p32 = f32(pos[t])
+                    positions[b, k, t] = p32
+                    before += p32
+                    if with_interval:
+                        ipositions[b, k, t] = f32(ipos[t])
+                for v in range(n_v):
+                    velocities[b, k, v] = f32(vel[v])
+                kept32 = f32(kept)
+                factor = before / (kept32 if kept32 > 0 else f32(1.0))
+                pruned[b, k] = max(before - kept32, f32(0.0))
+                first, last = new_first, new_last
+                if first < 0:
+                    continue
+                if not has_input[k]:  # identity: p⁻ rescaled to the total before pruning
+                    for t in range(first, last + 1):
+                        for a in range(n_in):
+                            for v in range(vlo[t], vhi[t] + 1):
+                                cur[t, a, v] = nxt[t, a, v] * factor
+                    continue
+                n = 0
+                for t in range(first, last + 1):
+                    for v in range(vlo[t], vhi[t] + 1):
+                        if mark[t, v]:
+                            s_buf[n], v_buf[n], b_buf[n] = t, v, b
+                            n += 1
+                _speed_fill(xp, fp, start, bucket, inv_h, cell_s, v_c, a_c, w32, tau, values, done, b_buf[:n], v_buf[:n], s_buf[:n])
+                lam = _priority_from_states(values, prefs[k], b_buf[:n], v_buf[:n], s_buf[:n], forbid_threshold)
+                for t in range(first, last + 1):
+                    for a in range(n_in):
+                        for v in range(vlo[t], vhi[t] + 1):
+                            cur[t, a, v] = 0.0
+                # Γ = colnorm(diag(λ) Ψ) at the states, input by input over all of them (the arithmetic of
+                # _priority_occupied: each state's sums in the same order)
+                for i in range(n):
+                    t, v = s_buf[i], v_buf[i]
+                    for j in range(n_in):
+                        x_t[j, i] = nxt[t, j, v]
+                        lam_t[j, i] = lam[i, j]
+                for j in range(n_in):  # Z[j] = Σ_a λ[a] Ψ[a, j]; ratio = p⁻[j] / Z[j]
+                    z[:n] = 0.0
+                    for a in range(n_in):
+                        w = psi[a, j]
+                        row = lam_t[a]
+                        for i in range(n):
+                            z[i] += row[i] * w
+                    xj = x_t[j]
+                    rj = ratio_t[j]
+                    for i in range(n):
+                        rj[i] = xj[i] / z[i] if z[i] > 0 else f32(0.0)
+                for a in range(n_in):  # p[a] = λ[a] · Σ_j Ψ[a, j] ratio[j] · factor
+                    acc[:n] = 0.0
+                    for j in range(n_in):
+                        w = psi[a, j]
+                        rj = ratio_t[j]
+                        for i in range(n):
+                            acc[i] += w * rj[i]
+                    la = lam_t[a]
+                    for i in range(n):
+                        cur[s_buf[i], a, v_buf[i]] = la[i] * acc[i] * factor
+            total = 0.0
+            for t in range(max(first, 0), last + 1):
+                for a in range(n_in):
+                    for v in range(vlo[t], vhi[t] + 1):
+                        total += cur[t, a, v]
+            totals[b] = total
+        return positions, velocities, ipositions, outsides, ioutsides, pruned, totals
+
 def fused_step(slab, src_lo, lo, hi, n_s, tables, with_interval, threshold):
     """See the module docstring. The slab holds the s-cells [src_lo, src_lo + L) and p⁻ the cells [lo, hi) (the
     window of this step: the slab's occupied cells lie in it), so that a moving window costs no copy. ``tables``: ``stencil_tables`` of Υ(τ) then ``collapsed_tables`` of Υ([0, τ]).
@@ -424,6 +635,35 @@ def priority_occupied(slab, s_idx, v_idx, b_idx, lam, psi, factors):
     return _priority_occupied(np.ascontiguousarray(slab, dtype=np.float32), s_idx, v_idx, b_idx,
                               np.ascontiguousarray(lam, dtype=np.float32), np.ascontiguousarray(psi, dtype=np.float32),
                               np.ascontiguousarray(factors, dtype=np.float32))
+
+
+
+def speed_priority_run(state, outside0, tables, n_steps, with_interval, threshold, psi, restriction, preferences, has_input,
+                       forbid_threshold):
+    """A whole run of the hybrid chain in one compiled call: Υ(τ) (and Υ([0, τ])), pruning with the pruned mass put back,
+    then after step k (where ``has_input[k]``) Γ = colnorm(diag(λ) Ψ) with λ = ``restriction``'s priority for the
+    preference ``preferences[k]`` (B, M) at the states holding mass (``SpeedRestriction.priority_at_states``); where
+    not ``has_input[k]`` the identity.
+
+    What ``MarkovPropagator.run`` with ``InputPriority(at_states=...)`` steps and the numba kernels
+    (``fused_step``, ``priority_occupied``) computes, pair by pair on the cells the pair occupies (not on the batch's
+    window, which spans every pair's), one (L, M, N_v) buffer for all, kept in cache: the same float32 operations in
+    the same order, so the same numbers, bit for bit, with one exception: with a single pair (B = 1) numpy sums a
+    pair's position marginal pairwise, here it is summed in order as numpy does for B > 1 (the renormalisation
+    factor may differ in the last bit). tests/stages/test_markov_occupied.py compares the two.
+
+    ``state``: (input (B, M), velocity (B, N_v), position (B, N_s)) float32 of p(t_0) (``SeparableState``), ``outside0``
+    (B,) float32, ``tables`` as for ``fused_step``, ``psi`` (M, M), ``preferences`` (K, B, M).
+    Returns position (B, K, N_s), velocity (B, K, N_v), interval position (B, K, N_s) or None, outside (B, K),
+    interval outside (B, K) or None, pruned mass (B, K), float32, and the final totals (B,) float64."""
+    ptr, v_to, offset, weight, iptr, ioffset, iweight = tables
+    inp, vel0, pos0 = (np.ascontiguousarray(a, dtype=np.float32) for a in state)
+    pos, vel, ipos, out, iout, pruned, totals = _speed_priority_run(
+        inp, vel0, pos0, np.ascontiguousarray(outside0, dtype=np.float32), int(n_steps), ptr, v_to, offset, weight, iptr, ioffset,
+        iweight, bool(with_interval), np.float32(threshold), np.ascontiguousarray(psi, dtype=np.float32),
+        np.ascontiguousarray(preferences, dtype=np.float32).reshape(int(n_steps), inp.shape[0], inp.shape[1]),
+        np.asarray(has_input, dtype=np.bool_), np.float32(forbid_threshold), *restriction._args, restriction._values, restriction._done)
+    return pos, vel, (ipos if with_interval else None), out, (iout if with_interval else None), pruned, totals
 
 
 def priority_at_states(restriction, preference, b_idx, v_idx, s_idx, forbid_threshold):
@@ -562,5 +802,8 @@ def warm_up() -> None:
     lazy = SpeedRestriction([np.arange(3.0)], [np.ones((1, 3))], np.zeros((1, 2)), np.ones(2), np.arange(2.0), np.ones(1), 0.4)
     lazy.priority_at_states(np.ones((1, 2), np.float32), np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64), 0.0)
     lazy.full()
+    half = np.full((1, 2), 0.5, np.float32)
+    speed_priority_run((half, half, half), np.zeros(1, np.float32), (ptr, one, one, w, ptr, one, w), 2, True, 1e-7, np.eye(2),
+                       lazy, np.ones((2, 1, 2), np.float32), [True, False], 0.0)
     sum_by_key(np.array([3, 1, 3], np.int64), np.ones(3))
     _warm = True
