@@ -613,6 +613,81 @@ if numba is not None:
             totals[b] = total
         return positions, velocities, ipositions, outsides, ioutsides, pruned, totals
 
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _vehicle_grids(x_m, y_m, normal_x, normal_y, sample_w, probs, pair_w, wide, shifts, has_shift, ptr, members, origin_x,
+                       origin_y, cell, n_rows, n_cols, min_mass, slot):  # pragma: no cover - compiled
+        """Per vehicle (its pairs ``members[ptr[n]:ptr[n + 1]]``), the sorted keys and sums of ``vehicle_grid``: the
+        same float64 operations, each key's sum taken in the order ``vehicle_grid`` concatenates its terms (as
+        np.bincount adds them). ``slot`` (> max key, all -1) is scratch, left all -1. Returns keys, sums and the
+        (n_vehicles + 1,) offsets of each vehicle's part."""
+        n_k, n_l = probs.shape[1], probs.shape[2]
+        n_p = sample_w.shape[0]
+        n_cells = n_rows * n_cols
+        n_veh = ptr.shape[0] - 1
+        bound = np.zeros(n_veh, np.int64)
+        for n in range(n_veh):
+            for m in range(ptr[n], ptr[n + 1]):
+                b = members[m]
+                if pair_w[b] <= 0:  # (a NaN weight is not left out: vehicle_grid's test)
+                    continue
+                for k in range(n_k):
+                    for i in range(n_l):
+                        if probs[b, k, i] > min_mass:
+                            bound[n] += n_p
+        top = 0
+        for n in range(n_veh):
+            top = max(top, bound[n])
+        uniq = np.empty(top, np.int64)
+        sums = np.empty(top, np.float64)
+        keys_out = np.empty(bound.sum(), np.int64)
+        sums_out = np.empty(bound.sum(), np.float64)
+        out_ptr = np.zeros(n_veh + 1, np.int64)
+        f32 = np.float32
+        for n in range(n_veh):
+            u = 0
+            for m in range(ptr[n], ptr[n + 1]):
+                b = members[m]
+                w = pair_w[b]
+                if w <= 0:
+                    continue
+                w32 = f32(w)
+                for k in range(n_k):
+                    d = shifts[b, k]
+                    for i in range(n_l):
+                        p = probs[b, k, i]
+                        if not p > min_mass:
+                            continue
+                        # w · p: float64 for a numpy float64 weight, float32 for a Python float (numpy's promotion)
+                        mass = w * np.float64(p) if wide[b] else np.float64(w32 * p)
+                        for q in range(n_p):
+                            x = x_m[b, i, q]
+                            y = y_m[b, i, q]
+                            if has_shift:
+                                x = x + d * normal_x[b, i, q]
+                                y = y + d * normal_y[b, i, q]
+                            col = np.floor((x - origin_x) / cell)
+                            row = np.floor((y - origin_y) / cell)
+                            if not (col >= 0 and col < n_cols and row >= 0 and row < n_rows):  # NaN: off the grid too
+                                continue
+                            key = k * n_cells + np.int64(row * n_cols + col)
+                            j = slot[key]
+                            if j < 0:
+                                j = u
+                                slot[key] = u
+                                uniq[u] = key
+                                sums[u] = 0.0
+                                u += 1
+                            sums[j] += mass * sample_w[q]
+            ordered = np.sort(uniq[:u])
+            at = out_ptr[n]
+            for i in range(u):
+                keys_out[at + i] = ordered[i]
+                sums_out[at + i] = sums[slot[ordered[i]]]
+            for i in range(u):
+                slot[uniq[i]] = -1
+            out_ptr[n + 1] = at + u
+        return keys_out[: out_ptr[n_veh]], sums_out[: out_ptr[n_veh]], out_ptr
+
 def fused_step(slab, src_lo, lo, hi, n_s, tables, with_interval, threshold):
     """See the module docstring. The slab holds the s-cells [src_lo, src_lo + L) and p⁻ the cells [lo, hi) (the
     window of this step: the slab's occupied cells lie in it), so that a moving window costs no copy. ``tables``: ``stencil_tables`` of Υ(τ) then ``collapsed_tables`` of Υ([0, τ]).
@@ -772,12 +847,39 @@ def sum_by_key(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.nda
     if numba is None or top >= SUM_BY_KEY_MAX_KEY or int(keys.min()) < 0:
         unique, inverse = np.unique(keys, return_inverse=True)
         return unique, np.bincount(inverse.reshape(-1), weights=values.reshape(-1), minlength=unique.size)
+    return _sum_by_key(np.ascontiguousarray(keys.reshape(-1)), np.ascontiguousarray(values.reshape(-1)), _slot_table(top))
+
+
+def _slot_table(top: int) -> np.ndarray:
+    """The calling thread's scratch table of slots (all -1) for keys up to ``top`` (< ``SUM_BY_KEY_MAX_KEY``)."""
     slot = getattr(_slots, "table", None)
     if slot is None or slot.shape[0] <= top:
         slot = np.full(max(top + 1, 1 << 16, 2 * (0 if slot is None else slot.shape[0])), -1, np.int32)
         slot = slot[: min(slot.shape[0], SUM_BY_KEY_MAX_KEY)]
         _slots.table = slot
-    return _sum_by_key(np.ascontiguousarray(keys.reshape(-1)), np.ascontiguousarray(values.reshape(-1)), slot)
+    return slot
+
+
+def vehicle_grids(x_m, y_m, normal_x, normal_y, sample_weights, probs, pair_weights, wide, shifts, members, origin_x, origin_y,
+                  cell, n_rows, n_cols, min_mass):
+    """The sparse grids of ``stages.markov_prediction.rasterise.vehicle_grid`` for every vehicle in one call (see
+    ``rasterise.vehicle_grids``, which decides when it applies); None where the keys do not fit the scratch table
+    (``n_steps · n_rows · n_cols >= SUM_BY_KEY_MAX_KEY``) or numba is missing. ``members``: per vehicle its pair indices.
+    Returns (keys, sums, offsets (n_vehicles + 1,))."""
+    n_k = probs.shape[1]
+    top = n_k * int(n_rows) * int(n_cols)
+    if numba is None or top >= SUM_BY_KEY_MAX_KEY:
+        return None
+    ptr = np.zeros(len(members) + 1, np.int64)
+    ptr[1:] = np.cumsum([len(m) for m in members])
+    flat = np.fromiter((b for m in members for b in m), np.int64, count=int(ptr[-1]))
+    c = np.ascontiguousarray
+    has_shift = shifts is not None
+    shifts = shifts if has_shift else np.zeros(probs.shape[:2])
+    return _vehicle_grids(c(x_m, dtype=np.float64), c(y_m, dtype=np.float64), c(normal_x, dtype=np.float64), c(normal_y, dtype=np.float64),
+                          c(sample_weights, dtype=np.float64), c(probs, dtype=np.float32), c(pair_weights, dtype=np.float64),
+                          c(wide, dtype=np.bool_), c(shifts, dtype=np.float64), has_shift, ptr, flat, float(origin_x),
+                          float(origin_y), float(cell), int(n_rows), int(n_cols), float(min_mass), _slot_table(max(top - 1, 0)))
 
 
 _warm = False
