@@ -81,6 +81,9 @@ def collapsed_tables(kernel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
     return np.cumsum(ptr), d.astype(np.int64), weight
 
 
+#: pairs per block of ``speed_priority_run``'s kernel (its innermost, vectorised axis: 8 float32 lanes of AVX2)
+_LANES = 8
+
 if numba is not None:
 
     @numba.njit(cache=True, nogil=True, fastmath=True, boundscheck=False)
@@ -403,13 +406,15 @@ if numba is not None:
 
 
     @numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
-    def _speed_priority_run(inp, vel0, pos0, outside0, n_steps, ptr, v_to, offset, weight, iptr, ioffset, iweight, with_interval,
-                            threshold, psi, prefs, has_input, forbid_threshold, xp, fp, start, bucket, inv_h, cell_s, v_c, a_c, w32,
-                            tau, values, done):  # pragma: no cover - compiled
-        """The whole chain of ``speed_priority_run``, pair by pair on the pair's own occupied cells (see there): per
-        s-row of the state the velocity cells [vlo, vhi] that may hold mass, per row of p⁻ those its sources reach."""
+    def _speed_priority_run(inp, vel0, pos0, outside0, order, n_steps, ptr, v_to, offset, weight, iptr, ioffset, iweight,
+                            with_interval, threshold, psi, prefs, has_input, forbid_threshold, xp, fp, start, bucket, inv_h, cell_s,
+                            v_c, a_c, w32, tau, values, done):  # pragma: no cover - compiled
+        """The whole chain of ``speed_priority_run``, in blocks of ``_LANES`` pairs (``order``: similar pairs side by side),
+        each block on the cells its pairs occupy: per s-row of the state the velocity cells [vlo, vhi] that may hold
+        mass, per row of p⁻ those its sources reach; the pairs of a block are the innermost (vectorised) axis."""
         n_b, n_in = inp.shape
         n_v, n_s = vel0.shape[1], pos0.shape[1]
+        n_ln = _LANES
         n_d = 1  # the furthest any stencil moves mass, + 1
         for e in range(offset.shape[0]):
             n_d = max(n_d, offset[e] + 1)
@@ -423,6 +428,7 @@ if numba is not None:
                     dv_lo = min(dv_lo, v_to[e] - v)
                     dv_hi = max(dv_hi, v_to[e] - v)
         f32 = np.float32
+        zero = f32(0.0)
         positions = np.zeros((n_b, n_steps, n_s), f32)
         velocities = np.zeros((n_b, n_steps, n_v), f32)
         ipositions = np.zeros((n_b, n_steps if with_interval else 0, n_s), f32)
@@ -430,49 +436,64 @@ if numba is not None:
         ioutsides = np.zeros((n_b, n_steps), f32)
         pruned = np.zeros((n_b, n_steps), f32)
         totals = np.zeros(n_b, np.float64)
-        cur = np.zeros((n_s, n_in, n_v), f32)  # the pair's state: rows [first, last], in row s the cells [vlo[s], vhi[s]]
-        nxt = np.zeros((n_s, n_in, n_v), f32)  # p⁻: in row t the cells [tlo[t], thi[t]]
+        cur = np.zeros((n_s, n_in, n_v, n_ln), f32)  # the block's state: rows [first, last], in row s the cells [vlo[s], vhi[s]]
+        nxt = np.zeros((n_s, n_in, n_v, n_ln), f32)  # p⁻: in row t the cells [tlo[t], thi[t]]
         vlo = np.zeros(n_s, np.int64)
         vhi = np.zeros(n_s, np.int64)
         tlo = np.zeros(n_s, np.int64)
         thi = np.zeros(n_s, np.int64)
-        pos = np.zeros(n_s, np.float64)
-        ipos = np.zeros(n_s, np.float64)
-        vel = np.zeros(n_v, np.float64)
-        mark = np.zeros((n_s, n_v), np.bool_)
-        s_buf = np.empty(n_s * n_v, np.int64)
-        v_buf = np.empty(n_s * n_v, np.int64)
-        b_buf = np.empty(n_s * n_v, np.int64)
-        x_t = np.empty((n_in, n_s * n_v), f32)
-        lam_t = np.empty((n_in, n_s * n_v), f32)
-        ratio_t = np.empty((n_in, n_s * n_v), f32)
-        z = np.empty(n_s * n_v, f32)
-        acc = np.empty(n_s * n_v, f32)
-        for b in range(n_b):
-            outside = outside0[b]
+        pos = np.zeros((n_s, n_ln), np.float64)
+        ipos = np.zeros((n_s, n_ln), np.float64)
+        vel = np.zeros((n_v, n_ln), np.float64)
+        mark = np.zeros((n_s, n_v, n_ln), np.bool_)
+        leaked = np.zeros(n_ln, np.float64)
+        ileaked = np.zeros(n_ln, np.float64)
+        kept = np.zeros(n_ln, np.float64)
+        outside = np.zeros(n_ln, f32)
+        factor = np.zeros(n_ln, f32)
+        pair = np.zeros(n_ln, np.int64)
+        n_states = n_s * n_v * n_ln
+        s_buf = np.empty(n_states, np.int64)
+        v_buf = np.empty(n_states, np.int64)
+        b_buf = np.empty(n_states, np.int64)
+        l_buf = np.empty(n_states, np.int64)
+        x_t = np.empty((n_in, n_states), f32)
+        lam_t = np.empty((n_in, n_states), f32)
+        ratio_t = np.empty((n_in, n_states), f32)
+        z = np.empty(n_states, f32)
+        acc = np.empty(n_states, f32)
+        for blk in range(0, n_b, n_ln):
+            n_live = min(n_ln, n_b - blk)
             first, last, v_first, v_last = -1, -1, -1, -1
-            for s in range(n_s):
-                if pos0[b, s] > 0:
-                    if first < 0:
-                        first = s
-                    last = s
-            for v in range(n_v):
-                if vel0[b, v] > 0:
-                    if v_first < 0:
-                        v_first = v
-                    v_last = v
+            for ln in range(n_ln):
+                b = order[blk + ln] if ln < n_live else -1
+                pair[ln] = b
+                outside[ln] = outside0[b] if b >= 0 else zero
+                if b < 0:
+                    continue
+                for s in range(n_s):
+                    if pos0[b, s] > 0:
+                        first = s if first < 0 else min(first, s)
+                        last = max(last, s)
+                for v in range(n_v):
+                    if vel0[b, v] > 0:
+                        v_first = v if v_first < 0 else min(v_first, v)
+                        v_last = max(v_last, v)
             if v_first < 0:
                 first, last = -1, -1
             for s in range(max(first, 0), last + 1):  # p(t_0) = position · input · velocity, in that order (initial_slab's)
                 vlo[s], vhi[s] = v_first, v_last
                 for a in range(n_in):
-                    pa = pos0[b, s] * inp[b, a]
                     for v in range(v_first, v_last + 1):
-                        cur[s, a, v] = pa * vel0[b, v]
+                        cell = cur[s, a, v]
+                        for ln in range(n_ln):
+                            b = pair[ln]
+                            cell[ln] = (pos0[b, s] * inp[b, a]) * vel0[b, v] if b >= 0 else zero
             for k in range(n_steps):
                 if first < 0:  # no mass left in the window
-                    outsides[b, k] = outside
-                    ioutsides[b, k] = outside
+                    for ln in range(n_live):
+                        outsides[pair[ln], k] = outside[ln]
+                        ioutsides[pair[ln], k] = outside[ln]
                     continue
                 hi = min(last + n_d, n_s)  # every target of the rows [first, last]
                 for t in range(first, hi):
@@ -490,72 +511,92 @@ if numba is not None:
                         for v in range(tlo[t], thi[t] + 1):
                             nxt[t, a, v] = 0.0
                 vel[:] = 0.0
-                leaked = 0.0
-                ileaked = 0.0
+                leaked[:] = 0.0
+                ileaked[:] = 0.0
                 # sources in (s, α, v, entry) order, the order of _fused_step: every sum gets its non-zero terms in the
                 # same order (the zero ones it adds change nothing)
                 for s in range(first, last + 1):
                     for a in range(n_in):
                         for v in range(vlo[s], vhi[s] + 1):
-                            x0 = cur[s, a, v]
-                            if x0 == 0:
+                            row = cur[s, a, v]
+                            any_mass = zero  # entries are >= 0 (the sum vectorises, an early exit does not)
+                            for ln in range(n_ln):
+                                any_mass += row[ln]
+                            if not any_mass > 0:
                                 continue
                             r = a * n_v + v
                             for e in range(ptr[r], ptr[r + 1]):
                                 t = s + offset[e]
+                                w = weight[e]
                                 if t < n_s:
-                                    nxt[t, a, v_to[e]] += weight[e] * x0
+                                    target = nxt[t, a, v_to[e]]
+                                    for ln in range(n_ln):
+                                        target[ln] += w * row[ln]
                                 else:
-                                    leaked += weight[e] * x0
+                                    for ln in range(n_ln):
+                                        leaked[ln] += w * row[ln]
                             if with_interval:
                                 for e in range(iptr[r], iptr[r + 1]):
                                     t = s + ioffset[e]
+                                    w = iweight[e]
                                     if t < n_s:
-                                        ipos[t] += iweight[e] * x0
+                                        itarget = ipos[t]
+                                        for ln in range(n_ln):
+                                            itarget[ln] += w * row[ln]
                                     else:
-                                        ileaked += iweight[e] * x0
-                kept = 0.0
+                                        for ln in range(n_ln):
+                                            ileaked[ln] += w * row[ln]
+                kept[:] = 0.0
                 new_first, new_last = -1, -1
                 for t in range(first, hi):  # marginals, then pruning; the rows' cells holding mass after it
                     marks = mark[t]
-                    marks[:] = False
+                    pos_t = pos[t]
+                    for v in range(tlo[t], thi[t] + 1):
+                        marks[v] = False
                     for a in range(n_in):
-                        row = nxt[t, a]
                         for v in range(tlo[t], thi[t] + 1):
-                            y = row[v]
-                            pos[t] += y
-                            vel[v] += y
-                            if not y >= threshold:
-                                y = f32(0.0)
-                                row[v] = y
-                            kept += y
-                            if y > 0:
-                                marks[v] = True
+                            row = nxt[t, a, v]
+                            vel_v = vel[v]
+                            mv = marks[v]
+                            for ln in range(n_ln):  # branch-free: it vectorises over the lanes
+                                y = row[ln]
+                                pos_t[ln] += y
+                                vel_v[ln] += y
+                                y = y if y >= threshold else zero
+                                row[ln] = y
+                                kept[ln] += y
+                                mv[ln] |= y > 0
                     vlo[t], vhi[t] = n_v, -1
                     for v in range(tlo[t], thi[t] + 1):
-                        if marks[v]:
+                        mv = marks[v]
+                        hit = False
+                        for ln in range(n_ln):
+                            hit |= mv[ln]
+                        if hit:
                             vlo[t] = min(vlo[t], v)
                             vhi[t] = v
                     if vhi[t] >= 0:
                         if new_first < 0:
                             new_first = t
                         new_last = t
-                if with_interval:
-                    ioutsides[b, k] = outside + f32(ileaked)
-                outside = outside + f32(leaked)
-                outsides[b, k] = outside
-                before = f32(0.0)  # the pair's position total, summed as numpy sums the (B, L) marginal over L (B > 1)
-                for t in range(first, hi):
-                    p32 = f32(pos[t])
-                    positions[b, k, t] = p32
-                    before += p32
+                for ln in range(n_live):
+                    b = pair[ln]
                     if with_interval:
-                        ipositions[b, k, t] = f32(ipos[t])
-                for v in range(n_v):
-                    velocities[b, k, v] = f32(vel[v])
-                kept32 = f32(kept)
-                factor = before / (kept32 if kept32 > 0 else f32(1.0))
-                pruned[b, k] = max(before - kept32, f32(0.0))
+                        ioutsides[b, k] = outside[ln] + f32(ileaked[ln])
+                    outside[ln] = outside[ln] + f32(leaked[ln])
+                    outsides[b, k] = outside[ln]
+                    before = zero  # the pair's position total, summed as numpy sums the (B, L) marginal over L (B > 1)
+                    for t in range(first, hi):
+                        p32 = f32(pos[t, ln])
+                        positions[b, k, t] = p32
+                        before += p32
+                        if with_interval:
+                            ipositions[b, k, t] = f32(ipos[t, ln])
+                    for v in range(n_v):
+                        velocities[b, k, v] = f32(vel[v, ln])
+                    kept32 = f32(kept[ln])
+                    factor[ln] = before / (kept32 if kept32 > 0 else f32(1.0))
+                    pruned[b, k] = max(before - kept32, zero)
                 first, last = new_first, new_last
                 if first < 0:
                     continue
@@ -563,14 +604,18 @@ if numba is not None:
                     for t in range(first, last + 1):
                         for a in range(n_in):
                             for v in range(vlo[t], vhi[t] + 1):
-                                cur[t, a, v] = nxt[t, a, v] * factor
+                                src = nxt[t, a, v]
+                                dst = cur[t, a, v]
+                                for ln in range(n_ln):
+                                    dst[ln] = src[ln] * factor[ln]
                     continue
                 n = 0
                 for t in range(first, last + 1):
                     for v in range(vlo[t], vhi[t] + 1):
-                        if mark[t, v]:
-                            s_buf[n], v_buf[n], b_buf[n] = t, v, b
-                            n += 1
+                        for ln in range(n_live):
+                            if mark[t, v, ln]:
+                                s_buf[n], v_buf[n], b_buf[n], l_buf[n] = t, v, pair[ln], ln
+                                n += 1
                 _speed_fill(xp, fp, start, bucket, inv_h, cell_s, v_c, a_c, w32, tau, values, done, b_buf[:n], v_buf[:n], s_buf[:n])
                 lam = _priority_from_states(values, prefs[k], b_buf[:n], v_buf[:n], s_buf[:n], forbid_threshold)
                 for t in range(first, last + 1):
@@ -580,21 +625,21 @@ if numba is not None:
                 # Γ = colnorm(diag(λ) Ψ) at the states, input by input over all of them (the arithmetic of
                 # _priority_occupied: each state's sums in the same order)
                 for i in range(n):
-                    t, v = s_buf[i], v_buf[i]
+                    t, v, ln = s_buf[i], v_buf[i], l_buf[i]
                     for j in range(n_in):
-                        x_t[j, i] = nxt[t, j, v]
+                        x_t[j, i] = nxt[t, j, v, ln]
                         lam_t[j, i] = lam[i, j]
                 for j in range(n_in):  # Z[j] = Σ_a λ[a] Ψ[a, j]; ratio = p⁻[j] / Z[j]
                     z[:n] = 0.0
                     for a in range(n_in):
                         w = psi[a, j]
-                        row = lam_t[a]
+                        lrow = lam_t[a]
                         for i in range(n):
-                            z[i] += row[i] * w
+                            z[i] += lrow[i] * w
                     xj = x_t[j]
                     rj = ratio_t[j]
                     for i in range(n):
-                        rj[i] = xj[i] / z[i] if z[i] > 0 else f32(0.0)
+                        rj[i] = xj[i] / z[i] if z[i] > 0 else zero
                 for a in range(n_in):  # p[a] = λ[a] · Σ_j Ψ[a, j] ratio[j] · factor
                     acc[:n] = 0.0
                     for j in range(n_in):
@@ -604,13 +649,14 @@ if numba is not None:
                             acc[i] += w * rj[i]
                     la = lam_t[a]
                     for i in range(n):
-                        cur[s_buf[i], a, v_buf[i]] = la[i] * acc[i] * factor
-            total = 0.0
-            for t in range(max(first, 0), last + 1):
-                for a in range(n_in):
-                    for v in range(vlo[t], vhi[t] + 1):
-                        total += cur[t, a, v]
-            totals[b] = total
+                        cur[s_buf[i], a, v_buf[i], l_buf[i]] = la[i] * acc[i] * factor[l_buf[i]]
+            for ln in range(n_live):
+                total = 0.0
+                for t in range(max(first, 0), last + 1):
+                    for a in range(n_in):
+                        for v in range(vlo[t], vhi[t] + 1):
+                            total += cur[t, a, v, ln]
+                totals[pair[ln]] = total
         return positions, velocities, ipositions, outsides, ioutsides, pruned, totals
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
@@ -733,8 +779,10 @@ def speed_priority_run(state, outside0, tables, n_steps, with_interval, threshol
     interval outside (B, K) or None, pruned mass (B, K), float32, and the final totals (B,) float64."""
     ptr, v_to, offset, weight, iptr, ioffset, iweight = tables
     inp, vel0, pos0 = (np.ascontiguousarray(a, dtype=np.float32) for a in state)
+    # pairs of similar speed and place side by side: a block of them occupies fewer cells together
+    order = np.lexsort((np.argmax(pos0 > 0, axis=1), vel0 @ np.arange(vel0.shape[1], dtype=np.float32))).astype(np.int64)
     pos, vel, ipos, out, iout, pruned, totals = _speed_priority_run(
-        inp, vel0, pos0, np.ascontiguousarray(outside0, dtype=np.float32), int(n_steps), ptr, v_to, offset, weight, iptr, ioffset,
+        inp, vel0, pos0, np.ascontiguousarray(outside0, dtype=np.float32), order, int(n_steps), ptr, v_to, offset, weight, iptr, ioffset,
         iweight, bool(with_interval), np.float32(threshold), np.ascontiguousarray(psi, dtype=np.float32),
         np.ascontiguousarray(preferences, dtype=np.float32).reshape(int(n_steps), inp.shape[0], inp.shape[1]),
         np.asarray(has_input, dtype=np.bool_), np.float32(forbid_threshold), *restriction._args, restriction._values, restriction._done)
