@@ -291,7 +291,7 @@ def vehicle_grids(
 ) -> list[SparseGrid]:
     """``vehicle_grid`` of every vehicle, vehicle n of the pairs ``members[n]`` (``probs`` ``(B, K, L)``, ``corridor_weights``
     and ``lateral_shifts_m`` ``(B, K)`` per pair): in one compiled call (``kernels.vehicle_grids``: the same
-    numbers, no Python per vehicle) where numba imports and the grid's keys fit its table, else one ``vehicle_grid``
+    numbers, no Python per vehicle) where numba imports, else one ``vehicle_grid``
     per vehicle. tests/stages/test_markov_batched_outputs.py compares the two."""
     probs = np.asarray(probs)
     found = None
