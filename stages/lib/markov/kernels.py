@@ -23,6 +23,14 @@ states (the hybrid mode's speed restriction, ``InputPriority.at_states``)
 without BLAS calls: on a small machine BLAS's worker threads cost more than
 the products.
 
+``speed_priority_run`` is the hybrid mode's whole chain (every step, its
+speed restriction and Γ) in one call: the same arithmetic in the same order
+as ``fused_step`` + ``priority_occupied`` step by step (the same numbers),
+but in blocks of 8 similar pairs, each block on the cells its own pairs
+occupy instead of the batch's window, which spans every pair's.
+``vehicle_grids`` rasterises every vehicle's grid in one call (the numbers
+of ``stages.markov_prediction.rasterise.vehicle_grid``).
+
 numba is a dependency; ``available()`` is False only where it cannot be
 imported, and the backend then uses the scipy path (the reference the tests
 compare against).
@@ -975,4 +983,7 @@ def warm_up() -> None:
     speed_priority_run((half, half, half), np.zeros(1, np.float32), (ptr, one, one, w, ptr, one, w), 2, True, 1e-7, np.eye(2),
                        lazy, np.ones((2, 1, 2), np.float32), [True, False], 0.0)
     sum_by_key(np.array([3, 1, 3], np.int64), np.ones(3))
+    box = np.zeros((1, 1, 1))
+    vehicle_grids(box, box, box, box, np.ones(1), np.ones((1, 1, 1), np.float32), np.ones(1), np.ones(1, np.bool_), np.zeros((1, 1)),
+                  [[0]], -1.0, -1.0, 1.0, 2, 2, 1e-9)
     _warm = True
