@@ -144,8 +144,8 @@ class PriorityPropagator(MarkovPropagator):
 
     A run whose every step is None or an ``InputPriority`` with a ``restriction`` (the hybrid mode's speed
     restriction), from a ``SeparableState``, on the numpy backend's numba kernels, with the pruned mass put back and
-    no final state asked for, is one compiled call (``kernels.speed_priority_run``: pair by pair on the cells each
-    occupies); it gives the numbers of the step-by-step run (see there).
+    no final state asked for, is one compiled call (``kernels.speed_priority_run``: blocks of similar pairs, each on the
+    cells its pairs occupy); it gives the numbers of the step-by-step run (see there).
     """
 
     def __init__(self, stencils: TransitionStencils, psi: np.ndarray, **kwargs: Any) -> None:

@@ -99,10 +99,10 @@ def test_compiled_speed_restriction_equals_the_numpy_definition():
 
 
 @pytest.mark.skipif(not kernels.available(), reason="numba does not import")
-@pytest.mark.parametrize("n_pairs", [1, 2, 7])
+@pytest.mark.parametrize("n_pairs", [1, 2, 7, 19])  # 19: several blocks of 8, the last one partly empty
 def test_one_call_speed_priority_run_equals_the_step_by_step_run(n_pairs, monkeypatch):
-    """PriorityPropagator's one-call path (kernels.speed_priority_run: the hybrid mode's chain, pair by pair on each
-    pair's cells) gives the step-by-step numba run's numbers bit for bit (B > 1; B = 1 within float32 rounding of the
+    """PriorityPropagator's one-call path (kernels.speed_priority_run: the hybrid mode's chain in blocks of pairs, each
+    on its pairs' cells) gives the step-by-step numba run's numbers bit for bit (B > 1; B = 1 within float32 rounding of the
     renormalisation), and the scipy reference's within 1e-6; pairs near the window's end leak mass, one pair starts
     at rest, one has every input forbidden somewhere."""
     from stages.markov_prediction import priority as pr

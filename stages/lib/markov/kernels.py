@@ -797,9 +797,10 @@ def speed_priority_run(state, outside0, tables, n_steps, with_interval, threshol
     not ``has_input[k]`` the identity.
 
     What ``MarkovPropagator.run`` with ``InputPriority(at_states=...)`` steps and the numba kernels
-    (``fused_step``, ``priority_occupied``) computes, pair by pair on the cells the pair occupies (not on the batch's
-    window, which spans every pair's), one (L, M, N_v) buffer for all, kept in cache: the same float32 operations in
-    the same order, so the same numbers, bit for bit, with one exception: with a single pair (B = 1) numpy sums a
+    (``fused_step``, ``priority_occupied``) computes, in blocks of ``_LANES`` pairs of similar speed and place (the
+    block's pairs innermost, vectorised), each block on the (s, v) cells its pairs occupy (not on the batch's window,
+    which spans every pair's), one (L, M, N_v, lanes) buffer for all: the same float32 operations in the same order,
+    so the same numbers, bit for bit, with one exception: with a single pair (B = 1) numpy sums a
     pair's position marginal pairwise, here it is summed in order as numpy does for B > 1 (the renormalisation
     factor may differ in the last bit). tests/stages/test_markov_occupied.py compares the two.
 
