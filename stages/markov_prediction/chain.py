@@ -18,13 +18,14 @@ layouts (numpy ``(L, M, N_v, B)``, torch ``(B, M·N_v, L)``), which
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from stages.lib.markov import MarkovPropagator, TransitionStencils
+from stages.lib.markov import MarkovPropagator, PropagationResult, SeparableState, TransitionStencils, kernels
+from stages.lib.markov.propagate import mass_error
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -41,6 +42,12 @@ class InputPriority:
     #: s-cell of the window). When given, the numpy backend applies Γ only where p⁻ holds mass (a pair's
     #: occupied states are a few percent of the batch's active window) instead of on the whole window.
     at_states: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None
+    #: Optional: λ as ``restriction`` (a ``kernels.SpeedRestriction``) gives it for the preference ``preference``
+    #: (B, M) float32 and ``forbid_threshold`` (what ``at_states`` computes then). When every step of a run is such
+    #: an input (or None), ``PriorityPropagator`` runs the whole chain in one compiled call (``kernels.speed_priority_run``).
+    restriction: Any = None
+    preference: np.ndarray | None = None
+    forbid_threshold: float = 0.0
 
 
 class _PriorityBackend:
@@ -133,8 +140,51 @@ class _PriorityBackend:
 
 
 class PriorityPropagator(MarkovPropagator):
-    """``MarkovPropagator`` that also accepts ``InputPriority`` input transitions (Ψ given here)."""
+    """``MarkovPropagator`` that also accepts ``InputPriority`` input transitions (Ψ given here).
+
+    A run whose every step is None or an ``InputPriority`` with a ``restriction`` (the hybrid mode's speed
+    restriction), from a ``SeparableState``, on the numpy backend's numba kernels, with the pruned mass put back and
+    no final state asked for, is one compiled call (``kernels.speed_priority_run``: blocks of similar pairs, each on the
+    cells its pairs occupy); it gives the numbers of the step-by-step run (see there).
+    """
 
     def __init__(self, stencils: TransitionStencils, psi: np.ndarray, **kwargs: Any) -> None:
         super().__init__(stencils, **kwargs)
+        self._psi = np.asarray(psi, dtype=np.float32)
         self._backend = _PriorityBackend(self._backend, psi, self.backend)
+
+    def _one_call(self, p0: Any, inputs: Any, k_steps: int, with_final_state: bool) -> bool:
+        """Whether ``run`` can take the compiled whole-run path."""
+        if not (getattr(self._backend, "fused", False) and isinstance(p0, SeparableState) and not with_final_state
+                and self.prune_threshold > 0 and self.renormalise_pruned and isinstance(inputs, Sequence) and len(inputs) == k_steps):
+            return False
+        given = [t for t in inputs if t is not None]
+        return bool(given) and all(isinstance(t, InputPriority) and t.restriction is given[0].restriction
+                                   and t.preference is not None and t.forbid_threshold == given[0].forbid_threshold for t in given) \
+            and isinstance(given[0].restriction, kernels.SpeedRestriction)
+
+    def run(self, p0: Any, inputs: Any = None, *, n_steps: int | None = None, with_interval: bool = False,
+            with_final_state: bool = False, initial_outside: np.ndarray | None = None) -> PropagationResult:
+        k_steps = self.config.n_steps if n_steps is None else int(n_steps)
+        if not self._one_call(p0, inputs, k_steps, with_final_state):
+            return super().run(p0, inputs, n_steps=n_steps, with_interval=with_interval, with_final_state=with_final_state,
+                               initial_outside=initial_outside)
+        p0, outside0, _support = self._check_start(p0, initial_outside)
+        given = [t for t in inputs if t is not None]
+        n_pairs, n_in = p0.input_probs.shape
+        preferences = np.zeros((k_steps, n_pairs, n_in), np.float32)
+        for k, t in enumerate(inputs):
+            if t is not None:
+                q = np.asarray(t.preference, dtype=np.float32)
+                if q.shape != (n_pairs, n_in) or not np.all(np.isfinite(q)) or np.any(q < 0):
+                    raise ValueError(f"InputPriority.preference: ({n_pairs}, {n_in}) finite and non-negative expected, got {q.shape}")
+                preferences[k] = q
+        pos, vel, ipos, outside, ioutside, pruned, totals = kernels.speed_priority_run(
+            (p0.input_probs, p0.velocity_probs, p0.position_probs), outside0, self._backend.tables, k_steps, with_interval,
+            self.prune_threshold, self._psi, given[0].restriction, preferences, [t is not None for t in inputs],
+            given[0].forbid_threshold)
+        return PropagationResult(
+            position_probs=pos, velocity_probs=vel, interval_position_probs=ipos, outside_mass=outside,
+            interval_outside_mass=ioutside, pruned_mass=pruned, final_state=None,
+            mass_error=mass_error(totals, outside[:, -1] if k_steps else outside0, None),
+        )

@@ -50,7 +50,7 @@ from stages.markov_prediction.modes.corridor_cv import constant_speed
 from stages.markov_prediction.modes.cv import CV_LINE_ID
 from stages.markov_prediction.spread import SpreadTable, blur_grid, load_spread
 from stages.markov_prediction.rasterise import (
-    Centrelines, Footprints, GridFrame, SparseGrid, cell_footprints_batch, fuse, lateral_kernel, vehicle_grid,
+    Centrelines, Footprints, GridFrame, SparseGrid, cell_footprints_arrays, fuse, lateral_kernel, vehicle_grids,
 )
 from stages.markov_prediction.signals import apply_signals, stop_line_wall
 
@@ -680,7 +680,8 @@ class MarkovPredictor:
         inputs = self.model.start(pairs, issues)
         p0 = self._initial(pairs, inputs.initial())
         members = np.arange(n_b)
-        result = self.propagator.run(p0, inputs.step, with_interval=inputs.with_interval)
+        steps = inputs.fixed_steps()
+        result = self.propagator.run(p0, inputs.step if steps is None else steps, with_interval=inputs.with_interval)
         pos, vel, interval, outside = self._mix_standstill(
             pairs, members, p0.position_probs, result.position_probs, result.velocity_probs,
             result.interval_position_probs, result.outside_mass,
@@ -810,29 +811,21 @@ class MarkovPredictor:
                         f" (corridor ends {p.end_s_m - p.s0_m:.1f} m ahead, v0 {p.v0_mps:.1f} m/s)",
                     )
                 )
-        footprints: list[Footprints] = (
-            cell_footprints_batch(lines, s_first[:, None] + lower[None, :], cfg.ds_m, cfg.grid_substeps, *self._lateral) if n_b else []
-        )
+        batch = cell_footprints_arrays(lines, s_first[:, None] + lower[None, :], cfg.ds_m, cfg.grid_substeps, *self._lateral) if n_b else None
+        footprints: list[Footprints] = batch.pairs() if batch is not None else []
         grid_probs = interval if (cfg.grid_distribution == "interval" and interval is not None) else pos
         frame = self._grid_frame(footprints, grid_probs)
         by_track: dict[int, list[int]] = collections.defaultdict(list)
         for b, p in enumerate(pairs):
             by_track[p.track_id].append(b)
-        vehicle_grids = {
-            track: vehicle_grid(
-                frame,
-                [footprints[b] for b in members],
-                [grid_probs[b] for b in members],
-                [pairs[b].probability for b in members],
-                [shifts[b] for b in members],
-            )
-            for track, members in by_track.items()
-        }
+        # every vehicle's grid in one compiled call (rasterise.vehicle_grids: vehicle_grid's numbers)
+        grids = vehicle_grids(frame, batch, grid_probs, [p.probability for p in pairs], list(by_track.values()), shift_all) if n_b else []
+        vehicle_grids_ = dict(zip(by_track.keys(), grids))
         if self.spread is not None:  # calibrated spread (spread.py): each vehicle's grid blurred per step and speed band
             for track, members in by_track.items():
                 p = pairs[members[0]]
                 speed = p.measured_v_mps if math.isfinite(p.measured_v_mps) else p.v0_mps
-                vehicle_grids[track] = blur_grid(frame, vehicle_grids[track], self.spread.sigmas(speed, p.speed_noise_mps, self.step_times_s))
+                vehicle_grids_[track] = blur_grid(frame, vehicle_grids_[track], self.spread.sigmas(speed, p.speed_noise_mps, self.step_times_s))
         infos = tuple(PairInfo(p.track_id, p.corridor_id, p.probability, p.s0_m, p.s_first_m, p.end_s_m) for p in pairs)
         return FramePrediction(
             mode=cfg.mode,
@@ -849,8 +842,8 @@ class MarkovPredictor:
             xy_at_mean_s_m=xy_at_mean,
             grid_frame=frame,
             grid_distribution=cfg.grid_distribution if interval is not None or cfg.grid_distribution == "point" else "point",
-            vehicle_grids=vehicle_grids,
-            fused_grid=fuse(list(vehicle_grids.values())),
+            vehicle_grids=vehicle_grids_,
+            fused_grid=fuse(list(vehicle_grids_.values())),
             min_grid_value=cfg.grid_min_value,
             max_cells_per_step=cfg.grid_max_cells_per_step,
         )

@@ -172,6 +172,23 @@ class Centrelines:
         return x, y, heading
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class FootprintBatch:
+    """The ``Footprints`` of B pairs as arrays: ``x_m``, ``y_m``, ``normal_x``, ``normal_y`` ``(B, L, P)``, ``weights`` ``(P,)``."""
+
+    x_m: np.ndarray
+    y_m: np.ndarray
+    weights: np.ndarray
+    normal_x: np.ndarray
+    normal_y: np.ndarray
+
+    def pair(self, b: int) -> Footprints:
+        return Footprints(self.x_m[b], self.y_m[b], self.weights, self.normal_x[b], self.normal_y[b])
+
+    def pairs(self) -> list[Footprints]:
+        return [self.pair(b) for b in range(self.x_m.shape[0])]
+
+
 def cell_footprints_batch(
     centrelines: Centrelines,
     cell_lower_s_m: np.ndarray,
@@ -181,6 +198,18 @@ def cell_footprints_batch(
     lateral_weights: np.ndarray,
 ) -> list[Footprints]:
     """``cell_footprints`` of B pairs at once: ``cell_lower_s_m`` (B, L), one ``Footprints`` per pair."""
+    return cell_footprints_arrays(centrelines, cell_lower_s_m, ds_m, n_sub, lateral_offsets_m, lateral_weights).pairs()
+
+
+def cell_footprints_arrays(
+    centrelines: Centrelines,
+    cell_lower_s_m: np.ndarray,
+    ds_m: float,
+    n_sub: int,
+    lateral_offsets_m: np.ndarray,
+    lateral_weights: np.ndarray,
+) -> FootprintBatch:
+    """``cell_footprints_batch`` as one ``FootprintBatch``."""
     frac = (np.arange(n_sub) + 0.5) / n_sub
     s = cell_lower_s_m[:, :, None] + frac[None, None, :] * ds_m  # (B, L, n_sub)
     x, y, h = centrelines.xy_heading(s)
@@ -192,8 +221,7 @@ def cell_footprints_batch(
     weights = np.repeat((1.0 / n_sub) * np.ones(n_sub), n_lat) * np.tile(lateral_weights, n_sub)
     normal_x = np.repeat(nx, n_lat, axis=2)
     normal_y = np.repeat(ny, n_lat, axis=2)
-    px, py = px.reshape(n_b, n_cells, -1), py.reshape(n_b, n_cells, -1)
-    return [Footprints(px[b], py[b], weights, normal_x[b], normal_y[b]) for b in range(n_b)]
+    return FootprintBatch(px.reshape(n_b, n_cells, -1), py.reshape(n_b, n_cells, -1), weights, normal_x, normal_y)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -250,6 +278,35 @@ def vehicle_grid(
     if not all_keys:
         return _reduce(np.zeros(0, np.int64), np.zeros(0))
     return _reduce(np.concatenate(all_keys), np.concatenate(all_values))
+
+
+def vehicle_grids(
+    frame: GridFrame,
+    footprints: FootprintBatch,
+    probs: np.ndarray,
+    corridor_weights: list[float],
+    members: list[list[int]],
+    lateral_shifts_m: np.ndarray | None = None,
+    min_mass: float = 1e-9,
+) -> list[SparseGrid]:
+    """``vehicle_grid`` of every vehicle, vehicle n of the pairs ``members[n]`` (``probs`` ``(B, K, L)``, ``corridor_weights``
+    and ``lateral_shifts_m`` ``(B, K)`` per pair): in one compiled call (``kernels.vehicle_grids``: the same
+    numbers, no Python per vehicle) where numba imports, else one ``vehicle_grid``
+    per vehicle. tests/stages/test_markov_batched_outputs.py compares the two."""
+    probs = np.asarray(probs)
+    found = None
+    if probs.dtype == np.float32 and probs.ndim == 3:
+        # w · p is float64 for a numpy float64 weight and float32 for a Python float (numpy's promotion), as vehicle_grid has it
+        wide = np.array([np.result_type(w, probs.dtype) == np.float64 for w in corridor_weights], dtype=np.bool_)
+        found = kernels.vehicle_grids(footprints.x_m, footprints.y_m, footprints.normal_x, footprints.normal_y, footprints.weights,
+                                      probs, np.asarray(corridor_weights, dtype=np.float64), wide, lateral_shifts_m, members,
+                                      frame.origin_x_m, frame.origin_y_m, frame.cell_m, frame.n_rows, frame.n_cols, min_mass)
+    if found is None:
+        shifts = [None] * probs.shape[0] if lateral_shifts_m is None else list(lateral_shifts_m)
+        return [vehicle_grid(frame, [footprints.pair(b) for b in m], [probs[b] for b in m], [corridor_weights[b] for b in m],
+                             None if lateral_shifts_m is None else [shifts[b] for b in m], min_mass) for m in members]
+    keys, sums, ptr = found
+    return [SparseGrid(keys[ptr[n]:ptr[n + 1]], sums[ptr[n]:ptr[n + 1]]) for n in range(len(members))]
 
 
 def fuse(grids: list[SparseGrid]) -> SparseGrid:

@@ -67,3 +67,34 @@ def test_sum_by_key_equals_unique_and_bincount():
         np.testing.assert_array_equal(got_keys, unique)
         np.testing.assert_array_equal(got_sums, np.bincount(inverse, weights=values, minlength=unique.size))
         assert got_keys.dtype == np.int64 and got_sums.dtype == np.float64
+
+
+def test_vehicle_grids_in_one_call_equal_vehicle_grid_per_vehicle():
+    """rasterise.vehicle_grids (every vehicle in one compiled call) gives vehicle_grid's keys and sums bit for bit:
+    vehicles of one and of several corridors, numpy and Python weights (numpy promotes w·p differently), a zero
+    weight, a pair below min_mass, lateral shifts, samples off the grid and not finite; and without shifts."""
+    from stages.markov_prediction.rasterise import GridFrame, cell_footprints_arrays, vehicle_grid, vehicle_grids
+
+    rng = np.random.default_rng(9)
+    lines = _centrelines(rng, 9)
+    packed = Centrelines(*[list(a) for a in zip(*lines)])
+    lower = np.stack([s[0] - 5.0 + np.arange(40, dtype=np.float64) for s, *_ in lines])
+    offsets, weights = lateral_kernel(0.4, 0.5)
+    batch = cell_footprints_arrays(packed, lower, 1.0, 4, offsets, weights)
+    batch.x_m[3, 7, :5] = np.nan  # not finite: off the grid
+    probs = (rng.dirichlet(np.ones(40), (9, 10)) * (rng.random((9, 10, 40)) < 0.6)).astype(np.float32)
+    probs[4] *= 1e-10  # below min_mass everywhere
+    corridor_weights = [np.float64(w) for w in rng.uniform(0.1, 1.0, 9)]
+    corridor_weights[1], corridor_weights[2], corridor_weights[6] = 0.7, 0.0, 1.0  # Python floats, and a zero weight
+    shifts = rng.normal(0, 0.8, (9, 10))
+    members = [[0, 1, 2], [3], [4, 5], [6, 7, 8]]
+    frame = GridFrame(float(np.nanmin(batch.x_m)) + 15.0, float(np.nanmin(batch.y_m)) + 10.0, 0.5, 300, 280)  # part off the grid
+    for with_shifts in (True, False):
+        got = vehicle_grids(frame, batch, probs, corridor_weights, members, shifts if with_shifts else None)
+        for grid, m in zip(got, members):
+            want = vehicle_grid(frame, [batch.pair(b) for b in m], [probs[b] for b in m], [corridor_weights[b] for b in m],
+                                [shifts[b] for b in m] if with_shifts else None)
+            np.testing.assert_array_equal(grid.keys, want.keys)
+            np.testing.assert_array_equal(grid.values, want.values)
+            assert grid.keys.dtype == np.int64 and grid.values.dtype == np.float64
+        assert sum(g.keys.size for g in got) > 1000 and sum(g.keys.size > 0 for g in got) >= 3

@@ -96,3 +96,63 @@ def test_compiled_speed_restriction_equals_the_numpy_definition():
         with pytest.raises(ValueError):
             kernels.SpeedRestriction([profiles[0], bad], [adms[0], np.ones((4, bad.size))], cells[:2], v, a, weights, 0.4)
     kernels.SpeedRestriction([np.array([5.0, 6.0]), np.array([0.0, 1.0])], [np.ones((4, 2))] * 2, cells[:2], v, a, weights, 0.4)  # a drop between pairs is fine
+
+
+@pytest.mark.skipif(not kernels.available(), reason="numba does not import")
+@pytest.mark.parametrize("n_pairs", [1, 2, 7, 19])  # 19: several blocks of 8, the last one partly empty
+def test_one_call_speed_priority_run_equals_the_step_by_step_run(n_pairs, monkeypatch):
+    """PriorityPropagator's one-call path (kernels.speed_priority_run: the hybrid mode's chain in blocks of pairs, each
+    on its pairs' cells) gives the step-by-step numba run's numbers bit for bit (B > 1; B = 1 within float32 rounding of the
+    renormalisation), and the scipy reference's within 1e-6; pairs near the window's end leak mass, one pair starts
+    at rest, one has every input forbidden somewhere."""
+    from stages.markov_prediction import priority as pr
+
+    stencils = build_stencils(SMALL)
+    v, a = SMALL.v_centres_mps(), SMALL.input_centres_mps2()
+    rng = np.random.default_rng(11)
+    n_in, k_steps = SMALL.n_inputs, SMALL.n_steps
+    profiles, adms = [], []
+    for b in range(n_pairs):
+        s = np.cumsum(rng.uniform(0.3, 1.2, 80)) - 5.0
+        kappa = np.where((s > 8) & (s < 18), 1.0 / rng.uniform(3, 8), 0.0)
+        profiles.append(s)
+        adms.append(pr.admissible_speeds(s, kappa, rng.uniform(2, 6), np.array([3.0, 2.0, 1.0]), 2.0, 4.0))
+    cells = 0.5 + np.arange(SMALL.n_s_cells)[None, :] * SMALL.ds_m + rng.uniform(-2, 2, (n_pairs, 1))
+    weights = np.array([0.3, 0.5, 0.2])
+    prefs = [rng.dirichlet(np.ones(n_in), n_pairs).astype(np.float32) for _ in range(k_steps)]
+    prefs = [q / q.max(axis=1, keepdims=True) for q in prefs]
+    s0 = rng.uniform(1, 20, n_pairs)
+    s0[: min(2, n_pairs)] = [24.0, 27.5][: min(2, n_pairs)]  # near the window's end: mass leaks
+    v0 = rng.uniform(0, 5.5, n_pairs)
+    v0[-1] = 0.0
+    p0 = initial_state(SMALL, s_m=s0, v_mps=v0, half_width_s_m=0.7, half_width_v_mps=0.6,
+                       input_probs=rng.dirichlet(np.ones(n_in), n_pairs))
+    psi = psi_matrix(a)
+
+    def schedule(threshold, compiled):
+        lazy = kernels.SpeedRestriction(profiles, adms, cells, v, a, weights, SMALL.tau_s)
+        steps = [InputPriority(weights=lambda lo, hi, q=q: combine_with_preference(lazy.full()[..., lo:hi], q, threshold),
+                               at_states=lambda b, vv, s, q=q: lazy.priority_at_states(q, b, vv, s, threshold),
+                               restriction=lazy if compiled else None, preference=q if compiled else None, forbid_threshold=threshold)
+                 for q in prefs[:-1]]
+        return steps + [None]
+
+    calls = []
+    real = kernels.speed_priority_run
+    monkeypatch.setattr(kernels, "speed_priority_run", lambda *args: calls.append(1) or real(*args))
+    for threshold in (0.0, 0.3):
+        one = PriorityPropagator(stencils, psi, kernel="numba").run(p0, schedule(threshold, True), with_interval=True)
+        assert len(calls) == 1
+        calls.clear()
+        steps = PriorityPropagator(stencils, psi, kernel="numba").run(p0, schedule(threshold, False), with_interval=True)
+        ref = PriorityPropagator(stencils, psi, kernel="scipy").run(p0, schedule(threshold, False), with_interval=True)
+        assert not calls
+        assert one.outside_mass[:, -1].max() > 1e-3  # something leaked
+        for name in ("position_probs", "velocity_probs", "interval_position_probs", "outside_mass", "interval_outside_mass", "pruned_mass"):
+            if n_pairs > 1:
+                np.testing.assert_array_equal(getattr(one, name), getattr(steps, name), err_msg=name)
+            else:
+                np.testing.assert_allclose(getattr(one, name), getattr(steps, name), rtol=1e-6, atol=2e-7, err_msg=name)  # pruned mass: totals near 1, one ulp
+            np.testing.assert_allclose(getattr(one, name), getattr(ref, name), atol=1e-6, err_msg=name)
+        np.testing.assert_allclose(one.mass_error, steps.mass_error, atol=1e-6)
+        assert one.mass_error.max() <= 1e-5

@@ -23,6 +23,14 @@ states (the hybrid mode's speed restriction, ``InputPriority.at_states``)
 without BLAS calls: on a small machine BLAS's worker threads cost more than
 the products.
 
+``speed_priority_run`` is the hybrid mode's whole chain (every step, its
+speed restriction and Γ) in one call: the same arithmetic in the same order
+as ``fused_step`` + ``priority_occupied`` step by step (the same numbers),
+but in blocks of 8 similar pairs, each block on the cells its own pairs
+occupy instead of the batch's window, which spans every pair's.
+``vehicle_grids`` rasterises every vehicle's grid in one call (the numbers
+of ``stages.markov_prediction.rasterise.vehicle_grid``).
+
 numba is a dependency; ``available()`` is False only where it cannot be
 imported, and the backend then uses the scipy path (the reference the tests
 compare against).
@@ -80,6 +88,9 @@ def collapsed_tables(kernel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
     np.add.at(ptr, rows + 1, 1)
     return np.cumsum(ptr), d.astype(np.int64), weight
 
+
+#: pairs per block of ``speed_priority_run``'s kernel (its innermost, vectorised axis: 8 float32 lanes of AVX2)
+_LANES = 8
 
 if numba is not None:
 
@@ -402,6 +413,357 @@ if numba is not None:
         return ordered, out
 
 
+    @numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
+    def _speed_priority_run(inp, vel0, pos0, outside0, order, n_steps, ptr, v_to, offset, weight, iptr, ioffset, iweight,
+                            with_interval, threshold, psi, prefs, has_input, forbid_threshold, xp, fp, start, bucket, inv_h, cell_s,
+                            v_c, a_c, w32, tau, values, done):  # pragma: no cover - compiled
+        """The whole chain of ``speed_priority_run``, in blocks of ``_LANES`` pairs (``order``: similar pairs side by side),
+        each block on the cells its pairs occupy: per s-row of the state the velocity cells [vlo, vhi] that may hold
+        mass, per row of p⁻ those its sources reach; the pairs of a block are the innermost (vectorised) axis."""
+        n_b, n_in = inp.shape
+        n_v, n_s = vel0.shape[1], pos0.shape[1]
+        n_ln = _LANES
+        n_d = 1  # the furthest any stencil moves mass, + 1
+        for e in range(offset.shape[0]):
+            n_d = max(n_d, offset[e] + 1)
+        for e in range(ioffset.shape[0]):
+            n_d = max(n_d, ioffset[e] + 1)
+        dv_lo, dv_hi = 0, 0  # how far a target's velocity cell lies from its source's
+        for a in range(n_in):
+            for v in range(n_v):
+                r = a * n_v + v
+                for e in range(ptr[r], ptr[r + 1]):
+                    dv_lo = min(dv_lo, v_to[e] - v)
+                    dv_hi = max(dv_hi, v_to[e] - v)
+        f32 = np.float32
+        zero = f32(0.0)
+        positions = np.zeros((n_b, n_steps, n_s), f32)
+        velocities = np.zeros((n_b, n_steps, n_v), f32)
+        ipositions = np.zeros((n_b, n_steps if with_interval else 0, n_s), f32)
+        outsides = np.zeros((n_b, n_steps), f32)
+        ioutsides = np.zeros((n_b, n_steps), f32)
+        pruned = np.zeros((n_b, n_steps), f32)
+        totals = np.zeros(n_b, np.float64)
+        cur = np.zeros((n_s, n_in, n_v, n_ln), f32)  # the block's state: rows [first, last], in row s the cells [vlo[s], vhi[s]]
+        nxt = np.zeros((n_s, n_in, n_v, n_ln), f32)  # p⁻: in row t the cells [tlo[t], thi[t]]
+        vlo = np.zeros(n_s, np.int64)
+        vhi = np.zeros(n_s, np.int64)
+        tlo = np.zeros(n_s, np.int64)
+        thi = np.zeros(n_s, np.int64)
+        pos = np.zeros((n_s, n_ln), np.float64)
+        ipos = np.zeros((n_s, n_ln), np.float64)
+        vel = np.zeros((n_v, n_ln), np.float64)
+        mark = np.zeros((n_s, n_v, n_ln), np.bool_)
+        leaked = np.zeros(n_ln, np.float64)
+        ileaked = np.zeros(n_ln, np.float64)
+        kept = np.zeros(n_ln, np.float64)
+        outside = np.zeros(n_ln, f32)
+        factor = np.zeros(n_ln, f32)
+        pair = np.zeros(n_ln, np.int64)
+        n_states = n_s * n_v * n_ln
+        s_buf = np.empty(n_states, np.int64)
+        v_buf = np.empty(n_states, np.int64)
+        b_buf = np.empty(n_states, np.int64)
+        l_buf = np.empty(n_states, np.int64)
+        x_t = np.empty((n_in, n_states), f32)
+        lam_t = np.empty((n_in, n_states), f32)
+        ratio_t = np.empty((n_in, n_states), f32)
+        z = np.empty(n_states, f32)
+        acc = np.empty(n_states, f32)
+        for blk in range(0, n_b, n_ln):
+            n_live = min(n_ln, n_b - blk)
+            first, last, v_first, v_last = -1, -1, -1, -1
+            for ln in range(n_ln):
+                b = order[blk + ln] if ln < n_live else -1
+                pair[ln] = b
+                outside[ln] = outside0[b] if b >= 0 else zero
+                if b < 0:
+                    continue
+                for s in range(n_s):
+                    if pos0[b, s] > 0:
+                        first = s if first < 0 else min(first, s)
+                        last = max(last, s)
+                for v in range(n_v):
+                    if vel0[b, v] > 0:
+                        v_first = v if v_first < 0 else min(v_first, v)
+                        v_last = max(v_last, v)
+            if v_first < 0:
+                first, last = -1, -1
+            for s in range(max(first, 0), last + 1):  # p(t_0) = position · input · velocity, in that order (initial_slab's)
+                vlo[s], vhi[s] = v_first, v_last
+                for a in range(n_in):
+                    for v in range(v_first, v_last + 1):
+                        cell = cur[s, a, v]
+                        for ln in range(n_ln):
+                            b = pair[ln]
+                            cell[ln] = (pos0[b, s] * inp[b, a]) * vel0[b, v] if b >= 0 else zero
+            for k in range(n_steps):
+                if first < 0:  # no mass left in the window
+                    for ln in range(n_live):
+                        outsides[pair[ln], k] = outside[ln]
+                        ioutsides[pair[ln], k] = outside[ln]
+                    continue
+                hi = min(last + n_d, n_s)  # every target of the rows [first, last]
+                for t in range(first, hi):
+                    tlo[t], thi[t] = n_v, -1
+                for s in range(first, last + 1):
+                    if vhi[s] >= vlo[s]:
+                        lo_v, hi_v = max(vlo[s] + dv_lo, 0), min(vhi[s] + dv_hi, n_v - 1)
+                        for t in range(s, min(s + n_d, n_s)):
+                            tlo[t] = min(tlo[t], lo_v)
+                            thi[t] = max(thi[t], hi_v)
+                for t in range(first, hi):
+                    pos[t] = 0.0
+                    ipos[t] = 0.0
+                    for a in range(n_in):
+                        for v in range(tlo[t], thi[t] + 1):
+                            nxt[t, a, v] = 0.0
+                vel[:] = 0.0
+                leaked[:] = 0.0
+                ileaked[:] = 0.0
+                # sources in (s, α, v, entry) order, the order of _fused_step: every sum gets its non-zero terms in the
+                # same order (the zero ones it adds change nothing)
+                for s in range(first, last + 1):
+                    for a in range(n_in):
+                        for v in range(vlo[s], vhi[s] + 1):
+                            row = cur[s, a, v]
+                            any_mass = zero  # entries are >= 0 (the sum vectorises, an early exit does not)
+                            for ln in range(n_ln):
+                                any_mass += row[ln]
+                            if not any_mass > 0:
+                                continue
+                            r = a * n_v + v
+                            for e in range(ptr[r], ptr[r + 1]):
+                                t = s + offset[e]
+                                w = weight[e]
+                                if t < n_s:
+                                    target = nxt[t, a, v_to[e]]
+                                    for ln in range(n_ln):
+                                        target[ln] += w * row[ln]
+                                else:
+                                    for ln in range(n_ln):
+                                        leaked[ln] += w * row[ln]
+                            if with_interval:
+                                for e in range(iptr[r], iptr[r + 1]):
+                                    t = s + ioffset[e]
+                                    w = iweight[e]
+                                    if t < n_s:
+                                        itarget = ipos[t]
+                                        for ln in range(n_ln):
+                                            itarget[ln] += w * row[ln]
+                                    else:
+                                        for ln in range(n_ln):
+                                            ileaked[ln] += w * row[ln]
+                kept[:] = 0.0
+                new_first, new_last = -1, -1
+                for t in range(first, hi):  # marginals, then pruning; the rows' cells holding mass after it
+                    marks = mark[t]
+                    pos_t = pos[t]
+                    for v in range(tlo[t], thi[t] + 1):
+                        marks[v] = False
+                    for a in range(n_in):
+                        for v in range(tlo[t], thi[t] + 1):
+                            row = nxt[t, a, v]
+                            vel_v = vel[v]
+                            mv = marks[v]
+                            for ln in range(n_ln):  # branch-free: it vectorises over the lanes
+                                y = row[ln]
+                                pos_t[ln] += y
+                                vel_v[ln] += y
+                                y = y if y >= threshold else zero
+                                row[ln] = y
+                                kept[ln] += y
+                                mv[ln] |= y > 0
+                    vlo[t], vhi[t] = n_v, -1
+                    for v in range(tlo[t], thi[t] + 1):
+                        mv = marks[v]
+                        hit = False
+                        for ln in range(n_ln):
+                            hit |= mv[ln]
+                        if hit:
+                            vlo[t] = min(vlo[t], v)
+                            vhi[t] = v
+                    if vhi[t] >= 0:
+                        if new_first < 0:
+                            new_first = t
+                        new_last = t
+                for ln in range(n_live):
+                    b = pair[ln]
+                    if with_interval:
+                        ioutsides[b, k] = outside[ln] + f32(ileaked[ln])
+                    outside[ln] = outside[ln] + f32(leaked[ln])
+                    outsides[b, k] = outside[ln]
+                    before = zero  # the pair's position total, summed as numpy sums the (B, L) marginal over L (B > 1)
+                    for t in range(first, hi):
+                        p32 = f32(pos[t, ln])
+                        positions[b, k, t] = p32
+                        before += p32
+                        if with_interval:
+                            ipositions[b, k, t] = f32(ipos[t, ln])
+                    for v in range(n_v):
+                        velocities[b, k, v] = f32(vel[v, ln])
+                    kept32 = f32(kept[ln])
+                    factor[ln] = before / (kept32 if kept32 > 0 else f32(1.0))
+                    pruned[b, k] = max(before - kept32, zero)
+                first, last = new_first, new_last
+                if first < 0:
+                    continue
+                if not has_input[k]:  # identity: p⁻ rescaled to the total before pruning
+                    for t in range(first, last + 1):
+                        for a in range(n_in):
+                            for v in range(vlo[t], vhi[t] + 1):
+                                src = nxt[t, a, v]
+                                dst = cur[t, a, v]
+                                for ln in range(n_ln):
+                                    dst[ln] = src[ln] * factor[ln]
+                    continue
+                n = 0
+                for t in range(first, last + 1):
+                    for v in range(vlo[t], vhi[t] + 1):
+                        for ln in range(n_live):
+                            if mark[t, v, ln]:
+                                s_buf[n], v_buf[n], b_buf[n], l_buf[n] = t, v, pair[ln], ln
+                                n += 1
+                _speed_fill(xp, fp, start, bucket, inv_h, cell_s, v_c, a_c, w32, tau, values, done, b_buf[:n], v_buf[:n], s_buf[:n])
+                lam = _priority_from_states(values, prefs[k], b_buf[:n], v_buf[:n], s_buf[:n], forbid_threshold)
+                for t in range(first, last + 1):
+                    for a in range(n_in):
+                        for v in range(vlo[t], vhi[t] + 1):
+                            cur[t, a, v] = 0.0
+                # Γ = colnorm(diag(λ) Ψ) at the states, input by input over all of them (the arithmetic of
+                # _priority_occupied: each state's sums in the same order)
+                for i in range(n):
+                    t, v, ln = s_buf[i], v_buf[i], l_buf[i]
+                    for j in range(n_in):
+                        x_t[j, i] = nxt[t, j, v, ln]
+                        lam_t[j, i] = lam[i, j]
+                for j in range(n_in):  # Z[j] = Σ_a λ[a] Ψ[a, j]; ratio = p⁻[j] / Z[j]
+                    z[:n] = 0.0
+                    for a in range(n_in):
+                        w = psi[a, j]
+                        lrow = lam_t[a]
+                        for i in range(n):
+                            z[i] += lrow[i] * w
+                    xj = x_t[j]
+                    rj = ratio_t[j]
+                    for i in range(n):
+                        rj[i] = xj[i] / z[i] if z[i] > 0 else zero
+                for a in range(n_in):  # p[a] = λ[a] · Σ_j Ψ[a, j] ratio[j] · factor
+                    acc[:n] = 0.0
+                    for j in range(n_in):
+                        w = psi[a, j]
+                        rj = ratio_t[j]
+                        for i in range(n):
+                            acc[i] += w * rj[i]
+                    la = lam_t[a]
+                    for i in range(n):
+                        cur[s_buf[i], a, v_buf[i], l_buf[i]] = la[i] * acc[i] * factor[l_buf[i]]
+            for ln in range(n_live):
+                total = 0.0
+                for t in range(max(first, 0), last + 1):
+                    for a in range(n_in):
+                        for v in range(vlo[t], vhi[t] + 1):
+                            total += cur[t, a, v, ln]
+                totals[pair[ln]] = total
+        return positions, velocities, ipositions, outsides, ioutsides, pruned, totals
+
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _vehicle_grids(x_m, y_m, normal_x, normal_y, sample_w, probs, pair_w, wide, shifts, has_shift, ptr, members, origin_x,
+                       origin_y, cell, n_rows, n_cols, min_mass):  # pragma: no cover - compiled
+        """Per vehicle (its pairs ``members[ptr[n]:ptr[n + 1]]``), the sorted keys and sums of ``vehicle_grid``: the
+        same float64 operations, each key's sum taken in the order ``vehicle_grid`` concatenates its terms (as
+        np.bincount adds them). Step by step (keys of different steps never meet), the cells summed in a table over
+        the box of the step's cells (small, in cache). Returns keys, sums and the (n_vehicles + 1,) offsets of each
+        vehicle's part."""
+        n_k, n_l = probs.shape[1], probs.shape[2]
+        n_p = sample_w.shape[0]
+        n_cells = n_rows * n_cols
+        n_veh = ptr.shape[0] - 1
+        total, most = 0, 0  # samples: all, and the most of one vehicle's step
+        for n in range(n_veh):
+            for k in range(n_k):
+                count = 0
+                for m in range(ptr[n], ptr[n + 1]):
+                    b = members[m]
+                    if pair_w[b] <= 0:  # (a NaN weight is not left out: vehicle_grid's test)
+                        continue
+                    for i in range(n_l):
+                        if probs[b, k, i] > min_mass:
+                            count += n_p
+                total += count
+                most = max(most, count)
+        keys_out = np.empty(total, np.int64)
+        sums_out = np.empty(total, np.float64)
+        out_ptr = np.zeros(n_veh + 1, np.int64)
+        rows = np.empty(most, np.int64)
+        cols = np.empty(most, np.int64)
+        vals = np.empty(most, np.float64)
+        uniq = np.empty(most, np.int64)
+        sums = np.empty(most, np.float64)
+        slot = np.full(1024, -1, np.int64)  # per cell of the box: its index in uniq, -1 (kept all -1 between steps)
+        f32 = np.float32
+        at = 0
+        for n in range(n_veh):
+            for k in range(n_k):
+                c = 0
+                r_lo, r_hi, c_lo, c_hi = n_rows, -1, n_cols, -1
+                for m in range(ptr[n], ptr[n + 1]):
+                    b = members[m]
+                    w = pair_w[b]
+                    if w <= 0:
+                        continue
+                    d = shifts[b, k]
+                    w32 = f32(w)
+                    for i in range(n_l):
+                        p = probs[b, k, i]
+                        if not p > min_mass:
+                            continue
+                        # w · p: float64 for a numpy float64 weight, float32 for a Python float (numpy's promotion)
+                        mass = w * np.float64(p) if wide[b] else np.float64(w32 * p)
+                        for q in range(n_p):
+                            x = x_m[b, i, q]
+                            y = y_m[b, i, q]
+                            if has_shift:
+                                x = x + d * normal_x[b, i, q]
+                                y = y + d * normal_y[b, i, q]
+                            col = np.floor((x - origin_x) / cell)
+                            row = np.floor((y - origin_y) / cell)
+                            if not (col >= 0 and col < n_cols and row >= 0 and row < n_rows):  # NaN: off the grid too
+                                continue
+                            ri, ci = np.int64(row), np.int64(col)
+                            rows[c], cols[c], vals[c] = ri, ci, mass * sample_w[q]
+                            c += 1
+                            r_lo, r_hi, c_lo, c_hi = min(r_lo, ri), max(r_hi, ri), min(c_lo, ci), max(c_hi, ci)
+                if c == 0:
+                    continue
+                width = c_hi - c_lo + 1
+                area = (r_hi - r_lo + 1) * width
+                if slot.shape[0] < area:
+                    slot = np.full(max(area, 2 * slot.shape[0]), -1, np.int64)
+                u = 0
+                for j in range(c):  # in vehicle_grid's order
+                    idx = (rows[j] - r_lo) * width + (cols[j] - c_lo)
+                    s = slot[idx]
+                    if s < 0:
+                        s = u
+                        slot[idx] = u
+                        uniq[u] = idx
+                        sums[u] = 0.0
+                        u += 1
+                    sums[s] += vals[j]
+                ordered = np.sort(uniq[:u])  # the box's row-major order is the keys' order
+                base = k * n_cells
+                for j in range(u):
+                    idx = ordered[j]
+                    r, cc = divmod(idx, width)
+                    keys_out[at + j] = base + (r_lo + r) * n_cols + (c_lo + cc)
+                    sums_out[at + j] = sums[slot[idx]]
+                for j in range(u):
+                    slot[uniq[j]] = -1
+                at += u
+            out_ptr[n + 1] = at
+        return keys_out[:at], sums_out[:at], out_ptr
+
 def fused_step(slab, src_lo, lo, hi, n_s, tables, with_interval, threshold):
     """See the module docstring. The slab holds the s-cells [src_lo, src_lo + L) and p⁻ the cells [lo, hi) (the
     window of this step: the slab's occupied cells lie in it), so that a moving window costs no copy. ``tables``: ``stencil_tables`` of Υ(τ) then ``collapsed_tables`` of Υ([0, τ]).
@@ -424,6 +786,38 @@ def priority_occupied(slab, s_idx, v_idx, b_idx, lam, psi, factors):
     return _priority_occupied(np.ascontiguousarray(slab, dtype=np.float32), s_idx, v_idx, b_idx,
                               np.ascontiguousarray(lam, dtype=np.float32), np.ascontiguousarray(psi, dtype=np.float32),
                               np.ascontiguousarray(factors, dtype=np.float32))
+
+
+
+def speed_priority_run(state, outside0, tables, n_steps, with_interval, threshold, psi, restriction, preferences, has_input,
+                       forbid_threshold):
+    """A whole run of the hybrid chain in one compiled call: Υ(τ) (and Υ([0, τ])), pruning with the pruned mass put back,
+    then after step k (where ``has_input[k]``) Γ = colnorm(diag(λ) Ψ) with λ = ``restriction``'s priority for the
+    preference ``preferences[k]`` (B, M) at the states holding mass (``SpeedRestriction.priority_at_states``); where
+    not ``has_input[k]`` the identity.
+
+    What ``MarkovPropagator.run`` with ``InputPriority(at_states=...)`` steps and the numba kernels
+    (``fused_step``, ``priority_occupied``) computes, in blocks of ``_LANES`` pairs of similar speed and place (the
+    block's pairs innermost, vectorised), each block on the (s, v) cells its pairs occupy (not on the batch's window,
+    which spans every pair's), one (L, M, N_v, lanes) buffer for all: the same float32 operations in the same order,
+    so the same numbers, bit for bit, with one exception: with a single pair (B = 1) numpy sums a
+    pair's position marginal pairwise, here it is summed in order as numpy does for B > 1 (the renormalisation
+    factor may differ in the last bit). tests/stages/test_markov_occupied.py compares the two.
+
+    ``state``: (input (B, M), velocity (B, N_v), position (B, N_s)) float32 of p(t_0) (``SeparableState``), ``outside0``
+    (B,) float32, ``tables`` as for ``fused_step``, ``psi`` (M, M), ``preferences`` (K, B, M).
+    Returns position (B, K, N_s), velocity (B, K, N_v), interval position (B, K, N_s) or None, outside (B, K),
+    interval outside (B, K) or None, pruned mass (B, K), float32, and the final totals (B,) float64."""
+    ptr, v_to, offset, weight, iptr, ioffset, iweight = tables
+    inp, vel0, pos0 = (np.ascontiguousarray(a, dtype=np.float32) for a in state)
+    # pairs of similar speed and place side by side: a block of them occupies fewer cells together
+    order = np.lexsort((np.argmax(pos0 > 0, axis=1), vel0 @ np.arange(vel0.shape[1], dtype=np.float32))).astype(np.int64)
+    pos, vel, ipos, out, iout, pruned, totals = _speed_priority_run(
+        inp, vel0, pos0, np.ascontiguousarray(outside0, dtype=np.float32), order, int(n_steps), ptr, v_to, offset, weight, iptr, ioffset,
+        iweight, bool(with_interval), np.float32(threshold), np.ascontiguousarray(psi, dtype=np.float32),
+        np.ascontiguousarray(preferences, dtype=np.float32).reshape(int(n_steps), inp.shape[0], inp.shape[1]),
+        np.asarray(has_input, dtype=np.bool_), np.float32(forbid_threshold), *restriction._args, restriction._values, restriction._done)
+    return pos, vel, (ipos if with_interval else None), out, (iout if with_interval else None), pruned, totals
 
 
 def priority_at_states(restriction, preference, b_idx, v_idx, s_idx, forbid_threshold):
@@ -532,12 +926,36 @@ def sum_by_key(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.nda
     if numba is None or top >= SUM_BY_KEY_MAX_KEY or int(keys.min()) < 0:
         unique, inverse = np.unique(keys, return_inverse=True)
         return unique, np.bincount(inverse.reshape(-1), weights=values.reshape(-1), minlength=unique.size)
+    return _sum_by_key(np.ascontiguousarray(keys.reshape(-1)), np.ascontiguousarray(values.reshape(-1)), _slot_table(top))
+
+
+def _slot_table(top: int) -> np.ndarray:
+    """The calling thread's scratch table of slots (all -1) for keys up to ``top`` (< ``SUM_BY_KEY_MAX_KEY``)."""
     slot = getattr(_slots, "table", None)
     if slot is None or slot.shape[0] <= top:
         slot = np.full(max(top + 1, 1 << 16, 2 * (0 if slot is None else slot.shape[0])), -1, np.int32)
         slot = slot[: min(slot.shape[0], SUM_BY_KEY_MAX_KEY)]
         _slots.table = slot
-    return _sum_by_key(np.ascontiguousarray(keys.reshape(-1)), np.ascontiguousarray(values.reshape(-1)), slot)
+    return slot
+
+
+def vehicle_grids(x_m, y_m, normal_x, normal_y, sample_weights, probs, pair_weights, wide, shifts, members, origin_x, origin_y,
+                  cell, n_rows, n_cols, min_mass):
+    """The sparse grids of ``stages.markov_prediction.rasterise.vehicle_grid`` for every vehicle in one call (see
+    ``rasterise.vehicle_grids``); None where numba is missing. ``members``: per vehicle its pair indices.
+    Returns (keys, sums, offsets (n_vehicles + 1,))."""
+    if numba is None:
+        return None
+    ptr = np.zeros(len(members) + 1, np.int64)
+    ptr[1:] = np.cumsum([len(m) for m in members])
+    flat = np.fromiter((b for m in members for b in m), np.int64, count=int(ptr[-1]))
+    c = np.ascontiguousarray
+    has_shift = shifts is not None
+    shifts = shifts if has_shift else np.zeros(probs.shape[:2])
+    return _vehicle_grids(c(x_m, dtype=np.float64), c(y_m, dtype=np.float64), c(normal_x, dtype=np.float64), c(normal_y, dtype=np.float64),
+                          c(sample_weights, dtype=np.float64), c(probs, dtype=np.float32), c(pair_weights, dtype=np.float64),
+                          c(wide, dtype=np.bool_), c(shifts, dtype=np.float64), has_shift, ptr, flat, float(origin_x),
+                          float(origin_y), float(cell), int(n_rows), int(n_cols), float(min_mass))
 
 
 _warm = False
@@ -562,5 +980,11 @@ def warm_up() -> None:
     lazy = SpeedRestriction([np.arange(3.0)], [np.ones((1, 3))], np.zeros((1, 2)), np.ones(2), np.arange(2.0), np.ones(1), 0.4)
     lazy.priority_at_states(np.ones((1, 2), np.float32), np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64), 0.0)
     lazy.full()
+    half = np.full((1, 2), 0.5, np.float32)
+    speed_priority_run((half, half, half), np.zeros(1, np.float32), (ptr, one, one, w, ptr, one, w), 2, True, 1e-7, np.eye(2),
+                       lazy, np.ones((2, 1, 2), np.float32), [True, False], 0.0)
     sum_by_key(np.array([3, 1, 3], np.int64), np.ones(3))
+    box = np.zeros((1, 1, 1))
+    vehicle_grids(box, box, box, box, np.ones(1), np.ones((1, 1, 1), np.float32), np.ones(1), np.ones(1, np.bool_), np.zeros((1, 1)),
+                  [[0]], -1.0, -1.0, 1.0, 2, 2, 1e-9)
     _warm = True

@@ -362,6 +362,11 @@ class _NumpyBackend:
         self._leak_start = max(n_s - (stencils.n_offsets - 1), 0)
         self._collapsed: dict[tuple[TransitionKind, int], sp.csr_matrix] = {}
 
+    @property
+    def tables(self) -> tuple[np.ndarray, ...] | None:
+        """The numba kernels' stencil tables (``kernels.stencil_tables`` of Υ(τ), ``collapsed_tables`` of Υ([0, τ])), or None."""
+        return self._tables
+
     def _position_matrix(self, kind: TransitionKind, n_cells: int) -> sp.csr_matrix:
         """Slab state -> s-cell of the next step, ``(n_cells, n_cells·M·N_v)`` float32: the block summed over (α, v) per
         target s-cell, so that the position marginal of one step costs D entries per state instead of the block's ~3·D."""
@@ -694,6 +699,17 @@ class _TorchBackend:
                 holder.fp32_precision = previous
 
 
+def mass_error(final_total: np.ndarray, outside: np.ndarray, lost: np.ndarray | None) -> np.ndarray:
+    """(B,) float32 |Σ final state + outside (+ pruned mass lost) − 1| of a run; a warning when one is above
+    ``MASS_TOLERANCE``."""
+    error = np.abs(np.asarray(final_total, dtype=np.float64) + np.asarray(outside, dtype=np.float64)
+                   + (0.0 if lost is None else lost) - 1.0)
+    if error.size and error.max() > MASS_TOLERANCE:
+        worst = int(np.argmax(error))
+        logger.warning("markov mass not conserved: pair=%d error=%.3g", worst, error[worst])
+    return error.astype(np.float32)
+
+
 def _validated(x: Any, shape: tuple[int, ...], what: str, sum_axis: int) -> Any:
     """``x`` as float32 in its own library (numpy or torch), checked: shape, finite, >= 0, sums to 1 along ``sum_axis``.
 
@@ -969,13 +985,8 @@ class MarkovPropagator:
                 dropped = before - kept
                 pruned[:, k] = dropped.clip(0.0) if hasattr(dropped, "clip") else dropped
 
-        final_total = be.total(slab)
-        outside_np = be.to_numpy(outside).astype(np.float64)
-        lost = np.zeros(n_pairs) if self.renormalise_pruned else be.to_numpy(pruned).astype(np.float64).sum(axis=1)
-        mass_error = np.abs(final_total + outside_np + lost - 1.0)
-        if n_pairs and mass_error.max() > MASS_TOLERANCE:
-            worst = int(np.argmax(mass_error))
-            logger.warning("markov mass not conserved: pair=%d error=%.3g", worst, mass_error[worst])
+        lost = None if self.renormalise_pruned else be.to_numpy(pruned).astype(np.float64).sum(axis=1)
+        errors = mass_error(be.total(slab), be.to_numpy(outside), lost)
         return PropagationResult(
             position_probs=be.to_numpy(positions),
             velocity_probs=be.to_numpy(velocities),
@@ -984,5 +995,5 @@ class MarkovPropagator:
             interval_outside_mass=None if interval_outsides is None else be.to_numpy(interval_outsides),
             pruned_mass=be.to_numpy(pruned),
             final_state=be.to_external(slab, lo, hi) if with_final_state else None,
-            mass_error=mass_error.astype(np.float32),
+            mass_error=errors,
         )

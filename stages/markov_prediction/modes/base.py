@@ -121,6 +121,11 @@ class ChainInputs(ABC):
         """The input transition Γ after step k (None: identity) for the pairs of the pass being run, given its marginals."""
         raise NotImplementedError
 
+    def fixed_steps(self) -> list[InputTransition | None] | None:
+        """The input transitions of every step of the first pass when none depends on the marginals (the propagator
+        may then run the pass in one compiled call), else None (``step`` is called step by step)."""
+        return None
+
     def rerun(self, arrays: dict[str, np.ndarray]) -> np.ndarray | None:
         """After a pass, with the frame's arrays so far (position, velocity, interval; standstill mixed in): the pair
         indices to propagate once more (``step`` then serves that pass), or None when the frame is done."""
