@@ -137,6 +137,20 @@ class Range:
             bad |= v > self.hi
         return bad
 
+    def any_bad(self, values: np.ndarray) -> bool:
+        """Whether any value lies outside this range (``bad(values).any()``, by two reductions)."""
+        v = values
+        if v.size == 0:
+            return False
+        kind = v.dtype.kind
+        if kind not in "iubf":
+            return bool(self.bad(v).any())
+        lo, hi = v.min(), v.max()
+        if kind == "f" and not (math.isfinite(lo) and math.isfinite(hi)):
+            # NaN (it propagates through min/max) or an infinity: bad unless NaN is allowed, then value by value
+            return bool(self.bad(v).any()) if self.nan else True
+        return bool((self.lo is not None and lo < self.lo) or (self.hi is not None and hi > self.hi))
+
     def bad_scalar(self, value: int | float) -> bool:
         """Whether one int or float lies outside this range (Python comparisons: any int size)."""
         if isinstance(value, float) and not math.isfinite(value):
@@ -455,8 +469,11 @@ def _decode_obj(cls: type, body: Any, path: str, where: str) -> Any:
     if not isinstance(body, dict):
         raise MalformedPayload(f"{path}{_at(where)}: expected a map, got {type(body).__name__}")
     hints = _hints(cls)
-    missing = [n for n in hints if n not in body]
-    unknown = [n for n in body if n not in hints]
+    if body.keys() == hints.keys():  # the usual case, one set comparison
+        missing = unknown = ()
+    else:
+        missing = [n for n in hints if n not in body]
+        unknown = [n for n in body if n not in hints]
     if missing:
         raise MalformedPayload(f"{path}{_at(where)}: missing field(s) {', '.join(missing)}")
     if unknown:
@@ -497,9 +514,9 @@ def _array_spec(tp: Any) -> "Array | None":
 def _check_range(value: Any, rng: Range, path: str, rows: tuple | None, spec: "Array | None") -> Any:
     """``value`` checked against ``rng``; cleared, marked for a row drop, or raised (see the module docstring)."""
     if isinstance(value, np.ndarray):
-        bad = rng.bad(value)
-        if not bad.any():
+        if not rng.any_bad(value):
             return value
+        bad = rng.bad(value)
         n_bad = int(bad.sum())
         first = value[bad].flat[0]
         what = f"{n_bad} value(s) outside {rng.describe()} (first: {_short(first, 40)})"
@@ -527,96 +544,137 @@ def _bad(path: str, where: str, what: str) -> MalformedPayload:
     return MalformedPayload(f"{path}{_at(where)}: {what}")
 
 
-def _decode_value(
-    raw: Any, tp: Any, path: str, where: str, dims: dict[str, int], rows: tuple | None = None, drop: bool = False
-) -> Any:
+# What ``_decode_value`` needs to know about a field type, worked out once per type (the typing
+# introspection and the ``Annotated[...]`` construction cost more than decoding a small value).
+_RANGE, _PLAIN, _ARRAY, _UNION, _TUPLE, _DICT, _ENUM, _OBJ, _FLOAT, _INT, _BOOL, _STR, _BYTES, _UNSUPPORTED = range(14)
+_PLANS: dict[int, tuple[Any, tuple]] = {}
+
+
+def _make_plan(tp: Any) -> tuple:
     origin = typing.get_origin(tp)
     if origin is Annotated:
         base, *meta = typing.get_args(tp)
         rng = next((m for m in meta if isinstance(m, Range)), None)
-        if rng is not None:
-            spec = next((m for m in meta if isinstance(m, Array)), None)
-            inner = Annotated[(base, spec)] if spec is not None else base
-            return _check_range(_decode_value(raw, inner, path, where, dims, rows, drop), rng, path, rows, spec)
         spec = next((m for m in meta if isinstance(m, Array)), None)
+        if rng is not None:
+            return (_RANGE, rng, spec, Annotated[(base, spec)] if spec is not None else base)
         if spec is None:
-            return _decode_value(raw, base, path, where, dims)
-        if not (isinstance(raw, list) and len(raw) == 3):
-            raise _bad(path, where, "expected an array [dtype, shape, bytes]")
-        dtype, shape, buf = raw
-        if type(dtype) is not str or dtype != spec.dtype or dtype not in _ALLOWED_DTYPES:
-            raise _bad(path, where, f"array dtype {_short(repr(dtype), 40)}, schema wants {spec.dtype}")
-        if not isinstance(shape, list):
-            raise _bad(path, where, "array shape is not a list of non-negative ints")
-        if len(shape) != len(spec.dims):
-            raise _bad(path, where, f"array has {len(shape)} dims, schema wants {len(spec.dims)}")
-        if not all(type(d) is int and 0 <= d <= MAX_ARRAY_DIM for d in shape):
-            raise _bad(path, where, f"array shape {_short(shape, 60)} is not a list of ints in 0..{MAX_ARRAY_DIM}")
-        if not isinstance(buf, bytes):
-            raise _bad(path, where, "array data is not bytes")
-        dt = np.dtype(dtype).newbyteorder("<")
-        if math.prod(max(d, 1) for d in shape) * dt.itemsize > MAX_PAYLOAD_BYTES:
-            raise _bad(path, where, f"array shape {shape} {dtype} is larger than any payload ({MAX_PAYLOAD_BYTES} bytes)")
-        if math.prod(shape) * dt.itemsize != len(buf):
-            raise _bad(path, where, f"array of shape {shape} {dtype} needs {math.prod(shape) * dt.itemsize} bytes, got {len(buf)}")
-        _check_dims(tuple(shape), spec, path + _at(where), dims, MalformedPayload)
-        try:
-            return np.frombuffer(buf, dtype=dt).reshape(shape).astype(np.dtype(dtype), copy=True)
-        except Exception as exc:  # unreachable after the checks above; kept so numpy can never escape
-            raise _bad(path, where, f"array {dtype} {shape}: {type(exc).__name__}: {_short(exc)}") from None
+            return (_PLAIN, base, None, None)
+        return (_ARRAY, spec, np.dtype(spec.dtype).newbyteorder("<"), np.dtype(spec.dtype))
     if origin in (typing.Union, types.UnionType):
-        if raw is None:
-            if type(None) in typing.get_args(tp):
-                return None
-            raise _bad(path, where, "is nil")
-        args = [a for a in typing.get_args(tp) if a is not type(None)]
-        return _decode_value(raw, args[0], path, where, dims)
+        args = typing.get_args(tp)
+        return (_UNION, type(None) in args, [a for a in args if a is not type(None)][0], None)
     if origin is tuple:
         (elem, _ellipsis) = typing.get_args(tp)
+        return (_TUPLE, elem, None, None)
+    if origin is dict:
+        _k, vt = typing.get_args(tp)
+        return (_DICT, vt, None, None)
+    if isinstance(tp, type) and issubclass(tp, enum.Enum):
+        return (_ENUM, tp, None, None)
+    if dataclasses.is_dataclass(tp):
+        return (_OBJ, tp, None, None)
+    simple = {float: _FLOAT, int: _INT, bool: _BOOL, str: _STR, bytes: _BYTES}
+    return (simple.get(tp, _UNSUPPORTED) if isinstance(tp, type) else _UNSUPPORTED, None, None, None)
+
+
+def _plan(tp: Any) -> tuple:
+    # keyed by id (hashing a typing.Annotated is slow); the entry keeps ``tp`` alive and is checked by identity
+    entry = _PLANS.get(id(tp))
+    if entry is None or entry[0] is not tp:
+        entry = _PLANS[id(tp)] = (tp, _make_plan(tp))
+    return entry[1]
+
+
+def _decode_array(raw: Any, spec: "Array", dt: np.dtype, out_dt: np.dtype, path: str, where: str, dims: dict[str, int]) -> np.ndarray:
+    """An ``[dtype, shape, bytes]`` field as a writable array of ``spec`` (little-endian ``dt`` on the wire)."""
+    if not (isinstance(raw, list) and len(raw) == 3):
+        raise _bad(path, where, "expected an array [dtype, shape, bytes]")
+    dtype, shape, buf = raw
+    if type(dtype) is not str or dtype != spec.dtype or dtype not in _ALLOWED_DTYPES:
+        raise _bad(path, where, f"array dtype {_short(repr(dtype), 40)}, schema wants {spec.dtype}")
+    if not isinstance(shape, list):
+        raise _bad(path, where, "array shape is not a list of non-negative ints")
+    if len(shape) != len(spec.dims):
+        raise _bad(path, where, f"array has {len(shape)} dims, schema wants {len(spec.dims)}")
+    if not all(type(d) is int and 0 <= d <= MAX_ARRAY_DIM for d in shape):
+        raise _bad(path, where, f"array shape {_short(shape, 60)} is not a list of ints in 0..{MAX_ARRAY_DIM}")
+    if not isinstance(buf, bytes):
+        raise _bad(path, where, "array data is not bytes")
+    if math.prod(max(d, 1) for d in shape) * dt.itemsize > MAX_PAYLOAD_BYTES:
+        raise _bad(path, where, f"array shape {shape} {dtype} is larger than any payload ({MAX_PAYLOAD_BYTES} bytes)")
+    if math.prod(shape) * dt.itemsize != len(buf):
+        raise _bad(path, where, f"array of shape {shape} {dtype} needs {math.prod(shape) * dt.itemsize} bytes, got {len(buf)}")
+    _check_dims(tuple(shape), spec, path + _at(where), dims, MalformedPayload)
+    try:
+        return np.frombuffer(buf, dtype=dt).reshape(shape).astype(out_dt, copy=True)
+    except Exception as exc:  # unreachable after the checks above; kept so numpy can never escape
+        raise _bad(path, where, f"array {dtype} {shape}: {type(exc).__name__}: {_short(exc)}") from None
+
+
+def _decode_value(
+    raw: Any, tp: Any, path: str, where: str, dims: dict[str, int], rows: tuple | None = None, drop: bool = False
+) -> Any:
+    kind, a, b, c = _plan(tp)
+    if kind == _RANGE:
+        inner = _plan(c)
+        if inner[0] == _ARRAY:
+            return _check_range(_decode_array(raw, inner[1], inner[2], inner[3], path, where, dims), a, path, rows, b)
+        return _check_range(_decode_value(raw, c, path, where, dims, rows, drop), a, path, rows, b)
+    if kind == _PLAIN:
+        return _decode_value(raw, a, path, where, dims)
+    if kind == _ARRAY:
+        return _decode_array(raw, a, b, c, path, where, dims)
+    if kind == _UNION:
+        if raw is None:
+            if a:
+                return None
+            raise _bad(path, where, "is nil")
+        return _decode_value(raw, b, path, where, dims)
+    if kind == _TUPLE:
         if not isinstance(raw, list):
             raise _bad(path, where, f"expected a list, got {type(raw).__name__}")
         if not drop:
-            return tuple(_decode_value(v, elem, f"{path}[{i}]", where, {}) for i, v in enumerate(raw))
+            return tuple([_decode_value(v, a, f"{path}[{i}]", where, {}) for i, v in enumerate(raw)])
         out = []
         for i, v in enumerate(raw):
             try:
-                out.append(_decode_value(v, elem, f"{path}[{i}]", where, {}))
+                out.append(_decode_value(v, a, f"{path}[{i}]", where, {}))
             except _DropElement as exc:
                 _record("dropped", path, 1, f"{path}[{i}]: {_INDEX.sub('[]', exc.path)}: {exc.detail}")
         return tuple(out)
-    if origin is dict:
-        _k, vt = typing.get_args(tp)
+    if kind == _DICT:
         if not isinstance(raw, dict):
             raise _bad(path, where, f"expected a map, got {type(raw).__name__}")
         if not all(type(k) is str for k in raw):
             raise _bad(path, where, "map keys are not all str")
-        return {k: _decode_value(v, vt, f"{path}[{_short(k, 40)}]", where, {}) for k, v in raw.items()}
-    if isinstance(tp, type) and issubclass(tp, enum.Enum):
+        return {k: _decode_value(v, a, f"{path}[{_short(k, 40)}]", where, {}) for k, v in raw.items()}
+    if kind == _ENUM:
         if type(raw) is not int:
             raise _bad(path, where, f"expected an enum value (int), got {type(raw).__name__}")
         try:
-            return tp(raw)
+            return a(raw)
         except ValueError:
-            raise _bad(path, where, f"{raw} is not a {tp.__name__}") from None
-    if dataclasses.is_dataclass(tp):
-        return _decode_obj(tp, raw, path, where)
-    if tp is float:
+            raise _bad(path, where, f"{raw} is not a {a.__name__}") from None
+    if kind == _OBJ:
+        return _decode_obj(a, raw, path, where)
+    if kind == _FLOAT:
         if isinstance(raw, bool) or not isinstance(raw, (int, float)):
             raise _bad(path, where, f"expected float, got {type(raw).__name__}")
         return float(raw)
-    if tp is int:
+    if kind == _INT:
         if type(raw) is not int:
             raise _bad(path, where, f"expected int, got {type(raw).__name__}")
         return raw
-    if tp is bool:
+    if kind == _BOOL:
         if type(raw) is not bool:
             raise _bad(path, where, f"expected bool, got {type(raw).__name__}")
         return raw
-    if tp is str:
+    if kind == _STR:
         if not isinstance(raw, str):
             raise _bad(path, where, f"expected str, got {type(raw).__name__}")
         return raw
-    if tp is bytes:
+    if kind == _BYTES:
         if not isinstance(raw, bytes):
             raise _bad(path, where, f"expected bytes, got {type(raw).__name__}")
         return raw

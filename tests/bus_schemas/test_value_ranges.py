@@ -119,3 +119,24 @@ def test_range_semantics():
     assert Range(nan=True).bad(np.array([np.nan, np.inf, -np.inf, 1e300])).tolist() == [False, True, True, False]
     assert Range(0, 10).bad_scalar(2**80) and not Range(0, 10).bad_scalar(3)
     assert bs.json_schema(bs.TrackFrame)["properties"]["header"]["properties"]["stamp_ns"].get("minimum") == 0
+
+
+def test_any_bad_agrees_with_the_mask_for_every_dtype_and_range() -> None:
+    """``Range.any_bad`` (two reductions, the decoder's fast check) == ``Range.bad(v).any()``."""
+    rng = np.random.default_rng(7)
+    ranges = [Range(), Range(lo=0.0), Range(hi=5.0), Range(lo=-1.0, hi=1.0), Range(lo=0.0, nan=True), Range(hi=3.0, nan=True, clear=True)]
+    specials = [np.nan, np.inf, -np.inf, 0.0, -1.0, 1.0, 5.0, 5.5, -1.5]
+    checked = 0
+    for r in ranges:
+        for dtype in ("float64", "float32", "int64", "int8", "uint8", "bool"):
+            for size in (0, 1, 3, 17):
+                for _ in range(20):
+                    if dtype.startswith("float"):
+                        v = rng.choice(specials, size=size).astype(dtype) if rng.random() < 0.5 else rng.uniform(-2, 6, size).astype(dtype)
+                    elif dtype == "bool":
+                        v = rng.random(size) < 0.5
+                    else:
+                        v = rng.integers(-3 if dtype in ("int64", "int8") else 0, 7, size).astype(dtype)
+                    assert r.any_bad(v) == bool(r.bad(v).any()), (r, dtype, v)
+                    checked += 1
+    assert checked == len(ranges) * 6 * 4 * 20
