@@ -398,6 +398,48 @@ def _hints(cls: type) -> dict[str, Any]:
     return h
 
 
+# What ``_encode_value`` and ``_decode_value`` need to know about a field type, worked out once per type (the typing
+# introspection and the ``Annotated[...]`` construction cost more than decoding a small value).
+_RANGE, _PLAIN, _ARRAY, _UNION, _TUPLE, _DICT, _ENUM, _OBJ, _FLOAT, _INT, _BOOL, _STR, _BYTES, _UNSUPPORTED = range(14)
+_PLANS: dict[int, tuple[Any, tuple]] = {}
+
+
+def _make_plan(tp: Any) -> tuple:
+    origin = typing.get_origin(tp)
+    if origin is Annotated:
+        base, *meta = typing.get_args(tp)
+        rng = next((m for m in meta if isinstance(m, Range)), None)
+        spec = next((m for m in meta if isinstance(m, Array)), None)
+        if rng is not None:
+            return (_RANGE, rng, spec, Annotated[(base, spec)] if spec is not None else base)
+        if spec is None:
+            return (_PLAIN, base, None, None)
+        return (_ARRAY, spec, np.dtype(spec.dtype).newbyteorder("<"), np.dtype(spec.dtype))
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(tp)
+        return (_UNION, type(None) in args, [a for a in args if a is not type(None)][0], None)
+    if origin is tuple:
+        (elem, _ellipsis) = typing.get_args(tp)
+        return (_TUPLE, elem, None, None)
+    if origin is dict:
+        _k, vt = typing.get_args(tp)
+        return (_DICT, vt, None, None)
+    if isinstance(tp, type) and issubclass(tp, enum.Enum):
+        return (_ENUM, tp, None, None)
+    if dataclasses.is_dataclass(tp):
+        return (_OBJ, tp, None, None)
+    simple = {float: _FLOAT, int: _INT, bool: _BOOL, str: _STR, bytes: _BYTES}
+    return (simple.get(tp, _UNSUPPORTED) if isinstance(tp, type) else _UNSUPPORTED, None, None, None)
+
+
+def _plan(tp: Any) -> tuple:
+    # keyed by id (hashing a typing.Annotated is slow); the entry keeps ``tp`` alive and is checked by identity
+    entry = _PLANS.get(id(tp))
+    if entry is None or entry[0] is not tp:
+        entry = _PLANS[id(tp)] = (tp, _make_plan(tp))
+    return entry[1]
+
+
 def _encode_obj(obj: Any, path: str) -> dict:
     out = {}
     dims: dict[str, int] = {}
@@ -407,48 +449,45 @@ def _encode_obj(obj: Any, path: str) -> dict:
 
 
 def _encode_value(value: Any, tp: Any, path: str, dims: dict[str, int]) -> Any:
-    origin = typing.get_origin(tp)
-    if origin is Annotated:
-        base, *meta = typing.get_args(tp)
-        spec = next((m for m in meta if isinstance(m, Array)), None)
-        if spec is None:
-            return _encode_value(value, base, path, dims)
+    kind, a, b, c = _plan(tp)
+    if kind == _RANGE:  # ranges are checked on decode; encode what the annotation's type says
+        return _encode_value(value, c, path, dims)
+    if kind == _PLAIN:
+        return _encode_value(value, a, path, dims)
+    if kind == _ARRAY:
         arr = np.asarray(value)
-        if arr.dtype != np.dtype(spec.dtype):
-            raise TypeError(f"{path}: array dtype {arr.dtype}, schema wants {spec.dtype}")
-        _check_dims(arr.shape, spec, path, dims, TypeError)
-        arr = np.ascontiguousarray(arr, dtype=np.dtype(spec.dtype).newbyteorder("<"))
-        return [spec.dtype, list(arr.shape), arr.tobytes()]
-    if origin in (typing.Union, types.UnionType):
+        if arr.dtype != c:
+            raise TypeError(f"{path}: array dtype {arr.dtype}, schema wants {a.dtype}")
+        _check_dims(arr.shape, a, path, dims, TypeError)
+        arr = np.ascontiguousarray(arr, dtype=b)
+        return [a.dtype, list(arr.shape), arr.tobytes()]
+    if kind == _UNION:
         if value is None:
             return None
-        args = [a for a in typing.get_args(tp) if a is not type(None)]
-        return _encode_value(value, args[0], path, dims)
-    if origin is tuple:
-        (elem, _ellipsis) = typing.get_args(tp)
-        return [_encode_value(v, elem, f"{path}[{i}]", {}) for i, v in enumerate(value)]
-    if origin is dict:
-        _k, vt = typing.get_args(tp)
-        return {str(k): _encode_value(v, vt, f"{path}[{k}]", {}) for k, v in value.items()}
-    if isinstance(tp, type) and issubclass(tp, enum.Enum):
-        return int(tp(value).value)
-    if dataclasses.is_dataclass(tp):
-        if not isinstance(value, tp):
-            raise TypeError(f"{path}: expected {tp.__name__}, got {type(value).__name__}")
+        return _encode_value(value, b, path, dims)
+    if kind == _TUPLE:
+        return [_encode_value(v, a, f"{path}[{i}]", {}) for i, v in enumerate(value)]
+    if kind == _DICT:
+        return {str(k): _encode_value(v, a, f"{path}[{k}]", {}) for k, v in value.items()}
+    if kind == _ENUM:
+        return int(a(value).value)
+    if kind == _OBJ:
+        if not isinstance(value, a):
+            raise TypeError(f"{path}: expected {a.__name__}, got {type(value).__name__}")
         return _encode_obj(value, path)
-    if tp is float:
+    if kind == _FLOAT:
         return float(value)
-    if tp is int:
+    if kind == _INT:
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
             raise TypeError(f"{path}: expected int, got {type(value).__name__}")
         return int(value)
-    if tp is bool:
+    if kind == _BOOL:
         return bool(value)
-    if tp is str:
+    if kind == _STR:
         if not isinstance(value, str):
             raise TypeError(f"{path}: expected str, got {type(value).__name__}")
         return value
-    if tp is bytes:
+    if kind == _BYTES:
         return bytes(value)
     raise TypeError(f"{path}: unsupported field type {tp!r}")
 
@@ -542,48 +581,6 @@ def _check_range(value: Any, rng: Range, path: str, rows: tuple | None, spec: "A
 
 def _bad(path: str, where: str, what: str) -> MalformedPayload:
     return MalformedPayload(f"{path}{_at(where)}: {what}")
-
-
-# What ``_decode_value`` needs to know about a field type, worked out once per type (the typing
-# introspection and the ``Annotated[...]`` construction cost more than decoding a small value).
-_RANGE, _PLAIN, _ARRAY, _UNION, _TUPLE, _DICT, _ENUM, _OBJ, _FLOAT, _INT, _BOOL, _STR, _BYTES, _UNSUPPORTED = range(14)
-_PLANS: dict[int, tuple[Any, tuple]] = {}
-
-
-def _make_plan(tp: Any) -> tuple:
-    origin = typing.get_origin(tp)
-    if origin is Annotated:
-        base, *meta = typing.get_args(tp)
-        rng = next((m for m in meta if isinstance(m, Range)), None)
-        spec = next((m for m in meta if isinstance(m, Array)), None)
-        if rng is not None:
-            return (_RANGE, rng, spec, Annotated[(base, spec)] if spec is not None else base)
-        if spec is None:
-            return (_PLAIN, base, None, None)
-        return (_ARRAY, spec, np.dtype(spec.dtype).newbyteorder("<"), np.dtype(spec.dtype))
-    if origin in (typing.Union, types.UnionType):
-        args = typing.get_args(tp)
-        return (_UNION, type(None) in args, [a for a in args if a is not type(None)][0], None)
-    if origin is tuple:
-        (elem, _ellipsis) = typing.get_args(tp)
-        return (_TUPLE, elem, None, None)
-    if origin is dict:
-        _k, vt = typing.get_args(tp)
-        return (_DICT, vt, None, None)
-    if isinstance(tp, type) and issubclass(tp, enum.Enum):
-        return (_ENUM, tp, None, None)
-    if dataclasses.is_dataclass(tp):
-        return (_OBJ, tp, None, None)
-    simple = {float: _FLOAT, int: _INT, bool: _BOOL, str: _STR, bytes: _BYTES}
-    return (simple.get(tp, _UNSUPPORTED) if isinstance(tp, type) else _UNSUPPORTED, None, None, None)
-
-
-def _plan(tp: Any) -> tuple:
-    # keyed by id (hashing a typing.Annotated is slow); the entry keeps ``tp`` alive and is checked by identity
-    entry = _PLANS.get(id(tp))
-    if entry is None or entry[0] is not tp:
-        entry = _PLANS[id(tp)] = (tp, _make_plan(tp))
-    return entry[1]
 
 
 def _decode_array(raw: Any, spec: "Array", dt: np.dtype, out_dt: np.dtype, path: str, where: str, dims: dict[str, int]) -> np.ndarray:
