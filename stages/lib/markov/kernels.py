@@ -202,32 +202,43 @@ if numba is not None:
             for j in range(n_in):
                 x[j, i] = slab[s_idx[i], j, v_idx[i], b_idx[i]]
         ratio = np.empty((n_in, n), np.float32)
-        for j in range(n_in):  # Z[j] = Σ_a λ[a] Ψ[a, j]; ratio = p⁻[j] / Z[j]
-            z = np.zeros(n, np.float32)
-            for a in range(n_in):
-                w = psi[a, j]
-                row = lam_t[a]
-                for i in range(n):
-                    z[i] += row[i] * w
-            xj = x[j]
-            rj = ratio[j]
-            for i in range(n):
-                rj[i] = xj[i] / z[i] if z[i] > 0 else np.float32(0.0)
+        z = np.empty(n, np.float32)
+        acc = np.empty(n, np.float32)
         f = np.empty(n, np.float32)
         for i in range(n):
             f[i] = factors[b_idx[i]]
-        acc = np.empty(n, np.float32)
         for a in range(n_in):  # out[a] = λ[a] · Σ_j Ψ[a, j] ratio[j] · factor
-            acc[:] = 0.0
-            for j in range(n_in):
-                w = psi[a, j]
-                rj = ratio[j]
-                for i in range(n):
-                    acc[i] += w * rj[i]
+            _gamma_input(a, x, lam_t, psi, n, z, ratio, acc)
             la = lam_t[a]
             for i in range(n):
                 out[s_idx[i], a, v_idx[i], b_idx[i]] = la[i] * acc[i] * f[i]
         return out
+
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _gamma_input(a, x, lam_t, psi, n, z, ratio, acc):  # pragma: no cover - compiled
+        """Γ over the first ``n`` states, columns of ``x`` (p⁻, (M, ≥n)) and ``lam_t`` (λ, (M, ≥n)): at ``a == 0``
+        ``ratio[j] = p⁻[j] / Z[j]`` (0 where Z[j] = 0), Z[j] = Σ_a λ[a] Ψ[a, j]; then ``acc = Σ_j Ψ[a, j] ratio[j]``
+        for input ``a`` (the caller multiplies by λ[a] and the factor). One definition of the float32 sums' order for
+        both the step-by-step and the one-call kernels."""
+        n_in = psi.shape[0]
+        if a == 0:
+            for j in range(n_in):
+                z[:n] = 0.0
+                for b in range(n_in):
+                    w = psi[b, j]
+                    row = lam_t[b]
+                    for i in range(n):
+                        z[i] += row[i] * w
+                xj = x[j]
+                rj = ratio[j]
+                for i in range(n):
+                    rj[i] = xj[i] / z[i] if z[i] > 0 else np.float32(0.0)
+        acc[:n] = 0.0
+        for j in range(n_in):
+            w = psi[a, j]
+            rj = ratio[j]
+            for i in range(n):
+                acc[i] += w * rj[i]
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
     def _occupied_states(slab):  # pragma: no cover - compiled
@@ -637,24 +648,8 @@ if numba is not None:
                     for j in range(n_in):
                         x_t[j, i] = nxt[t, j, v, ln]
                         lam_t[j, i] = lam[i, j]
-                for j in range(n_in):  # Z[j] = Σ_a λ[a] Ψ[a, j]; ratio = p⁻[j] / Z[j]
-                    z[:n] = 0.0
-                    for a in range(n_in):
-                        w = psi[a, j]
-                        lrow = lam_t[a]
-                        for i in range(n):
-                            z[i] += lrow[i] * w
-                    xj = x_t[j]
-                    rj = ratio_t[j]
-                    for i in range(n):
-                        rj[i] = xj[i] / z[i] if z[i] > 0 else zero
                 for a in range(n_in):  # p[a] = λ[a] · Σ_j Ψ[a, j] ratio[j] · factor
-                    acc[:n] = 0.0
-                    for j in range(n_in):
-                        w = psi[a, j]
-                        rj = ratio_t[j]
-                        for i in range(n):
-                            acc[i] += w * rj[i]
+                    _gamma_input(a, x_t, lam_t, psi, n, z, ratio_t, acc)
                     la = lam_t[a]
                     for i in range(n):
                         cur[s_buf[i], a, v_buf[i], l_buf[i]] = la[i] * acc[i] * factor[l_buf[i]]
