@@ -220,6 +220,9 @@ class _DecodeGen(_Gen):
                 continue
             L.extend("    " + line for line in self.value_lines(v, plan, rng))
             kwargs.append(f"{name}={v}")
+        if arrays:
+            groups = sorted({a[1] for a in arrays})
+            L.insert(2, "    " + "; ".join(f"ap{g} = B[{g}].append" for g in groups))
         L.append(f"    obj = {self.const(cls, 'cls')}({', '.join(kwargs)})")
         if arrays:
             if hasattr(cls, "__post_init__"):
@@ -234,39 +237,45 @@ class _DecodeGen(_Gen):
         """Check ``[dtype, shape, bytes]`` in ``v`` as ``_decode_array`` does; leave the count (1-D) or shape in ``n{i}``."""
         item = np.dtype(spec.dtype).itemsize
         nd = len(spec.dims)
+        # the same acceptance as ``_decode_array``, fewer operations: an unpacking of the wrong length raises (give up);
+        # n * itemsize == len(buf) implies n >= 0; a named dim seen before was checked to be an int in range there
         L = [
-            f"    if type({v}) is not list or len({v}) != 3: raise _GiveUp",
+            f"    if type({v}) is not list: raise _GiveUp",
             f"    d, sh, buf = {v}",
-            f"    if type(d) is not str or d != {spec.dtype!r} or type(sh) is not list or len(sh) != {nd} or type(buf) is not bytes: raise _GiveUp",
+            f"    if type(d) is not str or d != {spec.dtype!r} or type(sh) is not list or type(buf) is not bytes: raise _GiveUp",
         ]
         n = f"n{i}"
         if nd == 1:
-            L += [
-                f"    {n} = sh[0]",
-                f"    if type({n}) is not int or not 0 <= {n} <= {W.MAX_ARRAY_DIM} or {n} * {item} != len(buf): raise _GiveUp",
-            ]
-            sizes = [n]
+            want = spec.dims[0]
+            L.append(f"    {n}, = sh")
+            if isinstance(want, str) and want in dims_seen:
+                L.append(f"    if {n} != dim_{want} or type({n}) is not int or {n} * {item} != len(buf): raise _GiveUp")
+            else:
+                L.append(f"    if type({n}) is not int or {n} > {W.MAX_ARRAY_DIM} or {n} * {item} != len(buf): raise _GiveUp")
+                if isinstance(want, int):
+                    L.append(f"    if {n} != {want}: raise _GiveUp")
+                elif isinstance(want, str):
+                    dims_seen.add(want)
+                    L.append(f"    dim_{want} = {n}")
         else:
             L += [
                 f"    {n} = tuple(sh)",
+                f"    if len({n}) != {nd}: raise _GiveUp",
                 f"    for x in {n}:",
                 f"        if type(x) is not int or not 0 <= x <= {W.MAX_ARRAY_DIM}: raise _GiveUp",
                 f"    if math.prod([x or 1 for x in {n}]) * {item} > {W.MAX_PAYLOAD_BYTES} or math.prod({n}) * {item} != len(buf): raise _GiveUp",
             ]
-            sizes = [f"{n}[{k}]" for k in range(nd)]
-        for size, want in zip(sizes, spec.dims):
-            if isinstance(want, int):
-                L.append(f"    if {size} != {want}: raise _GiveUp")
-            elif isinstance(want, str):
-                var = f"dim_{want}"
-                if want in dims_seen:
-                    L.append(f"    if {size} != {var}: raise _GiveUp")
-                else:
-                    dims_seen.add(want)
-                    L.append(f"    {var} = {size}")
-        if nd == 1 and max(1, item) > W.MAX_PAYLOAD_BYTES:  # pragma: no cover - the 1-D size check, for completeness
-            raise _Unsupported("itemsize")
-        L.append(f"    B[{g}].append(buf)")
+            for k, want in enumerate(spec.dims):
+                size = f"{n}[{k}]"
+                if isinstance(want, int):
+                    L.append(f"    if {size} != {want}: raise _GiveUp")
+                elif isinstance(want, str):
+                    if want in dims_seen:
+                        L.append(f"    if {size} != dim_{want}: raise _GiveUp")
+                    else:
+                        dims_seen.add(want)
+                        L.append(f"    dim_{want} = {size}")
+        L.append(f"    ap{g}(buf)")
         return L
 
     def gen_fill(self, cls: type, arrays: list[tuple[str, int, str, int]]) -> str:
