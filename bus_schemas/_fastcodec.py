@@ -41,7 +41,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from . import _wire as W
+from . import _plans as W
 
 ENABLED = sys.byteorder == "little"
 
