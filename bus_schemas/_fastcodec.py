@@ -35,8 +35,10 @@ must be native arrays).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
+import types
 from typing import Any, Callable
 
 import numpy as np
@@ -160,6 +162,7 @@ class _DecodeGen(_Gen):
         self.group_dtypes: list[np.dtype] = []
         self.group_ranges: list[Any] = []
         self.ns["_set"] = object.__setattr__
+        self.ns["_new"] = object.__new__
 
     def group(self, spec: Any, rng: Any) -> int:
         key = (spec.dtype, id(rng) if rng is not None else 0)
@@ -200,10 +203,11 @@ class _DecodeGen(_Gen):
     def gen_class(self, cls: type) -> None:
         fn = self.fn_names[cls]
         hints = W._hints(cls)
+        setters = self.slot_setters(cls, hints)
         keys = self.const(dict.fromkeys(hints).keys(), "keys")
         L = [f"def {fn}(body, B, P):", f"    if type(body) is not dict or body.keys() != {keys}: raise _GiveUp"]
-        kwargs: list[str] = []
-        arrays: list[tuple[str, int, str, int]] = []  # (field, group, count or shape variable, ndim)
+        values: list[tuple[str, str]] = []  # (field, variable) of the fields set now
+        arrays: list[tuple[str, int, str, int]] = []  # (field, group, count or shape variable, ndim): set by the fill
         dims_seen: set[str] = set()
         for i, (name, tp) in enumerate(hints.items()):
             plan, rng = self.field_kind(tp)
@@ -216,22 +220,48 @@ class _DecodeGen(_Gen):
                 g = self.group(spec, rng)
                 L.extend(self.array_lines(v, spec, g, i, dims_seen))
                 arrays.append((name, g, f"n{i}", len(spec.dims)))
-                kwargs.append(f"{name}=None")
                 continue
             L.extend("    " + line for line in self.value_lines(v, plan, rng))
-            kwargs.append(f"{name}={v}")
+            values.append((name, v))
         if arrays:
             groups = sorted({a[1] for a in arrays})
             L.insert(2, "    " + "; ".join(f"ap{g} = B[{g}].append" for g in groups))
-        L.append(f"    obj = {self.const(cls, 'cls')}({', '.join(kwargs)})")
-        if arrays:
-            if hasattr(cls, "__post_init__"):
+        if setters is not None:
+            # what the dataclass __init__ does (each field set once, in order), without its keyword handling
+            L.append(f"    obj = _new({self.const(cls, 'cls')})")
+            L.extend(f"    {setters[name]}(obj, {v})" for name, v in values)
+        else:
+            if arrays and hasattr(cls, "__post_init__"):
                 raise _Unsupported("arrays are set after __init__; a __post_init__ would see None")
-            fill = self.gen_fill(cls, arrays)
+            kwargs = [f"{name}={v}" for name, v in values] + [f"{a[0]}=None" for a in arrays]
+            L.append(f"    obj = {self.const(cls, 'cls')}({', '.join(kwargs)})")
+        if arrays:
+            fill = self.gen_fill(cls, arrays, setters)
             L.append(f"    P.append(({fill}, (obj, {', '.join(a[2] for a in arrays)})))")
         L.append("    return obj")
         self.lines.extend(L)
         self.lines.append("")
+
+    def slot_setters(self, cls: type, hints: dict) -> dict[str, str] | None:
+        """Field -> the name of its slot's setter, when an object can be built as its dataclass ``__init__`` builds it:
+        a slots dataclass with the generated ``__init__``, no ``__post_init__`` and no ``__new__`` of its own; else None."""
+        init = getattr(cls, "__init__", None)
+        if (
+            "__slots__" not in cls.__dict__
+            or hasattr(cls, "__post_init__")
+            or cls.__new__ is not object.__new__
+            or getattr(init, "__qualname__", "") != f"{cls.__qualname__}.__init__"
+            or getattr(getattr(init, "__code__", None), "co_filename", "") != "<string>"  # made by dataclasses, not written in the class
+            or list(hints) != [f.name for f in dataclasses.fields(cls) if f.init]
+        ):
+            return None
+        out = {}
+        for name in hints:
+            slot = cls.__dict__.get(name)
+            if not isinstance(slot, types.MemberDescriptorType):
+                return None
+            out[name] = self.const(slot.__set__, "set")
+        return out
 
     def array_lines(self, v: str, spec: Any, g: int, i: int, dims_seen: set[str]) -> list[str]:
         """Check ``[dtype, shape, bytes]`` in ``v`` as ``_decode_array`` does; leave the count (1-D) or shape in ``n{i}``."""
@@ -278,16 +308,19 @@ class _DecodeGen(_Gen):
         L.append(f"    ap{g}(buf)")
         return L
 
-    def gen_fill(self, cls: type, arrays: list[tuple[str, int, str, int]]) -> str:
+    def gen_fill(self, cls: type, arrays: list[tuple[str, int, str, int]], setters: dict[str, str] | None) -> str:
         """A function setting every array field of ``obj`` to its slice of its group's array."""
         fn = f"_fill_{cls.__name__}_{len(self.ns)}"
         params = ", ".join(f"a{k}" for k in range(len(arrays)))
         L = [f"def {fn}(A, O, obj, {params}):"]
         for k, (name, g, _var, nd) in enumerate(arrays):
             if nd == 1:
-                L += [f"    o = O[{g}]; e = o + a{k}; O[{g}] = e", f"    _set(obj, {name!r}, A[{g}][o:e])"]
+                L.append(f"    o = O[{g}]; e = o + a{k}; O[{g}] = e")
+                value = f"A[{g}][o:e]"
             else:
-                L += [f"    o = O[{g}]; e = o + math.prod(a{k}); O[{g}] = e", f"    _set(obj, {name!r}, A[{g}][o:e].reshape(a{k}))"]
+                L.append(f"    o = O[{g}]; e = o + math.prod(a{k}); O[{g}] = e")
+                value = f"A[{g}][o:e].reshape(a{k})"
+            L.append(f"    {setters[name]}(obj, {value})" if setters is not None else f"    _set(obj, {name!r}, {value})")
         self.lines.extend(L)
         self.lines.append("")
         return fn
