@@ -14,8 +14,13 @@ handled together:
   range checked by one ``Range.any_bad`` (the same test as per array, since
   it is a test of every value), and every array field becomes a slice (a
   writable view) of its group's array;
+- objects are built as their dataclass ``__init__`` builds them (each field
+  set once through its slot), without the keyword handling;
 - encoding writes each field as the reference does (the same Python values,
   so the same bytes after ``msgpack.packb``).
+
+The bodies it decodes are those ``_wire.unpack_envelope`` unpacked (msgpack's
+builtin types, every bin within the payload limit).
 
 The fast path is optimistic: it accepts only what it can check to be fine
 and gives up (``None``) on anything else: a type, dtype or shape it does not
@@ -433,24 +438,30 @@ class _EncodeGen(_Gen):
         spec, _wire_dt, dt = plan[1], plan[2], plan[3]
         self.array_spec_ok(spec)
         nd = len(spec.dims)
+        dt_name = self.const(dt, "dt")
         L = [
             f"if type({v}) is not _ndarray: {v} = _asarray({v})",
-            f"if {v}.dtype != {self.const(dt, 'dt')}: raise _GiveUp",
-            f"sh = {v}.shape",
-            f"if len(sh) != {nd}: raise _GiveUp",
+            f"dt = {v}.dtype",
+            f"if dt is not {dt_name} and dt != {dt_name}: raise _GiveUp",  # the same test, the identity first (the usual case)
         ]
-        for k, want in enumerate(spec.dims):
+        if nd == 1:  # an unpacking of a shape of another length raises: give up
+            sizes, shape = ["n"], "[n]"
+            L.append(f"n, = {v}.shape")
+        else:
+            sizes, shape = [f"sh[{k}]" for k in range(nd)], "list(sh)"
+            L += [f"sh = {v}.shape", f"if len(sh) != {nd}: raise _GiveUp"]
+        for size, want in zip(sizes, spec.dims):
             if isinstance(want, int):
-                L.append(f"if sh[{k}] != {want}: raise _GiveUp")
+                L.append(f"if {size} != {want}: raise _GiveUp")
             elif isinstance(want, str):
                 var = f"dim_{want}"
                 if want in dims_seen:
-                    L.append(f"if sh[{k}] != {var}: raise _GiveUp")
+                    L.append(f"if {size} != {var}: raise _GiveUp")
                 else:
                     dims_seen.add(want)
-                    L.append(f"{var} = sh[{k}]")
+                    L.append(f"{var} = {size}")
         # tobytes() writes C order whatever the layout; the dtype is native and little-endian (ENABLED)
-        L.append(f"{v} = [{spec.dtype!r}, list(sh), {v}.tobytes()]")
+        L.append(f"{v} = [{spec.dtype!r}, {shape}, {v}.tobytes()]")
         return L
 
     def value_lines(self, v: str, plan: tuple) -> list[str]:
