@@ -119,6 +119,9 @@ def _stack_inputs(p: Predictor, pairs: list[Pair]) -> np.ndarray:
     lam = np.stack([q.input_probs if q.input_probs is not None else np.repeat(measured[b][None], p.config.n_steps, axis=0)
                     for b, q in enumerate(pairs)])
     standing = np.array([q.start_rate_hz > 0 for q in pairs])
+    if p.config.hybrid_initial_input == "measured" and not np.all(standing):
+        lam = lam.copy()
+        lam[~standing, 0] = measured[~standing]
     if p.config.hybrid_stop_mixture:
         lam = stop_mixture(p, pairs, lam, standing)
     if p.config.hybrid_start_accel_mps2 > 0 and np.any(standing):
