@@ -12,7 +12,10 @@ keeps the rules' own preference for standing vehicles: an experiment, off by
 default (README, Evaluation: no gain on the held-out location). With
 ``hybrid_stop_mixture`` (an experiment, off by default) a moving pair's λ_AR(k) is mixed with a
 braking input by the intentions stage's P(stop) on its corridor
-(``stop_mixture``; docs/method.md §8.5).
+(``stop_mixture``; docs/method.md §8.5). Two more experiments, off by default (README, Evaluation: chosen on
+K729, worse on the held-out K733): ``hybrid_speed_restriction_curves`` false cuts λ_AR(k) by the speed limit
+alone (``speed_profiles``), and ``hybrid_initial_input`` "measured" starts a moving pair from its measured
+acceleration instead of λ_AR(0) (``_stack_inputs``).
 """
 
 from __future__ import annotations
