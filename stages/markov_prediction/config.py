@@ -45,11 +45,21 @@ class MarkovPredictionConfig(ConfigMixin):
     # hybrid mode (docs/method.md §8.5): how the AR distributions enter the chain
     hybrid_input: str = "psi"
     hybrid_speed_restriction: bool = True
+    # hybrid mode, with hybrid_speed_restriction: false cuts λ_AR(k) by the speed limit only (curvature taken as 0:
+    # the AR model reads the curvature ahead itself). An experiment, off: with hybrid_initial_input "measured", chosen
+    # on K729 (K733-trained GRU) hybrid mADE 1.507 -> 1.305, fast 3.26 -> 2.41; held out on K733 3.05 -> 3.60,
+    # fast 4.83 -> 5.92 (README "Why hybrid loses to the baseline on fast cars"); alone on K729 1.507 -> 1.468
+    hybrid_speed_restriction_curves: bool = True
     # true: the AR distribution λ_AR(k) is the preference inside the baseline's full rule set (speed, leader,
     # crossing: λ = cut(min(λ_speed, λ_lead, λ_conf), λ_AR(k))) instead of the speed cut alone
     hybrid_rules: bool = False
     # with hybrid_rules: "rules" gives a standing vehicle the rules' own preference and its measured input, "ar" λ_AR too
     hybrid_rules_standing: str = "ar"
+    # hybrid mode: the input at t0 of a moving pair (not in the standstill band): "ar" λ_AR(0), or "measured" the
+    # normal around its measured acceleration, as the baseline starts (the later steps follow λ_AR(k) through Ψ).
+    # An experiment, off: alone on K729 1.507 -> 1.326 (fast 3.26 -> 2.53); with the curves switch above it did not
+    # carry over to K733 (README "Why hybrid loses to the baseline on fast cars")
+    hybrid_initial_input: str = "ar"
     # discretisation (the stencils are cached per ds, dv, v_max, τ)
     ds_m: float = 1.0
     dv_mps: float = 0.5
@@ -154,6 +164,8 @@ class MarkovPredictionConfig(ConfigMixin):
             object.__setattr__(self, "initial_box", MODE_INITIAL_BOX[self.mode])
         if self.hybrid_rules_standing not in ("ar", "rules"):
             raise ValueError(f"hybrid_rules_standing = {self.hybrid_rules_standing!r}: expected ar or rules")
+        if self.hybrid_initial_input not in ("ar", "measured"):
+            raise ValueError(f"hybrid_initial_input = {self.hybrid_initial_input!r}: expected ar or measured")
         if self.hybrid_input not in HYBRID_INPUTS:
             raise ValueError(f"hybrid_input = {self.hybrid_input!r}: expected one of {', '.join(HYBRID_INPUTS)}")
         if self.backend not in BACKENDS:

@@ -1053,34 +1053,38 @@ def add_arguments(parser) -> None:
                         help="intentions parameter (JSON value), e.g. --set-intentions particles_per_vehicle=1000")
 
 
+def eval_config(args) -> EvalConfig:
+    """The ``EvalConfig`` of parsed ``add_arguments`` options (ValueError on bad ones)."""
+    situations = ()
+    if getattr(args, "situations", None) is not None:
+        from stages.offline.situations import load_situations
+
+        situations = load_situations(args.situations)
+    return EvalConfig(
+        situations=situations,
+        params=_key_values(args.set, "--set"),
+        intentions_params=_key_values(args.set_intentions, "--set-intentions"),
+        ar_params=_key_values(args.set_ar, "--set-ar"),
+        model_path=args.model,
+        seed=args.seed,
+        data_dir=args.data,
+        recordings=tuple(args.recording),
+        sequences=tuple(args.sequence),
+        modes=tuple(dict.fromkeys(args.mode)),
+        stride_s=args.stride,
+        max_frames_per_sequence=max(args.max_frames, 0),
+        corridor_weights=args.corridor_weights,
+        backend=args.backend,
+        device=args.device,
+        progress=not args.no_progress,
+        figures_dir=args.figures,
+        signals=args.signals == "on",
+    )
+
+
 def run_cli(args) -> int:
     try:
-        situations = ()
-        if getattr(args, "situations", None) is not None:
-            from stages.offline.situations import load_situations
-
-            situations = load_situations(args.situations)
-        config = EvalConfig(
-            situations=situations,
-            params=_key_values(args.set, "--set"),
-            intentions_params=_key_values(args.set_intentions, "--set-intentions"),
-            ar_params=_key_values(args.set_ar, "--set-ar"),
-            model_path=args.model,
-            seed=args.seed,
-            data_dir=args.data,
-            recordings=tuple(args.recording),
-            sequences=tuple(args.sequence),
-            modes=tuple(dict.fromkeys(args.mode)),
-            stride_s=args.stride,
-            max_frames_per_sequence=max(args.max_frames, 0),
-            corridor_weights=args.corridor_weights,
-            backend=args.backend,
-            device=args.device,
-            progress=not args.no_progress,
-            figures_dir=args.figures,
-            signals=args.signals == "on",
-        )
-        evaluation = Evaluation(config)
+        evaluation = Evaluation(eval_config(args))
         report = evaluation.run()
     except ValueError as exc:  # DatasetError and bad options
         sys.stderr.write(f"iamp eval: error: {exc}\n")
@@ -1145,4 +1149,4 @@ def evaluate(config: EvalConfig) -> dict[str, Any]:
     return report
 
 
-__all__ = ["EVAL_MODES", "EvalConfig", "Evaluation", "add_arguments", "evaluate", "format_table", "run_cli"]
+__all__ = ["EVAL_MODES", "EvalConfig", "Evaluation", "add_arguments", "eval_config", "evaluate", "format_table", "run_cli"]

@@ -448,6 +448,41 @@ def test_hybrid_speed_restriction_slows_for_a_curve_the_profile_ignores(stencils
     assert ends[True] < ends[False] - 3.0, ends
 
 
+def test_hybrid_speed_restriction_without_curves_keeps_the_limit_and_leaves_the_curve_to_the_model(stencils):
+    """hybrid_speed_restriction_curves = false: the curve ahead no longer slows the pair (the AR model reads the
+    curvature itself), as without any restriction; the speed limit still cuts a profile that accelerates past it."""
+    cs = _corridor_set(_vehicle(1, 12.0, [_corridor(7, radius=15.0)]))  # 12 m/s, a 15 m radius curve 25 m ahead
+    ends = {}
+    for name, extra in (("full", {}), ("no curves", {"hybrid_speed_restriction_curves": False}),
+                        ("off", {"hybrid_speed_restriction": False})):
+        predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", **PLAIN, **extra), stencils=stencils)
+        prediction, _ = predictor.process(cs, acceleration_profiles=_profiles(1, 7, 0.5))
+        ends[name] = float(prediction.mean_s_m[0, -1])
+    # "off" a little further: the profile (12 m/s + 0.5 m/s²) passes the corridor's limit 13.89 m/s, which "no curves" keeps
+    assert ends["full"] < ends["no curves"] - 3.0 and 0.0 <= ends["off"] - ends["no curves"] < 1.0, ends
+    predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", hybrid_speed_restriction_curves=False, **PLAIN), stencils=stencils)
+    for limited in (False, True):
+        straight = _corridor_set(_vehicle(1, 12.0, [_corridor(7, limit=12.0 if limited else 19.0)]))
+        prediction, _ = predictor.process(straight, acceleration_profiles=_profiles(1, 7, 1.5))
+        ends[limited] = float(prediction.mean_s_m[0, -1])
+    assert ends[True] < ends[False] - 3.0, ends
+
+
+def test_hybrid_initial_input_measured_starts_moving_pairs_from_their_measured_acceleration(stencils):
+    """hybrid_initial_input = "measured": λ(0) of a moving pair is its measured acceleration (0 here: no history),
+    not the AR profile's first distribution, so a profile that brakes at -2.5 m/s² brakes one step later."""
+    cs = _corridor_set(_vehicle(1, 10.0, [_corridor(7)]))
+    ends = {}
+    for initial in ("ar", "measured"):
+        predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", hybrid_initial_input=initial, **PLAIN), stencils=stencils)
+        prediction, _ = predictor.process(cs, acceleration_profiles=_profiles(1, 7, -2.5))
+        ends[initial] = float(prediction.mean_s_m[0, 0])  # s after the first step
+        np.testing.assert_allclose(prediction.position_probs[0].sum(axis=1) + prediction.outside_mass[0], 1.0, atol=1e-5)
+    assert ends["measured"] > ends["ar"] + 0.1, ends
+    with pytest.raises(ValueError, match="hybrid_initial_input"):
+        MarkovPredictionConfig(mode="hybrid", hybrid_initial_input="maybe")
+
+
 def test_hybrid_rules_keeps_the_leader_rule_that_plain_hybrid_leaves_to_the_model(stencils):
     """hybrid_rules: λ_AR(k) is only the preference inside the baseline's rules, so an AR profile that accelerates
     towards a slow leader 15 m ahead is cut by the leader rule; plain hybrid follows the profile."""

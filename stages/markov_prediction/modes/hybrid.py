@@ -12,7 +12,10 @@ keeps the rules' own preference for standing vehicles: an experiment, off by
 default (README, Evaluation: no gain on the held-out location). With
 ``hybrid_stop_mixture`` (an experiment, off by default) a moving pair's λ_AR(k) is mixed with a
 braking input by the intentions stage's P(stop) on its corridor
-(``stop_mixture``; docs/method.md §8.5).
+(``stop_mixture``; docs/method.md §8.5). Two more experiments, off by default (README, Evaluation: chosen on
+K729, worse on the held-out K733): ``hybrid_speed_restriction_curves`` false cuts λ_AR(k) by the speed limit
+alone (``speed_profiles``), and ``hybrid_initial_input`` "measured" starts a moving pair from its measured
+acceleration instead of λ_AR(0) (``_stack_inputs``).
 """
 
 from __future__ import annotations
@@ -119,6 +122,9 @@ def _stack_inputs(p: Predictor, pairs: list[Pair]) -> np.ndarray:
     lam = np.stack([q.input_probs if q.input_probs is not None else np.repeat(measured[b][None], p.config.n_steps, axis=0)
                     for b, q in enumerate(pairs)])
     standing = np.array([q.start_rate_hz > 0 for q in pairs])
+    if p.config.hybrid_initial_input == "measured" and not np.all(standing):
+        lam = lam.copy()
+        lam[~standing, 0] = measured[~standing]
     if p.config.hybrid_stop_mixture:
         lam = stop_mixture(p, pairs, lam, standing)
     if p.config.hybrid_start_accel_mps2 > 0 and np.any(standing):

@@ -1,0 +1,52 @@
+"""bench/window_errors.py: one row per scored window whose ADEs average to iamp eval's mADE, and the gap table."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from bench.window_errors import gap_table, main
+from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, DEFAULT_SEQUENCE
+from stages.offline.truth import MANOEUVRES
+
+
+def test_rows_match_the_eval_report(tmp_path, capsys):
+    if not (DEFAULT_DATA_DIR / "maps").is_dir():
+        pytest.skip(f"embedded TAF-BW data not found at {DEFAULT_DATA_DIR}")
+    rows, report = tmp_path / "w.jsonl", tmp_path / "eval.json"
+    code = main(["--recording", DEFAULT_RECORDING, "--sequence", DEFAULT_SEQUENCE, "--max-frames", "40", "--stride", "2.0",
+                 "--mode", "cv", "corridor_cv", "--no-progress", "--windows", str(rows), "--json", str(report),
+                 "--compare", "corridor_cv", "cv", "--split", "all"])
+    assert code == 0
+    windows = [json.loads(line) for line in rows.read_text().splitlines()]
+    data = json.loads(report.read_text())
+    for mode in ("cv", "corridor_cv"):
+        overall = data["modes"][mode]["overall"]
+        assert len(windows) == overall["windows"] > 0
+        assert math.isclose(np.mean([w["modes"][mode]["ade"] for w in windows]), overall["mADE_m"], rel_tol=1e-9)
+        for cls in MANOEUVRES:
+            assert sum(w["manoeuvre"] == cls for w in windows) == data["modes"][mode]["by_manoeuvre"][cls]["windows"]
+        fast = [w for w in windows if w["split"] == "fast"]
+        assert len(fast) == data["modes"][mode]["by_speed"]["fast"]["windows"]
+    printed = capsys.readouterr().out
+    assert "-- manoeuvre" in printed and "-- leader" in printed and "-- corridor" in printed
+    # --from-windows reads the dump back without running
+    assert main(["--from-windows", str(rows), "--compare", "corridor_cv", "cv", "--split", "all"]) == 0
+    assert f"all windows: {len(windows)};" in capsys.readouterr().out
+
+
+def test_gap_table_shares_add_up():
+    def row(split, man, leader, a, b):
+        return {"split": split, "manoeuvre": man, "leader": leader, "conflict": False, "turning": man == "turns",
+                "modes": {"A": {"ade": a, "along4": -1.0}, "B": {"ade": b, "along4": math.nan}}}
+
+    windows = [row("fast", "turns", False, 4.0, 2.0), row("fast", "brakes", True, 2.0, 1.0), row("slow", "stands", False, 9.0, 0.0)]
+    lines = gap_table(windows, "A", "B", "fast")
+    assert lines[0].startswith("fast windows: 2;") and "summed ADE difference 3.0 m" in lines[0]
+    turns = next(line for line in lines if line.startswith("turns "))
+    brakes = next(line for line in lines if line.startswith("brakes "))
+    assert "67%" in turns and "33%" in brakes and "+2.00" in turns
+    assert gap_table(windows, "A", "C", "fast") == ["no fast windows with A and C"]
