@@ -144,20 +144,60 @@ def admissible_speeds(
     v_adm(s) = min over s' ≥ s of √(v_prof(s')² + 2b(s' − s)), computed
     exactly as a reverse cumulative minimum of v_prof² + 2b·s'.
     """
-    s = np.asarray(s_m, dtype=np.float64)
-    kappa = np.abs(np.asarray(curvature_1pm, dtype=np.float64))
+    return admissible_speeds_batch([s_m], [curvature_1pm], [speed_limit_mps], lat_accels_mps2, brake_mps2, smoothing_m)[0]
+
+
+def _smoothed_curvature(s: np.ndarray, kappa: np.ndarray, smoothing_m: float) -> np.ndarray:
+    """|κ| (non-finite as 0) smoothed by the moving average of ``admissible_speeds`` (edges held)."""
+    kappa = np.abs(kappa)
     kappa = np.where(np.isfinite(kappa), kappa, 0.0)
     if s.size > 2 and smoothing_m > 0:
-        step = max(_median(np.diff(s)), 1e-3)
+        step = max(_median(s[1:] - s[:-1]), 1e-3)
         half = int(round(0.5 * smoothing_m / step))
         if half > 0:
             kernel = np.ones(2 * half + 1) / (2 * half + 1)
-            kappa = np.convolve(np.pad(kappa, half, mode="edge"), kernel, mode="valid")
-    a_lat = np.asarray(lat_accels_mps2, dtype=np.float64)[:, None]
-    v_prof = np.minimum(speed_limit_mps, np.sqrt(a_lat / np.maximum(kappa[None, :], MIN_CURVATURE_1PM)))
-    key = v_prof**2 + 2.0 * brake_mps2 * s[None, :]
-    suffix_min = np.minimum.accumulate(key[:, ::-1], axis=1)[:, ::-1]
-    return np.sqrt(np.maximum(suffix_min - 2.0 * brake_mps2 * s[None, :], 0.0))
+            padded = np.concatenate((np.full(half, kappa[0]), kappa, np.full(half, kappa[-1])))  # np.pad(..., mode="edge")
+            kappa = np.convolve(padded, kernel, mode="valid")
+    return kappa
+
+
+def admissible_speeds_batch(
+    s_m: list[np.ndarray],
+    curvature_1pm: list[np.ndarray],
+    speed_limits_mps: list[float],
+    lat_accels_mps2: np.ndarray,
+    brake_mps2: float,
+    smoothing_m: float,
+) -> list[np.ndarray]:
+    """``admissible_speeds`` of B profiles (their own lengths and speed limits): ``(J, n_b)`` each, the same numbers.
+
+    The smoothing is one ``np.convolve`` per profile; the rest is elementwise
+    (and a reverse running minimum), done for all the profiles at once on
+    rows padded to the longest one (+∞ past a profile's end, which the
+    running minimum from the end never takes).
+    """
+    n_b = len(s_m)
+    a_lat = np.asarray(lat_accels_mps2, dtype=np.float64)
+    if n_b == 0:
+        return []
+    s_list = [np.asarray(s, dtype=np.float64) for s in s_m]
+    sizes = [s.shape[0] for s in s_list]
+    n_max = max(sizes)
+    s_all = np.zeros((n_b, n_max))
+    kappa_all = np.zeros((n_b, n_max))
+    for b, (s, c) in enumerate(zip(s_list, curvature_1pm)):
+        s_all[b, : sizes[b]] = s
+        kappa_all[b, : sizes[b]] = _smoothed_curvature(s, np.asarray(c, dtype=np.float64), smoothing_m)
+    limits = np.asarray(speed_limits_mps, dtype=np.float64).reshape(n_b, 1, 1)
+    v_prof = np.minimum(limits, np.sqrt(a_lat[None, :, None] / np.maximum(kappa_all[:, None, :], MIN_CURVATURE_1PM)))
+    brake_s = 2.0 * brake_mps2 * s_all[:, None, :]
+    key = v_prof**2 + brake_s
+    lengths = np.asarray(sizes)
+    if np.any(lengths < n_max):
+        np.copyto(key, np.inf, where=(np.arange(n_max)[None, :] >= lengths[:, None])[:, None, :])  # past a profile's end
+    suffix_min = np.minimum.accumulate(key[:, :, ::-1], axis=2)[:, :, ::-1]
+    adm = np.sqrt(np.maximum(suffix_min - brake_s, 0.0))
+    return [adm[b, :, : sizes[b]] for b in range(n_b)]
 
 
 def speed_restriction(
