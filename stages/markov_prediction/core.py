@@ -38,6 +38,7 @@ from stages.lib.caps import cap_pairs
 from stages.lib.datasets import DEFAULT_SIZES_M
 from stages.lib.grid_fusion import parse_shard, shard_of
 from stages.lib.markov import MarkovGridConfig, SeparableState, initial_state, load_or_build_stencils, psi_matrix
+from stages.lib.markov import frame_kernels
 from stages.lib.markov.grid import uniform_input_edges
 from stages.lib.markov.propagate import boxes_outside_grid
 
@@ -50,7 +51,7 @@ from stages.markov_prediction.modes.corridor_cv import constant_speed
 from stages.markov_prediction.modes.cv import CV_LINE_ID
 from stages.markov_prediction.spread import SpreadTable, blur_grid, load_spread
 from stages.markov_prediction.rasterise import (
-    Centrelines, Footprints, GridFrame, SparseGrid, cell_footprints_arrays, fuse, lateral_kernel, vehicle_grids,
+    Centrelines, FootprintBatch, GridFrame, SparseGrid, cell_footprints_arrays, fuse, lateral_kernel, vehicle_grids,
 )
 from stages.markov_prediction.signals import apply_signals, stop_line_wall
 
@@ -233,6 +234,7 @@ class MarkovPredictor:
         self.preference = pr.normalised_preference(preference, cfg.n_inputs)
         self.psi = psi_matrix(self.a_centres, gamma=config.psi_gamma)
         self._lateral = lateral_kernel(config.grid_lateral_sigma_m, config.grid_cell_m)
+        frame_kernels.warm_up()  # the output kernels compiled (or loaded from numba's cache) now, not on the first frame
         self._history: dict[int, _SpeedHistory] = {}
         self.stencils = None
         self.propagator: PriorityPropagator | None = None
@@ -812,9 +814,8 @@ class MarkovPredictor:
                     )
                 )
         batch = cell_footprints_arrays(lines, s_first[:, None] + lower[None, :], cfg.ds_m, cfg.grid_substeps, *self._lateral) if n_b else None
-        footprints: list[Footprints] = batch.pairs() if batch is not None else []
         grid_probs = interval if (cfg.grid_distribution == "interval" and interval is not None) else pos
-        frame = self._grid_frame(footprints, grid_probs)
+        frame = self._grid_frame(batch, grid_probs)
         by_track: dict[int, list[int]] = collections.defaultdict(list)
         for b, p in enumerate(pairs):
             by_track[p.track_id].append(b)
@@ -843,25 +844,22 @@ class MarkovPredictor:
             grid_frame=frame,
             grid_distribution=cfg.grid_distribution if interval is not None or cfg.grid_distribution == "point" else "point",
             vehicle_grids=vehicle_grids_,
-            fused_grid=fuse(list(vehicle_grids_.values())),
+            fused_grid=fuse(list(vehicle_grids_.values()), frame.n_cells),
             min_grid_value=cfg.grid_min_value,
             max_cells_per_step=cfg.grid_max_cells_per_step,
         )
 
-    def _grid_frame(self, footprints: list[Footprints], probs: np.ndarray) -> GridFrame:
+    def _grid_frame(self, footprints: FootprintBatch | None, probs: np.ndarray) -> GridFrame:
+        """The frame's grid: the configured extent, or around the samples of every cell that holds mass at some step."""
         cfg = self.config
         if cfg.grid_extent_m:
             return GridFrame.fixed(tuple(cfg.grid_extent_m), cfg.grid_cell_m)
-        xs, ys = [], []
-        for b, fp in enumerate(footprints):
-            used = np.flatnonzero(probs[b].max(axis=0) > 0) if probs.shape[0] else np.zeros(0, np.int64)
-            if used.size:
-                xs.append(fp.x_m[used].ravel())
-                ys.append(fp.y_m[used].ravel())
-        if not xs:
+        bounds = footprints.bounds(probs.max(axis=1) > 0) if footprints is not None and probs.shape[0] else None
+        if bounds is None:
             return GridFrame(0.0, 0.0, cfg.grid_cell_m, 1, 1)
         margin = cfg.grid_margin_m + (3.0 * float(self.spread.max_sigma_m(self.step_times_s, SPEED_NOISE_CAP_MPS)) if self.spread is not None else 0.0)  # the blur stays on the grid
-        return GridFrame.around(np.concatenate(xs), np.concatenate(ys), cfg.grid_cell_m, margin)
+        x_lo, x_hi, y_lo, y_hi = bounds
+        return GridFrame.around(np.array([x_lo, x_hi]), np.array([y_lo, y_hi]), cfg.grid_cell_m, margin)
 
 
 # --------------------------------------------------------------------------- helpers

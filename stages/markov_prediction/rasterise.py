@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stages.lib.markov import kernels
+from stages.lib.markov import frame_kernels, kernels
 
 #: Per-vehicle cell values are clipped below 1 by this much before log(1 − G).
 _CLIP = 1e-7
@@ -174,19 +174,61 @@ class Centrelines:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class FootprintBatch:
-    """The ``Footprints`` of B pairs as arrays: ``x_m``, ``y_m``, ``normal_x``, ``normal_y`` ``(B, L, P)``, ``weights`` ``(P,)``."""
+    """The ``Footprints`` of B pairs, compact: per s-cell the centreline at its ``n_sub`` sub-samples, ``centre_x``,
+    ``centre_y`` and the left normal there ``centre_nx``, ``centre_ny`` ``(B, L, n_sub)``; the lateral ``offsets``
+    ``(n_lat,)``; ``weights`` ``(P,)``, P = n_sub·n_lat.
 
-    x_m: np.ndarray
-    y_m: np.ndarray
+    Sample q = sub·n_lat + lat lies at centre + normal·offsets[lat]: ``x_m``,
+    ``y_m``, ``normal_x``, ``normal_y`` ``(B, L, P)`` build those arrays (the
+    numbers of ``cell_footprints``); the compiled grid kernels
+    (``stages.lib.markov.frame_kernels``) form each sample where they use it.
+    """
+
+    centre_x: np.ndarray
+    centre_y: np.ndarray
+    centre_nx: np.ndarray
+    centre_ny: np.ndarray
+    offsets: np.ndarray
     weights: np.ndarray
-    normal_x: np.ndarray
-    normal_y: np.ndarray
+
+    def _samples(self, centre: np.ndarray, normal: np.ndarray) -> np.ndarray:
+        return (centre[..., None] + normal[..., None] * self.offsets).reshape(centre.shape[:-1] + (-1,))
+
+    @property
+    def x_m(self) -> np.ndarray:
+        return self._samples(self.centre_x, self.centre_nx)
+
+    @property
+    def y_m(self) -> np.ndarray:
+        return self._samples(self.centre_y, self.centre_ny)
+
+    @property
+    def normal_x(self) -> np.ndarray:
+        return np.repeat(self.centre_nx, self.offsets.shape[0], axis=-1)
+
+    @property
+    def normal_y(self) -> np.ndarray:
+        return np.repeat(self.centre_ny, self.offsets.shape[0], axis=-1)
 
     def pair(self, b: int) -> Footprints:
-        return Footprints(self.x_m[b], self.y_m[b], self.weights, self.normal_x[b], self.normal_y[b])
+        n_lat = self.offsets.shape[0]
+        return Footprints(self._samples(self.centre_x[b], self.centre_nx[b]), self._samples(self.centre_y[b], self.centre_ny[b]),
+                          self.weights, np.repeat(self.centre_nx[b], n_lat, axis=-1), np.repeat(self.centre_ny[b], n_lat, axis=-1))
 
     def pairs(self) -> list[Footprints]:
-        return [self.pair(b) for b in range(self.x_m.shape[0])]
+        return [self.pair(b) for b in range(self.centre_x.shape[0])]
+
+    def bounds(self, used: np.ndarray) -> tuple[float, float, float, float] | None:
+        """(x min, x max, y min, y max) of the samples of the cells ``used`` (B, L) bool, the numbers np.min and np.max
+        give over ``x_m[b][used[b]]``, ``y_m[b][used[b]]``; None when no cell is used."""
+        found = frame_kernels.footprint_bounds(self.centre_x, self.centre_y, self.centre_nx, self.centre_ny, self.offsets, used)
+        if found is not None:
+            return found
+        if not np.any(used):
+            return None
+        xs = np.concatenate([fp.x_m[u].ravel() for fp, u in zip(self.pairs(), used) if u.any()])
+        ys = np.concatenate([fp.y_m[u].ravel() for fp, u in zip(self.pairs(), used) if u.any()])
+        return float(np.min(xs)), float(np.max(xs)), float(np.min(ys)), float(np.max(ys))
 
 
 def cell_footprints_batch(
@@ -209,19 +251,13 @@ def cell_footprints_arrays(
     lateral_offsets_m: np.ndarray,
     lateral_weights: np.ndarray,
 ) -> FootprintBatch:
-    """``cell_footprints_batch`` as one ``FootprintBatch``."""
+    """``cell_footprints_batch`` as one (compact) ``FootprintBatch``."""
     frac = (np.arange(n_sub) + 0.5) / n_sub
     s = cell_lower_s_m[:, :, None] + frac[None, None, :] * ds_m  # (B, L, n_sub)
     x, y, h = centrelines.xy_heading(s)
-    nx, ny = -np.sin(h), np.cos(h)
-    px = x[..., None] + nx[..., None] * lateral_offsets_m
-    py = y[..., None] + ny[..., None] * lateral_offsets_m
-    n_b, n_cells = cell_lower_s_m.shape
     n_lat = lateral_offsets_m.shape[0]
     weights = np.repeat((1.0 / n_sub) * np.ones(n_sub), n_lat) * np.tile(lateral_weights, n_sub)
-    normal_x = np.repeat(nx, n_lat, axis=2)
-    normal_y = np.repeat(ny, n_lat, axis=2)
-    return FootprintBatch(px.reshape(n_b, n_cells, -1), py.reshape(n_b, n_cells, -1), weights, normal_x, normal_y)
+    return FootprintBatch(x, y, -np.sin(h), np.cos(h), np.asarray(lateral_offsets_m, dtype=np.float64), weights)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -290,17 +326,18 @@ def vehicle_grids(
     min_mass: float = 1e-9,
 ) -> list[SparseGrid]:
     """``vehicle_grid`` of every vehicle, vehicle n of the pairs ``members[n]`` (``probs`` ``(B, K, L)``, ``corridor_weights``
-    and ``lateral_shifts_m`` ``(B, K)`` per pair): in one compiled call (``kernels.vehicle_grids``: the same
-    numbers, no Python per vehicle) where numba imports, else one ``vehicle_grid``
+    and ``lateral_shifts_m`` ``(B, K)`` per pair): in one compiled call (``frame_kernels.footprint_grids``: the same
+    numbers, no Python per vehicle, no (B, L, P) sample arrays) where numba imports, else one ``vehicle_grid``
     per vehicle. tests/stages/test_markov_batched_outputs.py compares the two."""
     probs = np.asarray(probs)
     found = None
     if probs.dtype == np.float32 and probs.ndim == 3:
         # w · p is float64 for a numpy float64 weight and float32 for a Python float (numpy's promotion), as vehicle_grid has it
-        wide = np.array([np.result_type(w, probs.dtype) == np.float64 for w in corridor_weights], dtype=np.bool_)
-        found = kernels.vehicle_grids(footprints.x_m, footprints.y_m, footprints.normal_x, footprints.normal_y, footprints.weights,
-                                      probs, np.asarray(corridor_weights, dtype=np.float64), wide, lateral_shifts_m, members,
-                                      frame.origin_x_m, frame.origin_y_m, frame.cell_m, frame.n_rows, frame.n_cols, min_mass)
+        wide = np.array([type(w) is not float and np.result_type(w, probs.dtype) == np.float64 for w in corridor_weights], dtype=np.bool_)
+        fp = footprints
+        found = frame_kernels.footprint_grids(fp.centre_x, fp.centre_y, fp.centre_nx, fp.centre_ny, fp.offsets, fp.weights, probs,
+                                              np.asarray(corridor_weights, dtype=np.float64), wide, lateral_shifts_m, members,
+                                              frame.origin_x_m, frame.origin_y_m, frame.cell_m, frame.n_rows, frame.n_cols, min_mass)
     if found is None:
         shifts = [None] * probs.shape[0] if lateral_shifts_m is None else list(lateral_shifts_m)
         return [vehicle_grid(frame, [footprints.pair(b) for b in m], [probs[b] for b in m], [corridor_weights[b] for b in m],
@@ -309,14 +346,18 @@ def vehicle_grids(
     return [SparseGrid(keys[ptr[n]:ptr[n + 1]], sums[ptr[n]:ptr[n + 1]]) for n in range(len(members))]
 
 
-def fuse(grids: list[SparseGrid]) -> SparseGrid:
-    """1 − Π_n (1 − G_n) over vehicles, cell by cell."""
+def fuse(grids: list[SparseGrid], n_cells: int = 0) -> SparseGrid:
+    """1 − Π_n (1 − G_n) over vehicles, cell by cell. With the grid's ``n_cells`` (keys k·n_cells + cell), the sums of
+    the log terms are taken step by step (``frame_kernels.fuse_sorted``: the same numbers, each grid's keys being
+    sorted and unique)."""
     if not grids:
         return _reduce(np.zeros(0, np.int64), np.zeros(0))
-    keys = np.concatenate([g.keys for g in grids])
-    logs = np.concatenate([np.log1p(-np.clip(g.values, 0.0, 1.0 - _CLIP)) for g in grids])
-    summed = _reduce(keys, logs)
-    return SparseGrid(summed.keys, -np.expm1(summed.values))
+    logs = np.log1p(-np.clip(np.concatenate([g.values for g in grids]), 0.0, 1.0 - _CLIP))
+    found = frame_kernels.fuse_sorted([g.keys for g in grids], logs, n_cells) if n_cells > 0 else None
+    if found is None:
+        summed = _reduce(np.concatenate([g.keys for g in grids]), logs)
+        found = summed.keys, summed.values
+    return SparseGrid(found[0], -np.expm1(found[1]))
 
 
 def highest_density_threshold(values: np.ndarray, level: float) -> float:
