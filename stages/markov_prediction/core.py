@@ -498,6 +498,7 @@ class MarkovPredictor:
         if frame is not None and int(frame.header.stamp_ns) == stamp:
             rows = {int(t): i for i, t in enumerate(frame.track_ids)}
         pairs: list[Pair] = []
+        clean = _clean_centrelines(corridor_set.vehicles)
         for vehicle in corridor_set.vehicles:
             if vehicle.status != MatchStatus.MATCHED or not vehicle.corridors:
                 continue
@@ -515,7 +516,7 @@ class MarkovPredictor:
             a0, sigma_a0 = self._acceleration(vehicle.track_id, stamp)
             noise = self.speed_noise(vehicle.track_id, stamp) if self.spread is not None and self.spread.speed_noise_gain > 0 else 0.0
             standing = self.model.chain and v0 <= cfg.standstill_speed_mps and cfg.standstill_start_rate_hz > 0
-            good = [c for c in vehicle.corridors if _corridor_ok(c, vehicle.track_id, issues)]
+            good = [c for c in vehicle.corridors if _corridor_ok(c, vehicle.track_id, issues, id(c) in clean)]
             if not good:
                 continue
             own = self.model.vehicle_pairs(Vehicle(vehicle, good, frame, row, v0, a0, length, width))
@@ -650,8 +651,9 @@ class MarkovPredictor:
         boxes = self._boxes(pairs)
         s_out, v_out = boxes_outside_grid(self._window_grid, **boxes)
         v_max = self.config.v_max_mps
+        finite = _all_finite(pairs)
         for b, p in enumerate(pairs):
-            bad = _non_finite(p)
+            bad = [] if finite else _non_finite(p)
             if bad:
                 out[b] = ("pair_fallback_nan_input", f"non-finite {', '.join(bad)}")
             elif p.measured_v_mps > v_max:
@@ -899,6 +901,18 @@ def _non_finite(p: Pair) -> list[str]:
     return bad + [name for name in _CHAIN_ARRAYS if getattr(p, name) is not None and not np.all(np.isfinite(getattr(p, name)))]
 
 
+def _all_finite(pairs: list[Pair]) -> bool:
+    """Whether every number the chain reads of every pair is finite (``_non_finite`` of each is []), checked at once."""
+    try:
+        scalars = np.array([[getattr(p, name) for name in _CHAIN_SCALARS] for p in pairs], dtype=np.float64)
+        if not np.isfinite(scalars).all():
+            return False
+        arrays = np.concatenate([np.ravel(a) for p in pairs for a in (getattr(p, name) for name in _CHAIN_ARRAYS) if a is not None])
+        return bool(np.isfinite(arrays).all())
+    except (TypeError, ValueError, OverflowError):  # numbers numpy cannot check together: each pair on its own
+        return False
+
+
 def _take(arrays: dict[str, Any], idx: list[int], n: int) -> dict[str, Any]:
     """The rows ``idx`` of a frame's prediction arrays (all ``n`` of them: the arrays themselves)."""
     if len(idx) == n:
@@ -945,7 +959,40 @@ def _positive(value: float) -> bool:
     return math.isfinite(value) and value > 0
 
 
-def _corridor_ok(corridor, track_id: int, issues: list[Issue]) -> bool:
+def _clean_centrelines(vehicles) -> set[int]:
+    """The ``id()`` of every corridor of ``vehicles`` whose centreline passes ``_corridor_ok``'s array checks (1-D, at
+    least two points, arrays of one shape, finite, s increasing), checked for all of them at once; the others (none on
+    clean input) go through ``_corridor_ok``'s own checks, with its issues. Empty when the arrays cannot be checked so."""
+    corridors, parts = [], []
+    for vehicle in vehicles:
+        for c in vehicle.corridors:
+            arrays = [np.asarray(a) for a in (c.s_m, c.x_m, c.y_m, c.heading_rad)]
+            shape = arrays[0].shape
+            if len(shape) == 1 and shape[0] >= 2 and all(a.shape == shape for a in arrays[1:]):
+                corridors.append(c)
+                parts.append(arrays)
+    if not corridors:
+        return set()
+    try:
+        s, x, y, h = (np.concatenate([arrays[j] for arrays in parts]) for j in range(4))
+        starts = np.cumsum([0] + [arrays[0].shape[0] for arrays in parts[:-1]])
+        ok = np.isfinite(s) & np.isfinite(x) & np.isfinite(y) & np.isfinite(h)
+        ok[1:] &= s[1:] - s[:-1] > 0  # np.diff(s) > 0 inside each corridor ...
+        ok[starts] = np.isfinite(s[starts]) & np.isfinite(x[starts]) & np.isfinite(y[starts]) & np.isfinite(h[starts])  # ... not across
+        clean = np.logical_and.reduceat(ok, starts)
+    except (TypeError, ValueError):  # arrays numpy cannot check together: each corridor on its own
+        return set()
+    return {id(c) for c, good in zip(corridors, clean) if good}
+
+
+def _corridor_ok(corridor, track_id: int, issues: list[Issue], centreline_checked: bool = False) -> bool:
+    """Whether the pair's corridor can be predicted on (else one issue); ``centreline_checked``: its arrays passed
+    ``_clean_centrelines`` (only the vehicle's arc length is left to check)."""
+    if centreline_checked:
+        if not math.isfinite(corridor.vehicle_s_m):
+            issues.append(Issue("nan_state", track_id, f"corridor {corridor.corridor_id}: vehicle_s_m {corridor.vehicle_s_m}"))
+            return False
+        return True
     s = np.asarray(corridor.s_m)
     arrays = (corridor.s_m, corridor.x_m, corridor.y_m, corridor.heading_rad)
     if s.shape[0] < 2 or any(np.asarray(a).shape != s.shape for a in arrays):

@@ -126,6 +126,31 @@ def cell_footprints(
     return Footprints(px.reshape(n_cells, -1), py.reshape(n_cells, -1), weights, normal_x, normal_y)
 
 
+def unwrap_each(angles: list[np.ndarray]) -> np.ndarray:
+    """``np.unwrap`` of each 1-D array, concatenated: the same numbers, with np.unwrap's steps done on all the arrays at
+    once (the differences and their corrections elementwise), only the running sum of the corrections per array."""
+    arrays = [np.asarray(a) for a in angles]
+    if not all(a.ndim == 1 and a.dtype == np.float64 for a in arrays):
+        return np.concatenate([np.unwrap(a) for a in arrays])
+    p = np.concatenate(arrays)
+    period = 2 * np.pi
+    high = period / 2
+    low = -high
+    dd = p[1:] - p[:-1]
+    ddmod = np.mod(dd - low, period) + low
+    np.copyto(ddmod, high, where=(ddmod == low) & (dd > 0))
+    correct = ddmod - dd
+    np.copyto(correct, 0, where=abs(dd) < high)
+    out = p.copy()
+    start = 0
+    for a in arrays:  # array [start, end): its corrections are correct[start:end - 1]
+        end = start + a.shape[0]
+        if end - start > 1:
+            out[start + 1:end] = p[start + 1:end] + correct[start:end - 1].cumsum()
+        start = end
+    return out
+
+
 class Centrelines:
     """The centrelines of B pairs packed for one ``np.interp`` call per quantity over all of them.
 
@@ -138,15 +163,25 @@ class Centrelines:
 
     def __init__(self, s_m: list[np.ndarray], x_m: list[np.ndarray], y_m: list[np.ndarray], heading_rad: list[np.ndarray]) -> None:
         n = len(s_m)
-        self.first = np.array([float(s[0]) for s in s_m]) if n else np.zeros(0)
-        self.last = np.array([float(s[-1]) for s in s_m]) if n else np.zeros(0)
+        plain = n > 0 and all(isinstance(s, np.ndarray) and s.ndim == 1 and s.dtype == np.float64 and s.size for s in s_m)
+        if plain:  # every pair's arc lengths packed at once (the same numbers as pair by pair below)
+            sizes = np.array([s.shape[0] for s in s_m])
+            s_all = np.concatenate(s_m)
+            ends = np.cumsum(sizes)
+            self.first, self.last = s_all[ends - sizes], s_all[ends - 1]
+        else:
+            self.first = np.array([float(s[0]) for s in s_m]) if n else np.zeros(0)
+            self.last = np.array([float(s[-1]) for s in s_m]) if n else np.zeros(0)
         self.period = float(np.max(self.last - self.first)) + 1.0 if n else 1.0
         shift = np.arange(n) * self.period
         self._shift = shift
-        self._xp = np.concatenate([s - s[0] + o for s, o in zip(s_m, shift)]) if n else np.zeros(0)
+        if plain:
+            self._xp = (s_all - np.repeat(self.first, sizes)) + np.repeat(shift, sizes)
+        else:
+            self._xp = np.concatenate([s - s[0] + o for s, o in zip(s_m, shift)]) if n else np.zeros(0)
         self._x = np.concatenate(x_m) if n else np.zeros(0)
         self._y = np.concatenate(y_m) if n else np.zeros(0)
-        self._h = np.concatenate([np.unwrap(h) for h in heading_rad]) if n else np.zeros(0)
+        self._h = unwrap_each(heading_rad) if n else np.zeros(0)
 
     def _packed(self, s_in: np.ndarray) -> np.ndarray:
         lead = (slice(None),) + (None,) * (s_in.ndim - 1)

@@ -171,6 +171,9 @@ def _profiles(p, profiles: AccelerationProfiles | None, stamp: int, issues: list
     if abs(profiles.chunk_s - cfg.tau_s) > 1e-6:
         issues.append(Issue("bad_profile", -1, f"acceleration_profiles chunk_s {profiles.chunk_s} != tau_s {cfg.tau_s}: ignored"))
         return None
+    together = _profiles_together(profiles.profiles, grid.n_inputs, cfg.n_steps, issues)
+    if together is not None:
+        return together
     out: dict[tuple[int, int], np.ndarray] = {}
     for prof in profiles.profiles:
         probs = np.asarray(prof.input_probs, dtype=np.float64)
@@ -184,4 +187,31 @@ def _profiles(p, profiles: AccelerationProfiles | None, stamp: int, issues: list
         if probs.shape[0] < cfg.n_steps:  # a shorter profile holds its last distribution
             probs = np.vstack([probs, np.repeat(probs[-1:], cfg.n_steps - probs.shape[0], axis=0)])
         out[(prof.track_id, prof.corridor_id)] = probs[: cfg.n_steps]
+    return out
+
+
+def _profiles_together(profiles, n_inputs: int, n_steps: int, issues: list[Issue]) -> dict[tuple[int, int], np.ndarray] | None:
+    """``_profiles``' loop over the profiles done on all of them at once when they have one shape (K', M), K' ≥ 1: the
+    same checks, issues (in profile order) and numbers (each row normalised by its own sum, a short profile's last row
+    held); None (the loop then runs) when the shapes differ."""
+    if not profiles:
+        return None
+    arrays = [np.asarray(prof.input_probs, dtype=np.float64) for prof in profiles]
+    shape = arrays[0].shape
+    if len(shape) != 2 or shape[1] != n_inputs or shape[0] < 1 or any(a.shape != shape for a in arrays[1:]):
+        return None
+    probs = np.stack(arrays)  # (P, K', M)
+    sums = probs.sum(axis=2, keepdims=True)
+    good = np.isfinite(probs).all(axis=(1, 2)) & ~(probs < 0).any(axis=(1, 2)) & ~(sums[..., 0] <= 0).any(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):  # (the rows of profiles left out)
+        probs = probs / sums
+    if shape[0] < n_steps:  # a shorter profile holds its last distribution
+        probs = np.concatenate([probs, np.repeat(probs[:, -1:], n_steps - shape[0], axis=1)], axis=1)
+    probs = probs[:, :n_steps]
+    out: dict[tuple[int, int], np.ndarray] = {}
+    for n, prof in enumerate(profiles):
+        if not good[n]:
+            issues.append(Issue("bad_profile", prof.track_id, f"corridor {prof.corridor_id}: input_probs not a distribution: pair falls back"))
+            continue
+        out[(prof.track_id, prof.corridor_id)] = probs[n]
     return out
