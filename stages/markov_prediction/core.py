@@ -113,25 +113,38 @@ class FramePrediction:
     def corridor_predictions(self, header: Header, scene_id: str) -> CorridorPredictions:
         """The ``CorridorPredictions`` message (s-distributions cropped to the cells ever occupied)."""
         out = []
+        n_b = len(self.pairs)
+        # every pair's arrays converted at once (each message gets its own rows); cells ever occupied: [lo, hi)
+        lo: list[int] = []
+        hi: list[int] = []
+        if n_b and self.position_probs.shape[2]:
+            occupied = self.position_probs.max(axis=1) > 0
+            any_cell = occupied.any(axis=1)
+            lo = np.where(any_cell, occupied.argmax(axis=1), 0).tolist()
+            hi = np.where(any_cell, occupied.shape[1] - occupied[:, ::-1].argmax(axis=1), 0).tolist()
+        elif n_b:
+            lo = hi = [0] * n_b
+        v_probs = np.asarray(self.velocity_probs, dtype=np.float32)
+        outside = self.outside_mass.astype(np.float32)
+        mean_x, mean_y = (self.mean_xy_m[..., j].astype(np.float64) for j in (0, 1))
+        mean_s = self.mean_s_m.astype(np.float64)
+        at_x, at_y = (self.xy_at_mean_s_m[..., j].astype(np.float64) for j in (0, 1))
         for b, info in enumerate(self.pairs):
-            probs = self.position_probs[b]
-            occupied = np.flatnonzero(probs.max(axis=0) > 0)
-            lo, hi = (int(occupied[0]), int(occupied[-1]) + 1) if occupied.size else (0, 0)
             out.append(
                 CorridorPrediction(
                     track_id=info.track_id,
                     corridor_id=info.corridor_id,
                     probability=float(info.probability),
                     vehicle_s_m=float(info.vehicle_s_m),
-                    s_first_m=float(info.s_first_m + lo * self.ds_m),
-                    s_probs=np.ascontiguousarray(probs[:, lo:hi], dtype=np.float32),
-                    v_probs=np.ascontiguousarray(self.velocity_probs[b], dtype=np.float32),
-                    outside_mass=self.outside_mass[b].astype(np.float32),
-                    mean_x_m=self.mean_xy_m[b, :, 0].astype(np.float64),
-                    mean_y_m=self.mean_xy_m[b, :, 1].astype(np.float64),
-                    mean_s_m=self.mean_s_m[b].astype(np.float64),
-                    x_at_mean_s_m=self.xy_at_mean_s_m[b, :, 0].astype(np.float64),
-                    y_at_mean_s_m=self.xy_at_mean_s_m[b, :, 1].astype(np.float64),
+                    s_first_m=float(info.s_first_m + lo[b] * self.ds_m),
+                    s_probs=np.ascontiguousarray(self.position_probs[b, :, lo[b]:hi[b]], dtype=np.float32),
+                    v_probs=np.ascontiguousarray(v_probs[b]),
+                    outside_mass=outside[b],
+                    mean_x_m=mean_x[b],
+                    mean_y_m=mean_y[b],
+                    mean_s_m=mean_s[b],
+                    x_at_mean_s_m=at_x[b],
+                    y_at_mean_s_m=at_y[b],
                 )
             )
         return CorridorPredictions(
@@ -144,31 +157,42 @@ class FramePrediction:
             predictions=tuple(out),
         )
 
+    def _above_min(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int], np.ndarray]:
+        """The fused grid's keys and values of the K steps, which are above ``min_grid_value``, each step's part
+        [bounds[k], bounds[k + 1]) of them (``SparseGrid.step``'s) and the cells above the minimum per step."""
+        n_k, n_cells = self.step_times_s.shape[0], self.grid_frame.n_cells
+        bounds = np.searchsorted(self.fused_grid.keys, np.arange(n_k + 1) * n_cells)
+        keys = self.fused_grid.keys[bounds[0]:bounds[-1]]
+        values = self.fused_grid.values[bounds[0]:bounds[-1]]
+        bounds = bounds - bounds[0]
+        keep = values > self.min_grid_value
+        counted = np.concatenate(([0], np.cumsum(keep)))
+        return keys, values, keep, bounds.tolist(), counted[bounds[1:]] - counted[bounds[:-1]]
+
     def grid_cells_over_cap(self) -> int:
         """Cells above ``min_grid_value`` that ``motion_grid`` leaves out for ``max_cells_per_step``, all steps."""
         if not self.max_cells_per_step:
             return 0
-        n_cells = self.grid_frame.n_cells
-        over = 0
-        for k in range(self.step_times_s.shape[0]):
-            _cells, values = self.fused_grid.step(k, n_cells)
-            over += max(0, int((values > self.min_grid_value).sum()) - self.max_cells_per_step)
-        return over
+        counts = self._above_min()[4]
+        return int(np.maximum(counts - self.max_cells_per_step, 0).sum())
 
     def motion_grid(self, header: Header, scene_id: str) -> MotionGrid:
         """The ``MotionGrid`` message: the fused grid, cells above ``min_grid_value``, one COO layer per step."""
         frame = self.grid_frame
-        steps = []
-        for k in range(self.step_times_s.shape[0]):
-            cells, values = self.fused_grid.step(k, frame.n_cells)
-            keep = values > self.min_grid_value
-            if self.max_cells_per_step and int(keep.sum()) > self.max_cells_per_step:
-                listed = np.flatnonzero(keep)
-                top = listed[np.argsort(-values[listed], kind="stable")[: self.max_cells_per_step]]
-                keep = np.zeros_like(keep)
-                keep[top] = True
-            rows, cols = np.divmod(cells[keep], frame.n_cols)
-            steps.append(GridStep(rows=rows.astype(np.int32), cols=cols.astype(np.int32), values=values[keep].astype(np.float32)))
+        n_k = self.step_times_s.shape[0]
+        keys, values, keep, bounds, counts = self._above_min()
+        cap = self.max_cells_per_step
+        for k in np.flatnonzero(counts > cap).tolist() if cap else []:  # the step's highest cells only
+            lo, hi = bounds[k], bounds[k + 1]
+            listed = np.flatnonzero(keep[lo:hi])
+            top = listed[np.argsort(-values[lo:hi][listed], kind="stable")[:cap]]
+            keep[lo:hi] = False
+            keep[lo + top] = True
+        cells = keys - np.repeat(np.arange(n_k, dtype=np.int64) * frame.n_cells, np.diff(bounds))
+        rows, cols = np.divmod(cells[keep], frame.n_cols)
+        rows, cols, kept_values = rows.astype(np.int32), cols.astype(np.int32), values[keep].astype(np.float32)
+        at = np.concatenate(([0], np.cumsum(keep)))[bounds].tolist()  # each step's part of the kept cells
+        steps = [GridStep(rows=rows[at[k]:at[k + 1]], cols=cols[at[k]:at[k + 1]], values=kept_values[at[k]:at[k + 1]]) for k in range(n_k)]
         return MotionGrid(
             header=header,
             scene_id=scene_id,

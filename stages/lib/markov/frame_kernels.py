@@ -87,6 +87,7 @@ if numba is not None:
             for k in range(n_k):
                 u = 0
                 r_lo, r_hi, c_lo, c_hi = n_rows, -1, n_cols, -1
+                held, acc = -1, 0.0  # the sum of the cell of the last sample, held until another cell's sample comes
                 for m in range(ptr[n], ptr[n + 1]):
                     b = members[m]
                     w = pair_w[b]
@@ -119,17 +120,22 @@ if numba is not None:
                                     continue
                                 ri, ci = np.int64(row), np.int64(col)
                                 idx = ri * n_cols + ci
-                                s = slot[idx]
-                                if s < 0:
-                                    s = u
-                                    slot[idx] = u
-                                    uniq[u] = idx
-                                    sums[u] = 0.0
-                                    u += 1
-                                    r_lo, r_hi, c_lo, c_hi = min(r_lo, ri), max(r_hi, ri), min(c_lo, ci), max(c_hi, ci)
-                                sums[s] += mass * sample_w[sub * n_lat + lat]
+                                if idx != held:
+                                    if held >= 0:
+                                        sums[slot[held]] = acc
+                                    s = slot[idx]
+                                    if s < 0:
+                                        s = u
+                                        slot[idx] = u
+                                        uniq[u] = idx
+                                        sums[u] = 0.0
+                                        u += 1
+                                        r_lo, r_hi, c_lo, c_hi = min(r_lo, ri), max(r_hi, ri), min(c_lo, ci), max(c_hi, ci)
+                                    held, acc = idx, sums[s]
+                                acc += mass * sample_w[sub * n_lat + lat]
                 if u == 0:
                     continue
+                sums[slot[held]] = acc
                 base = k * n_cells
                 j = at
                 if (r_hi - r_lo + 1) * (c_hi - c_lo + 1) <= 8 * u:  # the box, row by row: the keys' order
