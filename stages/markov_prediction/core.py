@@ -445,8 +445,8 @@ class MarkovPredictor:
         n, _, slope, rss, sxx = fit
         sigma = math.sqrt(rss / (n - 2) / sxx)
         shrunk = slope * max(0.0, 1.0 - sigma**2 / max(slope**2, 1e-12))
-        edges = self.grid.input_edges()
-        return float(np.clip(shrunk, edges[0], edges[-1])), math.hypot(base, min(sigma, 1.0))
+        edges = self.grid.input_edges_mps2
+        return float(_clip(shrunk, edges[0], edges[-1])), math.hypot(base, min(sigma, 1.0))
 
     def speed_noise(self, track_id: int, stamp_ns: int) -> float:
         """The scatter (m/s) of the vehicle's measured speeds over the last ``accel_window_s``: the standard deviation
@@ -469,13 +469,15 @@ class MarkovPredictor:
         pts = [(t, v) for t, v in hist.samples if stamp_ns - window <= t <= stamp_ns]
         if len(pts) < 3:
             return None
+        n = len(pts)
         t = np.array([p[0] for p in pts], dtype=np.float64) * _NS
         v = np.array([p[1] for p in pts])
-        t -= t.mean()
+        t -= t.sum() / n  # (np.mean's number: the same sum divided by n)
+        v_mean = v.sum() / n
         sxx = max(float((t * t).sum()), 1e-12)
-        slope = float((t * (v - v.mean())).sum() / sxx)
-        residual = v - v.mean() - slope * t
-        return len(pts), (pts[-1][0] - pts[0][0]) * _NS, slope, float((residual**2).sum()), sxx
+        slope = float((t * (v - v_mean)).sum() / sxx)
+        residual = v - v_mean - slope * t
+        return n, (pts[-1][0] - pts[0][0]) * _NS, slope, float((residual**2).sum()), sxx
 
     def _beliefs(self, belief: IntentionBelief | None, stamp: int, issues: list[Issue]) -> dict[int, dict[int, Any]] | None:
         """Per track, its CorridorBeliefs by corridor id; None when the config does not use them or none fit."""
@@ -500,7 +502,7 @@ class MarkovPredictor:
             issues.append(Issue("no_belief", vehicle.track_id, "no intention belief for this vehicle: uniform corridor weights"))
             return uniform
         w = np.array([mine[c.corridor_id].probability if c.corridor_id in mine else np.nan for c in good], dtype=np.float64)
-        if np.any(~np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
+        if not all(math.isfinite(x) and x >= 0 for x in w.tolist()) or w.sum() <= 0:
             issues.append(Issue("no_belief", vehicle.track_id, "intention belief misses some of this vehicle's corridors: uniform corridor weights"))
             return uniform
         return w / w.sum()
@@ -536,7 +538,7 @@ class MarkovPredictor:
                     length = float(frame.length_m[row])
                 if _positive(frame.width_m[row]):
                     width = float(frame.width_m[row])
-            v0 = float(np.clip(vehicle.speed_mps, 0.0, cfg.v_max_mps))
+            v0 = float(_clip(vehicle.speed_mps, 0.0, cfg.v_max_mps))
             a0, sigma_a0 = self._acceleration(vehicle.track_id, stamp)
             noise = self.speed_noise(vehicle.track_id, stamp) if self.spread is not None and self.spread.speed_noise_gain > 0 else 0.0
             standing = self.model.chain and v0 <= cfg.standstill_speed_mps and cfg.standstill_start_rate_hz > 0
@@ -559,7 +561,7 @@ class MarkovPredictor:
                 if cb is not None and cb.particle_count > 0 and all(
                     math.isfinite(x) for x in (cb.s_mean_m, cb.s_std_m, cb.v_mean_mps, cb.v_std_mps)
                 ):
-                    s0, v_start = float(cb.s_mean_m), float(np.clip(cb.v_mean_mps, 0.0, cfg.v_max_mps))
+                    s0, v_start = float(cb.s_mean_m), float(_clip(cb.v_mean_mps, 0.0, cfg.v_max_mps))
                     hs = max(0.5 * cfg.ds_m, 2.0 * float(cb.s_std_m))
                     hv = max(0.5 * cfg.dv_mps, 2.0 * float(cb.v_std_mps))
                 lam = self.model.pair_input(vehicle.track_id, c.corridor_id, frame_data, issues)
@@ -977,6 +979,11 @@ def _normal_cdf(z: np.ndarray) -> np.ndarray:
     from scipy.special import ndtr
 
     return ndtr(z)
+
+
+def _clip(value: float, lo: float, hi: float) -> float:
+    """``np.clip`` of one number (the same result, signed zeros and NaN included), without its array overhead."""
+    return min(max(value, lo), hi)
 
 
 def _positive(value: float) -> bool:
