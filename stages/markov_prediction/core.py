@@ -802,8 +802,8 @@ class MarkovPredictor:
         shift_all = np.stack(shifts) if n_b else np.zeros((0, n_k))
         if n_b:
             s_abs = s_first[:, None] + centre[None, :]  # (B, L)
-            x_c, y_c, h_c = lines.xy_heading(s_abs)
-            nx_c, ny_c = -np.sin(h_c), np.cos(h_c)
+            x_c, y_c, _h, ny_c, sin_c = lines.xy_heading_trig(s_abs)
+            nx_c = -sin_c
             mass = pos.sum(axis=2, dtype=np.float64)  # (B, K)
             ok = mass > 1e-9
             pos64 = pos.astype(np.float64)
@@ -828,9 +828,9 @@ class MarkovPredictor:
             finite = np.isfinite(mean_s)
             s0 = np.array([p.s0_m for p in pairs], dtype=np.float64)
             at = np.where(finite, mean_s, s0[:, None])
-            sx, sy, sh = lines.xy_heading(at)
-            xy_at_mean[..., 0] = np.where(finite, sx + shift_all * -np.sin(sh), np.nan)
-            xy_at_mean[..., 1] = np.where(finite, sy + shift_all * np.cos(sh), np.nan)
+            sx, sy, _h, cos_at, sin_at = lines.xy_heading_trig(at)
+            xy_at_mean[..., 0] = np.where(finite, sx + shift_all * -sin_at, np.nan)
+            xy_at_mean[..., 1] = np.where(finite, sy + shift_all * cos_at, np.nan)
         for b, p in enumerate(pairs):
             if outside[b, -1] > cfg.outside_issue_mass:
                 issues.append(
@@ -841,9 +841,11 @@ class MarkovPredictor:
                         f" (corridor ends {p.end_s_m - p.s0_m:.1f} m ahead, v0 {p.v0_mps:.1f} m/s)",
                     )
                 )
-        batch = cell_footprints_arrays(lines, s_first[:, None] + lower[None, :], cfg.ds_m, cfg.grid_substeps, *self._lateral) if n_b else None
         grid_probs = interval if (cfg.grid_distribution == "interval" and interval is not None) else pos
-        frame = self._grid_frame(batch, grid_probs)
+        used = grid_probs.max(axis=1) > 0 if n_b else None  # (B, L): the cells that hold mass at some step, the only ones rasterised
+        batch = cell_footprints_arrays(lines, s_first[:, None] + lower[None, :], cfg.ds_m, cfg.grid_substeps, *self._lateral,
+                                       used=used) if n_b else None
+        frame = self._grid_frame(batch, used)
         by_track: dict[int, list[int]] = collections.defaultdict(list)
         for b, p in enumerate(pairs):
             by_track[p.track_id].append(b)
@@ -877,12 +879,13 @@ class MarkovPredictor:
             max_cells_per_step=cfg.grid_max_cells_per_step,
         )
 
-    def _grid_frame(self, footprints: FootprintBatch | None, probs: np.ndarray) -> GridFrame:
-        """The frame's grid: the configured extent, or around the samples of every cell that holds mass at some step."""
+    def _grid_frame(self, footprints: FootprintBatch | None, used: np.ndarray | None) -> GridFrame:
+        """The frame's grid: the configured extent, or around the samples of every cell ``used`` (B, L): the cells that
+        hold mass at some step."""
         cfg = self.config
         if cfg.grid_extent_m:
             return GridFrame.fixed(tuple(cfg.grid_extent_m), cfg.grid_cell_m)
-        bounds = footprints.bounds(probs.max(axis=1) > 0) if footprints is not None and probs.shape[0] else None
+        bounds = footprints.bounds(used) if footprints is not None and used is not None else None
         if bounds is None:
             return GridFrame(0.0, 0.0, cfg.grid_cell_m, 1, 1)
         margin = cfg.grid_margin_m + (3.0 * float(self.spread.max_sigma_m(self.step_times_s, SPEED_NOISE_CAP_MPS)) if self.spread is not None else 0.0)  # the blur stays on the grid

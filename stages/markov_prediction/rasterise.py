@@ -183,13 +183,13 @@ class Centrelines:
         self._y = np.concatenate(y_m) if n else np.zeros(0)
         self._h = unwrap_each(heading_rad) if n else np.zeros(0)
 
-    def _packed(self, s_in: np.ndarray) -> np.ndarray:
-        lead = (slice(None),) + (None,) * (s_in.ndim - 1)
+    def _packed(self, s_in: np.ndarray, pairs: np.ndarray | None = None) -> np.ndarray:
+        lead = (slice(None) if pairs is None else pairs,) + (None,) * (s_in.ndim - 1)
         return s_in - self.first[lead] + self._shift[lead]
 
-    def clip(self, s_m: np.ndarray) -> np.ndarray:
-        """``s_m`` (B, ...) clipped to each pair's centreline."""
-        lead = (slice(None),) + (None,) * (s_m.ndim - 1)
+    def clip(self, s_m: np.ndarray, pairs: np.ndarray | None = None) -> np.ndarray:
+        """``s_m`` (B, ...) clipped to each pair's centreline (``pairs``: row r of ``s_m`` is on pair ``pairs[r]``)."""
+        lead = (slice(None) if pairs is None else pairs,) + (None,) * (s_m.ndim - 1)
         return np.clip(s_m, self.first[lead], self.last[lead])
 
     def heading(self, s_in: np.ndarray) -> np.ndarray:
@@ -198,25 +198,33 @@ class Centrelines:
 
     def xy_heading(self, s_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """X_c(s) with straight continuation past either end, and the heading there, at ``s_m`` (B, ...)."""
-        s_in = self.clip(s_m)
-        q = self._packed(s_in)
+        return self.xy_heading_trig(s_m)[:3]
+
+    def xy_heading_trig(self, s_m: np.ndarray, pairs: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``xy_heading`` and the cosine and sine of the heading (each computed once); ``pairs``: row r of ``s_m`` is on
+        the centreline of pair ``pairs[r]`` (None: row b on pair b)."""
+        s_in = self.clip(s_m, pairs)
+        q = self._packed(s_in, pairs)
         heading = np.interp(q, self._xp, self._h)
         beyond = s_m - s_in
-        x = np.interp(q, self._xp, self._x) + beyond * np.cos(heading)
-        y = np.interp(q, self._xp, self._y) + beyond * np.sin(heading)
-        return x, y, heading
+        cos, sin = np.cos(heading), np.sin(heading)
+        x = np.interp(q, self._xp, self._x) + beyond * cos
+        y = np.interp(q, self._xp, self._y) + beyond * sin
+        return x, y, heading, cos, sin
 
 
 @dataclass(frozen=True, slots=True, eq=False)
 class FootprintBatch:
-    """The ``Footprints`` of B pairs, compact: per s-cell the centreline at its ``n_sub`` sub-samples, ``centre_x``,
-    ``centre_y`` and the left normal there ``centre_nx``, ``centre_ny`` ``(B, L, n_sub)``; the lateral ``offsets``
-    ``(n_lat,)``; ``weights`` ``(P,)``, P = n_sub·n_lat.
+    """The ``Footprints`` of B pairs, compact: for the s-cells computed, the centreline at each cell's ``n_sub``
+    sub-samples, ``centre_x``, ``centre_y``, and the left normal there, ``centre_nx``, ``centre_ny``
+    ``(R, n_sub)``, cell i of pair b on row ``rows[b, i]`` (-1: not computed); the lateral ``offsets`` ``(n_lat,)``;
+    ``weights`` ``(P,)``, P = n_sub·n_lat.
 
     Sample q = sub·n_lat + lat lies at centre + normal·offsets[lat]: ``x_m``,
     ``y_m``, ``normal_x``, ``normal_y`` ``(B, L, P)`` build those arrays (the
-    numbers of ``cell_footprints``); the compiled grid kernels
-    (``stages.lib.markov.frame_kernels``) form each sample where they use it.
+    numbers of ``cell_footprints``; NaN for a cell not computed); the compiled
+    grid kernels (``stages.lib.markov.frame_kernels``) form each sample where
+    they use it.
     """
 
     centre_x: np.ndarray
@@ -225,38 +233,47 @@ class FootprintBatch:
     centre_ny: np.ndarray
     offsets: np.ndarray
     weights: np.ndarray
+    rows: np.ndarray
 
-    def _samples(self, centre: np.ndarray, normal: np.ndarray) -> np.ndarray:
-        return (centre[..., None] + normal[..., None] * self.offsets).reshape(centre.shape[:-1] + (-1,))
+    def _expanded(self, centre: np.ndarray, normal: np.ndarray | None, b: int | None = None) -> np.ndarray:
+        rows = self.rows if b is None else self.rows[b]
+        n_lat = self.offsets.shape[0]
+        if normal is None:  # the normal itself, repeated over the lateral samples
+            values = np.repeat(centre, n_lat, axis=-1)
+        else:
+            values = (centre[..., None] + normal[..., None] * self.offsets).reshape(centre.shape[0], -1)
+        out = np.full(rows.shape + (values.shape[1],), np.nan)
+        out[rows >= 0] = values[rows[rows >= 0]]
+        return out
 
     @property
     def x_m(self) -> np.ndarray:
-        return self._samples(self.centre_x, self.centre_nx)
+        return self._expanded(self.centre_x, self.centre_nx)
 
     @property
     def y_m(self) -> np.ndarray:
-        return self._samples(self.centre_y, self.centre_ny)
+        return self._expanded(self.centre_y, self.centre_ny)
 
     @property
     def normal_x(self) -> np.ndarray:
-        return np.repeat(self.centre_nx, self.offsets.shape[0], axis=-1)
+        return self._expanded(self.centre_nx, None)
 
     @property
     def normal_y(self) -> np.ndarray:
-        return np.repeat(self.centre_ny, self.offsets.shape[0], axis=-1)
+        return self._expanded(self.centre_ny, None)
 
     def pair(self, b: int) -> Footprints:
-        n_lat = self.offsets.shape[0]
-        return Footprints(self._samples(self.centre_x[b], self.centre_nx[b]), self._samples(self.centre_y[b], self.centre_ny[b]),
-                          self.weights, np.repeat(self.centre_nx[b], n_lat, axis=-1), np.repeat(self.centre_ny[b], n_lat, axis=-1))
+        return Footprints(self._expanded(self.centre_x, self.centre_nx, b), self._expanded(self.centre_y, self.centre_ny, b),
+                          self.weights, self._expanded(self.centre_nx, None, b), self._expanded(self.centre_ny, None, b))
 
     def pairs(self) -> list[Footprints]:
-        return [self.pair(b) for b in range(self.centre_x.shape[0])]
+        return [self.pair(b) for b in range(self.rows.shape[0])]
 
     def bounds(self, used: np.ndarray) -> tuple[float, float, float, float] | None:
         """(x min, x max, y min, y max) of the samples of the cells ``used`` (B, L) bool, the numbers np.min and np.max
         give over ``x_m[b][used[b]]``, ``y_m[b][used[b]]``; None when no cell is used."""
-        found = frame_kernels.footprint_bounds(self.centre_x, self.centre_y, self.centre_nx, self.centre_ny, self.offsets, used)
+        found = frame_kernels.footprint_bounds(self.centre_x, self.centre_y, self.centre_nx, self.centre_ny, self.offsets, self.rows,
+                                               used)
         if found is not None:
             return found
         if not np.any(used):
@@ -285,14 +302,22 @@ def cell_footprints_arrays(
     n_sub: int,
     lateral_offsets_m: np.ndarray,
     lateral_weights: np.ndarray,
+    used: np.ndarray | None = None,
 ) -> FootprintBatch:
-    """``cell_footprints_batch`` as one (compact) ``FootprintBatch``."""
+    """``cell_footprints_batch`` as one (compact) ``FootprintBatch``, of the cells ``used`` (B, L) bool only (None:
+    every cell)."""
     frac = (np.arange(n_sub) + 0.5) / n_sub
-    s = cell_lower_s_m[:, :, None] + frac[None, None, :] * ds_m  # (B, L, n_sub)
-    x, y, h = centrelines.xy_heading(s)
+    n_b, n_cells = cell_lower_s_m.shape
+    if used is None:
+        used = np.ones((n_b, n_cells), np.bool_)
+    b_idx, i_idx = np.nonzero(used)
+    rows = np.full((n_b, n_cells), -1, np.int64)
+    rows[b_idx, i_idx] = np.arange(b_idx.shape[0])
+    s = cell_lower_s_m[b_idx, i_idx][:, None] + frac[None, :] * ds_m  # (R, n_sub)
+    x, y, _h, cos, sin = centrelines.xy_heading_trig(s, b_idx)
     n_lat = lateral_offsets_m.shape[0]
     weights = np.repeat((1.0 / n_sub) * np.ones(n_sub), n_lat) * np.tile(lateral_weights, n_sub)
-    return FootprintBatch(x, y, -np.sin(h), np.cos(h), np.asarray(lateral_offsets_m, dtype=np.float64), weights)
+    return FootprintBatch(x, y, -sin, cos, np.asarray(lateral_offsets_m, dtype=np.float64), weights, rows)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -370,7 +395,7 @@ def vehicle_grids(
         # w · p is float64 for a numpy float64 weight and float32 for a Python float (numpy's promotion), as vehicle_grid has it
         wide = np.array([type(w) is not float and np.result_type(w, probs.dtype) == np.float64 for w in corridor_weights], dtype=np.bool_)
         fp = footprints
-        found = frame_kernels.footprint_grids(fp.centre_x, fp.centre_y, fp.centre_nx, fp.centre_ny, fp.offsets, fp.weights, probs,
+        found = frame_kernels.footprint_grids(fp.centre_x, fp.centre_y, fp.centre_nx, fp.centre_ny, fp.offsets, fp.weights, fp.rows, probs,
                                               np.asarray(corridor_weights, dtype=np.float64), wide, lateral_shifts_m, members,
                                               frame.origin_x_m, frame.origin_y_m, frame.cell_m, frame.n_rows, frame.n_cols, min_mass)
     if found is None:

@@ -81,8 +81,8 @@ def test_vehicle_grids_in_one_call_equal_vehicle_grid_per_vehicle():
     lower = np.stack([s[0] - 5.0 + np.arange(40, dtype=np.float64) for s, *_ in lines])
     offsets, weights = lateral_kernel(0.4, 0.5)
     batch = cell_footprints_arrays(packed, lower, 1.0, 4, offsets, weights)
-    batch.centre_x[3, 7, :1] = np.nan  # not finite: off the grid (the first sub-sample's lateral samples)
-    batch.centre_y[5, 2, 1] = np.inf
+    batch.centre_x[batch.rows[3, 7], :1] = np.nan  # not finite: off the grid (the first sub-sample's lateral samples)
+    batch.centre_y[batch.rows[5, 2], 1] = np.inf
     probs = (rng.dirichlet(np.ones(40), (9, 10)) * (rng.random((9, 10, 40)) < 0.6)).astype(np.float32)
     probs[4] *= 1e-10  # below min_mass everywhere
     corridor_weights = [np.float64(w) for w in rng.uniform(0.1, 1.0, 9)]
@@ -90,8 +90,16 @@ def test_vehicle_grids_in_one_call_equal_vehicle_grid_per_vehicle():
     shifts = rng.normal(0, 0.8, (9, 10))
     members = [[0, 1, 2], [3], [4, 5], [6, 7, 8]]
     frame = GridFrame(float(np.nanmin(batch.x_m)) + 15.0, float(np.nanmin(batch.y_m)) + 10.0, 0.5, 300, 280)  # part off the grid
+    some = cell_footprints_arrays(packed, lower, 1.0, 4, offsets, weights, used=probs.max(axis=1) > 0)  # cells with mass only
+    assert some.rows[3, 7] >= 0 and some.rows[5, 2] >= 0 and (some.rows < 0).any()
+    some.centre_x[some.rows[3, 7], :1] = np.nan
+    some.centre_y[some.rows[5, 2], 1] = np.inf
     for with_shifts in (True, False):
         got = vehicle_grids(frame, batch, probs, corridor_weights, members, shifts if with_shifts else None)
+        got_some = vehicle_grids(frame, some, probs, corridor_weights, members, shifts if with_shifts else None)
+        for a, b in zip(got, got_some):
+            np.testing.assert_array_equal(a.keys, b.keys)
+            np.testing.assert_array_equal(a.values, b.values)
         for grid, m in zip(got, members):
             want = vehicle_grid(frame, [batch.pair(b) for b in m], [probs[b] for b in m], [corridor_weights[b] for b in m],
                                 [shifts[b] for b in m] if with_shifts else None)
@@ -141,8 +149,12 @@ def test_footprint_bounds_equal_min_max_of_used_samples():
     want = (np.min(x[used]), np.max(x[used]), np.min(y[used]), np.max(y[used]))
     assert batch.bounds(used) == want
     assert batch.bounds(np.zeros_like(used)) is None
+    some = cell_footprints_arrays(packed, lower, 1.0, 4, offsets, weights, used=used)  # the used cells' footprints only
+    assert some.bounds(used) == want and some.centre_x.shape == (int(used.sum()), 4)
+    np.testing.assert_array_equal(some.x_m[used], x[used])
+    assert np.isnan(some.x_m[~used]).all()
     b, i = np.argwhere(used)[0]
-    batch.centre_y[b, i, 0] = np.nan
+    batch.centre_y[batch.rows[b, i], 0] = np.nan
     assert np.isnan(batch.bounds(used)[2])
 
 

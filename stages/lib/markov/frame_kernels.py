@@ -46,17 +46,17 @@ def exact_inverse(cell: float) -> float:
 if numba is not None:
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
-    def _footprint_grids(x_c, y_c, nx, ny, offsets, sample_w, probs, pair_w, wide, shifts, has_shift, ptr, members, origin_x,
+    def _footprint_grids(x_c, y_c, nx, ny, offsets, sample_w, cell_rows, probs, pair_w, wide, shifts, has_shift, ptr, members, origin_x,
                          origin_y, cell, inv_cell, n_rows, n_cols, min_mass):  # pragma: no cover - compiled
         """Per vehicle (its pairs ``members[ptr[n]:ptr[n + 1]]``), the sorted keys and sums of ``vehicle_grid``: the
         same float64 operations, each key's sum taken in the order ``vehicle_grid`` concatenates its terms (as
-        np.bincount adds them). Sample q = sub·n_lat + lat of cell i lies at x_c[b, i, sub] + nx[b, i, sub]·offsets[lat]
-        (``FootprintBatch.x_m``). Step by step (keys of different steps never meet), each sample added to its cell's
+        np.bincount adds them). Sample q = sub·n_lat + lat of cell i lies at x_c[r, sub] + nx[r, sub]·offsets[lat], r =
+        cell_rows[b, i] (``FootprintBatch.x_m``; a cell with mass and no row, -1, has its samples off the grid, NaN). Step by step (keys of different steps never meet), each sample added to its cell's
         sum as it is formed (a table over the grid's cells, kept all -1 between steps), the cells then listed in key
         order by a scan of their bounding box (or a sort, when the box is much larger than the cells). Returns keys,
         sums and the (n_vehicles + 1,) offsets of each vehicle's part."""
         n_k, n_l = probs.shape[1], probs.shape[2]
-        n_sub = x_c.shape[2]
+        n_sub = x_c.shape[1]
         n_lat = offsets.shape[0]
         n_p = n_sub * n_lat
         n_cells = n_rows * n_cols
@@ -101,8 +101,11 @@ if numba is not None:
                             continue
                         # w · p: float64 for a numpy float64 weight, float32 for a Python float (numpy's promotion)
                         mass = w * np.float64(p) if wide[b] else np.float64(w32 * p)
+                        r = cell_rows[b, i]
+                        if r < 0:
+                            continue
                         for sub in range(n_sub):
-                            xs, ys, nxs, nys = x_c[b, i, sub], y_c[b, i, sub], nx[b, i, sub], ny[b, i, sub]
+                            xs, ys, nxs, nys = x_c[r, sub], y_c[r, sub], nx[r, sub], ny[r, sub]
                             for lat in range(n_lat):
                                 off = offsets[lat]
                                 x = xs + nxs * off
@@ -162,8 +165,9 @@ if numba is not None:
         return keys_out[:at], sums_out[:at], out_ptr
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
-    def _footprint_bounds(x_c, y_c, nx, ny, offsets, used):  # pragma: no cover - compiled
-        """(x min, x max, y min, y max, samples seen, a NaN seen) over the samples of the cells ``used[b, i]``."""
+    def _footprint_bounds(x_c, y_c, nx, ny, offsets, cell_rows, used):  # pragma: no cover - compiled
+        """(x min, x max, y min, y max, samples seen, a NaN seen) over the samples of the cells ``used[b, i]`` (a cell
+        without a row in ``cell_rows`` counts as NaN)."""
         x_lo, x_hi, y_lo, y_hi = np.inf, -np.inf, np.inf, -np.inf
         seen = 0
         nan = False
@@ -171,8 +175,12 @@ if numba is not None:
             for i in range(used.shape[1]):
                 if not used[b, i]:
                     continue
-                for sub in range(x_c.shape[2]):
-                    xs, ys, nxs, nys = x_c[b, i, sub], y_c[b, i, sub], nx[b, i, sub], ny[b, i, sub]
+                r = cell_rows[b, i]
+                if r < 0:
+                    nan = True
+                    continue
+                for sub in range(x_c.shape[1]):
+                    xs, ys, nxs, nys = x_c[r, sub], y_c[r, sub], nx[r, sub], ny[r, sub]
                     for lat in range(offsets.shape[0]):
                         x = xs + nxs * offsets[lat]
                         y = ys + nys * offsets[lat]
@@ -249,7 +257,7 @@ if numba is not None:
         return keys_out[:at], sums_out[:at], True
 
 
-def footprint_grids(x_c, y_c, nx, ny, offsets, sample_weights, probs, pair_weights, wide, shifts, members, origin_x, origin_y,
+def footprint_grids(x_c, y_c, nx, ny, offsets, sample_weights, cell_rows, probs, pair_weights, wide, shifts, members, origin_x, origin_y,
                     cell, n_rows, n_cols, min_mass):
     """The sparse grids of ``stages.markov_prediction.rasterise.vehicle_grid`` for every vehicle in one call (see
     ``rasterise.vehicle_grids``) from compact footprints (``rasterise.FootprintBatch``); None where numba is missing.
@@ -263,20 +271,22 @@ def footprint_grids(x_c, y_c, nx, ny, offsets, sample_weights, probs, pair_weigh
     has_shift = shifts is not None
     shifts = shifts if has_shift else np.zeros(probs.shape[:2])
     return _footprint_grids(c(x_c, dtype=np.float64), c(y_c, dtype=np.float64), c(nx, dtype=np.float64), c(ny, dtype=np.float64),
-                            c(offsets, dtype=np.float64), c(sample_weights, dtype=np.float64), c(probs, dtype=np.float32),
+                            c(offsets, dtype=np.float64), c(sample_weights, dtype=np.float64), c(cell_rows, dtype=np.int64),
+                            c(probs, dtype=np.float32),
                             c(pair_weights, dtype=np.float64), c(wide, dtype=np.bool_), c(shifts, dtype=np.float64), has_shift, ptr,
                             flat, float(origin_x), float(origin_y), float(cell), exact_inverse(float(cell)), int(n_rows), int(n_cols),
                             float(min_mass))
 
 
-def footprint_bounds(x_c, y_c, nx, ny, offsets, used):
+def footprint_bounds(x_c, y_c, nx, ny, offsets, cell_rows, used):
     """(x min, x max, y min, y max) of the samples of the cells ``used`` (B, L), None when there is none, or when a
     sample is NaN (the caller then takes numpy's own path) or numba is missing."""
     if numba is None:
         return None
     c = np.ascontiguousarray
     x_lo, x_hi, y_lo, y_hi, seen, nan = _footprint_bounds(c(x_c, dtype=np.float64), c(y_c, dtype=np.float64), c(nx, dtype=np.float64),
-                                                          c(ny, dtype=np.float64), c(offsets, dtype=np.float64), c(used, dtype=np.bool_))
+                                                          c(ny, dtype=np.float64), c(offsets, dtype=np.float64),
+                                                          c(cell_rows, dtype=np.int64), c(used, dtype=np.bool_))
     if nan or not seen:
         return None
     return x_lo, x_hi, y_lo, y_hi
@@ -303,9 +313,10 @@ def warm_up() -> None:
     global _warm
     if _warm or numba is None:
         return
-    box = np.zeros((1, 1, 1))
-    footprint_grids(box, box, box, box, np.zeros(1), np.ones(1), np.ones((1, 1, 1), np.float32), np.ones(1), np.ones(1, np.bool_),
+    box = np.zeros((1, 1))
+    rows = np.zeros((1, 1), np.int64)
+    footprint_grids(box, box, box, box, np.zeros(1), np.ones(1), rows, np.ones((1, 1, 1), np.float32), np.ones(1), np.ones(1, np.bool_),
                     np.zeros((1, 1)), [[0]], -1.0, -1.0, 1.0, 2, 2, 1e-9)
-    footprint_bounds(box, box, box, box, np.zeros(1), np.ones((1, 1), np.bool_))
+    footprint_bounds(box, box, box, box, np.zeros(1), rows, np.ones((1, 1), np.bool_))
     fuse_sorted([np.array([0, 3], np.int64), np.array([3], np.int64)], np.ones(3), 2)
     _warm = True
