@@ -85,6 +85,7 @@ def test_vehicle_grids_in_one_call_equal_vehicle_grid_per_vehicle():
     batch.centre_y[batch.rows[5, 2], 1] = np.inf
     probs = (rng.dirichlet(np.ones(40), (9, 10)) * (rng.random((9, 10, 40)) < 0.6)).astype(np.float32)
     probs[4] *= 1e-10  # below min_mass everywhere
+    probs[:3, :, 33:] = 0.0  # cells without mass at any step (no footprints in a batch of the used cells)
     corridor_weights = [np.float64(w) for w in rng.uniform(0.1, 1.0, 9)]
     corridor_weights[1], corridor_weights[2], corridor_weights[6] = 0.7, 0.0, 1.0  # Python floats, and a zero weight
     shifts = rng.normal(0, 0.8, (9, 10))
