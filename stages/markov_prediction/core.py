@@ -46,7 +46,7 @@ from stages.markov_prediction import priority as pr
 from stages.markov_prediction.chain import PriorityPropagator
 from stages.markov_prediction.config import DEFAULT_PREFERENCE, MarkovPredictionConfig
 from stages.markov_prediction.modes import MODELS
-from stages.markov_prediction.modes.base import InputModel, Messages, Pair, Vehicle
+from stages.markov_prediction.modes.base import InputModel, Messages, Pair, Vehicle, stay_probabilities
 from stages.markov_prediction.modes.corridor_cv import constant_speed
 from stages.markov_prediction.modes.cv import CV_LINE_ID
 from stages.markov_prediction.spread import SpreadTable, blur_grid, load_spread
@@ -757,7 +757,7 @@ class MarkovPredictor:
 
     def _mix_standstill(self, pairs, members, start_probs, pos, vel, interval, outside):
         """Standing vehicles (package docstring, "Standstill"): P_stay(t)·(start box, v-cell 0) + (1 − P_stay(t))·chain."""
-        stay = np.stack([pairs[g].stay_probability(self.step_times_s) for g in members]) if len(members) else np.zeros((0, self.config.n_steps))
+        stay = stay_probabilities([pairs[g] for g in members], self.step_times_s)
         if not np.any(stay > 0):
             return pos, vel, interval, outside
         w = stay[:, :, None].astype(np.float32)

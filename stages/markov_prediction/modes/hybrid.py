@@ -73,17 +73,20 @@ class _HybridInputs(ChainInputs):
         self.with_interval = cfg.grid_distribution == "interval"
         lam = self.lam
         self.steps: list = []
+        if lam_speed is not None:  # every step's preference λ(k+1) / max λ(k+1) at once (the same numbers as step by step)
+            prefs = lam[:, 1:] / np.maximum(lam[:, 1:].max(axis=2, keepdims=True), 1e-12)
+            prefs32 = prefs.astype(np.float32)
         for k in range(cfg.n_steps):
             if k + 1 >= cfg.n_steps:
                 self.steps.append(None)  # the input after the last step does not change any output
             elif lam_speed is not None:
-                pref = lam[:, k + 1] / np.maximum(lam[:, k + 1].max(axis=1, keepdims=True), 1e-12)
+                pref = prefs[:, k]
                 if isinstance(lam_speed, kernels.SpeedRestriction):  # compiled (kernels.SpeedRestriction): λ_speed filled on demand
-                    pref = pref.astype(np.float32)
+                    pref = prefs32[:, k]
                     at_states = lambda b, v, s, pref=pref: lam_speed.priority_at_states(pref, b, v, s, cfg.forbid_threshold)  # noqa: E731
                     window = lambda lo, hi: lam_speed.full()[..., lo:hi]  # noqa: E731
                 elif kernels.available():  # the same numbers, compiled (kernels.priority_at_states): no gather, no per-input passes
-                    pref = pref.astype(np.float32)
+                    pref = prefs32[:, k]
                     at_states = lambda b, v, s, pref=pref: kernels.priority_at_states(lam_speed, pref, b, v, s, cfg.forbid_threshold)  # noqa: E731
                     window = lambda lo, hi: lam_speed[..., lo:hi]  # noqa: E731
                 else:
