@@ -785,21 +785,26 @@ class MarkovPredictor:
         pos = pos.copy()
         decay = cfg.lateral_offset_decay_s
         factor = np.exp(-self.step_times_s / decay) if decay > 0 else np.zeros(n_k)
-        shifts = [p.d0_m * factor for p in pairs]
         if interval is not None:
             interval = np.asarray(interval, dtype=np.float32).copy()
         s_first = np.array([p.s_first_m for p in pairs], dtype=np.float64).reshape(n_b)
         end_s = np.array([p.end_s_m for p in pairs], dtype=np.float64).reshape(n_b)
         beyond_all = s_first[:, None] + lower[None, :] >= end_s[:, None]  # cells past the corridor's end count as outside
-        for b in np.flatnonzero(beyond_all.any(axis=1)):
-            beyond = beyond_all[b]
-            outside[b] += pos[b][:, beyond].sum(axis=1)
-            pos[b][:, beyond] = 0.0
+        past = np.flatnonzero(beyond_all.any(axis=1))
+        if past.size:
+            # a pair whose cells past the end hold only +0.0 adds +0.0 to its outside mass (all at once); one with mass
+            # (or a -0.0) there, its own sum
+            held = pos[past]
+            own = (((held != 0) | np.signbit(held)) & beyond_all[past][:, None, :]).any(axis=(1, 2))
+            for b in past[own].tolist():
+                outside[b] += pos[b][:, beyond_all[b]].sum(axis=1)
+            outside[past[~own]] += 0.0
+            np.copyto(pos, 0.0, where=beyond_all[:, None, :])
             if interval is not None:
-                interval[b][:, beyond] = 0.0
+                np.copyto(interval, 0.0, where=beyond_all[:, None, :])
         # every pair at once (rasterise.Centrelines: one np.interp per quantity over all the pairs' centrelines)
         lines = Centrelines([p.s_m for p in pairs], [p.x_m for p in pairs], [p.y_m for p in pairs], [p.heading_rad for p in pairs])
-        shift_all = np.stack(shifts) if n_b else np.zeros((0, n_k))
+        shift_all = np.array([p.d0_m for p in pairs], dtype=np.float64).reshape(n_b, 1) * factor[None, :]  # (B, K): d0 · factor
         if n_b:
             s_abs = s_first[:, None] + centre[None, :]  # (B, L)
             x_c, y_c, _h, ny_c, sin_c = lines.xy_heading_trig(s_abs)
