@@ -77,17 +77,22 @@ if numba is not None:
         keys_out = np.empty(total, np.int64)
         sums_out = np.empty(total, np.float64)
         out_ptr = np.zeros(n_veh + 1, np.int64)
+        rows = np.empty(most, np.int64)
+        cols = np.empty(most, np.int64)
+        vals = np.empty(most, np.float64)
         uniq = np.empty(most, np.int64)
         sums = np.empty(most, np.float64)
-        slot = np.full(n_cells, -1, np.int32)  # per cell of the grid: its index in uniq, -1
+        box = np.zeros(4096, np.float64)  # per cell of the step's box: its sum (kept all 0.0 between steps) ...
+        touched = np.zeros(4096, np.bool_)  # ... and whether a sample fell in it
+        slot = np.full(n_cells, -1, np.int32)  # (boxes much larger than their samples) per cell of the grid: its index in uniq
         f32 = np.float32
         use_inv = inv_cell > 0.0
         at = 0
         for n in range(n_veh):
             for k in range(n_k):
-                u = 0
+                # pass 1: every sample's cell and value, in vehicle_grid's order, and the box of the cells
+                c = 0
                 r_lo, r_hi, c_lo, c_hi = n_rows, -1, n_cols, -1
-                held, acc = -1, 0.0  # the sum of the cell of the last sample, held until another cell's sample comes
                 for m in range(ptr[n], ptr[n + 1]):
                     b = members[m]
                     w = pair_w[b]
@@ -122,36 +127,45 @@ if numba is not None:
                                 if not (col >= 0 and col < n_cols and row >= 0 and row < n_rows):  # NaN: off the grid too
                                     continue
                                 ri, ci = np.int64(row), np.int64(col)
-                                idx = ri * n_cols + ci
-                                if idx != held:
-                                    if held >= 0:
-                                        sums[slot[held]] = acc
-                                    s = slot[idx]
-                                    if s < 0:
-                                        s = u
-                                        slot[idx] = u
-                                        uniq[u] = idx
-                                        sums[u] = 0.0
-                                        u += 1
-                                        r_lo, r_hi, c_lo, c_hi = min(r_lo, ri), max(r_hi, ri), min(c_lo, ci), max(c_hi, ci)
-                                    held, acc = idx, sums[s]
-                                acc += mass * sample_w[sub * n_lat + lat]
-                if u == 0:
+                                rows[c], cols[c], vals[c] = ri, ci, mass * sample_w[sub * n_lat + lat]
+                                c += 1
+                                r_lo, r_hi, c_lo, c_hi = min(r_lo, ri), max(r_hi, ri), min(c_lo, ci), max(c_hi, ci)
+                if c == 0:
                     continue
-                sums[slot[held]] = acc
                 base = k * n_cells
                 j = at
-                if (r_hi - r_lo + 1) * (c_hi - c_lo + 1) <= 8 * u:  # the box, row by row: the keys' order
-                    for r in range(r_lo, r_hi + 1):
-                        for cc in range(c_lo, c_hi + 1):
-                            idx = r * n_cols + cc
-                            s = slot[idx]
-                            if s >= 0:
-                                keys_out[j] = base + idx
-                                sums_out[j] = sums[s]
-                                slot[idx] = -1
-                                j += 1
-                else:
+                width = c_hi - c_lo + 1
+                area = (r_hi - r_lo + 1) * width
+                if area <= 8 * c + 4096:
+                    # pass 2: each cell's sum from 0.0 in the samples' order, in a dense table over the box; the box
+                    # read row by row gives the keys' order
+                    if box.shape[0] < area:
+                        box = np.zeros(max(area, 2 * box.shape[0]), np.float64)
+                        touched = np.zeros(box.shape[0], np.bool_)
+                    for q in range(c):
+                        idx = (rows[q] - r_lo) * width + (cols[q] - c_lo)
+                        box[idx] += vals[q]
+                        touched[idx] = True
+                    for idx in range(area):
+                        if touched[idx]:
+                            r, cc = divmod(idx, width)
+                            keys_out[j] = base + (r_lo + r) * n_cols + (c_lo + cc)
+                            sums_out[j] = box[idx]
+                            j += 1
+                            box[idx] = 0.0
+                            touched[idx] = False
+                else:  # a sparse box: a slot per cell of the grid, the cells sorted
+                    u = 0
+                    for q in range(c):
+                        idx = rows[q] * n_cols + cols[q]
+                        s = slot[idx]
+                        if s < 0:
+                            s = u
+                            slot[idx] = u
+                            uniq[u] = idx
+                            sums[u] = 0.0
+                            u += 1
+                        sums[s] += vals[q]
                     ordered = np.sort(uniq[:u])
                     for q in range(u):
                         idx = ordered[q]
