@@ -38,6 +38,7 @@ from stages.lib.caps import cap_pairs
 from stages.lib.datasets import DEFAULT_SIZES_M
 from stages.lib.grid_fusion import parse_shard, shard_of
 from stages.lib.markov import MarkovGridConfig, SeparableState, initial_state, load_or_build_stencils, psi_matrix
+from stages.lib.markov import frame_kernels
 from stages.lib.markov.grid import uniform_input_edges
 from stages.lib.markov.propagate import boxes_outside_grid
 
@@ -45,12 +46,12 @@ from stages.markov_prediction import priority as pr
 from stages.markov_prediction.chain import PriorityPropagator
 from stages.markov_prediction.config import DEFAULT_PREFERENCE, MarkovPredictionConfig
 from stages.markov_prediction.modes import MODELS
-from stages.markov_prediction.modes.base import InputModel, Messages, Pair, Vehicle
+from stages.markov_prediction.modes.base import InputModel, Messages, Pair, Vehicle, stay_probabilities
 from stages.markov_prediction.modes.corridor_cv import constant_speed
 from stages.markov_prediction.modes.cv import CV_LINE_ID
 from stages.markov_prediction.spread import SpreadTable, blur_grid, load_spread
 from stages.markov_prediction.rasterise import (
-    Centrelines, Footprints, GridFrame, SparseGrid, cell_footprints_arrays, fuse, lateral_kernel, vehicle_grids,
+    Centrelines, FootprintBatch, GridFrame, SparseGrid, cell_footprints_arrays, fuse, lateral_kernel, vehicle_grids,
 )
 from stages.markov_prediction.signals import apply_signals, stop_line_wall
 
@@ -112,25 +113,38 @@ class FramePrediction:
     def corridor_predictions(self, header: Header, scene_id: str) -> CorridorPredictions:
         """The ``CorridorPredictions`` message (s-distributions cropped to the cells ever occupied)."""
         out = []
+        n_b = len(self.pairs)
+        # every pair's arrays converted at once (each message gets its own rows); cells ever occupied: [lo, hi)
+        lo: list[int] = []
+        hi: list[int] = []
+        if n_b and self.position_probs.shape[2]:
+            occupied = self.position_probs.max(axis=1) > 0
+            any_cell = occupied.any(axis=1)
+            lo = np.where(any_cell, occupied.argmax(axis=1), 0).tolist()
+            hi = np.where(any_cell, occupied.shape[1] - occupied[:, ::-1].argmax(axis=1), 0).tolist()
+        elif n_b:
+            lo = hi = [0] * n_b
+        v_probs = np.asarray(self.velocity_probs, dtype=np.float32)
+        outside = self.outside_mass.astype(np.float32)
+        mean_x, mean_y = (self.mean_xy_m[..., j].astype(np.float64) for j in (0, 1))
+        mean_s = self.mean_s_m.astype(np.float64)
+        at_x, at_y = (self.xy_at_mean_s_m[..., j].astype(np.float64) for j in (0, 1))
         for b, info in enumerate(self.pairs):
-            probs = self.position_probs[b]
-            occupied = np.flatnonzero(probs.max(axis=0) > 0)
-            lo, hi = (int(occupied[0]), int(occupied[-1]) + 1) if occupied.size else (0, 0)
             out.append(
                 CorridorPrediction(
                     track_id=info.track_id,
                     corridor_id=info.corridor_id,
                     probability=float(info.probability),
                     vehicle_s_m=float(info.vehicle_s_m),
-                    s_first_m=float(info.s_first_m + lo * self.ds_m),
-                    s_probs=np.ascontiguousarray(probs[:, lo:hi], dtype=np.float32),
-                    v_probs=np.ascontiguousarray(self.velocity_probs[b], dtype=np.float32),
-                    outside_mass=self.outside_mass[b].astype(np.float32),
-                    mean_x_m=self.mean_xy_m[b, :, 0].astype(np.float64),
-                    mean_y_m=self.mean_xy_m[b, :, 1].astype(np.float64),
-                    mean_s_m=self.mean_s_m[b].astype(np.float64),
-                    x_at_mean_s_m=self.xy_at_mean_s_m[b, :, 0].astype(np.float64),
-                    y_at_mean_s_m=self.xy_at_mean_s_m[b, :, 1].astype(np.float64),
+                    s_first_m=float(info.s_first_m + lo[b] * self.ds_m),
+                    s_probs=np.ascontiguousarray(self.position_probs[b, :, lo[b]:hi[b]], dtype=np.float32),
+                    v_probs=np.ascontiguousarray(v_probs[b]),
+                    outside_mass=outside[b],
+                    mean_x_m=mean_x[b],
+                    mean_y_m=mean_y[b],
+                    mean_s_m=mean_s[b],
+                    x_at_mean_s_m=at_x[b],
+                    y_at_mean_s_m=at_y[b],
                 )
             )
         return CorridorPredictions(
@@ -143,31 +157,42 @@ class FramePrediction:
             predictions=tuple(out),
         )
 
+    def _above_min(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int], np.ndarray]:
+        """The fused grid's keys and values of the K steps, which are above ``min_grid_value``, each step's part
+        [bounds[k], bounds[k + 1]) of them (``SparseGrid.step``'s) and the cells above the minimum per step."""
+        n_k, n_cells = self.step_times_s.shape[0], self.grid_frame.n_cells
+        bounds = np.searchsorted(self.fused_grid.keys, np.arange(n_k + 1) * n_cells)
+        keys = self.fused_grid.keys[bounds[0]:bounds[-1]]
+        values = self.fused_grid.values[bounds[0]:bounds[-1]]
+        bounds = bounds - bounds[0]
+        keep = values > self.min_grid_value
+        counted = np.concatenate(([0], np.cumsum(keep)))
+        return keys, values, keep, bounds.tolist(), counted[bounds[1:]] - counted[bounds[:-1]]
+
     def grid_cells_over_cap(self) -> int:
         """Cells above ``min_grid_value`` that ``motion_grid`` leaves out for ``max_cells_per_step``, all steps."""
         if not self.max_cells_per_step:
             return 0
-        n_cells = self.grid_frame.n_cells
-        over = 0
-        for k in range(self.step_times_s.shape[0]):
-            _cells, values = self.fused_grid.step(k, n_cells)
-            over += max(0, int((values > self.min_grid_value).sum()) - self.max_cells_per_step)
-        return over
+        counts = self._above_min()[4]
+        return int(np.maximum(counts - self.max_cells_per_step, 0).sum())
 
     def motion_grid(self, header: Header, scene_id: str) -> MotionGrid:
         """The ``MotionGrid`` message: the fused grid, cells above ``min_grid_value``, one COO layer per step."""
         frame = self.grid_frame
-        steps = []
-        for k in range(self.step_times_s.shape[0]):
-            cells, values = self.fused_grid.step(k, frame.n_cells)
-            keep = values > self.min_grid_value
-            if self.max_cells_per_step and int(keep.sum()) > self.max_cells_per_step:
-                listed = np.flatnonzero(keep)
-                top = listed[np.argsort(-values[listed], kind="stable")[: self.max_cells_per_step]]
-                keep = np.zeros_like(keep)
-                keep[top] = True
-            rows, cols = np.divmod(cells[keep], frame.n_cols)
-            steps.append(GridStep(rows=rows.astype(np.int32), cols=cols.astype(np.int32), values=values[keep].astype(np.float32)))
+        n_k = self.step_times_s.shape[0]
+        keys, values, keep, bounds, counts = self._above_min()
+        cap = self.max_cells_per_step
+        for k in np.flatnonzero(counts > cap).tolist() if cap else []:  # the step's highest cells only
+            lo, hi = bounds[k], bounds[k + 1]
+            listed = np.flatnonzero(keep[lo:hi])
+            top = listed[np.argsort(-values[lo:hi][listed], kind="stable")[:cap]]
+            keep[lo:hi] = False
+            keep[lo + top] = True
+        cells = keys - np.repeat(np.arange(n_k, dtype=np.int64) * frame.n_cells, np.diff(bounds))
+        rows, cols = np.divmod(cells[keep], frame.n_cols)
+        rows, cols, kept_values = rows.astype(np.int32), cols.astype(np.int32), values[keep].astype(np.float32)
+        at = np.concatenate(([0], np.cumsum(keep)))[bounds].tolist()  # each step's part of the kept cells
+        steps = [GridStep(rows=rows[at[k]:at[k + 1]], cols=cols[at[k]:at[k + 1]], values=kept_values[at[k]:at[k + 1]]) for k in range(n_k)]
         return MotionGrid(
             header=header,
             scene_id=scene_id,
@@ -233,6 +258,7 @@ class MarkovPredictor:
         self.preference = pr.normalised_preference(preference, cfg.n_inputs)
         self.psi = psi_matrix(self.a_centres, gamma=config.psi_gamma)
         self._lateral = lateral_kernel(config.grid_lateral_sigma_m, config.grid_cell_m)
+        frame_kernels.warm_up()  # the output kernels compiled (or loaded from numba's cache) now, not on the first frame
         self._history: dict[int, _SpeedHistory] = {}
         self.stencils = None
         self.propagator: PriorityPropagator | None = None
@@ -419,8 +445,8 @@ class MarkovPredictor:
         n, _, slope, rss, sxx = fit
         sigma = math.sqrt(rss / (n - 2) / sxx)
         shrunk = slope * max(0.0, 1.0 - sigma**2 / max(slope**2, 1e-12))
-        edges = self.grid.input_edges()
-        return float(np.clip(shrunk, edges[0], edges[-1])), math.hypot(base, min(sigma, 1.0))
+        edges = self.grid.input_edges_mps2
+        return float(_clip(shrunk, edges[0], edges[-1])), math.hypot(base, min(sigma, 1.0))
 
     def speed_noise(self, track_id: int, stamp_ns: int) -> float:
         """The scatter (m/s) of the vehicle's measured speeds over the last ``accel_window_s``: the standard deviation
@@ -443,13 +469,15 @@ class MarkovPredictor:
         pts = [(t, v) for t, v in hist.samples if stamp_ns - window <= t <= stamp_ns]
         if len(pts) < 3:
             return None
+        n = len(pts)
         t = np.array([p[0] for p in pts], dtype=np.float64) * _NS
         v = np.array([p[1] for p in pts])
-        t -= t.mean()
+        t -= t.sum() / n  # (np.mean's number: the same sum divided by n)
+        v_mean = v.sum() / n
         sxx = max(float((t * t).sum()), 1e-12)
-        slope = float((t * (v - v.mean())).sum() / sxx)
-        residual = v - v.mean() - slope * t
-        return len(pts), (pts[-1][0] - pts[0][0]) * _NS, slope, float((residual**2).sum()), sxx
+        slope = float((t * (v - v_mean)).sum() / sxx)
+        residual = v - v_mean - slope * t
+        return n, (pts[-1][0] - pts[0][0]) * _NS, slope, float((residual**2).sum()), sxx
 
     def _beliefs(self, belief: IntentionBelief | None, stamp: int, issues: list[Issue]) -> dict[int, dict[int, Any]] | None:
         """Per track, its CorridorBeliefs by corridor id; None when the config does not use them or none fit."""
@@ -474,7 +502,7 @@ class MarkovPredictor:
             issues.append(Issue("no_belief", vehicle.track_id, "no intention belief for this vehicle: uniform corridor weights"))
             return uniform
         w = np.array([mine[c.corridor_id].probability if c.corridor_id in mine else np.nan for c in good], dtype=np.float64)
-        if np.any(~np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
+        if not all(math.isfinite(x) and x >= 0 for x in w.tolist()) or w.sum() <= 0:
             issues.append(Issue("no_belief", vehicle.track_id, "intention belief misses some of this vehicle's corridors: uniform corridor weights"))
             return uniform
         return w / w.sum()
@@ -496,6 +524,7 @@ class MarkovPredictor:
         if frame is not None and int(frame.header.stamp_ns) == stamp:
             rows = {int(t): i for i, t in enumerate(frame.track_ids)}
         pairs: list[Pair] = []
+        clean = _clean_centrelines(corridor_set.vehicles)
         for vehicle in corridor_set.vehicles:
             if vehicle.status != MatchStatus.MATCHED or not vehicle.corridors:
                 continue
@@ -509,11 +538,11 @@ class MarkovPredictor:
                     length = float(frame.length_m[row])
                 if _positive(frame.width_m[row]):
                     width = float(frame.width_m[row])
-            v0 = float(np.clip(vehicle.speed_mps, 0.0, cfg.v_max_mps))
+            v0 = float(_clip(vehicle.speed_mps, 0.0, cfg.v_max_mps))
             a0, sigma_a0 = self._acceleration(vehicle.track_id, stamp)
             noise = self.speed_noise(vehicle.track_id, stamp) if self.spread is not None and self.spread.speed_noise_gain > 0 else 0.0
             standing = self.model.chain and v0 <= cfg.standstill_speed_mps and cfg.standstill_start_rate_hz > 0
-            good = [c for c in vehicle.corridors if _corridor_ok(c, vehicle.track_id, issues)]
+            good = [c for c in vehicle.corridors if _corridor_ok(c, vehicle.track_id, issues, id(c) in clean)]
             if not good:
                 continue
             own = self.model.vehicle_pairs(Vehicle(vehicle, good, frame, row, v0, a0, length, width))
@@ -532,7 +561,7 @@ class MarkovPredictor:
                 if cb is not None and cb.particle_count > 0 and all(
                     math.isfinite(x) for x in (cb.s_mean_m, cb.s_std_m, cb.v_mean_mps, cb.v_std_mps)
                 ):
-                    s0, v_start = float(cb.s_mean_m), float(np.clip(cb.v_mean_mps, 0.0, cfg.v_max_mps))
+                    s0, v_start = float(cb.s_mean_m), float(_clip(cb.v_mean_mps, 0.0, cfg.v_max_mps))
                     hs = max(0.5 * cfg.ds_m, 2.0 * float(cb.s_std_m))
                     hv = max(0.5 * cfg.dv_mps, 2.0 * float(cb.v_std_mps))
                 lam = self.model.pair_input(vehicle.track_id, c.corridor_id, frame_data, issues)
@@ -648,8 +677,9 @@ class MarkovPredictor:
         boxes = self._boxes(pairs)
         s_out, v_out = boxes_outside_grid(self._window_grid, **boxes)
         v_max = self.config.v_max_mps
+        finite = _all_finite(pairs)
         for b, p in enumerate(pairs):
-            bad = _non_finite(p)
+            bad = [] if finite else _non_finite(p)
             if bad:
                 out[b] = ("pair_fallback_nan_input", f"non-finite {', '.join(bad)}")
             elif p.measured_v_mps > v_max:
@@ -727,7 +757,7 @@ class MarkovPredictor:
 
     def _mix_standstill(self, pairs, members, start_probs, pos, vel, interval, outside):
         """Standing vehicles (package docstring, "Standstill"): P_stay(t)·(start box, v-cell 0) + (1 − P_stay(t))·chain."""
-        stay = np.stack([pairs[g].stay_probability(self.step_times_s) for g in members]) if len(members) else np.zeros((0, self.config.n_steps))
+        stay = stay_probabilities([pairs[g] for g in members], self.step_times_s)
         if not np.any(stay > 0):
             return pos, vel, interval, outside
         w = stay[:, :, None].astype(np.float32)
@@ -755,25 +785,30 @@ class MarkovPredictor:
         pos = pos.copy()
         decay = cfg.lateral_offset_decay_s
         factor = np.exp(-self.step_times_s / decay) if decay > 0 else np.zeros(n_k)
-        shifts = [p.d0_m * factor for p in pairs]
         if interval is not None:
             interval = np.asarray(interval, dtype=np.float32).copy()
         s_first = np.array([p.s_first_m for p in pairs], dtype=np.float64).reshape(n_b)
         end_s = np.array([p.end_s_m for p in pairs], dtype=np.float64).reshape(n_b)
         beyond_all = s_first[:, None] + lower[None, :] >= end_s[:, None]  # cells past the corridor's end count as outside
-        for b in np.flatnonzero(beyond_all.any(axis=1)):
-            beyond = beyond_all[b]
-            outside[b] += pos[b][:, beyond].sum(axis=1)
-            pos[b][:, beyond] = 0.0
+        past = np.flatnonzero(beyond_all.any(axis=1))
+        if past.size:
+            # a pair whose cells past the end hold only +0.0 adds +0.0 to its outside mass (all at once); one with mass
+            # (or a -0.0) there, its own sum
+            held = pos[past]
+            own = (((held != 0) | np.signbit(held)) & beyond_all[past][:, None, :]).any(axis=(1, 2))
+            for b in past[own].tolist():
+                outside[b] += pos[b][:, beyond_all[b]].sum(axis=1)
+            outside[past[~own]] += 0.0
+            np.copyto(pos, 0.0, where=beyond_all[:, None, :])
             if interval is not None:
-                interval[b][:, beyond] = 0.0
+                np.copyto(interval, 0.0, where=beyond_all[:, None, :])
         # every pair at once (rasterise.Centrelines: one np.interp per quantity over all the pairs' centrelines)
         lines = Centrelines([p.s_m for p in pairs], [p.x_m for p in pairs], [p.y_m for p in pairs], [p.heading_rad for p in pairs])
-        shift_all = np.stack(shifts) if n_b else np.zeros((0, n_k))
+        shift_all = np.array([p.d0_m for p in pairs], dtype=np.float64).reshape(n_b, 1) * factor[None, :]  # (B, K): d0 · factor
         if n_b:
             s_abs = s_first[:, None] + centre[None, :]  # (B, L)
-            x_c, y_c, h_c = lines.xy_heading(s_abs)
-            nx_c, ny_c = -np.sin(h_c), np.cos(h_c)
+            x_c, y_c, _h, ny_c, sin_c = lines.xy_heading_trig(s_abs)
+            nx_c = -sin_c
             mass = pos.sum(axis=2, dtype=np.float64)  # (B, K)
             ok = mass > 1e-9
             pos64 = pos.astype(np.float64)
@@ -798,9 +833,9 @@ class MarkovPredictor:
             finite = np.isfinite(mean_s)
             s0 = np.array([p.s0_m for p in pairs], dtype=np.float64)
             at = np.where(finite, mean_s, s0[:, None])
-            sx, sy, sh = lines.xy_heading(at)
-            xy_at_mean[..., 0] = np.where(finite, sx + shift_all * -np.sin(sh), np.nan)
-            xy_at_mean[..., 1] = np.where(finite, sy + shift_all * np.cos(sh), np.nan)
+            sx, sy, _h, cos_at, sin_at = lines.xy_heading_trig(at)
+            xy_at_mean[..., 0] = np.where(finite, sx + shift_all * -sin_at, np.nan)
+            xy_at_mean[..., 1] = np.where(finite, sy + shift_all * cos_at, np.nan)
         for b, p in enumerate(pairs):
             if outside[b, -1] > cfg.outside_issue_mass:
                 issues.append(
@@ -811,10 +846,11 @@ class MarkovPredictor:
                         f" (corridor ends {p.end_s_m - p.s0_m:.1f} m ahead, v0 {p.v0_mps:.1f} m/s)",
                     )
                 )
-        batch = cell_footprints_arrays(lines, s_first[:, None] + lower[None, :], cfg.ds_m, cfg.grid_substeps, *self._lateral) if n_b else None
-        footprints: list[Footprints] = batch.pairs() if batch is not None else []
         grid_probs = interval if (cfg.grid_distribution == "interval" and interval is not None) else pos
-        frame = self._grid_frame(footprints, grid_probs)
+        used = grid_probs.max(axis=1) > 0 if n_b else None  # (B, L): the cells that hold mass at some step, the only ones rasterised
+        batch = cell_footprints_arrays(lines, s_first[:, None] + lower[None, :], cfg.ds_m, cfg.grid_substeps, *self._lateral,
+                                       used=used) if n_b else None
+        frame = self._grid_frame(batch, used)
         by_track: dict[int, list[int]] = collections.defaultdict(list)
         for b, p in enumerate(pairs):
             by_track[p.track_id].append(b)
@@ -843,25 +879,23 @@ class MarkovPredictor:
             grid_frame=frame,
             grid_distribution=cfg.grid_distribution if interval is not None or cfg.grid_distribution == "point" else "point",
             vehicle_grids=vehicle_grids_,
-            fused_grid=fuse(list(vehicle_grids_.values())),
+            fused_grid=fuse(list(vehicle_grids_.values()), frame.n_cells),
             min_grid_value=cfg.grid_min_value,
             max_cells_per_step=cfg.grid_max_cells_per_step,
         )
 
-    def _grid_frame(self, footprints: list[Footprints], probs: np.ndarray) -> GridFrame:
+    def _grid_frame(self, footprints: FootprintBatch | None, used: np.ndarray | None) -> GridFrame:
+        """The frame's grid: the configured extent, or around the samples of every cell ``used`` (B, L): the cells that
+        hold mass at some step."""
         cfg = self.config
         if cfg.grid_extent_m:
             return GridFrame.fixed(tuple(cfg.grid_extent_m), cfg.grid_cell_m)
-        xs, ys = [], []
-        for b, fp in enumerate(footprints):
-            used = np.flatnonzero(probs[b].max(axis=0) > 0) if probs.shape[0] else np.zeros(0, np.int64)
-            if used.size:
-                xs.append(fp.x_m[used].ravel())
-                ys.append(fp.y_m[used].ravel())
-        if not xs:
+        bounds = footprints.bounds(used) if footprints is not None and used is not None else None
+        if bounds is None:
             return GridFrame(0.0, 0.0, cfg.grid_cell_m, 1, 1)
         margin = cfg.grid_margin_m + (3.0 * float(self.spread.max_sigma_m(self.step_times_s, SPEED_NOISE_CAP_MPS)) if self.spread is not None else 0.0)  # the blur stays on the grid
-        return GridFrame.around(np.concatenate(xs), np.concatenate(ys), cfg.grid_cell_m, margin)
+        x_lo, x_hi, y_lo, y_hi = bounds
+        return GridFrame.around(np.array([x_lo, x_hi]), np.array([y_lo, y_hi]), cfg.grid_cell_m, margin)
 
 
 # --------------------------------------------------------------------------- helpers
@@ -899,6 +933,18 @@ def _non_finite(p: Pair) -> list[str]:
     """The names of the pair's numbers the chain reads that are not finite (none: [])."""
     bad = [name for name in _CHAIN_SCALARS if not math.isfinite(getattr(p, name))]
     return bad + [name for name in _CHAIN_ARRAYS if getattr(p, name) is not None and not np.all(np.isfinite(getattr(p, name)))]
+
+
+def _all_finite(pairs: list[Pair]) -> bool:
+    """Whether every number the chain reads of every pair is finite (``_non_finite`` of each is []), checked at once."""
+    try:
+        scalars = np.array([[getattr(p, name) for name in _CHAIN_SCALARS] for p in pairs], dtype=np.float64)
+        if not np.isfinite(scalars).all():
+            return False
+        arrays = np.concatenate([np.ravel(a) for p in pairs for a in (getattr(p, name) for name in _CHAIN_ARRAYS) if a is not None])
+        return bool(np.isfinite(arrays).all())
+    except (TypeError, ValueError, OverflowError):  # numbers numpy cannot check together: each pair on its own
+        return False
 
 
 def _take(arrays: dict[str, Any], idx: list[int], n: int) -> dict[str, Any]:
@@ -943,11 +989,49 @@ def _normal_cdf(z: np.ndarray) -> np.ndarray:
     return ndtr(z)
 
 
+def _clip(value: float, lo: float, hi: float) -> float:
+    """``np.clip`` of one number (the same result, signed zeros and NaN included), without its array overhead."""
+    return min(max(value, lo), hi)
+
+
 def _positive(value: float) -> bool:
     return math.isfinite(value) and value > 0
 
 
-def _corridor_ok(corridor, track_id: int, issues: list[Issue]) -> bool:
+def _clean_centrelines(vehicles) -> set[int]:
+    """The ``id()`` of every corridor of ``vehicles`` whose centreline passes ``_corridor_ok``'s array checks (1-D, at
+    least two points, arrays of one shape, finite, s increasing), checked for all of them at once; the others (none on
+    clean input) go through ``_corridor_ok``'s own checks, with its issues. Empty when the arrays cannot be checked so."""
+    corridors, parts = [], []
+    for vehicle in vehicles:
+        for c in vehicle.corridors:
+            arrays = [np.asarray(a) for a in (c.s_m, c.x_m, c.y_m, c.heading_rad)]
+            shape = arrays[0].shape
+            if len(shape) == 1 and shape[0] >= 2 and all(a.shape == shape for a in arrays[1:]):
+                corridors.append(c)
+                parts.append(arrays)
+    if not corridors:
+        return set()
+    try:
+        s, x, y, h = (np.concatenate([arrays[j] for arrays in parts]) for j in range(4))
+        starts = np.cumsum([0] + [arrays[0].shape[0] for arrays in parts[:-1]])
+        ok = np.isfinite(s) & np.isfinite(x) & np.isfinite(y) & np.isfinite(h)
+        ok[1:] &= s[1:] - s[:-1] > 0  # np.diff(s) > 0 inside each corridor ...
+        ok[starts] = np.isfinite(s[starts]) & np.isfinite(x[starts]) & np.isfinite(y[starts]) & np.isfinite(h[starts])  # ... not across
+        clean = np.logical_and.reduceat(ok, starts)
+    except (TypeError, ValueError):  # arrays numpy cannot check together: each corridor on its own
+        return set()
+    return {id(c) for c, good in zip(corridors, clean) if good}
+
+
+def _corridor_ok(corridor, track_id: int, issues: list[Issue], centreline_checked: bool = False) -> bool:
+    """Whether the pair's corridor can be predicted on (else one issue); ``centreline_checked``: its arrays passed
+    ``_clean_centrelines`` (only the vehicle's arc length is left to check)."""
+    if centreline_checked:
+        if not math.isfinite(corridor.vehicle_s_m):
+            issues.append(Issue("nan_state", track_id, f"corridor {corridor.corridor_id}: vehicle_s_m {corridor.vehicle_s_m}"))
+            return False
+        return True
     s = np.asarray(corridor.s_m)
     arrays = (corridor.s_m, corridor.x_m, corridor.y_m, corridor.heading_rad)
     if s.shape[0] < 2 or any(np.asarray(a).shape != s.shape for a in arrays):

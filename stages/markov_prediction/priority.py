@@ -144,20 +144,82 @@ def admissible_speeds(
     v_adm(s) = min over s' ≥ s of √(v_prof(s')² + 2b(s' − s)), computed
     exactly as a reverse cumulative minimum of v_prof² + 2b·s'.
     """
-    s = np.asarray(s_m, dtype=np.float64)
-    kappa = np.abs(np.asarray(curvature_1pm, dtype=np.float64))
-    kappa = np.where(np.isfinite(kappa), kappa, 0.0)
-    if s.size > 2 and smoothing_m > 0:
-        step = max(_median(np.diff(s)), 1e-3)
-        half = int(round(0.5 * smoothing_m / step))
+    return admissible_speeds_batch([s_m], [curvature_1pm], [speed_limit_mps], lat_accels_mps2, brake_mps2, smoothing_m)[0]
+
+
+def _moving_average(kappa: np.ndarray, half: int) -> np.ndarray:
+    """The moving average over 2·half + 1 points of ``admissible_speeds`` (edges held: np.pad's "edge")."""
+    kernel = np.ones(2 * half + 1) / (2 * half + 1)
+    padded = np.concatenate((np.full(half, kappa[0]), kappa, np.full(half, kappa[-1])))
+    return np.convolve(padded, kernel, mode="valid")
+
+
+def _smoothing_halves(s_all: np.ndarray, sizes: np.ndarray, smoothing_m: float) -> list[int]:
+    """Per padded row of arc lengths (its first ``sizes[b]`` entries), the moving average's half-width in points:
+    round(smoothing_m / 2 / max(median knot spacing, 1e-3)), 0 for a profile of two points or fewer."""
+    n_b, n_max = s_all.shape
+    if smoothing_m <= 0 or n_max <= 2:
+        return [0] * n_b
+    d = s_all[:, 1:] - s_all[:, :-1]
+    valid = np.arange(n_max - 1)[None, :] < (sizes - 1)[:, None]
+    if np.isnan(d[valid]).any():  # _median's NaN case: one row at a time
+        medians = [_median(d[b, : sizes[b] - 1]) if sizes[b] > 2 else 0.0 for b in range(n_b)]
+    else:
+        ordered = np.sort(np.where(valid, d, np.inf), axis=1)  # each row's spacings sorted first, the padding after
+        n = np.maximum(sizes - 1, 1)
+        rows = np.arange(n_b)
+        upper = ordered[rows, n // 2]
+        lower = ordered[rows, np.maximum(n // 2 - 1, 0)]
+        medians = np.where(n % 2 == 1, upper, (lower + upper) / 2.0).tolist()
+    return [int(round(0.5 * smoothing_m / max(m, 1e-3))) if size > 2 else 0 for m, size in zip(medians, sizes.tolist())]
+
+
+def admissible_speeds_batch(
+    s_m: list[np.ndarray],
+    curvature_1pm: list[np.ndarray],
+    speed_limits_mps: list[float],
+    lat_accels_mps2: np.ndarray,
+    brake_mps2: float,
+    smoothing_m: float,
+) -> list[np.ndarray]:
+    """``admissible_speeds`` of B profiles (their own lengths and speed limits): ``(J, n_b)`` each, the same numbers.
+
+    The smoothing is one ``np.convolve`` per profile; the rest is elementwise
+    (and a reverse running minimum), done for all the profiles at once on
+    rows padded to the longest one (+∞ past a profile's end, which the
+    running minimum from the end never takes).
+    """
+    n_b = len(s_m)
+    a_lat = np.asarray(lat_accels_mps2, dtype=np.float64)
+    if n_b == 0:
+        return []
+    s_list = [np.asarray(s, dtype=np.float64) for s in s_m]
+    k_list = [np.asarray(c, dtype=np.float64) for c in curvature_1pm]
+    sizes = [s.shape[0] for s in s_list]
+    if any(s.ndim != 1 or k.shape != s.shape for s, k in zip(s_list, k_list)):  # (as one profile at a time would raise)
+        raise ValueError("admissible_speeds: every profile needs 1-D arc lengths and curvatures of one length")
+    n_max = max(sizes)
+    inside = np.arange(n_max)[None, :] < np.asarray(sizes)[:, None]
+    s_all = np.zeros((n_b, n_max))
+    kappa_all = np.zeros((n_b, n_max))
+    if n_max:
+        s_all[inside] = np.concatenate(s_list)
+        kappa_all[inside] = np.concatenate(k_list)
+    kappa_all = np.abs(kappa_all)
+    kappa_all = np.where(np.isfinite(kappa_all), kappa_all, 0.0)  # |κ|, non-finite as 0
+    for b, half in enumerate(_smoothing_halves(s_all, np.asarray(sizes), smoothing_m)):
         if half > 0:
-            kernel = np.ones(2 * half + 1) / (2 * half + 1)
-            kappa = np.convolve(np.pad(kappa, half, mode="edge"), kernel, mode="valid")
-    a_lat = np.asarray(lat_accels_mps2, dtype=np.float64)[:, None]
-    v_prof = np.minimum(speed_limit_mps, np.sqrt(a_lat / np.maximum(kappa[None, :], MIN_CURVATURE_1PM)))
-    key = v_prof**2 + 2.0 * brake_mps2 * s[None, :]
-    suffix_min = np.minimum.accumulate(key[:, ::-1], axis=1)[:, ::-1]
-    return np.sqrt(np.maximum(suffix_min - 2.0 * brake_mps2 * s[None, :], 0.0))
+            kappa_all[b, : sizes[b]] = _moving_average(kappa_all[b, : sizes[b]], half)
+    limits = np.asarray(speed_limits_mps, dtype=np.float64).reshape(n_b, 1, 1)
+    v_prof = np.minimum(limits, np.sqrt(a_lat[None, :, None] / np.maximum(kappa_all[:, None, :], MIN_CURVATURE_1PM)))
+    brake_s = 2.0 * brake_mps2 * s_all[:, None, :]
+    key = v_prof**2 + brake_s
+    lengths = np.asarray(sizes)
+    if np.any(lengths < n_max):
+        np.copyto(key, np.inf, where=(np.arange(n_max)[None, :] >= lengths[:, None])[:, None, :])  # past a profile's end
+    suffix_min = np.minimum.accumulate(key[:, :, ::-1], axis=2)[:, :, ::-1]
+    adm = np.sqrt(np.maximum(suffix_min - brake_s, 0.0))
+    return [adm[b, :, : sizes[b]] for b in range(n_b)]
 
 
 def speed_restriction(

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stages.lib.markov import kernels
+from stages.lib.markov import frame_kernels, kernels
 
 #: Per-vehicle cell values are clipped below 1 by this much before log(1 − G).
 _CLIP = 1e-7
@@ -126,6 +126,31 @@ def cell_footprints(
     return Footprints(px.reshape(n_cells, -1), py.reshape(n_cells, -1), weights, normal_x, normal_y)
 
 
+def unwrap_each(angles: list[np.ndarray]) -> np.ndarray:
+    """``np.unwrap`` of each 1-D array, concatenated: the same numbers, with np.unwrap's steps done on all the arrays at
+    once (the differences and their corrections elementwise), only the running sum of the corrections per array."""
+    arrays = [np.asarray(a) for a in angles]
+    if not all(a.ndim == 1 and a.dtype == np.float64 for a in arrays):
+        return np.concatenate([np.unwrap(a) for a in arrays])
+    p = np.concatenate(arrays)
+    period = 2 * np.pi
+    high = period / 2
+    low = -high
+    dd = p[1:] - p[:-1]
+    ddmod = np.mod(dd - low, period) + low
+    np.copyto(ddmod, high, where=(ddmod == low) & (dd > 0))
+    correct = ddmod - dd
+    np.copyto(correct, 0, where=abs(dd) < high)
+    out = p.copy()
+    start = 0
+    for a in arrays:  # array [start, end): its corrections are correct[start:end - 1]
+        end = start + a.shape[0]
+        if end - start > 1:
+            out[start + 1:end] = p[start + 1:end] + correct[start:end - 1].cumsum()
+        start = end
+    return out
+
+
 class Centrelines:
     """The centrelines of B pairs packed for one ``np.interp`` call per quantity over all of them.
 
@@ -138,23 +163,33 @@ class Centrelines:
 
     def __init__(self, s_m: list[np.ndarray], x_m: list[np.ndarray], y_m: list[np.ndarray], heading_rad: list[np.ndarray]) -> None:
         n = len(s_m)
-        self.first = np.array([float(s[0]) for s in s_m]) if n else np.zeros(0)
-        self.last = np.array([float(s[-1]) for s in s_m]) if n else np.zeros(0)
+        plain = n > 0 and all(isinstance(s, np.ndarray) and s.ndim == 1 and s.dtype == np.float64 and s.size for s in s_m)
+        if plain:  # every pair's arc lengths packed at once (the same numbers as pair by pair below)
+            sizes = np.array([s.shape[0] for s in s_m])
+            s_all = np.concatenate(s_m)
+            ends = np.cumsum(sizes)
+            self.first, self.last = s_all[ends - sizes], s_all[ends - 1]
+        else:
+            self.first = np.array([float(s[0]) for s in s_m]) if n else np.zeros(0)
+            self.last = np.array([float(s[-1]) for s in s_m]) if n else np.zeros(0)
         self.period = float(np.max(self.last - self.first)) + 1.0 if n else 1.0
         shift = np.arange(n) * self.period
         self._shift = shift
-        self._xp = np.concatenate([s - s[0] + o for s, o in zip(s_m, shift)]) if n else np.zeros(0)
+        if plain:
+            self._xp = (s_all - np.repeat(self.first, sizes)) + np.repeat(shift, sizes)
+        else:
+            self._xp = np.concatenate([s - s[0] + o for s, o in zip(s_m, shift)]) if n else np.zeros(0)
         self._x = np.concatenate(x_m) if n else np.zeros(0)
         self._y = np.concatenate(y_m) if n else np.zeros(0)
-        self._h = np.concatenate([np.unwrap(h) for h in heading_rad]) if n else np.zeros(0)
+        self._h = unwrap_each(heading_rad) if n else np.zeros(0)
 
-    def _packed(self, s_in: np.ndarray) -> np.ndarray:
-        lead = (slice(None),) + (None,) * (s_in.ndim - 1)
+    def _packed(self, s_in: np.ndarray, pairs: np.ndarray | None = None) -> np.ndarray:
+        lead = (slice(None) if pairs is None else pairs,) + (None,) * (s_in.ndim - 1)
         return s_in - self.first[lead] + self._shift[lead]
 
-    def clip(self, s_m: np.ndarray) -> np.ndarray:
-        """``s_m`` (B, ...) clipped to each pair's centreline."""
-        lead = (slice(None),) + (None,) * (s_m.ndim - 1)
+    def clip(self, s_m: np.ndarray, pairs: np.ndarray | None = None) -> np.ndarray:
+        """``s_m`` (B, ...) clipped to each pair's centreline (``pairs``: row r of ``s_m`` is on pair ``pairs[r]``)."""
+        lead = (slice(None) if pairs is None else pairs,) + (None,) * (s_m.ndim - 1)
         return np.clip(s_m, self.first[lead], self.last[lead])
 
     def heading(self, s_in: np.ndarray) -> np.ndarray:
@@ -163,30 +198,89 @@ class Centrelines:
 
     def xy_heading(self, s_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """X_c(s) with straight continuation past either end, and the heading there, at ``s_m`` (B, ...)."""
-        s_in = self.clip(s_m)
-        q = self._packed(s_in)
+        return self.xy_heading_trig(s_m)[:3]
+
+    def xy_heading_trig(self, s_m: np.ndarray, pairs: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``xy_heading`` and the cosine and sine of the heading (each computed once); ``pairs``: row r of ``s_m`` is on
+        the centreline of pair ``pairs[r]`` (None: row b on pair b)."""
+        s_in = self.clip(s_m, pairs)
+        q = self._packed(s_in, pairs)
         heading = np.interp(q, self._xp, self._h)
         beyond = s_m - s_in
-        x = np.interp(q, self._xp, self._x) + beyond * np.cos(heading)
-        y = np.interp(q, self._xp, self._y) + beyond * np.sin(heading)
-        return x, y, heading
+        cos, sin = np.cos(heading), np.sin(heading)
+        x = np.interp(q, self._xp, self._x) + beyond * cos
+        y = np.interp(q, self._xp, self._y) + beyond * sin
+        return x, y, heading, cos, sin
 
 
 @dataclass(frozen=True, slots=True, eq=False)
 class FootprintBatch:
-    """The ``Footprints`` of B pairs as arrays: ``x_m``, ``y_m``, ``normal_x``, ``normal_y`` ``(B, L, P)``, ``weights`` ``(P,)``."""
+    """The ``Footprints`` of B pairs, compact: for the s-cells computed, the centreline at each cell's ``n_sub``
+    sub-samples, ``centre_x``, ``centre_y``, and the left normal there, ``centre_nx``, ``centre_ny``
+    ``(R, n_sub)``, cell i of pair b on row ``rows[b, i]`` (-1: not computed); the lateral ``offsets`` ``(n_lat,)``;
+    ``weights`` ``(P,)``, P = n_sub·n_lat.
 
-    x_m: np.ndarray
-    y_m: np.ndarray
+    Sample q = sub·n_lat + lat lies at centre + normal·offsets[lat]: ``x_m``,
+    ``y_m``, ``normal_x``, ``normal_y`` ``(B, L, P)`` build those arrays (the
+    numbers of ``cell_footprints``; NaN for a cell not computed); the compiled
+    grid kernels (``stages.lib.markov.frame_kernels``) form each sample where
+    they use it.
+    """
+
+    centre_x: np.ndarray
+    centre_y: np.ndarray
+    centre_nx: np.ndarray
+    centre_ny: np.ndarray
+    offsets: np.ndarray
     weights: np.ndarray
-    normal_x: np.ndarray
-    normal_y: np.ndarray
+    rows: np.ndarray
+
+    def _expanded(self, centre: np.ndarray, normal: np.ndarray | None, b: int | None = None) -> np.ndarray:
+        rows = self.rows if b is None else self.rows[b]
+        n_lat = self.offsets.shape[0]
+        if normal is None:  # the normal itself, repeated over the lateral samples
+            values = np.repeat(centre, n_lat, axis=-1)
+        else:
+            values = (centre[..., None] + normal[..., None] * self.offsets).reshape(centre.shape[0], -1)
+        out = np.full(rows.shape + (values.shape[1],), np.nan)
+        out[rows >= 0] = values[rows[rows >= 0]]
+        return out
+
+    @property
+    def x_m(self) -> np.ndarray:
+        return self._expanded(self.centre_x, self.centre_nx)
+
+    @property
+    def y_m(self) -> np.ndarray:
+        return self._expanded(self.centre_y, self.centre_ny)
+
+    @property
+    def normal_x(self) -> np.ndarray:
+        return self._expanded(self.centre_nx, None)
+
+    @property
+    def normal_y(self) -> np.ndarray:
+        return self._expanded(self.centre_ny, None)
 
     def pair(self, b: int) -> Footprints:
-        return Footprints(self.x_m[b], self.y_m[b], self.weights, self.normal_x[b], self.normal_y[b])
+        return Footprints(self._expanded(self.centre_x, self.centre_nx, b), self._expanded(self.centre_y, self.centre_ny, b),
+                          self.weights, self._expanded(self.centre_nx, None, b), self._expanded(self.centre_ny, None, b))
 
     def pairs(self) -> list[Footprints]:
-        return [self.pair(b) for b in range(self.x_m.shape[0])]
+        return [self.pair(b) for b in range(self.rows.shape[0])]
+
+    def bounds(self, used: np.ndarray) -> tuple[float, float, float, float] | None:
+        """(x min, x max, y min, y max) of the samples of the cells ``used`` (B, L) bool, the numbers np.min and np.max
+        give over ``x_m[b][used[b]]``, ``y_m[b][used[b]]``; None when no cell is used."""
+        found = frame_kernels.footprint_bounds(self.centre_x, self.centre_y, self.centre_nx, self.centre_ny, self.offsets, self.rows,
+                                               used)
+        if found is not None:
+            return found
+        if not np.any(used):
+            return None
+        xs = np.concatenate([fp.x_m[u].ravel() for fp, u in zip(self.pairs(), used) if u.any()])
+        ys = np.concatenate([fp.y_m[u].ravel() for fp, u in zip(self.pairs(), used) if u.any()])
+        return float(np.min(xs)), float(np.max(xs)), float(np.min(ys)), float(np.max(ys))
 
 
 def cell_footprints_batch(
@@ -208,20 +302,22 @@ def cell_footprints_arrays(
     n_sub: int,
     lateral_offsets_m: np.ndarray,
     lateral_weights: np.ndarray,
+    used: np.ndarray | None = None,
 ) -> FootprintBatch:
-    """``cell_footprints_batch`` as one ``FootprintBatch``."""
+    """``cell_footprints_batch`` as one (compact) ``FootprintBatch``, of the cells ``used`` (B, L) bool only (None:
+    every cell)."""
     frac = (np.arange(n_sub) + 0.5) / n_sub
-    s = cell_lower_s_m[:, :, None] + frac[None, None, :] * ds_m  # (B, L, n_sub)
-    x, y, h = centrelines.xy_heading(s)
-    nx, ny = -np.sin(h), np.cos(h)
-    px = x[..., None] + nx[..., None] * lateral_offsets_m
-    py = y[..., None] + ny[..., None] * lateral_offsets_m
     n_b, n_cells = cell_lower_s_m.shape
+    if used is None:
+        used = np.ones((n_b, n_cells), np.bool_)
+    b_idx, i_idx = np.nonzero(used)
+    rows = np.full((n_b, n_cells), -1, np.int64)
+    rows[b_idx, i_idx] = np.arange(b_idx.shape[0])
+    s = cell_lower_s_m[b_idx, i_idx][:, None] + frac[None, :] * ds_m  # (R, n_sub)
+    x, y, _h, cos, sin = centrelines.xy_heading_trig(s, b_idx)
     n_lat = lateral_offsets_m.shape[0]
     weights = np.repeat((1.0 / n_sub) * np.ones(n_sub), n_lat) * np.tile(lateral_weights, n_sub)
-    normal_x = np.repeat(nx, n_lat, axis=2)
-    normal_y = np.repeat(ny, n_lat, axis=2)
-    return FootprintBatch(px.reshape(n_b, n_cells, -1), py.reshape(n_b, n_cells, -1), weights, normal_x, normal_y)
+    return FootprintBatch(x, y, -sin, cos, np.asarray(lateral_offsets_m, dtype=np.float64), weights, rows)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -290,17 +386,18 @@ def vehicle_grids(
     min_mass: float = 1e-9,
 ) -> list[SparseGrid]:
     """``vehicle_grid`` of every vehicle, vehicle n of the pairs ``members[n]`` (``probs`` ``(B, K, L)``, ``corridor_weights``
-    and ``lateral_shifts_m`` ``(B, K)`` per pair): in one compiled call (``kernels.vehicle_grids``: the same
-    numbers, no Python per vehicle) where numba imports, else one ``vehicle_grid``
+    and ``lateral_shifts_m`` ``(B, K)`` per pair): in one compiled call (``frame_kernels.footprint_grids``: the same
+    numbers, no Python per vehicle, no (B, L, P) sample arrays) where numba imports, else one ``vehicle_grid``
     per vehicle. tests/stages/test_markov_batched_outputs.py compares the two."""
     probs = np.asarray(probs)
     found = None
     if probs.dtype == np.float32 and probs.ndim == 3:
         # w · p is float64 for a numpy float64 weight and float32 for a Python float (numpy's promotion), as vehicle_grid has it
-        wide = np.array([np.result_type(w, probs.dtype) == np.float64 for w in corridor_weights], dtype=np.bool_)
-        found = kernels.vehicle_grids(footprints.x_m, footprints.y_m, footprints.normal_x, footprints.normal_y, footprints.weights,
-                                      probs, np.asarray(corridor_weights, dtype=np.float64), wide, lateral_shifts_m, members,
-                                      frame.origin_x_m, frame.origin_y_m, frame.cell_m, frame.n_rows, frame.n_cols, min_mass)
+        wide = np.array([type(w) is not float and np.result_type(w, probs.dtype) == np.float64 for w in corridor_weights], dtype=np.bool_)
+        fp = footprints
+        found = frame_kernels.footprint_grids(fp.centre_x, fp.centre_y, fp.centre_nx, fp.centre_ny, fp.offsets, fp.weights, fp.rows, probs,
+                                              np.asarray(corridor_weights, dtype=np.float64), wide, lateral_shifts_m, members,
+                                              frame.origin_x_m, frame.origin_y_m, frame.cell_m, frame.n_rows, frame.n_cols, min_mass)
     if found is None:
         shifts = [None] * probs.shape[0] if lateral_shifts_m is None else list(lateral_shifts_m)
         return [vehicle_grid(frame, [footprints.pair(b) for b in m], [probs[b] for b in m], [corridor_weights[b] for b in m],
@@ -309,14 +406,18 @@ def vehicle_grids(
     return [SparseGrid(keys[ptr[n]:ptr[n + 1]], sums[ptr[n]:ptr[n + 1]]) for n in range(len(members))]
 
 
-def fuse(grids: list[SparseGrid]) -> SparseGrid:
-    """1 − Π_n (1 − G_n) over vehicles, cell by cell."""
+def fuse(grids: list[SparseGrid], n_cells: int = 0) -> SparseGrid:
+    """1 − Π_n (1 − G_n) over vehicles, cell by cell. With the grid's ``n_cells`` (keys k·n_cells + cell), the sums of
+    the log terms are taken step by step (``frame_kernels.fuse_sorted``: the same numbers, each grid's keys being
+    sorted and unique)."""
     if not grids:
         return _reduce(np.zeros(0, np.int64), np.zeros(0))
-    keys = np.concatenate([g.keys for g in grids])
-    logs = np.concatenate([np.log1p(-np.clip(g.values, 0.0, 1.0 - _CLIP)) for g in grids])
-    summed = _reduce(keys, logs)
-    return SparseGrid(summed.keys, -np.expm1(summed.values))
+    logs = np.log1p(-np.clip(np.concatenate([g.values for g in grids]), 0.0, 1.0 - _CLIP))
+    found = frame_kernels.fuse_sorted([g.keys for g in grids], logs, n_cells) if n_cells > 0 else None
+    if found is None:
+        summed = _reduce(np.concatenate([g.keys for g in grids]), logs)
+        found = summed.keys, summed.values
+    return SparseGrid(found[0], -np.expm1(found[1]))
 
 
 def highest_density_threshold(values: np.ndarray, level: float) -> float:

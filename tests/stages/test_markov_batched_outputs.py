@@ -81,16 +81,26 @@ def test_vehicle_grids_in_one_call_equal_vehicle_grid_per_vehicle():
     lower = np.stack([s[0] - 5.0 + np.arange(40, dtype=np.float64) for s, *_ in lines])
     offsets, weights = lateral_kernel(0.4, 0.5)
     batch = cell_footprints_arrays(packed, lower, 1.0, 4, offsets, weights)
-    batch.x_m[3, 7, :5] = np.nan  # not finite: off the grid
+    batch.centre_x[batch.rows[3, 7], :1] = np.nan  # not finite: off the grid (the first sub-sample's lateral samples)
+    batch.centre_y[batch.rows[5, 2], 1] = np.inf
     probs = (rng.dirichlet(np.ones(40), (9, 10)) * (rng.random((9, 10, 40)) < 0.6)).astype(np.float32)
     probs[4] *= 1e-10  # below min_mass everywhere
+    probs[:3, :, 33:] = 0.0  # cells without mass at any step (no footprints in a batch of the used cells)
     corridor_weights = [np.float64(w) for w in rng.uniform(0.1, 1.0, 9)]
     corridor_weights[1], corridor_weights[2], corridor_weights[6] = 0.7, 0.0, 1.0  # Python floats, and a zero weight
     shifts = rng.normal(0, 0.8, (9, 10))
     members = [[0, 1, 2], [3], [4, 5], [6, 7, 8]]
     frame = GridFrame(float(np.nanmin(batch.x_m)) + 15.0, float(np.nanmin(batch.y_m)) + 10.0, 0.5, 300, 280)  # part off the grid
+    some = cell_footprints_arrays(packed, lower, 1.0, 4, offsets, weights, used=probs.max(axis=1) > 0)  # cells with mass only
+    assert some.rows[3, 7] >= 0 and some.rows[5, 2] >= 0 and (some.rows < 0).any()
+    some.centre_x[some.rows[3, 7], :1] = np.nan
+    some.centre_y[some.rows[5, 2], 1] = np.inf
     for with_shifts in (True, False):
         got = vehicle_grids(frame, batch, probs, corridor_weights, members, shifts if with_shifts else None)
+        got_some = vehicle_grids(frame, some, probs, corridor_weights, members, shifts if with_shifts else None)
+        for a, b in zip(got, got_some):
+            np.testing.assert_array_equal(a.keys, b.keys)
+            np.testing.assert_array_equal(a.values, b.values)
         for grid, m in zip(got, members):
             want = vehicle_grid(frame, [batch.pair(b) for b in m], [probs[b] for b in m], [corridor_weights[b] for b in m],
                                 [shifts[b] for b in m] if with_shifts else None)
@@ -98,3 +108,77 @@ def test_vehicle_grids_in_one_call_equal_vehicle_grid_per_vehicle():
             np.testing.assert_array_equal(grid.values, want.values)
             assert grid.keys.dtype == np.int64 and grid.values.dtype == np.float64
         assert sum(g.keys.size for g in got) > 1000 and sum(g.keys.size > 0 for g in got) >= 3
+
+
+def test_fuse_step_by_step_equals_one_sum_over_every_key():
+    """rasterise.fuse with the grid's n_cells (frame_kernels.fuse_sorted: per step, each cell's log terms summed in vehicle
+    order) gives the sums over every key at once (kernels.sum_by_key) bit for bit; unsorted keys take that path."""
+    from stages.markov_prediction.rasterise import SparseGrid, fuse
+
+    rng = np.random.default_rng(11)
+    n_cells, n_k = 5000, 10
+    grids = []
+    for n in range(25):
+        keys = np.unique(rng.integers(0, n_k * n_cells, int(rng.integers(0, 3000))))
+        grids.append(SparseGrid(keys, rng.uniform(0, 1, keys.size) * 10.0 ** rng.integers(-6, 1, keys.size)))
+    grids[3] = SparseGrid(grids[3].keys, np.where(np.arange(grids[3].keys.size) % 7 == 0, 1.0, grids[3].values))  # clipped below 1
+    want = fuse(grids)
+    got = fuse(grids, n_cells)
+    np.testing.assert_array_equal(got.keys, want.keys)
+    np.testing.assert_array_equal(got.values, want.values)
+    assert got.keys.size > 10000
+    shuffled = [SparseGrid(g.keys[::-1].copy(), g.values[::-1].copy()) for g in grids[:2]]  # not sorted: the sum over every key
+    mixed = fuse(shuffled, n_cells)
+    np.testing.assert_array_equal(mixed.keys, fuse(shuffled).keys)
+    np.testing.assert_array_equal(mixed.values, fuse(shuffled).values)
+
+
+def test_footprint_bounds_equal_min_max_of_used_samples():
+    """FootprintBatch.bounds (compiled, no sample arrays) gives np.min / np.max over the used cells' samples; None
+    without a used cell; a NaN sample gives numpy's answer (NaN)."""
+    rng = np.random.default_rng(13)
+    lines = _centrelines(rng, 6)
+    packed = Centrelines(*[list(a) for a in zip(*lines)])
+    lower = np.stack([s[0] - 5.0 + np.arange(30, dtype=np.float64) for s, *_ in lines])
+    offsets, weights = lateral_kernel(0.4, 0.5)
+    from stages.markov_prediction.rasterise import cell_footprints_arrays
+
+    batch = cell_footprints_arrays(packed, lower, 1.0, 4, offsets, weights)
+    used = rng.random((6, 30)) < 0.3
+    used[2] = False
+    x, y = batch.x_m, batch.y_m
+    want = (np.min(x[used]), np.max(x[used]), np.min(y[used]), np.max(y[used]))
+    assert batch.bounds(used) == want
+    assert batch.bounds(np.zeros_like(used)) is None
+    some = cell_footprints_arrays(packed, lower, 1.0, 4, offsets, weights, used=used)  # the used cells' footprints only
+    assert some.bounds(used) == want and some.centre_x.shape == (int(used.sum()), 4)
+    np.testing.assert_array_equal(some.x_m[used], x[used])
+    assert np.isnan(some.x_m[~used]).all()
+    b, i = np.argwhere(used)[0]
+    batch.centre_y[batch.rows[b, i], 0] = np.nan
+    assert np.isnan(batch.bounds(used)[2])
+
+
+def test_admissible_speeds_of_many_profiles_equal_one_at_a_time():
+    """priority.admissible_speeds_batch (profiles of different lengths padded into one array) gives each profile's
+    admissible_speeds bit for bit: short and long profiles, non-finite curvature, uneven knots."""
+    from stages.markov_prediction import priority as pr
+
+    rng = np.random.default_rng(17)
+    lat = np.array([3.0, 2.5, 2.0, 1.5])
+    s_list, k_list, limits = [], [], []
+    for b in range(12):
+        n = int(rng.integers(1, 90))
+        s = np.cumsum(rng.uniform(0.2, 1.5, n)) if b % 2 else rng.uniform(-20, 20) + 0.5 * np.arange(n)
+        kappa = rng.normal(0, 0.05, n)
+        if b % 5 == 0 and n > 3:
+            kappa[1] = np.nan
+        s_list.append(s)
+        k_list.append(kappa)
+        limits.append(float(rng.uniform(5, 20)))
+    got = pr.admissible_speeds_batch(s_list, k_list, limits, lat, 2.5, 3.0)
+    for b in range(12):
+        want = pr.admissible_speeds(s_list[b], k_list[b], limits[b], lat, 2.5, 3.0)
+        assert got[b].shape == (4, s_list[b].size)
+        np.testing.assert_array_equal(got[b], want)
+    assert pr.admissible_speeds_batch([], [], [], lat, 2.5, 3.0) == []

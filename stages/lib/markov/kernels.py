@@ -28,8 +28,7 @@ speed restriction and Γ) in one call: the same arithmetic in the same order
 as ``fused_step`` + ``priority_occupied`` step by step (the same numbers),
 but in blocks of 8 similar pairs, each block on the cells its own pairs
 occupy instead of the batch's window, which spans every pair's.
-``vehicle_grids`` rasterises every vehicle's grid in one call (the numbers
-of ``stages.markov_prediction.rasterise.vehicle_grid``).
+The motion grid's rasterising and fusion kernels are in ``frame_kernels``.
 
 numba is a dependency; ``available()`` is False only where it cannot be
 imported, and the backend then uses the scipy path (the reference the tests
@@ -662,103 +661,6 @@ if numba is not None:
                 totals[pair[ln]] = total
         return positions, velocities, ipositions, outsides, ioutsides, pruned, totals
 
-    @numba.njit(cache=True, nogil=True, boundscheck=False)
-    def _vehicle_grids(x_m, y_m, normal_x, normal_y, sample_w, probs, pair_w, wide, shifts, has_shift, ptr, members, origin_x,
-                       origin_y, cell, n_rows, n_cols, min_mass):  # pragma: no cover - compiled
-        """Per vehicle (its pairs ``members[ptr[n]:ptr[n + 1]]``), the sorted keys and sums of ``vehicle_grid``: the
-        same float64 operations, each key's sum taken in the order ``vehicle_grid`` concatenates its terms (as
-        np.bincount adds them). Step by step (keys of different steps never meet), the cells summed in a table over
-        the box of the step's cells (small, in cache). Returns keys, sums and the (n_vehicles + 1,) offsets of each
-        vehicle's part."""
-        n_k, n_l = probs.shape[1], probs.shape[2]
-        n_p = sample_w.shape[0]
-        n_cells = n_rows * n_cols
-        n_veh = ptr.shape[0] - 1
-        total, most = 0, 0  # samples: all, and the most of one vehicle's step
-        for n in range(n_veh):
-            for k in range(n_k):
-                count = 0
-                for m in range(ptr[n], ptr[n + 1]):
-                    b = members[m]
-                    if pair_w[b] <= 0:  # (a NaN weight is not left out: vehicle_grid's test)
-                        continue
-                    for i in range(n_l):
-                        if probs[b, k, i] > min_mass:
-                            count += n_p
-                total += count
-                most = max(most, count)
-        keys_out = np.empty(total, np.int64)
-        sums_out = np.empty(total, np.float64)
-        out_ptr = np.zeros(n_veh + 1, np.int64)
-        rows = np.empty(most, np.int64)
-        cols = np.empty(most, np.int64)
-        vals = np.empty(most, np.float64)
-        uniq = np.empty(most, np.int64)
-        sums = np.empty(most, np.float64)
-        slot = np.full(1024, -1, np.int64)  # per cell of the box: its index in uniq, -1 (kept all -1 between steps)
-        f32 = np.float32
-        at = 0
-        for n in range(n_veh):
-            for k in range(n_k):
-                c = 0
-                r_lo, r_hi, c_lo, c_hi = n_rows, -1, n_cols, -1
-                for m in range(ptr[n], ptr[n + 1]):
-                    b = members[m]
-                    w = pair_w[b]
-                    if w <= 0:
-                        continue
-                    d = shifts[b, k]
-                    w32 = f32(w)
-                    for i in range(n_l):
-                        p = probs[b, k, i]
-                        if not p > min_mass:
-                            continue
-                        # w · p: float64 for a numpy float64 weight, float32 for a Python float (numpy's promotion)
-                        mass = w * np.float64(p) if wide[b] else np.float64(w32 * p)
-                        for q in range(n_p):
-                            x = x_m[b, i, q]
-                            y = y_m[b, i, q]
-                            if has_shift:
-                                x = x + d * normal_x[b, i, q]
-                                y = y + d * normal_y[b, i, q]
-                            col = np.floor((x - origin_x) / cell)
-                            row = np.floor((y - origin_y) / cell)
-                            if not (col >= 0 and col < n_cols and row >= 0 and row < n_rows):  # NaN: off the grid too
-                                continue
-                            ri, ci = np.int64(row), np.int64(col)
-                            rows[c], cols[c], vals[c] = ri, ci, mass * sample_w[q]
-                            c += 1
-                            r_lo, r_hi, c_lo, c_hi = min(r_lo, ri), max(r_hi, ri), min(c_lo, ci), max(c_hi, ci)
-                if c == 0:
-                    continue
-                width = c_hi - c_lo + 1
-                area = (r_hi - r_lo + 1) * width
-                if slot.shape[0] < area:
-                    slot = np.full(max(area, 2 * slot.shape[0]), -1, np.int64)
-                u = 0
-                for j in range(c):  # in vehicle_grid's order
-                    idx = (rows[j] - r_lo) * width + (cols[j] - c_lo)
-                    s = slot[idx]
-                    if s < 0:
-                        s = u
-                        slot[idx] = u
-                        uniq[u] = idx
-                        sums[u] = 0.0
-                        u += 1
-                    sums[s] += vals[j]
-                ordered = np.sort(uniq[:u])  # the box's row-major order is the keys' order
-                base = k * n_cells
-                for j in range(u):
-                    idx = ordered[j]
-                    r, cc = divmod(idx, width)
-                    keys_out[at + j] = base + (r_lo + r) * n_cols + (c_lo + cc)
-                    sums_out[at + j] = sums[slot[idx]]
-                for j in range(u):
-                    slot[uniq[j]] = -1
-                at += u
-            out_ptr[n + 1] = at
-        return keys_out[:at], sums_out[:at], out_ptr
-
 def fused_step(slab, src_lo, lo, hi, n_s, tables, with_interval, threshold):
     """See the module docstring. The slab holds the s-cells [src_lo, src_lo + L) and p⁻ the cells [lo, hi) (the
     window of this step: the slab's occupied cells lie in it), so that a moving window costs no copy. ``tables``: ``stencil_tables`` of Υ(τ) then ``collapsed_tables`` of Υ([0, τ]).
@@ -934,25 +836,6 @@ def _slot_table(top: int) -> np.ndarray:
     return slot
 
 
-def vehicle_grids(x_m, y_m, normal_x, normal_y, sample_weights, probs, pair_weights, wide, shifts, members, origin_x, origin_y,
-                  cell, n_rows, n_cols, min_mass):
-    """The sparse grids of ``stages.markov_prediction.rasterise.vehicle_grid`` for every vehicle in one call (see
-    ``rasterise.vehicle_grids``); None where numba is missing. ``members``: per vehicle its pair indices.
-    Returns (keys, sums, offsets (n_vehicles + 1,))."""
-    if numba is None:
-        return None
-    ptr = np.zeros(len(members) + 1, np.int64)
-    ptr[1:] = np.cumsum([len(m) for m in members])
-    flat = np.fromiter((b for m in members for b in m), np.int64, count=int(ptr[-1]))
-    c = np.ascontiguousarray
-    has_shift = shifts is not None
-    shifts = shifts if has_shift else np.zeros(probs.shape[:2])
-    return _vehicle_grids(c(x_m, dtype=np.float64), c(y_m, dtype=np.float64), c(normal_x, dtype=np.float64), c(normal_y, dtype=np.float64),
-                          c(sample_weights, dtype=np.float64), c(probs, dtype=np.float32), c(pair_weights, dtype=np.float64),
-                          c(wide, dtype=np.bool_), c(shifts, dtype=np.float64), has_shift, ptr, flat, float(origin_x),
-                          float(origin_y), float(cell), int(n_rows), int(n_cols), float(min_mass))
-
-
 _warm = False
 
 
@@ -979,7 +862,4 @@ def warm_up() -> None:
     speed_priority_run((half, half, half), np.zeros(1, np.float32), (ptr, one, one, w, ptr, one, w), 2, True, 1e-7, np.eye(2),
                        lazy, np.ones((2, 1, 2), np.float32), [True, False], 0.0)
     sum_by_key(np.array([3, 1, 3], np.int64), np.ones(3))
-    box = np.zeros((1, 1, 1))
-    vehicle_grids(box, box, box, box, np.ones(1), np.ones((1, 1, 1), np.float32), np.ones(1), np.ones(1, np.bool_), np.zeros((1, 1)),
-                  [[0]], -1.0, -1.0, 1.0, 2, 2, 1e-9)
     _warm = True

@@ -66,6 +66,13 @@ class Pair:
         return np.exp(-self.start_rate_hz * np.asarray(t_s, dtype=np.float64))
 
 
+def stay_probabilities(pairs: list[Pair], t_s: np.ndarray) -> np.ndarray:
+    """``Pair.stay_probability`` of every pair at the times ``t_s`` (T,), as one (B, T) array (the same numbers)."""
+    rates = np.array([p.start_rate_hz for p in pairs], dtype=np.float64).reshape(-1, 1)
+    t = np.asarray(t_s, dtype=np.float64).reshape(1, -1)
+    return np.where(rates > 0, np.exp(-rates * t), 0.0)
+
+
 @dataclass(frozen=True, slots=True)
 class Messages:
     """The frame's messages besides the corridor set, as given (their stamps not checked)."""

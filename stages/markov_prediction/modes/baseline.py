@@ -307,9 +307,9 @@ def speed_profiles(predictor: Predictor, pairs: list[Pair]) -> tuple[list[np.nda
     weights = weights / weights.sum()
     lat_accels = np.asarray(cfg.lat_accels_mps2)
     curves = cfg.mode != "hybrid" or cfg.hybrid_speed_restriction_curves  # hybrid: the limit alone unless it cuts for curves too
-    adm = [pr.admissible_speeds(p.s_m, p.curvature_1pm if curves else np.zeros_like(p.curvature_1pm), p.speed_limit_mps, lat_accels,
-                                cfg.lookahead_brake_mps2, cfg.curvature_smoothing_m)
-           for p in pairs]
+    adm = pr.admissible_speeds_batch([p.s_m for p in pairs],
+                                     [p.curvature_1pm if curves else np.zeros_like(p.curvature_1pm) for p in pairs],
+                                     [p.speed_limit_mps for p in pairs], lat_accels, cfg.lookahead_brake_mps2, cfg.curvature_smoothing_m)
     cells = np.array([p.s_first_m for p in pairs], dtype=np.float64).reshape(-1, 1) + cell_centre[None, :]
     return adm, cells, weights
 

@@ -76,17 +76,20 @@ class _HybridInputs(ChainInputs):
         self.with_interval = cfg.grid_distribution == "interval"
         lam = self.lam
         self.steps: list = []
+        if lam_speed is not None:  # every step's preference λ(k+1) / max λ(k+1) at once (the same numbers as step by step)
+            prefs = lam[:, 1:] / np.maximum(lam[:, 1:].max(axis=2, keepdims=True), 1e-12)
+            prefs32 = prefs.astype(np.float32)
         for k in range(cfg.n_steps):
             if k + 1 >= cfg.n_steps:
                 self.steps.append(None)  # the input after the last step does not change any output
             elif lam_speed is not None:
-                pref = lam[:, k + 1] / np.maximum(lam[:, k + 1].max(axis=1, keepdims=True), 1e-12)
+                pref = prefs[:, k]
                 if isinstance(lam_speed, kernels.SpeedRestriction):  # compiled (kernels.SpeedRestriction): λ_speed filled on demand
-                    pref = pref.astype(np.float32)
+                    pref = prefs32[:, k]
                     at_states = lambda b, v, s, pref=pref: lam_speed.priority_at_states(pref, b, v, s, cfg.forbid_threshold)  # noqa: E731
                     window = lambda lo, hi: lam_speed.full()[..., lo:hi]  # noqa: E731
                 elif kernels.available():  # the same numbers, compiled (kernels.priority_at_states): no gather, no per-input passes
-                    pref = pref.astype(np.float32)
+                    pref = prefs32[:, k]
                     at_states = lambda b, v, s, pref=pref: kernels.priority_at_states(lam_speed, pref, b, v, s, cfg.forbid_threshold)  # noqa: E731
                     window = lambda lo, hi: lam_speed[..., lo:hi]  # noqa: E731
                 else:
@@ -177,6 +180,9 @@ def _profiles(p, profiles: AccelerationProfiles | None, stamp: int, issues: list
     if abs(profiles.chunk_s - cfg.tau_s) > 1e-6:
         issues.append(Issue("bad_profile", -1, f"acceleration_profiles chunk_s {profiles.chunk_s} != tau_s {cfg.tau_s}: ignored"))
         return None
+    together = _profiles_together(profiles.profiles, grid.n_inputs, cfg.n_steps, issues)
+    if together is not None:
+        return together
     out: dict[tuple[int, int], np.ndarray] = {}
     for prof in profiles.profiles:
         probs = np.asarray(prof.input_probs, dtype=np.float64)
@@ -190,4 +196,31 @@ def _profiles(p, profiles: AccelerationProfiles | None, stamp: int, issues: list
         if probs.shape[0] < cfg.n_steps:  # a shorter profile holds its last distribution
             probs = np.vstack([probs, np.repeat(probs[-1:], cfg.n_steps - probs.shape[0], axis=0)])
         out[(prof.track_id, prof.corridor_id)] = probs[: cfg.n_steps]
+    return out
+
+
+def _profiles_together(profiles, n_inputs: int, n_steps: int, issues: list[Issue]) -> dict[tuple[int, int], np.ndarray] | None:
+    """``_profiles``' loop over the profiles done on all of them at once when they have one shape (K', M), K' ≥ 1: the
+    same checks, issues (in profile order) and numbers (each row normalised by its own sum, a short profile's last row
+    held); None (the loop then runs) when the shapes differ."""
+    if not profiles:
+        return None
+    arrays = [np.asarray(prof.input_probs, dtype=np.float64) for prof in profiles]
+    shape = arrays[0].shape
+    if len(shape) != 2 or shape[1] != n_inputs or shape[0] < 1 or any(a.shape != shape for a in arrays[1:]):
+        return None
+    probs = np.stack(arrays)  # (P, K', M)
+    sums = probs.sum(axis=2, keepdims=True)
+    good = np.isfinite(probs).all(axis=(1, 2)) & ~(probs < 0).any(axis=(1, 2)) & ~(sums[..., 0] <= 0).any(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):  # (the rows of profiles left out)
+        probs = probs / sums
+    if shape[0] < n_steps:  # a shorter profile holds its last distribution
+        probs = np.concatenate([probs, np.repeat(probs[:, -1:], n_steps - shape[0], axis=1)], axis=1)
+    probs = probs[:, :n_steps]
+    out: dict[tuple[int, int], np.ndarray] = {}
+    for n, prof in enumerate(profiles):
+        if not good[n]:
+            issues.append(Issue("bad_profile", prof.track_id, f"corridor {prof.corridor_id}: input_probs not a distribution: pair falls back"))
+            continue
+        out[(prof.track_id, prof.corridor_id)] = probs[n]
     return out

@@ -1,0 +1,336 @@
+"""Compiled (numba) kernels of the markov_prediction stage's outputs: rasterising and fusing the motion grid.
+
+- ``footprint_grids``: every vehicle's sparse grid in one call, the numbers of
+  ``stages.markov_prediction.rasterise.vehicle_grid``, from the compact
+  footprints (sub-sample centres and normals, lateral offsets) without the
+  ``(B, L, P)`` sample arrays: each sample point is formed where it is used,
+  with the same float64 operations numpy does (x + n·offset, then + d·n for a
+  lateral shift).
+- ``footprint_bounds``: the extent of the samples of the used cells (what
+  ``GridFrame.around`` is given), without gathering them.
+- ``fuse_sorted``: the per-cell sums of the fused grid's log terms over
+  vehicles whose keys are each sorted and unique (``rasterise.fuse``): each
+  cell's sum in vehicle order from 0.0, as np.bincount adds them, step by
+  step through a table of the grid's cells (in cache) instead of one over
+  every key.
+
+numba is a dependency; ``available()`` is False only where it cannot be
+imported, and ``rasterise`` then uses its numpy definitions (the reference
+tests/stages/test_markov_batched_outputs.py compares against).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+try:  # pragma: no cover - exercised where numba is missing only
+    import numba
+except Exception:  # noqa: BLE001 - any import failure leaves the numpy path
+    numba = None
+
+
+def available() -> bool:
+    """True when the compiled kernels can be used."""
+    return numba is not None
+
+
+def exact_inverse(cell: float) -> float:
+    """1/cell when x/cell == x·(1/cell) for every x (cell a power of two: both are the exact quotient rounded
+    once), else 0.0 (divide)."""
+    mantissa, _ = math.frexp(cell)
+    return 1.0 / cell if cell > 0 and mantissa == 0.5 else 0.0
+
+
+if numba is not None:
+
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _footprint_grids(x_c, y_c, nx, ny, offsets, sample_w, cell_rows, probs, pair_w, wide, shifts, has_shift, ptr, members, origin_x,
+                         origin_y, cell, inv_cell, n_rows, n_cols, min_mass):  # pragma: no cover - compiled
+        """Per vehicle (its pairs ``members[ptr[n]:ptr[n + 1]]``), the sorted keys and sums of ``vehicle_grid``: the
+        same float64 operations, each key's sum taken in the order ``vehicle_grid`` concatenates its terms (as
+        np.bincount adds them). Sample q = sub·n_lat + lat of cell i lies at x_c[r, sub] + nx[r, sub]·offsets[lat], r =
+        cell_rows[b, i] (``FootprintBatch.x_m``; a cell with mass and no row, -1, has its samples off the grid, NaN). Step by step (keys of different steps never meet), each sample added to its cell's
+        sum as it is formed (a table over the grid's cells, kept all -1 between steps), the cells then listed in key
+        order by a scan of their bounding box (or a sort, when the box is much larger than the cells). Returns keys,
+        sums and the (n_vehicles + 1,) offsets of each vehicle's part."""
+        n_k, n_l = probs.shape[1], probs.shape[2]
+        n_sub = x_c.shape[1]
+        n_lat = offsets.shape[0]
+        n_p = n_sub * n_lat
+        n_cells = n_rows * n_cols
+        n_veh = ptr.shape[0] - 1
+        total, most = 0, 0  # samples: all, and the most of one vehicle's step
+        for n in range(n_veh):
+            for k in range(n_k):
+                count = 0
+                for m in range(ptr[n], ptr[n + 1]):
+                    b = members[m]
+                    if pair_w[b] <= 0:  # (a NaN weight is not left out: vehicle_grid's test)
+                        continue
+                    for i in range(n_l):
+                        if probs[b, k, i] > min_mass:
+                            count += n_p
+                total += count
+                most = max(most, count)
+        keys_out = np.empty(total, np.int64)
+        sums_out = np.empty(total, np.float64)
+        out_ptr = np.zeros(n_veh + 1, np.int64)
+        rows = np.empty(most, np.int64)
+        cols = np.empty(most, np.int64)
+        vals = np.empty(most, np.float64)
+        uniq = np.empty(most, np.int64)
+        sums = np.empty(most, np.float64)
+        box = np.zeros(4096, np.float64)  # per cell of the step's box: its sum (kept all 0.0 between steps) ...
+        touched = np.zeros(4096, np.bool_)  # ... and whether a sample fell in it
+        slot = np.full(n_cells, -1, np.int32)  # (boxes much larger than their samples) per cell of the grid: its index in uniq
+        f32 = np.float32
+        use_inv = inv_cell > 0.0
+        at = 0
+        for n in range(n_veh):
+            for k in range(n_k):
+                # pass 1: every sample's cell and value, in vehicle_grid's order, and the box of the cells
+                c = 0
+                r_lo, r_hi, c_lo, c_hi = n_rows, -1, n_cols, -1
+                for m in range(ptr[n], ptr[n + 1]):
+                    b = members[m]
+                    w = pair_w[b]
+                    if w <= 0:
+                        continue
+                    d = shifts[b, k]
+                    w32 = f32(w)
+                    for i in range(n_l):
+                        p = probs[b, k, i]
+                        if not p > min_mass:
+                            continue
+                        # w · p: float64 for a numpy float64 weight, float32 for a Python float (numpy's promotion)
+                        mass = w * np.float64(p) if wide[b] else np.float64(w32 * p)
+                        r = cell_rows[b, i]
+                        if r < 0:
+                            continue
+                        for sub in range(n_sub):
+                            xs, ys, nxs, nys = x_c[r, sub], y_c[r, sub], nx[r, sub], ny[r, sub]
+                            for lat in range(n_lat):
+                                off = offsets[lat]
+                                x = xs + nxs * off
+                                y = ys + nys * off
+                                if has_shift:
+                                    x = x + d * nxs
+                                    y = y + d * nys
+                                if use_inv:
+                                    col = np.floor((x - origin_x) * inv_cell)
+                                    row = np.floor((y - origin_y) * inv_cell)
+                                else:
+                                    col = np.floor((x - origin_x) / cell)
+                                    row = np.floor((y - origin_y) / cell)
+                                if not (col >= 0 and col < n_cols and row >= 0 and row < n_rows):  # NaN: off the grid too
+                                    continue
+                                ri, ci = np.int64(row), np.int64(col)
+                                rows[c], cols[c], vals[c] = ri, ci, mass * sample_w[sub * n_lat + lat]
+                                c += 1
+                                r_lo, r_hi, c_lo, c_hi = min(r_lo, ri), max(r_hi, ri), min(c_lo, ci), max(c_hi, ci)
+                if c == 0:
+                    continue
+                base = k * n_cells
+                j = at
+                width = c_hi - c_lo + 1
+                area = (r_hi - r_lo + 1) * width
+                if area <= 8 * c + 4096:
+                    # pass 2: each cell's sum from 0.0 in the samples' order, in a dense table over the box; the box
+                    # read row by row gives the keys' order
+                    if box.shape[0] < area:
+                        box = np.zeros(max(area, 2 * box.shape[0]), np.float64)
+                        touched = np.zeros(box.shape[0], np.bool_)
+                    for q in range(c):
+                        idx = (rows[q] - r_lo) * width + (cols[q] - c_lo)
+                        box[idx] += vals[q]
+                        touched[idx] = True
+                    for idx in range(area):
+                        if touched[idx]:
+                            r, cc = divmod(idx, width)
+                            keys_out[j] = base + (r_lo + r) * n_cols + (c_lo + cc)
+                            sums_out[j] = box[idx]
+                            j += 1
+                            box[idx] = 0.0
+                            touched[idx] = False
+                else:  # a sparse box: a slot per cell of the grid, the cells sorted
+                    u = 0
+                    for q in range(c):
+                        idx = rows[q] * n_cols + cols[q]
+                        s = slot[idx]
+                        if s < 0:
+                            s = u
+                            slot[idx] = u
+                            uniq[u] = idx
+                            sums[u] = 0.0
+                            u += 1
+                        sums[s] += vals[q]
+                    ordered = np.sort(uniq[:u])
+                    for q in range(u):
+                        idx = ordered[q]
+                        keys_out[j] = base + idx
+                        sums_out[j] = sums[slot[idx]]
+                        j += 1
+                    for q in range(u):
+                        slot[ordered[q]] = -1
+                at = j
+            out_ptr[n + 1] = at
+        return keys_out[:at], sums_out[:at], out_ptr
+
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _footprint_bounds(x_c, y_c, nx, ny, offsets, cell_rows, used):  # pragma: no cover - compiled
+        """(x min, x max, y min, y max, samples seen, a NaN seen) over the samples of the cells ``used[b, i]`` (a cell
+        without a row in ``cell_rows`` counts as NaN)."""
+        x_lo, x_hi, y_lo, y_hi = np.inf, -np.inf, np.inf, -np.inf
+        seen = 0
+        nan = False
+        for b in range(used.shape[0]):
+            for i in range(used.shape[1]):
+                if not used[b, i]:
+                    continue
+                r = cell_rows[b, i]
+                if r < 0:
+                    nan = True
+                    continue
+                for sub in range(x_c.shape[1]):
+                    xs, ys, nxs, nys = x_c[r, sub], y_c[r, sub], nx[r, sub], ny[r, sub]
+                    for lat in range(offsets.shape[0]):
+                        x = xs + nxs * offsets[lat]
+                        y = ys + nys * offsets[lat]
+                        if np.isnan(x) or np.isnan(y):
+                            nan = True
+                        x_lo, x_hi, y_lo, y_hi = min(x_lo, x), max(x_hi, x), min(y_lo, y), max(y_hi, y)
+                        seen += 1
+        return x_lo, x_hi, y_lo, y_hi, seen, nan
+
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _fuse_sorted(keys, values, ptr, n_cells):  # pragma: no cover - compiled
+        """Sorted unique keys of the runs ``keys[ptr[n]:ptr[n + 1]]`` (each sorted, unique, in [0, n_steps·n_cells)) and
+        each key's sum of ``values`` in run order from 0.0; ok False (nothing else meaningful) when a run is not so."""
+        n_runs = ptr.shape[0] - 1
+        total = keys.shape[0]
+        keys_out = np.empty(total, np.int64)
+        sums_out = np.empty(total, np.float64)
+        if total == 0:
+            return keys_out, sums_out, True
+        n_steps = 0
+        for n in range(n_runs):
+            for j in range(ptr[n], ptr[n + 1]):
+                key = keys[j]
+                if key < 0 or (j > ptr[n] and key <= keys[j - 1]):
+                    return keys_out, sums_out, False
+            if ptr[n + 1] > ptr[n]:
+                n_steps = max(n_steps, keys[ptr[n + 1] - 1] // n_cells + 1)
+        cursor = ptr[:-1].copy()
+        slot = np.full(n_cells, -1, np.int32)
+        uniq = np.empty(min(total, n_cells), np.int64)
+        sums = np.empty(min(total, n_cells), np.float64)
+        at = 0
+        for k in range(n_steps):
+            base = k * n_cells
+            end = base + n_cells
+            u = 0
+            for n in range(n_runs):  # in run order: each cell's terms in the order of the concatenated runs
+                j = cursor[n]
+                stop = ptr[n + 1]
+                while j < stop and keys[j] < end:
+                    idx = keys[j] - base
+                    s = slot[idx]
+                    if s < 0:
+                        s = u
+                        slot[idx] = u
+                        uniq[u] = idx
+                        sums[u] = 0.0
+                        u += 1
+                    sums[s] += values[j]
+                    j += 1
+                cursor[n] = j
+            if u == 0:
+                continue
+            lo, hi = n_cells, -1
+            for j in range(u):
+                lo, hi = min(lo, uniq[j]), max(hi, uniq[j])
+            if hi - lo + 1 <= 16 * u:  # a scan of the cells' range lists them in key order
+                for idx in range(lo, hi + 1):
+                    s = slot[idx]
+                    if s >= 0:
+                        keys_out[at] = base + idx
+                        sums_out[at] = sums[s]
+                        slot[idx] = -1
+                        at += 1
+            else:
+                ordered = np.sort(uniq[:u])
+                for j in range(u):
+                    idx = ordered[j]
+                    keys_out[at + j] = base + idx
+                    sums_out[at + j] = sums[slot[idx]]
+                for j in range(u):
+                    slot[uniq[j]] = -1
+                at += u
+        return keys_out[:at], sums_out[:at], True
+
+
+def footprint_grids(x_c, y_c, nx, ny, offsets, sample_weights, cell_rows, probs, pair_weights, wide, shifts, members, origin_x, origin_y,
+                    cell, n_rows, n_cols, min_mass):
+    """The sparse grids of ``stages.markov_prediction.rasterise.vehicle_grid`` for every vehicle in one call (see
+    ``rasterise.vehicle_grids``) from compact footprints (``rasterise.FootprintBatch``); None where numba is missing.
+    ``members``: per vehicle its pair indices. Returns (keys, sums, offsets (n_vehicles + 1,))."""
+    if numba is None:
+        return None
+    ptr = np.zeros(len(members) + 1, np.int64)
+    ptr[1:] = np.cumsum([len(m) for m in members])
+    flat = np.fromiter((b for m in members for b in m), np.int64, count=int(ptr[-1]))
+    c = np.ascontiguousarray
+    has_shift = shifts is not None
+    shifts = shifts if has_shift else np.zeros(probs.shape[:2])
+    return _footprint_grids(c(x_c, dtype=np.float64), c(y_c, dtype=np.float64), c(nx, dtype=np.float64), c(ny, dtype=np.float64),
+                            c(offsets, dtype=np.float64), c(sample_weights, dtype=np.float64), c(cell_rows, dtype=np.int64),
+                            c(probs, dtype=np.float32),
+                            c(pair_weights, dtype=np.float64), c(wide, dtype=np.bool_), c(shifts, dtype=np.float64), has_shift, ptr,
+                            flat, float(origin_x), float(origin_y), float(cell), exact_inverse(float(cell)), int(n_rows), int(n_cols),
+                            float(min_mass))
+
+
+def footprint_bounds(x_c, y_c, nx, ny, offsets, cell_rows, used):
+    """(x min, x max, y min, y max) of the samples of the cells ``used`` (B, L), None when there is none, or when a
+    sample is NaN (the caller then takes numpy's own path) or numba is missing."""
+    if numba is None:
+        return None
+    c = np.ascontiguousarray
+    x_lo, x_hi, y_lo, y_hi, seen, nan = _footprint_bounds(c(x_c, dtype=np.float64), c(y_c, dtype=np.float64), c(nx, dtype=np.float64),
+                                                          c(ny, dtype=np.float64), c(offsets, dtype=np.float64),
+                                                          c(cell_rows, dtype=np.int64), c(used, dtype=np.bool_))
+    if nan or not seen:
+        return None
+    return x_lo, x_hi, y_lo, y_hi
+
+
+def fuse_sorted(keys: list[np.ndarray], values: np.ndarray, n_cells: int):
+    """(sorted unique keys, per-key sums of ``values``) over the runs ``keys`` (each sorted and unique; ``values``
+    their concatenation), each sum in run order from 0.0; None where numba is missing or a run is not sorted and
+    unique in [0, ∞)."""
+    if numba is None or n_cells <= 0:
+        return None
+    ptr = np.zeros(len(keys) + 1, np.int64)
+    ptr[1:] = np.cumsum([k.shape[0] for k in keys])
+    flat = np.concatenate(keys).astype(np.int64, copy=False) if keys else np.zeros(0, np.int64)
+    out_keys, sums, ok = _fuse_sorted(np.ascontiguousarray(flat), np.ascontiguousarray(values, dtype=np.float64), ptr, int(n_cells))
+    return (out_keys, sums) if ok else None
+
+
+_warm = False
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's on-disk cache) the kernels now, on tiny arrays. Once per process."""
+    global _warm
+    if _warm or numba is None:
+        return
+    box = np.zeros((1, 1))
+    rows = np.zeros((1, 1), np.int64)
+    footprint_grids(box, box, box, box, np.zeros(1), np.ones(1), rows, np.ones((1, 1, 1), np.float32), np.ones(1), np.ones(1, np.bool_),
+                    np.zeros((1, 1)), [[0]], -1.0, -1.0, 1.0, 2, 2, 1e-9)
+    footprint_bounds(box, box, box, box, np.zeros(1), rows, np.ones((1, 1), np.bool_))
+    fuse_sorted([np.array([0, 3], np.int64), np.array([3], np.int64)], np.ones(3), 2)
+    _warm = True
