@@ -38,6 +38,9 @@ compare against).
 
 from __future__ import annotations
 
+import concurrent.futures
+import itertools
+import os
 import threading
 
 import numpy as np
@@ -425,12 +428,15 @@ if numba is not None:
 
 
     @numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
-    def _speed_priority_run(inp, vel0, pos0, outside0, order, n_steps, ptr, v_to, offset, weight, iptr, ioffset, iweight,
-                            with_interval, threshold, psi, prefs, has_input, forbid_threshold, xp, fp, start, bucket, inv_h, cell_s,
-                            v_c, a_c, w32, tau, values, done):  # pragma: no cover - compiled
-        """The whole chain of ``speed_priority_run``, in blocks of ``_LANES`` pairs (``order``: similar pairs side by side),
-        each block on the cells its pairs occupy: per s-row of the state the velocity cells [vlo, vhi] that may hold
-        mass, per row of p⁻ those its sources reach; the pairs of a block are the innermost (vectorised) axis."""
+    def _speed_priority_blocks(blocks, inp, vel0, pos0, outside0, order, n_steps, ptr, v_to, offset, weight, iptr, ioffset, iweight,
+                               with_interval, threshold, psi, prefs, has_input, forbid_threshold, xp, fp, start, bucket, inv_h, cell_s,
+                               v_c, a_c, w32, tau, values, done, positions, velocities, ipositions, outsides, ioutsides, pruned,
+                               totals):  # pragma: no cover - compiled
+        """The whole chain of ``speed_priority_run`` for the blocks of ``_LANES`` pairs ``order[blk:blk + _LANES]``, blk
+        in ``blocks`` (``order``: similar pairs side by side), each block on the cells its pairs occupy: per s-row of the
+        state the velocity cells [vlo, vhi] that may hold mass, per row of p⁻ those its sources reach; the pairs of a
+        block are the innermost (vectorised) axis. Writes the rows of its pairs only (of the outputs, zeros on entry,
+        and of ``values``/``done``): calls on disjoint blocks may run at the same time."""
         n_b, n_in = inp.shape
         n_v, n_s = vel0.shape[1], pos0.shape[1]
         n_ln = _LANES
@@ -448,13 +454,6 @@ if numba is not None:
                     dv_hi = max(dv_hi, v_to[e] - v)
         f32 = np.float32
         zero = f32(0.0)
-        positions = np.zeros((n_b, n_steps, n_s), f32)
-        velocities = np.zeros((n_b, n_steps, n_v), f32)
-        ipositions = np.zeros((n_b, n_steps if with_interval else 0, n_s), f32)
-        outsides = np.zeros((n_b, n_steps), f32)
-        ioutsides = np.zeros((n_b, n_steps), f32)
-        pruned = np.zeros((n_b, n_steps), f32)
-        totals = np.zeros(n_b, np.float64)
         cur = np.zeros((n_s, n_in, n_v, n_ln), f32)  # the block's state: rows [first, last], in row s the cells [vlo[s], vhi[s]]
         nxt = np.zeros((n_s, n_in, n_v, n_ln), f32)  # p⁻: in row t the cells [tlo[t], thi[t]]
         vlo = np.zeros(n_s, np.int64)
@@ -481,7 +480,7 @@ if numba is not None:
         ratio_t = np.empty((n_in, n_states), f32)
         z = np.empty(n_states, f32)
         acc = np.empty(n_states, f32)
-        for blk in range(0, n_b, n_ln):
+        for blk in blocks:
             n_live = min(n_ln, n_b - blk)
             first, last, v_first, v_last = -1, -1, -1, -1
             for ln in range(n_ln):
@@ -660,7 +659,6 @@ if numba is not None:
                         for v in range(vlo[t], vhi[t] + 1):
                             total += cur[t, a, v, ln]
                 totals[pair[ln]] = total
-        return positions, velocities, ipositions, outsides, ioutsides, pruned, totals
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
     def _vehicle_grids(x_m, y_m, normal_x, normal_y, sample_w, probs, pair_w, wide, shifts, has_shift, ptr, members, origin_x,
@@ -785,7 +783,7 @@ def priority_occupied(slab, s_idx, v_idx, b_idx, lam, psi, factors):
 
 
 def speed_priority_run(state, outside0, tables, n_steps, with_interval, threshold, psi, restriction, preferences, has_input,
-                       forbid_threshold):
+                       forbid_threshold, threads=1):
     """A whole run of the hybrid chain in one compiled call: Υ(τ) (and Υ([0, τ])), pruning with the pruned mass put back,
     then after step k (where ``has_input[k]``) Γ = colnorm(diag(λ) Ψ) with λ = ``restriction``'s priority for the
     preference ``preferences[k]`` (B, M) at the states holding mass (``SpeedRestriction.priority_at_states``); where
@@ -805,14 +803,59 @@ def speed_priority_run(state, outside0, tables, n_steps, with_interval, threshol
     interval outside (B, K) or None, pruned mass (B, K), float32, and the final totals (B,) float64."""
     ptr, v_to, offset, weight, iptr, ioffset, iweight = tables
     inp, vel0, pos0 = (np.ascontiguousarray(a, dtype=np.float32) for a in state)
+    n_b, n_in = inp.shape
+    n_steps = int(n_steps)
+    n_s, n_v = pos0.shape[1], vel0.shape[1]
     # pairs of similar speed and place side by side: a block of them occupies fewer cells together
-    order = np.lexsort((np.argmax(pos0 > 0, axis=1), vel0 @ np.arange(vel0.shape[1], dtype=np.float32))).astype(np.int64)
-    pos, vel, ipos, out, iout, pruned, totals = _speed_priority_run(
-        inp, vel0, pos0, np.ascontiguousarray(outside0, dtype=np.float32), order, int(n_steps), ptr, v_to, offset, weight, iptr, ioffset,
-        iweight, bool(with_interval), np.float32(threshold), np.ascontiguousarray(psi, dtype=np.float32),
-        np.ascontiguousarray(preferences, dtype=np.float32).reshape(int(n_steps), inp.shape[0], inp.shape[1]),
-        np.asarray(has_input, dtype=np.bool_), np.float32(forbid_threshold), *restriction._args, restriction._values, restriction._done)
+    order = np.lexsort((np.argmax(pos0 > 0, axis=1), vel0 @ np.arange(n_v, dtype=np.float32))).astype(np.int64)
+    f32 = np.float32
+    outputs = (np.zeros((n_b, n_steps, n_s), f32), np.zeros((n_b, n_steps, n_v), f32),
+               np.zeros((n_b, n_steps if with_interval else 0, n_s), f32), np.zeros((n_b, n_steps), f32), np.zeros((n_b, n_steps), f32),
+               np.zeros((n_b, n_steps), f32), np.zeros(n_b, np.float64))
+    args = (inp, vel0, pos0, np.ascontiguousarray(outside0, dtype=f32), order, n_steps, ptr, v_to, offset, weight, iptr, ioffset,
+            iweight, bool(with_interval), f32(threshold), np.ascontiguousarray(psi, dtype=f32),
+            np.ascontiguousarray(preferences, dtype=f32).reshape(n_steps, n_b, n_in), np.asarray(has_input, dtype=np.bool_),
+            f32(forbid_threshold), *restriction._args, restriction._values, restriction._done, *outputs)
+    blocks = np.arange(0, n_b, _LANES, dtype=np.int64)
+    n_threads = min(int(threads), blocks.shape[0])
+    if n_threads <= 1:
+        _speed_priority_blocks(blocks, *args)
+    else:
+        _on_threads(blocks.shape[0], lambda i: _speed_priority_blocks(blocks[i:i + 1], *args), n_threads)
+    pos, vel, ipos, out, iout, pruned, totals = outputs
     return pos, vel, (ipos if with_interval else None), out, (iout if with_interval else None), pruned, totals
+
+
+def _on_threads(n_tasks: int, task, n_threads: int) -> None:
+    """``task(i)`` for every i < ``n_tasks`` on ``n_threads`` threads, the caller one of them, each thread taking the next
+    i when it is free (tasks differ in cost, and another process may hold a core for a while); returns when all are done
+    and raises the first exception of any."""
+    counter = itertools.count()  # next() on it is atomic under the GIL
+
+    def work() -> None:
+        while (i := next(counter)) < n_tasks:
+            task(i)
+
+    futures = [_pool(n_threads).submit(work) for _ in range(n_threads - 1)]
+    try:
+        work()
+    finally:
+        concurrent.futures.wait(futures)
+    for f in futures:
+        f.result()
+
+
+_pools: dict[int, concurrent.futures.ThreadPoolExecutor] = {}
+if hasattr(os, "register_at_fork"):  # a forked child has none of its parent's threads: it makes its own pools
+    os.register_at_fork(after_in_child=_pools.clear)
+
+
+def _pool(n_threads: int) -> concurrent.futures.ThreadPoolExecutor:
+    """The ``n_threads − 1`` worker threads of ``_on_threads`` (the caller is the other), made on first use."""
+    pool = _pools.get(n_threads)
+    if pool is None:
+        pool = _pools[n_threads] = concurrent.futures.ThreadPoolExecutor(max_workers=n_threads - 1, thread_name_prefix="markov-kernel")
+    return pool
 
 
 def priority_at_states(restriction, preference, b_idx, v_idx, s_idx, forbid_threshold):
