@@ -92,7 +92,8 @@ def collapsed_tables(kernel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
     return np.cumsum(ptr), d.astype(np.int64), weight
 
 
-#: pairs per block of ``speed_priority_run``'s kernel (its innermost, vectorised axis: 8 float32 lanes of AVX2)
+#: pairs per block of ``speed_priority_run``'s kernel (its innermost, vectorised axis: 8 float32 lanes of AVX2; its
+#: stencil scatter is written for 8, ``_axpy8``). 16 measured no faster at 18 and 72 vehicles and slower at 6
 _LANES = 8
 
 if numba is not None:
@@ -427,6 +428,81 @@ if numba is not None:
         return ordered, out
 
 
+    from llvmlite import ir as _ir
+    from numba.core import types
+    from numba.extending import intrinsic as _intrinsic
+
+    @_intrinsic
+    def _axpy8(typingctx, dst, d, w, src, s):  # pragma: no cover - compiled
+        """``dst[d:d + 8] += w * src[s:s + 8]`` (1-D C arrays, src float32, dst float32 or float64) as one 8-lane vector
+        operation: per lane the float32 product then the add in dst's type (after exact widening), no fused
+        multiply-add: the numbers of the scalar loop, which numba leaves scalar (its SLP vectoriser is off)."""
+        if not (isinstance(dst, types.Array) and isinstance(src, types.Array) and dst.ndim == 1 and src.ndim == 1
+                and dst.layout == "C" and src.layout == "C" and src.dtype == types.float32
+                and dst.dtype in (types.float32, types.float64) and isinstance(w, types.Float)):
+            return None
+
+        def codegen(context, builder, signature, args):
+            dst_v, d_v, w_v, src_v, s_v = args
+            dty, d_ty, w_ty, sty, s_ty = signature.args
+            dary = context.make_array(dty)(context, builder, dst_v)
+            sary = context.make_array(sty)(context, builder, src_v)
+            f32 = _ir.FloatType()
+            elem = _ir.DoubleType() if dty.dtype == types.float64 else f32
+            lanes32, lanes = _ir.VectorType(f32, 8), _ir.VectorType(elem, 8)
+            dptr = builder.bitcast(builder.gep(dary.data, [context.cast(builder, d_v, d_ty, types.intp)]), lanes.as_pointer())
+            sptr = builder.bitcast(builder.gep(sary.data, [context.cast(builder, s_v, s_ty, types.intp)]), lanes32.as_pointer())
+            w32 = context.cast(builder, w_v, w_ty, types.float32)
+            wv = builder.insert_element(lanes32(_ir.Undefined), w32, _ir.Constant(_ir.IntType(32), 0))
+            wv = builder.shuffle_vector(wv, lanes32(_ir.Undefined), _ir.Constant(_ir.VectorType(_ir.IntType(32), 8), [0] * 8))
+            product = builder.fmul(wv, builder.load(sptr, align=4))
+            if elem is not f32:
+                product = builder.fpext(product, lanes)
+            align = 8 if elem is not f32 else 4
+            builder.store(builder.fadd(builder.load(dptr, align=align), product), dptr, align=align)
+            return context.get_dummy_value()
+
+        return types.void(dst, d, w, src, s), codegen
+
+    @_intrinsic
+    def _prune8(typingctx, row, r, pos, p, vel, q, kept, mark, m, threshold):  # pragma: no cover - compiled
+        """For the 8 lanes y = ``row[r:r + 8]`` (float32): ``pos[p:p + 8] += y`` and ``vel[q:q + 8] += y`` (float64), y
+        set to 0 where not ``y >= threshold``, ``kept[0:8] += y`` (float64), ``mark[m:m + 8] |= y > 0``; as 8-lane vector
+        operations, each lane's numbers those of the scalar loop."""
+        f64_1d = types.Array(types.float64, 1, "C")
+        if not (row == types.Array(types.float32, 1, "C") and pos == f64_1d and vel == f64_1d and kept == f64_1d
+                and mark == types.Array(types.boolean, 1, "C") and isinstance(threshold, types.Float)):
+            return None
+
+        def codegen(context, builder, signature, args):
+            row_v, r_v, pos_v, p_v, vel_v, q_v, kept_v, mark_v, m_v, thr_v = args
+            tys = signature.args
+            f32, f64, i8 = _ir.FloatType(), _ir.DoubleType(), _ir.IntType(8)
+            v32, v64, v8 = _ir.VectorType(f32, 8), _ir.VectorType(f64, 8), _ir.VectorType(i8, 8)
+
+            def at(k, index, vec):
+                ary = context.make_array(tys[k])(context, builder, args[k])
+                ptr = builder.gep(ary.data, [context.cast(builder, index, tys[k + 1], types.intp)] if index is not None else [_ir.Constant(_ir.IntType(64), 0)])
+                return builder.bitcast(ptr, vec.as_pointer())
+
+            row_p, pos_p, vel_p = at(0, r_v, v32), at(2, p_v, v64), at(4, q_v, v64)
+            kept_p, mark_p = at(6, None, v64), at(7, m_v, v8)
+            y = builder.load(row_p, align=4)
+            wide = builder.fpext(y, v64)
+            builder.store(builder.fadd(builder.load(pos_p, align=8), wide), pos_p, align=8)
+            builder.store(builder.fadd(builder.load(vel_p, align=8), wide), vel_p, align=8)
+            thr = context.cast(builder, thr_v, tys[9], types.float32)
+            thr_vec = builder.shuffle_vector(builder.insert_element(v32(_ir.Undefined), thr, _ir.Constant(_ir.IntType(32), 0)),
+                                             v32(_ir.Undefined), _ir.Constant(_ir.VectorType(_ir.IntType(32), 8), [0] * 8))
+            y = builder.select(builder.fcmp_ordered(">=", y, thr_vec), y, v32(None))
+            builder.store(y, row_p, align=4)
+            builder.store(builder.fadd(builder.load(kept_p, align=8), builder.fpext(y, v64)), kept_p, align=8)
+            positive = builder.zext(builder.fcmp_ordered(">", y, v32(None)), v8)
+            builder.store(builder.or_(builder.load(mark_p, align=1), positive), mark_p, align=1)
+            return context.get_dummy_value()
+
+        return types.void(row, r, pos, p, vel, q, kept, mark, m, threshold), codegen
+
     @numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
     def _speed_priority_blocks(blocks, inp, vel0, pos0, outside0, order, n_steps, ptr, v_to, offset, weight, iptr, ioffset, iweight,
                                with_interval, threshold, psi, prefs, has_input, forbid_threshold, xp, fp, start, bucket, inv_h, cell_s,
@@ -467,6 +543,9 @@ if numba is not None:
         leaked = np.zeros(n_ln, np.float64)
         ileaked = np.zeros(n_ln, np.float64)
         kept = np.zeros(n_ln, np.float64)
+        # the same memory as 1-D arrays, for _axpy8 and _prune8
+        cur_flat, nxt_flat, ipos_flat, pos_flat = cur.reshape(-1), nxt.reshape(-1), ipos.reshape(-1), pos.reshape(-1)
+        vel_flat, mark_flat = vel.reshape(-1), mark.reshape(-1)
         outside = np.zeros(n_ln, f32)
         factor = np.zeros(n_ln, f32)
         pair = np.zeros(n_ln, np.int64)
@@ -543,47 +622,30 @@ if numba is not None:
                             if not any_mass > 0:
                                 continue
                             r = a * n_v + v
+                            src = ((s * n_in + a) * n_v + v) * n_ln
                             for e in range(ptr[r], ptr[r + 1]):
                                 t = s + offset[e]
-                                w = weight[e]
                                 if t < n_s:
-                                    target = nxt[t, a, v_to[e]]
-                                    for ln in range(n_ln):
-                                        target[ln] += w * row[ln]
+                                    _axpy8(nxt_flat, ((t * n_in + a) * n_v + v_to[e]) * n_ln, weight[e], cur_flat, src)
                                 else:
-                                    for ln in range(n_ln):
-                                        leaked[ln] += w * row[ln]
+                                    _axpy8(leaked, 0, weight[e], cur_flat, src)
                             if with_interval:
                                 for e in range(iptr[r], iptr[r + 1]):
                                     t = s + ioffset[e]
-                                    w = iweight[e]
                                     if t < n_s:
-                                        itarget = ipos[t]
-                                        for ln in range(n_ln):
-                                            itarget[ln] += w * row[ln]
+                                        _axpy8(ipos_flat, t * n_ln, iweight[e], cur_flat, src)
                                     else:
-                                        for ln in range(n_ln):
-                                            ileaked[ln] += w * row[ln]
+                                        _axpy8(ileaked, 0, iweight[e], cur_flat, src)
                 kept[:] = 0.0
                 new_first, new_last = -1, -1
                 for t in range(first, hi):  # marginals, then pruning; the rows' cells holding mass after it
                     marks = mark[t]
-                    pos_t = pos[t]
                     for v in range(tlo[t], thi[t] + 1):
                         marks[v] = False
                     for a in range(n_in):
                         for v in range(tlo[t], thi[t] + 1):
-                            row = nxt[t, a, v]
-                            vel_v = vel[v]
-                            mv = marks[v]
-                            for ln in range(n_ln):  # branch-free: it vectorises over the lanes
-                                y = row[ln]
-                                pos_t[ln] += y
-                                vel_v[ln] += y
-                                y = y if y >= threshold else zero
-                                row[ln] = y
-                                kept[ln] += y
-                                mv[ln] |= y > 0
+                            _prune8(nxt_flat, ((t * n_in + a) * n_v + v) * n_ln, pos_flat, t * n_ln, vel_flat, v * n_ln, kept, mark_flat,
+                                    (t * n_v + v) * n_ln, threshold)
                     vlo[t], vhi[t] = n_v, -1
                     for v in range(tlo[t], thi[t] + 1):
                         mv = marks[v]
