@@ -381,25 +381,30 @@ if numba is not None:
     @numba.njit(cache=True, nogil=True, boundscheck=False)
     def _priority_from_states(values, preference, b_idx, v_idx, s_idx, forbid_threshold):  # pragma: no cover - compiled
         """``_priority_at_states`` with the restriction stored per state, (B, N_v, L, M)."""
+        out = np.empty((b_idx.shape[0], values.shape[3]), np.float32)
+        _priority_into(values, preference, b_idx, v_idx, s_idx, b_idx.shape[0], forbid_threshold, out.T)
+        return out
+
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _priority_into(values, preference, b_idx, v_idx, s_idx, n_states, forbid_threshold, out_t):  # pragma: no cover - compiled
+        """The priority of the first ``n_states`` listed states into ``out_t[:, :n_states]`` (M, n): from the highest input
+        down r_α = min(m_α, q_α + carry), where every m_α is at most ``forbid_threshold`` all to α = 0."""
         n_in = values.shape[3]
-        out = np.empty((b_idx.shape[0], n_in), np.float32)
-        for n in range(b_idx.shape[0]):
-            m_all = values[b_idx[n], v_idx[n], s_idx[n]]
-            b = b_idx[n]
+        for n in range(n_states):
+            b, v, s = b_idx[n], v_idx[n], s_idx[n]
             carry = np.float32(0.0)
-            top = m_all[0]
+            top = values[b, v, s, 0]
             for alpha in range(n_in - 1, -1, -1):
-                m = m_all[alpha]
+                m = values[b, v, s, alpha]
                 top = max(top, m)
                 want = carry + preference[b, alpha]
                 r = min(m, want)
-                out[n, alpha] = r
+                out_t[alpha, n] = r
                 carry = want - r
             if top <= forbid_threshold:
                 for alpha in range(n_in):
-                    out[n, alpha] = np.float32(0.0)
-                out[n, 0] = np.float32(1.0)
-        return out
+                    out_t[alpha, n] = np.float32(0.0)
+                out_t[0, n] = np.float32(1.0)
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
     def _sum_by_key(keys, values, slot):  # pragma: no cover - compiled
@@ -554,6 +559,8 @@ if numba is not None:
         v_buf = np.empty(n_states, np.int64)
         b_buf = np.empty(n_states, np.int64)
         l_buf = np.empty(n_states, np.int64)
+        o_buf = np.empty(n_states, np.int64)
+        f_buf = np.empty(n_states, f32)
         x_t = np.empty((n_in, n_states), f32)
         lam_t = np.empty((n_in, n_states), f32)
         ratio_t = np.empty((n_in, n_states), f32)
@@ -697,23 +704,25 @@ if numba is not None:
                                 s_buf[n], v_buf[n], b_buf[n], l_buf[n] = t, v, pair[ln], ln
                                 n += 1
                 _speed_fill(xp, fp, start, bucket, inv_h, cell_s, v_c, a_c, w32, tau, values, done, b_buf[:n], v_buf[:n], s_buf[:n])
-                lam = _priority_from_states(values, prefs[k], b_buf[:n], v_buf[:n], s_buf[:n], forbid_threshold)
+                _priority_into(values, prefs[k], b_buf, v_buf, s_buf, n, forbid_threshold, lam_t)
                 for t in range(first, last + 1):
                     for a in range(n_in):
                         for v in range(vlo[t], vhi[t] + 1):
                             cur[t, a, v] = 0.0
                 # Γ = colnorm(diag(λ) Ψ) at the states, input by input over all of them (the arithmetic of
-                # _priority_occupied: each state's sums in the same order)
+                # _priority_occupied: each state's sums in the same order); o_buf: the state's input-0 cell (flat)
                 for i in range(n):
-                    t, v, ln = s_buf[i], v_buf[i], l_buf[i]
+                    o = (s_buf[i] * n_in * n_v + v_buf[i]) * n_ln + l_buf[i]
+                    o_buf[i] = o
+                    f_buf[i] = factor[l_buf[i]]
                     for j in range(n_in):
-                        x_t[j, i] = nxt[t, j, v, ln]
-                        lam_t[j, i] = lam[i, j]
+                        x_t[j, i] = nxt_flat[o + j * n_v * n_ln]
                 for a in range(n_in):  # p[a] = λ[a] · Σ_j Ψ[a, j] ratio[j] · factor
                     _gamma_input(a, x_t, lam_t, psi, n, z, ratio_t, acc)
                     la = lam_t[a]
+                    step = a * n_v * n_ln
                     for i in range(n):
-                        cur[s_buf[i], a, v_buf[i], l_buf[i]] = la[i] * acc[i] * factor[l_buf[i]]
+                        cur_flat[o_buf[i] + step] = la[i] * acc[i] * f_buf[i]
             for ln in range(n_live):
                 total = 0.0
                 for t in range(max(first, 0), last + 1):
