@@ -27,7 +27,12 @@ the products.
 speed restriction and Γ) in one call: the same arithmetic in the same order
 as ``fused_step`` + ``priority_occupied`` step by step (the same numbers),
 but in blocks of 8 similar pairs, each block on the cells its own pairs
-occupy instead of the batch's window, which spans every pair's.
+occupy instead of the batch's window, which spans every pair's; the blocks
+are independent and may be shared out between threads (``threads``; the
+kernel releases the GIL), with the same numbers. Its 8-lane inner
+operations (stencil scatter, marginals and pruning) are written as explicit
+vector operations (``_axpy8``, ``_prune8``): numba leaves its SLP vectoriser
+off, and loops of 8 constant iterations then run scalar.
 ``vehicle_grids`` rasterises every vehicle's grid in one call (the numbers
 of ``stages.markov_prediction.rasterise.vehicle_grid``).
 
@@ -437,19 +442,25 @@ if numba is not None:
     from numba.core import types
     from numba.extending import intrinsic as _intrinsic
 
+    def _splat8(builder, value):  # pragma: no cover - used at compile time
+        """An LLVM vector of 8 copies of ``value``."""
+        vec = _ir.VectorType(value.type, 8)
+        one = builder.insert_element(vec(_ir.Undefined), value, _ir.Constant(_ir.IntType(32), 0))
+        return builder.shuffle_vector(one, vec(_ir.Undefined), _ir.Constant(_ir.VectorType(_ir.IntType(32), 8), [0] * 8))
+
     @_intrinsic
     def _axpy8(typingctx, dst, d, w, src, s):  # pragma: no cover - compiled
-        """``dst[d:d + 8] += w * src[s:s + 8]`` (1-D C arrays, src float32, dst float32 or float64) as one 8-lane vector
+        """``dst[d:d + 8] += w * src[s:s + 8]`` (1-D C arrays, src and w float32, dst float32 or float64) as one 8-lane vector
         operation: per lane the float32 product then the add in dst's type (after exact widening), no fused
         multiply-add: the numbers of the scalar loop, which numba leaves scalar (its SLP vectoriser is off)."""
         if not (isinstance(dst, types.Array) and isinstance(src, types.Array) and dst.ndim == 1 and src.ndim == 1
                 and dst.layout == "C" and src.layout == "C" and src.dtype == types.float32
-                and dst.dtype in (types.float32, types.float64) and isinstance(w, types.Float)):
+                and dst.dtype in (types.float32, types.float64) and w == types.float32):
             return None
 
         def codegen(context, builder, signature, args):
             dst_v, d_v, w_v, src_v, s_v = args
-            dty, d_ty, w_ty, sty, s_ty = signature.args
+            dty, d_ty, _w_ty, sty, s_ty = signature.args
             dary = context.make_array(dty)(context, builder, dst_v)
             sary = context.make_array(sty)(context, builder, src_v)
             f32 = _ir.FloatType()
@@ -457,10 +468,7 @@ if numba is not None:
             lanes32, lanes = _ir.VectorType(f32, 8), _ir.VectorType(elem, 8)
             dptr = builder.bitcast(builder.gep(dary.data, [context.cast(builder, d_v, d_ty, types.intp)]), lanes.as_pointer())
             sptr = builder.bitcast(builder.gep(sary.data, [context.cast(builder, s_v, s_ty, types.intp)]), lanes32.as_pointer())
-            w32 = context.cast(builder, w_v, w_ty, types.float32)
-            wv = builder.insert_element(lanes32(_ir.Undefined), w32, _ir.Constant(_ir.IntType(32), 0))
-            wv = builder.shuffle_vector(wv, lanes32(_ir.Undefined), _ir.Constant(_ir.VectorType(_ir.IntType(32), 8), [0] * 8))
-            product = builder.fmul(wv, builder.load(sptr, align=4))
+            product = builder.fmul(_splat8(builder, w_v), builder.load(sptr, align=4))
             if elem is not f32:
                 product = builder.fpext(product, lanes)
             align = 8 if elem is not f32 else 4
@@ -471,35 +479,32 @@ if numba is not None:
 
     @_intrinsic
     def _prune8(typingctx, row, r, pos, p, vel, q, kept, mark, m, threshold):  # pragma: no cover - compiled
-        """For the 8 lanes y = ``row[r:r + 8]`` (float32): ``pos[p:p + 8] += y`` and ``vel[q:q + 8] += y`` (float64), y
+        """For the 8 lanes y = ``row[r:r + 8]`` (float32; ``threshold`` float32): ``pos[p:p + 8] += y`` and ``vel[q:q + 8] += y`` (float64), y
         set to 0 where not ``y >= threshold``, ``kept[0:8] += y`` (float64), ``mark[m:m + 8] |= y > 0``; as 8-lane vector
         operations, each lane's numbers those of the scalar loop."""
         f64_1d = types.Array(types.float64, 1, "C")
         if not (row == types.Array(types.float32, 1, "C") and pos == f64_1d and vel == f64_1d and kept == f64_1d
-                and mark == types.Array(types.boolean, 1, "C") and isinstance(threshold, types.Float)):
+                and mark == types.Array(types.boolean, 1, "C") and threshold == types.float32):
             return None
 
         def codegen(context, builder, signature, args):
-            row_v, r_v, pos_v, p_v, vel_v, q_v, kept_v, mark_v, m_v, thr_v = args
+            thr_v = args[9]
             tys = signature.args
             f32, f64, i8 = _ir.FloatType(), _ir.DoubleType(), _ir.IntType(8)
             v32, v64, v8 = _ir.VectorType(f32, 8), _ir.VectorType(f64, 8), _ir.VectorType(i8, 8)
 
-            def at(k, index, vec):
+            def at(k, vec, indexed=True):  # the 8 lanes of argument k from the offset that follows it (else from 0)
                 ary = context.make_array(tys[k])(context, builder, args[k])
-                ptr = builder.gep(ary.data, [context.cast(builder, index, tys[k + 1], types.intp)] if index is not None else [_ir.Constant(_ir.IntType(64), 0)])
-                return builder.bitcast(ptr, vec.as_pointer())
+                index = context.cast(builder, args[k + 1], tys[k + 1], types.intp) if indexed else _ir.Constant(_ir.IntType(64), 0)
+                return builder.bitcast(builder.gep(ary.data, [index]), vec.as_pointer())
 
-            row_p, pos_p, vel_p = at(0, r_v, v32), at(2, p_v, v64), at(4, q_v, v64)
-            kept_p, mark_p = at(6, None, v64), at(7, m_v, v8)
+            row_p, pos_p, vel_p = at(0, v32), at(2, v64), at(4, v64)
+            kept_p, mark_p = at(6, v64, indexed=False), at(7, v8)
             y = builder.load(row_p, align=4)
             wide = builder.fpext(y, v64)
             builder.store(builder.fadd(builder.load(pos_p, align=8), wide), pos_p, align=8)
             builder.store(builder.fadd(builder.load(vel_p, align=8), wide), vel_p, align=8)
-            thr = context.cast(builder, thr_v, tys[9], types.float32)
-            thr_vec = builder.shuffle_vector(builder.insert_element(v32(_ir.Undefined), thr, _ir.Constant(_ir.IntType(32), 0)),
-                                             v32(_ir.Undefined), _ir.Constant(_ir.VectorType(_ir.IntType(32), 8), [0] * 8))
-            y = builder.select(builder.fcmp_ordered(">=", y, thr_vec), y, v32(None))
+            y = builder.select(builder.fcmp_ordered(">=", y, _splat8(builder, thr_v)), y, v32(None))
             builder.store(y, row_p, align=4)
             builder.store(builder.fadd(builder.load(kept_p, align=8), builder.fpext(y, v64)), kept_p, align=8)
             positive = builder.zext(builder.fcmp_ordered(">", y, v32(None)), v8)
@@ -869,7 +874,10 @@ def speed_priority_run(state, outside0, tables, n_steps, with_interval, threshol
     factor may differ in the last bit). tests/stages/test_markov_occupied.py compares the two.
 
     ``state``: (input (B, M), velocity (B, N_v), position (B, N_s)) float32 of p(t_0) (``SeparableState``), ``outside0``
-    (B,) float32, ``tables`` as for ``fused_step``, ``psi`` (M, M), ``preferences`` (K, B, M).
+    (B,) float32, ``tables`` as for ``fused_step``, ``psi`` (M, M), ``preferences`` (K, B, M); ``threads`` (>= 1): the
+    blocks are shared out between that many threads (the caller and a pool kept per count), each taking the next block
+    when free; every block writes only its own pairs' rows (of the outputs and of ``restriction``'s caches), so the
+    numbers do not depend on it (tests/stages/test_markov_kernel_threads.py).
     Returns position (B, K, N_s), velocity (B, K, N_v), interval position (B, K, N_s) or None, outside (B, K),
     interval outside (B, K) or None, pruned mass (B, K), float32, and the final totals (B,) float64."""
     ptr, v_to, offset, weight, iptr, ioffset, iweight = tables
