@@ -478,6 +478,26 @@ if numba is not None:
         return types.void(dst, d, w, src, s), codegen
 
     @_intrinsic
+    def _has_mass8(typingctx, row, r):  # pragma: no cover - compiled
+        """Whether the 8 lanes ``row[r:r + 8]`` (float32, each >= 0 or NaN) sum to > 0 in order: none is NaN and one is
+        > 0 (a sum of non-negative terms is at least its largest), as two 8-lane compares."""
+        if row != types.Array(types.float32, 1, "C"):
+            return None
+
+        def codegen(context, builder, signature, args):
+            ary = context.make_array(signature.args[0])(context, builder, args[0])
+            index = context.cast(builder, args[1], signature.args[1], types.intp)
+            v32 = _ir.VectorType(_ir.FloatType(), 8)
+            y = builder.load(builder.bitcast(builder.gep(ary.data, [index]), v32.as_pointer()), align=4)
+            as_int = _ir.IntType(8)
+            positive = builder.bitcast(builder.fcmp_ordered(">", y, v32(None)), as_int)
+            nan = builder.bitcast(builder.fcmp_unordered("uno", y, y), as_int)
+            zero = _ir.Constant(as_int, 0)
+            return builder.and_(builder.icmp_unsigned("!=", positive, zero), builder.icmp_unsigned("==", nan, zero))
+
+        return types.boolean(row, r), codegen
+
+    @_intrinsic
     def _prune8(typingctx, row, r, pos, p, vel, q, kept, mark, m, threshold):  # pragma: no cover - compiled
         """For the 8 lanes y = ``row[r:r + 8]`` (float32; ``threshold`` float32): ``pos[p:p + 8] += y`` and ``vel[q:q + 8] += y`` (float64), y
         set to 0 where not ``y >= threshold``, ``kept[0:8] += y`` (float64), ``mark[m:m + 8] |= y > 0``; as 8-lane vector
@@ -627,14 +647,10 @@ if numba is not None:
                 for s in range(first, last + 1):
                     for a in range(n_in):
                         for v in range(vlo[s], vhi[s] + 1):
-                            row = cur[s, a, v]
-                            any_mass = zero  # entries are >= 0 (the sum vectorises, an early exit does not)
-                            for ln in range(n_ln):
-                                any_mass += row[ln]
-                            if not any_mass > 0:
+                            src = ((s * n_in + a) * n_v + v) * n_ln
+                            if not _has_mass8(cur_flat, src):
                                 continue
                             r = a * n_v + v
-                            src = ((s * n_in + a) * n_v + v) * n_ln
                             for e in range(ptr[r], ptr[r + 1]):
                                 t = s + offset[e]
                                 if t < n_s:
