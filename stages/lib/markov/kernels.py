@@ -30,8 +30,8 @@ but in blocks of 8 similar pairs, each block on the cells its own pairs
 occupy instead of the batch's window, which spans every pair's; the blocks
 are independent and may be shared out between threads (``threads``; the
 kernel releases the GIL), with the same numbers. Its 8-lane inner
-operations (stencil scatter, marginals and pruning) are written as explicit
-vector operations (``_axpy8``, ``_prune8``): numba leaves its SLP vectoriser
+operations (stencil scatter, marginals and pruning, the test for mass) are written as explicit
+vector operations (``_axpy8``, ``_prune8``, ``_has_mass8``): numba leaves its SLP vectoriser
 off, and loops of 8 constant iterations then run scalar.
 ``vehicle_grids`` rasterises every vehicle's grid in one call (the numbers
 of ``stages.markov_prediction.rasterise.vehicle_grid``).
