@@ -151,6 +151,13 @@ vehicles whose id hashes to shard i of n (CRC-32 of the decimal id,
 issues, and ``stages.grid_fusion`` merges the shards' outputs. A leader or
 crossing vehicle of another shard is seen only through its relation.
 
+Threads: ``kernel_threads`` (default 2, an integer >= 1) threads share out
+the blocks of 8 pairs of the hybrid chain's one compiled call per frame
+(numpy backend with numba, ``kernels.speed_priority_run``; each thread takes
+the next block when it is free); 1 runs them all on the stage's thread. The
+numbers do not depend on it (tests/stages/test_markov_kernel_threads.py).
+With several shards or other busy stages on the same cores, 1 may suit better.
+
 Bounded work: ``max_pairs`` 600 vehicle-corridor pairs per frame (issue
 13): beyond it whole vehicles are kept in CorridorSet order while their
 corridors fit, the rest are not predicted this frame (``stages.lib.caps.cap_pairs``;

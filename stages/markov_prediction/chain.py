@@ -145,11 +145,15 @@ class PriorityPropagator(MarkovPropagator):
     A run whose every step is None or an ``InputPriority`` with a ``restriction`` (the hybrid mode's speed
     restriction), from a ``SeparableState``, on the numpy backend's numba kernels, with the pruned mass put back and
     no final state asked for, is one compiled call (``kernels.speed_priority_run``: blocks of similar pairs, each on the
-    cells its pairs occupy); it gives the numbers of the step-by-step run (see there).
+    cells its pairs occupy); it gives the numbers of the step-by-step run (see there). ``kernel_threads`` (>= 1) threads
+    run that call's blocks (1: all on the calling thread); the numbers do not depend on it.
     """
 
-    def __init__(self, stencils: TransitionStencils, psi: np.ndarray, **kwargs: Any) -> None:
+    def __init__(self, stencils: TransitionStencils, psi: np.ndarray, *, kernel_threads: int = 1, **kwargs: Any) -> None:
+        if isinstance(kernel_threads, bool) or not isinstance(kernel_threads, (int, np.integer)) or kernel_threads < 1:
+            raise ValueError(f"kernel_threads = {kernel_threads!r}: expected an integer >= 1")
         super().__init__(stencils, **kwargs)
+        self.kernel_threads = int(kernel_threads)
         self._psi = np.asarray(psi, dtype=np.float32)
         self._backend = _PriorityBackend(self._backend, psi, self.backend)
 
@@ -182,7 +186,7 @@ class PriorityPropagator(MarkovPropagator):
         pos, vel, ipos, outside, ioutside, pruned, totals = kernels.speed_priority_run(
             (p0.input_probs, p0.velocity_probs, p0.position_probs), outside0, self._backend.tables, k_steps, with_interval,
             self.prune_threshold, self._psi, given[0].restriction, preferences, [t is not None for t in inputs],
-            given[0].forbid_threshold)
+            given[0].forbid_threshold, threads=self.kernel_threads)
         return PropagationResult(
             position_probs=pos, velocity_probs=vel, interval_position_probs=ipos, outside_mass=outside,
             interval_outside_mass=ioutside, pruned_mass=pruned, final_state=None,

@@ -40,6 +40,9 @@ class MarkovPredictionConfig(ConfigMixin):
     mode: str = "baseline"
     backend: str = "numpy"
     device: str = "cpu"
+    # threads of the hybrid chain's one compiled call per frame (kernels.speed_priority_run, numpy backend): its blocks
+    # of 8 pairs are shared out between them; 1: all on the stage's own thread. The numbers do not depend on it
+    kernel_threads: int = 2
     corridor_weights: str = "intentions"
     initial_box: str = "auto"  # "auto": MODE_INITIAL_BOX[mode]; after construction always the box in use
     # hybrid mode (docs/method.md §8.5): how the AR distributions enter the chain
@@ -188,6 +191,9 @@ class MarkovPredictionConfig(ConfigMixin):
         )
         check_ranges(self, positive=positive, non_negative=non_negative)
         uniform_input_edges(self.input_min_mps2, self.input_max_mps2, self.n_inputs)  # ValueError on a bad range
+        if self.kernel_threads < 1:
+            raise ValueError(f"kernel_threads = {self.kernel_threads!r}: expected an integer >= 1 (1: the compiled chain on the"
+                             " stage's own thread; 2 uses two cores)")
         for name in ("n_steps", "window_cells", "grid_substeps", "max_pairs", "grid_max_cells_per_step"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} = {getattr(self, name)!r}: must be >= 1")

@@ -277,6 +277,7 @@ class MarkovPredictor:
                 device=config.device,
                 n_s_cells=self.n_s,
                 prune_threshold=config.prune_threshold,
+                kernel_threads=config.kernel_threads,
             )
         #: the mode's input model (``modes/``): the only mode-specific code the loop calls
         self.model: InputModel = model_cls(self)

@@ -139,7 +139,7 @@ def test_one_call_speed_priority_run_equals_the_step_by_step_run(n_pairs, monkey
 
     calls = []
     real = kernels.speed_priority_run
-    monkeypatch.setattr(kernels, "speed_priority_run", lambda *args: calls.append(1) or real(*args))
+    monkeypatch.setattr(kernels, "speed_priority_run", lambda *args, **kw: calls.append(1) or real(*args, **kw))
     for threshold in (0.0, 0.3):
         one = PriorityPropagator(stencils, psi, kernel="numba").run(p0, schedule(threshold, True), with_interval=True)
         assert len(calls) == 1

@@ -27,7 +27,12 @@ the products.
 speed restriction and Γ) in one call: the same arithmetic in the same order
 as ``fused_step`` + ``priority_occupied`` step by step (the same numbers),
 but in blocks of 8 similar pairs, each block on the cells its own pairs
-occupy instead of the batch's window, which spans every pair's.
+occupy instead of the batch's window, which spans every pair's; the blocks
+are independent and may be shared out between threads (``threads``; the
+kernel releases the GIL), with the same numbers. Its 8-lane inner
+operations (stencil scatter, marginals and pruning, the test for mass) are written as explicit
+vector operations (``_axpy8``, ``_prune8``, ``_has_mass8``): numba leaves its SLP vectoriser
+off, and loops of 8 constant iterations then run scalar.
 The motion grid's rasterising and fusion kernels are in ``frame_kernels``.
 
 numba is a dependency; ``available()`` is False only where it cannot be
@@ -37,6 +42,9 @@ compare against).
 
 from __future__ import annotations
 
+import concurrent.futures
+import itertools
+import os
 import threading
 
 import numpy as np
@@ -88,7 +96,8 @@ def collapsed_tables(kernel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
     return np.cumsum(ptr), d.astype(np.int64), weight
 
 
-#: pairs per block of ``speed_priority_run``'s kernel (its innermost, vectorised axis: 8 float32 lanes of AVX2)
+#: pairs per block of ``speed_priority_run``'s kernel (its innermost, vectorised axis: 8 float32 lanes of AVX2; its
+#: stencil scatter is written for 8, ``_axpy8``). 16 measured no faster at 18 and 72 vehicles and slower at 6
 _LANES = 8
 
 if numba is not None:
@@ -376,25 +385,30 @@ if numba is not None:
     @numba.njit(cache=True, nogil=True, boundscheck=False)
     def _priority_from_states(values, preference, b_idx, v_idx, s_idx, forbid_threshold):  # pragma: no cover - compiled
         """``_priority_at_states`` with the restriction stored per state, (B, N_v, L, M)."""
+        out = np.empty((b_idx.shape[0], values.shape[3]), np.float32)
+        _priority_into(values, preference, b_idx, v_idx, s_idx, b_idx.shape[0], forbid_threshold, out.T)
+        return out
+
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _priority_into(values, preference, b_idx, v_idx, s_idx, n_states, forbid_threshold, out_t):  # pragma: no cover - compiled
+        """The priority of the first ``n_states`` listed states into ``out_t[:, :n_states]`` (M, n): from the highest input
+        down r_α = min(m_α, q_α + carry), where every m_α is at most ``forbid_threshold`` all to α = 0."""
         n_in = values.shape[3]
-        out = np.empty((b_idx.shape[0], n_in), np.float32)
-        for n in range(b_idx.shape[0]):
-            m_all = values[b_idx[n], v_idx[n], s_idx[n]]
-            b = b_idx[n]
+        for n in range(n_states):
+            b, v, s = b_idx[n], v_idx[n], s_idx[n]
             carry = np.float32(0.0)
-            top = m_all[0]
+            top = values[b, v, s, 0]
             for alpha in range(n_in - 1, -1, -1):
-                m = m_all[alpha]
+                m = values[b, v, s, alpha]
                 top = max(top, m)
                 want = carry + preference[b, alpha]
                 r = min(m, want)
-                out[n, alpha] = r
+                out_t[alpha, n] = r
                 carry = want - r
             if top <= forbid_threshold:
                 for alpha in range(n_in):
-                    out[n, alpha] = np.float32(0.0)
-                out[n, 0] = np.float32(1.0)
-        return out
+                    out_t[alpha, n] = np.float32(0.0)
+                out_t[0, n] = np.float32(1.0)
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
     def _sum_by_key(keys, values, slot):  # pragma: no cover - compiled
@@ -423,13 +437,111 @@ if numba is not None:
         return ordered, out
 
 
+    from llvmlite import ir as _ir
+    from numba.core import types
+    from numba.extending import intrinsic as _intrinsic
+
+    def _splat8(builder, value):  # pragma: no cover - used at compile time
+        """An LLVM vector of 8 copies of ``value``."""
+        vec = _ir.VectorType(value.type, 8)
+        one = builder.insert_element(vec(_ir.Undefined), value, _ir.Constant(_ir.IntType(32), 0))
+        return builder.shuffle_vector(one, vec(_ir.Undefined), _ir.Constant(_ir.VectorType(_ir.IntType(32), 8), [0] * 8))
+
+    @_intrinsic
+    def _axpy8(typingctx, dst, d, w, src, s):  # pragma: no cover - compiled
+        """``dst[d:d + 8] += w * src[s:s + 8]`` (1-D C arrays, src and w float32, dst float32 or float64) as one 8-lane vector
+        operation: per lane the float32 product then the add in dst's type (after exact widening), no fused
+        multiply-add: the numbers of the scalar loop, which numba leaves scalar (its SLP vectoriser is off)."""
+        if not (isinstance(dst, types.Array) and isinstance(src, types.Array) and dst.ndim == 1 and src.ndim == 1
+                and dst.layout == "C" and src.layout == "C" and src.dtype == types.float32
+                and dst.dtype in (types.float32, types.float64) and w == types.float32):
+            return None
+
+        def codegen(context, builder, signature, args):
+            dst_v, d_v, w_v, src_v, s_v = args
+            dty, d_ty, _w_ty, sty, s_ty = signature.args
+            dary = context.make_array(dty)(context, builder, dst_v)
+            sary = context.make_array(sty)(context, builder, src_v)
+            f32 = _ir.FloatType()
+            elem = _ir.DoubleType() if dty.dtype == types.float64 else f32
+            lanes32, lanes = _ir.VectorType(f32, 8), _ir.VectorType(elem, 8)
+            dptr = builder.bitcast(builder.gep(dary.data, [context.cast(builder, d_v, d_ty, types.intp)]), lanes.as_pointer())
+            sptr = builder.bitcast(builder.gep(sary.data, [context.cast(builder, s_v, s_ty, types.intp)]), lanes32.as_pointer())
+            product = builder.fmul(_splat8(builder, w_v), builder.load(sptr, align=4))
+            if elem is not f32:
+                product = builder.fpext(product, lanes)
+            align = 8 if elem is not f32 else 4
+            builder.store(builder.fadd(builder.load(dptr, align=align), product), dptr, align=align)
+            return context.get_dummy_value()
+
+        return types.void(dst, d, w, src, s), codegen
+
+    @_intrinsic
+    def _has_mass8(typingctx, row, r):  # pragma: no cover - compiled
+        """Whether the 8 lanes ``row[r:r + 8]`` (float32, each >= 0 or NaN) sum to > 0 in order: none is NaN and one is
+        > 0 (a sum of non-negative terms is at least its largest), as two 8-lane compares."""
+        if row != types.Array(types.float32, 1, "C"):
+            return None
+
+        def codegen(context, builder, signature, args):
+            ary = context.make_array(signature.args[0])(context, builder, args[0])
+            index = context.cast(builder, args[1], signature.args[1], types.intp)
+            v32 = _ir.VectorType(_ir.FloatType(), 8)
+            y = builder.load(builder.bitcast(builder.gep(ary.data, [index]), v32.as_pointer()), align=4)
+            as_int = _ir.IntType(8)
+            positive = builder.bitcast(builder.fcmp_ordered(">", y, v32(None)), as_int)
+            nan = builder.bitcast(builder.fcmp_unordered("uno", y, y), as_int)
+            zero = _ir.Constant(as_int, 0)
+            return builder.and_(builder.icmp_unsigned("!=", positive, zero), builder.icmp_unsigned("==", nan, zero))
+
+        return types.boolean(row, r), codegen
+
+    @_intrinsic
+    def _prune8(typingctx, row, r, pos, p, vel, q, kept, mark, m, threshold):  # pragma: no cover - compiled
+        """For the 8 lanes y = ``row[r:r + 8]`` (float32; ``threshold`` float32): ``pos[p:p + 8] += y`` and ``vel[q:q + 8] += y`` (float64), y
+        set to 0 where not ``y >= threshold``, ``kept[0:8] += y`` (float64), ``mark[m:m + 8] |= y > 0``; as 8-lane vector
+        operations, each lane's numbers those of the scalar loop."""
+        f64_1d = types.Array(types.float64, 1, "C")
+        if not (row == types.Array(types.float32, 1, "C") and pos == f64_1d and vel == f64_1d and kept == f64_1d
+                and mark == types.Array(types.boolean, 1, "C") and threshold == types.float32):
+            return None
+
+        def codegen(context, builder, signature, args):
+            thr_v = args[9]
+            tys = signature.args
+            f32, f64, i8 = _ir.FloatType(), _ir.DoubleType(), _ir.IntType(8)
+            v32, v64, v8 = _ir.VectorType(f32, 8), _ir.VectorType(f64, 8), _ir.VectorType(i8, 8)
+
+            def at(k, vec, indexed=True):  # the 8 lanes of argument k from the offset that follows it (else from 0)
+                ary = context.make_array(tys[k])(context, builder, args[k])
+                index = context.cast(builder, args[k + 1], tys[k + 1], types.intp) if indexed else _ir.Constant(_ir.IntType(64), 0)
+                return builder.bitcast(builder.gep(ary.data, [index]), vec.as_pointer())
+
+            row_p, pos_p, vel_p = at(0, v32), at(2, v64), at(4, v64)
+            kept_p, mark_p = at(6, v64, indexed=False), at(7, v8)
+            y = builder.load(row_p, align=4)
+            wide = builder.fpext(y, v64)
+            builder.store(builder.fadd(builder.load(pos_p, align=8), wide), pos_p, align=8)
+            builder.store(builder.fadd(builder.load(vel_p, align=8), wide), vel_p, align=8)
+            y = builder.select(builder.fcmp_ordered(">=", y, _splat8(builder, thr_v)), y, v32(None))
+            builder.store(y, row_p, align=4)
+            builder.store(builder.fadd(builder.load(kept_p, align=8), builder.fpext(y, v64)), kept_p, align=8)
+            positive = builder.zext(builder.fcmp_ordered(">", y, v32(None)), v8)
+            builder.store(builder.or_(builder.load(mark_p, align=1), positive), mark_p, align=1)
+            return context.get_dummy_value()
+
+        return types.void(row, r, pos, p, vel, q, kept, mark, m, threshold), codegen
+
     @numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
-    def _speed_priority_run(inp, vel0, pos0, outside0, order, n_steps, ptr, v_to, offset, weight, iptr, ioffset, iweight,
-                            with_interval, threshold, psi, prefs, has_input, forbid_threshold, xp, fp, start, bucket, inv_h, cell_s,
-                            v_c, a_c, w32, tau, values, done):  # pragma: no cover - compiled
-        """The whole chain of ``speed_priority_run``, in blocks of ``_LANES`` pairs (``order``: similar pairs side by side),
-        each block on the cells its pairs occupy: per s-row of the state the velocity cells [vlo, vhi] that may hold
-        mass, per row of p⁻ those its sources reach; the pairs of a block are the innermost (vectorised) axis."""
+    def _speed_priority_blocks(blocks, inp, vel0, pos0, outside0, order, n_steps, ptr, v_to, offset, weight, iptr, ioffset, iweight,
+                               with_interval, threshold, psi, prefs, has_input, forbid_threshold, xp, fp, start, bucket, inv_h, cell_s,
+                               v_c, a_c, w32, tau, values, done, positions, velocities, ipositions, outsides, ioutsides, pruned,
+                               totals):  # pragma: no cover - compiled
+        """The whole chain of ``speed_priority_run`` for the blocks of ``_LANES`` pairs ``order[blk:blk + _LANES]``, blk
+        in ``blocks`` (``order``: similar pairs side by side), each block on the cells its pairs occupy: per s-row of the
+        state the velocity cells [vlo, vhi] that may hold mass, per row of p⁻ those its sources reach; the pairs of a
+        block are the innermost (vectorised) axis. Writes the rows of its pairs only (of the outputs, zeros on entry,
+        and of ``values``/``done``): calls on disjoint blocks may run at the same time."""
         n_b, n_in = inp.shape
         n_v, n_s = vel0.shape[1], pos0.shape[1]
         n_ln = _LANES
@@ -447,13 +559,6 @@ if numba is not None:
                     dv_hi = max(dv_hi, v_to[e] - v)
         f32 = np.float32
         zero = f32(0.0)
-        positions = np.zeros((n_b, n_steps, n_s), f32)
-        velocities = np.zeros((n_b, n_steps, n_v), f32)
-        ipositions = np.zeros((n_b, n_steps if with_interval else 0, n_s), f32)
-        outsides = np.zeros((n_b, n_steps), f32)
-        ioutsides = np.zeros((n_b, n_steps), f32)
-        pruned = np.zeros((n_b, n_steps), f32)
-        totals = np.zeros(n_b, np.float64)
         cur = np.zeros((n_s, n_in, n_v, n_ln), f32)  # the block's state: rows [first, last], in row s the cells [vlo[s], vhi[s]]
         nxt = np.zeros((n_s, n_in, n_v, n_ln), f32)  # p⁻: in row t the cells [tlo[t], thi[t]]
         vlo = np.zeros(n_s, np.int64)
@@ -467,6 +572,9 @@ if numba is not None:
         leaked = np.zeros(n_ln, np.float64)
         ileaked = np.zeros(n_ln, np.float64)
         kept = np.zeros(n_ln, np.float64)
+        # the same memory as 1-D arrays, for _axpy8 and _prune8
+        cur_flat, nxt_flat, ipos_flat, pos_flat = cur.reshape(-1), nxt.reshape(-1), ipos.reshape(-1), pos.reshape(-1)
+        vel_flat, mark_flat = vel.reshape(-1), mark.reshape(-1)
         outside = np.zeros(n_ln, f32)
         factor = np.zeros(n_ln, f32)
         pair = np.zeros(n_ln, np.int64)
@@ -475,12 +583,14 @@ if numba is not None:
         v_buf = np.empty(n_states, np.int64)
         b_buf = np.empty(n_states, np.int64)
         l_buf = np.empty(n_states, np.int64)
+        o_buf = np.empty(n_states, np.int64)
+        f_buf = np.empty(n_states, f32)
         x_t = np.empty((n_in, n_states), f32)
         lam_t = np.empty((n_in, n_states), f32)
         ratio_t = np.empty((n_in, n_states), f32)
         z = np.empty(n_states, f32)
         acc = np.empty(n_states, f32)
-        for blk in range(0, n_b, n_ln):
+        for blk in blocks:
             n_live = min(n_ln, n_b - blk)
             first, last, v_first, v_last = -1, -1, -1, -1
             for ln in range(n_ln):
@@ -536,54 +646,33 @@ if numba is not None:
                 for s in range(first, last + 1):
                     for a in range(n_in):
                         for v in range(vlo[s], vhi[s] + 1):
-                            row = cur[s, a, v]
-                            any_mass = zero  # entries are >= 0 (the sum vectorises, an early exit does not)
-                            for ln in range(n_ln):
-                                any_mass += row[ln]
-                            if not any_mass > 0:
+                            src = ((s * n_in + a) * n_v + v) * n_ln
+                            if not _has_mass8(cur_flat, src):
                                 continue
                             r = a * n_v + v
                             for e in range(ptr[r], ptr[r + 1]):
                                 t = s + offset[e]
-                                w = weight[e]
                                 if t < n_s:
-                                    target = nxt[t, a, v_to[e]]
-                                    for ln in range(n_ln):
-                                        target[ln] += w * row[ln]
+                                    _axpy8(nxt_flat, ((t * n_in + a) * n_v + v_to[e]) * n_ln, weight[e], cur_flat, src)
                                 else:
-                                    for ln in range(n_ln):
-                                        leaked[ln] += w * row[ln]
+                                    _axpy8(leaked, 0, weight[e], cur_flat, src)
                             if with_interval:
                                 for e in range(iptr[r], iptr[r + 1]):
                                     t = s + ioffset[e]
-                                    w = iweight[e]
                                     if t < n_s:
-                                        itarget = ipos[t]
-                                        for ln in range(n_ln):
-                                            itarget[ln] += w * row[ln]
+                                        _axpy8(ipos_flat, t * n_ln, iweight[e], cur_flat, src)
                                     else:
-                                        for ln in range(n_ln):
-                                            ileaked[ln] += w * row[ln]
+                                        _axpy8(ileaked, 0, iweight[e], cur_flat, src)
                 kept[:] = 0.0
                 new_first, new_last = -1, -1
                 for t in range(first, hi):  # marginals, then pruning; the rows' cells holding mass after it
                     marks = mark[t]
-                    pos_t = pos[t]
                     for v in range(tlo[t], thi[t] + 1):
                         marks[v] = False
                     for a in range(n_in):
                         for v in range(tlo[t], thi[t] + 1):
-                            row = nxt[t, a, v]
-                            vel_v = vel[v]
-                            mv = marks[v]
-                            for ln in range(n_ln):  # branch-free: it vectorises over the lanes
-                                y = row[ln]
-                                pos_t[ln] += y
-                                vel_v[ln] += y
-                                y = y if y >= threshold else zero
-                                row[ln] = y
-                                kept[ln] += y
-                                mv[ln] |= y > 0
+                            _prune8(nxt_flat, ((t * n_in + a) * n_v + v) * n_ln, pos_flat, t * n_ln, vel_flat, v * n_ln, kept, mark_flat,
+                                    (t * n_v + v) * n_ln, threshold)
                     vlo[t], vhi[t] = n_v, -1
                     for v in range(tlo[t], thi[t] + 1):
                         mv = marks[v]
@@ -635,23 +724,25 @@ if numba is not None:
                                 s_buf[n], v_buf[n], b_buf[n], l_buf[n] = t, v, pair[ln], ln
                                 n += 1
                 _speed_fill(xp, fp, start, bucket, inv_h, cell_s, v_c, a_c, w32, tau, values, done, b_buf[:n], v_buf[:n], s_buf[:n])
-                lam = _priority_from_states(values, prefs[k], b_buf[:n], v_buf[:n], s_buf[:n], forbid_threshold)
+                _priority_into(values, prefs[k], b_buf, v_buf, s_buf, n, forbid_threshold, lam_t)
                 for t in range(first, last + 1):
                     for a in range(n_in):
                         for v in range(vlo[t], vhi[t] + 1):
                             cur[t, a, v] = 0.0
                 # Γ = colnorm(diag(λ) Ψ) at the states, input by input over all of them (the arithmetic of
-                # _priority_occupied: each state's sums in the same order)
+                # _priority_occupied: each state's sums in the same order); o_buf: the state's input-0 cell (flat)
                 for i in range(n):
-                    t, v, ln = s_buf[i], v_buf[i], l_buf[i]
+                    o = (s_buf[i] * n_in * n_v + v_buf[i]) * n_ln + l_buf[i]
+                    o_buf[i] = o
+                    f_buf[i] = factor[l_buf[i]]
                     for j in range(n_in):
-                        x_t[j, i] = nxt[t, j, v, ln]
-                        lam_t[j, i] = lam[i, j]
+                        x_t[j, i] = nxt_flat[o + j * n_v * n_ln]
                 for a in range(n_in):  # p[a] = λ[a] · Σ_j Ψ[a, j] ratio[j] · factor
                     _gamma_input(a, x_t, lam_t, psi, n, z, ratio_t, acc)
                     la = lam_t[a]
+                    step = a * n_v * n_ln
                     for i in range(n):
-                        cur[s_buf[i], a, v_buf[i], l_buf[i]] = la[i] * acc[i] * factor[l_buf[i]]
+                        cur_flat[o_buf[i] + step] = la[i] * acc[i] * f_buf[i]
             for ln in range(n_live):
                 total = 0.0
                 for t in range(max(first, 0), last + 1):
@@ -659,7 +750,6 @@ if numba is not None:
                         for v in range(vlo[t], vhi[t] + 1):
                             total += cur[t, a, v, ln]
                 totals[pair[ln]] = total
-        return positions, velocities, ipositions, outsides, ioutsides, pruned, totals
 
 def fused_step(slab, src_lo, lo, hi, n_s, tables, with_interval, threshold):
     """See the module docstring. The slab holds the s-cells [src_lo, src_lo + L) and p⁻ the cells [lo, hi) (the
@@ -687,7 +777,7 @@ def priority_occupied(slab, s_idx, v_idx, b_idx, lam, psi, factors):
 
 
 def speed_priority_run(state, outside0, tables, n_steps, with_interval, threshold, psi, restriction, preferences, has_input,
-                       forbid_threshold):
+                       forbid_threshold, threads=1):
     """A whole run of the hybrid chain in one compiled call: Υ(τ) (and Υ([0, τ])), pruning with the pruned mass put back,
     then after step k (where ``has_input[k]``) Γ = colnorm(diag(λ) Ψ) with λ = ``restriction``'s priority for the
     preference ``preferences[k]`` (B, M) at the states holding mass (``SpeedRestriction.priority_at_states``); where
@@ -702,19 +792,67 @@ def speed_priority_run(state, outside0, tables, n_steps, with_interval, threshol
     factor may differ in the last bit). tests/stages/test_markov_occupied.py compares the two.
 
     ``state``: (input (B, M), velocity (B, N_v), position (B, N_s)) float32 of p(t_0) (``SeparableState``), ``outside0``
-    (B,) float32, ``tables`` as for ``fused_step``, ``psi`` (M, M), ``preferences`` (K, B, M).
+    (B,) float32, ``tables`` as for ``fused_step``, ``psi`` (M, M), ``preferences`` (K, B, M); ``threads`` (>= 1): the
+    blocks are shared out between that many threads (the caller and a pool kept per count), each taking the next block
+    when free; every block writes only its own pairs' rows (of the outputs and of ``restriction``'s caches), so the
+    numbers do not depend on it (tests/stages/test_markov_kernel_threads.py).
     Returns position (B, K, N_s), velocity (B, K, N_v), interval position (B, K, N_s) or None, outside (B, K),
     interval outside (B, K) or None, pruned mass (B, K), float32, and the final totals (B,) float64."""
     ptr, v_to, offset, weight, iptr, ioffset, iweight = tables
     inp, vel0, pos0 = (np.ascontiguousarray(a, dtype=np.float32) for a in state)
+    n_b, n_in = inp.shape
+    n_steps = int(n_steps)
+    n_s, n_v = pos0.shape[1], vel0.shape[1]
     # pairs of similar speed and place side by side: a block of them occupies fewer cells together
-    order = np.lexsort((np.argmax(pos0 > 0, axis=1), vel0 @ np.arange(vel0.shape[1], dtype=np.float32))).astype(np.int64)
-    pos, vel, ipos, out, iout, pruned, totals = _speed_priority_run(
-        inp, vel0, pos0, np.ascontiguousarray(outside0, dtype=np.float32), order, int(n_steps), ptr, v_to, offset, weight, iptr, ioffset,
-        iweight, bool(with_interval), np.float32(threshold), np.ascontiguousarray(psi, dtype=np.float32),
-        np.ascontiguousarray(preferences, dtype=np.float32).reshape(int(n_steps), inp.shape[0], inp.shape[1]),
-        np.asarray(has_input, dtype=np.bool_), np.float32(forbid_threshold), *restriction._args, restriction._values, restriction._done)
+    order = np.lexsort((np.argmax(pos0 > 0, axis=1), vel0 @ np.arange(n_v, dtype=np.float32))).astype(np.int64)
+    f32 = np.float32
+    outputs = (np.zeros((n_b, n_steps, n_s), f32), np.zeros((n_b, n_steps, n_v), f32),
+               np.zeros((n_b, n_steps if with_interval else 0, n_s), f32), np.zeros((n_b, n_steps), f32), np.zeros((n_b, n_steps), f32),
+               np.zeros((n_b, n_steps), f32), np.zeros(n_b, np.float64))
+    args = (inp, vel0, pos0, np.ascontiguousarray(outside0, dtype=f32), order, n_steps, ptr, v_to, offset, weight, iptr, ioffset,
+            iweight, bool(with_interval), f32(threshold), np.ascontiguousarray(psi, dtype=f32),
+            np.ascontiguousarray(preferences, dtype=f32).reshape(n_steps, n_b, n_in), np.asarray(has_input, dtype=np.bool_),
+            f32(forbid_threshold), *restriction._args, restriction._values, restriction._done, *outputs)
+    blocks = np.arange(0, n_b, _LANES, dtype=np.int64)
+    n_threads = min(int(threads), blocks.shape[0])
+    if n_threads <= 1:
+        _speed_priority_blocks(blocks, *args)
+    else:
+        _on_threads(blocks.shape[0], lambda i: _speed_priority_blocks(blocks[i:i + 1], *args), n_threads)
+    pos, vel, ipos, out, iout, pruned, totals = outputs
     return pos, vel, (ipos if with_interval else None), out, (iout if with_interval else None), pruned, totals
+
+
+def _on_threads(n_tasks: int, task, n_threads: int) -> None:
+    """``task(i)`` for every i < ``n_tasks`` on ``n_threads`` threads, the caller one of them, each thread taking the next
+    i when it is free (tasks differ in cost, and another process may hold a core for a while); returns when all are done
+    and raises the first exception of any."""
+    counter = itertools.count()  # next() on it is atomic under the GIL
+
+    def work() -> None:
+        while (i := next(counter)) < n_tasks:
+            task(i)
+
+    futures = [_pool(n_threads).submit(work) for _ in range(n_threads - 1)]
+    try:
+        work()
+    finally:
+        concurrent.futures.wait(futures)
+    for f in futures:
+        f.result()
+
+
+_pools: dict[int, concurrent.futures.ThreadPoolExecutor] = {}
+if hasattr(os, "register_at_fork"):  # a forked child has none of its parent's threads: it makes its own pools
+    os.register_at_fork(after_in_child=_pools.clear)
+
+
+def _pool(n_threads: int) -> concurrent.futures.ThreadPoolExecutor:
+    """The ``n_threads − 1`` worker threads of ``_on_threads`` (the caller is the other), made on first use."""
+    pool = _pools.get(n_threads)
+    if pool is None:
+        pool = _pools[n_threads] = concurrent.futures.ThreadPoolExecutor(max_workers=n_threads - 1, thread_name_prefix="markov-kernel")
+    return pool
 
 
 def priority_at_states(restriction, preference, b_idx, v_idx, s_idx, forbid_threshold):

@@ -1,0 +1,74 @@
+"""``kernel_threads``: the hybrid chain's compiled call (``kernels.speed_priority_run``) on several threads gives the
+single-thread numbers bit for bit on real frames, and the knob is validated."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stages.ar_inference import ARInference, ARInferenceConfig
+from stages.corridors import SceneMaps
+from stages.intentions import IntentionsConfig
+from stages.lib.base import ConfigError
+from stages.lib.datasets import DEFAULT_DATA_DIR, load_recording
+from stages.lib.datasets.superimpose import build_dense
+from stages.lib.markov import MarkovGridConfig, kernels, load_or_build_stencils, psi_matrix
+from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
+from stages.markov_prediction.chain import PriorityPropagator
+from stages.offline.chain import chain_frames
+
+
+@pytest.mark.parametrize("bad", [0, -2])
+def test_kernel_threads_is_validated(bad):
+    with pytest.raises(ConfigError, match="kernel_threads = .*integer >= 1"):
+        MarkovPredictionConfig.from_params({"kernel_threads": bad}, where="test")
+    for wrong in (1.5, "2", True):
+        with pytest.raises(ConfigError, match="kernel_threads"):
+            MarkovPredictionConfig.from_params({"kernel_threads": wrong}, where="test")
+    with pytest.raises(ValueError, match="kernel_threads"):
+        PriorityPropagator(load_or_build_stencils(MarkovGridConfig()), psi_matrix(MarkovGridConfig().input_centres_mps2()),
+                           kernel_threads=bad)
+    assert MarkovPredictionConfig.from_params({"kernel_threads": 1}, where="test").kernel_threads == 1
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory):
+    """Frames of about 36 vehicles superimposed from the embedded K729 scenario (``build_dense``): batches of several
+    blocks of pairs for the compiled chain."""
+    out_dir = tmp_path_factory.mktemp("dense")
+    built = build_dense(DEFAULT_DATA_DIR, "k729_2022-03-16", 36, out_dir)
+    recording = load_recording(out_dir, built.name)
+    items = chain_frames(recording, recording.sequences[0], SceneMaps(data=out_dir), intentions=IntentionsConfig(), max_frames=25)
+    ar = ARInference(ARInferenceConfig(), producer="ar_inference")
+    out = []
+    for n, item in enumerate(items):
+        profiles = ar.process(item.corridor_set, item.relation_set, item.frame, item.scene)[0]
+        if n >= 10 and n % 5 == 0:
+            out.append((item, profiles))
+    return out
+
+
+@pytest.mark.skipif(not kernels.available(), reason="numba does not import")
+def test_threaded_chain_equals_the_single_thread_chain_on_real_frames(frames, monkeypatch):
+    stencils = load_or_build_stencils(MarkovGridConfig())
+    calls = []
+    real = kernels.speed_priority_run
+
+    def spy(*args, threads=1):
+        calls.append((args[0][0].shape[0], threads))
+        return real(*args, threads=threads)
+
+    monkeypatch.setattr(kernels, "speed_priority_run", spy)
+    outputs = {}
+    for threads in (1, 2, 3):
+        predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", kernel_threads=threads), stencils=stencils)
+        outputs[threads] = []
+        for item, profiles in frames:
+            prediction, _issues = predictor.process(item.corridor_set, item.relation_set, item.scene, item.frame,
+                                                    intention_belief=item.belief, acceleration_profiles=profiles)
+            h = item.corridor_set.header
+            outputs[threads].append((prediction.corridor_predictions(h, item.corridor_set.scene_id).encode(),
+                                     prediction.motion_grid(h, item.corridor_set.scene_id).encode()))
+    assert {t for _, t in calls} == {1, 2, 3}
+    assert max(n for n, _ in calls) > 3 * kernels._LANES  # batches of several blocks: the threads share them out
+    assert outputs[2] == outputs[1] and outputs[3] == outputs[1]
