@@ -15,7 +15,9 @@ braking input by the intentions stage's P(stop) on its corridor
 (``stop_mixture``; docs/method.md §8.5). Two more experiments, off by default (README, Evaluation: chosen on
 K729, worse on the held-out K733): ``hybrid_speed_restriction_curves`` false cuts λ_AR(k) by the speed limit
 alone (``speed_profiles``), and ``hybrid_initial_input`` "measured" starts a moving pair from its measured
-acceleration instead of λ_AR(0) (``_stack_inputs``).
+acceleration instead of λ_AR(0) (``_stack_inputs``); "blend" from a normal at the precision-weighted mean of
+λ_AR(0) and the measured acceleration, each weighted by 1/σ² (σ_a: the standard error of the measured slope),
+with the model's spread (``blend_initial``; README, Evaluation).
 """
 
 from __future__ import annotations
