@@ -60,7 +60,8 @@ class MarkovPredictionConfig(ConfigMixin):
     # An experiment, off: alone on K729 1.507 -> 1.326 (fast 3.26 -> 2.53); with the curves switch above it did not
     # carry over to K733 (README "Why hybrid loses to the baseline on fast cars"). "blend": a normal of the model's
     # spread at the precision-weighted mean of λ_AR(0) and the measured acceleration (weights 1/σ², σ_a the slope's
-    # standard error; modes/hybrid.py blend_initial)
+    # standard error; modes/hybrid.py blend_initial). Off: K729 1.507 -> 1.303 (fast 3.26 -> 2.51), held out on K733
+    # 3.051 -> 3.085 (fast 4.83 -> 4.88), cov90/NLL no better (README)
     hybrid_initial_input: str = "ar"
     # discretisation (the stencils are cached per ds, dv, v_max, τ)
     ds_m: float = 1.0
