@@ -104,6 +104,9 @@ class WindowEvaluation(Evaluation):
         leader = rel is not None and rel.leader_track_id >= 0 and math.isfinite(rel.leader_gap_m) and rel.leader_gap_m <= self.leader_gap_m
         conflict = rel is not None and rel.influencing_index >= 0
         directions = along_track_directions(start, future)
+        # the measured acceleration's standard error (the markov stage's fit; NaN without a measurement)
+        predictor = next(iter(self.predictors.values()))
+        _, accel_se = predictor.measured_acceleration(int(track_id), ctx["stamp"])
         return {
             "recording": ctx["recording"], "sequence": ctx["sequence"], "stamp_ns": ctx["stamp"], "track_id": int(track_id),
             "speed_mps": speed, "split": "slow" if speed <= SLOW_SPEED_MPS else "fast",
@@ -112,7 +115,7 @@ class WindowEvaluation(Evaluation):
             "leader": bool(leader), "leader_gap_m": float(rel.leader_gap_m) if leader else None,
             "leader_speed_mps": float(rel.leader_speed_mps) if leader and math.isfinite(rel.leader_speed_mps) else None,
             "conflict": bool(conflict), "conflict_rule": rel.influencing_rule if conflict else "",
-            "turning": corridor_turns(corridor, speed), "_dir": directions[-1], "modes": {},
+            "turning": corridor_turns(corridor, speed), "accel_se_mps2": accel_se, "_dir": directions[-1], "modes": {},
         }
 
     def window_rows(self) -> list[dict[str, Any]]:
@@ -157,6 +160,16 @@ def gap_table(windows: list[dict[str, Any]], a: str, b: str, split: str) -> list
     return lines
 
 
+def accel_se_line(windows: list[dict[str, Any]]) -> str:
+    """The median standard error of the measured acceleration (``accel_se_mps2``) per split, over the windows
+    that have one (a dump written before it was kept has none)."""
+    parts = []
+    for split in ("slow", "fast"):
+        se = [w["accel_se_mps2"] for w in windows if w["split"] == split and math.isfinite(w.get("accel_se_mps2", math.nan))]
+        parts.append(f"{split} {np.median(se):.3f} m/s2 ({len(se)} windows)" if se else f"{split} -")
+    return "median standard error of the measured acceleration: " + ", ".join(parts)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_arguments(p)
@@ -187,6 +200,7 @@ def main(argv: list[str] | None = None) -> int:
                 for w in windows:
                     fh.write(json.dumps(w, default=float) + "\n")
             print(f"wrote {args.windows} ({len(windows)} windows)")
+    print(accel_se_line(windows))
     print("\n".join(gap_table(windows, *args.compare, args.split)))
     return 0
 

@@ -61,7 +61,10 @@ class MarkovPredictionConfig(ConfigMixin):
     # hybrid mode: the input at t0 of a moving pair (not in the standstill band): "ar" λ_AR(0), or "measured" the
     # normal around its measured acceleration, as the baseline starts (the later steps follow λ_AR(k) through Ψ).
     # An experiment, off: alone on K729 1.507 -> 1.326 (fast 3.26 -> 2.53); with the curves switch above it did not
-    # carry over to K733 (README "Why hybrid loses to the baseline on fast cars")
+    # carry over to K733 (README "Why hybrid loses to the baseline on fast cars"). "blend": a normal of the model's
+    # spread at the precision-weighted mean of λ_AR(0) and the measured acceleration (weights 1/σ², σ_a the slope's
+    # standard error; modes/hybrid.py blend_initial). Off: K729 1.507 -> 1.303 (fast 3.26 -> 2.51), held out on K733
+    # 3.051 -> 3.085 (fast 4.83 -> 4.88), cov90/NLL no better (README)
     hybrid_initial_input: str = "ar"
     # discretisation (the stencils are cached per ds, dv, v_max, τ)
     ds_m: float = 1.0
@@ -167,8 +170,8 @@ class MarkovPredictionConfig(ConfigMixin):
             object.__setattr__(self, "initial_box", MODE_INITIAL_BOX[self.mode])
         if self.hybrid_rules_standing not in ("ar", "rules"):
             raise ValueError(f"hybrid_rules_standing = {self.hybrid_rules_standing!r}: expected ar or rules")
-        if self.hybrid_initial_input not in ("ar", "measured"):
-            raise ValueError(f"hybrid_initial_input = {self.hybrid_initial_input!r}: expected ar or measured")
+        if self.hybrid_initial_input not in ("ar", "measured", "blend"):
+            raise ValueError(f"hybrid_initial_input = {self.hybrid_initial_input!r}: expected ar, measured or blend")
         if self.hybrid_input not in HYBRID_INPUTS:
             raise ValueError(f"hybrid_input = {self.hybrid_input!r}: expected one of {', '.join(HYBRID_INPUTS)}")
         if self.backend not in BACKENDS:

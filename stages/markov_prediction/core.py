@@ -440,14 +440,23 @@ class MarkovPredictor:
         are smooth. σ_a0 = √(``init_sigma_a_mps2``² + min(σ, 1)²).
         """
         base = self.config.init_sigma_a_mps2
-        fit = self._speed_line(track_id, stamp_ns)
-        if fit is None or fit[1] < 0.5 * self.config.accel_window_s:
+        slope, sigma = self.measured_acceleration(track_id, stamp_ns)
+        if not math.isfinite(slope):
             return 0.0, base
-        n, _, slope, rss, sxx = fit
-        sigma = math.sqrt(rss / (n - 2) / sxx)
         shrunk = slope * max(0.0, 1.0 - sigma**2 / max(slope**2, 1e-12))
         edges = self.grid.input_edges_mps2
         return float(_clip(shrunk, edges[0], edges[-1])), math.hypot(base, min(sigma, 1.0))
+
+    def measured_acceleration(self, track_id: int, stamp_ns: int) -> tuple[float, float]:
+        """(slope, σ_a): the least-squares slope (m/s²) of the vehicle's speeds over the last ``accel_window_s``,
+        unshrunk and unclipped, and its standard error √(RSS / (n − 2) / Σ(t − t̄)²) from the fit's residuals;
+        (NaN, NaN) with fewer than 3 samples or less than half the window (no measurement). Read by
+        ``_acceleration`` and by ``hybrid_initial_input`` "blend" (modes/hybrid.py)."""
+        fit = self._speed_line(track_id, stamp_ns)
+        if fit is None or fit[1] < 0.5 * self.config.accel_window_s:
+            return math.nan, math.nan
+        n, _, slope, rss, sxx = fit
+        return slope, math.sqrt(rss / (n - 2) / sxx)
 
     def speed_noise(self, track_id: int, stamp_ns: int) -> float:
         """The scatter (m/s) of the vehicle's measured speeds over the last ``accel_window_s``: the standard deviation
@@ -541,6 +550,7 @@ class MarkovPredictor:
                     width = float(frame.width_m[row])
             v0 = float(_clip(vehicle.speed_mps, 0.0, cfg.v_max_mps))
             a0, sigma_a0 = self._acceleration(vehicle.track_id, stamp)
+            a_fit, a_fit_se = self.measured_acceleration(vehicle.track_id, stamp) if cfg.mode == "hybrid" and cfg.hybrid_initial_input == "blend" else (math.nan, math.nan)
             noise = self.speed_noise(vehicle.track_id, stamp) if self.spread is not None and self.spread.speed_noise_gain > 0 else 0.0
             standing = self.model.chain and v0 <= cfg.standstill_speed_mps and cfg.standstill_start_rate_hz > 0
             good = [c for c in vehicle.corridors if _corridor_ok(c, vehicle.track_id, issues, id(c) in clean)]
@@ -584,6 +594,8 @@ class MarkovPredictor:
                         v0_mps=v_start,
                         a0_mps2=a0,
                         sigma_a0_mps2=sigma_a0,
+                        a_fit_mps2=a_fit,
+                        a_fit_se_mps2=a_fit_se,
                         s_first_m=s_first,
                         length_m=length,
                         width_m=width,

@@ -483,6 +483,95 @@ def test_hybrid_initial_input_measured_starts_moving_pairs_from_their_measured_a
         MarkovPredictionConfig(mode="hybrid", hybrid_initial_input="maybe")
 
 
+def test_precision_blend_weights_each_by_its_precision():
+    from stages.markov_prediction.modes.hybrid import precision_blend
+
+    assert precision_blend(-1.0, 0.5, 1.0, 0.5) == pytest.approx((0.0, 0.5 / math.sqrt(2.0)))  # equal σ: the midpoint
+    mean, sigma = precision_blend(0.0, 1.0, 1.0, 2.0)  # weights 1 and 1/4: 0.8 on the model
+    assert mean == pytest.approx(0.2) and sigma == pytest.approx(1.0 / math.sqrt(1.25))
+    assert precision_blend(0.0, 1.0, 1.0, 1e-4)[0] == pytest.approx(1.0, abs=1e-6)
+
+
+def test_cell_moments_include_the_width_of_the_cells():
+    from stages.markov_prediction.modes.hybrid import cell_moments
+
+    edges = np.linspace(-3.0, 2.0, 11)
+    one = np.zeros(10)
+    one[6] = 1.0  # all mass in [0, 0.5]
+    assert cell_moments(edges, one) == pytest.approx((0.25, 0.5 / math.sqrt(12.0)))
+    two = np.zeros(10)
+    two[[4, 8]] = 0.5  # centres -0.75 and 1.25
+    assert cell_moments(edges, two) == pytest.approx((0.25, math.sqrt(1.0 + 0.25 / 12.0)))
+
+
+def test_blend_initial_follows_the_more_precise_of_model_and_measurement():
+    """A noisy measurement leaves ~the model's mean, a precise one ~the measurement; the spread is the model's."""
+    from stages.markov_prediction.modes.hybrid import blend_initial, cell_moments, start_inputs
+
+    edges = np.linspace(-3.0, 2.0, 11)
+    lam0 = start_inputs(edges, -1.5, 0.4)
+    mu_m, sigma_m = cell_moments(edges, lam0)
+    issues: list = []
+    noisy = blend_initial(edges, lam0, 1.5, 50.0, 1, issues)
+    precise = blend_initial(edges, lam0, 1.0, 0.01, 1, issues)
+    assert cell_moments(edges, noisy)[0] == pytest.approx(mu_m, abs=0.01)
+    assert cell_moments(edges, precise)[0] == pytest.approx(1.0, abs=0.05)
+    np.testing.assert_allclose(precise, start_inputs(edges, precision_blend_mean(mu_m, sigma_m, 1.0, 0.01), sigma_m))
+    equal = blend_initial(edges, lam0, 0.5, sigma_m, 1, issues)  # equal precision: halfway
+    assert cell_moments(edges, equal)[0] == pytest.approx(0.5 * (mu_m + 0.5), abs=0.05)
+    assert issues == []
+    for noisy_sum in (noisy, precise, equal):
+        assert noisy_sum.sum() == pytest.approx(1.0) and np.all(noisy_sum >= 0)
+
+
+def precision_blend_mean(mu_m, sigma_m, a, sigma_a):
+    return (mu_m / sigma_m**2 + a / sigma_a**2) / (1.0 / sigma_m**2 + 1.0 / sigma_a**2)
+
+
+def test_blend_initial_keeps_the_model_without_a_usable_measurement():
+    """No measurement (NaN, NaN: a young track) keeps λ_AR(0) silently; a NaN acceleration or a standard error
+    that is NaN, 0, negative or infinite keeps it with one counted issue each."""
+    from stages.markov_prediction.modes.hybrid import blend_initial, start_inputs
+
+    edges = np.linspace(-3.0, 2.0, 11)
+    lam0 = start_inputs(edges, -1.5, 0.4)
+    issues: list = []
+    assert blend_initial(edges, lam0, math.nan, math.nan, 3, issues) is lam0 and issues == []
+    for a, se in ((math.nan, 0.2), (0.5, math.nan), (0.5, 0.0), (0.5, -1.0), (0.5, math.inf), (math.inf, 0.2)):
+        assert blend_initial(edges, lam0, a, se, 3, issues) is lam0
+    assert [i.kind for i in issues] == ["bad_measured_acceleration"] * 6 and all(i.agent_id == 3 for i in issues)
+
+
+def _accelerating_history(predictor, speed0: float, accel: float, jitter: float, n: int = 11) -> int:
+    """Feed n frames 0.1 s apart of a car at speed0 + accel·t (± jitter alternating); returns the last stamp."""
+    for i in range(n):
+        stamp = STAMP + i * 100_000_000
+        v = speed0 + accel * 0.1 * i + (jitter if i % 2 else -jitter)
+        predictor.observe(_corridor_set(_vehicle(1, v, [_corridor(7)]), stamp=stamp))
+    return stamp
+
+
+def test_hybrid_initial_input_blend_follows_a_clean_measurement_and_ignores_a_noisy_one(stencils):
+    """hybrid_initial_input = "blend": a car that has accelerated at +1.5 m/s² with clean speeds starts like
+    "measured" (the first step further than the AR profile's -2.5 m/s²); with speeds jittering ±3 m/s the
+    measurement's standard error is large and it starts like "ar"; without history it is "ar" exactly."""
+    ends = {}
+    for initial, jitter in (("ar", 0.0), ("measured", 0.0), ("blend", 0.0), ("blend", 3.0), ("blend", None)):
+        predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", hybrid_initial_input=initial, **PLAIN), stencils=stencils)
+        stamp = STAMP if jitter is None else _accelerating_history(predictor, 8.5, 1.5, jitter)
+        speed = 10.0
+        prediction, issues = predictor.process(_corridor_set(_vehicle(1, speed, [_corridor(7)]), stamp=stamp),
+                                               acceleration_profiles=_profiles(1, 7, -2.5, stamp=stamp))
+        assert not [i for i in issues if i.kind == "bad_measured_acceleration"]
+        ends[(initial, jitter)] = float(prediction.mean_s_m[0, 0])
+        np.testing.assert_allclose(prediction.position_probs[0].sum(axis=1) + prediction.outside_mass[0], 1.0, atol=1e-5)
+    assert abs(ends[("blend", 0.0)] - ends[("measured", 0.0)]) < 0.1, ends
+    assert ends[("blend", 0.0)] > ends[("ar", 0.0)] + 0.2, ends
+    assert abs(ends[("blend", 3.0)] - ends[("ar", 0.0)]) < 0.1 < ends[("blend", 0.0)] - ends[("blend", 3.0)], ends
+    assert ends[("blend", None)] == pytest.approx(ends[("ar", 0.0)], abs=1e-6), ends
+    MarkovPredictionConfig(mode="hybrid", hybrid_initial_input="blend")  # a valid value
+
+
 def test_hybrid_rules_keeps_the_leader_rule_that_plain_hybrid_leaves_to_the_model(stencils):
     """hybrid_rules: λ_AR(k) is only the preference inside the baseline's rules, so an AR profile that accelerates
     towards a slow leader 15 m ahead is cut by the leader rule; plain hybrid follows the profile."""

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from bench.window_errors import gap_table, main
+from bench.window_errors import accel_se_line, gap_table, main
 from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, DEFAULT_SEQUENCE
 from stages.offline.truth import MANOEUVRES
 
@@ -31,6 +31,8 @@ def test_rows_match_the_eval_report(tmp_path, capsys):
             assert sum(w["manoeuvre"] == cls for w in windows) == data["modes"][mode]["by_manoeuvre"][cls]["windows"]
         fast = [w for w in windows if w["split"] == "fast"]
         assert len(fast) == data["modes"][mode]["by_speed"]["fast"]["windows"]
+    se = [w["accel_se_mps2"] for w in windows]
+    assert any(math.isfinite(x) and x >= 0 for x in se) and all(math.isnan(x) or x >= 0 for x in se)
     printed = capsys.readouterr().out
     assert "-- manoeuvre" in printed and "-- leader" in printed and "-- corridor" in printed
     # --from-windows reads the dump back without running
@@ -50,3 +52,9 @@ def test_gap_table_shares_add_up():
     brakes = next(line for line in lines if line.startswith("brakes "))
     assert "67%" in turns and "33%" in brakes and "+2.00" in turns
     assert gap_table(windows, "A", "C", "fast") == ["no fast windows with A and C"]
+
+
+def test_accel_se_line_takes_the_median_per_split_of_the_windows_with_a_measurement():
+    windows = [{"split": "fast", "accel_se_mps2": x} for x in (0.1, 0.3, 0.2, math.nan)] + [{"split": "slow"}]
+    line = accel_se_line(windows)
+    assert "fast 0.200 m/s2 (3 windows)" in line and "slow -" in line

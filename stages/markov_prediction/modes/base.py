@@ -54,6 +54,9 @@ class Pair:
     speed_noise_mps: float = 0.0  # scatter of its measured speeds (MarkovPredictor.speed_noise); read by a spread with speed_noise_gain
     p_stop: float = math.nan  # the intentions stage's P(stop | this corridor), NaN without a belief
     stop_distance_m: float = math.nan  # ... and the distance to the stop position on it
+    # hybrid_initial_input "blend": the unshrunk slope of its speeds and the slope's standard error (NaN: no measurement)
+    a_fit_mps2: float = math.nan
+    a_fit_se_mps2: float = math.nan
 
     @property
     def end_s_m(self) -> float:

@@ -15,11 +15,14 @@ braking input by the intentions stage's P(stop) on its corridor
 (``stop_mixture``; docs/method.md §8.5). Two more experiments, off by default (README, Evaluation: chosen on
 K729, worse on the held-out K733): ``hybrid_speed_restriction_curves`` false cuts λ_AR(k) by the speed limit
 alone (``speed_profiles``), and ``hybrid_initial_input`` "measured" starts a moving pair from its measured
-acceleration instead of λ_AR(0) (``_stack_inputs``).
+acceleration instead of λ_AR(0) (``_stack_inputs``); "blend" from a normal at the precision-weighted mean of
+λ_AR(0) and the measured acceleration, each weighted by 1/σ² (σ_a: the standard error of the measured slope),
+with the model's spread (``blend_initial``; README, Evaluation).
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -54,7 +57,7 @@ class Hybrid(InputModel):
         if p.config.hybrid_rules:  # λ_AR(k) as the preference inside the baseline's whole rule set
             if getattr(self, "_rules", None) is None:
                 self._rules = Baseline(p)
-            return _BaselineInputs(self._rules, pairs, issues, ar_lam=_stack_inputs(p, pairs))
+            return _BaselineInputs(self._rules, pairs, issues, ar_lam=_stack_inputs(p, pairs, issues))
         lam_speed = None
         if p.config.hybrid_speed_restriction:
             if kernels.available() and p.config.backend == "numpy":
@@ -66,13 +69,14 @@ class Hybrid(InputModel):
                     lam_speed = speed_restriction(p, pairs)
             if lam_speed is None:
                 lam_speed = speed_restriction(p, pairs)
-        return _HybridInputs(p, pairs, lam_speed)
+        return _HybridInputs(p, pairs, lam_speed, issues)
 
 
 class _HybridInputs(ChainInputs):
-    def __init__(self, p: Predictor, pairs: list[Pair], lam_speed: np.ndarray | kernels.SpeedRestriction | None) -> None:
+    def __init__(self, p: Predictor, pairs: list[Pair], lam_speed: np.ndarray | kernels.SpeedRestriction | None,
+                 issues: list[Issue]) -> None:
         cfg = p.config
-        self.lam = _stack_inputs(p, pairs)
+        self.lam = _stack_inputs(p, pairs, issues)
         self.with_interval = cfg.grid_distribution == "interval"
         lam = self.lam
         self.steps: list = []
@@ -118,9 +122,10 @@ class _HybridInputs(ChainInputs):
         return self.steps
 
 
-def _stack_inputs(p: Predictor, pairs: list[Pair]) -> np.ndarray:
+def _stack_inputs(p: Predictor, pairs: list[Pair], issues: list[Issue]) -> np.ndarray:
     """λ(0..K-1) of every pair as (B, K, M); a pair without a profile holds its measured acceleration; with
-    ``hybrid_start_accel_mps2`` > 0 a standing pair's (the part of its mixture that starts) is ``start_inputs``."""
+    ``hybrid_initial_input`` "measured" or "blend" a moving pair's λ(0) is its measured input or ``blend_initial``;
+    with ``hybrid_start_accel_mps2`` > 0 a standing pair's (the part of its mixture that starts) is ``start_inputs``."""
     measured = p.measured_inputs(pairs)
     lam = np.stack([q.input_probs if q.input_probs is not None else np.repeat(measured[b][None], p.config.n_steps, axis=0)
                     for b, q in enumerate(pairs)])
@@ -128,6 +133,12 @@ def _stack_inputs(p: Predictor, pairs: list[Pair]) -> np.ndarray:
     if p.config.hybrid_initial_input == "measured" and not np.all(standing):
         lam = lam.copy()
         lam[~standing, 0] = measured[~standing]
+    elif p.config.hybrid_initial_input == "blend" and not np.all(standing):
+        lam = lam.copy()
+        edges = p.grid.input_edges()
+        for b, q in enumerate(pairs):
+            if not standing[b] and q.input_probs is not None:  # a pair without a profile holds its measurement already
+                lam[b, 0] = blend_initial(edges, lam[b, 0], q.a_fit_mps2, q.a_fit_se_mps2, q.track_id, issues)
     if p.config.hybrid_stop_mixture:
         lam = stop_mixture(p, pairs, lam, standing)
     if p.config.hybrid_start_accel_mps2 > 0 and np.any(standing):
@@ -155,6 +166,41 @@ def stop_mixture(p: Predictor, pairs: list[Pair], lam: np.ndarray, standing: np.
         w = float(min(q.p_stop, 1.0))
         out[b] = (1.0 - w) * lam[b] + w * start_inputs(edges, -a, cfg.hybrid_start_sigma_mps2)[None]
     return out
+
+
+def cell_moments(edges: np.ndarray, probs: np.ndarray) -> tuple[float, float]:
+    """(mean, σ) of the density that is uniform inside each input cell with the cell's probability: the cell
+    centres' mean and variance plus each cell's own width²/12 (σ > 0 even with all the mass in one cell)."""
+    edges = np.asarray(edges, dtype=np.float64)
+    centres, widths = 0.5 * (edges[1:] + edges[:-1]), np.diff(edges)
+    probs = np.asarray(probs, dtype=np.float64) / float(np.sum(probs))
+    mean = float(probs @ centres)
+    return mean, float(np.sqrt(probs @ ((centres - mean) ** 2 + widths**2 / 12.0)))
+
+
+def precision_blend(mu_m: float, sigma_m: float, a: float, sigma_a: float) -> tuple[float, float]:
+    """The Gaussian product of N(mu_m, sigma_m²) and N(a, sigma_a²): (mean, σ), mean = (mu_m/σ_m² + a/σ_a²) /
+    (1/σ_m² + 1/σ_a²), σ = (1/σ_m² + 1/σ_a²)^-½. Both σ must be finite and > 0."""
+    w_m, w_a = 1.0 / sigma_m**2, 1.0 / sigma_a**2
+    return (w_m * mu_m + w_a * a) / (w_m + w_a), float(1.0 / np.sqrt(w_m + w_a))
+
+
+def blend_initial(edges: np.ndarray, lam0: np.ndarray, a: float, sigma_a: float, track_id: int, issues: list[Issue]) -> np.ndarray:
+    """``hybrid_initial_input`` "blend": λ(0) of a moving pair from the model's first distribution ``lam0`` (its mean
+    μ_m and σ_m, ``cell_moments``) and the measured acceleration ``a`` with its standard error ``sigma_a``
+    (``MarkovPredictor.measured_acceleration``): a normal at the precision-weighted mean (``precision_blend``) with
+    the model's spread σ_m (the product's σ is the uncertainty of the mean, below both; the chain needs the spread
+    of the input), over the input cells as ``start_inputs``. A noisy measurement leaves ~the model's mean, a
+    precise one ~the measurement. No measurement (NaN, NaN: a young track) keeps ``lam0``; a non-finite
+    acceleration or a standard error that is not finite and > 0 keeps it too, as issue ``bad_measured_acceleration``."""
+    if math.isnan(a) and math.isnan(sigma_a):
+        return lam0
+    if not (math.isfinite(a) and math.isfinite(sigma_a) and sigma_a > 0):
+        issues.append(Issue("bad_measured_acceleration", track_id, f"measured acceleration {a} ± {sigma_a} m/s²: AR λ(0) kept"))
+        return lam0
+    mu_m, sigma_m = cell_moments(edges, lam0)
+    mean, _ = precision_blend(mu_m, sigma_m, a, sigma_a)
+    return start_inputs(edges, mean, sigma_m)
 
 
 def start_inputs(edges: np.ndarray, accel_mps2: float, sigma_mps2: float) -> np.ndarray:
