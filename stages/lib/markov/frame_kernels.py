@@ -44,6 +44,7 @@ def exact_inverse(cell: float) -> float:
 
 
 if numba is not None:
+    from stages.lib.markov.kernels import _slot_add
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
     def _footprint_grids(x_c, y_c, nx, ny, offsets, sample_w, cell_rows, probs, pair_w, wide, shifts, has_shift, ptr, members, origin_x,
@@ -157,15 +158,7 @@ if numba is not None:
                 else:  # a sparse box: a slot per cell of the grid, the cells sorted
                     u = 0
                     for q in range(c):
-                        idx = rows[q] * n_cols + cols[q]
-                        s = slot[idx]
-                        if s < 0:
-                            s = u
-                            slot[idx] = u
-                            uniq[u] = idx
-                            sums[u] = 0.0
-                            u += 1
-                        sums[s] += vals[q]
+                        u = _slot_add(rows[q] * n_cols + cols[q], vals[q], slot, uniq, sums, u)
                     ordered = np.sort(uniq[:u])
                     for q in range(u):
                         idx = ordered[q]
@@ -235,15 +228,7 @@ if numba is not None:
                 j = cursor[n]
                 stop = ptr[n + 1]
                 while j < stop and keys[j] < end:
-                    idx = keys[j] - base
-                    s = slot[idx]
-                    if s < 0:
-                        s = u
-                        slot[idx] = u
-                        uniq[u] = idx
-                        sums[u] = 0.0
-                        u += 1
-                    sums[s] += values[j]
+                    u = _slot_add(keys[j] - base, values[j], slot, uniq, sums, u)
                     j += 1
                 cursor[n] = j
             if u == 0:

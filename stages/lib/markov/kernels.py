@@ -410,6 +410,21 @@ if numba is not None:
                     out_t[alpha, n] = np.float32(0.0)
                 out_t[0, n] = np.float32(1.0)
 
+    @numba.njit(cache=True, nogil=True, boundscheck=False, inline="always")
+    def _slot_add(key, value, slot, uniq, sums, m):  # pragma: no cover - compiled
+        """Adds ``value`` to the sum of ``key`` (its slot ``slot[key]``; a key without one, -1, gets slot ``m``, is
+        listed in ``uniq`` and its sum starts from 0.0); returns the number of keys listed. The one accumulation of
+        ``_sum_by_key`` and the grid kernels (``frame_kernels``): each sum in the order of its terms."""
+        j = slot[key]
+        if j < 0:
+            j = m
+            slot[key] = m
+            uniq[m] = key
+            sums[m] = 0.0
+            m += 1
+        sums[j] += value
+        return m
+
     @numba.njit(cache=True, nogil=True, boundscheck=False)
     def _sum_by_key(keys, values, slot):  # pragma: no cover - compiled
         """Sorted unique keys and the sum of their values, each sum taken in the order of the input from 0.0 (as
@@ -419,15 +434,7 @@ if numba is not None:
         sums = np.empty(n, np.float64)
         m = 0
         for i in range(n):
-            k = keys[i]
-            j = slot[k]
-            if j < 0:
-                j = m
-                slot[k] = m
-                uniq[m] = k
-                sums[m] = 0.0
-                m += 1
-            sums[j] += values[i]
+            m = _slot_add(keys[i], values[i], slot, uniq, sums, m)
         ordered = np.sort(uniq[:m])
         out = np.empty(m, np.float64)
         for i in range(m):
