@@ -17,15 +17,34 @@ from stages.lib.base import Issue, StageResult
 _LATEST = (("corridor_set", CorridorSet), ("corridor_predictions", CorridorPredictions), ("motion_grid", MotionGrid), ("intention_belief", IntentionBelief), ("compare_predictions", CorridorPredictions))
 
 
-class _Listener:
-    """Asks for the map again when a client subscribes to it (the protocol has no latching)."""
+RELOG_AGAIN_S = 1.0
+"""After a client subscribes to ``/map`` or ``/tf``, the map is logged at the next frame and again this long after."""
 
-    def __init__(self, wanted: threading.Event) -> None:
-        self.wanted = wanted
+
+class _Listener:
+    """Asks for the map again when a client subscribes to it (the protocol has no latching).
+
+    foxglove-sdk may call ``on_subscribe`` before the client's subscription takes messages (the callback runs
+    before the client's sink is registered with the channel), so a map logged at once can be lost; it is logged at
+    the next frame and once more ``RELOG_AGAIN_S`` later (``relog_due``)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._due: list[float] = []  # time.monotonic() at which to log the map again
 
     def on_subscribe(self, client: Any, channel: Any) -> None:
         if getattr(channel, "topic", "") in ("/map", "/tf"):
-            self.wanted.set()
+            now = time.monotonic()
+            with self._lock:
+                self._due += [now, now + RELOG_AGAIN_S]
+
+    def relog_due(self, now: float) -> bool:
+        """True (once per due time, several due ones at once counting once) when the map should be logged again."""
+        with self._lock:
+            if not any(t <= now for t in self._due):
+                return False
+            self._due = [t for t in self._due if t > now]
+            return True
 
 
 class FoxgloveBridge:
@@ -38,7 +57,7 @@ class FoxgloveBridge:
         self.context = foxglove.Context()
         self.scene = FoxgloveScene(self.context, data=config.data or None, grid_step=parse_grid_step(config.grid_step))
         self.topic_keys = dict(topic_keys or {})  # input port -> bus key (names the Foxglove topics by producing node)
-        self._map_wanted = threading.Event()
+        self._listener = _Listener()
         self._last: dict[str, int] = {}
         self._stats_seen: dict[str, float] = {}
         self.server: Any = None
@@ -47,7 +66,7 @@ class FoxgloveBridge:
     def start(self) -> str:
         """Start the server; returns its ``ws://`` URL."""
         kwargs = dict(name=f"hybrid-iamp {self.run_id}", host=self.config.host, context=self.context,
-                      server_listener=_Listener(self._map_wanted), message_backlog_size=self.config.message_backlog)
+                      server_listener=self._listener, message_backlog_size=self.config.message_backlog)
         try:
             self.server = foxglove.start_server(port=self.config.port, **kwargs)
         except Exception as exc:  # noqa: BLE001 - a busy port moves to a free one
@@ -74,8 +93,7 @@ class FoxgloveBridge:
         scene = inputs.get("scene")
         if isinstance(scene, SceneInfo):
             self.scene.add_scene(scene, now)
-        if self._map_wanted.is_set():
-            self._map_wanted.clear()
+        if self._listener.relog_due(time.monotonic()):
             self.scene.relog_map(now)
         self.scene.add_frame(frame, now)
         for port, cls in _LATEST:

@@ -302,3 +302,23 @@ def test_export_refuses_truncated_foreign_and_missing_input_with_one_line(live_r
     torn.write_bytes(data[: len(data) * 2 // 3])
     assert iamp(["export", "foxglove", str(torn), str(tmp_path / "torn.out.mcap")]) == 0
     assert "source truncated" in capsys.readouterr().out
+
+
+def test_a_map_subscription_logs_the_map_at_the_next_frame_and_once_more_later():
+    """foxglove-sdk may call on_subscribe before the subscription takes messages: the map is asked for twice."""
+    import time
+    from types import SimpleNamespace
+
+    from stages.foxglove_bridge.core import RELOG_AGAIN_S, _Listener
+
+    listener = _Listener()
+    listener.on_subscribe(None, SimpleNamespace(topic="/objects"))
+    assert not listener.relog_due(1e12)  # other topics ask for nothing
+    listener.on_subscribe(None, SimpleNamespace(topic="/map"))
+    listener.on_subscribe(None, SimpleNamespace(topic="/tf"))  # the two subscriptions of one client: one relog per due time
+    now = time.monotonic()
+    assert listener.relog_due(now)
+    assert not listener.relog_due(now)
+    assert not listener.relog_due(now + RELOG_AGAIN_S / 2)
+    assert listener.relog_due(now + RELOG_AGAIN_S + 0.01)
+    assert not listener.relog_due(now + 10 * RELOG_AGAIN_S)
