@@ -393,14 +393,7 @@ def _measure_lanelets(p, pi, li, seg_start, seg_vec, seg_len2, seg_s0, seg_headi
         best_d2 = math.inf
         best_t = 0.0
         for j in range(seg_count[k]):
-            rx = px - seg_start[k, j, 0]
-            ry = py - seg_start[k, j, 1]
-            vx = seg_vec[k, j, 0]
-            vy = seg_vec[k, j, 1]
-            t = min(max((rx * vx + ry * vy) / seg_len2[k, j], 0.0), 1.0)
-            ex = rx - t * vx
-            ey = ry - t * vy
-            d2 = ex * ex + ey * ey
+            d2, t = _segment_d2(px, py, seg_start[k, j, 0], seg_start[k, j, 1], seg_vec[k, j, 0], seg_vec[k, j, 1], seg_len2[k, j], 0.0, 1.0)
             if d2 != d2:
                 return False
             if d2 < best_d2:
@@ -417,14 +410,7 @@ def _measure_lanelets(p, pi, li, seg_start, seg_vec, seg_len2, seg_s0, seg_headi
         heading[a, k] = seg_heading[k, j]
         nearest = math.inf
         for e in range(edge_count[k]):
-            rx = px - edge_start[k, e, 0]
-            ry = py - edge_start[k, e, 1]
-            vx = edge_vec[k, e, 0]
-            vy = edge_vec[k, e, 1]
-            t = min(max((rx * vx + ry * vy) / edge_len2[k, e], 0.0), 1.0)
-            ex = rx - t * vx
-            ey = ry - t * vy
-            d2 = ex * ex + ey * ey
+            d2, _ = _segment_d2(px, py, edge_start[k, e, 0], edge_start[k, e, 1], edge_vec[k, e, 0], edge_vec[k, e, 1], edge_len2[k, e], 0.0, 1.0)
             if d2 != d2:
                 return False
             nearest = min(nearest, d2)
