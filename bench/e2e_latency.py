@@ -24,11 +24,30 @@ of the machine before and after: the figures include every other process's
 load; nothing is asserted.
 
     python bench/e2e_latency.py [--vehicles 0,18] [--pipeline hybrid] [--duration-s S] [--speed 1]
-                                [--source k733|k729] [--expect markov_prediction/motion_grid] [--keep DIR] [--json FILE]
+                                [--source k733|k729] [--expect markov_prediction/motion_grid] [--keep DIR] [--json FILE] [--no-trace]
+
+Unless ``--no-trace``, the run goes with ``IAMP_HOP_TRACE`` set
+(``stages/runtime/trace.py``: each node writes one JSON line per handled
+input set) and two more tables split the time: per stage, p50/p95 ms of
+each component over all its input sets (transport: the upstream's put call
+-> this node's subscriber callback for the last joined input to arrive;
+queue: callback -> the loop took it; decode; join; process: the core;
+encode: core end -> the put call of its last output; put: time in the put
+calls; e2e: source wall -> its last put; cpu: the core's thread CPU time,
+next to process for contention; gc: the collector's pauses while handling
+it; skew: last minus first joined input's receipt); and the critical path
+of every MotionGrid at the recorder, walked back from the recorder through
+each node's last-arriving input to the source, whose parts add up exactly
+to the recorder's log_time - source wall (checked, printed), with each
+part's mean over the tail (frames at or above the p95) next to its mean over
+the frames at or below the median; then each node's GC pauses per
+generation. All of one machine's wall clock.
 
 ``--json FILE`` writes ``runs.<label>.outputs.<node/output>.{n, e2e_ms_p50,
 e2e_ms_p95, e2e_ms_max, frames_lost}``, ``runs.<label>.source_frames``,
-``runs.<label>.vehicles_mean`` and ``runs.<label>.node_stats.<node>``.
+``runs.<label>.vehicles_mean``, ``runs.<label>.node_stats.<node>`` and
+(traced) ``runs.<label>.hops.{stages.<node>.<part>, path.{total, parts.<node>.<part>, tail, via}, gc.<node>}``
+(``hop_table``).
 """
 
 from __future__ import annotations

@@ -567,7 +567,10 @@ class Node:
         self._serve(lambda item: self._handle_operator_item(core, item))
 
     def run_raw_sink(self, core: Any) -> None:
+        acked = False
+
         def handle(item: tuple) -> None:
+            nonlocal acked
             _port, key, data, recv_ns = item
             t0 = time.perf_counter()
             try:
@@ -584,8 +587,10 @@ class Node:
                 self.stats.e2e_ms.append((recv_ns - wall) / 1e6)
                 if self._trace is not None:
                     self._trace.write({"key": key, "stamp": stamp, "wall": wall, "recv": recv_ns, "deq": self._deq_ns, "end": time.time_ns()})
-            if stamp is not None and stamp > self.stats.last_stamp_ns:
-                self.stats.last_stamp_ns = stamp
+            if stamp is not None and (stamp > self.stats.last_stamp_ns or not acked):
+                # the first stamp too, even 0 (a recording's first frame): a source's warm-up waits for every node's ack of it
+                acked = True
+                self.stats.last_stamp_ns = max(stamp, self.stats.last_stamp_ns)
                 self._progress_pub.put(
                     Progress(node_id=self.node_id, last_stamp_ns=stamp, last_frame_index=-1, handled=self.stats.counters["processed"]).encode()
                 )
