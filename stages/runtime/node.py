@@ -716,10 +716,10 @@ def gc_freeze() -> int:
 
     A long-running node holds a large heap of long-lived objects (modules,
     torch and numba, the map, the model): without this, each full (gen 2)
-    collection walks all of it, measured at 100-470 ms per pause in the
-    streaming pipeline (``bench/e2e_latency.py``'s GC table), every 10-20 s,
-    and a frame that meets one waits that long, then the frames queued
-    behind it. Frozen objects are never scanned again (nor collected: a node
+    collection walks all of it, measured at 100-1,044 ms per pause, 3-9 per
+    node in a minute of the streaming pipeline at 18 vehicles
+    (``bench/e2e_latency.py``'s GC table; 0.2-33 ms frozen), and a frame
+    that meets one waits that long, then the frames queued behind it. Frozen objects are never scanned again (nor collected: a node
     freezes what it keeps for the whole run). Called before the node opens
     its session (nothing is waiting on it yet) and once more, without the
     collection, after its first ``GC_FREEZE_AFTER`` input sets.
