@@ -116,7 +116,9 @@ def test_the_hop_trace_splits_each_motion_grid_end_to_end_into_parts_that_add_up
     grids = analyse(rec)["outputs"]["markov_prediction/motion_grid"]
     assert path["n"] >= grids["n"] - 2 > 5  # every MotionGrid's path found (but a frame whose trace line was cut at the stop)
     assert path["sum_check_ms"] < 0.01  # the parts add up to recorder receipt - source wall
-    assert abs(path["total"]["p50"] - grids["e2e_ms_p50"]) < 0.01 and path["total"]["max"] <= grids["e2e_ms_max"] + 0.01  # the MCAP's log_time
+    assert path["total"]["max"] <= grids["e2e_ms_max"] + 0.01  # the same clock as the MCAP's log_time
+    if path["n"] == grids["n"]:  # the same frames: the same figures
+        assert abs(path["total"]["p50"] - grids["e2e_ms_p50"]) < 0.01 and abs(path["total"]["max"] - grids["e2e_ms_max"]) < 0.01
     assert {k.split(".")[0] for k in path["parts"]} >= {"source", "corridors", "markov_prediction", "recorder"}
     for name, v in path["parts"].items():
         assert name.split(".")[1] in HOP_PARTS + ("transport",) and v["p50"] >= 0, (name, v)
