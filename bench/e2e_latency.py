@@ -24,18 +24,39 @@ of the machine before and after: the figures include every other process's
 load; nothing is asserted.
 
     python bench/e2e_latency.py [--vehicles 0,18] [--pipeline hybrid] [--duration-s S] [--speed 1]
-                                [--source k733|k729] [--expect markov_prediction/motion_grid] [--keep DIR] [--json FILE]
+                                [--source k733|k729] [--expect markov_prediction/motion_grid] [--keep DIR] [--json FILE] [--no-trace]
+
+Unless ``--no-trace``, the run goes with ``IAMP_HOP_TRACE`` set
+(``stages/runtime/trace.py``: each node writes one JSON line per handled
+input set) and two more tables split the time: per stage, p50/p95 ms of
+each component over all its input sets (transport: the upstream's put call
+-> this node's subscriber callback for the last joined input to arrive;
+queue: callback -> the loop took it; decode; join; process: the core;
+encode: core end -> the put call of its last output; put: time in the put
+calls; e2e: source wall -> its last put; cpu: the core's thread CPU time,
+next to process for contention; gc: the collector's pauses while handling
+it; skew: last minus first joined input's receipt); and the critical path
+of every MotionGrid at the recorder, walked back from the recorder through
+each node's last-arriving input to the source, whose parts add up exactly
+to the recorder's log_time - source wall (checked, printed), with each
+part's mean over the tail (frames at or above the p95) next to its mean over
+the frames at or below the median; then each node's GC pauses per
+generation. All of one machine's wall clock.
 
 ``--json FILE`` writes ``runs.<label>.outputs.<node/output>.{n, e2e_ms_p50,
 e2e_ms_p95, e2e_ms_max, frames_lost}``, ``runs.<label>.source_frames``,
-``runs.<label>.vehicles_mean`` and ``runs.<label>.node_stats.<node>``.
+``runs.<label>.vehicles_mean``, ``runs.<label>.node_stats.<node>`` and
+(traced) ``runs.<label>.hops.{stages.<node>.<part>, path.{total, parts.<node>.<part>, tail, via}, gc.<node>}``
+(``hop_table``).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -48,14 +69,18 @@ from bus_schemas import NodeStats, keys
 from bus_schemas._wire import unpack_envelope
 from stages.lib.datasets import DEFAULT_DATA_DIR, FULL_DATA_ENV, full_data_dir
 from stages.recorder.inspect import read_messages
+from stages.runtime.trace import TRACE_ENV
 
 REPO = Path(__file__).resolve().parents[1]
 
 SOURCES = {"k733": "k733_2018-05-02", "k729": "k729_2022-03-16"}
 
 
-def _env() -> dict[str, str]:
+def _env(trace: Path | None = None) -> dict[str, str]:
     env = dict(os.environ)
+    env.pop(TRACE_ENV, None)
+    if trace is not None:
+        env[TRACE_ENV] = str(trace)
     env["PYTHONPATH"] = str(REPO) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     return env
 
@@ -79,14 +104,15 @@ def build(n: int, source: str, work: Path, duration_s: float | None) -> tuple[Pa
     return out, str(info["recording"]), what
 
 
-def run_pipeline(pipeline: str, data: Path | None, recording: str | None, rec: Path, speed: str, duration_s: float | None, run_id: str) -> float:
+def run_pipeline(pipeline: str, data: Path | None, recording: str | None, rec: Path, speed: str, duration_s: float | None, run_id: str,
+                 trace: Path | None = None) -> float:
     cmd = [sys.executable, str(REPO / "launch.py"), pipeline, "--speed", speed, "--no-viewer", "--record", str(rec), "--run-id", run_id]
     if data is not None:
         cmd += ["--data", str(data), "--recording", recording]
     if duration_s is not None:
         cmd += ["--stop-after", str(duration_s)]
     t0 = time.monotonic()
-    r = subprocess.run(cmd, cwd=rec.parent, env=_env(), capture_output=True, text=True)
+    r = subprocess.run(cmd, cwd=rec.parent, env=_env(trace), capture_output=True, text=True)
     if r.returncode != 0:
         sys.exit(f"launch.py exited {r.returncode}:\n{(r.stdout + r.stderr)[-4000:]}")
     return time.monotonic() - t0
@@ -145,6 +171,213 @@ def analyse(rec: Path, expect: tuple[str, ...] = ()) -> dict:
             "vehicles_max": int(max(vehicles)) if vehicles else 0, "outputs": outputs, "node_stats": node_stats}
 
 
+# ---------------------------------------------------------------- the per-hop trace (IAMP_HOP_TRACE, stages/runtime/trace.py)
+
+#: The components of one hop, in the order they follow each other: their sum is the hop (see ``hop_components``).
+HOP_PARTS = ("transport", "queue", "decode", "join", "process", "encode")
+GRID = ("markov_prediction", "motion_grid")
+
+
+def read_traces(folder: Path) -> dict[str, dict]:
+    """``{node: {"inputs": {port: "node/output"}, "records": [...], "gc": {...}, "gc_long": [...]}}`` from ``folder/*.jsonl``."""
+    out: dict[str, dict] = {}
+    for f in sorted(Path(folder).glob("*.jsonl")):
+        node: dict = {"inputs": {}, "records": [], "gc": {}, "gc_long": []}
+        for line in f.read_text().splitlines():
+            try:
+                r = json.loads(line)
+            except json.JSONDecodeError:  # a line cut by a kill: the rest is still read
+                continue
+            if "node" in r:
+                node["inputs"] = r.get("inputs", {})
+                node["stage"] = r.get("stage", "")
+            elif "gc" in r:
+                node["gc"], node["gc_long"] = r["gc"], r.get("gc_pauses_ms_over_1", [])
+            else:
+                node["records"].append(r)
+        out[f.stem] = node
+    return out
+
+
+def _put_index(traces: dict[str, dict]) -> dict[tuple[str, str, int], int]:
+    """``(node, output, stamp) -> when the put of that output was called`` over every operator and source record."""
+    idx = {}
+    for node, t in traces.items():
+        for r in t["records"]:
+            for port, (_enc0, enc1, _put1) in (r.get("out") or {}).items():
+                idx[(node, port, r["stamp"])] = enc1
+    return idx
+
+
+def hop_components(traces: dict[str, dict], node: str, r: dict, puts: dict, output: str | None = None) -> tuple[dict[str, float], tuple[str, str] | None]:
+    """One operator record split into ``HOP_PARTS`` (ms) and the upstream output its last-arriving joined input came from.
+
+    From the upstream's put call for that input to this node's put call
+    for ``output`` (the last output when None): ``transport`` (upstream put
+    called -> this node's subscriber callback: the put itself, Zenoh, the
+    callback thread getting the GIL), ``queue`` (callback -> the loop took
+    it: behind earlier messages, or the wake-up), ``decode``, ``join``
+    (decoded -> core start: bookkeeping), ``process`` (the core),
+    ``encode`` (core end -> the put call of ``output``: encoding it, and
+    encoding and putting the outputs before it). Their sum is the hop; a
+    component is NaN when its upstream record is missing (a frame dropped
+    there, a trace cut).
+    """
+    ins = r.get("in") or {}
+    outs = r.get("out") or {}
+    out_put = outs[output][1] if output in outs else max((v[1] for v in outs.values()), default=r["end"])
+    parts = {k: math.nan for k in HOP_PARTS}
+    parts["process"] = (r["end"] - r["start"]) / 1e6
+    parts["encode"] = (out_put - r["end"]) / 1e6
+    if not ins:
+        return parts, None
+    port = max(ins, key=lambda p: ins[p][0])
+    recv, deq, dec = ins[port]
+    ref = traces[node]["inputs"].get(port, "")
+    up = tuple(ref.split("/", 1)) if "/" in ref else None
+    parts["queue"] = (deq - recv) / 1e6
+    parts["decode"] = (dec - deq) / 1e6
+    parts["join"] = (r["start"] - dec) / 1e6
+    if up is not None and (up[0], up[1], r["stamp"]) in puts:
+        parts["transport"] = (recv - puts[(up[0], up[1], r["stamp"])]) / 1e6
+    return parts, up
+
+
+def hop_table(traces: dict[str, dict], grid: tuple[str, str] = GRID) -> dict:
+    """Per-stage components (all input sets) and the critical path of every ``grid`` output that reached the recorder.
+
+    ``stages.<node>.<part>``: p50/p95 ms over the node's records (and
+    ``e2e`` = its last put - source wall, ``cpu`` = the core's thread CPU,
+    ``gc`` = GC pauses while handling, ``skew`` = last minus first joined
+    input's receipt). ``path``: per MotionGrid at the recorder, walked back
+    from the recorder through each node's last-arriving input to the
+    source; ``path.total`` (= recorder receipt - source wall, the e2e of the
+    recorder's log_time) is the sum of ``path.parts.<node>.<part>``;
+    ``path.tail`` the mean of each part over the frames at or above the
+    total's p95 next to its mean over the frames at or below the median.
+    """
+    puts = _put_index(traces)
+    recs = {node: {r["stamp"]: r for r in t["records"] if "stamp" in r} for node, t in traces.items()}
+    stages: dict[str, dict] = {}
+    for node, t in traces.items():
+        cols: dict[str, list[float]] = {}
+        for r in t["records"]:
+            if "key" in r or "start" not in r:
+                continue
+            parts, _up = hop_components(traces, node, r, puts)
+            outs = (r.get("out") or {}).values()
+            last_put = max((v[2] for v in outs), default=r["end"])
+            parts.update({"e2e": (last_put - r["wall"]) / 1e6 if r.get("wall") else math.nan, "cpu": r.get("cpu_ms", math.nan),
+                          "gc": r.get("gc_ms", math.nan), "put": sum(v[2] - v[1] for v in outs) / 1e6})
+            ins = r.get("in") or {}
+            parts["skew"] = (max(v[0] for v in ins.values()) - min(v[0] for v in ins.values())) / 1e6 if ins else math.nan
+            for k, v in parts.items():
+                cols.setdefault(k, []).append(v)
+        src = [r for r in t["records"] if "out" in r and "start" not in r]
+        for r in src:  # a source: encoding and putting every output is its e2e
+            last_put = max(v[2] for v in r["out"].values())
+            for k, v in (("encode", sum(v[1] - v[0] for v in r["out"].values()) / 1e6), ("put", sum(v[2] - v[1] for v in r["out"].values()) / 1e6),
+                         ("e2e", (last_put - r["wall"]) / 1e6), ("gc", r.get("gc_ms", math.nan))):
+                cols.setdefault(k, []).append(v)
+        sink = [r for r in t["records"] if "key" in r]
+        for r in sink:
+            if not r["key"].endswith(f"/{grid[0]}/{grid[1]}"):
+                continue
+            p = puts.get((grid[0], grid[1], r["stamp"]))
+            for k, v in (("transport", (r["recv"] - p) / 1e6 if p else math.nan), ("queue", (r["deq"] - r["recv"]) / 1e6),
+                         ("process", (r["end"] - r["deq"]) / 1e6), ("e2e", (r["recv"] - r["wall"]) / 1e6)):
+                cols.setdefault(k, []).append(v)
+        stages[node] = {k: _p(v) for k, v in cols.items()}
+    # the critical path of each MotionGrid at the recorder
+    rows: list[dict[str, float]] = []
+    totals: list[float] = []
+    via: dict[str, int] = {}
+    for node, t in traces.items():
+        for r in t["records"]:
+            if "key" not in r or not r["key"].endswith(f"/{grid[0]}/{grid[1]}"):
+                continue
+            p = puts.get((grid[0], grid[1], r["stamp"]))
+            if p is None:
+                continue
+            row = {f"{node}.transport": (r["recv"] - p) / 1e6}
+            cur, out, ok = grid[0], grid[1], True
+            for _ in range(len(traces)):
+                rr = recs.get(cur, {}).get(r["stamp"])
+                if rr is None:
+                    ok = False
+                    break
+                if "start" not in rr:  # the source: wall (stamped before encoding) -> its put call of this output
+                    row[f"{cur}.encode"] = (rr["out"][out][1] - rr["wall"]) / 1e6
+                    break
+                parts, up = hop_components(traces, cur, rr, puts, out)
+                for k, v in parts.items():
+                    row[f"{cur}.{k}"] = v
+                if up is None:
+                    ok = False
+                    break
+                via[cur + "<-" + up[0]] = via.get(cur + "<-" + up[0], 0) + 1
+                cur, out = up
+            if not ok or any(math.isnan(v) for v in row.values()):
+                continue
+            rows.append(row)
+            totals.append((r["recv"] - r["wall"]) / 1e6)
+    path: dict = {"n": len(rows), "via": via}
+    if rows:
+        names = sorted({k for row in rows for k in row}, key=lambda k: k)
+        tot = np.asarray(totals)
+        hi, lo = tot >= np.percentile(tot, 95), tot <= np.median(tot)
+        mat = np.asarray([[row.get(k, 0.0) for k in names] for row in rows])
+        path["total"] = _p(totals) | {"max": float(tot.max())}
+        path["sum_check_ms"] = float(np.abs(mat.sum(axis=1) - tot).max())  # 0 up to rounding: the parts add up to the total
+        path["parts"] = {k: _p(mat[:, i]) | {"tail_mean": float(mat[hi, i].mean()), "median_mean": float(mat[lo, i].mean())} for i, k in enumerate(names)}
+        path["tail"] = {"n": int(hi.sum()), "total_mean": float(tot[hi].mean()), "median_total_mean": float(tot[lo].mean())}
+    gc_stats = {node: {"by_gen": t["gc"], "pauses_over_1ms": len(t["gc_long"]),
+                       "max_ms": max((g[2] for g in t["gc"].values()), default=0.0)} for node, t in traces.items() if t["gc"]}
+    return {"stages": stages, "path": path, "gc": gc_stats}
+
+
+def _p(values) -> dict[str, float]:
+    a = np.asarray([v for v in values if not math.isnan(v)], dtype=np.float64)
+    return {"p50": float(np.median(a)) if a.size else math.nan, "p95": float(np.percentile(a, 95)) if a.size else math.nan, "n": int(a.size)}
+
+
+STAGE_COLS = ("transport", "queue", "decode", "join", "process", "encode", "put", "e2e", "cpu", "gc", "skew")
+
+
+def print_hops(h: dict, indent: str = "   ") -> None:
+    """The decomposition tables of ``hop_table``."""
+    print(f"{indent}per stage, all input sets, ms p50/p95 (transport: upstream put called -> callback of the last joined input; queue: callback -> loop;"
+          f" encode: core end -> last put called; put: time in the put calls; cpu: the core's thread CPU; skew: last - first joined input received)")
+    print(indent + f"{'node':<20}" + "".join(f"{c:>14}" for c in STAGE_COLS))
+    for node, cols in h["stages"].items():
+        cells = "".join(f"{_cell(cols.get(c)):>14}" for c in STAGE_COLS)
+        print(f"{indent}{node:<20}{cells}")
+    path = h["path"]
+    if not path.get("n"):
+        print(f"{indent}critical path: no MotionGrid traced end to end")
+        return
+    t = path["total"]
+    print(f"{indent}critical path of {path['n']} MotionGrids (recorder receipt - source wall = the sum of the parts, within {path['sum_check_ms']:.3f} ms):"
+          f" total p50 {t['p50']:.1f} / p95 {t['p95']:.1f} / max {t['max']:.1f} ms; via {', '.join(f'{k} {v}' for k, v in sorted(path['via'].items()))}")
+    print(f"{indent}{'part':<32}{'p50':>8}{'p95':>8}{'mean in the tail':>18}{'mean <= median':>16}   (tail: {path['tail']['n']} frames >= p95, "
+          f"mean total {path['tail']['total_mean']:.1f} vs {path['tail']['median_total_mean']:.1f} ms)")
+    for k, v in path["parts"].items():
+        if v["tail_mean"] < 0.05 and v["p95"] < 0.05:
+            continue
+        print(f"{indent}{k:<32}{v['p50']:>8.1f}{v['p95']:>8.1f}{v['tail_mean']:>18.1f}{v['median_mean']:>16.1f}")
+    if h["gc"]:
+        print(f"{indent}GC per node: collections / total ms / max ms per generation, pauses >= 1 ms")
+        for node, g in h["gc"].items():
+            gens = "  ".join(f"gen{k} {c[0]}/{c[1]:.0f}/{c[2]:.1f}" for k, c in g["by_gen"].items())
+            print(f"{indent}  {node:<20} {gens}  >=1ms: {g['pauses_over_1ms']}")
+
+
+def _cell(v: dict | None) -> str:
+    if not v or math.isnan(v["p50"]):
+        return "-"
+    return f"{v['p50']:.1f}/{v['p95']:.1f}"
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--vehicles", default="0,18", help="comma-separated; 0 = the embedded default scenario as it is")
@@ -155,6 +388,7 @@ def main() -> int:
     ap.add_argument("--keep", default=None, help="keep the dense data and recordings in this folder")
     ap.add_argument("--expect", default="markov_prediction/motion_grid", help="outputs listed even when none came (comma-separated)")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--no-trace", action="store_true", help=f"run without the per-hop trace ({TRACE_ENV}): no decomposition table")
     args = ap.parse_args()
     work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="iamp-e2e-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -167,10 +401,15 @@ def main() -> int:
             data, recording, origin = build(n, args.source, work, args.duration_s)
             label = f"dense{n}"
         rec = work / f"{label}.mcap"
+        trace = None if args.no_trace else work / f"{label}-trace"
+        if trace is not None:
+            shutil.rmtree(trace, ignore_errors=True)
         load0 = os.getloadavg()[0]
-        wall_s = run_pipeline(args.pipeline, data, recording, rec, args.speed, args.duration_s if n == 0 else None, f"e2e{label}")
+        wall_s = run_pipeline(args.pipeline, data, recording, rec, args.speed, args.duration_s if n == 0 else None, f"e2e{label}", trace)
         load1 = os.getloadavg()[0]
         res = analyse(rec, tuple(e for e in args.expect.split(",") if e))
+        if trace is not None:
+            res["hops"] = hop_table(read_traces(trace))
         res.update({"wall_s": wall_s, "load_before": load0, "load_after": load1, "origin": origin})
         result["runs"][label] = res
         print(f"\n== {label}: {origin}")
@@ -183,6 +422,8 @@ def main() -> int:
         for node, s in res["node_stats"].items():
             print(f"   {node:<40} {s['e2e_ms_p50']:>8.1f} {s['e2e_ms_p95']:>8.1f} {s['proc_ms_p50']:>8.1f} {s['proc_ms_p95']:>8.1f} "
                   f"{s['queue_drops']:>6} {s['join_drops']:>6}")
+        if "hops" in res:
+            print_hops(res["hops"])
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=2, default=float))
     return 0

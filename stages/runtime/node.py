@@ -36,6 +36,7 @@ from __future__ import annotations
 import argparse
 import collections
 import dataclasses
+import gc
 import logging
 import math
 import os
@@ -55,9 +56,10 @@ from bus_schemas._wire import Message, unpack_envelope
 from stages.lib.base import ConfigError, StageResult
 from stages.runtime.args import EXIT_CRASH, EXIT_OK, EXIT_USAGE, on_stop_signals, session_from_args, start_stage
 from stages.runtime.logs import IssueLog, ProblemLog, _Stats
-from stages.runtime.pacing import AWAIT_NODES_S, CONSUMER_WAIT_S, DRAIN_WAIT_S, Consumers, Pacer
+from stages.runtime.pacing import AWAIT_NODES_S, CONSUMER_WAIT_S, DRAIN_WAIT_S, SOURCE_WARMUP, Consumers, Pacer
 from stages.runtime.ports import NodeContext, StageSpec, pattern_key
 from stages.runtime.queues import InputQueue
+from stages.runtime.trace import HopTrace
 
 MiB = 1024 * 1024
 
@@ -121,6 +123,15 @@ class Node:
         # the inputs a stop waits to be quiet: not latest-value or wildcard ones (the run's NodeStats never are)
         self._drain_ports = {p for p in self.input_keys if spec.inputs[p].joined or spec.inputs[p].latched}
         self.consumers = Consumers(self.node_id)  # sources: the live nodes and their acks, for pacing
+        # per-hop trace (IAMP_HOP_TRACE, trace.py): None unless asked; then the times of each joined input set
+        self._trace: HopTrace | None = None
+        self._hops: dict[int, dict[str, list[int]]] = {}  # stamp -> port -> [recv, deq, dec] (wall ns)
+        self._deq_ns = 0  # wall clock when the loop took the item it is handling from the queue
+        self._deq_gc_ns = 0  # the trace's GC pause counter then
+        self._out_times: dict[str, list[int]] = {}  # output -> [encode start, encode end, put end] of the last publish
+        self._last_wall_ns = 0  # the source_wall_ns of the last publish (0: none)
+        # the collector's generations are frozen at start and once more after the first input sets (gc_freeze)
+        self._gc_refreeze_at = GC_FREEZE_AFTER if gc_freeze_enabled(self.log) else 0
 
     # ---- counters used from callbacks
     def _count(self, key: str, port: str | None = None, n: int = 1) -> None:
@@ -151,6 +162,7 @@ class Node:
 
     # ---- session and declarations
     def open(self) -> None:
+        self._trace = HopTrace.from_env(self.node_id, self.spec.stage, dict(self.bindings))
         self.session = session_from_args(self.args)
         s = self.session
         for port, key in self.output_keys.items():
@@ -307,6 +319,8 @@ class Node:
         """
         wall_from = 0
         source = self.spec.kind == "source"
+        trace = self._trace is not None
+        self._out_times = {}
         for port, msg in result.outputs.items():
             if port not in self._publishers:
                 raise RuntimeError(f"core returned output {port!r}, which {self.spec.stage} does not declare")
@@ -317,15 +331,20 @@ class Node:
             if source and header is not None and not header.source_wall_ns:
                 header = dataclasses.replace(header, source_wall_ns=time.time_ns())
                 msg = dataclasses.replace(msg, header=header)
+            enc0 = time.time_ns()
             data = msg.encode()
             if self.spec.outputs[port].latched:
                 self._latched_out[port] = data
+            enc1 = time.time_ns()
             self._publishers[port].put(data)
+            if trace:
+                self._out_times[port] = [enc0, enc1, time.time_ns()]
             self.stats.counters["published"] += 1
             if header is not None and header.source_wall_ns and not self.spec.outputs[port].latched:
                 wall_from = min(wall_from or header.source_wall_ns, header.source_wall_ns)
         if wall_from:
             self.stats.e2e_ms.append((time.time_ns() - wall_from) / 1e6)
+        self._last_wall_ns = wall_from
         for issue in result.issues:
             self.stats.counters["issues"] += 1
             self.stats.issues_by_kind[issue.kind] += 1
@@ -415,6 +434,8 @@ class Node:
             now = time.monotonic()
             self._pending_since.setdefault(stamp, now)
             self._port_seen[port] = now
+            if self._trace is not None:
+                self._hops.setdefault(stamp, {})[port] = [recv_ns, self._deq_ns, time.time_ns()]
             if port in entry:
                 self.stats.counters["join_drops"] += 1
                 self.problems.report(f"duplicate:{port}", logging.WARNING, "duplicate input: port=%s stamp_ns=%d (older one replaced)", port, stamp)
@@ -470,7 +491,7 @@ class Node:
             inputs = self._pending.pop(s)
             self._pending_since.pop(s, None)
             inputs.update(self._not_joined_inputs())
-            self._run_update(core, inputs, s, lat_ms)
+            self._run_update(core, inputs, s, lat_ms, self._hops.pop(s, None))
 
     def _drop_pending(self, stamp: int, reason: str) -> None:
         missing_latched = [p for p in self._required_latched() if p not in self._latched_in]
@@ -478,6 +499,7 @@ class Node:
             reason = f"waiting_for_latched ports={','.join(missing_latched)}"
         entry = self._pending.pop(stamp, None)
         self._pending_since.pop(stamp, None)
+        self._hops.pop(stamp, None)
         if entry is not None:
             self.stats.counters["join_drops"] += 1
             self.problems.report(
@@ -503,7 +525,8 @@ class Node:
                 continue
             self._drop_pending(s, "join_timeout")
 
-    def _run_update(self, core: Any, inputs: dict[str, Message], stamp: int, lat_ms: float) -> None:
+    def _run_update(self, core: Any, inputs: dict[str, Message], stamp: int, lat_ms: float, hops: dict[str, list[int]] | None = None) -> None:
+        start_ns, cpu0 = time.time_ns(), time.thread_time_ns()
         t0 = time.perf_counter()
         try:
             result = core.update(inputs)
@@ -511,6 +534,7 @@ class Node:
             self._count_failure("core_exception", exc, "core failed on stamp_ns=%d (input set dropped)", stamp)
             return
         dt = (time.perf_counter() - t0) * 1e3
+        end_ns, cpu_ms = time.time_ns(), (time.thread_time_ns() - cpu0) / 1e6
         self.stats.proc_ms.append(dt)
         self.stats.proc_ms_max = max(self.stats.proc_ms_max, dt)
         if not math.isnan(lat_ms):
@@ -520,6 +544,10 @@ class Node:
             self.publish(result, stamp, frame_index)
         except Exception as exc:  # an output that does not encode: that input set is lost, the stage goes on
             self._count_failure("publish_exception", exc, "publishing failed on stamp_ns=%d (outputs of this input set dropped)", stamp)
+            return
+        if self._trace is not None:
+            self._trace.write({"stamp": stamp, "frame": frame_index, "wall": self._last_wall_ns, "in": hops or {}, "start": start_ns, "end": end_ns,
+                               "cpu_ms": round(cpu_ms, 3), "gc_ms": round((self._trace.gc.pause_ns - self._deq_gc_ns) / 1e6, 3), "out": self._out_times})
 
     def _count_failure(self, kind: str, exc: BaseException, fmt: str, *args: Any) -> None:
         """Count an exception of a core (or of handling one message) and log it, rate-limited."""
@@ -539,7 +567,10 @@ class Node:
         self._serve(lambda item: self._handle_operator_item(core, item))
 
     def run_raw_sink(self, core: Any) -> None:
+        acked = False
+
         def handle(item: tuple) -> None:
+            nonlocal acked
             _port, key, data, recv_ns = item
             t0 = time.perf_counter()
             try:
@@ -554,8 +585,12 @@ class Node:
             stamp, wall = _peek_stamps(data)
             if wall:  # a sink publishes nothing: end to end is to its receipt
                 self.stats.e2e_ms.append((recv_ns - wall) / 1e6)
-            if stamp is not None and stamp > self.stats.last_stamp_ns:
-                self.stats.last_stamp_ns = stamp
+                if self._trace is not None:
+                    self._trace.write({"key": key, "stamp": stamp, "wall": wall, "recv": recv_ns, "deq": self._deq_ns, "end": time.time_ns()})
+            if stamp is not None and (stamp > self.stats.last_stamp_ns or not acked):
+                # the first stamp too, even 0 (a recording's first frame): a source's warm-up waits for every node's ack of it
+                acked = True
+                self.stats.last_stamp_ns = max(stamp, self.stats.last_stamp_ns)
                 self._progress_pub.put(
                     Progress(node_id=self.node_id, last_stamp_ns=stamp, last_frame_index=-1, handled=self.stats.counters["processed"]).encode()
                 )
@@ -573,6 +608,10 @@ class Node:
         quiet_s = DRAIN_QUIET_S
         while True:
             item = self.queue.get(timeout=0.05)
+            if item is not None:
+                self._deq_ns = time.time_ns()
+                if self._trace is not None:
+                    self._deq_gc_ns = self._trace.gc.pause_ns
             drained = item is None or not (item[0] is None or item[0] in self._drain_ports)
             if not drained:
                 self._last_input_mono = time.monotonic()
@@ -581,6 +620,7 @@ class Node:
                     handle(item)
                 except Exception as exc:  # the last net: one message never ends the stage
                     self._count_failure("handler_exception", exc, "handling a message from key=%s failed (dropped)", item[1])
+                self._maybe_refreeze()
             else:
                 self._expire_pending()
             self.maybe_stats()
@@ -589,12 +629,19 @@ class Node:
                 if self.signals > 1 or time.monotonic() - self._last_input_mono >= quiet_s:
                     break
 
+    def _maybe_refreeze(self) -> None:
+        """After the first ``GC_FREEZE_AFTER`` handled input sets, freeze what the warm-up built (caches, compiled kernels) too."""
+        if self._gc_refreeze_at and self.stats.counters["processed"] >= self._gc_refreeze_at:
+            self._gc_refreeze_at = 0
+            gc.freeze()  # no collection first: that would pause this frame; a few cycles of warm-up garbage stay, once
+            self.log.debug("gc: froze %d objects after the warm-up", gc.get_freeze_count())
+
     # ---- source loop
     def run_source(self, core: Any) -> None:
         """Publish what the core yields, paced (``pacing.Pacer``: the stamps at ``speed`` times their rate, or ``max``)."""
         speed = getattr(self.config, "speed", 1.0)
         try:
-            pacer = Pacer(speed, self.consumers, self.stop_event, self.log)
+            pacer = Pacer(speed, self.consumers, self.stop_event, self.log, warmup=SOURCE_WARMUP)
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
         self.consumers.await_nodes([n for n in self.args.await_nodes.split(",") if n], AWAIT_NODES_S, self.stop_event, self.log)
@@ -603,9 +650,15 @@ class Node:
             if not pacer.before(stamp, stamp):
                 break
             t0 = time.perf_counter()
-            self.publish(result, stamp, _frame_index_of(result.outputs))
+            frame_index = _frame_index_of(result.outputs)
+            gc0 = self._trace.gc.pause_ns if self._trace is not None else 0
+            self.publish(result, stamp, frame_index)
             self.stats.proc_ms.append((time.perf_counter() - t0) * 1e3)
+            if self._trace is not None:
+                self._trace.write({"stamp": stamp, "frame": frame_index, "wall": self._last_wall_ns, "gc_ms": round((self._trace.gc.pause_ns - gc0) / 1e6, 3),
+                                   "out": self._out_times})
             n += 1
+            self._maybe_refreeze()
             self.maybe_stats()
         else:
             self.log.info("source finished: frames=%d", n)
@@ -615,6 +668,8 @@ class Node:
         pacer.drain(CONSUMER_WAIT_S if pacer.as_fast else DRAIN_WAIT_S, abort=lambda: self.signals > 1)
 
     def close(self) -> None:
+        if self._trace is not None:
+            self._trace.close()
         self.issue_log.close()
         self.problems.close()
         self.maybe_stats(force=True)
@@ -636,6 +691,42 @@ JOIN_TIMEOUT_S = 2.0
 JOIN_WINDOW = 64
 DRAIN_QUIET_S = 0.3
 CLOSE_LINGER_S = 0.05
+
+
+#: Set to 0 (or off, no, false) to keep Python's collector as it is (``gc_freeze``): for comparisons.
+GC_FREEZE_ENV = "IAMP_GC_FREEZE"
+#: Handled input sets after which a node freezes the collector's generations once more (the warm-up's objects).
+GC_FREEZE_AFTER = 20
+
+
+def gc_freeze_enabled(log: logging.Logger | None = None) -> bool:
+    """Whether nodes freeze the collector (``IAMP_GC_FREEZE``: unset, 1, on, yes, true: yes; 0, off, no, false: no; else yes, logged)."""
+    value = os.environ.get(GC_FREEZE_ENV, "").strip().lower()
+    if value in ("", "1", "on", "yes", "true"):
+        return True
+    if value in ("0", "off", "no", "false"):
+        return False
+    if log is not None:
+        log.warning("%s=%r is not one of 1/on/yes/true or 0/off/no/false: freezing the collector (the default)", GC_FREEZE_ENV, value)
+    return True
+
+
+def gc_freeze() -> int:
+    """Collect once, then move every object tracked so far to the collector's permanent generation; returns how many.
+
+    A long-running node holds a large heap of long-lived objects (modules,
+    torch and numba, the map, the model): without this, each full (gen 2)
+    collection walks all of it, measured at 100-1,044 ms per pause, 3-9 per
+    node in a minute of the streaming pipeline at 18 vehicles
+    (``bench/e2e_latency.py``'s GC table; 0.2-33 ms frozen), and a frame
+    that meets one waits that long, then the frames queued behind it. Frozen objects are never scanned again (nor collected: a node
+    freezes what it keeps for the whole run). Called before the node opens
+    its session (nothing is waiting on it yet) and once more, without the
+    collection, after its first ``GC_FREEZE_AFTER`` input sets.
+    """
+    gc.collect()
+    gc.freeze()
+    return gc.get_freeze_count()
 
 
 def _peek_stamps(data: bytes) -> tuple[int | None, int]:
@@ -685,6 +776,8 @@ def run_stage(spec: StageSpec, argv: list[str] | None = None) -> int:
         except (ConfigError, FileNotFoundError, ValueError) as exc:
             log.error("bad configuration: %s", exc)
             return EXIT_USAGE
+        if node._gc_refreeze_at:
+            gc_freeze()
         node.open()
         if spec.kind == "source":
             node.run_source(core)

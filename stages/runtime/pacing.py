@@ -22,7 +22,14 @@ replay (``stages.replay``):
   ``wait_s``) is taken for one that never acks and is not waited for until
   it does. ``drain`` waits until the nodes have acked the last stamp
   published (zenoh has no flush: a put still queued when the session closes
-  is lost).
+  is lost). With ``warmup = N`` (the runtime's sources: ``SOURCE_WARMUP``)
+  a number speed first publishes N stamps as ``max`` with a window of 1
+  does (each acked by every live node, or given up on after ``wait_s``),
+  then starts its clock: a node's first input set builds its caches and
+  compiled kernels (measured 100-440 ms per stage at 18 vehicles), and at
+  real time the frames published meanwhile would queue behind it all along
+  the chain, seconds of backlog that a stage near its frame budget takes
+  a long time to work off.
 """
 
 from __future__ import annotations
@@ -40,6 +47,7 @@ CONSUMER_WAIT_S = 10.0
 DRAIN_WAIT_S = 3.0
 AWAIT_NODES_S = 30.0
 FIRST_ACK_GRACE_S = 2.0  # replay's grace for nodes that never ack (tools holding a token)
+SOURCE_WARMUP = 1  # stamps a runtime source publishes and awaits before its real-time clock starts (Pacer's warmup)
 
 
 def parse_speed_value(speed: float | str) -> float | str:
@@ -137,6 +145,7 @@ class Pacer:
         window: int = MAX_SPEED_WINDOW,
         wait_s: float = CONSUMER_WAIT_S,
         first_ack_grace_s: float | None = None,
+        warmup: int = 0,
     ) -> None:
         self.speed = parse_speed_value(speed)
         self.as_fast = self.speed == "max"
@@ -150,12 +159,19 @@ class Pacer:
         self._wall0: float | None = None
         self._time0 = 0
         self._first_wait: float | None = None
+        self.warmup = max(0, int(warmup))
+        self._published = 0  # distinct stamps let out so far
 
     def before(self, time_ns: int, stamp_ns: int | None = None) -> bool:
         """Wait until the next message (recording time ``time_ns``, header stamp ``stamp_ns`` or None) may go out."""
         if self.stop.is_set():
             return False
+        new_stamp = stamp_ns is not None and not (self._stamps and self._stamps[-1] == stamp_ns)
         if not self.as_fast:
+            if new_stamp and self._published and self._published <= self.warmup:
+                # warming up: every live node must have handled the last stamp, then the clock (re)starts at this message
+                self._wait(self._stamps[-1], time.monotonic() + self.wait_s, self.stop.is_set)
+                self._wall0 = None
             if self._wall0 is None:
                 self._wall0, self._time0 = time.monotonic(), time_ns
             due = self._wall0 + (time_ns - self._time0) / 1e9 / self.speed
@@ -164,10 +180,11 @@ class Pacer:
                 if left <= 0:
                     break
                 self.stop.wait(min(left, 0.1))
-        if stamp_ns is not None and not (self._stamps and self._stamps[-1] == stamp_ns):  # a new stamp (drain waits for the last)
+        if new_stamp:  # (drain waits for the last)
             if self.as_fast and len(self._stamps) >= self.window:
                 self._wait(self._stamps[0], time.monotonic() + self.wait_s, self.stop.is_set)
             self._stamps.append(stamp_ns)
+            self._published += 1
         return not self.stop.is_set()
 
     def drain(self, timeout_s: float | None = None, abort: Callable[[], bool] | None = None) -> None:

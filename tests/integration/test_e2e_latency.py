@@ -86,3 +86,42 @@ params = {{ path = "" }}
     cst = _last_stats(rec2, "corridors")
     assert cst.counters["decode_errors"] == 0 and cst.counters["processed"] == len(sets)
     assert math.isnan(cst.e2e_ms_p50) and math.isnan(cst.e2e_ms_p95)
+
+
+def test_the_hop_trace_splits_each_motion_grid_end_to_end_into_parts_that_add_up(tmp_path, monkeypatch):
+    """IAMP_HOP_TRACE: every node writes its trace; bench/e2e_latency.py's critical path adds up to the recorder's log_time - source wall."""
+    from bench.e2e_latency import HOP_PARTS, analyse, hop_table, read_traces
+    from stages.runtime.trace import TRACE_ENV
+
+    trace = tmp_path / "trace"
+    monkeypatch.setenv(TRACE_ENV, str(trace))
+    rec = tmp_path / "run.mcap"
+    run = Launch(*K729, "--stop-after", "4", "--speed", "2", "--no-viewer", "--record", str(rec), "--run-id", "hops", cwd=tmp_path)
+    assert run.wait() == 0, run.text()[-4000:]
+    traces = read_traces(trace)
+    nodes = ("source", "corridors", "relations", "intentions", "ar_inference", "markov_prediction", "recorder")
+    assert set(nodes) <= set(traces), sorted(traces)
+    assert traces["markov_prediction"]["inputs"]["intention_belief"] == "intentions/intention_belief"  # the bindings, from the first line
+    for node in nodes:
+        assert traces[node]["records"], node
+        assert "0" in traces[node]["gc"], node  # the last line: the collector's pauses (gen 0 always runs)
+    for r in traces["markov_prediction"]["records"]:
+        assert set(r["out"]) == {"corridor_predictions", "motion_grid"}
+        for recv, deq, dec in r["in"].values():
+            assert recv <= deq <= dec <= r["start"] <= r["end"]
+        for enc0, enc1, put1 in r["out"].values():
+            assert r["end"] <= enc0 <= enc1 <= put1
+    h = hop_table(traces)
+    path = h["path"]
+    grids = analyse(rec)["outputs"]["markov_prediction/motion_grid"]
+    assert path["n"] >= grids["n"] - 2 > 5  # every MotionGrid's path found (but a frame whose trace line was cut at the stop)
+    assert path["sum_check_ms"] < 0.01  # the parts add up to recorder receipt - source wall
+    assert path["total"]["max"] <= grids["e2e_ms_max"] + 0.01  # the same clock as the MCAP's log_time
+    if path["n"] == grids["n"]:  # the same frames: the same figures
+        assert abs(path["total"]["p50"] - grids["e2e_ms_p50"]) < 0.01 and abs(path["total"]["max"] - grids["e2e_ms_max"]) < 0.01
+    assert {k.split(".")[0] for k in path["parts"]} >= {"source", "corridors", "markov_prediction", "recorder"}
+    for name, v in path["parts"].items():
+        assert name.split(".")[1] in HOP_PARTS + ("transport",) and v["p50"] >= 0, (name, v)
+    for node in nodes[1:6]:
+        st = h["stages"][node]
+        assert st["process"]["n"] > 5 and 0 <= st["process"]["p50"] <= st["e2e"]["p50"], (node, st)

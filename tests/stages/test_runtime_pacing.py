@@ -76,3 +76,42 @@ def test_a_stop_ends_a_wait_and_await_nodes_reports_the_missing():
     assert not pacer.before(2, 2)
     assert time.monotonic() - t0 < 5.0
     assert Consumers().await_nodes(["a", "b"], 0.05, threading.Event(), LOG) == ["a", "b"]
+
+
+def _publish_in_thread(pacer: Pacer, time_ns: int, stamp: int) -> threading.Thread:
+    t = threading.Thread(target=pacer.before, args=(time_ns, stamp), daemon=True)
+    t.start()
+    return t
+
+
+def test_a_warmup_at_a_fixed_speed_waits_for_the_first_frame_to_be_handled_then_starts_the_clock():
+    """``warmup=1``: the second stamp waits until every live node acked the first; the recording's clock starts from it, so nothing is late."""
+    consumers = Consumers("src")
+    consumers.on_alive("op", True)
+    pacer = Pacer(1.0, consumers, threading.Event(), LOG, warmup=1, wait_s=30.0)
+    assert pacer.before(0, 0)  # the first frame goes out at once
+    second = _publish_in_thread(pacer, 100_000_000, 1)
+    second.join(0.4)  # 0.1 s is when it would be due at speed 1
+    assert second.is_alive(), "the second frame waits for op's ack of the first"
+    acked_at = time.monotonic()
+    consumers.on_ack("op", 0)
+    second.join(5.0)
+    assert not second.is_alive()
+    # the clock (re)started at the second frame, once op had acked: later frames keep the recording's rate from it,
+    # not from the first frame (they would all be late by the warm-up)
+    assert pacer._time0 == 100_000_000 and pacer._wall0 >= acked_at
+    assert pacer.before(200_000_000, 2)
+    # without a warm-up nothing waits for acks at a fixed speed
+    plain = Pacer(50.0, consumers, threading.Event(), LOG, wait_s=30.0)
+    assert plain.before(0, 10) and plain.before(100_000_000, 11)
+
+
+def test_a_warmup_gives_up_on_a_node_that_never_acks_after_wait_s():
+    consumers = Consumers("src")
+    consumers.add_alive(["mute"])
+    pacer = Pacer(100.0, consumers, threading.Event(), LOG, warmup=1, wait_s=0.2)
+    assert pacer.before(0, 0)
+    second = _publish_in_thread(pacer, 100_000_000, 1)
+    second.join(5.0)
+    assert not second.is_alive()
+    assert consumers.waiting_on(1) == ([], [])  # not waited for any more (until it acks)
