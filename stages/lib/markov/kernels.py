@@ -287,7 +287,7 @@ if numba is not None:
 
     @numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
     def _speed_fill(xp, fp, start, bucket, inv_h, cell_s, v_c, a_c, w32, tau, values, done, b_idx, v_idx, s_idx):  # pragma: no cover - compiled
-        """λ_speed into values (B, N_v, L, M) at every state (b_idx empty) or at the listed states, where not yet
+        """λ_speed into values (B, L, N_v, M) at every state (b_idx empty) or at the listed states, where not yet
         ``done`` (then marked): v_adm,j(x) at x = s + vτ as np.interp gives it for every profile j, the inputs up to
         (v_adm − v)/τ allowed, Σ_j w_j in the order of j. One loop body for both (a helper per state costs 3x)."""
         n_b, n_l = cell_s.shape
@@ -303,13 +303,13 @@ if numba is not None:
         n_states = n_b * n_v * n_l if every else b_idx.shape[0]
         for i in range(n_states):
             if every:
-                b, rest = divmod(i, n_v * n_l)
-                vi, l = divmod(rest, n_l)
+                b, rest = divmod(i, n_l * n_v)
+                l, vi = divmod(rest, n_v)
             else:
                 b, vi, l = b_idx[i], v_idx[i], s_idx[i]
-            if done[b, vi, l]:
+            if done[b, l, vi]:
                 continue
-            done[b, vi, l] = True
+            done[b, l, vi] = True
             lo, n = start[b], start[b + 1] - start[b]
             v = v_c[vi]
             x = cell_s[b, l] + v * tau
@@ -374,41 +374,58 @@ if numba is not None:
                 c_min = min(c_min, c)
             for a in range(n_in):
                 if a < c_min:
-                    values[b, vi, l, a] = total
+                    values[b, l, vi, a] = total
                 else:
                     acc = np.float32(0.0)  # Σ_j w_j in the order of j, as the numpy definition adds them
                     for jj in range(n_j):
                         if a < count[jj]:
                             acc += w32[jj]
-                    values[b, vi, l, a] = acc
+                    values[b, l, vi, a] = acc
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
     def _priority_from_states(values, preference, b_idx, v_idx, s_idx, forbid_threshold):  # pragma: no cover - compiled
-        """``_priority_at_states`` with the restriction stored per state, (B, N_v, L, M)."""
-        out = np.empty((b_idx.shape[0], values.shape[3]), np.float32)
-        _priority_into(values, preference, b_idx, v_idx, s_idx, b_idx.shape[0], forbid_threshold, out.T)
-        return out
+        """``_priority_at_states`` with the restriction stored per state, (B, L, N_v, M)."""
+        n, n_in = b_idx.shape[0], values.shape[3]
+        out_t = np.empty((n_in, n), np.float32)
+        _priority_into(values, preference, b_idx, v_idx, s_idx, n, forbid_threshold, out_t, np.empty((2 * n_in, n), np.float32),
+                       np.empty((2, n), np.float32))
+        return np.ascontiguousarray(out_t.T)
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
-    def _priority_into(values, preference, b_idx, v_idx, s_idx, n_states, forbid_threshold, out_t):  # pragma: no cover - compiled
+    def _priority_into(values, preference, b_idx, v_idx, s_idx, n_states, forbid_threshold, out_t, gathered, scratch):  # pragma: no cover - compiled
         """The priority of the first ``n_states`` listed states into ``out_t[:, :n_states]`` (M, n): from the highest input
-        down r_α = min(m_α, q_α + carry), where every m_α is at most ``forbid_threshold`` all to α = 0."""
+        down r_α = min(m_α, q_α + carry), where every m_α is at most ``forbid_threshold`` all to α = 0. Each state's
+        arithmetic is that of one state at a time; the loops run input by input over all the states (independent
+        chains side by side: one state's chain of 3M dependent operations otherwise sets the pace). ``gathered``
+        (2M, ≥n) and ``scratch`` (2, ≥n) float32 are scratch."""
         n_in = values.shape[3]
-        for n in range(n_states):
-            b, v, s = b_idx[n], v_idx[n], s_idx[n]
-            carry = np.float32(0.0)
-            top = values[b, v, s, 0]
-            for alpha in range(n_in - 1, -1, -1):
-                m = values[b, v, s, alpha]
-                top = max(top, m)
-                want = carry + preference[b, alpha]
+        n = n_states
+        m_t, q_t = gathered[:n_in], gathered[n_in:]
+        for i in range(n):
+            row = values[b_idx[i], s_idx[i], v_idx[i]]
+            q = preference[b_idx[i]]
+            for alpha in range(n_in):
+                m_t[alpha, i] = row[alpha]
+                q_t[alpha, i] = q[alpha]
+        carry, top = scratch[0], scratch[1]
+        m0 = m_t[0]
+        for i in range(n):
+            carry[i] = np.float32(0.0)
+            top[i] = m0[i]
+        for alpha in range(n_in - 1, -1, -1):
+            ma, qa, oa = m_t[alpha], q_t[alpha], out_t[alpha]
+            for i in range(n):
+                m = ma[i]
+                top[i] = max(top[i], m)
+                want = carry[i] + qa[i]
                 r = min(m, want)
-                out_t[alpha, n] = r
-                carry = want - r
-            if top <= forbid_threshold:
+                oa[i] = r
+                carry[i] = want - r
+        for i in range(n):
+            if top[i] <= forbid_threshold:
                 for alpha in range(n_in):
-                    out_t[alpha, n] = np.float32(0.0)
-                out_t[0, n] = np.float32(1.0)
+                    out_t[alpha, i] = np.float32(0.0)
+                out_t[0, i] = np.float32(1.0)
 
     @numba.njit(cache=True, nogil=True, boundscheck=False, inline="always")
     def _slot_add(key, value, slot, uniq, sums, m):  # pragma: no cover - compiled
@@ -595,6 +612,8 @@ if numba is not None:
         x_t = np.empty((n_in, n_states), f32)
         lam_t = np.empty((n_in, n_states), f32)
         ratio_t = np.empty((n_in, n_states), f32)
+        gathered = np.empty((2 * n_in, n_states), f32)
+        scratch2 = np.empty((2, n_states), f32)
         z = np.empty(n_states, f32)
         acc = np.empty(n_states, f32)
         for blk in blocks:
@@ -731,7 +750,7 @@ if numba is not None:
                                 s_buf[n], v_buf[n], b_buf[n], l_buf[n] = t, v, pair[ln], ln
                                 n += 1
                 _speed_fill(xp, fp, start, bucket, inv_h, cell_s, v_c, a_c, w32, tau, values, done, b_buf[:n], v_buf[:n], s_buf[:n])
-                _priority_into(values, prefs[k], b_buf, v_buf, s_buf, n, forbid_threshold, lam_t)
+                _priority_into(values, prefs[k], b_buf, v_buf, s_buf, n, forbid_threshold, lam_t, gathered, scratch2)
                 for t in range(first, last + 1):
                     for a in range(n_in):
                         for v in range(vlo[t], vhi[t] + 1):
@@ -916,8 +935,9 @@ class SpeedRestriction:
         v_c = np.asarray(v_centres_mps, dtype=np.float64)
         self._args = (xp, np.ascontiguousarray(fp), start, bucket, inv_h, cell_s, v_c, a_c,
                       np.asarray(weights, dtype=np.float64).astype(np.float32), float(tau_s))
-        self._values = np.empty((n_b, v_c.shape[0], cell_s.shape[1], a_c.shape[0]), np.float32)  # valid where _done
-        self._done = np.zeros((n_b, v_c.shape[0], cell_s.shape[1]), np.bool_)
+        # (B, L, N_v, M), valid where _done (B, L, N_v): a pair's states of one s-cell side by side, as the chain visits them
+        self._values = np.empty((n_b, cell_s.shape[1], v_c.shape[0], a_c.shape[0]), np.float32)
+        self._done = np.zeros((n_b, cell_s.shape[1], v_c.shape[0]), np.bool_)
         self._dense: np.ndarray | None = None
 
     @staticmethod
@@ -941,7 +961,7 @@ class SpeedRestriction:
         if self._dense is None:
             empty = np.zeros(0, np.int64)
             _speed_fill(*self._args, self._values, self._done, empty, empty, empty)
-            self._dense = np.ascontiguousarray(np.moveaxis(self._values, 3, 1))
+            self._dense = np.ascontiguousarray(np.transpose(self._values, (0, 3, 2, 1)))
         return self._dense
 
 
