@@ -31,8 +31,10 @@ occupy instead of the batch's window, which spans every pair's; the blocks
 are independent and may be shared out between threads (``threads``; the
 kernel releases the GIL), with the same numbers. Its 8-lane inner
 operations (stencil scatter, marginals and pruning, the test for mass) are written as explicit
-vector operations (``_axpy8``, ``_prune8``, ``_has_mass8``): numba leaves its SLP vectoriser
-off, and loops of 8 constant iterations then run scalar.
+vector operations (``_axpy8``, ``_scatter8``, ``_prune8``, ``_has_mass8``): numba leaves its SLP vectoriser
+off, and loops of 8 constant iterations then run scalar. ``_scatter8`` runs a source row's whole
+stencil (its entries' targets relative to the row tabulated once per call) with the row's 8 lanes
+loaded once; the rows that may leak past the window's end take the per-entry path.
 The motion grid's rasterising and fusion kernels are in ``frame_kernels``.
 
 numba is a dependency; ``available()`` is False only where it cannot be
@@ -462,6 +464,7 @@ if numba is not None:
 
 
     from llvmlite import ir as _ir
+    from numba.core import cgutils as _cgutils
     from numba.core import types
     from numba.extending import intrinsic as _intrinsic
 
@@ -499,6 +502,45 @@ if numba is not None:
             return context.get_dummy_value()
 
         return types.void(dst, d, w, src, s), codegen
+
+    @_intrinsic
+    def _scatter8(typingctx, dst, base, rel, weight, lo, hi, src, s):  # pragma: no cover - compiled
+        """``_axpy8(dst, base + rel[e], weight[e], src, s)`` for e in range(lo, hi), in that order, with the 8 lanes of
+        ``src`` loaded once (``dst`` is another array than ``src``): each lane's numbers those of ``_axpy8``, a stencil row's
+        entries in one loop without the indexing arithmetic per entry (``rel`` int64, ``weight`` float32, 1-D C)."""
+        arr = types.Array
+        if not (isinstance(dst, arr) and dst.ndim == 1 and dst.layout == "C" and dst.dtype in (types.float32, types.float64)
+                and src == arr(types.float32, 1, "C") and rel == arr(types.int64, 1, "C") and weight == arr(types.float32, 1, "C")):
+            return None
+
+        def codegen(context, builder, signature, args):
+            dst_v, base_v, rel_v, w_v, lo_v, hi_v, src_v, s_v = args
+            tys = signature.args
+            intp = context.get_value_type(types.intp)
+            dary = context.make_array(tys[0])(context, builder, dst_v)
+            rary = context.make_array(tys[2])(context, builder, rel_v)
+            wary = context.make_array(tys[3])(context, builder, w_v)
+            sary = context.make_array(tys[6])(context, builder, src_v)
+            base_i = context.cast(builder, base_v, tys[1], types.intp)
+            lo_i = context.cast(builder, lo_v, tys[4], types.intp)
+            hi_i = context.cast(builder, hi_v, tys[5], types.intp)
+            s_i = context.cast(builder, s_v, tys[7], types.intp)
+            f32 = _ir.FloatType()
+            elem = _ir.DoubleType() if tys[0].dtype == types.float64 else f32
+            lanes32, lanes = _ir.VectorType(f32, 8), _ir.VectorType(elem, 8)
+            x = builder.load(builder.bitcast(builder.gep(sary.data, [s_i]), lanes32.as_pointer()), align=4)
+            align = 8 if elem is not f32 else 4
+            with _cgutils.for_range_slice(builder, lo_i, hi_i, _ir.Constant(intp, 1)) as (e, _count):
+                r = builder.load(builder.gep(rary.data, [e]))
+                w = builder.load(builder.gep(wary.data, [e]))
+                product = builder.fmul(_splat8(builder, w), x)
+                if elem is not f32:
+                    product = builder.fpext(product, lanes)
+                dptr = builder.bitcast(builder.gep(dary.data, [builder.add(base_i, r)]), lanes.as_pointer())
+                builder.store(builder.fadd(builder.load(dptr, align=align), product), dptr, align=align)
+            return context.get_dummy_value()
+
+        return types.void(dst, base, rel, weight, lo, hi, src, s), codegen
 
     @_intrinsic
     def _has_mass8(typingctx, row, r):  # pragma: no cover - compiled
@@ -581,6 +623,16 @@ if numba is not None:
                 for e in range(ptr[r], ptr[r + 1]):
                     dv_lo = min(dv_lo, v_to[e] - v)
                     dv_hi = max(dv_hi, v_to[e] - v)
+        # each entry's target relative to its source row's s-cell (flat, in the (L, M, N_v, lanes) buffers)
+        rel = np.empty(offset.shape[0], np.int64)
+        for a in range(n_in):
+            for v in range(n_v):
+                r = a * n_v + v
+                for e in range(ptr[r], ptr[r + 1]):
+                    rel[e] = ((offset[e] * n_in + a) * n_v + v_to[e]) * _LANES
+        irel = np.empty(ioffset.shape[0], np.int64)
+        for e in range(ioffset.shape[0]):
+            irel[e] = ioffset[e] * _LANES
         f32 = np.float32
         zero = f32(0.0)
         cur = np.zeros((n_s, n_in, n_v, n_ln), f32)  # the block's state: rows [first, last], in row s the cells [vlo[s], vhi[s]]
@@ -670,12 +722,18 @@ if numba is not None:
                 # sources in (s, α, v, entry) order, the order of _fused_step: every sum gets its non-zero terms in the
                 # same order (the zero ones it adds change nothing)
                 for s in range(first, last + 1):
+                    inside = s + n_d <= n_s  # every target of the row lies in the window: no leak
                     for a in range(n_in):
                         for v in range(vlo[s], vhi[s] + 1):
                             src = ((s * n_in + a) * n_v + v) * n_ln
                             if not _has_mass8(cur_flat, src):
                                 continue
                             r = a * n_v + v
+                            if inside:
+                                _scatter8(nxt_flat, s * n_in * n_v * n_ln, rel, weight, ptr[r], ptr[r + 1], cur_flat, src)
+                                if with_interval:
+                                    _scatter8(ipos_flat, s * n_ln, irel, iweight, iptr[r], iptr[r + 1], cur_flat, src)
+                                continue
                             for e in range(ptr[r], ptr[r + 1]):
                                 t = s + offset[e]
                                 if t < n_s:
