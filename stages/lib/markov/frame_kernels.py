@@ -44,6 +44,7 @@ def exact_inverse(cell: float) -> float:
 
 
 if numba is not None:
+    from stages.lib.markov import kernels
     from stages.lib.markov.kernels import _slot_add
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
@@ -257,24 +258,43 @@ if numba is not None:
 
 
 def footprint_grids(x_c, y_c, nx, ny, offsets, sample_weights, cell_rows, probs, pair_weights, wide, shifts, members, origin_x, origin_y,
-                    cell, n_rows, n_cols, min_mass):
+                    cell, n_rows, n_cols, min_mass, threads=1):
     """The sparse grids of ``stages.markov_prediction.rasterise.vehicle_grid`` for every vehicle in one call (see
     ``rasterise.vehicle_grids``) from compact footprints (``rasterise.FootprintBatch``); None where numba is missing.
-    ``members``: per vehicle its pair indices. Returns (keys, sums, offsets (n_vehicles + 1,))."""
+    ``members``: per vehicle its pair indices. Returns (keys, sums, offsets (n_vehicles + 1,)). ``threads`` > 1: the
+    vehicles are split into that many runs of about equal work (cells with mass), each a call of its own on a thread
+    of ``kernels._on_threads``, their outputs put end to end: every vehicle's grid is computed on its own, so the
+    numbers do not depend on it."""
     if numba is None:
         return None
-    ptr = np.zeros(len(members) + 1, np.int64)
-    ptr[1:] = np.cumsum([len(m) for m in members])
-    flat = np.fromiter((b for m in members for b in m), np.int64, count=int(ptr[-1]))
     c = np.ascontiguousarray
     has_shift = shifts is not None
     shifts = shifts if has_shift else np.zeros(probs.shape[:2])
-    return _footprint_grids(c(x_c, dtype=np.float64), c(y_c, dtype=np.float64), c(nx, dtype=np.float64), c(ny, dtype=np.float64),
-                            c(offsets, dtype=np.float64), c(sample_weights, dtype=np.float64), c(cell_rows, dtype=np.int64),
-                            c(probs, dtype=np.float32),
-                            c(pair_weights, dtype=np.float64), c(wide, dtype=np.bool_), c(shifts, dtype=np.float64), has_shift, ptr,
-                            flat, float(origin_x), float(origin_y), float(cell), exact_inverse(float(cell)), int(n_rows), int(n_cols),
-                            float(min_mass))
+    args = (c(x_c, dtype=np.float64), c(y_c, dtype=np.float64), c(nx, dtype=np.float64), c(ny, dtype=np.float64),
+            c(offsets, dtype=np.float64), c(sample_weights, dtype=np.float64), c(cell_rows, dtype=np.int64), c(probs, dtype=np.float32),
+            c(pair_weights, dtype=np.float64), c(wide, dtype=np.bool_), c(shifts, dtype=np.float64), has_shift)
+    tail = (float(origin_x), float(origin_y), float(cell), exact_inverse(float(cell)), int(n_rows), int(n_cols), float(min_mass))
+
+    def run(part):
+        ptr = np.zeros(len(part) + 1, np.int64)
+        ptr[1:] = np.cumsum([len(m) for m in part])
+        flat = np.fromiter((b for m in part for b in m), np.int64, count=int(ptr[-1]))
+        return _footprint_grids(*args, ptr, flat, *tail)
+
+    n_parts = min(int(threads), len(members))
+    if n_parts <= 1:
+        return run(members)
+    # work per vehicle: its pairs' (step, cell) entries with mass (each rasterised into the same number of samples)
+    per_pair = (args[7] > min_mass).sum(axis=(1, 2))
+    work = np.cumsum([int(per_pair[list(m)].sum()) if len(m) else 0 for m in members], dtype=np.float64)
+    cuts = [0, *np.searchsorted(work, work[-1] * np.arange(1, n_parts) / n_parts, side="right").tolist(), len(members)]
+    parts = [members[lo:hi] for lo, hi in zip(cuts[:-1], cuts[1:])]
+    found: list = [None] * len(parts)
+    kernels._on_threads(len(parts), lambda i: found.__setitem__(i, run(parts[i])), n_parts)
+    ptrs = [found[0][2]]
+    for keys, _sums, ptr in found[1:]:
+        ptrs.append(ptr[1:] + ptrs[-1][-1])
+    return np.concatenate([f[0] for f in found]), np.concatenate([f[1] for f in found]), np.concatenate(ptrs)
 
 
 def footprint_bounds(x_c, y_c, nx, ny, offsets, cell_rows, used):
