@@ -217,42 +217,47 @@ if numba is not None:
             if ptr[n + 1] > ptr[n]:
                 n_steps = max(n_steps, keys[ptr[n + 1] - 1] // n_cells + 1)
         cursor = ptr[:-1].copy()
-        slot = np.full(n_cells, -1, np.int32)
-        uniq = np.empty(min(total, n_cells), np.int64)
-        sums = np.empty(min(total, n_cells), np.float64)
+        # per cell of a step: its sum (from 0.0) and whether a term came; the cells listed as they first come (written
+        # at every term, kept only for a new cell: no branch per term on whether the cell is new)
+        acc = np.zeros(n_cells, np.float64)
+        seen = np.zeros(n_cells, np.bool_)
+        uniq = np.empty(min(total, n_cells) + 1, np.int64)
         at = 0
         for k in range(n_steps):
             base = k * n_cells
             end = base + n_cells
             u = 0
+            lo, hi = n_cells, -1
             for n in range(n_runs):  # in run order: each cell's terms in the order of the concatenated runs
                 j = cursor[n]
                 stop = ptr[n + 1]
                 while j < stop and keys[j] < end:
-                    u = _slot_add(keys[j] - base, values[j], slot, uniq, sums, u)
+                    idx = keys[j] - base
+                    acc[idx] += values[j]
+                    uniq[u] = idx
+                    u += not seen[idx]
+                    seen[idx] = True
+                    lo, hi = min(lo, idx), max(hi, idx)
                     j += 1
                 cursor[n] = j
             if u == 0:
                 continue
-            lo, hi = n_cells, -1
-            for j in range(u):
-                lo, hi = min(lo, uniq[j]), max(hi, uniq[j])
             if hi - lo + 1 <= 16 * u:  # a scan of the cells' range lists them in key order
                 for idx in range(lo, hi + 1):
-                    s = slot[idx]
-                    if s >= 0:
+                    if seen[idx]:
                         keys_out[at] = base + idx
-                        sums_out[at] = sums[s]
-                        slot[idx] = -1
+                        sums_out[at] = acc[idx]
+                        acc[idx] = 0.0
+                        seen[idx] = False
                         at += 1
             else:
                 ordered = np.sort(uniq[:u])
                 for j in range(u):
                     idx = ordered[j]
                     keys_out[at + j] = base + idx
-                    sums_out[at + j] = sums[slot[idx]]
-                for j in range(u):
-                    slot[uniq[j]] = -1
+                    sums_out[at + j] = acc[idx]
+                    acc[idx] = 0.0
+                    seen[idx] = False
                 at += u
         return keys_out[:at], sums_out[:at], True
 
