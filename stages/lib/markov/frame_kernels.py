@@ -121,11 +121,12 @@ if numba is not None:
                                     x = x + d * nxs
                                     y = y + d * nys
                                 if use_inv:
-                                    col = np.floor((x - origin_x) * inv_cell)
-                                    row = np.floor((y - origin_y) * inv_cell)
+                                    col = (x - origin_x) * inv_cell
+                                    row = (y - origin_y) * inv_cell
                                 else:
-                                    col = np.floor((x - origin_x) / cell)
-                                    row = np.floor((y - origin_y) / cell)
+                                    col = (x - origin_x) / cell
+                                    row = (y - origin_y) / cell
+                                # floor(q) in [0, n) iff q in [0, n) (n whole), and then floor is truncation
                                 if not (col >= 0 and col < n_cols and row >= 0 and row < n_rows):  # NaN: off the grid too
                                     continue
                                 ri, ci = np.int64(row), np.int64(col)
