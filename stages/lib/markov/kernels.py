@@ -388,46 +388,10 @@ if numba is not None:
     def _priority_from_states(values, preference, b_idx, v_idx, s_idx, forbid_threshold):  # pragma: no cover - compiled
         """``_priority_at_states`` with the restriction stored per state, (B, L, N_v, M)."""
         n, n_in = b_idx.shape[0], values.shape[3]
-        out_t = np.empty((n_in, n), np.float32)
-        _priority_into(values, preference, b_idx, v_idx, s_idx, n, forbid_threshold, out_t, np.empty((2 * n_in, n), np.float32),
-                       np.empty((2, n), np.float32))
-        return np.ascontiguousarray(out_t.T)
-
-    @numba.njit(cache=True, nogil=True, boundscheck=False)
-    def _priority_into(values, preference, b_idx, v_idx, s_idx, n_states, forbid_threshold, out_t, gathered, scratch):  # pragma: no cover - compiled
-        """The priority of the first ``n_states`` listed states into ``out_t[:, :n_states]`` (M, n): from the highest input
-        down r_α = min(m_α, q_α + carry), where every m_α is at most ``forbid_threshold`` all to α = 0. Each state's
-        arithmetic is that of one state at a time; the loops run input by input over all the states (independent
-        chains side by side: one state's chain of 3M dependent operations otherwise sets the pace). ``gathered``
-        (2M, ≥n) and ``scratch`` (2, ≥n) float32 are scratch."""
-        n_in = values.shape[3]
-        n = n_states
-        m_t, q_t = gathered[:n_in], gathered[n_in:]
-        for i in range(n):
-            row = values[b_idx[i], s_idx[i], v_idx[i]]
-            q = preference[b_idx[i]]
-            for alpha in range(n_in):
-                m_t[alpha, i] = row[alpha]
-                q_t[alpha, i] = q[alpha]
-        carry, top = scratch[0], scratch[1]
-        m0 = m_t[0]
-        for i in range(n):
-            carry[i] = np.float32(0.0)
-            top[i] = m0[i]
-        for alpha in range(n_in - 1, -1, -1):
-            ma, qa, oa = m_t[alpha], q_t[alpha], out_t[alpha]
-            for i in range(n):
-                m = ma[i]
-                top[i] = max(top[i], m)
-                want = carry[i] + qa[i]
-                r = min(m, want)
-                oa[i] = r
-                carry[i] = want - r
-        for i in range(n):
-            if top[i] <= forbid_threshold:
-                for alpha in range(n_in):
-                    out_t[alpha, i] = np.float32(0.0)
-                out_t[0, i] = np.float32(1.0)
+        width = (n + 7) // 8 * 8
+        out_t = np.empty((n_in, width), np.float32)
+        _priority_into(values, preference, b_idx, v_idx, s_idx, n, forbid_threshold, out_t, np.empty((2 * n_in, width), np.float32))
+        return np.ascontiguousarray(out_t[:, :n].T)
 
     @numba.njit(cache=True, nogil=True, boundscheck=False, inline="always")
     def _slot_add(key, value, slot, uniq, sums, m):  # pragma: no cover - compiled
@@ -543,6 +507,50 @@ if numba is not None:
         return types.void(dst, base, rel, weight, lo, hi, src, s), codegen
 
     @_intrinsic
+    def _priority8(typingctx, out, m, q, i, n_in, stride, threshold):  # pragma: no cover - compiled
+        """``_priority_into``'s arithmetic for the 8 states (columns) i:i + 8 of ``m`` and ``q`` (m_α and q_α in row α,
+        rows ``stride`` apart, 1-D C float32) into ``out``, as 8-lane vector operations: from α = n_in − 1 down
+        top = max(top, m_α), want = carry + q_α, r_α = min(m_α, want), carry = want − r_α; then where top <=
+        ``threshold`` r = (1, 0, ..., 0). Each lane's numbers those of one state at a time (its values are >= 0, not NaN).
+        """
+        f32_1d = types.Array(types.float32, 1, "C")
+        if not (out == f32_1d and m == f32_1d and q == f32_1d and threshold == types.float32):
+            return None
+
+        def codegen(context, builder, signature, args):
+            out_v, m_v, q_v, i_v, n_v, stride_v, thr_v = args
+            tys = signature.args
+            intp = context.get_value_type(types.intp)
+            oary, mary, qary = (context.make_array(tys[k])(context, builder, args[k]) for k in range(3))
+            i_i, n_i, stride_i = (context.cast(builder, args[k], tys[k], types.intp) for k in (3, 4, 5))
+            v32 = _ir.VectorType(_ir.FloatType(), 8)
+
+            def at(ary, row):
+                return builder.bitcast(builder.gep(ary.data, [builder.add(builder.mul(row, stride_i), i_i)]), v32.as_pointer())
+
+            top = _cgutils.alloca_once_value(builder, builder.load(at(mary, _ir.Constant(intp, 0)), align=4))
+            carry = _cgutils.alloca_once_value(builder, v32(None))
+            last = builder.sub(n_i, _ir.Constant(intp, 1))
+            with _cgutils.for_range(builder, n_i) as loop:
+                alpha = builder.sub(last, loop.index)
+                mv = builder.load(at(mary, alpha), align=4)
+                t = builder.load(top)
+                builder.store(builder.select(builder.fcmp_ordered(">", mv, t), mv, t), top)
+                want = builder.fadd(builder.load(carry), builder.load(at(qary, alpha), align=4))
+                r = builder.select(builder.fcmp_ordered("<", want, mv), want, mv)
+                builder.store(r, at(oary, alpha), align=4)
+                builder.store(builder.fsub(want, r), carry)
+            forbid = builder.fcmp_ordered("<=", builder.load(top), _splat8(builder, thr_v))
+            one, zero = _splat8(builder, _ir.Constant(_ir.FloatType(), 1.0)), v32(None)
+            with _cgutils.for_range(builder, n_i) as loop:
+                fill = builder.select(builder.icmp_signed("==", loop.index, _ir.Constant(intp, 0)), one, zero)
+                ptr = at(oary, loop.index)
+                builder.store(builder.select(forbid, fill, builder.load(ptr, align=4)), ptr, align=4)
+            return context.get_dummy_value()
+
+        return types.void(out, m, q, i, n_in, stride, threshold), codegen
+
+    @_intrinsic
     def _has_mass8(typingctx, row, r):  # pragma: no cover - compiled
         """Whether the 8 lanes ``row[r:r + 8]`` (float32, each >= 0 or NaN) sum to > 0 in order: none is NaN and one is
         > 0 (a sum of non-negative terms is at least its largest), as two 8-lane compares."""
@@ -597,6 +605,27 @@ if numba is not None:
             return context.get_dummy_value()
 
         return types.void(row, r, pos, p, vel, q, kept, mark, m, threshold), codegen
+
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _priority_into(values, preference, b_idx, v_idx, s_idx, n_states, forbid_threshold, out_t, gathered):  # pragma: no cover - compiled
+        """The priority of the first ``n_states`` listed states into ``out_t[:, :n_states]`` (M, n): from the highest input
+        down r_α = min(m_α, q_α + carry), where every m_α is at most ``forbid_threshold`` all to α = 0. Each state's
+        arithmetic is that of one state at a time; m and q gathered input by input (``gathered`` (2M, w)), then 8 states
+        at a time as 8-lane vector operations (``_priority8``). ``out_t`` and ``gathered`` need w >= n rounded up to 8
+        columns (those past n hold nothing meaningful)."""
+        n_in = values.shape[3]
+        n = n_states
+        width = gathered.shape[1]
+        m_t, q_t = gathered[:n_in], gathered[n_in:]
+        for i in range(n):
+            row = values[b_idx[i], s_idx[i], v_idx[i]]
+            q = preference[b_idx[i]]
+            for alpha in range(n_in):
+                m_t[alpha, i] = row[alpha]
+                q_t[alpha, i] = q[alpha]
+        flat, m_flat, q_flat = out_t.reshape(-1), m_t.reshape(-1), q_t.reshape(-1)
+        for i in range(0, n, 8):
+            _priority8(flat, m_flat, q_flat, i, n_in, width, forbid_threshold)
 
     @numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
     def _speed_priority_blocks(blocks, inp, vel0, pos0, outside0, order, n_steps, ptr, v_to, offset, weight, iptr, ioffset, iweight,
@@ -662,10 +691,9 @@ if numba is not None:
         o_buf = np.empty(n_states, np.int64)
         f_buf = np.empty(n_states, f32)
         x_t = np.empty((n_in, n_states), f32)
-        lam_t = np.empty((n_in, n_states), f32)
+        lam_t = np.empty((n_in, n_states + _LANES), f32)  # (+ spare columns: _priority_into works 8 states at a time)
         ratio_t = np.empty((n_in, n_states), f32)
-        gathered = np.empty((2 * n_in, n_states), f32)
-        scratch2 = np.empty((2, n_states), f32)
+        gathered = np.empty((2 * n_in, n_states + _LANES), f32)
         z = np.empty(n_states, f32)
         acc = np.empty(n_states, f32)
         for blk in blocks:
@@ -808,7 +836,7 @@ if numba is not None:
                                 s_buf[n], v_buf[n], b_buf[n], l_buf[n] = t, v, pair[ln], ln
                                 n += 1
                 _speed_fill(xp, fp, start, bucket, inv_h, cell_s, v_c, a_c, w32, tau, values, done, b_buf[:n], v_buf[:n], s_buf[:n])
-                _priority_into(values, prefs[k], b_buf, v_buf, s_buf, n, forbid_threshold, lam_t, gathered, scratch2)
+                _priority_into(values, prefs[k], b_buf, v_buf, s_buf, n, forbid_threshold, lam_t, gathered)
                 for t in range(first, last + 1):
                     for a in range(n_in):
                         for v in range(vlo[t], vhi[t] + 1):
