@@ -68,6 +68,9 @@ def test_threaded_chain_equals_the_single_thread_chain_on_real_frames(frames, mo
         return real_grids(*args, threads=threads)
 
     monkeypatch.setattr(frame_kernels, "footprint_grids", grids_spy)
+    runs = []
+    real_runs = frame_kernels._footprint_grids
+    monkeypatch.setattr(frame_kernels, "_footprint_grids", lambda *args: runs.append(len(args[12]) - 1) or real_runs(*args))
     outputs = {}
     for threads in (1, 2, 3):
         predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", kernel_threads=threads), stencils=stencils)
@@ -81,4 +84,5 @@ def test_threaded_chain_equals_the_single_thread_chain_on_real_frames(frames, mo
     assert {t for _, t in calls} == {1, 2, 3}
     assert max(n for n, _ in calls) > 3 * kernels._LANES  # batches of several blocks: the threads share them out
     assert {t for _, t in grid_calls} == {1, 2, 3} and max(n for n, _ in grid_calls) > 3  # vehicles to share out
+    assert len(runs) > len(grid_calls)  # some calls were split into runs on several threads
     assert outputs[2] == outputs[1] and outputs[3] == outputs[1]

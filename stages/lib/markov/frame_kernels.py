@@ -86,7 +86,7 @@ if numba is not None:
         sums = np.empty(most, np.float64)
         box = np.zeros(4096, np.float64)  # per cell of the step's box: its sum (kept all 0.0 between steps) ...
         touched = np.zeros(4096, np.bool_)  # ... and whether a sample fell in it
-        slot = np.full(n_cells, -1, np.int32)  # (boxes much larger than their samples) per cell of the grid: its index in uniq
+        slot = np.full(0, -1, np.int32)  # (boxes much larger than their samples) per cell of the grid: its index in uniq; made when first needed
         f32 = np.float32
         use_inv = inv_cell > 0.0
         at = 0
@@ -158,6 +158,8 @@ if numba is not None:
                             box[idx] = 0.0
                             touched[idx] = False
                 else:  # a sparse box: a slot per cell of the grid, the cells sorted
+                    if slot.shape[0] == 0:
+                        slot = np.full(n_cells, -1, np.int32)
                     u = 0
                     for q in range(c):
                         u = _slot_add(rows[q] * n_cols + cols[q], vals[q], slot, uniq, sums, u)
@@ -263,14 +265,20 @@ if numba is not None:
         return keys_out[:at], sums_out[:at], True
 
 
+#: ``footprint_grids`` shares its vehicles out between threads only with at least this many pairs per thread: at 6
+#: vehicles (12 pairs) two threads measured slower than one (0.54-0.57 vs 0.41-0.52 ms per frame, the hand-off), at 18
+#: (44 pairs) faster (wall 1.97-2.65 vs 2.60-2.85 ms; CPU 2.65-3.41)
+PAIRS_PER_THREAD = 16
+
+
 def footprint_grids(x_c, y_c, nx, ny, offsets, sample_weights, cell_rows, probs, pair_weights, wide, shifts, members, origin_x, origin_y,
                     cell, n_rows, n_cols, min_mass, threads=1):
     """The sparse grids of ``stages.markov_prediction.rasterise.vehicle_grid`` for every vehicle in one call (see
     ``rasterise.vehicle_grids``) from compact footprints (``rasterise.FootprintBatch``); None where numba is missing.
     ``members``: per vehicle its pair indices. Returns (keys, sums, offsets (n_vehicles + 1,)). ``threads`` > 1: the
     vehicles are split into that many runs of about equal work (cells with mass), each a call of its own on a thread
-    of ``kernels._on_threads``, their outputs put end to end: every vehicle's grid is computed on its own, so the
-    numbers do not depend on it."""
+    of ``kernels._on_threads`` (at most one per ``PAIRS_PER_THREAD`` pairs), their outputs put end to end: every
+    vehicle's grid is computed on its own, so the numbers do not depend on it."""
     if numba is None:
         return None
     c = np.ascontiguousarray
@@ -287,7 +295,8 @@ def footprint_grids(x_c, y_c, nx, ny, offsets, sample_weights, cell_rows, probs,
         flat = np.fromiter((b for m in part for b in m), np.int64, count=int(ptr[-1]))
         return _footprint_grids(*args, ptr, flat, *tail)
 
-    n_parts = min(int(threads), len(members))
+    # a run per PAIRS_PER_THREAD pairs at most: below that, handing a run to another thread costs about what it saves
+    n_parts = min(int(threads), len(members), sum(len(m) for m in members) // PAIRS_PER_THREAD)
     if n_parts <= 1:
         return run(members)
     # work per vehicle: its pairs' (step, cell) entries with mass (each rasterised into the same number of samples)
