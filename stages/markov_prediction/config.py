@@ -41,7 +41,8 @@ class MarkovPredictionConfig(ConfigMixin):
     backend: str = "numpy"
     device: str = "cpu"
     # threads of the hybrid chain's one compiled call per frame (kernels.speed_priority_run, numpy backend): its blocks
-    # of 8 pairs are shared out between them; 1: all on the stage's own thread. The numbers do not depend on it
+    # of 8 pairs are shared out between them; and of the vehicle grids' compiled call (frame_kernels.footprint_grids, every
+    # mode): its vehicles. 1: all on the stage's own thread. The numbers do not depend on it
     kernel_threads: int = 2
     corridor_weights: str = "intentions"
     initial_box: str = "auto"  # "auto": MODE_INITIAL_BOX[mode]; after construction always the box in use

@@ -868,7 +868,8 @@ class MarkovPredictor:
         for b, p in enumerate(pairs):
             by_track[p.track_id].append(b)
         # every vehicle's grid in one compiled call (rasterise.vehicle_grids: vehicle_grid's numbers)
-        grids = vehicle_grids(frame, batch, grid_probs, [p.probability for p in pairs], list(by_track.values()), shift_all) if n_b else []
+        grids = vehicle_grids(frame, batch, grid_probs, [p.probability for p in pairs], list(by_track.values()), shift_all,
+                              threads=cfg.kernel_threads) if n_b else []
         vehicle_grids_ = dict(zip(by_track.keys(), grids))
         if self.spread is not None:  # calibrated spread (spread.py): each vehicle's grid blurred per step and speed band
             for track, members in by_track.items():

@@ -384,11 +384,13 @@ def vehicle_grids(
     members: list[list[int]],
     lateral_shifts_m: np.ndarray | None = None,
     min_mass: float = 1e-9,
+    threads: int = 1,
 ) -> list[SparseGrid]:
     """``vehicle_grid`` of every vehicle, vehicle n of the pairs ``members[n]`` (``probs`` ``(B, K, L)``, ``corridor_weights``
     and ``lateral_shifts_m`` ``(B, K)`` per pair): in one compiled call (``frame_kernels.footprint_grids``: the same
     numbers, no Python per vehicle, no (B, L, P) sample arrays) where numba imports, else one ``vehicle_grid``
-    per vehicle. tests/stages/test_markov_batched_outputs.py compares the two."""
+    per vehicle. tests/stages/test_markov_batched_outputs.py compares the two. ``threads``: the compiled call's vehicles shared
+    out between that many threads (the same numbers)."""
     probs = np.asarray(probs)
     found = None
     if probs.dtype == np.float32 and probs.ndim == 3:
@@ -397,7 +399,8 @@ def vehicle_grids(
         fp = footprints
         found = frame_kernels.footprint_grids(fp.centre_x, fp.centre_y, fp.centre_nx, fp.centre_ny, fp.offsets, fp.weights, fp.rows, probs,
                                               np.asarray(corridor_weights, dtype=np.float64), wide, lateral_shifts_m, members,
-                                              frame.origin_x_m, frame.origin_y_m, frame.cell_m, frame.n_rows, frame.n_cols, min_mass)
+                                              frame.origin_x_m, frame.origin_y_m, frame.cell_m, frame.n_rows, frame.n_cols, min_mass,
+                                              threads=threads)
     if found is None:
         shifts = [None] * probs.shape[0] if lateral_shifts_m is None else list(lateral_shifts_m)
         return [vehicle_grid(frame, [footprints.pair(b) for b in m], [probs[b] for b in m], [corridor_weights[b] for b in m],

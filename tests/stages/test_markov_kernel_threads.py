@@ -1,5 +1,6 @@
-"""``kernel_threads``: the hybrid chain's compiled call (``kernels.speed_priority_run``) on several threads gives the
-single-thread numbers bit for bit on real frames, and the knob is validated."""
+"""``kernel_threads``: the hybrid chain's compiled call (``kernels.speed_priority_run``) and the vehicle grids' compiled
+call (``frame_kernels.footprint_grids``) on several threads give the single-thread numbers bit for bit on real frames,
+and the knob is validated."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from stages.intentions import IntentionsConfig
 from stages.lib.base import ConfigError
 from stages.lib.datasets import DEFAULT_DATA_DIR, load_recording
 from stages.lib.datasets.superimpose import build_dense
-from stages.lib.markov import MarkovGridConfig, kernels, load_or_build_stencils, psi_matrix
+from stages.lib.markov import MarkovGridConfig, frame_kernels, kernels, load_or_build_stencils, psi_matrix
 from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
 from stages.markov_prediction.chain import PriorityPropagator
 from stages.offline.chain import chain_frames
@@ -59,6 +60,17 @@ def test_threaded_chain_equals_the_single_thread_chain_on_real_frames(frames, mo
         return real(*args, threads=threads)
 
     monkeypatch.setattr(kernels, "speed_priority_run", spy)
+    grid_calls = []
+    real_grids = frame_kernels.footprint_grids
+
+    def grids_spy(*args, threads=1):
+        grid_calls.append((len(args[11]), threads))
+        return real_grids(*args, threads=threads)
+
+    monkeypatch.setattr(frame_kernels, "footprint_grids", grids_spy)
+    runs = []
+    real_runs = frame_kernels._footprint_grids
+    monkeypatch.setattr(frame_kernels, "_footprint_grids", lambda *args: runs.append(len(args[12]) - 1) or real_runs(*args))
     outputs = {}
     for threads in (1, 2, 3):
         predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", kernel_threads=threads), stencils=stencils)
@@ -71,4 +83,6 @@ def test_threaded_chain_equals_the_single_thread_chain_on_real_frames(frames, mo
                                      prediction.motion_grid(h, item.corridor_set.scene_id).encode()))
     assert {t for _, t in calls} == {1, 2, 3}
     assert max(n for n, _ in calls) > 3 * kernels._LANES  # batches of several blocks: the threads share them out
+    assert {t for _, t in grid_calls} == {1, 2, 3} and max(n for n, _ in grid_calls) > 3  # vehicles to share out
+    assert len(runs) > len(grid_calls)  # some calls were split into runs on several threads
     assert outputs[2] == outputs[1] and outputs[3] == outputs[1]

@@ -31,8 +31,10 @@ occupy instead of the batch's window, which spans every pair's; the blocks
 are independent and may be shared out between threads (``threads``; the
 kernel releases the GIL), with the same numbers. Its 8-lane inner
 operations (stencil scatter, marginals and pruning, the test for mass) are written as explicit
-vector operations (``_axpy8``, ``_prune8``, ``_has_mass8``): numba leaves its SLP vectoriser
-off, and loops of 8 constant iterations then run scalar.
+vector operations (``_axpy8``, ``_scatter8``, ``_prune8``, ``_has_mass8``): numba leaves its SLP vectoriser
+off, and loops of 8 constant iterations then run scalar. ``_scatter8`` runs a source row's whole
+stencil (its entries' targets relative to the row tabulated once per call) with the row's 8 lanes
+loaded once; the rows that may leak past the window's end take the per-entry path.
 The motion grid's rasterising and fusion kernels are in ``frame_kernels``.
 
 numba is a dependency; ``available()`` is False only where it cannot be
@@ -287,7 +289,7 @@ if numba is not None:
 
     @numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
     def _speed_fill(xp, fp, start, bucket, inv_h, cell_s, v_c, a_c, w32, tau, values, done, b_idx, v_idx, s_idx):  # pragma: no cover - compiled
-        """λ_speed into values (B, N_v, L, M) at every state (b_idx empty) or at the listed states, where not yet
+        """λ_speed into values (B, L, N_v, M) at every state (b_idx empty) or at the listed states, where not yet
         ``done`` (then marked): v_adm,j(x) at x = s + vτ as np.interp gives it for every profile j, the inputs up to
         (v_adm − v)/τ allowed, Σ_j w_j in the order of j. One loop body for both (a helper per state costs 3x)."""
         n_b, n_l = cell_s.shape
@@ -303,13 +305,13 @@ if numba is not None:
         n_states = n_b * n_v * n_l if every else b_idx.shape[0]
         for i in range(n_states):
             if every:
-                b, rest = divmod(i, n_v * n_l)
-                vi, l = divmod(rest, n_l)
+                b, rest = divmod(i, n_l * n_v)
+                l, vi = divmod(rest, n_v)
             else:
                 b, vi, l = b_idx[i], v_idx[i], s_idx[i]
-            if done[b, vi, l]:
+            if done[b, l, vi]:
                 continue
-            done[b, vi, l] = True
+            done[b, l, vi] = True
             lo, n = start[b], start[b + 1] - start[b]
             v = v_c[vi]
             x = cell_s[b, l] + v * tau
@@ -374,41 +376,22 @@ if numba is not None:
                 c_min = min(c_min, c)
             for a in range(n_in):
                 if a < c_min:
-                    values[b, vi, l, a] = total
+                    values[b, l, vi, a] = total
                 else:
                     acc = np.float32(0.0)  # Σ_j w_j in the order of j, as the numpy definition adds them
                     for jj in range(n_j):
                         if a < count[jj]:
                             acc += w32[jj]
-                    values[b, vi, l, a] = acc
+                    values[b, l, vi, a] = acc
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
     def _priority_from_states(values, preference, b_idx, v_idx, s_idx, forbid_threshold):  # pragma: no cover - compiled
-        """``_priority_at_states`` with the restriction stored per state, (B, N_v, L, M)."""
-        out = np.empty((b_idx.shape[0], values.shape[3]), np.float32)
-        _priority_into(values, preference, b_idx, v_idx, s_idx, b_idx.shape[0], forbid_threshold, out.T)
-        return out
-
-    @numba.njit(cache=True, nogil=True, boundscheck=False)
-    def _priority_into(values, preference, b_idx, v_idx, s_idx, n_states, forbid_threshold, out_t):  # pragma: no cover - compiled
-        """The priority of the first ``n_states`` listed states into ``out_t[:, :n_states]`` (M, n): from the highest input
-        down r_α = min(m_α, q_α + carry), where every m_α is at most ``forbid_threshold`` all to α = 0."""
-        n_in = values.shape[3]
-        for n in range(n_states):
-            b, v, s = b_idx[n], v_idx[n], s_idx[n]
-            carry = np.float32(0.0)
-            top = values[b, v, s, 0]
-            for alpha in range(n_in - 1, -1, -1):
-                m = values[b, v, s, alpha]
-                top = max(top, m)
-                want = carry + preference[b, alpha]
-                r = min(m, want)
-                out_t[alpha, n] = r
-                carry = want - r
-            if top <= forbid_threshold:
-                for alpha in range(n_in):
-                    out_t[alpha, n] = np.float32(0.0)
-                out_t[0, n] = np.float32(1.0)
+        """``_priority_at_states`` with the restriction stored per state, (B, L, N_v, M)."""
+        n, n_in = b_idx.shape[0], values.shape[3]
+        width = (n + 7) // 8 * 8
+        out_t = np.empty((n_in, width), np.float32)
+        _priority_into(values, preference, b_idx, v_idx, s_idx, n, forbid_threshold, out_t, np.empty((2 * n_in, width), np.float32))
+        return np.ascontiguousarray(out_t[:, :n].T)
 
     @numba.njit(cache=True, nogil=True, boundscheck=False, inline="always")
     def _slot_add(key, value, slot, uniq, sums, m):  # pragma: no cover - compiled
@@ -445,6 +428,7 @@ if numba is not None:
 
 
     from llvmlite import ir as _ir
+    from numba.core import cgutils as _cgutils
     from numba.core import types
     from numba.extending import intrinsic as _intrinsic
 
@@ -482,6 +466,89 @@ if numba is not None:
             return context.get_dummy_value()
 
         return types.void(dst, d, w, src, s), codegen
+
+    @_intrinsic
+    def _scatter8(typingctx, dst, base, rel, weight, lo, hi, src, s):  # pragma: no cover - compiled
+        """``_axpy8(dst, base + rel[e], weight[e], src, s)`` for e in range(lo, hi), in that order, with the 8 lanes of
+        ``src`` loaded once (``dst`` is another array than ``src``): each lane's numbers those of ``_axpy8``, a stencil row's
+        entries in one loop without the indexing arithmetic per entry (``rel`` int64, ``weight`` float32, 1-D C)."""
+        arr = types.Array
+        if not (isinstance(dst, arr) and dst.ndim == 1 and dst.layout == "C" and dst.dtype in (types.float32, types.float64)
+                and src == arr(types.float32, 1, "C") and rel == arr(types.int64, 1, "C") and weight == arr(types.float32, 1, "C")):
+            return None
+
+        def codegen(context, builder, signature, args):
+            dst_v, base_v, rel_v, w_v, lo_v, hi_v, src_v, s_v = args
+            tys = signature.args
+            intp = context.get_value_type(types.intp)
+            dary = context.make_array(tys[0])(context, builder, dst_v)
+            rary = context.make_array(tys[2])(context, builder, rel_v)
+            wary = context.make_array(tys[3])(context, builder, w_v)
+            sary = context.make_array(tys[6])(context, builder, src_v)
+            base_i = context.cast(builder, base_v, tys[1], types.intp)
+            lo_i = context.cast(builder, lo_v, tys[4], types.intp)
+            hi_i = context.cast(builder, hi_v, tys[5], types.intp)
+            s_i = context.cast(builder, s_v, tys[7], types.intp)
+            f32 = _ir.FloatType()
+            elem = _ir.DoubleType() if tys[0].dtype == types.float64 else f32
+            lanes32, lanes = _ir.VectorType(f32, 8), _ir.VectorType(elem, 8)
+            x = builder.load(builder.bitcast(builder.gep(sary.data, [s_i]), lanes32.as_pointer()), align=4)
+            align = 8 if elem is not f32 else 4
+            with _cgutils.for_range_slice(builder, lo_i, hi_i, _ir.Constant(intp, 1)) as (e, _count):
+                r = builder.load(builder.gep(rary.data, [e]))
+                w = builder.load(builder.gep(wary.data, [e]))
+                product = builder.fmul(_splat8(builder, w), x)
+                if elem is not f32:
+                    product = builder.fpext(product, lanes)
+                dptr = builder.bitcast(builder.gep(dary.data, [builder.add(base_i, r)]), lanes.as_pointer())
+                builder.store(builder.fadd(builder.load(dptr, align=align), product), dptr, align=align)
+            return context.get_dummy_value()
+
+        return types.void(dst, base, rel, weight, lo, hi, src, s), codegen
+
+    @_intrinsic
+    def _priority8(typingctx, out, m, q, i, n_in, stride, threshold):  # pragma: no cover - compiled
+        """``_priority_into``'s arithmetic for the 8 states (columns) i:i + 8 of ``m`` and ``q`` (m_α and q_α in row α,
+        rows ``stride`` apart, 1-D C float32) into ``out``, as 8-lane vector operations: from α = n_in − 1 down
+        top = max(top, m_α), want = carry + q_α, r_α = min(m_α, want), carry = want − r_α; then where top <=
+        ``threshold`` r = (1, 0, ..., 0). Each lane's numbers those of one state at a time (its values are >= 0, not NaN).
+        """
+        f32_1d = types.Array(types.float32, 1, "C")
+        if not (out == f32_1d and m == f32_1d and q == f32_1d and threshold == types.float32):
+            return None
+
+        def codegen(context, builder, signature, args):
+            out_v, m_v, q_v, i_v, n_v, stride_v, thr_v = args
+            tys = signature.args
+            intp = context.get_value_type(types.intp)
+            oary, mary, qary = (context.make_array(tys[k])(context, builder, args[k]) for k in range(3))
+            i_i, n_i, stride_i = (context.cast(builder, args[k], tys[k], types.intp) for k in (3, 4, 5))
+            v32 = _ir.VectorType(_ir.FloatType(), 8)
+
+            def at(ary, row):
+                return builder.bitcast(builder.gep(ary.data, [builder.add(builder.mul(row, stride_i), i_i)]), v32.as_pointer())
+
+            top = _cgutils.alloca_once_value(builder, builder.load(at(mary, _ir.Constant(intp, 0)), align=4))
+            carry = _cgutils.alloca_once_value(builder, v32(None))
+            last = builder.sub(n_i, _ir.Constant(intp, 1))
+            with _cgutils.for_range(builder, n_i) as loop:
+                alpha = builder.sub(last, loop.index)
+                mv = builder.load(at(mary, alpha), align=4)
+                t = builder.load(top)
+                builder.store(builder.select(builder.fcmp_ordered(">", mv, t), mv, t), top)
+                want = builder.fadd(builder.load(carry), builder.load(at(qary, alpha), align=4))
+                r = builder.select(builder.fcmp_ordered("<", want, mv), want, mv)
+                builder.store(r, at(oary, alpha), align=4)
+                builder.store(builder.fsub(want, r), carry)
+            forbid = builder.fcmp_ordered("<=", builder.load(top), _splat8(builder, thr_v))
+            one, zero = _splat8(builder, _ir.Constant(_ir.FloatType(), 1.0)), v32(None)
+            with _cgutils.for_range(builder, n_i) as loop:
+                fill = builder.select(builder.icmp_signed("==", loop.index, _ir.Constant(intp, 0)), one, zero)
+                ptr = at(oary, loop.index)
+                builder.store(builder.select(forbid, fill, builder.load(ptr, align=4)), ptr, align=4)
+            return context.get_dummy_value()
+
+        return types.void(out, m, q, i, n_in, stride, threshold), codegen
 
     @_intrinsic
     def _has_mass8(typingctx, row, r):  # pragma: no cover - compiled
@@ -539,6 +606,27 @@ if numba is not None:
 
         return types.void(row, r, pos, p, vel, q, kept, mark, m, threshold), codegen
 
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _priority_into(values, preference, b_idx, v_idx, s_idx, n_states, forbid_threshold, out_t, gathered):  # pragma: no cover - compiled
+        """The priority of the first ``n_states`` listed states into ``out_t[:, :n_states]`` (M, n): from the highest input
+        down r_α = min(m_α, q_α + carry), where every m_α is at most ``forbid_threshold`` all to α = 0. Each state's
+        arithmetic is that of one state at a time; m and q gathered input by input (``gathered`` (2M, w)), then 8 states
+        at a time as 8-lane vector operations (``_priority8``). ``out_t`` and ``gathered`` need w >= n rounded up to 8
+        columns (those past n hold nothing meaningful)."""
+        n_in = values.shape[3]
+        n = n_states
+        width = gathered.shape[1]
+        m_t, q_t = gathered[:n_in], gathered[n_in:]
+        for i in range(n):
+            row = values[b_idx[i], s_idx[i], v_idx[i]]
+            q = preference[b_idx[i]]
+            for alpha in range(n_in):
+                m_t[alpha, i] = row[alpha]
+                q_t[alpha, i] = q[alpha]
+        flat, m_flat, q_flat = out_t.reshape(-1), m_t.reshape(-1), q_t.reshape(-1)
+        for i in range(0, n, 8):
+            _priority8(flat, m_flat, q_flat, i, n_in, width, forbid_threshold)
+
     @numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
     def _speed_priority_blocks(blocks, inp, vel0, pos0, outside0, order, n_steps, ptr, v_to, offset, weight, iptr, ioffset, iweight,
                                with_interval, threshold, psi, prefs, has_input, forbid_threshold, xp, fp, start, bucket, inv_h, cell_s,
@@ -564,6 +652,16 @@ if numba is not None:
                 for e in range(ptr[r], ptr[r + 1]):
                     dv_lo = min(dv_lo, v_to[e] - v)
                     dv_hi = max(dv_hi, v_to[e] - v)
+        # each entry's target relative to its source row's s-cell (flat, in the (L, M, N_v, lanes) buffers)
+        rel = np.empty(offset.shape[0], np.int64)
+        for a in range(n_in):
+            for v in range(n_v):
+                r = a * n_v + v
+                for e in range(ptr[r], ptr[r + 1]):
+                    rel[e] = ((offset[e] * n_in + a) * n_v + v_to[e]) * _LANES
+        irel = np.empty(ioffset.shape[0], np.int64)
+        for e in range(ioffset.shape[0]):
+            irel[e] = ioffset[e] * _LANES
         f32 = np.float32
         zero = f32(0.0)
         cur = np.zeros((n_s, n_in, n_v, n_ln), f32)  # the block's state: rows [first, last], in row s the cells [vlo[s], vhi[s]]
@@ -593,8 +691,9 @@ if numba is not None:
         o_buf = np.empty(n_states, np.int64)
         f_buf = np.empty(n_states, f32)
         x_t = np.empty((n_in, n_states), f32)
-        lam_t = np.empty((n_in, n_states), f32)
+        lam_t = np.empty((n_in, n_states + _LANES), f32)  # (+ spare columns: _priority_into works 8 states at a time)
         ratio_t = np.empty((n_in, n_states), f32)
+        gathered = np.empty((2 * n_in, n_states + _LANES), f32)
         z = np.empty(n_states, f32)
         acc = np.empty(n_states, f32)
         for blk in blocks:
@@ -651,12 +750,18 @@ if numba is not None:
                 # sources in (s, α, v, entry) order, the order of _fused_step: every sum gets its non-zero terms in the
                 # same order (the zero ones it adds change nothing)
                 for s in range(first, last + 1):
+                    inside = s + n_d <= n_s  # every target of the row lies in the window: no leak
                     for a in range(n_in):
                         for v in range(vlo[s], vhi[s] + 1):
                             src = ((s * n_in + a) * n_v + v) * n_ln
                             if not _has_mass8(cur_flat, src):
                                 continue
                             r = a * n_v + v
+                            if inside:
+                                _scatter8(nxt_flat, s * n_in * n_v * n_ln, rel, weight, ptr[r], ptr[r + 1], cur_flat, src)
+                                if with_interval:
+                                    _scatter8(ipos_flat, s * n_ln, irel, iweight, iptr[r], iptr[r + 1], cur_flat, src)
+                                continue
                             for e in range(ptr[r], ptr[r + 1]):
                                 t = s + offset[e]
                                 if t < n_s:
@@ -731,7 +836,7 @@ if numba is not None:
                                 s_buf[n], v_buf[n], b_buf[n], l_buf[n] = t, v, pair[ln], ln
                                 n += 1
                 _speed_fill(xp, fp, start, bucket, inv_h, cell_s, v_c, a_c, w32, tau, values, done, b_buf[:n], v_buf[:n], s_buf[:n])
-                _priority_into(values, prefs[k], b_buf, v_buf, s_buf, n, forbid_threshold, lam_t)
+                _priority_into(values, prefs[k], b_buf, v_buf, s_buf, n, forbid_threshold, lam_t, gathered)
                 for t in range(first, last + 1):
                     for a in range(n_in):
                         for v in range(vlo[t], vhi[t] + 1):
@@ -916,8 +1021,9 @@ class SpeedRestriction:
         v_c = np.asarray(v_centres_mps, dtype=np.float64)
         self._args = (xp, np.ascontiguousarray(fp), start, bucket, inv_h, cell_s, v_c, a_c,
                       np.asarray(weights, dtype=np.float64).astype(np.float32), float(tau_s))
-        self._values = np.empty((n_b, v_c.shape[0], cell_s.shape[1], a_c.shape[0]), np.float32)  # valid where _done
-        self._done = np.zeros((n_b, v_c.shape[0], cell_s.shape[1]), np.bool_)
+        # (B, L, N_v, M), valid where _done (B, L, N_v): a pair's states of one s-cell side by side, as the chain visits them
+        self._values = np.empty((n_b, cell_s.shape[1], v_c.shape[0], a_c.shape[0]), np.float32)
+        self._done = np.zeros((n_b, cell_s.shape[1], v_c.shape[0]), np.bool_)
         self._dense: np.ndarray | None = None
 
     @staticmethod
@@ -941,7 +1047,7 @@ class SpeedRestriction:
         if self._dense is None:
             empty = np.zeros(0, np.int64)
             _speed_fill(*self._args, self._values, self._done, empty, empty, empty)
-            self._dense = np.ascontiguousarray(np.moveaxis(self._values, 3, 1))
+            self._dense = np.ascontiguousarray(np.transpose(self._values, (0, 3, 2, 1)))
         return self._dense
 
 
