@@ -199,7 +199,11 @@ class _Conflicts:
 
 
 def _heading_at(corridor: Corridor, s_m: float) -> float:
-    return float(wrap_angle_rad(np.interp(s_m, corridor.s_m, np.unwrap(corridor.heading_rad))))
+    """The corridor's heading at s: its unwrapped heading interpolated, wrapped (the kernel where it can, numpy else)."""
+    found = kernels.unwrapped_interp(s_m, corridor.s_m, corridor.heading_rad)
+    if found is None:
+        found = np.interp(s_m, corridor.s_m, np.unwrap(corridor.heading_rad))
+    return float(wrap_angle_rad(found))
 
 
 def _corridor_problem(corridor: Corridor) -> str | None:
