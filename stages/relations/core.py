@@ -177,6 +177,7 @@ class _Pair:
     xy: np.ndarray
     lanelet_index: np.ndarray
     follows_lanelets: bool
+    width_max_m: float = math.nan  # the corridor's widest width
 
 
 @dataclass(slots=True, eq=False)
@@ -518,6 +519,7 @@ class RelationExtractor:
         for track_id in sorted(all_rows - listed):
             issues.append(Issue("missing_corridors", track_id, "in the TrackFrame but not in the CorridorSet: obstacle only"))
         pairs: list[_Pair] = []
+        accepted: list[tuple] = []
         checked = _checked_corridors(corridor_set, tables)
         for vehicle in corridor_set.vehicles:
             if not vehicle.corridors:
@@ -536,19 +538,29 @@ class RelationExtractor:
                 if problem is not None:
                     issues.append(Issue("bad_corridor", vehicle.track_id, f"corridor {corridor.corridor_id}: {problem}: skipped"))
                     continue
-                pairs.append(
-                    _Pair(
-                        g=len(pairs),
-                        vehicle=vehicle,
-                        corridor=corridor,
-                        row=row,
-                        speed_mps=max(speed, 0.0),
-                        length_m=float(objects.length_m[row]),
-                        xy=np.column_stack([corridor.x_m, corridor.y_m]),
-                        lanelet_index=lanelet_index,
-                        follows_lanelets=follows,
-                    )
+                accepted.append((vehicle, corridor, row, speed, lanelet_index, follows))
+        if not accepted:
+            return pairs
+        # every pair's centreline (x, y) as a view into one (points, 2) array, and its widest width, a few numpy calls
+        sizes = [len(a[1].x_m) for a in accepted]
+        bounds = np.concatenate([[0], np.cumsum(sizes)])
+        xy = np.column_stack([np.concatenate([a[1].x_m for a in accepted]), np.concatenate([a[1].y_m for a in accepted])])
+        widest = np.maximum.reduceat(np.concatenate([a[1].width_m for a in accepted]).astype(np.float64, copy=False), bounds[:-1]).tolist()
+        for g, (vehicle, corridor, row, speed, lanelet_index, follows) in enumerate(accepted):
+            pairs.append(
+                _Pair(
+                    g=g,
+                    vehicle=vehicle,
+                    corridor=corridor,
+                    row=row,
+                    speed_mps=max(speed, 0.0),
+                    length_m=float(objects.length_m[row]),
+                    xy=xy[bounds[g] : bounds[g + 1]],
+                    lanelet_index=lanelet_index,
+                    follows_lanelets=follows,
+                    width_max_m=widest[g],
                 )
+            )
         return pairs
 
     # ----- lateral relation --------------------------------------------------------
@@ -565,7 +577,7 @@ class RelationExtractor:
         return np.array(
             [
                 cfg.lookbehind_m + max(0.0, float(p.corridor.s_m[0]) - p.corridor.vehicle_s_m)
-                + 0.5 * float(np.max(p.corridor.width_m)) + cfg.lateral_margin_m + 1.0
+                + 0.5 * p.width_max_m + cfg.lateral_margin_m + 1.0
                 for p in pairs
             ]
         )
@@ -573,7 +585,7 @@ class RelationExtractor:
     def _radius(self, pairs: list[_Pair]) -> np.ndarray:
         """Per pair, the largest |d| `_lateral` can keep: half the corridor's widest width + `lateral_margin_m` (+1 mm)."""
         margin = self.config.lateral_margin_m
-        return np.array([0.5 * float(np.max(p.corridor.width_m)) + margin + 1e-3 for p in pairs])
+        return np.array([0.5 * p.width_max_m + margin + 1e-3 for p in pairs])
 
     def _lateral(self, pair: _Pair, objects: _Objects, projected, batched=None):
         """Objects within the lane of the corridor, ordered by s, and the leader (row into them or -1).
@@ -801,14 +813,36 @@ class RelationExtractor:
         candidates = np.flatnonzero(changes_lane[g] & (s > -window))
         candidates = candidates[np.argsort(g[candidates], kind="stable")]  # by pair, ascending rows within one
         starts = np.flatnonzero(np.concatenate([[True], g[candidates][1:] != g[candidates][:-1]])) if len(candidates) else candidates
+        groups = []  # (pair, its rows)
         for a, b in zip(starts, [*starts[1:], len(candidates)]):
             pair = pairs[g[candidates[a]]]
             rows = candidates[a:b]
             rows = rows[s[rows] < pair.corridor.s_m[-1] + window]
-            if not len(rows):
-                continue
-            xy = np.column_stack([tables.point_x_m[point[rows]], tables.point_y_m[point[rows]]])
-            s[rows] = project_in_window(xy, pair.xy, pair.corridor.s_m, s[rows], window)[0]
+            if len(rows):
+                groups.append((pair, rows))
+        if not groups:
+            return
+        # every group's points on its own corridor in one kernel call (`kernels.project_window_groups`: the arithmetic
+        # of `project_in_window`, group by group); a group the kernel declines goes through `project_in_window`
+        all_rows = np.concatenate([rows for _pair, rows in groups])
+        xy = np.column_stack([tables.point_x_m[point[all_rows]], tables.point_y_m[point[all_rows]]])
+        hints = s[all_rows]
+        counts = np.array([len(rows) for _pair, rows in groups], dtype=np.int64)
+        point_bounds = np.concatenate([[0], np.cumsum(counts)])
+        found = kernels.project_window_groups(
+            xy, point_bounds,
+            np.concatenate([pair.xy for pair, _rows in groups]).astype(np.float64, copy=False),
+            np.concatenate([[0], np.cumsum([len(pair.xy) for pair, _rows in groups])]).astype(np.int64),
+            np.concatenate([np.asarray(pair.corridor.s_m, np.float64) for pair, _rows in groups]),
+            hints, window,
+        )
+        ok = found[3] if found is not None else np.zeros(len(groups), dtype=bool)
+        done = np.repeat(ok, counts)
+        s[all_rows[done]] = found[0][done] if found is not None else s[all_rows[done]]
+        for q in np.flatnonzero(~ok):
+            pair, rows = groups[q]
+            part = slice(point_bounds[q], point_bounds[q + 1])
+            s[rows] = project_in_window(xy[part], pair.xy, pair.corridor.s_m, hints[part], window)[0]
 
     # ----- assembly ------------------------------------------------------------------
 

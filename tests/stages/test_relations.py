@@ -615,3 +615,38 @@ def test_grouped_influencing_choice_equals_the_choice_per_corridor():
             assert choose_influencing(*args, horizon_s=6.0, other_probability=None if prob is None else prob[span], min_probability=0.1) == want
             chosen += want[0] >= 0
         assert 50 < chosen < len(sizes)
+
+
+def test_lane_change_refinement_in_one_kernel_call_equals_the_call_per_corridor(scene_maps, monkeypatch):
+    """`_refine` projects the conflict points of every lane-change corridor in one `kernels.project_window_groups` call;
+    with the kernel declining (each corridor through `project_in_window`, the reference) every frame of the embedded
+    K729 sequences gives the same RelationSet bytes and issues, and the kernel did refine points."""
+    from stages.lib.datasets import load_recording
+    from stages.lib.maps import kernels
+
+    if not kernels.available():
+        pytest.skip("numba not importable")
+    name = "k729_2022-03-16"
+    recording = load_recording(DEFAULT_DATA_DIR, name)
+    player = TrackPlayer(TracksSourceConfig(recording=name), recording, map_sha256="", run_id="test", producer="tracks")
+    builder = CorridorBuilder(CorridorsConfig(), producer="corridors", scene_maps=scene_maps)
+    inputs, scene = [], None
+    for _stamp, result in player:
+        scene = result.outputs.get("scene", scene)
+        frame = result.outputs["track_frame"]
+        inputs.append((frame, builder.process(frame, scene)[0], scene))
+    original = kernels.project_window_groups
+    refined = []
+    monkeypatch.setattr(kernels, "project_window_groups", lambda *args: refined.append(int(original(*args)[3].sum())) or original(*args))
+
+    def run():
+        extractor = RelationExtractor(RelationsConfig(), scene_maps=scene_maps)
+        return [extractor.process(frame, corridor_set, scene) for frame, corridor_set, scene in inputs]
+
+    grouped = run()
+    assert sum(refined) > 100, refined
+    monkeypatch.setattr(kernels, "project_window_groups", lambda *args: None)
+    reference = run()
+    assert len(grouped) == len(reference) > 1000
+    for (a, issues_a), (b, issues_b) in zip(grouped, reference):
+        assert a.encode() == b.encode() and issues_a == issues_b

@@ -432,6 +432,16 @@ def _project_point(px, py, line, arc, hint, window_m):
     return ok, out_s[0], out_d[0]
 
 
+def _project_window_groups(points, point_bounds, lines, line_bounds, arcs, hints, window_m, out_s, out_d, out_seg, ok):
+    """`_project_window` for groups of points, each on its own polyline: group q's points
+    points[point_bounds[q]:point_bounds[q + 1]] on lines[line_bounds[q]:line_bounds[q + 1]] (arcs the same rows);
+    ok[q] False where that group must take the numpy path."""
+    for q in range(point_bounds.shape[0] - 1):
+        a, b = point_bounds[q], point_bounds[q + 1]
+        c, d = line_bounds[q], line_bounds[q + 1]
+        ok[q] = _project_window_compiled(points[a:b], lines[c:d], arcs[c:d], hints[a:b], window_m, out_s[a:b], out_d[a:b], out_seg[a:b])
+
+
 def _max_separation(ax, ay, bx, by, start):
     """max over i >= start of sqrt(dx² + dy²) between samples i of two polylines (the shorter one's length); NaN if
     any distance is NaN (as ndarray.max), 0.0 when none is left."""
@@ -516,12 +526,14 @@ if numba is not None:
     _project_point_compiled = _jit(_project_point)
     _segment_d2 = _jit(_segment_d2)
     _project_polylines_compiled = _jit(_project_polylines)
+    _project_window_groups_compiled = _jit(_project_window_groups)
 else:  # pragma: no cover
     _max_separation_compiled = None
     _unwrapped_interp_compiled = None
     _project_window_compiled = None
     _project_point_compiled = None
     _project_polylines_compiled = None
+    _project_window_groups_compiled = None
     _sample_route_compiled = None
     _measure_lanelets_compiled = None
 
@@ -536,6 +548,22 @@ def project_window(points: np.ndarray, line: np.ndarray, arc: np.ndarray, hints:
     out_seg = np.empty(n, dtype=np.int64)
     ok = _project_window_compiled(points, line, arc, hints, float(window_m), out_s, out_d, out_seg)
     return (out_s, out_d, out_seg) if ok else None
+
+
+def project_window_groups(points: np.ndarray, point_bounds: np.ndarray, lines: np.ndarray, line_bounds: np.ndarray,
+                          arcs: np.ndarray, hints: np.ndarray, window_m: float):
+    """`project_window` for groups of points, each on its own polyline, in one call (`_project_window_groups`; float64
+    points (n, 2), lines (m, 2), arcs (m,), hints (n,); int64 bounds (groups + 1,)): (s, d, segment) (n,) and ok
+    (groups,), False for a group that must take the numpy path; None: no kernel."""
+    if _project_window_groups_compiled is None:
+        return None
+    n = len(points)
+    out_s = np.empty(n)
+    out_d = np.empty(n)
+    out_seg = np.empty(n, dtype=np.int64)
+    ok = np.zeros(len(point_bounds) - 1, dtype=np.bool_)
+    _project_window_groups_compiled(points, point_bounds, lines, line_bounds, arcs, hints, float(window_m), out_s, out_d, out_seg, ok)
+    return out_s, out_d, out_seg, ok
 
 
 def project_point(x: float, y: float, line: np.ndarray, arc: np.ndarray, s_hint_m: float, window_m: float):
@@ -639,6 +667,8 @@ def warm_up() -> None:
                      np.array([3], np.int64), *out, np.full((1, 1), np.inf))
     project_polylines(point, line, arc, np.array([0, 4], np.int64), np.ones(1), np.ones(1), 8, 1, 3,
                       np.full((1, 1), np.nan), np.full((1, 1), np.nan))
+    bounds = np.array([0, 1], np.int64)
+    project_window_groups(point, bounds, line, np.array([0, 4], np.int64), arc, np.array([1.0]), 2.0)
     for a in (arc, frozen):  # the corridors' arrays as built (writable) and as decoded from the bus (read-only)
         max_separation(a, a, a, a, 1)
         unwrapped_interp(1.5, a, a)
