@@ -126,6 +126,8 @@ class _Track:
     speed_mps: float = 0.0
     # the last frame's route plan (`CorridorBuilder._plan`): (key, plan), the key its whole input by content
     plan: tuple | None = None
+    # the continuity set of `matched` (`CorridorBuilder._allowed`): (road map, matched, allowed), re-used while both repeat
+    allowed: tuple | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -449,7 +451,7 @@ class CorridorBuilder:
                 heading_ambiguous=kin.heading_ambiguous,
                 heading_confident=kin.heading_confident,
                 heading_known=kin.heading_known,
-                allowed=self._allowed(scene_map.road_map, track.matched),
+                allowed=self._continuity(scene_map.road_map, track),
                 previous=track.matched,
                 max_heading_rad=cfg.match_max_heading_rad,
                 ambiguity_margin_m=cfg.ambiguity_margin_m,
@@ -477,6 +479,12 @@ class CorridorBuilder:
                 corridors=corridors,
                 **_state_fields(states[row]),
             )
+
+    def _continuity(self, road_map: RoadMap, track: _Track) -> frozenset[int]:
+        """`_allowed` for the track's matched lanelets, kept on the track while the map and those lanelets stay."""
+        if track.allowed is None or track.allowed[0] is not road_map or track.allowed[1] != track.matched:
+            track.allowed = (road_map, track.matched, self._allowed(road_map, track.matched))
+        return track.allowed[2]
 
     @staticmethod
     def _allowed(road_map: RoadMap, previous: tuple[int, ...]) -> frozenset[int]:

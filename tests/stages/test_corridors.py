@@ -453,3 +453,23 @@ def test_a_track_dropped_after_the_timeout_takes_its_plan_with_it(k729, scene_ma
     frame = _frame(without, **{k: np.asarray(getattr(without, v))[keep] for k, v in columns.items()})
     builder.process(frame, scene)
     assert track_id not in builder.tracked_ids and track_id not in builder._tracks
+
+
+def test_selection_from_the_frame_s_candidate_lists_equals_the_selection_from_the_arrays(k729, scene_maps, monkeypatch):
+    """`select_lanelets` reading the candidates `measure` listed per point (`candidates_by_point`) picks the matches it
+    picks from the measurement arrays themselves, for every vehicle of sequence 013."""
+    import stages.corridors.core as core
+    from stages.corridors.matching import select_lanelets
+
+    compared = []
+
+    def both(index, meas, row, **kwargs):
+        assert meas.candidates and len(meas.candidates) == meas.level.shape[0]
+        found = select_lanelets(index, meas, row, **kwargs)
+        assert found == select_lanelets(index, dataclasses.replace(meas, candidates=()), row, **kwargs)
+        compared.append(len(found[0]))
+        return found
+
+    monkeypatch.setattr(core, "select_lanelets", both)
+    _run(k729, 0, 10_000, scene_maps=scene_maps)
+    assert len(compared) > 1000 and sum(n > 1 for n in compared) > 10
