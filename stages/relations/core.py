@@ -103,6 +103,9 @@ class SceneTables:
         n = len(ids)
         self.n_lanelets = n
         self._index = {lanelet_id: k for k, lanelet_id in enumerate(ids)}
+        order = np.argsort(np.asarray(ids, dtype=np.int64), kind="stable")
+        self._sorted_ids = np.asarray(ids, dtype=np.int64)[order]  # `indices`' sorted lookup: the ids ascending, their index
+        self._sorted_index = order.astype(np.int64)
         self.pair_first = np.full((n + 1, n + 1), -1, dtype=np.int32)
         self.pair_count = np.zeros((n + 1, n + 1), dtype=np.int32)
         rows: list[tuple[int, float, float, float, float, int]] = []
@@ -143,7 +146,12 @@ class SceneTables:
                 self.exit_s_m[k] = member.exit_s_m
 
     def indices(self, lanelet_ids) -> np.ndarray:
-        """Table indices (k,) int64 of lanelet ids; unknown ids map to `n_lanelets`."""
+        """Table indices (k,) int64 of lanelet ids; unknown ids map to `n_lanelets`.
+
+        An int64 array (the bus type) is looked up by one sorted search, anything else id by id (the same indices)."""
+        if isinstance(lanelet_ids, np.ndarray) and lanelet_ids.dtype == np.int64 and lanelet_ids.ndim == 1 and self.n_lanelets:
+            k = np.minimum(np.searchsorted(self._sorted_ids, lanelet_ids), self.n_lanelets - 1)
+            return np.where(self._sorted_ids[k] == lanelet_ids, self._sorted_index[k], self.n_lanelets)
         return np.fromiter((self._index.get(int(x), self.n_lanelets) for x in lanelet_ids), dtype=np.int64)
 
 
@@ -691,7 +699,9 @@ class RelationExtractor:
         if tables is None or not len(pair.lanelet_index):
             return _EMPTY_I64, _EMPTY_F64, _EMPTY_F64, _EMPTY_I64
         corridor = pair.corridor
-        ids = tables.intersection_id[pair.lanelet_index]
+        ids = tables.intersection_id[pair.lanelet_index].tolist()
+        if max(ids) < 0:  # no intersection on the corridor
+            return _EMPTY_I64, _EMPTY_F64, _EMPTY_F64, _EMPTY_I64
         starts = corridor.lanelet_start_s_m
         found = []
         k, n = 0, len(ids)
@@ -705,7 +715,7 @@ class RelationExtractor:
             entry = float(starts[k] + tables.entry_s_m[pair.lanelet_index[k]])
             exit_ = float(starts[j] + tables.exit_s_m[pair.lanelet_index[j]])
             if exit_ >= corridor.vehicle_s_m:
-                found.append((int(ids[k]), entry, exit_, int(corridor.lanelet_ids[k])))
+                found.append((ids[k], entry, exit_, int(corridor.lanelet_ids[k])))
             k = j + 1
         if not found:
             return _EMPTY_I64, _EMPTY_F64, _EMPTY_F64, _EMPTY_I64

@@ -662,3 +662,17 @@ def test_lane_change_refinement_in_one_kernel_call_equals_the_call_per_corridor(
     assert len(grouped) == len(reference) > 1000
     for (a, issues_a), (b, issues_b) in zip(grouped, reference):
         assert a.encode() == b.encode() and issues_a == issues_b
+
+
+def test_scene_tables_sorted_lookup_gives_the_indices_of_the_lookup_id_by_id(sequence):
+    from stages.relations.core import SceneTables
+
+    tables = SceneTables(sequence["road_map"])
+    ids = np.array(sequence["road_map"].lanelet_ids, dtype=np.int64)
+    rng = np.random.default_rng(2)
+    query = np.concatenate([rng.permutation(ids), [0, -1, ids.min() - 1, ids.max() + 1, np.iinfo(np.int64).max], ids[:3]])
+    by_array = tables.indices(query)
+    by_id = tables.indices(query.tolist())  # a list: id by id
+    assert by_array.dtype == by_id.dtype == np.int64 and by_array.tolist() == by_id.tolist()
+    assert by_array[: len(ids)].tolist() == [tables._index[int(x)] for x in query[: len(ids)]]
+    assert (by_array[len(ids) : len(ids) + 5] == tables.n_lanelets).all()
