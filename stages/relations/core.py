@@ -261,14 +261,17 @@ def _checked_corridors(corridor_set: CorridorSet, tables: SceneTables | None) ->
         return out
 
 
+def _shaped(c: Corridor) -> bool:
+    """The shape conditions of `_corridor_problem` (>= 2 points, equal lengths, a finite vehicle s)."""
+    m = len(c.x_m)
+    return (m >= 2 and len(c.y_m) == m and len(c.s_m) == m and len(c.heading_rad) == m and len(c.width_m) == m
+            and len(c.lanelet_ids) == len(c.lanelet_start_s_m) and math.isfinite(c.vehicle_s_m))
+
+
 def _checked_batch(corridors: list[Corridor], tables: SceneTables | None) -> dict[int, tuple]:
     if not corridors:
         return {}
-    shaped = np.array([
-        len(c.x_m) >= 2 and all(len(a) == len(c.x_m) for a in (c.y_m, c.s_m, c.heading_rad, c.width_m))
-        and len(c.lanelet_ids) == len(c.lanelet_start_s_m) and math.isfinite(c.vehicle_s_m)
-        for c in corridors
-    ], dtype=bool)
+    shaped = np.array([_shaped(c) for c in corridors], dtype=bool)
     fields = [a for c in corridors for a in (c.x_m, c.y_m, c.s_m, c.heading_rad, c.width_m, c.lanelet_start_s_m)]
     sizes = np.array([len(a) for a in fields], dtype=np.int64).reshape(len(corridors), 6).sum(axis=1)
     bad = np.concatenate([[0], np.cumsum(~np.isfinite(np.concatenate(fields).astype(np.float64, copy=False)))])
