@@ -604,7 +604,7 @@ class CorridorBuilder:
         lanelets or routes changed, or a re-used track id, gets a fresh one)
         and a frame re-uses it when the key is the same.
         """
-        key = (starts, tuple(track.routes.items()))
+        key = (cache, starts, tuple(track.routes.items()))  # the cache (by identity): the map the routes are on
         if track.plan is not None and track.plan[0] == key:
             return track.plan[1]
         candidates: list[_Candidate] = []

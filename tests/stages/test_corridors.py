@@ -423,7 +423,7 @@ def test_route_plan_reuse_gives_the_corridors_of_a_fresh_plan_every_frame(k729, 
     assert calls["reused"] > 3 * calls["fresh"] > 0, calls
     before = plans[first.frame_index + 19]
     during = [plans.get(first.frame_index + k) for k in range(20, 40)]
-    assert any(p is not None and p[0][0] != before[0][0] for p in during)  # a re-used id on other lanelets: a fresh plan
+    assert any(p is not None and p[0][1] != before[0][1] for p in during)  # a re-used id on other lanelets: a fresh plan
 
     def fresh(self, road_map, cache, track, starts):
         track.plan = None  # forget the last plan: every frame enumerates the routes and assigns the ids again
