@@ -619,9 +619,15 @@ def measure_lanelets(p, pi, li, seg_start, seg_vec, seg_len2, seg_s0, seg_headin
                                            edge_start, edge_vec, edge_len2, edge_count, s, d, centre, heading, poly_dist))
 
 
+_F64 = np.dtype(np.float64)
+
+
 def _plain(*arrays) -> bool:
-    """All 1-D float64 ndarrays (the layouts the small kernels are compiled for; anything else takes numpy)."""
-    return all(type(a) is np.ndarray and a.dtype == np.float64 and a.ndim == 1 for a in arrays)
+    """All 1-D native float64 ndarrays (the layouts the small kernels are compiled for; anything else takes numpy)."""
+    for a in arrays:
+        if type(a) is not np.ndarray or a.dtype is not _F64 or a.ndim != 1:
+            return False
+    return True
 
 
 def max_separation(ax: np.ndarray, ay: np.ndarray, bx: np.ndarray, by: np.ndarray, start: int) -> float | None:
