@@ -152,6 +152,15 @@ moving into the next lanelet (the route loses its first lanelet), the route
 growing at its far end, merges and short OFF_MAP spells (state lives
 ``track_timeout_s``). Ids are per vehicle: (track_id, corridor_id) names a
 corridor.
+
+Per-track plan. The routes of a vehicle, the redundant lane changes
+dropped and the ids inherited depend only on its matched lanelets, the
+predecessors put in front, the route length class and its previous routes
+with their ids; the track keeps that plan with this key (by content) and a
+frame re-uses it while the key repeats (most frames: a vehicle stays on its
+lanelets), so only the projection and the sampling run per frame. A
+changed key (another lanelet, a re-used track id elsewhere) plans afresh;
+the plan goes with the track after ``track_timeout_s``.
 """
 
 from __future__ import annotations

@@ -124,6 +124,10 @@ class _Track:
     emitted: frozenset[int] = frozenset()
     frenet: dict[int, tuple[int, float]] = field(default_factory=dict)
     speed_mps: float = 0.0
+    # the last frame's route plan (`CorridorBuilder._plan`): (key, plan), the key its whole input by content
+    plan: tuple | None = None
+    # the continuity set of `matched` (`CorridorBuilder._allowed`): (road map, matched, allowed), re-used while both repeat
+    allowed: tuple | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -139,7 +143,7 @@ class _Kinematics:
 class _Candidate:
     path: tuple[int, ...]
     geometry: RouteGeometry
-    match: LaneletMatch
+    match: LaneletMatch | None  # None only inside `CorridorBuilder._plan`
     s_m: float
     d_m: float
     corridor_id: int = -1
@@ -447,7 +451,7 @@ class CorridorBuilder:
                 heading_ambiguous=kin.heading_ambiguous,
                 heading_confident=kin.heading_confident,
                 heading_known=kin.heading_known,
-                allowed=self._allowed(scene_map.road_map, track.matched),
+                allowed=self._continuity(scene_map.road_map, track),
                 previous=track.matched,
                 max_heading_rad=cfg.match_max_heading_rad,
                 ambiguity_margin_m=cfg.ambiguity_margin_m,
@@ -475,6 +479,12 @@ class CorridorBuilder:
                 corridors=corridors,
                 **_state_fields(states[row]),
             )
+
+    def _continuity(self, road_map: RoadMap, track: _Track) -> frozenset[int]:
+        """`_allowed` for the track's matched lanelets, kept on the track while the map and those lanelets stay."""
+        if track.allowed is None or track.allowed[0] is not road_map or track.allowed[1] != track.matched:
+            track.allowed = (road_map, track.matched, self._allowed(road_map, track.matched))
+        return track.allowed[2]
 
     @staticmethod
     def _allowed(road_map: RoadMap, previous: tuple[int, ...]) -> frozenset[int]:
@@ -523,27 +533,26 @@ class CorridorBuilder:
         dt_s = 0.0
         if len(track.history) >= 2:
             dt_s = (track.history[-1][0] - track.history[-2][0]) * _NS
-        candidates: list[_Candidate] = []
+        position = (float(xy[0]), float(xy[1]))
+        starts = []  # per match: its lanelet, the predecessor in front of it (if any) and the route length class
         for match in matches:
-            lanelet_id = match.lanelet_id
             front: tuple[int, ...] = ()
             if match.s_m - cfg.behind_m < 0.0:
-                pred = self._predecessor(road_map, lanelet_id, track)
+                pred = self._predecessor(road_map, match.lanelet_id, track)
                 front = (pred,) if pred is not None else ()
-            for path in cache.routes_from(lanelet_id, match.s_m + ahead):
-                geometry = cache.geometry(front + path)
-                s_first = float(geometry.lanelet_start_s_m[len(front)])
-                candidates.append(_Candidate(path, geometry, match, s_first + match.s_m, match.d_m))
-        candidates = self._drop_redundant_lane_changes(road_map, candidates)
-        self._assign_ids(track, candidates)
+            starts.append((match.lanelet_id, front, cache.length_steps(match.s_m + ahead)))
+        candidates = [
+            _Candidate(path, geometry, matches[k], s_first + matches[k].s_m, matches[k].d_m, corridor_id)
+            for path, geometry, k, s_first, corridor_id in self._plan(road_map, cache, track, tuple(starts))
+        ]
         for cand in candidates:
             # continuity (docs/method.md §5.5): search near the previous s of this corridor, else near the match
             hint = cand.s_m
             previous = track.frenet.get(cand.corridor_id)
             if previous is not None and previous[0] in cand.geometry.lanelet_ids:
                 k = cand.geometry.lanelet_ids.index(previous[0])
-                hint = float(cand.geometry.lanelet_start_s_m[k]) + previous[1] + track.speed_mps * dt_s
-            cand.s_m, cand.d_m = project_vehicle(cand.geometry, xy, hint, cfg.frenet_window_m)
+                hint = cand.geometry.lanelet_starts[k] + previous[1] + track.speed_mps * dt_s
+            cand.s_m, cand.d_m = project_vehicle(cand.geometry, position, hint, cfg.frenet_window_m)
         for cand in candidates:
             cand.corridor = cut_corridor(
                 cand.geometry,
@@ -579,9 +588,38 @@ class CorridorBuilder:
         track.frenet = {}
         for c in kept:
             geometry = c.geometry
-            k = int(np.clip(np.searchsorted(geometry.lanelet_start_s_m, c.s_m, side="right") - 1, 0, len(geometry.lanelet_ids) - 1))
-            track.frenet[c.corridor_id] = (geometry.lanelet_ids[k], c.s_m - float(geometry.lanelet_start_s_m[k]))
+            k = geometry.lanelet_at(c.s_m)
+            track.frenet[c.corridor_id] = (geometry.lanelet_ids[k], c.s_m - geometry.lanelet_starts[k])
         return tuple(c.corridor for c in kept), truncated
+
+    def _plan(self, road_map: RoadMap, cache: RouteCache, track: _Track, starts: tuple) -> tuple:
+        """The vehicle's candidate routes: (path, geometry, match index, where the match's lanelet starts on it, corridor id).
+
+        A function of `starts` (per match: lanelet, predecessor in front,
+        `RouteCache.length_steps`) and the track's previous routes and ids
+        only: the route enumeration, the redundant lane changes dropped and
+        the ids inherited (`_assign_ids`). While a vehicle stays on the same
+        lanelets these repeat from frame to frame, so the track keeps the
+        last plan with its key (by content, never by track id: a track whose
+        lanelets or routes changed, or a re-used track id, gets a fresh one)
+        and a frame re-uses it when the key is the same.
+        """
+        key = (cache, starts, tuple(track.routes.items()))  # the cache (by identity): the map the routes are on
+        if track.plan is not None and track.plan[0] == key:
+            return track.plan[1]
+        candidates: list[_Candidate] = []
+        where: dict[int, tuple[int, float]] = {}
+        for k, (lanelet_id, front, steps) in enumerate(starts):
+            for path in cache.routes_for(lanelet_id, steps):
+                geometry = cache.geometry(front + path)
+                cand = _Candidate(path, geometry, None, math.nan, math.nan)
+                where[id(cand)] = (k, geometry.lanelet_starts[len(front)])
+                candidates.append(cand)
+        candidates = self._drop_redundant_lane_changes(road_map, candidates)
+        self._assign_ids(track, candidates)
+        plan = tuple((c.path, c.geometry, *where[id(c)], c.corridor_id) for c in candidates)
+        track.plan = (key, plan)
+        return plan
 
     @staticmethod
     def _drop_redundant_lane_changes(road_map: RoadMap, candidates: list[_Candidate]) -> list[_Candidate]:

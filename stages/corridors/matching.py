@@ -8,6 +8,7 @@ applies the matching rule of the package docstring to one vehicle.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -40,6 +41,19 @@ class Measurements:
     centre_distance_m: np.ndarray
     heading_rad: np.ndarray
     level: np.ndarray
+    candidates: tuple = ()  # per point, `candidates_by_point`'s lists (empty: `select_lanelets` reads the arrays)
+
+
+def candidates_by_point(meas: Measurements, ids: np.ndarray) -> tuple:
+    """Per point, its candidate columns by position (level >= 0) as plain lists: (columns, lanelet ids, centre distance,
+    heading, level, s, d), from one ``nonzero`` over the frame (what `select_lanelets` reads, without numpy calls per vehicle)."""
+    rows, cols = np.nonzero(meas.level >= 0)
+    bounds = np.searchsorted(rows, np.arange(meas.level.shape[0] + 1)).tolist()
+    columns = (
+        cols.tolist(), ids[cols].tolist(), meas.centre_distance_m[rows, cols].tolist(), meas.heading_rad[rows, cols].tolist(),
+        meas.level[rows, cols].tolist(), meas.s_m[rows, cols].tolist(), meas.d_m[rows, cols].tolist(),
+    )
+    return tuple(tuple(c[a:b] for c in columns) for a, b in zip(bounds[:-1], bounds[1:]))
 
 
 class LaneletIndex:
@@ -167,7 +181,8 @@ class LaneletIndex:
             d = np.where(on_ext, d_ext, d)
             centre = np.where(on_ext, np.abs(d_ext), centre)
             heading = np.where(on_ext, self.start_heading[None], heading)
-        return Measurements(s_m=s, d_m=d, centre_distance_m=centre, heading_rad=heading, level=level)
+        meas = Measurements(s_m=s, d_m=d, centre_distance_m=centre, heading_rad=heading, level=level)
+        return dataclasses.replace(meas, candidates=candidates_by_point(meas, self.ids))
 
 
 @dataclass(frozen=True, slots=True)
@@ -220,13 +235,18 @@ def select_lanelets(
     """
     # only the columns near by position can be candidates: the rule in plain Python over those few (the same
     # float operations as `heading_errors_rad` and the masks over every column would do, value for value)
-    near = np.flatnonzero(meas.level[row] >= 0)
+    if meas.candidates:
+        near, ids, centre, lane_headings, levels, s_list, d_list = meas.candidates[row]
+    else:
+        near = np.flatnonzero(meas.level[row] >= 0).tolist()
+        ids = index.ids[near].tolist()
+        centre = meas.centre_distance_m[row, near].tolist()
+        lane_headings = meas.heading_rad[row, near].tolist()
+        levels, s_list, d_list = (a[row, near].tolist() for a in (meas.level, meas.s_m, meas.d_m))
     if not len(near):
         return (), False
-    ids = index.ids[near].tolist()
-    centre = meas.centre_distance_m[row, near].tolist()
     errors = []
-    for lane_heading in meas.heading_rad[row, near].tolist():
+    for lane_heading in lane_headings:
         err = abs((lane_heading - heading_rad + math.pi) % (2.0 * math.pi) - math.pi)
         errors.append(min(err, math.pi - err) if heading_ambiguous else err)
     ok = [e <= max_heading_rad for e in errors]
@@ -250,13 +270,12 @@ def select_lanelets(
     for _c, lanelet_id, i in keep:
         if any(p in kept_ids for p in index.road_map.predecessors(lanelet_id)):
             continue
-        col = near[i]
         matches.append(
             LaneletMatch(
                 lanelet_id=lanelet_id,
-                level=int(meas.level[row, col]),
-                s_m=float(meas.s_m[row, col]),
-                d_m=float(meas.d_m[row, col]),
+                level=levels[i],
+                s_m=s_list[i],
+                d_m=d_list[i],
                 centre_distance_m=centre[i],
                 heading_error_rad=errors[i],
             )

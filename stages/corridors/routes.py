@@ -10,6 +10,7 @@ grid, extending the centreline straight before its start and past its end.
 
 from __future__ import annotations
 
+import bisect
 import hashlib
 import math
 from dataclasses import dataclass, field
@@ -41,6 +42,10 @@ class RouteGeometry:
     samples_table: np.ndarray = field(init=False, repr=False)  # (4, m) x, y, heading, curvature: `cut_corridor`'s kernel
     end_directions: tuple[float, float, float, float] = field(init=False, repr=False)  # cos, sin of the first and last heading
     lanelet_id_array: np.ndarray = field(init=False, repr=False)  # `lanelet_ids` (k,) int64
+    # the per-lanelet arrays as tuples of floats, for the per-frame code that reads a few of them (no numpy call per read)
+    lanelet_starts: tuple[float, ...] = field(init=False, repr=False)
+    lanelet_ends: tuple[float, ...] = field(init=False, repr=False)
+    speed_limits: tuple[float, ...] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         table = np.ascontiguousarray(np.stack([self.points_m[:, 0], self.points_m[:, 1], self.heading_unwrapped_rad, self.curvature_1pm]))
@@ -48,6 +53,14 @@ class RouteGeometry:
         object.__setattr__(self, "samples_table", table)
         object.__setattr__(self, "end_directions", (math.cos(first), math.sin(first), math.cos(last), math.sin(last)))
         object.__setattr__(self, "lanelet_id_array", np.asarray(self.lanelet_ids, dtype=np.int64))
+        object.__setattr__(self, "lanelet_starts", tuple(self.lanelet_start_s_m.tolist()))
+        object.__setattr__(self, "lanelet_ends", tuple(self.lanelet_end_s_m.tolist()))
+        object.__setattr__(self, "speed_limits", tuple(self.speed_limits_mps.tolist()))
+
+    def lanelet_at(self, s_m: float) -> int:
+        """Index of the lanelet at route s (the last one starting at or before it, clipped to the route's lanelets):
+        ``clip(searchsorted(lanelet_start_s_m, s, "right") - 1, 0, k - 1)``, NaN past the end as there."""
+        return min(max(bisect.bisect_right(self.lanelet_starts, s_m) - 1, 0), len(self.lanelet_starts) - 1)
 
     @property
     def length_m(self) -> float:
@@ -109,7 +122,14 @@ class RouteCache:
         cache stays small and the routes do not change with the speed. Routes
         without a lane change come first.
         """
-        steps = max(1, math.ceil(min_length_m / self.route_length_m))
+        return self.routes_for(lanelet_id, self.length_steps(min_length_m))
+
+    def length_steps(self, min_length_m: float) -> int:
+        """The length class of `routes_from`: routes reach `steps` times `route_length_m` (at least once)."""
+        return max(1, math.ceil(min_length_m / self.route_length_m))
+
+    def routes_for(self, lanelet_id: int, steps: int) -> tuple[tuple[int, ...], ...]:
+        """`routes_from` by length class (`length_steps`)."""
         key = (lanelet_id, steps)
         found = self._paths.get(key)
         if found is None:
@@ -218,8 +238,8 @@ class RouteCache:
 
 def project_vehicle(route: RouteGeometry, xy_m, s_hint_m: float, window_m: float) -> tuple[float, float]:
     """Frenet (s, d) of a position on a route, searching within `window_m` of `s_hint_m` first (`maps.project_in_window`)."""
-    point = np.asarray(xy_m, dtype=np.float64).reshape(2)
-    found = kernels.project_point(point[0], point[1], route.points_m, route.s_m, s_hint_m, window_m)
+    x, y = (float(v) for v in xy_m) if len(xy_m) == 2 else np.asarray(xy_m, dtype=np.float64).reshape(2).tolist()
+    found = kernels.project_point(x, y, route.points_m, route.s_m, s_hint_m, window_m)
     if found is not None:  # the kernel of project_in_window, called with numbers
         return float(found[0]), float(found[1])
     s, d = project_in_window(np.asarray(xy_m, dtype=np.float64).reshape(1, 2), route.points_m, route.s_m, s_hint_m, window_m)
@@ -252,8 +272,9 @@ def cut_corridor(
     offset = vehicle_s_m - behind_m
     s_corridor, x, y, heading_wrapped, curvature, width = _sample(route, offset, step_m, n, compiled)
     end_s = offset + (n - 1) * step_m  # the last sample's s on the route
-    covered = (route.lanelet_start_s_m < end_s) & (route.lanelet_end_s_m > offset)
-    covered[0] |= not covered.any()
+    # the lanelets the samples cover (the first one if none does), in plain Python over the route's few lanelets
+    covered = [i for i, (a, b) in enumerate(zip(route.lanelet_starts, route.lanelet_ends)) if a < end_s and b > offset] or [0]
+    limits = [route.speed_limits[i] for i in covered]
     return Corridor(
         corridor_id=int(corridor_id),
         lanelet_ids=route.lanelet_id_array[covered],
@@ -267,7 +288,7 @@ def cut_corridor(
         extension_start_s_m=float(min(route.length_m - offset, end_s - offset)),
         vehicle_s_m=float(vehicle_s_m - offset),
         vehicle_d_m=float(vehicle_d_m),
-        speed_limit_mps=float(route.speed_limits_mps[covered].min()),
+        speed_limit_mps=math.nan if any(v != v for v in limits) else min(limits),  # as ndarray.min: NaN if any is
     )
 
 
@@ -299,6 +320,9 @@ def _sample(route: RouteGeometry, offset: float, step_m: float, n: int, compiled
 
 def max_separation_m(a: Corridor, b: Corridor, from_index: int) -> float:
     """Largest distance between samples of equal index from `from_index` on (same grids)."""
+    found = kernels.max_separation(a.x_m, a.y_m, b.x_m, b.y_m, from_index)
+    if found is not None:  # the kernel: the same distances, their max
+        return float(found)
     n = min(len(a.x_m), len(b.x_m))
     if from_index >= n:
         return 0.0

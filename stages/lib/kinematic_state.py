@@ -217,6 +217,16 @@ def disagreement_line(c: Consistency, config: EstimatorConfig) -> str | None:
     )
 
 
+def _median(values: list[float]) -> float:
+    """``np.median`` of a few finite floats without an array: the middle value, or the mean of the middle two as
+    numpy takes it ((a + b) / 2); NaN if any value is (numpy's answer then)."""
+    if any(v != v for v in values):
+        return math.nan
+    ordered = sorted(values)
+    n = len(ordered)
+    return ordered[n // 2] if n % 2 else (ordered[n // 2 - 1] + ordered[n // 2]) / 2.0
+
+
 class Calibration:
     """Reported velocity vs the positions' 1 s chord velocity over the stream's recent moving samples.
 
@@ -230,16 +240,32 @@ class Calibration:
 
     def __init__(self, config: EstimatorConfig) -> None:
         self.config = config
-        self._samples: collections.deque = collections.deque(maxlen=config.calibration_window)
+        # the window's (factor, cosine) rows in a ring (the medians and quartiles do not depend on the rows' order),
+        # and its track ids with a count per id, so that a refresh neither copies the window nor rebuilds a set
+        self._values = np.empty((config.calibration_window, 2))
+        self._count = 0
+        self._next = 0
         self._tracks: collections.deque = collections.deque(maxlen=config.calibration_window)
+        self._per_track: dict[int, int] = {}
         self._dirty = 0
         self.factor = math.nan
         self.cosine = math.nan
         self.trusted = False
 
     def add(self, track_id: int, factor: float, cosine: float) -> None:
-        self._samples.append((factor, cosine))
+        if not len(self._values):  # a window of 0 samples keeps none (and is never trusted)
+            return
+        if len(self._tracks) == self._tracks.maxlen:  # the oldest sample leaves the window
+            leaving = self._tracks[0]
+            self._per_track[leaving] -= 1
+            if not self._per_track[leaving]:
+                del self._per_track[leaving]
         self._tracks.append(track_id)
+        self._per_track[track_id] = self._per_track.get(track_id, 0) + 1
+        self._values[self._next, 0] = factor
+        self._values[self._next, 1] = cosine
+        self._next = (self._next + 1) % len(self._values)
+        self._count = min(self._count + 1, len(self._values))
         self._dirty += 1
         if self._dirty >= 10 or not self.trusted:
             self._refresh()
@@ -247,9 +273,9 @@ class Calibration:
     def _refresh(self) -> None:
         cfg = self.config
         self._dirty = 0
-        if len(self._samples) < cfg.calibration_min_samples or len(set(self._tracks)) < cfg.calibration_min_tracks:
+        if self._count < cfg.calibration_min_samples or len(self._per_track) < cfg.calibration_min_tracks:
             return
-        arr = np.array(self._samples)
+        arr = self._values[: self._count]
         q1, med, q3 = np.percentile(arr[:, 0], [25, 50, 75])
         self.factor = float(med)
         self.cosine = float(np.median(arr[:, 1]))
@@ -412,9 +438,9 @@ class KinematicEstimator:
         if newest and sum(newest) / len(newest) >= cfg.standstill_max_speed_mps:
             return False
         half = len(window) // 2
-        old = np.median(np.array([(x, y) for _, x, y in window[:half]]), axis=0)
-        new = np.median(np.array([(x, y) for _, x, y in window[half:]]), axis=0)
-        return float(np.hypot(*(new - old))) < cfg.standstill_radius_m
+        old_x, old_y = _median([x for _, x, _ in window[:half]]), _median([y for _, _, y in window[:half]])
+        new_x, new_y = _median([x for _, x, _ in window[half:]]), _median([y for _, _, y in window[half:]])
+        return float(np.hypot(new_x - old_x, new_y - old_y)) < cfg.standstill_radius_m
 
     def _accel(self, track: _Track) -> float:
         window_ns = round(self.config.accel_window_s / _NS)

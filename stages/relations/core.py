@@ -103,6 +103,9 @@ class SceneTables:
         n = len(ids)
         self.n_lanelets = n
         self._index = {lanelet_id: k for k, lanelet_id in enumerate(ids)}
+        order = np.argsort(np.asarray(ids, dtype=np.int64), kind="stable")
+        self._sorted_ids = np.asarray(ids, dtype=np.int64)[order]  # `indices`' sorted lookup: the ids ascending, their index
+        self._sorted_index = order.astype(np.int64)
         self.pair_first = np.full((n + 1, n + 1), -1, dtype=np.int32)
         self.pair_count = np.zeros((n + 1, n + 1), dtype=np.int32)
         rows: list[tuple[int, float, float, float, float, int]] = []
@@ -143,7 +146,12 @@ class SceneTables:
                 self.exit_s_m[k] = member.exit_s_m
 
     def indices(self, lanelet_ids) -> np.ndarray:
-        """Table indices (k,) int64 of lanelet ids; unknown ids map to `n_lanelets`."""
+        """Table indices (k,) int64 of lanelet ids; unknown ids map to `n_lanelets`.
+
+        An int64 array (the bus type) is looked up by one sorted search, anything else id by id (the same indices)."""
+        if isinstance(lanelet_ids, np.ndarray) and lanelet_ids.dtype == np.int64 and lanelet_ids.ndim == 1 and self.n_lanelets:
+            k = np.minimum(np.searchsorted(self._sorted_ids, lanelet_ids), self.n_lanelets - 1)
+            return np.where(self._sorted_ids[k] == lanelet_ids, self._sorted_index[k], self.n_lanelets)
         return np.fromiter((self._index.get(int(x), self.n_lanelets) for x in lanelet_ids), dtype=np.int64)
 
 
@@ -177,6 +185,7 @@ class _Pair:
     xy: np.ndarray
     lanelet_index: np.ndarray
     follows_lanelets: bool
+    width_max_m: float = math.nan  # the corridor's widest width
 
 
 @dataclass(slots=True, eq=False)
@@ -199,7 +208,11 @@ class _Conflicts:
 
 
 def _heading_at(corridor: Corridor, s_m: float) -> float:
-    return float(wrap_angle_rad(np.interp(s_m, corridor.s_m, np.unwrap(corridor.heading_rad))))
+    """The corridor's heading at s: its unwrapped heading interpolated, wrapped (the kernel where it can, numpy else)."""
+    found = kernels.unwrapped_interp(s_m, corridor.s_m, corridor.heading_rad)
+    if found is None:
+        found = np.interp(s_m, corridor.s_m, np.unwrap(corridor.heading_rad))
+    return float(wrap_angle_rad(found))
 
 
 def _corridor_problem(corridor: Corridor) -> str | None:
@@ -248,14 +261,17 @@ def _checked_corridors(corridor_set: CorridorSet, tables: SceneTables | None) ->
         return out
 
 
+def _shaped(c: Corridor) -> bool:
+    """The shape conditions of `_corridor_problem` (>= 2 points, equal lengths, a finite vehicle s)."""
+    m = len(c.x_m)
+    return (m >= 2 and len(c.y_m) == m and len(c.s_m) == m and len(c.heading_rad) == m and len(c.width_m) == m
+            and len(c.lanelet_ids) == len(c.lanelet_start_s_m) and math.isfinite(c.vehicle_s_m))
+
+
 def _checked_batch(corridors: list[Corridor], tables: SceneTables | None) -> dict[int, tuple]:
     if not corridors:
         return {}
-    shaped = np.array([
-        len(c.x_m) >= 2 and all(len(a) == len(c.x_m) for a in (c.y_m, c.s_m, c.heading_rad, c.width_m))
-        and len(c.lanelet_ids) == len(c.lanelet_start_s_m) and math.isfinite(c.vehicle_s_m)
-        for c in corridors
-    ], dtype=bool)
+    shaped = np.array([_shaped(c) for c in corridors], dtype=bool)
     fields = [a for c in corridors for a in (c.x_m, c.y_m, c.s_m, c.heading_rad, c.width_m, c.lanelet_start_s_m)]
     sizes = np.array([len(a) for a in fields], dtype=np.int64).reshape(len(corridors), 6).sum(axis=1)
     bad = np.concatenate([[0], np.cumsum(~np.isfinite(np.concatenate(fields).astype(np.float64, copy=False)))])
@@ -514,6 +530,7 @@ class RelationExtractor:
         for track_id in sorted(all_rows - listed):
             issues.append(Issue("missing_corridors", track_id, "in the TrackFrame but not in the CorridorSet: obstacle only"))
         pairs: list[_Pair] = []
+        accepted: list[tuple] = []
         checked = _checked_corridors(corridor_set, tables)
         for vehicle in corridor_set.vehicles:
             if not vehicle.corridors:
@@ -532,19 +549,29 @@ class RelationExtractor:
                 if problem is not None:
                     issues.append(Issue("bad_corridor", vehicle.track_id, f"corridor {corridor.corridor_id}: {problem}: skipped"))
                     continue
-                pairs.append(
-                    _Pair(
-                        g=len(pairs),
-                        vehicle=vehicle,
-                        corridor=corridor,
-                        row=row,
-                        speed_mps=max(speed, 0.0),
-                        length_m=float(objects.length_m[row]),
-                        xy=np.column_stack([corridor.x_m, corridor.y_m]),
-                        lanelet_index=lanelet_index,
-                        follows_lanelets=follows,
-                    )
+                accepted.append((vehicle, corridor, row, speed, lanelet_index, follows))
+        if not accepted:
+            return pairs
+        # every pair's centreline (x, y) as a view into one (points, 2) array, and its widest width, a few numpy calls
+        sizes = [len(a[1].x_m) for a in accepted]
+        bounds = np.concatenate([[0], np.cumsum(sizes)])
+        xy = np.column_stack([np.concatenate([a[1].x_m for a in accepted]), np.concatenate([a[1].y_m for a in accepted])])
+        widest = np.maximum.reduceat(np.concatenate([a[1].width_m for a in accepted]).astype(np.float64, copy=False), bounds[:-1]).tolist()
+        for g, (vehicle, corridor, row, speed, lanelet_index, follows) in enumerate(accepted):
+            pairs.append(
+                _Pair(
+                    g=g,
+                    vehicle=vehicle,
+                    corridor=corridor,
+                    row=row,
+                    speed_mps=max(speed, 0.0),
+                    length_m=float(objects.length_m[row]),
+                    xy=xy[bounds[g] : bounds[g + 1]],
+                    lanelet_index=lanelet_index,
+                    follows_lanelets=follows,
+                    width_max_m=widest[g],
                 )
+            )
         return pairs
 
     # ----- lateral relation --------------------------------------------------------
@@ -561,7 +588,7 @@ class RelationExtractor:
         return np.array(
             [
                 cfg.lookbehind_m + max(0.0, float(p.corridor.s_m[0]) - p.corridor.vehicle_s_m)
-                + 0.5 * float(np.max(p.corridor.width_m)) + cfg.lateral_margin_m + 1.0
+                + 0.5 * p.width_max_m + cfg.lateral_margin_m + 1.0
                 for p in pairs
             ]
         )
@@ -569,7 +596,7 @@ class RelationExtractor:
     def _radius(self, pairs: list[_Pair]) -> np.ndarray:
         """Per pair, the largest |d| `_lateral` can keep: half the corridor's widest width + `lateral_margin_m` (+1 mm)."""
         margin = self.config.lateral_margin_m
-        return np.array([0.5 * float(np.max(p.corridor.width_m)) + margin + 1e-3 for p in pairs])
+        return np.array([0.5 * p.width_max_m + margin + 1e-3 for p in pairs])
 
     def _lateral(self, pair: _Pair, objects: _Objects, projected, batched=None):
         """Objects within the lane of the corridor, ordered by s, and the leader (row into them or -1).
@@ -675,7 +702,9 @@ class RelationExtractor:
         if tables is None or not len(pair.lanelet_index):
             return _EMPTY_I64, _EMPTY_F64, _EMPTY_F64, _EMPTY_I64
         corridor = pair.corridor
-        ids = tables.intersection_id[pair.lanelet_index]
+        ids = tables.intersection_id[pair.lanelet_index].tolist()
+        if max(ids) < 0:  # no intersection on the corridor
+            return _EMPTY_I64, _EMPTY_F64, _EMPTY_F64, _EMPTY_I64
         starts = corridor.lanelet_start_s_m
         found = []
         k, n = 0, len(ids)
@@ -689,7 +718,7 @@ class RelationExtractor:
             entry = float(starts[k] + tables.entry_s_m[pair.lanelet_index[k]])
             exit_ = float(starts[j] + tables.exit_s_m[pair.lanelet_index[j]])
             if exit_ >= corridor.vehicle_s_m:
-                found.append((int(ids[k]), entry, exit_, int(corridor.lanelet_ids[k])))
+                found.append((ids[k], entry, exit_, int(corridor.lanelet_ids[k])))
             k = j + 1
         if not found:
             return _EMPTY_I64, _EMPTY_F64, _EMPTY_F64, _EMPTY_I64
@@ -797,14 +826,36 @@ class RelationExtractor:
         candidates = np.flatnonzero(changes_lane[g] & (s > -window))
         candidates = candidates[np.argsort(g[candidates], kind="stable")]  # by pair, ascending rows within one
         starts = np.flatnonzero(np.concatenate([[True], g[candidates][1:] != g[candidates][:-1]])) if len(candidates) else candidates
+        groups = []  # (pair, its rows)
         for a, b in zip(starts, [*starts[1:], len(candidates)]):
             pair = pairs[g[candidates[a]]]
             rows = candidates[a:b]
             rows = rows[s[rows] < pair.corridor.s_m[-1] + window]
-            if not len(rows):
-                continue
-            xy = np.column_stack([tables.point_x_m[point[rows]], tables.point_y_m[point[rows]]])
-            s[rows] = project_in_window(xy, pair.xy, pair.corridor.s_m, s[rows], window)[0]
+            if len(rows):
+                groups.append((pair, rows))
+        if not groups:
+            return
+        # every group's points on its own corridor in one kernel call (`kernels.project_window_groups`: the arithmetic
+        # of `project_in_window`, group by group); a group the kernel declines goes through `project_in_window`
+        all_rows = np.concatenate([rows for _pair, rows in groups])
+        xy = np.column_stack([tables.point_x_m[point[all_rows]], tables.point_y_m[point[all_rows]]])
+        hints = s[all_rows]
+        counts = np.array([len(rows) for _pair, rows in groups], dtype=np.int64)
+        point_bounds = np.concatenate([[0], np.cumsum(counts)])
+        found = kernels.project_window_groups(
+            xy, point_bounds,
+            np.concatenate([pair.xy for pair, _rows in groups]).astype(np.float64, copy=False),
+            np.concatenate([[0], np.cumsum([len(pair.xy) for pair, _rows in groups])]).astype(np.int64),
+            np.concatenate([np.asarray(pair.corridor.s_m, np.float64) for pair, _rows in groups]),
+            hints, window,
+        )
+        ok = found[3] if found is not None else np.zeros(len(groups), dtype=bool)
+        done = np.repeat(ok, counts)
+        s[all_rows[done]] = found[0][done] if found is not None else s[all_rows[done]]
+        for q in np.flatnonzero(~ok):
+            pair, rows = groups[q]
+            part = slice(point_bounds[q], point_bounds[q + 1])
+            s[rows] = project_in_window(xy[part], pair.xy, pair.corridor.s_m, hints[part], window)[0]
 
     # ----- assembly ------------------------------------------------------------------
 

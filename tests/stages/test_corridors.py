@@ -351,7 +351,7 @@ def test_compiled_kernels_give_the_numpy_corridors_bit_for_bit(k729, monkeypatch
 
     if not kernels.available():
         pytest.skip("numba not importable")
-    counts = {"project_point": 0, "sample_route": 0, "measure_lanelets": 0}
+    counts = {"project_point": 0, "sample_route": 0, "measure_lanelets": 0, "max_separation": 0}
     for name in counts:
         original = getattr(kernels, name)
 
@@ -362,10 +362,114 @@ def test_compiled_kernels_give_the_numpy_corridors_bit_for_bit(k729, monkeypatch
 
         monkeypatch.setattr(kernels, name, counted)
     compiled = _run(k729, 0, 10_000)
-    assert min(counts.values()) > 1000, counts
+    assert min(counts[k] for k in ("project_point", "sample_route", "measure_lanelets")) > 1000, counts
+    assert counts["max_separation"] > 100, counts
     for name in (*counts, "project_window"):
         monkeypatch.setattr(kernels, name, lambda *args: None)
     reference = _run(k729, 0, 10_000)
     assert len(compiled) == len(reference) > 1000
     for (_i, _f, a, issues_a), (_j, _g, b, issues_b) in zip(compiled, reference):
         assert a.encode() == b.encode() and issues_a == issues_b
+
+
+def _swapped(view, a: int, b: int):
+    """The frame with the positions (and velocities, yaws) of tracks a and b exchanged: each id re-used elsewhere."""
+    data = {k: np.array(getattr(view, k)) for k in ("x_m", "y_m", "vx_mps", "vy_mps", "yaw_rad")}
+    ids = list(view.track_id)
+    if a in ids and b in ids:
+        i, j = ids.index(a), ids.index(b)
+        for column in data.values():
+            column[[i, j]] = column[[j, i]]
+    return _frame(view, **data)
+
+
+def test_route_plan_reuse_gives_the_corridors_of_a_fresh_plan_every_frame(k729, scene_maps, monkeypatch):
+    """The per-track route plan (`CorridorBuilder._plan`) re-used between frames changes nothing: sequence 013, with two
+    tracks exchanging places mid-sequence (each id re-used on another lanelet, then back), gives the same CorridorSet
+    bytes and issues as a builder that plans every vehicle afresh each frame; most frames re-use the plan, and a
+    re-used id does not (its key, by content, changed)."""
+    _recording, _sequence, scene, views = k729
+    first = next(v for v in views if len(v.track_id) >= 4)
+    probe = CorridorBuilder(CorridorsConfig(), scene_maps=scene_maps)
+    for view in views:
+        if view.frame_index <= first.frame_index + 19:
+            corridor_set, _ = probe.process(_frame(view), scene)
+    on = {v.track_id: v.lanelet_id for v in corridor_set.vehicles if v.status == MatchStatus.MATCHED}
+    a = next(iter(on))
+    b = next(t for t in on if on[t] != on[a])  # two tracks on different lanelets
+    original = CorridorBuilder._plan
+    calls = {"reused": 0, "fresh": 0}
+    plans = {}  # frame index -> track a's plan after the frame (the first builder)
+
+    def counted(self, road_map, cache, track, starts):
+        before = track.plan
+        plan = original(self, road_map, cache, track, starts)
+        calls["reused" if before is not None and track.plan is before else "fresh"] += 1
+        return plan
+
+    def run(record=False):
+        builder = CorridorBuilder(CorridorsConfig(), scene_maps=scene_maps)
+        out = []
+        for view in views:
+            swap = first.frame_index + 20 <= view.frame_index < first.frame_index + 40
+            frame = _swapped(view, a, b) if swap else _frame(view)
+            out.append(builder.process(frame, scene))
+            if record and a in builder._tracks:
+                plans[view.frame_index] = builder._tracks[a].plan
+        return out
+
+    monkeypatch.setattr(CorridorBuilder, "_plan", counted)
+    reused = run(record=True)
+    assert calls["reused"] > 3 * calls["fresh"] > 0, calls
+    before = plans[first.frame_index + 19]
+    during = [plans.get(first.frame_index + k) for k in range(20, 40)]
+    assert any(p is not None and p[0][1] != before[0][1] for p in during)  # a re-used id on other lanelets: a fresh plan
+
+    def fresh(self, road_map, cache, track, starts):
+        track.plan = None  # forget the last plan: every frame enumerates the routes and assigns the ids again
+        return original(self, road_map, cache, track, starts)
+
+    monkeypatch.setattr(CorridorBuilder, "_plan", fresh)
+    reference = run()
+    assert len(reused) == len(reference) == len(views)
+    for (set_a, issues_a), (set_b, issues_b) in zip(reused, reference):
+        assert set_a.encode() == set_b.encode() and issues_a == issues_b
+
+
+def test_a_track_dropped_after_the_timeout_takes_its_plan_with_it(k729, scene_maps):
+    """A track unseen for longer than `track_timeout_s` is forgotten with its route plan; back, it starts a new one."""
+    _recording, _sequence, scene, views = k729
+    builder = CorridorBuilder(CorridorsConfig(track_timeout_s=0.5), scene_maps=scene_maps)
+    track_id = None
+    for view in views[:30]:
+        builder.process(_frame(view), scene)
+        matched = [t for t, tr in builder._tracks.items() if tr.plan is not None]
+        track_id = track_id if track_id is not None else (matched[0] if matched else None)
+    assert track_id is not None and builder._tracks[track_id].plan is not None
+    gap = [v for v in views[30:] if (v.stamp_ns - views[29].stamp_ns) * 1e-9 > 0.6]
+    without = gap[0]
+    keep = np.asarray(without.track_id) != track_id
+    columns = {"track_ids": "track_id", "agent_types": "agent_type", **{k: k for k in ("x_m", "y_m", "vx_mps", "vy_mps", "yaw_rad", "length_m", "width_m")}}
+    frame = _frame(without, **{k: np.asarray(getattr(without, v))[keep] for k, v in columns.items()})
+    builder.process(frame, scene)
+    assert track_id not in builder.tracked_ids and track_id not in builder._tracks
+
+
+def test_selection_from_the_frame_s_candidate_lists_equals_the_selection_from_the_arrays(k729, scene_maps, monkeypatch):
+    """`select_lanelets` reading the candidates `measure` listed per point (`candidates_by_point`) picks the matches it
+    picks from the measurement arrays themselves, for every vehicle of sequence 013."""
+    import stages.corridors.core as core
+    from stages.corridors.matching import select_lanelets
+
+    compared = []
+
+    def both(index, meas, row, **kwargs):
+        assert meas.candidates and len(meas.candidates) == meas.level.shape[0]
+        found = select_lanelets(index, meas, row, **kwargs)
+        assert found == select_lanelets(index, dataclasses.replace(meas, candidates=()), row, **kwargs)
+        compared.append(len(found[0]))
+        return found
+
+    monkeypatch.setattr(core, "select_lanelets", both)
+    _run(k729, 0, 10_000, scene_maps=scene_maps)
+    assert len(compared) > 1000 and sum(n > 1 for n in compared) > 10

@@ -286,3 +286,48 @@ def test_corridor_speeds_do_not_depend_on_the_reported_velocity(k729, name, tran
             assert o[1] == pytest.approx(vx, abs=tolerance_mps) and o[0] == pytest.approx(speed, abs=tolerance_mps), (name, key)
             compared += 1
     assert compared > 100
+
+
+def test_median_without_arrays_is_numpy_median_bit_for_bit():
+    from stages.lib.kinematic_state import _median
+
+    rng = np.random.default_rng(5)
+    for n in range(1, 60):
+        for _ in range(50):
+            values = rng.normal(0.0, 500.0, n)
+            if n % 3 == 0:
+                values = np.round(values, 1)  # ties
+            assert np.float64(_median(values.tolist())).tobytes() == np.float64(np.median(values)).tobytes()
+    assert math.isnan(_median([1.0, math.nan, 2.0]))
+
+
+def test_calibration_window_ring_gives_the_figures_of_the_last_samples_in_order():
+    """The calibration keeps its window in a ring: after every sample (past the window's wrap-around) its factor,
+    cosine and trust are those computed from the last `calibration_window` samples as a list."""
+    from stages.lib.kinematic_state import Calibration
+
+    config = EstimatorConfig(calibration_window=40, calibration_min_samples=10, calibration_min_tracks=2)
+    calibration = Calibration(config)
+    rng = np.random.default_rng(11)
+    history = []
+    trusted = kept = 0
+    for k in range(300):
+        track_id = int(rng.integers(0, 3)) if k < 150 else 7  # then one track only: too few tracks once the window is its
+        factor, cosine = float(rng.lognormal(0.0, 0.05 if k % 50 < 40 else 1.0)), float(rng.choice([0.95, 0.99, -0.2]))
+        before = (calibration.factor, calibration.cosine, calibration.trusted)
+        calibration.add(track_id, factor, cosine)
+        history.append((track_id, factor, cosine))
+        window = history[-40:]
+        if calibration._dirty == 0:  # refreshed on this sample: the figures of the window
+            if len(window) >= 10 and len({t for t, _, _ in window}) >= 2:
+                arr = np.array([(f, c) for _, f, c in window])
+                q1, med, q3 = np.percentile(arr[:, 0], [25, 50, 75])
+                assert calibration.factor == float(med) and calibration.cosine == float(np.median(arr[:, 1]))
+                assert calibration.trusted == bool(0.2 <= med <= 5.0 and abs(calibration.cosine) >= 0.9
+                                                   and (q3 - q1) <= config.calibration_max_spread * med)
+                trusted += calibration.trusted
+            else:  # too few samples or tracks in the window: the figures stay
+                kept += 1
+                assert (calibration.factor, calibration.cosine, calibration.trusted) == before or math.isnan(before[0])
+    assert 0 < trusted and kept > 10
+    assert Calibration(EstimatorConfig(calibration_window=0)).add(1, 1.0, 1.0) is None  # a window of none keeps nothing

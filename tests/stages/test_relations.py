@@ -615,3 +615,64 @@ def test_grouped_influencing_choice_equals_the_choice_per_corridor():
             assert choose_influencing(*args, horizon_s=6.0, other_probability=None if prob is None else prob[span], min_probability=0.1) == want
             chosen += want[0] >= 0
         assert 50 < chosen < len(sizes)
+
+
+def test_lane_change_refinement_in_one_kernel_call_equals_the_call_per_corridor(scene_maps, monkeypatch):
+    """`_refine` projects the conflict points of every lane-change corridor in one `kernels.project_window_groups` call;
+    with the kernel declining (each corridor through `project_in_window`, the reference) every call over the embedded
+    K729 sequences gives the same arc lengths bit for bit (hundreds of them moved by the refinement), and every frame
+    the same RelationSet bytes and issues."""
+    from stages.lib.datasets import load_recording
+    from stages.lib.maps import kernels
+
+    if not kernels.available():
+        pytest.skip("numba not importable")
+    name = "k729_2022-03-16"
+    recording = load_recording(DEFAULT_DATA_DIR, name)
+    player = TrackPlayer(TracksSourceConfig(recording=name), recording, map_sha256="", run_id="test", producer="tracks")
+    builder = CorridorBuilder(CorridorsConfig(), producer="corridors", scene_maps=scene_maps)
+    inputs, scene = [], None
+    for _stamp, result in player:
+        scene = result.outputs.get("scene", scene)
+        frame = result.outputs["track_frame"]
+        inputs.append((frame, builder.process(frame, scene)[0], scene))
+    grouped_kernel = kernels.project_window_groups
+    original = RelationExtractor._refine
+    moved = []
+
+    def compared(self, pairs, tables, point, g, s):
+        given, reference = s.copy(), s.copy()
+        monkeypatch.setattr(kernels, "project_window_groups", lambda *args: None)
+        original(self, pairs, tables, point, g, reference)
+        monkeypatch.setattr(kernels, "project_window_groups", grouped_kernel)
+        original(self, pairs, tables, point, g, s)
+        assert s.tobytes() == reference.tobytes()
+        moved.append(int((s != given).sum()))
+
+    def run():
+        extractor = RelationExtractor(RelationsConfig(), scene_maps=scene_maps)
+        return [extractor.process(frame, corridor_set, scene) for frame, corridor_set, scene in inputs]
+
+    monkeypatch.setattr(RelationExtractor, "_refine", compared)
+    grouped = run()
+    assert sum(moved) > 100, moved
+    monkeypatch.setattr(RelationExtractor, "_refine", original)
+    monkeypatch.setattr(kernels, "project_window_groups", lambda *args: None)
+    reference = run()
+    assert len(grouped) == len(reference) > 1000
+    for (a, issues_a), (b, issues_b) in zip(grouped, reference):
+        assert a.encode() == b.encode() and issues_a == issues_b
+
+
+def test_scene_tables_sorted_lookup_gives_the_indices_of_the_lookup_id_by_id(sequence):
+    from stages.relations.core import SceneTables
+
+    tables = SceneTables(sequence["road_map"])
+    ids = np.array(sequence["road_map"].lanelet_ids, dtype=np.int64)
+    rng = np.random.default_rng(2)
+    query = np.concatenate([rng.permutation(ids), [0, -1, ids.min() - 1, ids.max() + 1, np.iinfo(np.int64).max], ids[:3]])
+    by_array = tables.indices(query)
+    by_id = tables.indices(query.tolist())  # a list: id by id
+    assert by_array.dtype == by_id.dtype == np.int64 and by_array.tolist() == by_id.tolist()
+    assert by_array[: len(ids)].tolist() == [tables._index[int(x)] for x in query[: len(ids)]]
+    assert (by_array[len(ids) : len(ids) + 5] == tables.n_lanelets).all()

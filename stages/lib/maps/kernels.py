@@ -432,18 +432,108 @@ def _project_point(px, py, line, arc, hint, window_m):
     return ok, out_s[0], out_d[0]
 
 
+def _project_window_groups(points, point_bounds, lines, line_bounds, arcs, hints, window_m, out_s, out_d, out_seg, ok):
+    """`_project_window` for groups of points, each on its own polyline: group q's points
+    points[point_bounds[q]:point_bounds[q + 1]] on lines[line_bounds[q]:line_bounds[q + 1]] (arcs the same rows);
+    ok[q] False where that group must take the numpy path."""
+    for q in range(point_bounds.shape[0] - 1):
+        a, b = point_bounds[q], point_bounds[q + 1]
+        c, d = line_bounds[q], line_bounds[q + 1]
+        ok[q] = _project_window_compiled(points[a:b], lines[c:d], arcs[c:d], hints[a:b], window_m, out_s[a:b], out_d[a:b], out_seg[a:b])
+
+
+def _max_separation(ax, ay, bx, by, start):
+    """max over i >= start of sqrt(dx² + dy²) between samples i of two polylines (the shorter one's length); NaN if
+    any distance is NaN (as ndarray.max), 0.0 when none is left."""
+    n = min(ax.shape[0], bx.shape[0])
+    if start >= n:
+        return 0.0
+    best = -math.inf
+    for i in range(start, n):
+        dx = ax[i] - bx[i]
+        dy = ay[i] - by[i]
+        v = math.sqrt(dx * dx + dy * dy)
+        if v != v:
+            return v
+        if v > best:
+            best = v
+    return best
+
+
+def _unwrapped_interp(x, xp, fp):
+    """``np.interp(x, xp, np.unwrap(fp))`` for one x, the same float operations (unwrap's corrections summed in order
+    up to the segment used); NaN flag (ok False) where xp is not strictly increasing or anything is NaN."""
+    m = xp.shape[0]
+    if m < 2 or fp.shape[0] != m or x != x:
+        return False, 0.0
+    for i in range(m):
+        if xp[i] != xp[i] or fp[i] != fp[i]:
+            return False, 0.0
+        if i and not (xp[i] > xp[i - 1]):
+            return False, 0.0
+    # j: the segment of np.interp (xp[j] <= x < xp[j + 1]), -1 before the start, m - 1 at or past the end
+    if x < xp[0]:
+        j = -1
+    elif x >= xp[m - 1]:
+        j = m - 1
+    else:
+        j = 0
+        while xp[j + 1] <= x:
+            j += 1
+    last = max(j + 1, 0) if j < m - 1 else m - 1
+    # np.unwrap: up[0] = fp[0], up[i] = fp[i] + cumsum(correction)[i - 1]
+    period = 2.0 * math.pi
+    high = period / 2.0
+    low = -high
+    up_j = fp[0]
+    up_next = fp[0]
+    total = 0.0
+    for i in range(1, last + 1):
+        dd = fp[i] - fp[i - 1]
+        ddmod = (dd - low) % period + low
+        if ddmod == low and dd > 0:
+            ddmod = high
+        correction = ddmod - dd
+        if abs(dd) < high:
+            correction = 0.0
+        total = total + correction
+        if i == j:
+            up_j = fp[i] + total
+        if i == j + 1:
+            up_next = fp[i] + total
+    if j < 0:
+        return True, fp[0]  # left of xp: fp[0] (== up[0])
+    if j == m - 1:
+        return True, up_j if m - 1 > 0 else fp[0]
+    if xp[j] == x:
+        return True, up_j
+    slope = (up_next - up_j) / (xp[j + 1] - xp[j])
+    v = slope * (x - xp[j]) + up_j
+    if v != v:
+        v = slope * (x - xp[j + 1]) + up_next
+        if v != v and up_j == up_next:
+            v = up_j
+    return True, v
+
+
 if numba is not None:
     _jit = numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
+    _max_separation_compiled = _jit(_max_separation)
+    _unwrapped_interp_compiled = _jit(_unwrapped_interp)
     _measure_lanelets_compiled = _jit(_measure_lanelets)
     _sample_route_compiled = _jit(_sample_route)
     _project_window_compiled = _jit(_project_window)
     _project_point_compiled = _jit(_project_point)
     _segment_d2 = _jit(_segment_d2)
     _project_polylines_compiled = _jit(_project_polylines)
+    _project_window_groups_compiled = _jit(_project_window_groups)
 else:  # pragma: no cover
+    _max_separation_compiled = None
+    _unwrapped_interp_compiled = None
     _project_window_compiled = None
     _project_point_compiled = None
     _project_polylines_compiled = None
+    _project_window_groups_compiled = None
     _sample_route_compiled = None
     _measure_lanelets_compiled = None
 
@@ -458,6 +548,22 @@ def project_window(points: np.ndarray, line: np.ndarray, arc: np.ndarray, hints:
     out_seg = np.empty(n, dtype=np.int64)
     ok = _project_window_compiled(points, line, arc, hints, float(window_m), out_s, out_d, out_seg)
     return (out_s, out_d, out_seg) if ok else None
+
+
+def project_window_groups(points: np.ndarray, point_bounds: np.ndarray, lines: np.ndarray, line_bounds: np.ndarray,
+                          arcs: np.ndarray, hints: np.ndarray, window_m: float):
+    """`project_window` for groups of points, each on its own polyline, in one call (`_project_window_groups`; float64
+    points (n, 2), lines (m, 2), arcs (m,), hints (n,); int64 bounds (groups + 1,)): (s, d, segment) (n,) and ok
+    (groups,), False for a group that must take the numpy path; None: no kernel."""
+    if _project_window_groups_compiled is None:
+        return None
+    n = len(points)
+    out_s = np.empty(n)
+    out_d = np.empty(n)
+    out_seg = np.empty(n, dtype=np.int64)
+    ok = np.zeros(len(point_bounds) - 1, dtype=np.bool_)
+    _project_window_groups_compiled(points, point_bounds, lines, line_bounds, arcs, hints, float(window_m), out_s, out_d, out_seg, ok)
+    return out_s, out_d, out_seg, ok
 
 
 def project_point(x: float, y: float, line: np.ndarray, arc: np.ndarray, s_hint_m: float, window_m: float):
@@ -513,6 +619,32 @@ def measure_lanelets(p, pi, li, seg_start, seg_vec, seg_len2, seg_s0, seg_headin
                                            edge_start, edge_vec, edge_len2, edge_count, s, d, centre, heading, poly_dist))
 
 
+_F64 = np.dtype(np.float64)
+
+
+def _plain(*arrays) -> bool:
+    """All 1-D native float64 ndarrays (the layouts the small kernels are compiled for; anything else takes numpy)."""
+    for a in arrays:
+        if type(a) is not np.ndarray or a.dtype is not _F64 or a.ndim != 1:
+            return False
+    return True
+
+
+def max_separation(ax: np.ndarray, ay: np.ndarray, bx: np.ndarray, by: np.ndarray, start: int) -> float | None:
+    """`_max_separation` compiled (float64 (n,) arrays); None: take the numpy path."""
+    if _max_separation_compiled is None or not _plain(ax, ay, bx, by):
+        return None
+    return _max_separation_compiled(ax, ay, bx, by, int(start))
+
+
+def unwrapped_interp(x: float, xp: np.ndarray, fp: np.ndarray) -> float | None:
+    """`_unwrapped_interp` compiled (float64 (m,) arrays); None: take the numpy path."""
+    if _unwrapped_interp_compiled is None or not _plain(xp, fp):
+        return None
+    ok, value = _unwrapped_interp_compiled(float(x), xp, fp)
+    return value if ok else None
+
+
 _warm = False
 
 
@@ -541,4 +673,9 @@ def warm_up() -> None:
                      np.array([3], np.int64), *out, np.full((1, 1), np.inf))
     project_polylines(point, line, arc, np.array([0, 4], np.int64), np.ones(1), np.ones(1), 8, 1, 3,
                       np.full((1, 1), np.nan), np.full((1, 1), np.nan))
+    bounds = np.array([0, 1], np.int64)
+    project_window_groups(point, bounds, line, np.array([0, 4], np.int64), arc, np.array([1.0]), 2.0)
+    for a in (arc, frozen):  # the corridors' arrays as built (writable) and as decoded from the bus (read-only)
+        max_separation(a, a, a, a, 1)
+        unwrapped_interp(1.5, a, a)
     _warm = True
