@@ -26,6 +26,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from bus_schemas import Corridor, CorridorRelations, Manoeuvre
+from stages.intentions import kernels
 from stages.lib.maps import RoadMap, Turn
 
 KEY_OFFSET_M = 1.0e6
@@ -155,14 +156,19 @@ class PairTables:
         t lies in [0, 1) inside the corridor and outside it beyond either end
         (the end segments extended straight).
         """
-        s = np.clip(s_m, -1.0e4, 1.0e4)
+        s = np.clip(s_m, -kernels.S_CLIP_M, kernels.S_CLIP_M)
         i = np.searchsorted(self.key, s + g * KEY_OFFSET_M, side="right") - 1
         i = np.clip(i, self.start[g], self.end[g] - 2)
         t = (s - self.s_m[i]) / (self.s_m[i + 1] - self.s_m[i])
         return i, t
 
     def pose(self, g: np.ndarray, s_m: np.ndarray, d_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """x, y and heading of Frenet points (s, d) on pairs g: X(s) + d·n(s), ψ(s)."""
+        """x, y and heading of Frenet points (s, d) on pairs g: X(s) + d·n(s), ψ(s) (compiled: `kernels.pose`, the same bits)."""
+        found = kernels.pose(self, g, s_m, d_m, KEY_OFFSET_M)
+        return found if found is not None else self.pose_numpy(g, s_m, d_m)
+
+    def pose_numpy(self, g: np.ndarray, s_m: np.ndarray, d_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`pose` on numpy (where numba is missing)."""
         i, t = self.locate(g, s_m)
         x = self.x_m[i] + t * (self.x_m[i + 1] - self.x_m[i])
         y = self.y_m[i] + t * (self.y_m[i + 1] - self.y_m[i])
@@ -171,7 +177,12 @@ class PairTables:
         return x - d_m * np.sin(heading), y + d_m * np.cos(heading), heading
 
     def admissible_speed(self, g: np.ndarray, s_m: np.ndarray, style: np.ndarray) -> np.ndarray:
-        """v_adm of each particle's corridor and driver style at its s (held beyond the ends)."""
+        """v_adm of each particle's corridor and driver style at its s (held beyond the ends; compiled: `kernels.admissible_speed`)."""
+        found = kernels.admissible_speed(self, g, s_m, style, KEY_OFFSET_M)
+        return found if found is not None else self.admissible_speed_numpy(g, s_m, style)
+
+    def admissible_speed_numpy(self, g: np.ndarray, s_m: np.ndarray, style: np.ndarray) -> np.ndarray:
+        """`admissible_speed` on numpy (where numba is missing)."""
         i, t = self.locate(g, s_m)
         tc = np.clip(t, 0.0, 1.0)
         v0 = self.v_adm_mps[style, i]

@@ -489,3 +489,39 @@ def test_particles_that_cannot_follow_their_corridors_are_born_again(frames, sce
         for track_id in set(others) - {TURNING_CAR}:
             assert repr(others_f[track_id]) == repr(others[track_id]), (name, track_id)  # repr: NaN fields compare equal
     assert calls  # the stand-in mapping ran
+
+
+def test_compiled_pose_and_admissible_speed_equal_the_numpy_path(frames):
+    """stages.intentions.kernels places particles on their corridors as PairTables' numpy path does, bit for bit (even
+    the sign of zeros): inside, beyond either end, at the samples themselves, clipped far away, and NaN."""
+    from stages.intentions import kernels
+    from stages.intentions.tables import VehicleInput, build_tables
+
+    if not kernels.available():
+        pytest.skip("numba not importable")
+    rng = np.random.default_rng(5)
+    checked = 0
+    for item in frames[WINDOW][::6]:
+        vehicles = [VehicleInput(v.track_id, tuple(v.corridors), int(v.lanelet_id)) for v in item.corridor_set.vehicles if v.corridors]
+        if not vehicles:
+            continue
+        tables = build_tables(vehicles, {}, {}, lat_accels_mps2=(3.0, 2.0), brake_lookahead_mps2=2.5, curvature_smoothing_m=1.0,
+                              default_speed_limit_mps=13.9, stop_offset_m=14.0)
+        n = 400
+        g = rng.integers(0, tables.n_pairs, (3, n))
+        lo, hi = tables.s_m[tables.start[g]], tables.s_m[tables.end[g] - 1]
+        s = rng.uniform(lo - 30.0, hi + 30.0)
+        at_sample = rng.integers(tables.start[g], tables.end[g])
+        s[0, :50] = tables.s_m[at_sample[0, :50]]  # exactly on samples: t = 0 (and the last one's t = 1)
+        s[0, 50:60] = [np.nan, -0.0, 0.0, 2.0e4, -2.0e4, np.inf, -np.inf, 1.0e4, -1.0e4, 5e-324]
+        d = rng.normal(0.0, 1.5, (3, n))
+        d[1, :10] = [-0.0, 0.0, np.nan, 1e300, -1e300, 0.0, 0.0, 0.0, 0.0, 0.0]
+        style = rng.integers(0, tables.v_adm_mps.shape[0], (3, n))
+        with np.errstate(all="ignore"):
+            got, want = tables.pose(g, s, d), tables.pose_numpy(g, s, d)
+            for a, b in zip(got, want):
+                assert np.array_equal(a, b, equal_nan=True) and np.array_equal(np.signbit(a), np.signbit(b))
+            a, b = tables.admissible_speed(g, s, style), tables.admissible_speed_numpy(g, s, style)
+        assert np.array_equal(a, b, equal_nan=True) and np.array_equal(np.signbit(a), np.signbit(b))
+        checked += 1
+    assert checked >= 5
