@@ -93,13 +93,75 @@ def _admissible_speed(key, start, end, s_line, v_adm, g, s_m, style, key_offset,
         out[n] = v0 + tc * (v_adm[j, i + 1] - v0)
 
 
+def _admissible_speeds(s_line, kappa_line, start, length, width, limit, lat, brake, smoothing, min_curvature, out):
+    """`tables.admissible_speeds` of the pairs' concatenated samples (T,) into out (J, T), as the numpy path computes
+    them on rows padded to `width`: the moving average over the padded rows' cumulative sums (the padding width the
+    widest window's), then the reverse cumulative minimum of v_prof² + 2b·s."""
+    n_pairs = start.shape[0]
+    half = np.zeros(n_pairs, np.int64)
+    h = 0
+    for g in range(n_pairs):
+        n = length[g]
+        last = n - 1 if n - 1 > 0 else 0
+        step = 1.0
+        if n > 1:
+            step = (s_line[start[g] + last] - s_line[start[g]]) / (last if last > 1 else 1)
+        q = 0.5 * smoothing / (step if (step >= 1e-3 or step != step) else 1e-3)
+        half[g] = np.int64(_clip(np.rint(q), 0.0, float(width)))
+        if half[g] > h:
+            h = half[g]
+    smooth = smoothing > 0 and h > 0
+    row = np.empty(width)
+    padded = np.empty(width + 2 * h + 1)
+    csum = np.empty(width + 2 * h + 2)
+    n_styles = lat.shape[0]
+    two_b = 2.0 * brake
+    for g in range(n_pairs):
+        n = length[g]
+        a = start[g]
+        for c in range(n):
+            k = abs(kappa_line[a + c])
+            row[c] = k if math.isfinite(k) else 0.0
+        fill = row[n - 1] if n > 0 else 0.0
+        for c in range(n, width):
+            row[c] = fill
+        if smooth:
+            for c in range(h):
+                padded[c] = row[0]
+            for c in range(width):
+                padded[h + c] = row[c]
+            for c in range(h + 1):
+                padded[h + width + c] = row[width - 1]
+            csum[0] = 0.0
+            total = 0.0
+            for c in range(width + 2 * h + 1):
+                total = total + padded[c]
+                csum[c + 1] = total
+            w = half[g]
+            for c in range(n):
+                row[c] = (csum[c + h + w + 1] - csum[c + h - w]) / (2 * w + 1)
+        for j in range(n_styles):
+            run = np.inf
+            for c in range(n - 1, -1, -1):
+                k = row[c]
+                v = math.sqrt(lat[j] / (k if (k >= min_curvature or k != k) else min_curvature))
+                lim = limit[g]
+                v = lim if (lim <= v or lim != lim) else v
+                key = v * v + two_b * s_line[a + c]
+                run = run if (run <= key or run != run) else key
+                x = run - two_b * s_line[a + c]
+                out[j, a + c] = math.sqrt(x if (x >= 0.0 or x != x) else 0.0)
+
+
 if numba is not None:
     _jit = numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
     _clip = _jit(_clip)
     _locate_one = _jit(_locate_one)
     _pose_compiled = _jit(_pose)
     _admissible_speed_compiled = _jit(_admissible_speed)
+    _admissible_speeds_compiled = _jit(_admissible_speeds)
 else:  # pragma: no cover
+    _admissible_speeds_compiled = None
     _pose_compiled = None
     _admissible_speed_compiled = None
 
@@ -132,6 +194,26 @@ def admissible_speed(tables, g: np.ndarray, s_m: np.ndarray, style: np.ndarray, 
     return out.reshape(shape)
 
 
+def admissible_speeds(s_line, kappa_line, lengths, limits, lat_accels_mps2, brake_mps2: float, smoothing_m: float, min_curvature_1pm: float):
+    """`tables.admissible_speeds` of the pairs' concatenated arc lengths and curvatures (T,) as (J, T), its valid
+    samples; None: take the numpy path (no numba, or curvatures and arc lengths of different sizes)."""
+    if _admissible_speeds_compiled is None:
+        return None
+    s_line = np.ascontiguousarray(s_line, dtype=np.float64)
+    kappa_line = np.ascontiguousarray(kappa_line, dtype=np.float64)
+    lengths = np.asarray(lengths, dtype=np.int64)
+    if s_line.shape != kappa_line.shape or s_line.ndim != 1 or int(lengths.sum()) != s_line.size or (lengths < 0).any():
+        return None
+    lat = np.ascontiguousarray(lat_accels_mps2, dtype=np.float64).reshape(-1)
+    start = np.zeros(lengths.size, np.int64)
+    np.cumsum(lengths[:-1], out=start[1:])
+    width = int(lengths.max()) if lengths.size else 0
+    out = np.empty((lat.size, s_line.size))
+    _admissible_speeds_compiled(s_line, kappa_line, start, lengths, width, np.ascontiguousarray(limits, dtype=np.float64), lat,
+                                float(brake_mps2), float(smoothing_m), float(min_curvature_1pm), out)
+    return out
+
+
 _warm = False
 
 
@@ -156,4 +238,5 @@ def warm_up() -> None:
     one = np.zeros((1, 1), np.int64)
     pose(_Table, one, np.full((1, 1), 0.5), np.zeros((1, 1)), KEY_OFFSET_M)
     admissible_speed(_Table, one, np.full((1, 1), 0.5), one, KEY_OFFSET_M)
+    admissible_speeds(np.arange(3.0), np.zeros(3), np.array([3]), np.ones(1), (1.0,), 1.0, 1.0, 1e-4)
     _warm = True

@@ -236,15 +236,20 @@ def build_tables(
     lengths = np.array([len(s) for s in s_parts], dtype=np.int64)
     start = np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64) if n_pairs else np.zeros(0, np.int64)
     key = np.concatenate([s + k * KEY_OFFSET_M for k, s in enumerate(s_parts)]) if n_pairs else np.zeros(0)
+    s_all = np.concatenate(s_parts) if n_pairs else np.zeros(0)
     if n_pairs:
-        width = int(lengths.max())
-        s_pad = np.zeros((n_pairs, width))
-        k_pad = np.zeros((n_pairs, width))
-        valid = np.arange(width)[None, :] < lengths[:, None]
-        s_pad[valid] = np.concatenate(s_parts)
-        k_pad[valid] = np.concatenate(k_parts)
-        v_adm = admissible_speeds(s_pad, k_pad, lengths, limits, lat_accels_mps2, brake_lookahead_mps2, curvature_smoothing_m)
-        v_adm = v_adm[:, valid]
+        k_all = np.concatenate(k_parts)
+        v_adm = kernels.admissible_speeds(s_all, k_all, lengths, limits, lat_accels_mps2, brake_lookahead_mps2, curvature_smoothing_m,
+                                          MIN_CURVATURE_1PM)  # compiled, the same bits; None: numpy
+        if v_adm is None:
+            width = int(lengths.max())
+            s_pad = np.zeros((n_pairs, width))
+            k_pad = np.zeros((n_pairs, width))
+            valid = np.arange(width)[None, :] < lengths[:, None]
+            s_pad[valid] = s_all
+            k_pad[valid] = k_all
+            v_adm = admissible_speeds(s_pad, k_pad, lengths, limits, lat_accels_mps2, brake_lookahead_mps2, curvature_smoothing_m)
+            v_adm = v_adm[:, valid]
     else:
         v_adm = np.zeros((len(lat_accels_mps2), 0))
     n_conf = max((len(c[0]) for c in conflicts), default=0)
@@ -262,7 +267,7 @@ def build_tables(
         start=start,
         end=start + lengths,
         key=key,
-        s_m=cat(s_parts),
+        s_m=s_all,
         x_m=cat(x_parts),
         y_m=cat(y_parts),
         heading_rad=unwrap_parts(h_parts) if n_pairs else np.zeros(0),

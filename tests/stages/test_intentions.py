@@ -525,3 +525,35 @@ def test_compiled_pose_and_admissible_speed_equal_the_numpy_path(frames):
         assert np.array_equal(a, b, equal_nan=True) and np.array_equal(np.signbit(a), np.signbit(b))
         checked += 1
     assert checked >= 5
+
+
+def test_compiled_admissible_speeds_equal_the_numpy_profiles():
+    """kernels.admissible_speeds gives tables.admissible_speeds' valid samples bit for bit: rows of many lengths (the
+    padding width and the smoothing window the widest row's), non-finite curvatures, no smoothing, one sample."""
+    from stages.intentions import kernels
+    from stages.intentions.tables import MIN_CURVATURE_1PM, admissible_speeds
+
+    if not kernels.available():
+        pytest.skip("numba not importable")
+    rng = np.random.default_rng(9)
+    for trial in range(40):
+        n_rows = int(rng.integers(1, 30))
+        lengths = rng.integers(1 if trial % 5 == 0 else 2, 160, n_rows)
+        step = rng.uniform(0.05, 2.0, n_rows) if trial % 3 else np.full(n_rows, 0.5)
+        s_parts = [rng.uniform(-50, 50) + step[r] * np.arange(n) + rng.uniform(0, 1e-3, n) for r, n in enumerate(lengths)]
+        k_parts = [rng.normal(0.0, 0.05, n) * (rng.random(n) < 0.7) for n in lengths]
+        if trial % 4 == 0:
+            k_parts[0][: min(3, lengths[0])] = [np.nan, np.inf, -np.inf][: min(3, lengths[0])]
+        limits = rng.uniform(5.0, 20.0, n_rows)
+        lat = tuple(rng.uniform(1.0, 3.5, int(rng.integers(1, 5))))
+        brake = float(rng.uniform(0.5, 4.0))
+        smoothing = float(rng.choice([0.0, 0.3, 1.0, 7.5]))
+        width = int(lengths.max())
+        valid = np.arange(width)[None, :] < lengths[:, None]
+        s_pad, k_pad = np.zeros((n_rows, width)), np.zeros((n_rows, width))
+        s_pad[valid], k_pad[valid] = np.concatenate(s_parts), np.concatenate(k_parts)
+        want = admissible_speeds(s_pad, k_pad, lengths, limits, lat, brake, smoothing)[:, valid]
+        got = kernels.admissible_speeds(np.concatenate(s_parts), np.concatenate(k_parts), lengths, limits, lat, brake, smoothing, MIN_CURVATURE_1PM)
+        assert got.shape == want.shape
+        assert np.array_equal(got, want, equal_nan=True) and np.array_equal(np.signbit(got), np.signbit(want))
+    assert kernels.admissible_speeds(np.zeros(3), np.zeros(2), [3], [10.0], (2.0,), 2.5, 1.0, MIN_CURVATURE_1PM) is None
