@@ -1,19 +1,30 @@
-"""Compiled (numba) kernels of the particle filter's hot paths: locating particles on their corridors, their pose and
-their admissible speed (`tables.PairTables.pose`, `tables.PairTables.admissible_speed`).
+"""Compiled (numba) kernels of the particle filter's hot paths, the numpy code's results bit for bit.
 
-The numpy path places every particle by one ``searchsorted`` over the
+- `pose`, `admissible_speed`: `tables.PairTables.pose` and
+  `tables.PairTables.admissible_speed`, locating each particle on its pair's
+  centreline (`_locate_one`) and interpolating there;
+- `admissible_speeds`: `tables.admissible_speeds` of a frame's pairs (the
+  speed profiles of `tables.build_tables`);
+- `intend_and_move`: `model.propagate`'s update of the intention I and of
+  Φ (s, v, a, d) after the route switches.
+
+The numpy paths place every particle by one ``searchsorted`` over the
 frame's concatenated key array (T ~ 5,000 samples at a busy junction) and
-then gathers and combines ten arrays of V × N particles, a few dozen numpy
-calls per filter step; here each particle is placed and evaluated in one
-pass. Every value is computed with the same IEEE operations in the same
-order as the numpy path (no fastmath: no reassociation, no fused
-multiply-add; ``sin``/``cos`` are the C library's, which numpy's float64
-``sin``/``cos`` give bit for bit), and the search is numpy's binary search
-with its comparison (a NaN sorts last), so the results are the same bit for
-bit (tests/stages/test_intentions_kernels.py compares them).
+then gather and combine dozens of arrays of V × N particles, each numpy call
+a pass over memory; here each particle is placed and evaluated in one pass.
+Every value is computed with the same IEEE operations in the same order as
+the numpy path (no fastmath: no reassociation, no fused multiply-add;
+``sin``/``cos``/``sqrt`` are the C library's, which numpy's float64 ones give
+bit for bit; the functions whose numpy SIMD versions differ from the C
+library in the last bit, ``tanh``, ``exp``, ``power``, ``log``, stay in numpy
+and their results are passed in), ``np.clip``/``np.maximum``/``np.minimum``
+with numpy's NaN and signed-zero rules, and the search is numpy's binary
+search with its comparison (a NaN sorts last), so the results are the same
+bit for bit (tests/stages/test_intentions.py compares them with the numpy
+paths).
 
 numba is a dependency; ``available()`` is False only where it cannot be
-imported, and `tables` then uses its numpy code.
+imported, and `tables` and `model` then use their numpy code.
 """
 
 from __future__ import annotations
@@ -153,14 +164,81 @@ def _admissible_speeds(s_line, kappa_line, start, length, width, limit, lat, bra
                 out[j, a + c] = math.sqrt(x if (x >= 0.0 or x != x) else 0.0)
 
 
+def _max(a, b):
+    """``np.maximum(a, b)`` of two floats (NaN propagates)."""
+    if a != a:
+        return a
+    return a if a >= b else b
+
+
+def _min(a, b):
+    """``np.minimum(a, b)`` of two floats (NaN propagates)."""
+    if a != a:
+        return a
+    return a if a <= b else b
+
+
+def _intend_and_move(n_per_row, g, s_m, v_mps, a_mps2, d_m, stop, style, p_expected, p_e, u_intent, n_accel, n_lateral,
+                     active, dt, keep, adapt, pull, jerk, decay, lateral, key, start, end, s_line, v_adm, stop_s_m, key_offset,
+                     go_gain, go_sigma, stop_sigma, stop_margin, stop_min_distance, a_min, a_max, floor, relax):
+    """`model.propagate` after the route switches, per particle (flat (V·N,) arrays, per-row values (V,)): the intention
+    I from P(E = stop) `p_e`, then Φ; writes stop, p_expected, s_m, v_mps, a_mps2 and d_m in place."""
+    for n in range(g.shape[0]):
+        r = n // n_per_row
+        on = active[r]
+        pe = p_e[n]
+        if stop[n]:
+            p_stop = pe * keep[r] + (1.0 - pe) * (1.0 - adapt[r])
+        else:
+            p_stop = pe * adapt[r] + (1.0 - pe) * (1.0 - keep[r])
+        p_stop = _clip(p_stop, floor, 1.0 - floor)
+        if on:
+            stop[n] = u_intent[n] < p_stop
+            p_expected[n] = pe
+        s = s_m[n]
+        v = v_mps[n]
+        i, t, _s = _locate_one(key, start, end, s_line, g[n], s, key_offset)
+        tc = _clip(t, 0.0, 1.0)
+        j = style[n]
+        v0 = v_adm[j, i]
+        target_go = go_gain * ((v0 + tc * (v_adm[j, i + 1] - v0)) - v)
+        to_stop = stop_s_m[g[n]] - s
+        has_stop = math.isfinite(to_stop)
+        target_stop = -(v * v) / (2.0 * _max((to_stop if has_stop else 1.0) - stop_margin, stop_min_distance))
+        stopping = stop[n] and has_stop
+        noise = n_accel[n]
+        if relax:
+            target = _max(target_stop, a_min) if stopping else target_go
+            a_old = a_mps2[n]
+            a = a_old + pull[r] * (target - a_old) + jerk[r] * noise
+            if stopping:
+                a = _min(a, 0.0)
+        elif stopping:
+            a = _clip(target_stop + stop_sigma * noise, a_min, 0.0)
+        else:
+            a = target_go + go_sigma * noise
+        a = _clip(a, a_min, a_max)
+        step = dt[r]
+        moving = _min(step, v / _max(-a, 1e-9)) if a < 0.0 else step
+        s_m[n] = s + v * moving + 0.5 * a * (moving * moving)
+        v_mps[n] = _max(v + a * step, 0.0)
+        if on:
+            a_mps2[n] = a
+        d_m[n] = decay[r] * d_m[n] + lateral[r] * n_lateral[n]
+
+
 if numba is not None:
     _jit = numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
     _clip = _jit(_clip)
+    _max = _jit(_max)
+    _min = _jit(_min)
     _locate_one = _jit(_locate_one)
     _pose_compiled = _jit(_pose)
     _admissible_speed_compiled = _jit(_admissible_speed)
     _admissible_speeds_compiled = _jit(_admissible_speeds)
+    _intend_and_move_compiled = _jit(_intend_and_move)
 else:  # pragma: no cover
+    _intend_and_move_compiled = None
     _admissible_speeds_compiled = None
     _pose_compiled = None
     _admissible_speed_compiled = None
@@ -212,6 +290,36 @@ def admissible_speeds(s_line, kappa_line, lengths, limits, lat_accels_mps2, brak
     _admissible_speeds_compiled(s_line, kappa_line, start, lengths, width, np.ascontiguousarray(limits, dtype=np.float64), lat,
                                 float(brake_mps2), float(smoothing_m), float(min_curvature_1pm), out)
     return out
+
+
+def intend_and_move(p, tables, g, p_e, u_intent, n_accel, n_lateral, active, dt, per_row, mp, key_offset_m: float) -> bool:
+    """`model.propagate`'s intention and motion update of the particles `p` (V, N) on pairs `g` (V, N), in place (new
+    arrays for the fields it changes); `per_row` = (keep, adapt, pull, jerk, decay, lateral), each (V,). False: numpy."""
+    if _intend_and_move_compiled is None:
+        return False
+    shape = p.s_m.shape
+    n_rows, n_per_row = shape
+
+    def flat(x, dtype):
+        return np.ascontiguousarray(np.broadcast_to(np.asarray(x, dtype=dtype), shape)).reshape(-1)
+
+    fields = {name: np.array(getattr(p, name), dtype=dtype, copy=True).reshape(-1) for name, dtype in (
+        ("s_m", np.float64), ("v_mps", np.float64), ("a_mps2", np.float64), ("d_m", np.float64), ("stop", np.bool_),
+        ("p_expected_stop", np.float64))}
+    rows = [np.ascontiguousarray(np.broadcast_to(np.asarray(x, dtype=np.float64).reshape(-1), (n_rows,))) for x in per_row]
+    _intend_and_move_compiled(
+        n_per_row, flat(g, np.int64), fields["s_m"], fields["v_mps"], fields["a_mps2"], fields["d_m"], fields["stop"],
+        flat(p.style, np.int64), fields["p_expected_stop"], flat(p_e, np.float64), flat(u_intent, np.float64),
+        flat(n_accel, np.float64), flat(n_lateral, np.float64), np.ascontiguousarray(active, dtype=np.bool_),
+        np.ascontiguousarray(dt, dtype=np.float64), *rows,
+        tables.key, tables.start, tables.end, tables.s_m, np.ascontiguousarray(tables.v_adm_mps), tables.stop_s_m, float(key_offset_m),
+        float(mp.go_gain_per_s), float(mp.go_accel_sigma_mps2), float(mp.stop_accel_sigma_mps2), float(mp.stop_margin_m),
+        float(mp.stop_min_distance_m), float(mp.accel_min_mps2), float(mp.accel_max_mps2), float(mp.intention_floor),
+        bool(mp.accel_relaxation_s > 0.0),
+    )
+    for name, value in fields.items():
+        setattr(p, name, value.reshape(shape))
+    return True
 
 
 _warm = False

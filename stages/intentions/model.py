@@ -2,8 +2,11 @@
 
 Pure functions of the particle arrays, the frame's `PairTables` and
 pre-drawn random numbers (drawn per vehicle from its own seeded generator by
-`IntentionFilter`), so no Python loop runs per particle. See the package
-docstring for the model and its parameters (docs/method.md §7).
+`IntentionFilter`), so no Python loop runs per particle. The hottest parts
+(the pose and admissible speed of the particles, and `propagate`'s update of
+I and Φ) run through the compiled kernels of `stages.intentions.kernels`,
+which give the numpy code's values bit for bit. See the package docstring
+for the model and its parameters (docs/method.md §7).
 """
 
 from __future__ import annotations
@@ -14,7 +17,8 @@ import numpy as np
 
 from stages.lib.maps import wrap_angle_rad
 
-from stages.intentions.tables import PairTables
+from stages.intentions import kernels
+from stages.intentions.tables import KEY_OFFSET_M, PairTables
 from stages.intentions.signals import combine, signal_stop_probability
 
 REFERENCE_STEP_S = 0.1
@@ -187,41 +191,49 @@ def propagate(
     p_e = expected_stop(tables, g_before, p.s_m, p.v_mps, mp)
     keep = 1.0 - per_step(1.0 - mp.intention_keep, dt)[:, None]  # I agrees with E: keeps it
     adapt = per_step(mp.intention_adapt, dt)[:, None]  # I disagrees with E: takes E
-    p_stop = np.where(
-        p.stop,
-        p_e * keep + (1.0 - p_e) * (1.0 - adapt),
-        p_e * adapt + (1.0 - p_e) * (1.0 - keep),
-    )
-    p_stop = np.clip(p_stop, mp.intention_floor, 1.0 - mp.intention_floor)
     act = active[:, None]
-    p.stop = np.where(act, u_intent < p_stop, p.stop)
-    p.p_expected_stop = np.where(act, p_e, p.p_expected_stop)
+    compiled = kernels.available()  # then I is drawn with Φ below, particle by particle (the route switch reads neither)
+    if not compiled:
+        p_stop = np.where(
+            p.stop,
+            p_e * keep + (1.0 - p_e) * (1.0 - adapt),
+            p_e * adapt + (1.0 - p_e) * (1.0 - keep),
+        )
+        p_stop = np.clip(p_stop, mp.intention_floor, 1.0 - mp.intention_floor)
+        p.stop = np.where(act, u_intent < p_stop, p.stop)
+        p.p_expected_stop = np.where(act, p_e, p.p_expected_stop)
     switch_routes(p, tables, first_pair, dt, np.where(act, u_switch, 1.0), u_choice, mp)
     g = first_pair[:, None] + p.route
+    step = dt[:, None]
+    relax = mp.accel_relaxation_s > 0.0
+    # acceleration as a state (τ_a > 0): it relaxes towards the mode's target with time constant τ_a, plus a jerk noise
+    pull = 1.0 - np.exp(-dt / mp.accel_relaxation_s)[:, None] if relax else np.zeros_like(step)
+    jerk = mp.accel_jerk_sigma_mps2 * np.sqrt(dt / REFERENCE_STEP_S)[:, None] if relax else np.zeros_like(step)
+    decay = np.power(mp.lateral_decay, step / REFERENCE_STEP_S)
+    lateral = mp.lateral_sigma_m * np.sqrt(step / REFERENCE_STEP_S)
+    if compiled and kernels.intend_and_move(p, tables, g, p_e, u_intent, n_accel, n_lateral, active, dt,
+                                            (keep, adapt, pull, jerk, decay, lateral), mp, KEY_OFFSET_M):
+        return  # the same bits as below (tests/stages/test_intentions.py)
     v = p.v_mps
     target_go = mp.go_gain_per_s * (tables.admissible_speed(g, p.s_m, p.style) - v)
     to_stop = tables.stop_s_m[g] - p.s_m
     has_stop = np.isfinite(to_stop)
     target_stop = -(v**2) / (2.0 * np.maximum(np.where(has_stop, to_stop, 1.0) - mp.stop_margin_m, mp.stop_min_distance_m))
     stopping = p.stop & has_stop
-    if mp.accel_relaxation_s > 0.0:
-        # acceleration is a state: it relaxes towards the mode's target with time constant τ_a, plus a jerk noise
-        pull = 1.0 - np.exp(-dt / mp.accel_relaxation_s)[:, None]
+    if relax:
         target = np.where(stopping, np.maximum(target_stop, mp.accel_min_mps2), target_go)
-        a = p.a_mps2 + pull * (target - p.a_mps2) + mp.accel_jerk_sigma_mps2 * np.sqrt(dt / REFERENCE_STEP_S)[:, None] * n_accel
+        a = p.a_mps2 + pull * (target - p.a_mps2) + jerk * n_accel
         a = np.where(stopping, np.minimum(a, 0.0), a)
     else:
         a_go = target_go + mp.go_accel_sigma_mps2 * n_accel
         a_stop = np.clip(target_stop + mp.stop_accel_sigma_mps2 * n_accel, mp.accel_min_mps2, 0.0)
         a = np.where(stopping, a_stop, a_go)
     a = np.clip(a, mp.accel_min_mps2, mp.accel_max_mps2)
-    step = dt[:, None]
     moving = np.where(a < 0.0, np.minimum(step, v / np.maximum(-a, 1e-9)), step)
     p.s_m = p.s_m + v * moving + 0.5 * a * moving**2
     p.v_mps = np.maximum(v + a * step, 0.0)
     p.a_mps2 = np.where(act, a, p.a_mps2)
-    decay = np.power(mp.lateral_decay, step / REFERENCE_STEP_S)
-    p.d_m = decay * p.d_m + mp.lateral_sigma_m * np.sqrt(step / REFERENCE_STEP_S) * n_lateral
+    p.d_m = decay * p.d_m + lateral * n_lateral
 
 
 def log_likelihood(p: Particles, tables: PairTables, first_pair: np.ndarray, z, mp: ModelParams) -> np.ndarray:
