@@ -73,11 +73,11 @@ def _locate_one(key, start, end, s_line, g, s_m, key_offset):
 
 
 def _clip(x, lo, hi):
-    """``np.clip(x, lo, hi)`` of one float as numpy's loop computes it: NaN stays NaN, max then min (so −0.0 → lo = 0.0)."""
+    """``np.clip(x, lo, hi)`` of one float as numpy computes it: NaN stays NaN, a tie keeps x (``np.clip(-0.0, 0, 1)`` is −0.0)."""
     if x != x:
         return x
-    r = x if x > lo else lo
-    return r if r < hi else hi
+    r = x if x >= lo else lo
+    return r if r <= hi else hi
 
 
 def _pose(key, start, end, s_line, x_line, y_line, h_line, g, s_m, d_m, key_offset, out_x, out_y, out_h):
@@ -117,7 +117,7 @@ def _admissible_speeds(s_line, kappa_line, start, length, width, limit, lat, bra
         step = 1.0
         if n > 1:
             step = (s_line[start[g] + last] - s_line[start[g]]) / (last if last > 1 else 1)
-        q = 0.5 * smoothing / (step if (step >= 1e-3 or step != step) else 1e-3)
+        q = 0.5 * smoothing / _max(step, 1e-3)
         half[g] = np.int64(_clip(np.rint(q), 0.0, float(width)))
         if half[g] > h:
             h = half[g]
@@ -155,27 +155,26 @@ def _admissible_speeds(s_line, kappa_line, start, length, width, limit, lat, bra
             run = np.inf
             for c in range(n - 1, -1, -1):
                 k = row[c]
-                v = math.sqrt(lat[j] / (k if (k >= min_curvature or k != k) else min_curvature))
-                lim = limit[g]
-                v = lim if (lim <= v or lim != lim) else v
+                v = math.sqrt(lat[j] / _max(k, min_curvature))
+                v = _min(limit[g], v)
                 key = v * v + two_b * s_line[a + c]
-                run = run if (run <= key or run != run) else key
+                run = _min(run, key)
                 x = run - two_b * s_line[a + c]
-                out[j, a + c] = math.sqrt(x if (x >= 0.0 or x != x) else 0.0)
+                out[j, a + c] = math.sqrt(_max(x, 0.0))
 
 
 def _max(a, b):
-    """``np.maximum(a, b)`` of two floats (NaN propagates)."""
+    """``np.maximum(a, b)`` of two floats as numpy computes it: NaN propagates, a tie gives b (``np.maximum(-0.0, 0.0)`` is 0.0)."""
     if a != a:
         return a
-    return a if a >= b else b
+    return a if a > b else b
 
 
 def _min(a, b):
-    """``np.minimum(a, b)`` of two floats (NaN propagates)."""
+    """``np.minimum(a, b)`` of two floats as numpy computes it: NaN propagates, a tie gives b."""
     if a != a:
         return a
-    return a if a <= b else b
+    return a if a < b else b
 
 
 def _intend_and_move(n_per_row, g, s_m, v_mps, a_mps2, d_m, stop, style, p_expected, p_e, u_intent, n_accel, n_lateral,

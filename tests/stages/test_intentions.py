@@ -495,7 +495,7 @@ def test_compiled_pose_and_admissible_speed_equal_the_numpy_path(frames):
     """stages.intentions.kernels places particles on their corridors as PairTables' numpy path does, bit for bit (even
     the sign of zeros): inside, beyond either end, at the samples themselves, clipped far away, and NaN."""
     from stages.intentions import kernels
-    from stages.intentions.tables import VehicleInput, build_tables
+    from stages.intentions.tables import KEY_OFFSET_M, VehicleInput, build_tables
 
     if not kernels.available():
         pytest.skip("numba not importable")
@@ -525,6 +525,18 @@ def test_compiled_pose_and_admissible_speed_equal_the_numpy_path(frames):
         assert np.array_equal(a, b, equal_nan=True) and np.array_equal(np.signbit(a), np.signbit(b))
         checked += 1
     assert checked >= 5
+    # signed zeros: a corridor starting at s = 0 with zero headings, particles at s = −0.0 (t = −0.0, clipped as numpy does)
+    s_line = np.array([0.0, 1.0, 2.0, 0.0, 0.5])
+    tiny = dataclasses.replace(
+        tables, key=s_line + np.array([0.0, 0.0, 0.0, 1.0, 1.0]) * KEY_OFFSET_M, s_m=s_line, x_m=np.array([-0.0, 1.0, 2.0, 0.0, -0.0]),
+        y_m=np.array([-0.0, -0.0, 0.0, 0.0, 1.0]), heading_rad=np.array([-0.0, -0.0, 0.5, 0.0, -0.0]),
+        start=np.array([0, 3]), end=np.array([3, 5]), v_adm_mps=np.array([[-0.0, 1.0, 2.0, 0.0, 3.0]]))
+    g = np.array([[0, 0, 0, 1, 1, 1, 0, 1]])
+    s = np.array([[-0.0, 0.0, 2.0, -0.0, 0.5, 0.25, 1.0, 0.0]])
+    d = np.array([[-0.0, 0.0, -0.0, 0.0, -0.0, 1.0, -0.0, -0.0]])
+    style = np.zeros_like(g)
+    for a, b in [*zip(tiny.pose(g, s, d), tiny.pose_numpy(g, s, d)), (tiny.admissible_speed(g, s, style), tiny.admissible_speed_numpy(g, s, style))]:
+        assert np.array_equal(a, b, equal_nan=True) and np.array_equal(np.signbit(a), np.signbit(b))
 
 
 def test_compiled_admissible_speeds_equal_the_numpy_profiles():
