@@ -58,6 +58,7 @@ class ARInference:
 
     def __init__(self, config: ARInferenceConfig, *, producer: str = "ar_inference", model: Any = None) -> None:
         from stages.lib.ar import DEFAULT_MODEL_PATH, FeatureTracker, load_model
+        from stages.lib.ar import kernels as ar_kernels
 
         self.config = config
         self.producer = producer
@@ -80,6 +81,7 @@ class ARInference:
                 raise ConfigError(f"device = {config.device!r}: no CUDA device here; use device = 'cpu'")
         self.model = model
         self.tracker = FeatureTracker()
+        ar_kernels.warm_up()  # the compiled feature kernel loaded (or compiled) now, not on the first frame
         meta = getattr(model, "metadata", {}) or {}
         self.step_s = float(meta.get("step_s", 0.1))
         self.history_steps = int(meta.get("history_steps", 40))

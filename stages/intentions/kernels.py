@@ -18,7 +18,7 @@ the numpy path (no fastmath: no reassociation, no fused multiply-add;
 bit for bit; the functions whose numpy SIMD versions differ from the C
 library in the last bit, ``tanh``, ``exp``, ``power``, ``log``, stay in numpy
 and their results are passed in), ``np.clip``/``np.maximum``/``np.minimum``
-with numpy's NaN and signed-zero rules, and the search is numpy's binary
+with numpy's NaN and signed-zero rules (`stages.lib.numpy_rules`), and the search is numpy's binary
 search with its comparison (a NaN sorts last), so the results are the same
 bit for bit (tests/stages/test_intentions.py compares them with the numpy
 paths).
@@ -32,6 +32,15 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
+from stages.lib.numpy_rules import clip as _clip
+from stages.lib.numpy_rules import maximum as _max
+from stages.lib.numpy_rules import minimum as _min
+
+NUMPY_RULES_SHA256 = "cd1086ff06ad63e4"
+"""The first 16 hex digits of stages/lib/numpy_rules.py's sha256 the kernels here were written against: numba's cache
+of this module does not notice edits of that file, so an edit there must change this line too (which renews the cache;
+tests/stages/test_intentions.py checks it)."""
 
 try:  # pragma: no cover - exercised where numba is missing only
     import numba
@@ -70,14 +79,6 @@ def _locate_one(key, start, end, s_line, g, s_m, key_offset):
         i = last
     t = (s - s_line[i]) / (s_line[i + 1] - s_line[i])
     return i, t, s
-
-
-def _clip(x, lo, hi):
-    """``np.clip(x, lo, hi)`` of one float as numpy computes it: NaN stays NaN, a tie keeps x (``np.clip(-0.0, 0, 1)`` is −0.0)."""
-    if x != x:
-        return x
-    r = x if x >= lo else lo
-    return r if r <= hi else hi
 
 
 def _pose(key, start, end, s_line, x_line, y_line, h_line, g, s_m, d_m, key_offset, out_x, out_y, out_h):
@@ -163,20 +164,6 @@ def _admissible_speeds(s_line, kappa_line, start, length, width, limit, lat, bra
                 out[j, a + c] = math.sqrt(_max(x, 0.0))
 
 
-def _max(a, b):
-    """``np.maximum(a, b)`` of two floats as numpy computes it: NaN propagates, a tie gives b (``np.maximum(-0.0, 0.0)`` is 0.0)."""
-    if a != a:
-        return a
-    return a if a > b else b
-
-
-def _min(a, b):
-    """``np.minimum(a, b)`` of two floats as numpy computes it: NaN propagates, a tie gives b."""
-    if a != a:
-        return a
-    return a if a < b else b
-
-
 def _intend_and_move(n_per_row, g, s_m, v_mps, a_mps2, d_m, stop, style, p_expected, p_e, u_intent, n_accel, n_lateral,
                      active, dt, keep, adapt, pull, jerk, decay, lateral, key, start, end, s_line, v_adm, stop_s_m, key_offset,
                      go_gain, go_sigma, stop_sigma, stop_margin, stop_min_distance, a_min, a_max, floor, relax):
@@ -228,9 +215,6 @@ def _intend_and_move(n_per_row, g, s_m, v_mps, a_mps2, d_m, stop, style, p_expec
 
 if numba is not None:
     _jit = numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
-    _clip = _jit(_clip)
-    _max = _jit(_max)
-    _min = _jit(_min)
     _locate_one = _jit(_locate_one)
     _pose_compiled = _jit(_pose)
     _admissible_speed_compiled = _jit(_admissible_speed)
@@ -330,7 +314,7 @@ def warm_up() -> None:
     global _warm
     if _warm or numba is None:
         return
-    from stages.intentions.tables import KEY_OFFSET_M
+    from types import SimpleNamespace
 
     class _Table:
         key = np.array([0.0, 1.0, 2.0])
@@ -341,9 +325,16 @@ def warm_up() -> None:
         y_m = np.zeros(3)
         heading_rad = np.zeros(3)
         v_adm_mps = np.ones((1, 3))
+        stop_s_m = np.full(1, np.nan)
 
     one = np.zeros((1, 1), np.int64)
-    pose(_Table, one, np.full((1, 1), 0.5), np.zeros((1, 1)), KEY_OFFSET_M)
-    admissible_speed(_Table, one, np.full((1, 1), 0.5), one, KEY_OFFSET_M)
+    pose(_Table, one, np.full((1, 1), 0.5), np.zeros((1, 1)), 1.0e6)
+    admissible_speed(_Table, one, np.full((1, 1), 0.5), one, 1.0e6)
     admissible_speeds(np.arange(3.0), np.zeros(3), np.array([3]), np.ones(1), (1.0,), 1.0, 1.0, 1e-4)
+    zero = np.zeros((1, 1))
+    particles = SimpleNamespace(s_m=zero + 0.5, v_mps=zero, a_mps2=zero, d_m=zero, stop=zero > 0, style=one, p_expected_stop=zero)
+    params = SimpleNamespace(go_gain_per_s=1.0, go_accel_sigma_mps2=1.0, stop_accel_sigma_mps2=1.0, stop_margin_m=1.0, stop_min_distance_m=1.0,
+                             accel_min_mps2=-1.0, accel_max_mps2=1.0, intention_floor=0.0, accel_relaxation_s=0.0)
+    per_row = tuple(np.zeros(1) for _ in range(6))
+    intend_and_move(particles, _Table, one, zero, zero, zero, zero, np.ones(1, bool), np.zeros(1), per_row, params, 1.0e6)
     _warm = True

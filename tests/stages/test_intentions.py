@@ -618,3 +618,18 @@ def test_compiled_propagation_equals_the_numpy_one(frames, monkeypatch, relaxati
         assert not np.array_equal(runs[0].s_m, start.s_m) and not np.array_equal(runs[0].stop, start.stop)
         checked += 1
     assert checked >= 3
+
+
+def test_kernel_modules_name_the_numpy_rules_they_were_compiled_against():
+    """numba's cache of a kernel module does not notice edits of stages/lib/numpy_rules.py, whose functions the kernels
+    call: every module using it holds that file's digest, so that an edit there must edit (and so renew the cache of)
+    each of them."""
+    import hashlib
+
+    import stages.lib.numpy_rules as rules
+    from stages.intentions import kernels as intentions_kernels
+    from stages.lib.ar import kernels as ar_kernels
+
+    digest = hashlib.sha256(Path(rules.__file__).read_bytes()).hexdigest()[:16]
+    for module in (intentions_kernels, ar_kernels):
+        assert module.NUMPY_RULES_SHA256 == digest, f"{module.__name__}: update NUMPY_RULES_SHA256 to {digest}"

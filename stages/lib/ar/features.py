@@ -206,11 +206,11 @@ def curvature_integrals(corridor: Corridor, lookahead_m: float = N_SEGMENTS * SE
 def curvature_rows(corridors: Sequence[Corridor], lookahead_m: float = N_SEGMENTS * SEGMENT_M, n_segments: int = N_SEGMENTS) -> np.ndarray:
     """`curvature_integrals` of several corridors at once: (P, n_segments, 2), float64.
 
-    The element-wise work and the cumulative sums run on all corridors
-    together (rows padded to the longest); each row then takes its own
-    ``np.interp``, so every row is exactly what one corridor alone gives. A
-    corridor whose curvature and arc-length arrays differ in length raises
-    ``ValueError`` (the caller isolates the pair).
+    Each row is exactly what one corridor alone gives: computed by the
+    compiled kernel (`stages.lib.ar.kernels`, one pass per corridor), else
+    (no numba, or an arc length that does not increase strictly) by
+    `_curvature_rows_numpy`. A corridor whose curvature and arc-length arrays
+    differ in length raises ``ValueError`` (the caller isolates the pair).
     """
     n_rows = len(corridors)
     out = np.zeros((n_rows, n_segments, 2))
@@ -219,8 +219,24 @@ def curvature_rows(corridors: Sequence[Corridor], lookahead_m: float = N_SEGMENT
     for c, s, k in zip(corridors, s_parts, k_parts):
         if s.shape != k.shape or s.ndim != 1:
             raise ValueError(f"corridor {c.corridor_id}: curvature has {k.shape} samples, arc length {s.shape}")
-    lengths = np.array([s.size for s in s_parts], dtype=np.int64)
     vehicle_s = np.array([float(c.vehicle_s_m) for c in corridors], dtype=np.float64)
+    from stages.lib.ar import kernels  # numba loaded on first use: `import stages.lib.ar` stays light
+
+    done = kernels.curvature_rows(s_parts, k_parts, vehicle_s, _segment_bounds(lookahead_m, n_segments), out)
+    rest = np.arange(n_rows) if done is None else np.flatnonzero(~done)
+    if rest.size:
+        out[rest] = _curvature_rows_numpy([s_parts[r] for r in rest.tolist()], [k_parts[r] for r in rest.tolist()], vehicle_s[rest],
+                                          lookahead_m, n_segments)
+    return out
+
+
+def _curvature_rows_numpy(s_parts: list[np.ndarray], k_parts: list[np.ndarray], vehicle_s: np.ndarray, lookahead_m: float,
+                          n_segments: int) -> np.ndarray:
+    """`curvature_rows` on numpy: the element-wise work and the cumulative sums on all corridors together (rows padded
+    to the longest), then each row its own ``np.interp``, so every row is exactly what one corridor alone gives."""
+    n_rows = len(s_parts)
+    out = np.zeros((n_rows, n_segments, 2))
+    lengths = np.array([s.size for s in s_parts], dtype=np.int64)
     usable = (lengths >= 2) & np.isfinite(vehicle_s)
     if not usable.any():
         return out
