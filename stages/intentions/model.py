@@ -51,7 +51,9 @@ class Particles:
         return cls(*(np.concatenate([getattr(r, name) for r in rows], axis=0) for name in PARTICLE_FIELDS))
 
     def row(self, v: int) -> "Particles":
-        return Particles(*(getattr(self, name)[v : v + 1].copy() for name in PARTICLE_FIELDS))
+        """Row v as (1, N) views (no copy): the filter keeps them between frames and never writes into them (`stack`
+        copies), so each frame's arrays live on only while a vehicle unseen since then keeps its row."""
+        return Particles(*(getattr(self, name)[v : v + 1] for name in PARTICLE_FIELDS))
 
     def take(self, rows: np.ndarray, index: np.ndarray) -> None:
         """Replace rows `rows` (R,) by the particles `index` (R, N) of themselves (resampling)."""

@@ -515,13 +515,8 @@ class FeatureTracker:
         anchor = self.step_index(int(corridor_set.header.stamp_ns))
         steps = np.arange(anchor - HISTORY_STEPS + 1, anchor + 1)
         slots = steps % HISTORY_STEPS
-        keys: list[tuple[int, int]] = []
-        vehicle_x: list[np.ndarray] = []
-        masks: list[np.ndarray] = []
-        has_rows: list[np.ndarray] = []  # pairs whose corridor is in some row: where, and that corridor's ring
-        ring_values: list[np.ndarray] = []
-        from_rings: list[int] = []
-        now: dict[int, np.ndarray] = {}  # the other pairs (corridor in no row): geometry now, relations absent
+        empty = [], np.zeros((0, HISTORY_STEPS, N_FEATURES), np.float32), np.zeros((0, HISTORY_STEPS), bool)
+        chosen = []  # (vehicle, track, corridor ids) of the matched vehicles with rows, in the set's order
         for vehicle in corridor_set.vehicles:
             if vehicle.status != MatchStatus.MATCHED or not vehicle.corridors:
                 continue
@@ -533,37 +528,64 @@ class FeatureTracker:
                 ids = [c for c in ids if (vehicle.track_id, c) in wanted]
                 if not ids:
                     continue
-            kept = (steps > track.last_step - HISTORY_STEPS) & (steps <= track.last_step)  # the rows the track keeps
-            present = (track.vehicle.step[slots] == steps) & kept
-            if not present.any():
+            chosen.append((vehicle, track, ids))
+        if not chosen:
+            return empty
+        # every chosen vehicle's 40 steps at once (each row what that vehicle alone gives)
+        last = np.fromiter((track.last_step for _v, track, _i in chosen), dtype=np.int64, count=len(chosen))
+        kept = (steps[None, :] > (last - HISTORY_STEPS)[:, None]) & (steps[None, :] <= last[:, None])  # the rows each track keeps
+        present = (np.stack([track.vehicle.step for _v, track, _i in chosen])[:, slots] == steps) & kept
+        fill = slots[_fill_source(present)]
+        vehicle_values = np.stack([track.vehicle.values for _v, track, _i in chosen])[np.arange(len(chosen))[:, None], fill]
+        usable = present.any(axis=1).tolist()  # a vehicle without a row in the window: left out
+        pairs_at: list[tuple[int, int, _Ring | None]] = []  # (vehicle, corridor id, its ring) of the usable vehicles
+        rings: list[_Ring] = []
+        ring_vehicle: list[int] = []
+        for v, (_vehicle, track, ids) in enumerate(chosen):
+            if not usable[v]:
                 continue
-            vehicle_values = track.vehicle.values[slots[_fill_source(present)]]
-            by_id = {c.corridor_id: c for c in vehicle.corridors}
             for cid in ids:
                 ring = track.corridors.get(cid)
-                has = (ring.step[slots] == steps) & kept if ring is not None else None
-                if has is not None and has.any():
-                    from_rings.append(len(keys))
-                    has_rows.append(has)
-                    ring_values.append(ring.values)
-                else:
-                    try:
-                        now[len(keys)] = corridor_features(by_id[cid], None, float(vehicle_values[-1, 1]), self.config)
-                    except Exception:  # noqa: BLE001 - its row failed in update (issue pair_failed): no profile for it
-                        continue
-                keys.append((vehicle.track_id, cid))
-                vehicle_x.append(vehicle_values)
-                masks.append(present)
+                pairs_at.append((v, cid, ring))
+                if ring is not None:
+                    rings.append(ring)
+                    ring_vehicle.append(v)
+        if rings:  # where each ring holds a kept row of its vehicle
+            has = (np.stack([ring.step for ring in rings])[:, slots] == steps) & kept[ring_vehicle]
+            has_any = has.any(axis=1).tolist()
+        keys: list[tuple[int, int]] = []
+        key_vehicle: list[int] = []
+        from_rings: list[int] = []  # pairs whose corridor is in some row: their batch rows, their rings
+        ring_rows: list[int] = []
+        now: dict[int, np.ndarray] = {}  # the other pairs (corridor in no row): geometry now, relations absent
+        r = 0
+        by_id: dict | None = None
+        by_id_of = -1
+        for v, cid, ring in pairs_at:
+            if ring is not None and has_any[r]:
+                from_rings.append(len(keys))
+                ring_rows.append(r)
+            else:
+                if by_id_of != v:
+                    by_id, by_id_of = {c.corridor_id: c for c in chosen[v][0].corridors}, v
+                try:
+                    now[len(keys)] = corridor_features(by_id[cid], None, float(vehicle_values[v, -1, 1]), self.config)
+                except Exception:  # noqa: BLE001 - its row failed in update (issue pair_failed): no profile for it
+                    r += ring is not None
+                    continue
+            r += ring is not None
+            keys.append((chosen[v][0].track_id, cid))
+            key_vehicle.append(v)
         if not keys:
-            return [], np.zeros((0, HISTORY_STEPS, N_FEATURES), np.float32), np.zeros((0, HISTORY_STEPS), bool)
+            return empty
         x = np.empty((len(keys), HISTORY_STEPS, N_FEATURES), dtype=np.float32)  # float64 values rounded as by astype
-        x[:, :, _VEHICLE_COLUMNS] = np.stack(vehicle_x)
+        x[:, :, _VEHICLE_COLUMNS] = vehicle_values[key_vehicle]
         if from_rings:  # each pair's 40 steps from its ring, all pairs in one gather
-            source = slots[_fill_source(np.stack(has_rows))]
-            x[from_rings, :, _CORRIDOR_SLICE] = np.stack(ring_values)[np.arange(len(from_rings))[:, None], source]
+            source = slots[_fill_source(has[ring_rows])]
+            x[from_rings, :, _CORRIDOR_SLICE] = np.stack([rings[k].values for k in ring_rows])[np.arange(len(from_rings))[:, None], source]
         for b, row in now.items():
             x[b, :, _CORRIDOR_SLICE] = row
-        return keys, x, np.stack(masks)
+        return keys, x, present[key_vehicle]
 
 
 __all__ = [
