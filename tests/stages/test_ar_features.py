@@ -511,3 +511,26 @@ def test_compiled_curvature_rows_equal_the_numpy_rows():
     rows = curvature_rows(corridors)  # the public function: kernel rows and numpy rows together
     assert np.array_equal(rows, want) and np.array_equal(np.signbit(rows), np.signbit(want))
     assert np.any(want[:60] != 0.0)
+
+
+def test_compiled_causal_acceleration_equals_the_numpy_one(monkeypatch):
+    """kernels.causal_slope (numpy's pairwise sums and means) gives causal_acceleration's numpy slope bit for bit: jittered
+    and skipped stamps, histories shorter and longer than the window (up to the tracker's 64 samples), NaN speeds."""
+    from stages.lib.ar import kernels
+
+    if not kernels.available():
+        pytest.skip("numba not importable")
+    rng = np.random.default_rng(23)
+    cases = []
+    for trial in range(400):
+        n = int(rng.integers(1, 65))
+        stamps = np.cumsum(rng.choice([100_000_000, 100_000_000, 200_000_000, 99_999_000, 0], n)) + int(rng.integers(0, 10**12))
+        speeds = rng.uniform(0.0, 15.0, n) + rng.normal(0, 0.3, n)
+        if trial % 17 == 0:
+            speeds[int(rng.integers(0, n))] = np.nan
+        cases.append((stamps.astype(np.int64), speeds, float(rng.choice([1.0, 0.5, 2.0, 0.3]))))
+    got = [causal_acceleration(t, v, w) for t, v, w in cases]
+    monkeypatch.setattr(kernels, "causal_slope", lambda *args: None)
+    want = [causal_acceleration(t, v, w) for t, v, w in cases]
+    assert np.array_equal(np.array(got), np.array(want), equal_nan=True)
+    assert sum(g != 0.0 for g in got) > 200

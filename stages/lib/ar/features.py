@@ -174,12 +174,19 @@ def causal_acceleration(stamps_ns: np.ndarray, speeds_mps: np.ndarray, window_s:
     """Least-squares slope (m/s²) of the speeds within `window_s` up to the newest stamp; 0 if too few.
 
     Too few: fewer than 3 samples, or spanning less than half the window.
-    With `shrink`, the slope is shrunk towards 0 by its standard error σ:
+    Without `shrink` the compiled `kernels.causal_slope` computes it (the
+    numpy arithmetic below, bit for bit). With `shrink`, the slope is shrunk towards 0 by its standard error σ:
     slope·max(0, 1 − σ²/slope²) (as ``markov_prediction``'s a0).
     """
     t = np.asarray(stamps_ns, dtype=np.int64)
     if t.size < 3:
         return 0.0
+    if not shrink:
+        from stages.lib.ar import kernels  # numba loaded on first use
+
+        found = kernels.causal_slope(t, np.asarray(speeds_mps, dtype=np.float64), window_s, _NS)  # the same bits
+        if found is not None:
+            return found
     keep = t >= t[-1] - int(round(window_s / _NS)) - 1_000_000
     t, v = (t[keep] - t[-1]) * _NS, np.asarray(speeds_mps, dtype=np.float64)[keep]
     if t.size < 3 or -t[0] < 0.5 * window_s - 1e-6:

@@ -1,5 +1,6 @@
-"""Compiled (numba) kernel of the AR features' hot path: `features.curvature_rows`, the curvature integrals ahead of
-each vehicle on each of its corridors, bit for bit as the numpy code computes them.
+"""Compiled (numba) kernels of the AR features' hot paths, bit for bit as the numpy code computes them:
+`curvature_rows` (`features.curvature_rows`: the curvature integrals ahead of each vehicle on each of its corridors)
+and `causal_slope` (`features.causal_acceleration` without shrinking: a dozen numpy calls per vehicle and frame).
 
 The numpy code pads the corridors to one width, cleans the curvatures, integrates max(κ, 0) and min(κ, 0) by the
 trapezoidal rule with one cumulative sum per row (sequential, so each row is what it alone gives) and then takes two
@@ -18,9 +19,9 @@ import math
 
 import numpy as np
 
-from stages.lib.numpy_rules import interp, maximum, minimum
+from stages.lib.numpy_rules import PAIRWISE_BLOCK, interp, maximum, minimum, pairwise_sum
 
-NUMPY_RULES_SHA256 = "cd1086ff06ad63e4"
+NUMPY_RULES_SHA256 = "5c754381d8698fbd"
 """The first 16 hex digits of stages/lib/numpy_rules.py's sha256 the kernels here were written against: numba's cache
 of this module does not notice edits of that file, so an edit there must change this line too (which renews the cache;
 tests/stages/test_intentions.py checks it)."""
@@ -89,10 +90,45 @@ def _curvature_rows(s_line, k_line, start, length, vehicle_s, offsets, out, done
         done[p] = True
 
 
+def _causal_slope(stamps_ns, speeds_mps, window_ns, half_window_s, ns):
+    """`features.causal_acceleration` without shrinking, on numpy's arithmetic: the stamps within the window, then the
+    least-squares slope with numpy's means and sums (`pairwise_sum`)."""
+    n = stamps_ns.shape[0]
+    if n < 3:
+        return 0.0
+    newest = stamps_ns[n - 1]
+    threshold = newest - window_ns - 1_000_000
+    m = 0
+    for i in range(n):
+        m += stamps_ns[i] >= threshold
+    t = np.empty(m)
+    v = np.empty(m)
+    k = 0
+    for i in range(n):
+        if stamps_ns[i] >= threshold:
+            t[k] = (stamps_ns[i] - newest) * ns
+            v[k] = speeds_mps[i]
+            k += 1
+    if m < 3 or -t[0] < half_window_s:
+        return 0.0
+    t_mean = pairwise_sum(t, 0, m) / m
+    v_mean = pairwise_sum(v, 0, m) / m
+    for i in range(m):
+        t[i] = t[i] - t_mean
+    squares = np.empty(m)
+    products = np.empty(m)
+    for i in range(m):
+        squares[i] = t[i] * t[i]
+        products[i] = t[i] * (v[i] - v_mean)
+    return pairwise_sum(products, 0, m) / pairwise_sum(squares, 0, m)
+
+
 if numba is not None:
     _curvature_rows_compiled = numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)(_curvature_rows)
+    _causal_slope_compiled = numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)(_causal_slope)
 else:  # pragma: no cover
     _curvature_rows_compiled = None
+    _causal_slope_compiled = None
 
 
 def curvature_rows(s_parts, k_parts, vehicle_s: np.ndarray, offsets: np.ndarray, out: np.ndarray) -> np.ndarray | None:
@@ -110,6 +146,14 @@ def curvature_rows(s_parts, k_parts, vehicle_s: np.ndarray, offsets: np.ndarray,
     return done
 
 
+def causal_slope(stamps_ns: np.ndarray, speeds_mps: np.ndarray, window_s: float, ns: float) -> float | None:
+    """`features.causal_acceleration` (no shrinking) of int64 stamps and float64 speeds; None: take the numpy path (no
+    numba, or more stamps than one block of numpy's pairwise sum; the tracker keeps 64)."""
+    if _causal_slope_compiled is None or stamps_ns.shape != speeds_mps.shape or stamps_ns.size > PAIRWISE_BLOCK:
+        return None
+    return float(_causal_slope_compiled(stamps_ns, speeds_mps, int(round(window_s / ns)), 0.5 * window_s - 1e-6, float(ns)))
+
+
 _warm = False
 
 
@@ -120,4 +164,5 @@ def warm_up() -> None:
     if _warm or numba is None:
         return
     curvature_rows([np.arange(3.0)], [np.zeros(3)], np.zeros(1), np.arange(2.0), np.zeros((1, 1, 2)))
+    causal_slope(np.arange(3, dtype=np.int64), np.zeros(3), 1.0, 1e-9)
     _warm = True
