@@ -6,7 +6,10 @@
 - `admissible_speeds`: `tables.admissible_speeds` of a frame's pairs (the
   speed profiles of `tables.build_tables`);
 - `intend_and_move`: `model.propagate`'s update of the intention I and of
-  Φ (s, v, a, d) after the route switches.
+  Φ (s, v, a, d) after the route switches;
+- `conflict_stop`: `model.expected_stop`'s search of the conflicts ahead of
+  each particle and the products of their factors (the sigmoids between
+  the two stay numpy's ``tanh``).
 
 The numpy paths place every particle by one ``searchsorted`` over the
 frame's concatenated key array (T ~ 5,000 samples at a busy junction) and
@@ -213,6 +216,39 @@ def _intend_and_move(n_per_row, g, s_m, v_mps, a_mps2, d_m, stop, style, p_expec
         d_m[n] = decay[r] * d_m[n] + lateral[r] * n_lateral[n]
 
 
+def _conflict_gaps(g, s_m, v_mps, conflict_s, other_time, weight, has_conflict, min_speed, fill, out_gap, out_weight, out_owner):
+    """`model.expected_stop`'s conflicts ahead, in numpy's order (particle by particle, conflict by conflict): the gap
+    T' − T_e, the route weight and the particle of each; returns their count (with ``fill`` False: only counts)."""
+    m = 0
+    n_conflicts = conflict_s.shape[1]
+    for n in range(g.shape[0]):
+        gn = g[n]
+        if not has_conflict[gn]:
+            continue
+        s = s_m[n]
+        speed = _max(v_mps[n], min_speed)
+        for c in range(n_conflicts):
+            cs = conflict_s[gn, c]
+            ahead = cs - s
+            if math.isfinite(cs) and ahead > 0.0:
+                if fill:
+                    out_gap[m] = other_time[gn, c] - ahead / speed
+                    out_weight[m] = weight[gn, c]
+                    out_owner[m] = n
+                m += 1
+    return m
+
+
+def _stop_from_factors(owner, factor, out):
+    """P(E = stop) = 1 − the product of each particle's factors in order (np.prod's sequential product: the factors of
+    1 it multiplies in elsewhere change nothing) into out (n,)."""
+    product = np.ones(out.shape[0])
+    for k in range(owner.shape[0]):
+        product[owner[k]] = product[owner[k]] * factor[k]
+    for n in range(out.shape[0]):
+        out[n] = 1.0 - product[n]
+
+
 if numba is not None:
     _jit = numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
     _locate_one = _jit(_locate_one)
@@ -220,7 +256,11 @@ if numba is not None:
     _admissible_speed_compiled = _jit(_admissible_speed)
     _admissible_speeds_compiled = _jit(_admissible_speeds)
     _intend_and_move_compiled = _jit(_intend_and_move)
+    _conflict_gaps_compiled = _jit(_conflict_gaps)
+    _stop_from_factors_compiled = _jit(_stop_from_factors)
 else:  # pragma: no cover
+    _conflict_gaps_compiled = None
+    _stop_from_factors_compiled = None
     _intend_and_move_compiled = None
     _admissible_speeds_compiled = None
     _pose_compiled = None
@@ -305,6 +345,26 @@ def intend_and_move(p, tables, g, p_e, u_intent, n_accel, n_lateral, active, dt,
     return True
 
 
+def conflict_stop(tables, g, s_m, v_mps, min_speed_mps: float, factors):
+    """`model.expected_stop`'s P(E = stop) from the priority conflicts, of particles g, s_m, v_mps (one shape): the
+    conflicts ahead found and the products taken here, ``factors(gap, weight)`` (numpy: the sigmoids) in between;
+    None: take the numpy path."""
+    if _conflict_gaps_compiled is None:
+        return None
+    (gf, sf, vf), shape = _flat(np.asarray(g, dtype=np.int64), np.asarray(s_m, dtype=np.float64), np.asarray(v_mps, dtype=np.float64))
+    conflict_s = np.ascontiguousarray(tables.conflict_s_m, dtype=np.float64)
+    other = np.ascontiguousarray(tables.conflict_other_time_s, dtype=np.float64)
+    weight = np.ascontiguousarray(tables.conflict_weight, dtype=np.float64)
+    has_conflict = np.isfinite(conflict_s).any(axis=1)
+    args = (gf, sf, vf, conflict_s, other, weight, has_conflict, float(min_speed_mps))
+    count = _conflict_gaps_compiled(*args, False, np.empty(0), np.empty(0), np.empty(0, np.int64))
+    gap, w, owner = np.empty(count), np.empty(count), np.empty(count, np.int64)
+    _conflict_gaps_compiled(*args, True, gap, w, owner)
+    out = np.empty(gf.size)
+    _stop_from_factors_compiled(owner, np.ascontiguousarray(factors(gap, w), dtype=np.float64), out)
+    return out.reshape(shape)
+
+
 _warm = False
 
 
@@ -337,4 +397,8 @@ def warm_up() -> None:
                              accel_min_mps2=-1.0, accel_max_mps2=1.0, intention_floor=0.0, accel_relaxation_s=0.0)
     per_row = tuple(np.zeros(1) for _ in range(6))
     intend_and_move(particles, _Table, one, zero, zero, zero, zero, np.ones(1, bool), np.zeros(1), per_row, params, 1.0e6)
+    _Table.conflict_s_m = np.ones((1, 1))
+    _Table.conflict_other_time_s = np.ones((1, 1))
+    _Table.conflict_weight = np.ones((1, 1))
+    conflict_stop(_Table, one, zero, zero, 1.0, lambda gap, w: 1.0 - w * gap)
     _warm = True

@@ -119,6 +119,23 @@ def expected_stop(tables: PairTables, g: np.ndarray, s_m: np.ndarray, v_mps: np.
     # only the particles on a pair with a priority conflict at all (the others: no factor, P(E = stop) = 1 − 1 = 0), and
     # of those the sigmoids only where a conflict is ahead (C is the largest count over the frame's pairs: in dense
     # traffic most entries are padding or behind); the same values there, 1 elsewhere, so each product is unchanged
+    found = kernels.conflict_stop(tables, g, s_m, v_mps, mp.min_time_speed_mps, lambda gap, weight: 1.0 - weight * _conflict_probability(gap, mp))
+    if found is not None:  # compiled: the same bits (tests/stages/test_intentions.py)
+        p_e = found
+    else:
+        p_e = _expected_stop_numpy(tables, g, s_m, v_mps, mp)
+    if getattr(tables, "signal_line_s_m", None) is None:  # no signal phases: the conflicts alone, as before issue 17
+        return p_e
+    return combine(p_e, signal_stop_probability(tables, g, s_m, v_mps))
+
+
+def _conflict_probability(gap: np.ndarray, mp: ModelParams) -> np.ndarray:
+    """P_c of gaps T' − T_e (`expected_stop`)."""
+    return _sigmoid((gap + mp.gap_pass_s) / mp.gap_scale_s) * (1.0 - _sigmoid((gap - mp.gap_critical_s) / mp.gap_scale_s))
+
+
+def _expected_stop_numpy(tables: PairTables, g: np.ndarray, s_m: np.ndarray, v_mps: np.ndarray, mp: ModelParams) -> np.ndarray:
+    """`expected_stop`'s P(E = stop) from the conflicts on numpy (where numba is missing)."""
     p_e = np.zeros(g.shape)
     on = np.isfinite(tables.conflict_s_m).any(axis=1)[g]
     if on.any():
@@ -133,12 +150,9 @@ def expected_stop(tables: PairTables, g: np.ndarray, s_m: np.ndarray, v_mps: np.
             speed = np.maximum(v_mps[on], mp.min_time_speed_mps)[at[0]]
             t_ego = ahead[at] / speed
             gap = tables.conflict_other_time_s[g_at, at[1]] - t_ego
-            p_conflict = _sigmoid((gap + mp.gap_pass_s) / mp.gap_scale_s) * (1.0 - _sigmoid((gap - mp.gap_critical_s) / mp.gap_scale_s))
-            factor[at] = 1.0 - tables.conflict_weight[g_at, at[1]] * p_conflict
+            factor[at] = 1.0 - tables.conflict_weight[g_at, at[1]] * _conflict_probability(gap, mp)
         p_e[on] = 1.0 - np.prod(factor, axis=-1)
-    if getattr(tables, "signal_line_s_m", None) is None:  # no signal phases: the conflicts alone, as before issue 17
-        return p_e
-    return combine(p_e, signal_stop_probability(tables, g, s_m, v_mps))
+    return p_e
 
 
 def switch_routes(p: Particles, tables: PairTables, first_pair: np.ndarray, dt_s: np.ndarray, u_switch, u_choice, mp: ModelParams) -> None:

@@ -633,3 +633,41 @@ def test_kernel_modules_name_the_numpy_rules_they_were_compiled_against():
     digest = hashlib.sha256(Path(rules.__file__).read_bytes()).hexdigest()[:16]
     for module in (intentions_kernels, ar_kernels):
         assert module.NUMPY_RULES_SHA256 == digest, f"{module.__name__}: update NUMPY_RULES_SHA256 to {digest}"
+
+
+def test_compiled_expected_stop_equals_the_numpy_one(frames):
+    """model.expected_stop through kernels.conflict_stop (the conflicts ahead found and the products taken compiled, the
+    sigmoids numpy's) gives the numpy path's P(E = stop) bit for bit, also with many conflicts per pair."""
+    import dataclasses as dc
+
+    from stages.intentions import kernels, model
+    from stages.intentions.tables import VehicleInput, build_tables
+
+    if not kernels.available():
+        pytest.skip("numba not importable")
+    mp = IntentionsConfig().model_params()
+    rng = np.random.default_rng(29)
+    conflicts = 0
+    for item in frames[WINDOW][::5]:
+        vehicles = [VehicleInput(v.track_id, tuple(v.corridors), int(v.lanelet_id)) for v in item.corridor_set.vehicles if v.corridors]
+        relations = {(r.track_id, r.corridor_id): r for r in item.relation_set.relations} if item.relation_set is not None else {}
+        if not vehicles:
+            continue
+        tables = build_tables(vehicles, relations, {}, lat_accels_mps2=(3.0,), brake_lookahead_mps2=2.5, curvature_smoothing_m=1.0,
+                              default_speed_limit_mps=13.9, stop_offset_m=14.0)
+        # and a denser copy: random conflicts on most pairs (up to 12 each, some behind, some NaN padding)
+        n_c = 12
+        dense_s = tables.vehicle_s_m[:, None] + rng.uniform(-20.0, 60.0, (tables.n_pairs, n_c))
+        dense_s[rng.random(dense_s.shape) < 0.3] = np.nan
+        dense = dc.replace(tables, conflict_s_m=dense_s, conflict_other_time_s=rng.uniform(-2.0, 8.0, dense_s.shape),
+                           conflict_weight=rng.uniform(0.0, 1.0, dense_s.shape))
+        for t in (tables, dense):
+            n_rows, n = len(vehicles), 150
+            g = t.first_pair[:, None] + rng.integers(0, t.n_slots[:, None], (n_rows, n))
+            s = t.vehicle_s_m[g] + rng.normal(0.0, 15.0, (n_rows, n))
+            v = np.maximum(rng.normal(5.0, 4.0, (n_rows, n)), 0.0)
+            got = model.expected_stop(t, g, s, v, mp)
+            want = model._expected_stop_numpy(t, g, s, v, mp)
+            assert np.array_equal(got, want) and np.array_equal(np.signbit(got), np.signbit(want))
+            conflicts += int(np.count_nonzero(want))
+    assert conflicts > 1000
