@@ -142,7 +142,7 @@ def curvature_rows(s_parts, k_parts, vehicle_s: np.ndarray, offsets: np.ndarray,
     done = np.zeros(lengths.size, dtype=bool)
     if lengths.size:
         _curvature_rows_compiled(np.concatenate(s_parts), np.concatenate(k_parts), start, lengths,
-                                 np.ascontiguousarray(vehicle_s, dtype=np.float64), np.ascontiguousarray(offsets, dtype=np.float64), out, done)
+                                 np.ascontiguousarray(vehicle_s, dtype=np.float64), np.array(offsets, dtype=np.float64), out, done)  # a writable copy: one compiled signature
     return done
 
 
