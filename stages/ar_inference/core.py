@@ -58,6 +58,7 @@ class ARInference:
 
     def __init__(self, config: ARInferenceConfig, *, producer: str = "ar_inference", model: Any = None) -> None:
         from stages.lib.ar import DEFAULT_MODEL_PATH, FeatureTracker, load_model
+        from stages.lib.ar import kernels as ar_kernels
 
         self.config = config
         self.producer = producer
@@ -80,6 +81,7 @@ class ARInference:
                 raise ConfigError(f"device = {config.device!r}: no CUDA device here; use device = 'cpu'")
         self.model = model
         self.tracker = FeatureTracker()
+        ar_kernels.warm_up()  # the compiled feature kernel loaded (or compiled) now, not on the first frame
         meta = getattr(model, "metadata", {}) or {}
         self.step_s = float(meta.get("step_s", 0.1))
         self.history_steps = int(meta.get("history_steps", 40))
@@ -136,15 +138,15 @@ class ARInference:
                 np.where(np.isfinite(accel), accel, 0.0), self.chunk_steps, self.sigma_res, self.edges,
                 sigma_scale=self.config.sigma_scale, sigma_floor=self.config.sigma_floor_mps2,
             )
-            real = mask.sum(axis=1)
-            for b, (track_id, corridor_id) in enumerate(keys):
-                if bad[b]:
-                    continue
+            real = mask.sum(axis=1).tolist()
+            # float32 once for all pairs; each profile holds its row (the values astype gives row by row)
+            accel32, mu32, sigma32, probs32 = (a.astype(np.float32) for a in (accel, mu, sigma, probs))
+            for b in np.flatnonzero(~bad).tolist():
+                track_id, corridor_id = keys[b]
                 profiles.append(
                     AccelerationProfile(
-                        track_id=int(track_id), corridor_id=int(corridor_id), history_steps=int(real[b]),
-                        accel_mps2=accel[b].astype(np.float32), chunk_mean_mps2=mu[b].astype(np.float32),
-                        chunk_sigma_mps2=sigma[b].astype(np.float32), input_probs=probs[b].astype(np.float32),
+                        track_id=int(track_id), corridor_id=int(corridor_id), history_steps=real[b],
+                        accel_mps2=accel32[b], chunk_mean_mps2=mu32[b], chunk_sigma_mps2=sigma32[b], input_probs=probs32[b],
                     )
                 )
         h = corridor_set.header

@@ -32,7 +32,7 @@ from stages.lib.base import ConfigMixin, Issue, StageResult, check_ranges, isola
 from stages.lib.caps import cap_pairs
 from stages.lib.maps import DEFAULT_SPEED_LIMIT_MPS, Projection, RoadMap, SceneMaps, parse_projection, project_to_polyline, shown_map_name
 
-from stages.intentions import model
+from stages.intentions import kernels, model
 from stages.intentions.model import PARTICLE_FIELDS, ModelParams, Particles
 from stages.intentions.signals import with_signals
 from stages.intentions.tables import PairTables, VehicleInput, build_tables, common_run, corridor_manoeuvre, corridors_ok, lanelet_ids_of, lanelet_shift_m, map_corridors
@@ -184,6 +184,7 @@ class IntentionFilter:
         self._scene_id: str | None = None
         self._road_map: RoadMap | None = None
         self._manoeuvres: dict[tuple, tuple[Manoeuvre, bool]] = {}
+        kernels.warm_up()  # the compiled kernels loaded (or compiled) now, not on the first frame
 
     @property
     def tracked_ids(self) -> frozenset[int]:

@@ -2,8 +2,11 @@
 
 Pure functions of the particle arrays, the frame's `PairTables` and
 pre-drawn random numbers (drawn per vehicle from its own seeded generator by
-`IntentionFilter`), so no Python loop runs per particle. See the package
-docstring for the model and its parameters (docs/method.md §7).
+`IntentionFilter`), so no Python loop runs per particle. The hottest parts
+(the pose and admissible speed of the particles, and `propagate`'s update of
+I and Φ) run through the compiled kernels of `stages.intentions.kernels`,
+which give the numpy code's values bit for bit. See the package docstring
+for the model and its parameters (docs/method.md §7).
 """
 
 from __future__ import annotations
@@ -14,7 +17,8 @@ import numpy as np
 
 from stages.lib.maps import wrap_angle_rad
 
-from stages.intentions.tables import PairTables
+from stages.intentions import kernels
+from stages.intentions.tables import KEY_OFFSET_M, PairTables
 from stages.intentions.signals import combine, signal_stop_probability
 
 REFERENCE_STEP_S = 0.1
@@ -47,7 +51,9 @@ class Particles:
         return cls(*(np.concatenate([getattr(r, name) for r in rows], axis=0) for name in PARTICLE_FIELDS))
 
     def row(self, v: int) -> "Particles":
-        return Particles(*(getattr(self, name)[v : v + 1].copy() for name in PARTICLE_FIELDS))
+        """Row v as (1, N) views (no copy): the filter keeps them between frames and never writes into them (`stack`
+        copies), so each frame's arrays live on only while a vehicle unseen since then keeps its row."""
+        return Particles(*(getattr(self, name)[v : v + 1] for name in PARTICLE_FIELDS))
 
     def take(self, rows: np.ndarray, index: np.ndarray) -> None:
         """Replace rows `rows` (R,) by the particles `index` (R, N) of themselves (resampling)."""
@@ -113,6 +119,23 @@ def expected_stop(tables: PairTables, g: np.ndarray, s_m: np.ndarray, v_mps: np.
     # only the particles on a pair with a priority conflict at all (the others: no factor, P(E = stop) = 1 − 1 = 0), and
     # of those the sigmoids only where a conflict is ahead (C is the largest count over the frame's pairs: in dense
     # traffic most entries are padding or behind); the same values there, 1 elsewhere, so each product is unchanged
+    found = kernels.conflict_stop(tables, g, s_m, v_mps, mp.min_time_speed_mps, lambda gap, weight: 1.0 - weight * _conflict_probability(gap, mp))
+    if found is not None:  # compiled: the same bits (tests/stages/test_intentions.py)
+        p_e = found
+    else:
+        p_e = _expected_stop_numpy(tables, g, s_m, v_mps, mp)
+    if getattr(tables, "signal_line_s_m", None) is None:  # no signal phases: the conflicts alone, as before issue 17
+        return p_e
+    return combine(p_e, signal_stop_probability(tables, g, s_m, v_mps))
+
+
+def _conflict_probability(gap: np.ndarray, mp: ModelParams) -> np.ndarray:
+    """P_c of gaps T' − T_e (`expected_stop`)."""
+    return _sigmoid((gap + mp.gap_pass_s) / mp.gap_scale_s) * (1.0 - _sigmoid((gap - mp.gap_critical_s) / mp.gap_scale_s))
+
+
+def _expected_stop_numpy(tables: PairTables, g: np.ndarray, s_m: np.ndarray, v_mps: np.ndarray, mp: ModelParams) -> np.ndarray:
+    """`expected_stop`'s P(E = stop) from the conflicts on numpy (where numba is missing)."""
     p_e = np.zeros(g.shape)
     on = np.isfinite(tables.conflict_s_m).any(axis=1)[g]
     if on.any():
@@ -127,12 +150,9 @@ def expected_stop(tables: PairTables, g: np.ndarray, s_m: np.ndarray, v_mps: np.
             speed = np.maximum(v_mps[on], mp.min_time_speed_mps)[at[0]]
             t_ego = ahead[at] / speed
             gap = tables.conflict_other_time_s[g_at, at[1]] - t_ego
-            p_conflict = _sigmoid((gap + mp.gap_pass_s) / mp.gap_scale_s) * (1.0 - _sigmoid((gap - mp.gap_critical_s) / mp.gap_scale_s))
-            factor[at] = 1.0 - tables.conflict_weight[g_at, at[1]] * p_conflict
+            factor[at] = 1.0 - tables.conflict_weight[g_at, at[1]] * _conflict_probability(gap, mp)
         p_e[on] = 1.0 - np.prod(factor, axis=-1)
-    if getattr(tables, "signal_line_s_m", None) is None:  # no signal phases: the conflicts alone, as before issue 17
-        return p_e
-    return combine(p_e, signal_stop_probability(tables, g, s_m, v_mps))
+    return p_e
 
 
 def switch_routes(p: Particles, tables: PairTables, first_pair: np.ndarray, dt_s: np.ndarray, u_switch, u_choice, mp: ModelParams) -> None:
@@ -187,41 +207,49 @@ def propagate(
     p_e = expected_stop(tables, g_before, p.s_m, p.v_mps, mp)
     keep = 1.0 - per_step(1.0 - mp.intention_keep, dt)[:, None]  # I agrees with E: keeps it
     adapt = per_step(mp.intention_adapt, dt)[:, None]  # I disagrees with E: takes E
-    p_stop = np.where(
-        p.stop,
-        p_e * keep + (1.0 - p_e) * (1.0 - adapt),
-        p_e * adapt + (1.0 - p_e) * (1.0 - keep),
-    )
-    p_stop = np.clip(p_stop, mp.intention_floor, 1.0 - mp.intention_floor)
     act = active[:, None]
-    p.stop = np.where(act, u_intent < p_stop, p.stop)
-    p.p_expected_stop = np.where(act, p_e, p.p_expected_stop)
+    compiled = kernels.available()  # then I is drawn with Φ below, particle by particle (the route switch reads neither)
+    if not compiled:
+        p_stop = np.where(
+            p.stop,
+            p_e * keep + (1.0 - p_e) * (1.0 - adapt),
+            p_e * adapt + (1.0 - p_e) * (1.0 - keep),
+        )
+        p_stop = np.clip(p_stop, mp.intention_floor, 1.0 - mp.intention_floor)
+        p.stop = np.where(act, u_intent < p_stop, p.stop)
+        p.p_expected_stop = np.where(act, p_e, p.p_expected_stop)
     switch_routes(p, tables, first_pair, dt, np.where(act, u_switch, 1.0), u_choice, mp)
     g = first_pair[:, None] + p.route
+    step = dt[:, None]
+    relax = mp.accel_relaxation_s > 0.0
+    # acceleration as a state (τ_a > 0): it relaxes towards the mode's target with time constant τ_a, plus a jerk noise
+    pull = 1.0 - np.exp(-dt / mp.accel_relaxation_s)[:, None] if relax else np.zeros_like(step)
+    jerk = mp.accel_jerk_sigma_mps2 * np.sqrt(dt / REFERENCE_STEP_S)[:, None] if relax else np.zeros_like(step)
+    decay = np.power(mp.lateral_decay, step / REFERENCE_STEP_S)
+    lateral = mp.lateral_sigma_m * np.sqrt(step / REFERENCE_STEP_S)
+    if compiled and kernels.intend_and_move(p, tables, g, p_e, u_intent, n_accel, n_lateral, active, dt,
+                                            (keep, adapt, pull, jerk, decay, lateral), mp, KEY_OFFSET_M):
+        return  # the same bits as below (tests/stages/test_intentions.py)
     v = p.v_mps
     target_go = mp.go_gain_per_s * (tables.admissible_speed(g, p.s_m, p.style) - v)
     to_stop = tables.stop_s_m[g] - p.s_m
     has_stop = np.isfinite(to_stop)
     target_stop = -(v**2) / (2.0 * np.maximum(np.where(has_stop, to_stop, 1.0) - mp.stop_margin_m, mp.stop_min_distance_m))
     stopping = p.stop & has_stop
-    if mp.accel_relaxation_s > 0.0:
-        # acceleration is a state: it relaxes towards the mode's target with time constant τ_a, plus a jerk noise
-        pull = 1.0 - np.exp(-dt / mp.accel_relaxation_s)[:, None]
+    if relax:
         target = np.where(stopping, np.maximum(target_stop, mp.accel_min_mps2), target_go)
-        a = p.a_mps2 + pull * (target - p.a_mps2) + mp.accel_jerk_sigma_mps2 * np.sqrt(dt / REFERENCE_STEP_S)[:, None] * n_accel
+        a = p.a_mps2 + pull * (target - p.a_mps2) + jerk * n_accel
         a = np.where(stopping, np.minimum(a, 0.0), a)
     else:
         a_go = target_go + mp.go_accel_sigma_mps2 * n_accel
         a_stop = np.clip(target_stop + mp.stop_accel_sigma_mps2 * n_accel, mp.accel_min_mps2, 0.0)
         a = np.where(stopping, a_stop, a_go)
     a = np.clip(a, mp.accel_min_mps2, mp.accel_max_mps2)
-    step = dt[:, None]
     moving = np.where(a < 0.0, np.minimum(step, v / np.maximum(-a, 1e-9)), step)
     p.s_m = p.s_m + v * moving + 0.5 * a * moving**2
     p.v_mps = np.maximum(v + a * step, 0.0)
     p.a_mps2 = np.where(act, a, p.a_mps2)
-    decay = np.power(mp.lateral_decay, step / REFERENCE_STEP_S)
-    p.d_m = decay * p.d_m + mp.lateral_sigma_m * np.sqrt(step / REFERENCE_STEP_S) * n_lateral
+    p.d_m = decay * p.d_m + lateral * n_lateral
 
 
 def log_likelihood(p: Particles, tables: PairTables, first_pair: np.ndarray, z, mp: ModelParams) -> np.ndarray:

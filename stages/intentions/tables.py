@@ -26,6 +26,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from bus_schemas import Corridor, CorridorRelations, Manoeuvre
+from stages.intentions import kernels
 from stages.lib.maps import RoadMap, Turn
 
 KEY_OFFSET_M = 1.0e6
@@ -155,14 +156,19 @@ class PairTables:
         t lies in [0, 1) inside the corridor and outside it beyond either end
         (the end segments extended straight).
         """
-        s = np.clip(s_m, -1.0e4, 1.0e4)
+        s = np.clip(s_m, -kernels.S_CLIP_M, kernels.S_CLIP_M)
         i = np.searchsorted(self.key, s + g * KEY_OFFSET_M, side="right") - 1
         i = np.clip(i, self.start[g], self.end[g] - 2)
         t = (s - self.s_m[i]) / (self.s_m[i + 1] - self.s_m[i])
         return i, t
 
     def pose(self, g: np.ndarray, s_m: np.ndarray, d_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """x, y and heading of Frenet points (s, d) on pairs g: X(s) + d·n(s), ψ(s)."""
+        """x, y and heading of Frenet points (s, d) on pairs g: X(s) + d·n(s), ψ(s) (compiled: `kernels.pose`, the same bits)."""
+        found = kernels.pose(self, g, s_m, d_m, KEY_OFFSET_M)
+        return found if found is not None else self.pose_numpy(g, s_m, d_m)
+
+    def pose_numpy(self, g: np.ndarray, s_m: np.ndarray, d_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`pose` on numpy (where numba is missing)."""
         i, t = self.locate(g, s_m)
         x = self.x_m[i] + t * (self.x_m[i + 1] - self.x_m[i])
         y = self.y_m[i] + t * (self.y_m[i + 1] - self.y_m[i])
@@ -171,7 +177,12 @@ class PairTables:
         return x - d_m * np.sin(heading), y + d_m * np.cos(heading), heading
 
     def admissible_speed(self, g: np.ndarray, s_m: np.ndarray, style: np.ndarray) -> np.ndarray:
-        """v_adm of each particle's corridor and driver style at its s (held beyond the ends)."""
+        """v_adm of each particle's corridor and driver style at its s (held beyond the ends; compiled: `kernels.admissible_speed`)."""
+        found = kernels.admissible_speed(self, g, s_m, style, KEY_OFFSET_M)
+        return found if found is not None else self.admissible_speed_numpy(g, s_m, style)
+
+    def admissible_speed_numpy(self, g: np.ndarray, s_m: np.ndarray, style: np.ndarray) -> np.ndarray:
+        """`admissible_speed` on numpy (where numba is missing)."""
         i, t = self.locate(g, s_m)
         tc = np.clip(t, 0.0, 1.0)
         v0 = self.v_adm_mps[style, i]
@@ -225,15 +236,20 @@ def build_tables(
     lengths = np.array([len(s) for s in s_parts], dtype=np.int64)
     start = np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64) if n_pairs else np.zeros(0, np.int64)
     key = np.concatenate([s + k * KEY_OFFSET_M for k, s in enumerate(s_parts)]) if n_pairs else np.zeros(0)
+    s_all = np.concatenate(s_parts) if n_pairs else np.zeros(0)
     if n_pairs:
-        width = int(lengths.max())
-        s_pad = np.zeros((n_pairs, width))
-        k_pad = np.zeros((n_pairs, width))
-        valid = np.arange(width)[None, :] < lengths[:, None]
-        s_pad[valid] = np.concatenate(s_parts)
-        k_pad[valid] = np.concatenate(k_parts)
-        v_adm = admissible_speeds(s_pad, k_pad, lengths, limits, lat_accels_mps2, brake_lookahead_mps2, curvature_smoothing_m)
-        v_adm = v_adm[:, valid]
+        k_all = np.concatenate(k_parts)
+        v_adm = kernels.admissible_speeds(s_all, k_all, lengths, limits, lat_accels_mps2, brake_lookahead_mps2, curvature_smoothing_m,
+                                          MIN_CURVATURE_1PM)  # compiled, the same bits; None: numpy
+        if v_adm is None:
+            width = int(lengths.max())
+            s_pad = np.zeros((n_pairs, width))
+            k_pad = np.zeros((n_pairs, width))
+            valid = np.arange(width)[None, :] < lengths[:, None]
+            s_pad[valid] = s_all
+            k_pad[valid] = k_all
+            v_adm = admissible_speeds(s_pad, k_pad, lengths, limits, lat_accels_mps2, brake_lookahead_mps2, curvature_smoothing_m)
+            v_adm = v_adm[:, valid]
     else:
         v_adm = np.zeros((len(lat_accels_mps2), 0))
     n_conf = max((len(c[0]) for c in conflicts), default=0)
@@ -251,7 +267,7 @@ def build_tables(
         start=start,
         end=start + lengths,
         key=key,
-        s_m=cat(s_parts),
+        s_m=s_all,
         x_m=cat(x_parts),
         y_m=cat(y_parts),
         heading_rad=unwrap_parts(h_parts) if n_pairs else np.zeros(0),

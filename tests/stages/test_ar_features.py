@@ -471,3 +471,66 @@ def test_relations_missing_gives_absent_values(real):
     issues = tracker.update(cs, RelationSet(header=Header(run_id="t", frame_index=0, stamp_ns=cs.header.stamp_ns + 1, producer="x"),
                                             scene_id="s", relations=()))
     assert [i.kind for i in issues] == ["stamp_mismatch"]
+
+
+def test_compiled_curvature_rows_equal_the_numpy_rows():
+    """stages.lib.ar.kernels gives _curvature_rows_numpy's integrals bit for bit (signs of zeros too): wavy and straight
+    corridors, non-finite and −0.0 curvatures, the vehicle before, inside and past the corridor, bounds on the samples
+    themselves; corridors whose arc length does not increase strictly are left to numpy (the result is the same)."""
+    from dataclasses import replace
+
+    from stages.lib.ar import kernels
+    from stages.lib.ar.features import _curvature_rows_numpy, _segment_bounds
+
+    if not kernels.available():
+        pytest.skip("numba not importable")
+    rng = np.random.default_rng(17)
+    corridors = []
+    for k in range(60):
+        c = corridor(k, kappa=lambda s, a=rng.normal(0, 0.05), f=rng.uniform(0.02, 0.3): a * np.sin(f * s),
+                     length_m=float(rng.uniform(0.0, 120.0)), vehicle_s_m=float(rng.choice([rng.uniform(-80.0, 130.0), 0.0, 10.0, 20.5])),
+                     step_m=float(rng.choice([0.5, rng.uniform(0.3, 1.5)])))
+        if k % 7 == 0:
+            c.curvature_1pm[::3] = -0.0
+        if k % 11 == 0 and len(c.s_m) > 4:
+            c.curvature_1pm[:3] = [np.nan, np.inf, -np.inf]
+        corridors.append(c)
+    flat = corridor(70, kappa=lambda s: np.where(s < 20, -0.0, 0.0))
+    stuck = corridor(71, kappa=lambda s: 0.02 * np.ones_like(s))
+    stuck.s_m[5] = stuck.s_m[4]  # not strictly increasing: numpy's rows
+    lost = corridor(72, vehicle_s_m=math.nan)
+    corridors += [flat, stuck, lost, replace(flat, corridor_id=73, vehicle_s_m=-0.0)]
+    s_parts = [np.asarray(c.s_m, np.float64) for c in corridors]
+    k_parts = [np.asarray(c.curvature_1pm, np.float64) for c in corridors]
+    vehicle_s = np.array([c.vehicle_s_m for c in corridors])
+    got = np.zeros((len(corridors), 6, 2))
+    done = kernels.curvature_rows(s_parts, k_parts, vehicle_s, _segment_bounds(60.0, 6), got)
+    want = _curvature_rows_numpy(s_parts, k_parts, vehicle_s, 60.0, 6)
+    assert not done[corridors.index(stuck)] and done.sum() == len(corridors) - 1
+    assert np.array_equal(got[done], want[done]) and np.array_equal(np.signbit(got[done]), np.signbit(want[done]))
+    rows = curvature_rows(corridors)  # the public function: kernel rows and numpy rows together
+    assert np.array_equal(rows, want) and np.array_equal(np.signbit(rows), np.signbit(want))
+    assert np.any(want[:60] != 0.0)
+
+
+def test_compiled_causal_acceleration_equals_the_numpy_one(monkeypatch):
+    """kernels.causal_slope (numpy's pairwise sums and means) gives causal_acceleration's numpy slope bit for bit: jittered
+    and skipped stamps, histories shorter and longer than the window (up to the tracker's 64 samples), NaN speeds."""
+    from stages.lib.ar import kernels
+
+    if not kernels.available():
+        pytest.skip("numba not importable")
+    rng = np.random.default_rng(23)
+    cases = []
+    for trial in range(400):
+        n = int(rng.integers(1, 65))
+        stamps = np.cumsum(rng.choice([100_000_000, 100_000_000, 200_000_000, 99_999_000, 0], n)) + int(rng.integers(0, 10**12))
+        speeds = rng.uniform(0.0, 15.0, n) + rng.normal(0, 0.3, n)
+        if trial % 17 == 0:
+            speeds[int(rng.integers(0, n))] = np.nan
+        cases.append((stamps.astype(np.int64), speeds, float(rng.choice([1.0, 0.5, 2.0, 0.3]))))
+    got = [causal_acceleration(t, v, w) for t, v, w in cases]
+    monkeypatch.setattr(kernels, "causal_slope", lambda *args: None)
+    want = [causal_acceleration(t, v, w) for t, v, w in cases]
+    assert np.array_equal(np.array(got), np.array(want), equal_nan=True)
+    assert sum(g != 0.0 for g in got) > 200

@@ -489,3 +489,185 @@ def test_particles_that_cannot_follow_their_corridors_are_born_again(frames, sce
         for track_id in set(others) - {TURNING_CAR}:
             assert repr(others_f[track_id]) == repr(others[track_id]), (name, track_id)  # repr: NaN fields compare equal
     assert calls  # the stand-in mapping ran
+
+
+def test_compiled_pose_and_admissible_speed_equal_the_numpy_path(frames):
+    """stages.intentions.kernels places particles on their corridors as PairTables' numpy path does, bit for bit (even
+    the sign of zeros): inside, beyond either end, at the samples themselves, clipped far away, and NaN."""
+    from stages.intentions import kernels
+    from stages.intentions.tables import KEY_OFFSET_M, VehicleInput, build_tables
+
+    if not kernels.available():
+        pytest.skip("numba not importable")
+    rng = np.random.default_rng(5)
+    checked = 0
+    for item in frames[WINDOW][::6]:
+        vehicles = [VehicleInput(v.track_id, tuple(v.corridors), int(v.lanelet_id)) for v in item.corridor_set.vehicles if v.corridors]
+        if not vehicles:
+            continue
+        tables = build_tables(vehicles, {}, {}, lat_accels_mps2=(3.0, 2.0), brake_lookahead_mps2=2.5, curvature_smoothing_m=1.0,
+                              default_speed_limit_mps=13.9, stop_offset_m=14.0)
+        n = 400
+        g = rng.integers(0, tables.n_pairs, (3, n))
+        lo, hi = tables.s_m[tables.start[g]], tables.s_m[tables.end[g] - 1]
+        s = rng.uniform(lo - 30.0, hi + 30.0)
+        at_sample = rng.integers(tables.start[g], tables.end[g])
+        s[0, :50] = tables.s_m[at_sample[0, :50]]  # exactly on samples: t = 0 (and the last one's t = 1)
+        s[0, 50:60] = [np.nan, -0.0, 0.0, 2.0e4, -2.0e4, np.inf, -np.inf, 1.0e4, -1.0e4, 5e-324]
+        d = rng.normal(0.0, 1.5, (3, n))
+        d[1, :10] = [-0.0, 0.0, np.nan, 1e300, -1e300, 0.0, 0.0, 0.0, 0.0, 0.0]
+        style = rng.integers(0, tables.v_adm_mps.shape[0], (3, n))
+        with np.errstate(all="ignore"):
+            got, want = tables.pose(g, s, d), tables.pose_numpy(g, s, d)
+            for a, b in zip(got, want):
+                assert np.array_equal(a, b, equal_nan=True) and np.array_equal(np.signbit(a), np.signbit(b))
+            a, b = tables.admissible_speed(g, s, style), tables.admissible_speed_numpy(g, s, style)
+        assert np.array_equal(a, b, equal_nan=True) and np.array_equal(np.signbit(a), np.signbit(b))
+        checked += 1
+    assert checked >= 5
+    # signed zeros: a corridor starting at s = 0 with zero headings, particles at s = −0.0 (t = −0.0, clipped as numpy does)
+    s_line = np.array([0.0, 1.0, 2.0, 0.0, 0.5])
+    tiny = dataclasses.replace(
+        tables, key=s_line + np.array([0.0, 0.0, 0.0, 1.0, 1.0]) * KEY_OFFSET_M, s_m=s_line, x_m=np.array([-0.0, 1.0, 2.0, 0.0, -0.0]),
+        y_m=np.array([-0.0, -0.0, 0.0, 0.0, 1.0]), heading_rad=np.array([-0.0, -0.0, 0.5, 0.0, -0.0]),
+        start=np.array([0, 3]), end=np.array([3, 5]), v_adm_mps=np.array([[-0.0, 1.0, 2.0, 0.0, 3.0]]))
+    g = np.array([[0, 0, 0, 1, 1, 1, 0, 1]])
+    s = np.array([[-0.0, 0.0, 2.0, -0.0, 0.5, 0.25, 1.0, 0.0]])
+    d = np.array([[-0.0, 0.0, -0.0, 0.0, -0.0, 1.0, -0.0, -0.0]])
+    style = np.zeros_like(g)
+    for a, b in [*zip(tiny.pose(g, s, d), tiny.pose_numpy(g, s, d)), (tiny.admissible_speed(g, s, style), tiny.admissible_speed_numpy(g, s, style))]:
+        assert np.array_equal(a, b, equal_nan=True) and np.array_equal(np.signbit(a), np.signbit(b))
+
+
+def test_compiled_admissible_speeds_equal_the_numpy_profiles():
+    """kernels.admissible_speeds gives tables.admissible_speeds' valid samples bit for bit: rows of many lengths (the
+    padding width and the smoothing window the widest row's), non-finite curvatures, no smoothing, one sample."""
+    from stages.intentions import kernels
+    from stages.intentions.tables import MIN_CURVATURE_1PM, admissible_speeds
+
+    if not kernels.available():
+        pytest.skip("numba not importable")
+    rng = np.random.default_rng(9)
+    for trial in range(40):
+        n_rows = int(rng.integers(1, 30))
+        lengths = rng.integers(1 if trial % 5 == 0 else 2, 160, n_rows)
+        step = rng.uniform(0.05, 2.0, n_rows) if trial % 3 else np.full(n_rows, 0.5)
+        s_parts = [rng.uniform(-50, 50) + step[r] * np.arange(n) + rng.uniform(0, 1e-3, n) for r, n in enumerate(lengths)]
+        k_parts = [rng.normal(0.0, 0.05, n) * (rng.random(n) < 0.7) for n in lengths]
+        if trial % 4 == 0:
+            k_parts[0][: min(3, lengths[0])] = [np.nan, np.inf, -np.inf][: min(3, lengths[0])]
+        limits = rng.uniform(5.0, 20.0, n_rows)
+        lat = tuple(rng.uniform(1.0, 3.5, int(rng.integers(1, 5))))
+        brake = float(rng.uniform(0.5, 4.0))
+        smoothing = float(rng.choice([0.0, 0.3, 1.0, 7.5]))
+        width = int(lengths.max())
+        valid = np.arange(width)[None, :] < lengths[:, None]
+        s_pad, k_pad = np.zeros((n_rows, width)), np.zeros((n_rows, width))
+        s_pad[valid], k_pad[valid] = np.concatenate(s_parts), np.concatenate(k_parts)
+        want = admissible_speeds(s_pad, k_pad, lengths, limits, lat, brake, smoothing)[:, valid]
+        got = kernels.admissible_speeds(np.concatenate(s_parts), np.concatenate(k_parts), lengths, limits, lat, brake, smoothing, MIN_CURVATURE_1PM)
+        assert got.shape == want.shape
+        assert np.array_equal(got, want, equal_nan=True) and np.array_equal(np.signbit(got), np.signbit(want))
+    assert kernels.admissible_speeds(np.zeros(3), np.zeros(2), [3], [10.0], (2.0,), 2.5, 1.0, MIN_CURVATURE_1PM) is None
+
+
+@pytest.mark.parametrize("relaxation_s", [0.0, 0.4])
+def test_compiled_propagation_equals_the_numpy_one(frames, monkeypatch, relaxation_s):
+    """model.propagate with the compiled intention and motion update (kernels.intend_and_move) moves every particle
+    exactly as its numpy path does: the same stop draws, s, v, a, d and P(E = stop), bit for bit, with and without the
+    acceleration state, for rows that are and are not active this step."""
+    from stages.intentions import kernels, model
+    from stages.intentions.model import PARTICLE_FIELDS, Particles
+    from stages.intentions.tables import VehicleInput, build_tables
+
+    if not kernels.available():
+        pytest.skip("numba not importable")
+    mp = IntentionsConfig(accel_relaxation_s=relaxation_s).model_params()
+    rng = np.random.default_rng(13)
+    checked = 0
+    for item in frames[WINDOW][::10]:
+        vehicles = [VehicleInput(v.track_id, tuple(v.corridors), int(v.lanelet_id)) for v in item.corridor_set.vehicles if v.corridors]
+        relations = {(r.track_id, r.corridor_id): r for r in item.relation_set.relations} if item.relation_set is not None else {}
+        if not vehicles:
+            continue
+        tables = build_tables(vehicles, relations, {}, lat_accels_mps2=(3.0, 2.0, 1.5), brake_lookahead_mps2=2.5, curvature_smoothing_m=1.0,
+                              default_speed_limit_mps=13.9, stop_offset_m=14.0)
+        n_rows, n = len(vehicles), 200
+        route = rng.integers(0, tables.n_slots[:, None], (n_rows, n))
+        g = tables.first_pair[:, None] + route
+        start = Particles(
+            route=route, s_m=tables.vehicle_s_m[g] + rng.normal(0.0, 20.0, (n_rows, n)), d_m=rng.normal(0.0, 0.5, (n_rows, n)),
+            v_mps=np.maximum(rng.normal(6.0, 5.0, (n_rows, n)), 0.0), a_mps2=rng.normal(0.0, 1.5, (n_rows, n)),
+            stop=rng.random((n_rows, n)) < 0.5, style=rng.integers(0, 3, (n_rows, n)), p_expected_stop=rng.random((n_rows, n)),
+            weight=np.full((n_rows, n), 1.0 / n),
+        )
+        dt = rng.uniform(0.02, 0.1, n_rows)
+        active = rng.random(n_rows) < 0.8
+        draws = (rng.random((3, n_rows, n)), rng.standard_normal((2, n_rows, n)))
+        runs = []
+        for compiled in (True, False):
+            monkeypatch.setattr(kernels, "available", lambda compiled=compiled: compiled)
+            p = Particles(*(getattr(start, name).copy() for name in PARTICLE_FIELDS))
+            model.propagate(p, tables, tables.first_pair, dt, active, draws, mp)
+            runs.append(p)
+        for name in PARTICLE_FIELDS:
+            a, b = getattr(runs[0], name), getattr(runs[1], name)
+            assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True), name
+            if a.dtype.kind == "f":
+                assert np.array_equal(np.signbit(a), np.signbit(b)), name
+        assert not np.array_equal(runs[0].s_m, start.s_m) and not np.array_equal(runs[0].stop, start.stop)
+        checked += 1
+    assert checked >= 3
+
+
+def test_kernel_modules_name_the_numpy_rules_they_were_compiled_against():
+    """numba's cache of a kernel module does not notice edits of stages/lib/numpy_rules.py, whose functions the kernels
+    call: every module using it holds that file's digest, so that an edit there must edit (and so renew the cache of)
+    each of them."""
+    import hashlib
+
+    import stages.lib.numpy_rules as rules
+    from stages.intentions import kernels as intentions_kernels
+    from stages.lib.ar import kernels as ar_kernels
+
+    digest = hashlib.sha256(Path(rules.__file__).read_bytes()).hexdigest()[:16]
+    for module in (intentions_kernels, ar_kernels):
+        assert module.NUMPY_RULES_SHA256 == digest, f"{module.__name__}: update NUMPY_RULES_SHA256 to {digest}"
+
+
+def test_compiled_expected_stop_equals_the_numpy_one(frames):
+    """model.expected_stop through kernels.conflict_stop (the conflicts ahead found and the products taken compiled, the
+    sigmoids numpy's) gives the numpy path's P(E = stop) bit for bit, also with many conflicts per pair."""
+    import dataclasses as dc
+
+    from stages.intentions import kernels, model
+    from stages.intentions.tables import VehicleInput, build_tables
+
+    if not kernels.available():
+        pytest.skip("numba not importable")
+    mp = IntentionsConfig().model_params()
+    rng = np.random.default_rng(29)
+    conflicts = 0
+    for item in frames[WINDOW][::5]:
+        vehicles = [VehicleInput(v.track_id, tuple(v.corridors), int(v.lanelet_id)) for v in item.corridor_set.vehicles if v.corridors]
+        relations = {(r.track_id, r.corridor_id): r for r in item.relation_set.relations} if item.relation_set is not None else {}
+        if not vehicles:
+            continue
+        tables = build_tables(vehicles, relations, {}, lat_accels_mps2=(3.0,), brake_lookahead_mps2=2.5, curvature_smoothing_m=1.0,
+                              default_speed_limit_mps=13.9, stop_offset_m=14.0)
+        # and a denser copy: random conflicts on most pairs (up to 12 each, some behind, some NaN padding)
+        n_c = 12
+        dense_s = tables.vehicle_s_m[:, None] + rng.uniform(-20.0, 60.0, (tables.n_pairs, n_c))
+        dense_s[rng.random(dense_s.shape) < 0.3] = np.nan
+        dense = dc.replace(tables, conflict_s_m=dense_s, conflict_other_time_s=rng.uniform(-2.0, 8.0, dense_s.shape),
+                           conflict_weight=rng.uniform(0.0, 1.0, dense_s.shape))
+        for t in (tables, dense):
+            n_rows, n = len(vehicles), 150
+            g = t.first_pair[:, None] + rng.integers(0, t.n_slots[:, None], (n_rows, n))
+            s = t.vehicle_s_m[g] + rng.normal(0.0, 15.0, (n_rows, n))
+            v = np.maximum(rng.normal(5.0, 4.0, (n_rows, n)), 0.0)
+            got = model.expected_stop(t, g, s, v, mp)
+            want = model._expected_stop_numpy(t, g, s, v, mp)
+            assert np.array_equal(got, want) and np.array_equal(np.signbit(got), np.signbit(want))
+            conflicts += int(np.count_nonzero(want))
+    assert conflicts > 1000

@@ -7,6 +7,9 @@
   (``predict``), ``save_model``, ``load_model``, ``DEFAULT_MODEL_PATH`` (the
   shipped ``weights/ar_taf_bw.pt``, a GRU; ``weights/MODEL_CARD.md``).
 
+- ``kernels``: the features' compiled hot paths (curvature integrals, causal
+  acceleration; numba, the numpy code's values bit for bit), loaded on first use.
+
 Training (data set and ``iamp train``) is offline code: ``stages.offline.train``.
 
 The torch-based names are imported on first use, so ``import stages.lib.ar``

@@ -174,12 +174,19 @@ def causal_acceleration(stamps_ns: np.ndarray, speeds_mps: np.ndarray, window_s:
     """Least-squares slope (m/s²) of the speeds within `window_s` up to the newest stamp; 0 if too few.
 
     Too few: fewer than 3 samples, or spanning less than half the window.
-    With `shrink`, the slope is shrunk towards 0 by its standard error σ:
+    Without `shrink` the compiled `kernels.causal_slope` computes it (the
+    numpy arithmetic below, bit for bit). With `shrink`, the slope is shrunk towards 0 by its standard error σ:
     slope·max(0, 1 − σ²/slope²) (as ``markov_prediction``'s a0).
     """
     t = np.asarray(stamps_ns, dtype=np.int64)
     if t.size < 3:
         return 0.0
+    if not shrink:
+        from stages.lib.ar import kernels  # numba loaded on first use
+
+        found = kernels.causal_slope(t, np.asarray(speeds_mps, dtype=np.float64), window_s, _NS)  # the same bits
+        if found is not None:
+            return found
     keep = t >= t[-1] - int(round(window_s / _NS)) - 1_000_000
     t, v = (t[keep] - t[-1]) * _NS, np.asarray(speeds_mps, dtype=np.float64)[keep]
     if t.size < 3 or -t[0] < 0.5 * window_s - 1e-6:
@@ -206,11 +213,11 @@ def curvature_integrals(corridor: Corridor, lookahead_m: float = N_SEGMENTS * SE
 def curvature_rows(corridors: Sequence[Corridor], lookahead_m: float = N_SEGMENTS * SEGMENT_M, n_segments: int = N_SEGMENTS) -> np.ndarray:
     """`curvature_integrals` of several corridors at once: (P, n_segments, 2), float64.
 
-    The element-wise work and the cumulative sums run on all corridors
-    together (rows padded to the longest); each row then takes its own
-    ``np.interp``, so every row is exactly what one corridor alone gives. A
-    corridor whose curvature and arc-length arrays differ in length raises
-    ``ValueError`` (the caller isolates the pair).
+    Each row is exactly what one corridor alone gives: computed by the
+    compiled kernel (`stages.lib.ar.kernels`, one pass per corridor), else
+    (no numba, or an arc length that does not increase strictly) by
+    `_curvature_rows_numpy`. A corridor whose curvature and arc-length arrays
+    differ in length raises ``ValueError`` (the caller isolates the pair).
     """
     n_rows = len(corridors)
     out = np.zeros((n_rows, n_segments, 2))
@@ -219,8 +226,24 @@ def curvature_rows(corridors: Sequence[Corridor], lookahead_m: float = N_SEGMENT
     for c, s, k in zip(corridors, s_parts, k_parts):
         if s.shape != k.shape or s.ndim != 1:
             raise ValueError(f"corridor {c.corridor_id}: curvature has {k.shape} samples, arc length {s.shape}")
-    lengths = np.array([s.size for s in s_parts], dtype=np.int64)
     vehicle_s = np.array([float(c.vehicle_s_m) for c in corridors], dtype=np.float64)
+    from stages.lib.ar import kernels  # numba loaded on first use: `import stages.lib.ar` stays light
+
+    done = kernels.curvature_rows(s_parts, k_parts, vehicle_s, _segment_bounds(lookahead_m, n_segments), out)
+    rest = np.arange(n_rows) if done is None else np.flatnonzero(~done)
+    if rest.size:
+        out[rest] = _curvature_rows_numpy([s_parts[r] for r in rest.tolist()], [k_parts[r] for r in rest.tolist()], vehicle_s[rest],
+                                          lookahead_m, n_segments)
+    return out
+
+
+def _curvature_rows_numpy(s_parts: list[np.ndarray], k_parts: list[np.ndarray], vehicle_s: np.ndarray, lookahead_m: float,
+                          n_segments: int) -> np.ndarray:
+    """`curvature_rows` on numpy: the element-wise work and the cumulative sums on all corridors together (rows padded
+    to the longest), then each row its own ``np.interp``, so every row is exactly what one corridor alone gives."""
+    n_rows = len(s_parts)
+    out = np.zeros((n_rows, n_segments, 2))
+    lengths = np.array([s.size for s in s_parts], dtype=np.int64)
     usable = (lengths >= 2) & np.isfinite(vehicle_s)
     if not usable.any():
         return out
@@ -499,13 +522,8 @@ class FeatureTracker:
         anchor = self.step_index(int(corridor_set.header.stamp_ns))
         steps = np.arange(anchor - HISTORY_STEPS + 1, anchor + 1)
         slots = steps % HISTORY_STEPS
-        keys: list[tuple[int, int]] = []
-        vehicle_x: list[np.ndarray] = []
-        masks: list[np.ndarray] = []
-        has_rows: list[np.ndarray] = []  # pairs whose corridor is in some row: where, and that corridor's ring
-        ring_values: list[np.ndarray] = []
-        from_rings: list[int] = []
-        now: dict[int, np.ndarray] = {}  # the other pairs (corridor in no row): geometry now, relations absent
+        empty = [], np.zeros((0, HISTORY_STEPS, N_FEATURES), np.float32), np.zeros((0, HISTORY_STEPS), bool)
+        chosen = []  # (vehicle, track, corridor ids) of the matched vehicles with rows, in the set's order
         for vehicle in corridor_set.vehicles:
             if vehicle.status != MatchStatus.MATCHED or not vehicle.corridors:
                 continue
@@ -517,37 +535,64 @@ class FeatureTracker:
                 ids = [c for c in ids if (vehicle.track_id, c) in wanted]
                 if not ids:
                     continue
-            kept = (steps > track.last_step - HISTORY_STEPS) & (steps <= track.last_step)  # the rows the track keeps
-            present = (track.vehicle.step[slots] == steps) & kept
-            if not present.any():
+            chosen.append((vehicle, track, ids))
+        if not chosen:
+            return empty
+        # every chosen vehicle's 40 steps at once (each row what that vehicle alone gives)
+        last = np.fromiter((track.last_step for _v, track, _i in chosen), dtype=np.int64, count=len(chosen))
+        kept = (steps[None, :] > (last - HISTORY_STEPS)[:, None]) & (steps[None, :] <= last[:, None])  # the rows each track keeps
+        present = (np.stack([track.vehicle.step for _v, track, _i in chosen])[:, slots] == steps) & kept
+        fill = slots[_fill_source(present)]
+        vehicle_values = np.stack([track.vehicle.values for _v, track, _i in chosen])[np.arange(len(chosen))[:, None], fill]
+        usable = present.any(axis=1).tolist()  # a vehicle without a row in the window: left out
+        pairs_at: list[tuple[int, int, _Ring | None]] = []  # (vehicle, corridor id, its ring) of the usable vehicles
+        rings: list[_Ring] = []
+        ring_vehicle: list[int] = []
+        for v, (_vehicle, track, ids) in enumerate(chosen):
+            if not usable[v]:
                 continue
-            vehicle_values = track.vehicle.values[slots[_fill_source(present)]]
-            by_id = {c.corridor_id: c for c in vehicle.corridors}
             for cid in ids:
                 ring = track.corridors.get(cid)
-                has = (ring.step[slots] == steps) & kept if ring is not None else None
-                if has is not None and has.any():
-                    from_rings.append(len(keys))
-                    has_rows.append(has)
-                    ring_values.append(ring.values)
-                else:
-                    try:
-                        now[len(keys)] = corridor_features(by_id[cid], None, float(vehicle_values[-1, 1]), self.config)
-                    except Exception:  # noqa: BLE001 - its row failed in update (issue pair_failed): no profile for it
-                        continue
-                keys.append((vehicle.track_id, cid))
-                vehicle_x.append(vehicle_values)
-                masks.append(present)
+                pairs_at.append((v, cid, ring))
+                if ring is not None:
+                    rings.append(ring)
+                    ring_vehicle.append(v)
+        if rings:  # where each ring holds a kept row of its vehicle
+            has = (np.stack([ring.step for ring in rings])[:, slots] == steps) & kept[ring_vehicle]
+            has_any = has.any(axis=1).tolist()
+        keys: list[tuple[int, int]] = []
+        key_vehicle: list[int] = []
+        from_rings: list[int] = []  # pairs whose corridor is in some row: their batch rows, their rings
+        ring_rows: list[int] = []
+        now: dict[int, np.ndarray] = {}  # the other pairs (corridor in no row): geometry now, relations absent
+        r = 0
+        by_id: dict | None = None
+        by_id_of = -1
+        for v, cid, ring in pairs_at:
+            if ring is not None and has_any[r]:
+                from_rings.append(len(keys))
+                ring_rows.append(r)
+            else:
+                if by_id_of != v:
+                    by_id, by_id_of = {c.corridor_id: c for c in chosen[v][0].corridors}, v
+                try:
+                    now[len(keys)] = corridor_features(by_id[cid], None, float(vehicle_values[v, -1, 1]), self.config)
+                except Exception:  # noqa: BLE001 - its row failed in update (issue pair_failed): no profile for it
+                    r += ring is not None
+                    continue
+            r += ring is not None
+            keys.append((chosen[v][0].track_id, cid))
+            key_vehicle.append(v)
         if not keys:
-            return [], np.zeros((0, HISTORY_STEPS, N_FEATURES), np.float32), np.zeros((0, HISTORY_STEPS), bool)
+            return empty
         x = np.empty((len(keys), HISTORY_STEPS, N_FEATURES), dtype=np.float32)  # float64 values rounded as by astype
-        x[:, :, _VEHICLE_COLUMNS] = np.stack(vehicle_x)
+        x[:, :, _VEHICLE_COLUMNS] = vehicle_values[key_vehicle]
         if from_rings:  # each pair's 40 steps from its ring, all pairs in one gather
-            source = slots[_fill_source(np.stack(has_rows))]
-            x[from_rings, :, _CORRIDOR_SLICE] = np.stack(ring_values)[np.arange(len(from_rings))[:, None], source]
+            source = slots[_fill_source(has[ring_rows])]
+            x[from_rings, :, _CORRIDOR_SLICE] = np.stack([rings[k].values for k in ring_rows])[np.arange(len(from_rings))[:, None], source]
         for b, row in now.items():
             x[b, :, _CORRIDOR_SLICE] = row
-        return keys, x, np.stack(masks)
+        return keys, x, present[key_vehicle]
 
 
 __all__ = [
