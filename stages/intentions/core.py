@@ -184,6 +184,7 @@ class IntentionFilter:
         self._scene_id: str | None = None
         self._road_map: RoadMap | None = None
         self._manoeuvres: dict[tuple, tuple[Manoeuvre, bool]] = {}
+        self._lanelet_length: dict[int, float] = {}  # of the latched map's lanelets (NaN: not in the map), for the cache keys
         kernels.warm_up()  # the compiled kernels loaded (or compiled) now, not on the first frame
 
     @property
@@ -300,6 +301,7 @@ class IntentionFilter:
             scene_map = self.scene_maps.get(scene, self.config.projection)
             self._road_map = scene_map.road_map
             self._manoeuvres.clear()
+            self._lanelet_length.clear()
             self._vehicles.clear()
             for problem in scene_map.problems:
                 kind = "map_sha256_mismatch" if problem.startswith("map_sha256_mismatch") else "map_problem"
@@ -627,21 +629,41 @@ class IntentionFilter:
         return out
 
     def _manoeuvres_of(self, corridors: list[Corridor], road_map: RoadMap | None) -> list[tuple[Manoeuvre, bool]]:
-        """(manoeuvre, changes lane) per corridor, cached by its lanelets, their starts relative to the vehicle (0.1 m) and
-        the lanelet the vehicle is on (the starts of all corridors rounded at once)."""
+        """(manoeuvre, changes lane) per corridor: `corridor_manoeuvre`, cached by what it depends on.
+
+        `corridor_manoeuvre` reads a corridor's lanelet ids and, per lanelet
+        of the map, only two comparisons with the vehicle's place: its start
+        lies less than `lane_change_reach_m` behind the vehicle, its end lies
+        ahead of it. The key is the ids and those two comparisons per
+        lanelet (the same float operations, all corridors at once), so the
+        cached result is exactly the function's and the key changes only
+        when the vehicle crosses one of those points. A corridor whose
+        starts and ids differ in length is looked up directly (uncached).
+        """
         if road_map is None:
             return [(Manoeuvre.UNKNOWN, False)] * len(corridors)
         if not corridors:
             return []
-        starts = [np.asarray(c.lanelet_start_s_m) for c in corridors]
-        vehicle_s = [c.vehicle_s_m for c in corridors]
-        lengths = [len(x) for x in starts]
-        relative = np.round(np.concatenate(starts) - np.repeat(vehicle_s, lengths), 1).tolist()
+        ids = [lanelet_ids_of(c) for c in corridors]
+        starts = [np.asarray(c.lanelet_start_s_m, dtype=np.float64) for c in corridors]
+        aligned = [len(i) == len(s) for i, s in zip(ids, starts)]
+        lengths = [len(i) if ok else 0 for i, ok in zip(ids, aligned)]
+        lanelet_length = self._lanelet_length
+        flat = [x for i, ok in zip(ids, aligned) if ok for x in i]
+        for x in flat:
+            if x not in lanelet_length:
+                lanelet_length[x] = road_map.lanelet(x).length_m if road_map.has_lanelet(x) else math.nan
+        start = np.concatenate([s for s, ok in zip(starts, aligned) if ok]) if any(aligned) else np.zeros(0)
+        s_v = np.repeat(np.array([float(c.vehicle_s_m) for c in corridors], dtype=np.float64), lengths)
+        behind = (start > s_v - self.config.lane_change_reach_m).tolist()
+        ahead = (start + np.array([lanelet_length[x] for x in flat], dtype=np.float64) > s_v).tolist()
         out = []
         at = 0
-        for corridor, start, s_v, n in zip(corridors, starts, vehicle_s, lengths):
-            here = int(np.searchsorted(start, s_v, side="right")) if n else 0
-            key = (tuple(lanelet_ids_of(corridor)), tuple(relative[at : at + n]), here)
+        for corridor, lanelets, ok, n in zip(corridors, ids, aligned, lengths):
+            if not ok:
+                out.append(corridor_manoeuvre(road_map, corridor, self.config.lane_change_reach_m))
+                continue
+            key = (tuple(lanelets), tuple(behind[at : at + n]), tuple(ahead[at : at + n]))
             at += n
             found = self._manoeuvres.get(key)
             if found is None:
@@ -651,7 +673,6 @@ class IntentionFilter:
                 self._manoeuvres[key] = found
             out.append(found)
         return out
-
 
 def _mapping(state: _Vehicle, corridors: tuple[Corridor, ...]) -> list[tuple[int, float]]:
     """`map_corridors` of the vehicle's last corridors onto `corridors`; IndexError when a particle's slot has no entry."""
