@@ -35,6 +35,7 @@ from stages.lib.maps import DEFAULT_SPEED_LIMIT_MPS, Projection, RoadMap, SceneM
 from stages.intentions import kernels, model
 from stages.intentions.model import PARTICLE_FIELDS, ModelParams, Particles
 from stages.intentions.signals import with_signals
+from stages.intentions.streams import Streams
 from stages.intentions.tables import PairTables, VehicleInput, build_tables, common_run, corridor_manoeuvre, corridors_ok, lanelet_ids_of, lanelet_shift_m, map_corridors
 
 _NS = 1e-9
@@ -185,7 +186,9 @@ class IntentionFilter:
         self._road_map: RoadMap | None = None
         self._manoeuvres: dict[tuple, tuple[Manoeuvre, bool]] = {}
         self._lanelet_length: dict[int, float] = {}  # of the latched map's lanelets (NaN: not in the map), for the cache keys
+        self._streams = Streams()  # np.random.default_rng([seed, frame, track]) per vehicle, all at once
         kernels.warm_up()  # the compiled kernels loaded (or compiled) now, not on the first frame
+        self._streams(0, 0, [0])  # its compiled hash too
 
     @property
     def tracked_ids(self) -> frozenset[int]:
@@ -402,7 +405,7 @@ class IntentionFilter:
             n_sub[v] = 0
         for v, exc in sorted(reborn, key=lambda item: item[0]):
             issues.append(Issue("particles_reborn", inputs[v].track_id, f"moving its particles onto the new corridors raised {type(exc).__name__}: {exc}"))
-        rngs = [_rng(cfg.seed, int(frame_index) & _U64, int(item.track_id) & _U64) for item in inputs]
+        rngs = self._streams(cfg.seed, int(frame_index) & _U64, [int(item.track_id) & _U64 for item in inputs])
         offsets = np.array([r.random() for r in rngs])  # systematic resampling offsets
         frame_n = np.stack([r.standard_normal((4, n)) for r in rngs], axis=1)  # jitter s, jitter v, floor s, floor d
         names = ("x_m", "y_m", "heading_rad", "speed_mps", "heading_ok", "speed_ok")
@@ -700,11 +703,6 @@ def _project(p: Particles, v: int, before: tuple[Corridor, ...], old: np.ndarray
     p.s_m[v, lost] = s_all[choice, cols]
     p.d_m[v, lost] = d_all[choice, cols]
     return slot
-
-
-def _rng(*entropy: int) -> np.random.Generator:
-    """``np.random.default_rng(list(entropy))`` (the same stream), built without its argument dispatch."""
-    return np.random.Generator(np.random.PCG64(np.random.SeedSequence(list(entropy))))
 
 
 def _empty(n: int) -> Particles:

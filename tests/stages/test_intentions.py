@@ -700,3 +700,24 @@ def test_cached_manoeuvres_equal_the_map_lookup_also_at_the_thresholds(frames, s
         looked_up += len(corridors)
     assert looked_up > 1000
     assert len(intentions._manoeuvres) < looked_up // 4
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_streams_are_default_rngs_of_seed_frame_and_track(compiled, monkeypatch):
+    """`Streams` gives every track the stream of ``np.random.default_rng([seed, frame, track])``, number for number, for
+    edge entropies (0, 2**32 - 1, 2**32: one or two 32-bit words, 2**64 - 1, more than four words in all) and when its
+    generators are reused for another frame; the Python loop (no numba) gives the same."""
+    from stages.intentions import streams
+
+    if not compiled:
+        monkeypatch.setattr(streams, "_hash_rows_compiled", streams._hash_rows)
+    make = streams.Streams()
+    cases = [(0, 0, [0, 1, 2**32 - 1, 2**32, 2**64 - 1]), (3, 2**40 + 7, [12345, 7]), (2**70, 2**33, [5]), (0, 0, [])]
+    for seed, frame, tracks in cases:
+        generators = make(seed, frame, tracks)
+        assert len(generators) == len(tracks)
+        for generator, track in zip(generators, tracks):
+            reference = np.random.default_rng([seed, frame, track])
+            assert generator.random() == reference.random()
+            assert np.array_equal(generator.standard_normal((4, 30)), reference.standard_normal((4, 30)))
+            assert np.array_equal(generator.random((2, 3, 30)), reference.random((2, 3, 30)))
