@@ -689,14 +689,25 @@ def _mapping(state: _Vehicle, corridors: tuple[Corridor, ...]) -> list[tuple[int
 def _project(p: Particles, v: int, before: tuple[Corridor, ...], old: np.ndarray, slot: np.ndarray, lost_mask: np.ndarray,
              corridors: tuple[Corridor, ...]) -> np.ndarray:
     """Row v's particles `lost_mask` (no lanelet shared with their new corridor) projected from their map position on the
-    corridors `before` (slots `old`) onto their new corridor, or the nearest new one; returns the row's new slots."""
+    corridors `before` (slots `old`) onto their new corridor, or the nearest new one; returns the row's new slots.
+
+    Each new corridor projects only the particles that need it (those mapped to it, and those without a corridor, which
+    take the nearest): `project_to_polyline` treats every point on its own, so the values are those of projecting all.
+    """
     lost = np.flatnonzero(lost_mask)
     x, y = _frenet_to_xy(before, old[lost], p.s_m[v, lost], p.d_m[v, lost])
     xy = np.column_stack([x, y])
-    projected = [project_to_polyline(xy, np.column_stack([c.x_m, c.y_m]), c.s_m) for c in corridors]
-    s_all = np.stack([f.s_m for f in projected])
-    d_all = np.stack([f.d_m for f in projected])
-    choice = np.where(slot[lost] >= 0, slot[lost], np.argmin(np.abs(d_all), axis=0))
+    target = slot[lost]
+    nearest = target < 0
+    s_all = np.full((len(corridors), lost.size), np.nan)
+    d_all = np.full((len(corridors), lost.size), np.nan)
+    for k, c in enumerate(corridors):
+        need = np.flatnonzero((target == k) | nearest)
+        if need.size:
+            found = project_to_polyline(xy[need], np.column_stack([c.x_m, c.y_m]), c.s_m)
+            s_all[k, need] = found.s_m
+            d_all[k, need] = found.d_m
+    choice = np.where(target >= 0, target, np.argmin(np.abs(d_all), axis=0))
     cols = np.arange(lost.size)
     slot = slot.copy()
     slot[lost] = choice
