@@ -184,7 +184,8 @@ def admissible_speeds_batch(
 ) -> list[np.ndarray]:
     """``admissible_speeds`` of B profiles (their own lengths and speed limits): ``(J, n_b)`` each, the same numbers.
 
-    The smoothing is one ``np.convolve`` per profile; the rest is elementwise
+    The smoothing is one ``np.convolve`` per profile with some curvature (a
+    profile of zeros, the hybrid mode's without curves, stays zeros); the rest is elementwise
     (and a reverse running minimum), done for all the profiles at once on
     rows padded to the longest one (+∞ past a profile's end, which the
     running minimum from the end never takes).
@@ -207,9 +208,11 @@ def admissible_speeds_batch(
         kappa_all[inside] = np.concatenate(k_list)
     kappa_all = np.abs(kappa_all)
     kappa_all = np.where(np.isfinite(kappa_all), kappa_all, 0.0)  # |κ|, non-finite as 0
-    for b, half in enumerate(_smoothing_halves(s_all, np.asarray(sizes), smoothing_m)):
-        if half > 0:
-            kappa_all[b, : sizes[b]] = _moving_average(kappa_all[b, : sizes[b]], half)
+    curved = kappa_all.any(axis=1)  # a row of zeros averages to zeros (+0.0 sums): no smoothing to do
+    if curved.any():
+        for b, half in enumerate(_smoothing_halves(s_all, np.asarray(sizes), smoothing_m)):
+            if half > 0 and curved[b]:
+                kappa_all[b, : sizes[b]] = _moving_average(kappa_all[b, : sizes[b]], half)
     limits = np.asarray(speed_limits_mps, dtype=np.float64).reshape(n_b, 1, 1)
     v_prof = np.minimum(limits, np.sqrt(a_lat[None, :, None] / np.maximum(kappa_all[:, None, :], MIN_CURVATURE_1PM)))
     brake_s = 2.0 * brake_mps2 * s_all[:, None, :]
