@@ -384,6 +384,33 @@ if numba is not None:
                             acc += w32[jj]
                     values[b, l, vi, a] = acc
 
+    @numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
+    def _knot_buckets(xp, start, bucket, inv_h):  # pragma: no cover - compiled
+        """``SpeedRestriction``'s per-pair knot buckets, the numpy loop's numbers: for a pair of n > 1 knots over a span
+        > 0, h = span / n, inv_h[first knot] = 1 / h and bucket[k] = max(searchsorted(s, s_0 + h·k, "right") − 1, 0)
+        (a binary search of the pair's sorted, finite knots with numpy's comparison)."""
+        for b in range(start.shape[0] - 1):
+            lo, hi = start[b], start[b + 1]
+            n = hi - lo
+            if n <= 1:
+                continue
+            span = xp[hi - 1] - xp[lo]
+            if not span > 0:
+                continue
+            h = span / n
+            inv_h[lo] = 1.0 / h
+            for k in range(n):
+                q = xp[lo] + h * np.float64(k)
+                left, right = lo, hi  # the first knot > q (side="right")
+                while left < right:
+                    mid = (left + right) >> 1
+                    if xp[mid] <= q:
+                        left = mid + 1
+                    else:
+                        right = mid
+                i = left - lo - 1
+                bucket[lo + k] = i if i > 0 else 0
+
     @numba.njit(cache=True, nogil=True, boundscheck=False)
     def _priority_from_states(values, preference, b_idx, v_idx, s_idx, forbid_threshold):  # pragma: no cover - compiled
         """``_priority_at_states`` with the restriction stored per state, (B, L, N_v, M)."""
@@ -1009,14 +1036,7 @@ class SpeedRestriction:
         # per pair: buckets of the knots' mean spacing h over [s_0, s_n) and the last knot at or before each bucket's start
         bucket = np.zeros(xp.shape[0], np.int64)
         inv_h = np.zeros(xp.shape[0], np.float64)
-        for b in range(n_b):
-            lo, hi = start[b], start[b + 1]
-            s = xp[lo:hi]
-            span = s[-1] - s[0]
-            if hi - lo > 1 and span > 0:
-                h = span / (hi - lo)
-                inv_h[lo] = 1.0 / h
-                bucket[lo:hi] = np.maximum(np.searchsorted(s, s[0] + h * np.arange(hi - lo), side="right") - 1, 0)
+        _knot_buckets(xp, start, bucket, inv_h)  # (h = span / n, the last knot at or before s_0 + h·k, as np.searchsorted finds it)
         cell_s = np.ascontiguousarray(cell_s_m, dtype=np.float64).reshape(n_b, -1)
         v_c = np.asarray(v_centres_mps, dtype=np.float64)
         self._args = (xp, np.ascontiguousarray(fp), start, bucket, inv_h, cell_s, v_c, a_c,
