@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stages.lib.markov import kernels
+
 #: Curvature below this (1/m) counts as straight: v_prof = √(a_lat / max(|κ|, this)).
 MIN_CURVATURE_1PM = 1e-4
 
@@ -188,7 +190,8 @@ def admissible_speeds_batch(
     profile of zeros, the hybrid mode's without curves, stays zeros); the rest is elementwise
     (and a reverse running minimum), done for all the profiles at once on
     rows padded to the longest one (+∞ past a profile's end, which the
-    running minimum from the end never takes).
+    running minimum from the end never takes), or compiled where numba
+    imports (``kernels.admissible_rows``: the same numbers, one pass per row).
     """
     n_b = len(s_m)
     a_lat = np.asarray(lat_accels_mps2, dtype=np.float64)
@@ -214,6 +217,9 @@ def admissible_speeds_batch(
             if half > 0 and curved[b]:
                 kappa_all[b, : sizes[b]] = _moving_average(kappa_all[b, : sizes[b]], half)
     limits = np.asarray(speed_limits_mps, dtype=np.float64).reshape(n_b, 1, 1)
+    if kernels.available():  # the same numbers, compiled: one pass per row and lateral acceleration
+        adm = kernels.admissible_rows(s_all, kappa_all, sizes, limits, a_lat, 2.0 * brake_mps2, MIN_CURVATURE_1PM)
+        return [adm[b, :, : sizes[b]] for b in range(n_b)]
     v_prof = np.minimum(limits, np.sqrt(a_lat[None, :, None] / np.maximum(kappa_all[:, None, :], MIN_CURVATURE_1PM)))
     brake_s = 2.0 * brake_mps2 * s_all[:, None, :]
     key = v_prof**2 + brake_s
