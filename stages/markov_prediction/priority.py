@@ -149,10 +149,20 @@ def admissible_speeds(
     return admissible_speeds_batch([s_m], [curvature_1pm], [speed_limit_mps], lat_accels_mps2, brake_mps2, smoothing_m)[0]
 
 
+_AVERAGING_KERNELS: dict[int, np.ndarray] = {}
+
+
 def _moving_average(kappa: np.ndarray, half: int) -> np.ndarray:
     """The moving average over 2·half + 1 points of ``admissible_speeds`` (edges held: np.pad's "edge")."""
-    kernel = np.ones(2 * half + 1) / (2 * half + 1)
-    padded = np.concatenate((np.full(half, kappa[0]), kappa, np.full(half, kappa[-1])))
+    kernel = _AVERAGING_KERNELS.get(half)
+    if kernel is None:  # np.ones(2·half + 1) / (2·half + 1), made once per width (read only)
+        kernel = _AVERAGING_KERNELS.setdefault(half, np.ones(2 * half + 1) / (2 * half + 1))
+        kernel.flags.writeable = False
+    n = kappa.shape[0]
+    padded = np.empty(n + 2 * half)
+    padded[:half] = kappa[0]
+    padded[half : half + n] = kappa
+    padded[half + n :] = kappa[-1]
     return np.convolve(padded, kernel, mode="valid")
 
 
