@@ -38,7 +38,7 @@ import numpy as np
 from stages.lib.datasets import full_data_dir, load_recording
 from stages.lib.datasets.superimpose import build_dense
 
-from upstream import SOURCES, _issues_digest, _play, dense_spans
+from upstream import SOURCES, _issues_digest, _play, dense_spans, save_or_check
 
 STAGES = ("intentions", "ar_inference")
 
@@ -158,24 +158,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{label:>6}: pairs p50 {np.median(pairs):5.0f}, {runs[0]['frames']} frames x {len(runs)} | "
               + " | ".join(f"{stage} cpu p50 {fig[stage]['cpu_ms_median']:6.2f} ms p95 {fig[stage]['cpu_ms_p95']:6.2f} (wall p50 {fig[stage]['ms_median']:6.2f})"
                            for stage in STAGES), flush=True)
-    status = 0
-    if args.save:
-        args.save.write_text(json.dumps(all_digests, indent=1))
-        print(f"wrote digests of {sum(len(d) for d in all_digests.values())} frames to {args.save}")
-    if args.check:
-        reference = json.loads(args.check.read_text())
-        for label, digests in all_digests.items():
-            ref = reference.get(label)
-            if ref is None:
-                print(f"{label}: not in {args.check}")
-                status = 1
-                continue
-            differ = [k for k, (a, b) in enumerate(zip(digests, ref)) if a != b]
-            if differ or len(ref) != len(digests):
-                print(f"{label}: {len(differ)} of {len(digests)} frames differ (first {differ[:5]}), {len(ref)} frames in the reference")
-                status = 1
-            else:
-                print(f"{label}: all {len(digests)} frames identical to {args.check}")
+    status = save_or_check(all_digests, args.save, args.check)
     if profile is not None:
         import pstats
 

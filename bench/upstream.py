@@ -118,6 +118,30 @@ def dense_spans(n_frames: int, frames: int, warmup: int, segments: int):
     return spans
 
 
+def save_or_check(all_digests: dict[str, list[str]], save: Path | None, check: Path | None) -> int:
+    """``--save``: write the per-frame digests; ``--check``: compare with such a file, print the first frames that
+    differ; returns the exit status (1 if any label is missing or any frame differs)."""
+    status = 0
+    if save:
+        save.write_text(json.dumps(all_digests, indent=1))
+        print(f"wrote digests of {sum(len(d) for d in all_digests.values())} frames to {save}")
+    if check:
+        reference = json.loads(check.read_text())
+        for label, digests in all_digests.items():
+            ref = reference.get(label)
+            if ref is None:
+                print(f"{label}: not in {check}")
+                status = 1
+                continue
+            differ = [k for k, (a, b) in enumerate(zip(digests, ref)) if a != b]
+            if differ or len(ref) != len(digests):
+                print(f"{label}: {len(differ)} of {len(digests)} frames differ (first {differ[:5]}), {len(ref)} frames in the reference")
+                status = 1
+            else:
+                print(f"{label}: all {len(digests)} frames identical to {check}")
+    return status
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--vehicles", default="18")
@@ -180,24 +204,7 @@ def main(argv: list[str] | None = None) -> int:
         for stage in ("corridors", "relations"):
             slope = float(np.polyfit(x, np.log([r[stage]["cpu_ms_median"] for r in report.values()]), 1)[0])
             print(f"{stage}: cpu time ~ pairs^{slope:.2f}")
-    status = 0
-    if args.save:
-        args.save.write_text(json.dumps(all_digests, indent=1))
-        print(f"wrote digests of {sum(len(d) for d in all_digests.values())} frames to {args.save}")
-    if args.check:
-        reference = json.loads(args.check.read_text())
-        for label, digests in all_digests.items():
-            ref = reference.get(label)
-            if ref is None:
-                print(f"{label}: not in {args.check}")
-                status = 1
-                continue
-            differ = [k for k, (a, b) in enumerate(zip(digests, ref)) if a != b]
-            if differ or len(ref) != len(digests):
-                print(f"{label}: {len(differ)} of {len(digests)} frames differ (first {differ[:5]}), {len(ref)} frames in the reference")
-                status = 1
-            else:
-                print(f"{label}: all {len(digests)} frames identical to {args.check}")
+    status = save_or_check(all_digests, args.save, args.check)
     if profile is not None:
         import pstats
 
