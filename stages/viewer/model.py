@@ -2,7 +2,7 @@
 
 Nothing here knows viser, the bus or the wall clock: the frame history is
 indexed by message stamps, the view state is plain data, and every drawing
-primitive (boxes, segments, points, the heat-map image) comes back as numpy
+primitive (boxes, segments, points, the heat-map quads) comes back as numpy
 arrays that ``scene.py`` hands to viser as they are.
 """
 
@@ -331,6 +331,43 @@ CUBE_FACES = np.array(
 )
 
 
+@dataclass(frozen=True, slots=True)
+class BoxMesh:
+    """Boxes of one colour as one plain triangle mesh: vertices (8n, 3) float32 in metres, faces (12n, 3) uint32."""
+
+    colour: tuple[int, int, int]
+    vertices_m: np.ndarray
+    faces: np.ndarray
+
+
+def box_meshes(boxes: Boxes) -> list[BoxMesh]:
+    """The boxes as plain meshes, one per colour, each box's corners placed in the world.
+
+    The viewer draws these rather than one instanced (batched) mesh: in
+    headless chromium (SwiftShader WebGL2) viser's instanced draw failed with
+    ``GL_INVALID_OPERATION: glDrawElementsInstanced: Vertex shader input type
+    does not match the type of the bound vertex attribute`` after the first
+    frames, and the boxes vanished while their labels stayed. A few hundred
+    vertices per frame cost nothing as a plain mesh.
+    """
+    n = len(boxes)
+    if n == 0:
+        return []
+    yaw = 2.0 * np.arctan2(boxes.wxyzs[:, 3], boxes.wxyzs[:, 0])
+    c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+    local = CUBE_VERTICES[None, :, :].astype(float) * boxes.sizes_m[:, None, :]  # (n, 8, 3)
+    world = np.empty_like(local)
+    world[..., 0] = c * local[..., 0] - s * local[..., 1] + boxes.centres_m[:, 0, None]
+    world[..., 1] = s * local[..., 0] + c * local[..., 1] + boxes.centres_m[:, 1, None]
+    world[..., 2] = local[..., 2] + boxes.centres_m[:, 2, None]
+    out = []
+    for colour in np.unique(boxes.colours, axis=0):
+        idx = np.nonzero(np.all(boxes.colours == colour, axis=1))[0]
+        faces = CUBE_FACES[None, :, :] + (8 * np.arange(len(idx), dtype=np.uint32))[:, None, None]
+        out.append(BoxMesh(colour=tuple(int(v) for v in colour), vertices_m=world[idx].reshape(-1, 3).astype(np.float32), faces=faces.reshape(-1, 3).astype(np.uint32)))
+    return out
+
+
 # --------------------------------------------------------------------------- corridors and predictions
 
 
@@ -446,13 +483,20 @@ def mean_points(item: InputSet, vehicle: int | None, k: int | None) -> tuple[np.
 
 
 @dataclass(frozen=True, slots=True)
-class GridImage:
-    """An RGBA image of the grid (row 0 = south: viser draws an image's first row at its -y edge) and where it lies on the ground."""
+class HeatLevel:
+    """The cells of one colour level of the heat map as flat quads on the ground: vertices (4n, 3) float32, faces (2n, 3) uint32."""
 
-    rgba: np.ndarray  # (h, w, 4) uint8
-    centre_m: tuple[float, float]
-    width_m: float
-    height_m: float
+    rgb: tuple[int, int, int]
+    opacity: float
+    vertices_m: np.ndarray
+    faces: np.ndarray
+
+
+@dataclass(frozen=True, slots=True)
+class HeatMesh:
+    """The heat map of one grid step as a few plain meshes, one per colour level."""
+
+    levels: tuple[HeatLevel, ...]
     cells: int  # cells above the floor (visible)
     max_value: float
 
@@ -468,14 +512,20 @@ def grid_values(grid: MotionGrid, k: int | None) -> np.ndarray:
     return dense
 
 
-def heat_colours(values: np.ndarray, *, scale: str = "log", floor: float = 1e-3) -> np.ndarray:
-    """RGBA uint8 for occupancies in [0, 1]: transparent below ``floor``, then the heat ramp (log or linear in the value)."""
+def heat_t(values: np.ndarray, *, scale: str = "log", floor: float = 1e-3) -> np.ndarray:
+    """Where occupancies in [0, 1] lie on the heat ramp, 0..1 (log or linear in the value from ``floor`` up)."""
     v = np.clip(np.nan_to_num(np.asarray(values, dtype=float)), 0.0, 1.0)
     if scale == "log":
         t = (np.log10(np.maximum(v, floor)) - math.log10(floor)) / -math.log10(floor)
     else:
         t = (v - floor) / (1.0 - floor)
-    t = np.clip(t, 0.0, 1.0)
+    return np.clip(t, 0.0, 1.0)
+
+
+def heat_colours(values: np.ndarray, *, scale: str = "log", floor: float = 1e-3) -> np.ndarray:
+    """RGBA uint8 for occupancies in [0, 1]: transparent below ``floor``, then the heat ramp (log or linear in the value)."""
+    v = np.clip(np.nan_to_num(np.asarray(values, dtype=float)), 0.0, 1.0)
+    t = heat_t(v, scale=scale, floor=floor)
     out = np.zeros(v.shape + (4,), dtype=np.uint8)
     for ch in range(3):
         out[..., ch] = np.interp(t, _RAMP_T, _RAMP_RGB[:, ch]).round().astype(np.uint8)
@@ -484,27 +534,47 @@ def heat_colours(values: np.ndarray, *, scale: str = "log", floor: float = 1e-3)
     return out
 
 
-def grid_image(grid: MotionGrid, k: int | None, *, scale: str = "log", floor: float = 1e-3, upsample: int = 4) -> GridImage | None:
-    """The grid of step ``k`` (None: all steps blended by their maximum) as a heat-map image on the ground.
+#: Colour levels of the heat map (the ramp quantised: one mesh each).
+HEAT_LEVELS = 16
 
-    Each cell becomes ``upsample`` × ``upsample`` pixels so that the
-    texture's smoothing does not bleed one cell into the next.
+
+def grid_mesh(grid: MotionGrid, k: int | None, *, scale: str = "log", floor: float = 1e-3, levels: int = HEAT_LEVELS, z_m: float = 0.05) -> HeatMesh | None:
+    """The grid of step ``k`` (None: all steps blended by their maximum) as heat-map quads on the ground.
+
+    Each cell at or above ``floor`` is one square (row 0 at the grid's
+    south edge, ``origin_y_m``), coloured by its level: the heat ramp cut
+    into ``levels`` bands, each band one plain mesh with the ramp's colour
+    and opacity at the band's middle.
+
+    Not an image: a viser image's texture is decoded asynchronously in the
+    browser while its new size and position apply at once, so a client that
+    falls behind (software WebGL) showed the previous frame's heat stretched
+    over the new frame's extent, off the road. Meshes update in one step.
     """
     if grid.n_rows <= 0 or grid.n_cols <= 0 or not grid.steps:
         return None
     dense = grid_values(grid, k)
-    rgba = heat_colours(dense, scale=scale, floor=floor)
-    if upsample > 1:
-        rgba = np.repeat(np.repeat(rgba, upsample, axis=0), upsample, axis=1)
-    w_m, h_m = grid.n_cols * grid.cell_m, grid.n_rows * grid.cell_m
-    return GridImage(
-        rgba=rgba,
-        centre_m=(grid.origin_x_m + w_m / 2.0, grid.origin_y_m + h_m / 2.0),
-        width_m=float(w_m),
-        height_m=float(h_m),
-        cells=int((dense >= floor).sum()),
-        max_value=float(dense.max()) if dense.size else 0.0,
-    )
+    rows, cols = np.nonzero(dense >= floor)
+    max_value = float(dense.max()) if dense.size else 0.0
+    if not len(rows):
+        return HeatMesh(levels=(), cells=0, max_value=max_value)
+    band = np.minimum((heat_t(dense[rows, cols], scale=scale, floor=floor) * levels).astype(np.int64), levels - 1)
+    x0 = grid.origin_x_m + cols * grid.cell_m
+    y0 = grid.origin_y_m + rows * grid.cell_m
+    corners = np.stack(
+        [np.stack([x0, y0], 1), np.stack([x0 + grid.cell_m, y0], 1), np.stack([x0 + grid.cell_m, y0 + grid.cell_m], 1), np.stack([x0, y0 + grid.cell_m], 1)], axis=1
+    )  # (n, 4, 2)
+    out = []
+    for b in np.unique(band):
+        idx = np.nonzero(band == b)[0]
+        t = (b + 0.5) / levels
+        rgb = tuple(int(round(float(np.interp(t, _RAMP_T, _RAMP_RGB[:, ch])))) for ch in range(3))
+        opacity = (_RAMP_ALPHA[0] + (_RAMP_ALPHA[1] - _RAMP_ALPHA[0]) * t) / 255.0
+        verts = np.concatenate([corners[idx], np.full((len(idx), 4, 1), z_m)], axis=2).reshape(-1, 3).astype(np.float32)
+        base = (4 * np.arange(len(idx), dtype=np.uint32))[:, None, None]
+        faces = (np.array([[0, 1, 2], [0, 2, 3]], dtype=np.uint32)[None] + base).reshape(-1, 3)
+        out.append(HeatLevel(rgb=rgb, opacity=float(opacity), vertices_m=verts, faces=faces))
+    return HeatMesh(levels=tuple(out), cells=int(len(rows)), max_value=max_value)
 
 
 # --------------------------------------------------------------------------- the map

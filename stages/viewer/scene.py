@@ -32,8 +32,6 @@ from stages.viewer.guard import installed as guard_installed
 from stages.viewer.model import (
     ALL_VEHICLES,
     CAR_LANELET_FILL,
-    CUBE_FACES,
-    CUBE_VERTICES,
     MEAN_AT_STEP_COLOUR,
     MEAN_COLOUR,
     TRUTH_COLOUR,
@@ -43,8 +41,9 @@ from stages.viewer.model import (
     InputSet,
     MapGeometry,
     ViewState,
+    box_meshes,
     corridor_lines,
-    grid_image,
+    grid_mesh,
     load_map_geometry,
     matched_vehicles,
     mean_points,
@@ -427,20 +426,22 @@ class ViewerApp:
         boxes = object_boxes(item.track_frame)
         grid = item.grid
         k = None if (view.blend_steps or grid is None) else step_index(grid.step_times_s, view.step_s)
-        image = grid_image(grid, k, scale=self.config.grid_scale, floor=self.config.grid_floor) if (grid is not None and view.show_grid) else None
+        heat = grid_mesh(grid, k, scale=self.config.grid_scale, floor=self.config.grid_floor) if (grid is not None and view.show_grid) else None
         lines, p_labels = corridor_lines(item, vehicle) if view.show_corridors else (None, [])
         k_means = None if view.blend_steps else step_index(item.predictions.step_times_s, view.step_s) if item.predictions is not None else None
         every, chosen = mean_points(item, vehicle, k_means) if (view.show_means and item.compare is None) else (np.zeros((0, 3)), np.zeros((0, 3)))
         truth_colour = COMPARE_TRUTH_COLOUR if item.compare is not None else TRUTH_COLOUR  # the compare view: black truth, as in the paper
         truth = polyline_segments(list(futures.values()), truth_colour, Z_TRUTH) if view.show_ground_truth else None
         with self.server.atomic():
-            if len(boxes):
-                self._layers["boxes"] = scene.add_batched_meshes_simple(
-                    "/objects/boxes", CUBE_VERTICES, CUBE_FACES, boxes.wxyzs, boxes.centres_m, batched_scales=boxes.sizes_m,
-                    batched_colors=_srgb_to_linear(boxes.colours), lod="off", cast_shadow=False, receive_shadow=False,
+            wanted = set()
+            for mesh in box_meshes(boxes):  # one plain mesh per colour (see box_meshes: not an instanced mesh)
+                key = "boxes/{}_{}_{}".format(*mesh.colour)
+                wanted.add(key)
+                self._layers[key] = scene.add_mesh_simple(
+                    f"/objects/{key}", mesh.vertices_m, mesh.faces, color=mesh.colour, flat_shading=True, cast_shadow=False, receive_shadow=False,
                 )
-            else:
-                self._remove_layer("boxes")
+            for key in [k for k in self._layers if k.startswith("boxes/") and k not in wanted]:
+                self._remove_layer(key)
             labels = {}
             if view.show_labels:
                 for i, tid in enumerate(boxes.track_ids):
@@ -462,13 +463,16 @@ class ViewerApp:
                 self._layers["means_at_step"] = scene.add_point_cloud("/predictions/at_step", chosen, colors=MEAN_AT_STEP_COLOUR, point_size=0.5, point_shape="circle", precision="float32")
             else:
                 self._remove_layer("means_at_step")
-            if image is not None and image.cells:
-                self._layers["grid"] = scene.add_image(
-                    "/grid", image.rgba, image.width_m, image.height_m, format="png", position=(image.centre_m[0], image.centre_m[1], 0.05),
+            wanted = set()
+            for i, level in enumerate(heat.levels if heat is not None else ()):
+                key = f"grid/level_{i}"
+                wanted.add(key)
+                self._layers[key] = scene.add_mesh_simple(
+                    f"/{key}", level.vertices_m, level.faces, color=level.rgb, opacity=level.opacity, flat_shading=True, side="double",
                     cast_shadow=False, receive_shadow=False,
                 )
-            else:
-                self._remove_layer("grid")
+            for key in [k for k in self._layers if k.startswith("grid/") and k not in wanted]:
+                self._remove_layer(key)
             if truth is not None and len(truth):
                 self._layers["truth"] = scene.add_line_segments("/truth", truth.points_m, truth.colours, thickness=0.3)
             else:
@@ -485,8 +489,8 @@ class ViewerApp:
             "other_lanelets": self.map.n_other_lanelets if self.map else 0,
             "corridors": len(p_labels),
             "means": int(len(every)),
-            "grid_cells": image.cells if image is not None else 0,
-            "grid_max": image.max_value if image is not None else 0.0,
+            "grid_cells": heat.cells if heat is not None else 0,
+            "grid_max": heat.max_value if heat is not None else 0.0,
             "step_s": step_s,
             "blend": view.blend_steps,
             "truth_tracks": len(futures),
@@ -676,14 +680,6 @@ class ViewerApp:
         else:
             self._gui["vehicle_ar"].visible = False
         self._gui["vehicle_md"].content = text
-
-
-def _srgb_to_linear(colours: np.ndarray) -> np.ndarray:
-    """Per-instance colours of batched meshes reach three.js as linear values (measured: (30, 144, 255) showed as
-    (141, 203, 225)), unlike ``color=`` of single meshes; convert so that both look alike."""
-    c = np.asarray(colours, dtype=float) / 255.0
-    linear = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-    return np.round(linear * 255.0).astype(np.uint8)
 
 
 def _snap_step(step_s: float) -> float:

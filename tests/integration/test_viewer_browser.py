@@ -357,18 +357,27 @@ def test_results_join_their_frames_by_stamp_however_late(scenario_sets_30):
     assert len(history) == 1 and history.restarts == 1
 
 
-def test_grid_image_puts_row_zero_south_and_hides_cells_below_the_floor():
+def test_grid_mesh_puts_row_zero_south_and_hides_cells_below_the_floor():
     import bus_schemas as bs
-    from stages.viewer.model import grid_image
+    from stages.viewer.model import HEAT_LEVELS, grid_mesh, heat_colours
 
-    step = bs.GridStep(rows=np.array([0, 1], np.int32), cols=np.array([1, 0], np.int32), values=np.array([0.5, 1e-5], np.float32))
+    step = bs.GridStep(rows=np.array([0, 1, 1], np.int32), cols=np.array([1, 0, 2], np.int32), values=np.array([0.5, 1e-5, 0.002], np.float32))
     grid = bs.MotionGrid(header=bs.Header(run_id="t", frame_index=0, stamp_ns=0, producer="t"), scene_id="s", mode="baseline", distribution="interval",
                          origin_x_m=10.0, origin_y_m=20.0, cell_m=0.5, n_rows=2, n_cols=3, min_value=1e-6, step_times_s=np.array([0.4]), steps=(step,))
-    image = grid_image(grid, 0, floor=1e-3, upsample=2)
-    assert image.rgba.shape == (4, 6, 4) and image.cells == 1
-    alpha = image.rgba[..., 3]
-    assert alpha[0:2, 2:4].min() > 0 and alpha.sum() == alpha[0:2, 2:4].sum()  # (row 0, col 1) in the first image rows: south
-    assert image.centre_m == (10.75, 20.5) and (image.width_m, image.height_m) == (1.5, 1.0)
+    heat = grid_mesh(grid, 0, floor=1e-3)
+    assert heat.cells == 2 and heat.max_value == 0.5 and len(heat.levels) == 2  # 1e-5 is below the floor; 0.5 and 0.002 lie in different bands
+    by_cells = {tuple(np.round(lv.vertices_m[:, :2].min(axis=0), 6)): lv for lv in heat.levels}
+    # (row 0, col 1): x from 10.5 to 11.0, y from 20.0 (the south edge) to 20.5; (row 1, col 2): x 11.0..11.5, y 20.5..21.0
+    high, low = by_cells[(10.5, 20.0)], by_cells[(11.0, 20.5)]
+    assert np.allclose(high.vertices_m.max(axis=0), [11.0, 20.5, 0.05]) and np.allclose(low.vertices_m.max(axis=0), [11.5, 21.0, 0.05])
+    assert high.faces.shape == (2, 3) and high.vertices_m.shape == (4, 3) and high.faces.max() == 3
+    # each band's colour is the ramp's within one band of the cell's own colour; more occupancy is more opaque
+    for lv, value in ((high, 0.5), (low, 0.002)):
+        own = heat_colours(np.array([value]), floor=1e-3)[0]
+        assert np.abs(np.array(lv.rgb) - own[:3].astype(int)).max() <= 255 / HEAT_LEVELS * 2, (lv.rgb, own)
+    assert high.opacity > low.opacity
+    empty = grid_mesh(grid, 0, floor=0.9)
+    assert empty.cells == 0 and empty.levels == ()
 
 
 def test_viewer_draws_the_newest_set_and_counts_the_skipped_ones(scenario_sets_30):
