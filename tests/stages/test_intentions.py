@@ -629,9 +629,10 @@ def test_kernel_modules_name_the_numpy_rules_they_were_compiled_against():
     import stages.lib.numpy_rules as rules
     from stages.intentions import kernels as intentions_kernels
     from stages.lib.ar import kernels as ar_kernels
+    from stages.lib.markov import kernels as markov_kernels
 
     digest = hashlib.sha256(Path(rules.__file__).read_bytes()).hexdigest()[:16]
-    for module in (intentions_kernels, ar_kernels):
+    for module in (intentions_kernels, ar_kernels, markov_kernels):
         assert module.NUMPY_RULES_SHA256 == digest, f"{module.__name__}: update NUMPY_RULES_SHA256 to {digest}"
 
 
