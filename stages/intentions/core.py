@@ -35,6 +35,7 @@ from stages.lib.maps import DEFAULT_SPEED_LIMIT_MPS, Projection, RoadMap, SceneM
 from stages.intentions import kernels, model
 from stages.intentions.model import PARTICLE_FIELDS, ModelParams, Particles
 from stages.intentions.signals import with_signals
+from stages.intentions.streams import Streams
 from stages.intentions.tables import PairTables, VehicleInput, build_tables, common_run, corridor_manoeuvre, corridors_ok, lanelet_ids_of, lanelet_shift_m, map_corridors
 
 _NS = 1e-9
@@ -184,7 +185,10 @@ class IntentionFilter:
         self._scene_id: str | None = None
         self._road_map: RoadMap | None = None
         self._manoeuvres: dict[tuple, tuple[Manoeuvre, bool]] = {}
+        self._lanelet_length: dict[int, float] = {}  # of the latched map's lanelets (NaN: not in the map), for the cache keys
+        self._streams = Streams()  # np.random.default_rng([seed, frame, track]) per vehicle, all at once
         kernels.warm_up()  # the compiled kernels loaded (or compiled) now, not on the first frame
+        self._streams(0, 0, [0])  # its compiled hash too
 
     @property
     def tracked_ids(self) -> frozenset[int]:
@@ -300,6 +304,7 @@ class IntentionFilter:
             scene_map = self.scene_maps.get(scene, self.config.projection)
             self._road_map = scene_map.road_map
             self._manoeuvres.clear()
+            self._lanelet_length.clear()
             self._vehicles.clear()
             for problem in scene_map.problems:
                 kind = "map_sha256_mismatch" if problem.startswith("map_sha256_mismatch") else "map_problem"
@@ -400,7 +405,7 @@ class IntentionFilter:
             n_sub[v] = 0
         for v, exc in sorted(reborn, key=lambda item: item[0]):
             issues.append(Issue("particles_reborn", inputs[v].track_id, f"moving its particles onto the new corridors raised {type(exc).__name__}: {exc}"))
-        rngs = [_rng(cfg.seed, int(frame_index) & _U64, int(item.track_id) & _U64) for item in inputs]
+        rngs = self._streams(cfg.seed, int(frame_index) & _U64, [int(item.track_id) & _U64 for item in inputs])
         offsets = np.array([r.random() for r in rngs])  # systematic resampling offsets
         frame_n = np.stack([r.standard_normal((4, n)) for r in rngs], axis=1)  # jitter s, jitter v, floor s, floor d
         names = ("x_m", "y_m", "heading_rad", "speed_mps", "heading_ok", "speed_ok")
@@ -627,21 +632,41 @@ class IntentionFilter:
         return out
 
     def _manoeuvres_of(self, corridors: list[Corridor], road_map: RoadMap | None) -> list[tuple[Manoeuvre, bool]]:
-        """(manoeuvre, changes lane) per corridor, cached by its lanelets, their starts relative to the vehicle (0.1 m) and
-        the lanelet the vehicle is on (the starts of all corridors rounded at once)."""
+        """(manoeuvre, changes lane) per corridor: `corridor_manoeuvre`, cached by what it depends on.
+
+        `corridor_manoeuvre` reads a corridor's lanelet ids and, per lanelet
+        of the map, only two comparisons with the vehicle's place: its start
+        lies less than `lane_change_reach_m` behind the vehicle, its end lies
+        ahead of it. The key is the ids and those two comparisons per
+        lanelet (the same float operations, all corridors at once), so the
+        cached result is exactly the function's and the key changes only
+        when the vehicle crosses one of those points. A corridor whose
+        starts and ids differ in length is looked up directly (uncached).
+        """
         if road_map is None:
             return [(Manoeuvre.UNKNOWN, False)] * len(corridors)
         if not corridors:
             return []
-        starts = [np.asarray(c.lanelet_start_s_m) for c in corridors]
-        vehicle_s = [c.vehicle_s_m for c in corridors]
-        lengths = [len(x) for x in starts]
-        relative = np.round(np.concatenate(starts) - np.repeat(vehicle_s, lengths), 1).tolist()
+        ids = [lanelet_ids_of(c) for c in corridors]
+        starts = [np.asarray(c.lanelet_start_s_m, dtype=np.float64) for c in corridors]
+        aligned = [len(i) == len(s) for i, s in zip(ids, starts)]
+        lengths = [len(i) if ok else 0 for i, ok in zip(ids, aligned)]
+        lanelet_length = self._lanelet_length
+        flat = [x for i, ok in zip(ids, aligned) if ok for x in i]
+        for x in flat:
+            if x not in lanelet_length:
+                lanelet_length[x] = road_map.lanelet(x).length_m if road_map.has_lanelet(x) else math.nan
+        start = np.concatenate([s for s, ok in zip(starts, aligned) if ok]) if any(aligned) else np.zeros(0)
+        s_v = np.repeat(np.array([float(c.vehicle_s_m) for c in corridors], dtype=np.float64), lengths)
+        behind = (start > s_v - self.config.lane_change_reach_m).tolist()
+        ahead = (start + np.array([lanelet_length[x] for x in flat], dtype=np.float64) > s_v).tolist()
         out = []
         at = 0
-        for corridor, start, s_v, n in zip(corridors, starts, vehicle_s, lengths):
-            here = int(np.searchsorted(start, s_v, side="right")) if n else 0
-            key = (tuple(lanelet_ids_of(corridor)), tuple(relative[at : at + n]), here)
+        for corridor, lanelets, ok, n in zip(corridors, ids, aligned, lengths):
+            if not ok:
+                out.append(corridor_manoeuvre(road_map, corridor, self.config.lane_change_reach_m))
+                continue
+            key = (tuple(lanelets), tuple(behind[at : at + n]), tuple(ahead[at : at + n]))
             at += n
             found = self._manoeuvres.get(key)
             if found is None:
@@ -651,7 +676,6 @@ class IntentionFilter:
                 self._manoeuvres[key] = found
             out.append(found)
         return out
-
 
 def _mapping(state: _Vehicle, corridors: tuple[Corridor, ...]) -> list[tuple[int, float]]:
     """`map_corridors` of the vehicle's last corridors onto `corridors`; IndexError when a particle's slot has no entry."""
@@ -665,25 +689,31 @@ def _mapping(state: _Vehicle, corridors: tuple[Corridor, ...]) -> list[tuple[int
 def _project(p: Particles, v: int, before: tuple[Corridor, ...], old: np.ndarray, slot: np.ndarray, lost_mask: np.ndarray,
              corridors: tuple[Corridor, ...]) -> np.ndarray:
     """Row v's particles `lost_mask` (no lanelet shared with their new corridor) projected from their map position on the
-    corridors `before` (slots `old`) onto their new corridor, or the nearest new one; returns the row's new slots."""
+    corridors `before` (slots `old`) onto their new corridor, or the nearest new one; returns the row's new slots.
+
+    Each new corridor projects only the particles that need it (those mapped to it, and those without a corridor, which
+    take the nearest): `project_to_polyline` treats every point on its own, so the values are those of projecting all.
+    """
     lost = np.flatnonzero(lost_mask)
     x, y = _frenet_to_xy(before, old[lost], p.s_m[v, lost], p.d_m[v, lost])
     xy = np.column_stack([x, y])
-    projected = [project_to_polyline(xy, np.column_stack([c.x_m, c.y_m]), c.s_m) for c in corridors]
-    s_all = np.stack([f.s_m for f in projected])
-    d_all = np.stack([f.d_m for f in projected])
-    choice = np.where(slot[lost] >= 0, slot[lost], np.argmin(np.abs(d_all), axis=0))
+    target = slot[lost]
+    nearest = target < 0
+    s_all = np.full((len(corridors), lost.size), np.nan)
+    d_all = np.full((len(corridors), lost.size), np.nan)
+    for k, c in enumerate(corridors):
+        need = np.flatnonzero((target == k) | nearest)
+        if need.size:
+            found = project_to_polyline(xy[need], np.column_stack([c.x_m, c.y_m]), c.s_m)
+            s_all[k, need] = found.s_m
+            d_all[k, need] = found.d_m
+    choice = np.where(target >= 0, target, np.argmin(np.abs(d_all), axis=0))
     cols = np.arange(lost.size)
     slot = slot.copy()
     slot[lost] = choice
     p.s_m[v, lost] = s_all[choice, cols]
     p.d_m[v, lost] = d_all[choice, cols]
     return slot
-
-
-def _rng(*entropy: int) -> np.random.Generator:
-    """``np.random.default_rng(list(entropy))`` (the same stream), built without its argument dispatch."""
-    return np.random.Generator(np.random.PCG64(np.random.SeedSequence(list(entropy))))
 
 
 def _empty(n: int) -> Particles:

@@ -476,7 +476,14 @@ class MarkovPredictor:
         if hist is None or self.config.accel_window_s <= 0:
             return None
         window = int(self.config.accel_window_s / _NS)
-        pts = [(t, v) for t, v in hist.samples if stamp_ns - window <= t <= stamp_ns]
+        pts = []
+        for t, v in reversed(hist.samples):  # stamps increase (observe): walked back from the newest to the window's start
+            if t > stamp_ns:
+                continue
+            if t < stamp_ns - window:
+                break
+            pts.append((t, v))
+        pts.reverse()
         if len(pts) < 3:
             return None
         n = len(pts)

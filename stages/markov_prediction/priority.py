@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stages.lib.markov import kernels
+
 #: Curvature below this (1/m) counts as straight: v_prof = √(a_lat / max(|κ|, this)).
 MIN_CURVATURE_1PM = 1e-4
 
@@ -147,10 +149,20 @@ def admissible_speeds(
     return admissible_speeds_batch([s_m], [curvature_1pm], [speed_limit_mps], lat_accels_mps2, brake_mps2, smoothing_m)[0]
 
 
+_AVERAGING_KERNELS: dict[int, np.ndarray] = {}
+
+
 def _moving_average(kappa: np.ndarray, half: int) -> np.ndarray:
     """The moving average over 2·half + 1 points of ``admissible_speeds`` (edges held: np.pad's "edge")."""
-    kernel = np.ones(2 * half + 1) / (2 * half + 1)
-    padded = np.concatenate((np.full(half, kappa[0]), kappa, np.full(half, kappa[-1])))
+    kernel = _AVERAGING_KERNELS.get(half)
+    if kernel is None:  # np.ones(2·half + 1) / (2·half + 1), made once per width (read only)
+        kernel = _AVERAGING_KERNELS.setdefault(half, np.ones(2 * half + 1) / (2 * half + 1))
+        kernel.flags.writeable = False
+    n = kappa.shape[0]
+    padded = np.empty(n + 2 * half)
+    padded[:half] = kappa[0]
+    padded[half : half + n] = kappa
+    padded[half + n :] = kappa[-1]
     return np.convolve(padded, kernel, mode="valid")
 
 
@@ -184,10 +196,12 @@ def admissible_speeds_batch(
 ) -> list[np.ndarray]:
     """``admissible_speeds`` of B profiles (their own lengths and speed limits): ``(J, n_b)`` each, the same numbers.
 
-    The smoothing is one ``np.convolve`` per profile; the rest is elementwise
+    The smoothing is one ``np.convolve`` per profile with some curvature (a
+    profile of zeros, the hybrid mode's without curves, stays zeros); the rest is elementwise
     (and a reverse running minimum), done for all the profiles at once on
     rows padded to the longest one (+∞ past a profile's end, which the
-    running minimum from the end never takes).
+    running minimum from the end never takes), or compiled where numba
+    imports (``kernels.admissible_rows``: the same numbers, one pass per row).
     """
     n_b = len(s_m)
     a_lat = np.asarray(lat_accels_mps2, dtype=np.float64)
@@ -207,10 +221,15 @@ def admissible_speeds_batch(
         kappa_all[inside] = np.concatenate(k_list)
     kappa_all = np.abs(kappa_all)
     kappa_all = np.where(np.isfinite(kappa_all), kappa_all, 0.0)  # |κ|, non-finite as 0
-    for b, half in enumerate(_smoothing_halves(s_all, np.asarray(sizes), smoothing_m)):
-        if half > 0:
-            kappa_all[b, : sizes[b]] = _moving_average(kappa_all[b, : sizes[b]], half)
+    curved = kappa_all.any(axis=1)  # a row of zeros averages to zeros (+0.0 sums): no smoothing to do
+    if curved.any():
+        for b, half in enumerate(_smoothing_halves(s_all, np.asarray(sizes), smoothing_m)):
+            if half > 0 and curved[b]:
+                kappa_all[b, : sizes[b]] = _moving_average(kappa_all[b, : sizes[b]], half)
     limits = np.asarray(speed_limits_mps, dtype=np.float64).reshape(n_b, 1, 1)
+    if kernels.available():  # the same numbers, compiled: one pass per row and lateral acceleration
+        adm = kernels.admissible_rows(s_all, kappa_all, sizes, limits, a_lat, 2.0 * brake_mps2, MIN_CURVATURE_1PM)
+        return [adm[b, :, : sizes[b]] for b in range(n_b)]
     v_prof = np.minimum(limits, np.sqrt(a_lat[None, :, None] / np.maximum(kappa_all[:, None, :], MIN_CURVATURE_1PM)))
     brake_s = 2.0 * brake_mps2 * s_all[:, None, :]
     key = v_prof**2 + brake_s

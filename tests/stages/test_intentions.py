@@ -629,9 +629,10 @@ def test_kernel_modules_name_the_numpy_rules_they_were_compiled_against():
     import stages.lib.numpy_rules as rules
     from stages.intentions import kernels as intentions_kernels
     from stages.lib.ar import kernels as ar_kernels
+    from stages.lib.markov import kernels as markov_kernels
 
     digest = hashlib.sha256(Path(rules.__file__).read_bytes()).hexdigest()[:16]
-    for module in (intentions_kernels, ar_kernels):
+    for module in (intentions_kernels, ar_kernels, markov_kernels):
         assert module.NUMPY_RULES_SHA256 == digest, f"{module.__name__}: update NUMPY_RULES_SHA256 to {digest}"
 
 
@@ -671,3 +672,53 @@ def test_compiled_expected_stop_equals_the_numpy_one(frames):
             assert np.array_equal(got, want) and np.array_equal(np.signbit(got), np.signbit(want))
             conflicts += int(np.count_nonzero(want))
     assert conflicts > 1000
+
+
+def test_cached_manoeuvres_equal_the_map_lookup_also_at_the_thresholds(frames, scene_maps):
+    """`_manoeuvres_of` (cached) gives `corridor_manoeuvre`'s answer for every corridor of the sequence and for corridors
+    whose vehicle sits one float step either side of each lanelet's lane-change reach and end; the cache mostly hits."""
+    from stages.intentions.tables import corridor_manoeuvre, lanelet_ids_of
+
+    config = IntentionsConfig()
+    intentions = IntentionFilter(config, scene_maps=scene_maps)
+    road_map = scene_maps.get(frames[0].scene, config.projection).road_map
+    reach = config.lane_change_reach_m
+    looked_up = 0
+    for item in frames[::5]:
+        corridors = [c for v in item.corridor_set.vehicles for c in v.corridors]
+        moved = []
+        for c in corridors[:3]:
+            for start, lanelet in zip(np.asarray(c.lanelet_start_s_m, dtype=np.float64).tolist(), lanelet_ids_of(c)):
+                if not road_map.has_lanelet(lanelet):
+                    continue
+                for edge in (start + reach, start + road_map.lanelet(lanelet).length_m):
+                    moved += [dataclasses.replace(c, vehicle_s_m=float(np.nextafter(edge, toward))) for toward in (-np.inf, np.inf)]
+                    moved.append(dataclasses.replace(c, vehicle_s_m=edge))
+        corridors += moved
+        expected = [corridor_manoeuvre(road_map, c, reach) for c in corridors]
+        assert intentions._manoeuvres_of(corridors, road_map) == expected
+        assert intentions._manoeuvres_of(corridors, road_map) == expected  # from the cache
+        looked_up += len(corridors)
+    assert looked_up > 1000
+    assert len(intentions._manoeuvres) < looked_up // 4
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_streams_are_default_rngs_of_seed_frame_and_track(compiled, monkeypatch):
+    """`Streams` gives every track the stream of ``np.random.default_rng([seed, frame, track])``, number for number, for
+    edge entropies (0, 2**32 - 1, 2**32: one or two 32-bit words, 2**64 - 1, more than four words in all) and when its
+    generators are reused for another frame; the Python loop (no numba) gives the same."""
+    from stages.intentions import streams
+
+    if not compiled:
+        monkeypatch.setattr(streams, "_hash_rows_compiled", streams._hash_rows)
+    make = streams.Streams()
+    cases = [(0, 0, [0, 1, 2**32 - 1, 2**32, 2**64 - 1]), (3, 2**40 + 7, [12345, 7]), (2**70, 2**33, [5]), (0, 0, [])]
+    for seed, frame, tracks in cases:
+        generators = make(seed, frame, tracks)
+        assert len(generators) == len(tracks)
+        for generator, track in zip(generators, tracks):
+            reference = np.random.default_rng([seed, frame, track])
+            assert generator.random() == reference.random()
+            assert np.array_equal(generator.standard_normal((4, 30)), reference.standard_normal((4, 30)))
+            assert np.array_equal(generator.random((2, 3, 30)), reference.random((2, 3, 30)))

@@ -182,3 +182,37 @@ def test_admissible_speeds_of_many_profiles_equal_one_at_a_time():
         assert got[b].shape == (4, s_list[b].size)
         np.testing.assert_array_equal(got[b], want)
     assert pr.admissible_speeds_batch([], [], [], lat, 2.5, 3.0) == []
+
+
+def test_compiled_admissible_speeds_equal_the_numpy_code(monkeypatch):
+    """priority.admissible_speeds_batch through kernels.admissible_rows (compiled) gives the numpy code's numbers bit
+    for bit: padded rows, a one-point profile, zero and non-finite curvature, NaN and infinite speed limits, a negative
+    lateral acceleration (NaN speeds), a zero brake, s of both signs."""
+    from stages.lib.markov import kernels
+    from stages.markov_prediction import priority as pr
+
+    if not kernels.available():
+        import pytest
+
+        pytest.skip("numba does not import")
+    rng = np.random.default_rng(23)
+    s_list, k_list, limits = [], [], []
+    for b in range(14):
+        n = 1 if b == 3 else int(rng.integers(2, 120))
+        s = np.cumsum(rng.uniform(0.1, 1.5, n)) - rng.uniform(0, 40)
+        kappa = np.zeros(n) if b == 5 else rng.normal(0, 0.08, n)
+        if b % 4 == 0 and n > 4:
+            kappa[2], kappa[-1] = np.nan, np.inf
+        s_list.append(s)
+        k_list.append(kappa)
+        limits.append(np.nan if b == 7 else np.inf if b == 8 else float(rng.uniform(5, 20)))
+    for lat, brake in ((np.array([3.0, 2.5, 2.0, 1.5]), 2.5), (np.array([2.0, -1.0, 0.0]), 0.0)):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            got = pr.admissible_speeds_batch(s_list, k_list, limits, lat, brake, 3.0)
+            monkeypatch.setattr(kernels, "available", lambda: False)
+            want = pr.admissible_speeds_batch(s_list, k_list, limits, lat, brake, 3.0)
+            monkeypatch.undo()
+        for g, w in zip(got, want):
+            np.testing.assert_array_equal(g, w)
+            assert g.shape == w.shape and np.array_equal(np.signbit(g), np.signbit(w))
+    assert any(np.isnan(w).any() for w in want) and any(np.isfinite(w[0]).all() and w.size > 3 for w in want)  # the cases reach both

@@ -99,6 +99,32 @@ def test_compiled_speed_restriction_equals_the_numpy_definition():
 
 
 @pytest.mark.skipif(not kernels.available(), reason="numba does not import")
+def test_speed_restriction_knot_buckets_equal_the_numpy_loop():
+    """SpeedRestriction's compiled knot buckets (kernels._knot_buckets) are the numpy loop's: per pair of n > 1 knots
+    over a span > 0, h = span / n, inv_h at its first knot 1 / h, bucket max(searchsorted(s, s_0 + h·k, "right") − 1, 0);
+    zeros for a pair of one knot or of one repeated knot; repeated and irregular knots, knots on the query points."""
+    rng = np.random.default_rng(11)
+    profiles = [np.array([4.0]), np.array([2.0, 2.0, 2.0]), np.arange(0.0, 10.0, 0.5), np.array([0.0, 0.0, 1.0, 1.0, 1.0, 7.5])]
+    profiles += [np.cumsum(rng.uniform(0.0, 2.0, n) * (rng.random(n) < 0.7)) - rng.uniform(0, 50) for n in (2, 3, 40, 333)]
+    grid = MarkovGridConfig()
+    lazy = kernels.SpeedRestriction(profiles, [np.ones((1, s.size)) for s in profiles], np.zeros((len(profiles), 4)),
+                                    grid.v_centres_mps(), grid.input_centres_mps2(), np.ones(1), 0.4)
+    xp, _, start, bucket, inv_h = lazy._args[:5]
+    want_bucket, want_inv = np.zeros_like(bucket), np.zeros_like(inv_h)
+    for b in range(len(profiles)):
+        lo, hi = start[b], start[b + 1]
+        s = xp[lo:hi]
+        span = s[-1] - s[0]
+        if hi - lo > 1 and span > 0:
+            h = span / (hi - lo)
+            want_inv[lo] = 1.0 / h
+            want_bucket[lo:hi] = np.maximum(np.searchsorted(s, s[0] + h * np.arange(hi - lo), side="right") - 1, 0)
+    np.testing.assert_array_equal(bucket, want_bucket)
+    np.testing.assert_array_equal(inv_h, want_inv)
+    assert want_bucket.max() > 0 and np.count_nonzero(want_inv) == 6  # the cases bucket something
+
+
+@pytest.mark.skipif(not kernels.available(), reason="numba does not import")
 @pytest.mark.parametrize("n_pairs", [1, 2, 7, 19])  # 19: several blocks of 8, the last one partly empty
 def test_one_call_speed_priority_run_equals_the_step_by_step_run(n_pairs, monkeypatch):
     """PriorityPropagator's one-call path (kernels.speed_priority_run: the hybrid mode's chain in blocks of pairs, each

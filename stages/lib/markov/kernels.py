@@ -59,6 +59,13 @@ except Exception as exc:  # noqa: BLE001 - any import failure leaves the scipy p
     numba = None
     _NUMBA_ERROR = f"{type(exc).__name__}: {exc}"
 
+from stages.lib.numpy_rules import maximum as _max
+from stages.lib.numpy_rules import minimum as _min
+
+NUMPY_RULES_SHA256 = "5c754381d8698fbd"
+"""The first 16 hex digits of stages/lib/numpy_rules.py's sha256 the kernels here were written against: numba's cache
+does not notice edits there, a test (tests/stages/test_intentions.py) compares it."""
+
 
 def available() -> bool:
     """True when the compiled kernels can be used."""
@@ -383,6 +390,47 @@ if numba is not None:
                         if a < count[jj]:
                             acc += w32[jj]
                     values[b, l, vi, a] = acc
+
+    @numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
+    def _admissible_rows(s_all, kappa_all, sizes, limits, a_lat, two_b, min_curvature, out):  # pragma: no cover - compiled
+        """``priority.admissible_speeds_batch`` after the smoothing, the numpy code's numbers, into out (B, J, n_max) (the
+        columns past a row's size left as they are): v = min(limit, √(a_lat / max(κ, min_curvature))), the reverse
+        running minimum of v² + 2b·s from the row's end, then √max(run − 2b·s, 0) (numpy's NaN and tie rules)."""
+        for b in range(s_all.shape[0]):
+            for j in range(a_lat.shape[0]):
+                run = np.inf
+                for c in range(sizes[b] - 1, -1, -1):
+                    v = _min(limits[b], np.sqrt(a_lat[j] / _max(kappa_all[b, c], min_curvature)))
+                    brake_s = two_b * s_all[b, c]
+                    run = _min(run, v * v + brake_s)
+                    out[b, j, c] = np.sqrt(_max(run - brake_s, 0.0))
+
+    @numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
+    def _knot_buckets(xp, start, bucket, inv_h):  # pragma: no cover - compiled
+        """``SpeedRestriction``'s per-pair knot buckets, the numpy loop's numbers: for a pair of n > 1 knots over a span
+        > 0, h = span / n, inv_h[first knot] = 1 / h and bucket[k] = max(searchsorted(s, s_0 + h·k, "right") − 1, 0)
+        (a binary search of the pair's sorted, finite knots with numpy's comparison)."""
+        for b in range(start.shape[0] - 1):
+            lo, hi = start[b], start[b + 1]
+            n = hi - lo
+            if n <= 1:
+                continue
+            span = xp[hi - 1] - xp[lo]
+            if not span > 0:
+                continue
+            h = span / n
+            inv_h[lo] = 1.0 / h
+            for k in range(n):
+                q = xp[lo] + h * np.float64(k)
+                left, right = lo, hi  # the first knot > q (side="right")
+                while left < right:
+                    mid = (left + right) >> 1
+                    if xp[mid] <= q:
+                        left = mid + 1
+                    else:
+                        right = mid
+                i = left - lo - 1
+                bucket[lo + k] = i if i > 0 else 0
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
     def _priority_from_states(values, preference, b_idx, v_idx, s_idx, forbid_threshold):  # pragma: no cover - compiled
@@ -981,6 +1029,18 @@ def priority_at_states(restriction, preference, b_idx, v_idx, s_idx, forbid_thre
                                np.float32(forbid_threshold))
 
 
+def admissible_rows(s_all, kappa_all, sizes, limits, a_lat, two_b: float, min_curvature: float) -> np.ndarray:
+    """(B, J, n_max) float64 admissible speeds of ``priority.admissible_speeds_batch`` from its padded rows of arc
+    lengths and smoothed |κ| (B, n_max), the rows' ``sizes``, speed ``limits`` (B,) and lateral accelerations (J,), the
+    numpy code's numbers (its columns past a row's size are not meant to be read); compiled, one pass per row."""
+    s_all = np.ascontiguousarray(s_all, dtype=np.float64)
+    out = np.zeros((s_all.shape[0], np.shape(a_lat)[0], s_all.shape[1]))
+    _admissible_rows(s_all, np.ascontiguousarray(kappa_all, dtype=np.float64), np.asarray(sizes, dtype=np.int64),
+                     np.ascontiguousarray(limits, dtype=np.float64).reshape(-1), np.ascontiguousarray(a_lat, dtype=np.float64),
+                     float(two_b), float(min_curvature), out)
+    return out
+
+
 class SpeedRestriction:
     """λ_speed of B pairs, the numbers of ``stages.markov_prediction.priority.speed_restriction`` per pair
     (Σ_j w_j · 1[a_α ≤ (v_adm,j(s + vτ) − v)/τ], float32 sums in the order of j, v_adm interpolated as ``np.interp``
@@ -1009,14 +1069,7 @@ class SpeedRestriction:
         # per pair: buckets of the knots' mean spacing h over [s_0, s_n) and the last knot at or before each bucket's start
         bucket = np.zeros(xp.shape[0], np.int64)
         inv_h = np.zeros(xp.shape[0], np.float64)
-        for b in range(n_b):
-            lo, hi = start[b], start[b + 1]
-            s = xp[lo:hi]
-            span = s[-1] - s[0]
-            if hi - lo > 1 and span > 0:
-                h = span / (hi - lo)
-                inv_h[lo] = 1.0 / h
-                bucket[lo:hi] = np.maximum(np.searchsorted(s, s[0] + h * np.arange(hi - lo), side="right") - 1, 0)
+        _knot_buckets(xp, start, bucket, inv_h)  # (h = span / n, the last knot at or before s_0 + h·k, as np.searchsorted finds it)
         cell_s = np.ascontiguousarray(cell_s_m, dtype=np.float64).reshape(n_b, -1)
         v_c = np.asarray(v_centres_mps, dtype=np.float64)
         self._args = (xp, np.ascontiguousarray(fp), start, bucket, inv_h, cell_s, v_c, a_c,
@@ -1113,4 +1166,5 @@ def warm_up() -> None:
     speed_priority_run((half, half, half), np.zeros(1, np.float32), (ptr, one, one, w, ptr, one, w), 2, True, 1e-7, np.eye(2),
                        lazy, np.ones((2, 1, 2), np.float32), [True, False], 0.0)
     sum_by_key(np.array([3, 1, 3], np.int64), np.ones(3))
+    admissible_rows(np.zeros((1, 2)), np.zeros((1, 2)), [2], np.ones(1), np.ones(1), 1.0, 1e-4)
     _warm = True
