@@ -216,13 +216,17 @@ def snapshot(browser: Chromium) -> tuple[bytes, dict[str, Any]]:
     return png, measure(decode_png(png), tuple(canvas))
 
 
-def looks_complete(m: dict[str, Any]) -> bool:
+def looks_drawn(m: dict[str, Any]) -> bool:
     """Laid out (the side panel docked: the canvas narrower than the window) and the map, vehicles and heat drawn."""
     docked = m["canvas"] is not None and m["canvas"][2] < WINDOW[0]
-    drawn = docked and m["map"] >= 0.05 * m["canvas_px"] and m["vehicles"] >= 20 and m["heat"] >= 20
+    return docked and m["map"] >= 0.05 * m["canvas_px"] and m["vehicles"] >= 20 and m["heat"] >= 20
+
+
+def looks_complete(m: dict[str, Any]) -> bool:
+    """Drawn, and the heat next to the vehicles (a grid step of 1.2 s, the viewer's default)."""
     # a screenshot taken between two draws (e.g. as the looping source wraps) can show the new
     # frame's vehicles over the previous frame's grid: wait for one drawn from a single frame
-    return drawn and m["heat_near_vehicles"] >= 0.8
+    return looks_drawn(m) and m["heat_near_vehicles"] >= 0.8
 
 
 def inside(box: tuple[int, int, int, int] | None, outer: tuple[int, int, int, int] | None, slack: int = 0) -> bool:
@@ -561,11 +565,12 @@ def make_figures(out_dir: Path, frame: int = 840, steps_s: tuple[float, ...] = (
                 last: list[bytes] = []
 
                 def settled() -> bytes | None:
-                    # complete, and the same picture twice in a row: the client has applied the new step
+                    # drawn, and the same picture twice in a row: the client has applied the new step (at 4 s the
+                    # heat lies further from the vehicles than looks_complete's 120 px: the frame is paused, one frame's)
                     png, m = snapshot(browser)
                     same = bool(last) and last[-1] == png
                     last.append(png)
-                    return png if same and looks_complete(m) else None
+                    return png if same and looks_drawn(m) else None
 
                 png = wait_until(settled, 60, "the scene in the browser", interval_s=1.0)
                 out_dir.mkdir(parents=True, exist_ok=True)
