@@ -12,6 +12,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import math
+import operator
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
@@ -969,6 +970,8 @@ class MarkovPredictor:
 _CHAIN_SCALARS = ("s0_m", "v0_mps", "a0_mps2", "sigma_a0_mps2", "s_first_m", "speed_limit_mps", "d0_m", "length_m", "width_m",
                   "half_width_s_m", "half_width_v_mps", "start_rate_hz", "probability")
 _CHAIN_ARRAYS = ("s_m", "x_m", "y_m", "heading_rad", "curvature_1pm", "input_probs")
+_chain_scalars = operator.attrgetter(*_CHAIN_SCALARS)  # a pair's scalars (a tuple), as getattr of each gives them
+_chain_arrays = operator.attrgetter(*_CHAIN_ARRAYS)
 
 
 def standstill_group(relation: CorridorRelations | None, config: MarkovPredictionConfig) -> int:
@@ -1003,10 +1006,10 @@ def _non_finite(p: Pair) -> list[str]:
 def _all_finite(pairs: list[Pair]) -> bool:
     """Whether every number the chain reads of every pair is finite (``_non_finite`` of each is []), checked at once."""
     try:
-        scalars = np.array([[getattr(p, name) for name in _CHAIN_SCALARS] for p in pairs], dtype=np.float64)
+        scalars = np.array([_chain_scalars(p) for p in pairs], dtype=np.float64)
         if not np.isfinite(scalars).all():
             return False
-        arrays = np.concatenate([np.ravel(a) for p in pairs for a in (getattr(p, name) for name in _CHAIN_ARRAYS) if a is not None])
+        arrays = np.concatenate([a for p in pairs for a in _chain_arrays(p) if a is not None], axis=None)  # each flattened
         return bool(np.isfinite(arrays).all())
     except (TypeError, ValueError, OverflowError):  # numbers numpy cannot check together: each pair on its own
         return False
