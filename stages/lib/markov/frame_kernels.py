@@ -13,6 +13,8 @@
   cell's sum in vehicle order from 0.0, as np.bincount adds them, step by
   step through a table of the grid's cells (in cache) instead of one over
   every key.
+- ``add_running_sums``: ``rasterise.unwrap_each``'s running sums of the corrections, every corridor's in one
+  pass (np.cumsum's order).
 
 numba is a dependency; ``available()`` is False only where it cannot be
 imported, and ``rasterise`` then uses its numpy definitions (the reference
