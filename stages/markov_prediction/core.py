@@ -12,6 +12,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import math
+import operator
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
@@ -38,7 +39,7 @@ from stages.lib.caps import cap_pairs
 from stages.lib.datasets import DEFAULT_SIZES_M
 from stages.lib.grid_fusion import parse_shard, shard_of
 from stages.lib.markov import MarkovGridConfig, SeparableState, initial_state, load_or_build_stencils, psi_matrix
-from stages.lib.markov import frame_kernels
+from stages.lib.markov import frame_kernels, kernels
 from stages.lib.markov.grid import uniform_input_edges
 from stages.lib.markov.propagate import boxes_outside_grid
 
@@ -260,6 +261,8 @@ class MarkovPredictor:
         self._lateral = lateral_kernel(config.grid_lateral_sigma_m, config.grid_cell_m)
         frame_kernels.warm_up()  # the output kernels compiled (or loaded from numba's cache) now, not on the first frame
         self._history: dict[int, _SpeedHistory] = {}
+        # _speed_line's fits of this frame's vehicles, made together (_fit_speed_lines); emptied when a speed comes in
+        self._lines: dict[tuple[int, int], tuple | None] = {}
         self.stencils = None
         self.propagator: PriorityPropagator | None = None
         model_cls = MODELS[config.mode]
@@ -374,10 +377,12 @@ class MarkovPredictor:
     def reset(self) -> None:
         """Forget every track's history (a new sequence starts; the offline tables are kept)."""
         self._history.clear()
+        self._lines.clear()
 
     def observe(self, corridor_set: CorridorSet) -> None:
         """Record each vehicle's speed at this stamp (for its measured acceleration); forget stale tracks."""
         stamp = int(corridor_set.header.stamp_ns)
+        self._lines.clear()
         for vehicle in corridor_set.vehicles:
             if not math.isfinite(vehicle.speed_mps):
                 continue
@@ -471,19 +476,12 @@ class MarkovPredictor:
     def _speed_line(self, track_id: int, stamp_ns: int) -> tuple[int, float, float, float, float] | None:
         """The least-squares line through the vehicle's measured speeds over the last ``accel_window_s``:
         (samples n, their time span s, slope m/s², residual sum of squares, Σ(t − t̄)²); None with fewer than 3
-        samples or ``accel_window_s`` 0. Shared by ``_acceleration`` and ``speed_noise``."""
-        hist = self._history.get(track_id)
-        if hist is None or self.config.accel_window_s <= 0:
-            return None
-        window = int(self.config.accel_window_s / _NS)
-        pts = []
-        for t, v in reversed(hist.samples):  # stamps increase (observe): walked back from the newest to the window's start
-            if t > stamp_ns:
-                continue
-            if t < stamp_ns - window:
-                break
-            pts.append((t, v))
-        pts.reverse()
+        samples or ``accel_window_s`` 0. Shared by ``_acceleration`` and ``speed_noise``; the frame's vehicles' lines
+        are made together first (``_fit_speed_lines``: the same numbers)."""
+        key = (track_id, stamp_ns)
+        if key in self._lines:
+            return self._lines[key]
+        pts = self._window_samples(track_id, stamp_ns)
         if len(pts) < 3:
             return None
         n = len(pts)
@@ -495,6 +493,52 @@ class MarkovPredictor:
         slope = float((t * (v - v_mean)).sum() / sxx)
         residual = v - v_mean - slope * t
         return n, (pts[-1][0] - pts[0][0]) * _NS, slope, float((residual**2).sum()), sxx
+
+    def _window_samples(self, track_id: int, stamp_ns: int) -> list[tuple[int, float]]:
+        """The vehicle's (stamp, speed) samples over the last ``accel_window_s`` up to ``stamp_ns``, oldest first (none
+        without a history or with ``accel_window_s`` 0)."""
+        hist = self._history.get(track_id)
+        if hist is None or self.config.accel_window_s <= 0:
+            return []
+        window = int(self.config.accel_window_s / _NS)
+        pts = []
+        for t, v in reversed(hist.samples):  # stamps increase (observe): walked back from the newest to the window's start
+            if t > stamp_ns:
+                continue
+            if t < stamp_ns - window:
+                break
+            pts.append((t, v))
+        pts.reverse()
+        return pts
+
+    def _fit_speed_lines(self, track_ids: list[int], stamp_ns: int) -> None:
+        """``_speed_line`` of every vehicle ``track_ids`` at ``stamp_ns``, kept for this frame: one compiled call over all
+        of them (``kernels.speed_lines``: the numpy code's numbers); nothing kept where it cannot take them."""
+        found: dict[tuple[int, int], tuple | None] = {}
+        stamps: list[int] = []
+        speeds: list[float] = []
+        ptr = [0]
+        fitted: list[tuple[int, int]] = []
+        for track_id in track_ids:
+            pts = self._window_samples(track_id, stamp_ns)
+            if len(pts) < 3:
+                found[(track_id, stamp_ns)] = None
+                continue
+            stamps.extend(p[0] for p in pts)
+            speeds.extend(p[1] for p in pts)
+            ptr.append(len(stamps))
+            fitted.append((track_id, stamp_ns))
+        if fitted:
+            try:
+                lines = kernels.speed_lines(np.array(stamps, dtype=np.int64), np.array(speeds, dtype=np.float64), np.array(ptr, np.int64), _NS)
+            except (OverflowError, TypeError, ValueError):  # stamps or speeds numpy cannot take so: each line on its own
+                lines = None
+            if lines is None:
+                return
+            counts = np.diff(ptr).tolist()
+            for key, n, (span, slope, rss, sxx) in zip(fitted, counts, lines.tolist()):
+                found[key] = (n, span, slope, rss, sxx)
+        self._lines.update(found)
 
     def _beliefs(self, belief: IntentionBelief | None, stamp: int, issues: list[Issue]) -> dict[int, dict[int, Any]] | None:
         """Per track, its CorridorBeliefs by corridor id; None when the config does not use them or none fit."""
@@ -542,6 +586,7 @@ class MarkovPredictor:
             rows = {int(t): i for i, t in enumerate(frame.track_ids)}
         pairs: list[Pair] = []
         clean = _clean_centrelines(corridor_set.vehicles)
+        self._fit_speed_lines([v.track_id for v in corridor_set.vehicles], stamp)  # every vehicle's speed line at once
         for vehicle in corridor_set.vehicles:
             if vehicle.status != MatchStatus.MATCHED or not vehicle.corridors:
                 continue
@@ -925,6 +970,8 @@ class MarkovPredictor:
 _CHAIN_SCALARS = ("s0_m", "v0_mps", "a0_mps2", "sigma_a0_mps2", "s_first_m", "speed_limit_mps", "d0_m", "length_m", "width_m",
                   "half_width_s_m", "half_width_v_mps", "start_rate_hz", "probability")
 _CHAIN_ARRAYS = ("s_m", "x_m", "y_m", "heading_rad", "curvature_1pm", "input_probs")
+_chain_scalars = operator.attrgetter(*_CHAIN_SCALARS)  # a pair's scalars (a tuple), as getattr of each gives them
+_chain_arrays = operator.attrgetter(*_CHAIN_ARRAYS)
 
 
 def standstill_group(relation: CorridorRelations | None, config: MarkovPredictionConfig) -> int:
@@ -959,10 +1006,10 @@ def _non_finite(p: Pair) -> list[str]:
 def _all_finite(pairs: list[Pair]) -> bool:
     """Whether every number the chain reads of every pair is finite (``_non_finite`` of each is []), checked at once."""
     try:
-        scalars = np.array([[getattr(p, name) for name in _CHAIN_SCALARS] for p in pairs], dtype=np.float64)
+        scalars = np.array([_chain_scalars(p) for p in pairs], dtype=np.float64)
         if not np.isfinite(scalars).all():
             return False
-        arrays = np.concatenate([np.ravel(a) for p in pairs for a in (getattr(p, name) for name in _CHAIN_ARRAYS) if a is not None])
+        arrays = np.concatenate([a for p in pairs for a in _chain_arrays(p) if a is not None], axis=None)  # each flattened
         return bool(np.isfinite(arrays).all())
     except (TypeError, ValueError, OverflowError):  # numbers numpy cannot check together: each pair on its own
         return False

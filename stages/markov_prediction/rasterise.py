@@ -142,9 +142,11 @@ def unwrap_each(angles: list[np.ndarray]) -> np.ndarray:
     correct = ddmod - dd
     np.copyto(correct, 0, where=abs(dd) < high)
     out = p.copy()
+    ends = np.cumsum([a.shape[0] for a in arrays])
+    if frame_kernels.add_running_sums(p, correct, ends, out):  # the loop below, compiled
+        return out
     start = 0
-    for a in arrays:  # array [start, end): its corrections are correct[start:end - 1]
-        end = start + a.shape[0]
+    for end in ends.tolist():  # array [start, end): its corrections are correct[start:end - 1]
         if end - start > 1:
             out[start + 1:end] = p[start + 1:end] + correct[start:end - 1].cumsum()
         start = end

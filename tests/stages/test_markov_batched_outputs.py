@@ -216,3 +216,25 @@ def test_compiled_admissible_speeds_equal_the_numpy_code(monkeypatch):
             np.testing.assert_array_equal(g, w)
             assert g.shape == w.shape and np.array_equal(np.signbit(g), np.signbit(w))
     assert any(np.isnan(w).any() for w in want) and any(np.isfinite(w[0]).all() and w.size > 3 for w in want)  # the cases reach both
+
+
+def test_unwrap_each_equals_np_unwrap_of_each_array(monkeypatch):
+    """rasterise.unwrap_each (np.unwrap's steps on all the arrays at once, the running sums compiled:
+    frame_kernels.add_running_sums) gives np.unwrap of each array bit for bit, with the compiled step and without it:
+    arrays of 0, 1, 2 and many points, jumps past ±π (and of exactly ±π), -0.0, NaN and inf."""
+    from stages.lib.markov import frame_kernels
+    from stages.markov_prediction.rasterise import unwrap_each
+
+    rng = np.random.default_rng(31)
+    arrays = [np.zeros(0), np.array([2.5]), np.array([3.0, -3.0]), np.array([-0.0, 0.0, np.pi, 0.0, -np.pi, 0.0])]
+    for n in (3, 7, 8, 9, 50, 400):
+        a = np.cumsum(rng.normal(0.0, 1.2, n))
+        arrays.append(np.mod(a + np.pi, 2 * np.pi) - np.pi)  # wrapped: many jumps
+    arrays[-2][5], arrays[-3][4] = np.nan, np.inf
+    with np.errstate(invalid="ignore"):
+        want = np.concatenate([np.unwrap(a) for a in arrays])
+        got = unwrap_each(arrays)
+        assert got.tobytes() == want.tobytes()
+        if frame_kernels.available():
+            monkeypatch.setattr(frame_kernels, "add_running_sums", lambda *args: False)  # the numpy loop
+            assert unwrap_each(arrays).tobytes() == want.tobytes()

@@ -10,6 +10,7 @@ import pytest
 import bus_schemas as bs
 from stages.lib.markov import InputPerState, MarkovGridConfig, MarkovPropagator, build_stencils, gamma_from_priority, initial_state, psi_matrix
 from stages.markov_prediction import CV_LINE_ID, MarkovPredictionConfig, MarkovPredictor
+from stages.markov_prediction import core
 from stages.markov_prediction import priority as pr
 from stages.markov_prediction.chain import InputPriority, PriorityPropagator
 
@@ -549,6 +550,40 @@ def _accelerating_history(predictor, speed0: float, accel: float, jitter: float,
         v = speed0 + accel * 0.1 * i + (jitter if i % 2 else -jitter)
         predictor.observe(_corridor_set(_vehicle(1, v, [_corridor(7)]), stamp=stamp))
     return stamp
+
+
+def test_speed_lines_made_together_equal_the_numpy_code_vehicle_by_vehicle(stencils):
+    """_fit_speed_lines (kernels.speed_lines: every vehicle's least-squares speed line in one compiled call) gives
+    _speed_line's numpy numbers bit for bit: 0 to 64 samples in the window (below 3: None), irregular stamps (some
+    outside the window, one after the frame's stamp), speeds that jitter or are constant, huge and tiny."""
+    from stages.lib.markov import kernels
+
+    if not kernels.available():
+        pytest.skip("numba does not import")
+    predictor = MarkovPredictor(MarkovPredictionConfig(**PLAIN, accel_window_s=6.4), stencils=stencils)
+    rng = np.random.default_rng(5)
+    stamp = 1_650_000_000_123_456_789  # an epoch stamp in ns: its float64 rounds
+    sizes = [0, 1, 2, 3, 5, 7, 8, 9, 15, 16, 17, 31, 40, 64, 64] + rng.integers(8, 65, 40).tolist()
+    for track, n in enumerate(sizes):
+        gaps = rng.integers(20_000_000, 150_000_000, n)
+        stamps = stamp + 300_000_000 - np.cumsum(gaps)[::-1]  # the newest may lie after the stamp
+        scale = 1e6 if track == 9 else 1e-6 if track == 10 else 1.0
+        for t in stamps.tolist():
+            v = 5.0 if track == 11 else scale * float(rng.normal(8.0, 3.0))
+            predictor._history.setdefault(track, core._SpeedHistory()).samples.append((int(t), v))
+    tracks = list(range(len(sizes))) + [-1]  # (-1: no history)
+    want = {t: predictor._speed_line(t, stamp) for t in tracks}
+    predictor._fit_speed_lines(tracks, stamp)
+    assert set(predictor._lines) == {(t, stamp) for t in tracks}
+    assert sum(w is not None for w in want.values()) >= 40
+    for t in tracks:
+        got, expect = predictor._lines[(t, stamp)], want[t]
+        assert (got is None) == (expect is None), t
+        if expect is not None:
+            assert got[0] == expect[0] and np.array(got[1:]).tobytes() == np.array(expect[1:]).tobytes(), (t, got, expect)
+        assert predictor._speed_line(t, stamp) == expect
+    predictor.observe(_corridor_set(_vehicle(1, 9.0, [_corridor(7)]), stamp=stamp + 1))  # a new speed: the kept lines go
+    assert not predictor._lines
 
 
 def test_hybrid_initial_input_blend_follows_a_clean_measurement_and_ignores_a_noisy_one(stencils):

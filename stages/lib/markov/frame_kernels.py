@@ -13,6 +13,8 @@
   cell's sum in vehicle order from 0.0, as np.bincount adds them, step by
   step through a table of the grid's cells (in cache) instead of one over
   every key.
+- ``add_running_sums``: ``rasterise.unwrap_each``'s running sums of the corrections, every corridor's in one
+  pass (np.cumsum's order).
 
 numba is a dependency; ``available()`` is False only where it cannot be
 imported, and ``rasterise`` then uses its numpy definitions (the reference
@@ -176,6 +178,22 @@ if numba is not None:
         return keys_out[:at], sums_out[:at], out_ptr
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _add_running_sums(p, correct, ends, out):  # pragma: no cover - compiled
+        """Per run [ends[n - 1], ends[n]) of ``p`` (ends[-1] taken as 0): out[start + 1 + j] = p[start + 1 + j] +
+        correct[start : start + 1 + j].cumsum()[-1], the running sum taken as np.cumsum takes it (from its first term,
+        each next one added in order); out[start] is left as it is."""
+        start = 0
+        for n in range(ends.shape[0]):
+            end = ends[n]
+            if end - start > 1:
+                r = correct[start]
+                out[start + 1] = p[start + 1] + r
+                for i in range(start + 2, end):
+                    r = r + correct[i - 1]
+                    out[i] = p[i] + r
+            start = end
+
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
     def _footprint_bounds(x_c, y_c, nx, ny, offsets, cell_rows, used):  # pragma: no cover - compiled
         """(x min, x max, y min, y max, samples seen, a NaN seen) over the samples of the cells ``used[b, i]`` (a cell
         without a row in ``cell_rows`` counts as NaN)."""
@@ -312,6 +330,16 @@ def footprint_grids(x_c, y_c, nx, ny, offsets, sample_weights, cell_rows, probs,
     return np.concatenate([f[0] for f in found]), np.concatenate([f[1] for f in found]), np.concatenate(ptrs)
 
 
+def add_running_sums(p: np.ndarray, correct: np.ndarray, ends: np.ndarray, out: np.ndarray) -> bool:
+    """``rasterise.unwrap_each``'s last step, compiled: for each run [start, end) of ``p`` (``ends`` its ends, in
+    order), out[start + 1:end] = p[start + 1:end] + correct[start:end - 1].cumsum() (the same numbers); False (nothing
+    done) where numba is missing or the arrays are not float64."""
+    if numba is None or p.dtype != np.float64 or correct.dtype != np.float64 or out.dtype != np.float64:
+        return False
+    _add_running_sums(p, correct, np.asarray(ends, dtype=np.int64), out)
+    return True
+
+
 def footprint_bounds(x_c, y_c, nx, ny, offsets, cell_rows, used):
     """(x min, x max, y min, y max) of the samples of the cells ``used`` (B, L), None when there is none, or when a
     sample is NaN (the caller then takes numpy's own path) or numba is missing."""
@@ -353,4 +381,5 @@ def warm_up() -> None:
                     np.zeros((1, 1)), [[0]], -1.0, -1.0, 1.0, 2, 2, 1e-9)
     footprint_bounds(box, box, box, box, np.zeros(1), rows, np.ones((1, 1), np.bool_))
     fuse_sorted([np.array([0, 3], np.int64), np.array([3], np.int64)], np.ones(3), 2)
+    add_running_sums(np.zeros(3), np.zeros(2), np.array([3], np.int64), np.zeros(3))
     _warm = True

@@ -61,6 +61,8 @@ except Exception as exc:  # noqa: BLE001 - any import failure leaves the scipy p
 
 from stages.lib.numpy_rules import maximum as _max
 from stages.lib.numpy_rules import minimum as _min
+from stages.lib.numpy_rules import PAIRWISE_BLOCK
+from stages.lib.numpy_rules import pairwise_sum as _pairwise_sum
 
 NUMPY_RULES_SHA256 = "5c754381d8698fbd"
 """The first 16 hex digits of stages/lib/numpy_rules.py's sha256 the kernels here were written against: numba's cache
@@ -404,6 +406,40 @@ if numba is not None:
                     brake_s = two_b * s_all[b, c]
                     run = _min(run, v * v + brake_s)
                     out[b, j, c] = np.sqrt(_max(run - brake_s, 0.0))
+
+    @numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
+    def _speed_lines(t_ns, v, ptr, ns, out):  # pragma: no cover - compiled
+        """Per vehicle n (its samples [ptr[n], ptr[n + 1]), at least 3, at most PAIRWISE_BLOCK), the least-squares line of
+        ``MarkovPredictor._speed_line`` into out[n]: (time span, slope, residual sum of squares, Σ(t − t̄)²), the numpy
+        code's float64 operations in its order (its sums numpy's pairwise sums, ``numpy_rules.pairwise_sum``)."""
+        most = 0
+        for n in range(ptr.shape[0] - 1):
+            most = max(most, ptr[n + 1] - ptr[n])
+        t = np.empty(most)
+        work = np.empty(most)
+        for n in range(ptr.shape[0] - 1):
+            lo, m = ptr[n], ptr[n + 1] - ptr[n]
+            for i in range(m):
+                t[i] = np.float64(t_ns[lo + i]) * ns
+            mean_t = _pairwise_sum(t, 0, m) / m
+            for i in range(m):
+                t[i] = t[i] - mean_t
+            v_mean = _pairwise_sum(v, lo, m) / m
+            for i in range(m):
+                work[i] = t[i] * t[i]
+            sxx = _pairwise_sum(work, 0, m)
+            if 1e-12 > sxx:  # max(sxx, 1e-12) as Python's max takes it (NaN kept)
+                sxx = 1e-12
+            for i in range(m):
+                work[i] = t[i] * (v[lo + i] - v_mean)
+            slope = _pairwise_sum(work, 0, m) / sxx
+            for i in range(m):
+                r = v[lo + i] - v_mean - slope * t[i]
+                work[i] = r * r
+            out[n, 0] = np.float64(t_ns[lo + m - 1] - t_ns[lo]) * ns
+            out[n, 1] = slope
+            out[n, 2] = _pairwise_sum(work, 0, m)
+            out[n, 3] = sxx
 
     @numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
     def _knot_buckets(xp, start, bucket, inv_h):  # pragma: no cover - compiled
@@ -1029,6 +1065,20 @@ def priority_at_states(restriction, preference, b_idx, v_idx, s_idx, forbid_thre
                                np.float32(forbid_threshold))
 
 
+def speed_lines(t_ns: np.ndarray, v: np.ndarray, ptr: np.ndarray, ns: float) -> np.ndarray | None:
+    """(V, 4) float64: per vehicle n, whose speed samples (stamps ``t_ns`` int64, speeds ``v``) are [ptr[n], ptr[n + 1]),
+    at least 3 each, its least-squares line as ``MarkovPredictor._speed_line`` computes it (time span, slope, residual sum
+    of squares, Σ(t − t̄)²; the same numbers); None where numba is missing or a vehicle has fewer than 3 or more than
+    ``numpy_rules.PAIRWISE_BLOCK`` samples (the callers then take the numpy code)."""
+    ptr = np.asarray(ptr, dtype=np.int64)
+    counts = np.diff(ptr)
+    if numba is None or (counts.size and (counts.min() < 3 or counts.max() > PAIRWISE_BLOCK)):
+        return None
+    out = np.empty((counts.shape[0], 4))
+    _speed_lines(np.ascontiguousarray(t_ns, dtype=np.int64), np.ascontiguousarray(v, dtype=np.float64), ptr, float(ns), out)
+    return out
+
+
 def admissible_rows(s_all, kappa_all, sizes, limits, a_lat, two_b: float, min_curvature: float) -> np.ndarray:
     """(B, J, n_max) float64 admissible speeds of ``priority.admissible_speeds_batch`` from its padded rows of arc
     lengths and smoothed |κ| (B, n_max), the rows' ``sizes``, speed ``limits`` (B,) and lateral accelerations (J,), the
@@ -1167,4 +1217,5 @@ def warm_up() -> None:
                        lazy, np.ones((2, 1, 2), np.float32), [True, False], 0.0)
     sum_by_key(np.array([3, 1, 3], np.int64), np.ones(3))
     admissible_rows(np.zeros((1, 2)), np.zeros((1, 2)), [2], np.ones(1), np.ones(1), 1.0, 1e-4)
+    speed_lines(np.arange(3, dtype=np.int64), np.ones(3), np.array([0, 3], np.int64), 1e-9)
     _warm = True
