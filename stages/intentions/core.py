@@ -30,7 +30,7 @@ from bus_schemas import (
 )
 from stages.lib.base import ConfigMixin, Issue, StageResult, check_ranges, isolate
 from stages.lib.caps import cap_pairs
-from stages.lib.maps import DEFAULT_SPEED_LIMIT_MPS, Projection, RoadMap, SceneMaps, parse_projection, project_to_polyline, shown_map_name
+from stages.lib.maps import DEFAULT_SPEED_LIMIT_MPS, Projection, RoadMap, SceneMaps, parse_projection, project_in_window, shown_map_name
 
 from stages.intentions import kernels, model
 from stages.intentions.model import PARTICLE_FIELDS, ModelParams, Particles
@@ -693,6 +693,8 @@ def _project(p: Particles, v: int, before: tuple[Corridor, ...], old: np.ndarray
 
     Each new corridor projects only the particles that need it (those mapped to it, and those without a corridor, which
     take the nearest): `project_to_polyline` treats every point on its own, so the values are those of projecting all.
+    The projection is `project_in_window` with an infinite window: `project_to_polyline`'s (s, d) without hints, bit for
+    bit, compiled.
     """
     lost = np.flatnonzero(lost_mask)
     x, y = _frenet_to_xy(before, old[lost], p.s_m[v, lost], p.d_m[v, lost])
@@ -704,9 +706,7 @@ def _project(p: Particles, v: int, before: tuple[Corridor, ...], old: np.ndarray
     for k, c in enumerate(corridors):
         need = np.flatnonzero((target == k) | nearest)
         if need.size:
-            found = project_to_polyline(xy[need], np.column_stack([c.x_m, c.y_m]), c.s_m)
-            s_all[k, need] = found.s_m
-            d_all[k, need] = found.d_m
+            s_all[k, need], d_all[k, need] = project_in_window(xy[need], np.column_stack([c.x_m, c.y_m]), c.s_m, 0.0, math.inf)
     choice = np.where(target >= 0, target, np.argmin(np.abs(d_all), axis=0))
     cols = np.arange(lost.size)
     slot = slot.copy()

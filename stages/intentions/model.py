@@ -322,7 +322,12 @@ def stratified_resample(
     order = np.argsort(-remainder, axis=1, kind="stable")
     rank = np.argsort(order, axis=1, kind="stable")
     alloc += (rank < left[:, None]) & usable
-    sort = np.argsort(flat_key, kind="stable")
+    # the stable order of the group ids: rows are contiguous in `flat_key`, so it is each row's stable order of its slots
+    # (offset by the row's start); slots fit int8, whose stable argsort is numpy's radix sort (the same permutation)
+    if n_max <= 127 and n_rows:
+        sort = (np.argsort(route.astype(np.int8), axis=1, kind="stable") + (np.arange(n_rows) * n)[:, None]).ravel()
+    else:
+        sort = np.argsort(flat_key, kind="stable")
     sorted_key = flat_key[sort]
     sorted_w = flat_w[sort]
     group_mass = mass.ravel()[sorted_key]

@@ -217,6 +217,9 @@ def disagreement_line(c: Consistency, config: EstimatorConfig) -> str | None:
     )
 
 
+_add_reduce = np.add.reduce
+
+
 def _median(values: list[float]) -> float:
     """``np.median`` of a few finite floats without an array: the middle value, or the mean of the middle two as
     numpy takes it ((a + b) / 2); NaN if any value is (numpy's answer then)."""
@@ -448,11 +451,13 @@ class KinematicEstimator:
         pts = [(t, v) for t, _, _, v, *_ in track.recent if t_now - t <= window_ns and math.isfinite(v)]
         if len(pts) < 3:
             return 0.0
+        n = len(pts)
         t = np.array([p[0] for p in pts], dtype=np.float64) * _NS
         v = np.array([p[1] for p in pts])
-        t -= t.mean()
+        # x.mean() is add.reduce(x) / n (numpy's float64 mean: the pairwise sum, then one division), without its overhead
+        t -= _add_reduce(t) / n
         denom = float(np.dot(t, t))
-        return float(np.dot(t, v - v.mean()) / denom) if denom > 0 else 0.0
+        return float(np.dot(t, v - _add_reduce(v) / n) / denom) if denom > 0 else 0.0
 
     # ----- reported velocity as evidence ------------------------------------------
 
