@@ -9,7 +9,9 @@
   Φ (s, v, a, d) after the route switches;
 - `conflict_stop`: `model.expected_stop`'s search of the conflicts ahead of
   each particle and the products of their factors (the sigmoids between
-  the two stay numpy's ``tanh``).
+  the two stay numpy's ``tanh``);
+- `gaussian_errors`: `model.log_likelihood`'s position, heading and speed
+  terms from the particles' poses (`pose`).
 
 The numpy paths place every particle by one ``searchsorted`` over the
 frame's concatenated key array (T ~ 5,000 samples at a busy junction) and
@@ -96,6 +98,27 @@ def _pose(key, start, end, s_line, x_line, y_line, h_line, g, s_m, d_m, key_offs
         out_x[n] = x - d * math.sin(heading)
         out_y[n] = y + d * math.cos(heading)
         out_h[n] = heading
+
+
+def _gaussian_errors(x, y, heading, v, x_obs, y_obs, heading_obs, heading_ok, speed_obs, speed_ok, n_per_row,
+                     position_var, heading_sigma, speed_sigma, out):
+    """`model.log_likelihood` of flat particles (n,) (rows of `n_per_row`) from their poses x, y, heading and speeds v,
+    the measurements (rows,), into out (n,): numpy's operations element by element (``x ** 2`` is ``x * x``; the wrap
+    is ``(a + pi) % (2 pi) - pi``, Python's float modulo being numpy's; a term left out subtracts 0.0)."""
+    two_pi = 2.0 * math.pi
+    for n in range(x.shape[0]):
+        r = n // n_per_row
+        dx = x[n] - x_obs[r]
+        dy = y[n] - y_obs[r]
+        value = -0.5 * (dx * dx + dy * dy) / position_var
+        ok = heading_ok[r]
+        error = ((heading_obs[r] if ok else 0.0) - heading[n] + math.pi) % two_pi - math.pi
+        q = error / heading_sigma
+        value = value - (0.5 * (q * q) if ok else 0.0)
+        ok = speed_ok[r]
+        error = (speed_obs[r] if ok else 0.0) - v[n]
+        q = error / speed_sigma
+        out[n] = value - (0.5 * (q * q) if ok else 0.0)
 
 
 def _admissible_speed(key, start, end, s_line, v_adm, g, s_m, style, key_offset, out):
@@ -253,6 +276,7 @@ if numba is not None:
     _jit = numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
     _locate_one = _jit(_locate_one)
     _pose_compiled = _jit(_pose)
+    _gaussian_errors_compiled = _jit(_gaussian_errors)
     _admissible_speed_compiled = _jit(_admissible_speed)
     _admissible_speeds_compiled = _jit(_admissible_speeds)
     _intend_and_move_compiled = _jit(_intend_and_move)
@@ -264,6 +288,7 @@ else:  # pragma: no cover
     _intend_and_move_compiled = None
     _admissible_speeds_compiled = None
     _pose_compiled = None
+    _gaussian_errors_compiled = None
     _admissible_speed_compiled = None
 
 
@@ -282,6 +307,28 @@ def pose(tables, g: np.ndarray, s_m: np.ndarray, d_m: np.ndarray, key_offset_m: 
     _pose_compiled(tables.key, tables.start, tables.end, tables.s_m, tables.x_m, tables.y_m, tables.heading_rad, gf, sf, df,
                    float(key_offset_m), out_x, out_y, out_h)
     return out_x.reshape(shape), out_y.reshape(shape), out_h.reshape(shape)
+
+
+def gaussian_errors(x, y, heading, v, z, position_sigma_m: float, heading_sigma_rad: float, speed_sigma_mps: float):
+    """`model.log_likelihood`'s sum of terms from poses x, y, heading and speeds v (V, N) and the measurements `z` =
+    (x, y, heading, speed, heading_ok, speed_ok) (V,); None: take the numpy path (no numba, other shapes or dtypes)."""
+    if _gaussian_errors_compiled is None:
+        return None
+    x_obs, y_obs, heading_obs, speed_obs, heading_ok, speed_ok = (np.asarray(a) for a in z)
+    arrays = (x, y, heading, v)
+    if any(type(a) is not np.ndarray or a.dtype != np.float64 or a.ndim != 2 or a.shape != x.shape for a in arrays):
+        return None
+    rows = (x.shape[0],)
+    if any(a.dtype != np.float64 or a.shape != rows for a in (x_obs, y_obs, heading_obs, speed_obs)):
+        return None
+    if any(a.dtype != np.bool_ or a.shape != rows for a in (heading_ok, speed_ok)):
+        return None
+    out = np.empty(x.shape)
+    flat = [np.ascontiguousarray(a).reshape(-1) for a in arrays]
+    _gaussian_errors_compiled(*flat, *(np.ascontiguousarray(a) for a in (x_obs, y_obs, heading_obs, heading_ok, speed_obs, speed_ok)),
+                              max(x.shape[1], 1), float(position_sigma_m) ** 2, float(heading_sigma_rad), float(speed_sigma_mps),
+                              out.reshape(-1))
+    return out
 
 
 def admissible_speed(tables, g: np.ndarray, s_m: np.ndarray, style: np.ndarray, key_offset_m: float):
@@ -401,4 +448,6 @@ def warm_up() -> None:
     _Table.conflict_other_time_s = np.ones((1, 1))
     _Table.conflict_weight = np.ones((1, 1))
     conflict_stop(_Table, one, zero, zero, 1.0, lambda gap, w: 1.0 - w * gap)
+    row, yes = np.zeros(1), np.ones(1, bool)
+    gaussian_errors(zero, zero, zero, zero, (row, row, row, row, yes, yes), 1.0, 1.0, 1.0)
     _warm = True

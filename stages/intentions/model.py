@@ -262,6 +262,9 @@ def log_likelihood(p: Particles, tables: PairTables, first_pair: np.ndarray, z, 
     x_obs, y_obs, heading_obs, speed_obs, heading_ok, speed_ok = z
     g = first_pair[:, None] + p.route
     x, y, heading = tables.pose(g, p.s_m, p.d_m)
+    found = kernels.gaussian_errors(x, y, heading, p.v_mps, z, mp.position_sigma_m, mp.heading_sigma_rad, mp.speed_sigma_mps)
+    if found is not None:  # compiled: the same bits as below (tests/stages/test_intentions.py)
+        return found
     position2 = (x - x_obs[:, None]) ** 2 + (y - y_obs[:, None]) ** 2
     out = -0.5 * position2 / mp.position_sigma_m**2
     heading_error = wrap_angle_rad(np.where(heading_ok, heading_obs, 0.0)[:, None] - heading)

@@ -620,6 +620,55 @@ def test_compiled_propagation_equals_the_numpy_one(frames, monkeypatch, relaxati
     assert checked >= 3
 
 
+def test_compiled_log_likelihood_equals_the_numpy_one(frames, monkeypatch):
+    """model.log_likelihood with the compiled terms (kernels.gaussian_errors) gives its numpy path's values bit for bit
+    (signs of zeros too): usable and unusable headings and speeds, NaN and infinite measurements and states."""
+    from stages.intentions import kernels, model
+    from stages.intentions.model import Particles
+    from stages.intentions.tables import VehicleInput, build_tables
+
+    if not kernels.available():
+        pytest.skip("numba not importable")
+    mp = IntentionsConfig().model_params()
+    rng = np.random.default_rng(17)
+    checked = 0
+    for item in frames[WINDOW][::10]:
+        vehicles = [VehicleInput(v.track_id, tuple(v.corridors), int(v.lanelet_id)) for v in item.corridor_set.vehicles if v.corridors]
+        if not vehicles:
+            continue
+        tables = build_tables(vehicles, {}, {}, lat_accels_mps2=(3.0, 2.0), brake_lookahead_mps2=2.5, curvature_smoothing_m=1.0,
+                              default_speed_limit_mps=13.9, stop_offset_m=14.0)
+        n_rows, n = len(vehicles), 150
+        route = rng.integers(0, tables.n_slots[:, None], (n_rows, n))
+        g = tables.first_pair[:, None] + route
+        p = Particles(
+            route=route, s_m=tables.vehicle_s_m[g] + rng.normal(0.0, 20.0, (n_rows, n)), d_m=rng.normal(0.0, 0.5, (n_rows, n)),
+            v_mps=np.maximum(rng.normal(6.0, 5.0, (n_rows, n)), 0.0), a_mps2=np.zeros((n_rows, n)),
+            stop=np.zeros((n_rows, n), bool), style=np.zeros((n_rows, n), np.int64), p_expected_stop=np.zeros((n_rows, n)),
+            weight=np.full((n_rows, n), 1.0 / n),
+        )
+        p.v_mps[0, :6] = [np.nan, np.inf, -0.0, 0.0, 1e300, 5e-324]
+        p.d_m[0, 6:9] = [np.nan, -np.inf, 1e300]
+        x_obs = tables.x_m[tables.start[tables.first_pair]] + rng.normal(0.0, 3.0, n_rows)
+        y_obs = tables.y_m[tables.start[tables.first_pair]] + rng.normal(0.0, 3.0, n_rows)
+        heading_obs = rng.uniform(-4.0, 4.0, n_rows)
+        speed_obs = rng.uniform(0.0, 15.0, n_rows)
+        heading_ok, speed_ok = rng.random(n_rows) < 0.7, rng.random(n_rows) < 0.7
+        if n_rows > 1:
+            x_obs[1], heading_obs[1], speed_obs[1] = np.nan, np.inf, np.nan
+            heading_ok[1] = speed_ok[1] = True
+        z = (x_obs, y_obs, heading_obs, speed_obs, heading_ok, speed_ok)
+        with np.errstate(all="ignore"):
+            got = model.log_likelihood(p, tables, tables.first_pair, z, mp)
+            monkeypatch.setattr(kernels, "gaussian_errors", lambda *args, **kwargs: None)
+            want = model.log_likelihood(p, tables, tables.first_pair, z, mp)
+            monkeypatch.undo()
+        assert np.array_equal(got, want, equal_nan=True) and np.array_equal(np.signbit(got), np.signbit(want))
+        assert np.isfinite(want).sum() > want.size // 2
+        checked += 1
+    assert checked >= 3
+
+
 def test_kernel_modules_name_the_numpy_rules_they_were_compiled_against():
     """numba's cache of a kernel module does not notice edits of stages/lib/numpy_rules.py, whose functions the kernels
     call: every module using it holds that file's digest, so that an edit there must edit (and so renew the cache of)
