@@ -609,7 +609,11 @@ class IntentionFilter:
                         stop_distance_m=stop_distance_l[gk],
                     )
                 )
-            best = first + int(np.argmax(mass[first : first + len(item.corridors)]))
+            masses = mass_l[first : first + len(item.corridors)]
+            if any(m != m for m in masses):  # NaN: np.argmax's answer (the first NaN)
+                best = first + int(np.argmax(mass[first : first + len(item.corridors)]))
+            else:  # the first largest, as np.argmax
+                best = first + masses.index(max(masses))
             entry_distance = entry_distance_l[best]
             if p_stop_l[v] > 0.5 and math.isfinite(entry_distance):
                 expected = Manoeuvre.STOP
