@@ -11,7 +11,9 @@
   each particle and the products of their factors (the sigmoids between
   the two stay numpy's ``tanh``);
 - `gaussian_errors`: `model.log_likelihood`'s position, heading and speed
-  terms from the particles' poses (`pose`).
+  terms from the particles' poses (`pose`);
+- `switch_routes`: `model.switch_routes`' route switches (the eligible
+  corridors, their order, the draw of the new one, the shift of s).
 
 The numpy paths place every particle by one ``searchsorted`` over the
 frame's concatenated key array (T ~ 5,000 samples at a busy junction) and
@@ -119,6 +121,52 @@ def _gaussian_errors(x, y, heading, v, x_obs, y_obs, heading_obs, heading_ok, sp
         error = (speed_obs[r] if ok else 0.0) - v[n]
         q = error / speed_sigma
         out[n] = value - (0.5 * (q * q) if ok else 0.0)
+
+
+def _switch_routes(route, s_m, n_slots, first_pair, switch_s, u_switch, u_choice, per_step, n_max, n_pairs, new_route, new_s):
+    """`model.switch_routes` of particles route, s_m (V, N) into new_route, new_s; 1 if any particle switched, 0 if none,
+    -1 where the numpy path must decide (a slot outside the vehicle's corridors)."""
+    n_rows, n = route.shape
+    eligible = np.zeros(n_max, np.bool_)
+    order = np.empty(n_max, np.int64)
+    rank = np.empty(n_max, np.int64)
+    moved = 0
+    for v in range(n_rows):
+        first = first_pair[v]
+        count = 0
+        for k in range(n_max):
+            pair = min(first + k, n_pairs - 1)
+            ok = k < n_slots[v] and math.isfinite(switch_s[pair])
+            eligible[k] = ok
+            count += ok
+        i = 0  # eligible slots first, in slot order (np.argsort(~eligible, kind="stable")), then the others
+        for k in range(n_max):
+            if eligible[k]:
+                order[i] = k
+                i += 1
+        for k in range(n_max):
+            if not eligible[k]:
+                order[i] = k
+                i += 1
+        for i in range(n_max):
+            rank[order[i]] = i
+        cap = max(count - 2, 0)
+        for m in range(n):
+            r = route[v, m]
+            if r < 0 or r >= n_max:
+                return -1
+            new_route[v, m] = r
+            new_s[v, m] = s_m[v, m]
+            if not (u_switch[v, m] < per_step[v]) or not eligible[r] or count < 2:
+                continue
+            j = min(int(u_choice[v, m] * (count - 1)), cap)
+            if j >= rank[r]:
+                j += 1
+            to = order[min(j, n_max - 1)]
+            new_route[v, m] = to
+            new_s[v, m] = s_m[v, m] - switch_s[first + r] + switch_s[first + to]
+            moved = 1
+    return moved
 
 
 def _admissible_speed(key, start, end, s_line, v_adm, g, s_m, style, key_offset, out):
@@ -277,6 +325,7 @@ if numba is not None:
     _locate_one = _jit(_locate_one)
     _pose_compiled = _jit(_pose)
     _gaussian_errors_compiled = _jit(_gaussian_errors)
+    _switch_routes_compiled = _jit(_switch_routes)
     _admissible_speed_compiled = _jit(_admissible_speed)
     _admissible_speeds_compiled = _jit(_admissible_speeds)
     _intend_and_move_compiled = _jit(_intend_and_move)
@@ -289,6 +338,7 @@ else:  # pragma: no cover
     _admissible_speeds_compiled = None
     _pose_compiled = None
     _gaussian_errors_compiled = None
+    _switch_routes_compiled = None
     _admissible_speed_compiled = None
 
 
@@ -329,6 +379,29 @@ def gaussian_errors(x, y, heading, v, z, position_sigma_m: float, heading_sigma_
                               max(x.shape[1], 1), float(position_sigma_m) ** 2, float(heading_sigma_rad), float(speed_sigma_mps),
                               out.reshape(-1))
     return out
+
+
+def switch_routes(route, s_m, tables, first_pair, u_switch, u_choice, per_step, n_max: int):
+    """`model.switch_routes` after its early return: (new route, new s) (V, N) when a particle switches, () when none
+    does; None: take the numpy path (no numba, other dtypes or shapes, a slot outside the vehicle's corridors)."""
+    if _switch_routes_compiled is None:
+        return None
+    shape = route.shape
+    if route.dtype != np.int64 or s_m.dtype != np.float64 or route.ndim != 2 or s_m.shape != shape:
+        return None
+    u_switch = np.asarray(u_switch, dtype=np.float64)
+    u_choice = np.asarray(u_choice, dtype=np.float64)
+    if u_switch.shape != shape or u_choice.shape != shape or tables.switch_s_m.dtype != np.float64:
+        return None
+    new_route = np.empty(shape, np.int64)
+    new_s = np.empty(shape)
+    moved = _switch_routes_compiled(
+        np.ascontiguousarray(route), np.ascontiguousarray(s_m), np.ascontiguousarray(tables.n_slots, dtype=np.int64),
+        np.ascontiguousarray(first_pair, dtype=np.int64), np.ascontiguousarray(tables.switch_s_m), np.ascontiguousarray(u_switch),
+        np.ascontiguousarray(u_choice), np.ascontiguousarray(per_step, dtype=np.float64), int(n_max), int(tables.n_pairs), new_route, new_s)
+    if moved < 0:
+        return None
+    return (new_route, new_s) if moved else ()
 
 
 def admissible_speed(tables, g: np.ndarray, s_m: np.ndarray, style: np.ndarray, key_offset_m: float):
@@ -450,4 +523,8 @@ def warm_up() -> None:
     conflict_stop(_Table, one, zero, zero, 1.0, lambda gap, w: 1.0 - w * gap)
     row, yes = np.zeros(1), np.ones(1, bool)
     gaussian_errors(zero, zero, zero, zero, (row, row, row, row, yes, yes), 1.0, 1.0, 1.0)
+    _Table.n_slots = np.array([2])
+    _Table.switch_s_m = np.zeros(2)
+    _Table.n_pairs = 2
+    switch_routes(one, zero, _Table, np.zeros(1, np.int64), zero, zero, np.ones(1), 2)
     _warm = True

@@ -166,6 +166,12 @@ def switch_routes(p: Particles, tables: PairTables, first_pair: np.ndarray, dt_s
     n_max = int(tables.n_slots.max()) if n_vehicles else 0
     if n_max < 2:
         return
+    switch_p = per_step(mp.route_switch_per_step, dt_s)
+    found = kernels.switch_routes(p.route, p.s_m, tables, first_pair, u_switch, u_choice, switch_p, n_max)
+    if found is not None:  # compiled: the same switches and s (tests/stages/test_intentions.py)
+        if found:
+            p.route, p.s_m = found
+        return
     slot = np.arange(n_max)[None, :]
     pair = np.minimum(first_pair[:, None] + slot, tables.n_pairs - 1)
     eligible = (slot < tables.n_slots[:, None]) & np.isfinite(tables.switch_s_m[pair])
@@ -174,7 +180,7 @@ def switch_routes(p: Particles, tables: PairTables, first_pair: np.ndarray, dt_s
     rank = np.argsort(order, axis=1, kind="stable")
     rows = np.arange(n_vehicles)[:, None]
     current_ok = eligible[rows, p.route]
-    go = (u_switch < per_step(mp.route_switch_per_step, dt_s)[:, None]) & current_ok & (n_eligible[:, None] >= 2)
+    go = (u_switch < switch_p[:, None]) & current_ok & (n_eligible[:, None] >= 2)
     if not go.any():
         return
     j = np.minimum((u_choice * (n_eligible[:, None] - 1)).astype(np.int64), np.maximum(n_eligible[:, None] - 2, 0))

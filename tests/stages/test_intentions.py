@@ -669,6 +669,59 @@ def test_compiled_log_likelihood_equals_the_numpy_one(frames, monkeypatch):
     assert checked >= 3
 
 
+def test_compiled_route_switches_equal_the_numpy_ones(frames, monkeypatch):
+    """model.switch_routes through kernels.switch_routes switches the same particles to the same corridors with the same
+    s as its numpy path, bit for bit: frequent and rare switches, vehicles with one corridor, corridors without the
+    vehicle's lanelet (NaN switch s), and none at all (the particles' arrays kept)."""
+    from stages.intentions import kernels, model
+    from stages.intentions.model import PARTICLE_FIELDS, Particles
+    from stages.intentions.tables import VehicleInput, build_tables
+
+    if not kernels.available():
+        pytest.skip("numba not importable")
+    rng = np.random.default_rng(19)
+    checked = 0
+    for item in frames[WINDOW][::10]:
+        vehicles = [VehicleInput(v.track_id, tuple(v.corridors), int(v.lanelet_id)) for v in item.corridor_set.vehicles if v.corridors]
+        if not vehicles or max(len(v.corridors) for v in vehicles) < 2:
+            continue
+        tables = build_tables(vehicles, {}, {}, lat_accels_mps2=(3.0, 2.0), brake_lookahead_mps2=2.5, curvature_smoothing_m=1.0,
+                              default_speed_limit_mps=13.9, stop_offset_m=14.0)
+        switch_s = tables.switch_s_m.copy()
+        switch_s[rng.random(switch_s.size) < 0.2] = np.nan
+        tables = dataclasses.replace(tables, switch_s_m=switch_s)
+        n_rows, n = len(vehicles), 200
+        route = rng.integers(0, tables.n_slots[:, None], (n_rows, n))
+        for rate in (0.6, 0.005, 0.0):
+            mp = dataclasses.replace(IntentionsConfig().model_params(), route_switch_per_step=rate)
+            start = Particles(
+                route=route.copy(), s_m=rng.normal(30.0, 20.0, (n_rows, n)), d_m=np.zeros((n_rows, n)), v_mps=np.zeros((n_rows, n)),
+                a_mps2=np.zeros((n_rows, n)), stop=np.zeros((n_rows, n), bool), style=np.zeros((n_rows, n), np.int64),
+                p_expected_stop=np.zeros((n_rows, n)), weight=np.full((n_rows, n), 1.0 / n),
+            )
+            dt = rng.uniform(0.02, 0.1, n_rows)
+            u_switch, u_choice = rng.random((n_rows, n)), rng.random((n_rows, n))
+            runs = []
+            for compiled in (True, False):
+                p = Particles(*(getattr(start, name).copy() for name in PARTICLE_FIELDS))
+                if not compiled:
+                    monkeypatch.setattr(kernels, "switch_routes", lambda *args, **kwargs: None)
+                before = (p.route, p.s_m)
+                model.switch_routes(p, tables, tables.first_pair, dt, u_switch, u_choice, mp)
+                monkeypatch.undo()
+                runs.append((p, before))
+            (a, a_before), (b, b_before) = runs
+            assert a.route.dtype == b.route.dtype and np.array_equal(a.route, b.route)
+            assert np.array_equal(a.s_m, b.s_m, equal_nan=True) and np.array_equal(np.signbit(a.s_m), np.signbit(b.s_m))
+            switched = not np.array_equal(b.route, start.route)
+            if rate != 0.005:  # many switches at 0.6, none at 0 (at 0.005: a few or none)
+                assert switched == (rate > 0.0)
+            if not switched:  # nothing moved: the same arrays kept
+                assert a.route is a_before[0] and a.s_m is a_before[1]
+        checked += 1
+    assert checked >= 3
+
+
 def test_kernel_modules_name_the_numpy_rules_they_were_compiled_against():
     """numba's cache of a kernel module does not notice edits of stages/lib/numpy_rules.py, whose functions the kernels
     call: every module using it holds that file's digest, so that an edit there must edit (and so renew the cache of)
