@@ -413,11 +413,11 @@ class IntentionFilter:
         # particles that lost their vehicle (a jump, a re-used id) are born again at the measurement
         carried = np.flatnonzero(~born)
         if carried.size:
-            ahead = p.s_m[carried] - tables.vehicle_s_m[first[carried, None] + p.route[carried]]
-            distance = np.median(np.abs(ahead), axis=1)  # per row as np.median of the row alone
+            gap = np.abs(p.s_m[carried] - tables.vehicle_s_m[first[carried, None] + p.route[carried]])
             speed = z[3][carried]
             allowed = np.where(np.isfinite(speed), cfg.lost_gate_m + np.maximum(np.where(np.isfinite(speed), speed, 0.0), 0.0) * dt[carried], cfg.lost_gate_m)
-            for v, median in zip(carried[distance > allowed].tolist(), distance[distance > allowed].tolist()):
+            rows, distance = _lost_rows(gap, allowed)
+            for v, median in zip(carried[rows].tolist(), distance.tolist()):
                 issues.append(Issue("particles_lost", inputs[v].track_id, f"particles a median {median:.0f} m from the measurement: born again"))
                 born[v] = True
                 dt[v] = 0.0
@@ -680,6 +680,19 @@ class IntentionFilter:
                 self._manoeuvres[key] = found
             out.append(found)
         return out
+
+def _lost_rows(gap: np.ndarray, allowed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, their medians) of the rows of `gap` (R, N) whose median (np.median of the row alone) exceeds `allowed` (R,).
+
+    A row's median exceeds `allowed` only where at least half of its values do (a row with NaN has a NaN median: never
+    more): the medians are taken for those rows only (and where `allowed` is so large that the mean of the two middle
+    values could overflow), the same values, the same rows.
+    """
+    rows = np.flatnonzero(((gap > allowed[:, None]).sum(axis=1) >= gap.shape[1] // 2) | ~(allowed < 1e300))
+    distance = np.median(gap[rows], axis=1) if rows.size else np.zeros(0)
+    lost = distance > allowed[rows]
+    return rows[lost], distance[lost]
+
 
 def _mapping(state: _Vehicle, corridors: tuple[Corridor, ...]) -> list[tuple[int, float]]:
     """`map_corridors` of the vehicle's last corridors onto `corridors`; IndexError when a particle's slot has no entry."""

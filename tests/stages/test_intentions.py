@@ -722,6 +722,32 @@ def test_compiled_route_switches_equal_the_numpy_ones(frames, monkeypatch):
     assert checked >= 3
 
 
+def test_lost_rows_are_those_whose_median_exceeds_the_gate():
+    """_lost_rows takes medians only where at least half of a row exceeds its gate: the rows and medians are those of
+    np.median over every row (odd and even rows, exactly half above, ties at the gate, NaN, infinite and huge gates)."""
+    from stages.intentions.core import _lost_rows
+
+    rng = np.random.default_rng(31)
+    for n in (1, 2, 7, 8, 300):
+        gap = np.abs(rng.normal(0.0, 10.0, (400, n)))
+        allowed = rng.uniform(0.0, 20.0, 400)
+        for r in range(0, 400, 10):  # exactly half (or one more, one fewer) above the gate, and values at the gate
+            k = n // 2 + (r // 10) % 3 - 1
+            gap[r] = np.where(np.arange(n) < k, allowed[r] + rng.uniform(0.0, 1.0, n), allowed[r] - rng.uniform(0.0, 1.0, n))
+            if r % 20 == 0:
+                gap[r, 0] = allowed[r]
+        gap[5, 0] = np.nan
+        gap[6] = np.inf
+        allowed[7:10] = [np.inf, 1e308, np.nan]
+        gap[8] = 1e308
+        with np.errstate(invalid="ignore", over="ignore"):
+            median = np.median(gap, axis=1)
+            want = np.flatnonzero(median > allowed)
+            rows, distance = _lost_rows(gap, allowed)
+        assert np.array_equal(rows, want) and np.array_equal(distance, median[want])
+        assert 0 < len(rows) < 400
+
+
 def test_kernel_modules_name_the_numpy_rules_they_were_compiled_against():
     """numba's cache of a kernel module does not notice edits of stages/lib/numpy_rules.py, whose functions the kernels
     call: every module using it holds that file's digest, so that an edit there must edit (and so renew the cache of)
