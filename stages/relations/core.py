@@ -412,14 +412,16 @@ class RelationExtractor:
         if conflicts is not None and len(conflicts.g):
             try:
                 owners = self._conflict_owners(pairs, conflicts, route_probabilities)
+                owners = (owners[0].tolist(), owners[1].tolist(), owners[2], owners[3])  # Python ints, read pair by pair
             except Exception:  # noqa: BLE001 - then pair by pair (`_relations`), where a failure costs one pair's relation
                 owners = None
+        columns = [(name, getattr(conflicts, name)) for name in _Conflicts.__dataclass_fields__] if conflicts is not None else None
         for pair in pairs:
             try:
                 lateral = self._lateral(pair, objects, projected, batched)
                 crossings = self._intersections(pair, tables)
                 span = slice(starts[pair.g], starts[pair.g + 1]) if starts is not None else slice(0, 0)
-                rel = self._relations(pair, pairs, objects, lateral, crossings, conflicts, span, route_probabilities, owners)
+                rel = self._relations(pair, pairs, objects, lateral, crossings, conflicts, span, route_probabilities, owners, columns)
                 relations.append(self._with_signal(rel, pair, smap, state))
             except Exception as exc:  # noqa: BLE001 - one pair's failure costs only its relation
                 issues.append(Issue("pair_failed", pair.vehicle.track_id, f"corridor {pair.corridor.corridor_id}: {type(exc).__name__}: {exc}: no relation"))
@@ -874,17 +876,22 @@ class RelationExtractor:
         )
         return index, rule, track_of[conflicts.other_g], corridor_of[conflicts.other_g]
 
-    def _relations(self, pair, pairs, objects, lateral, crossings, conflicts, span, route_probabilities, owners=None) -> CorridorRelations:
+    def _relations(self, pair, pairs, objects, lateral, crossings, conflicts, span, route_probabilities, owners=None,
+                   columns=None) -> CorridorRelations:
         """One corridor's message part, with the influencing conflict chosen by the rules.
 
         `owners` is `_conflict_owners`' result for the frame (taken when
         given); the pair-by-pair code here is its reference and fallback.
+        `columns`: (name, array) of every `_Conflicts` field, read once per
+        frame (else read here).
         """
         rows, s, d, gap, along, leader = lateral
         corridor = pair.corridor
         isect_ids, entry, exit_, entry_lanelets = crossings
         if conflicts is not None and span.stop > span.start:
-            c = {name: getattr(conflicts, name)[span] for name in _Conflicts.__dataclass_fields__}
+            if columns is None:
+                columns = [(name, getattr(conflicts, name)) for name in _Conflicts.__dataclass_fields__]
+            c = {name: values[span] for name, values in columns}
         else:
             c = None
         if c is not None and owners is not None:
