@@ -560,21 +560,29 @@ class IntentionFilter:
         n_pairs = tables.n_pairs
         g = (tables.first_pair[:, None] + p.route).ravel()
         w = p.weight.ravel()
-        mass = np.bincount(g, w, minlength=n_pairs)
-        count = np.bincount(g, minlength=n_pairs)
+        fields = (p.s_m, p.v_mps, p.a_mps2)
+        # the per-pair sums in one compiled pass (np.bincount's, bit for bit), else numpy's bincount field by field
+        found = kernels.pair_sums(g, w, [x.ravel() for x in fields], p.stop.ravel(), n_pairs)
+        if found is not None:
+            mass, count, sums, squares, stop_sum = found
+        else:
+            mass = np.bincount(g, w, minlength=n_pairs)
+            count = np.bincount(g, minlength=n_pairs)
+            sums = [np.bincount(g, w * x, minlength=n_pairs) for x in (f.ravel().astype(np.float64) for f in fields)]
+            squares = [np.bincount(g, w * x * x, minlength=n_pairs) for x in (f.ravel().astype(np.float64) for f in fields)]
+            stop_sum = np.bincount(g, w * p.stop.ravel(), minlength=n_pairs)
         safe = np.where(mass > 0, mass, 1.0)
+        none = count == 0
 
-        def moments(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            x = values.ravel().astype(np.float64)
-            mean = np.bincount(g, w * x, minlength=n_pairs) / safe
-            var = np.bincount(g, w * x * x, minlength=n_pairs) / safe - mean**2
-            none = count == 0
+        def moments(f: int) -> tuple[np.ndarray, np.ndarray]:
+            mean = sums[f] / safe
+            var = squares[f] / safe - mean**2
             return np.where(none, np.nan, mean), np.where(none, np.nan, np.sqrt(np.maximum(var, 0.0)))
 
-        s_mean, s_std = moments(p.s_m)
-        v_mean, v_std = moments(p.v_mps)
-        a_mean, a_std = moments(p.a_mps2)
-        stop_given = np.bincount(g, w * p.stop.ravel(), minlength=n_pairs) / safe
+        s_mean, s_std = moments(0)
+        v_mean, v_std = moments(1)
+        a_mean, a_std = moments(2)
+        stop_given = stop_sum / safe
         p_stop = np.sum(p.weight * p.stop, axis=1)
         p_expected = np.sum(p.weight * p.p_expected_stop, axis=1)
         p_violation = np.sum(p.weight * np.where(p.stop, 1.0 - p.p_expected_stop, p.p_expected_stop), axis=1)

@@ -13,7 +13,9 @@
 - `gaussian_errors`: `model.log_likelihood`'s position, heading and speed
   terms from the particles' poses (`pose`);
 - `switch_routes`: `model.switch_routes`' route switches (the eligible
-  corridors, their order, the draw of the new one, the shift of s).
+  corridors, their order, the draw of the new one, the shift of s);
+- `pair_sums`: the per-pair sums of the beliefs (`core.IntentionFilter._beliefs`):
+  ``np.bincount``'s weighted sums, in its order, in one pass.
 
 The numpy paths place every particle by one ``searchsorted`` over the
 frame's concatenated key array (T ~ 5,000 samples at a busy junction) and
@@ -167,6 +169,22 @@ def _switch_routes(route, s_m, n_slots, first_pair, switch_s, u_switch, u_choice
             new_s[v, m] = s_m[v, m] - switch_s[first + r] + switch_s[first + to]
             moved = 1
     return moved
+
+
+def _pair_sums(g, w, values, stop, mass, count, sums, squares, stop_sum):
+    """Per pair (bin of `g`): sum of w, count, sum of w·x and of (w·x)·x for each row x of `values` (F, n), sum of
+    w·stop, each added particle by particle in order (``np.bincount(g, weights)``: out[g[i]] += weights[i])."""
+    for i in range(g.shape[0]):
+        k = g[i]
+        wi = w[i]
+        mass[k] += wi
+        count[k] += 1
+        for f in range(values.shape[0]):
+            x = values[f, i]
+            wx = wi * x
+            sums[f, k] += wx
+            squares[f, k] += wx * x
+        stop_sum[k] += wi * (1.0 if stop[i] else 0.0)
 
 
 def _admissible_speed(key, start, end, s_line, v_adm, g, s_m, style, key_offset, out):
@@ -326,6 +344,7 @@ if numba is not None:
     _pose_compiled = _jit(_pose)
     _gaussian_errors_compiled = _jit(_gaussian_errors)
     _switch_routes_compiled = _jit(_switch_routes)
+    _pair_sums_compiled = _jit(_pair_sums)
     _admissible_speed_compiled = _jit(_admissible_speed)
     _admissible_speeds_compiled = _jit(_admissible_speeds)
     _intend_and_move_compiled = _jit(_intend_and_move)
@@ -339,6 +358,7 @@ else:  # pragma: no cover
     _pose_compiled = None
     _gaussian_errors_compiled = None
     _switch_routes_compiled = None
+    _pair_sums_compiled = None
     _admissible_speed_compiled = None
 
 
@@ -402,6 +422,26 @@ def switch_routes(route, s_m, tables, first_pair, u_switch, u_choice, per_step, 
     if moved < 0:
         return None
     return (new_route, new_s) if moved else ()
+
+
+def pair_sums(g: np.ndarray, w: np.ndarray, values: list[np.ndarray], stop: np.ndarray, n_pairs: int):
+    """(mass, count, sums (F, G), squares (F, G), stop sum) of flat particles g (int64), w, each of `values` (float64)
+    and stop (bool), (n,) each: what ``np.bincount(g, w)``, ``np.bincount(g)``, ``np.bincount(g, w * x)``,
+    ``np.bincount(g, w * x * x)`` and ``np.bincount(g, w * stop)`` give with minlength `n_pairs`; None: numpy."""
+    if _pair_sums_compiled is None:
+        return None
+    n = g.shape[0]
+    if (g.dtype != np.int64 or w.dtype != np.float64 or stop.dtype != np.bool_ or g.ndim != 1 or w.shape != (n,) or stop.shape != (n,)
+            or any(x.dtype != np.float64 or x.shape != (n,) for x in values)):
+        return None
+    if not n or int(g.min()) < 0 or int(g.max()) >= n_pairs:
+        return None  # bincount would grow (or refuse), or answer int64 zeros for no particles: numpy
+    stacked = np.stack(values) if values else np.zeros((0, n))
+    mass, count = np.zeros(n_pairs), np.zeros(n_pairs, np.int64)
+    sums, squares, stop_sum = np.zeros((len(values), n_pairs)), np.zeros((len(values), n_pairs)), np.zeros(n_pairs)
+    _pair_sums_compiled(np.ascontiguousarray(g), np.ascontiguousarray(w), stacked, np.ascontiguousarray(stop), mass, count, sums,
+                        squares, stop_sum)
+    return mass, count, sums, squares, stop_sum
 
 
 def admissible_speed(tables, g: np.ndarray, s_m: np.ndarray, style: np.ndarray, key_offset_m: float):
@@ -527,4 +567,5 @@ def warm_up() -> None:
     _Table.switch_s_m = np.zeros(2)
     _Table.n_pairs = 2
     switch_routes(one, zero, _Table, np.zeros(1, np.int64), zero, zero, np.ones(1), 2)
+    pair_sums(np.zeros(1, np.int64), np.ones(1), [np.zeros(1)] * 3, np.zeros(1, bool), 1)
     _warm = True

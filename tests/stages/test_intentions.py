@@ -748,6 +748,48 @@ def test_lost_rows_are_those_whose_median_exceeds_the_gate():
         assert 0 < len(rows) < 400
 
 
+def test_compiled_pair_sums_equal_numpys_bincounts():
+    """kernels.pair_sums (the beliefs' per-pair sums) gives np.bincount's weighted sums bit for bit (signs of zeros,
+    NaN and infinities too, empty pairs), and leaves bins outside the pairs to numpy."""
+    from stages.intentions import kernels
+
+    if not kernels.available():
+        pytest.skip("numba not importable")
+    rng = np.random.default_rng(37)
+    for n_pairs, n in ((1, 1), (5, 300), (40, 5400), (7, 0)):
+        g = rng.integers(0, max(n_pairs - 1, 1), n).astype(np.int64)  # the last pair empty
+        w = rng.random(n) ** 3
+        values = [rng.normal(0.0, 10.0 ** rng.integers(-3, 4), n) for _ in range(3)]
+        stop = rng.random(n) < 0.5
+        if n > 10:
+            w[:4] = [0.0, -0.0, 1e-300, 5e-324]
+            values[0][:6] = [np.nan, np.inf, -np.inf, -0.0, 0.0, 1e300]
+            values[1][4:8] = -0.0
+        found = kernels.pair_sums(g, w, values, stop, n_pairs)
+        if not n:  # no particles: numpy's bincount (int64 zeros even with weights)
+            assert found is None
+            continue
+        with np.errstate(all="ignore"):
+            want = (np.bincount(g, w, minlength=n_pairs), np.bincount(g, minlength=n_pairs),
+                    [np.bincount(g, w * x, minlength=n_pairs) for x in values], [np.bincount(g, w * x * x, minlength=n_pairs) for x in values],
+                    np.bincount(g, w * stop, minlength=n_pairs))
+            for a, b in zip((found[0], found[1], *found[2], *found[3], found[4]), (want[0], want[1], *want[2], *want[3], want[4])):
+                assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True) and np.array_equal(np.signbit(a), np.signbit(b))
+    assert kernels.pair_sums(np.array([0, 3]), np.ones(2), [np.ones(2)], np.zeros(2, bool), 3) is None  # a bin beyond the pairs
+
+
+def test_beliefs_without_the_pair_sums_kernel_are_the_same(frames, scene_maps, monkeypatch):
+    """The beliefs' numpy path (np.bincount field by field, where the kernel declines) publishes the same messages."""
+    from stages.intentions import kernels
+
+    part = frames[WINDOW][:12]
+    compiled, _ = run(part, scene_maps)
+    monkeypatch.setattr(kernels, "pair_sums", lambda *args, **kwargs: None)
+    plain, _ = run(part, scene_maps)
+    assert [b.encode() for b, _ in compiled] == [b.encode() for b, _ in plain]
+    assert sum(len(b.vehicles) for b, _ in plain) > 10
+
+
 def test_kernel_modules_name_the_numpy_rules_they_were_compiled_against():
     """numba's cache of a kernel module does not notice edits of stages/lib/numpy_rules.py, whose functions the kernels
     call: every module using it holds that file's digest, so that an edit there must edit (and so renew the cache of)
