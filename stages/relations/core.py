@@ -274,18 +274,26 @@ def _checked_batch(corridors: list[Corridor], tables: SceneTables | None) -> dic
     shaped = np.array([_shaped(c) for c in corridors], dtype=bool)
     fields = [a for c in corridors for a in (c.x_m, c.y_m, c.s_m, c.heading_rad, c.width_m, c.lanelet_start_s_m)]
     sizes = np.array([len(a) for a in fields], dtype=np.int64).reshape(len(corridors), 6).sum(axis=1)
-    bad = np.concatenate([[0], np.cumsum(~np.isfinite(np.concatenate(fields).astype(np.float64, copy=False)))])
-    ends = np.cumsum(sizes)
-    finite = bad[ends] == bad[ends - sizes]
+    nonfinite = ~np.isfinite(np.concatenate(fields).astype(np.float64, copy=False))
+    if nonfinite.any():  # which corridors hold them: counts before each corridor's end and start
+        bad = np.concatenate([[0], np.cumsum(nonfinite)])
+        ends = np.cumsum(sizes)
+        finite = bad[ends] == bad[ends - sizes]
+    else:
+        finite = np.ones(len(corridors), dtype=bool)
     # s: increasing (no step back) and of positive length
     s_len = np.array([len(c.s_m) for c in corridors], dtype=np.int64)
     s_all = np.concatenate([np.asarray(c.s_m, np.float64) for c in corridors])
     s_end = np.cumsum(s_len)
     s_start = s_end - s_len
-    back = np.concatenate([[0], np.cumsum(np.diff(s_all) < 0.0)])
+    steps_back = np.diff(s_all) < 0.0
     has = s_len > 0
     s_ok = np.zeros(len(corridors), dtype=bool)
-    s_ok[has] = back[s_end[has] - 1] == back[s_start[has]]  # steps back inside a corridor (not across the joins)
+    if steps_back.any():
+        back = np.concatenate([[0], np.cumsum(steps_back)])
+        s_ok[has] = back[s_end[has] - 1] == back[s_start[has]]  # steps back inside a corridor (not across the joins)
+    else:
+        s_ok[has] = True
     s_ok[has] &= (s_all[s_end[has] - 1] - s_all[s_start[has]]) > 0.0
     sound = shaped & finite & s_ok
     if tables is not None:
@@ -299,6 +307,9 @@ def _checked_batch(corridors: list[Corridor], tables: SceneTables | None) -> dic
         follows = np.ones(len(corridors), dtype=bool)
         follows[long] = breaks[k_end[long] - 1] == breaks[k_start[long]]
     out = {}
+    sound = sound.tolist()
+    if tables is not None:
+        k_start, k_end, follows = k_start.tolist(), k_end.tolist(), follows.tolist()
     for i, corridor in enumerate(corridors):
         problem = None if sound[i] else _corridor_problem(corridor)
         if problem is not None:
@@ -306,7 +317,7 @@ def _checked_batch(corridors: list[Corridor], tables: SceneTables | None) -> dic
         elif tables is None:
             out[id(corridor)] = (None, _EMPTY_I64, True)
         else:
-            out[id(corridor)] = (None, all_index[k_start[i] : k_end[i]], bool(follows[i]))
+            out[id(corridor)] = (None, all_index[k_start[i] : k_end[i]], follows[i])
     return out
 
 
