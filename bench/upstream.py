@@ -73,14 +73,15 @@ def run(data_dir: Path, name: str, spans, *, profile=None) -> tuple[dict, list[s
         corridors = CorridorBuilder(CorridorsConfig(), scene_maps=scene_maps)
         relations = RelationExtractor(RelationsConfig(), scene_maps=scene_maps)
         for n, frame, scene in _play(recording, name, first, warmup + timed):
-            if profile is not None:
+            timed_frame = n >= first + warmup
+            if profile is not None and timed_frame:
                 profile.enable()
             t0, c0 = time.perf_counter(), time.process_time()
             corridor_set, corridor_issues = corridors.process(frame, scene)
             t1, c1 = time.perf_counter(), time.process_time()
             relation_set, relation_issues = relations.process(frame, corridor_set, scene)
             t2, c2 = time.perf_counter(), time.process_time()
-            if profile is not None:
+            if profile is not None and timed_frame:
                 profile.disable()
             h = hashlib.sha256()
             h.update(corridor_set.encode())
@@ -88,7 +89,7 @@ def run(data_dir: Path, name: str, spans, *, profile=None) -> tuple[dict, list[s
             h.update(relation_set.encode() if relation_set is not None else b"none")
             h.update(_issues_digest(relation_issues))
             digests.append(h.hexdigest())
-            if n >= first + warmup:
+            if timed_frame:
                 cpu["corridors"].append((c1 - c0) * 1e3)
                 cpu["relations"].append((c2 - c1) * 1e3)
                 wall["corridors"].append((t1 - t0) * 1e3)
@@ -154,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--keep", type=Path, default=None, help="folder for the dense recordings (reused when already built)")
     parser.add_argument("--save", type=Path, default=None, help="write the output digests per frame here")
     parser.add_argument("--check", type=Path, default=None, help="compare the output digests with this file")
-    parser.add_argument("--profile", action="store_true", help="cProfile of the two stages (one run): the top functions")
+    parser.add_argument("--profile", action="store_true", help="cProfile of the two stages over the timed frames of the first run: the top functions")
     parser.add_argument("--sort", default="tottime", help="profile order (pstats key)")
     parser.add_argument("--restrict", default="", help="profile: only functions whose file and name match this regex")
     args = parser.parse_args(argv)

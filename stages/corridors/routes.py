@@ -275,9 +275,11 @@ def cut_corridor(
     # the lanelets the samples cover (the first one if none does), in plain Python over the route's few lanelets
     covered = [i for i, (a, b) in enumerate(zip(route.lanelet_starts, route.lanelet_ends)) if a < end_s and b > offset] or [0]
     limits = [route.speed_limits[i] for i in covered]
+    if covered[-1] - covered[0] + 1 == len(covered):  # a run (the usual case): sliced, copied (what the indexing gives)
+        covered = slice(covered[0], covered[-1] + 1)
     return Corridor(
         corridor_id=int(corridor_id),
-        lanelet_ids=route.lanelet_id_array[covered],
+        lanelet_ids=route.lanelet_id_array[covered].copy(),
         lanelet_start_s_m=route.lanelet_start_s_m[covered] - offset,
         x_m=x,
         y_m=y,

@@ -30,7 +30,7 @@ from bus_schemas import (
 )
 from stages.lib.base import ConfigMixin, Issue, StageResult, check_ranges, isolate
 from stages.lib.caps import cap_pairs
-from stages.lib.maps import DEFAULT_SPEED_LIMIT_MPS, Projection, RoadMap, SceneMaps, parse_projection, project_to_polyline, shown_map_name
+from stages.lib.maps import DEFAULT_SPEED_LIMIT_MPS, Projection, RoadMap, SceneMaps, parse_projection, project_in_window, shown_map_name
 
 from stages.intentions import kernels, model
 from stages.intentions.model import PARTICLE_FIELDS, ModelParams, Particles
@@ -413,11 +413,11 @@ class IntentionFilter:
         # particles that lost their vehicle (a jump, a re-used id) are born again at the measurement
         carried = np.flatnonzero(~born)
         if carried.size:
-            ahead = p.s_m[carried] - tables.vehicle_s_m[first[carried, None] + p.route[carried]]
-            distance = np.median(np.abs(ahead), axis=1)  # per row as np.median of the row alone
+            gap = np.abs(p.s_m[carried] - tables.vehicle_s_m[first[carried, None] + p.route[carried]])
             speed = z[3][carried]
             allowed = np.where(np.isfinite(speed), cfg.lost_gate_m + np.maximum(np.where(np.isfinite(speed), speed, 0.0), 0.0) * dt[carried], cfg.lost_gate_m)
-            for v, median in zip(carried[distance > allowed].tolist(), distance[distance > allowed].tolist()):
+            rows, distance = _lost_rows(gap, allowed)
+            for v, median in zip(carried[rows].tolist(), distance.tolist()):
                 issues.append(Issue("particles_lost", inputs[v].track_id, f"particles a median {median:.0f} m from the measurement: born again"))
                 born[v] = True
                 dt[v] = 0.0
@@ -560,21 +560,29 @@ class IntentionFilter:
         n_pairs = tables.n_pairs
         g = (tables.first_pair[:, None] + p.route).ravel()
         w = p.weight.ravel()
-        mass = np.bincount(g, w, minlength=n_pairs)
-        count = np.bincount(g, minlength=n_pairs)
+        fields = (p.s_m, p.v_mps, p.a_mps2)
+        # the per-pair sums in one compiled pass (np.bincount's, bit for bit), else numpy's bincount field by field
+        found = kernels.pair_sums(g, w, [x.ravel() for x in fields], p.stop.ravel(), n_pairs)
+        if found is not None:
+            mass, count, sums, squares, stop_sum = found
+        else:
+            mass = np.bincount(g, w, minlength=n_pairs)
+            count = np.bincount(g, minlength=n_pairs)
+            sums = [np.bincount(g, w * x, minlength=n_pairs) for x in (f.ravel().astype(np.float64) for f in fields)]
+            squares = [np.bincount(g, w * x * x, minlength=n_pairs) for x in (f.ravel().astype(np.float64) for f in fields)]
+            stop_sum = np.bincount(g, w * p.stop.ravel(), minlength=n_pairs)
         safe = np.where(mass > 0, mass, 1.0)
+        none = count == 0
 
-        def moments(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            x = values.ravel().astype(np.float64)
-            mean = np.bincount(g, w * x, minlength=n_pairs) / safe
-            var = np.bincount(g, w * x * x, minlength=n_pairs) / safe - mean**2
-            none = count == 0
+        def moments(f: int) -> tuple[np.ndarray, np.ndarray]:
+            mean = sums[f] / safe
+            var = squares[f] / safe - mean**2
             return np.where(none, np.nan, mean), np.where(none, np.nan, np.sqrt(np.maximum(var, 0.0)))
 
-        s_mean, s_std = moments(p.s_m)
-        v_mean, v_std = moments(p.v_mps)
-        a_mean, a_std = moments(p.a_mps2)
-        stop_given = np.bincount(g, w * p.stop.ravel(), minlength=n_pairs) / safe
+        s_mean, s_std = moments(0)
+        v_mean, v_std = moments(1)
+        a_mean, a_std = moments(2)
+        stop_given = stop_sum / safe
         p_stop = np.sum(p.weight * p.stop, axis=1)
         p_expected = np.sum(p.weight * p.p_expected_stop, axis=1)
         p_violation = np.sum(p.weight * np.where(p.stop, 1.0 - p.p_expected_stop, p.p_expected_stop), axis=1)
@@ -609,7 +617,11 @@ class IntentionFilter:
                         stop_distance_m=stop_distance_l[gk],
                     )
                 )
-            best = first + int(np.argmax(mass[first : first + len(item.corridors)]))
+            masses = mass_l[first : first + len(item.corridors)]
+            if any(m != m for m in masses):  # NaN: np.argmax's answer (the first NaN)
+                best = first + int(np.argmax(mass[first : first + len(item.corridors)]))
+            else:  # the first largest, as np.argmax
+                best = first + masses.index(max(masses))
             entry_distance = entry_distance_l[best]
             if p_stop_l[v] > 0.5 and math.isfinite(entry_distance):
                 expected = Manoeuvre.STOP
@@ -677,6 +689,19 @@ class IntentionFilter:
             out.append(found)
         return out
 
+def _lost_rows(gap: np.ndarray, allowed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, their medians) of the rows of `gap` (R, N) whose median (np.median of the row alone) exceeds `allowed` (R,).
+
+    A row's median exceeds `allowed` only where at least half of its values do (a row with NaN has a NaN median: never
+    more): the medians are taken for those rows only (and where `allowed` is so large that the mean of the two middle
+    values could overflow), the same values, the same rows.
+    """
+    rows = np.flatnonzero(((gap > allowed[:, None]).sum(axis=1) >= gap.shape[1] // 2) | ~(allowed < 1e300))
+    distance = np.median(gap[rows], axis=1) if rows.size else np.zeros(0)
+    lost = distance > allowed[rows]
+    return rows[lost], distance[lost]
+
+
 def _mapping(state: _Vehicle, corridors: tuple[Corridor, ...]) -> list[tuple[int, float]]:
     """`map_corridors` of the vehicle's last corridors onto `corridors`; IndexError when a particle's slot has no entry."""
     mapping = map_corridors(state.corridors, corridors)
@@ -693,6 +718,8 @@ def _project(p: Particles, v: int, before: tuple[Corridor, ...], old: np.ndarray
 
     Each new corridor projects only the particles that need it (those mapped to it, and those without a corridor, which
     take the nearest): `project_to_polyline` treats every point on its own, so the values are those of projecting all.
+    The projection is `project_in_window` with an infinite window: `project_to_polyline`'s (s, d) without hints, bit for
+    bit, compiled.
     """
     lost = np.flatnonzero(lost_mask)
     x, y = _frenet_to_xy(before, old[lost], p.s_m[v, lost], p.d_m[v, lost])
@@ -704,9 +731,7 @@ def _project(p: Particles, v: int, before: tuple[Corridor, ...], old: np.ndarray
     for k, c in enumerate(corridors):
         need = np.flatnonzero((target == k) | nearest)
         if need.size:
-            found = project_to_polyline(xy[need], np.column_stack([c.x_m, c.y_m]), c.s_m)
-            s_all[k, need] = found.s_m
-            d_all[k, need] = found.d_m
+            s_all[k, need], d_all[k, need] = project_in_window(xy[need], np.column_stack([c.x_m, c.y_m]), c.s_m, 0.0, math.inf)
     choice = np.where(target >= 0, target, np.argmin(np.abs(d_all), axis=0))
     cols = np.arange(lost.size)
     slot = slot.copy()

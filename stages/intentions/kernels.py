@@ -9,7 +9,13 @@
   Φ (s, v, a, d) after the route switches;
 - `conflict_stop`: `model.expected_stop`'s search of the conflicts ahead of
   each particle and the products of their factors (the sigmoids between
-  the two stay numpy's ``tanh``).
+  the two stay numpy's ``tanh``);
+- `gaussian_errors`: `model.log_likelihood`'s position, heading and speed
+  terms from the particles' poses (`pose`);
+- `switch_routes`: `model.switch_routes`' route switches (the eligible
+  corridors, their order, the draw of the new one, the shift of s);
+- `pair_sums`: the per-pair sums of the beliefs (`core.IntentionFilter._beliefs`):
+  ``np.bincount``'s weighted sums, in its order, in one pass.
 
 The numpy paths place every particle by one ``searchsorted`` over the
 frame's concatenated key array (T ~ 5,000 samples at a busy junction) and
@@ -96,6 +102,89 @@ def _pose(key, start, end, s_line, x_line, y_line, h_line, g, s_m, d_m, key_offs
         out_x[n] = x - d * math.sin(heading)
         out_y[n] = y + d * math.cos(heading)
         out_h[n] = heading
+
+
+def _gaussian_errors(x, y, heading, v, x_obs, y_obs, heading_obs, heading_ok, speed_obs, speed_ok, n_per_row,
+                     position_var, heading_sigma, speed_sigma, out):
+    """`model.log_likelihood` of flat particles (n,) (rows of `n_per_row`) from their poses x, y, heading and speeds v,
+    the measurements (rows,), into out (n,): numpy's operations element by element (``x ** 2`` is ``x * x``; the wrap
+    is ``(a + pi) % (2 pi) - pi``, Python's float modulo being numpy's; a term left out subtracts 0.0)."""
+    two_pi = 2.0 * math.pi
+    for n in range(x.shape[0]):
+        r = n // n_per_row
+        dx = x[n] - x_obs[r]
+        dy = y[n] - y_obs[r]
+        value = -0.5 * (dx * dx + dy * dy) / position_var
+        ok = heading_ok[r]
+        error = ((heading_obs[r] if ok else 0.0) - heading[n] + math.pi) % two_pi - math.pi
+        q = error / heading_sigma
+        value = value - (0.5 * (q * q) if ok else 0.0)
+        ok = speed_ok[r]
+        error = (speed_obs[r] if ok else 0.0) - v[n]
+        q = error / speed_sigma
+        out[n] = value - (0.5 * (q * q) if ok else 0.0)
+
+
+def _switch_routes(route, s_m, n_slots, first_pair, switch_s, u_switch, u_choice, per_step, n_max, n_pairs, new_route, new_s):
+    """`model.switch_routes` of particles route, s_m (V, N) into new_route, new_s; 1 if any particle switched, 0 if none,
+    -1 where the numpy path must decide (a slot outside the vehicle's corridors)."""
+    n_rows, n = route.shape
+    eligible = np.zeros(n_max, np.bool_)
+    order = np.empty(n_max, np.int64)
+    rank = np.empty(n_max, np.int64)
+    moved = 0
+    for v in range(n_rows):
+        first = first_pair[v]
+        count = 0
+        for k in range(n_max):
+            pair = min(first + k, n_pairs - 1)
+            ok = k < n_slots[v] and math.isfinite(switch_s[pair])
+            eligible[k] = ok
+            count += ok
+        i = 0  # eligible slots first, in slot order (np.argsort(~eligible, kind="stable")), then the others
+        for k in range(n_max):
+            if eligible[k]:
+                order[i] = k
+                i += 1
+        for k in range(n_max):
+            if not eligible[k]:
+                order[i] = k
+                i += 1
+        for i in range(n_max):
+            rank[order[i]] = i
+        cap = max(count - 2, 0)
+        for m in range(n):
+            r = route[v, m]
+            if r < 0 or r >= n_max:
+                return -1
+            new_route[v, m] = r
+            new_s[v, m] = s_m[v, m]
+            if not (u_switch[v, m] < per_step[v]) or not eligible[r] or count < 2:
+                continue
+            j = min(int(u_choice[v, m] * (count - 1)), cap)
+            if j >= rank[r]:
+                j += 1
+            to = order[min(j, n_max - 1)]
+            new_route[v, m] = to
+            new_s[v, m] = s_m[v, m] - switch_s[first + r] + switch_s[first + to]
+            moved = 1
+    return moved
+
+
+def _pair_sums(g, w, values, stop, mass, count, sums, squares, stop_sum):
+    """Per pair (bin of `g`): sum of w, count, sum of w·x and of (w·x)·x for each row x of `values` (F, n), sum of
+    w·stop, each added particle by particle in order (``np.bincount(g, weights)``: out[g[i]] += weights[i])."""
+    for i in range(g.shape[0]):
+        k = g[i]
+        wi = w[i]
+        mass[k] += wi
+        count[k] += 1
+        for f in range(values.shape[0]):
+            x = values[f, i]
+            wx = wi * x
+            sums[f, k] += wx
+            squares[f, k] += wx * x
+        stop_sum[k] += wi * (1.0 if stop[i] else 0.0)
 
 
 def _admissible_speed(key, start, end, s_line, v_adm, g, s_m, style, key_offset, out):
@@ -253,6 +342,9 @@ if numba is not None:
     _jit = numba.njit(cache=True, nogil=True, fastmath=False, boundscheck=False)
     _locate_one = _jit(_locate_one)
     _pose_compiled = _jit(_pose)
+    _gaussian_errors_compiled = _jit(_gaussian_errors)
+    _switch_routes_compiled = _jit(_switch_routes)
+    _pair_sums_compiled = _jit(_pair_sums)
     _admissible_speed_compiled = _jit(_admissible_speed)
     _admissible_speeds_compiled = _jit(_admissible_speeds)
     _intend_and_move_compiled = _jit(_intend_and_move)
@@ -264,6 +356,9 @@ else:  # pragma: no cover
     _intend_and_move_compiled = None
     _admissible_speeds_compiled = None
     _pose_compiled = None
+    _gaussian_errors_compiled = None
+    _switch_routes_compiled = None
+    _pair_sums_compiled = None
     _admissible_speed_compiled = None
 
 
@@ -282,6 +377,71 @@ def pose(tables, g: np.ndarray, s_m: np.ndarray, d_m: np.ndarray, key_offset_m: 
     _pose_compiled(tables.key, tables.start, tables.end, tables.s_m, tables.x_m, tables.y_m, tables.heading_rad, gf, sf, df,
                    float(key_offset_m), out_x, out_y, out_h)
     return out_x.reshape(shape), out_y.reshape(shape), out_h.reshape(shape)
+
+
+def gaussian_errors(x, y, heading, v, z, position_sigma_m: float, heading_sigma_rad: float, speed_sigma_mps: float):
+    """`model.log_likelihood`'s sum of terms from poses x, y, heading and speeds v (V, N) and the measurements `z` =
+    (x, y, heading, speed, heading_ok, speed_ok) (V,); None: take the numpy path (no numba, other shapes or dtypes)."""
+    if _gaussian_errors_compiled is None:
+        return None
+    x_obs, y_obs, heading_obs, speed_obs, heading_ok, speed_ok = (np.asarray(a) for a in z)
+    arrays = (x, y, heading, v)
+    if any(type(a) is not np.ndarray or a.dtype != np.float64 or a.ndim != 2 or a.shape != x.shape for a in arrays):
+        return None
+    rows = (x.shape[0],)
+    if any(a.dtype != np.float64 or a.shape != rows for a in (x_obs, y_obs, heading_obs, speed_obs)):
+        return None
+    if any(a.dtype != np.bool_ or a.shape != rows for a in (heading_ok, speed_ok)):
+        return None
+    out = np.empty(x.shape)
+    flat = [np.ascontiguousarray(a).reshape(-1) for a in arrays]
+    _gaussian_errors_compiled(*flat, *(np.ascontiguousarray(a) for a in (x_obs, y_obs, heading_obs, heading_ok, speed_obs, speed_ok)),
+                              max(x.shape[1], 1), float(position_sigma_m) ** 2, float(heading_sigma_rad), float(speed_sigma_mps),
+                              out.reshape(-1))
+    return out
+
+
+def switch_routes(route, s_m, tables, first_pair, u_switch, u_choice, per_step, n_max: int):
+    """`model.switch_routes` after its early return: (new route, new s) (V, N) when a particle switches, () when none
+    does; None: take the numpy path (no numba, other dtypes or shapes, a slot outside the vehicle's corridors)."""
+    if _switch_routes_compiled is None:
+        return None
+    shape = route.shape
+    if route.dtype != np.int64 or s_m.dtype != np.float64 or route.ndim != 2 or s_m.shape != shape:
+        return None
+    u_switch = np.asarray(u_switch, dtype=np.float64)
+    u_choice = np.asarray(u_choice, dtype=np.float64)
+    if u_switch.shape != shape or u_choice.shape != shape or tables.switch_s_m.dtype != np.float64:
+        return None
+    new_route = np.empty(shape, np.int64)
+    new_s = np.empty(shape)
+    moved = _switch_routes_compiled(
+        np.ascontiguousarray(route), np.ascontiguousarray(s_m), np.ascontiguousarray(tables.n_slots, dtype=np.int64),
+        np.ascontiguousarray(first_pair, dtype=np.int64), np.ascontiguousarray(tables.switch_s_m), np.ascontiguousarray(u_switch),
+        np.ascontiguousarray(u_choice), np.ascontiguousarray(per_step, dtype=np.float64), int(n_max), int(tables.n_pairs), new_route, new_s)
+    if moved < 0:
+        return None
+    return (new_route, new_s) if moved else ()
+
+
+def pair_sums(g: np.ndarray, w: np.ndarray, values: list[np.ndarray], stop: np.ndarray, n_pairs: int):
+    """(mass, count, sums (F, G), squares (F, G), stop sum) of flat particles g (int64), w, each of `values` (float64)
+    and stop (bool), (n,) each: what ``np.bincount(g, w)``, ``np.bincount(g)``, ``np.bincount(g, w * x)``,
+    ``np.bincount(g, w * x * x)`` and ``np.bincount(g, w * stop)`` give with minlength `n_pairs`; None: numpy."""
+    if _pair_sums_compiled is None:
+        return None
+    n = g.shape[0]
+    if (g.dtype != np.int64 or w.dtype != np.float64 or stop.dtype != np.bool_ or g.ndim != 1 or w.shape != (n,) or stop.shape != (n,)
+            or any(x.dtype != np.float64 or x.shape != (n,) for x in values)):
+        return None
+    if not n or int(g.min()) < 0 or int(g.max()) >= n_pairs:
+        return None  # bincount would grow (or refuse), or answer int64 zeros for no particles: numpy
+    stacked = np.stack(values) if values else np.zeros((0, n))
+    mass, count = np.zeros(n_pairs), np.zeros(n_pairs, np.int64)
+    sums, squares, stop_sum = np.zeros((len(values), n_pairs)), np.zeros((len(values), n_pairs)), np.zeros(n_pairs)
+    _pair_sums_compiled(np.ascontiguousarray(g), np.ascontiguousarray(w), stacked, np.ascontiguousarray(stop), mass, count, sums,
+                        squares, stop_sum)
+    return mass, count, sums, squares, stop_sum
 
 
 def admissible_speed(tables, g: np.ndarray, s_m: np.ndarray, style: np.ndarray, key_offset_m: float):
@@ -401,4 +561,11 @@ def warm_up() -> None:
     _Table.conflict_other_time_s = np.ones((1, 1))
     _Table.conflict_weight = np.ones((1, 1))
     conflict_stop(_Table, one, zero, zero, 1.0, lambda gap, w: 1.0 - w * gap)
+    row, yes = np.zeros(1), np.ones(1, bool)
+    gaussian_errors(zero, zero, zero, zero, (row, row, row, row, yes, yes), 1.0, 1.0, 1.0)
+    _Table.n_slots = np.array([2])
+    _Table.switch_s_m = np.zeros(2)
+    _Table.n_pairs = 2
+    switch_routes(one, zero, _Table, np.zeros(1, np.int64), zero, zero, np.ones(1), 2)
+    pair_sums(np.zeros(1, np.int64), np.ones(1), [np.zeros(1)] * 3, np.zeros(1, bool), 1)
     _warm = True

@@ -166,6 +166,12 @@ def switch_routes(p: Particles, tables: PairTables, first_pair: np.ndarray, dt_s
     n_max = int(tables.n_slots.max()) if n_vehicles else 0
     if n_max < 2:
         return
+    switch_p = per_step(mp.route_switch_per_step, dt_s)
+    found = kernels.switch_routes(p.route, p.s_m, tables, first_pair, u_switch, u_choice, switch_p, n_max)
+    if found is not None:  # compiled: the same switches and s (tests/stages/test_intentions.py)
+        if found:
+            p.route, p.s_m = found
+        return
     slot = np.arange(n_max)[None, :]
     pair = np.minimum(first_pair[:, None] + slot, tables.n_pairs - 1)
     eligible = (slot < tables.n_slots[:, None]) & np.isfinite(tables.switch_s_m[pair])
@@ -174,7 +180,7 @@ def switch_routes(p: Particles, tables: PairTables, first_pair: np.ndarray, dt_s
     rank = np.argsort(order, axis=1, kind="stable")
     rows = np.arange(n_vehicles)[:, None]
     current_ok = eligible[rows, p.route]
-    go = (u_switch < per_step(mp.route_switch_per_step, dt_s)[:, None]) & current_ok & (n_eligible[:, None] >= 2)
+    go = (u_switch < switch_p[:, None]) & current_ok & (n_eligible[:, None] >= 2)
     if not go.any():
         return
     j = np.minimum((u_choice * (n_eligible[:, None] - 1)).astype(np.int64), np.maximum(n_eligible[:, None] - 2, 0))
@@ -262,6 +268,9 @@ def log_likelihood(p: Particles, tables: PairTables, first_pair: np.ndarray, z, 
     x_obs, y_obs, heading_obs, speed_obs, heading_ok, speed_ok = z
     g = first_pair[:, None] + p.route
     x, y, heading = tables.pose(g, p.s_m, p.d_m)
+    found = kernels.gaussian_errors(x, y, heading, p.v_mps, z, mp.position_sigma_m, mp.heading_sigma_rad, mp.speed_sigma_mps)
+    if found is not None:  # compiled: the same bits as below (tests/stages/test_intentions.py)
+        return found
     position2 = (x - x_obs[:, None]) ** 2 + (y - y_obs[:, None]) ** 2
     out = -0.5 * position2 / mp.position_sigma_m**2
     heading_error = wrap_angle_rad(np.where(heading_ok, heading_obs, 0.0)[:, None] - heading)
@@ -322,7 +331,12 @@ def stratified_resample(
     order = np.argsort(-remainder, axis=1, kind="stable")
     rank = np.argsort(order, axis=1, kind="stable")
     alloc += (rank < left[:, None]) & usable
-    sort = np.argsort(flat_key, kind="stable")
+    # the stable order of the group ids: rows are contiguous in `flat_key`, so it is each row's stable order of its slots
+    # (offset by the row's start); slots fit int8, whose stable argsort is numpy's radix sort (the same permutation)
+    if n_max <= 127 and n_rows:
+        sort = (np.argsort(route.astype(np.int8), axis=1, kind="stable") + (np.arange(n_rows) * n)[:, None]).ravel()
+    else:
+        sort = np.argsort(flat_key, kind="stable")
     sorted_key = flat_key[sort]
     sorted_w = flat_w[sort]
     group_mass = mass.ravel()[sorted_key]

@@ -235,8 +235,9 @@ def build_tables(
     n_pairs = len(pair_vehicle)
     lengths = np.array([len(s) for s in s_parts], dtype=np.int64)
     start = np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64) if n_pairs else np.zeros(0, np.int64)
-    key = np.concatenate([s + k * KEY_OFFSET_M for k, s in enumerate(s_parts)]) if n_pairs else np.zeros(0)
     s_all = np.concatenate(s_parts) if n_pairs else np.zeros(0)
+    # s + g·offset per pair g (g·offset as the double Python's int * float gives, added sample by sample: the same sums)
+    key = s_all + np.repeat(np.arange(n_pairs, dtype=np.int64) * KEY_OFFSET_M, lengths) if n_pairs else np.zeros(0)
     if n_pairs:
         k_all = np.concatenate(k_parts)
         v_adm = kernels.admissible_speeds(s_all, k_all, lengths, limits, lat_accels_mps2, brake_lookahead_mps2, curvature_smoothing_m,
@@ -257,7 +258,8 @@ def build_tables(
     conflict_t = np.full((n_pairs, max(n_conf, 1)), np.nan)
     conflict_w = np.zeros((n_pairs, max(n_conf, 1)))
     for k, (cs, ct, cw) in enumerate(conflicts):
-        conflict_s[k, : len(cs)], conflict_t[k, : len(cs)], conflict_w[k, : len(cs)] = cs, ct, cw
+        if len(cs):  # (an empty row stays padding)
+            conflict_s[k, : len(cs)], conflict_t[k, : len(cs)], conflict_w[k, : len(cs)] = cs, ct, cw
     entry_s = np.asarray(entry, dtype=np.float64)
     cat = (lambda parts: np.concatenate(parts)) if n_pairs else (lambda parts: np.zeros(0))
     return PairTables(
@@ -300,19 +302,27 @@ def unwrap_parts(parts: Sequence[np.ndarray]) -> np.ndarray:
     return out
 
 
+_NO_CONFLICTS = tuple(np.zeros(0) for _ in range(3))
+for _a in _NO_CONFLICTS:
+    _a.flags.writeable = False
+
+
 def _priority_conflicts(rel: CorridorRelations | None, route_probabilities: Mapping[tuple[int, int], float]):
-    """(s*, T', P(R = other corridor)) of the conflicts where the other corridor has priority (c,)."""
+    """(s*, T', P(R = other corridor)) of the conflicts where the other corridor has priority (c,) (read only when empty)."""
     if rel is None or not len(rel.conflict_priority):
-        return np.zeros(0), np.zeros(0), np.zeros(0)
+        return _NO_CONFLICTS
     priority, s_star, t_other = rel.conflict_priority, rel.conflict_s_m, rel.conflict_other_time_s
     if len(priority) == len(s_star) == len(t_other):  # on Python numbers: few conflicts per pair
         keep = [k for k, (pr, s, t) in enumerate(zip(np.asarray(priority).tolist(), np.asarray(s_star, np.float64).tolist(),
                                                      np.asarray(t_other, np.float64).tolist())) if pr < 0 and math.isfinite(s) and math.isfinite(t)]
     else:  # numpy's broadcasting (or its error) as before
         keep = np.flatnonzero((np.asarray(priority) < 0) & np.isfinite(s_star) & np.isfinite(t_other)).tolist()
-    weights = np.array(
-        [route_probabilities.get((int(rel.conflict_track_ids[k]), int(rel.conflict_corridor_ids[k])), 1.0) for k in keep], dtype=np.float64
-    )
+    if not keep:
+        return _NO_CONFLICTS
+    tracks, corridors = rel.conflict_track_ids, rel.conflict_corridor_ids
+    if type(tracks) is np.ndarray and type(corridors) is np.ndarray and tracks.dtype.kind in "iu" and corridors.dtype.kind in "iu":
+        tracks, corridors = tracks.tolist(), corridors.tolist()  # Python ints: what int() of each element gives
+    weights = np.array([route_probabilities.get((int(tracks[k]), int(corridors[k])), 1.0) for k in keep], dtype=np.float64)
     index = np.asarray(keep, dtype=np.int64)
     return np.asarray(rel.conflict_s_m, np.float64)[index], np.asarray(rel.conflict_other_time_s, np.float64)[index], weights.reshape(-1)
 

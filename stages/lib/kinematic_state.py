@@ -80,6 +80,7 @@ Pure: numpy and the standard library; time comes from the frames' stamps.
 
 from __future__ import annotations
 
+import bisect
 import collections
 import math
 from dataclasses import dataclass, field
@@ -217,6 +218,27 @@ def disagreement_line(c: Consistency, config: EstimatorConfig) -> str | None:
     )
 
 
+_add_reduce = np.add.reduce
+
+
+def _sorted_percentile(values: list[float], q: int, *, median: bool = False) -> float:
+    """``np.percentile(values, q)`` (method linear) of sorted finite non-zero floats, or with `median` ``np.median``,
+    with numpy's arithmetic: the virtual index (n − 1)·q/100, its floor and fraction t, then a + (b − a)·t, or for t >=
+    0.5 b − (b − a)·(1 − t); the median the middle value or (a + b) / 2 (of non-zero b, numpy's mean of two)."""
+    n = len(values)
+    if median:
+        half = n // 2
+        return values[half] if n % 2 else (values[half - 1] + values[half]) / 2.0
+    virtual = (n - 1) * (q / 100)
+    if virtual >= n - 1:
+        return values[-1]
+    lo = math.floor(virtual)
+    t = virtual - lo
+    a, b = values[lo], values[lo + 1]
+    diff = b - a
+    return b - diff * (1.0 - t) if t >= 0.5 else a + diff * t
+
+
 def _median(values: list[float]) -> float:
     """``np.median`` of a few finite floats without an array: the middle value, or the mean of the middle two as
     numpy takes it ((a + b) / 2); NaN if any value is (numpy's answer then)."""
@@ -247,6 +269,10 @@ class Calibration:
         self._next = 0
         self._tracks: collections.deque = collections.deque(maxlen=config.calibration_window)
         self._per_track: dict[int, int] = {}
+        # per column (factor, cosine): the window's finite non-zero values kept sorted, and a count of its others (NaN,
+        # infinite, ±0.0): where there are none the quantiles are read off the sorted values (`_refresh`)
+        self._sorted: tuple[list[float], list[float]] = ([], [])
+        self._others = [0, 0]
         self._dirty = 0
         self.factor = math.nan
         self.cosine = math.nan
@@ -262,13 +288,28 @@ class Calibration:
                 del self._per_track[leaving]
         self._tracks.append(track_id)
         self._per_track[track_id] = self._per_track.get(track_id, 0) + 1
-        self._values[self._next, 0] = factor
-        self._values[self._next, 1] = cosine
+        full = self._count == len(self._values)
+        for column, value in enumerate((factor, cosine)):
+            value = float(np.float64(value))  # as the window holds it
+            if full:  # the slot's old value leaves the window
+                self._forget(column, float(self._values[self._next, column]))
+            if math.isfinite(value) and value != 0.0:
+                bisect.insort(self._sorted[column], value)
+            else:
+                self._others[column] += 1
+            self._values[self._next, column] = value
         self._next = (self._next + 1) % len(self._values)
         self._count = min(self._count + 1, len(self._values))
         self._dirty += 1
         if self._dirty >= 10 or not self.trusted:
             self._refresh()
+
+    def _forget(self, column: int, value: float) -> None:
+        if math.isfinite(value) and value != 0.0:
+            values = self._sorted[column]
+            del values[bisect.bisect_left(values, value)]  # an equal finite non-zero float: the same bits
+        else:
+            self._others[column] -= 1
 
     def _refresh(self) -> None:
         cfg = self.config
@@ -276,9 +317,12 @@ class Calibration:
         if self._count < cfg.calibration_min_samples or len(self._per_track) < cfg.calibration_min_tracks:
             return
         arr = self._values[: self._count]
-        q1, med, q3 = np.percentile(arr[:, 0], [25, 50, 75])
+        if self._others[0]:  # NaN, inf or a signed zero among them: numpy decides
+            q1, med, q3 = np.percentile(arr[:, 0], [25, 50, 75])
+        else:
+            q1, med, q3 = (_sorted_percentile(self._sorted[0], q) for q in (25, 50, 75))
         self.factor = float(med)
-        self.cosine = float(np.median(arr[:, 1]))
+        self.cosine = float(np.median(arr[:, 1])) if self._others[1] else _sorted_percentile(self._sorted[1], 50, median=True)
         self.trusted = bool(0.2 <= med <= 5.0 and abs(self.cosine) >= 0.9 and (q3 - q1) <= cfg.calibration_max_spread * med)
 
     def apply(self, vx: float, vy: float) -> tuple[float, float] | None:
@@ -448,11 +492,13 @@ class KinematicEstimator:
         pts = [(t, v) for t, _, _, v, *_ in track.recent if t_now - t <= window_ns and math.isfinite(v)]
         if len(pts) < 3:
             return 0.0
+        n = len(pts)
         t = np.array([p[0] for p in pts], dtype=np.float64) * _NS
         v = np.array([p[1] for p in pts])
-        t -= t.mean()
+        # x.mean() is add.reduce(x) / n (numpy's float64 mean: the pairwise sum, then one division), without its overhead
+        t -= _add_reduce(t) / n
         denom = float(np.dot(t, t))
-        return float(np.dot(t, v - v.mean()) / denom) if denom > 0 else 0.0
+        return float(np.dot(t, v - _add_reduce(v) / n) / denom) if denom > 0 else 0.0
 
     # ----- reported velocity as evidence ------------------------------------------
 

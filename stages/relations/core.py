@@ -274,18 +274,26 @@ def _checked_batch(corridors: list[Corridor], tables: SceneTables | None) -> dic
     shaped = np.array([_shaped(c) for c in corridors], dtype=bool)
     fields = [a for c in corridors for a in (c.x_m, c.y_m, c.s_m, c.heading_rad, c.width_m, c.lanelet_start_s_m)]
     sizes = np.array([len(a) for a in fields], dtype=np.int64).reshape(len(corridors), 6).sum(axis=1)
-    bad = np.concatenate([[0], np.cumsum(~np.isfinite(np.concatenate(fields).astype(np.float64, copy=False)))])
-    ends = np.cumsum(sizes)
-    finite = bad[ends] == bad[ends - sizes]
+    nonfinite = ~np.isfinite(np.concatenate(fields).astype(np.float64, copy=False))
+    if nonfinite.any():  # which corridors hold them: counts before each corridor's end and start
+        bad = np.concatenate([[0], np.cumsum(nonfinite)])
+        ends = np.cumsum(sizes)
+        finite = bad[ends] == bad[ends - sizes]
+    else:
+        finite = np.ones(len(corridors), dtype=bool)
     # s: increasing (no step back) and of positive length
     s_len = np.array([len(c.s_m) for c in corridors], dtype=np.int64)
     s_all = np.concatenate([np.asarray(c.s_m, np.float64) for c in corridors])
     s_end = np.cumsum(s_len)
     s_start = s_end - s_len
-    back = np.concatenate([[0], np.cumsum(np.diff(s_all) < 0.0)])
+    steps_back = np.diff(s_all) < 0.0
     has = s_len > 0
     s_ok = np.zeros(len(corridors), dtype=bool)
-    s_ok[has] = back[s_end[has] - 1] == back[s_start[has]]  # steps back inside a corridor (not across the joins)
+    if steps_back.any():
+        back = np.concatenate([[0], np.cumsum(steps_back)])
+        s_ok[has] = back[s_end[has] - 1] == back[s_start[has]]  # steps back inside a corridor (not across the joins)
+    else:
+        s_ok[has] = True
     s_ok[has] &= (s_all[s_end[has] - 1] - s_all[s_start[has]]) > 0.0
     sound = shaped & finite & s_ok
     if tables is not None:
@@ -299,6 +307,9 @@ def _checked_batch(corridors: list[Corridor], tables: SceneTables | None) -> dic
         follows = np.ones(len(corridors), dtype=bool)
         follows[long] = breaks[k_end[long] - 1] == breaks[k_start[long]]
     out = {}
+    sound = sound.tolist()
+    if tables is not None:
+        k_start, k_end, follows = k_start.tolist(), k_end.tolist(), follows.tolist()
     for i, corridor in enumerate(corridors):
         problem = None if sound[i] else _corridor_problem(corridor)
         if problem is not None:
@@ -306,7 +317,7 @@ def _checked_batch(corridors: list[Corridor], tables: SceneTables | None) -> dic
         elif tables is None:
             out[id(corridor)] = (None, _EMPTY_I64, True)
         else:
-            out[id(corridor)] = (None, all_index[k_start[i] : k_end[i]], bool(follows[i]))
+            out[id(corridor)] = (None, all_index[k_start[i] : k_end[i]], follows[i])
     return out
 
 
@@ -412,14 +423,16 @@ class RelationExtractor:
         if conflicts is not None and len(conflicts.g):
             try:
                 owners = self._conflict_owners(pairs, conflicts, route_probabilities)
+                owners = (owners[0].tolist(), owners[1].tolist(), owners[2], owners[3])  # Python ints, read pair by pair
             except Exception:  # noqa: BLE001 - then pair by pair (`_relations`), where a failure costs one pair's relation
                 owners = None
+        columns = [(name, getattr(conflicts, name)) for name in _Conflicts.__dataclass_fields__] if conflicts is not None else None
         for pair in pairs:
             try:
                 lateral = self._lateral(pair, objects, projected, batched)
                 crossings = self._intersections(pair, tables)
                 span = slice(starts[pair.g], starts[pair.g + 1]) if starts is not None else slice(0, 0)
-                rel = self._relations(pair, pairs, objects, lateral, crossings, conflicts, span, route_probabilities, owners)
+                rel = self._relations(pair, pairs, objects, lateral, crossings, conflicts, span, route_probabilities, owners, columns)
                 relations.append(self._with_signal(rel, pair, smap, state))
             except Exception as exc:  # noqa: BLE001 - one pair's failure costs only its relation
                 issues.append(Issue("pair_failed", pair.vehicle.track_id, f"corridor {pair.corridor.corridor_id}: {type(exc).__name__}: {exc}: no relation"))
@@ -874,17 +887,22 @@ class RelationExtractor:
         )
         return index, rule, track_of[conflicts.other_g], corridor_of[conflicts.other_g]
 
-    def _relations(self, pair, pairs, objects, lateral, crossings, conflicts, span, route_probabilities, owners=None) -> CorridorRelations:
+    def _relations(self, pair, pairs, objects, lateral, crossings, conflicts, span, route_probabilities, owners=None,
+                   columns=None) -> CorridorRelations:
         """One corridor's message part, with the influencing conflict chosen by the rules.
 
         `owners` is `_conflict_owners`' result for the frame (taken when
         given); the pair-by-pair code here is its reference and fallback.
+        `columns`: (name, array) of every `_Conflicts` field, read once per
+        frame (else read here).
         """
         rows, s, d, gap, along, leader = lateral
         corridor = pair.corridor
         isect_ids, entry, exit_, entry_lanelets = crossings
         if conflicts is not None and span.stop > span.start:
-            c = {name: getattr(conflicts, name)[span] for name in _Conflicts.__dataclass_fields__}
+            if columns is None:
+                columns = [(name, getattr(conflicts, name)) for name in _Conflicts.__dataclass_fields__]
+            c = {name: values[span] for name, values in columns}
         else:
             c = None
         if c is not None and owners is not None:

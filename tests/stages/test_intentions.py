@@ -620,6 +620,176 @@ def test_compiled_propagation_equals_the_numpy_one(frames, monkeypatch, relaxati
     assert checked >= 3
 
 
+def test_compiled_log_likelihood_equals_the_numpy_one(frames, monkeypatch):
+    """model.log_likelihood with the compiled terms (kernels.gaussian_errors) gives its numpy path's values bit for bit
+    (signs of zeros too): usable and unusable headings and speeds, NaN and infinite measurements and states."""
+    from stages.intentions import kernels, model
+    from stages.intentions.model import Particles
+    from stages.intentions.tables import VehicleInput, build_tables
+
+    if not kernels.available():
+        pytest.skip("numba not importable")
+    mp = IntentionsConfig().model_params()
+    rng = np.random.default_rng(17)
+    checked = 0
+    for item in frames[WINDOW][::10]:
+        vehicles = [VehicleInput(v.track_id, tuple(v.corridors), int(v.lanelet_id)) for v in item.corridor_set.vehicles if v.corridors]
+        if not vehicles:
+            continue
+        tables = build_tables(vehicles, {}, {}, lat_accels_mps2=(3.0, 2.0), brake_lookahead_mps2=2.5, curvature_smoothing_m=1.0,
+                              default_speed_limit_mps=13.9, stop_offset_m=14.0)
+        n_rows, n = len(vehicles), 150
+        route = rng.integers(0, tables.n_slots[:, None], (n_rows, n))
+        g = tables.first_pair[:, None] + route
+        p = Particles(
+            route=route, s_m=tables.vehicle_s_m[g] + rng.normal(0.0, 20.0, (n_rows, n)), d_m=rng.normal(0.0, 0.5, (n_rows, n)),
+            v_mps=np.maximum(rng.normal(6.0, 5.0, (n_rows, n)), 0.0), a_mps2=np.zeros((n_rows, n)),
+            stop=np.zeros((n_rows, n), bool), style=np.zeros((n_rows, n), np.int64), p_expected_stop=np.zeros((n_rows, n)),
+            weight=np.full((n_rows, n), 1.0 / n),
+        )
+        p.v_mps[0, :6] = [np.nan, np.inf, -0.0, 0.0, 1e300, 5e-324]
+        p.d_m[0, 6:9] = [np.nan, -np.inf, 1e300]
+        x_obs = tables.x_m[tables.start[tables.first_pair]] + rng.normal(0.0, 3.0, n_rows)
+        y_obs = tables.y_m[tables.start[tables.first_pair]] + rng.normal(0.0, 3.0, n_rows)
+        heading_obs = rng.uniform(-4.0, 4.0, n_rows)
+        speed_obs = rng.uniform(0.0, 15.0, n_rows)
+        heading_ok, speed_ok = rng.random(n_rows) < 0.7, rng.random(n_rows) < 0.7
+        if n_rows > 1:
+            x_obs[1], heading_obs[1], speed_obs[1] = np.nan, np.inf, np.nan
+            heading_ok[1] = speed_ok[1] = True
+        z = (x_obs, y_obs, heading_obs, speed_obs, heading_ok, speed_ok)
+        with np.errstate(all="ignore"):
+            got = model.log_likelihood(p, tables, tables.first_pair, z, mp)
+            monkeypatch.setattr(kernels, "gaussian_errors", lambda *args, **kwargs: None)
+            want = model.log_likelihood(p, tables, tables.first_pair, z, mp)
+            monkeypatch.undo()
+        assert np.array_equal(got, want, equal_nan=True) and np.array_equal(np.signbit(got), np.signbit(want))
+        assert np.isfinite(want).sum() > want.size // 2
+        checked += 1
+    assert checked >= 3
+
+
+def test_compiled_route_switches_equal_the_numpy_ones(frames, monkeypatch):
+    """model.switch_routes through kernels.switch_routes switches the same particles to the same corridors with the same
+    s as its numpy path, bit for bit: frequent and rare switches, vehicles with one corridor, corridors without the
+    vehicle's lanelet (NaN switch s), and none at all (the particles' arrays kept)."""
+    from stages.intentions import kernels, model
+    from stages.intentions.model import PARTICLE_FIELDS, Particles
+    from stages.intentions.tables import VehicleInput, build_tables
+
+    if not kernels.available():
+        pytest.skip("numba not importable")
+    rng = np.random.default_rng(19)
+    checked = 0
+    for item in frames[WINDOW][::10]:
+        vehicles = [VehicleInput(v.track_id, tuple(v.corridors), int(v.lanelet_id)) for v in item.corridor_set.vehicles if v.corridors]
+        if not vehicles or max(len(v.corridors) for v in vehicles) < 2:
+            continue
+        tables = build_tables(vehicles, {}, {}, lat_accels_mps2=(3.0, 2.0), brake_lookahead_mps2=2.5, curvature_smoothing_m=1.0,
+                              default_speed_limit_mps=13.9, stop_offset_m=14.0)
+        switch_s = tables.switch_s_m.copy()
+        switch_s[rng.random(switch_s.size) < 0.2] = np.nan
+        tables = dataclasses.replace(tables, switch_s_m=switch_s)
+        n_rows, n = len(vehicles), 200
+        route = rng.integers(0, tables.n_slots[:, None], (n_rows, n))
+        for rate in (0.6, 0.005, 0.0):
+            mp = dataclasses.replace(IntentionsConfig().model_params(), route_switch_per_step=rate)
+            start = Particles(
+                route=route.copy(), s_m=rng.normal(30.0, 20.0, (n_rows, n)), d_m=np.zeros((n_rows, n)), v_mps=np.zeros((n_rows, n)),
+                a_mps2=np.zeros((n_rows, n)), stop=np.zeros((n_rows, n), bool), style=np.zeros((n_rows, n), np.int64),
+                p_expected_stop=np.zeros((n_rows, n)), weight=np.full((n_rows, n), 1.0 / n),
+            )
+            dt = rng.uniform(0.02, 0.1, n_rows)
+            u_switch, u_choice = rng.random((n_rows, n)), rng.random((n_rows, n))
+            runs = []
+            for compiled in (True, False):
+                p = Particles(*(getattr(start, name).copy() for name in PARTICLE_FIELDS))
+                if not compiled:
+                    monkeypatch.setattr(kernels, "switch_routes", lambda *args, **kwargs: None)
+                before = (p.route, p.s_m)
+                model.switch_routes(p, tables, tables.first_pair, dt, u_switch, u_choice, mp)
+                monkeypatch.undo()
+                runs.append((p, before))
+            (a, a_before), (b, b_before) = runs
+            assert a.route.dtype == b.route.dtype and np.array_equal(a.route, b.route)
+            assert np.array_equal(a.s_m, b.s_m, equal_nan=True) and np.array_equal(np.signbit(a.s_m), np.signbit(b.s_m))
+            switched = not np.array_equal(b.route, start.route)
+            if rate != 0.005:  # many switches at 0.6, none at 0 (at 0.005: a few or none)
+                assert switched == (rate > 0.0)
+            if not switched:  # nothing moved: the same arrays kept
+                assert a.route is a_before[0] and a.s_m is a_before[1]
+        checked += 1
+    assert checked >= 3
+
+
+def test_lost_rows_are_those_whose_median_exceeds_the_gate():
+    """_lost_rows takes medians only where at least half of a row exceeds its gate: the rows and medians are those of
+    np.median over every row (odd and even rows, exactly half above, ties at the gate, NaN, infinite and huge gates)."""
+    from stages.intentions.core import _lost_rows
+
+    rng = np.random.default_rng(31)
+    for n in (1, 2, 7, 8, 300):
+        gap = np.abs(rng.normal(0.0, 10.0, (400, n)))
+        allowed = rng.uniform(0.0, 20.0, 400)
+        for r in range(0, 400, 10):  # exactly half (or one more, one fewer) above the gate, and values at the gate
+            k = n // 2 + (r // 10) % 3 - 1
+            gap[r] = np.where(np.arange(n) < k, allowed[r] + rng.uniform(0.0, 1.0, n), allowed[r] - rng.uniform(0.0, 1.0, n))
+            if r % 20 == 0:
+                gap[r, 0] = allowed[r]
+        gap[5, 0] = np.nan
+        gap[6] = np.inf
+        allowed[7:10] = [np.inf, 1e308, np.nan]
+        gap[8] = 1e308
+        with np.errstate(invalid="ignore", over="ignore"):
+            median = np.median(gap, axis=1)
+            want = np.flatnonzero(median > allowed)
+            rows, distance = _lost_rows(gap, allowed)
+        assert np.array_equal(rows, want) and np.array_equal(distance, median[want])
+        assert 0 < len(rows) < 400
+
+
+def test_compiled_pair_sums_equal_numpys_bincounts():
+    """kernels.pair_sums (the beliefs' per-pair sums) gives np.bincount's weighted sums bit for bit (signs of zeros,
+    NaN and infinities too, empty pairs), and leaves bins outside the pairs to numpy."""
+    from stages.intentions import kernels
+
+    if not kernels.available():
+        pytest.skip("numba not importable")
+    rng = np.random.default_rng(37)
+    for n_pairs, n in ((1, 1), (5, 300), (40, 5400), (7, 0)):
+        g = rng.integers(0, max(n_pairs - 1, 1), n).astype(np.int64)  # the last pair empty
+        w = rng.random(n) ** 3
+        values = [rng.normal(0.0, 10.0 ** rng.integers(-3, 4), n) for _ in range(3)]
+        stop = rng.random(n) < 0.5
+        if n > 10:
+            w[:4] = [0.0, -0.0, 1e-300, 5e-324]
+            values[0][:6] = [np.nan, np.inf, -np.inf, -0.0, 0.0, 1e300]
+            values[1][4:8] = -0.0
+        found = kernels.pair_sums(g, w, values, stop, n_pairs)
+        if not n:  # no particles: numpy's bincount (int64 zeros even with weights)
+            assert found is None
+            continue
+        with np.errstate(all="ignore"):
+            want = (np.bincount(g, w, minlength=n_pairs), np.bincount(g, minlength=n_pairs),
+                    [np.bincount(g, w * x, minlength=n_pairs) for x in values], [np.bincount(g, w * x * x, minlength=n_pairs) for x in values],
+                    np.bincount(g, w * stop, minlength=n_pairs))
+            for a, b in zip((found[0], found[1], *found[2], *found[3], found[4]), (want[0], want[1], *want[2], *want[3], want[4])):
+                assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True) and np.array_equal(np.signbit(a), np.signbit(b))
+    assert kernels.pair_sums(np.array([0, 3]), np.ones(2), [np.ones(2)], np.zeros(2, bool), 3) is None  # a bin beyond the pairs
+
+
+def test_beliefs_without_the_pair_sums_kernel_are_the_same(frames, scene_maps, monkeypatch):
+    """The beliefs' numpy path (np.bincount field by field, where the kernel declines) publishes the same messages."""
+    from stages.intentions import kernels
+
+    part = frames[WINDOW][:12]
+    compiled, _ = run(part, scene_maps)
+    monkeypatch.setattr(kernels, "pair_sums", lambda *args, **kwargs: None)
+    plain, _ = run(part, scene_maps)
+    assert [b.encode() for b, _ in compiled] == [b.encode() for b, _ in plain]
+    assert sum(len(b.vehicles) for b, _ in plain) > 10
+
+
 def test_kernel_modules_name_the_numpy_rules_they_were_compiled_against():
     """numba's cache of a kernel module does not notice edits of stages/lib/numpy_rules.py, whose functions the kernels
     call: every module using it holds that file's digest, so that an edit there must edit (and so renew the cache of)

@@ -331,3 +331,40 @@ def test_calibration_window_ring_gives_the_figures_of_the_last_samples_in_order(
                 assert (calibration.factor, calibration.cosine, calibration.trusted) == before or math.isnan(before[0])
     assert 0 < trusted and kept > 10
     assert Calibration(EstimatorConfig(calibration_window=0)).add(1, 1.0, 1.0) is None  # a window of none keeps nothing
+
+
+def test_calibration_quantiles_from_its_sorted_window_are_numpys():
+    """The calibration reads its quantiles off its window kept sorted (numpy only while NaN, infinite or signed-zero
+    values are in it): after every sample, factor and cosine are np.percentile's and np.median's of the window bit for
+    bit, through windows with and without such values, odd and even lengths, ties."""
+    from stages.lib.kinematic_state import Calibration
+
+    rng = np.random.default_rng(29)
+    for window in (31, 40):
+        config = EstimatorConfig(calibration_window=window, calibration_min_samples=5, calibration_min_tracks=1)
+        calibration = Calibration(config)
+        history = []
+        sorted_path = numpy_path = 0
+        for k in range(600):
+            # wide magnitudes of both signs too: there the interpolation's rounding depends on numpy's formula
+            factor = float(rng.lognormal(0.0, 0.3 if k % 3 else 3.0) * (1.0 if k % 5 else -1.0))
+            cosine = float(rng.choice([0.95, 0.99, -0.2, 0.5])) if k % 7 else float(rng.lognormal(0.0, 3.0) * rng.choice([-1.0, 1.0]))
+            if 200 <= k < 260 and k % 9 == 0:
+                factor = float(rng.choice([np.nan, 0.0, -0.0, np.inf]))
+                cosine = float(rng.choice([np.nan, 0.0, -0.0, -np.inf]))
+            calibration._dirty = 10  # refresh on every sample
+            calibration.add(1, factor, cosine)
+            history.append((factor, cosine))
+            arr = np.array(history[-window:])
+            if len(arr) < 5:
+                continue
+            special = not (np.isfinite(arr).all() and (arr != 0.0).all())
+            sorted_path += not special
+            numpy_path += special
+            with np.errstate(invalid="ignore"):
+                q1, med, q3 = np.percentile(arr[:, 0], [25, 50, 75])
+                cosine_median = np.median(arr[:, 1])
+            assert np.float64(calibration.factor).tobytes() == np.float64(med).tobytes(), k
+            assert np.float64(calibration.cosine).tobytes() == np.float64(cosine_median).tobytes(), k
+            assert calibration.trusted == bool(0.2 <= med <= 5.0 and abs(cosine_median) >= 0.9 and (q3 - q1) <= config.calibration_max_spread * med)
+        assert sorted_path > 300 and numpy_path > 40

@@ -90,3 +90,25 @@ def test_compiled_window_kernel_equals_the_numpy_window_path():
     np.testing.assert_array_equal(s, [2.5, -1.0])  # the first segment extended backwards
     np.testing.assert_array_equal(d, [1.0, -2.0])
     np.testing.assert_array_equal(seg, [2, 0])
+
+
+def test_infinite_window_equals_the_projection_without_hints():
+    """`project_in_window` with window = inf (the intentions stage's `_project`) gives `project_to_polyline`'s (s, d)
+    without hints bit for bit: compiled, and through the numpy paths (NaN points, a decreasing arc, two points)."""
+    from stages.lib.maps.geometry import project_in_window
+
+    rng = np.random.default_rng(23)
+    for trial in range(40):
+        n = int(rng.integers(2, 300))
+        heading = np.cumsum(rng.normal(0.0, 0.3 if trial % 3 == 0 else 0.05, n - 1))
+        line = np.concatenate([[[0.0, 0.0]], np.cumsum(0.5 * np.column_stack([np.cos(heading), np.sin(heading)]), axis=0)])
+        arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(line, axis=0).T))]) - rng.uniform(0, 10)
+        if trial % 7 == 3:
+            arc = arc[::-1].copy()  # decreasing: the kernel declines, the numpy paths answer
+        k = int(rng.integers(1, 300))
+        points = line[rng.integers(0, n, k)] + rng.normal(0, 3.0, (k, 2))
+        points[rng.integers(0, k, 5 if trial % 5 == 0 else 0)] = np.nan
+        want = project_to_polyline(points, line, arc)
+        s, d = project_in_window(points, line, arc, 0.0, np.inf)
+        np.testing.assert_array_equal(s, want.s_m)
+        np.testing.assert_array_equal(d, want.d_m)

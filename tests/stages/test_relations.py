@@ -571,6 +571,13 @@ def test_batched_corridor_checks_equal_the_corridor_by_corridor_ones(sequence, s
         problems += problem is not None
     assert problems == 9
     assert not checked[id(broken[-2])][2] and checked[id(broken[-1])][2]  # unknown and reversed lanelets do not follow; none do
+    # only sound corridors (nothing non-finite, no step back anywhere: the checks' short cuts) give the same answers
+    checked = _checked_corridors(corridor_set, tables)
+    for corridor in sound:
+        problem, index, follows = checked[id(corridor)]
+        want = tables.indices(corridor.lanelet_ids)
+        assert problem is None and np.array_equal(index, want)
+        assert follows == bool(tables.is_successor[want[:-1], want[1:]].all())
 
 
 def _one_corridor_choice(kinds, priority, distance_m, other_distance_m, time_s, other_time_s, *, horizon_s, other_probability, min_probability):

@@ -459,6 +459,7 @@ class FeatureTracker:
             if vehicle.status == MatchStatus.MATCHED:
                 pairs.extend((c, relations.get((vehicle.track_id, c.corridor_id)), speed) for c in vehicle.corridors)
         features, failures = self._pair_features(pairs)
+        finite_rows = np.isfinite(features).all(axis=1).tolist()  # the rows to look into for non-finite features
         k = 0
         for vehicle, speed in entries:
             if speed is None:
@@ -472,17 +473,17 @@ class FeatureTracker:
             track.speeds.append(speed)
             t = np.fromiter(track.stamps, dtype=np.int64, count=len(track.stamps))
             v = np.fromiter(track.speeds, dtype=np.float64, count=len(track.speeds))
-            accel = float(np.clip(causal_acceleration(t, v, cfg.accel_window_s, cfg.accel_shrink), -cfg.accel_clip_mps2, cfg.accel_clip_mps2))
+            accel = _clip(float(causal_acceleration(t, v, cfg.accel_window_s, cfg.accel_shrink)), -cfg.accel_clip_mps2, cfg.accel_clip_mps2)
             rows: dict[int, np.ndarray] = {}
             if vehicle.status == MatchStatus.MATCHED:
                 for corridor in vehicle.corridors:
-                    failure, row = failures.get(k), features[k]
+                    failure, row, finite = failures.get(k), features[k], finite_rows[k]
                     k += 1
                     if failure is not None:
                         issues.append(Issue("pair_failed", vehicle.track_id, f"corridor {corridor.corridor_id}: features raised {type(failure).__name__}: {failure}: no row"))
                         continue
-                    bad = ~np.isfinite(row)
-                    if bad.any():
+                    if not finite:
+                        bad = ~np.isfinite(row)
                         names = [FEATURE_NAMES[int(i)] for i in _CORRIDOR_COLUMNS[bad]]
                         issues.append(Issue("nan_feature", vehicle.track_id, f"corridor {corridor.corridor_id}: non-finite {', '.join(names)}; absent value used"))
                         row[bad] = cfg.absent_row()[bad]

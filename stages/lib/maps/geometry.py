@@ -120,6 +120,9 @@ def project_in_window(points_m, polyline_m, s_m, s_hint_m, window_m: float) -> t
     For the hot loops (a vehicle on each of its routes, conflict points on
     lane-change corridors): the compiled kernel is called directly, with
     `project_to_polyline` where it declines; the values are the same bit for bit.
+    With `window_m` = inf (any finite hint) every segment is in every window:
+    the (s, d) of `project_to_polyline(points, polyline, s_m)` without hints,
+    bit for bit (the same arithmetic per segment, the first nearest wins).
     """
     points = np.atleast_2d(np.asarray(points_m, dtype=np.float64))
     line = np.asarray(polyline_m, dtype=np.float64)

@@ -50,6 +50,11 @@ def _project_window(points, line, arc, hints, window_m, out_s, out_d, out_seg):
     for k in range(n_seg):
         if not (arc[k + 1] >= arc[k]):
             return False
+    # with several points, each segment's length once per call, on first use (the same hypot of the same numbers for
+    # every point: wide windows, e.g. an infinite one, measure every segment for every point)
+    cached = n_pts > 1
+    lengths = np.empty(n_seg if cached else 0)
+    known = np.zeros(n_seg if cached else 0, np.bool_)
     for i in range(n_pts):
         h = hints[i]
         px = points[i, 0]
@@ -87,7 +92,14 @@ def _project_window(points, line, arc, hints, window_m, out_s, out_d, out_seg):
             sy = line[k, 1]
             vx = line[k + 1, 0] - sx
             vy = line[k + 1, 1] - sy
-            seg_len = math.hypot(vx, vy)
+            if not cached:
+                seg_len = math.hypot(vx, vy)
+            elif known[k]:
+                seg_len = lengths[k]
+            else:
+                seg_len = math.hypot(vx, vy)
+                lengths[k] = seg_len
+                known[k] = True
             seg_len2 = max(seg_len * seg_len, 1e-18)
             rx = px - sx
             ry = py - sy
