@@ -25,6 +25,7 @@ load; nothing is asserted.
 
     python bench/e2e_latency.py [--vehicles 0,18] [--pipeline hybrid] [--duration-s S] [--speed 1]
                                 [--source k733|k729] [--expect markov_prediction/motion_grid] [--keep DIR] [--json FILE] [--no-trace]
+                                [--set NODE.KEY=VALUE ...]
 
 Unless ``--no-trace``, the run goes with ``IAMP_HOP_TRACE`` set
 (``stages/runtime/trace.py``: each node writes one JSON line per handled
@@ -105,8 +106,10 @@ def build(n: int, source: str, work: Path, duration_s: float | None) -> tuple[Pa
 
 
 def run_pipeline(pipeline: str, data: Path | None, recording: str | None, rec: Path, speed: str, duration_s: float | None, run_id: str,
-                 trace: Path | None = None) -> float:
+                 trace: Path | None = None, sets: tuple[str, ...] = ()) -> float:
     cmd = [sys.executable, str(REPO / "launch.py"), pipeline, "--speed", speed, "--no-viewer", "--record", str(rec), "--run-id", run_id]
+    for item in sets:
+        cmd += ["--set", item]
     if data is not None:
         cmd += ["--data", str(data), "--recording", recording]
     if duration_s is not None:
@@ -389,11 +392,14 @@ def main() -> int:
     ap.add_argument("--expect", default="markov_prediction/motion_grid", help="outputs listed even when none came (comma-separated)")
     ap.add_argument("--json", default=None)
     ap.add_argument("--no-trace", action="store_true", help=f"run without the per-hop trace ({TRACE_ENV}): no decomposition table")
+    ap.add_argument("--set", action="append", default=[], metavar="NODE.KEY=VALUE",
+                    help="passed to launch.py --set (repeatable), e.g. markov_prediction.kernel_threads=1")
     args = ap.parse_args()
     work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="iamp-e2e-"))
     work.mkdir(parents=True, exist_ok=True)
-    result: dict = {"cpu_count": os.cpu_count(), "pipeline": args.pipeline, "speed": args.speed, "runs": {}}
-    print(f"e2e latency: pipeline {args.pipeline}, speed {args.speed}, {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f} at start")
+    result: dict = {"cpu_count": os.cpu_count(), "pipeline": args.pipeline, "speed": args.speed, "set": list(args.set), "runs": {}}
+    sets = "".join(f", --set {item}" for item in args.set)
+    print(f"e2e latency: pipeline {args.pipeline}{sets}, speed {args.speed}, {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f} at start")
     for n in [int(v) for v in args.vehicles.split(",") if v.strip()]:
         if n == 0:
             label, data, recording, origin = "embedded", None, None, "the launcher's embedded default scenario"
@@ -405,7 +411,7 @@ def main() -> int:
         if trace is not None:
             shutil.rmtree(trace, ignore_errors=True)
         load0 = os.getloadavg()[0]
-        wall_s = run_pipeline(args.pipeline, data, recording, rec, args.speed, args.duration_s if n == 0 else None, f"e2e{label}", trace)
+        wall_s = run_pipeline(args.pipeline, data, recording, rec, args.speed, args.duration_s if n == 0 else None, f"e2e{label}", trace, tuple(args.set))
         load1 = os.getloadavg()[0]
         res = analyse(rec, tuple(e for e in args.expect.split(",") if e))
         if trace is not None:
