@@ -293,6 +293,15 @@ def test_viewer_shows_map_vehicles_and_heat_map_in_chromium(tmp_path):
         assert inside(m["vehicles_box"], m["map_box"], slack=30), m
         assert inside(m["heat_box"], m["map_box"], slack=60), m
         assert m["heat_near_vehicles"] >= 0.8, m
+        # and it stays drawn: one complete screenshot is not enough (viser's instanced boxes used to vanish after the
+        # first frames, and its heat image to lag its position, off the road): the next five, a second apart, all
+        # show the vehicles, and in most of them the heat lies next to them (a fast car's heat at 1.2 s may not)
+        later = []
+        for _ in range(5):
+            time.sleep(1.0)
+            later.append(snapshot(browser)[1])
+        assert all(looks_drawn(x) for x in later), later
+        assert float(np.median([x["heat_near_vehicles"] for x in later])) >= 0.5, later
 
         browser.close()
         run.proc.send_signal(signal.SIGINT)
