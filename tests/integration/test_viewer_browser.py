@@ -8,7 +8,8 @@ protocol (a small websocket client: a plain ``--screenshot`` does not wait for
 the websocket and the WebGL scene), takes screenshots until the scene shows,
 and checks the colours: the dark car-lanelet fill, the car-blue boxes and the
 heat-map hues, each in the 3D canvas (left of the docked side panel), the
-heat map next to the vehicles and both on the map. The screenshot is kept as
+heat map next to the vehicles and both on the map, then that five more
+screenshots a second apart still show them. The screenshot is kept as
 ``artefacts/viewer_browser.png``.
 
 Chromium missing is a failure, not a skip: ``make test`` installs Debian's
