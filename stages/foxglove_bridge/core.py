@@ -17,8 +17,10 @@ from stages.lib.base import Issue, StageResult
 _LATEST = (("corridor_set", CorridorSet), ("corridor_predictions", CorridorPredictions), ("motion_grid", MotionGrid), ("intention_belief", IntentionBelief), ("compare_predictions", CorridorPredictions))
 
 
-RELOG_AGAIN_S = 1.0
-"""After a client subscribes to ``/map`` or ``/tf``, the map is logged at the next frame and again this long after."""
+RELOG_AFTER_S = (0.0, 1.0, 3.0, 10.0)
+"""After a client subscribes to ``/map`` or ``/tf``, the map is logged at the first frame this long after, for each
+value: at the next frame, then 1, 3 and 10 s later (a loaded machine can take more than a second to register the
+client's subscription; once in CI the client got no map at all with two tries, at 0 and 1 s)."""
 
 
 class _Listener:
@@ -26,7 +28,7 @@ class _Listener:
 
     foxglove-sdk may call ``on_subscribe`` before the client's subscription takes messages (the callback runs
     before the client's sink is registered with the channel), so a map logged at once can be lost; it is logged at
-    the next frame and once more ``RELOG_AGAIN_S`` later (``relog_due``)."""
+    the next frame and again at each later time of ``RELOG_AFTER_S`` (``relog_due``)."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
@@ -36,7 +38,7 @@ class _Listener:
         if getattr(channel, "topic", "") in ("/map", "/tf"):
             now = time.monotonic()
             with self._lock:
-                self._due += [now, now + RELOG_AGAIN_S]
+                self._due += [now + after for after in RELOG_AFTER_S]
 
     def relog_due(self, now: float) -> bool:
         """True (once per due time, several due ones at once counting once) when the map should be logged again."""

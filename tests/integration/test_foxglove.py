@@ -304,13 +304,14 @@ def test_export_refuses_truncated_foreign_and_missing_input_with_one_line(live_r
     assert "source truncated" in capsys.readouterr().out
 
 
-def test_a_map_subscription_logs_the_map_at_the_next_frame_and_once_more_later():
-    """foxglove-sdk may call on_subscribe before the subscription takes messages: the map is asked for twice."""
+def test_a_map_subscription_logs_the_map_at_the_next_frame_and_again_later():
+    """foxglove-sdk may call on_subscribe before the subscription takes messages: the map is asked for at each of RELOG_AFTER_S."""
     import time
     from types import SimpleNamespace
 
-    from stages.foxglove_bridge.core import RELOG_AGAIN_S, _Listener
+    from stages.foxglove_bridge.core import RELOG_AFTER_S, _Listener
 
+    assert RELOG_AFTER_S[0] == 0.0 and len(RELOG_AFTER_S) >= 3 and list(RELOG_AFTER_S) == sorted(RELOG_AFTER_S)
     listener = _Listener()
     listener.on_subscribe(None, SimpleNamespace(topic="/objects"))
     assert not listener.relog_due(1e12)  # other topics ask for nothing
@@ -319,6 +320,10 @@ def test_a_map_subscription_logs_the_map_at_the_next_frame_and_once_more_later()
     now = time.monotonic()
     assert listener.relog_due(now)
     assert not listener.relog_due(now)
-    assert not listener.relog_due(now + RELOG_AGAIN_S / 2)
-    assert listener.relog_due(now + RELOG_AGAIN_S + 0.01)
-    assert not listener.relog_due(now + 10 * RELOG_AGAIN_S)
+    for before, after in zip(RELOG_AFTER_S, RELOG_AFTER_S[1:]):
+        assert not listener.relog_due(now + (before + after) / 2)
+        assert listener.relog_due(now + after + 0.01)
+    assert not listener.relog_due(now + 10 * RELOG_AFTER_S[-1])
+    # frames that come late: several due times at once count once
+    listener.on_subscribe(None, SimpleNamespace(topic="/map"))
+    assert listener.relog_due(time.monotonic() + RELOG_AFTER_S[-1] + 1) and not listener.relog_due(1e12)
