@@ -522,15 +522,21 @@ def heat_t(values: np.ndarray, *, scale: str = "log", floor: float = 1e-3) -> np
     return np.clip(t, 0.0, 1.0)
 
 
+def ramp_rgba(t: np.ndarray) -> np.ndarray:
+    """RGBA uint8 of the heat ramp at positions ``t`` in [0, 1] (dark red, translucent -> yellow, nearly opaque)."""
+    t = np.asarray(t, dtype=float)
+    out = np.empty(t.shape + (4,), dtype=np.uint8)
+    for ch in range(3):
+        out[..., ch] = np.interp(t, _RAMP_T, _RAMP_RGB[:, ch]).round().astype(np.uint8)
+    out[..., 3] = (_RAMP_ALPHA[0] + (_RAMP_ALPHA[1] - _RAMP_ALPHA[0]) * t).round().astype(np.uint8)
+    return out
+
+
 def heat_colours(values: np.ndarray, *, scale: str = "log", floor: float = 1e-3) -> np.ndarray:
     """RGBA uint8 for occupancies in [0, 1]: transparent below ``floor``, then the heat ramp (log or linear in the value)."""
     v = np.clip(np.nan_to_num(np.asarray(values, dtype=float)), 0.0, 1.0)
-    t = heat_t(v, scale=scale, floor=floor)
-    out = np.zeros(v.shape + (4,), dtype=np.uint8)
-    for ch in range(3):
-        out[..., ch] = np.interp(t, _RAMP_T, _RAMP_RGB[:, ch]).round().astype(np.uint8)
-    alpha = _RAMP_ALPHA[0] + (_RAMP_ALPHA[1] - _RAMP_ALPHA[0]) * t
-    out[..., 3] = np.where(v >= floor, alpha, 0.0).round().astype(np.uint8)
+    out = ramp_rgba(heat_t(v, scale=scale, floor=floor))
+    out[..., 3] = np.where(v >= floor, out[..., 3], 0)
     return out
 
 
@@ -564,12 +570,12 @@ def grid_mesh(grid: MotionGrid, k: int | None, *, scale: str = "log", floor: flo
     corners = np.stack(
         [np.stack([x0, y0], 1), np.stack([x0 + grid.cell_m, y0], 1), np.stack([x0 + grid.cell_m, y0 + grid.cell_m], 1), np.stack([x0, y0 + grid.cell_m], 1)], axis=1
     )  # (n, 4, 2)
+    colours = ramp_rgba((np.arange(levels) + 0.5) / levels)  # each band's colour: the ramp at its middle
     out = []
     for b in np.unique(band):
         idx = np.nonzero(band == b)[0]
-        t = (b + 0.5) / levels
-        rgb = tuple(int(round(float(np.interp(t, _RAMP_T, _RAMP_RGB[:, ch])))) for ch in range(3))
-        opacity = (_RAMP_ALPHA[0] + (_RAMP_ALPHA[1] - _RAMP_ALPHA[0]) * t) / 255.0
+        rgb = tuple(int(c) for c in colours[b, :3])
+        opacity = colours[b, 3] / 255.0
         verts = np.concatenate([corners[idx], np.full((len(idx), 4, 1), z_m)], axis=2).reshape(-1, 3).astype(np.float32)
         base = (4 * np.arange(len(idx), dtype=np.uint32))[:, None, None]
         faces = (np.array([[0, 1, 2], [0, 2, 3]], dtype=np.uint32)[None] + base).reshape(-1, 3)

@@ -433,15 +433,8 @@ class ViewerApp:
         truth_colour = COMPARE_TRUTH_COLOUR if item.compare is not None else TRUTH_COLOUR  # the compare view: black truth, as in the paper
         truth = polyline_segments(list(futures.values()), truth_colour, Z_TRUTH) if view.show_ground_truth else None
         with self.server.atomic():
-            wanted = set()
-            for mesh in box_meshes(boxes):  # one plain mesh per colour (see box_meshes: not an instanced mesh)
-                key = "boxes/{}_{}_{}".format(*mesh.colour)
-                wanted.add(key)
-                self._layers[key] = scene.add_mesh_simple(
-                    f"/objects/{key}", mesh.vertices_m, mesh.faces, color=mesh.colour, flat_shading=True, cast_shadow=False, receive_shadow=False,
-                )
-            for key in [k for k in self._layers if k.startswith("boxes/") and k not in wanted]:
-                self._remove_layer(key)
+            # one plain mesh per colour (see box_meshes: not an instanced mesh)
+            self._sync_meshes("objects/boxes", {"{}_{}_{}".format(*m.colour): (m.vertices_m, m.faces, {"color": m.colour}) for m in box_meshes(boxes)})
             labels = {}
             if view.show_labels:
                 for i, tid in enumerate(boxes.track_ids):
@@ -463,16 +456,9 @@ class ViewerApp:
                 self._layers["means_at_step"] = scene.add_point_cloud("/predictions/at_step", chosen, colors=MEAN_AT_STEP_COLOUR, point_size=0.5, point_shape="circle", precision="float32")
             else:
                 self._remove_layer("means_at_step")
-            wanted = set()
-            for i, level in enumerate(heat.levels if heat is not None else ()):
-                key = f"grid/level_{i}"
-                wanted.add(key)
-                self._layers[key] = scene.add_mesh_simple(
-                    f"/{key}", level.vertices_m, level.faces, color=level.rgb, opacity=level.opacity, flat_shading=True, side="double",
-                    cast_shadow=False, receive_shadow=False,
-                )
-            for key in [k for k in self._layers if k.startswith("grid/") and k not in wanted]:
-                self._remove_layer(key)
+            levels = heat.levels if heat is not None else ()
+            self._sync_meshes("grid", {f"level_{i}": (lv.vertices_m, lv.faces, {"color": lv.rgb, "opacity": lv.opacity, "side": "double"})
+                                       for i, lv in enumerate(levels)})
             if truth is not None and len(truth):
                 self._layers["truth"] = scene.add_line_segments("/truth", truth.points_m, truth.colours, thickness=0.3)
             else:
@@ -497,6 +483,17 @@ class ViewerApp:
             "truth_complete": complete,
             "paused": view.paused,
         }
+
+    def _sync_meshes(self, prefix: str, meshes: Mapping[str, tuple[np.ndarray, np.ndarray, dict[str, Any]]]) -> None:
+        """Draw each of ``meshes`` (name -> vertices, faces, style) as the plain mesh layer ``prefix/name`` and remove
+        the layers under ``prefix/`` that are not among them (flat colours: the scene's light is ambient only)."""
+        for name, (vertices, faces, style) in meshes.items():
+            self._layers[f"{prefix}/{name}"] = self.server.scene.add_mesh_simple(
+                f"/{prefix}/{name}", vertices, faces, flat_shading=True, cast_shadow=False, receive_shadow=False, **style
+            )
+        stale = [k for k in self._layers if k.startswith(prefix + "/") and k[len(prefix) + 1 :] not in meshes]
+        for key in stale:
+            self._remove_layer(key)
 
     def _remove_layer(self, name: str) -> None:
         handle = self._layers.pop(name, None)
