@@ -8,8 +8,8 @@ protocol (a small websocket client: a plain ``--screenshot`` does not wait for
 the websocket and the WebGL scene), takes screenshots until the scene shows,
 and checks the colours: the dark car-lanelet fill, the car-blue boxes and the
 heat-map hues, each in the 3D canvas (left of the docked side panel), the
-heat map next to the vehicles and both on the map, then that five more
-screenshots a second apart still show them. The screenshot is kept as
+heat map next to the vehicles and both on the map, then that the next five
+newly drawn pictures still show them. The screenshot is kept as
 ``artefacts/viewer_browser.png``.
 
 Chromium missing is a failure, not a skip: ``make test`` installs Debian's
@@ -295,12 +295,18 @@ def test_viewer_shows_map_vehicles_and_heat_map_in_chromium(tmp_path):
         assert inside(m["heat_box"], m["map_box"], slack=60), m
         assert m["heat_near_vehicles"] >= 0.8, m
         # and it stays drawn: one complete screenshot is not enough (viser's instanced boxes used to vanish after the
-        # first frames, and its heat image to lag its position, off the road): the next five, a second apart, all
-        # show the vehicles, and in most of them the heat lies next to them (a fast car's heat at 1.2 s may not)
+        # first frames, and its heat image to lag its position, off the road): the next five new pictures (each
+        # differs from the one before: the looping source moves on) all show the vehicles, and in most of them the
+        # heat lies next to them (a fast car's heat at 1.2 s may not)
         later = []
+        last_png = png
         for _ in range(5):
-            time.sleep(1.0)
-            later.append(snapshot(browser)[1])
+            def changed(before: bytes = last_png) -> tuple[bytes, dict] | None:
+                shot = snapshot(browser)
+                return shot if shot[0] != before else None
+
+            last_png, measured = wait_until(changed, 30, "a newly drawn frame in the browser", interval_s=0.5)
+            later.append(measured)
         assert all(looks_drawn(x) for x in later), later
         assert float(np.median([x["heat_near_vehicles"] for x in later])) >= 0.5, later
 
