@@ -77,6 +77,17 @@ def without_track(track_id: int, frame, corridor_set, relation_set):
 # --------------------------------------------------------------------------- the filter on the real sequence
 
 
+def _frame_tables(items):
+    """(vehicles with corridors, their PairTables) of each frame of ``items`` that has any, with fixed table parameters."""
+    from stages.intentions.tables import VehicleInput, build_tables
+
+    for item in items:
+        vehicles = [VehicleInput(v.track_id, tuple(v.corridors), int(v.lanelet_id)) for v in item.corridor_set.vehicles if v.corridors]
+        if vehicles:
+            yield vehicles, build_tables(vehicles, {}, {}, lat_accels_mps2=(3.0, 2.0), brake_lookahead_mps2=2.5, curvature_smoothing_m=1.0,
+                                         default_speed_limit_mps=13.9, stop_offset_m=14.0)
+
+
 def test_same_input_gives_identical_beliefs_and_another_seed_differs(frames, scene_maps):
     part = frames[WINDOW]
     first, _ = run(part, scene_maps)
@@ -495,18 +506,13 @@ def test_compiled_pose_and_admissible_speed_equal_the_numpy_path(frames):
     """stages.intentions.kernels places particles on their corridors as PairTables' numpy path does, bit for bit (even
     the sign of zeros): inside, beyond either end, at the samples themselves, clipped far away, and NaN."""
     from stages.intentions import kernels
-    from stages.intentions.tables import KEY_OFFSET_M, VehicleInput, build_tables
+    from stages.intentions.tables import KEY_OFFSET_M
 
     if not kernels.available():
         pytest.skip("numba not importable")
     rng = np.random.default_rng(5)
     checked = 0
-    for item in frames[WINDOW][::6]:
-        vehicles = [VehicleInput(v.track_id, tuple(v.corridors), int(v.lanelet_id)) for v in item.corridor_set.vehicles if v.corridors]
-        if not vehicles:
-            continue
-        tables = build_tables(vehicles, {}, {}, lat_accels_mps2=(3.0, 2.0), brake_lookahead_mps2=2.5, curvature_smoothing_m=1.0,
-                              default_speed_limit_mps=13.9, stop_offset_m=14.0)
+    for vehicles, tables in _frame_tables(frames[WINDOW][::6]):
         n = 400
         g = rng.integers(0, tables.n_pairs, (3, n))
         lo, hi = tables.s_m[tables.start[g]], tables.s_m[tables.end[g] - 1]
@@ -625,19 +631,13 @@ def test_compiled_log_likelihood_equals_the_numpy_one(frames, monkeypatch):
     (signs of zeros too): usable and unusable headings and speeds, NaN and infinite measurements and states."""
     from stages.intentions import kernels, model
     from stages.intentions.model import Particles
-    from stages.intentions.tables import VehicleInput, build_tables
 
     if not kernels.available():
         pytest.skip("numba not importable")
     mp = IntentionsConfig().model_params()
     rng = np.random.default_rng(17)
     checked = 0
-    for item in frames[WINDOW][::10]:
-        vehicles = [VehicleInput(v.track_id, tuple(v.corridors), int(v.lanelet_id)) for v in item.corridor_set.vehicles if v.corridors]
-        if not vehicles:
-            continue
-        tables = build_tables(vehicles, {}, {}, lat_accels_mps2=(3.0, 2.0), brake_lookahead_mps2=2.5, curvature_smoothing_m=1.0,
-                              default_speed_limit_mps=13.9, stop_offset_m=14.0)
+    for vehicles, tables in _frame_tables(frames[WINDOW][::10]):
         n_rows, n = len(vehicles), 150
         route = rng.integers(0, tables.n_slots[:, None], (n_rows, n))
         g = tables.first_pair[:, None] + route
@@ -675,18 +675,14 @@ def test_compiled_route_switches_equal_the_numpy_ones(frames, monkeypatch):
     vehicle's lanelet (NaN switch s), and none at all (the particles' arrays kept)."""
     from stages.intentions import kernels, model
     from stages.intentions.model import PARTICLE_FIELDS, Particles
-    from stages.intentions.tables import VehicleInput, build_tables
 
     if not kernels.available():
         pytest.skip("numba not importable")
     rng = np.random.default_rng(19)
     checked = 0
-    for item in frames[WINDOW][::10]:
-        vehicles = [VehicleInput(v.track_id, tuple(v.corridors), int(v.lanelet_id)) for v in item.corridor_set.vehicles if v.corridors]
-        if not vehicles or max(len(v.corridors) for v in vehicles) < 2:
+    for vehicles, tables in _frame_tables(frames[WINDOW][::10]):
+        if max(len(v.corridors) for v in vehicles) < 2:
             continue
-        tables = build_tables(vehicles, {}, {}, lat_accels_mps2=(3.0, 2.0), brake_lookahead_mps2=2.5, curvature_smoothing_m=1.0,
-                              default_speed_limit_mps=13.9, stop_offset_m=14.0)
         switch_s = tables.switch_s_m.copy()
         switch_s[rng.random(switch_s.size) < 0.2] = np.nan
         tables = dataclasses.replace(tables, switch_s_m=switch_s)
