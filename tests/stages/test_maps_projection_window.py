@@ -30,13 +30,19 @@ def _masked(points, line, arc, hints, window):
     return arc[j] + t[rows, j] * seg_len[j], ux * rel[rows, j, 1] - uy * rel[rows, j, 0], np.arctan2(seg[j, 1], seg[j, 0])
 
 
+def _random_polyline(rng: np.random.Generator, n: int, *, wiggly: bool) -> tuple[np.ndarray, np.ndarray]:
+    """A random 0.5 m-step polyline of ``n`` points (heading steps of sd 0.3 rad if ``wiggly``, else 0.05) and its arc
+    lengths, shifted by a random offset in [0, 10) m."""
+    heading = np.cumsum(rng.normal(0.0, 0.3 if wiggly else 0.05, n - 1))
+    line = np.concatenate([[[0.0, 0.0]], np.cumsum(0.5 * np.column_stack([np.cos(heading), np.sin(heading)]), axis=0)])
+    return line, np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(line, axis=0).T))]) - rng.uniform(0, 10)
+
+
 def test_windowed_projection_equals_the_masked_dense_one():
     rng = np.random.default_rng(7)
     for trial in range(30):
         n = int(rng.integers(2, 400))
-        heading = np.cumsum(rng.normal(0.0, 0.3 if trial % 3 == 0 else 0.05, n - 1))
-        line = np.concatenate([[[0.0, 0.0]], np.cumsum(0.5 * np.column_stack([np.cos(heading), np.sin(heading)]), axis=0)])
-        arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(line, axis=0).T))]) - rng.uniform(0, 10)
+        line, arc = _random_polyline(rng, n, wiggly=trial % 3 == 0)
         k = int(rng.integers(1, 6))
         points = line[rng.integers(0, n, k)] + rng.normal(0, 2.0, (k, 2))
         hints = rng.uniform(arc[0] - 20, arc[-1] + 20, k) if trial % 4 == 0 else rng.uniform(arc[0], arc[-1], k)
@@ -100,9 +106,7 @@ def test_infinite_window_equals_the_projection_without_hints():
     rng = np.random.default_rng(23)
     for trial in range(40):
         n = int(rng.integers(2, 300))
-        heading = np.cumsum(rng.normal(0.0, 0.3 if trial % 3 == 0 else 0.05, n - 1))
-        line = np.concatenate([[[0.0, 0.0]], np.cumsum(0.5 * np.column_stack([np.cos(heading), np.sin(heading)]), axis=0)])
-        arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(line, axis=0).T))]) - rng.uniform(0, 10)
+        line, arc = _random_polyline(rng, n, wiggly=trial % 3 == 0)
         if trial % 7 == 3:
             arc = arc[::-1].copy()  # decreasing: the kernel declines, the numpy paths answer
         k = int(rng.integers(1, 300))
