@@ -85,8 +85,10 @@ class Chain:
         corridors_config: CorridorsConfig | None = None,
         relations_config: RelationsConfig | None = None,
         signals: bool = True,
+        frame_hook: Callable[[TrackFrame], TrackFrame] | None = None,
     ) -> None:
         self.recording = recording
+        self.frame_hook = frame_hook  # applied to every TrackFrame before the cores see it (training-time augmentation)
         self.sequence = sequence
         self.scene_maps = scene_maps
         self.max_frames = max(int(max_frames), 0)
@@ -114,6 +116,8 @@ class Chain:
                 scene = result.outputs["scene"]
                 self._check_map(scene)
             frame: TrackFrame = result.outputs["track_frame"]
+            if self.frame_hook is not None:
+                frame = self.frame_hook(frame)
             signal_state = result.outputs.get("signal_state")
             where = f"{self.recording.name} sequence {self.sequence.id} stamp_ns {stamp}"
             corridor_set = self._run("corridors", where, lambda: self.corridors.process(frame, scene))

@@ -15,7 +15,8 @@ import pytest
 import torch
 
 from stages import cli
-from stages.offline.train.dataset import (ARDataset, DatasetConfig, build_dataset, corridor_errors, future_targets, route_weights,
+from bus_schemas import Header, TrackFrame
+from stages.offline.train.dataset import (ARDataset, DatasetConfig, PositionNoise, build_dataset, dataset_key, corridor_errors, future_targets, route_weights,
                                           smoothed_acceleration)
 from stages.lib.ar.features import ACCEL, FEATURE_NAMES, HISTORY_STEPS, HORIZON_STEPS
 from stages.lib.ar.model import DEFAULT_MODEL_PATH, ARModel, ARNet, GRUNet, load_model, save_model
@@ -103,6 +104,42 @@ def test_dataset_cache_round_trip(tmp_path):
     for name in ("x", "mask", "y", "y_mask", "weight", "track_id", "stamp_ns", "corridor_id"):
         assert np.array_equal(getattr(built, name), getattr(again, name))
     assert again.counts == built.counts and again.sequences == built.sequences
+
+
+def test_position_noise_jitters_the_features_not_the_targets(tiny):
+    noisy_cfg = dataclasses.replace(TINY, position_noise_m=0.5, noise_seed=3)
+    assert dataset_key(noisy_cfg) != dataset_key(TINY)
+    assert "position_noise_m" not in TINY.key_dict()  # data sets without it keep their keys (and caches)
+    noisy = build_dataset(noisy_cfg)
+    again = build_dataset(noisy_cfg)
+    assert np.array_equal(noisy.x, again.x)  # deterministic for a seed
+    # the same windows where matching and routes did not change: the true futures' targets are the clean ones
+    clean = {(int(t), int(c), int(s)): i for i, (t, c, s) in enumerate(zip(tiny.track_id, tiny.corridor_id, tiny.stamp_ns))}
+    common = [(i, clean[(int(t), int(c), int(s))]) for i, (t, c, s) in enumerate(zip(noisy.track_id, noisy.corridor_id, noisy.stamp_ns))
+              if (int(t), int(c), int(s)) in clean]
+    assert len(common) > 0.8 * len(tiny)
+    a, b = np.array([i for i, _ in common]), np.array([j for _, j in common])
+    assert np.array_equal(noisy.y[a], tiny.y[b]) and np.array_equal(noisy.y_mask[a], tiny.y_mask[b])
+    speed = FEATURE_NAMES.index("speed_mps")
+    assert not np.allclose(noisy.x[a][..., speed], tiny.x[b][..., speed])  # the speed read from jittered positions differs
+    with pytest.raises(ValueError, match="position_noise_m"):
+        dataclasses.replace(TINY, position_noise_m=-1.0)
+
+
+def test_position_noise_draws_one_sigma_per_track_within_the_bound():
+    frame = TrackFrame(header=Header(run_id="t", frame_index=0, stamp_ns=1, producer="t"), scene_id="s",
+                       track_ids=np.arange(400, dtype=np.int64), agent_types=np.zeros(400, np.uint8),
+                       x_m=np.zeros(400), y_m=np.zeros(400), vx_mps=np.ones(400), vy_mps=np.zeros(400), yaw_rad=np.zeros(400),
+                       length_m=np.full(400, 4.0), width_m=np.full(400, 2.0))
+    hook = PositionNoise(0.5, 7)
+    first, second = hook(frame), hook(frame)
+    sigma = np.array([hook._sigma[i] for i in range(400)])
+    assert np.all((sigma >= 0) & (sigma <= 0.5)) and 0.2 < sigma.mean() < 0.3
+    assert not np.array_equal(first.x_m, second.x_m)  # fresh noise each frame, the same σ per track
+    assert np.array_equal(first.vx_mps, frame.vx_mps) and np.array_equal(first.track_ids, frame.track_ids)
+    z = np.concatenate([first.x_m, second.x_m, first.y_m, second.y_m]) / np.tile(np.maximum(sigma, 1e-9), 4)
+    assert 0.85 < z.std() < 1.15
+    assert PositionNoise(0.0, 7)(frame) is frame
 
 
 def test_partial_futures_short_histories_and_tied_routes_give_samples(tiny):

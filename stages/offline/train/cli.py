@@ -37,6 +37,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="cpu", help="cpu (default) or cuda")
     p.add_argument("--drop-feature", nargs="+", default=[], metavar="NAME", help="leave features out (ablation), names as in FEATURE_NAMES")
     p.add_argument("--accel-window", type=float, default=None, help="causal acceleration window, s (default 1.0)")
+    p.add_argument("--position-noise", type=float, default=0.0, metavar="M",
+                   help="augmentation: jitter each track's positions by white noise of a σ drawn per track from [0, M] m (default 0: off)")
     p.add_argument("--max-frames", type=int, default=0, help="use at most this many frames per sequence (0: all)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"weights file to write (default {DEFAULT_OUT})")
     p.add_argument("--json", type=Path, default=None, help="write the report as JSON")

@@ -79,7 +79,7 @@ from typing import Any
 
 import numpy as np
 
-from bus_schemas import MatchStatus
+from bus_schemas import MatchStatus, TrackFrame
 from stages.corridors import SceneMaps
 from stages.lib.datasets import DEFAULT_DATA_DIR, DatasetError, Recording, default_recordings, discover, load_recording
 from stages.offline.chain import Chain
@@ -123,6 +123,11 @@ class DatasetConfig:
     tied_routes: str = "weight"
     min_future_steps: int = 10
     features: FeatureConfig = field(default_factory=FeatureConfig)
+    #: Augmentation (``PositionNoise``): each track's positions jittered by white isotropic Gaussian noise of a σ drawn
+    #: per track uniformly from [0, position_noise_m] m before the cores see them; targets and routes stay from the
+    #: true positions. 0: off (the samples of the data set without it).
+    position_noise_m: float = 0.0
+    noise_seed: int = 0
 
     def __post_init__(self) -> None:
         if self.sample_stride < 1:
@@ -135,6 +140,8 @@ class DatasetConfig:
             raise ValueError(f"max_frames_per_sequence = {self.max_frames_per_sequence}: must be >= 0 (0: all)")
         if not (math.isfinite(self.target_edge_s) and self.target_edge_s >= 0):
             raise ValueError(f"target_edge_s = {self.target_edge_s!r}: must be >= 0")
+        if not (math.isfinite(self.position_noise_m) and 0 <= self.position_noise_m <= 10):
+            raise ValueError(f"position_noise_m = {self.position_noise_m!r}: must lie in [0, 10] m")
         for name in ("target_window_s", "max_route_error_m", "route_tie_m", "route_future_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -159,6 +166,8 @@ class DatasetConfig:
             "history": HISTORY_STEPS,
             "horizon": HORIZON_STEPS,
             "version": DATASET_VERSION,
+            # only when on, so that the keys (and caches) of data sets without it stay what they were
+            **({"position_noise_m": self.position_noise_m, "noise_seed": self.noise_seed} if self.position_noise_m > 0 else {}),
         }
 
 
@@ -344,10 +353,35 @@ class _Collector:
         self.counts[reason] = self.counts.get(reason, 0) + n
 
 
+class PositionNoise:
+    """A TrackFrame hook that jitters positions like a noisier tracker (``DatasetConfig.position_noise_m``).
+
+    Each track id gets a σ drawn uniformly from [0, ``max_m``] when first seen (so the samples span trackers from
+    clean to ``max_m``, not one noise level); every frame its x and y get independent N(0, σ²) noise. Reported
+    velocities are left as they are (the stages derive speed from positions and check the reported one against
+    them). Deterministic for a given ``seed`` (any ``np.random.default_rng`` seed) and frame order.
+    """
+
+    def __init__(self, max_m: float, seed) -> None:
+        self.max_m = float(max_m)
+        self._rng = np.random.default_rng(seed)
+        self._sigma: dict[int, float] = {}
+
+    def __call__(self, frame: TrackFrame) -> TrackFrame:
+        n = len(frame)
+        if n == 0 or self.max_m <= 0:
+            return frame
+        sigma = np.array([self._sigma.setdefault(int(t), float(self._rng.uniform(0.0, self.max_m))) for t in frame.track_ids])
+        noise = self._rng.standard_normal((2, n)) * sigma
+        return dataclasses.replace(frame, x_m=frame.x_m + noise[0], y_m=frame.y_m + noise[1])
+
+
 def _sequence_samples(cfg: DatasetConfig, rec: Recording, seq, map_sha256: str, scene_maps: SceneMaps, rec_index: int,
                       seq_index: int, out: _Collector, bar) -> tuple[int, int]:
     """Adds the samples of one sequence to `out`; returns the first and last stamp played."""
-    chain = Chain(rec, seq, scene_maps, max_frames=cfg.max_frames_per_sequence, map_sha256=map_sha256, run_id="ar-dataset")
+    noise = PositionNoise(cfg.position_noise_m, (cfg.noise_seed, rec_index, seq_index)) if cfg.position_noise_m > 0 else None
+    chain = Chain(rec, seq, scene_maps, max_frames=cfg.max_frames_per_sequence, map_sha256=map_sha256, run_id="ar-dataset",
+                  frame_hook=noise)
     tracker = FeatureTracker(cfg.features)
     truth = ground_truth(seq, accel_window_s=cfg.target_window_s, accel_edge_s=cfg.target_edge_s)
     span: list[int] = []
@@ -477,4 +511,4 @@ def build_dataset(cfg: DatasetConfig, *, cache_dir: Path | None = None, progress
 
 
 
-__all__ = ["ARDataset", "DATASET_VERSION", "DatasetConfig", "build_dataset", "dataset_key", "smoothed_acceleration"]
+__all__ = ["ARDataset", "DATASET_VERSION", "DatasetConfig", "PositionNoise", "build_dataset", "dataset_key", "smoothed_acceleration"]

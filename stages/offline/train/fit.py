@@ -512,7 +512,7 @@ def run_from_args(args) -> int:
             dataset=DatasetConfig(
                 data_dir=args.data, recordings=tuple(args.recording), sequences=tuple(args.sequence),
                 max_frames_per_sequence=args.max_frames, features=features, tied_routes=args.tied_routes,
-                min_future_steps=args.min_future_steps,
+                min_future_steps=args.min_future_steps, position_noise_m=args.position_noise, noise_seed=args.seed,
             ),
             split=args.split, val_fraction=args.val_fraction, kind=args.kind,
             hidden=DEFAULT_HIDDEN_GRU if args.hidden is None and args.kind == "gru" else (args.hidden or 0), epochs=args.epochs, batch_size=args.batch_size,
