@@ -59,6 +59,14 @@ Run (full TAF-BW recordings named by ``IAMP_TAF_BW``)::
 ratios and goal items that need a mode not run say "unknown". Comparing AR
 models: ``--modes hybrid --train-opt=--kind=gru``, one run per candidate.
 
+``--seeds 0,1,2`` runs everything once per seed (each its own model, cached
+per seed) and ends with each mode's mADE mean and range over the seeds per
+direction and split (JSON: ``seeds``, ``by_seed.<seed>`` with the directions
+of that seed, ``seed_spread.<direction>.<mode>.<split>.{values, mean, min,
+max}``; ``directions`` holds the first seed's). One seed's hybrid figures
+move by a few per cent (retraining and the particle filter): judge a choice
+on the mean.
+
 ``--max-frames N`` is passed to ``iamp eval`` only (quick mode: each sequence
 stops after N frames); training always uses the whole training recording.
 Without data (no ``--data`` and ``IAMP_TAF_BW`` unset or not a data folder):
@@ -365,6 +373,9 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--data", type=Path, default=None, help=f"full TAF-BW data folder (default ${FULL_DATA_ENV})")
     p.add_argument("--seed", type=int, default=0, help="seed of iamp train and of iamp eval's particle filter (default 0)")
+    p.add_argument("--seeds", default=None, metavar="S,S,...",
+                   help="run every direction once per seed (train and eval) and print each mode's mADE mean and range over them "
+                        "(one seed's figures move by a few %%: judge a choice on the mean); overrides --seed")
     p.add_argument("--direction", choices=(*DIRECTIONS, "both"), default="both")
     p.add_argument("--max-frames", type=int, default=0, help="passed to iamp eval: stop each sequence after N frames (0: all)")
     p.add_argument("--stride", type=float, default=0.4, help="iamp eval --stride, s (default 0.4)")
@@ -393,19 +404,83 @@ def main(argv: list[str] | None = None) -> int:
         sys.stderr.write(f"generalisation: error: {data} lacks recording(s) {', '.join(missing)}\n")
         return 2
 
+    seeds = [args.seed]
+    if args.seeds is not None:
+        try:
+            seeds = [int(x) for x in args.seeds.split(",") if x.strip()]
+        except ValueError:
+            seeds = []
+        if not seeds or len(set(seeds)) != len(seeds):
+            sys.stderr.write(f"generalisation: error: --seeds {args.seeds!r}: expected distinct integers separated by commas\n")
+            return 2
     t0 = time.perf_counter()
     names = list(DIRECTIONS) if args.direction == "both" else [args.direction]
-    out: dict[str, Any] = {"data": str(data), "seed": args.seed, "stride_s": args.stride, "max_frames": args.max_frames,
+    out: dict[str, Any] = {"data": str(data), "seed": seeds[0], "stride_s": args.stride, "max_frames": args.max_frames,
                            "train_options": args.train_opt, "modes": [m for m in MODES if m in args.modes], "calibrate": args.calibrate, "set": args.set, "slow_fast_split_mps": SLOW_FAST_MPS, "directions": {}}
+    per_seed: dict[int, dict[str, Any]] = {}
+    for seed in seeds:
+        if len(seeds) > 1:
+            print(f"\n##### seed {seed}", flush=True)
+        per_seed[seed] = _run_seed(args, data, names, seed)
+    out["directions"] = per_seed[seeds[0]]
+    if len(seeds) > 1:
+        out["seeds"] = seeds
+        out["by_seed"] = {str(seed): dirs for seed, dirs in per_seed.items()}
+        out["seed_spread"] = seed_spread({seed: {n: d["table"] for n, d in dirs.items()} for seed, dirs in per_seed.items()})
+        print("\n" + format_seed_spread(out["seed_spread"]), flush=True)
+    out["seconds"] = time.perf_counter() - t0
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(json_safe(out), indent=2, allow_nan=False))
+    print(f"total {out['seconds']:.0f} s; wrote {args.json}")
+    return 0
+
+
+def seed_spread(tables: dict[int, dict[str, dict[str, Any]]]) -> dict[str, Any]:
+    """``{direction: {mode: {split: {"values", "mean", "min", "max"}}}}`` of mADE over the seeds, from each seed's
+    ``summarise(...)["table"]`` per direction (``tables[seed][direction]``); a seed without a figure is left out of
+    that cell (``values`` holds the seeds' figures in seed order, None where missing)."""
+    out: dict[str, Any] = {}
+    seeds = list(tables)
+    directions = [d for d in DIRECTIONS if any(d in tables[s] for s in seeds)]
+    for d in directions:
+        modes = [m for m in MODES if any(m in tables[s].get(d, {}) for s in seeds)]
+        out[d] = {}
+        for m in modes:
+            out[d][m] = {}
+            for split in SPLITS:
+                values = [tables[s].get(d, {}).get(m, {}).get(split, {}).get("mADE_m") for s in seeds]
+                known = [v for v in values if v is not None and math.isfinite(v)]
+                out[d][m][split] = {"values": values, "mean": sum(known) / len(known) if known else None,
+                                    "min": min(known) if known else None, "max": max(known) if known else None}
+    return out
+
+
+def format_seed_spread(spread: dict[str, Any]) -> str:
+    lines = ["mADE over the seeds: mean (min-max), m"]
+    for d, modes in spread.items():
+        lines.append(f"=== {d} ===")
+        lines.append(f"{'mode':<12} " + " ".join(f"{split:>18}" for split in SPLITS))
+        for m, splits in modes.items():
+            cells = []
+            for split in SPLITS:
+                c = splits[split]
+                cells.append(f"{_f(c['mean'])} ({_f(c['min'])}-{_f(c['max'])})".rjust(18))
+            lines.append(f"{m:<12} " + " ".join(cells))
+    return "\n".join(lines)
+
+
+def _run_seed(args, data: Path, names: list[str], seed: int) -> dict[str, Any]:
+    """Every direction of ``names`` with one seed: train (cached), calibrate (optional), eval; printed as it goes."""
+    directions: dict[str, Any] = {}
     texts = []
     for name in names:
         a, b = DIRECTIONS[name]
-        train = train_model(data, RECORDINGS[a], args.seed, args.train_opt, args.retrain)
+        train = train_model(data, RECORDINGS[a], seed, args.train_opt, args.retrain)
         sets, cal = list(args.set), None
         if args.calibrate:
-            cal = calibrate(data, RECORDINGS[a], train["model"], args.seed, sets, args.recalibrate)
+            cal = calibrate(data, RECORDINGS[a], train["model"], seed, sets, args.recalibrate)
             sets.append(f"spread_calibration={cal['file']}")
-        ev, ev_seconds, ev_path = eval_model(data, RECORDINGS[b], train["model"], args.seed, args.stride, args.max_frames, name, sets,
+        ev, ev_seconds, ev_path = eval_model(data, RECORDINGS[b], train["model"], seed, args.stride, args.max_frames, name, sets,
                                              tuple(m for m in MODES if m in args.modes))
         summary = summarise(ev)
         text = format_direction(name, train, ev, summary)
@@ -414,16 +489,12 @@ def main(argv: list[str] | None = None) -> int:
         if cal is not None:
             text += "\n\nspread calibrated on " + RECORDINGS[a] + " (iamp calibrate): " + cal["file"]
             print(text.rsplit("\n", 1)[-1], flush=True)
-        out["directions"][name] = {"train_recording": RECORDINGS[a], "eval_recording": RECORDINGS[b], "train": train,
-                                   "calibration": cal, "sets": sets,
-                                   "eval_seconds": ev_seconds, "eval_json": ev_path, "eval_instants": ev.get("instants"),
-                                   "eval_skipped": ev.get("skipped"), **summary,
-                                   **{k: {m: _find_key(ev["modes"][m], k) for m in ev.get("modes", {})} for k in NEW_KEYS}}
-    out["seconds"] = time.perf_counter() - t0
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(json_safe(out), indent=2, allow_nan=False))
-    print(f"total {out['seconds']:.0f} s; wrote {args.json}")
-    return 0
+        directions[name] = {"train_recording": RECORDINGS[a], "eval_recording": RECORDINGS[b], "train": train,
+                            "calibration": cal, "sets": sets, "seed": seed,
+                            "eval_seconds": ev_seconds, "eval_json": ev_path, "eval_instants": ev.get("instants"),
+                            "eval_skipped": ev.get("skipped"), **summary,
+                            **{k: {m: _find_key(ev["modes"][m], k) for m in ev.get("modes", {})} for k in NEW_KEYS}}
+    return directions
 
 
 if __name__ == "__main__":
