@@ -53,6 +53,13 @@ track's ends, and there the edges dominated the error; 15 samples is the
 compromise between the noise on K733 and the detail lost on K729
 (measured: docs/method.md §8.3).
 
+Augmentation (``position_noise_m`` > 0, ``iamp train --position-noise M``):
+``PositionNoise`` jitters each track's positions (white noise of a σ drawn
+per track from [0, M] m) before the corridors and relations cores see the
+frame, so the features are those of a noisier tracker; the targets, the
+route and the windows' futures stay those of the true positions
+(docs/method.md §8.3).
+
 Each sample carries (recording, sequence, track_id, corridor_id, stamp_ns) so
 that splits can keep tracks together; ``sequence_spans`` gives each
 sequence's first and last stamp for time splits.
