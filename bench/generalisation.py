@@ -472,7 +472,6 @@ def format_seed_spread(spread: dict[str, Any]) -> str:
 def _run_seed(args, data: Path, names: list[str], seed: int) -> dict[str, Any]:
     """Every direction of ``names`` with one seed: train (cached), calibrate (optional), eval; printed as it goes."""
     directions: dict[str, Any] = {}
-    texts = []
     for name in names:
         a, b = DIRECTIONS[name]
         train = train_model(data, RECORDINGS[a], seed, args.train_opt, args.retrain)
@@ -484,7 +483,6 @@ def _run_seed(args, data: Path, names: list[str], seed: int) -> dict[str, Any]:
                                              tuple(m for m in MODES if m in args.modes))
         summary = summarise(ev)
         text = format_direction(name, train, ev, summary)
-        texts.append(text)
         print("\n" + text + "\n", flush=True)
         if cal is not None:
             text += "\n\nspread calibrated on " + RECORDINGS[a] + " (iamp calibrate): " + cal["file"]
