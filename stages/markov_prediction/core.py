@@ -286,28 +286,30 @@ class MarkovPredictor:
         self.model: InputModel = model_cls(self)
         #: the calibrated spread of this mode's grids (``spread.py``), or None
         self.spread: SpreadTable | None = load_spread(config.spread_calibration, config.mode, config.n_steps) if config.spread_calibration else None
+        #: whether the chain itself reads the intentions stage's belief (the particle boxes, the stop mixture); where it
+        #: does not, ``prepare`` runs the chain before the belief comes
+        self.chain_reads_belief = config.initial_box == "particles" or (config.mode == "hybrid" and config.hybrid_stop_mixture)
+        self._prepared: tuple[tuple, _Early] | None = None  # (the messages, ``_frame_args``, and ``prepare``'s chain phase of them)
 
     # ----- entry points ---------------------------------------------------------
 
     def update(self, inputs: Mapping[str, object]) -> StageResult:
         """One frame: ``corridor_set`` and ``relation_set`` (same stamp), ``scene`` (latched), and the optional
-        ``track_frame``, ``intention_belief`` and ``acceleration_profiles`` of the same stamp."""
+        ``track_frame``, ``intention_belief`` and ``acceleration_profiles`` of the same stamp. The chain phase
+        ``prepare`` ran for these very messages is used, not run again."""
         corridor_set = inputs.get("corridor_set")
-        relation_set = inputs.get("relation_set")
-        scene = inputs.get("scene")
-        frame = inputs.get("track_frame")
-        belief = inputs.get("intention_belief")
-        profiles = inputs.get("acceleration_profiles")
         if not isinstance(corridor_set, CorridorSet):
             return StageResult(issues=[Issue("no_input", -1, "update without a corridor_set")])
-        prediction, issues = self.process(
-            corridor_set,
-            relation_set if isinstance(relation_set, RelationSet) else None,
-            scene if isinstance(scene, SceneInfo) else None,
-            frame if isinstance(frame, TrackFrame) else None,
-            intention_belief=belief if isinstance(belief, IntentionBelief) else None,
-            acceleration_profiles=profiles if isinstance(profiles, AccelerationProfiles) else None,
-        )
+        args = _frame_args(inputs)
+        belief = inputs.get("intention_belief")
+        belief = belief if isinstance(belief, IntentionBelief) else None
+        prepared, self._prepared = self._prepared, None
+        if prepared is not None and _same_messages(prepared[0], args):
+            early = prepared[1]
+        else:
+            early = self._chain_phase(*args, intention_belief=belief)
+        prediction, issues = self._belief_phase(early, belief)
+        scene, frame = args[2], args[3]
         h = corridor_set.header
         # the source frame's publish time (end-to-end latency): from the TrackFrame when joined, else as the corridors carried it
         wall = frame.header.source_wall_ns if isinstance(frame, TrackFrame) else h.source_wall_ns
@@ -318,6 +320,25 @@ class MarkovPredictor:
             "motion_grid": prediction.motion_grid(header, scene_id),
         }
         return StageResult(outputs=outputs, issues=issues)
+
+    def prepare(self, inputs: Mapping[str, object], missing: frozenset[str] | set[str]) -> bool:
+        """The chain phase of a set whose only ``missing`` input is the ``intention_belief``, run ahead of it.
+
+        Where the chain does not read the belief (``chain_reads_belief`` false: every mode but the baseline's
+        particle boxes and hybrid's stop mixture), all of a frame's work but the corridor weights, the grids and
+        the messages can run before the belief comes: the runtime calls this when a set is complete but for
+        ``missing`` (``stages.runtime.node``), and ``update`` with the whole set then finishes the frame from
+        here. The outputs are those of ``update`` alone. Returns whether it ran.
+        """
+        if self.chain_reads_belief or not set(missing) <= {"intention_belief"}:
+            return False
+        corridor_set = inputs.get("corridor_set")
+        if not isinstance(corridor_set, CorridorSet):
+            return False
+        args = _frame_args(inputs)
+        self._prepared = None
+        self._prepared = (args, self._chain_phase(*args))
+        return True
 
     def process(
         self,
@@ -330,6 +351,21 @@ class MarkovPredictor:
         acceleration_profiles: AccelerationProfiles | None = None,
     ) -> tuple[FramePrediction, list[Issue]]:
         """The pure function behind ``update``: the frame's prediction and the issues met."""
+        early = self._chain_phase(corridor_set, relation_set, scene, track_frame, acceleration_profiles, intention_belief=intention_belief)
+        return self._belief_phase(early, intention_belief)
+
+    def _chain_phase(
+        self,
+        corridor_set: CorridorSet,
+        relation_set: RelationSet | None = None,
+        scene: SceneInfo | None = None,
+        track_frame: TrackFrame | None = None,
+        acceleration_profiles: AccelerationProfiles | None = None,
+        *,
+        intention_belief: IntentionBelief | None = None,
+    ) -> _Early:
+        """Everything up to the chain's results: pairs, relations, signals, the chain (or the closed form) and the
+        fallbacks. Reads ``intention_belief`` only where the chain does (``chain_reads_belief``)."""
         issues: list[Issue] = []
         stamp = int(corridor_set.header.stamp_ns)
         others: set[int] = set()
@@ -342,8 +378,10 @@ class MarkovPredictor:
         skipped = {v.track_id for v, w in zip(given.vehicles, corridor_set.vehicles) if v.corridors and not w.corridors} | others
         if dropped:
             issues.append(Issue("pairs_capped", -1, f"{dropped} vehicle-corridor pairs beyond max_pairs = {self.config.max_pairs} (whole vehicles, in CorridorSet order): skipped this frame"))
-        beliefs = self._beliefs(intention_belief, stamp, issues)
-        frame_data = self.model.read(Messages(stamp, relation_set, track_frame, intention_belief, acceleration_profiles), issues)
+        early_beliefs = self.chain_reads_belief
+        beliefs = self._beliefs(intention_belief, stamp, issues) if early_beliefs else None
+        frame_data = self.model.read(Messages(stamp, relation_set, track_frame, intention_belief if early_beliefs else None,
+                                              acceleration_profiles), issues)
         self.observe(corridor_set)
         relations: dict[tuple[int, int], CorridorRelations] = {}
         if relation_set is not None and int(relation_set.header.stamp_ns) != stamp:
@@ -353,7 +391,8 @@ class MarkovPredictor:
         elif relation_set is not None:
             relations = {(r.track_id, r.corridor_id): r for r in relation_set.relations}
         speed_limit = scene.speed_limit_mps if scene is not None and _positive(scene.speed_limit_mps) else self.config.default_speed_limit_mps
-        pairs = self._vehicle_pairs(corridor_set, track_frame, speed_limit, issues, beliefs, frame_data)
+        weighed: list[tuple[Any, list]] = []
+        pairs = self._vehicle_pairs(corridor_set, track_frame, speed_limit, issues, beliefs, frame_data, weighed)
         known = {(p.track_id, p.corridor_id): p for p in pairs}
         for key, relation in relations.items():
             pair = known.get(key)
@@ -368,7 +407,23 @@ class MarkovPredictor:
                     # a rate of 0 (stays) is kept just above 0: start_rate_hz 0 marks a moving vehicle
                     pair.start_rate_hz = max(self.config.hybrid_standstill_rates_hz[standstill_group(pair.relation, self.config)], 1e-9)
         self._signal_walls = apply_signals(self, pairs, issues)  # stages.markov_prediction.signals: nothing without signal phases
-        prediction = self._predict(pairs, issues)
+        final, merged, order = self._predict_chain(pairs, issues)
+        return _Early(stamp, issues, final, merged, order, weighed, early_beliefs, beliefs)
+
+    def _belief_phase(self, early: _Early, intention_belief: IntentionBelief | None) -> tuple[FramePrediction, list[Issue]]:
+        """The rest of the frame: each vehicle's corridor weights (from ``intention_belief`` where the chain phase did
+        not read it already), its grid and the outputs."""
+        issues = list(early.issues)
+        beliefs = early.beliefs if early.beliefs_read else self._beliefs(intention_belief, early.stamp, issues)
+        weights: dict[int, float] = {}  # index of the pair (in the chain phase's list) -> P(R = its corridor)
+        for vehicle, good, first in early.weighed:
+            # (np.float64 items, not Python floats: the grids' arithmetic promotes by the type)
+            weights.update(zip(range(first, first + len(good)), self._weights(vehicle, good, beliefs, issues)))
+        for p, b in zip(early.final, early.order):  # the pairs as the outputs take them (a fallback's is a copy of its pair)
+            w = weights.get(b)
+            if w is not None:
+                p.probability = w
+        prediction = self._predict_finish(early.final, early.merged, issues)
         over = prediction.grid_cells_over_cap()
         if over:
             issues.append(Issue("grid_capped", -1, f"{over} grid cells beyond grid_max_cells_per_step = {self.config.grid_max_cells_per_step} (the lowest values) left out of the MotionGrid"))
@@ -378,6 +433,7 @@ class MarkovPredictor:
         """Forget every track's history (a new sequence starts; the offline tables are kept)."""
         self._history.clear()
         self._lines.clear()
+        self._prepared = None
 
     def observe(self, corridor_set: CorridorSet) -> None:
         """Record each vehicle's speed at this stamp (for its measured acceleration); forget stale tracks."""
@@ -397,16 +453,21 @@ class MarkovPredictor:
 
     # ----- pairs ------------------------------------------------------------------
 
-    def _vehicle_pairs(self, corridor_set: CorridorSet, frame, scene_limit_mps: float, issues: list[Issue], beliefs, frame_data) -> list[Pair]:
-        """``_pairs`` of the frame; a vehicle whose pairs cannot be built is left out (``vehicle_failed``), not the frame."""
+    def _vehicle_pairs(self, corridor_set: CorridorSet, frame, scene_limit_mps: float, issues: list[Issue], beliefs, frame_data,
+                       weighed: list | None = None) -> list[Pair]:
+        """``_pairs`` of the frame; a vehicle whose pairs cannot be built is left out (``vehicle_failed``), not the frame.
+        ``weighed`` gets ``_pairs``'s list of the vehicles whose corridor weights are still to be set."""
         vehicles = corridor_set.vehicles
 
         def attempt(idx: list[int]):
             found: list[Issue] = []
             subset = corridor_set if len(idx) == len(vehicles) else dataclasses.replace(corridor_set, vehicles=tuple(vehicles[i] for i in idx))
-            return self._pairs(subset, frame, scene_limit_mps, found, beliefs, frame_data), found
+            out: list = []
+            return self._pairs(subset, frame, scene_limit_mps, found, beliefs, frame_data, out), found, out
 
-        (pairs, found), failed = isolate(range(len(vehicles)), attempt)
+        (pairs, found, out), failed = isolate(range(len(vehicles)), attempt)
+        if weighed is not None:
+            weighed.extend(out)
         issues.extend(found)
         for i, exc in failed:
             issues.append(Issue("vehicle_failed", int(vehicles[i].track_id), f"building its pairs raised {type(exc).__name__}: {exc}: vehicle not predicted"))
@@ -576,9 +637,12 @@ class MarkovPredictor:
         issues: list[Issue],
         beliefs: dict[int, dict[int, Any]] | None = None,
         frame_data: Any = None,
+        weighed: list | None = None,
     ) -> list[Pair]:
         """The frame's pairs: per matched vehicle, one per usable corridor (or the mode's own, ``vehicle_pairs``);
-        ``frame_data`` is what the mode's ``read`` returned."""
+        ``frame_data`` is what the mode's ``read`` returned. The pairs' ``probability`` is uniform over the vehicle's
+        corridors here: ``weighed`` gets ``(vehicle, corridors, index of its first pair)`` of each vehicle whose
+        weights ``_belief_phase`` sets (``_weights``; without ``weighed``, this sets them, from ``beliefs``)."""
         cfg = self.config
         stamp = int(corridor_set.header.stamp_ns)
         rows: dict[int, int] = {}
@@ -614,7 +678,11 @@ class MarkovPredictor:
                     q.speed_noise_mps = noise
                 pairs.extend(own)
                 continue
-            weights = self._weights(vehicle, good, beliefs, issues)
+            if weighed is None:
+                weights = self._weights(vehicle, good, beliefs, issues)
+            else:
+                weighed.append((vehicle, good, len(pairs)))
+                weights = np.full(len(good), 1.0 / len(good))
             mine = beliefs.get(vehicle.track_id, {}) if beliefs is not None and cfg.initial_box == "particles" else {}
             stops = beliefs.get(vehicle.track_id, {}) if beliefs is not None else {}  # P(stop) per corridor (hybrid_stop_mixture)
             for c, weight in zip(good, weights):
@@ -667,7 +735,12 @@ class MarkovPredictor:
     # ----- one pair's failure never costs the frame ----------------------------------
 
     def _predict(self, pairs: list[Pair], issues: list[Issue]) -> FramePrediction:
-        """The frame's prediction, each pair's failure isolated.
+        """The frame's prediction (``_predict_chain`` then ``_predict_finish``)."""
+        return self._predict_finish(*self._predict_chain(pairs, issues)[:2], issues)
+
+    def _predict_chain(self, pairs: list[Pair], issues: list[Issue]) -> tuple[list[Pair], dict[str, Any], list[int]]:
+        """The chain's (or closed form's) arrays of the frame's pairs, each pair's failure isolated: the pairs as the
+        outputs take them, the arrays, and each one's index in ``pairs``.
 
         The mode predicts every pair it can. In the chain modes a pair the
         chain cannot take (``_screen``), or one the batched chain raises on
@@ -722,6 +795,10 @@ class MarkovPredictor:
         order = sorted(main + usable)
         final = [simple.get(b, pairs[b]) for b in order]
         merged = _merge(order, [(main, arrays), (usable, fallback)])
+        return final, merged, order
+
+    def _predict_finish(self, final: list[Pair], merged: dict[str, Any], issues: list[Issue]) -> FramePrediction:
+        """The outputs of ``_predict_chain``'s pairs and arrays, each pair's failure isolated (``pair_failed``)."""
 
         def finish(idx: list[int]):
             found: list[Issue] = []
@@ -972,6 +1049,36 @@ _CHAIN_SCALARS = ("s0_m", "v0_mps", "a0_mps2", "sigma_a0_mps2", "s_first_m", "sp
 _CHAIN_ARRAYS = ("s_m", "x_m", "y_m", "heading_rad", "curvature_1pm", "input_probs")
 _chain_scalars = operator.attrgetter(*_CHAIN_SCALARS)  # a pair's scalars (a tuple), as getattr of each gives them
 _chain_arrays = operator.attrgetter(*_CHAIN_ARRAYS)
+
+
+@dataclass(slots=True)
+class _Early:
+    """A frame after ``_chain_phase``: what ``_belief_phase`` finishes it from."""
+
+    stamp: int
+    issues: list[Issue]
+    final: list[Pair]  # the pairs as the outputs take them
+    merged: dict[str, Any]  # their arrays
+    order: list[int]  # each one's index in the chain phase's pair list
+    weighed: list[tuple[Any, list, int]]  # (vehicle, its corridors, index of its first pair): weights still to set
+    beliefs_read: bool  # whether the chain phase read the belief (then ``beliefs`` is what it read)
+    beliefs: dict[int, dict[int, Any]] | None
+
+
+#: the inputs of ``_chain_phase``, in its order, with the type each must have (else None)
+_FRAME_INPUTS = (("corridor_set", CorridorSet), ("relation_set", RelationSet), ("scene", SceneInfo), ("track_frame", TrackFrame),
+                 ("acceleration_profiles", AccelerationProfiles))
+
+
+def _frame_args(inputs: Mapping[str, object]) -> tuple:
+    """``_chain_phase``'s positional arguments from a set of inputs (a message of the wrong type: None)."""
+    return tuple(m if isinstance(m := inputs.get(name), cls) else None for name, cls in _FRAME_INPUTS)
+
+
+def _same_messages(a: tuple, b: tuple) -> bool:
+    """Whether two ``_frame_args`` hold the very same message objects (not equal copies: a prepared chain phase is
+    used only for the set it ran on)."""
+    return len(a) == len(b) and all(x is y for x, y in zip(a, b))
 
 
 def standstill_group(relation: CorridorRelations | None, config: MarkovPredictionConfig) -> int:

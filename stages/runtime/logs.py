@@ -44,6 +44,8 @@ class _Stats:
         # source publish -> this node's publish (a sink: its receipt), ms, per input set with a known wall stamp
         self.e2e_ms: collections.deque[float] = collections.deque(maxlen=E2E_WINDOW)
         self.proc_ms_max = 0.0
+        # a core's ``prepare`` on a set still missing inputs (node._maybe_prepare), ms, per call that ran
+        self.prep_ms: collections.deque[float] = collections.deque(maxlen=4096)
         self.last_stamp_ns = 0
 
     @staticmethod
@@ -79,6 +81,8 @@ class _Stats:
         if self.errors_by_kind:
             parts.append("errors_by_kind=" + ",".join(f"{k}:{v}" for k, v in sorted(self.errors_by_kind.items())))
         parts.append(f"proc_ms_p50={self._pct(self.proc_ms, 50):.2f} proc_ms_p95={self._pct(self.proc_ms, 95):.2f}")
+        if self.prep_ms:
+            parts.append(f"prep_ms_p50={self._pct(self.prep_ms, 50):.2f} prep_ms_p95={self._pct(self.prep_ms, 95):.2f}")
         if self.e2e_ms:
             parts.append(f"e2e_ms_p50={self._pct(self.e2e_ms, 50):.2f} e2e_ms_p95={self._pct(self.e2e_ms, 95):.2f}")
         return " ".join(parts)

@@ -440,6 +440,7 @@ class Node:
                 self.stats.counters["join_drops"] += 1
                 self.problems.report(f"duplicate:{port}", logging.WARNING, "duplicate input: port=%s stamp_ns=%d (older one replaced)", port, stamp)
             entry[port] = msg
+            self._maybe_prepare(core, stamp, entry)
         if not spec.joined and not spec.latched and not self._join_ports():
             # no joined input bound: every latest-value or wildcard message is an update
             if all(p in self._latched_in for p in self._required_latched()):
@@ -448,6 +449,33 @@ class Node:
             return
         self._run_ready(core, lat_ms)
         self._expire_pending()
+
+    def _maybe_prepare(self, core: Any, stamp: int, entry: dict[str, Message]) -> None:
+        """Let a core that has ``prepare(inputs, missing)`` start on a set still missing some joined inputs.
+
+        Called when a joined input adds to the newest pending set and it is still incomplete (with every latched
+        input there); the core decides whether it can do anything yet (``markov_prediction`` runs its chain
+        before the intentions stage's belief comes) and returns whether it did (counted, ``prepared``). Its
+        ``update`` on the whole set follows as usual; a failure here is counted (``prepare_exception``) and
+        costs nothing else: the update then does all the work itself.
+        """
+        prepare = getattr(core, "prepare", None)
+        if prepare is None or stamp != max(self._pending):
+            return
+        missing = frozenset(p for p in self._join_ports() if p not in entry)
+        if not missing or any(p not in self._latched_in for p in self._required_latched()):
+            return
+        inputs = dict(entry)
+        inputs.update(self._not_joined_inputs())
+        t0 = time.perf_counter()
+        try:
+            ran = prepare(inputs, missing)
+        except Exception as exc:  # noqa: BLE001 - the update does the work then
+            self._count_failure("prepare_exception", exc, "prepare failed on stamp_ns=%d (the whole set runs in update)", stamp)
+            return
+        if ran:
+            self._count("prepared")
+            self.stats.prep_ms.append((time.perf_counter() - t0) * 1e3)
 
     def _keep_wildcard(self, port: str, key: str, msg: Message) -> bool:
         """File a wildcard input's message as its key's newest; a new key beyond the port's ``max_keys`` is dropped and counted."""

@@ -107,3 +107,47 @@ def test_nodes_get_single_threaded_numeric_libraries_unless_the_environment_says
     env = single_threaded_env({"PATH": "/bin", "OMP_NUM_THREADS": "4"})
     assert env["OMP_NUM_THREADS"] == "4" and env["PATH"] == "/bin"
     assert all(env[name] == "1" for name in THREAD_ENV if name != "OMP_NUM_THREADS")
+
+
+class _Preparing(_Recorder):
+    """A core with ``prepare``: records what it was offered; declines frame 3, raises on frame 4."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.offered: list[tuple[int, frozenset, tuple]] = []
+
+    def prepare(self, inputs, missing):
+        frame = next(iter(inputs.values())).header.frame_index
+        self.offered.append((frame, missing, tuple(sorted(inputs))))
+        if frame == 4:
+            raise RuntimeError("prepare broke")
+        return frame != 3
+
+
+def test_a_core_may_start_on_a_set_still_missing_inputs(monkeypatch):
+    """``prepare(inputs, missing)`` is offered the newest incomplete set each time an input joins it; a refusal is not
+    counted, a failure is counted and costs nothing: ``update`` runs on every complete set as before."""
+    clock = _Clock()
+    monkeypatch.setattr(node_module.time, "monotonic", clock)
+    node, core = _node(), _Preparing()
+
+    def feed(port: str, frame: int) -> None:
+        node._accept(port, f"iamp/t/src/{port}", _payload(frame), 0)
+        while (item := node.queue.get(timeout=0)) is not None:
+            node._handle_operator_item(core, item)
+
+    feed("a", 0)
+    feed("b", 0)  # completes the set: no prepare, the update
+    feed("b", 1)
+    feed("a", 2)  # the newest set: offered
+    feed("a", 1)  # frame 1 is not the newest pending set: not offered (it completes, and supersedes nothing)
+    feed("b", 2)
+    for k in (3, 4):
+        feed("a", k)
+        feed("b", k)
+    assert [(f, set(m), keys) for f, m, keys in core.offered] == [
+        (0, {"b"}, ("a",)), (1, {"a"}, ("b",)), (2, {"b"}, ("a",)), (3, {"b"}, ("a",)), (4, {"b"}, ("a",))]
+    assert core.stamps == [0, 1, 2, 3, 4]
+    assert node.stats.counters["prepared"] == 3  # frames 0, 1 and 2; 3 declined, 4 raised
+    assert node.stats.errors_by_kind["prepare_exception"] == 1
+    assert len(node.stats.prep_ms) == 3 and "prep_ms_p50=" in node.stats.summary()

@@ -1,0 +1,110 @@
+"""``MarkovPredictor.prepare``: the chain phase run before the intentions stage's belief comes gives, with ``update`` on
+the whole set after it, the outputs of ``update`` alone, byte for byte, on real frames; it runs only where the chain
+does not read the belief, only for a set missing nothing else, and a prepared phase is used only for its own messages."""
+
+from __future__ import annotations
+
+import collections
+
+import pytest
+
+from stages.ar_inference import ARInference, ARInferenceConfig
+from stages.corridors import SceneMaps
+from stages.intentions import IntentionsConfig
+from stages.lib.datasets import DEFAULT_DATA_DIR, load_recording
+from stages.lib.datasets.superimpose import build_dense
+from stages.lib.markov import MarkovGridConfig, load_or_build_stencils
+from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
+from stages.markov_prediction import core as markov_core
+from stages.offline.chain import chain_frames
+
+EARLY = frozenset({"intention_belief"})
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory):
+    """The stage's input sets of 25 frames of about 18 vehicles superimposed from the embedded K729 scenario
+    (``build_dense``): moving and standing cars, several corridors each."""
+    out_dir = tmp_path_factory.mktemp("dense")
+    built = build_dense(DEFAULT_DATA_DIR, "k729_2022-03-16", 18, out_dir)
+    recording = load_recording(out_dir, built.name)
+    ar = ARInference(ARInferenceConfig(), producer="ar_inference")
+    out = []
+    for item in chain_frames(recording, recording.sequences[0], SceneMaps(data=out_dir), intentions=IntentionsConfig(), max_frames=40):
+        profiles = ar.process(item.corridor_set, item.relation_set, item.frame, item.scene)[0]
+        out.append({"corridor_set": item.corridor_set, "relation_set": item.relation_set, "scene": item.scene,
+                    "track_frame": item.frame, "intention_belief": item.belief, "acceleration_profiles": profiles})
+    return out[15:]
+
+
+@pytest.fixture(scope="module")
+def stencils():
+    return load_or_build_stencils(MarkovGridConfig())
+
+
+def _encoded(result):
+    return ({k: m.encode() for k, m in result.outputs.items()},
+            collections.Counter((i.kind, i.agent_id, i.detail) for i in result.issues))
+
+
+def _without_belief(inputs):
+    return {k: v for k, v in inputs.items() if k != "intention_belief"}
+
+
+@pytest.mark.parametrize("mode", ["hybrid", "corridor_cv"])
+def test_prepare_then_update_gives_the_outputs_of_update_alone(frames, stencils, mode, monkeypatch):
+    alone = MarkovPredictor(MarkovPredictionConfig(mode=mode), stencils=stencils)
+    early = MarkovPredictor(MarkovPredictionConfig(mode=mode), stencils=stencils)
+    assert not early.chain_reads_belief
+    phases = []
+    real = MarkovPredictor._chain_phase
+    monkeypatch.setattr(MarkovPredictor, "_chain_phase", lambda self, *a, **k: phases.append(self) or real(self, *a, **k))
+    weighted = 0
+    for inputs in frames:
+        want = _encoded(alone.update(inputs))
+        before = len([p for p in phases if p is early])
+        assert early.prepare(_without_belief(inputs), EARLY) is True
+        result = early.update(inputs)
+        assert len([p for p in phases if p is early]) == before + 1  # update used the prepared phase, did not run it again
+        assert _encoded(result) == want
+        # the corridor weights are the belief's, renormalised over the predicted corridors (set after the chain)
+        belief = {(v.track_id, c.corridor_id): c.probability for v in inputs["intention_belief"].vehicles for c in v.corridors}
+        by_track = collections.defaultdict(dict)
+        for p in result.outputs["corridor_predictions"].predictions:
+            by_track[p.track_id][p.corridor_id] = p.probability
+        for track, got in by_track.items():
+            raw = {c: belief[(track, c)] for c in got}
+            assert got == pytest.approx({c: w / sum(raw.values()) for c, w in raw.items()}, abs=1e-12)
+            weighted += len(got) > 1 and max(got.values()) > 0.6
+    assert weighted > 0  # some vehicles' weights are far from uniform
+
+
+def test_prepare_declines_where_the_chain_reads_the_belief_or_more_is_missing(frames, stencils):
+    inputs = frames[0]
+    baseline = MarkovPredictor(MarkovPredictionConfig(mode="baseline"), stencils=stencils)  # particle boxes
+    assert baseline.chain_reads_belief and baseline.prepare(_without_belief(inputs), EARLY) is False
+    mixture = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", hybrid_stop_mixture=True), stencils=stencils)
+    assert mixture.chain_reads_belief and mixture.prepare(_without_belief(inputs), EARLY) is False
+    hybrid = MarkovPredictor(MarkovPredictionConfig(mode="hybrid"), stencils=stencils)
+    partial = {k: v for k, v in inputs.items() if k not in ("intention_belief", "acceleration_profiles")}
+    assert hybrid.prepare(partial, EARLY | {"acceleration_profiles"}) is False
+    assert hybrid.prepare({"scene": inputs["scene"]}, EARLY) is False  # no corridor set
+    assert hybrid._prepared is None
+
+
+def test_a_prepared_phase_is_used_only_for_its_own_messages(frames, stencils):
+    """A set that is not the prepared one (the prepared set dropped, its stamp superseded) is predicted from its own
+    messages: the outputs are those of a predictor that never prepared."""
+    alone = MarkovPredictor(MarkovPredictionConfig(mode="hybrid"), stencils=stencils)
+    early = MarkovPredictor(MarkovPredictionConfig(mode="hybrid"), stencils=stencils)
+    a, b = frames[10], frames[11]
+    alone.update(a)
+    want = _encoded(alone.update(b))
+    assert early.prepare(_without_belief(a), EARLY)
+    early.update(a)
+    # b's corridor set with a copy of a's other messages would not match either: identity, not equality, is checked
+    assert early.prepare(_without_belief(a), EARLY)  # a stale prepared phase of an older set ...
+    assert _encoded(early.update(b)) == want  # ... is not used for b
+    assert early._prepared is None
+    assert markov_core._same_messages(markov_core._frame_args(a), markov_core._frame_args(dict(a)))
+    assert not markov_core._same_messages(markov_core._frame_args(a), markov_core._frame_args({**a, "corridor_set": b["corridor_set"]}))
