@@ -274,6 +274,8 @@ def hop_table(traces: dict[str, dict], grid: tuple[str, str] = GRID) -> dict:
                           "gc": r.get("gc_ms", math.nan), "put": sum(v[2] - v[1] for v in outs) / 1e6})
             ins = r.get("in") or {}
             parts["skew"] = (max(v[0] for v in ins.values()) - min(v[0] for v in ins.values())) / 1e6 if ins else math.nan
+            prep = r.get("prep")  # the core's prepare on the set before its last input came (markov_prediction's chain)
+            parts["prepare"] = (prep[1] - prep[0]) / 1e6 if prep else math.nan
             for k, v in parts.items():
                 cols.setdefault(k, []).append(v)
         src = [r for r in t["records"] if "out" in r and "start" not in r]
@@ -344,13 +346,14 @@ def _p(values) -> dict[str, float]:
     return {"p50": float(np.median(a)) if a.size else math.nan, "p95": float(np.percentile(a, 95)) if a.size else math.nan, "n": int(a.size)}
 
 
-STAGE_COLS = ("transport", "queue", "decode", "join", "process", "encode", "put", "e2e", "cpu", "gc", "skew")
+STAGE_COLS = ("transport", "queue", "decode", "join", "process", "encode", "put", "e2e", "cpu", "gc", "skew", "prepare")
 
 
 def print_hops(h: dict, indent: str = "   ") -> None:
     """The decomposition tables of ``hop_table``."""
     print(f"{indent}per stage, all input sets, ms p50/p95 (transport: upstream put called -> callback of the last joined input; queue: callback -> loop;"
-          f" encode: core end -> last put called; put: time in the put calls; cpu: the core's thread CPU; skew: last - first joined input received)")
+          f" encode: core end -> last put called; put: time in the put calls; cpu: the core's thread CPU; skew: last - first joined input received;"
+          f" prepare: the core's work on the set before its last input came, where it did any)")
     print(indent + f"{'node':<20}" + "".join(f"{c:>14}" for c in STAGE_COLS))
     for node, cols in h["stages"].items():
         cells = "".join(f"{_cell(cols.get(c)):>14}" for c in STAGE_COLS)

@@ -290,6 +290,7 @@ class MarkovPredictor:
         #: does not, ``prepare`` runs the chain before the belief comes
         self.chain_reads_belief = config.initial_box == "particles" or (config.mode == "hybrid" and config.hybrid_stop_mixture)
         self._prepared: tuple[tuple, _Early] | None = None  # (the messages, ``_frame_args``, and ``prepare``'s chain phase of them)
+        self._prepared_pairs: tuple[tuple, _PairsPhase] | None = None  # (corridor set, scene, track frame; ``prepare``'s pairs of them)
 
     # ----- entry points ---------------------------------------------------------
 
@@ -322,23 +323,31 @@ class MarkovPredictor:
         return StageResult(outputs=outputs, issues=issues)
 
     def prepare(self, inputs: Mapping[str, object], missing: frozenset[str] | set[str]) -> bool:
-        """The chain phase of a set whose only ``missing`` input is the ``intention_belief``, run ahead of it.
+        """Work on a set that is still ``missing`` inputs, ahead of them: the pairs, then the chain.
 
-        Where the chain does not read the belief (``chain_reads_belief`` false: every mode but the baseline's
-        particle boxes and hybrid's stop mixture), all of a frame's work but the corridor weights, the grids and
-        the messages can run before the belief comes: the runtime calls this when a set is complete but for
-        ``missing`` (``stages.runtime.node``), and ``update`` with the whole set then finishes the frame from
-        here. The outputs are those of ``update`` alone. Returns whether it ran.
+        Where the chain does not read the intentions stage's belief (``chain_reads_belief`` false: every mode but
+        the baseline's particle boxes and hybrid's stop mixture), all of a frame's work but the corridor weights,
+        the grids and the messages can run before the belief comes, and the pairs (with hybrid's speed
+        restriction) before the acceleration profiles and the relations too. The runtime offers each incomplete
+        set (``stages.runtime.node``); once the corridor set and the track frame are in this builds the pairs
+        (``_pairs_phase``), once everything but the belief is in it runs the chain (``_chain_phase``), and
+        ``update`` with the whole set then finishes the frame from there. The outputs are those of ``update``
+        alone. Returns whether it did any work.
         """
-        if self.chain_reads_belief or not set(missing) <= {"intention_belief"}:
-            return False
-        corridor_set = inputs.get("corridor_set")
-        if not isinstance(corridor_set, CorridorSet):
+        if self.chain_reads_belief or not isinstance(inputs.get("corridor_set"), CorridorSet):
             return False
         args = _frame_args(inputs)
-        self._prepared = None
-        self._prepared = (args, self._chain_phase(*args))
-        return True
+        if set(missing) <= {"intention_belief"}:
+            self._prepared = None
+            self._prepared = (args, self._chain_phase(*args))
+            return True
+        head = (args[0], args[2], args[3])  # the corridor set, scene and track frame the pairs are built from
+        if set(missing) <= {"intention_belief", "acceleration_profiles", "relation_set"} and not (
+                self._prepared_pairs is not None and _same_messages(self._prepared_pairs[0], head)):
+            self._prepared_pairs = None
+            self._prepared_pairs = (head, self._pairs_phase(*head))
+            return True
+        return False
 
     def process(
         self,
@@ -354,18 +363,10 @@ class MarkovPredictor:
         early = self._chain_phase(corridor_set, relation_set, scene, track_frame, acceleration_profiles, intention_belief=intention_belief)
         return self._belief_phase(early, intention_belief)
 
-    def _chain_phase(
-        self,
-        corridor_set: CorridorSet,
-        relation_set: RelationSet | None = None,
-        scene: SceneInfo | None = None,
-        track_frame: TrackFrame | None = None,
-        acceleration_profiles: AccelerationProfiles | None = None,
-        *,
-        intention_belief: IntentionBelief | None = None,
-    ) -> _Early:
-        """Everything up to the chain's results: pairs, relations, signals, the chain (or the closed form) and the
-        fallbacks. Reads ``intention_belief`` only where the chain does (``chain_reads_belief``)."""
+    def _pairs_phase(self, corridor_set: CorridorSet, scene: SceneInfo | None = None, track_frame: TrackFrame | None = None, *,
+                     intention_belief: IntentionBelief | None = None) -> _PairsPhase:
+        """The frame's pairs, without the mode's inputs (``pair_input``) or relations; what the mode prepares from them
+        (``InputModel.prepare_pairs``). Reads ``intention_belief`` only where the chain does (``chain_reads_belief``)."""
         issues: list[Issue] = []
         stamp = int(corridor_set.header.stamp_ns)
         others: set[int] = set()
@@ -378,11 +379,38 @@ class MarkovPredictor:
         skipped = {v.track_id for v, w in zip(given.vehicles, corridor_set.vehicles) if v.corridors and not w.corridors} | others
         if dropped:
             issues.append(Issue("pairs_capped", -1, f"{dropped} vehicle-corridor pairs beyond max_pairs = {self.config.max_pairs} (whole vehicles, in CorridorSet order): skipped this frame"))
-        early_beliefs = self.chain_reads_belief
-        beliefs = self._beliefs(intention_belief, stamp, issues) if early_beliefs else None
-        frame_data = self.model.read(Messages(stamp, relation_set, track_frame, intention_belief if early_beliefs else None,
-                                              acceleration_profiles), issues)
+        beliefs = self._beliefs(intention_belief, stamp, issues) if self.chain_reads_belief else None
         self.observe(corridor_set)
+        speed_limit = scene.speed_limit_mps if scene is not None and _positive(scene.speed_limit_mps) else self.config.default_speed_limit_mps
+        weighed: list[tuple[Any, list, int]] = []
+        pairs = self._vehicle_pairs(corridor_set, track_frame, speed_limit, issues, beliefs, None, weighed)
+        self.model.prepare_pairs(pairs)
+        return _PairsPhase(stamp, issues, pairs, weighed, skipped, beliefs)
+
+    def _chain_phase(
+        self,
+        corridor_set: CorridorSet,
+        relation_set: RelationSet | None = None,
+        scene: SceneInfo | None = None,
+        track_frame: TrackFrame | None = None,
+        acceleration_profiles: AccelerationProfiles | None = None,
+        *,
+        intention_belief: IntentionBelief | None = None,
+    ) -> _Early:
+        """Everything up to the chain's results: pairs (``_pairs_phase``'s, where ``prepare`` built them from these
+        very messages), the mode's inputs, relations, signals, the chain (or the closed form) and the fallbacks.
+        Reads ``intention_belief`` only where the chain does (``chain_reads_belief``)."""
+        prepared, self._prepared_pairs = self._prepared_pairs, None
+        if prepared is not None and _same_messages(prepared[0], (corridor_set, scene, track_frame)):
+            pp = prepared[1]
+        else:
+            pp = self._pairs_phase(corridor_set, scene, track_frame, intention_belief=intention_belief)
+        issues, pairs, stamp = list(pp.issues), pp.pairs, pp.stamp
+        frame_data = self.model.read(Messages(stamp, relation_set, track_frame, intention_belief if self.chain_reads_belief else None,
+                                              acceleration_profiles), issues)
+        for vehicle, good, first in pp.weighed:
+            for pair, c in zip(pairs[first:first + len(good)], good):
+                pair.input_probs = self.model.pair_input(vehicle.track_id, c.corridor_id, frame_data, issues)
         relations: dict[tuple[int, int], CorridorRelations] = {}
         if relation_set is not None and int(relation_set.header.stamp_ns) != stamp:
             issues.append(
@@ -390,14 +418,11 @@ class MarkovPredictor:
             )
         elif relation_set is not None:
             relations = {(r.track_id, r.corridor_id): r for r in relation_set.relations}
-        speed_limit = scene.speed_limit_mps if scene is not None and _positive(scene.speed_limit_mps) else self.config.default_speed_limit_mps
-        weighed: list[tuple[Any, list]] = []
-        pairs = self._vehicle_pairs(corridor_set, track_frame, speed_limit, issues, beliefs, frame_data, weighed)
         known = {(p.track_id, p.corridor_id): p for p in pairs}
         for key, relation in relations.items():
             pair = known.get(key)
             if pair is None:
-                if key[0] not in skipped:  # a vehicle left out by max_pairs has relations but no prediction: no issue of its own
+                if key[0] not in pp.skipped:  # a vehicle left out by max_pairs has relations but no prediction: no issue of its own
                     issues.append(Issue("unknown_corridor", key[0], f"relation for corridor {key[1]}, which has no prediction: ignored"))
             else:
                 pair.relation = relation
@@ -408,7 +433,7 @@ class MarkovPredictor:
                     pair.start_rate_hz = max(self.config.hybrid_standstill_rates_hz[standstill_group(pair.relation, self.config)], 1e-9)
         self._signal_walls = apply_signals(self, pairs, issues)  # stages.markov_prediction.signals: nothing without signal phases
         final, merged, order = self._predict_chain(pairs, issues)
-        return _Early(stamp, issues, final, merged, order, weighed, early_beliefs, beliefs)
+        return _Early(stamp, issues, final, merged, order, pp.weighed, self.chain_reads_belief, pp.beliefs)
 
     def _belief_phase(self, early: _Early, intention_belief: IntentionBelief | None) -> tuple[FramePrediction, list[Issue]]:
         """The rest of the frame: each vehicle's corridor weights (from ``intention_belief`` where the chain phase did
@@ -434,6 +459,7 @@ class MarkovPredictor:
         self._history.clear()
         self._lines.clear()
         self._prepared = None
+        self._prepared_pairs = None
 
     def observe(self, corridor_set: CorridorSet) -> None:
         """Record each vehicle's speed at this stamp (for its measured acceleration); forget stale tracks."""
@@ -640,9 +666,10 @@ class MarkovPredictor:
         weighed: list | None = None,
     ) -> list[Pair]:
         """The frame's pairs: per matched vehicle, one per usable corridor (or the mode's own, ``vehicle_pairs``);
-        ``frame_data`` is what the mode's ``read`` returned. The pairs' ``probability`` is uniform over the vehicle's
-        corridors here: ``weighed`` gets ``(vehicle, corridors, index of its first pair)`` of each vehicle whose
-        weights ``_belief_phase`` sets (``_weights``; without ``weighed``, this sets them, from ``beliefs``)."""
+        ``frame_data`` is what the mode's ``read`` returned. The pairs' ``input_probs`` are None here, and their
+        ``probability`` uniform over the vehicle's corridors: ``weighed`` gets ``(vehicle, corridors, index of its
+        first pair)`` of each vehicle whose inputs ``_chain_phase`` sets (``pair_input``) and whose weights
+        ``_belief_phase`` sets (``_weights``; without ``weighed``, this sets the weights, from ``beliefs``)."""
         cfg = self.config
         stamp = int(corridor_set.header.stamp_ns)
         rows: dict[int, int] = {}
@@ -695,7 +722,6 @@ class MarkovPredictor:
                     s0, v_start = float(cb.s_mean_m), float(_clip(cb.v_mean_mps, 0.0, cfg.v_max_mps))
                     hs = max(0.5 * cfg.ds_m, 2.0 * float(cb.s_std_m))
                     hv = max(0.5 * cfg.dv_mps, 2.0 * float(cb.v_std_mps))
-                lam = self.model.pair_input(vehicle.track_id, c.corridor_id, frame_data, issues)
                 if hs > 0 and not self._particle_box_fits(s0, float(c.vehicle_s_m), hs, vehicle.track_id, c.corridor_id, issues):
                     s0, hs, hv, v_start = float(c.vehicle_s_m), 0.0, 0.0, v0
                 s_first = self._window_start(s0, float(c.vehicle_s_m), hs)
@@ -723,7 +749,7 @@ class MarkovPredictor:
                         start_rate_hz=cfg.standstill_start_rate_hz if standing else 0.0,
                         half_width_s_m=hs,
                         half_width_v_mps=hv,
-                        input_probs=lam,
+                        input_probs=None,  # the mode's λ(0..K-1): set by the chain phase (``pair_input``), once read
                         measured_v_mps=float(vehicle.speed_mps),
                         speed_noise_mps=noise,
                         p_stop=float(stops[c.corridor_id].p_stop) if c.corridor_id in stops else math.nan,
@@ -1063,6 +1089,18 @@ class _Early:
     weighed: list[tuple[Any, list, int]]  # (vehicle, its corridors, index of its first pair): weights still to set
     beliefs_read: bool  # whether the chain phase read the belief (then ``beliefs`` is what it read)
     beliefs: dict[int, dict[int, Any]] | None
+
+
+@dataclass(slots=True)
+class _PairsPhase:
+    """A frame after ``_pairs_phase``: its pairs, before the mode's inputs, relations and the chain."""
+
+    stamp: int
+    issues: list[Issue]
+    pairs: list[Pair]
+    weighed: list[tuple[Any, list, int]]  # (vehicle, its corridors, index of its first pair): inputs and weights still to set
+    skipped: set[int]  # vehicles left out (max_pairs, other shards): their relations raise no issue
+    beliefs: dict[int, dict[int, Any]] | None  # what it read of the belief (``chain_reads_belief``), else None
 
 
 #: the inputs of ``_chain_phase``, in its order, with the type each must have (else None)

@@ -126,6 +126,7 @@ class Node:
         # per-hop trace (IAMP_HOP_TRACE, trace.py): None unless asked; then the times of each joined input set
         self._trace: HopTrace | None = None
         self._hops: dict[int, dict[str, list[int]]] = {}  # stamp -> port -> [recv, deq, dec] (wall ns)
+        self._prep_ns: dict[int, list[int]] = {}  # stamp -> [start, end] (wall ns) of the core's prepare on it, traced
         self._deq_ns = 0  # wall clock when the loop took the item it is handling from the queue
         self._deq_gc_ns = 0  # the trace's GC pause counter then
         self._out_times: dict[str, list[int]] = {}  # output -> [encode start, encode end, put end] of the last publish
@@ -467,7 +468,7 @@ class Node:
             return
         inputs = dict(entry)
         inputs.update(self._not_joined_inputs())
-        t0 = time.perf_counter()
+        t0, start_ns = time.perf_counter(), time.time_ns()
         try:
             ran = prepare(inputs, missing)
         except Exception as exc:  # noqa: BLE001 - the update does the work then
@@ -476,6 +477,9 @@ class Node:
         if ran:
             self._count("prepared")
             self.stats.prep_ms.append((time.perf_counter() - t0) * 1e3)
+            if self._trace is not None:
+                self._prep_ns = {s: v for s, v in self._prep_ns.items() if s in self._pending}  # (sets gone: forgotten)
+                self._prep_ns[stamp] = [start_ns, time.time_ns()]
 
     def _keep_wildcard(self, port: str, key: str, msg: Message) -> bool:
         """File a wildcard input's message as its key's newest; a new key beyond the port's ``max_keys`` is dropped and counted."""
@@ -574,8 +578,12 @@ class Node:
             self._count_failure("publish_exception", exc, "publishing failed on stamp_ns=%d (outputs of this input set dropped)", stamp)
             return
         if self._trace is not None:
-            self._trace.write({"stamp": stamp, "frame": frame_index, "wall": self._last_wall_ns, "in": hops or {}, "start": start_ns, "end": end_ns,
-                               "cpu_ms": round(cpu_ms, 3), "gc_ms": round((self._trace.gc.pause_ns - self._deq_gc_ns) / 1e6, 3), "out": self._out_times})
+            record = {"stamp": stamp, "frame": frame_index, "wall": self._last_wall_ns, "in": hops or {}, "start": start_ns, "end": end_ns,
+                      "cpu_ms": round(cpu_ms, 3), "gc_ms": round((self._trace.gc.pause_ns - self._deq_gc_ns) / 1e6, 3), "out": self._out_times}
+            prep = self._prep_ns.pop(stamp, None)
+            if prep is not None:
+                record["prep"] = prep
+            self._trace.write(record)
 
     def _count_failure(self, kind: str, exc: BaseException, fmt: str, *args: Any) -> None:
         """Count an exception of a core (or of handling one message) and log it, rate-limited."""

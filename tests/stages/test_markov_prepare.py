@@ -1,6 +1,7 @@
-"""``MarkovPredictor.prepare``: the chain phase run before the intentions stage's belief comes gives, with ``update`` on
-the whole set after it, the outputs of ``update`` alone, byte for byte, on real frames; it runs only where the chain
-does not read the belief, only for a set missing nothing else, and a prepared phase is used only for its own messages."""
+"""``MarkovPredictor.prepare``: the pairs built before the acceleration profiles come and the chain run before the
+intentions stage's belief comes give, with ``update`` on the whole set after them, the outputs of ``update`` alone,
+byte for byte, on real frames; nothing runs where the chain reads the belief, and a prepared phase is used only for
+its own messages."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from stages.lib.datasets.superimpose import build_dense
 from stages.lib.markov import MarkovGridConfig, load_or_build_stencils
 from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
 from stages.markov_prediction import core as markov_core
+from stages.markov_prediction.modes import hybrid as hybrid_mode
 from stages.offline.chain import chain_frames
 
 EARLY = frozenset({"intention_belief"})
@@ -56,16 +58,26 @@ def test_prepare_then_update_gives_the_outputs_of_update_alone(frames, stencils,
     alone = MarkovPredictor(MarkovPredictionConfig(mode=mode), stencils=stencils)
     early = MarkovPredictor(MarkovPredictionConfig(mode=mode), stencils=stencils)
     assert not early.chain_reads_belief
-    phases = []
-    real = MarkovPredictor._chain_phase
-    monkeypatch.setattr(MarkovPredictor, "_chain_phase", lambda self, *a, **k: phases.append(self) or real(self, *a, **k))
+    phases = collections.Counter()
+    for name in ("_chain_phase", "_pairs_phase"):
+        real = getattr(MarkovPredictor, name)
+        monkeypatch.setattr(MarkovPredictor, name, lambda self, *a, _real=real, _name=name, **k: phases.update([(_name, self)]) or _real(self, *a, **k))
+    speed = []
+    real_speed = hybrid_mode._compiled_speed
+    monkeypatch.setattr(hybrid_mode, "_compiled_speed", lambda p, pairs: speed.append(p) or real_speed(p, pairs))
     weighted = 0
-    for inputs in frames:
+    for n, inputs in enumerate(frames):
         want = _encoded(alone.update(inputs))
-        before = len([p for p in phases if p is early])
+        before = phases.copy()
+        if n % 2:  # as the runtime offers it: the pairs once the corridors are in, the chain once all but the belief are
+            head = {k: inputs[k] for k in ("corridor_set", "scene", "track_frame")}
+            assert early.prepare(head, EARLY | {"acceleration_profiles", "relation_set"}) is True
+            assert early.prepare({**head, "relation_set": inputs["relation_set"]}, EARLY | {"acceleration_profiles"}) is False  # done
         assert early.prepare(_without_belief(inputs), EARLY) is True
         result = early.update(inputs)
-        assert len([p for p in phases if p is early]) == before + 1  # update used the prepared phase, did not run it again
+        # each phase ran once for the frame: update used the prepared ones, did not run them again
+        assert phases[("_chain_phase", early)] == before[("_chain_phase", early)] + 1
+        assert phases[("_pairs_phase", early)] == before[("_pairs_phase", early)] + 1
         assert _encoded(result) == want
         # the corridor weights are the belief's, renormalised over the predicted corridors (set after the chain)
         belief = {(v.track_id, c.corridor_id): c.probability for v in inputs["intention_belief"].vehicles for c in v.corridors}
@@ -77,19 +89,26 @@ def test_prepare_then_update_gives_the_outputs_of_update_alone(frames, stencils,
             assert got == pytest.approx({c: w / sum(raw.values()) for c, w in raw.items()}, abs=1e-12)
             weighted += len(got) > 1 and max(got.values()) > 0.6
     assert weighted > 0  # some vehicles' weights are far from uniform
+    if mode == "hybrid":  # λ_speed made once per frame (ahead, with the pairs) where no pair is screened out of the chain
+        assert 0 < speed.count(early) <= len(frames) + 2
 
 
 def test_prepare_declines_where_the_chain_reads_the_belief_or_more_is_missing(frames, stencils):
+    """Nothing where the chain reads the belief; the pairs alone without the profiles; nothing without the sizes."""
     inputs = frames[0]
     baseline = MarkovPredictor(MarkovPredictionConfig(mode="baseline"), stencils=stencils)  # particle boxes
     assert baseline.chain_reads_belief and baseline.prepare(_without_belief(inputs), EARLY) is False
     mixture = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", hybrid_stop_mixture=True), stencils=stencils)
     assert mixture.chain_reads_belief and mixture.prepare(_without_belief(inputs), EARLY) is False
     hybrid = MarkovPredictor(MarkovPredictionConfig(mode="hybrid"), stencils=stencils)
-    partial = {k: v for k, v in inputs.items() if k not in ("intention_belief", "acceleration_profiles")}
-    assert hybrid.prepare(partial, EARLY | {"acceleration_profiles"}) is False
+    no_frame = {k: v for k, v in inputs.items() if k not in ("intention_belief", "acceleration_profiles", "track_frame")}
+    assert hybrid.prepare(no_frame, EARLY | {"acceleration_profiles", "track_frame"}) is False  # the pairs need the sizes
     assert hybrid.prepare({"scene": inputs["scene"]}, EARLY) is False  # no corridor set
-    assert hybrid._prepared is None
+    assert hybrid._prepared is None and hybrid._prepared_pairs is None
+    partial = {k: v for k, v in inputs.items() if k not in ("intention_belief", "acceleration_profiles")}
+    assert hybrid.prepare(partial, EARLY | {"acceleration_profiles"}) is True  # the pairs ...
+    assert hybrid.prepare(partial, EARLY | {"acceleration_profiles"}) is False  # ... once
+    assert hybrid._prepared is None and hybrid._prepared_pairs is not None  # not the chain, without the profiles
 
 
 def test_a_prepared_phase_is_used_only_for_its_own_messages(frames, stencils):

@@ -163,6 +163,10 @@ class InputModel(ABC):
         """(K, M) input distributions λ(0..K-1) of one pair from ``read``'s data (``Pair.input_probs``), or None."""
         return None
 
+    def prepare_pairs(self, pairs: list[Pair]) -> None:
+        """What the mode can compute of the frame's pairs before their inputs and relations are known (their
+        corridors, boxes and sizes are), for ``start`` to use when it gets these very pairs; nothing by default."""
+
     def start(self, pairs: list[Pair], issues: list[Issue]) -> ChainInputs:
         """A chain mode's inputs for this frame's pairs (B ≥ 1, every one the chain can take)."""
         raise NotImplementedError(f"{type(self).__name__} does not run the chain")

@@ -52,6 +52,17 @@ class Hybrid(InputModel):
             issues.append(Issue("no_acceleration_profile", track_id, f"corridor {corridor_id}: no AR profile, measured acceleration held"))
         return lam
 
+    def prepare_pairs(self, pairs: list[Pair]) -> None:
+        """The compiled λ_speed of the pairs (``_compiled_speed``), made before their AR profiles come; ``start`` takes
+        it when it gets these very pairs (the chain's batch: none screened out), else makes its own."""
+        self._ahead = None
+        if pairs and self._compiled_speed_applies():
+            self._ahead = (list(pairs), [q.s_first_m for q in pairs], _compiled_speed(self.predictor, pairs))
+
+    def _compiled_speed_applies(self) -> bool:
+        cfg = self.predictor.config
+        return not cfg.hybrid_rules and cfg.hybrid_speed_restriction and kernels.available() and cfg.backend == "numpy"
+
     def start(self, pairs: list[Pair], issues: list[Issue]) -> ChainInputs:
         p = self.predictor
         if p.config.hybrid_rules:  # λ_AR(k) as the preference inside the baseline's whole rule set
@@ -59,14 +70,14 @@ class Hybrid(InputModel):
                 self._rules = Baseline(p)
             return _BaselineInputs(self._rules, pairs, issues, ar_lam=_stack_inputs(p, pairs, issues))
         lam_speed = None
+        ahead, self._ahead = getattr(self, "_ahead", None), None
         if p.config.hybrid_speed_restriction:
-            if kernels.available() and p.config.backend == "numpy":
-                # the same numbers, compiled, computed only at the states the chain visits (the numpy backend asks for no others)
-                adm, cells, weights = speed_profiles(p, pairs)
-                try:
-                    lam_speed = kernels.SpeedRestriction([q.s_m for q in pairs], adm, cells, p.v_centres, p.a_centres, weights, p.config.tau_s)
-                except ValueError:  # a profile np.interp would read differently (not increasing): the numpy definition
-                    lam_speed = speed_restriction(p, pairs)
+            if self._compiled_speed_applies():
+                if ahead is not None and len(ahead[0]) == len(pairs) and all(a is q for a, q in zip(ahead[0], pairs)) \
+                        and ahead[1] == [q.s_first_m for q in pairs]:
+                    lam_speed = ahead[2]  # prepare_pairs' (made for these very pairs, not used yet)
+                else:
+                    lam_speed = _compiled_speed(p, pairs)
             if lam_speed is None:
                 lam_speed = speed_restriction(p, pairs)
         return _HybridInputs(p, pairs, lam_speed, issues)
@@ -120,6 +131,17 @@ class _HybridInputs(ChainInputs):
 
     def fixed_steps(self) -> list:
         return self.steps
+
+
+def _compiled_speed(p: Predictor, pairs: list[Pair]) -> kernels.SpeedRestriction | None:
+    """λ_speed of the pairs compiled, computed only at the states the chain visits (the numpy backend asks for no
+    others): the numbers of ``speed_restriction``; None where a profile np.interp would read differently (not
+    increasing: ``speed_restriction``, the numpy definition, then)."""
+    adm, cells, weights = speed_profiles(p, pairs)
+    try:
+        return kernels.SpeedRestriction([q.s_m for q in pairs], adm, cells, p.v_centres, p.a_centres, weights, p.config.tau_s)
+    except ValueError:
+        return None
 
 
 def _stack_inputs(p: Predictor, pairs: list[Pair], issues: list[Issue]) -> np.ndarray:
