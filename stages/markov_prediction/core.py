@@ -433,7 +433,12 @@ class MarkovPredictor:
                     pair.start_rate_hz = max(self.config.hybrid_standstill_rates_hz[standstill_group(pair.relation, self.config)], 1e-9)
         self._signal_walls = apply_signals(self, pairs, issues)  # stages.markov_prediction.signals: nothing without signal phases
         final, merged, order = self._predict_chain(pairs, issues)
-        return _Early(stamp, issues, final, merged, order, pp.weighed, self.chain_reads_belief, pp.beliefs)
+        found: list[Issue] = []
+        try:  # the outputs' part that needs no weights, now (a failure: _belief_phase isolates the pairs, from the arrays)
+            geometry = (self._finish_geometry(final, merged, found), found)
+        except Exception:  # noqa: BLE001 - done again there, pair by pair
+            geometry = None
+        return _Early(stamp, issues, final, merged, order, pp.weighed, self.chain_reads_belief, pp.beliefs, geometry)
 
     def _belief_phase(self, early: _Early, intention_belief: IntentionBelief | None) -> tuple[FramePrediction, list[Issue]]:
         """The rest of the frame: each vehicle's corridor weights (from ``intention_belief`` where the chain phase did
@@ -448,7 +453,7 @@ class MarkovPredictor:
             w = weights.get(b)
             if w is not None:
                 p.probability = w
-        prediction = self._predict_finish(early.final, early.merged, issues)
+        prediction = self._predict_finish(early.final, early.merged, issues, early.geometry)
         over = prediction.grid_cells_over_cap()
         if over:
             issues.append(Issue("grid_capped", -1, f"{over} grid cells beyond grid_max_cells_per_step = {self.config.grid_max_cells_per_step} (the lowest values) left out of the MotionGrid"))
@@ -823,11 +828,16 @@ class MarkovPredictor:
         merged = _merge(order, [(main, arrays), (usable, fallback)])
         return final, merged, order
 
-    def _predict_finish(self, final: list[Pair], merged: dict[str, Any], issues: list[Issue]) -> FramePrediction:
-        """The outputs of ``_predict_chain``'s pairs and arrays, each pair's failure isolated (``pair_failed``)."""
+    def _predict_finish(self, final: list[Pair], merged: dict[str, Any], issues: list[Issue],
+                        geometry: tuple[dict[str, Any], list[Issue]] | None = None) -> FramePrediction:
+        """The outputs of ``_predict_chain``'s pairs and arrays, each pair's failure isolated (``pair_failed``);
+        ``geometry``: ``_finish_geometry`` of all of them made before (and its issues), for the first try."""
 
         def finish(idx: list[int]):
             found: list[Issue] = []
+            if geometry is not None and len(idx) == len(final):
+                found.extend(geometry[1])
+                return self._finish_grids(final, geometry[0]), found
             subset = final if len(idx) == len(final) else [final[i] for i in idx]
             return self._finish(subset, _take(merged, idx, len(final)), found), found
 
@@ -940,6 +950,12 @@ class MarkovPredictor:
     # ----- outputs --------------------------------------------------------------------
 
     def _finish(self, pairs: list[Pair], arrays: dict[str, Any], issues: list[Issue]) -> FramePrediction:
+        """The outputs of the pairs' chain arrays: ``_finish_grids`` of ``_finish_geometry``."""
+        return self._finish_grids(pairs, self._finish_geometry(pairs, arrays, issues))
+
+    def _finish_geometry(self, pairs: list[Pair], arrays: dict[str, Any], issues: list[Issue]) -> dict[str, Any]:
+        """What of the outputs does not depend on the corridor weights: the distributions cut at each corridor's end,
+        the means on the map, the cells' footprints and the grid's frame (``arrays`` is not changed)."""
         cfg, grid = self.config, self.grid
         n_b, n_k = len(pairs), cfg.n_steps
         pos = np.asarray(arrays["position"], dtype=np.float32)
@@ -1019,6 +1035,15 @@ class MarkovPredictor:
         batch = cell_footprints_arrays(lines, s_first[:, None] + lower[None, :], cfg.ds_m, cfg.grid_substeps, *self._lateral,
                                        used=used) if n_b else None
         frame = self._grid_frame(batch, used)
+        return {"position": pos, "interval": interval, "velocity": np.asarray(arrays["velocity"], dtype=np.float32), "outside": outside,
+                "mean_xy": mean_xy, "mean_s": mean_s, "xy_at_mean": xy_at_mean, "frame": frame, "batch": batch, "grid_probs": grid_probs,
+                "shift": shift_all}
+
+    def _finish_grids(self, pairs: list[Pair], geo: dict[str, Any]) -> FramePrediction:
+        """The outputs from ``_finish_geometry``'s: each vehicle's grid (its corridors' weighted by ``probability``),
+        blurred by the calibrated spread, and their fusion."""
+        cfg, n_b = self.config, len(pairs)
+        frame, batch, grid_probs, shift_all, interval = geo["frame"], geo["batch"], geo["grid_probs"], geo["shift"], geo["interval"]
         by_track: dict[int, list[int]] = collections.defaultdict(list)
         for b, p in enumerate(pairs):
             by_track[p.track_id].append(b)
@@ -1038,13 +1063,13 @@ class MarkovPredictor:
             ds_m=cfg.ds_m,
             dv_mps=cfg.dv_mps,
             pairs=infos,
-            position_probs=pos,
+            position_probs=geo["position"],
             interval_probs=interval,
-            velocity_probs=np.asarray(arrays["velocity"], dtype=np.float32),
-            outside_mass=outside.astype(np.float32),
-            mean_xy_m=mean_xy,
-            mean_s_m=mean_s,
-            xy_at_mean_s_m=xy_at_mean,
+            velocity_probs=geo["velocity"],
+            outside_mass=geo["outside"].astype(np.float32),
+            mean_xy_m=geo["mean_xy"],
+            mean_s_m=geo["mean_s"],
+            xy_at_mean_s_m=geo["xy_at_mean"],
             grid_frame=frame,
             grid_distribution=cfg.grid_distribution if interval is not None or cfg.grid_distribution == "point" else "point",
             vehicle_grids=vehicle_grids_,
@@ -1089,6 +1114,7 @@ class _Early:
     weighed: list[tuple[Any, list, int]]  # (vehicle, its corridors, index of its first pair): weights still to set
     beliefs_read: bool  # whether the chain phase read the belief (then ``beliefs`` is what it read)
     beliefs: dict[int, dict[int, Any]] | None
+    geometry: tuple[dict[str, Any], list[Issue]] | None = None  # ``_finish_geometry`` of ``final`` and its issues (None: failed)
 
 
 @dataclass(slots=True)

@@ -6,6 +6,9 @@ its own messages."""
 from __future__ import annotations
 
 import collections
+import dataclasses
+
+import numpy as np
 
 import pytest
 
@@ -127,3 +130,40 @@ def test_a_prepared_phase_is_used_only_for_its_own_messages(frames, stencils):
     assert early._prepared is None
     assert markov_core._same_messages(markov_core._frame_args(a), markov_core._frame_args(dict(a)))
     assert not markov_core._same_messages(markov_core._frame_args(a), markov_core._frame_args({**a, "corridor_set": b["corridor_set"]}))
+
+
+def _by_pair(result):
+    return {(p.track_id, p.corridor_id): p for p in result.outputs["corridor_predictions"].predictions}
+
+
+def _same_prediction(a, b) -> bool:
+    """Equal but for the last bits of the points on the map (a batch of other centrelines packs them differently)."""
+    return all(np.allclose(getattr(a, f.name), getattr(b, f.name), rtol=0, atol=1e-9, equal_nan=True) for f in dataclasses.fields(a))
+
+
+@pytest.mark.parametrize("where", ["_finish_geometry", "_finish_grids"])
+@pytest.mark.parametrize("prepared", [True, False])
+def test_a_vehicle_whose_outputs_raise_is_left_out_alone(frames, stencils, where, prepared, monkeypatch):
+    """The outputs' weight-free part runs in the chain phase now: a pair whose outputs raise there or in the grids
+    still costs only its own vehicle (``pair_failed``), with or without ``prepare``; the others' predictions are
+    those of a clean run."""
+    inputs = frames[5]
+    want = _by_pair(MarkovPredictor(MarkovPredictionConfig(mode="hybrid"), stencils=stencils).update(inputs))
+    failing = sorted({track for track, _ in want})[1]
+    real = getattr(MarkovPredictor, where)
+
+    def broken(self, pairs, *args):
+        if any(p.track_id == failing for p in pairs):
+            raise FloatingPointError("stand-in for a failure in the outputs")
+        return real(self, pairs, *args)
+
+    monkeypatch.setattr(MarkovPredictor, where, broken)
+    predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid"), stencils=stencils)
+    if prepared:
+        assert predictor.prepare(_without_belief(inputs), EARLY)
+    result = predictor.update(inputs)
+    got = _by_pair(result)
+    assert {k for k in want if k[0] != failing} == set(got)
+    assert all(_same_prediction(got[k], want[k]) for k in got)
+    lost = [i for i in result.issues if i.kind == "pair_failed"]
+    assert lost and {i.agent_id for i in lost} == {failing} and "stand-in" in lost[0].detail
