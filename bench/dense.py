@@ -9,8 +9,10 @@ superimpose``, ``stages/lib/datasets/superimpose.py``): with the full data
 (said so on the first line). The frames are played through the cores as
 the streaming pipeline runs them, one frame at a time, every core every
 frame: source (TrackPlayer), corridors, relations, intentions,
-ar_inference (hybrid only) and markov_prediction (``process`` plus the
-CorridorPredictions and MotionGrid messages), once in mode hybrid and once
+ar_inference (hybrid only) and markov_prediction (as on the bus: where the
+chain does not read the belief, as in hybrid, ``prepare`` on the corridors,
+``prepare`` on all but the belief, then ``update`` with the messages; else
+``update`` alone), once in mode hybrid and once
 in mode baseline on the same upstream outputs, with the pipelines' settings
 (grid of the interval distribution, intentions' corridor weights, particle
 boxes). ``--warmup`` frames are run first, untimed, then ``--frames``
@@ -33,7 +35,9 @@ ar_inference too, and the stencils are built for them).
 ``frame_ms_p95``, ``vehicles_median``, ``pairs_median`` and
 ``stages.<stage>.ms_median`` / ``ms_p95`` / ``cpu_ms_median`` (CPU time of
 the process, less sensitive to other load on the machine than wall time),
-``frame_cpu_ms_median``, plus ``modes.<mode>.exponent``.
+``frame_cpu_ms_median``, ``stages.markov_prediction.after_last_input_ms_median`` (the ``update`` after the
+``prepare`` calls: what is left once the belief is in; on the bus the rest runs while it is on its way), plus
+``modes.<mode>.exponent``.
 """
 
 from __future__ import annotations
@@ -87,6 +91,9 @@ def run_one(data_dir: Path, name: str, args, stencils) -> dict:
     times: dict[str, list[float]] = {s: [] for s in (*UPSTREAM, "ar_inference", *(f"markov_prediction/{m}" for m in MODES))}
     cpu: dict[str, list[float]] = {s: [] for s in ("corridors", "relations", "intentions", "ar_inference", *(f"markov_prediction/{m}" for m in MODES))}
     vehicles, pairs = [], []
+    # markov_prediction's update on the whole set after its prepare calls: its work once the last input (the belief) is in
+    last_input: dict[str, list[float]] = {m: [] for m in MODES}
+    after: dict[str, float] = {}
     n_frames = recording.sequences[0].n_frames
     segments = max(1, int(args.segments))
     per_segment = -(-args.frames // segments)
@@ -128,19 +135,26 @@ def run_one(data_dir: Path, name: str, args, stencils) -> dict:
             profiles = ar.process(corridor_set, relation_set, frame, scene)[0]
             t4, c4 = time.perf_counter(), time.process_time()
             markov_ms, markov_cpu = {}, {}
+            inputs = {"corridor_set": corridor_set, "relation_set": relation_set, "scene": scene, "track_frame": frame,
+                      "intention_belief": belief}
             for mode, predictor in predictors.items():
+                if mode == "hybrid":
+                    inputs["acceleration_profiles"] = profiles
                 m0, mc0 = time.perf_counter(), time.process_time()
-                prediction, _issues = predictor.process(
-                    corridor_set, relation_set, scene, frame, intention_belief=belief,
-                    acceleration_profiles=profiles if mode == "hybrid" else None,
-                )
-                h = corridor_set.header
-                prediction.corridor_predictions(h, corridor_set.scene_id)
-                prediction.motion_grid(h, corridor_set.scene_id)
+                # as on the bus (README, "Work before the last input"): the pairs once the corridors are in, the chain once
+                # all but the belief is; ``update`` on the whole set then, the part after the last input
+                staged = not predictor.chain_reads_belief
+                if staged:
+                    head = {k: inputs[k] for k in ("corridor_set", "scene", "track_frame")}
+                    predictor.prepare(head, {"relation_set", "intention_belief", *(["acceleration_profiles"] if mode == "hybrid" else [])})
+                    predictor.prepare({k: v for k, v in inputs.items() if k != "intention_belief"}, {"intention_belief"})
+                m1 = time.perf_counter()
+                result = predictor.update(inputs)
                 markov_ms[mode] = (time.perf_counter() - m0) * 1e3
                 markov_cpu[mode] = (time.process_time() - mc0) * 1e3
+                after[mode] = (time.perf_counter() - m1) * 1e3
                 if mode == "hybrid" and timed:
-                    pairs.append(len(prediction.pairs))
+                    pairs.append(len(result.outputs["corridor_predictions"].predictions))
             if not timed:
                 continue
             vehicles.append(int(np.isin(frame.agent_types, VEHICLE_TYPES).sum()))
@@ -151,6 +165,7 @@ def run_one(data_dir: Path, name: str, args, stencils) -> dict:
             times["ar_inference"].append((t4 - t3) * 1e3)
             for mode in MODES:
                 times[f"markov_prediction/{mode}"].append(markov_ms[mode])
+                last_input[mode].append(after[mode])
             for name, ms in (("corridors", c1 - c0), ("relations", c2 - c1), ("intentions", c3 - c2), ("ar_inference", c4 - c3)):
                 cpu[name].append(ms * 1e3)
             for mode in MODES:
@@ -170,6 +185,8 @@ def run_one(data_dir: Path, name: str, args, stencils) -> dict:
             "stages": {s.split("/")[0]: {**_stats(times[s]), **({"cpu_ms_median": float(np.median(cpu[s]))} if s in cpu and cpu[s] else {})}
                        for s in stages},
         }
+        # the part of markov_prediction left once its last input is in (all of it where the chain reads the belief)
+        out[mode]["stages"]["markov_prediction"]["after_last_input_ms_median"] = _stats(last_input[mode])["ms_median"]
     return out
 
 
@@ -226,6 +243,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"N={n}: {built.name}, {len(built.layers)} layers, recording mean {built.vehicles_mean:.1f} vehicles/frame; "
               + "; ".join(f"{m} frame p50 {res[m]['frame_ms_median']:.1f} ms (cpu {res[m]['frame_cpu_ms_median']:.1f}), markov_prediction p50 "
                           f"{res[m]['stages']['markov_prediction']['ms_median']:.1f} ms (cpu {res[m]['stages']['markov_prediction']['cpu_ms_median']:.1f}, "
+                          f"after its last input {res[m]['stages']['markov_prediction']['after_last_input_ms_median']:.1f}, "
                           f"{res[m]['pairs_median']:.0f} pairs)" for m in MODES),
               flush=True)
         if args.json:  # written after every N, so that a run cut short keeps what it measured

@@ -9,6 +9,16 @@ mode ``hybrid``), all of the same stamp. Produces ``corridor_predictions`` (``Co
 and ``motion_grid`` (``MotionGrid``) for every frame. Run it alone with
 ``python -m stages.markov_prediction``.
 
+On the bus the work starts before the last input: the runtime offers the
+core each incomplete set (``MarkovPredictor.prepare``; README, "Work before
+the last input"). Where the chain does not read the intentions stage's
+belief (``chain_reads_belief``: every mode but the baseline's particle boxes
+and hybrid's stop mixture) the pairs are built once the corridor set and the
+track frame are in (``_pairs_phase``), the chain and the weight-free part of
+the outputs run once everything but the belief is in (``_chain_phase``), and
+the belief leaves the corridor weights, the grids and the messages
+(``_belief_phase``): the outputs of one ``update``, byte for byte.
+
 Modes (``mode``), one ``InputModel`` each in ``modes/`` (the contract the
 chain loop of ``core.py`` calls: ``modes/base.py``):
 

@@ -384,7 +384,9 @@ class MarkovPredictor:
         speed_limit = scene.speed_limit_mps if scene is not None and _positive(scene.speed_limit_mps) else self.config.default_speed_limit_mps
         weighed: list[tuple[Any, list, int]] = []
         pairs = self._vehicle_pairs(corridor_set, track_frame, speed_limit, issues, beliefs, None, weighed)
-        self.model.prepare_pairs(pairs)
+        if self.model.chain and pairs:  # the chain's batch as _predict_chain will screen it (the inputs are not known yet)
+            screened = self._screen(pairs)
+            self.model.prepare_pairs([p for b, p in enumerate(pairs) if b not in screened])
         return _PairsPhase(stamp, issues, pairs, weighed, skipped, beliefs)
 
     def _chain_phase(
