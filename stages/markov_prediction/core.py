@@ -9,6 +9,7 @@ rules; nothing here touches the bus or the wall clock.
 
 from __future__ import annotations
 
+import bisect
 import collections
 import dataclasses
 import math
@@ -469,7 +470,11 @@ class MarkovPredictor:
         self._prepared_pairs = None
 
     def observe(self, corridor_set: CorridorSet) -> None:
-        """Record each vehicle's speed at this stamp (for its measured acceleration); forget stale tracks."""
+        """Record each vehicle's speed at this stamp (for its measured acceleration); forget stale tracks.
+
+        The samples are kept in stamp order whatever order the frames come in (``prepare`` may observe a frame
+        before the one in front of it is finished): an older stamp is put in its place, one already held is not
+        added again."""
         stamp = int(corridor_set.header.stamp_ns)
         self._lines.clear()
         for vehicle in corridor_set.vehicles:
@@ -477,6 +482,14 @@ class MarkovPredictor:
                 continue
             hist = self._history.setdefault(vehicle.track_id, _SpeedHistory())
             if hist.samples and stamp <= hist.samples[-1][0]:
+                stamps = [t for t, _ in hist.samples]
+                i = bisect.bisect_left(stamps, stamp)
+                if stamps[i] == stamp or i == 0:  # held already, or older than every sample kept
+                    continue
+                if len(hist.samples) == hist.samples.maxlen:
+                    hist.samples.popleft()
+                    i -= 1
+                hist.samples.insert(i, (stamp, float(vehicle.speed_mps)))
                 continue
             hist.samples.append((stamp, float(vehicle.speed_mps)))
             hist.last_stamp_ns = stamp

@@ -167,3 +167,20 @@ def test_a_vehicle_whose_outputs_raise_is_left_out_alone(frames, stencils, where
     assert all(_same_prediction(got[k], want[k]) for k in got)
     lost = [i for i in result.issues if i.kind == "pair_failed"]
     assert lost and {i.agent_id for i in lost} == {failing} and "stand-in" in lost[0].detail
+
+
+def test_the_next_frame_prepared_first_changes_nothing(frames, stencils):
+    """On the bus the pairs of frame n + 1 may be built (its vehicles' speeds observed) before frame n's chain has run
+    (its profiles late): frame n's outputs are still those of frames taken in order."""
+    # "blend": λ(0) from the speeds observed as well (the slope of each vehicle's recent speeds)
+    config = MarkovPredictionConfig(mode="hybrid", hybrid_initial_input="blend")
+    in_order, ahead = MarkovPredictor(config, stencils=stencils), MarkovPredictor(config, stencils=stencils)
+    for inputs in frames[:3]:
+        in_order.update(inputs)
+        ahead.update(inputs)
+    heads = [{k: f[k] for k in ("corridor_set", "scene", "track_frame")} for f in frames]
+    for n in range(3, 12):
+        want = _encoded(in_order.update(frames[n]))
+        assert ahead.prepare(heads[n + 1], EARLY | {"acceleration_profiles", "relation_set"})  # frame n + 1's pairs, then ...
+        assert _encoded(ahead.update(frames[n])) == want  # ... frame n
+    assert any(v.speed_mps > 1.0 for v in frames[11]["corridor_set"].vehicles)  # moving vehicles (measured accelerations)
