@@ -384,7 +384,7 @@ class MarkovPredictor:
         self.observe(corridor_set)
         speed_limit = scene.speed_limit_mps if scene is not None and _positive(scene.speed_limit_mps) else self.config.default_speed_limit_mps
         weighed: list[tuple[Any, list, int]] = []
-        pairs = self._vehicle_pairs(corridor_set, track_frame, speed_limit, issues, beliefs, None, weighed)
+        pairs = self._vehicle_pairs(corridor_set, track_frame, speed_limit, issues, beliefs, weighed)
         if self.model.chain and pairs:  # the chain's batch as _predict_chain will screen it (the inputs are not known yet)
             screened = self._screen(pairs)
             self.model.prepare_pairs([p for b, p in enumerate(pairs) if b not in screened])
@@ -499,7 +499,7 @@ class MarkovPredictor:
 
     # ----- pairs ------------------------------------------------------------------
 
-    def _vehicle_pairs(self, corridor_set: CorridorSet, frame, scene_limit_mps: float, issues: list[Issue], beliefs, frame_data,
+    def _vehicle_pairs(self, corridor_set: CorridorSet, frame, scene_limit_mps: float, issues: list[Issue], beliefs,
                        weighed: list | None = None) -> list[Pair]:
         """``_pairs`` of the frame; a vehicle whose pairs cannot be built is left out (``vehicle_failed``), not the frame.
         ``weighed`` gets ``_pairs``'s list of the vehicles whose corridor weights are still to be set."""
@@ -509,7 +509,7 @@ class MarkovPredictor:
             found: list[Issue] = []
             subset = corridor_set if len(idx) == len(vehicles) else dataclasses.replace(corridor_set, vehicles=tuple(vehicles[i] for i in idx))
             out: list = []
-            return self._pairs(subset, frame, scene_limit_mps, found, beliefs, frame_data, out), found, out
+            return self._pairs(subset, frame, scene_limit_mps, found, beliefs, out), found, out
 
         (pairs, found, out), failed = isolate(range(len(vehicles)), attempt)
         if weighed is not None:
@@ -682,14 +682,13 @@ class MarkovPredictor:
         scene_limit_mps: float,
         issues: list[Issue],
         beliefs: dict[int, dict[int, Any]] | None = None,
-        frame_data: Any = None,
         weighed: list | None = None,
     ) -> list[Pair]:
-        """The frame's pairs: per matched vehicle, one per usable corridor (or the mode's own, ``vehicle_pairs``);
-        ``frame_data`` is what the mode's ``read`` returned. The pairs' ``input_probs`` are None here, and their
-        ``probability`` uniform over the vehicle's corridors: ``weighed`` gets ``(vehicle, corridors, index of its
-        first pair)`` of each vehicle whose inputs ``_chain_phase`` sets (``pair_input``) and whose weights
-        ``_belief_phase`` sets (``_weights``; without ``weighed``, this sets the weights, from ``beliefs``)."""
+        """The frame's pairs: per matched vehicle, one per usable corridor (or the mode's own, ``vehicle_pairs``).
+        Their ``input_probs`` are None here and their ``probability`` uniform over the vehicle's corridors:
+        ``weighed`` gets ``(vehicle, corridors, index of its first pair)`` of each vehicle whose inputs
+        ``_chain_phase`` sets (``pair_input``) and whose weights ``_belief_phase`` sets (``_weights``; without
+        ``weighed``, this sets the weights, from ``beliefs``)."""
         cfg = self.config
         stamp = int(corridor_set.header.stamp_ns)
         rows: dict[int, int] = {}

@@ -296,7 +296,7 @@ def test_the_window_always_holds_the_initial_box(config, stencils, item):
             dataclasses.replace(c, s_mean_m=c.s_mean_m + offset, s_std_m=std) for c in belief.corridors))
         cs = dataclasses.replace(item.corridor_set, vehicles=(source,))
         issues = []
-        pairs = predictor._pairs(cs, item.frame, 13.89, issues, {SOURCE: {c.corridor_id: c for c in changed.corridors}}, None)
+        pairs = predictor._pairs(cs, item.frame, 13.89, issues, {SOURCE: {c.corridor_id: c for c in changed.corridors}})
         boxes = predictor._boxes(pairs)
         lower = boxes["s_m"] - boxes["half_width_s_m"]
         upper = boxes["s_m"] + boxes["half_width_s_m"]
