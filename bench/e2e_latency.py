@@ -274,8 +274,8 @@ def hop_table(traces: dict[str, dict], grid: tuple[str, str] = GRID) -> dict:
                           "gc": r.get("gc_ms", math.nan), "put": sum(v[2] - v[1] for v in outs) / 1e6})
             ins = r.get("in") or {}
             parts["skew"] = (max(v[0] for v in ins.values()) - min(v[0] for v in ins.values())) / 1e6 if ins else math.nan
-            prep = r.get("prep")  # the core's prepare on the set before its last input came (markov_prediction's chain)
-            parts["prepare"] = (prep[1] - prep[0]) / 1e6 if prep else math.nan
+            prep = r.get("prep")  # the core's prepare calls on the set before its last input came (markov: pairs, chain)
+            parts["prepare"] = sum(end - start for start, end in prep) / 1e6 if prep else math.nan
             for k, v in parts.items():
                 cols.setdefault(k, []).append(v)
         src = [r for r in t["records"] if "out" in r and "start" not in r]

@@ -126,7 +126,7 @@ class Node:
         # per-hop trace (IAMP_HOP_TRACE, trace.py): None unless asked; then the times of each joined input set
         self._trace: HopTrace | None = None
         self._hops: dict[int, dict[str, list[int]]] = {}  # stamp -> port -> [recv, deq, dec] (wall ns)
-        self._prep_ns: dict[int, list[int]] = {}  # stamp -> [start, end] (wall ns) of the core's prepare on it, traced
+        self._prep_ns: dict[int, list[list[int]]] = {}  # stamp -> [start, end] (wall ns) of each prepare that ran on it, traced
         self._deq_ns = 0  # wall clock when the loop took the item it is handling from the queue
         self._deq_gc_ns = 0  # the trace's GC pause counter then
         self._out_times: dict[str, list[int]] = {}  # output -> [encode start, encode end, put end] of the last publish
@@ -478,8 +478,7 @@ class Node:
             self._count("prepared")
             self.stats.prep_ms.append((time.perf_counter() - t0) * 1e3)
             if self._trace is not None:
-                self._prep_ns = {s: v for s, v in self._prep_ns.items() if s in self._pending}  # (sets gone: forgotten)
-                self._prep_ns[stamp] = [start_ns, time.time_ns()]
+                self._prep_ns.setdefault(stamp, []).append([start_ns, time.time_ns()])
 
     def _keep_wildcard(self, port: str, key: str, msg: Message) -> bool:
         """File a wildcard input's message as its key's newest; a new key beyond the port's ``max_keys`` is dropped and counted."""
@@ -532,6 +531,7 @@ class Node:
         entry = self._pending.pop(stamp, None)
         self._pending_since.pop(stamp, None)
         self._hops.pop(stamp, None)
+        self._prep_ns.pop(stamp, None)
         if entry is not None:
             self.stats.counters["join_drops"] += 1
             self.problems.report(
