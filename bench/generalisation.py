@@ -40,7 +40,10 @@ training location with its model (``iamp calibrate --recording A --model
 ``--recalibrate`` fits again, as it must after a change of the modes' code or
 defaults) and the eval reads it (``--set spread_calibration=FILE``), so the
 coverage is calibrated on one location and reported on the other. ``--set
-KEY=VALUE`` passes a markov_prediction parameter to both.
+KEY=VALUE`` passes a markov_prediction parameter to both; ``--eval-set
+KEY=VALUE`` to ``iamp eval`` only (e.g. ``--eval-set spread_online=true``:
+the online spread on top of the table, which ``iamp calibrate`` does not
+take).
 
 Models are cached under ``artefacts/generalisation/`` keyed by training
 recording, seed and a hash of the training options (data folder and the
@@ -53,7 +56,7 @@ Run (full TAF-BW recordings named by ``IAMP_TAF_BW``)::
     IAMP_TAF_BW=/path/to/taf-bw python bench/generalisation.py
     python bench/generalisation.py --data DIR [--seed 0] [--direction k729-k733|k733-k729|both]
         [--max-frames N] [--stride 0.4] [--retrain] [--train-opt=--hidden=256 ...] [--calibrate [--recalibrate]]
-        [--set KEY=VALUE ...] [--modes hybrid ...] [--json OUT]
+        [--set KEY=VALUE ...] [--eval-set KEY=VALUE ...] [--modes hybrid ...] [--json OUT]
 
 ``--modes`` restricts the modes ``iamp eval`` runs (default all four); the
 ratios and goal items that need a mode not run say "unknown". Comparing AR
@@ -387,6 +390,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--recalibrate", action="store_true", help="with --calibrate: fit even when a cached file exists")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="markov_prediction parameter for iamp calibrate and iamp eval (repeatable)")
+    p.add_argument("--eval-set", action="append", default=[], metavar="KEY=VALUE",
+                   help="markov_prediction parameter for iamp eval only (repeatable), e.g. --eval-set spread_online=true")
     p.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES),
                    help="modes iamp eval runs (default all; e.g. --modes hybrid to compare AR models without re-running the others)")
     p.add_argument("--json", type=Path, default=DEFAULT_JSON, help=f"write everything here (default {DEFAULT_JSON})")
@@ -416,7 +421,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     names = list(DIRECTIONS) if args.direction == "both" else [args.direction]
     out: dict[str, Any] = {"data": str(data), "seed": seeds[0], "stride_s": args.stride, "max_frames": args.max_frames,
-                           "train_options": args.train_opt, "modes": [m for m in MODES if m in args.modes], "calibrate": args.calibrate, "set": args.set, "slow_fast_split_mps": SLOW_FAST_MPS, "directions": {}}
+                           "train_options": args.train_opt, "modes": [m for m in MODES if m in args.modes], "calibrate": args.calibrate, "set": args.set, "eval_set": args.eval_set, "slow_fast_split_mps": SLOW_FAST_MPS, "directions": {}}
     per_seed: dict[int, dict[str, Any]] = {}
     for seed in seeds:
         if len(seeds) > 1:
@@ -479,6 +484,7 @@ def _run_seed(args, data: Path, names: list[str], seed: int) -> dict[str, Any]:
         if args.calibrate:
             cal = calibrate(data, RECORDINGS[a], train["model"], seed, sets, args.recalibrate)
             sets.append(f"spread_calibration={cal['file']}")
+        sets.extend(args.eval_set)
         ev, ev_seconds, ev_path = eval_model(data, RECORDINGS[b], train["model"], seed, args.stride, args.max_frames, name, sets,
                                              tuple(m for m in MODES if m in args.modes))
         summary = summarise(ev)

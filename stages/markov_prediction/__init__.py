@@ -92,6 +92,13 @@ by ``iamp calibrate`` gives, per mode, start-speed band and step, the σ of
 an isotropic Gaussian that blurs each vehicle's grid before fusion
 (``spread.py``; the corridor distributions and means do not change), widened
 per vehicle by its own speed noise when the file has a ``speed_noise_gain``.
+Online spread (``spread_online``, off by default; ``online_spread.py``): the
+grids of vehicles starting faster than ``spread_online_min_speed_mps`` are
+widened further, by c·t per step, c per start-speed band learnt as the
+vehicles move on (each kept grid checked against the vehicle's later
+positions, c up on a miss of the ``spread_online_target`` region, down on a
+hit), so that the region holds the truth at the target rate on a location no
+table was fitted on.
 
 Lateral offset. Means and grids are placed at the vehicle's lateral offset
 from the centreline, d(t) = d0·exp(−t/``lateral_offset_decay_s``); the

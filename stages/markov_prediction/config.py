@@ -149,6 +149,15 @@ class MarkovPredictionConfig(ConfigMixin):
     # Gaussian σ (m) along the corridor that widens each pair's s-distribution at each step, per start-speed band,
     # for the grids only (the mean positions stay as they are); "" = none; "shipped" = stages/markov_prediction/spread.json
     spread_calibration: str = ""
+    # online spread (README "Online spread", online_spread.py): the grids of each start-speed band widened at each step
+    # until their ``spread_online_target`` region holds the vehicles' later positions in that share of the checks
+    # (the extra σ grows by c·t, c in [0, spread_online_max_mps] moved by spread_online_rate_mps per check); on top of
+    # the spread table, if any; only for vehicles starting faster than spread_online_min_speed_mps. Off: false
+    spread_online: bool = False
+    spread_online_min_speed_mps: float = 2.0
+    spread_online_target: float = 0.9
+    spread_online_rate_mps: float = 0.05
+    spread_online_max_mps: float = 1.5
     # issues
     outside_issue_mass: float = 0.01
     # bounded work per message (issue 13): pairs per frame (whole vehicles beyond, in CorridorSet order, skipped)
@@ -187,11 +196,11 @@ class MarkovPredictionConfig(ConfigMixin):
             "ds_m", "dv_mps", "v_max_mps", "tau_s", "init_sigma_s_m", "init_sigma_v_mps", "init_sigma_a_mps2",
             "track_timeout_s", "psi_gamma", "lookahead_brake_mps2", "speed_limit_factor",
             "default_speed_limit_mps", "leader_brake_mps2", "static_leader_spread_m", "grid_cell_m",
-            "grid_lateral_sigma_m", "cv_accel_sigma_mps2", "hybrid_start_sigma_mps2",
+            "grid_lateral_sigma_m", "cv_accel_sigma_mps2", "hybrid_start_sigma_mps2", "spread_online_rate_mps", "spread_online_max_mps",
         )
         non_negative = (
             "window_behind_m", "accel_window_s", "prune_threshold", "standstill_speed_mps", "standstill_start_rate_hz", "forbid_threshold", "curvature_smoothing_m", "leader_epsilon",
-            "conflict_margin_s", "conflict_epsilon", "standstill_leader_gap_m", "standstill_leader_moving_mps", "hybrid_start_accel_mps2", "grid_margin_m", "lateral_offset_decay_s", "grid_min_value", "outside_issue_mass",
+            "conflict_margin_s", "conflict_epsilon", "standstill_leader_gap_m", "standstill_leader_moving_mps", "hybrid_start_accel_mps2", "spread_online_min_speed_mps", "grid_margin_m", "lateral_offset_decay_s", "grid_min_value", "outside_issue_mass",
         )
         check_ranges(self, positive=positive, non_negative=non_negative)
         uniform_input_edges(self.input_min_mps2, self.input_max_mps2, self.n_inputs)  # ValueError on a bad range
@@ -210,6 +219,8 @@ class MarkovPredictionConfig(ConfigMixin):
             raise ValueError("lat_accels_mps2 must be > 0 and lat_accel_weights >= 0")
         if not self.leader_horizons_s or any(h <= 0 for h in self.leader_horizons_s):
             raise ValueError(f"leader_horizons_s = {self.leader_horizons_s!r}: needs positive values")
+        if not (0.0 < self.spread_online_target < 1.0):
+            raise ValueError(f"spread_online_target = {self.spread_online_target!r}: must lie in (0, 1) (0.9: the 90 % region)")
         if self.grid_extent_m and (len(self.grid_extent_m) != 4 or self.grid_extent_m[2] <= self.grid_extent_m[0]
                                    or self.grid_extent_m[3] <= self.grid_extent_m[1]):
             raise ValueError(f"grid_extent_m = {self.grid_extent_m!r}: expected () (auto) or (x_min, y_min, x_max, y_max)")

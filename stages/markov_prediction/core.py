@@ -51,6 +51,7 @@ from stages.markov_prediction.modes import MODELS
 from stages.markov_prediction.modes.base import InputModel, Messages, Pair, Vehicle, stay_probabilities
 from stages.markov_prediction.modes.corridor_cv import constant_speed
 from stages.markov_prediction.modes.cv import CV_LINE_ID
+from stages.markov_prediction.online_spread import DEFAULT_BANDS_MPS, OnlineSpread
 from stages.markov_prediction.spread import SpreadTable, blur_grid, load_spread
 from stages.markov_prediction.rasterise import (
     Centrelines, FootprintBatch, GridFrame, SparseGrid, cell_footprints_arrays, fuse, lateral_kernel, vehicle_grids,
@@ -111,6 +112,8 @@ class FramePrediction:
     fused_grid: SparseGrid
     min_grid_value: float
     max_cells_per_step: int = 0  # 0: no cap; else the MotionGrid lists at most this many cells per step (the highest)
+    #: per track id, the start speed (m/s) that picked its grid's spread band (the measured speed, else v0)
+    start_speeds_mps: dict[int, float] = dataclasses.field(default_factory=dict)
 
     def corridor_predictions(self, header: Header, scene_id: str) -> CorridorPredictions:
         """The ``CorridorPredictions`` message (s-distributions cropped to the cells ever occupied)."""
@@ -287,6 +290,12 @@ class MarkovPredictor:
         self.model: InputModel = model_cls(self)
         #: the calibrated spread of this mode's grids (``spread.py``), or None
         self.spread: SpreadTable | None = load_spread(config.spread_calibration, config.mode, config.n_steps) if config.spread_calibration else None
+        #: the online spread (``online_spread.py``, ``spread_online``), or None
+        self.online: OnlineSpread | None = OnlineSpread(
+            self.step_times_s, bands_mps=self.spread.bands_mps if self.spread is not None else DEFAULT_BANDS_MPS,
+            target=config.spread_online_target, rate_mps=config.spread_online_rate_mps, max_mps=config.spread_online_max_mps,
+            min_speed_mps=config.spread_online_min_speed_mps, stride_s=config.tau_s,
+        ) if config.spread_online else None
         #: whether the chain itself reads the intentions stage's belief (the particle boxes, the stop mixture); where it
         #: does not, ``prepare`` runs the chain before the belief comes
         self.chain_reads_belief = config.initial_box == "particles" or (config.mode == "hybrid" and config.hybrid_stop_mixture)
@@ -312,6 +321,7 @@ class MarkovPredictor:
             early = self._chain_phase(*args, intention_belief=belief)
         prediction, issues = self._belief_phase(early, belief)
         scene, frame = args[2], args[3]
+        self._learn_spread(early.stamp, frame, prediction)
         h = corridor_set.header
         # the source frame's publish time (end-to-end latency): from the TrackFrame when joined, else as the corridors carried it
         wall = frame.header.source_wall_ns if isinstance(frame, TrackFrame) else h.source_wall_ns
@@ -362,7 +372,19 @@ class MarkovPredictor:
     ) -> tuple[FramePrediction, list[Issue]]:
         """The pure function behind ``update``: the frame's prediction and the issues met."""
         early = self._chain_phase(corridor_set, relation_set, scene, track_frame, acceleration_profiles, intention_belief=intention_belief)
-        return self._belief_phase(early, intention_belief)
+        prediction, issues = self._belief_phase(early, intention_belief)
+        self._learn_spread(early.stamp, track_frame, prediction)
+        return prediction, issues
+
+    def _learn_spread(self, stamp: int, track_frame: TrackFrame | None, prediction: FramePrediction) -> None:
+        """The online spread (``online_spread.py``): the kept grids checked against this frame's positions, this
+        frame's grids kept. Without a track frame of this stamp nothing is checked (the grids are still kept)."""
+        if self.online is None:
+            return
+        positions: dict[int, tuple[float, float]] = {}
+        if isinstance(track_frame, TrackFrame) and int(track_frame.header.stamp_ns) == stamp:
+            positions = dict(zip(track_frame.track_ids.tolist(), zip(track_frame.x_m.tolist(), track_frame.y_m.tolist())))
+        self.online.update(stamp, positions, prediction.grid_frame, prediction.vehicle_grids, prediction.start_speeds_mps)
 
     def _pairs_phase(self, corridor_set: CorridorSet, scene: SceneInfo | None = None, track_frame: TrackFrame | None = None, *,
                      intention_belief: IntentionBelief | None = None) -> _PairsPhase:
@@ -468,6 +490,8 @@ class MarkovPredictor:
         self._lines.clear()
         self._prepared = None
         self._prepared_pairs = None
+        if self.online is not None:
+            self.online.reset()
 
     def observe(self, corridor_set: CorridorSet) -> None:
         """Record each vehicle's speed at this stamp (for its measured acceleration); forget stale tracks.
@@ -1065,11 +1089,20 @@ class MarkovPredictor:
         grids = vehicle_grids(frame, batch, grid_probs, [p.probability for p in pairs], list(by_track.values()), shift_all,
                               threads=cfg.kernel_threads) if n_b else []
         vehicle_grids_ = dict(zip(by_track.keys(), grids))
+        start_speeds: dict[int, float] = {}
+        for track, members in by_track.items():
+            p = pairs[members[0]]
+            start_speeds[track] = p.measured_v_mps if math.isfinite(p.measured_v_mps) else p.v0_mps
         if self.spread is not None:  # calibrated spread (spread.py): each vehicle's grid blurred per step and speed band
             for track, members in by_track.items():
                 p = pairs[members[0]]
                 speed = p.measured_v_mps if math.isfinite(p.measured_v_mps) else p.v0_mps
-                vehicle_grids_[track] = blur_grid(frame, vehicle_grids_[track], self.spread.sigmas(speed, p.speed_noise_mps, self.step_times_s))
+                vehicle_grids_[track] = blur_grid(frame, vehicle_grids_[track], self._sigmas(speed, p.speed_noise_mps))
+        elif self.online is not None:  # the online spread alone
+            for track, members in by_track.items():
+                p = pairs[members[0]]
+                speed = p.measured_v_mps if math.isfinite(p.measured_v_mps) else p.v0_mps
+                vehicle_grids_[track] = blur_grid(frame, vehicle_grids_[track], self._sigmas(speed, p.speed_noise_mps))
         infos = tuple(PairInfo(p.track_id, p.corridor_id, p.probability, p.s0_m, p.s_first_m, p.end_s_m) for p in pairs)
         return FramePrediction(
             mode=cfg.mode,
@@ -1090,7 +1123,14 @@ class MarkovPredictor:
             fused_grid=fuse(list(vehicle_grids_.values()), frame.n_cells),
             min_grid_value=cfg.grid_min_value,
             max_cells_per_step=cfg.grid_max_cells_per_step,
+            start_speeds_mps=start_speeds,
         )
+
+    def _sigmas(self, speed_mps: float, speed_noise_mps: float) -> np.ndarray:
+        """The blur σ per step of a vehicle's grid: the spread table's (with its speed noise), widened by the online
+        spread's extra σ (√(table² + extra²))."""
+        table = self.spread.sigmas(speed_mps, speed_noise_mps, self.step_times_s) if self.spread is not None else np.zeros(self.step_times_s.size)
+        return np.hypot(table, self.online.extra_sigmas(speed_mps)) if self.online is not None else table
 
     def _grid_frame(self, footprints: FootprintBatch | None, used: np.ndarray | None) -> GridFrame:
         """The frame's grid: the configured extent, or around the samples of every cell ``used`` (B, L): the cells that
@@ -1101,7 +1141,10 @@ class MarkovPredictor:
         bounds = footprints.bounds(used) if footprints is not None and used is not None else None
         if bounds is None:
             return GridFrame(0.0, 0.0, cfg.grid_cell_m, 1, 1)
-        margin = cfg.grid_margin_m + (3.0 * float(self.spread.max_sigma_m(self.step_times_s, SPEED_NOISE_CAP_MPS)) if self.spread is not None else 0.0)  # the blur stays on the grid
+        widest = float(self.spread.max_sigma_m(self.step_times_s, SPEED_NOISE_CAP_MPS)) if self.spread is not None else 0.0
+        if self.online is not None:
+            widest = math.hypot(widest, self.online.max_sigma_m())
+        margin = cfg.grid_margin_m + 3.0 * widest  # the blur stays on the grid
         x_lo, x_hi, y_lo, y_hi = bounds
         return GridFrame.around(np.array([x_lo, x_hi]), np.array([y_lo, y_hi]), cfg.grid_cell_m, margin)
 

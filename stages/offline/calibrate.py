@@ -64,6 +64,8 @@ class SpreadCalibration(Evaluation):
                  speed_noise_gain: float = SPEED_NOISE_GAIN) -> None:
         if any(p == "spread_calibration" for p, _ in config.params):
             raise ValueError("iamp calibrate fits spread_calibration: do not --set it")
+        if any(p.startswith("spread_online") for p, _ in config.params):
+            raise ValueError("iamp calibrate fits the spread table alone: do not --set spread_online (it widens the grids at run time, on top)")
         if not (math.isfinite(speed_noise_gain) and speed_noise_gain >= 0):
             raise ValueError(f"--speed-noise-gain {speed_noise_gain}: must be a number >= 0")
         n_steps, tau = 10, 0.4  # the margin's bound; the predictors' own steps are read below
