@@ -42,7 +42,7 @@ import numpy as np
 from stages.lib.base import json_safe
 from stages.markov_prediction.rasterise import highest_density_threshold
 from stages.markov_prediction.core import SPEED_NOISE_CAP_MPS
-from stages.markov_prediction.spread import SpreadTable, blur_step, with_speed_noise, write_spread
+from stages.markov_prediction.spread import BLUR_MIN_VALUE, SpreadTable, blur_step, with_speed_noise, write_spread
 from stages.offline.evaluation import EVAL_MODES, EvalConfig, Evaluation, _key_values
 
 #: candidate σ (m) along the corridor
@@ -166,20 +166,20 @@ def _truth_in_blurred(frame, cells: np.ndarray, values: np.ndarray, cell_true: i
     br, bc = (row - r0) // f, (col - c0) // f
     if not (0 <= br < blocks.shape[0] and 0 <= bc < blocks.shape[1]):
         return False, 0.0
-    mass = float(blocks[br, bc])
-    if mass <= 1e-12:
+    per_block = blocks / (f * f)  # a block's cells share its mass / f²; the stage keeps those above BLUR_MIN_VALUE
+    if not per_block[br, bc] > BLUR_MIN_VALUE:
         return False, 0.0
     inside = _blocks_inside(frame, r0, c0, f, blocks.shape)  # cells of each block inside the frame
-    flat = blocks.ravel()
-    keep = (flat > 1e-12) & (inside.ravel() > 0)
-    # the region over cells: cells sorted by value, blocks' cells share block mass / f²
-    per_cell = flat[keep] / (f * f)
+    flat = per_block.ravel()
+    keep = (flat > BLUR_MIN_VALUE) & (inside.ravel() > 0)
+    # the region over cells: cells sorted by value
+    per_cell = flat[keep]
     counts = inside.ravel()[keep]
     order = np.argsort(-per_cell, kind="stable")
     cumulative = np.cumsum(per_cell[order] * counts[order])
     n = int(np.searchsorted(cumulative, level, side="left"))
     threshold = float(per_cell[order][min(n, order.size - 1)])
-    value = mass / (f * f)
+    value = float(per_block[br, bc])
     return bool(value >= threshold), value
 
 

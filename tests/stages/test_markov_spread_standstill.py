@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
-from stages.markov_prediction.spread import SCHEMA, SpreadTable, blur_grid, load_spread, write_spread
+from stages.markov_prediction.spread import BLUR_MIN_VALUE, SCHEMA, SpreadTable, blur_grid, load_spread, write_spread
 from stages.offline.calibrate import smallest_sigma
 from tests.stages.test_markov_prediction import PLAIN, STAMP, _corridor, _corridor_set, _profiles, _relation, _relation_set, _vehicle
 
@@ -41,9 +41,11 @@ def test_blur_grid_keeps_mass_and_centre_and_widens():
     cells0, values0 = out.step(0, frame.n_cells)
     np.testing.assert_array_equal(cells0, [centre])  # σ 0: unchanged
     cells1, values1 = out.step(1, frame.n_cells)
-    assert values1.sum() == pytest.approx(0.7, rel=1e-6)
+    # the mass, less the far tails below BLUR_MIN_VALUE (under 0.01 % here); every cell kept above it
+    assert values1.sum() == pytest.approx(0.7, rel=1e-4) and values1.sum() <= 0.7
+    assert values1.min() > BLUR_MIN_VALUE
     rows, cols = np.divmod(cells1, frame.n_cols)
-    assert float(values1 @ rows / values1.sum()) == pytest.approx(40.0, abs=1e-6)
+    assert float(values1 @ rows / values1.sum()) == pytest.approx(40.0, abs=1e-3)  # (the cut tails: 1e-4 cells off)
     spread_m = 0.5 * math.sqrt(float(values1 @ (cols - 40.0) ** 2 / values1.sum()))
     assert spread_m == pytest.approx(3.0, abs=0.1)
     assert np.all(np.diff(out.keys) > 0)  # still sorted unique keys
