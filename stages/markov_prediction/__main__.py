@@ -21,7 +21,7 @@ OUTPUTS = {"corridor_predictions": Port(CorridorPredictions), "motion_grid": Por
 
 
 def make_core(config: MarkovPredictionConfig, ctx: NodeContext) -> MarkovPredictor:
-    return MarkovPredictor(config, producer=ctx.node_id)
+    return MarkovPredictor(config, producer=ctx.node_id, log=ctx.log)
 
 
 SPEC = StageSpec(

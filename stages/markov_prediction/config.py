@@ -147,7 +147,7 @@ class MarkovPredictionConfig(ConfigMixin):
     lateral_offset_decay_s: float = 1e6
     # calibrated spread (README "Calibrated grids"): a JSON file written by ``iamp calibrate`` with, per mode, the
     # Gaussian σ (m) along the corridor that widens each pair's s-distribution at each step, per start-speed band,
-    # for the grids only (the mean positions stay as they are); "" = none; "shipped" = stages/markov_prediction/spread.json
+    # for the grids only (the mean positions stay as they are); "" = none; "shipped" = stages/lib/ar/weights/spread_taf_bw.json (the shipped AR model's, fitted on all of TAF-BW)
     spread_calibration: str = ""
     # online spread (README "Online spread", online_spread.py): the grids of each start-speed band widened at each step
     # until their ``spread_online_target`` region holds the vehicles' later positions in that share of the checks

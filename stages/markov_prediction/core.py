@@ -61,6 +61,8 @@ from stages.markov_prediction.signals import apply_signals, stop_line_wall
 __all__ = ["CV_LINE_ID", "FramePrediction", "MarkovPredictor", "PairInfo"]
 
 _NS = 1e-9
+#: the online spread's state is logged this often (s of stamps), where the predictor has a logger
+ONLINE_LOG_S = 30.0
 #: ``MarkovPredictor.speed_noise`` is capped here (m/s): the calibrated spread's widest blur, and so the grid's margin, stays bounded
 SPEED_NOISE_CAP_MPS = 2.0
 
@@ -243,9 +245,12 @@ class MarkovPredictor:
     predictors (evaluation, tests); otherwise they come from the disk cache.
     """
 
-    def __init__(self, config: MarkovPredictionConfig, *, producer: str = "markov_prediction", stencils: Any = None) -> None:
+    def __init__(self, config: MarkovPredictionConfig, *, producer: str = "markov_prediction", stencils: Any = None,
+                 log: Any = None) -> None:
         self.config = config
         self.producer = producer
+        self._log = log  # a logging.Logger (the node's): the online spread's state, every ONLINE_LOG_S of stamps
+        self._online_logged_ns: int | None = None
         self._shard = parse_shard(config.shard)
         self.grid = grid_config(config)
         cfg = self.grid
@@ -385,6 +390,11 @@ class MarkovPredictor:
         if isinstance(track_frame, TrackFrame) and int(track_frame.header.stamp_ns) == stamp:
             positions = dict(zip(track_frame.track_ids.tolist(), zip(track_frame.x_m.tolist(), track_frame.y_m.tolist())))
         self.online.update(stamp, positions, prediction.grid_frame, prediction.vehicle_grids, prediction.start_speeds_mps)
+        if self._log is not None and (self._online_logged_ns is None or abs(stamp - self._online_logged_ns) >= ONLINE_LOG_S * 1e9):
+            self._online_logged_ns = stamp
+            o = self.online.summary()
+            self._log.info("online spread: checks %s, misses %s, extra sigma at %.1f s %s m (per start-speed band)",
+                           o["checks"], o["misses"], float(self.step_times_s[-1]), o["extra_m_last_step"])
 
     def _pairs_phase(self, corridor_set: CorridorSet, scene: SceneInfo | None = None, track_frame: TrackFrame | None = None, *,
                      intention_belief: IntentionBelief | None = None) -> _PairsPhase:

@@ -42,8 +42,9 @@ SCHEMA = "iamp-spread-calibration/1"
 #: missing cell the same) and a tenth of the MotionGrid's ``grid_min_value``; a highest-density region never
 #: reaches them (its threshold is fixed by the cells above it)
 BLUR_MIN_VALUE = 1e-6
-#: ``spread_calibration = "shipped"`` names this file
-SHIPPED = Path(__file__).with_name("spread.json")
+#: ``spread_calibration = "shipped"`` names this file: the table of the shipped AR model (``iamp calibrate`` on all of
+#: TAF-BW with it; in-sample, as the model), beside the weights with their licence and attribution
+SHIPPED = Path(__file__).resolve().parents[1] / "lib" / "ar" / "weights" / "spread_taf_bw.json"
 
 
 @dataclass(frozen=True)

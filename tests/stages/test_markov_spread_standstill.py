@@ -239,3 +239,13 @@ def test_speed_noise_widens_the_calibrated_spread_of_a_scattering_track_only(tmp
     np.testing.assert_allclose(mean_scatter, mean_smooth)
     _, cells_plain, _ = run(plain_path, scatter)
     assert cells_plain == cells_smooth
+
+
+def test_the_shipped_table_is_there_for_every_mode():
+    """``spread_calibration = "shipped"``: the table of the shipped AR model, beside its weights and licence."""
+    from stages.markov_prediction.spread import SHIPPED
+
+    assert SHIPPED.is_file() and (SHIPPED.parent / "LICENSE").is_file() and "spread_taf_bw.json" in (SHIPPED.parent / "ATTRIBUTION.md").read_text()
+    for mode in ("hybrid", "baseline", "corridor_cv", "cv"):
+        table = load_spread("shipped", mode, 10)
+        assert table is not None and table.sigma_m.shape == (3, 10) and table.speed_noise_gain == 1.0

@@ -117,12 +117,16 @@ def frames():
             if i.corridor_set is not None]
 
 
-def test_in_the_stage_it_widens_moving_vehicles_grids_and_leaves_their_means(frames):
+def test_in_the_stage_it_widens_moving_vehicles_grids_and_leaves_their_means(frames, caplog):
+    import logging
+
+    caplog.set_level(logging.INFO, logger="test.markov")
     stencils = load_or_build_stencils(MarkovGridConfig())
     plain = MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv"), stencils=stencils)
     # the 50 % region misses about every other check of a moving car: the extra spread moves from the first
     online = MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv", spread_online=True, spread_online_rate_mps=0.5,
-                                                    spread_online_target=0.5), stencils=stencils)
+                                                    spread_online_target=0.5), stencils=stencils,
+                             log=logging.getLogger("test.markov"))
     wider = 0
     for inputs in frames:
         a = plain.update(inputs).outputs
@@ -131,6 +135,8 @@ def test_in_the_stage_it_widens_moving_vehicles_grids_and_leaves_their_means(fra
         wider += int(online.online.extra_mps.max() > 0)
     assert online.online.checks.sum() > 0, "no check made: no moving vehicle seen at a step time"
     assert online.online.misses.sum() > 0 and wider > 0
+    said = [r.getMessage() for r in caplog.records if r.name == "test.markov"]
+    assert said and said[0].startswith("online spread: checks") and len(said) <= 1 + len(frames) // 300  # one line per 30 s
     # widened, a moving vehicle's grid holds more cells than without
     online.online.extra_mps[:] = 0.5
     last = max(frames, key=lambda f: sum(v.speed_mps > 3.0 for v in f["corridor_set"].vehicles if v.corridors))
