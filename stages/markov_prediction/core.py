@@ -1103,16 +1103,9 @@ class MarkovPredictor:
         for track, members in by_track.items():
             p = pairs[members[0]]
             start_speeds[track] = p.measured_v_mps if math.isfinite(p.measured_v_mps) else p.v0_mps
-        if self.spread is not None:  # calibrated spread (spread.py): each vehicle's grid blurred per step and speed band
-            for track, members in by_track.items():
-                p = pairs[members[0]]
-                speed = p.measured_v_mps if math.isfinite(p.measured_v_mps) else p.v0_mps
-                vehicle_grids_[track] = blur_grid(frame, vehicle_grids_[track], self._sigmas(speed, p.speed_noise_mps))
-        elif self.online is not None:  # the online spread alone
-            for track, members in by_track.items():
-                p = pairs[members[0]]
-                speed = p.measured_v_mps if math.isfinite(p.measured_v_mps) else p.v0_mps
-                vehicle_grids_[track] = blur_grid(frame, vehicle_grids_[track], self._sigmas(speed, p.speed_noise_mps))
+        if self.spread is not None or self.online is not None:  # calibrated (spread.py) and online spread: each vehicle's
+            for track, members in by_track.items():  # grid blurred per step and start-speed band
+                vehicle_grids_[track] = blur_grid(frame, vehicle_grids_[track], self._sigmas(start_speeds[track], pairs[members[0]].speed_noise_mps))
         infos = tuple(PairInfo(p.track_id, p.corridor_id, p.probability, p.s0_m, p.s_first_m, p.end_s_m) for p in pairs)
         return FramePrediction(
             mode=cfg.mode,
