@@ -326,7 +326,7 @@ class MarkovPredictor:
             early = self._chain_phase(*args, intention_belief=belief)
         prediction, issues = self._belief_phase(early, belief)
         scene, frame = args[2], args[3]
-        self._learn_spread(early.stamp, frame, prediction)
+        self._learn_spread(early.stamp, frame, prediction, issues)
         h = corridor_set.header
         # the source frame's publish time (end-to-end latency): from the TrackFrame when joined, else as the corridors carried it
         wall = frame.header.source_wall_ns if isinstance(frame, TrackFrame) else h.source_wall_ns
@@ -378,14 +378,22 @@ class MarkovPredictor:
         """The pure function behind ``update``: the frame's prediction and the issues met."""
         early = self._chain_phase(corridor_set, relation_set, scene, track_frame, acceleration_profiles, intention_belief=intention_belief)
         prediction, issues = self._belief_phase(early, intention_belief)
-        self._learn_spread(early.stamp, track_frame, prediction)
+        self._learn_spread(early.stamp, track_frame, prediction, issues)
         return prediction, issues
 
-    def _learn_spread(self, stamp: int, track_frame: TrackFrame | None, prediction: FramePrediction) -> None:
+    def _learn_spread(self, stamp: int, track_frame: TrackFrame | None, prediction: FramePrediction, issues: list[Issue]) -> None:
         """The online spread (``online_spread.py``): the kept grids checked against this frame's positions, this
-        frame's grids kept. Without a track frame of this stamp nothing is checked (the grids are still kept)."""
+        frame's grids kept. Without a track frame of this stamp nothing is checked (the grids are still kept). A
+        failure costs only this frame's checks (issue ``online_spread_failed``), never its outputs."""
         if self.online is None:
             return
+        try:
+            self._learn_spread_now(stamp, track_frame, prediction)
+        except Exception as exc:  # noqa: BLE001 - the learning is beside the prediction: the frame is published as it is
+            self.online.reset()
+            issues.append(Issue("online_spread_failed", -1, f"{type(exc).__name__}: {exc}: this frame's checks skipped, the kept grids dropped"))
+
+    def _learn_spread_now(self, stamp: int, track_frame: TrackFrame | None, prediction: FramePrediction) -> None:
         positions: dict[int, tuple[float, float]] = {}
         if isinstance(track_frame, TrackFrame) and int(track_frame.header.stamp_ns) == stamp:
             positions = dict(zip(track_frame.track_ids.tolist(), zip(track_frame.x_m.tolist(), track_frame.y_m.tolist())))

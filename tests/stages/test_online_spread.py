@@ -161,3 +161,21 @@ def test_iamp_calibrate_refuses_the_online_spread(tmp_path, capsys):
     assert run_cli(args) == 2
     assert "spread_online" in capsys.readouterr().err
     assert not (tmp_path / "s.json").exists()
+
+
+def test_a_failing_online_spread_costs_the_frame_nothing(frames, monkeypatch):
+    """The learning is beside the prediction: when it raises, the frame is published as without it, with one issue."""
+    stencils = load_or_build_stencils(MarkovGridConfig())
+    plain = MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv", spread_online=True), stencils=stencils)
+    broken = MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv", spread_online=True), stencils=stencils)
+
+    def boom(*args, **kwargs):
+        raise RuntimeError("kept grid unreadable")
+
+    monkeypatch.setattr(broken.online, "update", boom)
+    monkeypatch.setattr(plain.online, "update", lambda *args, **kwargs: 0)  # learns nothing either, raises nothing
+    for inputs in frames[:40]:
+        a, b = plain.update(inputs), broken.update(inputs)
+        assert {k: m.encode() for k, m in a.outputs.items()} == {k: m.encode() for k, m in b.outputs.items()}
+        assert [i.kind for i in b.issues if i.kind == "online_spread_failed"] == ["online_spread_failed"]
+        assert "online_spread_failed" not in {i.kind for i in a.issues}
