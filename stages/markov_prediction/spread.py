@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
+from stages.lib.markov import frame_kernels
 from stages.markov_prediction.rasterise import GridFrame, SparseGrid
 
 SCHEMA = "iamp-spread-calibration/1"
@@ -192,6 +193,15 @@ def block_cells_sorted(frame: GridFrame, r0: int, c0: int, f: int, blocks: np.nd
     return ((row_lo + rr) * frame.n_cols + (col_lo + cc)).astype(np.int64), vals
 
 
+def _blurred(frame: GridFrame, cells: np.ndarray, values: np.ndarray, sigma_m: float):
+    """One step blurred (cells sorted, values): ``blur_step`` then ``block_cells_sorted``, in one compiled call where
+    numba imports (``frame_kernels.blur_cells``: the same numbers)."""
+    s_cells = sigma_m / frame.cell_m
+    found = frame_kernels.blur_cells(cells, values, frame.n_rows, frame.n_cols, s_cells, max(int(s_cells // 2.0), 1),
+                                     int(math.ceil(3.0 * s_cells)), BLUR_MIN_VALUE)
+    return found if found is not None else block_cells_sorted(frame, *blur_step(frame, cells, values, sigma_m))
+
+
 def blur_grid(frame: GridFrame, grid: SparseGrid, sigmas_m: np.ndarray) -> SparseGrid:
     """One vehicle's grid (all steps) with step k blurred by an isotropic Gaussian of σ = ``sigmas_m[k]`` (m; 0: as is);
     a blurred step keeps its cells above ``BLUR_MIN_VALUE``."""
@@ -205,7 +215,7 @@ def blur_grid(frame: GridFrame, grid: SparseGrid, sigmas_m: np.ndarray) -> Spars
         if cells.size == 0:
             continue
         if sigma > 0 and math.isfinite(sigma):
-            cells, vals = block_cells_sorted(frame, *blur_step(frame, cells, vals, float(sigma)))
+            cells, vals = _blurred(frame, cells, vals, float(sigma))
         keys.append(cells + k * n_cells)
         values.append(vals)
     if not keys:

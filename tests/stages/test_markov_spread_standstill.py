@@ -249,3 +249,29 @@ def test_the_shipped_table_is_there_for_every_mode():
     for mode in ("hybrid", "baseline", "corridor_cv", "cv"):
         table = load_spread("shipped", mode, 10)
         assert table is not None and table.sigma_m.shape == (3, 10) and table.speed_noise_gain == 1.0
+
+
+def test_the_compiled_blur_gives_the_numpy_blurs_numbers():
+    """``frame_kernels.blur_cells`` (one compiled call per step) = ``blur_step`` (np.bincount, scipy's gaussian_filter)
+    then ``block_cells_sorted``, bit for bit: cells, values and their order; near the frame's edges too."""
+    from stages.lib.markov import frame_kernels
+    from stages.markov_prediction.rasterise import GridFrame
+    from stages.markov_prediction.spread import block_cells_sorted, blur_step
+
+    if not frame_kernels.available():
+        pytest.skip("numba not importable")
+    rng = np.random.default_rng(11)
+    frame = GridFrame(0.0, 0.0, 0.5, 90, 130)
+    for trial in range(40):
+        centre_r, centre_c = rng.integers(0, frame.n_rows), rng.integers(0, frame.n_cols)  # edges included
+        rows = np.clip(centre_r + rng.integers(-6, 7, 50), 0, frame.n_rows - 1)
+        cols = np.clip(centre_c + rng.integers(-9, 10, 50), 0, frame.n_cols - 1)
+        cells = np.unique(rows * frame.n_cols + cols).astype(np.int64)
+        values = rng.random(cells.size) * 10.0 ** -rng.integers(0, 4)
+        for sigma in (0.2, 0.7, 1.3, 3.0, 6.5, 11.0):
+            s_cells = sigma / frame.cell_m
+            want = block_cells_sorted(frame, *blur_step(frame, cells, values, sigma))
+            got = frame_kernels.blur_cells(cells, values, frame.n_rows, frame.n_cols, s_cells, max(int(s_cells // 2.0), 1),
+                                           int(np.ceil(3.0 * s_cells)), BLUR_MIN_VALUE)
+            np.testing.assert_array_equal(got[0], want[0], err_msg=f"trial {trial}, sigma {sigma}")
+            np.testing.assert_array_equal(got[1], want[1], err_msg=f"trial {trial}, sigma {sigma}")

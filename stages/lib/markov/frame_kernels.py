@@ -15,6 +15,9 @@
   every key.
 - ``add_running_sums``: ``rasterise.unwrap_each``'s running sums of the corrections, every corridor's in one
   pass (np.cumsum's order).
+- ``blur_cells``: one step of a vehicle's grid blurred as ``spread.blur_step`` and ``spread.block_cells_sorted``
+  do it (cloud in cell onto blocks, scipy's ``gaussian_filter`` arithmetic, the blocks' cells above a value in
+  cell order), in one call: the same numbers.
 
 numba is a dependency; ``available()`` is False only where it cannot be
 imported, and ``rasterise`` then uses its numpy definitions (the reference
@@ -176,6 +179,87 @@ if numba is not None:
                 at = j
             out_ptr[n + 1] = at
         return keys_out[:at], sums_out[:at], out_ptr
+
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _correlate_symmetric(line, out, w, radius):  # pragma: no cover - compiled
+        """scipy.ndimage.correlate1d of one line with a symmetric kernel ``w`` (2·radius + 1, centre ``w[radius]``),
+        mode "constant" (0 outside), in its arithmetic: out[i] = line[i]·w[r], then + (line[i − j] + line[i + j])·w[r − j]
+        for j = r, r − 1, ..., 1."""
+        n = line.shape[0]
+        for i in range(n):
+            acc = line[i] * w[radius]
+            for jj in range(-radius, 0):
+                lo = i + jj
+                hi = i - jj
+                a = line[lo] if lo >= 0 else 0.0
+                b = line[hi] if hi < n else 0.0
+                acc += (a + b) * w[radius + jj]
+            out[i] = acc
+
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _blur_cells(cells, values, n_rows, n_cols, f, pad, w, radius, min_value):  # pragma: no cover - compiled
+        """``spread.blur_step`` then ``spread.block_cells_sorted`` of one step (cells sorted, values float64): the cells
+        (increasing) and values of the blurred step above ``min_value``, the same float64 operations in the same order
+        (the cloud-in-cell sums corner by corner in the cells' order, as np.bincount of the four corners; the filter
+        along the block rows, then along the block columns, as scipy's gaussian_filter)."""
+        n = cells.shape[0]
+        r_min, r_max, c_min, c_max = n_rows, -1, n_cols, -1
+        for q in range(n):
+            r, c = cells[q] // n_cols, cells[q] % n_cols
+            r_min, r_max, c_min, c_max = min(r_min, r), max(r_max, r), min(c_min, c), max(c_max, c)
+        r0, c0 = r_min - pad - f, c_min - pad - f
+        n_r = (r_max + pad + f + 1 - r0 + f - 1) // f + 1
+        n_c = (c_max + pad + f + 1 - c0 + f - 1) // f + 1
+        blocks = np.zeros((n_r, n_c))
+        half = 0.5 * (f - 1)
+        for corner in range(4):
+            du, dw = corner // 2, corner % 2
+            for q in range(n):
+                r, c = cells[q] // n_cols, cells[q] % n_cols
+                u = ((r - r0) - half) / f
+                v = ((c - c0) - half) / f
+                bu, bw = np.int64(np.floor(u)), np.int64(np.floor(v))
+                fu, fw = u - bu, v - bw
+                wu = fu if du else 1.0 - fu
+                ww = fw if dw else 1.0 - fw
+                blocks[bu + du, bw + dw] += values[q] * wu * ww
+        line = np.empty(max(n_r, n_c))
+        out = np.empty(max(n_r, n_c))
+        for j in range(n_c):  # along axis 0 (down each column of blocks)
+            for i in range(n_r):
+                line[i] = blocks[i, j]
+            _correlate_symmetric(line[:n_r], out[:n_r], w, radius)
+            for i in range(n_r):
+                blocks[i, j] = out[i]
+        for i in range(n_r):  # then along axis 1
+            for j in range(n_c):
+                line[j] = blocks[i, j]
+            _correlate_symmetric(line[:n_c], out[:n_c], w, radius)
+            for j in range(n_c):
+                blocks[i, j] = out[j]
+        ff = f * f
+        for i in range(n_r):  # each block's value per cell, once (the division of every cell of the block)
+            for j in range(n_c):
+                blocks[i, j] = blocks[i, j] / ff
+        row_lo, row_hi = max(r0, 0), min(r0 + n_r * f, n_rows)
+        col_lo, col_hi = max(c0, 0), min(c0 + n_c * f, n_cols)
+        n_out = max(row_hi - row_lo, 0) * max(col_hi - col_lo, 0)
+        keys = np.empty(n_out, np.int64)
+        vals = np.empty(n_out, np.float64)
+        block_col = np.empty(max(col_hi - col_lo, 0), np.int64)
+        for col in range(col_lo, col_hi):
+            block_col[col - col_lo] = (col - c0) // f
+        k = 0
+        for row in range(row_lo, row_hi):
+            per_cell = blocks[(row - r0) // f]
+            base = row * n_cols
+            for col in range(col_lo, col_hi):
+                x = per_cell[block_col[col - col_lo]]
+                if x > min_value:
+                    keys[k] = base + col
+                    vals[k] = x
+                    k += 1
+        return keys[:k].copy(), vals[:k].copy()
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
     def _add_running_sums(p, correct, ends, out):  # pragma: no cover - compiled
@@ -383,3 +467,32 @@ def warm_up() -> None:
     fuse_sorted([np.array([0, 3], np.int64), np.array([3], np.int64)], np.ones(3), 2)
     add_running_sums(np.zeros(3), np.zeros(2), np.array([3], np.int64), np.zeros(3))
     _warm = True
+
+
+def blur_cells(cells: np.ndarray, values: np.ndarray, n_rows: int, n_cols: int, sigma_cells: float, f: int, pad: int,
+               min_value: float):
+    """One step of a vehicle's grid blurred in one compiled call (``spread.blur_grid``'s numbers): the cells
+    (increasing) and values above ``min_value``; None where numba is missing. ``sigma_cells`` σ in cells, ``f`` the
+    block size and ``pad`` the padding (cells) of ``spread.blur_step``; the kernel is scipy's (``gaussian_kernel``)."""
+    if numba is None or cells.size == 0:
+        return None
+    w, radius = gaussian_kernel(sigma_cells / f)
+    return _blur_cells(np.ascontiguousarray(cells, dtype=np.int64), np.ascontiguousarray(values, dtype=np.float64), int(n_rows),
+                       int(n_cols), int(f), int(pad), w, radius, float(min_value))
+
+
+_KERNELS: dict[float, tuple[np.ndarray, int]] = {}
+
+
+def gaussian_kernel(sigma: float, truncate: float = 3.0) -> tuple[np.ndarray, int]:
+    """scipy.ndimage.gaussian_filter's 1-D weights for σ (in samples) and its radius int(truncate·σ + 0.5): exp(−0.5 / σ²
+    · x²) over x = −radius … radius, divided by their sum (cached per σ)."""
+    found = _KERNELS.get(sigma)
+    if found is None:
+        radius = int(truncate * float(sigma) + 0.5)
+        x = np.arange(-radius, radius + 1)
+        phi = np.exp(-0.5 / (sigma * sigma) * x ** 2)
+        found = (phi / phi.sum(), radius)
+        if len(_KERNELS) < 4096:
+            _KERNELS[sigma] = found
+    return found
