@@ -114,7 +114,8 @@ class FramePrediction:
     fused_grid: SparseGrid
     min_grid_value: float
     max_cells_per_step: int = 0  # 0: no cap; else the MotionGrid lists at most this many cells per step (the highest)
-    #: per track id, the start speed (m/s) that picked its grid's spread band (the measured speed, else v0)
+    #: per track id, the start speed (m/s) that picked its grid's spread band (the measured speed, else v0); empty
+    #: without a spread table or the online spread
     start_speeds_mps: dict[int, float] = dataclasses.field(default_factory=dict)
 
     def corridor_predictions(self, header: Header, scene_id: str) -> CorridorPredictions:
@@ -1108,12 +1109,11 @@ class MarkovPredictor:
                               threads=cfg.kernel_threads) if n_b else []
         vehicle_grids_ = dict(zip(by_track.keys(), grids))
         start_speeds: dict[int, float] = {}
-        for track, members in by_track.items():
-            p = pairs[members[0]]
-            start_speeds[track] = p.measured_v_mps if math.isfinite(p.measured_v_mps) else p.v0_mps
         if self.spread is not None or self.online is not None:  # calibrated (spread.py) and online spread: each vehicle's
             for track, members in by_track.items():  # grid blurred per step and start-speed band
-                vehicle_grids_[track] = blur_grid(frame, vehicle_grids_[track], self._sigmas(start_speeds[track], pairs[members[0]].speed_noise_mps))
+                p = pairs[members[0]]
+                start_speeds[track] = p.measured_v_mps if math.isfinite(p.measured_v_mps) else p.v0_mps
+                vehicle_grids_[track] = blur_grid(frame, vehicle_grids_[track], self._sigmas(start_speeds[track], p.speed_noise_mps))
         infos = tuple(PairInfo(p.track_id, p.corridor_id, p.probability, p.s0_m, p.s_first_m, p.end_s_m) for p in pairs)
         return FramePrediction(
             mode=cfg.mode,

@@ -124,6 +124,12 @@ def write_spread(path: Path, tables: dict[str, SpreadTable], fitted_on: dict[str
     path.write_text(json.dumps(blob, indent=2) + "\n")
 
 
+def _blocking(frame: GridFrame, sigma_m: float) -> tuple[float, int, int]:
+    """σ in cells, the block size f (⌊σ / 2 cells⌋, at least 1) and the padding (⌈3σ⌉ cells) of a blur by σ (m)."""
+    s_cells = sigma_m / frame.cell_m
+    return s_cells, max(int(s_cells // 2.0), 1), int(math.ceil(3.0 * s_cells))
+
+
 def blur_step(frame: GridFrame, cells: np.ndarray, values: np.ndarray, sigma_m: float):
     """One step of one vehicle's grid blurred by σ: (patch origin row, col, block size f, (R, C) block masses).
 
@@ -134,9 +140,7 @@ def blur_step(frame: GridFrame, cells: np.ndarray, values: np.ndarray, sigma_m: 
     evenly over its cells (``blur_grid``). Blocks past the
     frame's edge hold no cells: their mass is lost.
     """
-    s_cells = sigma_m / frame.cell_m
-    f = max(int(s_cells // 2.0), 1)
-    pad = int(math.ceil(3.0 * s_cells))
+    s_cells, f, pad = _blocking(frame, sigma_m)
     rows, cols = np.divmod(cells, frame.n_cols)
     r0, c0 = int(rows.min()) - pad - f, int(cols.min()) - pad - f
     n_r = (int(rows.max()) + pad + f + 1 - r0 + f - 1) // f + 1
@@ -157,24 +161,10 @@ def blur_step(frame: GridFrame, cells: np.ndarray, values: np.ndarray, sigma_m: 
     return r0, c0, f, gaussian_filter(blocks, s_cells / f, mode="constant", truncate=3.0)
 
 
-def block_cells(frame: GridFrame, r0: int, c0: int, f: int, blocks: np.ndarray, min_mass: float = 1e-12):
-    """The cells (flat index) and values of ``blur_step``'s blocks, each block's mass spread evenly over its cells
-    inside the frame."""
-    br, bc = np.nonzero(blocks > min_mass)
-    if br.size == 0:
-        return np.zeros(0, np.int64), np.zeros(0)
-    dr, dc = np.divmod(np.arange(f * f), f)
-    rows = (r0 + br * f)[:, None] + dr[None, :]
-    cols = (c0 + bc * f)[:, None] + dc[None, :]
-    vals = np.repeat((blocks[br, bc] / (f * f))[:, None], f * f, axis=1)
-    inside = (rows >= 0) & (rows < frame.n_rows) & (cols >= 0) & (cols < frame.n_cols)
-    return (rows * frame.n_cols + cols)[inside].astype(np.int64), vals[inside]
-
-
 def block_cells_sorted(frame: GridFrame, r0: int, c0: int, f: int, blocks: np.ndarray, min_value: float = BLUR_MIN_VALUE):
-    """``block_cells``' cells and values in increasing cell order, those whose value (block / (f·f)) is above
-    ``min_value``: the blocks spread over their f × f cells as one dense patch, cut to the frame, its cells read row
-    by row."""
+    """The cells (flat index, increasing) and values of ``blur_step``'s blocks inside the frame, each block's mass
+    spread evenly over its f × f cells, those whose value (block / (f·f)) is above ``min_value``: the blocks as one
+    dense patch, cut to the frame, its cells read row by row."""
     min_mass = min_value * (f * f)
     if not np.any(blocks > min_mass):
         return np.zeros(0, np.int64), np.zeros(0)
@@ -196,9 +186,7 @@ def block_cells_sorted(frame: GridFrame, r0: int, c0: int, f: int, blocks: np.nd
 def _blurred(frame: GridFrame, cells: np.ndarray, values: np.ndarray, sigma_m: float):
     """One step blurred (cells sorted, values): ``blur_step`` then ``block_cells_sorted``, in one compiled call where
     numba imports (``frame_kernels.blur_cells``: the same numbers)."""
-    s_cells = sigma_m / frame.cell_m
-    found = frame_kernels.blur_cells(cells, values, frame.n_rows, frame.n_cols, s_cells, max(int(s_cells // 2.0), 1),
-                                     int(math.ceil(3.0 * s_cells)), BLUR_MIN_VALUE)
+    found = frame_kernels.blur_cells(cells, values, frame.n_rows, frame.n_cols, *_blocking(frame, sigma_m), BLUR_MIN_VALUE)
     return found if found is not None else block_cells_sorted(frame, *blur_step(frame, cells, values, sigma_m))
 
 

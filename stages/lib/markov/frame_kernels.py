@@ -212,17 +212,19 @@ if numba is not None:
         n_c = (c_max + pad + f + 1 - c0 + f - 1) // f + 1
         blocks = np.zeros((n_r, n_c))
         half = 0.5 * (f - 1)
-        for corner in range(4):
+        bu, bw = np.empty(n, np.int64), np.empty(n, np.int64)
+        fu, fw = np.empty(n), np.empty(n)
+        for q in range(n):  # each cell's nearest block centres (below, left) and its fractions towards the next
+            u = ((cells[q] // n_cols - r0) - half) / f
+            v = ((cells[q] % n_cols - c0) - half) / f
+            bu[q], bw[q] = np.int64(np.floor(u)), np.int64(np.floor(v))
+            fu[q], fw[q] = u - bu[q], v - bw[q]
+        for corner in range(4):  # the corners in turn, each over the cells in order
             du, dw = corner // 2, corner % 2
             for q in range(n):
-                r, c = cells[q] // n_cols, cells[q] % n_cols
-                u = ((r - r0) - half) / f
-                v = ((c - c0) - half) / f
-                bu, bw = np.int64(np.floor(u)), np.int64(np.floor(v))
-                fu, fw = u - bu, v - bw
-                wu = fu if du else 1.0 - fu
-                ww = fw if dw else 1.0 - fw
-                blocks[bu + du, bw + dw] += values[q] * wu * ww
+                wu = fu[q] if du else 1.0 - fu[q]
+                ww = fw[q] if dw else 1.0 - fw[q]
+                blocks[bu[q] + du, bw[q] + dw] += values[q] * wu * ww
         line = np.empty(max(n_r, n_c))
         out = np.empty(max(n_r, n_c))
         for j in range(n_c):  # along axis 0 (down each column of blocks)
@@ -481,18 +483,10 @@ def blur_cells(cells: np.ndarray, values: np.ndarray, n_rows: int, n_cols: int, 
                        int(n_cols), int(f), int(pad), w, radius, float(min_value))
 
 
-_KERNELS: dict[float, tuple[np.ndarray, int]] = {}
-
-
 def gaussian_kernel(sigma: float, truncate: float = 3.0) -> tuple[np.ndarray, int]:
     """scipy.ndimage.gaussian_filter's 1-D weights for σ (in samples) and its radius int(truncate·σ + 0.5): exp(−0.5 / σ²
-    · x²) over x = −radius … radius, divided by their sum (cached per σ)."""
-    found = _KERNELS.get(sigma)
-    if found is None:
-        radius = int(truncate * float(sigma) + 0.5)
-        x = np.arange(-radius, radius + 1)
-        phi = np.exp(-0.5 / (sigma * sigma) * x ** 2)
-        found = (phi / phi.sum(), radius)
-        if len(_KERNELS) < 4096:
-            _KERNELS[sigma] = found
-    return found
+    · x²) over x = −radius … radius, divided by their sum."""
+    radius = int(truncate * float(sigma) + 0.5)
+    x = np.arange(-radius, radius + 1)
+    phi = np.exp(-0.5 / (sigma * sigma) * x ** 2)
+    return phi / phi.sum(), radius
