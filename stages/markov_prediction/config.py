@@ -26,6 +26,14 @@ MODE_INITIAL_BOX = {"hybrid": "measurement", "corridor_cv": "measurement", "base
 HYBRID_INPUTS = ("psi", "direct")
 BACKENDS = ("numpy", "torch")
 GRID_DISTRIBUTIONS = ("interval", "point")
+#: how a spread (table, online) widens the grids: ``isotropic`` blurs each vehicle's map grid with a round Gaussian
+#: (``spread.blur_grid``); ``along`` blurs each pair's s-distribution along its corridor before it is rasterised
+#: (``spread.blur_along``): the error of moving cars is mostly along the track, and the mass stays on the road
+SPREAD_SHAPES = ("isotropic", "along")
+#: ``spread_online_max_mps = 0`` resolves to this per shape. isotropic 1.5 (fixed before any run, session 13); along
+#: 3.0: with 1.5 its c sat at the cap and K733's fast cars' coverage90 stayed at 0.83 (README "Along the corridor";
+#: chosen after seeing both locations)
+SPREAD_ONLINE_MAX_MPS = {"isotropic": 1.5, "along": 3.0}
 
 #: docs/method.md §4.1 "our 10-cell free-driving preference" over [-3, 2] m/s² in 0.5 m/s² cells. On other input
 #: cells the default is carried over by acceleration (``priority.preference_on_cells``); a preference set by hand must
@@ -157,7 +165,15 @@ class MarkovPredictionConfig(ConfigMixin):
     spread_online_min_speed_mps: float = 2.0
     spread_online_target: float = 0.9
     spread_online_rate_mps: float = 0.05
-    spread_online_max_mps: float = 1.5
+    # 0 (default): the shape's own cap, SPREAD_ONLINE_MAX_MPS (1.5 isotropic: its blur's cells grow with σ²; 3.0 along)
+    spread_online_max_mps: float = 0.0
+    # the shape of the spread (table and online): "isotropic" (a round Gaussian on the map grid, what ``iamp calibrate``
+    # fits) or "along" (a Gaussian of the same σ along each corridor, before rasterising; fewer cells). SPREAD_SHAPES
+    spread_shape: str = "isotropic"
+    # with spread_shape "along": the grids widened across the corridor too, step k of a pair by
+    # σ_lat = min(√(grid_lateral_sigma_m² + (ratio·σ_k)²), max) (σ_k the along σ): lane offsets grow with the horizon
+    spread_lateral_ratio: float = 0.33
+    spread_lateral_max_m: float = 1.5
     # issues
     outside_issue_mass: float = 0.01
     # bounded work per message (issue 13): pairs per frame (whole vehicles beyond, in CorridorSet order, skipped)
@@ -190,17 +206,21 @@ class MarkovPredictionConfig(ConfigMixin):
             raise ValueError(f"device = {self.device!r}: the numpy backend runs on cpu only (use backend = 'torch')")
         if self.leader_horizon_mean not in ("arithmetic", "geometric"):
             raise ValueError(f"leader_horizon_mean = {self.leader_horizon_mean!r}: expected 'arithmetic' or 'geometric'")
+        if self.spread_shape not in SPREAD_SHAPES:
+            raise ValueError(f"spread_shape = {self.spread_shape!r}: expected one of {', '.join(SPREAD_SHAPES)}")
+        if self.spread_online_max_mps == 0:  # resolved here so that every reader sees the cap in use
+            object.__setattr__(self, "spread_online_max_mps", SPREAD_ONLINE_MAX_MPS[self.spread_shape])
         if self.grid_distribution not in GRID_DISTRIBUTIONS:
             raise ValueError(f"grid_distribution = {self.grid_distribution!r}: expected one of {', '.join(GRID_DISTRIBUTIONS)}")
         positive = (
             "ds_m", "dv_mps", "v_max_mps", "tau_s", "init_sigma_s_m", "init_sigma_v_mps", "init_sigma_a_mps2",
             "track_timeout_s", "psi_gamma", "lookahead_brake_mps2", "speed_limit_factor",
             "default_speed_limit_mps", "leader_brake_mps2", "static_leader_spread_m", "grid_cell_m",
-            "grid_lateral_sigma_m", "cv_accel_sigma_mps2", "hybrid_start_sigma_mps2", "spread_online_rate_mps", "spread_online_max_mps",
+            "grid_lateral_sigma_m", "cv_accel_sigma_mps2", "hybrid_start_sigma_mps2", "spread_online_rate_mps",
         )
         non_negative = (
             "window_behind_m", "accel_window_s", "prune_threshold", "standstill_speed_mps", "standstill_start_rate_hz", "forbid_threshold", "curvature_smoothing_m", "leader_epsilon",
-            "conflict_margin_s", "conflict_epsilon", "standstill_leader_gap_m", "standstill_leader_moving_mps", "hybrid_start_accel_mps2", "spread_online_min_speed_mps", "grid_margin_m", "lateral_offset_decay_s", "grid_min_value", "outside_issue_mass",
+            "conflict_margin_s", "conflict_epsilon", "standstill_leader_gap_m", "standstill_leader_moving_mps", "hybrid_start_accel_mps2", "spread_online_min_speed_mps", "spread_online_max_mps", "spread_lateral_ratio", "spread_lateral_max_m", "grid_margin_m", "lateral_offset_decay_s", "grid_min_value", "outside_issue_mass",
         )
         check_ranges(self, positive=positive, non_negative=non_negative)
         uniform_input_edges(self.input_min_mps2, self.input_max_mps2, self.n_inputs)  # ValueError on a bad range

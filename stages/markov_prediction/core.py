@@ -52,9 +52,9 @@ from stages.markov_prediction.modes.base import InputModel, Messages, Pair, Vehi
 from stages.markov_prediction.modes.corridor_cv import constant_speed
 from stages.markov_prediction.modes.cv import CV_LINE_ID
 from stages.markov_prediction.online_spread import DEFAULT_BANDS_MPS, OnlineSpread
-from stages.markov_prediction.spread import SpreadTable, blur_grid, load_spread
+from stages.markov_prediction.spread import SpreadTable, blur_along, blur_grid, load_spread
 from stages.markov_prediction.rasterise import (
-    Centrelines, FootprintBatch, GridFrame, SparseGrid, cell_footprints_arrays, fuse, lateral_kernel, vehicle_grids,
+    Centrelines, FootprintBatch, GridFrame, SparseGrid, cell_footprints_arrays, fuse, lateral_kernel, lateral_table, vehicle_grids,
 )
 from stages.markov_prediction.signals import apply_signals, stop_line_wall
 
@@ -1088,13 +1088,23 @@ class MarkovPredictor:
                     )
                 )
         grid_probs = interval if (cfg.grid_distribution == "interval" and interval is not None) else pos
+        lateral, lateral_kernel_ = None, self._lateral
+        if cfg.spread_shape == "along" and (self.spread is not None or self.online is not None) and n_b:
+            # the grids only (pos and interval stay): along the corridor, and across it per step
+            grid_probs, sigma = self._blurred_along(pairs, grid_probs, beyond_all)
+            if sigma is not None and cfg.spread_lateral_ratio > 0:
+                base = cfg.grid_lateral_sigma_m
+                wide = np.minimum(np.hypot(base, cfg.spread_lateral_ratio * sigma), max(cfg.spread_lateral_max_m, base))
+                offsets, base_w, rows, table = lateral_table(np.where(sigma > 0, wide, base), base, cfg.grid_cell_m)
+                if table is not None:
+                    lateral_kernel_, lateral = (offsets, base_w), (rows, table)
         used = grid_probs.max(axis=1) > 0 if n_b else None  # (B, L): the cells that hold mass at some step, the only ones rasterised
-        batch = cell_footprints_arrays(lines, s_first[:, None] + lower[None, :], cfg.ds_m, cfg.grid_substeps, *self._lateral,
+        batch = cell_footprints_arrays(lines, s_first[:, None] + lower[None, :], cfg.ds_m, cfg.grid_substeps, *lateral_kernel_,
                                        used=used) if n_b else None
         frame = self._grid_frame(batch, used)
         return {"position": pos, "interval": interval, "velocity": np.asarray(arrays["velocity"], dtype=np.float32), "outside": outside,
                 "mean_xy": mean_xy, "mean_s": mean_s, "xy_at_mean": xy_at_mean, "frame": frame, "batch": batch, "grid_probs": grid_probs,
-                "shift": shift_all}
+                "shift": shift_all, "lateral": lateral}
 
     def _finish_grids(self, pairs: list[Pair], geo: dict[str, Any]) -> FramePrediction:
         """The outputs from ``_finish_geometry``'s: each vehicle's grid (its corridors' weighted by ``probability``),
@@ -1106,14 +1116,16 @@ class MarkovPredictor:
             by_track[p.track_id].append(b)
         # every vehicle's grid in one compiled call (rasterise.vehicle_grids: vehicle_grid's numbers)
         grids = vehicle_grids(frame, batch, grid_probs, [p.probability for p in pairs], list(by_track.values()), shift_all,
-                              threads=cfg.kernel_threads) if n_b else []
+                              threads=cfg.kernel_threads, lateral=geo.get("lateral")) if n_b else []
         vehicle_grids_ = dict(zip(by_track.keys(), grids))
         start_speeds: dict[int, float] = {}
         if self.spread is not None or self.online is not None:  # calibrated (spread.py) and online spread: each vehicle's
-            for track, members in by_track.items():  # grid blurred per step and start-speed band
+            isotropic = cfg.spread_shape == "isotropic"  # grid blurred per step and start-speed band (``along``: its
+            for track, members in by_track.items():  # pairs' s-distributions were, in _finish_geometry)
                 p = pairs[members[0]]
-                start_speeds[track] = p.measured_v_mps if math.isfinite(p.measured_v_mps) else p.v0_mps
-                vehicle_grids_[track] = blur_grid(frame, vehicle_grids_[track], self._sigmas(start_speeds[track], p.speed_noise_mps))
+                start_speeds[track] = _start_speed(p)
+                if isotropic:
+                    vehicle_grids_[track] = blur_grid(frame, vehicle_grids_[track], self._sigmas(start_speeds[track], p.speed_noise_mps))
         infos = tuple(PairInfo(p.track_id, p.corridor_id, p.probability, p.s0_m, p.s_first_m, p.end_s_m) for p in pairs)
         return FramePrediction(
             mode=cfg.mode,
@@ -1137,6 +1149,22 @@ class MarkovPredictor:
             start_speeds_mps=start_speeds,
         )
 
+    def _blurred_along(self, pairs: list[Pair], probs: np.ndarray, beyond: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """``spread_shape = "along"``: each pair's s-distribution (B, K, L) blurred along its corridor by its vehicle's
+        σ per step (``_sigmas``, in cells of ds), none past the corridor's end (``beyond``, (B, L)): a new array, and
+        the σ (m, (B, K)); ``probs`` itself and None where every σ is 0."""
+        sigma = np.zeros(probs.shape[:2])
+        by_track: dict[int, np.ndarray] = {}
+        for b, p in enumerate(pairs):
+            if p.track_id not in by_track:
+                by_track[p.track_id] = self._sigmas(_start_speed(p), p.speed_noise_mps)
+            sigma[b] = by_track[p.track_id]
+        if not np.any(sigma > 0):
+            return probs, None
+        out = blur_along(probs, sigma / self.config.ds_m)
+        np.copyto(out, 0.0, where=beyond[:, None, :])
+        return out, sigma
+
     def _sigmas(self, speed_mps: float, speed_noise_mps: float) -> np.ndarray:
         """The blur σ per step of a vehicle's grid: the spread table's (with its speed noise), widened by the online
         spread's extra σ (√(table² + extra²))."""
@@ -1155,6 +1183,8 @@ class MarkovPredictor:
         widest = float(self.spread.max_sigma_m(self.step_times_s, SPEED_NOISE_CAP_MPS)) if self.spread is not None else 0.0
         if self.online is not None:
             widest = math.hypot(widest, self.online.max_sigma_m())
+        if cfg.spread_shape == "along":  # blurred before rasterising: the cells it reaches are among the bounds
+            widest = 0.0
         margin = cfg.grid_margin_m + 3.0 * widest  # the blur stays on the grid
         x_lo, x_hi, y_lo, y_hi = bounds
         return GridFrame.around(np.array([x_lo, x_hi]), np.array([y_lo, y_hi]), cfg.grid_cell_m, margin)
@@ -1234,6 +1264,11 @@ def at_intersection(relation: CorridorRelations, within_m: float) -> bool:
     length = np.asarray(relation.intersection_exit_s_m, dtype=np.float64) - np.asarray(relation.intersection_entry_s_m, dtype=np.float64)
     ok = np.isfinite(d) & np.isfinite(length)
     return bool(np.any(ok & (d < within_m) & (d + length > 0)))
+
+
+def _start_speed(p: Pair) -> float:
+    """The start speed that picks a vehicle's spread band: its measured speed, else the chain's v0."""
+    return p.measured_v_mps if math.isfinite(p.measured_v_mps) else p.v0_mps
 
 
 def _non_finite(p: Pair) -> list[str]:

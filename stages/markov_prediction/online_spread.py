@@ -18,7 +18,8 @@ spread is never narrowed below the table's (or the chain's own).
 
 The grids of band b are blurred at step k by σ_k = √(table_k² + (c[b]·t_k)²)
 (``sigmas``; t_k the step's time): the extra spread grows with the horizon
-as an error in speed does. One c per band, not per step: the checks of all
+as an error in speed does. Round, or along each corridor with
+``spread_shape = "along"`` (``spread.blur_along``); the checks are the same. One c per band, not per step: the checks of all
 steps together reach the target (as ``iamp eval`` counts coverage90 over the
 steps); per step, the early steps, which the chain already spreads enough,
 were widened too and the grids' NLL rose (README, "Online spread"). Only

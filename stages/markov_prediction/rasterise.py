@@ -349,16 +349,21 @@ def vehicle_grid(
     corridor_weights: list[float],
     lateral_shifts_m: list[np.ndarray] | None = None,
     min_mass: float = 1e-9,
+    step_weights: list[np.ndarray | None] | None = None,
 ) -> SparseGrid:
     """G_n for all steps: Σ_c w_c · rasterised probs_c, probs ``(K, L)`` per corridor on its footprints.
 
     ``lateral_shifts_m`` ``(K,)`` per corridor moves the footprints of step k
-    sideways (to the left when positive).
+    sideways (to the left when positive). ``step_weights`` ``(K, P)`` per
+    corridor (or None: its footprints' weights): the samples' weights step by
+    step (a lateral spread per step, ``lateral_table``); a sample of weight 0
+    is left out.
     """
     all_keys, all_values = [], []
     n_cells = frame.n_cells
     shifts = lateral_shifts_m if lateral_shifts_m is not None else [None] * len(footprints)
-    for fp, p, w, shift in zip(footprints, probs, corridor_weights, shifts):
+    per_step = step_weights if step_weights is not None else [None] * len(footprints)
+    for fp, p, w, shift, sw in zip(footprints, probs, corridor_weights, shifts, per_step):
         k_idx, i_idx = np.nonzero(p > min_mass)
         if k_idx.size == 0 or w <= 0:
             continue
@@ -368,9 +373,10 @@ def vehicle_grid(
             x = x + d * fp.normal_x[i_idx]
             y = y + d * fp.normal_y[i_idx]
         cells = frame.flat_index(x, y)  # (n, P)
-        mass = (w * p[k_idx, i_idx])[:, None] * fp.weights[None, :]
+        weights = fp.weights[None, :] if sw is None else sw[k_idx]
+        mass = (w * p[k_idx, i_idx])[:, None] * weights
         keys = k_idx[:, None] * n_cells + cells
-        keep = cells >= 0
+        keep = cells >= 0 if sw is None else (cells >= 0) & (weights > 0)
         all_keys.append(keys[keep])
         all_values.append(mass[keep])
     if not all_keys:
@@ -387,12 +393,14 @@ def vehicle_grids(
     lateral_shifts_m: np.ndarray | None = None,
     min_mass: float = 1e-9,
     threads: int = 1,
+    lateral: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> list[SparseGrid]:
     """``vehicle_grid`` of every vehicle, vehicle n of the pairs ``members[n]`` (``probs`` ``(B, K, L)``, ``corridor_weights``
     and ``lateral_shifts_m`` ``(B, K)`` per pair): in one compiled call (``frame_kernels.footprint_grids``: the same
     numbers, no Python per vehicle, no (B, L, P) sample arrays) where numba imports, else one ``vehicle_grid``
     per vehicle. tests/stages/test_markov_batched_outputs.py compares the two. ``threads``: the compiled call's vehicles shared
-    out between that many threads (the same numbers)."""
+    out between that many threads (the same numbers). ``lateral``: (rows (B, K), table (U, n_lat)) of ``lateral_table``:
+    step k of pair b with rows[b, k] = u >= 0 weighs its lateral samples by table[u] (the footprints' offsets)."""
     probs = np.asarray(probs)
     found = None
     if probs.dtype == np.float32 and probs.ndim == 3:
@@ -402,13 +410,50 @@ def vehicle_grids(
         found = frame_kernels.footprint_grids(fp.centre_x, fp.centre_y, fp.centre_nx, fp.centre_ny, fp.offsets, fp.weights, fp.rows, probs,
                                               np.asarray(corridor_weights, dtype=np.float64), wide, lateral_shifts_m, members,
                                               frame.origin_x_m, frame.origin_y_m, frame.cell_m, frame.n_rows, frame.n_cols, min_mass,
-                                              threads=threads)
+                                              threads=threads, lateral=lateral)
     if found is None:
         shifts = [None] * probs.shape[0] if lateral_shifts_m is None else list(lateral_shifts_m)
+        step_w = [None] * probs.shape[0] if lateral is None else [_step_weights(footprints, lateral, b) for b in range(probs.shape[0])]
         return [vehicle_grid(frame, [footprints.pair(b) for b in m], [probs[b] for b in m], [corridor_weights[b] for b in m],
-                             None if lateral_shifts_m is None else [shifts[b] for b in m], min_mass) for m in members]
+                             None if lateral_shifts_m is None else [shifts[b] for b in m], min_mass, [step_w[b] for b in m])
+                for m in members]
     keys, sums, ptr = found
     return [SparseGrid(keys[ptr[n]:ptr[n + 1]], sums[ptr[n]:ptr[n + 1]]) for n in range(len(members))]
+
+
+def lateral_table(sigmas_m: np.ndarray, base_sigma_m: float, cell_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """A lateral spread per step: for σ_lat (m) per pair and step ``sigmas_m`` (B, K), the footprints' lateral offsets
+    (every half cell out to ±2.5 of the widest σ, as ``lateral_kernel``) with the weights of ``base_sigma_m`` on them
+    (zero beyond its ±2.5σ), and ``rows`` (B, K) and ``table`` (U, n_lat) for ``vehicle_grids(lateral=...)``: one
+    normalised Gaussian per distinct σ, cut at ±2.5σ (rows -1 where σ is the base one: the footprints' own weights).
+    ``table`` is None when no σ is wider than the base one."""
+    sig = np.asarray(sigmas_m, dtype=np.float64)
+    wider = np.isfinite(sig) & (sig > base_sigma_m)
+    top = float(sig[wider].max()) if wider.any() else base_sigma_m
+    offsets, _w = lateral_kernel(top, cell_m)
+    base = np.where(np.abs(offsets) <= 2.5 * base_sigma_m + 1e-12, np.exp(-0.5 * (offsets / base_sigma_m) ** 2), 0.0)
+    base /= base.sum()
+    rows = np.full(sig.shape, -1, np.int64)
+    if not wider.any():
+        return offsets, base, rows, None
+    unique, inverse = np.unique(sig[wider], return_inverse=True)
+    rows[wider] = inverse
+    table = np.exp(-0.5 * (offsets[None, :] / unique[:, None]) ** 2)
+    table[np.abs(offsets)[None, :] > 2.5 * unique[:, None] + 1e-12] = 0.0
+    table /= table.sum(axis=1, keepdims=True)
+    return offsets, base, rows, table
+
+
+def _step_weights(footprints: "FootprintBatch", lateral: tuple[np.ndarray, np.ndarray], b: int) -> np.ndarray:
+    """(K, P) the sample weights of pair b step by step under ``lateral`` (rows, table): table[u] / n_sub per
+    sub-sample where rows[b, k] = u >= 0, else the footprints' weights."""
+    rows, table = lateral
+    n_sub = footprints.centre_x.shape[1]
+    own = np.tile(table, (1, n_sub)) / n_sub if table.size else np.zeros((0, footprints.weights.size))
+    out = np.repeat(footprints.weights[None, :], rows.shape[1], axis=0)
+    k = np.flatnonzero(rows[b] >= 0)
+    out[k] = own[rows[b, k]]
+    return out
 
 
 def fuse(grids: list[SparseGrid], n_cells: int = 0) -> SparseGrid:

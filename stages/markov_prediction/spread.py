@@ -16,6 +16,12 @@ File layout (``SCHEMA``)::
     {"schema": "iamp-spread-calibration/1", "modes": {"hybrid": {"bands_mps": [0.5, 2.0],
      "sigma_m": [[...n_steps...], [...], [...]], "speed_noise_gain": 1.0}, ...}, "fitted_on": {...}}
 
+With ``spread_shape = "along"`` the stage applies the same σ along each
+corridor instead (``blur_along``, before rasterising; the lateral kernel
+widened per step, ``rasterise.lateral_table``; docs/method.md §9.7): the
+mass stays on the road and the grids hold fewer cells. The table itself is
+always fitted for the round blur.
+
 ``bands_mps`` are the upper start-speed edges of all bands but the last
 (speed ≤ 0.5: standing, ≤ 2: slow, above: fast); ``sigma_m`` has one row
 per band and one σ per step. ``speed_noise_gain`` (optional, 0 when absent)
@@ -188,6 +194,59 @@ def _blurred(frame: GridFrame, cells: np.ndarray, values: np.ndarray, sigma_m: f
     numba imports (``frame_kernels.blur_cells``: the same numbers)."""
     found = frame_kernels.blur_cells(cells, values, frame.n_rows, frame.n_cols, *_blocking(frame, sigma_m), BLUR_MIN_VALUE)
     return found if found is not None else block_cells_sorted(frame, *blur_step(frame, cells, values, sigma_m))
+
+
+#: ``blur_along``'s Gaussian is cut at this many σ (its weights then normalised)
+ALONG_TRUNCATE = 4.0
+
+
+def along_weights(sigma_cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For σ (cells, any shape): ``which`` (flat, the row of ``weights`` each σ uses, -1 where σ is 0 or not finite),
+    ``weights`` (U, 2·max radius + 1: one normalised discrete Gaussian per distinct σ, centred, zero-padded) and
+    ``radii`` (U,): ⌈ALONG_TRUNCATE·σ⌉."""
+    flat = np.asarray(sigma_cells, dtype=np.float64).reshape(-1)
+    ok = np.isfinite(flat) & (flat > 0)
+    which = np.full(flat.size, -1, np.int64)
+    if not ok.any():
+        return which, np.zeros((0, 1)), np.zeros(0, np.int64)
+    unique, inverse = np.unique(flat[ok], return_inverse=True)
+    which[ok] = inverse
+    radii = np.ceil(ALONG_TRUNCATE * unique).astype(np.int64)
+    top = int(radii.max())
+    x = np.arange(-top, top + 1, dtype=np.float64)
+    weights = np.exp(-0.5 * (x[None, :] / unique[:, None]) ** 2)
+    weights[np.abs(x)[None, :] > radii[:, None]] = 0.0
+    weights /= weights.sum(axis=1, keepdims=True)
+    # each row's weights from its own radius: row u's 2·radii[u] + 1 weights start at top − radii[u]; moved to the front
+    out = np.zeros((unique.size, 2 * top + 1))
+    for u, r in enumerate(radii.tolist()):
+        out[u, : 2 * r + 1] = weights[u, top - r: top + r + 1]
+    return which, out, radii
+
+
+def blur_along(probs: np.ndarray, sigma_cells: np.ndarray, min_value: float = BLUR_MIN_VALUE) -> np.ndarray:
+    """The pairs' s-distributions ``probs`` (B, K, L) each blurred along its corridor: step k of pair b by a discrete
+    Gaussian of σ = ``sigma_cells[b, k]`` cells (0: as is), cut at ``ALONG_TRUNCATE``·σ; mass carried past either end
+    of the window is dropped, and values at or below ``min_value`` become 0. float32, a new array. The compiled
+    ``frame_kernels.blur_rows`` where numba imports (the same sums in another order), else this definition."""
+    probs = np.asarray(probs, dtype=np.float32)
+    shape = probs.shape
+    rows = probs.reshape(-1, shape[-1])
+    which, weights, radii = along_weights(sigma_cells)
+    if which.size != rows.shape[0]:
+        raise ValueError(f"blur_along: {which.size} sigmas for {rows.shape[0]} rows")
+    found = frame_kernels.blur_rows(rows, which, weights, radii, min_value)
+    if found is not None:
+        return found.reshape(shape)
+    out = rows.copy()
+    n_l = rows.shape[1]
+    for r in np.flatnonzero(which >= 0).tolist():
+        u = int(which[r])
+        rad = int(radii[u])
+        full = np.convolve(rows[r].astype(np.float64), weights[u, : 2 * rad + 1])  # symmetric: a correlation
+        row = full[rad: rad + n_l]
+        out[r] = np.where(row > min_value, row, 0.0)
+    return out.reshape(shape)
 
 
 def blur_grid(frame: GridFrame, grid: SparseGrid, sigmas_m: np.ndarray) -> SparseGrid:

@@ -66,6 +66,9 @@ class SpreadCalibration(Evaluation):
             raise ValueError("iamp calibrate fits spread_calibration: do not --set it")
         if any(p.startswith("spread_online") for p, _ in config.params):
             raise ValueError("iamp calibrate fits the spread table alone: do not --set spread_online (it widens the grids at run time, on top)")
+        if any(p.startswith("spread_shape") or p.startswith("spread_lateral") for p, _ in config.params):
+            raise ValueError("iamp calibrate fits an isotropic table (spread_shape = \"isotropic\"): do not --set spread_shape or"
+                             " spread_lateral_* (\"along\" applies the table's σ along the corridor at run time)")
         if not (math.isfinite(speed_noise_gain) and speed_noise_gain >= 0):
             raise ValueError(f"--speed-noise-gain {speed_noise_gain}: must be a number >= 0")
         n_steps, tau = 10, 0.4  # the margin's bound; the predictors' own steps are read below

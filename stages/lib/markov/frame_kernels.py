@@ -15,6 +15,8 @@
   every key.
 - ``add_running_sums``: ``rasterise.unwrap_each``'s running sums of the corrections, every corridor's in one
   pass (np.cumsum's order).
+- ``blur_rows``: the s-distributions of the pairs blurred along their corridors (``spread.blur_along``), every
+  row in one call, only the cells that hold mass scattered.
 - ``blur_cells``: one step of a vehicle's grid blurred as ``spread.blur_step`` and ``spread.block_cells_sorted``
   do it (cloud in cell onto blocks, scipy's ``gaussian_filter`` arithmetic, the blocks' cells above a value in
   cell order), in one call: the same numbers.
@@ -53,15 +55,17 @@ if numba is not None:
     from stages.lib.markov.kernels import _slot_add
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
-    def _footprint_grids(x_c, y_c, nx, ny, offsets, sample_w, cell_rows, probs, pair_w, wide, shifts, has_shift, ptr, members, origin_x,
-                         origin_y, cell, inv_cell, n_rows, n_cols, min_mass):  # pragma: no cover - compiled
+    def _footprint_grids(x_c, y_c, nx, ny, offsets, sample_w, cell_rows, probs, pair_w, wide, shifts, has_shift, lat_rows, lat_table,
+                         has_lat, ptr, members, origin_x, origin_y, cell, inv_cell, n_rows, n_cols, min_mass):  # pragma: no cover - compiled
         """Per vehicle (its pairs ``members[ptr[n]:ptr[n + 1]]``), the sorted keys and sums of ``vehicle_grid``: the
         same float64 operations, each key's sum taken in the order ``vehicle_grid`` concatenates its terms (as
         np.bincount adds them). Sample q = sub·n_lat + lat of cell i lies at x_c[r, sub] + nx[r, sub]·offsets[lat], r =
         cell_rows[b, i] (``FootprintBatch.x_m``; a cell with mass and no row, -1, has its samples off the grid, NaN). Step by step (keys of different steps never meet), each sample added to its cell's
         sum as it is formed (a table over the grid's cells, kept all -1 between steps), the cells then listed in key
-        order by a scan of their bounding box (or a sort, when the box is much larger than the cells). Returns keys,
-        sums and the (n_vehicles + 1,) offsets of each vehicle's part."""
+        order by a scan of their bounding box (or a sort, when the box is much larger than the cells). With
+        ``has_lat``, step k of pair b with ``lat_rows[b, k]`` = u >= 0 weighs sample (sub, lat) by
+        ``lat_table[u, lat] / n_sub`` instead of ``sample_w``, and every sample of weight 0 is left out (a lateral
+        spread per step: ``rasterise.lateral_table``). Returns keys, sums and the (n_vehicles + 1,) offsets of each vehicle's part."""
         n_k, n_l = probs.shape[1], probs.shape[2]
         n_sub = x_c.shape[1]
         n_lat = offsets.shape[0]
@@ -107,6 +111,7 @@ if numba is not None:
                         continue
                     d = shifts[b, k]
                     w32 = f32(w)
+                    u_lat = lat_rows[b, k] if has_lat else -1
                     for i in range(n_l):
                         p = probs[b, k, i]
                         if not p > min_mass:
@@ -119,6 +124,14 @@ if numba is not None:
                         for sub in range(n_sub):
                             xs, ys, nxs, nys = x_c[r, sub], y_c[r, sub], nx[r, sub], ny[r, sub]
                             for lat in range(n_lat):
+                                if u_lat >= 0:
+                                    sw = lat_table[u_lat, lat] / n_sub
+                                    if sw == 0.0:
+                                        continue
+                                else:
+                                    sw = sample_w[sub * n_lat + lat]
+                                    if has_lat and sw == 0.0:
+                                        continue
                                 off = offsets[lat]
                                 x = xs + nxs * off
                                 y = ys + nys * off
@@ -135,7 +148,7 @@ if numba is not None:
                                 if not (col >= 0 and col < n_cols and row >= 0 and row < n_rows):  # NaN: off the grid too
                                     continue
                                 ri, ci = np.int64(row), np.int64(col)
-                                rows[c], cols[c], vals[c] = ri, ci, mass * sample_w[sub * n_lat + lat]
+                                rows[c], cols[c], vals[c] = ri, ci, mass * sw
                                 c += 1
                                 r_lo, r_hi, c_lo, c_hi = min(r_lo, ri), max(r_hi, ri), min(c_lo, ci), max(c_hi, ci)
                 if c == 0:
@@ -264,6 +277,34 @@ if numba is not None:
         return keys[:k].copy(), vals[:k].copy()
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _blur_rows(probs, which, weights, radii, min_value, out):  # pragma: no cover - compiled
+        """Row r of ``probs`` (R, L) correlated with the symmetric weights ``weights[which[r]]`` (radius
+        ``radii[which[r]]``; which < 0: copied as is), what falls past either end dropped, sums at or below
+        ``min_value`` set to 0: ``spread.blur_along``'s numpy definition, each sum in another order."""
+        n_r, n_l = probs.shape
+        acc = np.zeros(n_l)
+        for r in range(n_r):
+            u = which[r]
+            if u < 0:
+                for l in range(n_l):
+                    out[r, l] = probs[r, l]
+                continue
+            rad = radii[u]
+            for l in range(n_l):
+                acc[l] = 0.0
+            for l in range(n_l):
+                v = np.float64(probs[r, l])
+                if v == 0.0:
+                    continue
+                lo = l - rad if l > rad else 0
+                hi = l + rad + 1 if l + rad + 1 < n_l else n_l
+                for m in range(lo, hi):
+                    acc[m] += v * weights[u, m - l + rad]
+            for l in range(n_l):
+                a = acc[l]
+                out[r, l] = a if a > min_value else 0.0
+
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
     def _add_running_sums(p, correct, ends, out):  # pragma: no cover - compiled
         """Per run [ends[n - 1], ends[n]) of ``p`` (ends[-1] taken as 0): out[start + 1 + j] = p[start + 1 + j] +
         correct[start : start + 1 + j].cumsum()[-1], the running sum taken as np.cumsum takes it (from its first term,
@@ -376,7 +417,7 @@ PAIRS_PER_THREAD = 16
 
 
 def footprint_grids(x_c, y_c, nx, ny, offsets, sample_weights, cell_rows, probs, pair_weights, wide, shifts, members, origin_x, origin_y,
-                    cell, n_rows, n_cols, min_mass, threads=1):
+                    cell, n_rows, n_cols, min_mass, threads=1, lateral=None):
     """The sparse grids of ``stages.markov_prediction.rasterise.vehicle_grid`` for every vehicle in one call (see
     ``rasterise.vehicle_grids``) from compact footprints (``rasterise.FootprintBatch``); None where numba is missing.
     ``members``: per vehicle its pair indices. Returns (keys, sums, offsets (n_vehicles + 1,)). ``threads`` > 1: the
@@ -388,9 +429,12 @@ def footprint_grids(x_c, y_c, nx, ny, offsets, sample_weights, cell_rows, probs,
     c = np.ascontiguousarray
     has_shift = shifts is not None
     shifts = shifts if has_shift else np.zeros(probs.shape[:2])
+    has_lat = lateral is not None
+    lat_rows, lat_table = lateral if has_lat else (np.full((1, 1), -1, np.int64), np.zeros((1, 1)))
     args = (c(x_c, dtype=np.float64), c(y_c, dtype=np.float64), c(nx, dtype=np.float64), c(ny, dtype=np.float64),
             c(offsets, dtype=np.float64), c(sample_weights, dtype=np.float64), c(cell_rows, dtype=np.int64), c(probs, dtype=np.float32),
-            c(pair_weights, dtype=np.float64), c(wide, dtype=np.bool_), c(shifts, dtype=np.float64), has_shift)
+            c(pair_weights, dtype=np.float64), c(wide, dtype=np.bool_), c(shifts, dtype=np.float64), has_shift,
+            c(lat_rows, dtype=np.int64), c(lat_table, dtype=np.float64), has_lat)
     tail = (float(origin_x), float(origin_y), float(cell), exact_inverse(float(cell)), int(n_rows), int(n_cols), float(min_mass))
 
     def run(part):
@@ -468,6 +512,7 @@ def warm_up() -> None:
     footprint_bounds(box, box, box, box, np.zeros(1), rows, np.ones((1, 1), np.bool_))
     fuse_sorted([np.array([0, 3], np.int64), np.array([3], np.int64)], np.ones(3), 2)
     add_running_sums(np.zeros(3), np.zeros(2), np.array([3], np.int64), np.zeros(3))
+    blur_rows(np.ones((1, 3), np.float32), np.zeros(1, np.int64), np.array([[0.25, 0.5, 0.25]]), np.ones(1, np.int64), 1e-6)
     _warm = True
 
 
@@ -481,6 +526,17 @@ def blur_cells(cells: np.ndarray, values: np.ndarray, n_rows: int, n_cols: int, 
     w, radius = gaussian_kernel(sigma_cells / f)
     return _blur_cells(np.ascontiguousarray(cells, dtype=np.int64), np.ascontiguousarray(values, dtype=np.float64), int(n_rows),
                        int(n_cols), int(f), int(pad), w, radius, float(min_value))
+
+
+def blur_rows(probs: np.ndarray, which: np.ndarray, weights: np.ndarray, radii: np.ndarray, min_value: float) -> np.ndarray | None:
+    """``spread.blur_along``'s rows in one compiled call: ``probs`` (R, L) float32, ``which`` (R,) the row of
+    ``weights`` (U, W) each uses (-1: none), ``radii`` (U,); float32 (R, L). None where numba is missing."""
+    if numba is None:
+        return None
+    out = np.empty(probs.shape, np.float32)
+    _blur_rows(np.ascontiguousarray(probs, dtype=np.float32), np.ascontiguousarray(which, dtype=np.int64),
+               np.ascontiguousarray(weights, dtype=np.float64), np.ascontiguousarray(radii, dtype=np.int64), float(min_value), out)
+    return out
 
 
 def gaussian_kernel(sigma: float, truncate: float = 3.0) -> tuple[np.ndarray, int]:

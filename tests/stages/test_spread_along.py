@@ -1,0 +1,165 @@
+"""``spread_shape = "along"``: the spread applied along each corridor (s) before rasterising, and across it per step."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from stages.corridors import SceneMaps
+from stages.intentions import IntentionsConfig
+from stages.lib.datasets import DEFAULT_DATA_DIR, load_recording
+from stages.lib.markov import MarkovGridConfig, frame_kernels, load_or_build_stencils
+from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
+from stages.markov_prediction.rasterise import (
+    Centrelines, GridFrame, cell_footprints_arrays, lateral_kernel, lateral_table, vehicle_grid, vehicle_grids,
+)
+from stages.markov_prediction.spread import SCHEMA, blur_along
+from stages.offline.chain import chain_frames
+
+
+def _probs(rng, shape, density=0.3):
+    return (rng.random(shape) * (rng.random(shape) < density)).astype(np.float32)
+
+
+def test_blur_along_compiled_equals_the_numpy_definition(monkeypatch):
+    rng = np.random.default_rng(1)
+    probs = _probs(rng, (6, 8, 70))
+    sigma = rng.uniform(0, 9, (6, 8))
+    sigma[0] = 0.0
+    sigma[1, 3] = np.nan  # not finite: as is
+    sigma[2, 1] = 0.2  # narrower than a cell
+    got = blur_along(probs, sigma)
+    monkeypatch.setattr(frame_kernels, "numba", None)
+    want = blur_along(probs, sigma)
+    assert got.dtype == np.float32 and got.shape == probs.shape
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-12)
+    np.testing.assert_array_equal(got[0], probs[0])
+    np.testing.assert_array_equal(got[1, 3], probs[1, 3])
+    with pytest.raises(ValueError, match="sigmas"):
+        blur_along(probs, sigma[:3])
+
+
+def test_blur_along_keeps_mass_and_mean_inside_and_drops_what_leaves_the_window():
+    probs = np.zeros((1, 3, 100), np.float32)
+    probs[0, :, 50] = 1.0  # a point in the middle
+    probs[0, 2, 50] = 0.0
+    probs[0, 2, 2] = 1.0  # a point near the start of the window
+    sigma = np.array([[0.0, 5.0, 5.0]])
+    out = blur_along(probs, sigma)
+    np.testing.assert_array_equal(out[0, 0], probs[0, 0])
+    cells = np.arange(100)
+    assert out[0, 1].sum() == pytest.approx(1.0, abs=1e-4)  # the Gaussian's tail past 4σ and below 1e-6 only
+    assert (out[0, 1] * cells).sum() / out[0, 1].sum() == pytest.approx(50.0, abs=1e-6)
+    assert (out[0, 1] > 0).sum() > 30 and out[0, 1, 50] == out[0, 1].max()
+    assert 0.6 < out[0, 2].sum() < 0.7  # about a third of the mass went behind the window's start: dropped
+    assert np.all(out >= 0)
+
+
+def _batch(rng, n_pairs, n_cells, offsets, weights):
+    lines = []
+    for b in range(n_pairs):
+        m = int(rng.integers(3, 30))
+        s = np.cumsum(rng.uniform(0.5, 3.0, m))
+        heading = np.cumsum(rng.normal(0, 0.3, m)) + b
+        lines.append((s, np.cumsum(np.cos(heading) * 2.0), np.cumsum(np.sin(heading) * 2.0), np.angle(np.exp(1j * heading))))
+    packed = Centrelines(*[list(a) for a in zip(*lines)])
+    lower = np.stack([s[0] - 3.0 + np.arange(n_cells, dtype=np.float64) for s, *_ in lines])
+    return cell_footprints_arrays(packed, lower, 1.0, 4, offsets, weights)
+
+
+def test_lateral_spread_per_step_compiled_equals_vehicle_grid():
+    """vehicle_grids(lateral=...) (compiled) gives vehicle_grid with the same per-step sample weights bit for bit; the
+    steps left at the base σ have the plain grids' samples."""
+    rng = np.random.default_rng(4)
+    n_b, n_k, n_l = 7, 6, 30
+    sig = np.full((n_b, n_k), 0.4)
+    sig[:, 2:] = rng.uniform(0.4, 1.5, (n_b, n_k - 2))
+    offsets, base, rows, table = lateral_table(sig, 0.4, 0.5)
+    assert table is not None and (rows[:, :2] == -1).all() and (rows[:, 2:] >= 0).all()
+    assert offsets.size > lateral_kernel(0.4, 0.5)[0].size
+    batch = _batch(rng, n_b, n_l, offsets, base)
+    probs = _probs(rng, (n_b, n_k, n_l), 0.5)
+    weights = [float(w) for w in rng.uniform(0.2, 1.0, n_b)]
+    members = [[0, 1], [2], [3, 4, 5], [6]]
+    frame = GridFrame(float(np.nanmin(batch.x_m)) - 1.0, float(np.nanmin(batch.y_m)) - 1.0, 0.5, 400, 400)
+    shifts = rng.normal(0, 0.3, (n_b, n_k))
+    got = vehicle_grids(frame, batch, probs, weights, members, shifts, lateral=(rows, table))
+    from stages.markov_prediction.rasterise import _step_weights
+
+    for grid, m in zip(got, members):
+        want = vehicle_grid(frame, [batch.pair(b) for b in m], [probs[b] for b in m], [weights[b] for b in m],
+                            [shifts[b] for b in m], step_weights=[_step_weights(batch, (rows, table), b) for b in m])
+        np.testing.assert_array_equal(grid.keys, want.keys)
+        np.testing.assert_array_equal(grid.values, want.values)
+    # the steps at the base σ: the same cells and sums as the grids of the base kernel alone (its ±2.5σ samples)
+    narrow = cell_footprints_arrays(Centrelines([np.array([0.0, 50.0])], [np.array([0.0, 50.0])], [np.array([0.0, 0.0])],
+                                                [np.array([0.0, 0.0])]), np.arange(20.0)[None, :], 1.0, 4, *lateral_kernel(0.4, 0.5))
+    wide = cell_footprints_arrays(Centrelines([np.array([0.0, 50.0])], [np.array([0.0, 50.0])], [np.array([0.0, 0.0])],
+                                              [np.array([0.0, 0.0])]), np.arange(20.0)[None, :], 1.0, 4, offsets, base)
+    p1 = _probs(rng, (1, n_k, 20), 0.5)
+    f1 = GridFrame(-5.0, -5.0, 0.5, 40, 80)
+    a = vehicle_grids(f1, narrow, p1, [1.0], [[0]])[0]
+    b = vehicle_grids(f1, wide, p1, [1.0], [[0]], lateral=(np.full((1, n_k), -1, np.int64), table))[0]
+    np.testing.assert_array_equal(a.keys, b.keys)
+    np.testing.assert_allclose(a.values, b.values, rtol=1e-12)
+    # a wider step holds more cells across the corridor and the same mass
+    c = vehicle_grids(f1, wide, p1, [1.0], [[0]], lateral=(np.full((1, n_k), table.shape[0] - 1, np.int64), table))[0]
+    assert c.keys.size > a.keys.size and c.values.sum() == pytest.approx(a.values.sum(), rel=1e-9)
+
+
+def test_the_shape_and_the_cap_are_checked_and_resolved():
+    assert MarkovPredictionConfig().spread_online_max_mps == 1.5
+    assert MarkovPredictionConfig(spread_shape="along").spread_online_max_mps == 3.0
+    assert MarkovPredictionConfig(spread_shape="along", spread_online_max_mps=2.0).spread_online_max_mps == 2.0
+    with pytest.raises(ValueError, match="spread_shape"):
+        MarkovPredictionConfig(spread_shape="round")
+    with pytest.raises(ValueError, match="spread_lateral_ratio"):
+        MarkovPredictionConfig(spread_lateral_ratio=-0.1)
+
+
+def test_iamp_calibrate_refuses_the_along_shape(tmp_path, capsys):
+    """The table is fitted isotropic; the shape is how the stage applies it at run time."""
+    import argparse
+
+    from stages.offline.calibrate import add_arguments, run_cli
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args(["--data", str(DEFAULT_DATA_DIR), "--out", str(tmp_path / "s.json"), "--set", 'spread_shape="along"', "--no-progress"])
+    assert run_cli(args) == 2
+    assert "spread_shape" in capsys.readouterr().err
+    assert not (tmp_path / "s.json").exists()
+
+
+@pytest.fixture(scope="module")
+def frames():
+    recording = load_recording(DEFAULT_DATA_DIR, "k729_2022-03-16")
+    seq = max(recording.sequences, key=lambda q: q.n_rows)
+    return [{"corridor_set": i.corridor_set, "relation_set": i.relation_set, "scene": i.scene, "track_frame": i.frame,
+             "intention_belief": i.belief} for i in chain_frames(recording, seq, SceneMaps(), intentions=IntentionsConfig(), max_frames=80)
+            if i.corridor_set is not None]
+
+
+def test_in_the_stage_the_along_spread_keeps_means_and_mass_with_fewer_cells(frames, tmp_path):
+    n_steps = MarkovPredictionConfig().n_steps
+    table = tmp_path / "spread.json"
+    sigma = [[0.3] * n_steps, [1.0] * n_steps, [0.5 + 0.6 * k for k in range(n_steps)]]  # standing, slow, fast
+    table.write_text(json.dumps({"schema": SCHEMA, "modes": {"corridor_cv": {"bands_mps": [0.5, 2.0], "sigma_m": sigma}}}))
+    stencils = load_or_build_stencils(MarkovGridConfig())
+    make = lambda **kw: MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv", **kw), stencils=stencils)  # noqa: E731
+    plain, iso, along = make(), make(spread_calibration=str(table)), make(spread_calibration=str(table), spread_shape="along")
+    last = max(frames, key=lambda f: sum(v.speed_mps > 3.0 for v in f["corridor_set"].vehicles if v.corridors))
+    args = (last["corridor_set"], last["relation_set"], last["scene"], last["track_frame"])
+    p0, p_iso, p_along = (m.process(*args, intention_belief=last["intention_belief"])[0] for m in (plain, iso, along))
+    np.testing.assert_array_equal(p_along.mean_xy_m, p0.mean_xy_m)  # the means (and mADE) do not move
+    np.testing.assert_array_equal(p_along.position_probs, p0.position_probs)
+    moving = [t for t, v in p_along.start_speeds_mps.items() if v > 2.0]
+    assert moving, "no moving vehicle in the frame"
+    for t in moving:
+        g0, gi, ga = p0.vehicle_grids[t], p_iso.vehicle_grids[t], p_along.vehicle_grids[t]
+        assert g0.keys.size < ga.keys.size < gi.keys.size  # wider than none, fewer cells than the round blur
+        n_cells = p_along.grid_frame.n_cells
+        last_k = n_steps - 1
+        assert ga.step(last_k, n_cells)[1].sum() == pytest.approx(g0.step(last_k, p0.grid_frame.n_cells)[1].sum(), rel=0.02)
