@@ -152,9 +152,26 @@ def train_model(data: Path, recording: str, seed: int, train_opts: list[str], re
     return info
 
 
+def spread_shapes(sets: list[str]) -> dict[str, str]:
+    """Per mode, the spread_shape its markov_prediction resolves to with the ``--set`` values ``sets``."""
+    from stages.markov_prediction import MarkovPredictionConfig
+
+    params = {}
+    for item in sets:
+        key, _, value = item.partition("=")
+        try:
+            params[key.strip()] = json.loads(value)
+        except json.JSONDecodeError:
+            params[key.strip()] = value
+    shape = params.get("spread_shape", "auto")
+    return {m: MarkovPredictionConfig(mode=m, spread_shape=shape).spread_shape for m in MODES}
+
+
 def calibrate(data: Path, recording: str, model: str, seed: int, sets: list[str], recalibrate: bool) -> dict[str, Any]:
     """``iamp calibrate`` on the training location with its model (every mode; stride 0.8 s): the spread file the eval reads."""
-    key = hashlib.sha256(json.dumps({"model": model, "sets": sets}, sort_keys=True).encode()).hexdigest()[:12]
+    # the shape each mode's table is fitted for is part of the key (spread_shape "auto" resolves per mode, and a file
+    # fitted before the shape existed is round)
+    key = hashlib.sha256(json.dumps({"model": model, "sets": sets, "shapes": spread_shapes(sets)}, sort_keys=True).encode()).hexdigest()[:12]
     out = OUT_DIR / f"spread_{recording}_seed{seed}_{key}.json"
     report, log = out.with_suffix(".report.json"), out.with_suffix(".log")
     info: dict[str, Any] = {"recording": recording, "file": str(out), "report_json": str(report)}

@@ -28,8 +28,12 @@ BACKENDS = ("numpy", "torch")
 GRID_DISTRIBUTIONS = ("interval", "point")
 #: how a spread (table, online) widens the grids: ``isotropic`` blurs each vehicle's map grid with a round Gaussian
 #: (``spread.blur_grid``); ``along`` blurs each pair's s-distribution along its corridor before it is rasterised
-#: (``spread.blur_along``): the error of moving cars is mostly along the track, and the mass stays on the road
-SPREAD_SHAPES = ("isotropic", "along")
+#: (``spread.blur_along``): the error of moving cars is mostly along the track, and the mass stays on the road;
+#: ``auto`` (the default): the mode's own, ``MODE_SPREAD_SHAPE``
+SPREAD_SHAPES = ("auto", "isotropic", "along")
+#: ``spread_shape = "auto"`` per mode: along the map corridors; round for cv, whose "corridor" is a straight ray (a
+#: turning car leaves it sideways: along it, its fast cars' coverage90 stayed at 0.75-0.85, README "Along the corridor")
+MODE_SPREAD_SHAPE = {"hybrid": "along", "baseline": "along", "corridor_cv": "along", "cv": "isotropic"}
 #: ``spread_online_max_mps = 0`` resolves to this per shape. isotropic 1.5 (fixed before any run, session 13); along
 #: 3.0: with 1.5 its c sat at the cap and K733's fast cars' coverage90 stayed at 0.83 (README "Along the corridor";
 #: chosen after seeing both locations)
@@ -167,9 +171,11 @@ class MarkovPredictionConfig(ConfigMixin):
     spread_online_rate_mps: float = 0.05
     # 0 (default): the shape's own cap, SPREAD_ONLINE_MAX_MPS (1.5 isotropic: its blur's cells grow with σ²; 3.0 along)
     spread_online_max_mps: float = 0.0
-    # the shape of the spread (table and online): "isotropic" (a round Gaussian on the map grid, what ``iamp calibrate``
-    # fits) or "along" (a Gaussian of the same σ along each corridor, before rasterising; fewer cells). SPREAD_SHAPES
-    spread_shape: str = "isotropic"
+    # the shape of the spread (table and online): "isotropic" (a round Gaussian on the map grid) or "along" (a Gaussian
+    # along each corridor, before rasterising, and the lateral kernel widened per step; fewer cells); "auto": the mode's
+    # own (MODE_SPREAD_SHAPE: along, cv isotropic). After construction always the shape in use. ``iamp calibrate`` fits
+    # a table for the shape it runs with (the file says which)
+    spread_shape: str = "auto"
     # with spread_shape "along": the grids widened across the corridor too, step k of a pair by
     # σ_lat = min(√(grid_lateral_sigma_m² + (ratio·σ_k)²), max) (σ_k the along σ): lane offsets grow with the horizon
     spread_lateral_ratio: float = 0.33
@@ -208,6 +214,8 @@ class MarkovPredictionConfig(ConfigMixin):
             raise ValueError(f"leader_horizon_mean = {self.leader_horizon_mean!r}: expected 'arithmetic' or 'geometric'")
         if self.spread_shape not in SPREAD_SHAPES:
             raise ValueError(f"spread_shape = {self.spread_shape!r}: expected one of {', '.join(SPREAD_SHAPES)}")
+        if self.spread_shape == "auto":  # resolved here so that every reader sees the shape in use
+            object.__setattr__(self, "spread_shape", MODE_SPREAD_SHAPE[self.mode])
         if self.spread_online_max_mps == 0:  # resolved here so that every reader sees the cap in use
             object.__setattr__(self, "spread_online_max_mps", SPREAD_ONLINE_MAX_MPS[self.spread_shape])
         if self.grid_distribution not in GRID_DISTRIBUTIONS:

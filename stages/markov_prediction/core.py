@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import bisect
 import collections
+import functools
+import logging
 import dataclasses
 import math
 import operator
@@ -52,7 +54,7 @@ from stages.markov_prediction.modes.base import InputModel, Messages, Pair, Vehi
 from stages.markov_prediction.modes.corridor_cv import constant_speed
 from stages.markov_prediction.modes.cv import CV_LINE_ID
 from stages.markov_prediction.online_spread import DEFAULT_BANDS_MPS, OnlineSpread
-from stages.markov_prediction.spread import SpreadTable, blur_along, blur_grid, load_spread
+from stages.markov_prediction.spread import ALONG_TRUNCATE, SpreadTable, blur_along, blur_grid, load_spread
 from stages.markov_prediction.rasterise import (
     Centrelines, FootprintBatch, GridFrame, SparseGrid, cell_footprints_arrays, fuse, lateral_kernel, lateral_table, vehicle_grids,
 )
@@ -61,6 +63,9 @@ from stages.markov_prediction.signals import apply_signals, stop_line_wall
 __all__ = ["CV_LINE_ID", "FramePrediction", "MarkovPredictor", "PairInfo"]
 
 _NS = 1e-9
+#: ``spread_shape = "along"`` widens each pair's window by at most this many cells at each end (the blur's reach, 4σ:
+#: σ up to 16 m on 1 m cells)
+ALONG_PAD_CELLS = 64
 #: the online spread's state is logged this often (s of stamps), where the predictor has a logger
 ONLINE_LOG_S = 30.0
 #: ``MarkovPredictor.speed_noise`` is capped here (m/s): the calibrated spread's widest blur, and so the grid's margin, stays bounded
@@ -117,6 +122,9 @@ class FramePrediction:
     #: per track id, the start speed (m/s) that picked its grid's spread band (the measured speed, else v0); empty
     #: without a spread table or the online spread
     start_speeds_mps: dict[int, float] = dataclasses.field(default_factory=dict)
+    #: with ``MarkovPredictor.keep_geometry``: regrid(track_id, σ per step) -> the vehicle's grid with the along spread of
+    #: that σ (``iamp calibrate``'s candidates for ``spread_shape = "along"``); None otherwise
+    regrid: Any = None
 
     def corridor_predictions(self, header: Header, scene_id: str) -> CorridorPredictions:
         """The ``CorridorPredictions`` message (s-distributions cropped to the cells ever occupied)."""
@@ -250,6 +258,8 @@ class MarkovPredictor:
                  log: Any = None) -> None:
         self.config = config
         self.producer = producer
+        #: FramePrediction.regrid kept (iamp calibrate with spread_shape "along"): each frame's geometry stays referenced
+        self.keep_geometry = False
         self._log = log  # a logging.Logger (the node's): the online spread's state, every ONLINE_LOG_S of stamps
         self._online_logged_ns: int | None = None
         self._shard = parse_shard(config.shard)
@@ -295,7 +305,12 @@ class MarkovPredictor:
         #: the mode's input model (``modes/``): the only mode-specific code the loop calls
         self.model: InputModel = model_cls(self)
         #: the calibrated spread of this mode's grids (``spread.py``), or None
-        self.spread: SpreadTable | None = load_spread(config.spread_calibration, config.mode, config.n_steps) if config.spread_calibration else None
+        self.spread: SpreadTable | None = load_spread(config.spread_calibration, config.mode, config.n_steps, config.spread_shape) if config.spread_calibration else None
+        if self.spread is not None and self.spread.shape != config.spread_shape:
+            (log or logging.getLogger(__name__)).warning(
+                "spread_calibration %s: its %s table was fitted for spread_shape %r, applied %r: its coverage will differ (refit"
+                " it with `iamp calibrate --set spread_shape='\"%s\"'`)", config.spread_calibration, config.mode, self.spread.shape,
+                config.spread_shape, config.spread_shape)
         #: the online spread (``online_spread.py``, ``spread_online``), or None
         self.online: OnlineSpread | None = OnlineSpread(
             self.step_times_s, bands_mps=self.spread.bands_mps if self.spread is not None else DEFAULT_BANDS_MPS,
@@ -1088,23 +1103,19 @@ class MarkovPredictor:
                     )
                 )
         grid_probs = interval if (cfg.grid_distribution == "interval" and interval is not None) else pos
-        lateral, lateral_kernel_ = None, self._lateral
+        raw_grid_probs, lateral, lateral_kernel_ = grid_probs, None, self._lateral
+        cell_lower = s_first[:, None] + lower[None, :]  # (B, L)
         if cfg.spread_shape == "along" and (self.spread is not None or self.online is not None) and n_b:
             # the grids only (pos and interval stay): along the corridor, and across it per step
-            grid_probs, sigma = self._blurred_along(pairs, grid_probs, beyond_all)
-            if sigma is not None and cfg.spread_lateral_ratio > 0:
-                base = cfg.grid_lateral_sigma_m
-                wide = np.minimum(np.hypot(base, cfg.spread_lateral_ratio * sigma), max(cfg.spread_lateral_max_m, base))
-                offsets, base_w, rows, table = lateral_table(np.where(sigma > 0, wide, base), base, cfg.grid_cell_m)
-                if table is not None:
-                    lateral_kernel_, lateral = (offsets, base_w), (rows, table)
+            grid_probs, cell_lower, lateral_kernel_, lateral = self._along(grid_probs, self._vehicle_sigmas(pairs), cell_lower, end_s)
         used = grid_probs.max(axis=1) > 0 if n_b else None  # (B, L): the cells that hold mass at some step, the only ones rasterised
-        batch = cell_footprints_arrays(lines, s_first[:, None] + lower[None, :], cfg.ds_m, cfg.grid_substeps, *lateral_kernel_,
-                                       used=used) if n_b else None
+        batch = cell_footprints_arrays(lines, cell_lower, cfg.ds_m, cfg.grid_substeps, *lateral_kernel_, used=used) if n_b else None
         frame = self._grid_frame(batch, used)
         return {"position": pos, "interval": interval, "velocity": np.asarray(arrays["velocity"], dtype=np.float32), "outside": outside,
                 "mean_xy": mean_xy, "mean_s": mean_s, "xy_at_mean": xy_at_mean, "frame": frame, "batch": batch, "grid_probs": grid_probs,
-                "shift": shift_all, "lateral": lateral}
+                "shift": shift_all, "lateral": lateral,
+                # for ``regrid`` (``keep_geometry``): the grids rebuilt with another along spread
+                "lines": lines, "cell_lower": s_first[:, None] + lower[None, :], "end_s": end_s, "raw_grid_probs": raw_grid_probs}
 
     def _finish_grids(self, pairs: list[Pair], geo: dict[str, Any]) -> FramePrediction:
         """The outputs from ``_finish_geometry``'s: each vehicle's grid (its corridors' weighted by ``probability``),
@@ -1147,23 +1158,62 @@ class MarkovPredictor:
             min_grid_value=cfg.grid_min_value,
             max_cells_per_step=cfg.grid_max_cells_per_step,
             start_speeds_mps=start_speeds,
+            regrid=functools.partial(self._regrid, pairs, geo) if self.keep_geometry else None,
         )
 
-    def _blurred_along(self, pairs: list[Pair], probs: np.ndarray, beyond: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        """``spread_shape = "along"``: each pair's s-distribution (B, K, L) blurred along its corridor by its vehicle's
-        σ per step (``_sigmas``, in cells of ds), none past the corridor's end (``beyond``, (B, L)): a new array, and
-        the σ (m, (B, K)); ``probs`` itself and None where every σ is 0."""
-        sigma = np.zeros(probs.shape[:2])
+    def _vehicle_sigmas(self, pairs: list[Pair]) -> np.ndarray:
+        """(B, K) the spread's σ (m) of each pair: its vehicle's (``_sigmas``)."""
+        sigma = np.zeros((len(pairs), self.step_times_s.size))
         by_track: dict[int, np.ndarray] = {}
         for b, p in enumerate(pairs):
             if p.track_id not in by_track:
                 by_track[p.track_id] = self._sigmas(_start_speed(p), p.speed_noise_mps)
             sigma[b] = by_track[p.track_id]
+        return sigma
+
+    def _along(self, probs: np.ndarray, sigma: np.ndarray, cell_lower: np.ndarray, end_s: np.ndarray):
+        """``spread_shape = "along"``: the s-distributions ``probs`` (B, K, L) on the cells of lower edges ``cell_lower``
+        (B, L) blurred along their corridors by σ (m, (B, K)), and the lateral kernel widened per step
+        (``lateral_table``). The window grows by the blur's reach (at most ``ALONG_PAD_CELLS``) at both ends, so that
+        what is blurred behind the window's start or past its end stays (the footprints continue the centreline
+        straight past its ends); none past the corridor's end (``end_s``, (B,)). Returns (probs, a new array or
+        ``probs`` itself where every σ is 0; their cells' lower edges (B, L'); the footprints' (offsets, weights); the
+        ``lateral`` (rows, table) of ``vehicle_grids`` or None)."""
+        cfg = self.config
         if not np.any(sigma > 0):
-            return probs, None
-        out = blur_along(probs, sigma / self.config.ds_m)
-        np.copyto(out, 0.0, where=beyond[:, None, :])
-        return out, sigma
+            return probs, cell_lower, self._lateral, None
+        pad = min(int(math.ceil(ALONG_TRUNCATE * float(np.nanmax(np.where(np.isfinite(sigma), sigma, 0.0))) / cfg.ds_m)), ALONG_PAD_CELLS)
+        if pad > 0:
+            probs = np.pad(probs, ((0, 0), (0, 0), (pad, pad)))
+            cell_lower = np.concatenate([cell_lower[:, :1] - cfg.ds_m * np.arange(pad, 0, -1)[None, :], cell_lower,
+                                         cell_lower[:, -1:] + cfg.ds_m * np.arange(1, pad + 1)[None, :]], axis=1)
+        out = blur_along(probs, sigma / cfg.ds_m)
+        np.copyto(out, 0.0, where=(cell_lower >= end_s[:, None])[:, None, :])  # past the corridor's end: none (outside)
+        if cfg.spread_lateral_ratio > 0:
+            base = cfg.grid_lateral_sigma_m
+            wide = np.minimum(np.hypot(base, cfg.spread_lateral_ratio * sigma), max(cfg.spread_lateral_max_m, base))
+            offsets, base_w, rows, table = lateral_table(np.where(sigma > 0, wide, base), base, cfg.grid_cell_m)
+            if table is not None:
+                return out, cell_lower, (offsets, base_w), (rows, table)
+        return out, cell_lower, self._lateral, None
+
+    def _regrid(self, pairs: list[Pair], geo: dict[str, Any], track_id: int, sigmas_m: np.ndarray) -> SparseGrid | None:
+        """The grid of vehicle ``track_id`` rebuilt from this frame's unblurred distributions with the along spread
+        of σ = ``sigmas_m`` (K,) at each step (``iamp calibrate``'s candidates; ``keep_geometry``); None for a
+        vehicle not predicted."""
+        cfg = self.config
+        members = [b for b, p in enumerate(pairs) if p.track_id == track_id]
+        if not members:
+            return None
+        raw = geo["raw_grid_probs"]
+        probs = np.zeros_like(raw)
+        sigma = np.zeros(raw.shape[:2])
+        sigma[members] = np.asarray(sigmas_m, dtype=np.float64)[None, :]
+        probs[members] = raw[members]
+        probs, cell_lower, kernel, lateral = self._along(probs, sigma, geo["cell_lower"], geo["end_s"])
+        used = probs.max(axis=1) > 0
+        batch = cell_footprints_arrays(geo["lines"], cell_lower, cfg.ds_m, cfg.grid_substeps, *kernel, used=used)
+        return vehicle_grids(geo["frame"], batch, probs, [p.probability for p in pairs], [members], geo["shift"], lateral=lateral)[0]
 
     def _sigmas(self, speed_mps: float, speed_noise_mps: float) -> np.ndarray:
         """The blur σ per step of a vehicle's grid: the spread table's (with its speed noise), widened by the online

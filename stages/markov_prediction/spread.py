@@ -19,8 +19,10 @@ File layout (``SCHEMA``)::
 With ``spread_shape = "along"`` the stage applies the same σ along each
 corridor instead (``blur_along``, before rasterising; the lateral kernel
 widened per step, ``rasterise.lateral_table``; docs/method.md §9.7): the
-mass stays on the road and the grids hold fewer cells. The table itself is
-always fitted for the round blur.
+mass stays on the road and the grids hold fewer cells. ``iamp calibrate
+--set spread_shape='"along"'`` fits a table for that shape (``"shape":
+"along"`` in the mode's entry; absent: isotropic); the stage warns when a
+table's shape is not the one it applies.
 
 ``bands_mps`` are the upper start-speed edges of all bands but the last
 (speed ≤ 0.5: standing, ≤ 2: slow, above: fast); ``sigma_m`` has one row
@@ -52,6 +54,8 @@ BLUR_MIN_VALUE = 1e-6
 #: ``spread_calibration = "shipped"`` names this file: the table of the shipped AR model (``iamp calibrate`` on all of
 #: TAF-BW with it; in-sample, as the model), beside the weights with their licence and attribution
 SHIPPED = Path(__file__).resolve().parents[1] / "lib" / "ar" / "weights" / "spread_taf_bw.json"
+#: ... per spread_shape: the round table above, and the one fitted with ``spread_shape = "along"`` beside it
+SHIPPED_BY_SHAPE = {"isotropic": SHIPPED, "along": SHIPPED.with_name("spread_taf_bw_along.json")}
 
 
 @dataclass(frozen=True)
@@ -67,6 +71,8 @@ class SpreadTable:
     bands_mps: tuple[float, ...]
     sigma_m: np.ndarray  # (len(bands_mps) + 1, n_steps)
     speed_noise_gain: float = 0.0
+    #: the spread_shape the table was fitted for ("isotropic" where the file does not say)
+    shape: str = "isotropic"
 
     def band(self, speed_mps: float) -> int:
         return int(np.searchsorted(np.asarray(self.bands_mps), speed_mps, side="left"))
@@ -85,6 +91,8 @@ class SpreadTable:
         out = {"bands_mps": list(self.bands_mps), "sigma_m": np.round(self.sigma_m, 4).tolist()}
         if self.speed_noise_gain > 0:
             out["speed_noise_gain"] = float(self.speed_noise_gain)
+        if self.shape != "isotropic":
+            out["shape"] = self.shape
         return out
 
 
@@ -93,14 +101,16 @@ def with_speed_noise(sigmas_m: np.ndarray, noise_mps: float, step_times_s: np.nd
     return np.hypot(np.asarray(sigmas_m, dtype=np.float64), noise_mps * np.asarray(step_times_s, dtype=np.float64))
 
 
-def resolve(path: str) -> Path:
-    return SHIPPED if path == "shipped" else Path(path).expanduser()
+def resolve(path: str, shape: str = "isotropic") -> Path:
+    """The file of ``spread_calibration = path``: "shipped" names the shipped table fitted for ``shape``."""
+    return SHIPPED_BY_SHAPE.get(shape, SHIPPED) if path == "shipped" else Path(path).expanduser()
 
 
-def load_spread(path: str, mode: str, n_steps: int) -> SpreadTable | None:
-    """The table of ``mode`` in the file ``path`` (None when the file has none for it); a bad file raises ValueError."""
+def load_spread(path: str, mode: str, n_steps: int, shape: str = "isotropic") -> SpreadTable | None:
+    """The table of ``mode`` in the file ``path`` (None when the file has none for it; "shipped": the shipped table of
+    ``shape``); a bad file raises ValueError."""
     where = f"spread_calibration = {path!r}"
-    file = resolve(path)
+    file = resolve(path, shape)
     try:
         data = json.loads(file.read_text())
     except (OSError, json.JSONDecodeError) as exc:
@@ -114,6 +124,7 @@ def load_spread(path: str, mode: str, n_steps: int) -> SpreadTable | None:
         bands = tuple(float(b) for b in entry["bands_mps"])
         sigma = np.asarray(entry["sigma_m"], dtype=np.float64)
         gain = float(entry.get("speed_noise_gain", 0.0))
+        shape = str(entry.get("shape", "isotropic"))
     except (KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"{where}: mode {mode}: expected bands_mps and sigma_m ({exc})") from exc
     if not (math.isfinite(gain) and gain >= 0):
@@ -121,7 +132,9 @@ def load_spread(path: str, mode: str, n_steps: int) -> SpreadTable | None:
     if sigma.shape != (len(bands) + 1, n_steps) or not np.all(np.isfinite(sigma)) or np.any(sigma < 0) or list(bands) != sorted(bands):
         raise ValueError(f"{where}: mode {mode}: sigma_m must be {len(bands) + 1} x {n_steps} finite values >= 0 (one row per band,"
                          f" one per step) and bands_mps increasing; got shape {sigma.shape}")
-    return SpreadTable(bands, sigma, gain)
+    if shape not in ("isotropic", "along"):
+        raise ValueError(f"{where}: mode {mode}: shape must be \"isotropic\" or \"along\", got {shape!r}")
+    return SpreadTable(bands, sigma, gain, shape)
 
 
 def write_spread(path: Path, tables: dict[str, SpreadTable], fitted_on: dict[str, Any]) -> None:

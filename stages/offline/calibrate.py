@@ -5,7 +5,10 @@ same centre-point grids) on the recordings given (one location: the other
 one is for reporting), and for every scored window also scores its grid
 with each candidate σ of ``SIGMAS_M``: the vehicle's grid at every step
 blurred by an isotropic Gaussian of that σ (``markov_prediction.spread.blur_grid``,
-what the stage does with the fitted table; the means do not move). Per
+what the stage does with the fitted table; the means do not move); with
+``--set spread_shape='"along"'`` the vehicle's grid rebuilt with that σ along
+its corridors (``FramePrediction.regrid``: the stage's own along spread), and
+the table says ``"shape": "along"``. Per
 mode, start-speed band (``BANDS_MPS``: standing ≤ 0.5 m/s, slow ≤ 2 m/s,
 fast) and step it counts how often the truth lies in the ``--level``
 highest-density region of the vehicle's grid for each candidate, and takes
@@ -66,9 +69,6 @@ class SpreadCalibration(Evaluation):
             raise ValueError("iamp calibrate fits spread_calibration: do not --set it")
         if any(p.startswith("spread_online") for p, _ in config.params):
             raise ValueError("iamp calibrate fits the spread table alone: do not --set spread_online (it widens the grids at run time, on top)")
-        if any(p.startswith("spread_shape") or p.startswith("spread_lateral") for p, _ in config.params):
-            raise ValueError("iamp calibrate fits an isotropic table (spread_shape = \"isotropic\"): do not --set spread_shape or"
-                             " spread_lateral_* (\"along\" applies the table's σ along the corridor at run time)")
         if not (math.isfinite(speed_noise_gain) and speed_noise_gain >= 0):
             raise ValueError(f"--speed-noise-gain {speed_noise_gain}: must be a number >= 0")
         n_steps, tau = 10, 0.4  # the margin's bound; the predictors' own steps are read below
@@ -84,6 +84,10 @@ class SpreadCalibration(Evaluation):
         self.hits = {m: np.zeros(shape, np.int64) for m in config.modes}
         self.nll = {m: np.zeros(shape) for m in config.modes}
         self.count = {m: np.zeros((len(BAND_NAMES), n_k), np.int64) for m in config.modes}
+        #: per mode, the spread_shape its candidates are applied with (its stage's; "along": each candidate's grid rebuilt)
+        self.shapes = {m: self.predictors[m].config.spread_shape for m in config.modes}
+        for mode, predictor in self.predictors.items():
+            predictor.keep_geometry = self.shapes.get(mode) == "along"
 
     def _instant(self, recording, sequence_id, stamp, *args, **kwargs) -> None:
         self._stamp = int(stamp)  # for the vehicles' speed noise in _score
@@ -101,6 +105,13 @@ class SpreadCalibration(Evaluation):
         cells_true = frame.flat_index(future[:, 0], future[:, 1])
         noise = self.speed_noise_gain * self.predictors[mode].speed_noise(track_id, self._stamp) if self.speed_noise_gain > 0 else 0.0
         times = prediction.step_times_s
+        if self.shapes[mode] == "along":  # each candidate's grid rebuilt along the corridors (the stage's _along), all steps at once
+            for c, sigma in enumerate(self.sigmas_m):
+                sigmas = with_speed_noise(np.full(times.size, sigma), noise, times) if noise > 0 else np.full(times.size, sigma)
+                covered, value = truth_in_region(frame, prediction.regrid(track_id, sigmas), future, self.level)
+                self.hits[mode][band, :, c] += covered
+                self.nll[mode][band, :, c] -= np.log(np.maximum(value, self.config.nll_floor))
+            return result
         for k in range(future.shape[0]):
             cells, values = grid.step(k, frame.n_cells)
             for c, sigma in enumerate(self.sigmas_m):
@@ -123,7 +134,7 @@ class SpreadCalibration(Evaluation):
                 for k in range(n.shape[1]):
                     chosen[b, k] = smallest_sigma(sig, cov[b, k], self.level) if n[b, k] else 0.0
                 chosen[b] = np.maximum.accumulate(chosen[b])
-            tables[mode] = SpreadTable(BANDS_MPS, chosen, self.speed_noise_gain)
+            tables[mode] = SpreadTable(BANDS_MPS, chosen, self.speed_noise_gain, self.shapes[mode])
             at = np.array([[np.interp(chosen[b, k], sig, cov[b, k]) for k in range(n.shape[1])] for b in range(n.shape[0])])
             nll = self.nll[mode] / np.maximum(n[..., None], 1)
             measured[mode] = {

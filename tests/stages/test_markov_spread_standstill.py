@@ -86,12 +86,13 @@ def test_spread_file_is_checked_and_read_per_mode_and_band(tmp_path):
         MarkovPredictor(MarkovPredictionConfig(mode="cv", spread_calibration=str(tmp_path / "missing.json")))
 
 
+@pytest.mark.parametrize("shape", ["isotropic", "along"])
 @pytest.mark.parametrize("mode", ["baseline", "corridor_cv"])
-def test_calibrated_spread_widens_the_grid_and_leaves_the_means(tmp_path, stencils, mode):
+def test_calibrated_spread_widens_the_grid_and_leaves_the_means(tmp_path, stencils, mode, shape):
     cs = _corridor_set(_vehicle(1, 8.0, [_corridor(7)]))
     plain = MarkovPredictor(MarkovPredictionConfig(mode=mode, **PLAIN), stencils=stencils)
-    wide = MarkovPredictor(MarkovPredictionConfig(mode=mode, spread_calibration=str(_spread_file(tmp_path, mode, 4.0)), **PLAIN),
-                           stencils=stencils)
+    wide = MarkovPredictor(MarkovPredictionConfig(mode=mode, spread_calibration=str(_spread_file(tmp_path, mode, 4.0)),
+                                                  spread_shape=shape, **PLAIN), stencils=stencils)
     a, _ = plain.process(cs, _relation_set(_relation(1, 7)))
     b, _ = wide.process(cs, _relation_set(_relation(1, 7)))
     np.testing.assert_array_equal(a.mean_xy_m, b.mean_xy_m)

@@ -110,7 +110,11 @@ def test_lateral_spread_per_step_compiled_equals_vehicle_grid():
 
 
 def test_the_shape_and_the_cap_are_checked_and_resolved():
-    assert MarkovPredictionConfig().spread_online_max_mps == 1.5
+    for mode in ("hybrid", "baseline", "corridor_cv"):  # "auto": along the map corridors
+        assert MarkovPredictionConfig(mode=mode).spread_shape == "along"
+    assert MarkovPredictionConfig(mode="cv").spread_shape == "isotropic"  # a straight ray: round
+    assert MarkovPredictionConfig(mode="cv").spread_online_max_mps == 1.5
+    assert MarkovPredictionConfig(spread_shape="isotropic").spread_online_max_mps == 1.5
     assert MarkovPredictionConfig(spread_shape="along").spread_online_max_mps == 3.0
     assert MarkovPredictionConfig(spread_shape="along", spread_online_max_mps=2.0).spread_online_max_mps == 2.0
     with pytest.raises(ValueError, match="spread_shape"):
@@ -119,18 +123,45 @@ def test_the_shape_and_the_cap_are_checked_and_resolved():
         MarkovPredictionConfig(spread_lateral_ratio=-0.1)
 
 
-def test_iamp_calibrate_refuses_the_along_shape(tmp_path, capsys):
-    """The table is fitted isotropic; the shape is how the stage applies it at run time."""
+def test_iamp_calibrate_fits_a_table_for_the_along_shape(tmp_path, capsys):
+    """With spread_shape "along" (auto for the corridor modes) every candidate is scored on the vehicle's grid rebuilt
+    along its corridors, and the table says so; the stage warns when a table's shape is not the one it applies."""
     import argparse
+    import logging
 
+    from stages.markov_prediction.spread import load_spread
     from stages.offline.calibrate import add_arguments, run_cli
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    args = parser.parse_args(["--data", str(DEFAULT_DATA_DIR), "--out", str(tmp_path / "s.json"), "--set", 'spread_shape="along"', "--no-progress"])
-    assert run_cli(args) == 2
-    assert "spread_shape" in capsys.readouterr().err
-    assert not (tmp_path / "s.json").exists()
+    out = tmp_path / "s.json"
+    args = parser.parse_args(["--data", str(DEFAULT_DATA_DIR), "--out", str(out), "--mode", "corridor_cv", "cv", "--max-frames", "60",
+                              "--stride", "0.8", "--no-progress"])  # spread_shape "auto": along for corridor_cv, round for cv
+    assert run_cli(args) == 0, capsys.readouterr().err
+    table = load_spread(str(out), "corridor_cv", MarkovPredictionConfig().n_steps)
+    assert table.shape == "along" and json.loads(out.read_text())["modes"]["corridor_cv"]["shape"] == "along"
+    assert load_spread(str(out), "cv", MarkovPredictionConfig().n_steps).shape == "isotropic"
+    assert np.all(np.diff(table.sigma_m, axis=1) >= 0)
+
+    class Catch(logging.Handler):
+        def __init__(self):
+            super().__init__()
+            self.said = []
+
+        def emit(self, record):
+            self.said.append(record.getMessage())
+
+    catch = Catch()
+    log = logging.getLogger("test.spread_shape")
+    log.addHandler(catch)
+    MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv", spread_calibration=str(out), spread_shape="isotropic"), log=log)  # warned
+    MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv", spread_calibration=str(out)), log=log)  # auto: along
+    assert len(catch.said) == 1 and "fitted for spread_shape 'along'" in catch.said[0]
+    bad = json.loads(out.read_text())
+    bad["modes"]["corridor_cv"]["shape"] = "square"
+    out.write_text(json.dumps(bad))
+    with pytest.raises(ValueError, match="shape"):
+        load_spread(str(out), "corridor_cv", MarkovPredictionConfig().n_steps)
 
 
 @pytest.fixture(scope="module")
@@ -149,7 +180,7 @@ def test_in_the_stage_the_along_spread_keeps_means_and_mass_with_fewer_cells(fra
     table.write_text(json.dumps({"schema": SCHEMA, "modes": {"corridor_cv": {"bands_mps": [0.5, 2.0], "sigma_m": sigma}}}))
     stencils = load_or_build_stencils(MarkovGridConfig())
     make = lambda **kw: MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv", **kw), stencils=stencils)  # noqa: E731
-    plain, iso, along = make(), make(spread_calibration=str(table)), make(spread_calibration=str(table), spread_shape="along")
+    plain, iso, along = make(), make(spread_calibration=str(table), spread_shape="isotropic"), make(spread_calibration=str(table))
     last = max(frames, key=lambda f: sum(v.speed_mps > 3.0 for v in f["corridor_set"].vehicles if v.corridors))
     args = (last["corridor_set"], last["relation_set"], last["scene"], last["track_frame"])
     p0, p_iso, p_along = (m.process(*args, intention_belief=last["intention_belief"])[0] for m in (plain, iso, along))
@@ -163,3 +194,39 @@ def test_in_the_stage_the_along_spread_keeps_means_and_mass_with_fewer_cells(fra
         n_cells = p_along.grid_frame.n_cells
         last_k = n_steps - 1
         assert ga.step(last_k, n_cells)[1].sum() == pytest.approx(g0.step(last_k, p0.grid_frame.n_cells)[1].sum(), rel=0.02)
+
+
+def test_regrid_gives_the_stages_own_along_grid(frames, tmp_path):
+    """FramePrediction.regrid (iamp calibrate's candidates) rebuilds a vehicle's grid as the stage makes it with a table
+    of that σ: the same mass per map cell (the two grids' frames differ: compared by cell position)."""
+    n_steps = MarkovPredictionConfig().n_steps
+    sigma = [0.4 + 0.5 * k for k in range(n_steps)]
+    table = tmp_path / "spread.json"
+    table.write_text(json.dumps({"schema": SCHEMA, "modes": {"corridor_cv": {"bands_mps": [0.5, 2.0], "sigma_m": [sigma] * 3,
+                                                                             "shape": "along"}}}))
+    stencils = load_or_build_stencils(MarkovGridConfig())
+    stage = MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv", spread_calibration=str(table), spread_shape="along"), stencils=stencils)
+    # iamp calibrate widens the grid's margin so that no candidate's blur leaves it; so does this one
+    keeper = MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv", grid_margin_m=40.0), stencils=stencils)
+    keeper.keep_geometry = True
+    last = max(frames, key=lambda f: sum(v.speed_mps > 3.0 for v in f["corridor_set"].vehicles if v.corridors))
+    args = (last["corridor_set"], last["relation_set"], last["scene"], last["track_frame"])
+    a = stage.process(*args, intention_belief=last["intention_belief"])[0]
+    b = keeper.process(*args, intention_belief=last["intention_belief"])[0]
+    assert a.regrid is None and b.regrid is not None
+
+    def by_position(frame, grid):
+        k, cell = np.divmod(grid.keys, frame.n_cells)
+        row, col = np.divmod(cell, frame.n_cols)
+        x = np.round(frame.origin_x_m + col * frame.cell_m, 6)
+        y = np.round(frame.origin_y_m + row * frame.cell_m, 6)
+        return dict(zip(zip(k.tolist(), x.tolist(), y.tolist()), grid.values.tolist()))
+
+    assert a.vehicle_grids
+    for track, grid in a.vehicle_grids.items():
+        want = by_position(a.grid_frame, grid)
+        got = by_position(b.grid_frame, b.regrid(track, np.asarray(sigma)))
+        inside = {key: v for key, v in got.items() if key in want}
+        assert sum(got.values()) - sum(inside.values()) < 1e-6  # nothing where the stage has no cell (its frame holds all)
+        assert set(want) == set(inside)
+        np.testing.assert_allclose([inside[key] for key in want], list(want.values()), rtol=1e-9, atol=1e-15)
