@@ -4,11 +4,12 @@ It runs ``iamp eval``'s chain and scoring (``Evaluation``, same windows,
 same centre-point grids) on the recordings given (one location: the other
 one is for reporting), and for every scored window also scores its grid
 with each candidate σ of ``SIGMAS_M``: the vehicle's grid at every step
-blurred by an isotropic Gaussian of that σ (``markov_prediction.spread.blur_grid``,
-what the stage does with the fitted table; the means do not move); with
-``--set spread_shape='"along"'`` the vehicle's grid rebuilt with that σ along
-its corridors (``FramePrediction.regrid``: the stage's own along spread), and
-the table says ``"shape": "along"``. Per
+widened as the stage widens it with the fitted table, in the mode's
+``spread_shape`` (default "auto": along the corridors for hybrid, baseline
+and corridor_cv, round for cv): along, the vehicle's grid rebuilt with that σ
+along its corridors (``FramePrediction.regrid``, the stage's own code; the
+table says ``"shape": "along"``); round, blurred by an isotropic Gaussian
+(``markov_prediction.spread.blur_grid``). The means do not move. Per
 mode, start-speed band (``BANDS_MPS``: standing ≤ 0.5 m/s, slow ≤ 2 m/s,
 fast) and step it counts how often the truth lies in the ``--level``
 highest-density region of the vehicle's grid for each candidate, and takes

@@ -63,14 +63,14 @@ def test_threaded_chain_equals_the_single_thread_chain_on_real_frames(frames, mo
     grid_calls = []
     real_grids = frame_kernels.footprint_grids
 
-    def grids_spy(*args, threads=1):
+    def grids_spy(*args, threads=1, **kwargs):
         grid_calls.append((len(args[11]), threads))
-        return real_grids(*args, threads=threads)
+        return real_grids(*args, threads=threads, **kwargs)
 
     monkeypatch.setattr(frame_kernels, "footprint_grids", grids_spy)
     runs = []
     real_runs = frame_kernels._footprint_grids
-    monkeypatch.setattr(frame_kernels, "_footprint_grids", lambda *args: runs.append(len(args[12]) - 1) or real_runs(*args))
+    monkeypatch.setattr(frame_kernels, "_footprint_grids", lambda *args: runs.append(len(args[13]) - 1) or real_runs(*args))  # args[13]: ptr
     outputs = {}
     for threads in (1, 2, 3):
         predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", kernel_threads=threads), stencils=stencils)

@@ -246,10 +246,20 @@ def test_the_shipped_table_is_there_for_every_mode():
     """``spread_calibration = "shipped"``: the table of the shipped AR model, beside its weights and licence."""
     from stages.markov_prediction.spread import SHIPPED
 
-    assert SHIPPED.is_file() and (SHIPPED.parent / "LICENSE").is_file() and "spread_taf_bw.json" in (SHIPPED.parent / "ATTRIBUTION.md").read_text()
-    for mode in ("hybrid", "baseline", "corridor_cv", "cv"):
-        table = load_spread("shipped", mode, 10)
-        assert table is not None and table.sigma_m.shape == (3, 10) and table.speed_noise_gain == 1.0
+    from stages.markov_prediction.spread import SHIPPED_BY_SHAPE
+
+    attribution = (SHIPPED.parent / "ATTRIBUTION.md").read_text()
+    assert (SHIPPED.parent / "LICENSE").is_file()
+    for shape, file in SHIPPED_BY_SHAPE.items():  # one table per spread_shape, each attributed
+        assert file.is_file() and file.parent == SHIPPED.parent and f"`{file.name}`" in attribution
+        for mode in ("hybrid", "baseline", "corridor_cv", "cv"):
+            table = load_spread("shipped", mode, 10, shape)
+            assert table is not None and table.sigma_m.shape == (3, 10) and table.speed_noise_gain == 1.0
+            if mode != "cv" or shape == "isotropic":
+                assert table.shape == shape
+    # the stage takes the one of its shape: "auto" is along for the corridor modes, round for cv
+    assert MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv", spread_calibration="shipped")).spread.shape == "along"
+    assert MarkovPredictor(MarkovPredictionConfig(mode="cv", spread_calibration="shipped")).spread.shape == "isotropic"
 
 
 def test_the_compiled_blur_gives_the_numpy_blurs_numbers():

@@ -9,14 +9,11 @@ import numpy as np
 
 import pytest
 
-from stages.corridors import SceneMaps
-from stages.intentions import IntentionsConfig
-from stages.lib.datasets import DEFAULT_DATA_DIR, load_recording
+from stages.lib.datasets import DEFAULT_DATA_DIR
 from stages.lib.markov import MarkovGridConfig, load_or_build_stencils
 from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
 from stages.markov_prediction.online_spread import OnlineSpread
 from stages.markov_prediction.rasterise import GridFrame, SparseGrid
-from stages.offline.chain import chain_frames
 
 TAU_NS = 400_000_000
 STEPS = 0.4 * np.arange(1, 11)
@@ -106,15 +103,6 @@ def test_bad_parameters_are_refused():
         MarkovPredictionConfig(spread_online=True, spread_online_target=1.0)
     with pytest.raises(ValueError, match="spread_online_rate_mps"):
         MarkovPredictionConfig(spread_online=True, spread_online_rate_mps=0.0)
-
-
-@pytest.fixture(scope="module")
-def frames():
-    recording = load_recording(DEFAULT_DATA_DIR, "k729_2022-03-16")
-    seq = max(recording.sequences, key=lambda q: q.n_rows)
-    return [{"corridor_set": i.corridor_set, "relation_set": i.relation_set, "scene": i.scene, "track_frame": i.frame,
-             "intention_belief": i.belief} for i in chain_frames(recording, seq, SceneMaps(), intentions=IntentionsConfig(), max_frames=120)
-            if i.corridor_set is not None]
 
 
 def test_in_the_stage_it_widens_moving_vehicles_grids_and_leaves_their_means(frames, caplog):

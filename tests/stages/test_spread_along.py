@@ -7,16 +7,13 @@ import json
 import numpy as np
 import pytest
 
-from stages.corridors import SceneMaps
-from stages.intentions import IntentionsConfig
-from stages.lib.datasets import DEFAULT_DATA_DIR, load_recording
+from stages.lib.datasets import DEFAULT_DATA_DIR
 from stages.lib.markov import MarkovGridConfig, frame_kernels, load_or_build_stencils
 from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
 from stages.markov_prediction.rasterise import (
     Centrelines, GridFrame, cell_footprints_arrays, lateral_kernel, lateral_table, vehicle_grid, vehicle_grids,
 )
 from stages.markov_prediction.spread import SCHEMA, blur_along
-from stages.offline.chain import chain_frames
 
 
 def _probs(rng, shape, density=0.3):
@@ -162,15 +159,6 @@ def test_iamp_calibrate_fits_a_table_for_the_along_shape(tmp_path, capsys):
     out.write_text(json.dumps(bad))
     with pytest.raises(ValueError, match="shape"):
         load_spread(str(out), "corridor_cv", MarkovPredictionConfig().n_steps)
-
-
-@pytest.fixture(scope="module")
-def frames():
-    recording = load_recording(DEFAULT_DATA_DIR, "k729_2022-03-16")
-    seq = max(recording.sequences, key=lambda q: q.n_rows)
-    return [{"corridor_set": i.corridor_set, "relation_set": i.relation_set, "scene": i.scene, "track_frame": i.frame,
-             "intention_belief": i.belief} for i in chain_frames(recording, seq, SceneMaps(), intentions=IntentionsConfig(), max_frames=80)
-            if i.corridor_set is not None]
 
 
 def test_in_the_stage_the_along_spread_keeps_means_and_mass_with_fewer_cells(frames, tmp_path):

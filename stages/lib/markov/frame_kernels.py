@@ -55,17 +55,16 @@ if numba is not None:
     from stages.lib.markov.kernels import _slot_add
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
-    def _footprint_grids(x_c, y_c, nx, ny, offsets, sample_w, cell_rows, probs, pair_w, wide, shifts, has_shift, lat_rows, lat_table,
-                         has_lat, ptr, members, origin_x, origin_y, cell, inv_cell, n_rows, n_cols, min_mass):  # pragma: no cover - compiled
+    def _footprint_grids(x_c, y_c, nx, ny, offsets, sample_w, cell_rows, probs, pair_w, wide, shifts, has_shift, lat_rows, ptr, members, origin_x, origin_y, cell, inv_cell, n_rows, n_cols, min_mass):  # pragma: no cover - compiled
         """Per vehicle (its pairs ``members[ptr[n]:ptr[n + 1]]``), the sorted keys and sums of ``vehicle_grid``: the
         same float64 operations, each key's sum taken in the order ``vehicle_grid`` concatenates its terms (as
         np.bincount adds them). Sample q = sub·n_lat + lat of cell i lies at x_c[r, sub] + nx[r, sub]·offsets[lat], r =
         cell_rows[b, i] (``FootprintBatch.x_m``; a cell with mass and no row, -1, has its samples off the grid, NaN). Step by step (keys of different steps never meet), each sample added to its cell's
         sum as it is formed (a table over the grid's cells, kept all -1 between steps), the cells then listed in key
-        order by a scan of their bounding box (or a sort, when the box is much larger than the cells). With
-        ``has_lat``, step k of pair b with ``lat_rows[b, k]`` = u >= 0 weighs sample (sub, lat) by
-        ``lat_table[u, lat] / n_sub`` instead of ``sample_w``, and every sample of weight 0 is left out (a lateral
-        spread per step: ``rasterise.lateral_table``). Returns keys, sums and the (n_vehicles + 1,) offsets of each vehicle's part."""
+        order by a scan of their bounding box (or a sort, when the box is much larger than the cells). ``sample_w``
+        (W, P): with ``lat_rows`` None its row 0 weighs every step's samples; else step k of pair b takes row
+        ``lat_rows[b, k]`` and every sample of weight 0 is left out (a lateral spread per step:
+        ``rasterise.lateral_table``). Returns keys, sums and the (n_vehicles + 1,) offsets of each vehicle's part."""
         n_k, n_l = probs.shape[1], probs.shape[2]
         n_sub = x_c.shape[1]
         n_lat = offsets.shape[0]
@@ -111,7 +110,9 @@ if numba is not None:
                         continue
                     d = shifts[b, k]
                     w32 = f32(w)
-                    u_lat = lat_rows[b, k] if has_lat else -1
+                    w_row = 0  # the row of sample_w this step weighs its samples by
+                    if lat_rows is not None:
+                        w_row = lat_rows[b, k]
                     for i in range(n_l):
                         p = probs[b, k, i]
                         if not p > min_mass:
@@ -124,13 +125,9 @@ if numba is not None:
                         for sub in range(n_sub):
                             xs, ys, nxs, nys = x_c[r, sub], y_c[r, sub], nx[r, sub], ny[r, sub]
                             for lat in range(n_lat):
-                                if u_lat >= 0:
-                                    sw = lat_table[u_lat, lat] / n_sub
+                                sw = sample_w[w_row, sub * n_lat + lat]
+                                if lat_rows is not None:  # (pruned at compile time where lat_rows is None)
                                     if sw == 0.0:
-                                        continue
-                                else:
-                                    sw = sample_w[sub * n_lat + lat]
-                                    if has_lat and sw == 0.0:
                                         continue
                                 off = offsets[lat]
                                 x = xs + nxs * off
@@ -430,11 +427,17 @@ def footprint_grids(x_c, y_c, nx, ny, offsets, sample_weights, cell_rows, probs,
     has_shift = shifts is not None
     shifts = shifts if has_shift else np.zeros(probs.shape[:2])
     has_lat = lateral is not None
-    lat_rows, lat_table = lateral if has_lat else (np.full((1, 1), -1, np.int64), np.zeros((1, 1)))
+    weights = np.asarray(sample_weights, dtype=np.float64).reshape(1, -1)
+    lat_rows = None  # None: the default path's own compiled specialisation (no per-step rows)
+    if has_lat:  # rows 0..U-1: each lateral table row per sub-sample / n_sub (rasterise._step_weights' numbers); U: the footprints'
+        lat_rows, table = lateral
+        n_sub = x_c.shape[1]
+        weights = np.concatenate([np.tile(table, (1, n_sub)) / n_sub, weights]) if table.size else weights
+        lat_rows = np.where(lat_rows >= 0, lat_rows, weights.shape[0] - 1)
     args = (c(x_c, dtype=np.float64), c(y_c, dtype=np.float64), c(nx, dtype=np.float64), c(ny, dtype=np.float64),
-            c(offsets, dtype=np.float64), c(sample_weights, dtype=np.float64), c(cell_rows, dtype=np.int64), c(probs, dtype=np.float32),
+            c(offsets, dtype=np.float64), c(weights), c(cell_rows, dtype=np.int64), c(probs, dtype=np.float32),
             c(pair_weights, dtype=np.float64), c(wide, dtype=np.bool_), c(shifts, dtype=np.float64), has_shift,
-            c(lat_rows, dtype=np.int64), c(lat_table, dtype=np.float64), has_lat)
+            None if lat_rows is None else c(lat_rows, dtype=np.int64))
     tail = (float(origin_x), float(origin_y), float(cell), exact_inverse(float(cell)), int(n_rows), int(n_cols), float(min_mass))
 
     def run(part):
