@@ -106,6 +106,27 @@ def test_lateral_spread_per_step_compiled_equals_vehicle_grid():
     assert c.keys.size > a.keys.size and c.values.sum() == pytest.approx(a.values.sum(), rel=1e-9)
 
 
+def test_lateral_spread_per_step_on_two_threads_gives_the_same_grids():
+    """vehicle_grids(threads=2) splits the vehicles into runs (at least PAIRS_PER_THREAD pairs each); the per-step
+    lateral rows are indexed by the pair, so every run gives the grids one thread gives."""
+    rng = np.random.default_rng(8)
+    n_b, n_k, n_l = 48, 5, 25
+    sig = rng.uniform(0.4, 1.5, (n_b, n_k))
+    sig[::3, :2] = 0.4
+    offsets, base, rows, table = lateral_table(sig, 0.4, 0.5)
+    batch = _batch(rng, n_b, n_l, offsets, base)
+    probs = _probs(rng, (n_b, n_k, n_l), 0.5)
+    weights = [float(w) for w in rng.uniform(0.2, 1.0, n_b)]
+    members = [[2 * i, 2 * i + 1] for i in range(n_b // 2)]
+    frame = GridFrame(float(np.nanmin(batch.x_m)) - 1.0, float(np.nanmin(batch.y_m)) - 1.0, 0.5, 500, 500)
+    one = vehicle_grids(frame, batch, probs, weights, members, None, threads=1, lateral=(rows, table))
+    two = vehicle_grids(frame, batch, probs, weights, members, None, threads=2, lateral=(rows, table))
+    assert sum(g.keys.size for g in one) > 1000
+    for a, b in zip(one, two):
+        np.testing.assert_array_equal(a.keys, b.keys)
+        np.testing.assert_array_equal(a.values, b.values)
+
+
 def test_the_shape_and_the_cap_are_checked_and_resolved():
     for mode in ("hybrid", "baseline", "corridor_cv"):  # "auto": along the map corridors
         assert MarkovPredictionConfig(mode=mode).spread_shape == "along"

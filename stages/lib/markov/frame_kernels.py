@@ -512,6 +512,8 @@ def warm_up() -> None:
     rows = np.zeros((1, 1), np.int64)
     footprint_grids(box, box, box, box, np.zeros(1), np.ones(1), rows, np.ones((1, 1, 1), np.float32), np.ones(1), np.ones(1, np.bool_),
                     np.zeros((1, 1)), [[0]], -1.0, -1.0, 1.0, 2, 2, 1e-9)
+    footprint_grids(box, box, box, box, np.zeros(1), np.ones(1), rows, np.ones((1, 1, 1), np.float32), np.ones(1), np.ones(1, np.bool_),
+                    np.zeros((1, 1)), [[0]], -1.0, -1.0, 1.0, 2, 2, 1e-9, lateral=(np.zeros((1, 1), np.int64), np.ones((1, 1))))
     footprint_bounds(box, box, box, box, np.zeros(1), rows, np.ones((1, 1), np.bool_))
     fuse_sorted([np.array([0, 3], np.int64), np.array([3], np.int64)], np.ones(3), 2)
     add_running_sums(np.zeros(3), np.zeros(2), np.array([3], np.int64), np.zeros(3))
