@@ -1230,11 +1230,11 @@ class MarkovPredictor:
         bounds = footprints.bounds(used) if footprints is not None and used is not None else None
         if bounds is None:
             return GridFrame(0.0, 0.0, cfg.grid_cell_m, 1, 1)
-        widest = float(self.spread.max_sigma_m(self.step_times_s, SPEED_NOISE_CAP_MPS)) if self.spread is not None else 0.0
-        if self.online is not None:
-            widest = math.hypot(widest, self.online.max_sigma_m())
-        if cfg.spread_shape == "along":  # blurred before rasterising: the cells it reaches are among the bounds
-            widest = 0.0
+        widest = 0.0  # along: blurred before rasterising, the cells it reaches are among the bounds
+        if cfg.spread_shape == "isotropic":
+            widest = float(self.spread.max_sigma_m(self.step_times_s, SPEED_NOISE_CAP_MPS)) if self.spread is not None else 0.0
+            if self.online is not None:
+                widest = math.hypot(widest, self.online.max_sigma_m())
         margin = cfg.grid_margin_m + 3.0 * widest  # the blur stays on the grid
         x_lo, x_hi, y_lo, y_hi = bounds
         return GridFrame.around(np.array([x_lo, x_hi]), np.array([y_lo, y_hi]), cfg.grid_cell_m, margin)

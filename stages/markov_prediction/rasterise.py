@@ -407,13 +407,17 @@ def vehicle_grids(
         # w · p is float64 for a numpy float64 weight and float32 for a Python float (numpy's promotion), as vehicle_grid has it
         wide = np.array([type(w) is not float and np.result_type(w, probs.dtype) == np.float64 for w in corridor_weights], dtype=np.bool_)
         fp = footprints
-        found = frame_kernels.footprint_grids(fp.centre_x, fp.centre_y, fp.centre_nx, fp.centre_ny, fp.offsets, fp.weights, fp.rows, probs,
+        lat_rows, weights = sample_weight_rows(fp, lateral) if lateral is not None else (None, fp.weights)
+        found = frame_kernels.footprint_grids(fp.centre_x, fp.centre_y, fp.centre_nx, fp.centre_ny, fp.offsets, weights, fp.rows, probs,
                                               np.asarray(corridor_weights, dtype=np.float64), wide, lateral_shifts_m, members,
                                               frame.origin_x_m, frame.origin_y_m, frame.cell_m, frame.n_rows, frame.n_cols, min_mass,
-                                              threads=threads, lateral=lateral)
+                                              threads=threads, lat_rows=lat_rows)
     if found is None:
         shifts = [None] * probs.shape[0] if lateral_shifts_m is None else list(lateral_shifts_m)
-        step_w = [None] * probs.shape[0] if lateral is None else [_step_weights(footprints, lateral, b) for b in range(probs.shape[0])]
+        step_w = [None] * probs.shape[0]
+        if lateral is not None:
+            lat_rows, weights = sample_weight_rows(footprints, lateral)
+            step_w = [weights[lat_rows[b]] for b in range(probs.shape[0])]
         return [vehicle_grid(frame, [footprints.pair(b) for b in m], [probs[b] for b in m], [corridor_weights[b] for b in m],
                              None if lateral_shifts_m is None else [shifts[b] for b in m], min_mass, [step_w[b] for b in m])
                 for m in members]
@@ -431,29 +435,38 @@ def lateral_table(sigmas_m: np.ndarray, base_sigma_m: float, cell_m: float) -> t
     wider = np.isfinite(sig) & (sig > base_sigma_m)
     top = float(sig[wider].max()) if wider.any() else base_sigma_m
     offsets, _w = lateral_kernel(top, cell_m)
-    base = np.where(np.abs(offsets) <= 2.5 * base_sigma_m + 1e-12, np.exp(-0.5 * (offsets / base_sigma_m) ** 2), 0.0)
-    base /= base.sum()
+    base = gaussian_rows(offsets, np.array([base_sigma_m]), np.array([2.5 * base_sigma_m + 1e-12]))[0]
     rows = np.full(sig.shape, -1, np.int64)
     if not wider.any():
         return offsets, base, rows, None
     unique, inverse = np.unique(sig[wider], return_inverse=True)
     rows[wider] = inverse
-    table = np.exp(-0.5 * (offsets[None, :] / unique[:, None]) ** 2)
-    table[np.abs(offsets)[None, :] > 2.5 * unique[:, None] + 1e-12] = 0.0
-    table /= table.sum(axis=1, keepdims=True)
-    return offsets, base, rows, table
+    return offsets, base, rows, gaussian_rows(offsets, unique, 2.5 * unique + 1e-12)
+
+
+def gaussian_rows(x: np.ndarray, sigmas: np.ndarray, reach: np.ndarray) -> np.ndarray:
+    """(U, n) one Gaussian per σ over the points ``x`` (n,), zero where |x| > its ``reach``, each row normalised to 1
+    (the along blur's and the lateral spread's kernels)."""
+    rows = np.exp(-0.5 * (x[None, :] / sigmas[:, None]) ** 2)
+    rows[np.abs(x)[None, :] > reach[:, None]] = 0.0
+    rows /= rows.sum(axis=1, keepdims=True)
+    return rows
+
+
+def sample_weight_rows(footprints: "FootprintBatch", lateral: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """``lateral`` (rows (B, K), table (U, n_lat)) as the samples' weights: (rows (B, K) into ``weights``, weights
+    (U + 1, P)): row u < U is table[u] / n_sub per sub-sample (P = n_sub·n_lat, sample q = sub·n_lat + lat), row U the
+    footprints' own weights (where rows was -1). What the compiled grids and ``vehicle_grid`` both weigh by."""
+    rows, table = lateral
+    n_sub = footprints.centre_x.shape[1]
+    weights = np.concatenate([np.tile(table, (1, n_sub)) / n_sub, footprints.weights[None, :]]) if table.size else footprints.weights[None, :]
+    return np.where(rows >= 0, rows, weights.shape[0] - 1), weights
 
 
 def _step_weights(footprints: "FootprintBatch", lateral: tuple[np.ndarray, np.ndarray], b: int) -> np.ndarray:
-    """(K, P) the sample weights of pair b step by step under ``lateral`` (rows, table): table[u] / n_sub per
-    sub-sample where rows[b, k] = u >= 0, else the footprints' weights."""
-    rows, table = lateral
-    n_sub = footprints.centre_x.shape[1]
-    own = np.tile(table, (1, n_sub)) / n_sub if table.size else np.zeros((0, footprints.weights.size))
-    out = np.repeat(footprints.weights[None, :], rows.shape[1], axis=0)
-    k = np.flatnonzero(rows[b] >= 0)
-    out[k] = own[rows[b, k]]
-    return out
+    """(K, P) the sample weights of pair b step by step under ``lateral`` (``sample_weight_rows``)."""
+    rows, weights = sample_weight_rows(footprints, lateral)
+    return weights[rows[b]]
 
 
 def fuse(grids: list[SparseGrid], n_cells: int = 0) -> SparseGrid:

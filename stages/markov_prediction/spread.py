@@ -43,7 +43,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from stages.lib.markov import frame_kernels
-from stages.markov_prediction.rasterise import GridFrame, SparseGrid
+from stages.markov_prediction.rasterise import GridFrame, SparseGrid, gaussian_rows
 
 SCHEMA = "iamp-spread-calibration/1"
 #: a blurred step keeps only the cells above this value: the blur's far tails (at σ = 6 m on 0.5 m cells, half
@@ -226,10 +226,7 @@ def along_weights(sigma_cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
     which[ok] = inverse
     radii = np.ceil(ALONG_TRUNCATE * unique).astype(np.int64)
     top = int(radii.max())
-    x = np.arange(-top, top + 1, dtype=np.float64)
-    weights = np.exp(-0.5 * (x[None, :] / unique[:, None]) ** 2)
-    weights[np.abs(x)[None, :] > radii[:, None]] = 0.0
-    weights /= weights.sum(axis=1, keepdims=True)
+    weights = gaussian_rows(np.arange(-top, top + 1, dtype=np.float64), unique, radii.astype(np.float64))
     # each row's weights from its own radius: row u's 2·radii[u] + 1 weights start at top − radii[u]; moved to the front
     out = np.zeros((unique.size, 2 * top + 1))
     for u, r in enumerate(radii.tolist()):

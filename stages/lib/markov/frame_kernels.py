@@ -414,7 +414,7 @@ PAIRS_PER_THREAD = 16
 
 
 def footprint_grids(x_c, y_c, nx, ny, offsets, sample_weights, cell_rows, probs, pair_weights, wide, shifts, members, origin_x, origin_y,
-                    cell, n_rows, n_cols, min_mass, threads=1, lateral=None):
+                    cell, n_rows, n_cols, min_mass, threads=1, lat_rows=None):
     """The sparse grids of ``stages.markov_prediction.rasterise.vehicle_grid`` for every vehicle in one call (see
     ``rasterise.vehicle_grids``) from compact footprints (``rasterise.FootprintBatch``); None where numba is missing.
     ``members``: per vehicle its pair indices. Returns (keys, sums, offsets (n_vehicles + 1,)). ``threads`` > 1: the
@@ -426,14 +426,9 @@ def footprint_grids(x_c, y_c, nx, ny, offsets, sample_weights, cell_rows, probs,
     c = np.ascontiguousarray
     has_shift = shifts is not None
     shifts = shifts if has_shift else np.zeros(probs.shape[:2])
-    has_lat = lateral is not None
-    weights = np.asarray(sample_weights, dtype=np.float64).reshape(1, -1)
-    lat_rows = None  # None: the default path's own compiled specialisation (no per-step rows)
-    if has_lat:  # rows 0..U-1: each lateral table row per sub-sample / n_sub (rasterise._step_weights' numbers); U: the footprints'
-        lat_rows, table = lateral
-        n_sub = x_c.shape[1]
-        weights = np.concatenate([np.tile(table, (1, n_sub)) / n_sub, weights]) if table.size else weights
-        lat_rows = np.where(lat_rows >= 0, lat_rows, weights.shape[0] - 1)
+    # sample_weights (P,), or (W, P) with lat_rows (B, K): step k of pair b weighs by row lat_rows[b, k]
+    # (rasterise.sample_weight_rows); lat_rows None: the default path's own compiled specialisation
+    weights = np.atleast_2d(np.asarray(sample_weights, dtype=np.float64))
     args = (c(x_c, dtype=np.float64), c(y_c, dtype=np.float64), c(nx, dtype=np.float64), c(ny, dtype=np.float64),
             c(offsets, dtype=np.float64), c(weights), c(cell_rows, dtype=np.int64), c(probs, dtype=np.float32),
             c(pair_weights, dtype=np.float64), c(wide, dtype=np.bool_), c(shifts, dtype=np.float64), has_shift,
@@ -513,7 +508,7 @@ def warm_up() -> None:
     footprint_grids(box, box, box, box, np.zeros(1), np.ones(1), rows, np.ones((1, 1, 1), np.float32), np.ones(1), np.ones(1, np.bool_),
                     np.zeros((1, 1)), [[0]], -1.0, -1.0, 1.0, 2, 2, 1e-9)
     footprint_grids(box, box, box, box, np.zeros(1), np.ones(1), rows, np.ones((1, 1, 1), np.float32), np.ones(1), np.ones(1, np.bool_),
-                    np.zeros((1, 1)), [[0]], -1.0, -1.0, 1.0, 2, 2, 1e-9, lateral=(np.zeros((1, 1), np.int64), np.ones((1, 1))))
+                    np.zeros((1, 1)), [[0]], -1.0, -1.0, 1.0, 2, 2, 1e-9, lat_rows=np.zeros((1, 1), np.int64))
     footprint_bounds(box, box, box, box, np.zeros(1), rows, np.ones((1, 1), np.bool_))
     fuse_sorted([np.array([0, 3], np.int64), np.array([3], np.int64)], np.ones(3), 2)
     add_running_sums(np.zeros(3), np.zeros(2), np.array([3], np.int64), np.zeros(3))
