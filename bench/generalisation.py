@@ -37,8 +37,8 @@ model is held out there).
 With ``--calibrate`` each direction first fits the grids' spread on the
 training location with its model (``iamp calibrate --recording A --model
 <that model> --stride 0.8``, every mode; the file is cached beside the model,
-``--recalibrate`` fits again, as it must after a change of the modes' code or
-defaults) and the eval reads it (``--set spread_calibration=FILE``), so the
+keyed by the model, the ``--set`` values, the modes' spread shapes and the
+project's code; ``--recalibrate`` fits again) and the eval reads it (``--set spread_calibration=FILE``), so the
 coverage is calibrated on one location and reported on the other. ``--set
 KEY=VALUE`` passes a markov_prediction parameter to both; ``--eval-set
 KEY=VALUE`` to ``iamp eval`` only (e.g. ``--eval-set spread_online=true``:
@@ -47,8 +47,10 @@ take).
 
 Models are cached under ``artefacts/generalisation/`` keyed by training
 recording, seed and a hash of the training options (data folder and the
-``iamp train`` flags); ``--retrain`` forces training. The cache does not see
-changes to the training code: use ``--retrain`` after such changes. The
+``iamp train`` flags) and of the project's code (``stages.lib.fingerprint``:
+every ``.py`` file of ``stages/`` and ``bus_schemas/``), so that a change to
+the code trains again instead of scoring a model older code trained (the
+spread files likewise); ``--retrain`` forces training. The
 eval JSON of each direction and the subprocess logs are kept beside them.
 
 Run (full TAF-BW recordings named by ``IAMP_TAF_BW``)::
@@ -121,8 +123,12 @@ def _iamp(args: list[str], log: Path) -> tuple[int, float]:
 
 
 def train_key(data: Path, recording: str, train_opts: list[str]) -> str:
-    """Hash of everything but the seed that decides the trained model (data folder, recording, flags)."""
-    blob = json.dumps({"data": str(data), "recording": recording, "train_options": list(train_opts)}, sort_keys=True)
+    """Hash of everything but the seed that decides the trained model (data folder, recording, flags, and the project's
+    code: ``stages.lib.fingerprint``)."""
+    from stages.lib.fingerprint import code_fingerprint
+
+    blob = json.dumps({"data": str(data), "recording": recording, "train_options": list(train_opts), "code": code_fingerprint()},
+                      sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:12]
 
 
@@ -171,7 +177,11 @@ def calibrate(data: Path, recording: str, model: str, seed: int, sets: list[str]
     """``iamp calibrate`` on the training location with its model (every mode; stride 0.8 s): the spread file the eval reads."""
     # the shape each mode's table is fitted for is part of the key (spread_shape "auto" resolves per mode, and a file
     # fitted before the shape existed is round)
-    key = hashlib.sha256(json.dumps({"model": model, "sets": sets, "shapes": spread_shapes(sets)}, sort_keys=True).encode()).hexdigest()[:12]
+    # and the project's code (the modes' grids decide the fit)
+    from stages.lib.fingerprint import code_fingerprint
+
+    key = hashlib.sha256(json.dumps({"model": model, "sets": sets, "shapes": spread_shapes(sets), "code": code_fingerprint()},
+                                    sort_keys=True).encode()).hexdigest()[:12]
     out = OUT_DIR / f"spread_{recording}_seed{seed}_{key}.json"
     report, log = out.with_suffix(".report.json"), out.with_suffix(".log")
     info: dict[str, Any] = {"recording": recording, "file": str(out), "report_json": str(report)}

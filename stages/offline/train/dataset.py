@@ -68,7 +68,10 @@ Cache. Building all of TAF-BW takes about a minute on 2 cores, so
 ``build_dataset(..., cache_dir=...)`` keeps the arrays in
 ``<cache_dir>/ar_dataset_<key>.npz``, the key a hash of the data files'
 contents (track files and maps of the selected recordings), the dataset and
-feature config, ``FEATURE_NAMES`` and ``DATASET_VERSION``.
+feature config, ``FEATURE_NAMES``, ``DATASET_VERSION`` and the fingerprint of
+the project's code (``stages.lib.fingerprint``: any change to ``stages/`` or
+``bus_schemas/`` builds the data set again rather than reading what older code
+built).
 """
 
 from __future__ import annotations
@@ -89,6 +92,7 @@ import numpy as np
 from bus_schemas import MatchStatus, TrackFrame
 from stages.corridors import SceneMaps
 from stages.lib.datasets import DEFAULT_DATA_DIR, DatasetError, Recording, default_recordings, discover, load_recording
+from stages.lib.fingerprint import code_fingerprint
 from stages.offline.chain import Chain
 from stages.offline.truth import (
     ACCEL_EDGE_S,
@@ -173,6 +177,7 @@ class DatasetConfig:
             "history": HISTORY_STEPS,
             "horizon": HORIZON_STEPS,
             "version": DATASET_VERSION,
+            "code": code_fingerprint(),  # the code that builds the samples (corridors, relations, features): a change rebuilds
             # only when on, so that the keys (and caches) of data sets without it stay what they were
             **({"position_noise_m": self.position_noise_m, "noise_seed": self.noise_seed} if self.position_noise_m > 0 else {}),
         }
