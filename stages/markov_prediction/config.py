@@ -24,6 +24,8 @@ INITIAL_BOXES = ("auto", "measurement", "particles")
 MODE_INITIAL_BOX = {"hybrid": "measurement", "corridor_cv": "measurement", "baseline": "particles", "cv": "measurement"}
 #: Γ in hybrid mode: colnorm(diag(λ_AR(k)) Ψ) (docs/method.md §8.5), or the memoryless ``direct`` ablation λ_AR(k)·1ᵀ.
 HYBRID_INPUTS = ("psi", "direct")
+#: a moving pair's input at t0 in hybrid mode (``hybrid_initial_input``)
+HYBRID_INITIAL_INPUTS = ("ar", "measured", "blend", "adaptive")
 BACKENDS = ("numpy", "torch")
 GRID_DISTRIBUTIONS = ("interval", "point")
 #: how a spread (table, online) widens the grids: ``isotropic`` blurs each vehicle's map grid with a round Gaussian
@@ -77,8 +79,11 @@ class MarkovPredictionConfig(ConfigMixin):
     # carry over to K733 (README "Why hybrid loses to the baseline on fast cars"). "blend": a normal of the model's
     # spread at the precision-weighted mean of λ_AR(0) and the measured acceleration (weights 1/σ², σ_a the slope's
     # standard error; modes/hybrid.py blend_initial). Off: K729 1.507 -> 1.303 (fast 3.26 -> 2.51), held out on K733
-    # 3.051 -> 3.085 (fast 4.83 -> 4.88), cov90/NLL no better (README)
-    hybrid_initial_input: str = "ar"
+    # 3.051 -> 3.085 (fast 4.83 -> 4.88), cov90/NLL no better (README). "adaptive" (the default): the model's mean
+    # moved by w times the measured acceleration's difference from it, w learnt online on the recording from what the
+    # cars then did (initial_blend.py; w = 0, the "ar" input, until 50 records are resolved). Held out, seeds 0-2: K733
+    # learns w = 0 (mADE as "ar"), K729 w = 0.6 (mADE 1.55 -> 1.38 m; README "Online initial blend")
+    hybrid_initial_input: str = "adaptive"
     # discretisation (the stencils are cached per ds, dv, v_max, τ)
     ds_m: float = 1.0
     dv_mps: float = 0.5
@@ -202,8 +207,8 @@ class MarkovPredictionConfig(ConfigMixin):
             object.__setattr__(self, "initial_box", MODE_INITIAL_BOX[self.mode])
         if self.hybrid_rules_standing not in ("ar", "rules"):
             raise ValueError(f"hybrid_rules_standing = {self.hybrid_rules_standing!r}: expected ar or rules")
-        if self.hybrid_initial_input not in ("ar", "measured", "blend"):
-            raise ValueError(f"hybrid_initial_input = {self.hybrid_initial_input!r}: expected ar, measured or blend")
+        if self.hybrid_initial_input not in HYBRID_INITIAL_INPUTS:
+            raise ValueError(f"hybrid_initial_input = {self.hybrid_initial_input!r}: expected one of {', '.join(HYBRID_INITIAL_INPUTS)}")
         if self.hybrid_input not in HYBRID_INPUTS:
             raise ValueError(f"hybrid_input = {self.hybrid_input!r}: expected one of {', '.join(HYBRID_INPUTS)}")
         if self.backend not in BACKENDS:

@@ -53,6 +53,7 @@ from stages.markov_prediction.modes import MODELS
 from stages.markov_prediction.modes.base import InputModel, Messages, Pair, Vehicle, stay_probabilities
 from stages.markov_prediction.modes.corridor_cv import constant_speed
 from stages.markov_prediction.modes.cv import CV_LINE_ID
+from stages.markov_prediction.initial_blend import OnlineInitialBlend
 from stages.markov_prediction.online_spread import DEFAULT_BANDS_MPS, OnlineSpread
 from stages.markov_prediction.spread import ALONG_TRUNCATE, SpreadTable, blur_along, blur_grid, load_spread
 from stages.markov_prediction.rasterise import (
@@ -262,6 +263,7 @@ class MarkovPredictor:
         self.keep_geometry = False
         self._log = log  # a logging.Logger (the node's): the online spread's state, every ONLINE_LOG_S of stamps
         self._online_logged_ns: int | None = None
+        self._blend_logged_ns: int | None = None
         self._shard = parse_shard(config.shard)
         self.grid = grid_config(config)
         cfg = self.grid
@@ -317,6 +319,9 @@ class MarkovPredictor:
             target=config.spread_online_target, rate_mps=config.spread_online_rate_mps, max_mps=config.spread_online_max_mps,
             min_speed_mps=config.spread_online_min_speed_mps, stride_s=config.tau_s,
         ) if config.spread_online else None
+        #: the learnt weight of the measured acceleration in λ(0) (``initial_blend.py``, hybrid_initial_input "adaptive")
+        self.initial_blend: OnlineInitialBlend | None = OnlineInitialBlend(config.accel_window_s) \
+            if config.mode == "hybrid" and config.hybrid_initial_input == "adaptive" and config.accel_window_s > 0 else None
         #: whether the chain itself reads the intentions stage's belief (the particle boxes, the stop mixture); where it
         #: does not, ``prepare`` runs the chain before the belief comes
         self.chain_reads_belief = config.initial_box == "particles" or (config.mode == "hybrid" and config.hybrid_stop_mixture)
@@ -343,6 +348,7 @@ class MarkovPredictor:
         prediction, issues = self._belief_phase(early, belief)
         scene, frame = args[2], args[3]
         self._learn_spread(early.stamp, frame, prediction, issues)
+        self._log_initial_blend(early.stamp)
         h = corridor_set.header
         # the source frame's publish time (end-to-end latency): from the TrackFrame when joined, else as the corridors carried it
         wall = frame.header.source_wall_ns if isinstance(frame, TrackFrame) else h.source_wall_ns
@@ -408,6 +414,16 @@ class MarkovPredictor:
         except Exception as exc:  # noqa: BLE001 - the learning is beside the prediction: the frame is published as it is
             self.online.reset()
             issues.append(Issue("online_spread_failed", -1, f"{type(exc).__name__}: {exc}: this frame's checks skipped, the kept grids dropped"))
+
+    def _log_initial_blend(self, stamp: int) -> None:
+        """Every ``ONLINE_LOG_S`` of stamps, the weight the online initial blend has learnt (``initial_blend.py``)."""
+        if self.initial_blend is None or self._log is None:
+            return
+        if self._blend_logged_ns is None or abs(stamp - self._blend_logged_ns) >= ONLINE_LOG_S * 1e9:
+            self._blend_logged_ns = stamp
+            o = self.initial_blend.summary()
+            self._log.info("initial blend: weight of the measured acceleration %.2f (least squares %.2f) from %d resolved records"
+                           " (%d unresolved)", o["weight"], o["raw_weight"], o["resolved"], o["unresolved"])
 
     def _learn_spread_now(self, stamp: int, track_frame: TrackFrame | None, prediction: FramePrediction) -> None:
         positions: dict[int, tuple[float, float]] = {}
@@ -526,6 +542,8 @@ class MarkovPredictor:
         self._prepared_pairs = None
         if self.online is not None:
             self.online.reset()
+        if self.initial_blend is not None:
+            self.initial_blend.reset()
 
     def observe(self, corridor_set: CorridorSet) -> None:
         """Record each vehicle's speed at this stamp (for its measured acceleration); forget stale tracks.
@@ -770,7 +788,7 @@ class MarkovPredictor:
                     width = float(frame.width_m[row])
             v0 = float(_clip(vehicle.speed_mps, 0.0, cfg.v_max_mps))
             a0, sigma_a0 = self._acceleration(vehicle.track_id, stamp)
-            a_fit, a_fit_se = self.measured_acceleration(vehicle.track_id, stamp) if cfg.mode == "hybrid" and cfg.hybrid_initial_input == "blend" else (math.nan, math.nan)
+            a_fit, a_fit_se = self.measured_acceleration(vehicle.track_id, stamp) if cfg.mode == "hybrid" and cfg.hybrid_initial_input in ("blend", "adaptive") else (math.nan, math.nan)
             noise = self.speed_noise(vehicle.track_id, stamp) if self.spread is not None and self.spread.speed_noise_gain > 0 else 0.0
             standing = self.model.chain and v0 <= cfg.standstill_speed_mps and cfg.standstill_start_rate_hz > 0
             good = [c for c in vehicle.corridors if _corridor_ok(c, vehicle.track_id, issues, id(c) in clean)]
@@ -819,6 +837,7 @@ class MarkovPredictor:
                         sigma_a0_mps2=sigma_a0,
                         a_fit_mps2=a_fit,
                         a_fit_se_mps2=a_fit_se,
+                        stamp_ns=stamp,
                         s_first_m=s_first,
                         length_m=length,
                         width_m=width,

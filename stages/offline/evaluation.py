@@ -752,6 +752,8 @@ class Evaluation:
             modes[mode]["along_track_m"] = {"overall": along, "by_manoeuvre": {m: a for m, (a, _) in split.items()}}
             modes[mode]["cross_track_m"] = {"overall": cross, "by_manoeuvre": {m: c for m, (_, c) in split.items()}}
             n_steps = self.predictors[mode].config.n_steps
+            if getattr(self.predictors[mode], "initial_blend", None) is not None:  # hybrid_initial_input "adaptive": what it learnt
+                modes[mode]["initial_blend"] = self.predictors[mode].initial_blend.summary()
             modes[mode]["calibration"] = {
                 "levels": list(COVERAGE_LEVELS),
                 **{split: {"coverage": c.coverage(), "steps": c.steps} for split, c in acc.calibration.items()},

@@ -169,12 +169,17 @@ def test_a_vehicle_whose_outputs_raise_is_left_out_alone(frames, stencils, where
     assert lost and {i.agent_id for i in lost} == {failing} and "stand-in" in lost[0].detail
 
 
-def test_the_next_frame_prepared_first_changes_nothing(frames, stencils):
+@pytest.mark.parametrize("initial", ["blend", "adaptive"])
+def test_the_next_frame_prepared_first_changes_nothing(frames, stencils, initial):
     """On the bus the pairs of frame n + 1 may be built (its vehicles' speeds observed) before frame n's chain has run
     (its profiles late): frame n's outputs are still those of frames taken in order."""
-    # "blend": λ(0) from the speeds observed as well (the slope of each vehicle's recent speeds)
-    config = MarkovPredictionConfig(mode="hybrid", hybrid_initial_input="blend")
+    # "blend", "adaptive": λ(0) from the speeds observed as well (the slope of each vehicle's recent speeds); "adaptive"
+    # also learns its weight from the speeds that followed earlier records (here over 0.3 s, from the first record on)
+    config = MarkovPredictionConfig(mode="hybrid", hybrid_initial_input=initial)
     in_order, ahead = MarkovPredictor(config, stencils=stencils), MarkovPredictor(config, stencils=stencils)
+    for p in (in_order, ahead):
+        if p.initial_blend is not None:
+            p.initial_blend.min_records, p.initial_blend.window_s = 1, 0.3
     for inputs in frames[:3]:
         in_order.update(inputs)
         ahead.update(inputs)
@@ -184,3 +189,6 @@ def test_the_next_frame_prepared_first_changes_nothing(frames, stencils):
         assert ahead.prepare(heads[n + 1], EARLY | {"acceleration_profiles", "relation_set"})  # frame n + 1's pairs, then ...
         assert _encoded(ahead.update(frames[n])) == want  # ... frame n
     assert any(v.speed_mps > 1.0 for v in frames[11]["corridor_set"].vehicles)  # moving vehicles (measured accelerations)
+    if initial == "adaptive":  # it did learn, the same in both orders
+        learnt = in_order.initial_blend.summary()
+        assert learnt["resolved"] > 0 and learnt["weight"] > 0 and learnt == ahead.initial_blend.summary()

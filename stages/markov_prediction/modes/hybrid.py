@@ -161,6 +161,8 @@ def _stack_inputs(p: Predictor, pairs: list[Pair], issues: list[Issue]) -> np.nd
         for b, q in enumerate(pairs):
             if not standing[b] and q.input_probs is not None:  # a pair without a profile holds its measurement already
                 lam[b, 0] = blend_initial(edges, lam[b, 0], q.a_fit_mps2, q.a_fit_se_mps2, q.track_id, issues)
+    elif p.config.hybrid_initial_input == "adaptive" and not np.all(standing) and getattr(p, "initial_blend", None) is not None:
+        lam = adaptive_initial(p.initial_blend, p._history, p.grid.input_edges(), pairs, lam, standing, issues)
     if p.config.hybrid_stop_mixture:
         lam = stop_mixture(p, pairs, lam, standing)
     if p.config.hybrid_start_accel_mps2 > 0 and np.any(standing):
@@ -223,6 +225,41 @@ def blend_initial(edges: np.ndarray, lam0: np.ndarray, a: float, sigma_a: float,
     mu_m, sigma_m = cell_moments(edges, lam0)
     mean, _ = precision_blend(mu_m, sigma_m, a, sigma_a)
     return start_inputs(edges, mean, sigma_m)
+
+
+def adaptive_initial(learnt, histories, edges: np.ndarray, pairs: list[Pair], lam: np.ndarray, standing: np.ndarray,
+                     issues: list[Issue]) -> np.ndarray:
+    """``hybrid_initial_input`` "adaptive": each moving pair with a profile and a measured acceleration a starts from a
+    normal of the model's spread σ_m at μ_m + w·(a − μ_m), w the weight ``learnt`` (``initial_blend.OnlineInitialBlend``)
+    has learnt from the records whose window ended by this frame's stamp (resolved here from the vehicles' speed
+    ``histories``, not when a speed comes in: the frame's outputs do not depend on whether a later frame was observed
+    first); 0: λ(0) of the model kept. Each such vehicle is then recorded once for this frame (μ_m the mean over its
+    pairs). Pairs without a measurement keep the model's λ(0); a measurement that is not finite, issue
+    ``bad_measured_acceleration`` (once per vehicle)."""
+    if pairs:
+        learnt.resolve(histories, max(q.stamp_ns for q in pairs))
+    w = learnt.weight
+    out = lam if w <= 0.0 else lam.copy()
+    means: dict[int, tuple[int, float, list[float]]] = {}  # track -> (stamp, a, the μ_m of its pairs)
+    bad: set[int] = set()
+    for b, q in enumerate(pairs):
+        if standing[b] or q.input_probs is None:
+            continue
+        a = q.a_fit_mps2
+        if math.isnan(a) and math.isnan(q.a_fit_se_mps2):  # no measurement yet (a young track)
+            continue
+        if not math.isfinite(a):
+            if q.track_id not in bad:
+                bad.add(q.track_id)
+                issues.append(Issue("bad_measured_acceleration", q.track_id, f"measured acceleration {a} m/s²: AR λ(0) kept"))
+            continue
+        mu_m, sigma_m = cell_moments(edges, lam[b, 0])
+        means.setdefault(q.track_id, (q.stamp_ns, a, []))[2].append(mu_m)
+        if w > 0.0:
+            out[b, 0] = start_inputs(edges, mu_m + w * (a - mu_m), sigma_m)
+    for track_id, (stamp, a, mus) in means.items():
+        learnt.record(track_id, stamp, a, float(np.mean(mus)))
+    return out
 
 
 def start_inputs(edges: np.ndarray, accel_mps2: float, sigma_mps2: float) -> np.ndarray:
