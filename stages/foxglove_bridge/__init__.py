@@ -18,7 +18,7 @@ The topics and their schemas are those of ``scene.FoxgloveScene`` (``/map``,
 ``/tf``, ``/objects``, ``/<node>/corridors``, ``/<node>/means``,
 ``/<node>/motion_grid``, ``/<node>/vehicles``, ``/stats/<node>``); a
 client that subscribes to ``/map`` or ``/tf`` gets the map again with the
-next frame and again 1, 3 and 10 s later (foxglove-sdk may call its
+next frame and again 1, 3, 10 and 30 s later (foxglove-sdk may call its
 subscribe callback before the subscription takes messages). Each result is logged once, when a new stamp of it arrives.
 
 ``iamp export foxglove RUN.mcap OUT.mcap`` (``export.py``) writes the same

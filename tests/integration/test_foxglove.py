@@ -155,6 +155,8 @@ def test_live_bridge_advertises_the_scene_and_sends_scene_updates_over_loopback(
     assert len(entity.cubes) >= 1 and len(entity.texts) == len(entity.cubes)
     assert all(t.text.isdigit() for t in entity.texts)
     # the map arrived too (a subscriber to /map gets it again with the next frame), with lines
+    counts = {t: len(m) for t, m in got["messages"].items()}
+    assert "/map" in got["messages"], f"no /map message; messages per topic {counts}; the run's last lines:\n" + "\n".join(live_run["lines"][-30:])
     Map = message_class(by_topic["/map"]["schemaName"], base64.b64decode(by_topic["/map"]["schema"]))
     (lanelets,) = Map.FromString(got["messages"]["/map"][-1][1]).entities
     assert lanelets.id == "lanelets" and sum(len(line.points) for line in lanelets.lines) > 100
