@@ -1123,7 +1123,7 @@ class MarkovPredictor:
                 )
         grid_probs = interval if (cfg.grid_distribution == "interval" and interval is not None) else pos
         raw_grid_probs, lateral, lateral_kernel_ = grid_probs, None, self._lateral
-        cell_lower = s_first[:, None] + lower[None, :]  # (B, L)
+        raw_lower = cell_lower = s_first[:, None] + lower[None, :]  # (B, L)
         if cfg.spread_shape == "along" and (self.spread is not None or self.online is not None) and n_b:
             # the grids only (pos and interval stay): along the corridor, and across it per step
             grid_probs, cell_lower, lateral_kernel_, lateral = self._along(grid_probs, self._vehicle_sigmas(pairs), cell_lower, end_s)
@@ -1134,7 +1134,7 @@ class MarkovPredictor:
                 "mean_xy": mean_xy, "mean_s": mean_s, "xy_at_mean": xy_at_mean, "frame": frame, "batch": batch, "grid_probs": grid_probs,
                 "shift": shift_all, "lateral": lateral,
                 # for ``regrid`` (``keep_geometry``): the grids rebuilt with another along spread
-                "lines": lines, "cell_lower": s_first[:, None] + lower[None, :], "end_s": end_s, "raw_grid_probs": raw_grid_probs}
+                "lines": lines, "cell_lower": raw_lower, "end_s": end_s, "raw_grid_probs": raw_grid_probs}
 
     def _finish_grids(self, pairs: list[Pair], geo: dict[str, Any]) -> FramePrediction:
         """The outputs from ``_finish_geometry``'s: each vehicle's grid (its corridors' weighted by ``probability``),

@@ -41,6 +41,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from stages.lib.ar.features import causal_acceleration
+
 #: resolved records before the learnt weight is used (before: w = 0, the model's λ(0)); set before any run
 MIN_RECORDS = 50
 
@@ -91,7 +93,7 @@ class OnlineInitialBlend:
                 continue
             while kept and kept[0][0] + window <= now_ns:
                 t0, a, mu = kept.pop(0)
-                r = _slope([(t, v) for t, v in hist.samples if t0 < t <= t0 + window], 0.5 * self.window_s)
+                r = _slope([(t, v) for t, v in hist.samples if t0 < t <= t0 + window], self.window_s)
                 if r is None:
                     self.unresolved += 1
                     continue
@@ -110,19 +112,16 @@ class OnlineInitialBlend:
                 "raw_weight": (self.sum_xy / self.sum_xx) if self.sum_xx > 0 else math.nan}
 
 
-def _slope(points: list[tuple[int, float]], min_span_s: float) -> float | None:
-    """The least-squares slope (m/s²) of speeds over time; None with fewer than 3 samples or a span below ``min_span_s``."""
-    if len(points) < 3:
-        return None
-    t = np.array([p[0] for p in points], dtype=np.float64) * 1e-9
-    if t[-1] - t[0] < min_span_s:
+def _slope(points: list[tuple[int, float]], window_s: float) -> float | None:
+    """The least-squares slope (m/s²) of the speeds ``points`` ((stamp ns, speed), in stamp order, all within one
+    ``window_s``): ``causal_acceleration``'s, the ar features' and the measured acceleration's rule; None where that
+    rule has none (fewer than 3 samples, a span below half the window) or a speed is not finite."""
+    if len(points) < 3 or (points[-1][0] - points[0][0]) * 1e-9 < 0.5 * window_s - 1e-6:
         return None
     v = np.array([p[1] for p in points], dtype=np.float64)
     if not np.all(np.isfinite(v)):
         return None
-    t -= t.mean()
-    sxx = float((t * t).sum())
-    return float((t * (v - v.mean())).sum() / sxx) if sxx > 0 else None
+    return causal_acceleration(np.array([p[0] for p in points], dtype=np.int64), v, window_s)
 
 
 __all__ = ["MIN_RECORDS", "OnlineInitialBlend"]

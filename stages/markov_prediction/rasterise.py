@@ -463,12 +463,6 @@ def sample_weight_rows(footprints: "FootprintBatch", lateral: tuple[np.ndarray, 
     return np.where(rows >= 0, rows, weights.shape[0] - 1), weights
 
 
-def _step_weights(footprints: "FootprintBatch", lateral: tuple[np.ndarray, np.ndarray], b: int) -> np.ndarray:
-    """(K, P) the sample weights of pair b step by step under ``lateral`` (``sample_weight_rows``)."""
-    rows, weights = sample_weight_rows(footprints, lateral)
-    return weights[rows[b]]
-
-
 def fuse(grids: list[SparseGrid], n_cells: int = 0) -> SparseGrid:
     """1 − Π_n (1 − G_n) over vehicles, cell by cell. With the grid's ``n_cells`` (keys k·n_cells + cell), the sums of
     the log terms are taken step by step (``frame_kernels.fuse_sorted``: the same numbers, each grid's keys being

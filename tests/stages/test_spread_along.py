@@ -83,11 +83,12 @@ def test_lateral_spread_per_step_compiled_equals_vehicle_grid():
     frame = GridFrame(float(np.nanmin(batch.x_m)) - 1.0, float(np.nanmin(batch.y_m)) - 1.0, 0.5, 400, 400)
     shifts = rng.normal(0, 0.3, (n_b, n_k))
     got = vehicle_grids(frame, batch, probs, weights, members, shifts, lateral=(rows, table))
-    from stages.markov_prediction.rasterise import _step_weights
+    from stages.markov_prediction.rasterise import sample_weight_rows
 
+    lat_rows, sample_w = sample_weight_rows(batch, (rows, table))  # pair b's (K, P) weights: sample_w[lat_rows[b]]
     for grid, m in zip(got, members):
         want = vehicle_grid(frame, [batch.pair(b) for b in m], [probs[b] for b in m], [weights[b] for b in m],
-                            [shifts[b] for b in m], step_weights=[_step_weights(batch, (rows, table), b) for b in m])
+                            [shifts[b] for b in m], step_weights=[sample_w[lat_rows[b]] for b in m])
         np.testing.assert_array_equal(grid.keys, want.keys)
         np.testing.assert_array_equal(grid.values, want.values)
     # the steps at the base σ: the same cells and sums as the grids of the base kernel alone (its ±2.5σ samples)
