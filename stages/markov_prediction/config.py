@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 from stages.lib.grid_fusion import parse_shard
 
 from dataclasses import dataclass
@@ -68,6 +70,12 @@ class MarkovPredictionConfig(ConfigMixin):
     # on K729 (K733-trained GRU) hybrid mADE 1.507 -> 1.305, fast 3.26 -> 2.41; held out on K733 3.05 -> 3.60,
     # fast 4.83 -> 5.92 (README "Why hybrid loses to the baseline on fast cars"); alone on K729 1.507 -> 1.468
     hybrid_speed_restriction_curves: bool = True
+    # hybrid mode, with hybrid_speed_restriction: two or more factors f of the curvature in the cut (√(a_lat / (f·κ)); 1 the
+    # baseline's rule, 0 the limit alone), chosen online by back testing on the recording (curve_choice.py: 1 until another
+    # is better by 3 standard errors). Held out, seed 0 (README "Online curve factor"): K729 (K733-trained model) chooses 0,
+    # mADE 1.385 -> 1.354, fast 2.66 -> 2.47; K733 keeps 1 (outputs as before). () = the fixed rule of
+    # hybrid_speed_restriction_curves
+    hybrid_curve_factors: tuple[float, ...] = (0.0, 1.0, 2.0)
     # true: the AR distribution λ_AR(k) is the preference inside the baseline's full rule set (speed, leader,
     # crossing: λ = cut(min(λ_speed, λ_lead, λ_conf), λ_AR(k))) instead of the speed cut alone
     hybrid_rules: bool = False
@@ -207,6 +215,9 @@ class MarkovPredictionConfig(ConfigMixin):
             object.__setattr__(self, "initial_box", MODE_INITIAL_BOX[self.mode])
         if self.hybrid_rules_standing not in ("ar", "rules"):
             raise ValueError(f"hybrid_rules_standing = {self.hybrid_rules_standing!r}: expected ar or rules")
+        if self.hybrid_curve_factors and (len(self.hybrid_curve_factors) < 2 or any(not (isinstance(f, (int, float)) and math.isfinite(f) and f >= 0)
+                                                                                   for f in self.hybrid_curve_factors)):
+            raise ValueError(f"hybrid_curve_factors = {self.hybrid_curve_factors!r}: expected () or two or more finite factors >= 0")
         if self.hybrid_initial_input not in HYBRID_INITIAL_INPUTS:
             raise ValueError(f"hybrid_initial_input = {self.hybrid_initial_input!r}: expected one of {', '.join(HYBRID_INITIAL_INPUTS)}")
         if self.hybrid_input not in HYBRID_INPUTS:

@@ -54,6 +54,7 @@ from stages.markov_prediction.modes.base import InputModel, Messages, Pair, Vehi
 from stages.markov_prediction.modes.corridor_cv import constant_speed
 from stages.markov_prediction.modes.cv import CV_LINE_ID
 from stages.markov_prediction.initial_blend import OnlineInitialBlend
+from stages.markov_prediction.curve_choice import OnlineCurveChoice, sampled
 from stages.markov_prediction.online_spread import DEFAULT_BANDS_MPS, OnlineSpread
 from stages.markov_prediction.spread import ALONG_TRUNCATE, SpreadTable, blur_along, blur_grid, load_spread
 from stages.markov_prediction.rasterise import (
@@ -71,6 +72,10 @@ ALONG_PAD_CELLS = 64
 ONLINE_LOG_S = 30.0
 #: ``MarkovPredictor.speed_noise`` is capped here (m/s): the calibrated spread's widest blur, and so the grid's margin, stays bounded
 SPEED_NOISE_CAP_MPS = 2.0
+#: the online curve choice back-tests vehicles faster than this (the slow/fast split) with a bend ahead sharper than
+#: this curvature (a radius under 50 m); both set before any run
+CURVE_MIN_SPEED_MPS = 2.0
+CURVE_MIN_CURVATURE_1PM = 0.02
 
 
 # --------------------------------------------------------------------------- outputs
@@ -322,6 +327,13 @@ class MarkovPredictor:
         #: the learnt weight of the measured acceleration in λ(0) (``initial_blend.py``, hybrid_initial_input "adaptive")
         self.initial_blend: OnlineInitialBlend | None = OnlineInitialBlend(config.accel_window_s) \
             if config.mode == "hybrid" and config.hybrid_initial_input == "adaptive" and config.accel_window_s > 0 else None
+        #: hybrid: the factor of the curvature in the speed restriction's cut this frame (0: the speed limit alone), and
+        #: its online choice by back testing (``curve_choice.py``, ``hybrid_curve_factors``), or None
+        self.curve_factor = 1.0 if config.hybrid_speed_restriction_curves else 0.0
+        self.curve_choice: OnlineCurveChoice | None = OnlineCurveChoice(config.hybrid_curve_factors, self.step_times_s) \
+            if config.mode == "hybrid" and config.hybrid_speed_restriction and config.hybrid_speed_restriction_curves \
+            and config.hybrid_curve_factors else None
+        self._curve_logged_ns: int | None = None
         #: whether the chain itself reads the intentions stage's belief (the particle boxes, the stop mixture); where it
         #: does not, ``prepare`` runs the chain before the belief comes
         self.chain_reads_belief = config.initial_box == "particles" or (config.mode == "hybrid" and config.hybrid_stop_mixture)
@@ -425,6 +437,80 @@ class MarkovPredictor:
             self._log.info("initial blend: weight of the measured acceleration %.2f (least squares %.2f) from %d resolved records"
                            " (%d unresolved)", o["weight"], o["raw_weight"], o["resolved"], o["unresolved"])
 
+    def _choose_curve_factor(self, stamp: int, track_frame: TrackFrame | None, issues: list[Issue]) -> None:
+        """The online curve choice (``curve_choice.py``): this stamp's positions kept, the samples whose futures are
+        known scored, the frame's factor set. A failure keeps the factor it had (issue ``curve_choice_failed``)."""
+        choice = self.curve_choice
+        try:
+            if isinstance(track_frame, TrackFrame) and int(track_frame.header.stamp_ns) == stamp:
+                choice.add_positions(stamp, track_frame.track_ids.tolist(), track_frame.x_m.tolist(), track_frame.y_m.tolist())
+            choice.resolve(stamp)
+            self.curve_factor = choice.factor
+        except Exception as exc:  # noqa: BLE001 - the choice is beside the prediction
+            choice.reset()
+            issues.append(Issue("curve_choice_failed", -1, f"{type(exc).__name__}: {exc}: curve factor {self.curve_factor:g} kept"))
+            return
+        if self._log is not None and (self._curve_logged_ns is None or abs(stamp - self._curve_logged_ns) >= ONLINE_LOG_S * 1e9):
+            self._curve_logged_ns = stamp
+            o = choice.summary()
+            self._log.info("curve factor %g of %s: mean ADE %s m over %d back-tested vehicles (%d unresolved)", o["factor"],
+                           o["factors"], np.round(o["mean_ade_m"], 3).tolist(), o["samples"], o["unresolved"])
+
+    def _back_test(self, pairs: list[Pair], stamp: int, issues: list[Issue], chained: tuple[list[Pair], dict[str, Any], list[int]]) -> None:
+        """The online curve choice's samples of this frame: the chain of at most ``curve_choice.PER_FRAME`` moving
+        vehicles with a curve ahead run for every candidate factor but the frame's own (``chained``: the frame's chain,
+        as ``_predict_chain`` returns it, whose rows give that one) in one batch, their mean positions kept to be scored
+        later. The
+        frame's own chain is not touched; a failure costs only this frame's samples (issue ``curve_choice_failed``)."""
+        live = self.curve_factor
+        final, merged, order = chained
+        row_of = {b: r for r, b in enumerate(order) if final[r] is pairs[b]}  # pairs the chain itself predicted
+        try:
+            by_track: dict[int, list[Pair]] = {}
+            for p in pairs:
+                by_track.setdefault(p.track_id, []).append(p)
+            eligible = [t for t, ps in by_track.items() if all(p.start_rate_hz == 0 and p.input_probs is not None
+                                                                and p.v0_mps > CURVE_MIN_SPEED_MPS for p in ps)
+                        and any(_curve_ahead(p, self.step_times_s[-1]) for p in ps)]
+            index = {id(p): b for b, p in enumerate(pairs)}
+            for track_id in sampled(eligible, stamp):
+                subset = by_track[track_id]
+                rows = [row_of.get(index[id(p)]) for p in subset]
+                if None in rows:  # a fallback or a failure among its pairs
+                    continue
+                # the other candidates in one batch: copies of the pairs whose curvature carries the factor (the
+                # restriction then takes factor 1; nothing else of the chain reads the curvature)
+                others = [f for f in self.curve_choice.factors if f != live]
+                copies = [dataclasses.replace(p, curvature_1pm=np.asarray(p.curvature_1pm, dtype=np.float64) * f) for f in others for p in subset]
+                self.curve_factor = 1.0
+                position = self._markov(copies, [])["position"]
+                n = len(subset)
+                done = {f: position[i * n:(i + 1) * n] for i, f in enumerate(others)}
+                done[live] = np.asarray(merged["position"])[rows]
+                factors = self.curve_choice.factors
+                means = self._pair_means(subset * len(factors), np.concatenate([done[f] for f in factors]))
+                self.curve_choice.record(track_id, stamp, means.reshape(len(factors), n, *means.shape[1:]))
+        except Exception as exc:  # noqa: BLE001
+            issues.append(Issue("curve_choice_failed", -1, f"back test: {type(exc).__name__}: {exc}: this frame's samples skipped"))
+        finally:
+            self.curve_factor = live
+
+    def _pair_means(self, pairs: list[Pair], position: np.ndarray) -> np.ndarray:
+        """(P, K, 2): the pairs' mean positions on the map from their chain's position distributions, as
+        ``_finish_geometry`` makes them for the outputs (cells past a corridor's end left out)."""
+        cfg = self.config
+        lower = self.grid.s_edges_m()[: self.n_s]
+        pos = np.asarray(position, dtype=np.float32).copy()
+        s_first = np.array([p.s_first_m for p in pairs], dtype=np.float64)
+        end_s = np.array([p.end_s_m for p in pairs], dtype=np.float64)
+        np.copyto(pos, 0.0, where=(s_first[:, None] + lower[None, :] >= end_s[:, None])[:, None, :])
+        lines = Centrelines([p.s_m for p in pairs], [p.x_m for p in pairs], [p.y_m for p in pairs], [p.heading_rad for p in pairs])
+        decay = cfg.lateral_offset_decay_s
+        factor = np.exp(-self.step_times_s / decay) if decay > 0 else np.zeros(cfg.n_steps)
+        shift_all = np.array([p.d0_m for p in pairs], dtype=np.float64).reshape(-1, 1) * factor[None, :]
+        mx, my, _ms, ok = _means_on_map(lines, pos, s_first[:, None] + (lower + 0.5 * cfg.ds_m)[None, :], shift_all)
+        return np.stack([np.where(ok, mx, np.nan), np.where(ok, my, np.nan)], axis=-1)
+
     def _learn_spread_now(self, stamp: int, track_frame: TrackFrame | None, prediction: FramePrediction) -> None:
         positions: dict[int, tuple[float, float]] = {}
         if isinstance(track_frame, TrackFrame) and int(track_frame.header.stamp_ns) == stamp:
@@ -457,10 +543,12 @@ class MarkovPredictor:
         speed_limit = scene.speed_limit_mps if scene is not None and _positive(scene.speed_limit_mps) else self.config.default_speed_limit_mps
         weighed: list[tuple[Any, list, int]] = []
         pairs = self._vehicle_pairs(corridor_set, track_frame, speed_limit, issues, beliefs, weighed)
+        if self.curve_choice is not None:
+            self._choose_curve_factor(stamp, track_frame, issues)
         if self.model.chain and pairs:  # the chain's batch as _predict_chain will screen it (the inputs are not known yet)
             screened = self._screen(pairs)
             self.model.prepare_pairs([p for b, p in enumerate(pairs) if b not in screened])
-        return _PairsPhase(stamp, issues, pairs, weighed, skipped, beliefs)
+        return _PairsPhase(stamp, issues, pairs, weighed, skipped, beliefs, self.curve_factor)
 
     def _chain_phase(
         self,
@@ -481,6 +569,7 @@ class MarkovPredictor:
         else:
             pp = self._pairs_phase(corridor_set, scene, track_frame, intention_belief=intention_belief)
         issues, pairs, stamp = list(pp.issues), pp.pairs, pp.stamp
+        self.curve_factor = pp.curve_factor  # the one its pairs phase chose (another frame's may have run since)
         frame_data = self.model.read(Messages(stamp, relation_set, track_frame, intention_belief if self.chain_reads_belief else None,
                                               acceleration_profiles), issues)
         for vehicle, good, first in pp.weighed:
@@ -508,6 +597,8 @@ class MarkovPredictor:
                     pair.start_rate_hz = max(self.config.hybrid_standstill_rates_hz[standstill_group(pair.relation, self.config)], 1e-9)
         self._signal_walls = apply_signals(self, pairs, issues)  # stages.markov_prediction.signals: nothing without signal phases
         final, merged, order = self._predict_chain(pairs, issues)
+        if self.curve_choice is not None:
+            self._back_test(pairs, stamp, issues, (final, merged, order))
         found: list[Issue] = []
         try:  # the outputs' part that needs no weights, now (a failure: _belief_phase isolates the pairs, from the arrays)
             geometry = (self._finish_geometry(final, merged, found), found)
@@ -544,6 +635,8 @@ class MarkovPredictor:
             self.online.reset()
         if self.initial_blend is not None:
             self.initial_blend.reset()
+        if self.curve_choice is not None:
+            self.curve_choice.reset()
 
     def observe(self, corridor_set: CorridorSet) -> None:
         """Record each vehicle's speed at this stamp (for its measured acceleration); forget stale tracks.
@@ -1081,16 +1174,7 @@ class MarkovPredictor:
         lines = Centrelines([p.s_m for p in pairs], [p.x_m for p in pairs], [p.y_m for p in pairs], [p.heading_rad for p in pairs])
         shift_all = np.array([p.d0_m for p in pairs], dtype=np.float64).reshape(n_b, 1) * factor[None, :]  # (B, K): d0 · factor
         if n_b:
-            s_abs = s_first[:, None] + centre[None, :]  # (B, L)
-            x_c, y_c, _h, ny_c, sin_c = lines.xy_heading_trig(s_abs)
-            nx_c = -sin_c
-            mass = pos.sum(axis=2, dtype=np.float64)  # (B, K)
-            ok = mass > 1e-9
-            pos64 = pos.astype(np.float64)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                mx = (np.einsum("bkl,bl->bk", pos64, x_c) + shift_all * np.einsum("bkl,bl->bk", pos64, nx_c)) / mass
-                my = (np.einsum("bkl,bl->bk", pos64, y_c) + shift_all * np.einsum("bkl,bl->bk", pos64, ny_c)) / mass
-                ms = np.einsum("bkl,bl->bk", pos64, s_abs) / mass
+            mx, my, ms, ok = _means_on_map(lines, pos, s_first[:, None] + centre[None, :], shift_all)
             mean_xy[..., 0] = np.where(ok, mx, np.nan)
             mean_xy[..., 1] = np.where(ok, my, np.nan)
             mean_s[:] = np.where(ok, ms, np.nan)
@@ -1294,6 +1378,7 @@ class _PairsPhase:
     weighed: list[tuple[Any, list, int]]  # (vehicle, its corridors, index of its first pair): inputs and weights still to set
     skipped: set[int]  # vehicles left out (max_pairs, other shards): their relations raise no issue
     beliefs: dict[int, dict[int, Any]] | None  # what it read of the belief (``chain_reads_belief``), else None
+    curve_factor: float = 1.0  # hybrid: the curve factor of its speed restriction (``MarkovPredictor.curve_factor``)
 
 
 #: the inputs of ``_chain_phase``, in its order, with the type each must have (else None)
@@ -1392,6 +1477,30 @@ def _merge(order: list[int], groups: list[tuple[list[int], dict[str, Any]]]) -> 
         if exact is not None and a.get("exact_s") is not None:
             exact[rows] = a["exact_s"]
     return {"position": pos, "interval": interval, "velocity": vel, "outside": outside, "exact_s": exact}
+
+
+def _means_on_map(lines: Centrelines, pos: np.ndarray, s_abs: np.ndarray, shift_all: np.ndarray):
+    """(mean x, mean y, mean s, has mass), each (B, K): the position distributions ``pos`` (B, K, L) over the cells
+    centred at ``s_abs`` (B, L) on the centrelines ``lines``, moved sideways by ``shift_all`` (B, K)."""
+    x_c, y_c, _h, ny_c, sin_c = lines.xy_heading_trig(s_abs)
+    nx_c = -sin_c
+    mass = pos.sum(axis=2, dtype=np.float64)  # (B, K)
+    ok = mass > 1e-9
+    pos64 = pos.astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mx = (np.einsum("bkl,bl->bk", pos64, x_c) + shift_all * np.einsum("bkl,bl->bk", pos64, nx_c)) / mass
+        my = (np.einsum("bkl,bl->bk", pos64, y_c) + shift_all * np.einsum("bkl,bl->bk", pos64, ny_c)) / mass
+        ms = np.einsum("bkl,bl->bk", pos64, s_abs) / mass
+    return mx, my, ms, ok
+
+
+def _curve_ahead(p: Pair, horizon_s: float) -> bool:
+    """Whether the pair's corridor bends (|κ| above ``CURVE_MIN_CURVATURE_1PM``) within the distance it may cover in
+    ``horizon_s`` (at its speed + 2 m/s, and 10 m more) ahead of it."""
+    s = np.asarray(p.s_m, dtype=np.float64)
+    kappa = np.abs(np.asarray(p.curvature_1pm, dtype=np.float64))
+    ahead = (s >= p.s0_m) & (s <= p.s0_m + (p.v0_mps + 2.0) * horizon_s + 10.0)
+    return bool(np.any(np.where(np.isfinite(kappa), kappa, 0.0)[ahead] > CURVE_MIN_CURVATURE_1PM))
 
 
 def _normal_cdf(z: np.ndarray) -> np.ndarray:

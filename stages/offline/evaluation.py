@@ -754,6 +754,8 @@ class Evaluation:
             n_steps = self.predictors[mode].config.n_steps
             if getattr(self.predictors[mode], "initial_blend", None) is not None:  # hybrid_initial_input "adaptive": what it learnt
                 modes[mode]["initial_blend"] = self.predictors[mode].initial_blend.summary()
+            if getattr(self.predictors[mode], "curve_choice", None) is not None:  # hybrid_curve_factors: what it chose
+                modes[mode]["curve_choice"] = self.predictors[mode].curve_choice.summary()
             modes[mode]["calibration"] = {
                 "levels": list(COVERAGE_LEVELS),
                 **{split: {"coverage": c.coverage(), "steps": c.steps} for split, c in acc.calibration.items()},

@@ -65,9 +65,11 @@ def test_prepare_then_update_gives_the_outputs_of_update_alone(frames, stencils,
     for name in ("_chain_phase", "_pairs_phase"):
         real = getattr(MarkovPredictor, name)
         monkeypatch.setattr(MarkovPredictor, name, lambda self, *a, _real=real, _name=name, **k: phases.update([(_name, self)]) or _real(self, *a, **k))
-    speed = []
+    speed, testing = [], []
     real_speed = hybrid_mode._compiled_speed
-    monkeypatch.setattr(hybrid_mode, "_compiled_speed", lambda p, pairs: speed.append(p) or real_speed(p, pairs))
+    monkeypatch.setattr(hybrid_mode, "_compiled_speed", lambda p, pairs: (None if testing else speed.append(p)) or real_speed(p, pairs))
+    real_back_test = MarkovPredictor._back_test  # (the online curve choice's own chains are not the frame's)
+    monkeypatch.setattr(MarkovPredictor, "_back_test", lambda self, *a: testing.append(1) or real_back_test(self, *a) or testing.clear())
     weighted = 0
     for n, inputs in enumerate(frames):
         want = _encoded(alone.update(inputs))
@@ -82,6 +84,7 @@ def test_prepare_then_update_gives_the_outputs_of_update_alone(frames, stencils,
         assert phases[("_chain_phase", early)] == before[("_chain_phase", early)] + 1
         assert phases[("_pairs_phase", early)] == before[("_pairs_phase", early)] + 1
         assert _encoded(result) == want
+        assert not [i for i in result.issues if i.kind == "curve_choice_failed"]
         # the corridor weights are the belief's, renormalised over the predicted corridors (set after the chain)
         belief = {(v.track_id, c.corridor_id): c.probability for v in inputs["intention_belief"].vehicles for c in v.corridors}
         by_track = collections.defaultdict(dict)

@@ -14,7 +14,8 @@ default (README, Evaluation: no gain on the held-out location). With
 braking input by the intentions stage's P(stop) on its corridor
 (``stop_mixture``; docs/method.md §8.5). Two more experiments, off by default (README, Evaluation: chosen on
 K729, worse on the held-out K733): ``hybrid_speed_restriction_curves`` false cuts λ_AR(k) by the speed limit
-alone (``speed_profiles``), and ``hybrid_initial_input`` "measured" starts a moving pair from its measured
+alone (``speed_profiles``; ``hybrid_curve_factors``, the default, scales the curvature by a factor the stage
+chooses online by back testing, ``curve_choice.py``, ``MarkovPredictor.curve_factor``), and ``hybrid_initial_input`` "measured" starts a moving pair from its measured
 acceleration instead of λ_AR(0) (``_stack_inputs``); "blend" from a normal at the precision-weighted mean of
 λ_AR(0) and the measured acceleration, each weighted by 1/σ² (σ_a: the standard error of the measured slope),
 with the model's spread (``blend_initial``; README, Evaluation).
