@@ -473,7 +473,7 @@ class MarkovPredictor:
                                                                 and p.v0_mps > CURVE_MIN_SPEED_MPS for p in ps)
                         and any(_curve_ahead(p, self.step_times_s[-1]) for p in ps)]
             index = {id(p): b for b, p in enumerate(pairs)}
-            for track_id in sampled(eligible, stamp):
+            for track_id in sampled(eligible, stamp, pairs=len(pairs)):
                 subset = by_track[track_id]
                 rows = [row_of.get(index[id(p)]) for p in subset]
                 if None in rows:  # a fallback or a failure among its pairs

@@ -16,7 +16,8 @@ f = 0: 3.198).
 So the stage chooses f online, on the recording it predicts, by causal back
 testing: at each frame it takes at most ``PER_FRAME`` moving vehicles with a
 curve ahead (chosen from the frame's stamp, so the choice does not depend on
-the order frames are handled in), runs the chain of their pairs once per
+the order frames are handled in; a frame of more than ``PAIRS_PER_TEST``
+pairs only every ⌈pairs / ``PAIRS_PER_TEST``⌉-th frame), runs the chain of their pairs once per
 candidate f (the live chain is not touched), and keeps each candidate's mean
 positions. ``lag_s`` after the horizon (so that frames handled out of order
 have stored their positions), each candidate scores the vehicle's ADE as
@@ -46,6 +47,9 @@ MIN_SAMPLES = 20
 MIN_T = 3.0
 #: vehicles back-tested per frame at most
 PER_FRAME = 1
+#: a frame with more pairs than this is back-tested only every ⌈pairs / PAIRS_PER_TEST⌉-th frame (by its stamp): at a
+#: busy junction the samples come anyway, and the extra chain stays a small share of the frame's
+PAIRS_PER_TEST = 16
 
 
 @dataclass
@@ -187,14 +191,18 @@ class OnlineCurveChoice:
                 "mean_ade_m": mean, "t_vs_default": self.t_values().tolist()}
 
 
-def sampled(track_ids: list[int], stamp_ns: int, n: int = PER_FRAME) -> list[int]:
-    """At most ``n`` of ``track_ids``, chosen from the stamp alone (a hash of it picks where to start in the sorted ids)."""
+def sampled(track_ids: list[int], stamp_ns: int, n: int = PER_FRAME, pairs: int = 0) -> list[int]:
+    """At most ``n`` of ``track_ids``, chosen from the stamp alone (a hash of it picks where to start in the sorted ids);
+    none on all but one in ⌈``pairs`` / ``PAIRS_PER_TEST``⌉ frames (the hash again)."""
     ids = sorted(set(int(t) for t in track_ids))
     if not ids or n <= 0:
         return []
     mixed = ((int(stamp_ns) // 1000) * 0x9E3779B97F4A7C15) & 0xFFFFFFFFFFFFFFFF  # the stamp (µs) hashed: any frame rate
+    every = max(1, -(-int(pairs) // PAIRS_PER_TEST))
+    if (mixed >> 16) % every:
+        return []
     start = (mixed >> 32) % len(ids)
     return [ids[(start + i * max(1, len(ids) // n)) % len(ids)] for i in range(min(n, len(ids)))]
 
 
-__all__ = ["MIN_SAMPLES", "MIN_T", "OnlineCurveChoice", "PER_FRAME", "sampled"]
+__all__ = ["MIN_SAMPLES", "MIN_T", "OnlineCurveChoice", "PAIRS_PER_TEST", "PER_FRAME", "sampled"]

@@ -104,6 +104,10 @@ def test_the_sampled_vehicles_depend_on_the_stamp_alone_and_all_get_their_turn()
     seen = {v for n in range(40) for v in sampled(ids, STAMP + n * 100_000_000)}
     assert seen == set(ids)
     assert sampled([], STAMP) == [] and len(sampled(ids, STAMP, n=2)) == 2
+    stamps = [STAMP + n * 100_000_000 for n in range(600)]
+    assert all(sampled(ids, t, pairs=16) for t in stamps)  # up to PAIRS_PER_TEST pairs: every frame
+    busy = sum(bool(sampled(ids, t, pairs=48)) for t in stamps)  # 48 pairs: one frame in three
+    assert 150 < busy < 250, busy
 
 
 def _curve_scene(stamp: int, s_now: float, with_frame: bool = True):
