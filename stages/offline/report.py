@@ -132,6 +132,19 @@ def quantitative_rows(report: dict[str, Any]) -> list[list[str]]:
 QUANTITATIVE_HEAD = ["situation", "mode", "windows", "time per step (ms)", "mADE (m)", "mFDE (m)"]
 
 
+def _online(hybrid: dict[str, Any]) -> str:
+    """What hybrid learnt on the recordings (``modes.hybrid.initial_blend`` and ``curve_choice``), in words; '' if nothing."""
+    parts = []
+    blend = hybrid.get("initial_blend")
+    if blend:
+        parts.append(f"weight of the measured acceleration in λ(0) {blend['weight']:.2f} from {fmt(blend['resolved'])} records")
+    curve = hybrid.get("curve_choice")
+    if curve:
+        parts.append(f"curve factor {curve['factor']:g} of {', '.join(f'{f:g}' for f in curve['factors'])} from {fmt(curve['samples'])}"
+                     f" back-tested vehicles (mean ADE {' / '.join(f'{a:.2f}' for a in curve['mean_ade_m'])} m)")
+    return "; ".join(parts)
+
+
 def write_report(evaluation, report: dict[str, Any], directory: Path, command: str, *, formats: tuple[str, ...] = ("png", "svg"),
                  dpi: int = 100, keep: dict[str, Any] | None = None) -> Path:
     """Write DIR/report.md, DIR/eval.json and the figures; returns the report's path. ``keep`` receives the matplotlib
@@ -194,6 +207,7 @@ def write_report(evaluation, report: dict[str, Any], directory: Path, command: s
         ["corridor weights", report["corridor_weights"]],
         ["Markov backend", f"{report['backend']} on {report['device']}"],
         ["parameters (--set)", ", ".join(f"{k}={v}" for k, v in report["params"].items()) or "defaults"],
+        *([["learnt online (hybrid)", _online(report["modes"]["hybrid"])]] if "hybrid" in report["modes"] and _online(report["modes"]["hybrid"]) else []),
         ["seed", str(report.get("seed", "–"))],
         ["code", _git(directory)],
         ["versions", ", ".join(f"{k} {v}" for k, v in _versions().items())],

@@ -171,6 +171,9 @@ def test_report_sections_and_provenance(built):
         assert heading in text
     assert re.search(r"matplotlib \d+\.\d+", text) and "numpy" in text and "sha256" in text
     assert "in-sample" in text, "the shipped weights were trained on TAF-BW: the report says hybrid is in-sample"
+    curve = data["modes"]["hybrid"]["curve_choice"]  # what hybrid learnt online, in words, as the JSON has it
+    assert f"curve factor {curve['factor']:g} of 0, 1, 2 from {curve['samples']:,} back-tested vehicles" in text
+    assert f"weight of the measured acceleration in λ(0) {data['modes']['hybrid']['initial_blend']['weight']:.2f}" in text
     for mode in MODES:
         cov = data["modes"][mode]["calibration"]["overall"]["coverage"]
         assert f"| {mode} | all | " + " | ".join(f"{c:.2f}" for c in cov) in text
