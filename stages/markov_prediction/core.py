@@ -460,8 +460,8 @@ class MarkovPredictor:
         """The online curve choice's samples of this frame: the chain of at most ``curve_choice.PER_FRAME`` moving
         vehicles with a curve ahead run for every candidate factor but the frame's own (``chained``: the frame's chain,
         as ``_predict_chain`` returns it, whose rows give that one) in one batch, their mean positions kept to be scored
-        later. The
-        frame's own chain is not touched; a failure costs only this frame's samples (issue ``curve_choice_failed``)."""
+        later. The frame's own chain is not touched; a failure costs only this frame's samples (issue
+        ``curve_choice_failed``)."""
         live = self.curve_factor
         final, merged, order = chained
         row_of = {b: r for r, b in enumerate(order) if final[r] is pairs[b]}  # pairs the chain itself predicted

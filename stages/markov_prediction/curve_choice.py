@@ -17,9 +17,10 @@ So the stage chooses f online, on the recording it predicts, by causal back
 testing: at each frame it takes at most ``PER_FRAME`` moving vehicles with a
 curve ahead (chosen from the frame's stamp, so the choice does not depend on
 the order frames are handled in; a frame of more than ``PAIRS_PER_TEST``
-pairs only every ⌈pairs / ``PAIRS_PER_TEST``⌉-th frame), runs the chain of their pairs once per
-candidate f (the live chain is not touched), and keeps each candidate's mean
-positions. ``lag_s`` after the horizon (so that frames handled out of order
+pairs only every ⌈pairs / ``PAIRS_PER_TEST``⌉-th frame), runs the chain of
+their pairs for the other candidates in one batch (the factor in use gives
+the frame's own rows, which are not touched), and keeps each candidate's
+mean positions. ``lag_s`` after the horizon (so that frames handled out of order
 have stored their positions), each candidate scores the vehicle's ADE as
 ``iamp eval``'s mADE counts it (the best of its corridors), over the step
 times the vehicle was seen at, from the first on: at least half the horizon
@@ -28,8 +29,9 @@ ahead leave within 4 s). The factor used is ``default`` (1, the baseline's
 rule, when it is a candidate) until the evidence says otherwise: of the
 candidates whose ADE is lower than the default's on the same samples by
 ``MIN_T`` standard errors of the paired difference or more (after at least
-``MIN_SAMPLES``), the one with the lowest mean. What it learnt is kept across ``reset`` (it belongs to the
-location, the tracker and the model); the pending samples and positions are not.
+``MIN_SAMPLES``), the one with the lowest mean. What it learnt is kept
+across ``reset`` (it belongs to the location, the tracker and the model);
+the pending samples and positions are not.
 """
 
 from __future__ import annotations
