@@ -41,6 +41,9 @@ class _Listener:
             with self._lock:
                 self._due += [now + after for after in RELOG_AFTER_S]
 
+    def on_unsubscribe(self, client: Any, channel: Any) -> None:
+        """Nothing to do (foxglove-sdk logs an error for a listener without it when a client leaves)."""
+
     def relog_due(self, now: float) -> bool:
         """True (once per due time, several due ones at once counting once) when the map should be logged again."""
         with self._lock:
@@ -68,6 +71,7 @@ class FoxgloveBridge:
 
     def start(self) -> str:
         """Start the server; returns its ``ws://`` URL."""
+        self.scene.open_map_channels()
         kwargs = dict(name=f"hybrid-iamp {self.run_id}", host=self.config.host, context=self.context,
                       server_listener=self._listener, message_backlog_size=self.config.message_backlog)
         try:
@@ -84,6 +88,9 @@ class FoxgloveBridge:
         if self.server is not None:
             self.server.stop()
             self.server = None
+            logged = self.scene.counts.logged
+            self.log.info("foxglove: logged /map %d times, /tf %d, %d messages in all on %d topics", logged.get("/map", 0),
+                          logged.get("/tf", 0), sum(logged.values()), len(logged))
 
     def _key(self, port: str, default_node: str) -> str:
         return self.topic_keys.get(port, f"iamp/{self.run_id}/{default_node}/{port}")

@@ -245,6 +245,13 @@ class FoxgloveScene:
         tf = fm.FrameTransform(timestamp=ts, parent_frame_id="world", child_frame_id=FRAME_ID, translation=fm.Vector3(), rotation=fm.Quaternion(w=1.0))
         self._log("/tf", fch.FrameTransformChannel, tf, log_time_ns)
 
+    def open_map_channels(self) -> None:
+        """Create ``/map`` and ``/tf`` before any message (the live bridge, before its server starts): a client then
+        finds them advertised when it connects instead of being told while it subscribes to the others (in CI a
+        client that connected before the first SceneInfo now and then got ``/tf`` but never ``/map``)."""
+        self._channel("/map", fch.SceneUpdateChannel)
+        self._channel("/tf", fch.FrameTransformChannel)
+
     def relog_map(self, log_time_ns: int) -> None:
         """Log the map and transform again (a live client that joined late has not seen them)."""
         if self._map_update is not None:

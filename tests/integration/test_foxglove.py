@@ -85,10 +85,10 @@ async def _client(url: str, want_topics: set[str], timeout_s: float) -> dict:
     """Connect as Foxglove does, subscribe to every advertised channel, collect until a SceneUpdate with cubes and every wanted topic arrived."""
     import websockets
 
-    got: dict = {"server_info": None, "channels": {}, "messages": {}}
+    got: dict = {"server_info": None, "channels": {}, "messages": {}, "subscriptions": {}, "advertised_at": {}}
     async with websockets.connect(url, subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"], max_size=None) as ws:
         got["subprotocol"] = ws.subprotocol
-        subs: dict[int, int] = {}
+        subs: dict[int, int] = got["subscriptions"]
         loop = asyncio.get_running_loop()
         end = loop.time() + timeout_s
         while loop.time() < end:
@@ -104,6 +104,7 @@ async def _client(url: str, want_topics: set[str], timeout_s: float) -> dict:
                     new = []
                     for ch in msg["channels"]:
                         got["channels"][ch["id"]] = ch
+                        got["advertised_at"][ch["topic"]] = round(loop.time() - end + timeout_s, 2)
                         sub_id = len(subs) + 1
                         subs[sub_id] = ch["id"]
                         new.append({"id": sub_id, "channelId": ch["id"]})
@@ -156,7 +157,10 @@ def test_live_bridge_advertises_the_scene_and_sends_scene_updates_over_loopback(
     assert all(t.text.isdigit() for t in entity.texts)
     # the map arrived too (a subscriber to /map gets it again with the next frame), with lines
     counts = {t: len(m) for t, m in got["messages"].items()}
-    assert "/map" in got["messages"], f"no /map message; messages per topic {counts}; the run's last lines:\n" + "\n".join(live_run["lines"][-30:])
+    assert "/map" in got["messages"], (
+        f"no /map message; messages per topic {counts}; channel ids {({t: c['id'] for t, c in by_topic.items()})}; subscriptions"
+        f" {got['subscriptions']}; advertised (s after connecting) {got['advertised_at']}; the run's last lines:\n"
+        + "\n".join(live_run["lines"][-30:]))
     Map = message_class(by_topic["/map"]["schemaName"], base64.b64decode(by_topic["/map"]["schema"]))
     (lanelets,) = Map.FromString(got["messages"]["/map"][-1][1]).entities
     assert lanelets.id == "lanelets" and sum(len(line.points) for line in lanelets.lines) > 100
