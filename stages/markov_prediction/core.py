@@ -54,7 +54,7 @@ from stages.markov_prediction.modes.base import InputModel, Messages, Pair, Vehi
 from stages.markov_prediction.modes.corridor_cv import constant_speed
 from stages.markov_prediction.modes.cv import CV_LINE_ID
 from stages.markov_prediction.initial_blend import OnlineInitialBlend
-from stages.markov_prediction.curve_choice import OnlineCurveChoice, sampled
+from stages.markov_prediction.curve_choice import OnlineCurveChoice, frame_tested, sampled
 from stages.markov_prediction.online_spread import DEFAULT_BANDS_MPS, OnlineSpread
 from stages.markov_prediction.spread import ALONG_TRUNCATE, SpreadTable, blur_along, blur_grid, load_spread
 from stages.markov_prediction.rasterise import (
@@ -327,8 +327,9 @@ class MarkovPredictor:
         #: the learnt weight of the measured acceleration in λ(0) (``initial_blend.py``, hybrid_initial_input "adaptive")
         self.initial_blend: OnlineInitialBlend | None = OnlineInitialBlend(config.accel_window_s) \
             if config.mode == "hybrid" and config.hybrid_initial_input == "adaptive" and config.accel_window_s > 0 else None
-        #: hybrid: the factor of the curvature in the speed restriction's cut this frame (0: the speed limit alone), and
-        #: its online choice by back testing (``curve_choice.py``, ``hybrid_curve_factors``), or None
+        #: hybrid: the factor of the curvature in the speed restriction's cut that the latest pairs phase gave its pairs
+        #: (``Pair.curve_factor``; 0: the speed limit alone), and its online choice by back testing (``curve_choice.py``,
+        #: ``hybrid_curve_factors``), or None
         self.curve_factor = 1.0 if config.hybrid_speed_restriction_curves else 0.0
         self.curve_choice: OnlineCurveChoice | None = OnlineCurveChoice(config.hybrid_curve_factors, self.step_times_s) \
             if config.mode == "hybrid" and config.hybrid_speed_restriction and config.hybrid_speed_restriction_curves \
@@ -457,14 +458,14 @@ class MarkovPredictor:
                            o["factors"], np.round(o["mean_ade_m"], 3).tolist(), o["samples"], o["unresolved"])
 
     def _back_test(self, pairs: list[Pair], stamp: int, issues: list[Issue], chained: tuple[list[Pair], dict[str, Any], list[int]]) -> None:
-        """The online curve choice's samples of this frame: the chain of at most ``curve_choice.PER_FRAME`` moving
-        vehicles with a curve ahead run for every candidate factor but the frame's own (``chained``: the frame's chain,
-        as ``_predict_chain`` returns it, whose rows give that one) in one batch, their mean positions kept to be scored
-        later. The frame's own chain is not touched; a failure costs only this frame's samples (issue
-        ``curve_choice_failed``)."""
-        live = self.curve_factor
+        """The online curve choice's samples of this frame (``curve_choice.frame_tested``): the chain of at most
+        ``curve_choice.PER_FRAME`` moving vehicles with a curve ahead run for every candidate factor but the frame's own
+        in one batch (copies of their pairs with that ``curve_factor``; ``chained``: the frame's chain, as
+        ``_predict_chain`` returns it, whose rows give the factor in use), their mean positions kept to be scored later.
+        The frame's own chain is not touched; a failure costs only this frame's samples (issue ``curve_choice_failed``)."""
+        if not frame_tested(stamp, len(pairs)):
+            return
         final, merged, order = chained
-        row_of = {b: r for r, b in enumerate(order) if final[r] is pairs[b]}  # pairs the chain itself predicted
         try:
             by_track: dict[int, list[Pair]] = {}
             for p in pairs:
@@ -472,28 +473,26 @@ class MarkovPredictor:
             eligible = [t for t, ps in by_track.items() if all(p.start_rate_hz == 0 and p.input_probs is not None
                                                                 and p.v0_mps > CURVE_MIN_SPEED_MPS for p in ps)
                         and any(_curve_ahead(p, self.step_times_s[-1]) for p in ps)]
-            index = {id(p): b for b, p in enumerate(pairs)}
-            for track_id in sampled(eligible, stamp, pairs=len(pairs)):
+            chosen = sampled(eligible, stamp)
+            if not chosen:
+                return
+            row_of = {id(final[r]): r for r, b in enumerate(order) if final[r] is pairs[b]}  # pairs the chain itself predicted
+            factors = self.curve_choice.factors
+            for track_id in chosen:
                 subset = by_track[track_id]
-                rows = [row_of.get(index[id(p)]) for p in subset]
+                rows = [row_of.get(id(p)) for p in subset]
                 if None in rows:  # a fallback or a failure among its pairs
                     continue
-                # the other candidates in one batch: copies of the pairs whose curvature carries the factor (the
-                # restriction then takes factor 1; nothing else of the chain reads the curvature)
-                others = [f for f in self.curve_choice.factors if f != live]
-                copies = [dataclasses.replace(p, curvature_1pm=np.asarray(p.curvature_1pm, dtype=np.float64) * f) for f in others for p in subset]
-                self.curve_factor = 1.0
-                position = self._markov(copies, [])["position"]
+                live = subset[0].curve_factor
+                others = [f for f in factors if f != live]
+                position = self._markov([dataclasses.replace(p, curve_factor=f) for f in others for p in subset], [])["position"]
                 n = len(subset)
                 done = {f: position[i * n:(i + 1) * n] for i, f in enumerate(others)}
                 done[live] = np.asarray(merged["position"])[rows]
-                factors = self.curve_choice.factors
                 means = self._pair_means(subset * len(factors), np.concatenate([done[f] for f in factors]))
                 self.curve_choice.record(track_id, stamp, means.reshape(len(factors), n, *means.shape[1:]))
         except Exception as exc:  # noqa: BLE001
             issues.append(Issue("curve_choice_failed", -1, f"back test: {type(exc).__name__}: {exc}: this frame's samples skipped"))
-        finally:
-            self.curve_factor = live
 
     def _pair_means(self, pairs: list[Pair], position: np.ndarray) -> np.ndarray:
         """(P, K, 2): the pairs' mean positions on the map from their chain's position distributions, as
@@ -505,11 +504,14 @@ class MarkovPredictor:
         end_s = np.array([p.end_s_m for p in pairs], dtype=np.float64)
         np.copyto(pos, 0.0, where=(s_first[:, None] + lower[None, :] >= end_s[:, None])[:, None, :])
         lines = Centrelines([p.s_m for p in pairs], [p.x_m for p in pairs], [p.y_m for p in pairs], [p.heading_rad for p in pairs])
-        decay = cfg.lateral_offset_decay_s
-        factor = np.exp(-self.step_times_s / decay) if decay > 0 else np.zeros(cfg.n_steps)
-        shift_all = np.array([p.d0_m for p in pairs], dtype=np.float64).reshape(-1, 1) * factor[None, :]
-        mx, my, _ms, ok = _means_on_map(lines, pos, s_first[:, None] + (lower + 0.5 * cfg.ds_m)[None, :], shift_all)
+        mx, my, _ms, ok = _means_on_map(lines, pos, s_first[:, None] + (lower + 0.5 * cfg.ds_m)[None, :], self._lateral_shift(pairs))
         return np.stack([np.where(ok, mx, np.nan), np.where(ok, my, np.nan)], axis=-1)
+
+    def _lateral_shift(self, pairs: list[Pair]) -> np.ndarray:
+        """(B, K): each pair's lateral offset d0 at each step, decaying with ``lateral_offset_decay_s`` (§3.6; 0 without)."""
+        decay = self.config.lateral_offset_decay_s
+        factor = np.exp(-self.step_times_s / decay) if decay > 0 else np.zeros(self.config.n_steps)
+        return np.array([p.d0_m for p in pairs], dtype=np.float64).reshape(len(pairs), 1) * factor[None, :]
 
     def _learn_spread_now(self, stamp: int, track_frame: TrackFrame | None, prediction: FramePrediction) -> None:
         positions: dict[int, tuple[float, float]] = {}
@@ -541,14 +543,14 @@ class MarkovPredictor:
         beliefs = self._beliefs(intention_belief, stamp, issues) if self.chain_reads_belief else None
         self.observe(corridor_set)
         speed_limit = scene.speed_limit_mps if scene is not None and _positive(scene.speed_limit_mps) else self.config.default_speed_limit_mps
-        weighed: list[tuple[Any, list, int]] = []
-        pairs = self._vehicle_pairs(corridor_set, track_frame, speed_limit, issues, beliefs, weighed)
         if self.curve_choice is not None:
             self._choose_curve_factor(stamp, track_frame, issues)
+        weighed: list[tuple[Any, list, int]] = []
+        pairs = self._vehicle_pairs(corridor_set, track_frame, speed_limit, issues, beliefs, weighed)
         if self.model.chain and pairs:  # the chain's batch as _predict_chain will screen it (the inputs are not known yet)
             screened = self._screen(pairs)
             self.model.prepare_pairs([p for b, p in enumerate(pairs) if b not in screened])
-        return _PairsPhase(stamp, issues, pairs, weighed, skipped, beliefs, self.curve_factor)
+        return _PairsPhase(stamp, issues, pairs, weighed, skipped, beliefs)
 
     def _chain_phase(
         self,
@@ -569,7 +571,6 @@ class MarkovPredictor:
         else:
             pp = self._pairs_phase(corridor_set, scene, track_frame, intention_belief=intention_belief)
         issues, pairs, stamp = list(pp.issues), pp.pairs, pp.stamp
-        self.curve_factor = pp.curve_factor  # the one its pairs phase chose (another frame's may have run since)
         frame_data = self.model.read(Messages(stamp, relation_set, track_frame, intention_belief if self.chain_reads_belief else None,
                                               acceleration_profiles), issues)
         for vehicle, good, first in pp.weighed:
@@ -931,6 +932,7 @@ class MarkovPredictor:
                         a_fit_mps2=a_fit,
                         a_fit_se_mps2=a_fit_se,
                         stamp_ns=stamp,
+                        curve_factor=self.curve_factor,
                         s_first_m=s_first,
                         length_m=length,
                         width_m=width,
@@ -1151,8 +1153,6 @@ class MarkovPredictor:
         mean_s = np.full((n_b, n_k), np.nan)
         xy_at_mean = np.full((n_b, n_k, 2), np.nan)
         pos = pos.copy()
-        decay = cfg.lateral_offset_decay_s
-        factor = np.exp(-self.step_times_s / decay) if decay > 0 else np.zeros(n_k)
         if interval is not None:
             interval = np.asarray(interval, dtype=np.float32).copy()
         s_first = np.array([p.s_first_m for p in pairs], dtype=np.float64).reshape(n_b)
@@ -1172,7 +1172,7 @@ class MarkovPredictor:
                 np.copyto(interval, 0.0, where=beyond_all[:, None, :])
         # every pair at once (rasterise.Centrelines: one np.interp per quantity over all the pairs' centrelines)
         lines = Centrelines([p.s_m for p in pairs], [p.x_m for p in pairs], [p.y_m for p in pairs], [p.heading_rad for p in pairs])
-        shift_all = np.array([p.d0_m for p in pairs], dtype=np.float64).reshape(n_b, 1) * factor[None, :]  # (B, K): d0 · factor
+        shift_all = self._lateral_shift(pairs)
         if n_b:
             mx, my, ms, ok = _means_on_map(lines, pos, s_first[:, None] + centre[None, :], shift_all)
             mean_xy[..., 0] = np.where(ok, mx, np.nan)
@@ -1378,7 +1378,6 @@ class _PairsPhase:
     weighed: list[tuple[Any, list, int]]  # (vehicle, its corridors, index of its first pair): inputs and weights still to set
     skipped: set[int]  # vehicles left out (max_pairs, other shards): their relations raise no issue
     beliefs: dict[int, dict[int, Any]] | None  # what it read of the belief (``chain_reads_belief``), else None
-    curve_factor: float = 1.0  # hybrid: the curve factor of its speed restriction (``MarkovPredictor.curve_factor``)
 
 
 #: the inputs of ``_chain_phase``, in its order, with the type each must have (else None)

@@ -193,18 +193,25 @@ class OnlineCurveChoice:
                 "mean_ade_m": mean, "t_vs_default": self.t_values().tolist()}
 
 
+def _stamp_hash(stamp_ns: int) -> int:
+    """The stamp (µs, so any frame rate) hashed to 64 bits."""
+    return ((int(stamp_ns) // 1000) * 0x9E3779B97F4A7C15) & 0xFFFFFFFFFFFFFFFF
+
+
+def frame_tested(stamp_ns: int, pairs: int) -> bool:
+    """Whether a frame of ``pairs`` pairs is back-tested: all of them up to ``PAIRS_PER_TEST`` pairs, else one in
+    ⌈``pairs`` / ``PAIRS_PER_TEST``⌉, chosen by the stamp's hash."""
+    return (_stamp_hash(stamp_ns) >> 16) % max(1, -(-int(pairs) // PAIRS_PER_TEST)) == 0
+
+
 def sampled(track_ids: list[int], stamp_ns: int, n: int = PER_FRAME, pairs: int = 0) -> list[int]:
     """At most ``n`` of ``track_ids``, chosen from the stamp alone (a hash of it picks where to start in the sorted ids);
-    none on all but one in ⌈``pairs`` / ``PAIRS_PER_TEST``⌉ frames (the hash again)."""
+    none where the frame is not tested (``frame_tested`` with ``pairs``)."""
     ids = sorted(set(int(t) for t in track_ids))
-    if not ids or n <= 0:
+    if not ids or n <= 0 or not frame_tested(stamp_ns, pairs):
         return []
-    mixed = ((int(stamp_ns) // 1000) * 0x9E3779B97F4A7C15) & 0xFFFFFFFFFFFFFFFF  # the stamp (µs) hashed: any frame rate
-    every = max(1, -(-int(pairs) // PAIRS_PER_TEST))
-    if (mixed >> 16) % every:
-        return []
-    start = (mixed >> 32) % len(ids)
+    start = (_stamp_hash(stamp_ns) >> 32) % len(ids)
     return [ids[(start + i * max(1, len(ids) // n)) % len(ids)] for i in range(min(n, len(ids)))]
 
 
-__all__ = ["MIN_SAMPLES", "MIN_T", "OnlineCurveChoice", "PAIRS_PER_TEST", "PER_FRAME", "sampled"]
+__all__ = ["MIN_SAMPLES", "MIN_T", "OnlineCurveChoice", "PAIRS_PER_TEST", "PER_FRAME", "frame_tested", "sampled"]

@@ -54,6 +54,7 @@ class Pair:
     speed_noise_mps: float = 0.0  # scatter of its measured speeds (MarkovPredictor.speed_noise); read by a spread with speed_noise_gain
     p_stop: float = math.nan  # the intentions stage's P(stop | this corridor), NaN without a belief
     stamp_ns: int = 0  # the frame's stamp (hybrid_initial_input "adaptive" records its pairs by it)
+    curve_factor: float = 1.0  # hybrid: the factor of the curvature in its speed restriction (0: the limit alone)
     stop_distance_m: float = math.nan  # ... and the distance to the stop position on it
     # hybrid_initial_input "blend": the unshrunk slope of its speeds and the slope's standard error (NaN: no measurement)
     a_fit_mps2: float = math.nan

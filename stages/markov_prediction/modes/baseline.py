@@ -306,11 +306,11 @@ def speed_profiles(predictor: Predictor, pairs: list[Pair]) -> tuple[list[np.nda
     weights = np.asarray(cfg.lat_accel_weights, dtype=np.float64)
     weights = weights / weights.sum()
     lat_accels = np.asarray(cfg.lat_accels_mps2)
-    # hybrid: the curvature times the frame's curve factor (0: the limit alone; ``MarkovPredictor.curve_factor``)
-    factor = 1.0 if cfg.mode != "hybrid" else float(getattr(predictor, "curve_factor", 1.0))
+    # hybrid: the curvature times the pair's curve factor (0: the limit alone; ``Pair.curve_factor``)
+    hybrid = cfg.mode == "hybrid"
     adm = pr.admissible_speeds_batch([p.s_m for p in pairs],
-                                     [p.curvature_1pm if factor == 1.0 else (np.zeros_like(p.curvature_1pm) if factor == 0.0
-                                      else np.asarray(p.curvature_1pm, dtype=np.float64) * factor) for p in pairs],
+                                     [np.asarray(p.curvature_1pm, dtype=np.float64) * p.curve_factor if hybrid and p.curve_factor != 1.0
+                                      else p.curvature_1pm for p in pairs],
                                      [p.speed_limit_mps for p in pairs], lat_accels, cfg.lookahead_brake_mps2, cfg.curvature_smoothing_m)
     cells = np.array([p.s_first_m for p in pairs], dtype=np.float64).reshape(-1, 1) + cell_centre[None, :]
     return adm, cells, weights
