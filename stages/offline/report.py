@@ -198,6 +198,7 @@ def write_report(evaluation, report: dict[str, Any], directory: Path, command: s
     L.append("## How it was made")
     L.append("")
     model = report.get("model") or (str(REPO / "stages" / "lib" / "ar" / "weights" / "ar_taf_bw.pt") if "hybrid" in modes else None)
+    online = _online(report["modes"]["hybrid"]) if "hybrid" in report["modes"] else ""
     rows = [
         ["data", f"`{_short(report['data'])}`: " + ", ".join(report["recordings"])],
         ["modes", ", ".join(modes)],
@@ -207,7 +208,7 @@ def write_report(evaluation, report: dict[str, Any], directory: Path, command: s
         ["corridor weights", report["corridor_weights"]],
         ["Markov backend", f"{report['backend']} on {report['device']}"],
         ["parameters (--set)", ", ".join(f"{k}={v}" for k, v in report["params"].items()) or "defaults"],
-        *([["learnt online (hybrid)", _online(report["modes"]["hybrid"])]] if "hybrid" in report["modes"] and _online(report["modes"]["hybrid"]) else []),
+        *([["learnt online (hybrid)", online]] if online else []),
         ["seed", str(report.get("seed", "–"))],
         ["code", _git(directory)],
         ["versions", ", ".join(f"{k} {v}" for k, v in _versions().items())],
