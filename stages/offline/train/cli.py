@@ -39,12 +39,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--accel-window", type=float, default=None, help="causal acceleration window, s (default 1.0)")
     p.add_argument("--position-noise", type=float, default=0.0, metavar="M",
                    help="augmentation: jitter each track's positions by white noise of a σ drawn per track from [0, M] m (default 0: off)")
+    p.add_argument("--speed-factors", type=_factors, default=(), metavar="F,F",
+                   help="augmentation: also play each sequence at these speed factors (time scaled by 1/F, the whole scene;"
+                        " e.g. 0.8,1.25; default none)")
     p.add_argument("--max-frames", type=int, default=0, help="use at most this many frames per sequence (0: all)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"weights file to write (default {DEFAULT_OUT})")
     p.add_argument("--json", type=Path, default=None, help="write the report as JSON")
     p.add_argument("--cache-dir", type=Path, default=DEFAULT_CACHE_DIR, help=f"data set cache (default {DEFAULT_CACHE_DIR})")
     p.add_argument("--no-cache", action="store_true", help="neither read nor write the data set cache")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def _factors(text: str) -> tuple[float, ...]:
+    """``--speed-factors``: comma-separated numbers (their range is checked by DatasetConfig)."""
+    try:
+        return tuple(float(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated numbers, e.g. 0.8,1.25") from None
 
 
 def run_cli(args: argparse.Namespace) -> int:

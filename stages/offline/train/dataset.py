@@ -92,6 +92,7 @@ import numpy as np
 from bus_schemas import MatchStatus, TrackFrame
 from stages.corridors import SceneMaps
 from stages.lib.datasets import DEFAULT_DATA_DIR, DatasetError, Recording, default_recordings, discover, load_recording
+from stages.lib.datasets.warp import time_warped
 from stages.lib.fingerprint import code_fingerprint
 from stages.offline.chain import Chain
 from stages.offline.truth import (
@@ -139,6 +140,10 @@ class DatasetConfig:
     #: true positions. 0: off (the samples of the data set without it).
     position_noise_m: float = 0.0
     noise_seed: int = 0
+    #: Augmentation (``stages.lib.datasets.warp.time_warped``): each sequence is also played at each of these speed
+    #: factors (time scaled by 1/f, the whole scene together), its samples in the split of the sequence they come from
+    #: and stamped in its time (stamp · f). (): off.
+    speed_factors: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         if self.sample_stride < 1:
@@ -153,6 +158,10 @@ class DatasetConfig:
             raise ValueError(f"target_edge_s = {self.target_edge_s!r}: must be >= 0")
         if not (math.isfinite(self.position_noise_m) and 0 <= self.position_noise_m <= 10):
             raise ValueError(f"position_noise_m = {self.position_noise_m!r}: must lie in [0, 10] m")
+        factors = [float(f) for f in self.speed_factors]
+        if any(not (math.isfinite(f) and 0.5 <= f <= 2.0) or f == 1.0 for f in factors) or len(set(factors)) != len(factors):
+            raise ValueError(f"speed_factors = {self.speed_factors!r}: distinct factors in [0.5, 2], none 1 (the sequence as"
+                             " recorded is always played)")
         for name in ("target_window_s", "max_route_error_m", "route_tie_m", "route_future_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -180,6 +189,7 @@ class DatasetConfig:
             "code": code_fingerprint(),  # the code that builds the samples (corridors, relations, features): a change rebuilds
             # only when on, so that the keys (and caches) of data sets without it stay what they were
             **({"position_noise_m": self.position_noise_m, "noise_seed": self.noise_seed} if self.position_noise_m > 0 else {}),
+            **({"speed_factors": [float(f) for f in self.speed_factors]} if self.speed_factors else {}),
         }
 
 
@@ -389,9 +399,11 @@ class PositionNoise:
 
 
 def _sequence_samples(cfg: DatasetConfig, rec: Recording, seq, map_sha256: str, scene_maps: SceneMaps, rec_index: int,
-                      seq_index: int, out: _Collector, bar) -> tuple[int, int]:
-    """Adds the samples of one sequence to `out`; returns the first and last stamp played."""
-    noise = PositionNoise(cfg.position_noise_m, (cfg.noise_seed, rec_index, seq_index)) if cfg.position_noise_m > 0 else None
+                      seq_index: int, out: _Collector, bar, factor: float = 1.0) -> tuple[int, int]:
+    """Adds the samples of one sequence to `out`; returns the first and last stamp played. ``factor`` != 1: ``seq`` is
+    the time-warped copy of sequence ``seq_index`` at that speed factor; its samples are stamped in the source's time."""
+    salt = (cfg.noise_seed, rec_index, seq_index) if factor == 1.0 else (cfg.noise_seed, rec_index, seq_index, int(round(factor * 1000)))
+    noise = PositionNoise(cfg.position_noise_m, salt) if cfg.position_noise_m > 0 else None
     chain = Chain(rec, seq, scene_maps, max_frames=cfg.max_frames_per_sequence, map_sha256=map_sha256, run_id="ar-dataset",
                   frame_hook=noise)
     tracker = FeatureTracker(cfg.features)
@@ -440,7 +452,7 @@ def _sequence_samples(cfg: DatasetConfig, rec: Recording, seq, map_sha256: str, 
             out.sequence.append(seq_index)
             out.track_id.append(key[0])
             out.corridor_id.append(key[1])
-            out.stamp_ns.append(int(stamp))
+            out.stamp_ns.append(int(stamp) if factor == 1.0 else int(round(stamp * factor)))
         out.count("no_feature_row", len(wanted) - len(keys))
     return (span[0], span[1]) if span else (0, 0)
 
@@ -481,7 +493,8 @@ def build_dataset(cfg: DatasetConfig, *, cache_dir: Path | None = None, progress
     for rec in recordings:
         if rec.map_path is None:
             raise DatasetError(f"recording {rec.name} has no map: expected maps/{rec.name}.osm in {cfg.data_dir}")
-    total = sum(min(s.n_frames, cfg.max_frames_per_sequence) if cfg.max_frames_per_sequence else s.n_frames for r in recordings for s in r.sequences)
+    plays = 1 + len(cfg.speed_factors)  # (a warped copy has about n_frames / f frames: the bar's total is a guess)
+    total = plays * sum(min(s.n_frames, cfg.max_frames_per_sequence) if cfg.max_frames_per_sequence else s.n_frames for r in recordings for s in r.sequences)
     bar = progress_bar(total, progress, unit="frame", desc="iamp train: features")
     out = _Collector()
     scene_maps = SceneMaps(data=cfg.data_dir)
@@ -493,6 +506,9 @@ def build_dataset(cfg: DatasetConfig, *, cache_dir: Path | None = None, progress
             for seq in rec.sequences:
                 seq_names.append(f"{rec.name}/{seq.id}")
                 spans.append(_sequence_samples(cfg, rec, seq, sha, scene_maps, r, len(seq_names) - 1, out, bar))
+                for factor in cfg.speed_factors:
+                    _sequence_samples(cfg, rec, time_warped(seq, float(factor)), sha, scene_maps, r, len(seq_names) - 1, out, bar,
+                                      factor=float(factor))
     finally:
         bar.close()
     n = len(out.y)

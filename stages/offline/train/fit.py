@@ -161,8 +161,10 @@ class TrainConfig:
 # --------------------------------------------------------------------------- splits
 
 
-def _time_block(ds: ARDataset, index: np.ndarray, seq: int, val_fraction: float) -> tuple[np.ndarray, np.ndarray, int, int]:
+def _time_block(ds: ARDataset, index: np.ndarray, seq: int, val_fraction: float, reach: float = 1.0) -> tuple[np.ndarray, np.ndarray, int, int]:
     """Train/val indices of one sequence's samples `index` split in time so that the later part holds `val_fraction` of them.
+    ``reach``: the history and the horizon span up to this many times their length of the sequence's time (the largest
+    speed factor of time-warped samples, stamped in the source's time).
 
     Returns (train, val, dropped, cut stamp).
     """
@@ -170,15 +172,16 @@ def _time_block(ds: ARDataset, index: np.ndarray, seq: int, val_fraction: float)
     if t.size == 0:
         return index, index, 0, int(ds.sequence_spans[seq][1])
     cut = int(np.quantile(t, 1.0 - val_fraction, method="inverted_cdf"))
-    horizon_ns = int(round(HORIZON_STEPS * STEP_S * 1e9))
-    history_ns = int(round(HISTORY_STEPS * STEP_S * 1e9))
+    horizon_ns = int(round(HORIZON_STEPS * STEP_S * 1e9 * reach))
+    history_ns = int(round(HISTORY_STEPS * STEP_S * 1e9 * reach))
     train = index[t + horizon_ns <= cut]
     val = index[t - history_ns >= cut]
     return train, val, int(index.size - train.size - val.size), cut
 
 
-def split_samples(ds: ARDataset, split: str, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
-    """(train indices, validation indices, description) for the split of the module docstring; ValueError if impossible."""
+def split_samples(ds: ARDataset, split: str, val_fraction: float, seed: int, reach: float = 1.0) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """(train indices, validation indices, description) for the split of the module docstring; ValueError if impossible.
+    ``reach``: as ``_time_block``'s (time splits; 1 without time-warped samples)."""
     rng = np.random.default_rng(seed)
     train_parts, val_parts = [], []
     info: dict[str, Any] = {"split": split, "val_fraction": val_fraction, "seed": seed, "dropped_at_cut": 0,
@@ -186,7 +189,7 @@ def split_samples(ds: ARDataset, split: str, val_fraction: float, seed: int) -> 
 
     def block(seq: int) -> None:
         index = np.flatnonzero(ds.sequence == seq)
-        train, val, dropped, cut = _time_block(ds, index, seq, val_fraction)
+        train, val, dropped, cut = _time_block(ds, index, seq, val_fraction, reach)
         train_parts.append(train)
         val_parts.append(val)
         info["dropped_at_cut"] += dropped
@@ -401,7 +404,8 @@ def run_training(cfg: TrainConfig, *, cache_dir: Path | None = DEFAULT_CACHE_DIR
     data_seconds = time.perf_counter() - t0
     if len(ds) == 0:
         raise ValueError(f"no training samples in {cfg.dataset.data_dir} ({ds.counts}): select recordings with vehicles that have a 4 s future")
-    train_idx, val_idx, split_info = split_samples(ds, cfg.split, cfg.val_fraction, cfg.seed)
+    train_idx, val_idx, split_info = split_samples(ds, cfg.split, cfg.val_fraction, cfg.seed,
+                                                   reach=max((1.0, *(float(f) for f in cfg.dataset.speed_factors))))
     train, val = ds.subset(train_idx), ds.subset(val_idx)
     say(f"{len(train)} training and {len(val)} validation samples ({cfg.split} split)")
     model, fitted = fit(cfg, train, val, log=say)
@@ -513,6 +517,7 @@ def run_from_args(args) -> int:
                 data_dir=args.data, recordings=tuple(args.recording), sequences=tuple(args.sequence),
                 max_frames_per_sequence=args.max_frames, features=features, tied_routes=args.tied_routes,
                 min_future_steps=args.min_future_steps, position_noise_m=args.position_noise, noise_seed=args.seed,
+                speed_factors=tuple(args.speed_factors),
             ),
             split=args.split, val_fraction=args.val_fraction, kind=args.kind,
             hidden=DEFAULT_HIDDEN_GRU if args.hidden is None and args.kind == "gru" else (args.hidden or 0), epochs=args.epochs, batch_size=args.batch_size,
