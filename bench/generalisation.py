@@ -77,8 +77,9 @@ with the model trained there (the other direction's, cached; the eval's
 settings those of the held-out run): an optimistic figure, since most of
 those windows trained the model, printed beside the held-out hybrid (JSON
 ``directions.<d>.in_sample.hybrid.<split>.{mADE_m, held_out_mADE_m}``). The
-difference is what the learned model loses between locations; what is left
-below it is the pipeline's.
+difference bounds from above what the learned model loses between locations
+(much of it is the optimism of scoring cars the model trained on: README,
+"In sample, for scale", has a time-cut check).
 
 ``--max-frames N`` is passed to ``iamp eval`` only (quick mode: each sequence
 stops after N frames); training always uses the whole training recording.
@@ -544,9 +545,8 @@ def _run_seed(args, data: Path, names: list[str], seed: int) -> dict[str, Any]:
 def in_sample(args, data: Path, recording: str, seed: int, sets: list[str], held_out: dict[str, Any]) -> dict[str, Any]:
     """``--in-sample``: hybrid scored on ``recording`` with the model trained on it (the other direction's, cached), the
     eval's other settings those of the held-out run (``sets``, its spread file included); printed next to the held-out
-    hybrid. Optimistic by construction: most of those windows trained the model (its validation part did not). The
-    difference to the held-out figure is what the learned model loses between locations; the rest of hybrid's error is
-    the pipeline's."""
+    hybrid. Optimistic by construction: most of those windows trained the model (its validation part did not), so the
+    difference to the held-out figure is an upper bound on what the learned model loses between locations."""
     model = train_model(data, recording, seed, args.train_opt, args.retrain)["model"]
     ev, _seconds, path = eval_model(data, recording, model, seed, args.stride, args.max_frames, "insample_" + recording.split("_")[0],
                                     sets, ("hybrid",))
