@@ -73,3 +73,26 @@ def test_bad_factors_are_refused_with_a_message() -> None:
             DatasetConfig(speed_factors=factors)
     assert "speed_factors" not in DatasetConfig().key_dict()  # off: the keys (and caches) of data sets without it unchanged
     assert DatasetConfig(speed_factors=(0.8, 1.25)).key_dict()["speed_factors"] == [0.8, 1.25]
+
+
+def test_a_time_split_widens_its_margins_by_the_largest_speed_factor() -> None:
+    """A warped window stamped in its source's time spans 4·F s of it: with reach F no training window's future and no
+    validation window's history crosses the cut, whatever the factor of the sample."""
+    from stages.lib.ar.features import FEATURE_NAMES, HISTORY_STEPS, HORIZON_STEPS
+    from stages.offline.train.dataset import ARDataset
+    from stages.offline.train.fit import split_samples
+
+    n = 600
+    stamps = np.arange(n, dtype=np.int64) * PERIOD_NS
+    ds = ARDataset(
+        x=np.zeros((n, HISTORY_STEPS, len(FEATURE_NAMES)), np.float32), mask=np.ones((n, HISTORY_STEPS), bool),
+        y=np.zeros((n, HORIZON_STEPS), np.float32), y_mask=np.ones((n, HORIZON_STEPS), bool), weight=np.ones(n, np.float32),
+        recording=np.zeros(n, np.int32), sequence=np.zeros(n, np.int32), track_id=np.arange(n) % 7, corridor_id=np.zeros(n, np.int64),
+        stamp_ns=stamps, recordings=("a",), sequences=("a/0",), sequence_spans=np.array([[0, stamps[-1]]]), counts={},
+    )
+    plain_train, plain_val, info = split_samples(ds, "time", 0.3, 0)
+    train, val, info_wide = split_samples(ds, "time", 0.3, 0, reach=1.25)
+    cut = info_wide["time_cuts"]["a/0"]["cut_stamp_s"] * 1e9
+    assert info["time_cuts"]["a/0"]["cut_stamp_s"] * 1e9 == cut
+    assert np.all(ds.stamp_ns[train] + 1.25 * 4e9 <= cut + 1) and np.all(ds.stamp_ns[val] - 1.25 * 4e9 >= cut - 1)
+    assert len(train) == len(plain_train) - 10 and len(val) == len(plain_val) - 10  # 1 s more on each side, 10 windows at 10 Hz
