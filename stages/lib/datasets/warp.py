@@ -20,6 +20,7 @@ import math
 
 import numpy as np
 
+from stages.lib.datasets.kinematics import _wrap as wrap_angle
 from stages.lib.datasets.model import ARRAY_FIELDS, Sequence
 
 #: a gap between two rows of a track longer than this many frame periods splits it (nothing is invented across it)
@@ -58,8 +59,7 @@ def time_warped(seq: Sequence, factor: float) -> Sequence:
                 cols[name].append(np.interp(new_t, t, getattr(seq, name)[r]))
             for name in ("vx_mps", "vy_mps"):
                 cols[name].append(np.interp(new_t, t, getattr(seq, name)[r]) * factor)
-            yaw = np.interp(new_t, t, np.unwrap(seq.yaw_rad[r]))
-            cols["yaw_rad"].append((yaw + np.pi) % (2.0 * np.pi) - np.pi)
+            cols["yaw_rad"].append(wrap_angle(np.interp(new_t, t, np.unwrap(seq.yaw_rad[r]))))
             for name in ("length_m", "width_m"):
                 cols[name].append(np.full(n, getattr(seq, name)[r[0]], np.float64))
     arrays = {name: (np.concatenate(parts).astype(ARRAY_FIELDS[name]) if parts else np.zeros(0, ARRAY_FIELDS[name]))
