@@ -11,7 +11,9 @@ node that acks ``Progress``. Both are the runtime's pacing
 (``stages.runtime.pacing``, the same ``Pacer`` as a source's), with one
 difference: a node that has acked nothing within ``FIRST_ACK_GRACE_S`` of
 the first wait (a tool holding a liveliness token) is not waited for until
-it acks, and relies on its deep input queue.
+it acks, and relies on its deep input queue; the nodes named by
+``--await-nodes`` (a pipeline's, which all ack) are waited for
+``CONSUMER_WAIT_S`` like a node behind (a first input set may take seconds).
 
 Infrastructure keys (``_stats``, ``_ack``) are left out unless
 ``include_infra``: replayed NodeStats would describe nodes that are not

@@ -189,6 +189,7 @@ def play(
     log: logging.Logger,
     node_id: str = "replay",
     consumers: Consumers | None = None,
+    expected: tuple[str, ...] = (),
 ) -> ReplaySummary:
     """Publish the player's messages on ``bus``, paced by ``speed``; stops early when ``stop`` is set.
 
@@ -198,7 +199,9 @@ def play(
     Pacing is the runtime's (``stages.runtime.pacing.Pacer``) on the
     recorded receive times, or at ``max`` on the acks of ``consumers``
     (followed here on the target run when None), with a grace of
-    ``FIRST_ACK_GRACE_S`` for nodes that never ack.
+    ``FIRST_ACK_GRACE_S`` for nodes that never ack (tools), except the
+    ``expected`` ones (the awaited pipeline nodes), waited for as long as
+    one behind.
     """
     summary = ReplaySummary()
     publishers: dict[str, Callable[[bytes], None]] = {}
@@ -212,7 +215,7 @@ def play(
             consumers = consumers or watch_consumers(bus, player.target_run_id, node_id, acks=True)
         else:
             consumers = None  # a fixed speed, or keys of no run: nobody to wait for
-        pacer = Pacer(speed, consumers, stop, log, first_ack_grace_s=FIRST_ACK_GRACE_S)
+        pacer = Pacer(speed, consumers, stop, log, first_ack_grace_s=FIRST_ACK_GRACE_S, expected=expected)
         matchers = []
         for item in head:
             if item.key not in publishers:
@@ -310,6 +313,7 @@ def run_replay(
                 log=log,
                 node_id=node_id,
                 consumers=consumers,
+                expected=await_nodes,
             )
             if player.report.truncated:
                 log.warning("recording truncated, replayed up to its last complete chunk: path=%s detail=%s", config.path, player.report.error)

@@ -15,7 +15,8 @@
   inputs (``JOIN_WINDOW`` incomplete sets at most; ``JOIN_TIMEOUT_S``: a set
   is dropped when its missing inputs have been silent that long, never while
   one of them is still arriving, only behind); latched inputs are queried
-  at start and awaited; latest-value and wildcard inputs are kept as they
+  at start and awaited (sets wait for them, bounded by the join window
+  alone: no timeout while a latched input is missing); latest-value and wildcard inputs are kept as they
   come (``ports.py``); the core sees all of them with every complete set. An
   exception of a core on one input set is counted (``core_errors``) and that
   set dropped: no payload can end a stage;
@@ -545,6 +546,10 @@ class Node:
         if len(self.queue):
             # inputs still queued may complete a set: time spent in the core is not time the set waited
             # for a missing input, so the timeout is judged only once everything received is joined
+            return
+        if any(p not in self._latched_in for p in self._required_latched()):
+            # every set waits for a latched input that has not come yet (the scene a frame overtook on the wire, or
+            # one still being queried): it is coming, not silent; the join window alone bounds the wait
             return
         now = time.monotonic()
         join = self._join_ports()

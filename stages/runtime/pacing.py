@@ -20,9 +20,11 @@ replay (``stages.replay``):
   is warned about and not waited for until it acks again; a node that has
   acked nothing ``first_ack_grace_s`` after the first wait (default: the same
   ``wait_s``) is taken for one that never acks and is not waited for until
-  it does. ``drain`` waits until the nodes have acked the last stamp
-  published (zenoh has no flush: a put still queued when the session closes
-  is lost). With ``warmup = N`` (the runtime's sources: ``SOURCE_WARMUP``)
+  it does, unless it is one of ``expected`` (the nodes a source was told to
+  await: a pipeline's nodes all ack), which are waited for ``wait_s``.
+  ``drain`` waits until the nodes have acked the last stamp published
+  (zenoh has no flush: a put still queued when the session closes is
+  lost). With ``warmup = N`` (the runtime's sources: ``SOURCE_WARMUP``)
   a number speed first publishes N stamps as ``max`` with a window of 1
   does (each acked by every live node, or given up on after ``wait_s``),
   then starts its clock: a node's first input set builds its caches and
@@ -146,6 +148,7 @@ class Pacer:
         wait_s: float = CONSUMER_WAIT_S,
         first_ack_grace_s: float | None = None,
         warmup: int = 0,
+        expected: Iterable[str] = (),
     ) -> None:
         self.speed = parse_speed_value(speed)
         self.as_fast = self.speed == "max"
@@ -155,6 +158,7 @@ class Pacer:
         self.window = max(1, window)
         self.wait_s = wait_s
         self.first_ack_grace_s = wait_s if first_ack_grace_s is None else first_ack_grace_s
+        self.expected = frozenset(expected)  # nodes known to ack (a pipeline's): their grace is ``wait_s``
         self._stamps: collections.deque[int] = collections.deque(maxlen=self.window)
         self._wall0: float | None = None
         self._time0 = 0
@@ -202,9 +206,13 @@ class Pacer:
             silent, behind = self.consumers.waiting_on(target)
             now = time.monotonic()
             if silent and now - self._first_wait > self.first_ack_grace_s:
-                self.log.info("pacing: not waiting for nodes that report no progress: %s", ",".join(silent))
-                self.consumers.ignore(silent)
-                silent = []
+                # a node expected to ack is waited for as long as one behind (a first input set that builds caches
+                # and compiles kernels can take seconds); any other is taken for a tool that never acks
+                tools = [n for n in silent if n not in self.expected]
+                if tools:
+                    self.log.info("pacing: not waiting for nodes that report no progress: %s", ",".join(tools))
+                    self.consumers.ignore(tools)
+                silent = [n for n in silent if n in self.expected]
             if not silent and not behind:
                 return
             if now > deadline:

@@ -151,3 +151,42 @@ def test_a_core_may_start_on_a_set_still_missing_inputs(monkeypatch):
     assert node.stats.counters["prepared"] == 3  # frames 0, 1 and 2; 3 declined, 4 raised
     assert node.stats.errors_by_kind["prepare_exception"] == 1
     assert len(node.stats.prep_ms) == 3 and "prep_ms_p50=" in node.stats.summary()
+
+
+class _SceneCore:
+    def __init__(self) -> None:
+        self.stamps: list[int] = []
+
+    def update(self, inputs):
+        assert "s" in inputs
+        self.stamps.append(inputs["a"].header.frame_index)
+        return StageResult()
+
+
+def test_sets_waiting_for_a_late_latched_input_are_kept_past_the_timeout(monkeypatch):
+    """Frames that overtook the latched scene (lost on the wire, then queried) wait for it however long it takes,
+    bounded by the join window only; once it comes every one of them runs, in order, none dropped."""
+    clock = _Clock()
+    monkeypatch.setattr(node_module.time, "monotonic", clock)
+    inputs = {"a": Port(bs.AccelerationProfiles), "s": Port(bs.AccelerationProfiles, latched=True)}
+    spec = StageSpec(stage="tests.latched", config_cls=_Cfg, make_core=lambda c, ctx: _SceneCore(), inputs=inputs, outputs={})
+    args = build_parser(spec).parse_args(["--node-id", "late", "--run-id", "t", "--input", "a=src/a", "--input", "s=src/s"])
+    node = Node(spec, args, _Cfg(), parse_bindings(spec, args))
+    node._publishers = {}
+    node._progress_pub = RecordingPublisher()
+    core = _SceneCore()
+
+    def at(t: float, port: str, frame: int) -> None:
+        clock.now = 1000.0 + t
+        node._accept(port, f"iamp/t/src/{port}", _payload(frame), 0)
+        while (item := node.queue.get(timeout=0)) is not None:
+            node._handle_operator_item(core, item)
+
+    for k in range(4):
+        at(0.1 * k, "a", k)
+    at(3.0 * JOIN_TIMEOUT_S, "a", 4)  # frames 0..3 have waited 3 timeouts for the scene
+    assert core.stamps == [] and node.stats.counters["join_drops"] == 0
+    at(3.1 * JOIN_TIMEOUT_S, "s", 0)
+    at(3.2 * JOIN_TIMEOUT_S, "a", 5)
+    assert core.stamps == [0, 1, 2, 3, 4, 5]
+    assert node.stats.counters["join_drops"] == 0

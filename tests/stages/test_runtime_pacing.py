@@ -65,6 +65,23 @@ def test_a_silent_node_is_not_waited_for_after_the_grace_and_a_behind_one_after_
     assert consumers.waiting_on(2) == ([], [])
 
 
+def test_an_expected_node_that_has_acked_nothing_is_waited_for_wait_s_not_the_tools_grace(caplog):
+    """A pipeline node's first input set may take seconds (caches, compiled kernels): replay must not take it for a
+    tool that never acks and flood it; a tool holding a token is still let go after the short grace."""
+    caplog.set_level(logging.INFO, logger=LOG.name)
+    consumers = Consumers("src")
+    consumers.add_alive(["corridors", "viewer"])
+    pacer = Pacer("max", consumers, threading.Event(), LOG, window=1, wait_s=0.4, first_ack_grace_s=0.05, expected=["corridors"])
+    pacer.before(1, 1)
+    threading.Timer(0.2, consumers.on_ack, args=("corridors", 1)).start()  # its first set took 0.2 s (> the grace)
+    t0 = time.monotonic()
+    pacer.before(2, 2)
+    waited = time.monotonic() - t0
+    assert 0.15 <= waited < 0.4  # until corridors acked, not the grace, not the whole wait_s
+    assert "report no progress: viewer" in caplog.text and "corridors" not in caplog.text
+    assert consumers.waiting_on(2) == ([], ["corridors"])  # still followed
+
+
 def test_a_stop_ends_a_wait_and_await_nodes_reports_the_missing():
     stop = threading.Event()
     consumers = Consumers("src")
