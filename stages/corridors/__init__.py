@@ -36,6 +36,10 @@ Parameters (``CorridorsConfig``; lengths in m, angles in rad):
   ``stages.lib.kinematic_state.KinematicEstimator``: positions, with the
   tracker's velocity fused once it is calibrated against them; false uses
   positions alone.
+- ``state_accel_noise_bank`` [1, 3, 10]: the estimator runs one filter per
+  acceleration noise (m²/s³) and publishes the one whose speed has best
+  predicted the distance covered 2 s later, over the stream so far (starting
+  with 10; ``[10]`` is the single filter).
 - ``projection`` "auto": the scene's projection, and for "auto" there the
   measured one for its location (``maps.projection_for_location``: UTM for
   K729, scaled Mercator for K733).

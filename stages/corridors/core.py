@@ -66,6 +66,7 @@ class CorridorsConfig(ConfigMixin):
     track_timeout_s: float = 2.0
     projection: str = "auto"
     fuse_reported_velocity: bool = True
+    state_accel_noise_bank: tuple[float, ...] = (1.0, 3.0, 10.0)
     data: str = ""  # local data folder whose maps/ holds the scene's map (by name); "": the embedded stages/data/taf-bw
 
     def __post_init__(self) -> None:
@@ -78,6 +79,11 @@ class CorridorsConfig(ConfigMixin):
             raise ValueError(f"max_corridors_per_vehicle = {self.max_corridors_per_vehicle}: must be >= 1")
         if self.max_objects < 1:
             raise ValueError(f"max_objects = {self.max_objects}: must be >= 1")
+        try:
+            EstimatorConfig(accel_noise_bank=self.state_accel_noise_bank)
+        except ValueError as exc:
+            raise ValueError(f"state_accel_noise_bank: {exc}") from None
+        object.__setattr__(self, "state_accel_noise_bank", tuple(float(q) for q in self.state_accel_noise_bank))
         if parse_projection(self.projection) is Projection.UNKNOWN:
             known = ", ".join(p.name.lower() for p in Projection if p is not Projection.UNKNOWN)
             raise ValueError(f"projection = {self.projection!r}: expected one of {known}")
@@ -186,7 +192,9 @@ class CorridorBuilder:
         self._centre: np.ndarray | None = None
         self._tracks: dict[int, _Track] = {}
         self._last_stamp_ns: int | None = None
-        self.estimator = KinematicEstimator(EstimatorConfig(fuse_reported=config.fuse_reported_velocity))
+        self.estimator = KinematicEstimator(
+            EstimatorConfig(fuse_reported=config.fuse_reported_velocity, accel_noise_bank=config.state_accel_noise_bank)
+        )
         self._estimated_ns: dict[int, int] = {}
         kernels.warm_up()  # the compiled kernels loaded now, not on the first frame
 

@@ -122,6 +122,11 @@ class EstimatorConfig(ConfigMixin):
     min_velocity_noise_mps: float = 0.05
     velocity_noise_adaptation: float = 0.2
     velocity_gate_sigma: float = 3.0
+    accel_noise_bank: tuple[float, ...] = (1.0, 3.0, 10.0)
+    bank_horizon_s: float = 2.0
+    bank_min_samples: int = 300
+    bank_memory: int = 3000
+    bank_switch_gain: float = 0.03
 
     def __post_init__(self) -> None:
         positive = ("accel_noise_m2ps3", "initial_position_noise_m", "min_position_noise_m", "initial_speed_sigma_mps",
@@ -134,6 +139,17 @@ class EstimatorConfig(ConfigMixin):
             raise ValueError(f"factor_tolerance must be > 1, got {self.factor_tolerance}")
         if self.consistency_min_samples < 1 or self.warn_min_tracks < 1 or not (0.0 < self.warn_share <= 1.0):
             raise ValueError("consistency_min_samples and warn_min_tracks must be >= 1, warn_share in (0, 1]")
+        bank = tuple(self.accel_noise_bank)
+        if not all(isinstance(q, (int, float)) and math.isfinite(q) and q > 0 for q in bank) or len(set(bank)) != len(bank):
+            raise ValueError(f"accel_noise_bank must hold distinct finite values > 0, got {self.accel_noise_bank!r}")
+        object.__setattr__(self, "accel_noise_bank", tuple(float(q) for q in bank))
+        if not (self.bank_horizon_s > 0 and self.bank_min_samples >= 1 and self.bank_memory >= 1 and 0.0 <= self.bank_switch_gain < 1.0):
+            raise ValueError("bank_horizon_s must be > 0, bank_min_samples and bank_memory >= 1, bank_switch_gain in [0, 1)")
+
+    @property
+    def filter_bank(self) -> tuple[float, ...]:
+        """The accelerations noises the estimator runs, ascending: the bank with ``accel_noise_m2ps3`` (the start) in it."""
+        return tuple(sorted({*self.accel_noise_bank, float(self.accel_noise_m2ps3)}))
 
 
 @dataclass(frozen=True, slots=True)
@@ -157,15 +173,23 @@ class KinematicState:
 
 
 @dataclass(slots=True, eq=False)
-class _Track:
-    t_ns: int
+class _Filter:
+    """One constant-velocity Kalman filter of a track (one member of the bank)."""
+
     x: list[float]  # [position, velocity] along x
     y: list[float]
     p: list[float]  # shared covariance [p00, p01, p11] (same H and dt for both axes)
     r: float  # measurement noise variance, adapted
-    first_ns: int = 0
     rv: float = 1.0  # variance of the calibrated reported velocity, adapted
+
+
+@dataclass(slots=True, eq=False)
+class _Track:
+    t_ns: int
+    filters: list[_Filter]  # one per accel noise of the bank, in the estimator's order
+    first_ns: int = 0
     recent: collections.deque = field(default_factory=collections.deque)  # (t_ns, x, y, speed, reported vx, reported vy)
+    history: collections.deque = field(default_factory=collections.deque)  # (t_ns, x, y, speed of each filter): back test
     ratios: list[float] = field(default_factory=list)
     cosines: list[float] = field(default_factory=list)
     decided: bool = False
@@ -333,6 +357,30 @@ class Calibration:
         return vx * k, vy * k
 
 
+def _predict(kf: _Filter, q: float, dt: float) -> tuple[float, float, float, float, float]:
+    """The filter's prediction over ``dt``: covariance (p00, p01, p11) and position (x, y)."""
+    p00, p01, p11 = kf.p
+    # F = [[1, dt], [0, 1]], Q = q [[dt³/3, dt²/2], [dt²/2, dt]]
+    p00 = p00 + 2.0 * dt * p01 + dt * dt * p11 + q * dt**3 / 3.0
+    p01 = p01 + dt * p11 + q * dt * dt / 2.0
+    p11 = p11 + q * dt
+    return p00, p01, p11, kf.x[0] + dt * kf.x[1], kf.y[0] + dt * kf.y[1]
+
+
+def _correct(kf: _Filter, predicted: tuple[float, float, float, float, float], zx: float, zy: float, cfg: EstimatorConfig) -> None:
+    """Update the filter with the position (zx, zy), adapting its measurement noise to the innovations it shows."""
+    p00, p01, p11, px, py = predicted
+    ix, iy = zx - px, zy - py
+    innovation2 = 0.5 * (ix * ix + iy * iy)
+    a = cfg.noise_adaptation
+    kf.r = (1.0 - a) * kf.r + a * max(innovation2 - p00, cfg.min_position_noise_m**2)
+    s = p00 + kf.r
+    k0, k1 = p00 / s, p01 / s
+    kf.x = [px + k0 * ix, kf.x[1] + k1 * ix]
+    kf.y = [py + k0 * iy, kf.y[1] + k1 * iy]
+    kf.p = [(1.0 - k0) * p00, (1.0 - k0) * p01, p11 - k1 * p01]
+
+
 class KinematicEstimator:
     """Causal per-track state for one stream of frames (module docstring)."""
 
@@ -345,6 +393,25 @@ class KinematicEstimator:
         self.calibration = Calibration(self.config)
         self._rv_stream = self.config.initial_velocity_noise_mps**2
         self.velocity_rejected = 0
+        self._bank = self.config.filter_bank
+        self.selected = self._bank.index(float(self.config.accel_noise_m2ps3))
+        self._bt_mean = [0.0] * len(self._bank)  # exponentially weighted mean squared back-test error per filter
+        self.backtest_samples = 0
+        self.switches = 0
+
+    @property
+    def accel_noise(self) -> float:
+        """The accel noise (m²/s³) of the filter whose state is published now."""
+        return self._bank[self.selected]
+
+    def backtest(self) -> dict[str, object]:
+        """The bank's back test so far: per accel noise the rms error (m) of speed x horizon vs the distance covered."""
+        return {
+            "accel_noise_m2ps3": self.accel_noise,
+            "samples": self.backtest_samples,
+            "switches": self.switches,
+            "rms_m": {f"{q:g}": (math.sqrt(m) if self.backtest_samples else math.nan) for q, m in zip(self._bank, self._bt_mean)},
+        }
 
     def reset(self) -> None:
         """Forget every track and the consistency figures (a new scene)."""
@@ -371,7 +438,8 @@ class KinematicEstimator:
         if track is None:
             return self._start(track_id, stamp_ns, x_m, y_m, vx_mps, vy_mps, reported, calibrated)
         if not self._step(track, dt, x_m, y_m):
-            issues.append(Issue("position_jump", track_id, f"position {math.hypot(x_m - track.x[0], y_m - track.y[0]):.1f} m off its prediction: state restarted"))
+            kf = track.filters[self.selected]
+            issues.append(Issue("position_jump", track_id, f"position {math.hypot(x_m - kf.x[0], y_m - kf.y[0]):.1f} m off its prediction: state restarted"))
             return self._start(track_id, stamp_ns, x_m, y_m, vx_mps, vy_mps, reported, calibrated)
         fused = False
         # a reported zero is no evidence (trackers report it at a track's birth and on dropouts):
@@ -379,12 +447,15 @@ class KinematicEstimator:
         if calibrated is not None and reported >= _ZERO_MPS:
             fused = self._fuse(track, calibrated)
             if not fused:
+                kf = track.filters[self.selected]
                 issues.append(Issue(
                     "velocity_rejected", track_id,
                     f"reported velocity ({calibrated[0]:.1f}, {calibrated[1]:.1f}) m/s calibrated is off the positions' "
-                    f"({track.x[1]:.1f}, {track.y[1]:.1f}): not used",
+                    f"({kf.x[1]:.1f}, {kf.y[1]:.1f}): not used",
                 ))
         track.t_ns = stamp_ns
+        if len(self._bank) > 1:
+            self._backtest(track, x_m, y_m)
         state = self._state(track, reported, "fused" if fused else "positions", (x_m, y_m, vx_mps, vy_mps))
         if reported < _ZERO_MPS and state.speed_mps >= cfg.consistency_min_speed_mps:
             issues.append(Issue("velocity_zero_while_moving", track_id, f"reported speed {reported:.2f} m/s, positions say {state.speed_mps:.1f} m/s: ignored"))
@@ -396,8 +467,8 @@ class KinematicEstimator:
     def _start(self, track_id, stamp_ns, x, y, vx, vy, reported, calibrated) -> KinematicState:
         cfg = self.config
         r = cfg.initial_position_noise_m**2
-        track = _Track(t_ns=stamp_ns, x=[x, 0.0], y=[y, 0.0], p=[r, 0.0, cfg.initial_speed_sigma_mps**2], r=r, first_ns=stamp_ns,
-                       rv=self._rv_stream)
+        filters = [_Filter(x=[x, 0.0], y=[y, 0.0], p=[r, 0.0, cfg.initial_speed_sigma_mps**2], r=r, rv=self._rv_stream) for _ in self._bank]
+        track = _Track(t_ns=stamp_ns, filters=filters, first_ns=stamp_ns)
         track.recent.append((stamp_ns, x, y, math.nan, vx, vy))
         self._tracks[track_id] = track
         # the filter starts from the position alone: a first reported velocity (zero at a track's birth,
@@ -410,54 +481,77 @@ class KinematicEstimator:
         return KinematicState(vx, vy, reported, 0.0, False, "reported", reported)
 
     def _step(self, track: _Track, dt: float, zx: float, zy: float) -> bool:
-        """Predict over ``dt`` and update with the position (zx, zy); False when the sample is a jump (track untouched)."""
+        """Predict every filter over ``dt`` and update it with the position (zx, zy); False when the published filter
+        sees the sample as a jump (track untouched)."""
         cfg = self.config
-        q = cfg.accel_noise_m2ps3
-        p00, p01, p11 = track.p
-        # predict: F = [[1, dt], [0, 1]], Q = q [[dt³/3, dt²/2], [dt²/2, dt]]
-        p00 = p00 + 2.0 * dt * p01 + dt * dt * p11 + q * dt**3 / 3.0
-        p01 = p01 + dt * p11 + q * dt * dt / 2.0
-        p11 = p11 + q * dt
-        px = track.x[0] + dt * track.x[1]
-        py = track.y[0] + dt * track.y[1]
+        predicted = [_predict(kf, q, dt) for kf, q in zip(track.filters, self._bank)]
+        p00, _, _, px, py = predicted[self.selected]
+        kf = track.filters[self.selected]
         ix, iy = zx - px, zy - py
         innovation2 = 0.5 * (ix * ix + iy * iy)
-        s = p00 + track.r
-        if math.sqrt(2.0 * innovation2) > cfg.jump_m and innovation2 > 25.0 * s:
+        if math.sqrt(2.0 * innovation2) > cfg.jump_m and innovation2 > 25.0 * (p00 + kf.r):
             return False
-        # adapt the measurement noise to the innovations this track shows
-        a = cfg.noise_adaptation
-        track.r = (1.0 - a) * track.r + a * max(innovation2 - p00, cfg.min_position_noise_m**2)
-        s = p00 + track.r
-        k0, k1 = p00 / s, p01 / s
-        track.x = [px + k0 * ix, track.x[1] + k1 * ix]
-        track.y = [py + k0 * iy, track.y[1] + k1 * iy]
-        track.p = [(1.0 - k0) * p00, (1.0 - k0) * p01, p11 - k1 * p01]
+        for kf, pred in zip(track.filters, predicted):
+            _correct(kf, pred, zx, zy, cfg)
         return True
 
     def _fuse(self, track: _Track, velocity: tuple[float, float]) -> bool:
-        """Update with the calibrated reported velocity, gated; False when it is rejected."""
+        """Update every filter with the calibrated reported velocity, gated; False when the published filter rejects it."""
         cfg = self.config
-        p00, p01, p11 = track.p
-        ix, iy = velocity[0] - track.x[1], velocity[1] - track.y[1]
-        innovation2 = 0.5 * (ix * ix + iy * iy)
-        gate = cfg.velocity_gate_sigma**2 * (p11 + track.rv) + 1.0
-        if innovation2 > gate:
-            self.velocity_rejected += 1
-            return False
-        a = cfg.velocity_noise_adaptation
-        track.rv = (1.0 - a) * track.rv + a * max(innovation2 - p11, cfg.min_velocity_noise_mps**2)
-        self._rv_stream = (1.0 - 0.25 * a) * self._rv_stream + 0.25 * a * track.rv
-        s = p11 + track.rv
-        k0, k1 = p01 / s, p11 / s
-        track.x = [track.x[0] + k0 * ix, track.x[1] + k1 * ix]
-        track.y = [track.y[0] + k0 * iy, track.y[1] + k1 * iy]
-        track.p = [p00 - k0 * p01, p01 - k0 * p11, (1.0 - k1) * p11]
-        return True
+        out = False
+        for k, kf in enumerate(track.filters):
+            p00, p01, p11 = kf.p
+            ix, iy = velocity[0] - kf.x[1], velocity[1] - kf.y[1]
+            innovation2 = 0.5 * (ix * ix + iy * iy)
+            gate = cfg.velocity_gate_sigma**2 * (p11 + kf.rv) + 1.0
+            if innovation2 > gate:
+                if k == self.selected:
+                    self.velocity_rejected += 1
+                continue
+            a = cfg.velocity_noise_adaptation
+            kf.rv = (1.0 - a) * kf.rv + a * max(innovation2 - p11, cfg.min_velocity_noise_mps**2)
+            if k == self.selected:
+                self._rv_stream = (1.0 - 0.25 * a) * self._rv_stream + 0.25 * a * kf.rv
+                out = True
+            s = p11 + kf.rv
+            k0, k1 = p01 / s, p11 / s
+            kf.x = [kf.x[0] + k0 * ix, kf.x[1] + k1 * ix]
+            kf.y = [kf.y[0] + k0 * iy, kf.y[1] + k1 * iy]
+            kf.p = [p00 - k0 * p01, p01 - k0 * p11, (1.0 - k1) * p11]
+        return out
+
+    def _backtest(self, track: _Track, x: float, y: float) -> None:
+        """Score each filter's speed of ``bank_horizon_s`` ago against the distance the track has covered since, and
+        publish the filter with the lowest error over the stream (causal: only past samples are judged)."""
+        cfg = self.config
+        history = track.history
+        history.append((track.t_ns, x, y, [math.hypot(kf.x[1], kf.y[1]) for kf in track.filters]))
+        horizon_ns = round(cfg.bank_horizon_s / _NS)
+        a = 1.0 / cfg.bank_memory
+        scored = False
+        while history and track.t_ns - history[0][0] >= horizon_ns:
+            t0, x0, y0, speeds = history.popleft()
+            if (t0 - track.first_ns) * _NS < 1.0:
+                continue  # a track's first second: every filter is still settling
+            dt = (track.t_ns - t0) * _NS
+            covered = math.hypot(x - x0, y - y0)
+            self.backtest_samples += 1
+            w = max(a, 1.0 / self.backtest_samples)  # a plain mean until the memory is full
+            means = self._bt_mean
+            for k, v in enumerate(speeds):
+                e = v * dt - covered
+                means[k] += w * (e * e - means[k])
+            scored = True
+        if scored and self.backtest_samples >= cfg.bank_min_samples:
+            best = min(range(len(self._bank)), key=self._bt_mean.__getitem__)
+            if best != self.selected and self._bt_mean[best] < (1.0 - cfg.bank_switch_gain) * self._bt_mean[self.selected]:
+                self.selected = best
+                self.switches += 1
 
     def _state(self, track: _Track, reported: float, source: str, sample: tuple | None = None) -> KinematicState:
         cfg = self.config
-        vx, vy = track.x[1], track.y[1]
+        kf = track.filters[self.selected]
+        vx, vy = kf.x[1], kf.y[1]
         speed = math.hypot(vx, vy)
         recent = track.recent
         if sample is not None:

@@ -790,6 +790,7 @@ class Evaluation:
             "skipped": dict(sorted(self.skipped.items())),
             "skipped_examples": dict(sorted(self.skip_examples.items())),
             "velocity_consistency": {name: self.velocity_consistency(name).as_dict() for name in self.recordings},
+            "state_filter": {name: self.state_filter(name) for name in self.recordings},
             "intentions_ms_median": float(np.median(self.intentions_ms)) if self.intentions_ms else None,
             "model": str(self.ar_config.model) if self.ar_config is not None else None,
             "situations": [
@@ -820,6 +821,10 @@ class Evaluation:
         estimators = self._estimators.get(recording, [])
         config = estimators[0].config if estimators else EstimatorConfig()
         return consistency_of((d for e in estimators for d in e.decided), config)
+
+    def state_filter(self, recording: str) -> list[dict[str, Any]]:
+        """Per sequence of a recording: the state filter published at its end and the bank's back test."""
+        return [e.backtest() for e in self._estimators.get(recording, [])]
 
     def write_figures(self, directory: Path, formats: tuple[str, ...] = ("png", "svg"), dpi: int = 100,
                       keep: dict[str, Any] | None = None) -> list[Path]:
@@ -976,6 +981,16 @@ def format_table(report: dict[str, Any]) -> str:
         line = disagreement_line(Consistency(**figures), EstimatorConfig())
         if line is not None:
             lines.append(f"{name}: {line}")
+    for name, sequences in report.get("state_filter", {}).items():
+        if sequences:
+            chosen = collections.Counter(f"{seq['accel_noise_m2ps3']:g}" for seq in sequences)
+            longest = max(sequences, key=lambda seq: seq["samples"])
+            rms = ", ".join(f"{q}: {v:.2f}" for q, v in longest["rms_m"].items())
+            lines.append(
+                f"{name}: state filter accel noise (m2/s3) published at the end, by sequence: "
+                + ", ".join(f"{q} x{n}" for q, n in sorted(chosen.items(), key=lambda kv: float(kv[0])))
+                + f"; back test rms of the longest ({longest['samples']} samples): {rms} m"
+            )
     lines += _signal_table(report)
     return "\n".join(lines)
 

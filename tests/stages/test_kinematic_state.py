@@ -368,3 +368,48 @@ def test_calibration_quantiles_from_its_sorted_window_are_numpys():
             assert np.float64(calibration.cosine).tobytes() == np.float64(cosine_median).tobytes(), k
             assert calibration.trusted == bool(0.2 <= med <= 5.0 and abs(cosine_median) >= 0.9 and (q3 - q1) <= config.calibration_max_spread * med)
         assert sorted_path > 300 and numpy_path > 40
+
+
+def _many_tracks(est, n_tracks, make, n=120):
+    """Feed ``n_tracks`` tracks one after the other (ids 1..), each from ``make(seed) -> x, y``; reported zero."""
+    for k in range(n_tracks):
+        x, y = make(k)
+        _run(est, k + 1, x, y, np.zeros(n), np.zeros(n), start_ns=k * n * STEP_NS)
+
+
+def test_the_filter_bank_picks_a_smoother_filter_for_a_noisy_tracker_and_keeps_the_quick_one_for_a_clean_one():
+    """Back test: each filter's speed 2 s ago against the distance covered since. Noisy positions of steady cars
+    want a smooth filter; clean positions of cars that brake and accelerate want the quick default."""
+    def noisy(seed):
+        x, y, _, _ = _straight(120, 9.0, noise_m=0.4, seed=seed)
+        return x, y
+
+    def clean_varying(seed):
+        t = np.arange(120) * 0.1
+        s = 8.0 * t + 6.0 * np.sin(0.9 * t + seed)  # speed 8 ± 5.4 m/s
+        return s * math.cos(0.3), s * math.sin(0.3)
+
+    est = KinematicEstimator(EstimatorConfig(fuse_reported=False))
+    _many_tracks(est, 12, noisy)
+    report = est.backtest()
+    assert est.accel_noise == 1.0 and report["samples"] >= 300 and report["switches"] >= 1, report
+    assert report["rms_m"]["1"] < report["rms_m"]["10"]
+    est = KinematicEstimator(EstimatorConfig(fuse_reported=False))
+    _many_tracks(est, 12, clean_varying)
+    report = est.backtest()
+    assert est.accel_noise == 10.0 and report["samples"] >= 300 and report["switches"] == 0, report
+    assert report["rms_m"]["10"] < report["rms_m"]["1"]
+
+
+def test_a_bank_of_one_is_the_single_filter_and_the_bank_is_validated():
+    x, y, vx, vy = _straight(60, 11.0, noise_m=0.2, seed=3)
+    one, _ = _run(KinematicEstimator(EstimatorConfig(accel_noise_bank=(10.0,))), 1, x, y, vx, vy)
+    bank, _ = _run(KinematicEstimator(), 1, x, y, vx, vy)  # too few samples to judge: the default filter is published
+    assert [s.speed_mps for s in one] == [s.speed_mps for s in bank]
+    assert EstimatorConfig(accel_noise_m2ps3=5.0).filter_bank == (1.0, 3.0, 5.0, 10.0)
+    for bad in ((), (1.0, 1.0), (0.0, 2.0), (float("nan"),)):
+        if bad == ():
+            assert EstimatorConfig(accel_noise_bank=bad).filter_bank == (10.0,)
+            continue
+        with pytest.raises(ValueError, match="accel_noise_bank"):
+            EstimatorConfig(accel_noise_bank=bad)
