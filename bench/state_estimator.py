@@ -6,7 +6,9 @@ the next T = 1, 2, 3, 4 s (the constant-speed displacement error, mean |e|
 in m; ``bias4`` is the signed mean at 4 s). Candidates: the reported speed,
 causal least-squares fits over the last W s of positions (degree 1 and 2),
 and ``KinematicEstimator`` on positions alone and as every stage uses it
-(positions fused with the calibrated, gated reported velocity). Also
+(positions fused with the calibrated, gated reported velocity: its bank of
+filters, the published one chosen by a causal back test), and each filter of
+the bank alone (``accel noise q alone``). Also
 printed: the share of standing samples (true displacement over the next 2 s
 below 0.3 m) whose estimated speed is above 0.5 m/s.
 
@@ -64,6 +66,8 @@ def score(recording) -> dict[str, dict[str, float]]:
         columns = (seq.track_id, seq.stamp_ns, seq.x_m, seq.y_m, seq.vx_mps, seq.vy_mps)
         positions_only = estimator_speed(*columns, EstimatorConfig(fuse_reported=False))
         fused = estimator_speed(*columns, EstimatorConfig())
+        singles = {q: estimator_speed(*columns, EstimatorConfig(accel_noise_m2ps3=q, accel_noise_bank=(q,)))
+                   for q in EstimatorConfig().filter_bank}
         for tid in np.unique(seq.track_id[cars]).tolist():
             m = (seq.track_id == tid) & cars
             t = seq.stamp_ns[m] * 1e-9
@@ -77,6 +81,7 @@ def score(recording) -> dict[str, dict[str, float]]:
                 "quadratic 1.0 s": causal_fit(t, x, y, 1.0, 2),
                 "estimator, positions": positions_only[m],
                 "estimator (default)": fused[m],
+                **{f"accel noise {q:g} alone": speed[m] for q, speed in singles.items()},
             }
             history = t - t[0] >= 1.0
             j2 = np.minimum(np.searchsorted(t, t + 2.0 - 1e-6), t.shape[0] - 1)
