@@ -16,6 +16,19 @@ of the squared innovation less the predicted position variance, floored at
 smooths K733's sample-and-hold positions (the tracker repeats a position for
 several frames, then jumps) without a per-recording setting.
 
+A bank of such filters: the noise estimate cannot tell a noisy tracker from a
+car that accelerates, so every track runs one filter per value of
+``accel_noise_bank`` (with ``accel_noise_m2ps3`` among them, the one published
+first) on the same samples. Each sample keeps every filter's speed; once it
+is ``bank_horizon_s`` old, each is scored by speed x elapsed time against the
+distance the track covered since (squared, an exponentially weighted mean
+over the stream with a memory of ``bank_memory`` samples; a track's first
+second left out). After ``bank_min_samples`` scored samples the stream
+publishes the filter with the lowest mean, switching when another is lower by
+``bank_switch_gain``. Causal: a sample is judged only after its horizon, on
+positions. ``backtest()`` reports the choice, the switches and each filter's
+rms. A bank of one value is the single filter.
+
 The reported velocity is checked against the positions and used only once
 it has passed:
 
