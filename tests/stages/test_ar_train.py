@@ -424,3 +424,60 @@ def test_cli_trains_writes_weights_and_report(tmp_path, capsys):
     model = load_model(out)
     assert model.metadata["split"]["split"] == "time" and model.metadata["seed"] == 0
     assert model.metadata["sequences"]["val"] == ["k729_2022-03-16/013"]
+
+
+def test_folds_choose_the_epochs_by_the_mean_of_repeated_splits_then_train_on_every_sample(tiny):
+    from stages.offline.train.fit import _Trainer, fit_folds, fold_seed
+
+    cfg = TrainConfig(epochs=6, patience=2, folds=2, seed=4, hidden=8, split="time", val_fraction=0.3)
+    model, fitted, oof, oof_pred = fit_folds(cfg, tiny)
+    history = fitted["history"]
+    means = [h["val_loss"] for h in history]
+    assert all(len(h["val_loss_by_split"]) == 2 for h in history)
+    assert means == pytest.approx([float(np.mean(h["val_loss_by_split"])) for h in history])
+    assert fitted["best_epoch"] == int(np.argmin(means)) and fitted["epochs_run"] == fitted["best_epoch"] + 1
+    assert fitted["folds"]["split_seeds"] == [fold_seed(4, 0), fold_seed(4, 1)] and fold_seed(4, 0) != fold_seed(5, 0)
+    # early stopping on the mean: it ran `patience` epochs past its best, or to the end
+    assert len(history) == min(cfg.epochs, fitted["best_epoch"] + 1 + cfg.patience)
+    # the out-of-fold part: each split's validation samples, predicted by its own net
+    assert len(oof) == oof_pred.shape[0] == sum(len(split_samples(tiny, "time", 0.3, fold_seed(4, r))[1]) for r in range(2))
+    assert np.isfinite(model.sigma_res_chunks).all() and (model.sigma_res_chunks > 0).all()
+    # the final net: seeded `seed`, trained on every sample for the chosen number of epochs
+    again = _Trainer(cfg, tiny, None, cfg.seed)
+    for _ in range(fitted["epochs_run"]):
+        assert math.isnan(again.epoch()[1])
+    ref = again.finish().net.state_dict()
+    assert all(torch.equal(ref[k], v) for k, v in model.net.state_dict().items())
+    with pytest.raises(ValueError, match="folds"):
+        TrainConfig(folds=1)
+
+
+def test_cli_folds_writes_a_model_trained_on_every_sample(tmp_path, capsys):
+    out, report = tmp_path / "m.pt", tmp_path / "r.json"
+    argv = ["train", "--sequence", "013", "--max-frames", "300", "--split", "time", "--val-fraction", "0.3", "--epochs", "3",
+            "--folds", "2", "--no-progress", "--no-cache", "--out", str(out), "--json", str(report)]
+    assert cli.main(argv) == 0
+    assert "split folds" in capsys.readouterr().out
+    data = json.loads(report.read_text())
+    assert data["split"]["split"] == "folds" and data["split"]["folds"] == 2 and len(data["split"]["fold_splits"]) == 2
+    assert data["sizes"]["train"] == data["sizes"]["samples"]  # every sample trains the final net
+    assert 1 <= data["training"]["folds"]["chosen_epochs"] == data["training"]["epochs_run"] <= 3
+    assert load_model(out).metadata["split"]["split"] == "folds"
+    assert cli.main(["train", "--folds", "1", "--no-progress", "--out", str(tmp_path / "x.pt")]) == 2
+    assert "folds" in capsys.readouterr().err
+
+
+def test_patience_0_trains_every_epoch_and_keeps_the_last_weights(tiny):
+    from stages.offline.train.fit import _Trainer
+
+    train, val, _ = split_samples(tiny, "time", 0.3, 0)
+    cfg = TrainConfig(epochs=4, patience=0, seed=2, hidden=8)
+    model, info = fit(cfg, tiny.subset(train), tiny.subset(val))
+    assert info["epochs_run"] == len(info["history"]) == 4
+    again = _Trainer(cfg, tiny.subset(train), tiny.subset(val), 2)
+    for _ in range(4):
+        again.epoch()
+    last = again.finish().net.state_dict()
+    assert all(torch.equal(last[k], v) for k, v in model.net.state_dict().items())
+    with pytest.raises(ValueError, match="patience"):
+        TrainConfig(patience=-1)

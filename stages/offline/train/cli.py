@@ -28,7 +28,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="windows whose route the future cannot decide: one sample per tied corridor weighted 1/k (default), dropped, or on the first")
     p.add_argument("--min-future-steps", type=int, default=10, help="least known target steps (of 40) a window needs (default 10; 40: whole 4 s future only)")
     p.add_argument("--epochs", type=int, default=200, help="maximum epochs (default 200; early stopping usually ends sooner)")
-    p.add_argument("--patience", type=int, default=20, help="epochs without validation improvement before stopping (default 20)")
+    p.add_argument("--patience", type=int, default=20, help="epochs without validation improvement before stopping (default 20; 0: no early stopping, train --epochs and keep the last epoch's weights)")
+    p.add_argument("--folds", type=int, default=0, metavar="R",
+                   help="choose the epoch count by the mean validation loss of R repeated --split splits trained side by side,"
+                        " then train one net on every sample for that many epochs (0: one split, early stopping; default 0)")
     p.add_argument("--batch-size", type=int, default=256)
     p.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate, the cosine schedule's peak (default 1e-3)")
     p.add_argument("--weight-decay", type=float, default=None, help="Adam L2 weight decay (default 0.3 linear, 0.1 with --hidden, 0.01 for --kind gru)")

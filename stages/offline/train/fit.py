@@ -3,7 +3,7 @@
 ::
 
     iamp train [--data DIR] [--recording NAME ...] [--split sequence|recording|time] [--val-fraction 0.2]
-               [--kind ar|gru] [--hidden 0|N] [--tied-routes weight|drop|first] [--min-future-steps 10] [--epochs 200] [--batch-size 256] [--lr 1e-3] [--seed 0] [--device cpu|cuda]
+               [--kind ar|gru] [--hidden 0|N] [--tied-routes weight|drop|first] [--min-future-steps 10] [--epochs 200] [--patience 20] [--folds 0] [--batch-size 256] [--lr 1e-3] [--seed 0] [--device cpu|cuda]
                [--out artefacts/ar_model.pt] [--json FILE] [--no-progress]
 
 Data: ``stages.offline.train.dataset`` (the online ``FeatureTracker`` over the
@@ -36,7 +36,11 @@ linear net, 0.1 with a hidden layer, 0.01 for the GRU, not tuned), loss MSE + MA
 known target steps, each sample by its weight: 1/k on one of k tied routes), learning rate cosine-annealed with warm restarts every 10
 epochs (``CosineAnnealingWarmRestarts`` T_0 = 10, stepped per batch), batches
 of 256, at most 200 epochs, early stopping when the validation loss has not
-improved for ``patience`` 20 epochs; the best epoch's weights are kept.
+improved for ``patience`` 20 epochs; the best epoch's weights are kept
+(``patience`` 0: no early stopping, the last epoch's weights). With
+``folds`` R >= 2 (``--folds``), ``fit_folds``: R nets on R repeated splits,
+trained side by side, pick the epoch count by their mean validation loss,
+and one net is trained on every sample for that many epochs.
 Seeded: the same seed, data and machine give the same weights.
 
 Why these: without regularisation the nets fit noise within a few epochs
@@ -111,6 +115,7 @@ class TrainConfig:
     weight_decay: float | None = None
     z_clip: float = 3.0
     patience: int = 20
+    folds: int = 0
     seed: int = 0
     device: str = "cpu"
     drop_features: tuple[str, ...] = ()
@@ -125,7 +130,11 @@ class TrainConfig:
             raise ValueError(f"kind = {self.kind!r}: expected one of {', '.join(KINDS)}")
         if self.hidden < 0 or (self.kind == "gru" and self.hidden < 1):
             raise ValueError(f"hidden = {self.hidden}: must be 0 (linear) or a number of units (at least 1 for kind gru)")
-        for name in ("epochs", "batch_size", "patience"):
+        if self.folds < 0 or self.folds == 1:
+            raise ValueError(f"folds = {self.folds}: must be 0 (one split, early stopping) or at least 2")
+        if self.patience < 0:
+            raise ValueError(f"patience = {self.patience}: must be >= 1, or 0 (no early stopping: the last epoch's weights)")
+        for name in ("epochs", "batch_size"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} = {getattr(self, name)}: must be >= 1")
         if not (math.isfinite(self.lr) and self.lr > 0):
@@ -329,71 +338,171 @@ def _git_commit() -> str | None:
         return None
 
 
+class _Trainer:
+    """One net in training: its normalisation (from ``train``), Adam and the cosine schedule, one epoch per ``epoch()``."""
+
+    def __init__(self, cfg: TrainConfig, train: ARDataset, val: ARDataset | None, seed: int) -> None:
+        names = cfg.feature_names
+        columns = np.array([FEATURE_NAMES.index(n) for n in names])
+        mean, std = _normalisation(train.x[:, :, columns], train.mask)
+        torch.manual_seed(seed)
+        self.net = net = make_net(cfg.kind, len(names), cfg.hidden)
+        self.model = ARModel(net=net, feature_names=names, feature_mean=mean, feature_std=std, sigma_res_chunks=np.zeros(N_CHUNKS),
+                             z_clip=cfg.z_clip)
+        self.device = torch.device(cfg.device)
+        net.to(self.device)
+        self.train_t = self._tensors(train)
+        self.val_t = self._tensors(val) if val is not None and len(val) else None
+        self.opt = torch.optim.Adam(net.parameters(), lr=cfg.lr, weight_decay=cfg.decay)
+        self.sched = torch.optim.lr_scheduler.CosineAnnealingWarmRestarts(self.opt, T_0=10)
+        self.gen = torch.Generator().manual_seed(seed)
+        self.n = len(train)
+        self.batch_size = cfg.batch_size
+        self.iters = max(1, math.ceil(self.n / cfg.batch_size))
+        self.epochs_done = 0
+
+    def _tensors(self, ds: ARDataset):
+        w = ds.y_mask.astype(np.float32) * ds.weight.astype(np.float32)[:, None]
+        return (torch.from_numpy(self.model.normalise(ds.x)).to(self.device), torch.from_numpy(ds.mask.astype(np.float32)).to(self.device),
+                torch.from_numpy(ds.y.astype(np.float32)).to(self.device), torch.from_numpy(w).to(self.device))
+
+    def epoch(self) -> tuple[float, float]:
+        """Train one epoch; (approximate training loss, validation loss or NaN without validation data)."""
+        zt, mt, yt, wt = self.train_t
+        self.net.train()
+        perm = torch.randperm(self.n, generator=self.gen).to(self.device)
+        total = 0.0
+        for i in range(self.iters):
+            idx = perm[i * self.batch_size : (i + 1) * self.batch_size]
+            self.opt.zero_grad()
+            loss = _loss(self.net(zt[idx], mt[idx]), yt[idx], wt[idx])
+            loss.backward()
+            self.opt.step()
+            self.sched.step(self.epochs_done + (i + 1) / self.iters)
+            total += float(loss.detach()) * idx.numel()  # per-batch loss × batch size: the epoch figure is approximate
+        self.epochs_done += 1
+        self.net.eval()
+        val_loss = math.nan
+        if self.val_t is not None:
+            zv, mv, yv, wv = self.val_t
+            with torch.no_grad():
+                val_loss = float(_loss(self.net(zv, mv), yv, wv))
+        return total / self.n, val_loss
+
+    def state(self) -> dict[str, Any]:
+        return copy.deepcopy(self.net.state_dict())
+
+    def finish(self, state: dict[str, Any] | None = None) -> ARModel:
+        """The model with the weights ``state`` (default the current ones), on the CPU, in eval mode."""
+        if state is not None:
+            self.net.load_state_dict(state)
+        self.net.to("cpu").eval()
+        return self.model
+
+
 def fit(cfg: TrainConfig, train: ARDataset, val: ARDataset, log=None) -> tuple[ARModel, dict[str, Any]]:
     """Train on `train`, early-stop on `val`; the model (σ_res from `val`) and the training history."""
     say = log or (lambda msg: None)
     if len(train) == 0 or len(val) == 0:
         raise ValueError(f"no samples to train on ({len(train)} training, {len(val)} validation): use more data or another --split")
-    names = cfg.feature_names
-    columns = np.array([FEATURE_NAMES.index(n) for n in names])
-    mean, std = _normalisation(train.x[:, :, columns], train.mask)
-    torch.manual_seed(cfg.seed)
-    net = make_net(cfg.kind, len(names), cfg.hidden)
-    model = ARModel(net=net, feature_names=names, feature_mean=mean, feature_std=std, sigma_res_chunks=np.zeros(N_CHUNKS), z_clip=cfg.z_clip)
-    device = torch.device(cfg.device)
-    net.to(device)
-
-    def tensors(ds: ARDataset):
-        w = ds.y_mask.astype(np.float32) * ds.weight.astype(np.float32)[:, None]
-        return (torch.from_numpy(model.normalise(ds.x)).to(device), torch.from_numpy(ds.mask.astype(np.float32)).to(device),
-                torch.from_numpy(ds.y.astype(np.float32)).to(device), torch.from_numpy(w).to(device))
-
-    zt, mt, yt, wt = tensors(train)
-    zv, mv, yv, wv = tensors(val)
-    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr, weight_decay=cfg.decay)
-    sched = torch.optim.lr_scheduler.CosineAnnealingWarmRestarts(opt, T_0=10)
-    gen = torch.Generator().manual_seed(cfg.seed)
-    n = len(train)
-    iters = max(1, math.ceil(n / cfg.batch_size))
+    run = _Trainer(cfg, train, val, cfg.seed)
     best_loss, best_epoch, best_state, stale = math.inf, -1, None, 0
     history = []
     bar = progress_bar(cfg.epochs, cfg.progress, unit="epoch", desc="iamp train")
     t0 = time.perf_counter()
     try:
         for epoch in range(cfg.epochs):
-            net.train()
-            perm = torch.randperm(n, generator=gen).to(device)
-            total = 0.0
-            for i in range(iters):
-                idx = perm[i * cfg.batch_size : (i + 1) * cfg.batch_size]
-                opt.zero_grad()
-                loss = _loss(net(zt[idx], mt[idx]), yt[idx], wt[idx])
-                loss.backward()
-                opt.step()
-                sched.step(epoch + (i + 1) / iters)
-                total += float(loss.detach()) * idx.numel()  # per-batch loss × batch size: the epoch figure is approximate
-            net.eval()
-            with torch.no_grad():
-                val_loss = float(_loss(net(zv, mv), yv, wv))
-            history.append({"epoch": epoch, "train_loss": total / n, "val_loss": val_loss})
+            train_loss, val_loss = run.epoch()
+            history.append({"epoch": epoch, "train_loss": train_loss, "val_loss": val_loss})
             if val_loss < best_loss - 1e-6:
                 best_loss, best_epoch, stale = val_loss, epoch, 0
-                best_state = copy.deepcopy(net.state_dict())
+                best_state = run.state() if cfg.patience else None
             else:
                 stale += 1
             bar.update(1)
             bar.set_postfix(val=f"{val_loss:.3f}", best=f"{best_loss:.3f}@{best_epoch}")
-            if stale >= cfg.patience:
+            if cfg.patience and stale >= cfg.patience:
                 break
     finally:
         bar.close()
-    net.load_state_dict(best_state)
-    net.to("cpu").eval()
+    # patience 0: no early stopping, the last epoch's weights (the validation loss is reported, not used)
+    model = run.finish(best_state if cfg.patience else None)
     seconds = time.perf_counter() - t0
-    say(f"trained {len(history)} epochs in {seconds:.1f} s, best epoch {best_epoch} (validation loss {best_loss:.4f})")
+    say(f"trained {len(history)} epochs in {seconds:.1f} s, best epoch {best_epoch} (validation loss {best_loss:.4f})"
+        + ("" if cfg.patience else f"; kept the last epoch's weights (validation loss {history[-1]['val_loss']:.4f})"))
     pred_val = model.predict(val.x, val.mask)
     model.sigma_res_chunks = np.asarray(error_table(pred_val, val.y, val.y_mask, val.weight)["chunk_mean_rmse"], dtype=np.float32)
     return model, {"epochs_run": len(history), "best_epoch": best_epoch, "best_val_loss": best_loss, "train_seconds": seconds, "history": history}
+
+
+def fold_seed(seed: int, fold: int) -> int:
+    """The split seed of repeated split ``fold`` (0-based) of a run seeded ``seed`` (``--folds``)."""
+    return seed * 1000 + 1 + fold
+
+
+def fit_folds(cfg: TrainConfig, ds: ARDataset, log=None) -> tuple[ARModel, dict[str, Any], ARDataset, np.ndarray]:
+    """``--folds R``: the epoch count chosen by R repeated validation splits, then one net trained on every sample.
+
+    R nets (split seeds ``fold_seed(seed, r)``, each the configured ``split`` with ``val_fraction``; net r seeded
+    ``fold_seed(seed, r)`` too) are trained side by side, epoch by epoch; the mean of their validation losses
+    picks the epoch E (the best mean; stopping when it has not improved for ``patience`` epochs). A net seeded
+    ``seed`` is then trained on all samples for E + 1 epochs (the same schedule, so it ends at the same point of the
+    cosine cycle). Its σ_res comes from the R nets' out-of-fold predictions at epoch E (a sample in several
+    validation parts counts once per part). Returns the model, the fitted figures, the out-of-fold validation set
+    and its predictions (for the report)."""
+    say = log or (lambda msg: None)
+    reach = max((1.0, *(float(f) for f in cfg.dataset.speed_factors)))
+    splits = [split_samples(ds, cfg.split, cfg.val_fraction, fold_seed(cfg.seed, r), reach=reach) for r in range(cfg.folds)]
+    for r, (tr, va, _info) in enumerate(splits):
+        if tr.size == 0 or va.size == 0:
+            raise ValueError(f"--folds {cfg.folds}: split {r} has {tr.size} training and {va.size} validation samples;"
+                             " use more data, fewer folds or another --split")
+    runs = [_Trainer(cfg, ds.subset(tr), ds.subset(va), fold_seed(cfg.seed, r)) for r, (tr, va, _info) in enumerate(splits)]
+    best_loss, best_epoch, best_states, stale = math.inf, -1, None, 0
+    history = []
+    bar = progress_bar(cfg.epochs, cfg.progress, unit="epoch", desc=f"iamp train ({cfg.folds} splits)")
+    t0 = time.perf_counter()
+    try:
+        for epoch in range(cfg.epochs):
+            losses = [run.epoch() for run in runs]
+            mean_val = float(np.mean([v for _t, v in losses]))
+            history.append({"epoch": epoch, "train_loss": float(np.mean([t for t, _v in losses])), "val_loss": mean_val,
+                            "val_loss_by_split": [v for _t, v in losses]})
+            if mean_val < best_loss - 1e-6:
+                best_loss, best_epoch, stale = mean_val, epoch, 0
+                best_states = [run.state() for run in runs]
+            else:
+                stale += 1
+            bar.update(1)
+            bar.set_postfix(val=f"{mean_val:.3f}", best=f"{best_loss:.3f}@{best_epoch}")
+            if cfg.patience and stale >= cfg.patience:
+                break
+    finally:
+        bar.close()
+    cv_seconds = time.perf_counter() - t0
+    epochs = best_epoch + 1
+    say(f"{cfg.folds} splits: {len(history)} epochs in {cv_seconds:.1f} s, best mean validation loss {best_loss:.4f} "
+        f"after {epochs} epochs; training on all {len(ds)} samples for {epochs} epochs")
+    oof_index = np.concatenate([va for _tr, va, _info in splits])
+    oof_pred = np.concatenate([run.finish(state).predict(ds.x[va], ds.mask[va]) for run, state, (_tr, va, _info)
+                               in zip(runs, best_states, splits)])
+    oof = ds.subset(oof_index)
+    final = _Trainer(cfg, ds, None, cfg.seed)
+    t1 = time.perf_counter()
+    for _ in range(epochs):
+        final.epoch()
+    model = final.finish()
+    model.sigma_res_chunks = np.asarray(error_table(oof_pred, oof.y, oof.y_mask, oof.weight)["chunk_mean_rmse"], dtype=np.float32)
+    seconds = time.perf_counter() - t0
+    say(f"trained the final net {epochs} epochs in {time.perf_counter() - t1:.1f} s")
+    best_by_split = [min(h["val_loss_by_split"][r] for h in history) for r in range(cfg.folds)]
+    return model, {"epochs_run": epochs, "best_epoch": best_epoch, "best_val_loss": best_loss, "train_seconds": seconds,
+                   "folds": {"count": cfg.folds, "split_seeds": [fold_seed(cfg.seed, r) for r in range(cfg.folds)],
+                             "epochs_run": len(history), "chosen_epochs": epochs, "best_mean_val_loss": best_loss,
+                             "val_loss_at_chosen_by_split": history[best_epoch]["val_loss_by_split"],
+                             "best_val_loss_by_split": best_by_split, "seconds": cv_seconds,
+                             "splits": [info for _tr, _va, info in splits]},
+                   "history": history}, oof, oof_pred
 
 
 def run_training(cfg: TrainConfig, *, cache_dir: Path | None = DEFAULT_CACHE_DIR, log=None) -> tuple[ARModel, dict[str, Any]]:
@@ -404,12 +513,20 @@ def run_training(cfg: TrainConfig, *, cache_dir: Path | None = DEFAULT_CACHE_DIR
     data_seconds = time.perf_counter() - t0
     if len(ds) == 0:
         raise ValueError(f"no training samples in {cfg.dataset.data_dir} ({ds.counts}): select recordings with vehicles that have a 4 s future")
-    train_idx, val_idx, split_info = split_samples(ds, cfg.split, cfg.val_fraction, cfg.seed,
-                                                   reach=max((1.0, *(float(f) for f in cfg.dataset.speed_factors))))
-    train, val = ds.subset(train_idx), ds.subset(val_idx)
-    say(f"{len(train)} training and {len(val)} validation samples ({cfg.split} split)")
-    model, fitted = fit(cfg, train, val, log=say)
-    pred_val = model.predict(val.x, val.mask)
+    if cfg.folds:
+        # every sample trains the final net; "validation" is the R splits' out-of-fold part, predicted by their nets
+        model, fitted, val, pred_val = fit_folds(cfg, ds, log=say)
+        train = ds
+        split_info = {"split": "folds", "base_split": cfg.split, "val_fraction": cfg.val_fraction, "seed": cfg.seed,
+                      "folds": cfg.folds, "dropped_at_cut": 0, "val_sequences": [], "time_cuts": {},
+                      "fold_splits": fitted["folds"]["splits"]}
+    else:
+        train_idx, val_idx, split_info = split_samples(ds, cfg.split, cfg.val_fraction, cfg.seed,
+                                                       reach=max((1.0, *(float(f) for f in cfg.dataset.speed_factors))))
+        train, val = ds.subset(train_idx), ds.subset(val_idx)
+        say(f"{len(train)} training and {len(val)} validation samples ({cfg.split} split)")
+        model, fitted = fit(cfg, train, val, log=say)
+        pred_val = model.predict(val.x, val.mask)
     pred_train = model.predict(train.x, train.mask)
     by_recording = {}
     for r, name in enumerate(ds.recordings):
@@ -431,7 +548,7 @@ def run_training(cfg: TrainConfig, *, cache_dir: Path | None = DEFAULT_CACHE_DIR
                   "parameters": int(sum(p.numel() for p in model.net.parameters()))},
         "training": {k: v for k, v in fitted.items() if k != "history"} | {
             "epochs_max": cfg.epochs, "batch_size": cfg.batch_size, "lr": cfg.lr, "weight_decay": cfg.decay, "z_clip": cfg.z_clip,
-            "patience": cfg.patience, "seed": cfg.seed, "device": cfg.device, "loss": "mse + mae",
+            "patience": cfg.patience, "folds": fitted.get("folds", cfg.folds), "seed": cfg.seed, "device": cfg.device, "loss": "mse + mae",
             "schedule": "CosineAnnealingWarmRestarts(T_0=10), per batch"},
         "train_errors": {"model": error_table(pred_train, train.y, train.y_mask, train.weight)},
         "validation": compare(pred_val, val),
@@ -521,7 +638,7 @@ def run_from_args(args) -> int:
             ),
             split=args.split, val_fraction=args.val_fraction, kind=args.kind,
             hidden=DEFAULT_HIDDEN_GRU if args.hidden is None and args.kind == "gru" else (args.hidden or 0), epochs=args.epochs, batch_size=args.batch_size,
-            lr=args.lr, weight_decay=args.weight_decay, z_clip=args.z_clip, patience=args.patience, seed=args.seed, device=args.device,
+            lr=args.lr, weight_decay=args.weight_decay, z_clip=args.z_clip, patience=args.patience, folds=args.folds, seed=args.seed, device=args.device,
             drop_features=tuple(args.drop_feature), progress=not args.no_progress,
         )
         model, report = run_training(cfg, cache_dir=None if args.no_cache else args.cache_dir, log=lambda m: print(m, file=sys.stderr))
