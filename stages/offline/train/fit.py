@@ -400,31 +400,41 @@ class _Trainer:
         return self.model
 
 
+def _epochs(cfg: TrainConfig, desc: str, step, snapshot) -> tuple[list[dict[str, Any]], float, int, Any]:
+    """Up to ``cfg.epochs`` calls of ``step()`` (one epoch; returns its history row, whose ``val_loss`` is the
+    criterion), stopping once it has not improved for ``cfg.patience`` epochs (0: never); ``snapshot()`` is taken
+    at each improvement. Returns (history, best validation loss, its epoch, the snapshot taken then)."""
+    best_loss, best_epoch, best, stale = math.inf, -1, None, 0
+    history: list[dict[str, Any]] = []
+    bar = progress_bar(cfg.epochs, cfg.progress, unit="epoch", desc=desc)
+    try:
+        for epoch in range(cfg.epochs):
+            row = {"epoch": epoch, **step()}
+            history.append(row)
+            if row["val_loss"] < best_loss - 1e-6:
+                best_loss, best_epoch, stale = row["val_loss"], epoch, 0
+                best = snapshot()
+            else:
+                stale += 1
+            bar.update(1)
+            bar.set_postfix(val=f"{row['val_loss']:.3f}", best=f"{best_loss:.3f}@{best_epoch}")
+            if cfg.patience and stale >= cfg.patience:
+                break
+    finally:
+        bar.close()
+    return history, best_loss, best_epoch, best
+
+
 def fit(cfg: TrainConfig, train: ARDataset, val: ARDataset, log=None) -> tuple[ARModel, dict[str, Any]]:
     """Train on `train`, early-stop on `val`; the model (σ_res from `val`) and the training history."""
     say = log or (lambda msg: None)
     if len(train) == 0 or len(val) == 0:
         raise ValueError(f"no samples to train on ({len(train)} training, {len(val)} validation): use more data or another --split")
     run = _Trainer(cfg, train, val, cfg.seed)
-    best_loss, best_epoch, best_state, stale = math.inf, -1, None, 0
-    history = []
-    bar = progress_bar(cfg.epochs, cfg.progress, unit="epoch", desc="iamp train")
     t0 = time.perf_counter()
-    try:
-        for epoch in range(cfg.epochs):
-            train_loss, val_loss = run.epoch()
-            history.append({"epoch": epoch, "train_loss": train_loss, "val_loss": val_loss})
-            if val_loss < best_loss - 1e-6:
-                best_loss, best_epoch, stale = val_loss, epoch, 0
-                best_state = run.state() if cfg.patience else None
-            else:
-                stale += 1
-            bar.update(1)
-            bar.set_postfix(val=f"{val_loss:.3f}", best=f"{best_loss:.3f}@{best_epoch}")
-            if cfg.patience and stale >= cfg.patience:
-                break
-    finally:
-        bar.close()
+    history, best_loss, best_epoch, best_state = _epochs(
+        cfg, "iamp train", lambda: dict(zip(("train_loss", "val_loss"), run.epoch())),
+        run.state if cfg.patience else (lambda: None))
     # patience 0: no early stopping, the last epoch's weights (the validation loss is reported, not used)
     model = run.finish(best_state if cfg.patience else None)
     seconds = time.perf_counter() - t0
@@ -458,27 +468,14 @@ def fit_folds(cfg: TrainConfig, ds: ARDataset, log=None) -> tuple[ARModel, dict[
             raise ValueError(f"--folds {cfg.folds}: split {r} has {tr.size} training and {va.size} validation samples;"
                              " use more data, fewer folds or another --split")
     runs = [_Trainer(cfg, ds.subset(tr), ds.subset(va), fold_seed(cfg.seed, r)) for r, (tr, va, _info) in enumerate(splits)]
-    best_loss, best_epoch, best_states, stale = math.inf, -1, None, 0
-    history = []
-    bar = progress_bar(cfg.epochs, cfg.progress, unit="epoch", desc=f"iamp train ({cfg.folds} splits)")
+    def step() -> dict[str, Any]:
+        losses = [run.epoch() for run in runs]
+        return {"train_loss": float(np.mean([t for t, _v in losses])), "val_loss": float(np.mean([v for _t, v in losses])),
+                "val_loss_by_split": [v for _t, v in losses]}
+
     t0 = time.perf_counter()
-    try:
-        for epoch in range(cfg.epochs):
-            losses = [run.epoch() for run in runs]
-            mean_val = float(np.mean([v for _t, v in losses]))
-            history.append({"epoch": epoch, "train_loss": float(np.mean([t for t, _v in losses])), "val_loss": mean_val,
-                            "val_loss_by_split": [v for _t, v in losses]})
-            if mean_val < best_loss - 1e-6:
-                best_loss, best_epoch, stale = mean_val, epoch, 0
-                best_states = [run.state() for run in runs]
-            else:
-                stale += 1
-            bar.update(1)
-            bar.set_postfix(val=f"{mean_val:.3f}", best=f"{best_loss:.3f}@{best_epoch}")
-            if cfg.patience and stale >= cfg.patience:
-                break
-    finally:
-        bar.close()
+    history, best_loss, best_epoch, best_states = _epochs(cfg, f"iamp train ({cfg.folds} splits)", step,
+                                                          lambda: [run.state() for run in runs])
     cv_seconds = time.perf_counter() - t0
     epochs = best_epoch + 1
     say(f"{cfg.folds} splits: {len(history)} epochs in {cv_seconds:.1f} s, best mean validation loss {best_loss:.4f} "
