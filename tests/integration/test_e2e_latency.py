@@ -82,8 +82,14 @@ params = {{ path = "" }}
     replay = Launch(str(pipeline), "--no-viewer", "--record", str(rec2), cwd=tmp_path)
     assert replay.wait() == 0, replay.text()[-4000:]
     sets = [m for t, m in _messages(rec2) if t.endswith("/corridors/corridor_set")]
-    assert len(sets) == n_old > 5 and all(s.header.source_wall_ns == 0 for s in sets)  # every frame, wall stamp unknown
     cst = _last_stats(rec2, "corridors")
+    # what to look at when frames go missing (seen twice in full runs, 64 of 70 from frame 6 on; never alone): where the
+    # scene stood in the replayed file, corridors' counters, the frames it published, the launcher's log
+    why = {"old_order": [m.topic.rsplit("/", 1)[-1] for m in read_messages(str(old))][:12],
+           "corridors": dict(cst.counters) if cst is not None else None,
+           "first_sets": [s.header.frame_index for s in sets[:3]], "log": replay.text()[-3000:]}
+    assert len(sets) == n_old > 5, why  # every frame
+    assert all(s.header.source_wall_ns == 0 for s in sets)  # wall stamp unknown
     assert cst.counters["decode_errors"] == 0 and cst.counters["processed"] == len(sets)
     assert math.isnan(cst.e2e_ms_p50) and math.isnan(cst.e2e_ms_p95)
 
