@@ -462,7 +462,9 @@ def test_cli_folds_writes_a_model_trained_on_every_sample(tmp_path, capsys):
     assert data["split"]["split"] == "folds" and data["split"]["folds"] == 2 and len(data["split"]["fold_splits"]) == 2
     assert data["sizes"]["train"] == data["sizes"]["samples"]  # every sample trains the final net
     assert 1 <= data["training"]["folds"]["chosen_epochs"] == data["training"]["epochs_run"] <= 3
-    assert load_model(out).metadata["split"]["split"] == "folds"
+    meta = load_model(out).metadata
+    assert meta["split"]["split"] == "folds"
+    assert meta["sequences"]["val"] == [] and meta["sequences"]["out_of_fold"] == meta["sequences"]["train"] == ["k729_2022-03-16/013"]
     assert cli.main(["train", "--folds", "1", "--no-progress", "--out", str(tmp_path / "x.pt")]) == 2
     assert "folds" in capsys.readouterr().err
 

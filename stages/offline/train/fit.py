@@ -533,7 +533,10 @@ def run_training(cfg: TrainConfig, *, cache_dir: Path | None = DEFAULT_CACHE_DIR
     report: dict[str, Any] = {
         "data": str(cfg.dataset.data_dir),
         "recordings": list(ds.recordings),
-        "sequences": {"train": sorted({ds.sequences[s] for s in train.sequence}), "val": sorted({ds.sequences[s] for s in val.sequence})},
+        # with --folds every sequence trained the final net: none is held out from it ("out_of_fold": the repeated splits' validation parts)
+        "sequences": {"train": sorted({ds.sequences[s] for s in train.sequence}),
+                      **({"val": [], "out_of_fold": sorted({ds.sequences[s] for s in val.sequence})} if cfg.folds
+                         else {"val": sorted({ds.sequences[s] for s in val.sequence})})},
         "split": split_info,
         "sizes": {"samples": len(ds), "train": len(train), "val": len(val), "dropped_at_cut": split_info["dropped_at_cut"],
                   "train_tracks": train.tracks, "val_tracks": val.tracks,
