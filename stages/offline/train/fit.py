@@ -163,6 +163,11 @@ class TrainConfig:
         return DEFAULT_DECAY_HIDDEN if self.hidden else DEFAULT_DECAY_LINEAR
 
     @property
+    def reach(self) -> float:
+        """How many times its length a window spans of a sequence's time (the largest speed factor, at least 1): the splits' ``reach``."""
+        return max((1.0, *(float(f) for f in self.dataset.speed_factors)))
+
+    @property
     def feature_names(self) -> tuple[str, ...]:
         return tuple(n for n in FEATURE_NAMES if n not in self.drop_features)
 
@@ -435,8 +440,8 @@ def fit(cfg: TrainConfig, train: ARDataset, val: ARDataset, log=None) -> tuple[A
     history, best_loss, best_epoch, best_state = _epochs(
         cfg, "iamp train", lambda: dict(zip(("train_loss", "val_loss"), run.epoch())),
         run.state if cfg.patience else (lambda: None))
-    # patience 0: no early stopping, the last epoch's weights (the validation loss is reported, not used)
-    model = run.finish(best_state if cfg.patience else None)
+    # patience 0: no snapshot, so the last epoch's weights (the validation loss is reported, not used)
+    model = run.finish(best_state)
     seconds = time.perf_counter() - t0
     say(f"trained {len(history)} epochs in {seconds:.1f} s, best epoch {best_epoch} (validation loss {best_loss:.4f})"
         + ("" if cfg.patience else f"; kept the last epoch's weights (validation loss {history[-1]['val_loss']:.4f})"))
@@ -461,8 +466,7 @@ def fit_folds(cfg: TrainConfig, ds: ARDataset, log=None) -> tuple[ARModel, dict[
     validation parts counts once per part). Returns the model, the fitted figures, the out-of-fold validation set
     and its predictions (for the report)."""
     say = log or (lambda msg: None)
-    reach = max((1.0, *(float(f) for f in cfg.dataset.speed_factors)))
-    splits = [split_samples(ds, cfg.split, cfg.val_fraction, fold_seed(cfg.seed, r), reach=reach) for r in range(cfg.folds)]
+    splits = [split_samples(ds, cfg.split, cfg.val_fraction, fold_seed(cfg.seed, r), reach=cfg.reach) for r in range(cfg.folds)]
     for r, (tr, va, _info) in enumerate(splits):
         if tr.size == 0 or va.size == 0:
             raise ValueError(f"--folds {cfg.folds}: split {r} has {tr.size} training and {va.size} validation samples;"
@@ -518,8 +522,7 @@ def run_training(cfg: TrainConfig, *, cache_dir: Path | None = DEFAULT_CACHE_DIR
                       "folds": cfg.folds, "dropped_at_cut": 0, "val_sequences": [], "time_cuts": {},
                       "fold_splits": fitted["folds"]["splits"]}
     else:
-        train_idx, val_idx, split_info = split_samples(ds, cfg.split, cfg.val_fraction, cfg.seed,
-                                                       reach=max((1.0, *(float(f) for f in cfg.dataset.speed_factors))))
+        train_idx, val_idx, split_info = split_samples(ds, cfg.split, cfg.val_fraction, cfg.seed, reach=cfg.reach)
         train, val = ds.subset(train_idx), ds.subset(val_idx)
         say(f"{len(train)} training and {len(val)} validation samples ({cfg.split} split)")
         model, fitted = fit(cfg, train, val, log=say)
