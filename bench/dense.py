@@ -24,7 +24,7 @@ stages), the hybrid/baseline ratio, and per mode the exponent of a
 least-squares fit log(time) ~ log(pairs) over the N (1 = linear).
 Prints figures, asserts nothing; other load on the machine shows in them.
 
-    python bench/dense.py [--vehicles 6,12,18,36,72] [--frames 40] [--warmup 10] [--source k733|k729]
+    python bench/dense.py [--vehicles 6,12,18,36,72] [--frames 40] [--warmup 10] [--source k733|k729] [--modes hybrid,baseline]
                           [--backend numpy|torch] [--device cpu|cuda] [--json FILE] [--keep DIR] [--set KEY=VALUE ...]
 
 ``--set KEY=VALUE`` sets a markov_prediction parameter for both modes (the
@@ -88,11 +88,11 @@ def run_one(data_dir: Path, name: str, args, stencils) -> dict:
     recording = load_recording(data_dir, name)
     scene_maps = SceneMaps(data=data_dir)
     ar_model = None
-    times: dict[str, list[float]] = {s: [] for s in (*UPSTREAM, "ar_inference", *(f"markov_prediction/{m}" for m in MODES))}
-    cpu: dict[str, list[float]] = {s: [] for s in ("corridors", "relations", "intentions", "ar_inference", *(f"markov_prediction/{m}" for m in MODES))}
+    times: dict[str, list[float]] = {s: [] for s in (*UPSTREAM, "ar_inference", *(f"markov_prediction/{m}" for m in args.modes))}
+    cpu: dict[str, list[float]] = {s: [] for s in ("corridors", "relations", "intentions", "ar_inference", *(f"markov_prediction/{m}" for m in args.modes))}
     vehicles, pairs = [], []
     # markov_prediction's update on the whole set after its prepare calls: its work once the last input (the belief) is in
-    last_input: dict[str, list[float]] = {m: [] for m in MODES}
+    last_input: dict[str, list[float]] = {m: [] for m in args.modes}
     after: dict[str, float] = {}
     n_frames = recording.sequences[0].n_frames
     segments = max(1, int(args.segments))
@@ -105,11 +105,11 @@ def run_one(data_dir: Path, name: str, args, stencils) -> dict:
         corridors = CorridorBuilder(CorridorsConfig(), scene_maps=scene_maps)
         relations = RelationExtractor(RelationsConfig(), scene_maps=scene_maps)
         intentions = IntentionFilter(IntentionsConfig(), producer="intentions", scene_maps=scene_maps)
-        configs = {mode: markov_config(args, mode) for mode in MODES}
-        ar = ARInference(ARInferenceConfig.from_params({"device": args.device, **configs["hybrid"].input_cells()}, where="bench/dense.py"),
+        configs = {mode: markov_config(args, mode) for mode in args.modes}
+        ar = ARInference(ARInferenceConfig.from_params({"device": args.device, **markov_config(args, "hybrid").input_cells()}, where="bench/dense.py"),
                          producer="ar_inference", model=ar_model)
         ar_model = ar.model
-        predictors = {mode: MarkovPredictor(configs[mode], producer="markov_prediction", stencils=stencils) for mode in MODES}
+        predictors = {mode: MarkovPredictor(configs[mode], producer="markov_prediction", stencils=stencils) for mode in args.modes}
         scene = None
         iterator = iter(player)
         for n in range(start + args.warmup + per_segment):
@@ -132,7 +132,7 @@ def run_one(data_dir: Path, name: str, args, stencils) -> dict:
             t2, c2 = time.perf_counter(), time.process_time()
             belief = intentions.process(frame, corridor_set, relation_set, scene)[0]
             t3, c3 = time.perf_counter(), time.process_time()
-            profiles = ar.process(corridor_set, relation_set, frame, scene)[0]
+            profiles = ar.process(corridor_set, relation_set, frame, scene)[0] if "hybrid" in args.modes else None
             t4, c4 = time.perf_counter(), time.process_time()
             markov_ms, markov_cpu = {}, {}
             inputs = {"corridor_set": corridor_set, "relation_set": relation_set, "scene": scene, "track_frame": frame,
@@ -163,15 +163,15 @@ def run_one(data_dir: Path, name: str, args, stencils) -> dict:
             times["relations"].append((t2 - t1) * 1e3)
             times["intentions"].append((t3 - t2) * 1e3)
             times["ar_inference"].append((t4 - t3) * 1e3)
-            for mode in MODES:
+            for mode in args.modes:
                 times[f"markov_prediction/{mode}"].append(markov_ms[mode])
                 last_input[mode].append(after[mode])
             for name, ms in (("corridors", c1 - c0), ("relations", c2 - c1), ("intentions", c3 - c2), ("ar_inference", c4 - c3)):
                 cpu[name].append(ms * 1e3)
-            for mode in MODES:
+            for mode in args.modes:
                 cpu[f"markov_prediction/{mode}"].append(markov_cpu[mode])
     out = {}
-    for mode in MODES:
+    for mode in args.modes:
         stages = [*UPSTREAM, *(["ar_inference"] if mode == "hybrid" else []), f"markov_prediction/{mode}"]
         per_frame = np.sum([times[s] for s in stages], axis=0)
         cpu_frame = np.sum([cpu[s] for s in stages if s in cpu], axis=0)
@@ -202,9 +202,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: leave torch's default)")
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--keep", type=Path, default=None, help="write the dense recordings here (default a temporary folder)")
+    parser.add_argument("--modes", default=",".join(MODES), help="comma-separated modes to time (default hybrid,baseline; the ratio needs both)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="markov_prediction parameter (JSON value) for both modes, e.g. --set n_inputs=12; the input cells go to ar_inference too")
     args = parser.parse_args(argv)
+    args.modes = tuple(m.strip() for m in args.modes.split(",") if m.strip())
+    if not args.modes or set(args.modes) - set(MODES):
+        parser.error(f"--modes {','.join(args.modes)!s}: choose among {', '.join(MODES)}")
     from stages.offline.evaluation import _key_values
 
     args.set = _key_values(args.set, "--set")
@@ -234,17 +238,17 @@ def main(argv: list[str] | None = None) -> int:
     keep = args.keep or Path(tempfile.mkdtemp(prefix="iamp-dense-"))
     print(f"cpu cores {os.cpu_count()}, backend {args.backend} on {args.device}; {args.warmup} warm-up + {args.frames} timed frames per N; "
           "timings include any other load on the machine")
-    report: dict = {"source": recording, "backend": args.backend, "device": args.device, "modes": {m: {"by_vehicles": {}} for m in MODES}}
+    report: dict = {"source": recording, "backend": args.backend, "device": args.device, "modes": {m: {"by_vehicles": {}} for m in args.modes}}
     for n in sizes:
         built = build_dense(data, recording, n, keep, sequences=sequences)
         res = run_one(keep, built.name, args, stencils)
-        for mode in MODES:
+        for mode in args.modes:
             report["modes"][mode]["by_vehicles"][str(n)] = res[mode]
         print(f"N={n}: {built.name}, {len(built.layers)} layers, recording mean {built.vehicles_mean:.1f} vehicles/frame; "
               + "; ".join(f"{m} frame p50 {res[m]['frame_ms_median']:.1f} ms (cpu {res[m]['frame_cpu_ms_median']:.1f}), markov_prediction p50 "
                           f"{res[m]['stages']['markov_prediction']['ms_median']:.1f} ms (cpu {res[m]['stages']['markov_prediction']['cpu_ms_median']:.1f}, "
                           f"after its last input {res[m]['stages']['markov_prediction']['after_last_input_ms_median']:.1f}, "
-                          f"{res[m]['pairs_median']:.0f} pairs)" for m in MODES),
+                          f"{res[m]['pairs_median']:.0f} pairs)" for m in args.modes),
               flush=True)
         if args.json:  # written after every N, so that a run cut short keeps what it measured
             args.json.parent.mkdir(parents=True, exist_ok=True)
@@ -252,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
     stage_names = [*UPSTREAM, "ar_inference", "markov_prediction"]
     print()
     print(f"{'mode':<9}{'N':>4}{'veh':>6}{'pairs':>7} | " + " ".join(f"{s[:12]:>12}" for s in stage_names) + " | frame p50    p95")
-    for mode in MODES:
+    for mode in args.modes:
         for n in sizes:
             r = report["modes"][mode]["by_vehicles"][str(n)]
             cells = [f"{r['stages'][s]['ms_median']:12.1f}" if s in r["stages"] else f"{'-':>12}" for s in stage_names]
@@ -262,18 +266,18 @@ def main(argv: list[str] | None = None) -> int:
     print()
     print("CPU time of this process (time.process_time: less sensitive to other load than wall time; all threads counted)")
     print(f"{'mode':<9}{'N':>4}{'pairs':>7} | " + " ".join(f"{s[:12]:>12}" for s in stage_names[1:]) + " | frame cpu p50")
-    for mode in MODES:
+    for mode in args.modes:
         for n in sizes:
             r = report["modes"][mode]["by_vehicles"][str(n)]
             cells = [f"{r['stages'][s]['cpu_ms_median']:12.1f}" if s in r["stages"] else f"{'-':>12}" for s in stage_names[1:]]
             print(f"{mode:<9}{n:>4}{r['pairs_median']:>7.0f} | " + " ".join(cells) + f" | {r['frame_cpu_ms_median']:9.1f}")
     print()
-    for n in sizes:
+    for n in sizes if set(args.modes) == set(MODES) else ():
         h, b = (report["modes"][m]["by_vehicles"][str(n)] for m in MODES)
         print(f"N={n:>3}: hybrid/baseline frame {h['frame_ms_median'] / b['frame_ms_median']:.2f}, "
               f"markov_prediction {h['stages']['markov_prediction']['ms_median'] / b['stages']['markov_prediction']['ms_median']:.2f}")
     if len(sizes) > 1:
-        for mode in MODES:
+        for mode in args.modes:
             rows = [report["modes"][mode]["by_vehicles"][str(n)] for n in sizes]
             x = np.log([max(r["pairs_median"], 1.0) for r in rows])
             fits = {}

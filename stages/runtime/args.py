@@ -106,7 +106,8 @@ def build_parser(spec: StageSpec) -> argparse.ArgumentParser:
         "--await-nodes",
         default="",
         metavar="ID,ID",
-        help="sources: wait until these nodes' liveliness tokens are visible before the first publish (the launcher passes them)",
+        help="wait until these nodes' liveliness tokens are visible before the first publish (the launcher passes a source every "
+        "other node, an operator the nodes that read its outputs)",
     )
     add_network_args(p)
     return p

@@ -431,8 +431,13 @@ class Launcher:
             cmd += ["--inputs-json", json.dumps(node.inputs)]
         if node.kind == "source":
             others = [n.id for n in self.p.nodes if n.kind != "source"]
-            if others:
-                cmd += ["--await-nodes", ",".join(others)]
+        else:
+            # an operator's outputs are lost to a consumer whose subscription it does not see yet: it waits for the nodes
+            # that read them (the recorder reads all) before its first publish, as a source waits for everyone
+            others = [n.id for n in self.p.nodes if n.id != node.id and n.kind != "source" and node.spec.outputs
+                      and (n.kind == "raw_sink" or any(ref.split("/", 1)[0] == node.id for ref in n.inputs.values()))]
+        if others:
+            cmd += ["--await-nodes", ",".join(others)]
         if node.queue_size:
             cmd += ["--queue-size", str(node.queue_size)]
         return cmd

@@ -182,6 +182,7 @@ class Node:
         self._progress_pub = s.declare_publisher(keys.ack_key(self.run_id, self.node_id), congestion_control=zenoh.CongestionControl.DROP)
         if self.spec.kind == "source":
             self._keepalive.append(s.declare_subscriber(keys.ack_pattern(self.run_id), self._on_ack))
+        if self.spec.kind == "source" or self._awaited():
             self._keepalive.append(s.liveliness().declare_subscriber(keys.alive_pattern(self.run_id), self._on_alive, history=True))
         self._token = s.liveliness().declare_token(keys.alive_key(self.run_id, self.node_id))
         self.log.info(
@@ -604,7 +605,14 @@ class Node:
             first_extra=lambda: traceback.format_exc().rstrip(),
         )
 
+    def _awaited(self) -> list[str]:
+        """The nodes of ``--await-nodes``: their liveliness tokens must be visible before this node publishes."""
+        return [n for n in getattr(self.args, "await_nodes", "").split(",") if n]
+
     def run_operator(self, core: Any) -> None:
+        # before the first input set is handled: what it publishes reaches only the subscriptions this session sees (inputs
+        # that arrive meanwhile wait in the queues)
+        self.consumers.await_nodes(self._awaited(), AWAIT_NODES_S, self.stop_event, self.log)
         self._serve(lambda item: self._handle_operator_item(core, item))
 
     def run_raw_sink(self, core: Any) -> None:
@@ -685,7 +693,7 @@ class Node:
             pacer = Pacer(speed, self.consumers, self.stop_event, self.log, warmup=SOURCE_WARMUP)
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
-        self.consumers.await_nodes([n for n in self.args.await_nodes.split(",") if n], AWAIT_NODES_S, self.stop_event, self.log)
+        self.consumers.await_nodes(self._awaited(), AWAIT_NODES_S, self.stop_event, self.log)
         n = 0
         for stamp, result in core:
             if not pacer.before(stamp, stamp):
