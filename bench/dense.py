@@ -76,8 +76,9 @@ def markov_config(args, mode: str):
                                               where="bench/dense.py --set")
 
 
-def run_one(data_dir: Path, name: str, args, stencils) -> dict:
-    """Play the recording ``name`` through the cores; timings per stage and mode."""
+def run_one(data_dir: Path, name: str, args, stencils, on_frame=None) -> dict:
+    """Play the recording ``name`` through the cores; timings per stage and mode. ``on_frame(timed)``, if given, is
+    called before each frame the cores see (``timed``: one of the timed frames, not the warm-up)."""
     from stages.ar_inference import ARInference, ARInferenceConfig
     from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
     from stages.intentions import IntentionFilter, IntentionsConfig
@@ -114,6 +115,8 @@ def run_one(data_dir: Path, name: str, args, stencils) -> dict:
         iterator = iter(player)
         for n in range(start + args.warmup + per_segment):
             timed = n >= start + args.warmup
+            if on_frame is not None and n >= start:
+                on_frame(timed)
             t0 = time.perf_counter()
             try:
                 _stamp, result = next(iterator)
@@ -190,7 +193,8 @@ def run_one(data_dir: Path, name: str, args, stencils) -> dict:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line, checked: ``modes`` a tuple of ``MODES``, ``set`` the parsed ``--set`` pairs."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--vehicles", default="6,12,18,36,72")
     parser.add_argument("--frames", type=int, default=40, help="timed frames per N")
@@ -212,6 +216,11 @@ def main(argv: list[str] | None = None) -> int:
     from stages.offline.evaluation import _key_values
 
     args.set = _key_values(args.set, "--set")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
     sizes = [int(x) for x in args.vehicles.split(",")]
     if args.device != "cpu":
         args.backend = "torch"
