@@ -340,6 +340,9 @@ class MarkovPredictor:
         self.chain_reads_belief = config.initial_box == "particles" or (config.mode == "hybrid" and config.hybrid_stop_mixture)
         self._prepared: tuple[tuple, _Early] | None = None  # (the messages, ``_frame_args``, and ``prepare``'s chain phase of them)
         self._prepared_pairs: tuple[tuple, _PairsPhase] | None = None  # (corridor set, scene, track frame; ``prepare``'s pairs of them)
+        #: the last chain phase's back test (``_back_test``'s arguments but the issues), done by ``idle``: off the frame's path
+        self._back_test_pending: tuple | None = None
+        self._carried_issues: list[Issue] = []  # issues of work done by ``idle``: they go out with the next frame's
 
     # ----- entry points ---------------------------------------------------------
 
@@ -359,6 +362,7 @@ class MarkovPredictor:
         else:
             early = self._chain_phase(*args, intention_belief=belief)
         prediction, issues = self._belief_phase(early, belief)
+        issues.extend(self._take_carried_issues())
         scene, frame = args[2], args[3]
         self._learn_spread(early.stamp, frame, prediction, issues)
         self._log_initial_blend(early.stamp)
@@ -372,6 +376,17 @@ class MarkovPredictor:
             "motion_grid": prediction.motion_grid(header, scene_id),
         }
         return StageResult(outputs=outputs, issues=issues)
+
+    def idle(self) -> None:
+        """Work kept off the frames' critical path, done now: the online curve choice's back test of the last chain
+        phase (``_back_test``: the chain again for a car and the other curve factors, every few frames). The runtime
+        calls it when the stage's input queues are empty (after a frame's outputs are out); the next pairs or chain
+        phase calls it first otherwise, so what a frame predicts does not depend on when it ran. Its issues go out
+        with the next frame's."""
+        pending, self._back_test_pending = self._back_test_pending, None
+        if pending is not None:
+            pairs, stamp, chained = pending
+            self._back_test(pairs, stamp, self._carried_issues, chained)
 
     def prepare(self, inputs: Mapping[str, object], missing: frozenset[str] | set[str]) -> bool:
         """Work on a set that is still ``missing`` inputs, ahead of them: the pairs, then the chain.
@@ -413,8 +428,14 @@ class MarkovPredictor:
         """The pure function behind ``update``: the frame's prediction and the issues met."""
         early = self._chain_phase(corridor_set, relation_set, scene, track_frame, acceleration_profiles, intention_belief=intention_belief)
         prediction, issues = self._belief_phase(early, intention_belief)
+        issues.extend(self._take_carried_issues())
         self._learn_spread(early.stamp, track_frame, prediction, issues)
         return prediction, issues
+
+    def _take_carried_issues(self) -> list[Issue]:
+        """The issues of ``idle``'s work since the last frame went out (they go out with this one)."""
+        carried, self._carried_issues = self._carried_issues, []
+        return carried
 
     def _learn_spread(self, stamp: int, track_frame: TrackFrame | None, prediction: FramePrediction, issues: list[Issue]) -> None:
         """The online spread (``online_spread.py``): the kept grids checked against this frame's positions, this
@@ -528,6 +549,7 @@ class MarkovPredictor:
                      intention_belief: IntentionBelief | None = None) -> _PairsPhase:
         """The frame's pairs, without the mode's inputs (``pair_input``) or relations; what the mode prepares from them
         (``InputModel.prepare_pairs``). Reads ``intention_belief`` only where the chain does (``chain_reads_belief``)."""
+        self.idle()  # the last frame's back test, if the runtime has not run it: before this frame touches any state
         issues: list[Issue] = []
         stamp = int(corridor_set.header.stamp_ns)
         others: set[int] = set()
@@ -565,6 +587,7 @@ class MarkovPredictor:
         """Everything up to the chain's results: pairs (``_pairs_phase``'s, where ``prepare`` built them from these
         very messages), the mode's inputs, relations, signals, the chain (or the closed form) and the fallbacks.
         Reads ``intention_belief`` only where the chain does (``chain_reads_belief``)."""
+        self.idle()  # (prepare may have built this frame's pairs before the last frame's back test ran)
         prepared, self._prepared_pairs = self._prepared_pairs, None
         if prepared is not None and _same_messages(prepared[0], (corridor_set, scene, track_frame)):
             pp = prepared[1]
@@ -598,8 +621,8 @@ class MarkovPredictor:
                     pair.start_rate_hz = max(self.config.hybrid_standstill_rates_hz[standstill_group(pair.relation, self.config)], 1e-9)
         self._signal_walls = apply_signals(self, pairs, issues)  # stages.markov_prediction.signals: nothing without signal phases
         final, merged, order = self._predict_chain(pairs, issues)
-        if self.curve_choice is not None:
-            self._back_test(pairs, stamp, issues, (final, merged, order))
+        if self.curve_choice is not None:  # done by idle, after this frame's outputs (or first thing in the next frame)
+            self._back_test_pending = (pairs, stamp, (final, merged, order))
         found: list[Issue] = []
         try:  # the outputs' part that needs no weights, now (a failure: _belief_phase isolates the pairs, from the arrays)
             geometry = (self._finish_geometry(final, merged, found), found)
@@ -632,6 +655,8 @@ class MarkovPredictor:
         self._lines.clear()
         self._prepared = None
         self._prepared_pairs = None
+        self._back_test_pending = None  # its samples would be pending in the curve choice, which forgets those too
+        self._carried_issues = []
         if self.online is not None:
             self.online.reset()
         if self.initial_blend is not None:

@@ -613,7 +613,7 @@ class Node:
         # before the first input set is handled: what it publishes reaches only the subscriptions this session sees (inputs
         # that arrive meanwhile wait in the queues)
         self.consumers.await_nodes(self._awaited(), AWAIT_NODES_S, self.stop_event, self.log)
-        self._serve(lambda item: self._handle_operator_item(core, item))
+        self._serve(lambda item: self._handle_operator_item(core, item), getattr(core, "idle", None))
 
     def run_raw_sink(self, core: Any) -> None:
         acked = False
@@ -653,7 +653,9 @@ class Node:
         finally:
             core.close()
 
-    def _serve(self, handle: Callable[[tuple], None]) -> None:
+    def _serve(self, handle: Callable[[tuple], None], idle: Callable[[], None] | None = None) -> None:
+        """The loop: handle each queued item; ``idle`` (a core's, where it has one) whenever one leaves the queues empty
+        and no input set waiting for the rest of its inputs."""
         quiet_s = DRAIN_QUIET_S
         while True:
             item = self.queue.get(timeout=0.05)
@@ -669,6 +671,13 @@ class Node:
                     handle(item)
                 except Exception as exc:  # the last net: one message never ends the stage
                     self._count_failure("handler_exception", exc, "handling a message from key=%s failed (dropped)", item[1])
+                if idle is not None and not len(self.queue) and not self._pending:
+                    # work the core keeps off its frames' path (markov_prediction's back test), now that nothing is queued
+                    # and no input set is partly in (it would hold up that set's last input)
+                    try:
+                        idle()
+                    except Exception as exc:  # noqa: BLE001
+                        self._count_failure("idle_exception", exc, "the core's idle work failed after key=%s", item[1])
                 self._maybe_refreeze()
             else:
                 self._expire_pending()

@@ -160,6 +160,9 @@ def test_the_choice_needs_no_track_frame_and_is_off_without_the_speed_restrictio
         cs, _ = _curve_scene(stamp, 5.0 + n, with_frame=False)
         _prediction, issues = predictor.process(cs, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
         assert not [i for i in issues if i.kind == "curve_choice_failed"]
+    # each frame's back test runs off its path: the last one when the stage is idle (or first thing in the next frame)
+    assert len(predictor.curve_choice.pending) == 2
+    predictor.idle()
     assert len(predictor.curve_choice.pending) == 3 and not predictor.curve_choice.positions
     for off in ({"hybrid_speed_restriction": False}, {"hybrid_speed_restriction_curves": False}, {"hybrid_curve_factors": ()}):
         assert MarkovPredictor(MarkovPredictionConfig(mode="hybrid", **off, **PLAIN), stencils=stencils).curve_choice is None
@@ -170,9 +173,37 @@ def test_a_failing_back_test_costs_only_its_samples(stencils, monkeypatch):
     predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", **PLAIN), stencils=stencils)
     reference = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", **PLAIN), stencils=stencils)
     monkeypatch.setattr(predictor, "_pair_means", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("boom")))
-    cs, frame = _curve_scene(STAMP, 5.0)
-    prediction, issues = predictor.process(cs, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0))
-    ref, _ = reference.process(cs, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0))
+    for n in range(2):
+        stamp = STAMP + n * 100_000_000
+        cs, frame = _curve_scene(stamp, 5.0 + n)
+        prediction, issues = predictor.process(cs, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
+        ref, _ = reference.process(cs, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
+        np.testing.assert_array_equal(prediction.mean_s_m, ref.mean_s_m)
+        if n == 0:  # the back test runs after the frame's outputs: its failure goes out with the next frame's issues
+            assert issues == []
+            predictor.idle()
     assert [i.kind for i in issues] == ["curve_choice_failed"] and "boom" in issues[0].detail
-    np.testing.assert_array_equal(prediction.mean_s_m, ref.mean_s_m)
     assert predictor.curve_factor == 1.0 and not predictor.curve_choice.pending
+
+
+def test_the_back_test_runs_off_the_frames_path_and_when_it_runs_changes_nothing(stencils):
+    """The back test of a frame runs in ``idle`` (the runtime calls it once the frame's outputs are out and nothing
+    waits), or first thing in the next frame when nothing called it: the frames' predictions, issues and the choice
+    are the same either way, and a frame's own sample is recorded only once idle (or the next frame) has run."""
+    config = MarkovPredictionConfig(mode="hybrid", **PLAIN)
+    idle_each, never = MarkovPredictor(config, stencils=stencils), MarkovPredictor(config, stencils=stencils)
+    for n in range(80):
+        stamp = STAMP + n * 100_000_000
+        cs, frame = _curve_scene(stamp, 5.0 + n * 1.0)
+        got = [p.process(cs, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp)) for p in (idle_each, never)]
+        np.testing.assert_array_equal(got[0][0].mean_s_m, got[1][0].mean_s_m)
+        assert [i.kind for i in got[0][1]] == [i.kind for i in got[1][1]]
+        assert idle_each.curve_factor == never.curve_factor
+        before = len(idle_each.curve_choice.pending) + idle_each.curve_choice.samples
+        idle_each.idle()
+        assert len(idle_each.curve_choice.pending) + idle_each.curve_choice.samples == before + 1  # this frame's sample
+        idle_each.idle()  # nothing left to do
+        assert len(idle_each.curve_choice.pending) + idle_each.curve_choice.samples == before + 1
+    never.idle()
+    assert idle_each.curve_choice.summary() == never.curve_choice.summary()
+    assert idle_each.curve_choice.samples > 0 and idle_each.curve_factor == 0.0  # it learnt (the bend is taken at speed)

@@ -290,6 +290,40 @@ def test_the_serve_loop_survives_a_handler_that_raises(log, caplog):
     assert any("handling a message from key=bad failed (dropped): KeyError" in ln for ln in _lines(caplog))
 
 
+def test_the_serve_loop_runs_the_cores_idle_work_only_when_nothing_waits(log, caplog):
+    """A core's ``idle`` (markov_prediction's back test) runs once an item leaves the queues empty and no input set
+    is partly in (it would hold up that set's last input); an idle that raises is counted and the loop goes on."""
+    node, _out = _node(log)
+    node._stats_pub = RecordingPublisher()
+    calls, idles = [], []
+
+    def idle():
+        calls.append(("idle", len(node.queue), len(node._pending)))
+        idles.append(1)
+        if len(idles) == 3:
+            raise RuntimeError("idle bug")
+
+    for k in ("a", "b"):  # the second item waits while the first is handled: one idle, after the second
+        node.queue.put((None, k, b"", 0), None, 0)
+    node.stop_event.set()
+    node.signals = 2  # stop as soon as the queue is empty
+    node._serve(lambda item: calls.append(("handle", item[1])), idle)
+    assert calls == [("handle", "a"), ("handle", "b"), ("idle", 0, 0)]
+
+    calls.clear()
+    node._pending[7] = {}  # a frame with some of its inputs in: no idle while it waits for the rest
+    node.queue.put((None, "c", b"", 0), None, 0)
+    node._serve(lambda item: calls.append(("handle", item[1])), idle)
+    assert calls == [("handle", "c")]
+    node._pending.clear()
+    for k in ("d", "e"):  # each alone in the queue: idle after each; the second idle raises
+        node.queue.put((None, k, b"", 0), None, 0)
+        node._serve(lambda item: calls.append(("handle", item[1])), idle)
+    assert calls == [("handle", "c"), ("handle", "d"), ("idle", 0, 0), ("handle", "e"), ("idle", 0, 0)]
+    assert node.stats.errors_by_kind["idle_exception"] == 1 and node.stats.counters["core_errors"] == 1
+    assert any("the core's idle work failed after key=e: RuntimeError: idle bug" in ln for ln in _lines(caplog))
+
+
 def _two_input_node(log, queue_size: int = 8) -> Node:
     spec = StageSpec(
         stage="tests.echo2",

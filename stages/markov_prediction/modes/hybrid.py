@@ -71,13 +71,13 @@ class Hybrid(InputModel):
                 self._rules = Baseline(p)
             return _BaselineInputs(self._rules, pairs, issues, ar_lam=_stack_inputs(p, pairs, issues))
         lam_speed = None
-        ahead, self._ahead = getattr(self, "_ahead", None), None
+        ahead = getattr(self, "_ahead", None)
         if p.config.hybrid_speed_restriction:
             if self._compiled_speed_applies():
                 if ahead is not None and len(ahead[0]) == len(pairs) and all(a is q for a, q in zip(ahead[0], pairs)) \
                         and ahead[1] == [q.s_first_m for q in pairs]:
-                    lam_speed = ahead[2]  # prepare_pairs' (made for these very pairs, not used yet)
-                else:
+                    lam_speed, self._ahead = ahead[2], None  # prepare_pairs' (made for these very pairs, not used yet)
+                else:  # (another batch, e.g. the curve choice's back test: prepare_pairs' is kept for its own pairs)
                     lam_speed = _compiled_speed(p, pairs)
             if lam_speed is None:
                 lam_speed = speed_restriction(p, pairs)
