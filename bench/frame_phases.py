@@ -32,16 +32,11 @@ import collections
 import functools
 import importlib
 import json
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
-
-REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
 
 MARKOV = "stages.markov_prediction.core:MarkovPredictor."
 DEFAULT_FUNCTIONS = (
@@ -129,7 +124,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.vehicles < 1 or args.frames < 1:
         parser.error("--vehicles and --frames must be >= 1")
-    from bench import dense
+    try:  # as a script, its folder is first on the module path (bench/ is not an installed package)
+        import dense
+    except ImportError:
+        from bench import dense
 
     # bench/dense.py's arguments, for its run_one
     dense_args = ["--vehicles", str(args.vehicles), "--frames", str(args.frames), "--warmup", str(args.warmup),
