@@ -11,29 +11,16 @@ liveliness tokens, in its own session, before it handles its first input set.
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-import tempfile
 import time
-from pathlib import Path
-
-import msgpack
 
 import bus_schemas as bs
 from stages.runtime import launcher
 from stages.runtime.pipeline import load_pipeline
-from testkit.helpers import REPO, endpoint, free_port, kill_all, output_of, python_env, stop_process, wait_until
-from testkit.samples import SAMPLES
+from testkit.helpers import endpoint, free_port, kill_all, output_of, stop_process, wait_until
+from tests.integration.echo_stage import profiles_payload
+from tests.integration.echo_stage import start as start_echo
 
 RUN = "awaits"
-
-
-def _profiles(frame_index: int) -> bytes:
-    env = msgpack.unpackb(SAMPLES["iamp.AccelerationProfiles"]().encode(), raw=False)
-    env["body"]["header"]["frame_index"] = frame_index
-    env["body"]["header"]["stamp_ns"] = 1_000_000_000 + frame_index * 100_000_000
-    return msgpack.packb(env, use_bin_type=True)
 
 
 def test_the_launcher_tells_each_operator_to_await_the_nodes_that_read_it():
@@ -59,17 +46,12 @@ def test_an_operator_publishes_nothing_until_the_awaited_node_is_visible_then_ev
 
     with BusClient(listen=[endpoint(port)]) as bus:
         bus.subscribe(f"iamp/{RUN}/echo/profiles", lambda k, d: got.append(bs.AccelerationProfiles.decode(d).header.frame_index))
-        fd, log_path = tempfile.mkstemp(prefix="echo-", suffix=".log")
-        args = ["--node-id", "echo", "--run-id", RUN, "--connect", endpoint(port), "--input", "profiles=src/profiles", "--await-nodes", "sink"]
-        with os.fdopen(fd, "wb") as log_file:
-            stage = subprocess.Popen([sys.executable, str(Path(__file__).with_name("echo_stage.py")), *args], cwd=REPO, env=python_env(),
-                                     stdout=log_file, stderr=subprocess.STDOUT)
-        stage.log_path = log_path  # type: ignore[attr-defined]
+        stage = start_echo(port, RUN, "--await-nodes", "sink")
         try:
             wait_until(lambda: "echo" in bus.alive_now(f"iamp/{RUN}/_alive/*", 0.5), 60, "echo liveliness")
             put = bus.publisher(f"iamp/{RUN}/src/profiles")
-            put(_profiles(0))
-            put(_profiles(1))
+            put(profiles_payload(0))
+            put(profiles_payload(1))
             time.sleep(1.5)  # (a negative check needs a span) the inputs are in, the awaited node is not
             assert got == [], output_of(stage)[-2000:]
             bus.declare_token(f"iamp/{RUN}/_alive/sink")

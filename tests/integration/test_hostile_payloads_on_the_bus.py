@@ -10,43 +10,20 @@ and log its issue episode once at stop.
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-import tempfile
-from pathlib import Path
-
 import msgpack
 
 import bus_schemas as bs
-from testkit.helpers import REPO, endpoint, free_port, kill_all, output_of, python_env, stop_process, wait_until
-from testkit.samples import SAMPLES
+from testkit.helpers import endpoint, free_port, kill_all, output_of, stop_process, wait_until
+from tests.integration.echo_stage import profiles_payload
+from tests.integration.echo_stage import start as start_echo
 
 RUN = "hostile"
 KEY_IN = f"iamp/{RUN}/src/profiles"
 
 
-def _start_echo(port: int) -> subprocess.Popen:
-    fd, log_path = tempfile.mkstemp(prefix="echo-", suffix=".log")
-    args = ["--node-id", "echo", "--run-id", RUN, "--connect", endpoint(port), "--input", "profiles=src/profiles", "--stats-period", "0.2"]
-    with os.fdopen(fd, "wb") as log_file:
-        proc = subprocess.Popen(
-            [sys.executable, str(Path(__file__).with_name("echo_stage.py")), *args], cwd=REPO, env=python_env(), stdout=log_file, stderr=subprocess.STDOUT
-        )
-    proc.log_path = log_path  # type: ignore[attr-defined]
-    return proc
-
-
-def _profiles(frame_index: int) -> bytes:
-    env = msgpack.unpackb(SAMPLES["iamp.AccelerationProfiles"]().encode(), raw=False)
-    env["body"]["header"]["frame_index"] = frame_index
-    env["body"]["header"]["stamp_ns"] = 1_000_000_000 + frame_index * 100_000_000
-    return msgpack.packb(env, use_bin_type=True)
-
-
 def _huge_dim(frame_index: int) -> bytes:
     """An empty 2-D input_probs of shape [0, 2**63] (its k arrays emptied too, so every dim agrees)."""
-    env = msgpack.unpackb(_profiles(frame_index), raw=False)
+    env = msgpack.unpackb(profiles_payload(frame_index), raw=False)
     p = env["body"]["profiles"][0]
     p["chunk_mean_mps2"] = ["float32", [0], b""]
     p["chunk_sigma_mps2"] = ["float32", [0], b""]
@@ -68,15 +45,15 @@ def test_hostile_payloads_are_counted_and_the_stage_processes_the_next_good_mess
     with BusClient(listen=[endpoint(port)]) as bus:
         bus.subscribe(f"iamp/{RUN}/echo/profiles", lambda k, d: got.append(bs.AccelerationProfiles.decode(d).header.frame_index))
         bus.subscribe(f"iamp/{RUN}/_stats/echo", lambda k, d: stats.append(bs.NodeStats.decode(d)))
-        stage = _start_echo(port)
+        stage = start_echo(port, RUN, "--stats-period", "0.2")
         try:
             wait_until(lambda: "echo" in bus.alive_now(f"iamp/{RUN}/_alive/*", 0.5), 60, "echo liveliness")
             put = bus.publisher(KEY_IN)
-            put(_profiles(0))
+            put(profiles_payload(0))
             wait_until(lambda: got == [0], 30, "the first echo")
             for data in bad:
                 put(data)
-            put(_profiles(2))
+            put(profiles_payload(2))
             try:
                 wait_until(lambda: len(got) == 2, 30, "the echo after the hostile payloads")
             except AssertionError as exc:
