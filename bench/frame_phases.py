@@ -16,7 +16,8 @@ chain phase includes the kernel), so the column does not add up. Prints
 figures, asserts nothing; other load on the machine shows in them.
 
     python bench/frame_phases.py [--vehicles 18] [--frames 30] [--warmup 5] [--segments 2] [--source k733|k729]
-                                 [--modes hybrid] [--function MODULE:QUALNAME ...] [--json FILE]
+                                 [--modes hybrid] [--backend numpy|torch] [--device cpu|cuda]
+                                 [--function MODULE:QUALNAME ...] [--json FILE]
 
 ``--function`` adds a function to the default list (``MODULE:Class.method``
 or ``MODULE:function``); where a module binds a wrapped function by name
@@ -119,6 +120,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--segments", type=int, default=2)
     parser.add_argument("--source", choices=("k733", "k729"), default="k733")
     parser.add_argument("--modes", default="hybrid", help="comma-separated markov_prediction modes (hybrid, baseline)")
+    parser.add_argument("--backend", choices=("numpy", "torch"), default="numpy", help="markov_prediction's chain backend (as bench/dense.py)")
+    parser.add_argument("--device", default="cpu", help="cpu or cuda (torch backend; ar_inference's net too)")
     parser.add_argument("--function", action="append", default=[], metavar="MODULE:QUALNAME", help="also time this function")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
@@ -131,7 +134,8 @@ def main(argv: list[str] | None = None) -> int:
 
     # bench/dense.py's arguments, for its run_one
     dense_args = ["--vehicles", str(args.vehicles), "--frames", str(args.frames), "--warmup", str(args.warmup),
-                  "--segments", str(args.segments), "--source", args.source, "--modes", args.modes]
+                  "--segments", str(args.segments), "--source", args.source, "--modes", args.modes,
+                  "--backend", args.backend, "--device", args.device]
     ns = dense.parse_args(dense_args)
     timers = Timers()
     for spec in (*DEFAULT_FUNCTIONS, *args.function):

@@ -42,9 +42,11 @@ class InputPriority:
     #: s-cell of the window). When given, the numpy backend applies Γ only where p⁻ holds mass (a pair's
     #: occupied states are a few percent of the batch's active window) instead of on the whole window.
     at_states: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None
-    #: Optional: λ as ``restriction`` (a ``kernels.SpeedRestriction``) gives it for the preference ``preference``
-    #: (B, M) float32 and ``forbid_threshold`` (what ``at_states`` computes then). When every step of a run is such
-    #: an input (or None), ``PriorityPropagator`` runs the whole chain in one compiled call (``kernels.speed_priority_run``).
+    #: Optional: λ as ``restriction`` (a ``kernels.SpeedRestriction``, or its ``full()`` array (B, M, N_v, N_s)) gives
+    #: it for the preference ``preference`` (B, M) float32 and ``forbid_threshold`` (what ``at_states`` computes then).
+    #: When every step of a run is such an input with a ``SpeedRestriction`` (or None), ``PriorityPropagator`` runs the
+    #: whole chain in one compiled call (``kernels.speed_priority_run``); the torch backend builds λ on its device from
+    #: either form (moved there once per run) instead of calling ``weights`` every step.
     restriction: Any = None
     preference: np.ndarray | None = None
     forbid_threshold: float = 0.0
@@ -57,6 +59,8 @@ class _PriorityBackend:
         self._inner = inner
         self._kind = kind
         self._psi = np.asarray(psi, dtype=np.float32)
+        self._restriction: Any = None
+        self._restriction_t: Any = None
         if kind == "torch":
             torch = inner.torch
             self._psi_t = torch.as_tensor(self._psi, device=inner.device)
@@ -73,10 +77,36 @@ class _PriorityBackend:
             if getattr(self._inner, "fused", False):
                 return self._numba_occupied(slab, transition, lo, before, kept)
             return self._numpy_occupied(slab, transition, lo, before)
+        if self._kind == "torch" and transition.restriction is not None and transition.preference is not None:
+            return self._torch(slab, self._torch_priority(transition, lo, hi), before)
         lam = np.asarray(transition.weights(lo, hi), dtype=np.float32)
         if self._kind == "numpy":
             return self._numpy(slab, lam, before)
-        return self._torch(slab, lam, before)
+        return self._torch(slab, self._inner.torch.as_tensor(lam, device=slab.device), before)
+
+    def _torch_priority(self, transition: InputPriority, lo: int, hi: int) -> Any:
+        """λ on the window [lo, hi) on the torch device: λ_speed of every state moved there once per restriction (one
+        copy per run, not one per step) and combined with the step's preference there, the numbers of
+        ``priority.combine_with_preference`` (the same float32 min and subtraction, from the highest input down)."""
+        torch = self._inner.torch
+        device = self._inner.device
+        if self._restriction is not transition.restriction:
+            r = transition.restriction
+            dense = r.full() if isinstance(r, kernels.SpeedRestriction) else np.asarray(r, dtype=np.float32)
+            self._restriction_t = torch.as_tensor(dense, device=device)  # (B, M, N_v, N_s)
+            self._restriction = transition.restriction  # held: an id is not reused while the tensor is kept
+        m = self._restriction_t[..., lo:hi]
+        pref = torch.as_tensor(np.asarray(transition.preference, dtype=np.float32), device=device)  # (B, M)
+        out = torch.empty_like(m)
+        carry = torch.zeros_like(m[:, 0])
+        for alpha in range(m.shape[1] - 1, -1, -1):
+            want = carry + pref[:, alpha, None, None]
+            torch.minimum(m[:, alpha], want, out=out[:, alpha])
+            carry = want - out[:, alpha]
+        dead = m.amax(dim=1) <= transition.forbid_threshold  # (B, N_v, L): everything forbidden -> strongest braking
+        out = out.masked_fill(dead[:, None], 0.0)
+        out[:, 0].masked_fill_(dead, 1.0)
+        return out
 
     def _numba_occupied(self, slab: np.ndarray, transition: InputPriority, lo: int, before: np.ndarray | None,
                         kept: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
@@ -122,12 +152,11 @@ class _PriorityBackend:
             out *= factors
         return out.astype(np.float32, copy=False), kept
 
-    def _torch(self, slab: Any, lam: np.ndarray, before: Any) -> tuple[Any, Any]:
+    def _torch(self, slab: Any, lam_t: Any, before: Any) -> tuple[Any, Any]:
         torch = self._inner.torch
         n_pairs, length = slab.shape[0], slab.shape[2]
         n_in, n_v = self._inner.n_in, self._inner.n_v
         joint = slab.reshape(n_pairs, n_in, n_v, length)
-        lam_t = torch.as_tensor(lam, device=slab.device)
         norm = torch.einsum("ab,xavl->xbvl", self._psi_t, lam_t)
         ratio = torch.where(norm > 0, joint / torch.where(norm > 0, norm, torch.ones_like(norm)), torch.zeros_like(joint))
         out = lam_t * torch.einsum("ab,xbvl->xavl", self._psi_t, ratio)

@@ -111,12 +111,12 @@ class _HybridInputs(ChainInputs):
                 else:
                     at_states = lambda b, v, s, pref=pref: pr.combine_with_preference(lam_speed[b, :, v, s], pref[b], cfg.forbid_threshold)  # noqa: E731
                     window = lambda lo, hi: lam_speed[..., lo:hi]  # noqa: E731
-                compiled = isinstance(lam_speed, kernels.SpeedRestriction)
                 self.steps.append(InputPriority(  # built on the step's active s-window only, or on its occupied states
                     weights=lambda lo, hi, pref=pref, window=window: pr.combine_with_preference(window(lo, hi), pref, cfg.forbid_threshold),
                     at_states=at_states,
-                    # compiled: the propagator runs the whole chain in one call (chain.PriorityPropagator)
-                    restriction=lam_speed if compiled else None, preference=pref if compiled else None,
+                    # compiled (kernels.SpeedRestriction): the propagator runs the whole chain in one call
+                    # (chain.PriorityPropagator); either form: the torch backend builds λ on its device from it
+                    restriction=lam_speed, preference=prefs32[:, k],
                     forbid_threshold=cfg.forbid_threshold,
                 ))
             elif cfg.hybrid_input == "direct":
