@@ -92,6 +92,20 @@ def test_shipped_pipelines_are_valid(pipeline):
     assert "is valid" in r.stdout
 
 
+@pytest.mark.parametrize("name, n", [("sharded", 2), ("sharded4", 4)])
+def test_sharded_pipelines_cover_every_shard_once_and_fuse_them_all(name, n):
+    pipeline = load_pipeline(REPO / "stages" / "pipelines" / f"{name}.toml")
+    shards = {d.id: d.params["shard"] for d in pipeline.nodes if d.stage == "stages.markov_prediction"}
+    assert sorted(shards.values()) == sorted(f"{i}/{n}" for i in range(n))
+    fusion = pipeline.node("grid_fusion").inputs
+    assert {fusion[f"grid_{i}"].split("/")[0] for i in range(n)} == set(shards)
+    assert {fusion[f"predictions_{i}"].split("/")[0] for i in range(n)} == set(shards)
+    shard_of = {v: k for k, v in shards.items()}
+    for i in range(n):  # grid_i and predictions_i come from the same shard
+        assert fusion[f"grid_{i}"].split("/")[0] == fusion[f"predictions_{i}"].split("/")[0]
+    assert all(d.queue_size == 16 for d in pipeline.nodes if d.id in shard_of.values())
+
+
 def test_launcher_check_and_describe_exit_codes():
     r = subprocess.run([sys.executable, str(REPO / "launch.py"), str(FIX / "unknown_param.toml"), "--check"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2
