@@ -45,3 +45,26 @@ def dense_messages(vehicles: int, max_frames: int, out_dir: str | Path, *, data_
 
     built = build_dense(data_dir if data_dir is not None else DEFAULT_DATA_DIR, recording, vehicles, out_dir)
     return chain_messages(out_dir, built.name, max_frames=max_frames)
+
+
+def dense_frames_with_profiles(vehicles: int, max_frames: int, out_dir: str | Path, keep) -> list:
+    """``(ChainFrame, AccelerationProfiles)`` of the frames ``n`` (play order) for which ``keep(n)`` holds, of a
+    recording of about ``vehicles`` vehicles per frame superimposed from the embedded K729 scenario into ``out_dir``:
+    every input of markov_prediction in mode hybrid (the profiles from the shipped AR model)."""
+    from stages.ar_inference import ARInference, ARInferenceConfig
+    from stages.corridors import SceneMaps
+    from stages.intentions import IntentionsConfig
+    from stages.lib.datasets import DEFAULT_DATA_DIR, load_recording
+    from stages.lib.datasets.superimpose import build_dense
+    from stages.offline.chain import chain_frames
+
+    built = build_dense(DEFAULT_DATA_DIR, "k729_2022-03-16", vehicles, out_dir)
+    recording = load_recording(Path(out_dir), built.name)
+    items = chain_frames(recording, recording.sequences[0], SceneMaps(data=Path(out_dir)), intentions=IntentionsConfig(), max_frames=max_frames)
+    ar = ARInference(ARInferenceConfig(), producer="ar_inference")
+    out = []
+    for n, item in enumerate(items):
+        profiles = ar.process(item.corridor_set, item.relation_set, item.frame, item.scene)[0]  # every frame: the AR state
+        if keep(n):
+            out.append((item, profiles))
+    return out

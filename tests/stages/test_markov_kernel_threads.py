@@ -7,16 +7,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.ar_inference import ARInference, ARInferenceConfig
-from stages.corridors import SceneMaps
-from stages.intentions import IntentionsConfig
 from stages.lib.base import ConfigError
-from stages.lib.datasets import DEFAULT_DATA_DIR, load_recording
-from stages.lib.datasets.superimpose import build_dense
 from stages.lib.markov import MarkovGridConfig, frame_kernels, kernels, load_or_build_stencils, psi_matrix
 from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
 from stages.markov_prediction.chain import PriorityPropagator
-from stages.offline.chain import chain_frames
+from testkit.chain_messages import dense_frames_with_profiles
 
 
 @pytest.mark.parametrize("bad", [0, -2])
@@ -36,17 +31,7 @@ def test_kernel_threads_is_validated(bad):
 def frames(tmp_path_factory):
     """Frames of about 36 vehicles superimposed from the embedded K729 scenario (``build_dense``): batches of several
     blocks of pairs for the compiled chain."""
-    out_dir = tmp_path_factory.mktemp("dense")
-    built = build_dense(DEFAULT_DATA_DIR, "k729_2022-03-16", 36, out_dir)
-    recording = load_recording(out_dir, built.name)
-    items = chain_frames(recording, recording.sequences[0], SceneMaps(data=out_dir), intentions=IntentionsConfig(), max_frames=25)
-    ar = ARInference(ARInferenceConfig(), producer="ar_inference")
-    out = []
-    for n, item in enumerate(items):
-        profiles = ar.process(item.corridor_set, item.relation_set, item.frame, item.scene)[0]
-        if n >= 10 and n % 5 == 0:
-            out.append((item, profiles))
-    return out
+    return dense_frames_with_profiles(36, 25, tmp_path_factory.mktemp("dense"), lambda n: n >= 10 and n % 5 == 0)
 
 
 @pytest.mark.skipif(not kernels.available(), reason="numba does not import")

@@ -7,15 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.ar_inference import ARInference, ARInferenceConfig
-from stages.corridors import SceneMaps
-from stages.intentions import IntentionsConfig
-from stages.lib.datasets import DEFAULT_DATA_DIR, load_recording
-from stages.lib.datasets.superimpose import build_dense
 from stages.lib.markov import MarkovGridConfig, kernels, load_or_build_stencils
 from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
 from stages.markov_prediction import priority
-from stages.offline.chain import chain_frames
+from testkit.chain_messages import dense_frames_with_profiles
 
 torch = pytest.importorskip("torch")
 
@@ -23,17 +18,7 @@ torch = pytest.importorskip("torch")
 @pytest.fixture(scope="module")
 def frames(tmp_path_factory):
     """Frames of about 12 vehicles superimposed from the embedded K729 scenario, with their AR profiles."""
-    out_dir = tmp_path_factory.mktemp("dense")
-    built = build_dense(DEFAULT_DATA_DIR, "k729_2022-03-16", 12, out_dir)
-    recording = load_recording(out_dir, built.name)
-    items = chain_frames(recording, recording.sequences[0], SceneMaps(data=out_dir), intentions=IntentionsConfig(), max_frames=16)
-    ar = ARInference(ARInferenceConfig(), producer="ar_inference")
-    out = []
-    for n, item in enumerate(items):
-        profiles = ar.process(item.corridor_set, item.relation_set, item.frame, item.scene)[0]
-        if n >= 10 and n % 3 == 0:
-            out.append((item, profiles))
-    return out
+    return dense_frames_with_profiles(12, 16, tmp_path_factory.mktemp("dense"), lambda n: n >= 10 and n % 3 == 0)
 
 
 def _predict(backend: str, device: str, frames, stencils):
