@@ -4,7 +4,6 @@ and the knob is validated."""
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 from stages.lib.base import ConfigError
