@@ -36,7 +36,10 @@ ar_inference too, and the stencils are built for them).
 ``stages.<stage>.ms_median`` / ``ms_p95`` / ``cpu_ms_median`` (CPU time of
 the process, less sensitive to other load on the machine than wall time),
 ``frame_cpu_ms_median``, ``stages.markov_prediction.after_last_input_ms_median`` (the ``update`` after the
-``prepare`` calls: what is left once the belief is in; on the bus the rest runs while it is on its way), plus
+``prepare`` calls: what is left once the belief is in; on the bus the rest runs while it is on its way),
+``stages.markov_prediction.idle_ms_mean`` (the stage's ``idle()``, called after every frame as the runtime
+calls it once a frame's outputs are out and nothing waits: the online curve choice's back test, every few
+frames; mean ms per timed frame, not in the stage's or the frame's time, as on the bus), plus
 ``modes.<mode>.exponent``.
 """
 
@@ -94,6 +97,9 @@ def run_one(data_dir: Path, name: str, args, stencils, on_frame=None) -> dict:
     vehicles, pairs = [], []
     # markov_prediction's update on the whole set after its prepare calls: its work once the last input (the belief) is in
     last_input: dict[str, list[float]] = {m: [] for m in args.modes}
+    # markov_prediction's idle(): the work the runtime does once a frame's outputs are out and nothing waits (the
+    # online curve choice's back test), outside the frame's time as on the bus; its mean per timed frame is reported
+    idle: dict[str, list[float]] = {m: [] for m in args.modes}
     after: dict[str, float] = {}
     n_frames = recording.sequences[0].n_frames
     segments = max(1, int(args.segments))
@@ -137,7 +143,7 @@ def run_one(data_dir: Path, name: str, args, stencils, on_frame=None) -> dict:
             t3, c3 = time.perf_counter(), time.process_time()
             profiles = ar.process(corridor_set, relation_set, frame, scene)[0] if "hybrid" in args.modes else None
             t4, c4 = time.perf_counter(), time.process_time()
-            markov_ms, markov_cpu = {}, {}
+            markov_ms, markov_cpu, idle_ms = {}, {}, {}
             inputs = {"corridor_set": corridor_set, "relation_set": relation_set, "scene": scene, "track_frame": frame,
                       "intention_belief": belief}
             for mode, predictor in predictors.items():
@@ -156,6 +162,9 @@ def run_one(data_dir: Path, name: str, args, stencils, on_frame=None) -> dict:
                 markov_ms[mode] = (time.perf_counter() - m0) * 1e3
                 markov_cpu[mode] = (time.process_time() - mc0) * 1e3
                 after[mode] = (time.perf_counter() - m1) * 1e3
+                i0 = time.perf_counter()
+                predictor.idle()
+                idle_ms[mode] = (time.perf_counter() - i0) * 1e3
                 if mode == "hybrid" and timed:
                     pairs.append(len(result.outputs["corridor_predictions"].predictions))
             if not timed:
@@ -169,6 +178,7 @@ def run_one(data_dir: Path, name: str, args, stencils, on_frame=None) -> dict:
             for mode in args.modes:
                 times[f"markov_prediction/{mode}"].append(markov_ms[mode])
                 last_input[mode].append(after[mode])
+                idle[mode].append(idle_ms[mode])
             for name, ms in (("corridors", c1 - c0), ("relations", c2 - c1), ("intentions", c3 - c2), ("ar_inference", c4 - c3)):
                 cpu[name].append(ms * 1e3)
             for mode in args.modes:
@@ -190,6 +200,7 @@ def run_one(data_dir: Path, name: str, args, stencils, on_frame=None) -> dict:
         }
         # the part of markov_prediction left once its last input is in (all of it where the chain reads the belief)
         out[mode]["stages"]["markov_prediction"]["after_last_input_ms_median"] = _stats(last_input[mode])["ms_median"]
+        out[mode]["stages"]["markov_prediction"]["idle_ms_mean"] = float(np.mean(idle[mode])) if idle[mode] else 0.0
     return out
 
 
@@ -257,6 +268,7 @@ def main(argv: list[str] | None = None) -> int:
               + "; ".join(f"{m} frame p50 {res[m]['frame_ms_median']:.1f} ms (cpu {res[m]['frame_cpu_ms_median']:.1f}), markov_prediction p50 "
                           f"{res[m]['stages']['markov_prediction']['ms_median']:.1f} ms (cpu {res[m]['stages']['markov_prediction']['cpu_ms_median']:.1f}, "
                           f"after its last input {res[m]['stages']['markov_prediction']['after_last_input_ms_median']:.1f}, "
+                          f"idle {res[m]['stages']['markov_prediction']['idle_ms_mean']:.1f} per frame, "
                           f"{res[m]['pairs_median']:.0f} pairs)" for m in args.modes),
               flush=True)
         if args.json:  # written after every N, so that a run cut short keeps what it measured
