@@ -1,0 +1,50 @@
+"""The dense-traffic benchmarks run end to end on the embedded data and write the JSON keys other tools read
+(issue 16: ``modes.<mode>.by_vehicles.<N>.frame_ms_median`` and the rest). Behaviour only: no figure is checked
+against a time (the machines are shared); the figures are only required to be there and be finite."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _run(args: list[str], tmp_path: Path) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if k != "IAMP_TAF_BW"}  # the embedded K729 scenario: a fresh checkout's data
+    env["OMP_NUM_THREADS"] = "1"
+    return subprocess.run([sys.executable, *args], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+
+
+def test_dense_bench_writes_its_keys(tmp_path):
+    out = tmp_path / "dense.json"
+    r = _run([str(REPO / "bench" / "dense.py"), "--vehicles", "6", "--frames", "3", "--warmup", "1", "--segments", "1",
+              "--modes", "hybrid,baseline", "--json", str(out)], tmp_path)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    assert "embedded" in r.stdout.splitlines()[0]
+    report = json.loads(out.read_text())
+    for mode in ("hybrid", "baseline"):
+        n6 = report["modes"][mode]["by_vehicles"]["6"]
+        assert n6["frames"] == 3 and n6["vehicles_median"] > 0 and n6["pairs_median"] > 0
+        for key in ("frame_ms_median", "frame_ms_p95", "frame_cpu_ms_median"):
+            assert math.isfinite(n6[key]) and n6[key] > 0
+        markov = n6["stages"]["markov_prediction"]
+        for key in ("ms_median", "ms_p95", "cpu_ms_median", "after_last_input_ms_median", "idle_ms_mean"):
+            assert math.isfinite(markov[key]) and markov[key] >= 0
+        assert set(n6["stages"]) >= {"source", "corridors", "relations", "intentions", "markov_prediction"}
+    assert "ar_inference" in report["modes"]["hybrid"]["by_vehicles"]["6"]["stages"]
+    assert "hybrid/baseline frame" in r.stdout
+
+
+def test_frame_phases_names_the_markov_phases(tmp_path):
+    out = tmp_path / "phases.json"
+    r = _run([str(REPO / "bench" / "frame_phases.py"), "--vehicles", "6", "--frames", "3", "--warmup", "1", "--segments", "1",
+              "--json", str(out)], tmp_path)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    functions = json.loads(out.read_text())["functions"]
+    for name in ("MarkovPredictor._chain_phase", "MarkovPredictor._pairs_phase", "CorridorBuilder.process"):
+        assert functions[name]["calls_per_frame"] > 0, name
