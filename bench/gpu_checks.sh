@@ -1,0 +1,44 @@
+#!/usr/bin/env bash
+# The checks of the CUDA path and of real time on a bigger machine, in one go (README, "Real time on more cores"
+# and "On a GPU"): run on a machine with an NVIDIA GPU and this project's dependencies importable.
+#
+#   bash bench/gpu_checks.sh OUTDIR [DEVICE]      (DEVICE: cuda (default), or cpu to try the script anywhere)
+#
+# Needs $IAMP_TAF_BW (the full TAF-BW data) for the dense recordings; without it the benches use the embedded
+# scenario (they say so). Writes one log per check to OUTDIR and dense_cuda.json; prints each log's tail. Each
+# check has its own time limit and a failing one does not stop the others. Asserts nothing about times.
+set -u
+OUT=${1:?usage: bash bench/gpu_checks.sh OUTDIR [DEVICE]}
+DEV=${2:-cuda}
+PY=${PYTHON:-python3}
+mkdir -p "$OUT"
+export PYTHONUNBUFFERED=1
+T0=$(date +%s)
+step() {  # step NAME LIMIT_S TAIL_LINES COMMAND...
+    local name=$1 lim=$2 tail_n=$3; shift 3
+    echo "=== $name (limit ${lim}s) at +$(( $(date +%s) - T0 ))s"
+    timeout "$lim" "$@" > "$OUT/$name.log" 2>&1
+    echo "rc=$?"
+    tail -n "$tail_n" "$OUT/$name.log"
+}
+nvidia-smi -L 2>&1 | head -2
+echo "cpu cores: $(nproc)"
+"$PY" -c "import torch; print('torch', torch.__version__, 'cuda available:', torch.cuda.is_available())"
+# the CUDA tests (skipped without a GPU): the torch chain against numpy, the hybrid chain on real frames
+step pytest_cuda 300 8 "$PY" -m pytest -q -p no:cacheprovider tests/stages/test_markov_torch_hybrid.py \
+    tests/stages/test_markov_transitions.py -k "cuda or torch"
+step dense_cuda 300 16 "$PY" bench/dense.py --vehicles 6,18,72 --frames 16 --warmup 4 --modes hybrid \
+    --backend torch --device "$DEV" --json "$OUT/dense_cuda.json"
+step phases_cuda 200 34 "$PY" bench/frame_phases.py --vehicles 18 --frames 12 --warmup 3 --segments 1 \
+    --backend torch --device "$DEV" --function stages.lib.markov.propagate:_TorchBackend.transition \
+    --function stages.lib.markov.propagate:_TorchBackend.support \
+    --function stages.markov_prediction.chain:_PriorityBackend._torch_priority
+OMP_NUM_THREADS=1 step dense_cpu 300 16 "$PY" bench/dense.py --vehicles 18,72 --frames 16 --warmup 4 --modes hybrid
+# at real time, 18 vehicles, 40 s each: unsharded and in two and four shards (the first run on a fresh machine also
+# compiles every stage's kernels: give it time)
+step e2e_hybrid 240 22 "$PY" bench/e2e_latency.py --vehicles 18 --duration-s 40 --no-trace
+step e2e_sharded 180 22 "$PY" bench/e2e_latency.py --vehicles 18 --duration-s 40 --pipeline sharded \
+    --expect grid_fusion/motion_grid --no-trace
+step e2e_sharded4 180 26 "$PY" bench/e2e_latency.py --vehicles 18 --duration-s 40 --pipeline sharded4 \
+    --expect grid_fusion/motion_grid --no-trace
+echo "done at +$(( $(date +%s) - T0 ))s"
