@@ -34,11 +34,13 @@ step phases_cuda 200 34 "$PY" bench/frame_phases.py --vehicles 18 --frames 12 --
     --function stages.lib.markov.propagate:_TorchBackend.support \
     --function stages.markov_prediction.chain:_PriorityBackend._torch_priority
 OMP_NUM_THREADS=1 step dense_cpu 300 16 "$PY" bench/dense.py --vehicles 18,72 --frames 16 --warmup 4 --modes hybrid
-# at real time, 18 vehicles, 40 s each: unsharded and in two and four shards (the first run on a fresh machine also
-# compiles every stage's kernels: give it time)
+# at real time, 18 vehicles, 40 s each: unsharded, in two shards, unsharded with the chain on four threads, in four
+# shards (the first run on a fresh machine also compiles every stage's kernels: give it time)
 step e2e_hybrid 240 22 "$PY" bench/e2e_latency.py --vehicles 18 --duration-s 40 --no-trace
 step e2e_sharded 180 22 "$PY" bench/e2e_latency.py --vehicles 18 --duration-s 40 --pipeline sharded \
     --expect grid_fusion/motion_grid --no-trace
+step e2e_threads4 180 22 "$PY" bench/e2e_latency.py --vehicles 18 --duration-s 40 --no-trace \
+    --set markov_prediction.kernel_threads=4
 step e2e_sharded4 180 26 "$PY" bench/e2e_latency.py --vehicles 18 --duration-s 40 --pipeline sharded4 \
     --expect grid_fusion/motion_grid --no-trace
 echo "done at +$(( $(date +%s) - T0 ))s"
