@@ -9,7 +9,10 @@ an influencing conflict and the rule that chose it) and whether that corridor tu
 distance ``max(20, 4 s x speed)`` m ahead above 30 degrees). It writes one JSON line per window (``--windows``) and
 prints, for the windows of ``--split`` (default fast), per group: windows, mADE of ``--compare A B`` (default
 hybrid baseline), the difference and its share of the split's total difference (sum over the group's windows of
-ADE_A - ADE_B over the split's summed difference), the along-track mean at 4 s of both.
+ADE_A - ADE_B over the split's summed difference), the along-track mean at 4 s of both. Then the ratio mADE A /
+mADE B on all, slow, fast and moving windows with its 95 % interval by resampling cars (``ratio_interval``:
+a car's windows are drawn together; ``--boot N`` draws, 0 for none): how far a ratio measured on one
+recording's cars can be trusted.
 
 Run::
 
@@ -160,6 +163,50 @@ def gap_table(windows: list[dict[str, Any]], a: str, b: str, split: str) -> list
     return lines
 
 
+SPLITS = ("all", "slow", "fast", "moving")
+
+
+def _in_split(w: dict[str, Any], split: str) -> bool:
+    return split == "all" or (split == "moving" and w["manoeuvre"] != "stands") or w["split"] == split
+
+
+def ratio_interval(windows: list[dict[str, Any]], a: str, b: str, split: str = "all", *, draws: int = 4000,
+                   seed: int = 0, level: float = 0.95) -> dict[str, float] | None:
+    """mADE of ``a`` over mADE of ``b`` on the windows of ``split`` (all, slow, fast, or moving: every class but
+    stands) and its ``level`` interval by resampling cars: the windows of one car (recording, track id) overlap in
+    time and share its tracker and its corridors, so they are drawn together (a cluster bootstrap, ``draws`` draws
+    of as many cars as there are, with replacement; the ratio of the drawn cars' summed ADEs). None without windows.
+    """
+    sel = [w for w in windows if a in w["modes"] and b in w["modes"] and _in_split(w, split)]
+    if not sel:
+        return None
+    cars: dict[tuple, list[float]] = {}
+    for w in sel:
+        acc = cars.setdefault((w["recording"], w["track_id"]), [0.0, 0.0])
+        acc[0] += w["modes"][a]["ade"]
+        acc[1] += w["modes"][b]["ade"]
+    sums = np.array(list(cars.values()))  # (cars, 2)
+    total_b = sums[:, 1].sum()
+    ratio = float(sums[:, 0].sum() / total_b) if total_b > 0 else math.nan  # b exact on every window: no ratio
+    rng = np.random.default_rng(seed)
+    picks = rng.integers(0, len(sums), size=(draws, len(sums)))
+    drawn = sums[picks].sum(axis=1)  # (draws, 2)
+    ok = drawn[:, 1] > 0
+    ratios = drawn[ok, 0] / drawn[ok, 1]
+    lo, hi = np.percentile(ratios, [50 * (1 - level), 50 * (1 + level)]) if ratios.size else (math.nan, math.nan)
+    return {"ratio": ratio, "lo": float(lo), "hi": float(hi), "windows": len(sel), "cars": len(sums), "draws": draws, "level": level}
+
+
+def ratio_lines(windows: list[dict[str, Any]], a: str, b: str, draws: int) -> list[str]:
+    """``ratio_interval`` of every split, one line each."""
+    lines = [f"mADE {a} / {b}, 95 % interval by resampling cars ({draws} draws):"]
+    for split in SPLITS:
+        r = ratio_interval(windows, a, b, split, draws=draws)
+        lines.append(f"  {split:<7} -" if r is None else
+                     f"  {split:<7} {r['ratio']:.3f} [{r['lo']:.3f}, {r['hi']:.3f}]  ({r['windows']} windows, {r['cars']} cars)")
+    return lines
+
+
 def accel_se_line(windows: list[dict[str, Any]]) -> str:
     """The median standard error of the measured acceleration (``accel_se_mps2``) per split, over the windows
     that have one (a dump written before it was kept has none)."""
@@ -178,6 +225,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--compare", nargs=2, default=["hybrid", "baseline"], metavar=("A", "B"))
     p.add_argument("--split", choices=("fast", "slow", "all"), default="fast")
     p.add_argument("--leader-gap", type=float, default=LEADER_GAP_M, help=f"a leader counts within this gap, m (default {LEADER_GAP_M:g})")
+    p.add_argument("--boot", type=int, default=4000, metavar="N",
+                   help="draws of the interval of the mADE ratio of --compare, resampling cars (default 4000; 0: none)")
     args = p.parse_args(argv)
     if args.from_windows is not None:
         windows = [json.loads(line) for line in args.from_windows.read_text().splitlines() if line.strip()]
@@ -202,6 +251,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"wrote {args.windows} ({len(windows)} windows)")
     print(accel_se_line(windows))
     print("\n".join(gap_table(windows, *args.compare, args.split)))
+    if args.boot > 0:
+        print("\n".join(ratio_lines(windows, *args.compare, args.boot)))
     return 0
 
 
