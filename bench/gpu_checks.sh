@@ -27,6 +27,8 @@ echo "cpu cores: $(nproc)"
 # the CUDA tests (skipped without a GPU): the torch chain against numpy, the hybrid chain on real frames
 step pytest_cuda 300 8 "$PY" -m pytest -q -p no:cacheprovider tests/stages/test_markov_torch_hybrid.py \
     tests/stages/test_markov_transitions.py -k "cuda or torch"
+# the hybrid chain alone on synthetic pairs (no map, data or bus): numpy kernels against torch on CPU and on CUDA
+step kernel_hybrid 200 8 "$PY" bench/markov_kernel.py --hybrid-only --pairs 10,50,200 --repeats 5
 step dense_cuda 300 16 "$PY" bench/dense.py --vehicles 6,18,72 --frames 16 --warmup 4 --modes hybrid \
     --backend torch --device "$DEV" --json "$OUT/dense_cuda.json"
 step phases_cuda 200 34 "$PY" bench/frame_phases.py --vehicles 18 --frames 12 --warmup 3 --segments 1 \

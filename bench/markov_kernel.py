@@ -9,7 +9,14 @@ with the scipy CSR products (``kernel="scipy"``, the reference), torch on CPU
 and torch on CUDA when available, with and without the
 interval matrix, with and without cropping to the active s-window.
 
-    python bench/markov_kernel.py [--repeats N] [--pairs 1,10,50,200] [--threads N]
+    python bench/markov_kernel.py [--repeats N] [--pairs 1,10,50,200] [--threads N] [--hybrid-only]
+
+Then the hybrid mode's own chain as markov_prediction runs it (``chain.PriorityPropagator`` with an
+``InputPriority`` per step: the AR-like preference inside the compiled speed restriction λ_speed of
+``kernels.SpeedRestriction``, half of the pairs on a corridor with a 20 m-radius bend 40-60 m ahead; the stage's
+prune threshold, cropping and interval distribution), per frame on the numpy backend (the one compiled call,
+``kernel_threads`` 1 and 2), torch on CPU and torch on CUDA when available. It needs no map, data or bus: the
+quickest way to time a change of the chain on a GPU machine. ``--hybrid-only`` prints that table alone.
 
 ``--threads`` sets torch's CPU threads (default: torch's own choice). The
 first numba call of a process compiles (or loads the on-disk cache); the
@@ -58,6 +65,70 @@ def _scenario(config: MarkovGridConfig, n_pairs: int, seed: int = 0):
     return p0, inputs
 
 
+def _hybrid_scenario(config: MarkovGridConfig, n_pairs: int, seed: int = 0):
+    """The hybrid chain's inputs for ``n_pairs`` urban-like pairs: ``_scenario``'s start states and AR-like input
+    distributions, and λ_speed from the stage's defaults (speed limit 13.89 m/s; every other pair meets a 20 m bend
+    40-60 m ahead)."""
+    from stages.lib.markov import SeparableState, kernels
+    from stages.markov_prediction import MarkovPredictionConfig
+    from stages.markov_prediction import priority as pr
+    from stages.markov_prediction.chain import InputPriority
+
+    stage = MarkovPredictionConfig(mode="hybrid")
+    p0, steps = _scenario(config, n_pairs, seed)
+    lam = np.stack([p0.input_probs] + [t.probs for t in steps], axis=1)  # (B, K + 1, M)
+    s_m = np.arange(0.0, config.n_s_cells * config.ds_m + 1.0, 1.0)
+    bend = np.where((s_m >= 40.0) & (s_m <= 60.0), 1.0 / 20.0, 0.0)
+    curvature = [bend if b % 2 else np.zeros_like(s_m) for b in range(n_pairs)]
+    adm = pr.admissible_speeds_batch([s_m] * n_pairs, curvature, [stage.default_speed_limit_mps] * n_pairs,
+                                     np.asarray(stage.lat_accels_mps2), stage.lookahead_brake_mps2, stage.curvature_smoothing_m)
+    weights = np.asarray(stage.lat_accel_weights, dtype=np.float64)
+    cells = np.repeat((config.s_edges_m()[: config.n_s_cells] + 0.5 * config.ds_m)[None, :], n_pairs, axis=0)
+    restriction = kernels.SpeedRestriction([s_m] * n_pairs, adm, cells, config.v_centres_mps(), config.input_centres_mps2(),
+                                           weights / weights.sum(), config.tau_s)
+    prefs = (lam[:, 1:] / np.maximum(lam[:, 1:].max(axis=2, keepdims=True), 1e-12)).astype(np.float32)
+    thr = stage.forbid_threshold
+    inputs: list = []
+    for k in range(config.n_steps):
+        if k + 1 >= config.n_steps:
+            inputs.append(None)  # as the stage: the input after the last step changes no output
+            continue
+        pref = prefs[:, k]
+        inputs.append(InputPriority(
+            weights=lambda lo, hi, pref=pref: pr.combine_with_preference(restriction.full()[..., lo:hi], pref, thr),
+            at_states=lambda b, v, s, pref=pref: restriction.priority_at_states(pref, b, v, s, thr),
+            restriction=restriction, preference=pref, forbid_threshold=thr))
+    assert isinstance(p0, SeparableState)
+    return p0, inputs
+
+
+def _hybrid_table(config: MarkovGridConfig, stencils, pair_counts: list[int], repeats: int, torch) -> None:
+    """The hybrid chain per frame (ms) on every backend here; see the module's docstring."""
+    from stages.lib.markov import kernels, psi_matrix
+    from stages.markov_prediction import MarkovPredictionConfig
+    from stages.markov_prediction.chain import PriorityPropagator
+
+    stage = MarkovPredictionConfig(mode="hybrid")
+    psi = psi_matrix(config.input_centres_mps2(), gamma=stage.psi_gamma)
+    targets = [("numpy", "cpu", 1), ("numpy", "cpu", 2)] if kernels.available() else []
+    targets.append(("torch", "cpu", 1))
+    if torch.cuda.is_available():
+        targets.append(("torch", "cuda", 1))
+    print()
+    print("hybrid chain (chain.PriorityPropagator, speed restriction x AR preference), interval on, cropped; ms per frame")
+    print(f"{'backend':18s} " + " ".join(f"{'B=' + str(b):>10s}" for b in pair_counts))
+    for backend, device, threads in targets:
+        sync = (lambda: torch.cuda.synchronize()) if device == "cuda" else (lambda: None)
+        cells = []
+        for n_pairs in pair_counts:
+            p0, inputs = _hybrid_scenario(config, n_pairs)
+            propagator = PriorityPropagator(stencils, psi, backend=backend, device=device, n_s_cells=config.n_s_cells,
+                                            prune_threshold=stage.prune_threshold, kernel_threads=threads)
+            cells.append(f"{_time_frame(propagator, p0, inputs, True, repeats, sync) * 1e3:10.1f}")
+        label = f"numpy-numba x{threads}" if backend == "numpy" else f"torch-{device}"
+        print(f"{label:18s} " + " ".join(cells))
+
+
 def _time_frame(propagator: MarkovPropagator, p0, inputs, with_interval: bool, repeats: int, sync) -> float:
     propagator.run(p0, inputs, with_interval=with_interval)  # warm-up (lazy matrices, kernels)
     times = []
@@ -75,6 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--pairs", default="1,10,50,200")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    parser.add_argument("--hybrid-only", action="store_true", help="only the hybrid chain's table")
     args = parser.parse_args(argv)
     pair_counts = [int(x) for x in args.pairs.split(",")]
 
@@ -82,6 +154,13 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     stencils = build_stencils(config)
     build_s = time.perf_counter() - start
+    if args.hybrid_only:
+        import torch
+
+        if args.threads:
+            torch.set_num_threads(args.threads)
+        _hybrid_table(config, stencils, pair_counts, args.repeats, torch)
+        return 0
     print(f"grid: ds={config.ds_m} m dv={config.dv_mps} m/s v_max={config.v_max_mps} m/s "
           f"N_s={config.n_s_cells} N_v={config.n_v_cells} M={config.n_inputs} tau={config.tau_s} s K={config.n_steps}")
     print(f"samples: {config.n_state_samples}x{config.n_state_samples} states x {config.n_input_samples} inputs, "
@@ -126,6 +205,7 @@ def main(argv: list[str] | None = None) -> int:
                     cells.append(f"{frame_s * 1e3:9.1f} / {frame_s * 1e2:7.2f}")
                 label = f"{backend}-{kernel}" if backend == "numpy" else f"{backend}-{device}"
                 print(f"{label:14s} {str(crop):5s} {str(with_interval):8s} " + " ".join(f"{c:>20s}" for c in cells))
+    _hybrid_table(config, stencils, pair_counts, args.repeats, torch)
     return 0
 
 

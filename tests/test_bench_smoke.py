@@ -48,3 +48,14 @@ def test_frame_phases_names_the_markov_phases(tmp_path):
     functions = json.loads(out.read_text())["functions"]
     for name in ("MarkovPredictor._chain_phase", "MarkovPredictor._pairs_phase", "CorridorBuilder.process"):
         assert functions[name]["calls_per_frame"] > 0, name
+
+
+def test_markov_kernel_bench_times_the_hybrid_chain_without_map_or_data(tmp_path):
+    r = _run([str(REPO / "bench" / "markov_kernel.py"), "--hybrid-only", "--pairs", "2,3", "--repeats", "1"], tmp_path)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    lines = r.stdout.splitlines()
+    head = next(i for i, line in enumerate(lines) if line.startswith("hybrid chain"))
+    rows = {line.split()[0]: line.split()[-2:] for line in lines[head + 2:] if line.strip()}
+    assert {"numpy-numba", "torch-cpu"} <= set(rows)  # "numpy-numba x1" / "x2" split on the space
+    for cells in rows.values():
+        assert all(float(c) > 0 for c in cells)
