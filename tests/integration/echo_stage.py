@@ -51,7 +51,6 @@ SPEC = StageSpec(
 )
 
 
-
 def start(port: int, run_id: str, *extra: str) -> subprocess.Popen:
     """This stage as a process (node ``echo``, input ``profiles`` <- ``src/profiles``) connected to 127.0.0.1:``port``,
     with ``extra`` arguments; its output goes to a log file (``proc.log_path``)."""

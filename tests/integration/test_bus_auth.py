@@ -24,16 +24,15 @@ import sys
 import threading
 from pathlib import Path
 
-import msgpack
 import pytest
 
 import bus_schemas as bs
 from testkit.helpers import REPO, all_command_lines, endpoint, free_port, kill_all, python_env, wait_until
-from testkit.samples import SAMPLES
 from stages.recorder.inspect import inspect
 from stages.runtime.pipeline import PipelineError, load_pipeline
 from stages.runtime import BusClient
 from test_launch_run import Launch
+from tests.integration.echo_stage import profiles_payload
 
 RUN = "authrun"
 PW_ENV = "IAMP_TEST_BUS_PASSWORD"
@@ -54,13 +53,6 @@ params = {{ path = "{rec}" }}
     path = tmp_path / "auth.toml"
     path.write_text(text)
     return path
-
-
-def _profiles(stamp_index: int) -> bytes:
-    env = msgpack.unpackb(SAMPLES["iamp.AccelerationProfiles"]().encode(), raw=False)
-    env["body"]["header"]["frame_index"] = stamp_index
-    env["body"]["header"]["stamp_ns"] = 1_000_000_000 + stamp_index * 100_000_000
-    return msgpack.packb(env, use_bin_type=True)
 
 
 def _client_config(tmp_path: Path, name: str, user: str, password: str) -> str:
@@ -126,13 +118,13 @@ def test_protected_run_takes_only_credentialed_sessions(tmp_path, monkeypatch):
         for name, bus in intruders.items():  # opened after their link attempt: refused
             assert list(bus.session.info.peers_zid()) == [], f"session {name} got a peer in the protected run"
             for i in range(1, 4):
-                bus.put(f"iamp/{RUN}/{name}/profiles", _profiles(100 + i))
+                bus.put(f"iamp/{RUN}/{name}/profiles", profiles_payload(100 + i))
         for i in range(1, 4):
-            publish(_profiles(i))
+            publish(profiles_payload(i))
         acks.wait_for(3)
         for name, bus in intruders.items():  # later than the first good round trip, in case a link were slow
-            bus.put(f"iamp/{RUN}/{name}/profiles", _profiles(200))
-        publish(_profiles(4))
+            bus.put(f"iamp/{RUN}/{name}/profiles", profiles_payload(200))
+        publish(profiles_payload(4))
         acks.wait_for(4)
         assert seen_by_intruders == [], f"unauthenticated sessions received the run's traffic: {sorted(set(seen_by_intruders))[:5]}"
 
@@ -162,7 +154,7 @@ def test_without_auth_the_same_intruder_gets_in(tmp_path):
         publish, matched = intruder.publisher_with_matching(f"iamp/{RUN}/none/profiles")
         wait_until(matched, 30.0, "the recorder's subscription reaching the session")
         assert list(intruder.session.info.peers_zid())
-        publish(_profiles(1))
+        publish(profiles_payload(1))
         acks.wait_for(1)
         run.proc.send_signal(signal.SIGINT)
         assert run.wait() == 0, run.text()[-4000:]
