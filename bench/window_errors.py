@@ -228,6 +228,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--boot", type=int, default=4000, metavar="N",
                    help="draws of the interval of the mADE ratio of --compare, resampling cars (default 4000; 0: none)")
     args = p.parse_args(argv)
+    if args.boot < 0:
+        p.error(f"--boot {args.boot}: a number of draws >= 0 (0: no interval)")
     if args.from_windows is not None:
         windows = [json.loads(line) for line in args.from_windows.read_text().splitlines() if line.strip()]
     else:

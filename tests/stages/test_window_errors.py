@@ -96,3 +96,9 @@ def test_ratio_interval_splits():
     assert ratio_interval(windows, "A", "C") is None
     lines = ratio_lines(windows, "A", "B", 200)
     assert lines[0].startswith("mADE A / B, 95 % interval") and any(line.strip().startswith("moving  1.750") for line in lines)
+
+
+def test_a_negative_boot_is_a_command_line_error(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--from-windows", "unused.jsonl", "--boot", "-1"])
+    assert exc.value.code == 2 and "--boot -1: a number of draws >= 0" in capsys.readouterr().err
