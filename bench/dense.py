@@ -25,7 +25,7 @@ least-squares fit log(time) ~ log(pairs) over the N (1 = linear).
 Prints figures, asserts nothing; other load on the machine shows in them.
 
     python bench/dense.py [--vehicles 6,12,18,36,72] [--frames 40] [--warmup 10] [--source k733|k729] [--modes hybrid,baseline]
-                          [--backend numpy|torch] [--device cpu|cuda] [--json FILE] [--keep DIR] [--set KEY=VALUE ...]
+                          [--backend numpy|torch|cuda] [--device cpu|cuda] [--json FILE] [--keep DIR] [--set KEY=VALUE ...]
 
 ``--set KEY=VALUE`` sets a markov_prediction parameter for both modes (the
 input cells ``input_min_mps2``, ``input_max_mps2``, ``n_inputs`` go to
@@ -212,7 +212,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--warmup", type=int, default=10, help="untimed frames before each segment's timed ones (track histories, caches)")
     parser.add_argument("--segments", type=int, default=4, help="the timed frames are split over this many stretches spread over the recording")
     parser.add_argument("--source", choices=sorted(SOURCES), default="k733")
-    parser.add_argument("--backend", choices=("numpy", "torch"), default="numpy")
+    parser.add_argument("--backend", choices=("numpy", "torch", "cuda"), default="numpy",
+                        help="markov_prediction's backend; cuda: the hybrid chain as one CUDA kernel (numba.cuda), on --device (cuda if cpu)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: leave torch's default)")
     parser.add_argument("--json", type=Path, default=None)
@@ -233,7 +234,15 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     sizes = [int(x) for x in args.vehicles.split(",")]
-    if args.device != "cpu":
+    if args.backend == "cuda":
+        from stages.lib.markov import cuda_chain
+
+        if args.device == "cpu":
+            args.device = "cuda"
+        if (reason := cuda_chain.unavailable_reason()) is not None:
+            print(f"--backend cuda: {reason}; nothing measured")
+            return 0
+    elif args.device != "cpu":
         args.backend = "torch"
         import torch
 

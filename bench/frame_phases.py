@@ -16,7 +16,7 @@ chain phase includes the kernel), so the column does not add up. Prints
 figures, asserts nothing; other load on the machine shows in them.
 
     python bench/frame_phases.py [--vehicles 18] [--frames 30] [--warmup 5] [--segments 2] [--source k733|k729]
-                                 [--modes hybrid] [--backend numpy|torch] [--device cpu|cuda]
+                                 [--modes hybrid] [--backend numpy|torch|cuda] [--device cpu|cuda]
                                  [--function MODULE:QUALNAME ...] [--json FILE]
 
 ``--function`` adds a function to the default list (``MODULE:Class.method``
@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--segments", type=int, default=2)
     parser.add_argument("--source", choices=("k733", "k729"), default="k733")
     parser.add_argument("--modes", default="hybrid", help="comma-separated markov_prediction modes (hybrid, baseline)")
-    parser.add_argument("--backend", choices=("numpy", "torch"), default="numpy", help="markov_prediction's chain backend (as bench/dense.py)")
+    parser.add_argument("--backend", choices=("numpy", "torch", "cuda"), default="numpy", help="markov_prediction's chain backend (as bench/dense.py)")
     parser.add_argument("--device", default="cpu", help="cpu or cuda (torch backend; ar_inference's net too)")
     parser.add_argument("--function", action="append", default=[], metavar="MODULE:QUALNAME", help="also time this function")
     parser.add_argument("--json", type=Path, default=None)

@@ -15,7 +15,8 @@ Then the hybrid mode's own chain as markov_prediction runs it (``chain.PriorityP
 ``InputPriority`` per step: the AR-like preference inside the compiled speed restriction λ_speed of
 ``kernels.SpeedRestriction``, half of the pairs on a corridor with a 20 m-radius bend 40-60 m ahead; the stage's
 prune threshold, cropping and interval distribution), per frame on the numpy backend (the one compiled call,
-``kernel_threads`` 1 and 2), torch on CPU and torch on CUDA when available. It needs no map, data or bus: the
+``kernel_threads`` 1 and 2), torch on CPU and torch on CUDA when available, and the one call as one CUDA kernel
+(``backend = "cuda"``, ``stages/lib/markov/cuda_chain.py``) where numba.cuda finds a GPU. It needs no map, data or bus: the
 quickest way to time a change of the chain on a GPU machine. ``--hybrid-only`` prints that table alone.
 
 ``--threads`` sets torch's CPU threads (default: torch's own choice). The
@@ -113,6 +114,10 @@ def _hybrid_table(config: MarkovGridConfig, stencils, pair_counts: list[int], re
     targets.append(("torch", "cpu", 1))
     if torch.cuda.is_available():
         targets.append(("torch", "cuda", 1))
+    from stages.lib.markov import cuda_chain
+
+    if kernels.available() and cuda_chain.available():
+        targets.append(("cuda", "cuda", 1))
     print()
     print("hybrid chain (chain.PriorityPropagator, speed restriction x AR preference), interval on, cropped; ms per frame")
     print(f"{'backend':18s} " + " ".join(f"{'B=' + str(b):>10s}" for b in pair_counts))
@@ -121,10 +126,11 @@ def _hybrid_table(config: MarkovGridConfig, stencils, pair_counts: list[int], re
         cells = []
         for n_pairs in pair_counts:
             p0, inputs = _hybrid_scenario(config, n_pairs)
-            propagator = PriorityPropagator(stencils, psi, backend=backend, device=device, n_s_cells=config.n_s_cells,
-                                            prune_threshold=stage.prune_threshold, kernel_threads=threads)
+            propagator = PriorityPropagator(stencils, psi, backend="numpy" if backend == "cuda" else backend,
+                                            device="cpu" if backend == "cuda" else device, chain_device=device if backend == "cuda" else None,
+                                            n_s_cells=config.n_s_cells, prune_threshold=stage.prune_threshold, kernel_threads=threads)
             cells.append(f"{_time_frame(propagator, p0, inputs, True, repeats, sync) * 1e3:10.1f}")
-        label = f"numpy-numba x{threads}" if backend == "numpy" else f"torch-{device}"
+        label = f"numpy-numba x{threads}" if backend == "numpy" else "cuda-chain" if backend == "cuda" else f"torch-{device}"
         print(f"{label:18s} " + " ".join(cells))
 
 

@@ -176,13 +176,29 @@ class PriorityPropagator(MarkovPropagator):
     no final state asked for, is one compiled call (``kernels.speed_priority_run``: blocks of similar pairs, each on the
     cells its pairs occupy); it gives the numbers of the step-by-step run (see there). ``kernel_threads`` (>= 1) threads
     run that call's blocks (1: all on the calling thread); the numbers do not depend on it.
+
+    ``chain_device`` ("cuda", "cuda:N"; numpy backend only): that one call runs as one CUDA kernel launch on the GPU
+    (``stages.lib.markov.cuda_chain``: the same numbers to float32 rounding); ValueError here where numba.cuda finds
+    no GPU. Every other run stays on the CPU.
     """
 
-    def __init__(self, stencils: TransitionStencils, psi: np.ndarray, *, kernel_threads: int = 1, **kwargs: Any) -> None:
+    def __init__(self, stencils: TransitionStencils, psi: np.ndarray, *, kernel_threads: int = 1, chain_device: str | None = None,
+                 **kwargs: Any) -> None:
         if isinstance(kernel_threads, bool) or not isinstance(kernel_threads, (int, np.integer)) or kernel_threads < 1:
             raise ValueError(f"kernel_threads = {kernel_threads!r}: expected an integer >= 1")
         super().__init__(stencils, **kwargs)
         self.kernel_threads = int(kernel_threads)
+        self.chain_device = chain_device
+        if chain_device is not None:
+            from stages.lib.markov import cuda_chain
+
+            cuda_chain.device_index(chain_device)
+            if self.backend != "numpy" or not getattr(self._backend, "fused", False):
+                raise ValueError(f"chain_device = {chain_device!r}: needs the numpy backend with its numba kernels")
+            reason = cuda_chain.unavailable_reason()
+            if reason is not None:
+                raise ValueError(f"backend = 'cuda' (device {chain_device!r}): {reason}; use backend = 'numpy' on this machine")
+            cuda_chain.warm_up(chain_device)
         self._psi = np.asarray(psi, dtype=np.float32)
         self._backend = _PriorityBackend(self._backend, psi, self.backend)
 
@@ -195,6 +211,14 @@ class PriorityPropagator(MarkovPropagator):
         return bool(given) and all(isinstance(t, InputPriority) and t.restriction is given[0].restriction
                                    and t.preference is not None and t.forbid_threshold == given[0].forbid_threshold for t in given) \
             and isinstance(given[0].restriction, kernels.SpeedRestriction)
+
+    @staticmethod
+    def _on_gpu(p0: SeparableState, restriction: Any) -> bool:
+        """Whether the CUDA kernel's fixed-size arrays hold this run (else the CPU kernel takes it: the same numbers)."""
+        from stages.lib.markov import cuda_chain
+
+        return cuda_chain.supports(p0.position_probs.shape[1], p0.velocity_probs.shape[1], p0.input_probs.shape[1],
+                                   restriction._args[1].shape[0])
 
     def run(self, p0: Any, inputs: Any = None, *, n_steps: int | None = None, with_interval: bool = False,
             with_final_state: bool = False, initial_outside: np.ndarray | None = None) -> PropagationResult:
@@ -212,10 +236,15 @@ class PriorityPropagator(MarkovPropagator):
                 if q.shape != (n_pairs, n_in) or not np.all(np.isfinite(q)) or np.any(q < 0):
                     raise ValueError(f"InputPriority.preference: ({n_pairs}, {n_in}) finite and non-negative expected, got {q.shape}")
                 preferences[k] = q
-        pos, vel, ipos, outside, ioutside, pruned, totals = kernels.speed_priority_run(
-            (p0.input_probs, p0.velocity_probs, p0.position_probs), outside0, self._backend.tables, k_steps, with_interval,
-            self.prune_threshold, self._psi, given[0].restriction, preferences, [t is not None for t in inputs],
-            given[0].forbid_threshold, threads=self.kernel_threads)
+        args = ((p0.input_probs, p0.velocity_probs, p0.position_probs), outside0, self._backend.tables, k_steps, with_interval,
+                self.prune_threshold, self._psi, given[0].restriction, preferences, [t is not None for t in inputs],
+                given[0].forbid_threshold)
+        if self.chain_device is not None and self._on_gpu(p0, given[0].restriction):
+            from stages.lib.markov import cuda_chain
+
+            pos, vel, ipos, outside, ioutside, pruned, totals = cuda_chain.speed_priority_run(*args, device=self.chain_device)
+        else:
+            pos, vel, ipos, outside, ioutside, pruned, totals = kernels.speed_priority_run(*args, threads=self.kernel_threads)
         return PropagationResult(
             position_probs=pos, velocity_probs=vel, interval_position_probs=ipos, outside_mass=outside,
             interval_outside_mass=ioutside, pruned_mass=pruned, final_state=None,

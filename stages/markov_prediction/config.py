@@ -28,7 +28,11 @@ MODE_INITIAL_BOX = {"hybrid": "measurement", "corridor_cv": "measurement", "base
 HYBRID_INPUTS = ("psi", "direct")
 #: a moving pair's input at t0 in hybrid mode (``hybrid_initial_input``)
 HYBRID_INITIAL_INPUTS = ("ar", "measured", "blend", "adaptive")
-BACKENDS = ("numpy", "torch")
+#: the chain's backend: ``numpy`` (numba kernels on the CPU), ``torch`` (on ``device``), or ``cuda``: numpy for every
+#: chain but the hybrid mode's, whose whole run per frame is one CUDA kernel launch on ``device`` ("cuda", "cuda:N";
+#: ``stages.lib.markov.cuda_chain``, numba.cuda: needs an NVIDIA GPU, the stage stops at start with a clear error
+#: otherwise)
+BACKENDS = ("numpy", "torch", "cuda")
 GRID_DISTRIBUTIONS = ("interval", "point")
 #: how a spread (table, online) widens the grids: ``isotropic`` blurs each vehicle's map grid with a round Gaussian
 #: (``spread.blur_grid``); ``along`` blurs each pair's s-distribution along its corridor before it is rasterised
@@ -233,7 +237,13 @@ class MarkovPredictionConfig(ConfigMixin):
         if self.backend not in BACKENDS:
             raise ValueError(f"backend = {self.backend!r}: expected one of {', '.join(BACKENDS)}")
         if self.backend == "numpy" and self.device != "cpu":
-            raise ValueError(f"device = {self.device!r}: the numpy backend runs on cpu only (use backend = 'torch')")
+            raise ValueError(f"device = {self.device!r}: the numpy backend runs on cpu only (use backend = 'torch' or 'cuda')")
+        if self.backend == "cuda":
+            if self.device == "cpu":  # resolved here: the cuda backend's chain runs on the first GPU unless told otherwise
+                object.__setattr__(self, "device", "cuda")
+            head, _, tail = self.device.partition(":")
+            if head != "cuda" or (self.device != "cuda" and not tail.isdigit()):
+                raise ValueError(f"device = {self.device!r}: the cuda backend needs 'cuda' or 'cuda:N'")
         if self.leader_horizon_mean not in ("arithmetic", "geometric"):
             raise ValueError(f"leader_horizon_mean = {self.leader_horizon_mean!r}: expected 'arithmetic' or 'geometric'")
         if self.spread_shape not in SPREAD_SHAPES:

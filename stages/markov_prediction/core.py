@@ -303,8 +303,9 @@ class MarkovPredictor:
             self.propagator = PriorityPropagator(
                 stencils,
                 self.psi,
-                backend=config.backend,
-                device=config.device,
+                backend="numpy" if config.backend == "cuda" else config.backend,
+                device="cpu" if config.backend == "cuda" else config.device,
+                chain_device=config.device if config.backend == "cuda" else None,
                 n_s_cells=self.n_s,
                 prune_threshold=config.prune_threshold,
                 kernel_threads=config.kernel_threads,

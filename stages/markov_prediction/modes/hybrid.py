@@ -62,7 +62,7 @@ class Hybrid(InputModel):
 
     def _compiled_speed_applies(self) -> bool:
         cfg = self.predictor.config
-        return not cfg.hybrid_rules and cfg.hybrid_speed_restriction and kernels.available() and cfg.backend == "numpy"
+        return not cfg.hybrid_rules and cfg.hybrid_speed_restriction and kernels.available() and cfg.backend in ("numpy", "cuda")
 
     def start(self, pairs: list[Pair], issues: list[Issue]) -> ChainInputs:
         p = self.predictor
