@@ -26,11 +26,17 @@ echo "cpu cores: $(nproc)"
 "$PY" -c "import torch; print('torch', torch.__version__, 'cuda available:', torch.cuda.is_available())"
 # the CUDA tests (skipped without a GPU): the torch chain against numpy, the hybrid chain on real frames
 step pytest_cuda 300 8 "$PY" -m pytest -q -p no:cacheprovider tests/stages/test_markov_torch_hybrid.py \
-    tests/stages/test_markov_transitions.py -k "cuda or torch"
-# the hybrid chain alone on synthetic pairs (no map, data or bus): numpy kernels against torch on CPU and on CUDA
-step kernel_hybrid 200 8 "$PY" bench/markov_kernel.py --hybrid-only --pairs 10,50,200 --repeats 5
+    tests/stages/test_markov_transitions.py tests/stages/test_markov_cuda_chain.py -k "cuda or torch" -W ignore
+# the hybrid chain alone on synthetic pairs (no map, data or bus): numpy kernels against torch on CPU and on CUDA, and
+# the cuda backend's one kernel
+step kernel_hybrid 200 8 "$PY" bench/markov_kernel.py --hybrid-only --pairs 1,10,50,200 --repeats 5
 step dense_cuda 300 16 "$PY" bench/dense.py --vehicles 6,18,72 --frames 16 --warmup 4 --modes hybrid \
     --backend torch --device "$DEV" --json "$OUT/dense_cuda.json"
+# the cuda backend: the hybrid chain's whole run as one numba.cuda kernel per frame (stages/lib/markov/cuda_chain.py)
+step dense_cudachain 300 16 "$PY" bench/dense.py --vehicles 6,18,72 --frames 16 --warmup 4 --modes hybrid \
+    --backend cuda --device "$DEV" --json "$OUT/dense_cudachain.json"
+step phases_cudachain 200 14 "$PY" bench/frame_phases.py --vehicles 18 --frames 12 --warmup 3 --segments 1 \
+    --backend cuda --device "$DEV" --function stages.lib.markov.cuda_chain:speed_priority_run
 step phases_cuda 200 34 "$PY" bench/frame_phases.py --vehicles 18 --frames 12 --warmup 3 --segments 1 \
     --backend torch --device "$DEV" --function stages.lib.markov.propagate:_TorchBackend.transition \
     --function stages.lib.markov.propagate:_TorchBackend.support \
@@ -39,6 +45,8 @@ OMP_NUM_THREADS=1 step dense_cpu 300 16 "$PY" bench/dense.py --vehicles 18,72 --
 # at real time, 18 vehicles, 40 s each: unsharded, in two shards, unsharded with the chain on four threads, in four
 # shards (the first run on a fresh machine also compiles every stage's kernels: give it time)
 step e2e_hybrid 240 22 "$PY" bench/e2e_latency.py --vehicles 18 --duration-s 40 --no-trace
+step e2e_cudachain 180 22 "$PY" bench/e2e_latency.py --vehicles 18 --duration-s 40 --no-trace \
+    --set markov_prediction.backend=cuda
 step e2e_sharded 180 22 "$PY" bench/e2e_latency.py --vehicles 18 --duration-s 40 --pipeline sharded \
     --expect grid_fusion/motion_grid --no-trace
 step e2e_threads4 180 22 "$PY" bench/e2e_latency.py --vehicles 18 --duration-s 40 --no-trace \

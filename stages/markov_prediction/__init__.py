@@ -42,7 +42,9 @@ chain loop of ``core.py`` calls: ``modes/base.py``):
 - ``baseline``: the Markov chain of docs/method.md §3.4 with the rule-based
   priority vector λ of §4; all vehicle-corridor pairs of a frame propagate
   together, one batch per step (``backend`` "numpy" = scipy CSR, or
-  "torch" on ``device`` "cpu"/"cuda");
+  "torch" on ``device`` "cpu"/"cuda"; "cuda": the numpy backend, with the
+  hybrid mode's whole run per frame as one numba.cuda kernel on ``device``
+  "cuda"/"cuda:N", ``stages.lib.markov.cuda_chain``);
 - ``cv``: Cartesian constant velocity, one straight line per vehicle along its
   velocity (``corridor_id`` -1);
 - ``corridor_cv``: constant speed along each corridor.
