@@ -1047,8 +1047,9 @@ def add_arguments(parser) -> None:
                         help="corridor probabilities: the intentions stage's P(R = c) (default) or uniform")
     parser.add_argument("--model", type=Path, default=None, help="AR model weights for mode hybrid (default: the shipped stages/lib/ar/weights/ar_taf_bw.pt)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the intentions particle filter (default 0)")
-    parser.add_argument("--backend", choices=["numpy", "torch"], default="numpy", help="Markov backend (default numpy)")
-    parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    parser.add_argument("--backend", choices=["numpy", "torch", "cuda"], default="numpy",
+                        help="Markov backend (default numpy; cuda: the hybrid chain as one CUDA kernel, on --device cuda or cuda:N)")
+    parser.add_argument("--device", default="cpu", help="torch device, or the cuda backend's GPU (default cpu)")
     parser.add_argument("--max-frames", type=int, default=0, help="stop each sequence after this many frames (0: all)")
     parser.add_argument("--json", type=Path, default=None, help="write the results as JSON")
     parser.add_argument("--figures", type=Path, default=None,
