@@ -18,8 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stages.lib.markov import MarkovGridConfig, build_stencils, initial_state, kernels, load_or_build_stencils, psi_matrix
+from stages.lib.markov import MarkovGridConfig, TransitionKind, build_stencils, kernels, load_or_build_stencils, psi_matrix
 from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
+from testkit.hybrid_chain import hybrid_chain_case
 
 SMALL = MarkovGridConfig(v_max_mps=6.0, n_s_cells=30, n_steps=6, n_state_samples=5, n_input_samples=4, n_sub_times=4)
 NAMES = ("position_probs", "velocity_probs", "interval_position_probs", "outside_mass", "interval_outside_mass", "pruned_mass")
@@ -28,35 +29,16 @@ NAMES = ("position_probs", "velocity_probs", "interval_position_probs", "outside
 def _scenario(n_pairs: int, seed: int, threshold: float):
     """Pairs near the window's end (mass leaks), one at rest, curves that forbid inputs; AR-like preferences; the last
     step without an input (as the stage runs it)."""
-    from stages.markov_prediction import priority as pr
-
-    v, a = SMALL.v_centres_mps(), SMALL.input_centres_mps2()
-    rng = np.random.default_rng(seed)
-    n_in, k_steps = SMALL.n_inputs, SMALL.n_steps
-    profiles, adms = [], []
-    for _ in range(n_pairs):
-        s = np.cumsum(rng.uniform(0.3, 1.2, 80)) - 5.0
-        kappa = np.where((s > 8) & (s < 18), 1.0 / rng.uniform(3, 8), 0.0)
-        profiles.append(s)
-        adms.append(pr.admissible_speeds(s, kappa, rng.uniform(2, 6), np.array([3.0, 2.0, 1.0]), 2.0, 4.0))
-    cells = 0.5 + np.arange(SMALL.n_s_cells)[None, :] * SMALL.ds_m + rng.uniform(-2, 2, (n_pairs, 1))
-    restriction = kernels.SpeedRestriction(profiles, adms, cells, v, a, np.array([0.3, 0.5, 0.2]), SMALL.tau_s)
-    prefs = rng.dirichlet(np.ones(n_in), (k_steps, n_pairs)).astype(np.float32)
-    prefs /= prefs.max(axis=2, keepdims=True)
-    s0 = rng.uniform(1, 20, n_pairs)
-    s0[:2] = [24.0, 27.5]
-    v0 = rng.uniform(0, 5.5, n_pairs)
-    v0[-1] = 0.0
-    p0 = initial_state(SMALL, s_m=s0, v_mps=v0, half_width_s_m=0.7, half_width_v_mps=0.6, input_probs=rng.dirichlet(np.ones(n_in), n_pairs))
+    case = hybrid_chain_case(SMALL, n_pairs, np.random.default_rng(seed))
+    p0, restriction, prefs = case.p0, case.restriction(SMALL), case.preferences
     stencils = build_stencils(SMALL)
-    from stages.lib.markov import TransitionKind
-
     tables = (*kernels.stencil_tables(stencils.kernel(TransitionKind.TIME_POINT)),
               *kernels.collapsed_tables(stencils.kernel(TransitionKind.TIME_INTERVAL)))
+    k_steps = SMALL.n_steps
     has_input = [True] * (k_steps - 1) + [False]
     outside0 = np.zeros(n_pairs, np.float32)
     outside0[3] = 0.25  # a pair that starts with mass outside
-    return ((p0.input_probs, p0.velocity_probs, p0.position_probs), outside0, tables, k_steps, True, 1e-4, psi_matrix(a),
+    return ((p0.input_probs, p0.velocity_probs, p0.position_probs), outside0, tables, k_steps, True, 1e-4, psi_matrix(SMALL.input_centres_mps2()),
             restriction, prefs, has_input, threshold)
 
 

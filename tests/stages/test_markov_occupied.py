@@ -8,6 +8,7 @@ import pytest
 from stages.lib.markov import MarkovGridConfig, build_stencils, initial_state, kernels, psi_matrix
 from stages.markov_prediction.chain import InputPriority, PriorityPropagator
 from stages.markov_prediction.priority import combine_with_preference
+from testkit.hybrid_chain import hybrid_chain_case
 
 SMALL = MarkovGridConfig(v_max_mps=6.0, n_s_cells=30, n_steps=6, n_state_samples=5, n_input_samples=4, n_sub_times=4)
 
@@ -131,32 +132,13 @@ def test_one_call_speed_priority_run_equals_the_step_by_step_run(n_pairs, monkey
     on its pairs' cells) gives the step-by-step numba run's numbers bit for bit (B > 1; B = 1 within float32 rounding of the
     renormalisation), and the scipy reference's within 1e-6; pairs near the window's end leak mass, one pair starts
     at rest, one has every input forbidden somewhere."""
-    from stages.markov_prediction import priority as pr
-
     stencils = build_stencils(SMALL)
-    v, a = SMALL.v_centres_mps(), SMALL.input_centres_mps2()
-    rng = np.random.default_rng(11)
-    n_in, k_steps = SMALL.n_inputs, SMALL.n_steps
-    profiles, adms = [], []
-    for b in range(n_pairs):
-        s = np.cumsum(rng.uniform(0.3, 1.2, 80)) - 5.0
-        kappa = np.where((s > 8) & (s < 18), 1.0 / rng.uniform(3, 8), 0.0)
-        profiles.append(s)
-        adms.append(pr.admissible_speeds(s, kappa, rng.uniform(2, 6), np.array([3.0, 2.0, 1.0]), 2.0, 4.0))
-    cells = 0.5 + np.arange(SMALL.n_s_cells)[None, :] * SMALL.ds_m + rng.uniform(-2, 2, (n_pairs, 1))
-    weights = np.array([0.3, 0.5, 0.2])
-    prefs = [rng.dirichlet(np.ones(n_in), n_pairs).astype(np.float32) for _ in range(k_steps)]
-    prefs = [q / q.max(axis=1, keepdims=True) for q in prefs]
-    s0 = rng.uniform(1, 20, n_pairs)
-    s0[: min(2, n_pairs)] = [24.0, 27.5][: min(2, n_pairs)]  # near the window's end: mass leaks
-    v0 = rng.uniform(0, 5.5, n_pairs)
-    v0[-1] = 0.0
-    p0 = initial_state(SMALL, s_m=s0, v_mps=v0, half_width_s_m=0.7, half_width_v_mps=0.6,
-                       input_probs=rng.dirichlet(np.ones(n_in), n_pairs))
-    psi = psi_matrix(a)
+    case = hybrid_chain_case(SMALL, n_pairs, np.random.default_rng(11))
+    p0, prefs = case.p0, list(case.preferences)
+    psi = psi_matrix(SMALL.input_centres_mps2())
 
     def schedule(threshold, compiled):
-        lazy = kernels.SpeedRestriction(profiles, adms, cells, v, a, weights, SMALL.tau_s)
+        lazy = case.restriction(SMALL)
         steps = [InputPriority(weights=lambda lo, hi, q=q: combine_with_preference(lazy.full()[..., lo:hi], q, threshold),
                                at_states=lambda b, vv, s, q=q: lazy.priority_at_states(q, b, vv, s, threshold),
                                restriction=lazy if compiled else None, preference=q if compiled else None, forbid_threshold=threshold)

@@ -104,7 +104,10 @@ if cuda is not None:
 
     @cuda.jit(device=True, inline=True)
     def _speed_values(b, l, vi, xp, fp, start, bucket, inv_h, cell_s, v_c, a_c, w32, tau, n_query, m, count):  # pragma: no cover - compiled
-        """λ_speed (M,) at the state (b, s-cell l, v-cell vi) into ``m``: ``kernels._speed_fill``'s loop body."""
+        """λ_speed (M,) at the state (b, s-cell l, v-cell vi) into ``m``: ``kernels._speed_fill``'s loop body, ported
+        (a CUDA kernel cannot call a CPU-compiled function). One plain-Python body compiled for both targets was tried
+        (session 23): it cost the CPU's fill 43 % (``SpeedRestriction.full()`` of 50 pairs 17.8 -> 25.5 ms), so the
+        CPU keeps its hand-inlined loop; tests/stages/test_markov_cuda_chain.py binds the two."""
         n_in = a_c.shape[0]
         n_j = fp.shape[0]
         total = _f32(0.0)
