@@ -206,7 +206,9 @@ curvature), ``pair_fallback_speed_above_vmax`` (measured speed above
 it), ``pair_fallback_box_outside_window`` (an initial box that misses its
 window, which ``initial_state`` would raise for). A pair the batched chain
 raises on is found by bisection and falls back the same way
-(``pair_fallback_chain_failed``), the batch run again without it. A pair
+(``pair_fallback_chain_failed``), the batch run again without it. With
+``backend`` "cuda", a GPU run that raises is done again by the CPU kernel,
+and every later run too (``gpu_chain_failed``, once: no pair is lost). A pair
 whose fallback or outputs raise is not predicted (``pair_failed``), a
 vehicle whose pairs cannot be built neither (``vehicle_failed``). The other
 pairs' predictions are exactly what they are without the failing one

@@ -179,7 +179,8 @@ class PriorityPropagator(MarkovPropagator):
 
     ``chain_device`` ("cuda", "cuda:N"; numpy backend only): that one call runs as one CUDA kernel launch on the GPU
     (``stages.lib.markov.cuda_chain``: the same numbers to float32 rounding); ValueError here where numba.cuda finds
-    no GPU. Every other run stays on the CPU.
+    no GPU. Every other run stays on the CPU. A GPU run that raises is done again by the CPU kernel, and so is every
+    run after it (``gpu_failures`` says why).
     """
 
     def __init__(self, stencils: TransitionStencils, psi: np.ndarray, *, kernel_threads: int = 1, chain_device: str | None = None,
@@ -189,6 +190,9 @@ class PriorityPropagator(MarkovPropagator):
         super().__init__(stencils, **kwargs)
         self.kernel_threads = int(kernel_threads)
         self.chain_device = chain_device
+        #: why the GPU run failed, once (then ``chain_device`` is None: the CPU kernel takes every run after it, with
+        #: the same numbers to float32 rounding); the caller reports and clears it
+        self.gpu_failures: list[str] = []
         if chain_device is not None:
             from stages.lib.markov import cuda_chain
 
@@ -239,12 +243,18 @@ class PriorityPropagator(MarkovPropagator):
         args = ((p0.input_probs, p0.velocity_probs, p0.position_probs), outside0, self._backend.tables, k_steps, with_interval,
                 self.prune_threshold, self._psi, given[0].restriction, preferences, [t is not None for t in inputs],
                 given[0].forbid_threshold)
+        out = None
         if self.chain_device is not None and self._on_gpu(p0, given[0].restriction):
             from stages.lib.markov import cuda_chain
 
-            pos, vel, ipos, outside, ioutside, pruned, totals = cuda_chain.speed_priority_run(*args, device=self.chain_device)
-        else:
-            pos, vel, ipos, outside, ioutside, pruned, totals = kernels.speed_priority_run(*args, threads=self.kernel_threads)
+            try:
+                out = cuda_chain.speed_priority_run(*args, device=self.chain_device)
+            except Exception as exc:  # noqa: BLE001 - a GPU failing mid-run (driver, memory) must not cost the frame
+                self.gpu_failures.append(f"{self.chain_device}: {type(exc).__name__}: {exc}: the chain runs on the CPU from now on")
+                self.chain_device = None
+        if out is None:
+            out = kernels.speed_priority_run(*args, threads=self.kernel_threads)
+        pos, vel, ipos, outside, ioutside, pruned, totals = out
         return PropagationResult(
             position_probs=pos, velocity_probs=vel, interval_position_probs=ipos, outside_mass=outside,
             interval_outside_mass=ioutside, pruned_mass=pruned, final_state=None,

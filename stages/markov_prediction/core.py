@@ -1088,6 +1088,13 @@ class MarkovPredictor:
 
     # ----- the chain loop --------------------------------------------------------------
 
+    def _report_gpu(self, issues: list[Issue]) -> None:
+        """``gpu_chain_failed`` (frame-level) for a failed GPU run of the chain: the CPU kernel did that run and does
+        every later one, so the frame keeps every pair."""
+        failures = self.propagator.gpu_failures
+        while failures:
+            issues.append(Issue("gpu_chain_failed", -1, failures.pop(0)))
+
     def _markov(self, pairs: list[Pair], issues: list[Issue]) -> dict[str, np.ndarray]:
         """The chain for a batch of pairs: the mode's λ(0) and Γ per step (``InputModel.start``), one pass, and
         another over the pairs the mode names (``ChainInputs.rerun``), whose rows replace the first pass's."""
@@ -1102,6 +1109,7 @@ class MarkovPredictor:
         members = np.arange(n_b)
         steps = inputs.fixed_steps()
         result = self.propagator.run(p0, inputs.step if steps is None else steps, with_interval=inputs.with_interval)
+        self._report_gpu(issues)
         pos, vel, interval, outside = self._mix_standstill(
             pairs, members, p0.position_probs, result.position_probs, result.velocity_probs,
             result.interval_position_probs, result.outside_mass,
@@ -1109,6 +1117,7 @@ class MarkovPredictor:
         while (m := inputs.rerun({"position": pos, "velocity": vel, "interval": interval, "outside": outside})) is not None:
             sub = SeparableState(input_probs=p0.input_probs[m], velocity_probs=p0.velocity_probs[m], position_probs=p0.position_probs[m])
             again = self.propagator.run(sub, inputs.step, with_interval=inputs.with_interval)
+            self._report_gpu(issues)
             mixed = self._mix_standstill(
                 pairs, m, sub.position_probs, again.position_probs, again.velocity_probs,
                 again.interval_position_probs, again.outside_mass,

@@ -132,3 +132,38 @@ if __name__ == "__main__":  # the simulator's child process
     from numba import config as numba_config
 
     print(json.dumps({**compare(), "simulator": bool(numba_config.ENABLE_CUDASIM)}))
+
+
+def test_a_gpu_failing_mid_run_costs_no_pair(tmp_path, monkeypatch):
+    """A GPU run that raises (a driver fault, memory; injected here: no GPU on this machine) is done again by the CPU
+    kernel and every later run too: one frame-level ``gpu_chain_failed`` issue, every pair predicted, the numpy
+    backend's numbers."""
+    from stages.lib.markov import cuda_chain
+    from testkit.chain_messages import dense_frames_with_profiles
+
+    frames = dense_frames_with_profiles(8, 8, tmp_path, lambda n: n >= 4)
+    stencils = load_or_build_stencils(MarkovGridConfig())
+
+    def run(fail: bool):
+        predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid"), stencils=stencils)
+        calls = []
+        if fail:
+            def broken(*args, **kwargs):
+                calls.append(1)
+                raise RuntimeError("CUDA_ERROR_LAUNCH_FAILED (injected)")
+
+            monkeypatch.setattr(cuda_chain, "speed_priority_run", broken)
+            predictor.propagator.chain_device = "cuda"  # as backend "cuda" sets it, without a GPU to check
+        out = [predictor.process(item.corridor_set, item.relation_set, item.scene, item.frame, intention_belief=item.belief,
+                                 acceleration_profiles=profiles) for item, profiles in frames]
+        return out, calls, predictor
+
+    reference, _, _ = run(False)
+    ours, calls, predictor = run(True)
+    assert calls == [1] and predictor.propagator.chain_device is None  # tried once, then the CPU for good
+    kinds = [i.kind for _, issues in ours for i in issues]
+    assert kinds.count("gpu_chain_failed") == 1
+    assert "pair_failed" not in kinds and "pair_fallback_chain_failed" not in kinds
+    assert sum(p.position_probs.shape[0] for p, _ in ours) >= len(frames)
+    for (a, _), (b, _) in zip(reference, ours):
+        np.testing.assert_array_equal(b.position_probs, a.position_probs)
