@@ -212,8 +212,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--warmup", type=int, default=10, help="untimed frames before each segment's timed ones (track histories, caches)")
     parser.add_argument("--segments", type=int, default=4, help="the timed frames are split over this many stretches spread over the recording")
     parser.add_argument("--source", choices=sorted(SOURCES), default="k733")
-    parser.add_argument("--backend", choices=("numpy", "torch", "cuda"), default="numpy",
-                        help="markov_prediction's backend; cuda: the hybrid chain as one CUDA kernel (numba.cuda), on --device (cuda if cpu)")
+    parser.add_argument("--backend", choices=("numpy", "torch", "cuda"), default=None,
+                        help="markov_prediction's backend (default: numpy on --device cpu; on a CUDA --device the cuda backend where"
+                             " numba.cuda finds the GPU, else torch); cuda: the hybrid chain as one CUDA kernel (numba.cuda), on --device"
+                             " (cuda if cpu)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: leave torch's default)")
     parser.add_argument("--json", type=Path, default=None)
@@ -234,6 +236,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     sizes = [int(x) for x in args.vehicles.split(",")]
+    if args.backend is None:  # the device's fastest chain: on a GPU the one-kernel chain where numba.cuda can run it
+        from stages.lib.markov import cuda_chain
+
+        args.backend = "numpy" if args.device == "cpu" else "cuda" if args.device.startswith("cuda") and cuda_chain.available() else "torch"
     if args.backend == "cuda":
         from stages.lib.markov import cuda_chain
 
