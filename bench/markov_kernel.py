@@ -16,7 +16,9 @@ Then the hybrid mode's own chain as markov_prediction runs it (``chain.PriorityP
 ``kernels.SpeedRestriction``, half of the pairs on a corridor with a 20 m-radius bend 40-60 m ahead; the stage's
 prune threshold, cropping and interval distribution), per frame on the numpy backend (the one compiled call,
 ``kernel_threads`` 1 and 2), torch on CPU and torch on CUDA when available, and the one call as one CUDA kernel
-(``backend = "cuda"``, ``stages/lib/markov/cuda_chain.py``) where numba.cuda finds a GPU. It needs no map, data or bus: the
+(``backend = "cuda"``, ``stages/lib/markov/cuda_chain.py``) where numba.cuda finds a GPU, with a line per B of
+where that call's time goes (median ms: host preparation, the launch call, the two transfers and the kernel by CUDA
+events, the call's wall time). It needs no map, data or bus: the
 quickest way to time a change of the chain on a GPU machine. ``--hybrid-only`` prints that table alone.
 
 ``--threads`` sets torch's CPU threads (default: torch's own choice). The
@@ -121,6 +123,7 @@ def _hybrid_table(config: MarkovGridConfig, stencils, pair_counts: list[int], re
     print()
     print("hybrid chain (chain.PriorityPropagator, speed restriction x AR preference), interval on, cropped; ms per frame")
     print(f"{'backend':18s} " + " ".join(f"{'B=' + str(b):>10s}" for b in pair_counts))
+    parts: dict[int, dict] = {}
     for backend, device, threads in targets:
         sync = (lambda: torch.cuda.synchronize()) if device == "cuda" else (lambda: None)
         cells = []
@@ -130,8 +133,17 @@ def _hybrid_table(config: MarkovGridConfig, stencils, pair_counts: list[int], re
                                             device="cpu" if backend == "cuda" else device, chain_device=device if backend == "cuda" else None,
                                             n_s_cells=config.n_s_cells, prune_threshold=stage.prune_threshold, kernel_threads=threads)
             cells.append(f"{_time_frame(propagator, p0, inputs, True, repeats, sync) * 1e3:10.1f}")
+            if backend == "cuda":  # where the call's time goes: host work, the launch call, transfers, the kernel
+                runs = []
+                for _ in range(max(repeats, 3)):
+                    propagator.gpu_timings = {}
+                    propagator.run(p0, inputs, with_interval=True)
+                    runs.append(propagator.gpu_timings)
+                parts[n_pairs] = {k: float(np.median([r[k] for r in runs])) for k in runs[0]}
         label = f"numpy-numba x{threads}" if backend == "numpy" else "cuda-chain" if backend == "cuda" else f"torch-{device}"
         print(f"{label:18s} " + " ".join(cells))
+    for n_pairs, part in parts.items():
+        print(f"  cuda-chain B={n_pairs}, median ms: " + ", ".join(f"{k} {v:.2f}" for k, v in part.items()))
 
 
 def _time_frame(propagator: MarkovPropagator, p0, inputs, with_interval: bool, repeats: int, sync) -> float:

@@ -193,6 +193,9 @@ class PriorityPropagator(MarkovPropagator):
         #: why the GPU run failed, once (then ``chain_device`` is None: the CPU kernel takes every run after it, with
         #: the same numbers to float32 rounding); the caller reports and clears it
         self.gpu_failures: list[str] = []
+        #: a dict to have each GPU run write where its time went into it (``cuda_chain.speed_priority_run``'s
+        #: ``timings``; bench/markov_kernel.py), or None
+        self.gpu_timings: dict | None = None
         if chain_device is not None:
             from stages.lib.markov import cuda_chain
 
@@ -248,7 +251,7 @@ class PriorityPropagator(MarkovPropagator):
             from stages.lib.markov import cuda_chain
 
             try:
-                out = cuda_chain.speed_priority_run(*args, device=self.chain_device)
+                out = cuda_chain.speed_priority_run(*args, device=self.chain_device, timings=self.gpu_timings)
             except Exception as exc:  # noqa: BLE001 - a GPU failing mid-run (driver, memory) must not cost the frame
                 self.gpu_failures.append(f"{self.chain_device}: {type(exc).__name__}: {exc}: the chain runs on the CPU from now on")
                 self.chain_device = None

@@ -53,7 +53,9 @@ def compare(threads: int = 32) -> dict:
         args = list(_scenario(6, seed, threshold))
         args[4] = with_interval
         cpu = kernels.speed_priority_run(*args)
-        gpu = cuda_chain.speed_priority_run(*args, threads=threads)
+        timings: dict = {}
+        gpu = cuda_chain.speed_priority_run(*args, threads=threads, timings=timings)
+        assert set(timings) == {"host_prepare", "launch", "h2d", "kernel", "d2h", "host_total"}, timings
         for name, c, g in zip((*NAMES, "totals"), cpu, gpu):
             if c is None or g is None:  # the interval outputs without the interval
                 assert c is None and g is None and not with_interval, name

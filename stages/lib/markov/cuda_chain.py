@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 import warnings
 
 import numpy as np
@@ -493,10 +494,13 @@ def _views(buffer, offsets, arrays):
 
 
 def speed_priority_run(state, outside0, tables, n_steps, with_interval, threshold, psi, restriction, preferences, has_input,
-                       forbid_threshold, device: str = "cuda", threads: int = THREADS):
+                       forbid_threshold, device: str = "cuda", threads: int = THREADS, timings: dict | None = None):
     """``kernels.speed_priority_run`` on a CUDA GPU (``device`` "cuda" or "cuda:N"): the same arguments (a
     ``kernels.SpeedRestriction`` as ``restriction``) and outputs, one kernel launch, one packed transfer each way.
-    ``threads`` per block (a multiple of 32)."""
+    ``threads`` per block (a multiple of 32). ``timings`` (a dict): where the call's time goes, in ms, written into it:
+    ``host_prepare`` (arguments, caches, packing), ``launch`` (the host's launch call), ``h2d``, ``kernel``, ``d2h`` (CUDA
+    events on the stream), ``host_total`` (the whole call's wall time)."""
+    t_start = time.perf_counter()
     index = device_index(device)
     ptr, v_to, offset, weight, iptr, ioffset, iweight = tables
     inp, vel0, pos0 = (np.ascontiguousarray(a, dtype=np.float32) for a in state)
@@ -551,7 +555,13 @@ def speed_priority_run(state, outside0, tables, n_steps, with_interval, threshol
         for view, arr in zip(_views(host_in, in_off, inputs), inputs):
             view[...] = arr
         stream = cuda.stream()
+        events = [cuda.event() for _ in range(4)] if timings is not None else None
+        t_ready = time.perf_counter()
+        if events:
+            events[0].record(stream)
         dev_in[:in_size].copy_to_device(host_in[:in_size], stream=stream)
+        if events:
+            events[1].record(stream)
         (d_inp, d_vel0, d_pos0, d_out0, d_psi, d_prefs, d_has, d_xp, d_fp, d_start, d_bucket, d_inv_h, d_cell_s, d_v_c, d_a_c,
          d_w32) = _views(dev_in, in_off, inputs)
         with warnings.catch_warnings():  # a frame of few pairs is a small grid: numba's occupancy warning says nothing here
@@ -560,10 +570,19 @@ def speed_priority_run(state, outside0, tables, n_steps, with_interval, threshol
                 d_inp, d_vel0, d_pos0, d_out0, n_steps, *dev_tables, int(n_d), *dv_range, bool(with_interval), f32(threshold), d_psi, d_prefs,
                 d_has, f32(forbid_threshold), d_xp, d_fp, d_start, d_bucket, d_inv_h, d_cell_s, d_v_c, d_a_c, d_w32, float(tau),
                 cur, nxt, mark, *_views(dev_out, out_off, outputs))
+        t_launched = time.perf_counter()
+        if events:
+            events[2].record(stream)
         dev_out[:out_size].copy_to_host(host_out[:out_size], stream=stream)
+        if events:
+            events[3].record(stream)
         stream.synchronize()
         for arr, view in zip(outputs, _views(host_out, out_off, outputs)):
             arr[...] = view
+    if timings is not None:
+        timings.update(host_prepare=1e3 * (t_ready - t_start), launch=1e3 * (t_launched - t_ready),
+                       h2d=events[0].elapsed_time(events[1]), kernel=events[1].elapsed_time(events[2]),
+                       d2h=events[2].elapsed_time(events[3]), host_total=1e3 * (time.perf_counter() - t_start))
     pos, vel, ipos, out, iout, pruned, totals = outputs
     return pos, vel, (ipos if with_interval else None), out, (iout if with_interval else None), pruned, totals
 
