@@ -118,20 +118,24 @@ def _hybrid_table(config: MarkovGridConfig, stencils, pair_counts: list[int], re
         targets.append(("torch", "cuda", 1))
     from stages.lib.markov import cuda_chain
 
-    if kernels.available() and cuda_chain.available():
-        targets.append(("cuda", "cuda", 1))
+    if kernels.available() and cuda_chain.available():  # the default threads per block, and 512 (119 registers a thread fit)
+        targets += [("cuda", "cuda", cuda_chain.THREADS), ("cuda", "cuda", 512)]
     print()
     print("hybrid chain (chain.PriorityPropagator, speed restriction x AR preference), interval on, cropped; ms per frame")
     print(f"{'backend':18s} " + " ".join(f"{'B=' + str(b):>10s}" for b in pair_counts))
-    parts: dict[int, dict] = {}
+    parts: dict[tuple[int, int], dict] = {}
     for backend, device, threads in targets:
-        sync = (lambda: torch.cuda.synchronize()) if device == "cuda" else (lambda: None)
+        # (the cuda backend's call returns once its results are on the host: nothing to wait for)
+        sync = (lambda: torch.cuda.synchronize()) if backend == "torch" and device == "cuda" else (lambda: None)
+        default_threads = cuda_chain.THREADS
+        if backend == "cuda":  # its threads per block, for this row
+            cuda_chain.THREADS = threads
         cells = []
         for n_pairs in pair_counts:
             p0, inputs = _hybrid_scenario(config, n_pairs)
             propagator = PriorityPropagator(stencils, psi, backend="numpy" if backend == "cuda" else backend,
                                             device="cpu" if backend == "cuda" else device, chain_device=device if backend == "cuda" else None,
-                                            n_s_cells=config.n_s_cells, prune_threshold=stage.prune_threshold, kernel_threads=threads)
+                                            n_s_cells=config.n_s_cells, prune_threshold=stage.prune_threshold, kernel_threads=threads if backend == "numpy" else 1)
             cells.append(f"{_time_frame(propagator, p0, inputs, True, repeats, sync) * 1e3:10.1f}")
             if backend == "cuda":  # where the call's time goes: host work, the launch call, transfers, the kernel
                 runs = []
@@ -139,11 +143,12 @@ def _hybrid_table(config: MarkovGridConfig, stencils, pair_counts: list[int], re
                     propagator.gpu_timings = {}
                     propagator.run(p0, inputs, with_interval=True)
                     runs.append(propagator.gpu_timings)
-                parts[n_pairs] = {k: float(np.median([r[k] for r in runs])) for k in runs[0]}
-        label = f"numpy-numba x{threads}" if backend == "numpy" else "cuda-chain" if backend == "cuda" else f"torch-{device}"
+                parts[(threads, n_pairs)] = {k: float(np.median([r[k] for r in runs])) for k in runs[0]}
+        cuda_chain.THREADS = default_threads
+        label = f"numpy-numba x{threads}" if backend == "numpy" else f"cuda-chain t{threads}" if backend == "cuda" else f"torch-{device}"
         print(f"{label:18s} " + " ".join(cells))
-    for n_pairs, part in parts.items():
-        print(f"  cuda-chain B={n_pairs}, median ms: " + ", ".join(f"{k} {v:.2f}" for k, v in part.items()))
+    for (threads, n_pairs), part in parts.items():
+        print(f"  cuda-chain t{threads} B={n_pairs}, median ms: " + ", ".join(f"{k} {v:.2f}" for k, v in part.items()))
 
 
 def _time_frame(propagator: MarkovPropagator, p0, inputs, with_interval: bool, repeats: int, sync) -> float:
@@ -211,7 +216,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'backend':14s} {'crop':5s} {'interval':8s} " + " ".join(f"{'B=' + str(b):>20s}" for b in pair_counts))
     print(f"{'':14s} {'':5s} {'':8s} " + " ".join(f"{'frame / step [ms]':>20s}" for _ in pair_counts))
     for backend, device, kernel in targets:
-        sync = (lambda: torch.cuda.synchronize()) if device == "cuda" else (lambda: None)
+        # (the cuda backend's call returns once its results are on the host: nothing to wait for)
+        sync = (lambda: torch.cuda.synchronize()) if backend == "torch" and device == "cuda" else (lambda: None)
+        default_threads = cuda_chain.THREADS
+        if backend == "cuda":  # its threads per block, for this row
+            cuda_chain.THREADS = threads
         for crop in (False, True):
             for with_interval in (False, True):
                 cells = []

@@ -494,13 +494,14 @@ def _views(buffer, offsets, arrays):
 
 
 def speed_priority_run(state, outside0, tables, n_steps, with_interval, threshold, psi, restriction, preferences, has_input,
-                       forbid_threshold, device: str = "cuda", threads: int = THREADS, timings: dict | None = None):
+                       forbid_threshold, device: str = "cuda", threads: int | None = None, timings: dict | None = None):
     """``kernels.speed_priority_run`` on a CUDA GPU (``device`` "cuda" or "cuda:N"): the same arguments (a
     ``kernels.SpeedRestriction`` as ``restriction``) and outputs, one kernel launch, one packed transfer each way.
-    ``threads`` per block (a multiple of 32). ``timings`` (a dict): where the call's time goes, in ms, written into it:
+    ``threads`` per block (a multiple of 32; None: ``THREADS``, read at the call). ``timings`` (a dict): where the call's time goes, in ms, written into it:
     ``host_prepare`` (arguments, caches, packing), ``launch`` (the host's launch call), ``h2d``, ``kernel``, ``d2h`` (CUDA
     events on the stream), ``host_total`` (the whole call's wall time)."""
     t_start = time.perf_counter()
+    threads = THREADS if threads is None else int(threads)
     index = device_index(device)
     ptr, v_to, offset, weight, iptr, ioffset, iweight = tables
     inp, vel0, pos0 = (np.ascontiguousarray(a, dtype=np.float32) for a in state)
