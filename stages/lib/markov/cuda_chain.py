@@ -186,6 +186,14 @@ if cuda is not None:
                         acc += w32[jj]
                 m[a] = acc
 
+    @cuda.jit(device=True, inline=True)
+    def _state_at(idx, first, n_in, v_lo, n_w):  # pragma: no cover - compiled
+        """The (s, α, v) of the ``idx``-th state of rows from ``first``, each row its M inputs × the v-cells
+        [v_lo, v_lo + n_w) (the order the block's threads share the window's states out in)."""
+        width = n_in * n_w
+        rem = idx % width
+        return first + idx // width, rem // n_w, v_lo + rem % n_w
+
     @cuda.jit(cache=True)
     def _chain_kernel(inp, vel0, pos0, outside0, n_steps, tptr, tv, td, tw, ptr, offset, weight, iptr, ioffset, iweight, n_d,
                       dv_lo, dv_hi, with_interval, threshold, psi, prefs, has_input, forbid, xp, fp, start, bucket, inv_h, cell_s, v_c, a_c,
@@ -236,10 +244,7 @@ if cuda is not None:
             n_w = win[5] - v_lo + 1
             width = n_in * n_w
             for idx in range(tid, (last - first + 1) * width, nt):
-                s = first + idx // width
-                rem = idx % width
-                a = rem // n_w
-                v = v_lo + rem % n_w
+                s, a, v = _state_at(idx, first, n_in, v_lo, n_w)
                 cur[b, s, a, v] = (pos0[b, s] * inp[b, a]) * vel0[b, v]
         for k in range(n_steps):
             cuda.syncthreads()
@@ -283,10 +288,7 @@ if cuda is not None:
             leak = 0.0
             ileak = 0.0
             for idx in range(tid, (last - first + 1) * width, nt):
-                s = first + idx // width
-                rem = idx % width
-                a = rem // n_w
-                v = v_lo + rem % n_w
+                s, a, v = _state_at(idx, first, n_in, v_lo, n_w)
                 r = a * n_v + v
                 x = cur[b, s, a, v]
                 if x == zero:
@@ -386,10 +388,7 @@ if cuda is not None:
             # 4. the input transition: the identity, or Γ at the cells holding mass
             if not has_input[k]:
                 for idx in range(tid, (new_last - new_first + 1) * width, nt):
-                    t = new_first + idx // width
-                    rem = idx % width
-                    a = rem // n_w
-                    v = v_lo + rem % n_w
+                    t, a, v = _state_at(idx, new_first, n_in, v_lo, n_w)
                     cur[b, t, a, v] = nxt[b, t, a, v] * factor
                 continue
             for idx in range(tid, (new_last - new_first + 1) * n_w, nt):
@@ -435,9 +434,8 @@ if cuda is not None:
             n_w = win[5] - v_lo + 1
             width = n_in * n_w
             for idx in range(tid, (last - first + 1) * width, nt):
-                s = first + idx // width
-                rem = idx % width
-                total += cur[b, s, rem // n_w, v_lo + rem % n_w]
+                s, a, v = _state_at(idx, first, n_in, v_lo, n_w)
+                total += cur[b, s, a, v]
         if tid == 0:
             acc_sh[3] = 0.0
         cuda.syncthreads()
