@@ -555,12 +555,15 @@ def speed_priority_run(state, outside0, tables, n_steps, with_interval, threshol
             view[...] = arr
         stream = cuda.stream()
         events = [cuda.event() for _ in range(4)] if timings is not None else None
+
+        def record(i: int) -> None:  # the i-th timing event, on the stream (with ``timings`` only)
+            if events:
+                events[i].record(stream)
+
         t_ready = time.perf_counter()
-        if events:
-            events[0].record(stream)
+        record(0)
         dev_in[:in_size].copy_to_device(host_in[:in_size], stream=stream)
-        if events:
-            events[1].record(stream)
+        record(1)
         (d_inp, d_vel0, d_pos0, d_out0, d_psi, d_prefs, d_has, d_xp, d_fp, d_start, d_bucket, d_inv_h, d_cell_s, d_v_c, d_a_c,
          d_w32) = _views(dev_in, in_off, inputs)
         with warnings.catch_warnings():  # a frame of few pairs is a small grid: numba's occupancy warning says nothing here
@@ -570,11 +573,9 @@ def speed_priority_run(state, outside0, tables, n_steps, with_interval, threshol
                 d_has, f32(forbid_threshold), d_xp, d_fp, d_start, d_bucket, d_inv_h, d_cell_s, d_v_c, d_a_c, d_w32, float(tau),
                 cur, nxt, mark, *_views(dev_out, out_off, outputs))
         t_launched = time.perf_counter()
-        if events:
-            events[2].record(stream)
+        record(2)
         dev_out[:out_size].copy_to_host(host_out[:out_size], stream=stream)
-        if events:
-            events[3].record(stream)
+        record(3)
         stream.synchronize()
         for arr, view in zip(outputs, _views(host_out, out_off, outputs)):
             arr[...] = view
