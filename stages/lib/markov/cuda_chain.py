@@ -16,10 +16,11 @@ a barrier between the phases of a step. Per step:
    r_α = min(m_α, q_α + carry) from the highest input down, Γ, and the renormalisation of the pruned mass.
 
 The pair's state lives in global memory (``(B, N_s, M, N_v)`` float32, kept on the device between calls, with the
-tables); its window (the rows and the velocity cells holding mass) moves with the mass, as the CPU kernel's does. The arithmetic is the CPU
-kernel's, but the order of its sums is not (the gather sums a target's terms in table order, the marginals' float64
-sums come in by atomic adds in any order): positions agree with the CPU kernel to float32 rounding, about 1e-6
-(tests/stages/test_markov_cuda_chain.py, on numba's CUDA simulator where there is no GPU).
+tables); its window (the rows and the velocity cells holding mass) moves with the mass, as the CPU kernel's does. The
+arithmetic is the CPU kernel's, but the order of its sums is not (the gather sums a target's terms in table order,
+the marginals' float64 sums come in by atomic adds in any order): positions agree with the CPU kernel to float32
+rounding, under 1e-6 (tests/stages/test_markov_cuda_chain.py: on numba's CUDA simulator where there is no GPU, and on
+the GPU where there is one; it passed on an H200).
 
 Limits (``supports``): N_s <= 1024, N_v <= 128, M <= 32 inputs, J <= 16 speed profiles per pair.
 """
