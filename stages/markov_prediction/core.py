@@ -507,7 +507,9 @@ class MarkovPredictor:
                     continue
                 live = subset[0].curve_factor
                 others = [f for f in factors if f != live]
-                position = self._markov([dataclasses.replace(p, curve_factor=f) for f in others for p in subset], [])["position"]
+                found: list[Issue] = []
+                position = self._markov([dataclasses.replace(p, curve_factor=f) for f in others for p in subset], found)["position"]
+                issues.extend(i for i in found if i.kind == "gpu_chain_failed")  # (the copies' own issues are not news)
                 n = len(subset)
                 done = {f: position[i * n:(i + 1) * n] for i, f in enumerate(others)}
                 done[live] = np.asarray(merged["position"])[rows]
