@@ -216,11 +216,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'backend':14s} {'crop':5s} {'interval':8s} " + " ".join(f"{'B=' + str(b):>20s}" for b in pair_counts))
     print(f"{'':14s} {'':5s} {'':8s} " + " ".join(f"{'frame / step [ms]':>20s}" for _ in pair_counts))
     for backend, device, kernel in targets:
-        # (the cuda backend's call returns once its results are on the host: nothing to wait for)
-        sync = (lambda: torch.cuda.synchronize()) if backend == "torch" and device == "cuda" else (lambda: None)
-        default_threads = cuda_chain.THREADS
-        if backend == "cuda":  # its threads per block, for this row
-            cuda_chain.THREADS = threads
+        sync = (lambda: torch.cuda.synchronize()) if device == "cuda" else (lambda: None)
         for crop in (False, True):
             for with_interval in (False, True):
                 cells = []

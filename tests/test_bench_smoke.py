@@ -59,3 +59,10 @@ def test_markov_kernel_bench_times_the_hybrid_chain_without_map_or_data(tmp_path
     assert {"numpy-numba", "torch-cpu"} <= set(rows)  # "numpy-numba x1" / "x2" split on the space
     for cells in rows.values():
         assert all(float(c) > 0 for c in cells)
+
+
+def test_markov_kernel_bench_runs_its_full_tables(tmp_path):
+    """Without --hybrid-only: the per-backend kernel table, then the hybrid table."""
+    r = _run([str(REPO / "bench" / "markov_kernel.py"), "--pairs", "1", "--repeats", "1"], tmp_path)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    assert "numpy-numba" in r.stdout and "hybrid chain" in r.stdout
