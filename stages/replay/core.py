@@ -14,7 +14,8 @@ import traceback
 from dataclasses import dataclass, field
 from typing import Callable, Iterator
 
-from bus_schemas import REGISTRY, SceneInfo, TrackFrame, keys, restamp_source_wall
+from bus_schemas import REGISTRY, SceneInfo, SchemaError, TrackFrame, keys, restamp_source_wall
+from bus_schemas._wire import peek_schema
 
 from stages.lib.base import ConfigMixin
 from stages.recorder.inspect import ReadReport, RecordingError, read_messages, recording_run_id
@@ -115,8 +116,26 @@ class RecordingPlayer:
                 self.skipped["other_node"] += 1
                 continue
             key = msg.topic if self.run_id is None else keys.replace_run(msg.topic, self.run_id)
-            stamp = msg.publish_time_ns if msg.schema in _PACED_SCHEMAS else None
-            yield Outgoing(msg.log_time_ns, key, msg.data, stamp, msg.schema)
+            schema = msg.schema or _envelope_schema(msg.data)
+            stamp = msg.publish_time_ns if schema in _PACED_SCHEMAS else None
+            yield Outgoing(msg.log_time_ns, key, msg.data, stamp, schema)
+
+
+def _envelope_schema(data: bytes) -> str:
+    """The schema a payload's envelope names ('' if it is none of ours).
+
+    A channel without an MCAP schema holds payloads of an older version this
+    build reads (the recorder describes only the current one) or payloads it
+    could not read: for the former, pacing and the scene's latching go by the
+    envelope, as for a current recording (before, such a file went out unpaced
+    and its scene unlatched, and a stage that missed the scene's one put lost
+    the frames beyond its join window).
+    """
+    try:
+        name, _version = peek_schema(data)
+    except SchemaError:
+        return ""
+    return name if name in REGISTRY else ""
 
 
 class WallRestamper:

@@ -83,8 +83,10 @@ params = {{ path = "" }}
     assert replay.wait() == 0, replay.text()[-4000:]
     sets = [m for t, m in _messages(rec2) if t.endswith("/corridors/corridor_set")]
     cst = _last_stats(rec2, "corridors")
-    # what to look at when frames go missing (seen twice in full runs, 64 of 70 from frame 6 on; never alone): where the
-    # scene stood in the replayed file, corridors' counters, the frames it published, the launcher's log
+    # what to look at when frames go missing: where the scene stood in the replayed file, corridors' counters, the frames
+    # it published, the launcher's log. (Seen three times in full runs, 64 kept of 70-71: the player took the schema
+    # from the MCAP channel, which the recorder leaves empty for older versions, so this file went out unpaced and its
+    # scene unlatched; a scene put that corridors missed left every frame waiting in a join window of 64.)
     why = {"old_order": [m.topic.rsplit("/", 1)[-1] for m in read_messages(str(old))][:12],
            "corridors": dict(cst.counters) if cst is not None else None,
            "first_sets": [s.header.frame_index for s in sets[:3]], "log": replay.text()[-3000:]}
