@@ -80,6 +80,12 @@ class MarkovPredictionConfig(ConfigMixin):
     # mADE 1.385 -> 1.354, fast 2.66 -> 2.47; K733 keeps 1 (outputs as before). () = the fixed rule of
     # hybrid_speed_restriction_curves
     hybrid_curve_factors: tuple[float, ...] = (0.0, 1.0, 2.0)
+    # hybrid mode: two or more shifts (m/s², any sign) added to the acceleration of every AR input distribution of a
+    # moving pair, chosen online by back testing as the curve factors are (curve_choice.OnlineShiftChoice: 0 until
+    # another is better by 3 standard errors). Off (()): with (0, 0.25, 0.5), set from K729's along-track bias, it kept
+    # 0 on both locations (K729 t = -1.4, K733 +0.1 for 0.25: README "Online acceleration shift"), so it only cost a
+    # back-test chain per tested frame
+    hybrid_accel_shifts: tuple[float, ...] = ()
     # true: the AR distribution λ_AR(k) is the preference inside the baseline's full rule set (speed, leader,
     # crossing: λ = cut(min(λ_speed, λ_lead, λ_conf), λ_AR(k))) instead of the speed cut alone
     hybrid_rules: bool = False
@@ -230,6 +236,9 @@ class MarkovPredictionConfig(ConfigMixin):
         if self.hybrid_curve_factors and (len(self.hybrid_curve_factors) < 2 or any(not (isinstance(f, (int, float)) and math.isfinite(f) and f >= 0)
                                                                                    for f in self.hybrid_curve_factors)):
             raise ValueError(f"hybrid_curve_factors = {self.hybrid_curve_factors!r}: expected () or two or more finite factors >= 0")
+        if self.hybrid_accel_shifts and (len(self.hybrid_accel_shifts) < 2 or any(not (isinstance(f, (int, float)) and not isinstance(f, bool)
+                                                                                      and math.isfinite(f)) for f in self.hybrid_accel_shifts)):
+            raise ValueError(f"hybrid_accel_shifts = {self.hybrid_accel_shifts!r}: expected () or two or more finite shifts in m/s²")
         if self.hybrid_initial_input not in HYBRID_INITIAL_INPUTS:
             raise ValueError(f"hybrid_initial_input = {self.hybrid_initial_input!r}: expected one of {', '.join(HYBRID_INITIAL_INPUTS)}")
         if self.hybrid_input not in HYBRID_INPUTS:

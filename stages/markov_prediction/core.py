@@ -54,7 +54,7 @@ from stages.markov_prediction.modes.base import InputModel, Messages, Pair, Vehi
 from stages.markov_prediction.modes.corridor_cv import constant_speed
 from stages.markov_prediction.modes.cv import CV_LINE_ID
 from stages.markov_prediction.initial_blend import OnlineInitialBlend
-from stages.markov_prediction.curve_choice import OnlineCurveChoice, frame_tested, sampled
+from stages.markov_prediction.curve_choice import OnlineCurveChoice, OnlineShiftChoice, frame_tested, sampled
 from stages.markov_prediction.online_spread import DEFAULT_BANDS_MPS, OnlineSpread
 from stages.markov_prediction.spread import ALONG_TRUNCATE, SpreadTable, blur_along, blur_grid, load_spread
 from stages.markov_prediction.rasterise import (
@@ -336,6 +336,12 @@ class MarkovPredictor:
             if config.mode == "hybrid" and config.hybrid_speed_restriction and config.hybrid_speed_restriction_curves \
             and config.hybrid_curve_factors else None
         self._curve_logged_ns: int | None = None
+        #: hybrid: the shift of the AR input distributions that the latest pairs phase gave its moving pairs
+        #: (``Pair.accel_shift_mps2``), and its online choice by back testing (``hybrid_accel_shifts``), or None
+        self.accel_shift = 0.0
+        self.shift_choice: OnlineShiftChoice | None = OnlineShiftChoice(config.hybrid_accel_shifts, self.step_times_s) \
+            if config.mode == "hybrid" and config.hybrid_accel_shifts else None
+        self._shift_logged_ns: int | None = None
         #: whether the chain itself reads the intentions stage's belief (the particle boxes, the stop mixture); where it
         #: does not, ``prepare`` runs the chain before the belief comes
         self.chain_reads_belief = config.initial_box == "particles" or (config.mode == "hybrid" and config.hybrid_stop_mixture)
@@ -479,44 +485,78 @@ class MarkovPredictor:
             self._log.info("curve factor %g of %s: mean ADE %s m over %d back-tested vehicles (%d unresolved)", o["factor"],
                            o["factors"], np.round(o["mean_ade_m"], 3).tolist(), o["samples"], o["unresolved"])
 
+    def _choose_accel_shift(self, stamp: int, track_frame: TrackFrame | None, issues: list[Issue]) -> None:
+        """The online acceleration shift (``curve_choice.OnlineShiftChoice``), as ``_choose_curve_factor``: positions
+        kept, samples scored, the frame's shift set; a failure keeps the shift it had (issue ``accel_shift_failed``)."""
+        choice = self.shift_choice
+        try:
+            if isinstance(track_frame, TrackFrame) and int(track_frame.header.stamp_ns) == stamp:
+                choice.add_positions(stamp, track_frame.track_ids.tolist(), track_frame.x_m.tolist(), track_frame.y_m.tolist())
+            choice.resolve(stamp)
+            self.accel_shift = choice.factor
+        except Exception as exc:  # noqa: BLE001 - the choice is beside the prediction
+            choice.reset()
+            issues.append(Issue("accel_shift_failed", -1, f"{type(exc).__name__}: {exc}: acceleration shift {self.accel_shift:g} m/s² kept"))
+            return
+        if self._log is not None and (self._shift_logged_ns is None or abs(stamp - self._shift_logged_ns) >= ONLINE_LOG_S * 1e9):
+            self._shift_logged_ns = stamp
+            o = choice.summary()
+            self._log.info("acceleration shift %g m/s² of %s: mean ADE %s m over %d back-tested vehicles (%d unresolved)", o["factor"],
+                           o["factors"], np.round(o["mean_ade_m"], 3).tolist(), o["samples"], o["unresolved"])
+
     def _back_test(self, pairs: list[Pair], stamp: int, issues: list[Issue], chained: tuple[list[Pair], dict[str, Any], list[int]]) -> None:
-        """The online curve choice's samples of this frame (``curve_choice.frame_tested``): the chain of at most
-        ``curve_choice.PER_FRAME`` moving vehicles with a curve ahead run for every candidate factor but the frame's own
-        in one batch (copies of their pairs with that ``curve_factor``; ``chained``: the frame's chain, as
-        ``_predict_chain`` returns it, whose rows give the factor in use), their mean positions kept to be scored later.
-        The frame's own chain is not touched; a failure costs only this frame's samples (issue ``curve_choice_failed``)."""
+        """The online choices' samples of this frame (``curve_choice.frame_tested``): for the curve choice at most
+        ``curve_choice.PER_FRAME`` moving vehicles with a curve ahead, for the acceleration shift as many moving vehicles
+        the AR model drives; each has its chain run for every candidate but the frame's own in one batch (copies of its
+        pairs with that ``curve_factor`` or ``accel_shift_mps2``; ``chained``: the frame's chain, as ``_predict_chain``
+        returns it, whose rows give the candidate in use), their mean positions kept to be scored later. The frame's own
+        chain is not touched; a failure costs only this frame's samples of that choice (issue ``curve_choice_failed``
+        or ``accel_shift_failed``)."""
         if not frame_tested(stamp, len(pairs)):
             return
+        by_track: dict[int, list[Pair]] = {}
+        for p in pairs:
+            by_track.setdefault(p.track_id, []).append(p)
+        driven = {t for t, ps in by_track.items() if all(p.start_rate_hz == 0 and p.input_probs is not None for p in ps)}
+        if self.curve_choice is not None:
+            try:
+                eligible = [t for t in driven if all(p.v0_mps > CURVE_MIN_SPEED_MPS for p in by_track[t])
+                            and any(_curve_ahead(p, self.step_times_s[-1]) for p in by_track[t])]
+                self._back_test_choice(self.curve_choice, "curve_factor", sampled(eligible, stamp), by_track, pairs, stamp, issues, chained)
+            except Exception as exc:  # noqa: BLE001
+                issues.append(Issue("curve_choice_failed", -1, f"back test: {type(exc).__name__}: {exc}: this frame's samples skipped"))
+        if self.shift_choice is not None:
+            try:
+                # (another vehicle than the curve choice's where there is one: the stamp's hash, moved)
+                chosen = sampled(sorted(driven), stamp + 1000)  # (1 µs on: the hash starts elsewhere in the ids)
+                self._back_test_choice(self.shift_choice, "accel_shift_mps2", chosen, by_track, pairs, stamp, issues, chained)
+            except Exception as exc:  # noqa: BLE001
+                issues.append(Issue("accel_shift_failed", -1, f"back test: {type(exc).__name__}: {exc}: this frame's samples skipped"))
+
+    def _back_test_choice(self, choice: OnlineCurveChoice, field_name: str, chosen: list[int], by_track: dict[int, list[Pair]],
+                          pairs: list[Pair], stamp: int, issues: list[Issue], chained: tuple[list[Pair], dict[str, Any], list[int]]) -> None:
+        """One choice's back test of this frame (``_back_test``): the ``chosen`` vehicles' chains for ``choice``'s other
+        candidates of the pair field ``field_name``, recorded with the frame's own rows for the candidate in use."""
+        if not chosen:
+            return
         final, merged, order = chained
-        try:
-            by_track: dict[int, list[Pair]] = {}
-            for p in pairs:
-                by_track.setdefault(p.track_id, []).append(p)
-            eligible = [t for t, ps in by_track.items() if all(p.start_rate_hz == 0 and p.input_probs is not None
-                                                                and p.v0_mps > CURVE_MIN_SPEED_MPS for p in ps)
-                        and any(_curve_ahead(p, self.step_times_s[-1]) for p in ps)]
-            chosen = sampled(eligible, stamp)
-            if not chosen:
-                return
-            row_of = {id(final[r]): r for r, b in enumerate(order) if final[r] is pairs[b]}  # pairs the chain itself predicted
-            factors = self.curve_choice.factors
-            for track_id in chosen:
-                subset = by_track[track_id]
-                rows = [row_of.get(id(p)) for p in subset]
-                if None in rows:  # a fallback or a failure among its pairs
-                    continue
-                live = subset[0].curve_factor
-                others = [f for f in factors if f != live]
-                found: list[Issue] = []
-                position = self._markov([dataclasses.replace(p, curve_factor=f) for f in others for p in subset], found)["position"]
-                issues.extend(i for i in found if i.kind == "gpu_chain_failed")  # (the copies' own issues are not news)
-                n = len(subset)
-                done = {f: position[i * n:(i + 1) * n] for i, f in enumerate(others)}
-                done[live] = np.asarray(merged["position"])[rows]
-                means = self._pair_means(subset * len(factors), np.concatenate([done[f] for f in factors]))
-                self.curve_choice.record(track_id, stamp, means.reshape(len(factors), n, *means.shape[1:]))
-        except Exception as exc:  # noqa: BLE001
-            issues.append(Issue("curve_choice_failed", -1, f"back test: {type(exc).__name__}: {exc}: this frame's samples skipped"))
+        row_of = {id(final[r]): r for r, b in enumerate(order) if final[r] is pairs[b]}  # pairs the chain itself predicted
+        factors = choice.factors
+        for track_id in chosen:
+            subset = by_track[track_id]
+            rows = [row_of.get(id(p)) for p in subset]
+            if None in rows:  # a fallback or a failure among its pairs
+                continue
+            live = getattr(subset[0], field_name)
+            others = [f for f in factors if f != live]
+            found: list[Issue] = []
+            position = self._markov([dataclasses.replace(p, **{field_name: f}) for f in others for p in subset], found)["position"]
+            issues.extend(i for i in found if i.kind == "gpu_chain_failed")  # (the copies' own issues are not news)
+            n = len(subset)
+            done = {f: position[i * n:(i + 1) * n] for i, f in enumerate(others)}
+            done[live] = np.asarray(merged["position"])[rows]
+            means = self._pair_means(subset * len(factors), np.concatenate([done[f] for f in factors]))
+            choice.record(track_id, stamp, means.reshape(len(factors), n, *means.shape[1:]))
 
     def _pair_means(self, pairs: list[Pair], position: np.ndarray) -> np.ndarray:
         """(P, K, 2): the pairs' mean positions on the map from their chain's position distributions, as
@@ -570,6 +610,8 @@ class MarkovPredictor:
         speed_limit = scene.speed_limit_mps if scene is not None and _positive(scene.speed_limit_mps) else self.config.default_speed_limit_mps
         if self.curve_choice is not None:
             self._choose_curve_factor(stamp, track_frame, issues)
+        if self.shift_choice is not None:
+            self._choose_accel_shift(stamp, track_frame, issues)
         weighed: list[tuple[Any, list, int]] = []
         pairs = self._vehicle_pairs(corridor_set, track_frame, speed_limit, issues, beliefs, weighed)
         if self.model.chain and pairs:  # the chain's batch as _predict_chain will screen it (the inputs are not known yet)
@@ -624,7 +666,7 @@ class MarkovPredictor:
                     pair.start_rate_hz = max(self.config.hybrid_standstill_rates_hz[standstill_group(pair.relation, self.config)], 1e-9)
         self._signal_walls = apply_signals(self, pairs, issues)  # stages.markov_prediction.signals: nothing without signal phases
         final, merged, order = self._predict_chain(pairs, issues)
-        if self.curve_choice is not None:  # done by idle, after this frame's outputs (or first thing in the next frame)
+        if self.curve_choice is not None or self.shift_choice is not None:  # done by idle, after this frame's outputs (or first thing in the next frame)
             self._back_test_pending = (pairs, stamp, (final, merged, order))
         found: list[Issue] = []
         try:  # the outputs' part that needs no weights, now (a failure: _belief_phase isolates the pairs, from the arrays)
@@ -666,6 +708,8 @@ class MarkovPredictor:
             self.initial_blend.reset()
         if self.curve_choice is not None:
             self.curve_choice.reset()
+        if self.shift_choice is not None:
+            self.shift_choice.reset()
 
     def observe(self, corridor_set: CorridorSet) -> None:
         """Record each vehicle's speed at this stamp (for its measured acceleration); forget stale tracks.
@@ -961,6 +1005,7 @@ class MarkovPredictor:
                         a_fit_se_mps2=a_fit_se,
                         stamp_ns=stamp,
                         curve_factor=self.curve_factor,
+                        accel_shift_mps2=self.accel_shift,
                         s_first_m=s_first,
                         length_m=length,
                         width_m=width,

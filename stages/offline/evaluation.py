@@ -756,6 +756,8 @@ class Evaluation:
                 modes[mode]["initial_blend"] = self.predictors[mode].initial_blend.summary()
             if getattr(self.predictors[mode], "curve_choice", None) is not None:  # hybrid_curve_factors: what it chose
                 modes[mode]["curve_choice"] = self.predictors[mode].curve_choice.summary()
+            if getattr(self.predictors[mode], "shift_choice", None) is not None:  # hybrid_accel_shifts: what it chose
+                modes[mode]["accel_shift"] = self.predictors[mode].shift_choice.summary()
             modes[mode]["calibration"] = {
                 "levels": list(COVERAGE_LEVELS),
                 **{split: {"coverage": c.coverage(), "steps": c.steps} for split, c in acc.calibration.items()},

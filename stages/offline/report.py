@@ -133,7 +133,7 @@ QUANTITATIVE_HEAD = ["situation", "mode", "windows", "time per step (ms)", "mADE
 
 
 def _online(hybrid: dict[str, Any]) -> str:
-    """What hybrid learnt on the recordings (``modes.hybrid.initial_blend`` and ``curve_choice``), in words; '' if nothing."""
+    """What hybrid learnt on the recordings (``modes.hybrid.initial_blend``, ``curve_choice`` and ``accel_shift``), in words; '' if nothing."""
     parts = []
     blend = hybrid.get("initial_blend")
     if blend:
@@ -142,6 +142,10 @@ def _online(hybrid: dict[str, Any]) -> str:
     if curve:
         parts.append(f"curve factor {curve['factor']:g} of {', '.join(f'{f:g}' for f in curve['factors'])} from {fmt(curve['samples'])}"
                      f" back-tested vehicles (mean ADE {' / '.join(f'{a:.2f}' for a in curve['mean_ade_m'])} m)")
+    shift = hybrid.get("accel_shift")
+    if shift:
+        parts.append(f"acceleration shift {shift['factor']:g} m/s² of {', '.join(f'{f:g}' for f in shift['factors'])} from {fmt(shift['samples'])}"
+                     f" back-tested vehicles (mean ADE {' / '.join(f'{a:.2f}' for a in shift['mean_ade_m'])} m)")
     return "; ".join(parts)
 
 

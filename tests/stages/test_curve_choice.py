@@ -13,6 +13,8 @@ from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
 from stages.markov_prediction.curve_choice import MIN_SAMPLES, OnlineCurveChoice, sampled
 from tests.stages.test_markov_prediction import PLAIN, STAMP, _corridor, _corridor_set, _header, _profiles, _vehicle
 
+NO_SHIFT = {"hybrid_accel_shifts": ()}  # the curve choice alone (the acceleration shift's own tests: test_accel_shift.py)
+
 S = 1_000_000_000  # ns per s
 STEPS = 0.4 * np.arange(1, 11)
 
@@ -128,9 +130,9 @@ def test_a_car_that_takes_the_bend_at_speed_makes_the_stage_drop_the_curve_cut(s
     without slowing (the AR profile says 0 m/s²):
     the back test finds the prediction without the curve cut (factor 0) closer to where the car went, and the stage
     switches to it; the frame's own prediction is the fixed rule's until then, and the factor 0's after."""
-    config = MarkovPredictionConfig(mode="hybrid", hybrid_curve_factors=(0.0, 1.0, 2.0), **PLAIN)
+    config = MarkovPredictionConfig(mode="hybrid", hybrid_curve_factors=(0.0, 1.0, 2.0), **NO_SHIFT, **PLAIN)
     fixed = {f: MarkovPredictor(MarkovPredictionConfig(mode="hybrid", hybrid_curve_factors=(), hybrid_speed_restriction_curves=bool(f),
-                                                        **PLAIN), stencils=stencils) for f in (0, 1)}
+                                                        **NO_SHIFT, **PLAIN), stencils=stencils) for f in (0, 1)}
     predictor = MarkovPredictor(config, stencils=stencils)
     assert predictor.curve_choice is not None and predictor.curve_factor == 1.0
     switched_at = None
@@ -170,8 +172,8 @@ def test_the_choice_needs_no_track_frame_and_is_off_without_the_speed_restrictio
 
 
 def test_a_failing_back_test_costs_only_its_samples(stencils, monkeypatch):
-    predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", **PLAIN), stencils=stencils)
-    reference = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", **PLAIN), stencils=stencils)
+    predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", **NO_SHIFT, **PLAIN), stencils=stencils)
+    reference = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", **NO_SHIFT, **PLAIN), stencils=stencils)
     monkeypatch.setattr(predictor, "_pair_means", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("boom")))
     for n in range(2):
         stamp = STAMP + n * 100_000_000

@@ -55,6 +55,7 @@ class Pair:
     p_stop: float = math.nan  # the intentions stage's P(stop | this corridor), NaN without a belief
     stamp_ns: int = 0  # the frame's stamp (hybrid_initial_input "adaptive" records its pairs by it)
     curve_factor: float = 1.0  # hybrid: the factor of the curvature in its speed restriction (0: the limit alone)
+    accel_shift_mps2: float = 0.0  # hybrid: added to the acceleration of its AR input distributions (hybrid_accel_shifts)
     stop_distance_m: float = math.nan  # ... and the distance to the stop position on it
     # hybrid_initial_input "blend": the unshrunk slope of its speeds and the slope's standard error (NaN: no measurement)
     a_fit_mps2: float = math.nan

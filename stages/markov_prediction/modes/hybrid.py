@@ -153,6 +153,12 @@ def _stack_inputs(p: Predictor, pairs: list[Pair], issues: list[Issue]) -> np.nd
     lam = np.stack([q.input_probs if q.input_probs is not None else np.repeat(measured[b][None], p.config.n_steps, axis=0)
                     for b, q in enumerate(pairs)])
     standing = np.array([q.start_rate_hz > 0 for q in pairs])
+    shifted = [b for b, q in enumerate(pairs) if q.accel_shift_mps2 != 0.0 and q.input_probs is not None and not standing[b]]
+    if shifted:  # hybrid_accel_shifts: the AR distributions of the moving pairs moved by the online choice's shift
+        lam = lam.copy()
+        edges = p.grid.input_edges()
+        for b in shifted:
+            lam[b] = shift_inputs(lam[b], pairs[b].accel_shift_mps2, edges)
     if p.config.hybrid_initial_input == "measured" and not np.all(standing):
         lam = lam.copy()
         lam[~standing, 0] = measured[~standing]
@@ -170,6 +176,27 @@ def _stack_inputs(p: Predictor, pairs: list[Pair], issues: list[Issue]) -> np.nd
         lam = lam.copy()
         lam[standing] = start_inputs(p.grid.input_edges(), p.config.hybrid_start_accel_mps2, p.config.hybrid_start_sigma_mps2)[None, None]
     return lam
+
+
+def shift_inputs(probs: np.ndarray, shift_mps2: float, edges: np.ndarray) -> np.ndarray:
+    """(..., M) input distributions over equal cells (``edges``) moved by ``shift_mps2``: each cell's mass goes to its
+    centre + shift, split linearly between the two cells around that point; mass beyond the end cells folds into them
+    (as the AR stage folds its tails). The mean moves by the shift unless mass folds; the total is kept."""
+    probs = np.asarray(probs, dtype=np.float64)
+    edges = np.asarray(edges, dtype=np.float64)
+    m = probs.shape[-1]
+    width = float(edges[-1] - edges[0]) / m
+    if not (math.isfinite(shift_mps2) and width > 0) or shift_mps2 == 0.0:
+        return probs
+    pos = np.arange(m) + shift_mps2 / width  # each cell's new place, in cells
+    lo = np.floor(pos)
+    frac = pos - lo
+    out = np.zeros_like(probs)
+    for target, weight in ((lo, 1.0 - frac), (lo + 1.0, frac)):
+        idx = np.clip(target, 0, m - 1).astype(np.intp)
+        for j in range(m):  # (a cell's two targets may fold onto one end cell: summed)
+            out[..., idx[j]] += probs[..., j] * weight[j]
+    return out
 
 
 def stop_mixture(p: Predictor, pairs: list[Pair], lam: np.ndarray, standing: np.ndarray) -> np.ndarray:
