@@ -5,7 +5,9 @@ Consumes ``corridor_set`` (``CorridorSet``) and ``relation_set``
 optionally, ``track_frame`` (``TrackFrame``: vehicle sizes, and the velocity
 of mode ``cv``), ``intention_belief`` (``IntentionBelief``: corridor weights
 and particle boxes) and ``acceleration_profiles`` (``AccelerationProfiles``:
-mode ``hybrid``), all of the same stamp. Produces ``corridor_predictions`` (``CorridorPredictions``)
+mode ``hybrid``), all of the same stamp; or, instead of the last, ``previous_profiles``
+(the same messages as a latest value, outside the join: ``hybrid_profiles = "previous"``, whose chain reads the
+profiles of the frame before and so runs before the frame's own come; ``launch.py pipelined``). Produces ``corridor_predictions`` (``CorridorPredictions``)
 and ``motion_grid`` (``MotionGrid``) for every frame. Run it alone with
 ``python -m stages.markov_prediction``.
 

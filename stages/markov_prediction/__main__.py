@@ -16,6 +16,9 @@ INPUTS = {
     "intention_belief": Port(IntentionBelief, optional=True),
     # mode = "hybrid": λ_AR(k) of the ar_inference stage replace the rule-based λ (docs/method.md §8.5)
     "acceleration_profiles": Port(AccelerationProfiles, optional=True),
+    # hybrid_profiles = "previous" with the frame's profiles off the join: bound here instead of acceleration_profiles
+    # (pipelines/pipelined.toml), the newest profiles come as a latest value and no frame waits for its own
+    "previous_profiles": Port(AccelerationProfiles, optional=True, latest=True),
 }
 OUTPUTS = {"corridor_predictions": Port(CorridorPredictions), "motion_grid": Port(MotionGrid)}
 

@@ -86,6 +86,13 @@ class MarkovPredictionConfig(ConfigMixin):
     # 0 on both locations (K729 t = -1.4, K733 +0.1 for 0.25: README "Online acceleration shift"), so it only cost a
     # back-test chain per tested frame
     hybrid_accel_shifts: tuple[float, ...] = ()
+    # hybrid mode: the AR profiles the chain reads. "frame": the frame's own (the chain waits for them); "previous":
+    # the last ones received before the frame, at most hybrid_previous_max_age_s older (a pair without one holds its
+    # measured acceleration), so the chain runs as soon as the relation set is in, beside intentions and ar_inference,
+    # off the frame's critical path; iamp eval then runs the AR stage at every frame. Held out +1.5 % mADE (new pairs);
+    # on 2 cores the MotionGrid came 1-2 ms sooner, inside the noise (README "Pipelined AR profiles")
+    hybrid_profiles: str = "frame"
+    hybrid_previous_max_age_s: float = 0.25
     # true: the AR distribution λ_AR(k) is the preference inside the baseline's full rule set (speed, leader,
     # crossing: λ = cut(min(λ_speed, λ_lead, λ_conf), λ_AR(k))) instead of the speed cut alone
     hybrid_rules: bool = False
@@ -239,6 +246,11 @@ class MarkovPredictionConfig(ConfigMixin):
         if self.hybrid_accel_shifts and (len(self.hybrid_accel_shifts) < 2 or any(not (isinstance(f, (int, float)) and not isinstance(f, bool)
                                                                                       and math.isfinite(f)) for f in self.hybrid_accel_shifts)):
             raise ValueError(f"hybrid_accel_shifts = {self.hybrid_accel_shifts!r}: expected () or two or more finite shifts in m/s²")
+        if self.hybrid_profiles not in ("frame", "previous"):
+            raise ValueError(f"hybrid_profiles = {self.hybrid_profiles!r}: expected frame or previous")
+        if not (isinstance(self.hybrid_previous_max_age_s, (int, float)) and math.isfinite(self.hybrid_previous_max_age_s)
+                and self.hybrid_previous_max_age_s > 0):
+            raise ValueError(f"hybrid_previous_max_age_s = {self.hybrid_previous_max_age_s!r}: expected a finite number of seconds > 0")
         if self.hybrid_initial_input not in HYBRID_INITIAL_INPUTS:
             raise ValueError(f"hybrid_initial_input = {self.hybrid_initial_input!r}: expected one of {', '.join(HYBRID_INITIAL_INPUTS)}")
         if self.hybrid_input not in HYBRID_INPUTS:

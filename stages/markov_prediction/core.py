@@ -339,6 +339,11 @@ class MarkovPredictor:
         #: hybrid: the shift of the AR input distributions that the latest pairs phase gave its moving pairs
         #: (``Pair.accel_shift_mps2``), and its online choice by back testing (``hybrid_accel_shifts``), or None
         self.accel_shift = 0.0
+        #: hybrid_profiles "previous": the newest AccelerationProfiles received, by stamp (``remember_profiles``); the
+        #: chain of a frame reads the newest from before it (``_chain_profiles``)
+        self._recent_profiles: dict[int, AccelerationProfiles] = {}
+        self._told_unused = self._unused_previous = False
+        self.previous_profiles = config.mode == "hybrid" and config.hybrid_profiles == "previous"
         self.shift_choice: OnlineShiftChoice | None = OnlineShiftChoice(config.hybrid_accel_shifts, self.step_times_s) \
             if config.mode == "hybrid" and config.hybrid_accel_shifts else None
         self._shift_logged_ns: int | None = None
@@ -364,12 +369,18 @@ class MarkovPredictor:
         belief = inputs.get("intention_belief")
         belief = belief if isinstance(belief, IntentionBelief) else None
         prepared, self._prepared = self._prepared, None
-        if prepared is not None and _same_messages(prepared[0], args):
+        if prepared is not None and _same_messages(self._chain_key(prepared[0]), self._chain_key(args)):
             early = prepared[1]
         else:
             early = self._chain_phase(*args, intention_belief=belief)
+        self.remember_profiles(args[4])
+        self._remember_latest(inputs.get("previous_profiles"))
         prediction, issues = self._belief_phase(early, belief)
         issues.extend(self._take_carried_issues())
+        if self._unused_previous:
+            self._unused_previous = False
+            issues.append(Issue("profiles_port_unused", -1, "previous_profiles is bound but hybrid_profiles is not \"previous\" (or the mode"
+                                " is not hybrid): those profiles are not read; bind acceleration_profiles, or set hybrid_profiles"))
         scene, frame = args[2], args[3]
         self._learn_spread(early.stamp, frame, prediction, issues)
         self._log_initial_blend(early.stamp)
@@ -410,7 +421,12 @@ class MarkovPredictor:
         if self.chain_reads_belief or not isinstance(inputs.get("corridor_set"), CorridorSet):
             return False
         args = _frame_args(inputs)
-        if set(missing) <= {"intention_belief"}:
+        self.remember_profiles(args[4])
+        self._remember_latest(inputs.get("previous_profiles"))
+        ahead = {"intention_belief", "acceleration_profiles"} if self.previous_profiles else {"intention_belief"}
+        if set(missing) <= ahead:
+            if self._prepared is not None and _same_messages(self._chain_key(self._prepared[0]), self._chain_key(args)):
+                return False  # (hybrid_profiles "previous": the chain ran before the frame's own profiles came)
             self._prepared = None
             self._prepared = (args, self._chain_phase(*args))
             return True
@@ -434,6 +450,7 @@ class MarkovPredictor:
     ) -> tuple[FramePrediction, list[Issue]]:
         """The pure function behind ``update``: the frame's prediction and the issues met."""
         early = self._chain_phase(corridor_set, relation_set, scene, track_frame, acceleration_profiles, intention_belief=intention_belief)
+        self.remember_profiles(acceleration_profiles)
         prediction, issues = self._belief_phase(early, intention_belief)
         issues.extend(self._take_carried_issues())
         self._learn_spread(early.stamp, track_frame, prediction, issues)
@@ -640,7 +657,7 @@ class MarkovPredictor:
             pp = self._pairs_phase(corridor_set, scene, track_frame, intention_belief=intention_belief)
         issues, pairs, stamp = list(pp.issues), pp.pairs, pp.stamp
         frame_data = self.model.read(Messages(stamp, relation_set, track_frame, intention_belief if self.chain_reads_belief else None,
-                                              acceleration_profiles), issues)
+                                              self._chain_profiles(acceleration_profiles, stamp)), issues)
         for vehicle, good, first in pp.weighed:
             for pair, c in zip(pairs[first:first + len(good)], good):
                 pair.input_probs = self.model.pair_input(vehicle.track_id, c.corridor_id, frame_data, issues)
@@ -675,6 +692,44 @@ class MarkovPredictor:
             geometry = None
         return _Early(stamp, issues, final, merged, order, pp.weighed, self.chain_reads_belief, pp.beliefs, geometry)
 
+    def remember_profiles(self, profiles: AccelerationProfiles | None) -> None:
+        """hybrid_profiles "previous": keep ``profiles`` for the chains of later frames (the newest ``_KEEP_PROFILES``
+        by stamp). ``prepare`` calls it as soon as a frame's profiles are in (the next frame's chain may run before
+        this one is finished), ``update`` and ``process`` with their frame's; ``iamp eval`` also between its instants."""
+        if not (self.previous_profiles and isinstance(profiles, AccelerationProfiles)):
+            return
+        self._recent_profiles[int(profiles.header.stamp_ns)] = profiles
+        while len(self._recent_profiles) > _KEEP_PROFILES:
+            del self._recent_profiles[min(self._recent_profiles)]
+
+    def _remember_latest(self, profiles: object) -> None:
+        """The ``previous_profiles`` port's latest value (a pipeline that runs the chain on the previous frame's
+        profiles without joining the frame's own: ``pipelines/pipelined.toml``); bound in any other configuration it is
+        unread, said once (issue ``profiles_port_unused``)."""
+        if not isinstance(profiles, AccelerationProfiles):
+            return
+        if self.previous_profiles:
+            self.remember_profiles(profiles)
+        elif not self._told_unused:
+            self._told_unused = self._unused_previous = True
+
+    def _chain_profiles(self, profiles: AccelerationProfiles | None, stamp: int) -> AccelerationProfiles | None:
+        """The profiles the chain of the frame at ``stamp`` reads: the frame's own, or with hybrid_profiles "previous"
+        the newest kept from before the frame, at most ``hybrid_previous_max_age_s`` older, stamped as the frame (so that
+        the mode reads them as its own; None: every pair holds its measured acceleration)."""
+        if not self.previous_profiles:
+            return profiles
+        before = [t for t in self._recent_profiles if t < stamp]
+        if not before or stamp - max(before) > self.config.hybrid_previous_max_age_s * 1e9 + _MS_NS:
+            return None
+        last = self._recent_profiles[max(before)]
+        return dataclasses.replace(last, header=dataclasses.replace(last.header, stamp_ns=stamp))
+
+    def _chain_key(self, args: tuple) -> tuple:
+        """The messages a chain phase depends on (``_frame_args``): with hybrid_profiles "previous" not the frame's own
+        profiles."""
+        return args[:4] if self.previous_profiles else args
+
     def _belief_phase(self, early: _Early, intention_belief: IntentionBelief | None) -> tuple[FramePrediction, list[Issue]]:
         """The rest of the frame: each vehicle's corridor weights (from ``intention_belief`` where the chain phase did
         not read it already), its grid and the outputs."""
@@ -700,6 +755,7 @@ class MarkovPredictor:
         self._lines.clear()
         self._prepared = None
         self._prepared_pairs = None
+        self._recent_profiles.clear()
         self._back_test_pending = None  # its samples would be pending in the curve choice, which forgets those too
         self._carried_issues = []
         if self.online is not None:
@@ -1463,6 +1519,8 @@ class _PairsPhase:
 
 
 #: the inputs of ``_chain_phase``, in its order, with the type each must have (else None)
+_MS_NS = 1_000_000  # (a frame period's rounding in stamps: 1 ms)
+_KEEP_PROFILES = 4  # hybrid_profiles "previous": profiles messages kept (frames handled a little out of order find theirs)
 _FRAME_INPUTS = (("corridor_set", CorridorSet), ("relation_set", RelationSet), ("scene", SceneInfo), ("track_frame", TrackFrame),
                  ("acceleration_profiles", AccelerationProfiles))
 

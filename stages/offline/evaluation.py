@@ -522,6 +522,8 @@ class Evaluation:
         first = int(seq.stamp_ns[0]) if seq.n_rows else 0
         situations = [s for s in self.situations if s.recording == rec.name and (not s.sequence or same_sequence_id(seq.id, s.sequence))]
         period_s = 1.0 / seq.frame_rate_hz if seq.frame_rate_hz > 0 else 0.0
+        # hybrid_profiles "previous": the AR stage predicts at every frame, as on the bus, for the chains of the next
+        lagged = [p for p in self.predictors.values() if getattr(p, "previous_profiles", False)]
         for item in chain:
             bar.update(1)
             inside = [s.name for s in situations if s.contains(rec.name, seq.id, item.stamp_ns)]
@@ -541,7 +543,11 @@ class Evaluation:
             if offset % stride_ns > _MS and stride_ns - offset % stride_ns > _MS:
                 for predictor in self.predictors.values():
                     predictor.observe(corridor_set)
-                if ar is not None:
+                if ar is not None and lagged:  # hybrid_profiles "previous": the next instant's chain reads this frame's
+                    got = self._guarded("ar_inference_error_frames", where, lambda: ar.process(corridor_set, relation_set, frame, scene))
+                    for predictor in lagged:
+                        predictor.remember_profiles(got[0] if got else None)
+                elif ar is not None:
                     self._guarded("ar_inference_error_frames", where, lambda: ar.observe(corridor_set, relation_set, frame))
                 continue
             profiles = None
