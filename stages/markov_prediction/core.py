@@ -486,40 +486,34 @@ class MarkovPredictor:
     def _choose_curve_factor(self, stamp: int, track_frame: TrackFrame | None, issues: list[Issue]) -> None:
         """The online curve choice (``curve_choice.py``): this stamp's positions kept, the samples whose futures are
         known scored, the frame's factor set. A failure keeps the factor it had (issue ``curve_choice_failed``)."""
-        choice = self.curve_choice
-        try:
-            if isinstance(track_frame, TrackFrame) and int(track_frame.header.stamp_ns) == stamp:
-                choice.add_positions(stamp, track_frame.track_ids.tolist(), track_frame.x_m.tolist(), track_frame.y_m.tolist())
-            choice.resolve(stamp)
-            self.curve_factor = choice.factor
-        except Exception as exc:  # noqa: BLE001 - the choice is beside the prediction
-            choice.reset()
-            issues.append(Issue("curve_choice_failed", -1, f"{type(exc).__name__}: {exc}: curve factor {self.curve_factor:g} kept"))
-            return
-        if self._log is not None and (self._curve_logged_ns is None or abs(stamp - self._curve_logged_ns) >= ONLINE_LOG_S * 1e9):
-            self._curve_logged_ns = stamp
-            o = choice.summary()
-            self._log.info("curve factor %g of %s: mean ADE %s m over %d back-tested vehicles (%d unresolved)", o["factor"],
-                           o["factors"], np.round(o["mean_ade_m"], 3).tolist(), o["samples"], o["unresolved"])
+        self.curve_factor = self._choose(self.curve_choice, self.curve_factor, stamp, track_frame, issues, "curve_choice_failed",
+                                         "curve factor %g", "_curve_logged_ns")
 
     def _choose_accel_shift(self, stamp: int, track_frame: TrackFrame | None, issues: list[Issue]) -> None:
-        """The online acceleration shift (``curve_choice.OnlineShiftChoice``), as ``_choose_curve_factor``: positions
-        kept, samples scored, the frame's shift set; a failure keeps the shift it had (issue ``accel_shift_failed``)."""
-        choice = self.shift_choice
+        """The online acceleration shift (``curve_choice.OnlineShiftChoice``), as ``_choose_curve_factor``; a failure
+        keeps the shift it had (issue ``accel_shift_failed``)."""
+        self.accel_shift = self._choose(self.shift_choice, self.accel_shift, stamp, track_frame, issues, "accel_shift_failed",
+                                        "acceleration shift %g m/s²", "_shift_logged_ns")
+
+    def _choose(self, choice: OnlineCurveChoice, current: float, stamp: int, track_frame: TrackFrame | None, issues: list[Issue],
+                failed: str, what: str, logged_attr: str) -> float:
+        """One online choice's step (``_choose_curve_factor``, ``_choose_accel_shift``); returns the candidate in use."""
         try:
             if isinstance(track_frame, TrackFrame) and int(track_frame.header.stamp_ns) == stamp:
                 choice.add_positions(stamp, track_frame.track_ids.tolist(), track_frame.x_m.tolist(), track_frame.y_m.tolist())
             choice.resolve(stamp)
-            self.accel_shift = choice.factor
+            chosen = choice.factor
         except Exception as exc:  # noqa: BLE001 - the choice is beside the prediction
             choice.reset()
-            issues.append(Issue("accel_shift_failed", -1, f"{type(exc).__name__}: {exc}: acceleration shift {self.accel_shift:g} m/s² kept"))
-            return
-        if self._log is not None and (self._shift_logged_ns is None or abs(stamp - self._shift_logged_ns) >= ONLINE_LOG_S * 1e9):
-            self._shift_logged_ns = stamp
+            issues.append(Issue(failed, -1, f"{type(exc).__name__}: {exc}: {what % current} kept"))
+            return current
+        logged = getattr(self, logged_attr)
+        if self._log is not None and (logged is None or abs(stamp - logged) >= ONLINE_LOG_S * 1e9):
+            setattr(self, logged_attr, stamp)
             o = choice.summary()
-            self._log.info("acceleration shift %g m/s² of %s: mean ADE %s m over %d back-tested vehicles (%d unresolved)", o["factor"],
+            self._log.info(what + " of %s: mean ADE %s m over %d back-tested vehicles (%d unresolved)", o["factor"],
                            o["factors"], np.round(o["mean_ade_m"], 3).tolist(), o["samples"], o["unresolved"])
+        return chosen
 
     def _back_test(self, pairs: list[Pair], stamp: int, issues: list[Issue], chained: tuple[list[Pair], dict[str, Any], list[int]]) -> None:
         """The online choices' samples of this frame (``curve_choice.frame_tested``): for the curve choice at most
