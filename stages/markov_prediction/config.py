@@ -89,7 +89,7 @@ class MarkovPredictionConfig(ConfigMixin):
     # hybrid mode: the AR profiles the chain reads. "frame": the frame's own (the chain waits for them); "previous":
     # the last ones received before the frame, at most hybrid_previous_max_age_s older (a pair without one holds its
     # measured acceleration), so the chain runs as soon as the relation set is in, beside intentions and ar_inference,
-    # off the frame's critical path; iamp eval then runs the AR stage at every frame. Held out +1.5 % mADE (new pairs);
+    # off the frame's critical path; iamp eval then runs the AR stage at every frame. Held out +1.3-2.5 % mADE (new pairs);
     # on 2 cores the MotionGrid came 1-2 ms sooner, inside the noise (README "Pipelined AR profiles")
     hybrid_profiles: str = "frame"
     hybrid_previous_max_age_s: float = 0.25
