@@ -342,7 +342,7 @@ class MarkovPredictor:
         #: hybrid_profiles "previous": the newest AccelerationProfiles received, by stamp (``remember_profiles``); the
         #: chain of a frame reads the newest from before it (``_chain_profiles``)
         self._recent_profiles: dict[int, AccelerationProfiles] = {}
-        self._told_unused = self._unused_previous = False
+        self._told_unused = False  # (issue profiles_port_unused: said once)
         self.previous_profiles = config.mode == "hybrid" and config.hybrid_profiles == "previous"
         self.shift_choice: OnlineShiftChoice | None = OnlineShiftChoice(config.hybrid_accel_shifts, self.step_times_s) \
             if config.mode == "hybrid" and config.hybrid_accel_shifts else None
@@ -374,11 +374,11 @@ class MarkovPredictor:
         else:
             early = self._chain_phase(*args, intention_belief=belief)
         self.remember_profiles(args[4])
-        self._remember_latest(inputs.get("previous_profiles"))
+        self.remember_profiles(inputs.get("previous_profiles"))
         prediction, issues = self._belief_phase(early, belief)
         issues.extend(self._take_carried_issues())
-        if self._unused_previous:
-            self._unused_previous = False
+        if not self.previous_profiles and not self._told_unused and isinstance(inputs.get("previous_profiles"), AccelerationProfiles):
+            self._told_unused = True  # the port is bound where nothing reads it
             issues.append(Issue("profiles_port_unused", -1, "previous_profiles is bound but hybrid_profiles is not \"previous\" (or the mode"
                                 " is not hybrid): those profiles are not read; bind acceleration_profiles, or set hybrid_profiles"))
         scene, frame = args[2], args[3]
@@ -422,7 +422,7 @@ class MarkovPredictor:
             return False
         args = _frame_args(inputs)
         self.remember_profiles(args[4])
-        self._remember_latest(inputs.get("previous_profiles"))
+        self.remember_profiles(inputs.get("previous_profiles"))
         ahead = {"intention_belief", "acceleration_profiles"} if self.previous_profiles else {"intention_belief"}
         if set(missing) <= ahead:
             if self._prepared is not None and _same_messages(self._chain_key(self._prepared[0]), self._chain_key(args)):
@@ -688,24 +688,15 @@ class MarkovPredictor:
 
     def remember_profiles(self, profiles: AccelerationProfiles | None) -> None:
         """hybrid_profiles "previous": keep ``profiles`` for the chains of later frames (the newest ``_KEEP_PROFILES``
-        by stamp). ``prepare`` calls it as soon as a frame's profiles are in (the next frame's chain may run before
-        this one is finished), ``update`` and ``process`` with their frame's; ``iamp eval`` also between its instants."""
+        by stamp), from the joined ``acceleration_profiles`` or the latest-value ``previous_profiles`` port
+        (``pipelines/pipelined.toml``). ``prepare`` calls it as soon as a frame's profiles are in (the next frame's
+        chain may run before this one is finished), ``update`` and ``process`` with their frame's; ``iamp eval`` also
+        between its instants."""
         if not (self.previous_profiles and isinstance(profiles, AccelerationProfiles)):
             return
         self._recent_profiles[int(profiles.header.stamp_ns)] = profiles
         while len(self._recent_profiles) > _KEEP_PROFILES:
             del self._recent_profiles[min(self._recent_profiles)]
-
-    def _remember_latest(self, profiles: object) -> None:
-        """The ``previous_profiles`` port's latest value (a pipeline that runs the chain on the previous frame's
-        profiles without joining the frame's own: ``pipelines/pipelined.toml``); bound in any other configuration it is
-        unread, said once (issue ``profiles_port_unused``)."""
-        if not isinstance(profiles, AccelerationProfiles):
-            return
-        if self.previous_profiles:
-            self.remember_profiles(profiles)
-        elif not self._told_unused:
-            self._told_unused = self._unused_previous = True
 
     def _chain_profiles(self, profiles: AccelerationProfiles | None, stamp: int) -> AccelerationProfiles | None:
         """The profiles the chain of the frame at ``stamp`` reads: the frame's own, or with hybrid_profiles "previous"
@@ -1512,9 +1503,9 @@ class _PairsPhase:
     beliefs: dict[int, dict[int, Any]] | None  # what it read of the belief (``chain_reads_belief``), else None
 
 
-#: the inputs of ``_chain_phase``, in its order, with the type each must have (else None)
 _MS_NS = 1_000_000  # (a frame period's rounding in stamps: 1 ms)
 _KEEP_PROFILES = 4  # hybrid_profiles "previous": profiles messages kept (frames handled a little out of order find theirs)
+#: the inputs of ``_chain_phase``, in its order, with the type each must have (else None)
 _FRAME_INPUTS = (("corridor_set", CorridorSet), ("relation_set", RelationSet), ("scene", SceneInfo), ("track_frame", TrackFrame),
                  ("acceleration_profiles", AccelerationProfiles))
 
