@@ -46,7 +46,9 @@ generation. All of one machine's wall clock.
 
 ``--json FILE`` writes ``runs.<label>.outputs.<node/output>.{n, e2e_ms_p50,
 e2e_ms_p95, e2e_ms_max, frames_lost}``, ``runs.<label>.source_frames``,
-``runs.<label>.vehicles_mean``, ``runs.<label>.node_stats.<node>`` and
+``runs.<label>.vehicles_mean``, ``runs.<label>.by_vehicles.<lo-hi>.{frames, e2e_ms_p50, e2e_ms_p95}`` (the
+MotionGrid's e2e over the frames holding lo-hi vehicles: a dense recording's load varies along it, and its
+p95 is mostly the busiest frames), ``runs.<label>.node_stats.<node>`` and
 (traced) ``runs.<label>.hops.{stages.<node>.<part>, path.{total, parts.<node>.<part>, tail, via}, gc.<node>}``
 (``hop_table``).
 """
@@ -124,6 +126,8 @@ def run_pipeline(pipeline: str, data: Path | None, recording: str | None, rec: P
 def analyse(rec: Path, expect: tuple[str, ...] = ()) -> dict:
     """e2e at the recorder per output, frames lost per output, the source's vehicles, the last NodeStats per node."""
     e2e: dict[str, list[float]] = {}
+    frame_e2e: dict[str, dict[int, float]] = {}
+    vehicles_of: dict[int, int] = {}
     frames: dict[str, set[int]] = {}
     source_frames: set[int] = set()
     unknown: dict[str, int] = {}
@@ -147,9 +151,11 @@ def analyse(rec: Path, expect: tuple[str, ...] = ()) -> dict:
             types = body.get("agent_types")
             if isinstance(types, list) and len(types) == 3:
                 vehicles.append(int(np.isin(np.frombuffer(types[2], np.uint8), [1, 2, 3, 4]).sum()))
+                vehicles_of[int(header["frame_index"])] = vehicles[-1]
         wall = header.get("source_wall_ns", 0)
         if wall:
             e2e.setdefault(name, []).append((m.log_time_ns - wall) / 1e6)
+            frame_e2e.setdefault(name, {})[int(header["frame_index"])] = (m.log_time_ns - wall) / 1e6
         else:
             unknown[name] = unknown.get(name, 0) + 1
     for name in expect:  # an expected output that never came: every frame lost
@@ -171,7 +177,27 @@ def analyse(rec: Path, expect: tuple[str, ...] = ()) -> dict:
         for node, s in sorted(stats.items())
     }
     return {"source_frames": len(source_frames), "vehicles_mean": float(np.mean(vehicles)) if vehicles else 0.0,
-            "vehicles_max": int(max(vehicles)) if vehicles else 0, "outputs": outputs, "node_stats": node_stats}
+            "vehicles_max": int(max(vehicles)) if vehicles else 0, "outputs": outputs, "node_stats": node_stats,
+            "by_vehicles": by_vehicles(frame_e2e.get("/".join(GRID), {}), vehicles_of)}
+
+
+#: Width of the vehicles-per-frame bins of ``by_vehicles`` (bins 0-3, 4-7, ..., 16-19, ...).
+VEHICLE_BIN = 4
+
+
+def by_vehicles(e2e_of_frame: dict[int, float], vehicles_of: dict[int, int]) -> dict[str, dict[str, float]]:
+    """The MotionGrid's e2e split by the vehicles in its frame: ``"16-19": {frames, e2e_ms_p50, e2e_ms_p95}``.
+
+    A dense recording's load varies along it (N is its mean: K733's dense18 holds 9-33 vehicles a frame), so a
+    run's p95 is mostly its busiest frames; these rows say what a frame of a given load waits.
+    """
+    bins: dict[int, list[float]] = {}
+    for f, ms in e2e_of_frame.items():
+        if f in vehicles_of:
+            bins.setdefault(vehicles_of[f] // VEHICLE_BIN, []).append(ms)
+    return {f"{b * VEHICLE_BIN}-{b * VEHICLE_BIN + VEHICLE_BIN - 1}": {
+                "frames": len(v), "e2e_ms_p50": float(np.median(v)), "e2e_ms_p95": float(np.percentile(v, 95))}
+            for b, v in sorted(bins.items())}
 
 
 # ---------------------------------------------------------------- the per-hop trace (IAMP_HOP_TRACE, stages/runtime/trace.py)
@@ -427,6 +453,9 @@ def main() -> int:
         print(f"   {'output (at the recorder)':<40} {'n':>6} {'p50 ms':>8} {'p95 ms':>8} {'max ms':>8} {'lost':>6} {'no wall':>8}")
         for name, o in res["outputs"].items():
             print(f"   {name:<40} {o['n']:>6} {o['e2e_ms_p50']:>8.1f} {o['e2e_ms_p95']:>8.1f} {o['e2e_ms_max']:>8.1f} {o['frames_lost']:>6} {o['unknown_wall']:>8}")
+        if res["by_vehicles"]:
+            print(f"   {'/'.join(GRID)} by vehicles in its frame: " + "; ".join(
+                f"{k}: {v['frames']} frames, {v['e2e_ms_p50']:.1f} / {v['e2e_ms_p95']:.1f} ms" for k, v in res["by_vehicles"].items()))
         print(f"   {'NodeStats (last)':<40} {'e2e p50':>8} {'e2e p95':>8} {'proc p50':>8} {'proc p95':>8} {'q drop':>6} {'j drop':>6}")
         for node, s in res["node_stats"].items():
             print(f"   {node:<40} {s['e2e_ms_p50']:>8.1f} {s['e2e_ms_p95']:>8.1f} {s['proc_ms_p50']:>8.1f} {s['proc_ms_p95']:>8.1f} "

@@ -233,14 +233,17 @@ def _run_data(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     summary = {
         "out": str(result.out_dir), "recording": result.name, "layers": len(result.layers),
-        "shifts_s": [round(l.shift_s, 3) for l in result.layers], "duration_s": result.duration_s, "tracks": result.n_tracks,
+        "shifts_s": [round(l.shift_s, 3) for l in result.layers],
+        "shares": [round(l.share, 3) for l in result.layers], "duration_s": result.duration_s, "tracks": result.n_tracks,
         "rows": result.n_rows, "vehicles_mean": result.vehicles_mean, "vehicles_median": result.vehicles_median,
         "vehicles_max": result.vehicles_max,
     }
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
-        print(f"{result.out_dir}: recording {result.name}, {len(result.layers)} layers, {result.duration_s:.1f} s, "
+        partial = [l.share for l in result.layers if l.share < 1.0]
+        part = f" (the last {partial[-1]:.0%} of its tracks)" if partial else ""
+        print(f"{result.out_dir}: recording {result.name}, {len(result.layers)} layers{part}, {result.duration_s:.1f} s, "
               f"{result.n_tracks} tracks; vehicles per frame mean {result.vehicles_mean:.1f}, median {result.vehicles_median:.0f}, "
               f"max {result.vehicles_max}")
     return 0

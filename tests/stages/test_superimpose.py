@@ -9,7 +9,7 @@ import pytest
 
 from stages.cli import main as iamp
 from stages.lib.datasets import DEFAULT_DATA_DIR, load_recording
-from stages.lib.datasets.superimpose import Layer, build_dense, read_sources, superimpose
+from stages.lib.datasets.superimpose import Layer, build_dense, plan_layers, read_sources, superimpose
 
 REC = "k729_2022-03-16"
 
@@ -58,3 +58,29 @@ def test_build_dense_reaches_the_target_and_the_cli_writes_it(tmp_path, capsys):
     assert load_recording(tmp_path / "b", "dense").sequences[0].n_rows > 0
     assert iamp(["data", "superimpose", "--data", str(DEFAULT_DATA_DIR), "--recording", REC, "--vehicles", "0", "--out", str(tmp_path / "c")]) == 2
     assert iamp(["data", "superimpose", "--data", str(tmp_path / "none"), "--recording", REC, "--vehicles", "6", "--out", str(tmp_path / "c")]) == 2
+
+
+def test_a_partial_last_layer_makes_the_mean_hit_the_target(tmp_path):
+    """Whole copies overshoot (K733: four copies for N = 18 held 19.8 a frame); the rest of the target is a share of one more copy's tracks."""
+    map_path, sources = read_sources(DEFAULT_DATA_DIR, REC)
+    first = max((i for i, s in enumerate(sources) if s.kind == "vehicle"), key=lambda i: len(set(sources[i].track_ids)))
+    src = sources[first]
+    target = 1.5 * src.mean_per_frame()  # whole copies while they fit, then part of one
+    layers = plan_layers(sources, target, shift_s=0.0, duration_s=src.duration_ms / 1000)
+    assert [l.share for l in layers[:-1]] == [1.0] * (len(layers) - 1) and 0.0 < layers[-1].share < 1.0
+    assert sum(sources[l.source].mean_per_frame() * l.share for l in layers) == pytest.approx(target, rel=1e-6)
+    # the partial copy writes whole tracks, about its share of the source's rows, under fresh ids
+    half = superimpose(sources, [Layer(first, 0.0, share=0.5)], tmp_path, "half", duration_s=src.duration_ms / 1000, map_path=map_path)
+    rows = _rows(tmp_path / "recorded_trackfiles" / "half" / "vehicle_tracks_000.csv")
+    _ids, track_rows = np.unique(src.track_ids.astype(str), return_counts=True)
+    assert 0.5 * len(src.rows) <= len(rows) < 0.5 * len(src.rows) + track_rows.max()  # whole tracks until the share is reached
+    it, ix, iy = (src.columns.index(c) for c in ("timestamp_ms", "x", "y"))
+    source_of = {(int(row[it]), row[ix], row[iy]): tid for row, tid in zip(src.rows, src.track_ids)}
+    kept_sources = {source_of[(int(r["timestamp_ms"]), r["x"], r["y"])] for r in rows}
+    whole = sum(int((src.track_ids == tid).sum()) for tid in kept_sources)
+    assert whole == len(rows)  # every kept source track is written whole
+    assert half.vehicles_mean == pytest.approx(len(rows) / (src.duration_ms / src.frame_ms), rel=0.02)
+    # the same layer picks the same tracks (a hash of the id, not a random draw)
+    again = superimpose(sources, [Layer(first, 0.0, share=0.5)], tmp_path / "b", "half", duration_s=src.duration_ms / 1000, map_path=map_path)
+    assert again.n_rows == half.n_rows
+    assert "| 0 | " in (tmp_path / "ATTRIBUTION.md").read_text() and "0.50 |" in (tmp_path / "ATTRIBUTION.md").read_text()

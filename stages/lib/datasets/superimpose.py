@@ -30,6 +30,7 @@ import csv
 import dataclasses
 import math
 import shutil
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -77,10 +78,16 @@ class SourceSequence:
 
 @dataclass(frozen=True, slots=True)
 class Layer:
-    """One copy: source sequence index and its time shift in seconds."""
+    """One copy: source sequence index, its time shift in seconds and the share of its tracks written.
+
+    ``share`` < 1 keeps whole source tracks, picked in a fixed pseudo-random order (a hash of the track id and
+    the shift) until their rows reach ``share`` of the sequence's rows: the copy then adds about ``share`` times
+    the sequence's mean vehicles per frame (``plan_layers`` tops the target up with one such partial copy).
+    """
 
     source: int
     shift_s: float
+    share: float = 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -150,11 +157,14 @@ def estimate_cycle_s(source: SourceSequence, *, low_s: float = 40.0, high_s: flo
 
 
 def plan_layers(sources: list[SourceSequence], target_vehicles: float, *, shift_s: float, duration_s: float) -> list[Layer]:
-    """Layers whose mean vehicles per frame add up to about ``target_vehicles`` (at least one).
+    """Layers whose mean vehicles per frame add up to ``target_vehicles`` (at least one).
 
     The sources are taken in turn (all of them with shift 0 first, then again
     shifted by ``shift_s``, 2·``shift_s``, ...), each contributing its mean
-    number of vehicles per frame (the sequence is tiled over ``duration_s``).
+    number of vehicles per frame (the sequence is tiled over ``duration_s``),
+    whole while they fit; the rest of the target is one partial copy of the
+    next (``Layer.share``: a share of its tracks), so that N = 18 gives about
+    18, not the 19.8 of four whole K733 copies.
     """
     vehicle_sources = [i for i, s in enumerate(sources) if s.kind == "vehicle" and s.time_ms.size]
     if not vehicle_sources:
@@ -162,15 +172,33 @@ def plan_layers(sources: list[SourceSequence], target_vehicles: float, *, shift_
     layers: list[Layer] = []
     total = 0.0
     round_no = 0
-    while True:
+    while round_no <= 10_000:
         for i in vehicle_sources:
-            if layers and total + 0.5 * sources[i].mean_per_frame() > target_vehicles:
+            mean = sources[i].mean_per_frame()
+            if total + mean > target_vehicles * (1.0 + 1e-9):
+                rest = (target_vehicles - total) / mean if mean > 0 else 0.0
+                if rest >= 0.02 or not layers:  # a sliver under 2 % of a copy is left out
+                    layers.append(Layer(i, round_no * shift_s, share=min(max(rest, 0.02), 1.0)))
                 return layers
             layers.append(Layer(i, round_no * shift_s))
-            total += sources[i].mean_per_frame()
+            total += mean
         round_no += 1
-        if round_no > 10_000:
-            return layers
+    return layers
+
+
+def _kept_tracks(src: SourceSequence, layer: Layer) -> set[str] | None:
+    """The source track ids a partial layer writes (``Layer.share``); None: all of them."""
+    if layer.share >= 1.0:
+        return None
+    ids, rows = np.unique(src.track_ids.astype(str), return_counts=True)
+    order = sorted(range(ids.size), key=lambda k: zlib.crc32(f"{ids[k]}@{layer.shift_s:.3f}".encode()))
+    goal, kept, n = layer.share * float(rows.sum()), set(), 0
+    for k in order:
+        if n >= goal:
+            break
+        kept.add(str(ids[k]))
+        n += int(rows[k])
+    return kept
 
 
 def superimpose(
@@ -215,6 +243,8 @@ def superimpose(
         shift_ms = (int(round(layer.shift_s * 1000.0 / frame_ms)) * frame_ms) % period
         local = np.mod(src.time_ms - shift_ms, period)
         wrapped = (src.time_ms - shift_ms) < 0  # rows moved to the end by the circular shift: another track part
+        kept = _kept_tracks(src, layer)
+        row_kept = None if kept is None else np.isin(src.track_ids.astype(str), sorted(kept))
         cols = src.columns
         idx = {c: cols.index(c) for c in COLUMNS if c in cols}
         n_tiles = -(-duration_ms // period)
@@ -222,6 +252,8 @@ def superimpose(
         for tile in range(n_tiles):
             t_out = local + tile * period
             keep = np.flatnonzero(t_out < duration_ms)
+            if row_kept is not None:
+                keep = keep[row_kept[keep]]
             for r in keep:
                 key = (tile, bool(wrapped[r]), src.track_ids[r])
                 new = ids.get(key)
@@ -283,10 +315,10 @@ def superimpose(
         "",
         description,
         "",
-        "| layer | source sequence | shift s |",
-        "|---|---|---|",
+        "| layer | source sequence | shift s | share of its tracks |",
+        "|---|---|---|---|",
     ]
-    lines += [f"| {k} | {sources[l.source].id} | {l.shift_s:.1f} |" for k, l in enumerate(layers)]
+    lines += [f"| {k} | {sources[l.source].id} | {l.shift_s:.1f} | {l.share:.2f} |" for k, l in enumerate(layers)]
     (out_dir / "ATTRIBUTION.md").write_text("\n".join(lines) + "\n", encoding="utf-8")
     return SuperimposeResult(
         out_dir=out_dir,
