@@ -1,7 +1,7 @@
 """Dense traffic: time per stage and per frame of the whole in-process chain, hybrid and baseline, N = 6 .. 72 vehicles.
 
-For each N (``--vehicles``, default 6,12,18,36,72) a recording of about N
-vehicles per frame is superimposed from real tracks (``iamp data
+For each N (``--vehicles``, default 6,12,18,36,72) a recording of N
+vehicles per frame on average is superimposed from real tracks (``iamp data
 superimpose``, ``stages/lib/datasets/superimpose.py``): with the full data
 (``$IAMP_TAF_BW``) k733_2018-05-02 shifted by multiples of its signal cycle
 (``--source k733``, the default) or the K729 sequences together
@@ -40,7 +40,10 @@ the process, less sensitive to other load on the machine than wall time),
 ``stages.markov_prediction.idle_ms_mean`` (the stage's ``idle()``, called after every frame as the runtime
 calls it once a frame's outputs are out and nothing waits: the online curve choice's back test, every few
 frames; mean ms per timed frame, not in the stage's or the frame's time, as on the bus), plus
-``modes.<mode>.exponent``.
+``modes.<mode>.exponent``, and ``...by_vehicles.<N>.at_n.{frames, frame_ms_median,
+markov_prediction_ms_median}``: the medians over the timed frames that hold N ± 2 vehicles (N is the
+recording's mean; its frames' load varies along it and the timed stretches need not sit at the mean: the
+``veh`` column is their median).
 """
 
 from __future__ import annotations
@@ -79,9 +82,15 @@ def markov_config(args, mode: str):
                                               where="bench/dense.py --set")
 
 
-def run_one(data_dir: Path, name: str, args, stencils, on_frame=None) -> dict:
+#: Frames whose vehicles lie within this many of N make a result's ``at_n``.
+AT_N_WITHIN = 2
+
+
+def run_one(data_dir: Path, name: str, args, stencils, on_frame=None, target: float | None = None) -> dict:
     """Play the recording ``name`` through the cores; timings per stage and mode. ``on_frame(timed)``, if given, is
-    called before each frame the cores see (``timed``: one of the timed frames, not the warm-up)."""
+    called before each frame the cores see (``timed``: one of the timed frames, not the warm-up). With ``target``
+    (N), ``at_n``: the medians over the timed frames holding N ± ``AT_N_WITHIN`` vehicles (the recording's mean is N,
+    its frames' load varies along it, and the timed stretches need not sit at the mean)."""
     from stages.ar_inference import ARInference, ARInferenceConfig
     from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
     from stages.intentions import IntentionFilter, IntentionsConfig
@@ -198,6 +207,12 @@ def run_one(data_dir: Path, name: str, args, stencils, on_frame=None) -> dict:
             "stages": {s.split("/")[0]: {**_stats(times[s]), **({"cpu_ms_median": float(np.median(cpu[s]))} if s in cpu and cpu[s] else {})}
                        for s in stages},
         }
+        if target is not None:
+            near = np.abs(np.asarray(vehicles, dtype=np.float64) - target) <= AT_N_WITHIN
+            markov = np.asarray(times[f"markov_prediction/{mode}"])
+            out[mode]["at_n"] = {"frames": int(near.sum()), "vehicles_within": AT_N_WITHIN,
+                                 "frame_ms_median": float(np.median(per_frame[near])) if near.any() else float("nan"),
+                                 "markov_prediction_ms_median": float(np.median(markov[near])) if near.any() else float("nan")}
         # the part of markov_prediction left once its last input is in (all of it where the chain reads the belief)
         out[mode]["stages"]["markov_prediction"]["after_last_input_ms_median"] = _stats(last_input[mode])["ms_median"]
         out[mode]["stages"]["markov_prediction"]["idle_ms_mean"] = float(np.mean(idle[mode])) if idle[mode] else 0.0
@@ -276,7 +291,7 @@ def main(argv: list[str] | None = None) -> int:
     report: dict = {"source": recording, "backend": args.backend, "device": args.device, "modes": {m: {"by_vehicles": {}} for m in args.modes}}
     for n in sizes:
         built = build_dense(data, recording, n, keep, sequences=sequences)
-        res = run_one(keep, built.name, args, stencils)
+        res = run_one(keep, built.name, args, stencils, target=n)
         for mode in args.modes:
             report["modes"][mode]["by_vehicles"][str(n)] = res[mode]
         print(f"N={n}: {built.name}, {len(built.layers)} layers, recording mean {built.vehicles_mean:.1f} vehicles/frame; "
@@ -284,7 +299,9 @@ def main(argv: list[str] | None = None) -> int:
                           f"{res[m]['stages']['markov_prediction']['ms_median']:.1f} ms (cpu {res[m]['stages']['markov_prediction']['cpu_ms_median']:.1f}, "
                           f"after its last input {res[m]['stages']['markov_prediction']['after_last_input_ms_median']:.1f}, "
                           f"idle {res[m]['stages']['markov_prediction']['idle_ms_mean']:.1f} per frame, "
-                          f"{res[m]['pairs_median']:.0f} pairs)" for m in args.modes),
+                          f"{res[m]['pairs_median']:.0f} pairs; at {n} ± {AT_N_WITHIN} vehicles, {res[m]['at_n']['frames']} frames: frame "
+                          f"{res[m]['at_n']['frame_ms_median']:.1f}, markov_prediction {res[m]['at_n']['markov_prediction_ms_median']:.1f})"
+                          for m in args.modes),
               flush=True)
         if args.json:  # written after every N, so that a run cut short keeps what it measured
             args.json.parent.mkdir(parents=True, exist_ok=True)

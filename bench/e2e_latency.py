@@ -2,8 +2,8 @@
 
 For each entry of ``--vehicles`` (default ``0,18``): 0 plays the launcher's
 embedded default scenario as it is (K733's sequence, ``python launch.py``
-with no ``--data``); N > 0 first builds a dense recording of about N
-vehicles per frame with ``iamp data superimpose`` (from ``$IAMP_TAF_BW``,
+with no ``--data``); N > 0 first builds a dense recording of N
+vehicles per frame on average with ``iamp data superimpose`` (from ``$IAMP_TAF_BW``,
 k733_2018-05-02 shifted by multiples of its signal cycle; without the full
 data, from the embedded scenario, said so), then runs
 

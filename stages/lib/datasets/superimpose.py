@@ -4,7 +4,11 @@ A *layer* is one source sequence of an INTERACTION-format recording (TAF-BW)
 shifted in time by ``shift_s``: its row at time t is written at
 (t − shift) mod D_seq + m·D_seq for every m that lands in [0, D) — the
 sequence is played circularly and tiled over the output's duration D, so
-every layer contributes over the whole output. Each (layer, tile, source
+every layer contributes over the whole output. ``build_dense`` stacks whole
+layers while their mean vehicles per frame fit under the target, then one
+partial layer (``Layer.share``: whole tracks of one more copy, picked by a
+hash of their ids, until their rows reach the share) tops the mean up to
+the target. Each (layer, tile, source
 track) gets a fresh track id (a track cut by the wrap becomes two tracks:
 one leaving at the end, one entering at the start, as tracks do at a
 recording's edges). Shifting a recording by multiples of its signal cycle
