@@ -36,6 +36,9 @@ def test_dense_bench_writes_its_keys(tmp_path):
         for key in ("ms_median", "ms_p95", "cpu_ms_median", "after_last_input_ms_median", "idle_ms_mean"):
             assert math.isfinite(markov[key]) and markov[key] >= 0
         assert set(n6["stages"]) >= {"source", "corridors", "relations", "intentions", "markov_prediction"}
+        at_n = n6["at_n"]  # the timed frames within 6 ± 2 vehicles (there may be none of 3)
+        assert 0 <= at_n["frames"] <= 3 and at_n["vehicles_within"] == 2
+        assert (at_n["frames"] == 0) == math.isnan(at_n["frame_ms_median"])
     assert "ar_inference" in report["modes"]["hybrid"]["by_vehicles"]["6"]["stages"]
     assert "hybrid/baseline frame" in r.stdout
 

@@ -121,7 +121,14 @@ def test_the_hop_trace_splits_each_motion_grid_end_to_end_into_parts_that_add_up
             assert r["end"] <= enc0 <= enc1 <= put1
     h = hop_table(traces)
     path = h["path"]
-    grids = analyse(rec)["outputs"]["markov_prediction/motion_grid"]
+    analysed = analyse(rec)
+    grids = analysed["outputs"]["markov_prediction/motion_grid"]
+    # the MotionGrid's e2e by the vehicles in its frame: bins of 4 that together hold every grid with a wall stamp
+    bins = analysed["by_vehicles"]
+    assert bins and sum(b["frames"] for b in bins.values()) == grids["n"] - grids["unknown_wall"]
+    for label, b in bins.items():
+        lo, hi = map(int, label.split("-"))
+        assert hi - lo == 3 and lo % 4 == 0 and b["e2e_ms_p50"] <= b["e2e_ms_p95"] <= grids["e2e_ms_max"] + 0.01
     assert path["n"] >= grids["n"] - 2 > 5  # every MotionGrid's path found (but a frame whose trace line was cut at the stop)
     assert path["sum_check_ms"] < 0.01  # the parts add up to recorder receipt - source wall
     assert path["total"]["max"] <= grids["e2e_ms_max"] + 0.01  # the same clock as the MCAP's log_time
