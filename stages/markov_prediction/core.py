@@ -767,8 +767,11 @@ class MarkovPredictor:
             if hist.samples and stamp <= hist.samples[-1][0]:
                 stamps = [t for t, _ in hist.samples]
                 i = bisect.bisect_left(stamps, stamp)
-                if stamps[i] == stamp or i == 0:  # held already, or older than every sample kept
+                if stamps[i] == stamp:  # held already
                     continue
+                if i == 0 and len(hist.samples) == hist.samples.maxlen:  # older than a full history's every sample
+                    continue
+                # (i == 0 with room: the vehicle's first frame observed after its second, as prepare can do)
                 if len(hist.samples) == hist.samples.maxlen:
                     hist.samples.popleft()
                     i -= 1

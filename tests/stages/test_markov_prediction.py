@@ -586,6 +586,27 @@ def test_speed_lines_made_together_equal_the_numpy_code_vehicle_by_vehicle(stenc
     assert not predictor._lines
 
 
+def test_a_vehicles_first_frame_observed_after_its_second_is_kept(stencils):
+    """prepare may observe frame n + 1 before frame n is finished: a vehicle new in frame n then gets its frame n + 1
+    speed first. Its frame n speed goes in front (it was dropped as "older than every sample kept", so the vehicle's
+    measured acceleration differed from frames taken in order: found on a dense recording); the same stamp twice is
+    kept once, and a full history still leaves out a stamp older than all it holds."""
+    in_order, ahead = (MarkovPredictor(MarkovPredictionConfig(**PLAIN), stencils=stencils) for _ in range(2))
+    speeds = {STAMP + i * 100_000_000: 5.0 + 0.3 * i for i in range(4)}
+    stamps = sorted(speeds)
+    for t in stamps:
+        in_order.observe(_corridor_set(_vehicle(1, speeds[t], [_corridor(7)]), stamp=t))
+    for t in (stamps[1], stamps[0], stamps[0], stamps[2], stamps[3]):  # its first frame second, and twice
+        ahead.observe(_corridor_set(_vehicle(1, speeds[t], [_corridor(7)]), stamp=t))
+    assert list(ahead._history[1].samples) == list(in_order._history[1].samples) == [(t, speeds[t]) for t in stamps]
+    assert ahead.measured_acceleration(1, stamps[-1]) == in_order.measured_acceleration(1, stamps[-1])
+    full = ahead._history[1].samples
+    full.extend((stamps[-1] + (k + 1) * 100_000_000, 6.0) for k in range(full.maxlen))
+    kept = list(full)
+    ahead.observe(_corridor_set(_vehicle(1, 4.0, [_corridor(7)]), stamp=stamps[0]))  # older than a full history holds
+    assert list(ahead._history[1].samples) == kept
+
+
 def test_hybrid_initial_input_blend_follows_a_clean_measurement_and_ignores_a_noisy_one(stencils):
     """hybrid_initial_input = "blend": a car that has accelerated at +1.5 m/s² with clean speeds starts like
     "measured" (the first step further than the AR profile's -2.5 m/s²); with speeds jittering ±3 m/s the
