@@ -48,7 +48,8 @@ generation. All of one machine's wall clock.
 e2e_ms_p95, e2e_ms_max, frames_lost}``, ``runs.<label>.source_frames``,
 ``runs.<label>.vehicles_mean``, ``runs.<label>.by_vehicles.<lo-hi>.{frames, e2e_ms_p50, e2e_ms_p95}`` (the
 MotionGrid's e2e over the frames holding lo-hi vehicles: a dense recording's load varies along it, and its
-p95 is mostly the busiest frames), ``runs.<label>.node_stats.<node>`` and
+p95 is mostly the busiest frames), ``runs.<label>.at_n.{frames, e2e_ms_p50, e2e_ms_p95}`` (the same over the
+frames within N ± 2 vehicles, for N > 0), ``runs.<label>.node_stats.<node>`` and
 (traced) ``runs.<label>.hops.{stages.<node>.<part>, path.{total, parts.<node>.<part>, tail, via}, gc.<node>}``
 (``hop_table``).
 """
@@ -123,8 +124,10 @@ def run_pipeline(pipeline: str, data: Path | None, recording: str | None, rec: P
     return time.monotonic() - t0
 
 
-def analyse(rec: Path, expect: tuple[str, ...] = ()) -> dict:
-    """e2e at the recorder per output, frames lost per output, the source's vehicles, the last NodeStats per node."""
+def analyse(rec: Path, expect: tuple[str, ...] = (), target: float | None = None) -> dict:
+    """e2e at the recorder per output, frames lost per output, the source's vehicles, the last NodeStats per node;
+    the MotionGrid's e2e by vehicles in its frame (``by_vehicles``) and, with ``target`` N, over the frames within
+    N ± ``AT_N_WITHIN`` vehicles (``at_n``)."""
     e2e: dict[str, list[float]] = {}
     frame_e2e: dict[str, dict[int, float]] = {}
     vehicles_of: dict[int, int] = {}
@@ -178,7 +181,19 @@ def analyse(rec: Path, expect: tuple[str, ...] = ()) -> dict:
     }
     return {"source_frames": len(source_frames), "vehicles_mean": float(np.mean(vehicles)) if vehicles else 0.0,
             "vehicles_max": int(max(vehicles)) if vehicles else 0, "outputs": outputs, "node_stats": node_stats,
-            "by_vehicles": by_vehicles(frame_e2e.get("/".join(GRID), {}), vehicles_of)}
+            "by_vehicles": by_vehicles(frame_e2e.get("/".join(GRID), {}), vehicles_of),
+            **({"at_n": at_n(frame_e2e.get("/".join(GRID), {}), vehicles_of, target)} if target is not None else {})}
+
+
+#: Frames whose vehicles lie within this many of N make ``at_n`` (as ``bench/dense.py``'s).
+AT_N_WITHIN = 2
+
+
+def at_n(e2e_of_frame: dict[int, float], vehicles_of: dict[int, int], target: float) -> dict[str, float]:
+    """The MotionGrid's e2e over the frames holding ``target`` ± ``AT_N_WITHIN`` vehicles: {frames, e2e_ms_p50, e2e_ms_p95}."""
+    v = [ms for f, ms in e2e_of_frame.items() if f in vehicles_of and abs(vehicles_of[f] - target) <= AT_N_WITHIN]
+    return {"frames": len(v), "vehicles_within": AT_N_WITHIN, "e2e_ms_p50": float(np.median(v)) if v else float("nan"),
+            "e2e_ms_p95": float(np.percentile(v, 95)) if v else float("nan")}
 
 
 #: Width of the vehicles-per-frame bins of ``by_vehicles`` (bins 0-3, 4-7, ..., 16-19, ...).
@@ -442,7 +457,7 @@ def main() -> int:
         load0 = os.getloadavg()[0]
         wall_s = run_pipeline(args.pipeline, data, recording, rec, args.speed, args.duration_s if n == 0 else None, f"e2e{label}", trace, tuple(args.set))
         load1 = os.getloadavg()[0]
-        res = analyse(rec, tuple(e for e in args.expect.split(",") if e))
+        res = analyse(rec, tuple(e for e in args.expect.split(",") if e), target=n if n > 0 else None)
         if trace is not None:
             res["hops"] = hop_table(read_traces(trace))
         res.update({"wall_s": wall_s, "load_before": load0, "load_after": load1, "origin": origin})
@@ -456,6 +471,9 @@ def main() -> int:
         if res["by_vehicles"]:
             print(f"   {'/'.join(GRID)} by vehicles in its frame: " + "; ".join(
                 f"{k}: {v['frames']} frames, {v['e2e_ms_p50']:.1f} / {v['e2e_ms_p95']:.1f} ms" for k, v in res["by_vehicles"].items()))
+        if "at_n" in res:
+            a = res["at_n"]
+            print(f"   {'/'.join(GRID)} at {n} ± {a['vehicles_within']} vehicles: {a['frames']} frames, p50 {a['e2e_ms_p50']:.1f} / p95 {a['e2e_ms_p95']:.1f} ms")
         print(f"   {'NodeStats (last)':<40} {'e2e p50':>8} {'e2e p95':>8} {'proc p50':>8} {'proc p95':>8} {'q drop':>6} {'j drop':>6}")
         for node, s in res["node_stats"].items():
             print(f"   {node:<40} {s['e2e_ms_p50']:>8.1f} {s['e2e_ms_p95']:>8.1f} {s['proc_ms_p50']:>8.1f} {s['proc_ms_p95']:>8.1f} "

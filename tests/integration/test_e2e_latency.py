@@ -129,6 +129,12 @@ def test_the_hop_trace_splits_each_motion_grid_end_to_end_into_parts_that_add_up
     for label, b in bins.items():
         lo, hi = map(int, label.split("-"))
         assert hi - lo == 3 and lo % 4 == 0 and b["e2e_ms_p50"] <= b["e2e_ms_p95"] <= grids["e2e_ms_max"] + 0.01
+    # at N: the grids of the frames within N ± 2 vehicles (N here the bins' fullest: some frames, not all)
+    fullest = max(bins, key=lambda k: bins[k]["frames"])
+    n = int(fullest.split("-")[0]) + 2
+    near = analyse(rec, target=n)["at_n"]
+    assert near["vehicles_within"] == 2 and bins[fullest]["frames"] <= near["frames"] <= grids["n"]
+    assert near["e2e_ms_p50"] <= near["e2e_ms_p95"] <= grids["e2e_ms_max"] + 0.01
     assert path["n"] >= grids["n"] - 2 > 5  # every MotionGrid's path found (but a frame whose trace line was cut at the stop)
     assert path["sum_check_ms"] < 0.01  # the parts add up to recorder receipt - source wall
     assert path["total"]["max"] <= grids["e2e_ms_max"] + 0.01  # the same clock as the MCAP's log_time
