@@ -190,19 +190,21 @@ def plan_layers(sources: list[SourceSequence], target_vehicles: float, *, shift_
     return layers
 
 
-def _kept_tracks(src: SourceSequence, layer: Layer) -> set[str] | None:
-    """The source track ids a partial layer writes (``Layer.share``); None: all of them."""
+def _kept_rows(src: SourceSequence, layer: Layer) -> np.ndarray | None:
+    """Which of the source's rows a partial layer writes (``Layer.share``: whole tracks, in the order of a hash of
+    their ids, until their rows reach the share); None: all of them."""
     if layer.share >= 1.0:
         return None
-    ids, rows = np.unique(src.track_ids.astype(str), return_counts=True)
+    names = src.track_ids.astype(str)
+    ids, rows = np.unique(names, return_counts=True)
     order = sorted(range(ids.size), key=lambda k: zlib.crc32(f"{ids[k]}@{layer.shift_s:.3f}".encode()))
-    goal, kept, n = layer.share * float(rows.sum()), set(), 0
+    goal, kept, n = layer.share * float(rows.sum()), [], 0
     for k in order:
         if n >= goal:
             break
-        kept.add(str(ids[k]))
+        kept.append(ids[k])
         n += int(rows[k])
-    return kept
+    return np.isin(names, kept)
 
 
 def superimpose(
@@ -247,8 +249,7 @@ def superimpose(
         shift_ms = (int(round(layer.shift_s * 1000.0 / frame_ms)) * frame_ms) % period
         local = np.mod(src.time_ms - shift_ms, period)
         wrapped = (src.time_ms - shift_ms) < 0  # rows moved to the end by the circular shift: another track part
-        kept = _kept_tracks(src, layer)
-        row_kept = None if kept is None else np.isin(src.track_ids.astype(str), sorted(kept))
+        row_kept = _kept_rows(src, layer)
         cols = src.columns
         idx = {c: cols.index(c) for c in COLUMNS if c in cols}
         n_tiles = -(-duration_ms // period)
