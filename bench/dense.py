@@ -50,7 +50,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import atexit
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -285,7 +287,10 @@ def main(argv: list[str] | None = None) -> int:
     from stages.markov_prediction.core import grid_config
 
     stencils = load_or_build_stencils(grid_config(markov_config(args, "baseline")))  # --set applies to both modes: one grid
-    keep = args.keep or Path(tempfile.mkdtemp(prefix="iamp-dense-"))
+    keep = args.keep
+    if keep is None:  # a temporary folder holds ~20 MB per N: removed at exit, also when the run fails
+        keep = Path(tempfile.mkdtemp(prefix="iamp-dense-"))
+        atexit.register(shutil.rmtree, keep, ignore_errors=True)
     print(f"cpu cores {os.cpu_count()}, backend {args.backend} on {args.device}; {args.warmup} warm-up + {args.frames} timed frames per N; "
           "timings include any other load on the machine")
     report: dict = {"source": recording, "backend": args.backend, "device": args.device, "modes": {m: {"by_vehicles": {}} for m in args.modes}}

@@ -57,6 +57,7 @@ frames within N ± 2 vehicles, for N > 0), ``runs.<label>.node_stats.<node>`` an
 from __future__ import annotations
 
 import argparse
+import atexit
 import json
 import math
 import os
@@ -439,7 +440,11 @@ def main() -> int:
     ap.add_argument("--set", action="append", default=[], metavar="NODE.KEY=VALUE",
                     help="passed to launch.py --set (repeatable), e.g. markov_prediction.kernel_threads=1")
     args = ap.parse_args()
-    work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="iamp-e2e-"))
+    if args.keep:
+        work = Path(args.keep)
+    else:  # the dense data and its recording (~100 MB for the whole dense18): removed at exit, also when the run fails
+        work = Path(tempfile.mkdtemp(prefix="iamp-e2e-"))
+        atexit.register(shutil.rmtree, work, ignore_errors=True)
     work.mkdir(parents=True, exist_ok=True)
     result: dict = {"cpu_count": os.cpu_count(), "pipeline": args.pipeline, "speed": args.speed, "set": list(args.set), "runs": {}}
     sets = "".join(f", --set {item}" for item in args.set)

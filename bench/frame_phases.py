@@ -29,10 +29,12 @@ or ``MODULE:function``); where a module binds a wrapped function by name
 from __future__ import annotations
 
 import argparse
+import atexit
 import collections
 import functools
 import importlib
 import json
+import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -150,6 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"data: {data}" + ("" if full is not None else f" ({FULL_DATA_ENV} not set: the embedded K729 scenario)") + f", source {recording}")
     stencils = load_or_build_stencils(grid_config(dense.markov_config(ns, "baseline")))
     keep = Path(tempfile.mkdtemp(prefix="iamp-phases-"))
+    atexit.register(shutil.rmtree, keep, ignore_errors=True)
     built = build_dense(data, recording, args.vehicles, keep)
     result = dense.run_one(keep, built.name, ns, stencils, on_frame=timers.on_frame)
     table = timers.table()

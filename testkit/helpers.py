@@ -18,6 +18,10 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, TypeVar
 
 REPO = Path(__file__).resolve().parents[1]
+LOG_DIR_ENV = "IAMP_TEST_LOG_DIR"
+"""Where ``start_module`` writes its processes' logs when the caller names no folder; ``tests/conftest.py`` sets it to a
+folder of pytest's temporary directory (pytest keeps the last three runs' and removes older ones). Unset: the system's
+temporary folder."""
 T = TypeVar("T")
 
 
@@ -82,12 +86,22 @@ def python_env() -> dict[str, str]:
     return env
 
 
+def default_log_dir() -> Path | None:
+    """The folder named by ``IAMP_TEST_LOG_DIR`` (created if missing), or None (the system's temporary folder)."""
+    named = os.environ.get(LOG_DIR_ENV)
+    if not named:
+        return None
+    path = Path(named)
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
 def start_module(module: str, *args: str, log_dir: Path | None = None) -> subprocess.Popen:
     """Start ``python -m module args...`` in the repository root; output goes to a log file.
 
     The returned process has ``log_path`` (its combined stdout/stderr).
     """
-    fd, log_path = tempfile.mkstemp(prefix=f"{module.rsplit('.', 1)[-1]}-", suffix=".log", dir=log_dir)
+    fd, log_path = tempfile.mkstemp(prefix=f"{module.rsplit('.', 1)[-1]}-", suffix=".log", dir=log_dir or default_log_dir())
     with os.fdopen(fd, "wb") as log_file:
         proc = subprocess.Popen([sys.executable, "-m", module, *args], cwd=REPO, env=python_env(), stdout=log_file, stderr=subprocess.STDOUT)
     proc.log_path = log_path  # type: ignore[attr-defined]

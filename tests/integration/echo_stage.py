@@ -23,7 +23,7 @@ import msgpack
 from bus_schemas import AccelerationProfiles
 from stages.lib.base import ConfigMixin, Issue, StageResult
 from stages.runtime import NodeContext, Port, StageSpec, run_stage
-from testkit.helpers import REPO, endpoint, python_env
+from testkit.helpers import REPO, default_log_dir, endpoint, python_env
 from testkit.samples import SAMPLES
 
 
@@ -54,7 +54,7 @@ SPEC = StageSpec(
 def start(port: int, run_id: str, *extra: str) -> subprocess.Popen:
     """This stage as a process (node ``echo``, input ``profiles`` <- ``src/profiles``) connected to 127.0.0.1:``port``,
     with ``extra`` arguments; its output goes to a log file (``proc.log_path``)."""
-    fd, log_path = tempfile.mkstemp(prefix="echo-", suffix=".log")
+    fd, log_path = tempfile.mkstemp(prefix="echo-", suffix=".log", dir=default_log_dir())
     args = ["--node-id", "echo", "--run-id", run_id, "--connect", endpoint(port), "--input", "profiles=src/profiles", *extra]
     with os.fdopen(fd, "wb") as log_file:
         proc = subprocess.Popen([sys.executable, str(Path(__file__)), *args], cwd=REPO, env=python_env(), stdout=log_file,
