@@ -167,7 +167,7 @@ def _run_signals(args: argparse.Namespace) -> int:
 def _add_calibrate(sub: "argparse._SubParsersAction") -> None:
     from stages.offline.calibrate import add_arguments
 
-    p = sub.add_parser("calibrate", help="fit each mode's grid spread per step and speed band so that the 90 % region holds the truth in 90 % of windows")
+    p = sub.add_parser("calibrate", help="fit each mode's grid spread per step and speed band so that the 90 %% region holds the truth in 90 %% of windows")
     add_arguments(p)
     p.set_defaults(run=_run_calibrate)
 

@@ -1,0 +1,79 @@
+"""Every command's ``--help`` prints: argparse %-formats each help string (``%(default)s``), so a bare ``%`` in one
+("the 90 % region") made ``iamp --help`` end in a TypeError traceback instead of the list of commands."""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import re
+from pathlib import Path
+
+import pytest
+
+from stages import cli
+
+REPO = Path(__file__).resolve().parents[1]
+# what argparse may put into a help string's %-formatting: "%%" and the action's attributes as "%(name)s"
+# (``HelpFormatter._expand_help``). Any other "%" is a conversion: with one, the help prints garbage ("90 % region"
+# formats the action's attributes in place of "% r"), with two it raises
+_ALLOWED = re.compile(r"%%|%\((prog|default|type|choices|metavar|dest|const|nargs|required|option_strings)\)[sdr]")
+
+
+def bare_percent(text: str) -> bool:
+    """Whether ``text``, a help string, has a "%" argparse would read as a conversion of its own."""
+    return "%" in _ALLOWED.sub("", text)
+
+
+def _parsers(parser: argparse.ArgumentParser, path: tuple[str, ...] = ("iamp",)):
+    """``parser`` and every subparser under it, with the words that reach each."""
+    yield path, parser
+    for action in parser._actions:  # noqa: SLF001 - argparse keeps its subparsers only there
+        if isinstance(action, argparse._SubParsersAction):  # noqa: SLF001
+            for name, sub in action.choices.items():
+                yield from _parsers(sub, (*path, name))
+
+
+def test_iamp_help_and_every_subcommands_help_print(capsys):
+    parser = cli.build_parser()
+    seen = []
+    for path, p in _parsers(parser):
+        text = p.format_help()  # raises on a help string argparse cannot format
+        assert p.prog.split()[0] == "iamp" and text.startswith("usage:"), path
+        seen.append(" ".join(path))
+    assert {"iamp", "iamp eval", "iamp calibrate", "iamp data superimpose", "iamp export foxglove"} <= set(seen)
+    assert cli.main(["--help"]) == 0
+    out = capsys.readouterr().out
+    assert "calibrate" in out and "90 % region" in out
+
+
+def _help_strings(tree: ast.AST):
+    """(line, text) of every ``help=`` keyword given a string literal (an f-string's literal parts, its fields as 'X')."""
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Call):
+            continue
+        for kw in node.keywords:
+            if kw.arg != "help":
+                continue
+            if isinstance(kw.value, ast.Constant) and isinstance(kw.value.value, str):
+                yield kw.value.lineno, kw.value.value
+            elif isinstance(kw.value, ast.JoinedStr):
+                yield kw.value.lineno, "".join(v.value if isinstance(v, ast.Constant) else "X" for v in kw.value.values)
+
+
+def test_no_help_string_in_the_project_has_a_bare_percent():
+    files = [REPO / "launch.py", *sorted((REPO / "stages").rglob("*.py")), *sorted((REPO / "bench").rglob("*.py"))]
+    bad = []
+    checked = 0
+    for path in files:
+        for line, text in _help_strings(ast.parse(path.read_text(), filename=str(path))):
+            checked += 1
+            if bare_percent(text):
+                bad.append(f"{path.relative_to(REPO)}:{line}: {text!r} (write %% for a percent sign)")
+    assert checked > 100  # the walk found the project's help strings
+    assert not bad, "\n".join(bad)
+
+
+@pytest.mark.parametrize("text, bare", [("the 90 % region", True), ("100%", True), ("90 %% of windows", False),
+                                        ("(default %(default)s)", False), ("%(prog)s runs", False), ("%d cells", True)])
+def test_the_check_tells_a_bare_percent_from_argparse_s_own(text, bare):
+    assert bare_percent(text) is bare
