@@ -23,6 +23,17 @@ def test_good_fixture_resolves_vars_and_ports():
     assert p.output_key("source", "track_frame") == "iamp/fixture/source/track_frame"
 
 
+def test_a_variable_from_the_command_line_replaces_the_file_s_and_a_misspelt_one_stops_the_load():
+    assert load_pipeline(FIX / "good.toml", variables={"SPEED": 3.0}).node("source").config.speed == 3.0
+    # a --var the pipeline neither declares nor uses would be ignored: a run without the model (MODLE=...) the user meant
+    with pytest.raises(PipelineError, match=r"good.toml: no variable SPEDE in this pipeline \(--var\); its variables: SPEED$"):
+        load_pipeline(FIX / "good.toml", variables={"SPEDE": 3.0})
+    r = subprocess.run([sys.executable, str(REPO / "launch.py"), "--var", "MODLE=weights.pt", "--check"], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 2
+    assert "hybrid.toml: no variable MODLE in this pipeline (--var); its variables: MODEL, SPEED" in r.stderr
+
+
 def test_overrides_apply_and_are_type_checked():
     p = load_pipeline(FIX / "good.toml", overrides={"source": {"speed": "max"}})
     assert p.node("source").config.speed == "max"

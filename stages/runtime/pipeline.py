@@ -29,7 +29,9 @@ declared with their schema so that edges to them can be checked::
     "tracker/track_frame" = "iamp.TrackFrame"
 
 ``${VAR}`` (from ``[vars]`` or ``--var``) is the only substitution; a whole
-string ``"${VAR}"`` takes the variable's type. An input ``port = "node/output"``
+string ``"${VAR}"`` takes the variable's type. A ``--var`` that the file
+neither declares in ``[vars]`` nor uses is an error (a misspelt name would
+otherwise be ignored). An input ``port = "node/output"``
 names the key suffix ``iamp/<run>/node/output`` literally. Stage modules expose
 ``SPEC`` (a ``stages.runtime.StageSpec``); types are not restated here: each
 edge must join outputs and inputs of the same message schema.
@@ -191,6 +193,17 @@ class Pipeline:
         return "\n".join(lines)
 
 
+def _referenced(value: Any) -> set[str]:
+    """The names of the ``${NAME}`` variables used anywhere in ``value`` (a descriptor's tables, lists and strings)."""
+    if isinstance(value, str):
+        return set(_VAR_RE.findall(value))
+    if isinstance(value, list):
+        return set().union(*(_referenced(v) for v in value))
+    if isinstance(value, dict):
+        return set().union(*(_referenced(v) for v in value.values()))
+    return set()
+
+
 def _substitute(value: Any, variables: dict[str, Any], where: str) -> Any:
     if isinstance(value, str):
         whole = _VAR_RE.fullmatch(value)
@@ -256,6 +269,10 @@ def load_pipeline(
     if unknown:
         raise PipelineError(f"{where}: unknown top-level key(s) {', '.join(unknown)}; known: {', '.join(sorted(TOP_KEYS))}")
     var_table = dict(raw.get("vars", {}))
+    known = set(var_table) | _referenced(raw)
+    stray = sorted(set(variables or {}) - known)
+    if stray:  # a misspelt --var would otherwise be ignored, and the run go on without it
+        raise PipelineError(f"{where}: no variable {', '.join(stray)} in this pipeline (--var); its variables: {', '.join(sorted(known)) or '(none)'}")
     var_table.update(variables or {})
     raw = {k: v for k, v in raw.items() if k != "vars"}
     raw = _substitute(raw, var_table, where)
