@@ -217,9 +217,15 @@ def _run_data(args: argparse.Namespace) -> int:
         args.parser.print_usage(sys.stderr)
         sys.stderr.write("iamp data: error: a data command is required (superimpose)\n")
         return EXIT_USAGE
+    from stages.lib.base import ConfigError, check_output
     from stages.lib.datasets import DatasetError
     from stages.lib.datasets.superimpose import build_dense
 
+    try:
+        check_output(args.out, "--out", folder=True)
+    except ConfigError as exc:
+        sys.stderr.write(f"iamp data superimpose: {exc}\n")
+        return EXIT_USAGE
     if not args.vehicles > 0 or (args.shift_s is not None and args.shift_s < 0) or (args.duration_s is not None and not args.duration_s > 0):
         sys.stderr.write("iamp data superimpose: --vehicles and --duration-s must be positive, --shift-s non-negative\n")
         return EXIT_USAGE

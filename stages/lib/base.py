@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import types
 import typing
 from dataclasses import dataclass, field
@@ -44,6 +45,27 @@ class StageResult:
 
 class ConfigError(ValueError):
     """A pipeline parameter that is unknown or of the wrong type."""
+
+
+def check_output(path: str | Path | None, flag: str, *, folder: bool = False) -> None:
+    """Before a long run: that ``path`` (a file, or with ``folder`` a folder) can be written, so that a bad output
+    flag fails at once and not after the work, which it would lose. Creates the folder the file goes in (``folder``:
+    the folder itself) and raises ``ConfigError`` naming ``flag`` where it cannot, where the folder is not writable or
+    where a file is to be written over a folder. None: nothing to check."""
+    if path is None:
+        return
+    path = Path(path)
+    target = path if folder else path.parent
+    try:
+        target.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"{flag} {path}: cannot create the folder {target} ({exc.strerror or exc})") from None
+    if not target.is_dir():
+        raise ConfigError(f"{flag} {path}: {target} is not a folder")
+    if not folder and path.is_dir():
+        raise ConfigError(f"{flag} {path}: is a folder; expected a file name")
+    if not os.access(target, os.W_OK | os.X_OK):
+        raise ConfigError(f"{flag} {path}: the folder {target} is not writable")
 
 
 def _type_ok(value: Any, tp: Any) -> tuple[bool, Any]:

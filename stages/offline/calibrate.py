@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from stages.lib.base import json_safe
+from stages.lib.base import check_output, json_safe
 from stages.markov_prediction.rasterise import highest_density_threshold
 from stages.markov_prediction.core import SPEED_NOISE_CAP_MPS
 from stages.markov_prediction.spread import BLUR_MIN_VALUE, SpreadTable, blur_step, with_speed_noise, write_spread
@@ -256,6 +256,8 @@ def add_arguments(parser) -> None:
 
 def run_cli(args) -> int:
     try:
+        check_output(args.out, "--out")  # the outputs' places first: a bad one must not cost the run
+        check_output(args.json, "--json")
         if not 0 < args.level < 1:
             raise ValueError(f"--level {args.level}: must lie in (0, 1)")
         config = EvalConfig(

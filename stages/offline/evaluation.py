@@ -143,8 +143,7 @@ import numpy as np
 
 from bus_schemas import AgentType, CorridorSet, MatchStatus, RelationSet, SceneInfo, TrackFrame
 
-from stages.lib.base import progress_bar
-from stages.lib.base import json_safe
+from stages.lib.base import check_output, json_safe, progress_bar
 
 from stages.corridors import SceneMaps
 from stages.lib.kinematic_state import Consistency, EstimatorConfig, consistency_of, disagreement_line
@@ -1112,6 +1111,9 @@ def eval_config(args) -> EvalConfig:
 
 def run_cli(args) -> int:
     try:
+        check_output(args.json, "--json")  # the outputs' places first: a bad one must not cost the run
+        check_output(args.figures, "--figures", folder=True)
+        check_output(getattr(args, "report", None), "--report", folder=True)
         evaluation = Evaluation(eval_config(args))
         report = evaluation.run()
     except ValueError as exc:  # DatasetError and bad options

@@ -19,6 +19,7 @@ import json
 import sys
 from pathlib import Path
 
+from stages.lib.base import ConfigError, check_output
 from stages.lib.datasets import DatasetError
 from stages.lib.datasets import interaction
 from stages.lib.datasets.signals import is_lane_file, is_signal_file, read_kml_lanes, read_signal_phases
@@ -96,8 +97,10 @@ def match_json(smap: SignalMap) -> dict:
 
 def run_cli(args) -> int:
     try:
+        check_output(args.figure or Path(f"signals_{args.recording}.png"), "--figure")
+        check_output(args.json, "--json")
         smap, road_map, info = load_signal_map(args.data, args.recording, args.map, args.projection)
-    except DatasetError as exc:
+    except (DatasetError, ConfigError) as exc:
         print(f"iamp signals: {exc}", file=sys.stderr)
         return EXIT_USAGE
     print(f"recording {args.recording}: map {info['map']} ({info['projection']}, origin {info['origin'][0]}, {info['origin'][1]}); lane file {info['kml_report']}")

@@ -65,7 +65,7 @@ message says what to fix).
 
 from __future__ import annotations
 
-from stages.lib.base import json_safe, progress_bar
+from stages.lib.base import check_output, json_safe, progress_bar
 
 import copy
 import dataclasses
@@ -631,6 +631,8 @@ def format_report(report: dict[str, Any]) -> str:
 def run_from_args(args) -> int:
     """``iamp train``: the parsed arguments of ``stages.offline.train.cli.add_arguments`` → exit code."""
     try:
+        check_output(args.out, "--out")  # the outputs' places first: a bad one must not cost the training
+        check_output(args.json, "--json")
         features = FeatureConfig() if args.accel_window is None else FeatureConfig(accel_window_s=args.accel_window)
         cfg = TrainConfig(
             dataset=DatasetConfig(

@@ -1,0 +1,45 @@
+"""A command checks where it will write before it starts (``stages.lib.base.check_output``): a bad ``--json``,
+``--figures``, ``--report`` or ``--out`` used to end ``iamp eval`` (minutes on K733), ``iamp train`` or ``iamp calibrate``
+in a traceback after the work, which was lost."""
+
+from __future__ import annotations
+
+import pytest
+
+from stages import cli
+from stages.lib.base import ConfigError, check_output
+
+UNCREATABLE = "/proc/iamp-no-such-folder"  # /proc takes no new folders, even for root
+
+
+def test_check_output_creates_the_folder_and_refuses_what_cannot_be_written(tmp_path):
+    check_output(tmp_path / "a" / "b" / "report.json", "--json")
+    assert (tmp_path / "a" / "b").is_dir() and not (tmp_path / "a" / "b" / "report.json").exists()
+    check_output(tmp_path / "figs", "--figures", folder=True)
+    assert (tmp_path / "figs").is_dir()
+    check_output(None, "--json")
+    with pytest.raises(ConfigError, match=r"^--json .*: is a folder; expected a file name$"):
+        check_output(tmp_path / "figs", "--json")
+    (tmp_path / "plain").write_text("x")
+    with pytest.raises(ConfigError, match=r"^--figures .*plain: cannot create the folder"):
+        check_output(tmp_path / "plain", "--figures", folder=True)
+    with pytest.raises(ConfigError, match=r"^--out .*: cannot create the folder /proc/iamp-no-such-folder \("):
+        check_output(f"{UNCREATABLE}/m.pt", "--out")
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["eval", "--json", f"{UNCREATABLE}/r.json"], "iamp eval: error: --json"),
+    (["eval", "--figures", UNCREATABLE], "iamp eval: error: --figures"),
+    (["eval", "--report", UNCREATABLE], "iamp eval: error: --report"),
+    (["train", "--out", f"{UNCREATABLE}/m.pt"], "iamp train: error: --out"),
+    (["train", "--json", f"{UNCREATABLE}/t.json"], "iamp train: error: --json"),
+    (["calibrate", "--out", f"{UNCREATABLE}/s.json"], "iamp calibrate: error: --out"),
+    (["signals", "--data", "d", "--recording", "r", "--json", f"{UNCREATABLE}/s.json"], "iamp signals: --json"),
+    (["signals", "--data", "d", "--recording", "r", "--figure", f"{UNCREATABLE}/s.png"], "iamp signals: --figure"),
+    (["data", "superimpose", "--data", "d", "--recording", "r", "--vehicles", "6", "--out", UNCREATABLE], "iamp data superimpose: --out"),
+])
+def test_a_bad_output_path_stops_the_command_before_its_work(argv, message, capsys):
+    assert cli.main([*argv] if argv[0] in ("data", "signals") else [*argv, "--no-progress"]) == 2
+    out, err = capsys.readouterr()
+    assert err.startswith(message) and "cannot create the folder /proc/iamp-no-such-folder" in err and "Traceback" not in err
+    assert out == ""  # nothing ran: no table, no training report, no fit
