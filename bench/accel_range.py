@@ -34,6 +34,7 @@ import numpy as np
 
 from stages.lib.datasets import discover, full_data_dir, load_ref
 from stages.offline.truth import MANOEUVRES, future_positions, ground_truth, manoeuvre_class
+from stages.lib.base import check_output_arg
 
 HORIZON_S = 4.0
 STEP_S = 0.1
@@ -103,6 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--stride", type=float, default=0.4, help="seconds between instants (default 0.4, the eval's)")
     p.add_argument("--json", type=Path, default=None, help="write the figures here")
     args = p.parse_args(argv)
+    check_output_arg(p, args.json, "--json")  # before the work: a bad path must not cost the run
     data = args.data or full_data_dir()
     if data is None:
         print("accel_range: no data folder (--data or IAMP_TAF_BW)", file=sys.stderr)

@@ -37,6 +37,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from stages.lib.base import check_output_arg
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -58,6 +60,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-eval", action="store_true", help="leave out iamp eval")
     p.add_argument("--timeout", type=float, default=600.0, help="seconds per launcher run before it is stopped (default 600)")
     args = p.parse_args(argv)
+    check_output_arg(p, args.json, "--json")  # before the work: a bad path must not cost the run
 
     with tempfile.TemporaryDirectory(prefix="iamp-adv-") as tmp:
         data = args.data

@@ -28,6 +28,7 @@ import numpy as np
 
 import bus_schemas as bs
 from bus_schemas._wire import Array, Message
+from stages.lib.base import check_output_arg
 from stages.runtime import BusClient
 
 from typing import Annotated, ClassVar
@@ -136,6 +137,7 @@ def main() -> int:
     ap.add_argument("--rate", type=float, default=200.0, help="paced rate for the latency runs (Hz)")
     ap.add_argument("--json", metavar="FILE")
     args = ap.parse_args()
+    check_output_arg(ap, args.json, "--json")  # before the work: a bad path must not cost the run
     if args.role == "sink":
         sink(args.hub, args.kind, args.count)
         return 0

@@ -52,6 +52,7 @@ from bus_schemas import AgentType, MatchStatus
 from plot_frame import default_data_dir, scene_for, track_frames
 from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
 from stages.lib.datasets import discover, load_recording
+from stages.lib.base import check_output_arg
 
 HORIZON_STEPS = 10
 STEP_FRAMES = 4  # 0.4 s at 10 Hz
@@ -219,6 +220,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, default=None, help="write the figures here")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a CorridorsConfig parameter")
     args = parser.parse_args(argv)
+    check_output_arg(parser, args.json, "--json")  # before the work: a bad path must not cost the run
     data = args.data or default_data_dir()
     names = args.recording or [ref.name for ref in discover(data)]
     params = {}

@@ -64,6 +64,7 @@ from stages.lib.datasets import DEFAULT_DATA_DIR, FULL_DATA_ENV, full_data_dir, 
 from stages.lib.datasets.superimpose import build_dense
 
 from bus_schemas import AgentType
+from stages.lib.base import check_output_arg
 
 VEHICLE_TYPES = [t.value for t in AgentType if t.is_vehicle]
 UPSTREAM = ("source", "corridors", "relations", "intentions")
@@ -241,6 +242,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="markov_prediction parameter (JSON value) for both modes, e.g. --set n_inputs=12; the input cells go to ar_inference too")
     args = parser.parse_args(argv)
+    check_output_arg(parser, args.json, "--json")  # before the work: a bad path must not cost the run
     args.modes = tuple(m.strip() for m in args.modes.split(",") if m.strip())
     if not args.modes or set(args.modes) - set(MODES):
         parser.error(f"--modes {','.join(args.modes)!s}: choose among {', '.join(MODES)}")

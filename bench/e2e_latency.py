@@ -75,6 +75,7 @@ from bus_schemas._wire import unpack_envelope
 from stages.lib.datasets import DEFAULT_DATA_DIR, FULL_DATA_ENV, full_data_dir
 from stages.recorder.inspect import read_messages
 from stages.runtime.trace import TRACE_ENV
+from stages.lib.base import check_output_arg
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -440,6 +441,7 @@ def main() -> int:
     ap.add_argument("--set", action="append", default=[], metavar="NODE.KEY=VALUE",
                     help="passed to launch.py --set (repeatable), e.g. markov_prediction.kernel_threads=1")
     args = ap.parse_args()
+    check_output_arg(ap, args.json, "--json")  # before the work: a bad path must not cost the run
     if args.keep:
         work = Path(args.keep)
     else:  # the dense data and its recording (~100 MB for the whole dense18): removed at exit, also when the run fails

@@ -43,6 +43,7 @@ from pathlib import Path
 
 import bus_schemas as bs
 from stages.recorder.inspect import ReadReport, read_messages
+from stages.lib.base import check_output_arg
 
 REPO = Path(__file__).resolve().parents[1]
 STAGES = ("corridors", "relations", "intentions", "ar_inference", "markov_prediction")
@@ -244,6 +245,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--keep", type=Path, default=None, help="keep MCAP files and launcher logs here")
     args = p.parse_args(argv)
+    check_output_arg(p, args.json, "--json")  # before the work: a bad path must not cost the run
     out: dict = {}
     with tempfile.TemporaryDirectory(prefix="iamp-faults-") as tmp:
         work = args.keep or Path(tmp)

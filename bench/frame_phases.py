@@ -41,6 +41,8 @@ from pathlib import Path
 
 import numpy as np
 
+from stages.lib.base import check_output_arg
+
 MARKOV = "stages.markov_prediction.core:MarkovPredictor."
 DEFAULT_FUNCTIONS = (
     "stages.corridors.core:CorridorBuilder.process",
@@ -127,6 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--function", action="append", default=[], metavar="MODULE:QUALNAME", help="also time this function")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
+    check_output_arg(parser, args.json, "--json")  # before the work: a bad path must not cost the run
     if args.vehicles < 1 or args.frames < 1:
         parser.error("--vehicles and --frames must be >= 1")
     try:  # as a script, its folder is first on the module path (bench/ is not an installed package)

@@ -99,7 +99,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from stages.lib.base import json_safe
+from stages.lib.base import check_output_arg, json_safe
 from stages.lib.datasets import FULL_DATA_ENV, full_data_dir
 
 RECORDINGS = {"k729": "k729_2022-03-16", "k733": "k733_2018-05-02"}
@@ -435,6 +435,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="modes iamp eval runs (default all; e.g. --modes hybrid to compare AR models without re-running the others)")
     p.add_argument("--json", type=Path, default=DEFAULT_JSON, help=f"write everything here (default {DEFAULT_JSON})")
     args = p.parse_args(argv)
+    check_output_arg(p, args.json, "--json")  # before the work (training and evaluations: minutes to hours)
 
     data = args.data if args.data is not None else full_data_dir()
     if data is None or not (Path(data) / "recorded_trackfiles").is_dir():

@@ -33,6 +33,7 @@ from stages.corridors import SceneMaps
 from stages.lib.datasets import discover, full_data_dir, load_ref
 from stages.offline.chain import Chain
 from stages.offline.truth import future_positions, ground_truth
+from stages.lib.base import check_output_arg
 
 
 def leader_group(rel, gap_m: float, moving_mps: float) -> str:
@@ -53,6 +54,7 @@ def main(argv=None) -> int:
     p.add_argument("--leader-moving", type=float, default=1.0, help="a leader faster than this moves (m/s)")
     p.add_argument("--json", type=Path, default=None)
     args = p.parse_args(argv)
+    check_output_arg(p, args.json, "--json")  # before the work: a bad path must not cost the run
     data = args.data or full_data_dir()
     if data is None:
         sys.stderr.write("standing_starts: error: set IAMP_TAF_BW or pass --data\n")

@@ -29,6 +29,7 @@ import numpy as np
 from bus_schemas import AgentType
 from stages.lib.datasets import discover, load_recording
 from stages.lib.kinematic_state import EstimatorConfig, KinematicEstimator
+from stages.lib.base import check_output_arg
 
 HORIZONS_S = (1.0, 2.0, 3.0, 4.0)
 
@@ -111,6 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--recording", nargs="*", help="recordings (default: all)")
     ap.add_argument("--json", help="write the figures here")
     args = ap.parse_args(argv)
+    check_output_arg(ap, args.json, "--json")  # before the work: a bad path must not cost the run
     names = args.recording or [r.name for r in discover(args.data)]
     result = {}
     for name in names:

@@ -41,7 +41,7 @@ from pathlib import Path
 from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, find_recording, load_recording
 from stages.lib.datasets.model import same_sequence_id
 from stages.lib.datasets.interaction import META_FILE, TRACK_FILE_RE
-from stages.lib.base import json_safe
+from stages.lib.base import check_output_arg, json_safe
 from stages.offline.evaluation import EVAL_MODES, EvalConfig, Evaluation
 
 VARIANTS = ("given", "vel_half", "vel_zero_1s", "vel_reversed")
@@ -129,6 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-frames", type=int, default=0, help="stop each sequence after this many frames (0: all)")
     p.add_argument("--json", type=Path, default=None)
     args = p.parse_args(argv)
+    check_output_arg(p, args.json, "--json")  # before the work: a bad path must not cost the run
     variants = ["given"] + [v for v in args.variant if v != "given"]
 
     results: dict[str, dict] = {}

@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from stages.lib.base import json_safe
+from stages.lib.base import check_output_arg, json_safe
 from stages.offline.evaluation import SLOW_SPEED_MPS, Evaluation, add_arguments, eval_config, format_table
 from stages.offline.truth import TURN_MIN_HEADING_DEG, along_track_directions, followed_corridor, manoeuvre_class
 
@@ -228,6 +228,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--boot", type=int, default=4000, metavar="N",
                    help="draws of the interval of the mADE ratio of --compare, resampling cars (default 4000; 0: none)")
     args = p.parse_args(argv)
+    check_output_arg(p, args.json, "--json")  # before the work: a bad path must not cost the run
+    check_output_arg(p, args.windows, "--windows")
     if args.boot < 0:
         p.error(f"--boot {args.boot}: a number of draws >= 0 (0: no interval)")
     if args.from_windows is not None:

@@ -6,6 +6,7 @@ runtime publishes the outputs and logs and counts the issues.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import math
 import os
@@ -66,6 +67,14 @@ def check_output(path: str | Path | None, flag: str, *, folder: bool = False) ->
         raise ConfigError(f"{flag} {path}: is a folder; expected a file name")
     if not os.access(target, os.W_OK | os.X_OK):
         raise ConfigError(f"{flag} {path}: the folder {target} is not writable")
+
+
+def check_output_arg(parser: "argparse.ArgumentParser", path: str | Path | None, flag: str, *, folder: bool = False) -> None:
+    """``check_output`` for a script's parsed argument: its failure is the parser's usage error (message, exit 2)."""
+    try:
+        check_output(path, flag, folder=folder)
+    except ConfigError as exc:
+        parser.error(str(exc))
 
 
 def _type_ok(value: Any, tp: Any) -> tuple[bool, Any]:

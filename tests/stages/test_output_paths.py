@@ -43,3 +43,24 @@ def test_a_bad_output_path_stops_the_command_before_its_work(argv, message, caps
     out, err = capsys.readouterr()
     assert err.startswith(message) and "cannot create the folder /proc/iamp-no-such-folder" in err and "Traceback" not in err
     assert out == ""  # nothing ran: no table, no training report, no fit
+
+
+def test_the_long_benches_refuse_a_bad_json_path_before_their_work():
+    """The benches that run for minutes check ``--json`` (and window_errors ``--windows``) right after parsing
+    (``check_output_arg``): a usage error, exit 2, nothing measured."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[2]
+    runs = {name: [f"bench/{name}.py", *extra] for name, extra in (
+        ("dense", ["--json", f"{UNCREATABLE}/d.json"]), ("e2e_latency", ["--json", f"{UNCREATABLE}/e.json"]),
+        ("generalisation", ["--json", f"{UNCREATABLE}/g.json"]), ("window_errors", ["--windows", f"{UNCREATABLE}/w.jsonl"]),
+        ("frame_phases", ["--json", f"{UNCREATABLE}/f.json"]))}
+    procs = {name: subprocess.Popen([sys.executable, *argv], cwd=repo, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for name, argv in runs.items()}
+    for name, proc in procs.items():
+        out, err = proc.communicate(timeout=120)
+        assert proc.returncode == 2, (name, err[-2000:])
+        assert f"{name}.py: error: --" in err and "cannot create the folder /proc/iamp-no-such-folder" in err, (name, err)
+        assert "Traceback" not in err, (name, err)
