@@ -283,8 +283,10 @@ def test_bad_model_files_give_a_value_error_naming_the_file(tiny_model, tmp_path
         load_model(missing)
     garbage = tmp_path / "garbage.pt"
     garbage.write_bytes(b"this is not a torch file")
-    with pytest.raises(ValueError, match="garbage.pt.*not a readable torch file"):
+    with pytest.raises(ValueError, match="garbage.pt.*not a readable torch weights file") as raised:
         load_model(garbage)
+    # one line, and not torch's advice to load it with weights_only=False (which would run the file's code)
+    assert "\n" not in str(raised.value) and "weights_only" not in str(raised.value)
     good = save_model(tmp_path / "good.pt", tiny_model)
     truncated = tmp_path / "truncated.pt"
     truncated.write_bytes(good.read_bytes()[: good.stat().st_size // 2])

@@ -242,7 +242,11 @@ def load_model(path: str | Path = DEFAULT_MODEL_PATH) -> ARModel:
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises pickle, zip and runtime errors for damaged files
-        raise ValueError(f"AR model file {path}: not a readable torch file ({type(exc).__name__}: {exc})") from None
+        # the first sentence of torch's message only: for a file that is not a weights file it goes on to suggest
+        # weights_only=False, which would run whatever code the file holds; never do that for a model file
+        first = str(exc).strip().splitlines()[0].split(". ")[0][:160] if str(exc).strip() else ""
+        raise ValueError(f"AR model file {path}: not a readable torch weights file ({type(exc).__name__}: {first}); "
+                         "expected a file written by `iamp train`") from None
     if not isinstance(payload, dict) or payload.get("format") != FILE_FORMAT:
         found = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
         raise ValueError(f"AR model file {path}: not an AR model (format {found!r}, expected {FILE_FORMAT!r})")
