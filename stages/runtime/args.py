@@ -46,8 +46,21 @@ def add_network_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--config", metavar="FILE", help="zenoh JSON5 config file; the flags above override it")
 
 
+def _zenoh_reason(exc: BaseException) -> str:
+    """The first line of a zenoh error, short enough for a log line."""
+    text = str(exc).strip()
+    return (text.splitlines()[0] if text else type(exc).__name__)[:300]
+
+
 def make_zenoh_config(mode: str = "peer", connect: Iterable[str] = (), listen: Iterable[str] = (), config_file: str | None = None) -> zenoh.Config:
-    conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
+    """The session's configuration; ``ConfigError`` for a ``--config`` file that is missing or that zenoh cannot read."""
+    if config_file:
+        try:
+            conf = zenoh.Config.from_file(config_file)
+        except Exception as exc:  # zenoh.ZError for a missing file, bad JSON5 or TOML, unknown keys or values
+            raise ConfigError(f"--config {config_file}: not a zenoh configuration zenoh can read: {_zenoh_reason(exc)}") from None
+    else:
+        conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
     connect = list(connect)
@@ -60,8 +73,14 @@ def make_zenoh_config(mode: str = "peer", connect: Iterable[str] = (), listen: I
 
 
 def open_session(mode: str = "peer", connect: Iterable[str] = (), listen: Iterable[str] = (), config_file: str | None = None) -> zenoh.Session:
-    """Open a zenoh session with the project's defaults (loopback, no multicast)."""
-    return zenoh.open(make_zenoh_config(mode, connect, listen, config_file))
+    """Open a zenoh session with the project's defaults (loopback, no multicast); ``ConfigError`` where zenoh refuses
+    the configuration or an endpoint (a bad ``--connect``/``--listen``, a port in use)."""
+    conf = make_zenoh_config(mode, connect, listen, config_file)
+    try:
+        return zenoh.open(conf)
+    except Exception as exc:  # zenoh.ZError: bad endpoint, address in use, ...
+        raise ConfigError(f"cannot open the zenoh session (mode {mode}, listen {list(listen) or 'default'}, connect {list(connect) or 'none'}): "
+                          f"{_zenoh_reason(exc)}") from None
 
 
 def session_from_args(args: argparse.Namespace) -> zenoh.Session:

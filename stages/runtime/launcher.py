@@ -636,7 +636,11 @@ def main(argv: list[str] | None = None) -> int:
         print("launch.py: --max-restarts and --restart-reset-s must be >= 0", file=sys.stderr)
         return 2
     hub = resolve_hub(pipeline, args.listen)
-    return Launcher(pipeline, hub, args).run()
+    try:
+        return Launcher(pipeline, hub, args).run()
+    except ConfigError as exc:  # the hub's session: a bad --listen/--connect endpoint, a port in use
+        print(f"launch.py: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -121,6 +121,7 @@ class Node:
         self._last_stats = 0.0
         self._last_input_mono = time.monotonic()
         self._progress_pub = None
+        self._stats_pub = None  # both declared by open(); a node whose open() failed publishes no final stats
         # the inputs a stop waits to be quiet: not latest-value or wildcard ones (the run's NodeStats never are)
         self._drain_ports = {p for p in self.input_keys if spec.inputs[p].joined or spec.inputs[p].latched}
         self.consumers = Consumers(self.node_id)  # sources: the live nodes and their acks, for pacing
@@ -362,6 +363,8 @@ class Node:
         now = time.monotonic()
         if force or now - self._last_stats >= self.args.stats_period:
             self._last_stats = now
+            if self._stats_pub is None:  # not opened (its session failed): nothing to publish on
+                return
             with self._count_lock:
                 msg = self.stats.message(self.run_id, self.node_id, self.spec.stage, self.started, len(self.queue))
             self._stats_pub.put(msg.encode())
