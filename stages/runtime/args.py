@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import signal
 import sys
 import threading
@@ -35,6 +36,19 @@ EXIT_CRASH = 1
 EXIT_USAGE = 2
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:0"
+
+
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
+
+
+def check_runtime_args(args: argparse.Namespace) -> None:
+    """The runtime's numeric flags within their ranges (``ConfigError`` naming the flag): a queue of at least one message
+    and a positive payload bound, a positive stamp window and NodeStats period (0 would publish stats on every loop)."""
+    if args.queue_size < 1:
+        raise ConfigError(f"--queue-size {args.queue_size}: must be >= 1")
+    for flag, value in (("--queue-mib", args.queue_mib), ("--stamp-window-s", args.stamp_window_s), ("--stats-period", args.stats_period)):
+        if not (math.isfinite(value) and value > 0):
+            raise ConfigError(f"{flag} {value}: must be a finite number > 0")
 
 
 def add_network_args(parser: argparse.ArgumentParser) -> None:
@@ -120,7 +134,7 @@ def build_parser(spec: StageSpec) -> argparse.ArgumentParser:
         help="reject inputs stamped more than this many seconds ahead of the newest accepted stamp (default 60)",
     )
     p.add_argument("--stats-period", type=float, default=1.0, help="seconds between NodeStats (default 1)")
-    p.add_argument("--log-level", default="INFO")
+    p.add_argument("--log-level", default="INFO", type=str.upper, choices=LOG_LEVELS, help="DEBUG, INFO (default), WARNING, ERROR or CRITICAL")
     p.add_argument(
         "--await-nodes",
         default="",
@@ -195,6 +209,7 @@ def start_stage(spec: StageSpec, argv: list[str] | None = None, *, bindings: boo
     try:
         keys.check_run_id(args.run_id)
         keys.check_name(args.node_id, "node id")
+        check_runtime_args(args)
         params = json.loads(args.params_json)
         if not isinstance(params, dict):
             raise ConfigError("--params-json must be a JSON object")

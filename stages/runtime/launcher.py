@@ -58,6 +58,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from stages.lib.base import ConfigError
+from stages.runtime.args import LOG_LEVELS
 from stages.runtime.pipeline import BusAuth, Pipeline, PipelineError, load_pipeline
 
 PIPELINES_DIR = Path(__file__).resolve().parents[1] / "pipelines"
@@ -126,7 +127,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="join a remote Zenoh router/peer as well")
     p.add_argument("--listen", metavar="ENDPOINT", help="the hub endpoint (default from the pipeline, tcp/127.0.0.1:<free port>)")
     p.add_argument("--startup-timeout", type=float, default=90.0, metavar="SECONDS", help="how long to wait for every node's liveliness (default 90)")
-    p.add_argument("--log-level", default="INFO", help="log level passed to every node")
+    p.add_argument("--log-level", default="INFO", type=str.upper, choices=LOG_LEVELS, help="log level passed to every node: DEBUG, INFO (default), WARNING, ERROR or CRITICAL")
     p.add_argument("--max-restarts", type=int, default=MAX_RESTARTS, metavar="N", help=f"restarts a node gets before its death stops the run (default {MAX_RESTARTS})")
     p.add_argument(
         "--restart-reset-s",

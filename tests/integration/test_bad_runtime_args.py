@@ -1,0 +1,89 @@
+"""The runtime's own flags are a command line like any other: a bad one gives one "bad configuration" line (or a
+usage error) and exit 2, for a stage, a tool and the launcher.
+
+- A zenoh ``--config`` file zenoh cannot read, or an endpoint it refuses: before, a stage crashed (exit 1) with
+  zenoh's traceback and then a second one from its shutdown (no stats publisher), and the launcher ended in a
+  traceback.
+- ``--queue-size``, ``--queue-mib``, ``--stamp-window-s``, ``--stats-period`` out of range, and ``--log-level``
+  not one of logging's: before, taken as given (an unknown level silently meant INFO)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from stages.lib.base import ConfigError
+from stages.runtime import make_zenoh_config, open_session
+from testkit.helpers import REPO, python_env
+
+BAD_ENDPOINT = "tcp/999.1.1.1:80"  # no such address: zenoh refuses to listen on it
+
+
+@pytest.fixture
+def bad_config(tmp_path) -> Path:
+    path = tmp_path / "zenoh.json5"
+    path.write_text('{ mode: "hybrid" }\n')  # valid JSON5, not a zenoh mode
+    return path
+
+
+def test_make_zenoh_config_and_open_session_raise_config_errors(bad_config, tmp_path):
+    with pytest.raises(ConfigError, match=r"^--config .*zenoh.json5: not a zenoh configuration zenoh can read: "):
+        make_zenoh_config(config_file=str(bad_config))
+    with pytest.raises(ConfigError, match=r"^--config .*missing.json5: not a zenoh configuration zenoh can read: "):
+        make_zenoh_config(config_file=str(tmp_path / "missing.json5"))
+    with pytest.raises(ConfigError, match=r"^cannot open the zenoh session \(mode peer, listen \['tcp/999.1.1.1:80'\]"):
+        open_session(listen=[BAD_ENDPOINT])
+
+
+@pytest.mark.parametrize("flag", ["config", "listen"])
+def test_a_stage_with_a_bad_zenoh_config_or_endpoint_exits_2_with_one_line(flag, bad_config):
+    extra = ["--config", str(bad_config)] if flag == "config" else ["--listen", BAD_ENDPOINT]
+    done = subprocess.run([sys.executable, str(REPO / "tests" / "integration" / "echo_stage.py"), "--node-id", "echo", "--run-id", "badnet",
+                           "--input", "profiles=src/profiles", *extra], cwd=REPO, env=python_env(), capture_output=True, text=True, timeout=120)
+    out = done.stdout + done.stderr
+    assert done.returncode == 2, out
+    assert "bad configuration: " + ("--config " if flag == "config" else "cannot open the zenoh session") in out
+    assert "Traceback" not in out and "AttributeError" not in out, out
+
+
+def test_the_launcher_with_a_bad_hub_endpoint_exits_2_with_one_line():
+    done = subprocess.run([sys.executable, str(REPO / "launch.py"), "--listen", BAD_ENDPOINT, "--no-viewer", "--stop-after", "1"], cwd=REPO,
+                          env=python_env(), capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    assert "launch.py: cannot open the zenoh session" in done.stderr and "Traceback" not in done.stderr, done.stderr
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--queue-size", "0"], "--queue-size 0: must be >= 1"),
+    (["--queue-mib", "nan"], "--queue-mib nan: must be a finite number > 0"),
+    (["--stats-period", "0"], "--stats-period 0.0: must be a finite number > 0"),
+    (["--stamp-window-s", "-1"], "--stamp-window-s -1.0: must be a finite number > 0"),
+])
+def test_the_runtime_s_numeric_flags_are_checked(flags, message):
+    """Out of range they were taken as given: a queue of 0 or fewer messages, NodeStats on every loop (period 0)."""
+    from stages.runtime.args import build_parser, check_runtime_args
+    from tests.integration.echo_stage import SPEC
+
+    parser = build_parser(SPEC)
+    check_runtime_args(parser.parse_args([]))  # the defaults pass
+    with pytest.raises(ConfigError, match="^" + message.replace("(", r"\(").replace(".", r"\.") + "$"):
+        check_runtime_args(parser.parse_args(flags))
+
+
+def test_a_stage_s_log_level_is_one_of_logging_s_and_a_bad_one_is_a_usage_error():
+    """An unknown level used to fall back to INFO without a word."""
+    from stages.runtime.args import build_parser
+    from tests.integration.echo_stage import SPEC
+
+    parser = build_parser(SPEC)
+    assert parser.parse_args(["--log-level", "debug"]).log_level == "DEBUG"
+    done = subprocess.run([sys.executable, str(REPO / "tests" / "integration" / "echo_stage.py"), "--node-id", "echo", "--run-id", "badnet",
+                           "--input", "profiles=src/profiles", "--queue-size", "0"], cwd=REPO, env=python_env(), capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 2 and "bad configuration: --queue-size 0: must be >= 1" in done.stderr, done.stderr
+    done = subprocess.run([sys.executable, str(REPO / "launch.py"), "--log-level", "verbose", "--check"], cwd=REPO, env=python_env(),
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and "argument --log-level: invalid choice: 'VERBOSE'" in done.stderr, done.stderr
