@@ -44,6 +44,7 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import json
+import math
 import os
 import re
 import shutil
@@ -630,11 +631,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.check:
         say(f"pipeline {pipeline.path} is valid: {len(pipeline.nodes)} nodes")
         return 0
-    if args.stop_after is not None and args.stop_after <= 0:
-        print("launch.py: --stop-after must be > 0", file=sys.stderr)
+    if args.stop_after is not None and not (math.isfinite(args.stop_after) and args.stop_after > 0):
+        print(f"launch.py: --stop-after {args.stop_after}: must be a finite number of seconds > 0", file=sys.stderr)
         return 2
-    if args.max_restarts < 0 or not args.restart_reset_s >= 0:
-        print("launch.py: --max-restarts and --restart-reset-s must be >= 0", file=sys.stderr)
+    if not (math.isfinite(args.startup_timeout) and args.startup_timeout > 0):
+        print(f"launch.py: --startup-timeout {args.startup_timeout}: must be a finite number of seconds > 0", file=sys.stderr)
+        return 2
+    if args.max_restarts < 0 or not (math.isfinite(args.restart_reset_s) and args.restart_reset_s >= 0):
+        print("launch.py: --max-restarts and --restart-reset-s must be >= 0 (and finite)", file=sys.stderr)
         return 2
     hub = resolve_hub(pipeline, args.listen)
     try:

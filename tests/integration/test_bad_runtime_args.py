@@ -87,3 +87,19 @@ def test_a_stage_s_log_level_is_one_of_logging_s_and_a_bad_one_is_a_usage_error(
     done = subprocess.run([sys.executable, str(REPO / "launch.py"), "--log-level", "verbose", "--check"], cwd=REPO, env=python_env(),
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and "argument --log-level: invalid choice: 'VERBOSE'" in done.stderr, done.stderr
+
+
+def test_the_launcher_s_time_flags_must_be_finite_and_positive():
+    """``--stop-after nan`` used to run without end (no comparison with NaN is true) and ``--startup-timeout -1`` to
+    end the run at once as if no node had come up."""
+    cases = {
+        ("--stop-after", "nan"): "--stop-after nan: must be a finite number of seconds > 0",
+        ("--stop-after", "0"): "--stop-after 0.0: must be a finite number of seconds > 0",
+        ("--startup-timeout", "-1"): "--startup-timeout -1.0: must be a finite number of seconds > 0",
+        ("--restart-reset-s", "nan"): "--max-restarts and --restart-reset-s must be >= 0 (and finite)",
+    }
+    procs = {flags: subprocess.Popen([sys.executable, str(REPO / "launch.py"), *flags, "--no-viewer"], cwd=REPO, env=python_env(),
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for flags in cases}
+    for flags, proc in procs.items():
+        _, err = proc.communicate(timeout=120)
+        assert proc.returncode == 2 and f"launch.py: {cases[flags]}" in err, (flags, err)
