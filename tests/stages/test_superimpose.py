@@ -58,6 +58,10 @@ def test_build_dense_reaches_the_target_and_the_cli_writes_it(tmp_path, capsys):
     assert load_recording(tmp_path / "b", "dense").sequences[0].n_rows > 0
     assert iamp(["data", "superimpose", "--data", str(DEFAULT_DATA_DIR), "--recording", REC, "--vehicles", "0", "--out", str(tmp_path / "c")]) == 2
     assert iamp(["data", "superimpose", "--data", str(tmp_path / "none"), "--recording", REC, "--vehicles", "6", "--out", str(tmp_path / "c")]) == 2
+    for flag, value in (("--shift-s", "nan"), ("--vehicles", "inf"), ("--duration-s", "nan")):  # NaN passed "< 0" and crashed later
+        argv = ["data", "superimpose", "--data", str(DEFAULT_DATA_DIR), "--recording", REC, "--vehicles", "6", "--out", str(tmp_path / "c"), flag, value]
+        assert iamp(argv) == 2, flag
+        assert "must be finite" in capsys.readouterr().err
 
 
 def test_a_partial_last_layer_makes_the_mean_hit_the_target(tmp_path):
