@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from bus_schemas import REGISTRY, SchemaError, decode_any
+from stages.lib.recording_files import put_in_place
 from stages.recorder.inspect import ReadReport, RecordingError, read_messages
 
 
@@ -98,8 +99,7 @@ def export_foxglove(src: str, dst: str, *, data: str | None = None, grid_step: s
         if report.undecodable == report.read:
             names = ", ".join(f"{k} ({v})" for k, v in sorted(foreign.items(), key=lambda kv: -kv[1])[:5]) or "none"
             raise RecordingError(f"{src}: not a hybrid-iamp recording: none of its {report.read} messages is a bus message of this build (schemas: {names})")
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, dst)
+        put_in_place(tmp, dst)
     except BaseException:
         try:
             os.unlink(tmp)

@@ -1,11 +1,14 @@
 """Names of recording files: the default path of a run and its split files (``run.mcap``, ``run.001.mcap``, ...).
 
 Shared by the recorder (which writes them) and the launcher (which restarts a
-killed recorder into the next split); plain paths, no MCAP.
+killed recorder into the next split); plain paths, no MCAP. ``put_in_place``:
+a file written under a temporary name (``iamp recover``, ``iamp export``)
+moved to its own name with the permissions of a newly created file.
 """
 
 from __future__ import annotations
 
+import os
 import re
 import time
 from datetime import datetime, timezone
@@ -41,3 +44,13 @@ def split_paths(base: str | Path, since_s: float | None = None) -> list[tuple[in
     if since_s is not None:
         found = [(i, p) for i, p in found if p.stat().st_mtime >= since_s]
     return sorted(found)
+
+
+def put_in_place(tmp: str | Path, dst: str | Path) -> None:
+    """Move ``tmp`` (made by ``tempfile.mkstemp``: mode 0600) onto ``dst`` with the mode a file created there would have
+    (0666 less the process's umask, as the recorder's own files), so that a recovered or exported recording is as
+    readable as the recording it came from."""
+    mask = os.umask(0)
+    os.umask(mask)
+    os.chmod(tmp, 0o666 & ~mask)
+    os.replace(tmp, dst)

@@ -40,6 +40,7 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
 from bus_schemas import SchemaError, TrackFrame
+from stages.lib.recording_files import put_in_place
 
 # Largest record we try to load; a corrupt length field beyond this is read as truncation.
 _RECORD_SIZE_LIMIT = 1 << 31
@@ -262,7 +263,7 @@ def recover(src: str, dst: str | None = None) -> RecoverReport:
         try:
             with os.fdopen(fd, "wb") as out:
                 _copy_records(first, records, f, out, report)
-            os.replace(tmp, dst)
+            put_in_place(tmp, dst)
         except BaseException:
             try:
                 os.unlink(tmp)

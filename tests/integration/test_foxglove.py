@@ -21,6 +21,7 @@ import asyncio
 import base64
 import json
 import math
+import os
 import re
 import signal
 import struct
@@ -199,6 +200,9 @@ def test_export_decodes_every_channel_with_the_official_schemas(live_run, tmp_pa
     rec = live_run["recording"]
     out = tmp_path / "fox.mcap"
     assert iamp(["export", "foxglove", str(rec), str(out)]) == 0
+    mask = os.umask(0)
+    os.umask(mask)
+    assert out.stat().st_mode & 0o777 == 0o666 & ~mask  # a new file's mode, not the temporary file's 0600
     decoded = _decode_file(out)
     schemas = {t: {m[2] for m in msgs} for t, msgs in decoded.items()}
     expected = {

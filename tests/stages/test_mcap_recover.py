@@ -10,6 +10,7 @@ complete chunk, schemas, channels and metadata kept.
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -100,6 +101,11 @@ def test_recover_a_finished_file_keeps_everything_and_can_replace_it_in_place(fu
     again, err = standard_read(full_recording)
     assert err == "" and again == whole
     assert not list(full_recording.parent.glob(".recover-*")), "no temporary file left behind"
+    # the recovered file has a new file's mode (0666 less the umask), not the temporary file's 0600: as readable as the
+    # recording it replaces
+    mask = os.umask(0)
+    os.umask(mask)
+    assert full_recording.stat().st_mode & 0o777 == 0o666 & ~mask
 
 
 def test_recover_a_recording_left_by_a_recorder_killed_with_sigkill(tmp_path):
