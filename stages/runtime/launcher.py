@@ -357,11 +357,14 @@ class Child:
     def poll(self) -> int | None:
         return None if self.proc is None else self.proc.poll()
 
-    def stop(self) -> int | None:
-        """SIGINT, then SIGTERM after 5 s, then SIGKILL after 5 s more."""
+    def stop(self, up: bool = True) -> int | None:
+        """SIGINT, then SIGTERM after 5 s, then SIGKILL after 5 s more. A node not ``up`` (no liveliness token seen yet:
+        still importing or starting) gets SIGTERM first: before its handlers are in, that ends it without a word, where
+        SIGINT would print a KeyboardInterrupt traceback from whatever module it was importing."""
         if self.proc is None or self.proc.poll() is not None:
             return self.poll()
-        for sig, wait in ((signal.SIGINT, STOP_ESCALATION_S), (signal.SIGTERM, STOP_ESCALATION_S), (signal.SIGKILL, 10.0)):
+        steps = ((signal.SIGINT, STOP_ESCALATION_S), (signal.SIGTERM, STOP_ESCALATION_S), (signal.SIGKILL, 10.0))
+        for sig, wait in steps if up else steps[1:]:
             try:
                 self.proc.send_signal(sig)
             except ProcessLookupError:
@@ -578,7 +581,10 @@ class Launcher:
             c = self.children.get(n.id)
             if c is None or c.proc is None:
                 continue
-            code = c.stop()
+            up = n.id in self.alive
+            code = c.stop(up)
+            if not up and code == -signal.SIGTERM:  # ended before it came up, as asked: not a failure to stop
+                code = 0
             if code not in (0, None) and not c.finished and self.first_failure is None:
                 # a non-zero code on our own SIGINT is a failure to stop cleanly
                 say(f"node {n.id} stopped with {describe_code(code)}")

@@ -103,3 +103,16 @@ def test_the_launcher_s_time_flags_must_be_finite_and_positive():
     for flags, proc in procs.items():
         _, err = proc.communicate(timeout=120)
         assert proc.returncode == 2 and f"launch.py: {cases[flags]}" in err, (flags, err)
+
+
+def test_a_node_that_fails_at_start_stops_the_run_without_tracebacks_from_the_others(tmp_path):
+    """The launcher stops the nodes that have not come up yet (still importing) with SIGTERM, not SIGINT: SIGINT made
+    each of them print a KeyboardInterrupt traceback from the module it was importing, pages below the one line that
+    said what was wrong."""
+    done = subprocess.run([sys.executable, str(REPO / "launch.py"), "--set", 'recorder.path="/proc/iamp-no-such-folder/run.mcap"', "--no-viewer",
+                           "--stop-after", "5", "--run-id", "badrec"], cwd=tmp_path, env=python_env(), capture_output=True, text=True, timeout=180)
+    out = done.stdout + done.stderr
+    assert done.returncode == 2, out[-3000:]
+    assert "[recorder]" in out and "bad configuration: " in out, out[-3000:]
+    assert "[launch] run ended: exit code 2" in out
+    assert "Traceback" not in out and "KeyboardInterrupt" not in out, out[-3000:]
