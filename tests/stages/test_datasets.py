@@ -258,6 +258,9 @@ def test_missing_meta_or_origin_raises(tmp_path: Path) -> None:
 def test_missing_or_empty_data_folder_is_a_clear_error(tmp_path: Path) -> None:
     with pytest.raises(DatasetError, match="does not exist"):
         discover(tmp_path / "nope")
+    (tmp_path / "a-file").write_text("x")
+    with pytest.raises(DatasetError, match=r"a-file is a file, not a folder \(expected"):
+        discover(tmp_path / "a-file")
     with pytest.raises(DatasetError, match=r"no recordings under .*: expected maps/<rec>\.osm and recorded_trackfiles/<rec>/"):
         discover(tmp_path)
     assert isinstance(DatasetError("x"), ValueError)  # run_stage maps it to exit code 2

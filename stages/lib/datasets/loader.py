@@ -44,7 +44,8 @@ def discover(data_dir: str | Path) -> list[RecordingRef]:
     """
     root = Path(data_dir).expanduser()
     if not root.is_dir():
-        raise DatasetError(f"data folder {root} does not exist ({_LAYOUT_HINT})")
+        what = "is a file, not a folder" if root.exists() else "does not exist"
+        raise DatasetError(f"data folder {root} {what} ({_LAYOUT_HINT})")
     tracks_root = root / TRACKS_DIR
     refs: list[RecordingRef] = []
     if tracks_root.is_dir():
