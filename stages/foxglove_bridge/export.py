@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from bus_schemas import REGISTRY, SchemaError, decode_any
+from stages.lib.base import ConfigError, check_output
 from stages.lib.recording_files import put_in_place
 from stages.recorder.inspect import ReadReport, RecordingError, read_messages
 
@@ -131,6 +132,11 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if os.path.abspath(args.file) == os.path.abspath(args.out):
         sys.stderr.write("iamp export foxglove: OUT.mcap must differ from RUN.mcap\n")
+        return 2
+    try:
+        check_output(args.out, "OUT.mcap")
+    except ConfigError as exc:
+        sys.stderr.write(f"iamp export foxglove: {exc}\n")
         return 2
     try:
         report = export_foxglove(args.file, args.out, data=args.data or None, grid_step=grid_step)

@@ -21,7 +21,7 @@ from bus_schemas import REGISTRY, SchemaError, json_schema, keys
 from bus_schemas._wire import unpack_envelope
 
 from stages.lib.recording_files import default_path, split_path, split_paths
-from stages.lib.base import ConfigError, ConfigMixin, Issue
+from stages.lib.base import ConfigError, ConfigMixin, Issue, check_output
 from stages.runtime import NodeContext, StageSpec, run_stage
 
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
@@ -100,6 +100,8 @@ class McapRecorder:
         self._lock = threading.Lock()
         self._sequences: dict[tuple[str, str], int] = {}  # per (topic, schema name), across splits
         self._closed = threading.Event()
+        # the first file's folder now, with a message that names the parameter (an OSError later, at a split, is a crash)
+        check_output(split_path(self.base_path, self.split_index), "path")
         self._open_file()
         self._timer = threading.Thread(target=self._flush_periodically, name="recorder-flush", daemon=True)
         self._timer.start()

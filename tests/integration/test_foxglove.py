@@ -306,6 +306,11 @@ def test_export_refuses_truncated_foreign_and_missing_input_with_one_line(live_r
         err = capsys.readouterr().err
         assert err.startswith("iamp export foxglove: ") and err.count("\n") == 1 and "Traceback" not in err, (name, err)
         assert not out.exists()
+    # an output that is a folder, or whose folder cannot be made: one line naming OUT.mcap, before reading anything
+    for out, why in ((tmp_path, "is a folder; expected a file name"), (Path("/proc/iamp-no-such-folder/x.mcap"), "cannot create the folder")):
+        assert iamp(["export", "foxglove", str(rec), str(out)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"iamp export foxglove: OUT.mcap {out}: ") and why in err and err.count("\n") == 1, err
     # a recording torn mid-way (a killed recorder) exports what its complete chunks hold, and says so
     torn = tmp_path / "torn.mcap"
     data = rec.read_bytes()

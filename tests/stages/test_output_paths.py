@@ -64,3 +64,13 @@ def test_the_long_benches_refuse_a_bad_json_path_before_their_work():
         assert proc.returncode == 2, (name, err[-2000:])
         assert f"{name}.py: error: --" in err and "cannot create the folder /proc/iamp-no-such-folder" in err, (name, err)
         assert "Traceback" not in err, (name, err)
+
+
+def test_the_recorder_names_its_path_parameter_when_the_folder_cannot_be_made(tmp_path):
+    """It said only "[Errno 2] No such file or directory: '/proc/...'"."""
+    from stages.recorder.core import McapRecorder, RecorderConfig
+
+    with pytest.raises(ConfigError, match=r"^path /proc/iamp-no-such-folder/run\.mcap: cannot create the folder /proc/iamp-no-such-folder \("):
+        McapRecorder(RecorderConfig(path=f"{UNCREATABLE}/run.mcap"), run_id="badpath")
+    with pytest.raises(ConfigError, match=r"^path .*: is a folder; expected a file name$"):
+        McapRecorder(RecorderConfig(path=str(tmp_path)), run_id="badpath")
