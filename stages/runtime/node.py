@@ -615,7 +615,7 @@ class Node:
     def run_operator(self, core: Any) -> None:
         # before the first input set is handled: what it publishes reaches only the subscriptions this session sees (inputs
         # that arrive meanwhile wait in the queues)
-        self.consumers.await_nodes(self._awaited(), AWAIT_NODES_S, self.stop_event, self.log)
+        self.consumers.await_nodes(self._awaited(), AWAIT_NODES_S, self.stop_event, self.log, tick=self.maybe_stats)
         self._serve(lambda item: self._handle_operator_item(core, item), getattr(core, "idle", None))
 
     def run_raw_sink(self, core: Any) -> None:
@@ -705,7 +705,7 @@ class Node:
             pacer = Pacer(speed, self.consumers, self.stop_event, self.log, warmup=SOURCE_WARMUP)
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
-        self.consumers.await_nodes(self._awaited(), AWAIT_NODES_S, self.stop_event, self.log)
+        self.consumers.await_nodes(self._awaited(), AWAIT_NODES_S, self.stop_event, self.log, tick=self.maybe_stats)
         n = 0
         for stamp, result in core:
             if not pacer.before(stamp, stamp):

@@ -117,8 +117,10 @@ class Consumers:
         with self._lock:
             self._ignored |= set(node_ids)
 
-    def await_nodes(self, node_ids: Iterable[str], timeout_s: float, stop: threading.Event, log: logging.Logger | None = None) -> list[str]:
-        """Wait until ``node_ids`` are all alive (or ``stop``, or ``timeout_s``); returns the ones still missing (warned about)."""
+    def await_nodes(self, node_ids: Iterable[str], timeout_s: float, stop: threading.Event, log: logging.Logger | None = None,
+                    tick: Callable[[], None] | None = None) -> list[str]:
+        """Wait until ``node_ids`` are all alive (or ``stop``, or ``timeout_s``); returns the ones still missing (warned about).
+        ``tick`` is called as it waits (the node's ``maybe_stats``: a waiting node still reports what it received)."""
         wanted = set(node_ids)
         if not wanted:
             return []
@@ -131,6 +133,8 @@ class Consumers:
                 if log is not None:
                     log.warning("start: nodes not visible after %.0f s, publishing anyway: %s", timeout_s, ",".join(missing))
                 return missing
+            if tick is not None:
+                tick()
             stop.wait(0.005)
 
 

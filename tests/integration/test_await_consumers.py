@@ -11,9 +11,8 @@ liveliness tokens, in its own session, before it handles its first input set.
 
 from __future__ import annotations
 
-import time
-
 import bus_schemas as bs
+from bus_schemas import keys
 from stages.runtime import launcher
 from stages.runtime.pipeline import load_pipeline
 from testkit.helpers import endpoint, free_port, kill_all, output_of, stop_process, wait_until
@@ -42,17 +41,21 @@ def test_the_launcher_tells_each_operator_to_await_the_nodes_that_read_it():
 def test_an_operator_publishes_nothing_until_the_awaited_node_is_visible_then_everything_queued():
     port = free_port()
     got: list[int] = []
+    received: list[int] = [0]  # the echo node's own count of the inputs it took in (its NodeStats)
     from stages.runtime import BusClient
 
     with BusClient(listen=[endpoint(port)]) as bus:
         bus.subscribe(f"iamp/{RUN}/echo/profiles", lambda k, d: got.append(bs.AccelerationProfiles.decode(d).header.frame_index))
-        stage = start_echo(port, RUN, "--await-nodes", "sink")
+        bus.subscribe(keys.stats_key(RUN, "echo"), lambda k, d: received.__setitem__(0, bs.NodeStats.decode(d).counters.get("received", 0)))
+        stage = start_echo(port, RUN, "--await-nodes", "sink", "--stats-period", "0.2")
         try:
             wait_until(lambda: "echo" in bus.alive_now(f"iamp/{RUN}/_alive/*", 0.5), 60, "echo liveliness")
             put = bus.publisher(f"iamp/{RUN}/src/profiles")
             put(profiles_payload(0))
             put(profiles_payload(1))
-            time.sleep(1.5)  # (a negative check needs a span) the inputs are in, the awaited node is not
+            # the negative check waits on evidence, not a fixed span: the node reports both inputs received (its stats
+            # go out after any echo it would have published for them), and the awaited node is not visible
+            wait_until(lambda: received[0] >= 2, 30, "the echo node's NodeStats counting both inputs received")
             assert got == [], output_of(stage)[-2000:]
             bus.declare_token(f"iamp/{RUN}/_alive/sink")
             wait_until(lambda: len(got) == 2, 30, "both echoes once the awaited node is visible")
