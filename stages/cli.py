@@ -222,15 +222,15 @@ def _run_data(args: argparse.Namespace) -> int:
     from stages.lib.datasets import DatasetError
     from stages.lib.datasets.superimpose import build_dense
 
-    try:
-        check_output(args.out, "--out", folder=True)
-    except ConfigError as exc:
-        sys.stderr.write(f"iamp data superimpose: {exc}\n")
-        return EXIT_USAGE
     finite = [v for v in (args.vehicles, args.shift_s, args.duration_s) if v is not None]
     if not all(math.isfinite(v) for v in finite) or not args.vehicles > 0 or (args.shift_s is not None and args.shift_s < 0) \
             or (args.duration_s is not None and not args.duration_s > 0):
         sys.stderr.write("iamp data superimpose: --vehicles and --duration-s must be finite and positive, --shift-s finite and non-negative\n")
+        return EXIT_USAGE
+    try:  # after the numbers: a refused command line leaves no folder behind
+        check_output(args.out, "--out", folder=True)
+    except ConfigError as exc:
+        sys.stderr.write(f"iamp data superimpose: {exc}\n")
         return EXIT_USAGE
     try:
         result = build_dense(
