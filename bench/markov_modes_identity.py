@@ -43,6 +43,10 @@ RUNS: dict[str, tuple[str, dict, str, int]] = {
     "hybrid-standstill-fixed": ("hybrid", {"hybrid_standstill_rates_hz": ()}, "embedded", 0),
     "baseline-torch": ("baseline", {"backend": "torch"}, "embedded", 30),
     "hybrid-torch": ("hybrid", {"backend": "torch"}, "embedded", 30),
+    # the calibrated and online spread (along the corridors: the lateral spread per step; cv: the round blur)
+    "hybrid-spread": ("hybrid", {"spread_calibration": "shipped", "spread_online": True}, "embedded", 0),
+    "corridor_cv-spread": ("corridor_cv", {"spread_calibration": "shipped", "spread_online": True}, "embedded", 100),
+    "cv-spread": ("cv", {"spread_calibration": "shipped", "spread_online": True}, "embedded", 100),
     # the embedded scenario has no crossing conflicts: bench/markov_stage.py's synthetic frames have (the second pass)
     "cv-synthetic": ("cv", {}, "synthetic", 0),
     "corridor_cv-synthetic": ("corridor_cv", {}, "synthetic", 0),

@@ -59,11 +59,14 @@ if numba is not None:
         """Per vehicle (its pairs ``members[ptr[n]:ptr[n + 1]]``), the sorted keys and sums of ``vehicle_grid``: the
         same float64 operations, each key's sum taken in the order ``vehicle_grid`` concatenates its terms (as
         np.bincount adds them). Sample q = sub·n_lat + lat of cell i lies at x_c[r, sub] + nx[r, sub]·offsets[lat], r =
-        cell_rows[b, i] (``FootprintBatch.x_m``; a cell with mass and no row, -1, has its samples off the grid, NaN). Step by step (keys of different steps never meet), each sample added to its cell's
-        sum as it is formed (a table over the grid's cells, kept all -1 between steps), the cells then listed in key
-        order by a scan of their bounding box (or a sort, when the box is much larger than the cells). ``sample_w``
-        (W, P): with ``lat_rows`` None its row 0 weighs every step's samples; else step k of pair b takes row
-        ``lat_rows[b, k]`` and every sample of weight 0 is left out (a lateral spread per step:
+        cell_rows[b, i] (``FootprintBatch.x_m``; a cell with mass and no row, -1, has its samples off the grid, NaN).
+        Step by step (keys of different steps never meet): first the box of the step's cells from the two end samples
+        of each footprint line (a sample's column and row are linear in its offset, so every sample of the line lies
+        between its ends; one cell wider on each side for rounding, cut to the grid), then each sample added to its
+        cell's sum as it is formed (a dense table over the box, kept all 0.0 between steps, read row by row for the
+        keys' order; or, when the box is much larger than its samples, a slot per cell of the grid and a sort).
+        ``sample_w`` (W, P): with ``lat_rows`` None its row 0 weighs every step's samples; else step k of pair b takes
+        row ``lat_rows[b, k]`` and every sample of weight 0 is left out (a lateral spread per step:
         ``rasterise.lateral_table``). Returns keys, sums and the (n_vehicles + 1,) offsets of each vehicle's part."""
         n_k, n_l = probs.shape[1], probs.shape[2]
         n_sub = x_c.shape[1]
@@ -71,64 +74,68 @@ if numba is not None:
         n_p = n_sub * n_lat
         n_cells = n_rows * n_cols
         n_veh = ptr.shape[0] - 1
-        total, most = 0, 0  # samples: all, and the most of one vehicle's step
+        n_w = sample_w.shape[0]
+        # per weight row: its first and last lateral offset of weight > 0 (the ends of a footprint line, for the box)
+        lat_first = np.zeros(n_w, np.int64)
+        lat_last = np.full(n_w, n_lat - 1, np.int64)
+        if lat_rows is not None:
+            for u in range(n_w):
+                lo, hi = n_lat, -1
+                for sub in range(n_sub):
+                    for lat in range(n_lat):
+                        if sample_w[u, sub * n_lat + lat] != 0.0:
+                            lo, hi = min(lo, lat), max(hi, lat)
+                lat_first[u], lat_last[u] = lo, hi
+        total = 0
         for n in range(n_veh):
             for k in range(n_k):
-                count = 0
                 for m in range(ptr[n], ptr[n + 1]):
                     b = members[m]
-                    if pair_w[b] <= 0:  # (a NaN weight is not left out: vehicle_grid's test)
+                    if pair_w[b] <= 0:
                         continue
                     for i in range(n_l):
                         if probs[b, k, i] > min_mass:
-                            count += n_p
-                total += count
-                most = max(most, count)
+                            total += n_p
         keys_out = np.empty(total, np.int64)
         sums_out = np.empty(total, np.float64)
         out_ptr = np.zeros(n_veh + 1, np.int64)
-        rows = np.empty(most, np.int64)
-        cols = np.empty(most, np.int64)
-        vals = np.empty(most, np.float64)
-        uniq = np.empty(most, np.int64)
-        sums = np.empty(most, np.float64)
-        box = np.zeros(4096, np.float64)  # per cell of the step's box: its sum (kept all 0.0 between steps) ...
-        touched = np.zeros(4096, np.bool_)  # ... and whether a sample fell in it
-        slot = np.full(0, -1, np.int32)  # (boxes much larger than their samples) per cell of the grid: its index in uniq; made when first needed
+        box = np.zeros(4096, np.float64)
+        touched = np.zeros(4096, np.bool_)
+        slot = np.full(0, -1, np.int32)
+        uniq = np.empty(0, np.int64)
+        sums = np.empty(0, np.float64)
         f32 = np.float32
         use_inv = inv_cell > 0.0
+        col_at = np.empty(n_lat, np.float64)  # one footprint line's samples: column and row (cells, not yet floored)
+        row_at = np.empty(n_lat, np.float64)
         at = 0
         for n in range(n_veh):
             for k in range(n_k):
-                # pass 1: every sample's cell and value, in vehicle_grid's order, and the box of the cells
+                # pass 1: the box of the step's samples from each footprint line's two end samples (a sample's column and
+                # row are linear along its line), one cell wider on each side for rounding, within the grid
                 c = 0
-                r_lo, r_hi, c_lo, c_hi = n_rows, -1, n_cols, -1
+                col_min, col_max, row_min, row_max = np.inf, -np.inf, np.inf, -np.inf
                 for m in range(ptr[n], ptr[n + 1]):
                     b = members[m]
-                    w = pair_w[b]
-                    if w <= 0:
+                    if pair_w[b] <= 0:
                         continue
                     d = shifts[b, k]
-                    w32 = f32(w)
-                    w_row = 0  # the row of sample_w this step weighs its samples by
+                    w_row = 0
                     if lat_rows is not None:
                         w_row = lat_rows[b, k]
+                    l0, l1 = lat_first[w_row], lat_last[w_row]
+                    if l1 < l0:
+                        continue
                     for i in range(n_l):
-                        p = probs[b, k, i]
-                        if not p > min_mass:
+                        if not probs[b, k, i] > min_mass:
                             continue
-                        # w · p: float64 for a numpy float64 weight, float32 for a Python float (numpy's promotion)
-                        mass = w * np.float64(p) if wide[b] else np.float64(w32 * p)
                         r = cell_rows[b, i]
                         if r < 0:
                             continue
+                        c += n_p
                         for sub in range(n_sub):
                             xs, ys, nxs, nys = x_c[r, sub], y_c[r, sub], nx[r, sub], ny[r, sub]
-                            for lat in range(n_lat):
-                                sw = sample_w[w_row, sub * n_lat + lat]
-                                if lat_rows is not None:  # (pruned at compile time where lat_rows is None)
-                                    if sw == 0.0:
-                                        continue
+                            for lat in (l0, l1):
                                 off = offsets[lat]
                                 x = xs + nxs * off
                                 y = ys + nys * off
@@ -141,43 +148,98 @@ if numba is not None:
                                 else:
                                     col = (x - origin_x) / cell
                                     row = (y - origin_y) / cell
-                                # floor(q) in [0, n) iff q in [0, n) (n whole), and then floor is truncation
-                                if not (col >= 0 and col < n_cols and row >= 0 and row < n_rows):  # NaN: off the grid too
-                                    continue
-                                ri, ci = np.int64(row), np.int64(col)
-                                rows[c], cols[c], vals[c] = ri, ci, mass * sw
-                                c += 1
-                                r_lo, r_hi, c_lo, c_hi = min(r_lo, ri), max(r_hi, ri), min(c_lo, ci), max(c_hi, ci)
-                if c == 0:
+                                if col == col and row == row:  # (a NaN line has no sample on the grid)
+                                    col_min, col_max = min(col_min, col), max(col_max, col)
+                                    row_min, row_max = min(row_min, row), max(row_max, row)
+                if c == 0 or not (col_max >= 0 and row_max >= 0 and col_min < n_cols and row_min < n_rows):  # (NaN: none)
                     continue
-                base = k * n_cells
-                j = at
+                c_lo = max(np.int64(np.floor(max(col_min, -2.0))) - 1, 0)
+                c_hi = min(np.int64(np.floor(min(col_max, n_cols + 1.0))) + 1, n_cols - 1)
+                r_lo = max(np.int64(np.floor(max(row_min, -2.0))) - 1, 0)
+                r_hi = min(np.int64(np.floor(min(row_max, n_rows + 1.0))) + 1, n_rows - 1)
                 width = c_hi - c_lo + 1
                 area = (r_hi - r_lo + 1) * width
-                if area <= 8 * c + 4096:
-                    # pass 2: each cell's sum from 0.0 in the samples' order, in a dense table over the box; the box
-                    # read row by row gives the keys' order
+                dense = area <= 8 * c + 4096
+                if dense:
                     if box.shape[0] < area:
                         box = np.zeros(max(area, 2 * box.shape[0]), np.float64)
                         touched = np.zeros(box.shape[0], np.bool_)
-                    for q in range(c):
-                        idx = (rows[q] - r_lo) * width + (cols[q] - c_lo)
-                        box[idx] += vals[q]
-                        touched[idx] = True
+                else:
+                    if slot.shape[0] == 0:
+                        slot = np.full(n_cells, -1, np.int32)
+                    if uniq.shape[0] < c:
+                        uniq = np.empty(max(c, 2 * uniq.shape[0]), np.int64)
+                        sums = np.empty(uniq.shape[0], np.float64)
+                u = 0
+                # pass 2: every sample, in vehicle_grid's order, added to its cell's sum as it is formed
+                for m in range(ptr[n], ptr[n + 1]):
+                    b = members[m]
+                    w = pair_w[b]
+                    if w <= 0:
+                        continue
+                    d = shifts[b, k]
+                    w32 = f32(w)
+                    w_row = 0
+                    if lat_rows is not None:
+                        w_row = lat_rows[b, k]
+                    for i in range(n_l):
+                        p = probs[b, k, i]
+                        if not p > min_mass:
+                            continue
+                        mass = w * np.float64(p) if wide[b] else np.float64(w32 * p)
+                        r = cell_rows[b, i]
+                        if r < 0:
+                            continue
+                        for sub in range(n_sub):
+                            xs, ys, nxs, nys = x_c[r, sub], y_c[r, sub], nx[r, sub], ny[r, sub]
+                            # the line's samples first, in loops without branches (vectorised; the same operations:
+                            # (x + n·offset) + d·n, then (· − origin)·(1/cell) or / cell)
+                            if has_shift:
+                                dx, dy = d * nxs, d * nys
+                                if use_inv:
+                                    for lat in range(n_lat):
+                                        col_at[lat] = ((xs + nxs * offsets[lat]) + dx - origin_x) * inv_cell
+                                        row_at[lat] = ((ys + nys * offsets[lat]) + dy - origin_y) * inv_cell
+                                else:
+                                    for lat in range(n_lat):
+                                        col_at[lat] = ((xs + nxs * offsets[lat]) + dx - origin_x) / cell
+                                        row_at[lat] = ((ys + nys * offsets[lat]) + dy - origin_y) / cell
+                            elif use_inv:
+                                for lat in range(n_lat):
+                                    col_at[lat] = ((xs + nxs * offsets[lat]) - origin_x) * inv_cell
+                                    row_at[lat] = ((ys + nys * offsets[lat]) - origin_y) * inv_cell
+                            else:
+                                for lat in range(n_lat):
+                                    col_at[lat] = ((xs + nxs * offsets[lat]) - origin_x) / cell
+                                    row_at[lat] = ((ys + nys * offsets[lat]) - origin_y) / cell
+                            for lat in range(n_lat):
+                                sw = sample_w[w_row, sub * n_lat + lat]
+                                if lat_rows is not None:
+                                    if sw == 0.0:
+                                        continue
+                                col = col_at[lat]
+                                row = row_at[lat]
+                                if not (col >= 0 and col < n_cols and row >= 0 and row < n_rows):
+                                    continue
+                                ri, ci = np.int64(row), np.int64(col)
+                                if dense:
+                                    idx = (ri - r_lo) * width + (ci - c_lo)
+                                    box[idx] += mass * sw
+                                    touched[idx] = True
+                                else:
+                                    u = _slot_add(ri * n_cols + ci, mass * sw, slot, uniq, sums, u)
+                base = k * n_cells
+                j = at
+                if dense:
                     for idx in range(area):
                         if touched[idx]:
-                            r, cc = divmod(idx, width)
-                            keys_out[j] = base + (r_lo + r) * n_cols + (c_lo + cc)
+                            r2, cc = divmod(idx, width)
+                            keys_out[j] = base + (r_lo + r2) * n_cols + (c_lo + cc)
                             sums_out[j] = box[idx]
                             j += 1
                             box[idx] = 0.0
                             touched[idx] = False
-                else:  # a sparse box: a slot per cell of the grid, the cells sorted
-                    if slot.shape[0] == 0:
-                        slot = np.full(n_cells, -1, np.int32)
-                    u = 0
-                    for q in range(c):
-                        u = _slot_add(rows[q] * n_cols + cols[q], vals[q], slot, uniq, sums, u)
+                else:
                     ordered = np.sort(uniq[:u])
                     for q in range(u):
                         idx = ordered[q]
