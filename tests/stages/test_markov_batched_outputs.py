@@ -110,10 +110,13 @@ def test_vehicle_grids_in_one_call_equal_vehicle_grid_per_vehicle():
         assert sum(g.keys.size for g in got) > 1000 and sum(g.keys.size > 0 for g in got) >= 3
 
 
-def test_fuse_step_by_step_equals_one_sum_over_every_key():
-    """rasterise.fuse with the grid's n_cells (frame_kernels.fuse_sorted: per step, each cell's log terms summed in vehicle
-    order) gives the sums over every key at once (kernels.sum_by_key) bit for bit; unsorted keys take that path."""
-    from stages.markov_prediction.rasterise import SparseGrid, fuse
+def test_fuse_step_by_step_equals_the_product_over_every_key():
+    """rasterise.fuse with the grid's n_cells (frame_kernels.fuse_sorted: per step, each cell's 1 − Π (1 − g) in vehicle
+    order) gives the keys of numpy's reduction over every key exactly and its values to rounding; a cell of one
+    vehicle keeps its value bit for bit; every value is the log-sum form's (−expm1 Σ log1p(−g)) to 1e-9 relative
+    down to the MotionGrid's floor (1e-5); values are clipped to [0, 1 − 1e-7]; a NaN stays NaN; unsorted keys take
+    numpy's path."""
+    from stages.markov_prediction.rasterise import _CLIP, SparseGrid, fuse
 
     rng = np.random.default_rng(11)
     n_cells, n_k = 5000, 10
@@ -122,12 +125,31 @@ def test_fuse_step_by_step_equals_one_sum_over_every_key():
         keys = np.unique(rng.integers(0, n_k * n_cells, int(rng.integers(0, 3000))))
         grids.append(SparseGrid(keys, rng.uniform(0, 1, keys.size) * 10.0 ** rng.integers(-6, 1, keys.size)))
     grids[3] = SparseGrid(grids[3].keys, np.where(np.arange(grids[3].keys.size) % 7 == 0, 1.0, grids[3].values))  # clipped below 1
+    grids[5] = SparseGrid(grids[5].keys, np.where(np.arange(grids[5].keys.size) % 11 == 0, -0.5, grids[5].values))  # clipped to 0
     want = fuse(grids)
     got = fuse(grids, n_cells)
     np.testing.assert_array_equal(got.keys, want.keys)
-    np.testing.assert_array_equal(got.values, want.values)
+    np.testing.assert_allclose(got.values, want.values, rtol=1e-13, atol=0)
     assert got.keys.size > 10000
-    shuffled = [SparseGrid(g.keys[::-1].copy(), g.values[::-1].copy()) for g in grids[:2]]  # not sorted: the sum over every key
+    all_keys = np.concatenate([g.keys for g in grids])
+    all_g = np.clip(np.concatenate([g.values for g in grids]), 0.0, 1.0 - _CLIP)
+    unique, inverse, counts = np.unique(all_keys, return_inverse=True, return_counts=True)
+    np.testing.assert_array_equal(got.keys, unique)
+    single = counts[inverse] == 1
+    assert single.any() and (~single).any()
+    np.testing.assert_array_equal(got.values[inverse[single]], all_g[single])  # one vehicle: its own value
+    log_form = -np.expm1(np.bincount(inverse, weights=np.log1p(-all_g)))
+    floor = log_form >= 1e-5
+    np.testing.assert_allclose(got.values[floor], log_form[floor], rtol=1e-9)
+    np.testing.assert_allclose(got.values, log_form, rtol=1e-6, atol=1e-15)
+    assert got.values.max() < 1.0 and got.values.min() >= 0.0  # (each term clipped below 1: no cell is certain)
+    # a cell of many vehicles, by hand, in vehicle order
+    many = [SparseGrid(np.array([7], np.int64), np.array([v])) for v in (0.3, 0.5, 0.25, 1e-8)]
+    expect = 1.0 - (1.0 - 0.3) * (1.0 - 0.5) * (1.0 - 0.25) * (1.0 - 1e-8)
+    assert fuse(many, n_cells).values[0] == expect
+    nan = fuse([SparseGrid(np.array([1, 2], np.int64), np.array([np.nan, 0.5])), SparseGrid(np.array([1], np.int64), np.array([0.5]))], n_cells)
+    assert np.isnan(nan.values[0]) and nan.values[1] == 0.5
+    shuffled = [SparseGrid(g.keys[::-1].copy(), g.values[::-1].copy()) for g in grids[:2]]  # not sorted: numpy's path
     mixed = fuse(shuffled, n_cells)
     np.testing.assert_array_equal(mixed.keys, fuse(shuffled).keys)
     np.testing.assert_array_equal(mixed.values, fuse(shuffled).values)

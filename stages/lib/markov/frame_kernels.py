@@ -8,11 +8,10 @@
   lateral shift).
 - ``footprint_bounds``: the extent of the samples of the used cells (what
   ``GridFrame.around`` is given), without gathering them.
-- ``fuse_sorted``: the per-cell sums of the fused grid's log terms over
-  vehicles whose keys are each sorted and unique (``rasterise.fuse``): each
-  cell's sum in vehicle order from 0.0, as np.bincount adds them, step by
-  step through a table of the grid's cells (in cache) instead of one over
-  every key.
+- ``fuse_sorted``: the fused grid, 1 − Π (1 − g) per cell over vehicles
+  whose keys are each sorted and unique (``rasterise.fuse``): each cell's
+  product in vehicle order, step by step through a table of the grid's
+  cells (in cache) instead of one over every key.
 - ``add_running_sums``: ``rasterise.unwrap_each``'s running sums of the corrections, every corridor's in one
   pass (np.cumsum's order).
 - ``blur_rows``: the s-distributions of the pairs blurred along their corridors (``spread.blur_along``), every
@@ -406,9 +405,11 @@ if numba is not None:
         return x_lo, x_hi, y_lo, y_hi, seen, nan
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
-    def _fuse_sorted(keys, values, ptr, n_cells):  # pragma: no cover - compiled
+    def _fuse_sorted(keys, values, ptr, n_cells, top):  # pragma: no cover - compiled
         """Sorted unique keys of the runs ``keys[ptr[n]:ptr[n + 1]]`` (each sorted, unique, in [0, n_steps·n_cells)) and
-        each key's sum of ``values`` in run order from 0.0; ok False (nothing else meaningful) when a run is not so."""
+        each key's 1 − Π (1 − g) over its terms g = ``values`` clipped to [0, ``top``] (NaN stays NaN), the product
+        taken in run order from 1.0; a key of one term keeps its g (no rounding through 1 − g); ok False (nothing
+        else meaningful) when a run is not so."""
         n_runs = ptr.shape[0] - 1
         total = keys.shape[0]
         keys_out = np.empty(total, np.int64)
@@ -424,10 +425,11 @@ if numba is not None:
             if ptr[n + 1] > ptr[n]:
                 n_steps = max(n_steps, keys[ptr[n + 1] - 1] // n_cells + 1)
         cursor = ptr[:-1].copy()
-        # per cell of a step: its sum (from 0.0) and whether a term came; the cells listed as they first come (written
-        # at every term, kept only for a new cell: no branch per term on whether the cell is new)
-        acc = np.zeros(n_cells, np.float64)
-        seen = np.zeros(n_cells, np.bool_)
+        # per cell of a step: the product of its (1 − g) (from 1.0), its first g and its number of terms (0: none yet;
+        # kept so between steps); the cells listed as they first come
+        prod = np.ones(n_cells, np.float64)
+        first = np.zeros(n_cells, np.float64)
+        count = np.zeros(n_cells, np.int32)
         uniq = np.empty(min(total, n_cells) + 1, np.int64)
         at = 0
         for k in range(n_steps):
@@ -440,10 +442,17 @@ if numba is not None:
                 stop = ptr[n + 1]
                 while j < stop and keys[j] < end:
                     idx = keys[j] - base
-                    acc[idx] += values[j]
-                    uniq[u] = idx
-                    u += not seen[idx]
-                    seen[idx] = True
+                    g = values[j]
+                    if g < 0.0:
+                        g = 0.0
+                    elif g > top:
+                        g = top
+                    prod[idx] *= 1.0 - g
+                    if count[idx] == 0:
+                        first[idx] = g
+                        uniq[u] = idx
+                        u += 1
+                    count[idx] += 1
                     lo, hi = min(lo, idx), max(hi, idx)
                     j += 1
                 cursor[n] = j
@@ -451,24 +460,22 @@ if numba is not None:
                 continue
             if hi - lo + 1 <= 16 * u:  # a scan of the cells' range lists them in key order
                 for idx in range(lo, hi + 1):
-                    if seen[idx]:
+                    if count[idx] > 0:
                         keys_out[at] = base + idx
-                        sums_out[at] = acc[idx]
-                        acc[idx] = 0.0
-                        seen[idx] = False
+                        sums_out[at] = first[idx] if count[idx] == 1 else 1.0 - prod[idx]
+                        prod[idx] = 1.0
+                        count[idx] = 0
                         at += 1
             else:
                 ordered = np.sort(uniq[:u])
                 for j in range(u):
                     idx = ordered[j]
                     keys_out[at + j] = base + idx
-                    sums_out[at + j] = acc[idx]
-                    acc[idx] = 0.0
-                    seen[idx] = False
+                    sums_out[at + j] = first[idx] if count[idx] == 1 else 1.0 - prod[idx]
+                    prod[idx] = 1.0
+                    count[idx] = 0
                 at += u
         return keys_out[:at], sums_out[:at], True
-
-
 #: ``footprint_grids`` shares its vehicles out between threads only with at least this many pairs per thread: at 6
 #: vehicles (12 pairs) two threads measured slower than one (0.54-0.57 vs 0.41-0.52 ms per frame, the hand-off), at 18
 #: (44 pairs) faster (wall 1.97-2.65 vs 2.60-2.85 ms; CPU 2.65-3.41)
@@ -544,17 +551,18 @@ def footprint_bounds(x_c, y_c, nx, ny, offsets, cell_rows, used):
     return x_lo, x_hi, y_lo, y_hi
 
 
-def fuse_sorted(keys: list[np.ndarray], values: np.ndarray, n_cells: int):
-    """(sorted unique keys, per-key sums of ``values``) over the runs ``keys`` (each sorted and unique; ``values``
-    their concatenation), each sum in run order from 0.0; None where numba is missing or a run is not sorted and
-    unique in [0, ∞)."""
+def fuse_sorted(keys: list[np.ndarray], values: np.ndarray, n_cells: int, top: float):
+    """(sorted unique keys, per-key 1 − Π (1 − g)) over the runs ``keys`` (each sorted and unique; ``values`` their
+    concatenation, each g clipped to [0, ``top``]), each product in run order from 1.0 and a key of one term its g
+    itself (``rasterise.fuse``); None where numba is missing or a run is not sorted and unique in [0, ∞)."""
     if numba is None or n_cells <= 0:
         return None
     ptr = np.zeros(len(keys) + 1, np.int64)
     ptr[1:] = np.cumsum([k.shape[0] for k in keys])
     flat = np.concatenate(keys).astype(np.int64, copy=False) if keys else np.zeros(0, np.int64)
-    out_keys, sums, ok = _fuse_sorted(np.ascontiguousarray(flat), np.ascontiguousarray(values, dtype=np.float64), ptr, int(n_cells))
-    return (out_keys, sums) if ok else None
+    out_keys, fused, ok = _fuse_sorted(np.ascontiguousarray(flat), np.ascontiguousarray(values, dtype=np.float64), ptr, int(n_cells),
+                                       float(top))
+    return (out_keys, fused) if ok else None
 
 
 _warm = False
@@ -572,7 +580,7 @@ def warm_up() -> None:
     footprint_grids(box, box, box, box, np.zeros(1), np.ones(1), rows, np.ones((1, 1, 1), np.float32), np.ones(1), np.ones(1, np.bool_),
                     np.zeros((1, 1)), [[0]], -1.0, -1.0, 1.0, 2, 2, 1e-9, lat_rows=np.zeros((1, 1), np.int64))
     footprint_bounds(box, box, box, box, np.zeros(1), rows, np.ones((1, 1), np.bool_))
-    fuse_sorted([np.array([0, 3], np.int64), np.array([3], np.int64)], np.ones(3), 2)
+    fuse_sorted([np.array([0, 3], np.int64), np.array([3], np.int64)], np.full(3, 0.5), 2, 1.0 - 1e-7)
     add_running_sums(np.zeros(3), np.zeros(2), np.array([3], np.int64), np.zeros(3))
     blur_rows(np.ones((1, 3), np.float32), np.zeros(1, np.int64), np.array([[0.25, 0.5, 0.25]]), np.ones(1, np.int64), 1e-6)
     _warm = True
