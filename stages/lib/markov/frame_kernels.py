@@ -514,8 +514,13 @@ def footprint_grids(x_c, y_c, nx, ny, offsets, sample_weights, cell_rows, probs,
     n_parts = min(int(threads), len(members), sum(len(m) for m in members) // PAIRS_PER_THREAD)
     if n_parts <= 1:
         return run(members)
-    # work per vehicle: its pairs' (step, cell) entries with mass (each rasterised into the same number of samples)
-    per_pair = (args[7] > min_mass).sum(axis=(1, 2))
+    # work per vehicle: its pairs' samples, (step, cell) entries with mass times the samples of weight > 0 of the step's
+    # row (all of them without a lateral spread; with one, a wide step's row has several times a narrow one's)
+    entries = (args[7] > min_mass).sum(axis=2)  # (B, K)
+    if lat_rows is None:
+        per_pair = entries.sum(axis=1)
+    else:
+        per_pair = (entries * np.count_nonzero(weights, axis=1)[args[12]]).sum(axis=1)
     work = np.cumsum([int(per_pair[list(m)].sum()) if len(m) else 0 for m in members], dtype=np.float64)
     cuts = [0, *np.searchsorted(work, work[-1] * np.arange(1, n_parts) / n_parts, side="right").tolist(), len(members)]
     parts = [members[lo:hi] for lo, hi in zip(cuts[:-1], cuts[1:])]
