@@ -354,6 +354,9 @@ class MarkovPredictor:
         self._prepared_pairs: tuple[tuple, _PairsPhase] | None = None  # (corridor set, scene, track frame; ``prepare``'s pairs of them)
         #: the last chain phase's back test (``_back_test``'s arguments but the issues), done by ``idle``: off the frame's path
         self._back_test_pending: tuple | None = None
+        #: the last update's online spread learning (``_learn_spread``'s arguments but the issues), done by ``idle`` (or
+        #: first thing in the next update, pairs or chain phase): off the frame's path
+        self._learn_pending: tuple | None = None
         self._carried_issues: list[Issue] = []  # issues of work done by ``idle``: they go out with the next frame's
 
     # ----- entry points ---------------------------------------------------------
@@ -365,6 +368,7 @@ class MarkovPredictor:
         corridor_set = inputs.get("corridor_set")
         if not isinstance(corridor_set, CorridorSet):
             return StageResult(issues=[Issue("no_input", -1, "update without a corridor_set")])
+        self._learn_now()  # the last frame's online spread learning, if idle has not done it (outputs never depend on when)
         args = _frame_args(inputs)
         belief = inputs.get("intention_belief")
         belief = belief if isinstance(belief, IntentionBelief) else None
@@ -382,7 +386,8 @@ class MarkovPredictor:
             issues.append(Issue("profiles_port_unused", -1, "previous_profiles is bound but hybrid_profiles is not \"previous\" (or the mode"
                                 " is not hybrid): those profiles are not read; bind acceleration_profiles, or set hybrid_profiles"))
         scene, frame = args[2], args[3]
-        self._learn_spread(early.stamp, frame, prediction, issues)
+        if self.online is not None:  # learnt by idle, after this frame's outputs are out (its issues go with the next frame's)
+            self._learn_pending = (early.stamp, frame, prediction)
         self._log_initial_blend(early.stamp)
         h = corridor_set.header
         # the source frame's publish time (end-to-end latency): from the TrackFrame when joined, else as the corridors carried it
@@ -396,11 +401,13 @@ class MarkovPredictor:
         return StageResult(outputs=outputs, issues=issues)
 
     def idle(self) -> None:
-        """Work kept off the frames' critical path, done now: the online curve choice's back test of the last chain
+        """Work kept off the frames' critical path, done now: the online spread's learning from the last frame's
+        grids (``_learn_spread``: with ``spread_online``) and the online curve choice's back test of the last chain
         phase (``_back_test``: the chain again for a car and the other curve factors, every few frames). The runtime
         calls it when the stage's input queues are empty (after a frame's outputs are out); the next pairs or chain
-        phase calls it first otherwise, so what a frame predicts does not depend on when it ran. Its issues go out
-        with the next frame's."""
+        phase calls it first otherwise (the next update the learning), so what a frame predicts does not depend on
+        when it ran. Their issues go out with the next frame's."""
+        self._learn_now()
         pending, self._back_test_pending = self._back_test_pending, None
         if pending is not None:
             pairs, stamp, chained = pending
@@ -460,6 +467,12 @@ class MarkovPredictor:
         """The issues of ``idle``'s work since the last frame went out (they go out with this one)."""
         carried, self._carried_issues = self._carried_issues, []
         return carried
+
+    def _learn_now(self) -> None:
+        """The pending online spread learning of the last update (``_learn_spread``), if any."""
+        pending, self._learn_pending = self._learn_pending, None
+        if pending is not None:
+            self._learn_spread(*pending, self._carried_issues)
 
     def _learn_spread(self, stamp: int, track_frame: TrackFrame | None, prediction: FramePrediction, issues: list[Issue]) -> None:
         """The online spread (``online_spread.py``): the kept grids checked against this frame's positions, this
@@ -742,6 +755,7 @@ class MarkovPredictor:
         self._prepared_pairs = None
         self._recent_profiles.clear()
         self._back_test_pending = None  # its samples would be pending in the curve choice, which forgets those too
+        self._learn_pending = None  # (the online spread forgets its kept grids too)
         self._carried_issues = []
         if self.online is not None:
             self.online.reset()
@@ -1359,6 +1373,9 @@ class MarkovPredictor:
                               threads=cfg.kernel_threads, lateral=geo.get("lateral")) if n_b else []
         vehicle_grids_ = dict(zip(by_track.keys(), grids))
         start_speeds: dict[int, float] = {}
+        # the compiled call's arrays go to the fusion as they are, unless the grids are blurred one by one below
+        fuse_flat = getattr(grids, "flat", None) is not None and not (
+            (self.spread is not None or self.online is not None) and cfg.spread_shape == "isotropic")
         if self.spread is not None or self.online is not None:  # calibrated (spread.py) and online spread: each vehicle's
             isotropic = cfg.spread_shape == "isotropic"  # grid blurred per step and start-speed band (``along``: its
             for track, members in by_track.items():  # pairs' s-distributions were, in _finish_geometry)
@@ -1383,7 +1400,7 @@ class MarkovPredictor:
             grid_frame=frame,
             grid_distribution=cfg.grid_distribution if interval is not None or cfg.grid_distribution == "point" else "point",
             vehicle_grids=vehicle_grids_,
-            fused_grid=fuse(list(vehicle_grids_.values()), frame.n_cells),
+            fused_grid=fuse(grids if fuse_flat else list(vehicle_grids_.values()), frame.n_cells, threads=cfg.kernel_threads),
             min_grid_value=cfg.grid_min_value,
             max_cells_per_step=cfg.grid_max_cells_per_step,
             start_speeds_mps=start_speeds,

@@ -395,7 +395,7 @@ def vehicle_grids(
     threads: int = 1,
     lateral: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> list[SparseGrid]:
-    """``vehicle_grid`` of every vehicle, vehicle n of the pairs ``members[n]`` (``probs`` ``(B, K, L)``, ``corridor_weights``
+    """``vehicle_grid`` of every vehicle (a ``VehicleGrids`` from the compiled call), vehicle n of the pairs ``members[n]`` (``probs`` ``(B, K, L)``, ``corridor_weights``
     and ``lateral_shifts_m`` ``(B, K)`` per pair): in one compiled call (``frame_kernels.footprint_grids``: the same
     numbers, no Python per vehicle, no (B, L, P) sample arrays) where numba imports, else one ``vehicle_grid``
     per vehicle. tests/stages/test_markov_batched_outputs.py compares the two. ``threads``: the compiled call's vehicles shared
@@ -422,7 +422,9 @@ def vehicle_grids(
                              None if lateral_shifts_m is None else [shifts[b] for b in m], min_mass, [step_w[b] for b in m])
                 for m in members]
     keys, sums, ptr = found
-    return [SparseGrid(keys[ptr[n]:ptr[n + 1]], sums[ptr[n]:ptr[n + 1]]) for n in range(len(members))]
+    out = VehicleGrids(SparseGrid(keys[ptr[n]:ptr[n + 1]], sums[ptr[n]:ptr[n + 1]]) for n in range(len(members)))
+    out.flat = (keys, sums, ptr)
+    return out
 
 
 def lateral_table(sigmas_m: np.ndarray, base_sigma_m: float, cell_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
@@ -463,18 +465,31 @@ def sample_weight_rows(footprints: "FootprintBatch", lateral: tuple[np.ndarray, 
     return np.where(rows >= 0, rows, weights.shape[0] - 1), weights
 
 
-def fuse(grids: list[SparseGrid], n_cells: int = 0) -> SparseGrid:
+class VehicleGrids(list):
+    """``vehicle_grids``' list of grids, with ``flat``: (keys, values, ptr) of the one compiled call they are views of
+    (grid n: ``keys[ptr[n]:ptr[n + 1]]``), for ``fuse`` to take without joining them again; None on numpy's path."""
+
+    flat: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+
+def fuse(grids: list[SparseGrid], n_cells: int = 0, threads: int = 1) -> SparseGrid:
     """1 − Π_n (1 − G_n) over vehicles, cell by cell, each G clipped to [0, 1 − 1e-7]; a cell of one vehicle keeps
     its G. The product is taken directly, in vehicle order (1 − G is exact to 1e-16 absolute, so a fused value of
     1e-5, the MotionGrid's floor, is exact to 1e-11 relative, far below its float32; a sum of log1p terms cost a
     logarithm per term, most of the fusion's time with the spread on). With the grid's ``n_cells`` (keys k·n_cells
     + cell) step by step in one compiled call (``frame_kernels.fuse_sorted``, each grid's keys being sorted and
     unique); else the keys sorted stably (vehicle order within a cell) and reduced with numpy (the same products up
-    to numpy's order of multiplication)."""
+    to numpy's order of multiplication). ``threads``: the compiled call's ranges of steps on that many threads at most
+    (the same numbers). ``grids`` a ``VehicleGrids`` with ``flat``: its arrays are taken as they are (no copy)."""
     if not grids:
         return _reduce(np.zeros(0, np.int64), np.zeros(0))
+    flat = getattr(grids, "flat", None)
+    if flat is not None and n_cells > 0 and len(flat[2]) == len(grids) + 1:
+        found = frame_kernels.fuse_sorted(flat[0], flat[1], n_cells, 1.0 - _CLIP, threads, ptr=flat[2])
+        if found is not None:
+            return SparseGrid(*found)
     values = np.concatenate([g.values for g in grids])
-    found = frame_kernels.fuse_sorted([g.keys for g in grids], values, n_cells, 1.0 - _CLIP) if n_cells > 0 else None
+    found = frame_kernels.fuse_sorted([g.keys for g in grids], values, n_cells, 1.0 - _CLIP, threads) if n_cells > 0 else None
     if found is not None:
         return SparseGrid(*found)
     keys = np.concatenate([g.keys for g in grids]).astype(np.int64, copy=False)

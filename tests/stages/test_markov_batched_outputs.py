@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from stages.markov_prediction.rasterise import Centrelines, cell_footprints, cell_footprints_batch, lateral_kernel
 
@@ -153,6 +154,58 @@ def test_fuse_step_by_step_equals_the_product_over_every_key():
     mixed = fuse(shuffled, n_cells)
     np.testing.assert_array_equal(mixed.keys, fuse(shuffled).keys)
     np.testing.assert_array_equal(mixed.values, fuse(shuffled).values)
+
+
+def test_fuse_on_threads_gives_the_same_bytes(monkeypatch):
+    """frame_kernels.fuse_sorted with its steps shared out between threads (ranges of about equal terms) gives the
+    one-call fusion's keys and values bit for bit, also with empty grids and steps without terms; a run that is not
+    sorted, or one with a key out of order across a thread's range, still gives None (numpy's path)."""
+    from stages.lib.markov import frame_kernels
+    from stages.markov_prediction.rasterise import _CLIP, SparseGrid, fuse
+
+    if not frame_kernels.available():
+        pytest.skip("numba is not importable here")
+    monkeypatch.setattr(frame_kernels, "TERMS_PER_THREAD", 100)  # threads on small grids too
+    rng = np.random.default_rng(5)
+    n_cells, n_k = 3000, 12
+    grids = [SparseGrid(np.zeros(0, np.int64), np.zeros(0))]
+    for n in range(20):
+        keys = np.unique(rng.integers(0, n_k * n_cells, int(rng.integers(0, 2500))))
+        keys = keys[(keys // n_cells) != 4]  # a step without terms
+        grids.append(SparseGrid(keys, rng.uniform(0, 1, keys.size) * 10.0 ** rng.integers(-6, 1, keys.size)))
+    one = fuse(grids, n_cells, threads=1)
+    assert one.keys.size > 5000
+    for threads in (2, 3, 5):
+        many = fuse(grids, n_cells, threads=threads)
+        assert many.keys.tobytes() == one.keys.tobytes() and many.values.tobytes() == one.values.tobytes()
+    flat_keys = [g.keys for g in grids]
+    values = np.concatenate([g.values for g in grids])
+    # vehicle_grids' arrays as they are (VehicleGrids.flat: no joining again), the same bytes
+    from stages.markov_prediction.rasterise import VehicleGrids
+
+    ptr = np.concatenate(([0], np.cumsum([k.size for k in flat_keys])))
+    joined = VehicleGrids(grids)
+    joined.flat = (np.concatenate(flat_keys), values, ptr)
+    for threads in (1, 2):
+        got = fuse(joined, n_cells, threads=threads)
+        assert got.keys.tobytes() == one.keys.tobytes() and got.values.tobytes() == one.values.tobytes()
+    assert frame_kernels.fuse_sorted(joined.flat[0], values, n_cells, 1.0 - _CLIP, ptr=ptr[:-1]) is None  # ptr not the arrays'
+    assert frame_kernels.fuse_sorted(flat_keys, values, n_cells, 1.0 - _CLIP, threads=3) is not None
+    swapped = [k.copy() for k in flat_keys]
+    j = int(np.argmax([k.size for k in swapped]))
+    mid = swapped[j].size // 2
+    swapped[j][mid], swapped[j][mid + 1] = swapped[j][mid + 1], swapped[j][mid]  # one pair out of order
+    assert frame_kernels.fuse_sorted(swapped, values, n_cells, 1.0 - _CLIP, threads=3) is None
+    assert frame_kernels.fuse_sorted(swapped, values, n_cells, 1.0 - _CLIP, threads=1) is None
+    negative = [k.copy() for k in flat_keys]
+    negative[j][0] = -1
+    assert frame_kernels.fuse_sorted(negative, values, n_cells, 1.0 - _CLIP, threads=2) is None
+    far = [k.copy() for k in flat_keys]
+    far[j][mid] = far[j][-1] + 5 * n_cells  # larger than the run's last key, in its middle
+    assert frame_kernels.fuse_sorted(far, values, n_cells, 1.0 - _CLIP, threads=2) is None
+    mixed = fuse([SparseGrid(s, values[:s.size]) for s in swapped[j:j + 1]], n_cells, threads=2)  # numpy's path
+    want = fuse([SparseGrid(s, values[:s.size]) for s in swapped[j:j + 1]])
+    np.testing.assert_array_equal(mixed.keys, want.keys)
 
 
 def test_footprint_bounds_equal_min_max_of_used_samples():

@@ -11,7 +11,8 @@
 - ``fuse_sorted``: the fused grid, 1 − Π (1 − g) per cell over vehicles
   whose keys are each sorted and unique (``rasterise.fuse``): each cell's
   product in vehicle order, step by step through a table of the grid's
-  cells (in cache) instead of one over every key.
+  cells (in cache) instead of one over every key; ranges of steps on
+  threads of their own where there are many terms.
 - ``add_running_sums``: ``rasterise.unwrap_each``'s running sums of the corrections, every corridor's in one
   pass (np.cumsum's order).
 - ``blur_rows``: the s-distributions of the pairs blurred along their corridors (``spread.blur_along``), every
@@ -405,42 +406,60 @@ if numba is not None:
         return x_lo, x_hi, y_lo, y_hi, seen, nan
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
-    def _fuse_sorted(keys, values, ptr, n_cells, top):  # pragma: no cover - compiled
-        """Sorted unique keys of the runs ``keys[ptr[n]:ptr[n + 1]]`` (each sorted, unique, in [0, n_steps·n_cells)) and
-        each key's 1 − Π (1 − g) over its terms g = ``values`` clipped to [0, ``top``] (NaN stays NaN), the product
-        taken in run order from 1.0; a key of one term keeps its g (no rounding through 1 − g); ok False (nothing
-        else meaningful) when a run is not so."""
+    def _step_bounds(keys, ptr, n_cells, n_steps):  # pragma: no cover - compiled
+        """(n_runs, n_steps + 1): where each run ``keys[ptr[n]:ptr[n + 1]]`` (sorted) reaches k·n_cells, k = 0 … n_steps
+        (a binary search per run and step; on a run that is not sorted some index, which ``_fuse_steps`` then finds
+        out)."""
         n_runs = ptr.shape[0] - 1
-        total = keys.shape[0]
-        keys_out = np.empty(total, np.int64)
-        sums_out = np.empty(total, np.float64)
-        if total == 0:
-            return keys_out, sums_out, True
-        n_steps = 0
+        out = np.empty((n_runs, n_steps + 1), np.int64)
         for n in range(n_runs):
-            for j in range(ptr[n], ptr[n + 1]):
-                key = keys[j]
-                if key < 0 or (j > ptr[n] and key <= keys[j - 1]):
-                    return keys_out, sums_out, False
-            if ptr[n + 1] > ptr[n]:
-                n_steps = max(n_steps, keys[ptr[n + 1] - 1] // n_cells + 1)
-        cursor = ptr[:-1].copy()
+            lo0 = ptr[n]
+            for k in range(n_steps + 1):
+                target = k * n_cells
+                lo, hi = lo0, ptr[n + 1]
+                while lo < hi:
+                    mid = (lo + hi) >> 1
+                    if keys[mid] < target:
+                        lo = mid + 1
+                    else:
+                        hi = mid
+                out[n, k] = lo
+                lo0 = lo
+        return out
+
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _fuse_steps(keys, values, ptr, bounds, n_cells, top, k0, k1):  # pragma: no cover - compiled
+        """Steps k0 … k1 − 1 of the fusion (``fuse_sorted``): the sorted unique keys of those steps over the runs
+        ``keys[ptr[n]:ptr[n + 1]]`` (the part of run n in step k: ``bounds[n, k]`` to ``bounds[n, k + 1]``) and each
+        key's 1 − Π (1 − g) over its terms g = ``values`` clipped to [0, ``top``] (NaN stays NaN), the product taken in
+        run order from 1.0; a key of one term keeps its g (no rounding through 1 − g); ok False (nothing else
+        meaningful) when a run's part is not sorted and unique, or a key lies outside the step ``bounds`` put it in."""
+        n_runs = ptr.shape[0] - 1
+        size = 0
+        for n in range(n_runs):
+            for k in range(k0, k1):
+                for j in range(bounds[n, k], bounds[n, k + 1]):
+                    key = keys[j]
+                    if key < k * n_cells or key >= (k + 1) * n_cells or (j > ptr[n] and key <= keys[j - 1]):
+                        return np.empty(0, np.int64), np.empty(0, np.float64), False
+            size += bounds[n, k1] - bounds[n, k0]
+        keys_out = np.empty(size, np.int64)
+        sums_out = np.empty(size, np.float64)
+        if size == 0:
+            return keys_out, sums_out, True
         # per cell of a step: the product of its (1 − g) (from 1.0), its first g and its number of terms (0: none yet;
         # kept so between steps); the cells listed as they first come
         prod = np.ones(n_cells, np.float64)
         first = np.zeros(n_cells, np.float64)
         count = np.zeros(n_cells, np.int32)
-        uniq = np.empty(min(total, n_cells) + 1, np.int64)
+        uniq = np.empty(min(size, n_cells) + 1, np.int64)
         at = 0
-        for k in range(n_steps):
+        for k in range(k0, k1):
             base = k * n_cells
-            end = base + n_cells
             u = 0
             lo, hi = n_cells, -1
             for n in range(n_runs):  # in run order: each cell's terms in the order of the concatenated runs
-                j = cursor[n]
-                stop = ptr[n + 1]
-                while j < stop and keys[j] < end:
+                for j in range(bounds[n, k], bounds[n, k + 1]):
                     idx = keys[j] - base
                     g = values[j]
                     if g < 0.0:
@@ -454,8 +473,6 @@ if numba is not None:
                         u += 1
                     count[idx] += 1
                     lo, hi = min(lo, idx), max(hi, idx)
-                    j += 1
-                cursor[n] = j
             if u == 0:
                 continue
             if hi - lo + 1 <= 16 * u:  # a scan of the cells' range lists them in key order
@@ -556,18 +573,63 @@ def footprint_bounds(x_c, y_c, nx, ny, offsets, cell_rows, used):
     return x_lo, x_hi, y_lo, y_hi
 
 
-def fuse_sorted(keys: list[np.ndarray], values: np.ndarray, n_cells: int, top: float):
+#: ``fuse_sorted`` shares its steps out between threads only with at least this many terms per thread: below it the
+#: hand-off costs about what it saves (an 18-vehicle frame holds ~60k terms, ~490k with the calibrated spread)
+TERMS_PER_THREAD = 40_000
+
+
+def fuse_sorted(keys: list[np.ndarray] | np.ndarray, values: np.ndarray, n_cells: int, top: float, threads: int = 1,
+                ptr: np.ndarray | None = None):
     """(sorted unique keys, per-key 1 − Π (1 − g)) over the runs ``keys`` (each sorted and unique; ``values`` their
     concatenation, each g clipped to [0, ``top``]), each product in run order from 1.0 and a key of one term its g
-    itself (``rasterise.fuse``); None where numba is missing or a run is not sorted and unique in [0, ∞)."""
+    itself (``rasterise.fuse``); None where numba is missing or a run is not sorted and unique in [0, ∞).
+    ``threads`` > 1: the steps (keys k·n_cells … (k + 1)·n_cells − 1) are split into that many ranges of about equal
+    terms (at most one per ``TERMS_PER_THREAD``), each a call of its own on a thread of ``kernels._on_threads``, their
+    outputs put end to end: every cell's product is taken as in one call, so the numbers do not depend on it.
+    ``ptr`` given: ``keys`` is the runs end to end already (run n ``keys[ptr[n]:ptr[n + 1]]``), taken without a copy."""
     if numba is None or n_cells <= 0:
         return None
-    ptr = np.zeros(len(keys) + 1, np.int64)
-    ptr[1:] = np.cumsum([k.shape[0] for k in keys])
-    flat = np.concatenate(keys).astype(np.int64, copy=False) if keys else np.zeros(0, np.int64)
-    out_keys, fused, ok = _fuse_sorted(np.ascontiguousarray(flat), np.ascontiguousarray(values, dtype=np.float64), ptr, int(n_cells),
-                                       float(top))
-    return (out_keys, fused) if ok else None
+    if ptr is None:
+        ptr = np.zeros(len(keys) + 1, np.int64)
+        ptr[1:] = np.cumsum([k.shape[0] for k in keys])
+        flat = np.ascontiguousarray(np.concatenate(keys).astype(np.int64, copy=False) if len(keys) else np.zeros(0, np.int64))
+    else:
+        ptr = np.ascontiguousarray(ptr, dtype=np.int64)
+        flat = np.ascontiguousarray(keys, dtype=np.int64)
+        if ptr.shape[0] < 1 or ptr[0] != 0 or ptr[-1] != flat.shape[0] or np.any(np.diff(ptr) < 0):
+            return None
+    values = np.ascontiguousarray(values, dtype=np.float64)
+    total = int(ptr[-1])
+    if total == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.float64)
+    last = flat[ptr[1:][ptr[1:] > ptr[:-1]] - 1]  # each non-empty run's last key: its largest where it is sorted
+    if last.min() < 0:
+        return None
+    n_steps = int(last.max()) // int(n_cells) + 1
+    bounds = _step_bounds(flat, ptr, int(n_cells), n_steps)
+    if np.any(bounds[:, 0] != ptr[:-1]) or np.any(bounds[:, -1] != ptr[1:]):  # a key below 0 or past the largest last
+        return None
+    n_parts = max(1, min(int(threads), n_steps, total // TERMS_PER_THREAD))
+    if n_parts == 1:
+        cuts = [0, n_steps]
+    else:  # ranges of steps with about equal terms
+        work = np.cumsum((bounds[:, 1:] - bounds[:, :-1]).sum(axis=0), dtype=np.float64)
+        inner = np.searchsorted(work, work[-1] * np.arange(1, n_parts) / n_parts, side="right").tolist()
+        cuts = sorted({0, n_steps, *(min(max(c, 1), n_steps - 1) for c in inner)})
+    found: list = [None] * (len(cuts) - 1)
+
+    def run(i: int) -> None:
+        found[i] = _fuse_steps(flat, values, ptr, bounds, int(n_cells), float(top), cuts[i], cuts[i + 1])
+
+    if len(found) == 1:
+        run(0)
+    else:
+        kernels._on_threads(len(found), run, len(found))
+    if not all(f[2] for f in found):
+        return None
+    if len(found) == 1:
+        return found[0][0], found[0][1]
+    return np.concatenate([f[0] for f in found]), np.concatenate([f[1] for f in found])
 
 
 _warm = False
