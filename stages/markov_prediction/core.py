@@ -181,7 +181,11 @@ class FramePrediction:
 
     def _above_min(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int], np.ndarray]:
         """The fused grid's keys and values of the K steps, which are above ``min_grid_value``, each step's part
-        [bounds[k], bounds[k + 1]) of them (``SparseGrid.step``'s) and the cells above the minimum per step."""
+        [bounds[k], bounds[k + 1]) of them (``SparseGrid.step``'s) and the cells above the minimum per step. Computed
+        once per prediction (``grid_cells_over_cap`` and ``motion_grid`` both read it; neither changes it)."""
+        cached = self.__dict__.get("_above_min_cache")
+        if cached is not None:
+            return cached
         n_k, n_cells = self.step_times_s.shape[0], self.grid_frame.n_cells
         bounds = np.searchsorted(self.fused_grid.keys, np.arange(n_k + 1) * n_cells)
         keys = self.fused_grid.keys[bounds[0]:bounds[-1]]
@@ -189,7 +193,9 @@ class FramePrediction:
         bounds = bounds - bounds[0]
         keep = values > self.min_grid_value
         counted = np.concatenate(([0], np.cumsum(keep)))
-        return keys, values, keep, bounds.tolist(), counted[bounds[1:]] - counted[bounds[:-1]]
+        found = (keys, values, keep, bounds.tolist(), counted[bounds[1:]] - counted[bounds[:-1]])
+        object.__setattr__(self, "_above_min_cache", found)  # (a frozen dataclass: its fields stay as they are)
+        return found
 
     def grid_cells_over_cap(self) -> int:
         """Cells above ``min_grid_value`` that ``motion_grid`` leaves out for ``max_cells_per_step``, all steps."""
@@ -204,7 +210,10 @@ class FramePrediction:
         n_k = self.step_times_s.shape[0]
         keys, values, keep, bounds, counts = self._above_min()
         cap = self.max_cells_per_step
-        for k in np.flatnonzero(counts > cap).tolist() if cap else []:  # the step's highest cells only
+        over = np.flatnonzero(counts > cap).tolist() if cap else []
+        if over:
+            keep = keep.copy()  # (the cached mask stays as it was)
+        for k in over:  # the step's highest cells only
             lo, hi = bounds[k], bounds[k + 1]
             listed = np.flatnonzero(keep[lo:hi])
             top = listed[np.argsort(-values[lo:hi][listed], kind="stable")[:cap]]

@@ -170,8 +170,12 @@ def test_markov_prediction_grid_cap(big, big_relations):
     prediction, issues = MarkovPredictor(config).process(results[-1][0], big_relations, scene, frames[-1])
     assert [i.kind for i in issues].count("grid_capped") == 1
     header = Header(run_id="t", frame_index=0, stamp_ns=0, producer="markov_prediction")
+    over = prediction.grid_cells_over_cap()
     grid = prediction.motion_grid(header, scene.scene_id)
     assert all(len(step.values) <= 50 for step in grid.steps) and any(len(step.values) == 50 for step in grid.steps)
+    # the cells above the floor are found once per prediction: cutting one message leaves them as they were
+    assert prediction.motion_grid(header, scene.scene_id).encode() == grid.encode()
+    assert prediction.grid_cells_over_cap() == over > 0
 
 
 def test_max_corridors_per_vehicle_enforced(source, scene_maps):
