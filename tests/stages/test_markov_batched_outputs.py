@@ -232,6 +232,15 @@ def test_footprint_bounds_equal_min_max_of_used_samples():
     b, i = np.argwhere(used)[0]
     batch.centre_y[batch.rows[b, i], 0] = np.nan
     assert np.isnan(batch.bounds(used)[2])
+    # wide lateral kernels (the spread's, 31 offsets; read at each line's two ends) and many lines: still bit for bit
+    for sigma in (0.4, 1.5):
+        wide_offsets, wide_weights = lateral_kernel(sigma, 0.5)
+        many = _centrelines(rng, 40)
+        lower_many = np.stack([s[0] - 5.0 + 0.7 * np.arange(60, dtype=np.float64) for s, *_ in many])
+        wide = cell_footprints_arrays(Centrelines(*[list(a) for a in zip(*many)]), lower_many, 0.7, 4, wide_offsets, wide_weights)
+        used_many = rng.random((40, 60)) < 0.5
+        xm, ym = wide.x_m, wide.y_m
+        assert wide.bounds(used_many) == (np.min(xm[used_many]), np.max(xm[used_many]), np.min(ym[used_many]), np.max(ym[used_many]))
 
 
 def test_admissible_speeds_of_many_profiles_equal_one_at_a_time():

@@ -382,10 +382,18 @@ if numba is not None:
     @numba.njit(cache=True, nogil=True, boundscheck=False)
     def _footprint_bounds(x_c, y_c, nx, ny, offsets, cell_rows, used):  # pragma: no cover - compiled
         """(x min, x max, y min, y max, samples seen, a NaN seen) over the samples of the cells ``used[b, i]`` (a cell
-        without a row in ``cell_rows`` counts as NaN)."""
+        without a row in ``cell_rows`` counts as NaN). A footprint line of finite centre and normal, with the offsets
+        increasing and finite, is read at its two end samples only: x = xs + nxs·offset rounds monotonically in the
+        offset (a product and a sum, each correctly rounded), so its extremes are the ends' to the bit, and none of
+        its samples is NaN; any other line sample by sample."""
         x_lo, x_hi, y_lo, y_hi = np.inf, -np.inf, np.inf, -np.inf
         seen = 0
         nan = False
+        n_lat = offsets.shape[0]
+        ends_only = n_lat > 0 and np.isfinite(offsets[0]) and np.isfinite(offsets[n_lat - 1])
+        for lat in range(1, n_lat):
+            if not offsets[lat] > offsets[lat - 1]:
+                ends_only = False
         for b in range(used.shape[0]):
             for i in range(used.shape[1]):
                 if not used[b, i]:
@@ -396,7 +404,14 @@ if numba is not None:
                     continue
                 for sub in range(x_c.shape[1]):
                     xs, ys, nxs, nys = x_c[r, sub], y_c[r, sub], nx[r, sub], ny[r, sub]
-                    for lat in range(offsets.shape[0]):
+                    if ends_only and np.isfinite(xs) and np.isfinite(ys) and np.isfinite(nxs) and np.isfinite(nys):
+                        for lat in (0, n_lat - 1):
+                            x = xs + nxs * offsets[lat]
+                            y = ys + nys * offsets[lat]
+                            x_lo, x_hi, y_lo, y_hi = min(x_lo, x), max(x_hi, x), min(y_lo, y), max(y_hi, y)
+                        seen += n_lat
+                        continue
+                    for lat in range(n_lat):
                         x = xs + nxs * offsets[lat]
                         y = ys + nys * offsets[lat]
                         if np.isnan(x) or np.isnan(y):
