@@ -179,13 +179,11 @@ class FramePrediction:
             predictions=tuple(out),
         )
 
+    @functools.cached_property
     def _above_min(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int], np.ndarray]:
         """The fused grid's keys and values of the K steps, which are above ``min_grid_value``, each step's part
-        [bounds[k], bounds[k + 1]) of them (``SparseGrid.step``'s) and the cells above the minimum per step. Computed
+        [bounds[k], bounds[k + 1]) of them (``SparseGrid.step``'s) and the cells above the minimum per step. Found
         once per prediction (``grid_cells_over_cap`` and ``motion_grid`` both read it; neither changes it)."""
-        cached = self.__dict__.get("_above_min_cache")
-        if cached is not None:
-            return cached
         n_k, n_cells = self.step_times_s.shape[0], self.grid_frame.n_cells
         bounds = np.searchsorted(self.fused_grid.keys, np.arange(n_k + 1) * n_cells)
         keys = self.fused_grid.keys[bounds[0]:bounds[-1]]
@@ -193,22 +191,20 @@ class FramePrediction:
         bounds = bounds - bounds[0]
         keep = values > self.min_grid_value
         counted = np.concatenate(([0], np.cumsum(keep)))
-        found = (keys, values, keep, bounds.tolist(), counted[bounds[1:]] - counted[bounds[:-1]])
-        object.__setattr__(self, "_above_min_cache", found)  # (a frozen dataclass: its fields stay as they are)
-        return found
+        return keys, values, keep, bounds.tolist(), counted[bounds[1:]] - counted[bounds[:-1]]
 
     def grid_cells_over_cap(self) -> int:
         """Cells above ``min_grid_value`` that ``motion_grid`` leaves out for ``max_cells_per_step``, all steps."""
         if not self.max_cells_per_step:
             return 0
-        counts = self._above_min()[4]
+        counts = self._above_min[4]
         return int(np.maximum(counts - self.max_cells_per_step, 0).sum())
 
     def motion_grid(self, header: Header, scene_id: str) -> MotionGrid:
         """The ``MotionGrid`` message: the fused grid, cells above ``min_grid_value``, one COO layer per step."""
         frame = self.grid_frame
         n_k = self.step_times_s.shape[0]
-        keys, values, keep, bounds, counts = self._above_min()
+        keys, values, keep, bounds, counts = self._above_min
         cap = self.max_cells_per_step
         over = np.flatnonzero(counts > cap).tolist() if cap else []
         if over:
@@ -1382,9 +1378,7 @@ class MarkovPredictor:
                               threads=cfg.kernel_threads, lateral=geo.get("lateral")) if n_b else []
         vehicle_grids_ = dict(zip(by_track.keys(), grids))
         start_speeds: dict[int, float] = {}
-        # the compiled call's arrays go to the fusion as they are, unless the grids are blurred one by one below
-        fuse_flat = getattr(grids, "flat", None) is not None and not (
-            (self.spread is not None or self.online is not None) and cfg.spread_shape == "isotropic")
+        to_fuse = grids  # (a VehicleGrids: the fusion takes the compiled call's arrays as they are, unless blurred below)
         if self.spread is not None or self.online is not None:  # calibrated (spread.py) and online spread: each vehicle's
             isotropic = cfg.spread_shape == "isotropic"  # grid blurred per step and start-speed band (``along``: its
             for track, members in by_track.items():  # pairs' s-distributions were, in _finish_geometry)
@@ -1392,6 +1386,8 @@ class MarkovPredictor:
                 start_speeds[track] = _start_speed(p)
                 if isotropic:
                     vehicle_grids_[track] = blur_grid(frame, vehicle_grids_[track], self._sigmas(start_speeds[track], p.speed_noise_mps))
+            if isotropic:
+                to_fuse = list(vehicle_grids_.values())
         infos = tuple(PairInfo(p.track_id, p.corridor_id, p.probability, p.s0_m, p.s_first_m, p.end_s_m) for p in pairs)
         return FramePrediction(
             mode=cfg.mode,
@@ -1409,7 +1405,7 @@ class MarkovPredictor:
             grid_frame=frame,
             grid_distribution=cfg.grid_distribution if interval is not None or cfg.grid_distribution == "point" else "point",
             vehicle_grids=vehicle_grids_,
-            fused_grid=fuse(grids if fuse_flat else list(vehicle_grids_.values()), frame.n_cells, threads=cfg.kernel_threads),
+            fused_grid=fuse(to_fuse, frame.n_cells, threads=cfg.kernel_threads),
             min_grid_value=cfg.grid_min_value,
             max_cells_per_step=cfg.grid_max_cells_per_step,
             start_speeds_mps=start_speeds,

@@ -423,23 +423,15 @@ if numba is not None:
     @numba.njit(cache=True, nogil=True, boundscheck=False)
     def _step_bounds(keys, ptr, n_cells, n_steps):  # pragma: no cover - compiled
         """(n_runs, n_steps + 1): where each run ``keys[ptr[n]:ptr[n + 1]]`` (sorted) reaches k·n_cells, k = 0 … n_steps
-        (a binary search per run and step; on a run that is not sorted some index, which ``_fuse_steps`` then finds
-        out)."""
+        (np.searchsorted from the step before's place, so they never decrease; on a run that is not sorted some index,
+        which ``_fuse_steps`` then finds out)."""
         n_runs = ptr.shape[0] - 1
         out = np.empty((n_runs, n_steps + 1), np.int64)
         for n in range(n_runs):
-            lo0 = ptr[n]
+            lo = ptr[n]
             for k in range(n_steps + 1):
-                target = k * n_cells
-                lo, hi = lo0, ptr[n + 1]
-                while lo < hi:
-                    mid = (lo + hi) >> 1
-                    if keys[mid] < target:
-                        lo = mid + 1
-                    else:
-                        hi = mid
+                lo += np.searchsorted(keys[lo:ptr[n + 1]], k * n_cells)
                 out[n, k] = lo
-                lo0 = lo
         return out
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
@@ -636,10 +628,7 @@ def fuse_sorted(keys: list[np.ndarray] | np.ndarray, values: np.ndarray, n_cells
     def run(i: int) -> None:
         found[i] = _fuse_steps(flat, values, ptr, bounds, int(n_cells), float(top), cuts[i], cuts[i + 1])
 
-    if len(found) == 1:
-        run(0)
-    else:
-        kernels._on_threads(len(found), run, len(found))
+    kernels._on_threads(len(found), run, len(found))  # (one range: on this thread, no pool)
     if not all(f[2] for f in found):
         return None
     if len(found) == 1:
