@@ -106,6 +106,39 @@ def test_dataset_cache_round_trip(tmp_path):
     assert again.counts == built.counts and again.sequences == built.sequences
 
 
+def test_two_trainings_writing_one_cached_dataset_at_once_both_succeed(tiny, tmp_path, monkeypatch):
+    """Two ``iamp train`` runs that build the same cached data set (bench/generalisation.py's directions in parallel)
+    both write it; once both have written, both rename: each from a file of its own (a shared temporary name had the
+    second rename fail with FileNotFoundError), and the cache holds the data set, nothing else."""
+    import threading
+
+    both_written = threading.Barrier(2, timeout=30)
+    real_write = ARDataset._write
+
+    def write_then_wait(self, handle):
+        real_write(self, handle)
+        both_written.wait()
+
+    monkeypatch.setattr(ARDataset, "_write", write_then_wait)
+    path = tmp_path / f"ar_dataset_{tiny.key}.npz"
+    errors: list[BaseException] = []
+
+    def save() -> None:
+        try:
+            tiny.save(path)
+        except BaseException as exc:  # noqa: BLE001 - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=save) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == []
+    assert [p.name for p in tmp_path.iterdir()] == [path.name]
+    assert np.array_equal(ARDataset.load(path).x, tiny.x)
+
+
 def test_position_noise_jitters_the_features_not_the_targets(tiny):
     noisy_cfg = dataclasses.replace(TINY, position_noise_m=0.5, noise_seed=3)
     assert dataset_key(noisy_cfg) != dataset_key(TINY)

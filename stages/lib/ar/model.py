@@ -43,6 +43,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -226,9 +228,15 @@ def save_model(path: str | Path, model: ARModel) -> Path:
         "state_dict": {k: v.detach().cpu().clone() for k, v in model.net.state_dict().items()},
         "metadata_json": json.dumps(json_safe(model.metadata), sort_keys=True),
     }
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(payload, tmp)
-    tmp.replace(path)
+    # a temporary file of its own (two runs saving one path at once: the last rename wins, neither fails)
+    fd, tmp_name = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    tmp = Path(tmp_name)
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            torch.save(payload, handle)
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
     return path
 
 

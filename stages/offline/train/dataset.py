@@ -82,6 +82,8 @@ import dataclasses
 import hashlib
 import json
 import math
+import os
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -266,14 +268,24 @@ class ARDataset:
 
     def save(self, path: Path) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp.npz")
+        # a temporary file of its own: two trainings that build the same cached data set at once each write their
+        # own and the last rename wins (the same contents), instead of one renaming the other's away
+        fd, tmp_name = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+        tmp = Path(tmp_name)
+        try:
+            with os.fdopen(fd, "wb") as handle:
+                self._write(handle)
+            tmp.replace(path)
+        finally:
+            tmp.unlink(missing_ok=True)  # (gone after the rename; left only by a failed write)
+
+    def _write(self, handle) -> None:
         np.savez_compressed(
-            tmp,
+            handle,
             x=self.x, mask=self.mask, y=self.y, y_mask=self.y_mask, weight=self.weight, recording=self.recording, sequence=self.sequence, track_id=self.track_id,
             corridor_id=self.corridor_id, stamp_ns=self.stamp_ns, sequence_spans=self.sequence_spans,
             meta=np.array(json.dumps({"recordings": self.recordings, "sequences": self.sequences, "counts": self.counts, "key": self.key})),
         )
-        tmp.replace(path)
 
     @classmethod
     def load(cls, path: Path) -> "ARDataset":
