@@ -7,11 +7,13 @@ runtime publishes the outputs and logs and counts the issues.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import math
 import os
 import types
 import typing
+import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -75,6 +77,27 @@ def check_output_arg(parser: "argparse.ArgumentParser", path: str | Path | None,
         check_output(path, flag, folder=folder)
     except ConfigError as exc:
         parser.error(str(exc))
+
+
+@contextlib.contextmanager
+def atomic_write(path: str | Path) -> typing.Iterator[typing.BinaryIO]:
+    """A binary file handle whose contents become ``path`` only when the block ends without an exception: written to
+    a file of its own beside ``path`` (folders created; the permissions of any new file), flushed to disk, then
+    renamed over ``path``. Two writers of one path at once (two trainings building one cached data set) each write
+    their own file and the last rename wins; a reader never sees half a file; a failure leaves ``path`` as it was and
+    no temporary file behind."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.{uuid.uuid4().hex[:12]}.tmp")
+    try:
+        with open(tmp, "xb") as handle:
+            yield handle
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def _type_ok(value: Any, tp: Any) -> tuple[bool, Any]:

@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
+from stages.lib.base import atomic_write
 from stages.lib.markov import frame_kernels
 from stages.markov_prediction.rasterise import GridFrame, SparseGrid, gaussian_rows
 
@@ -138,9 +139,9 @@ def load_spread(path: str, mode: str, n_steps: int, shape: str = "isotropic") ->
 
 
 def write_spread(path: Path, tables: dict[str, SpreadTable], fitted_on: dict[str, Any]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
     blob = {"schema": SCHEMA, "modes": {m: t.as_dict() for m, t in tables.items()}, "fitted_on": fitted_on}
-    path.write_text(json.dumps(blob, indent=2) + "\n")
+    with atomic_write(path) as handle:  # (a stage starting meanwhile reads the old table or the new, never half of one)
+        handle.write((json.dumps(blob, indent=2) + "\n").encode())
 
 
 def _blocking(frame: GridFrame, sigma_m: float) -> tuple[float, int, int]:

@@ -74,3 +74,28 @@ def test_the_recorder_names_its_path_parameter_when_the_folder_cannot_be_made(tm
         McapRecorder(RecorderConfig(path=f"{UNCREATABLE}/run.mcap"), run_id="badpath")
     with pytest.raises(ConfigError, match=r"^path .*: is a folder; expected a file name$"):
         McapRecorder(RecorderConfig(path=str(tmp_path)), run_id="badpath")
+
+
+def test_atomic_write_replaces_whole_or_not_at_all(tmp_path):
+    """``atomic_write``: the file appears only when the block ends, a failure leaves the old contents and no
+    temporary file, folders are made, and a new file gets the permissions any new file gets (not a temporary
+    file's 0600: model weights and tables are read by other users' stages)."""
+    import os
+    import stat
+
+    from stages.lib.base import atomic_write
+
+    path = tmp_path / "deep" / "table.json"
+    with atomic_write(path) as handle:
+        handle.write(b"old")
+        assert not path.exists()  # not before the block ends
+    assert path.read_bytes() == b"old"
+    with pytest.raises(RuntimeError, match="mid-write"):
+        with atomic_write(path) as handle:
+            handle.write(b"half")
+            raise RuntimeError("mid-write")
+    assert path.read_bytes() == b"old" and sorted(p.name for p in path.parent.iterdir()) == ["table.json"]
+    umask = os.umask(0)
+    os.umask(umask)
+    (tmp_path / "plain").write_bytes(b"x")
+    assert stat.S_IMODE(path.stat().st_mode) == stat.S_IMODE((tmp_path / "plain").stat().st_mode) == 0o666 & ~umask

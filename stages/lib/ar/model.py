@@ -43,8 +43,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -52,7 +50,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from stages.lib.base import json_safe
+from stages.lib.base import atomic_write, json_safe
 
 from stages.lib.ar.features import FEATURE_NAMES, HISTORY_STEPS, HORIZON_STEPS, STEP_S
 
@@ -228,15 +226,8 @@ def save_model(path: str | Path, model: ARModel) -> Path:
         "state_dict": {k: v.detach().cpu().clone() for k, v in model.net.state_dict().items()},
         "metadata_json": json.dumps(json_safe(model.metadata), sort_keys=True),
     }
-    # a temporary file of its own (two runs saving one path at once: the last rename wins, neither fails)
-    fd, tmp_name = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    tmp = Path(tmp_name)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            torch.save(payload, handle)
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with atomic_write(path) as handle:
+        torch.save(payload, handle)
     return path
 
 

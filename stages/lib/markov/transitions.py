@@ -32,13 +32,13 @@ from __future__ import annotations
 import enum
 import logging
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
 
+from stages.lib.base import atomic_write
 from stages.lib.markov.grid import MarkovGridConfig
 
 logger = logging.getLogger("iamp.markov")
@@ -288,7 +288,7 @@ _KIND_PREFIX = {TransitionKind.TIME_POINT: "point", TransitionKind.TIME_INTERVAL
 
 
 def save_stencils(stencils: TransitionStencils, path: str | os.PathLike[str]) -> None:
-    """Write ``stencils`` to ``path`` atomically (temporary file in the same folder, then ``os.replace``).
+    """Write ``stencils`` to ``path`` atomically (``stages.lib.base.atomic_write``: a file of its own, then renamed).
 
     Each kind is stored as parallel arrays of its non-zero entries:
     ``<kind>_alpha, <kind>_v_from, <kind>_ds_cells, <kind>_v_to`` (int16) and
@@ -296,7 +296,6 @@ def save_stencils(stencils: TransitionStencils, path: str | os.PathLike[str]) ->
     ``kernel_shape``. No object arrays, so it loads with ``allow_pickle=False``.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     arrays: dict[str, np.ndarray] = {
         "format_version": np.array(CACHE_FORMAT_VERSION, dtype=np.int64),
         "params_json": np.array(stencils.config.params_json()),
@@ -310,19 +309,8 @@ def save_stencils(stencils: TransitionStencils, path: str | os.PathLike[str]) ->
         arrays[f"{prefix}_ds_cells"] = ds_cells.astype(np.int16)
         arrays[f"{prefix}_v_to"] = v_to.astype(np.int16)
         arrays[f"{prefix}_prob"] = kernel[alpha, v_to, v_from, ds_cells]
-    fd, tmp_name = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            np.savez(handle, **arrays)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp_name, path)
-    except BaseException:
-        try:
-            os.unlink(tmp_name)
-        except FileNotFoundError:
-            pass
-        raise
+    with atomic_write(path) as handle:
+        np.savez(handle, **arrays)
 
 
 def load_stencils(path: str | os.PathLike[str], config: MarkovGridConfig) -> TransitionStencils:

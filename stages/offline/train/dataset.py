@@ -76,14 +76,12 @@ built).
 
 from __future__ import annotations
 
-from stages.lib.base import progress_bar
+from stages.lib.base import atomic_write, progress_bar
 
 import dataclasses
 import hashlib
 import json
 import math
-import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -267,17 +265,8 @@ class ARDataset:
         )
 
     def save(self, path: Path) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        # a temporary file of its own: two trainings that build the same cached data set at once each write their
-        # own and the last rename wins (the same contents), instead of one renaming the other's away
-        fd, tmp_name = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-        tmp = Path(tmp_name)
-        try:
-            with os.fdopen(fd, "wb") as handle:
-                self._write(handle)
-            tmp.replace(path)
-        finally:
-            tmp.unlink(missing_ok=True)  # (gone after the rename; left only by a failed write)
+        with atomic_write(path) as handle:  # (two trainings building one cached data set at once: both succeed)
+            self._write(handle)
 
     def _write(self, handle) -> None:
         np.savez_compressed(
