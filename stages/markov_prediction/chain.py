@@ -228,7 +228,10 @@ class PriorityPropagator(MarkovPropagator):
                                    restriction._args[1].shape[0])
 
     def run(self, p0: Any, inputs: Any = None, *, n_steps: int | None = None, with_interval: bool = False,
-            with_final_state: bool = False, initial_outside: np.ndarray | None = None) -> PropagationResult:
+            with_final_state: bool = False, initial_outside: np.ndarray | None = None, skip: np.ndarray | None = None) -> PropagationResult:
+        """``MarkovPropagator.run``; ``skip`` (B,) bool: pairs whose results the caller will not read (a standing vehicle
+        that surely stays): the compiled one-call path leaves them out and gives them zeros (no mass anywhere), the
+        other paths run them as every pair."""
         k_steps = self.config.n_steps if n_steps is None else int(n_steps)
         if not self._one_call(p0, inputs, k_steps, with_final_state):
             return super().run(p0, inputs, n_steps=n_steps, with_interval=with_interval, with_final_state=with_final_state,
@@ -255,11 +258,15 @@ class PriorityPropagator(MarkovPropagator):
             except Exception as exc:  # noqa: BLE001 - a GPU failing mid-run (driver, memory) must not cost the frame
                 self.gpu_failures.append(f"{self.chain_device}: {type(exc).__name__}: {exc}: the chain runs on the CPU from now on")
                 self.chain_device = None
+        left = None  # the pairs the CPU kernel left out (the GPU runs every pair)
         if out is None:
-            out = kernels.speed_priority_run(*args, threads=self.kernel_threads)
+            left = None if skip is None else np.asarray(skip, dtype=np.bool_)
+            out = kernels.speed_priority_run(*args, threads=self.kernel_threads, skip=left)
         pos, vel, ipos, outside, ioutside, pruned, totals = out
+        last = outside[:, -1] if k_steps else outside0
+        if left is not None:
+            totals[left] = 1.0 - last[left]  # (not run: no mass to account for)
         return PropagationResult(
             position_probs=pos, velocity_probs=vel, interval_position_probs=ipos, outside_mass=outside,
-            interval_outside_mass=ioutside, pruned_mass=pruned, final_state=None,
-            mass_error=mass_error(totals, outside[:, -1] if k_steps else outside0, None),
+            interval_outside_mass=ioutside, pruned_mass=pruned, final_state=None, mass_error=mass_error(totals, last, None),
         )

@@ -1218,7 +1218,14 @@ class MarkovPredictor:
         p0 = self._initial(pairs, inputs.initial())
         members = np.arange(n_b)
         steps = inputs.fixed_steps()
-        result = self.propagator.run(p0, inputs.step if steps is None else steps, with_interval=inputs.with_interval)
+        # a standing vehicle that surely stays (float32 stay probability 1 at every step: _mix_standstill weighs its
+        # chain by exactly 0) needs no chain: the compiled path leaves it out (the same numbers)
+        kw = {}
+        if isinstance(self.propagator, PriorityPropagator):
+            frozen = np.all(stay_probabilities(pairs, self.step_times_s).astype(np.float32) == 1.0, axis=1)
+            if frozen.any():
+                kw["skip"] = frozen
+        result = self.propagator.run(p0, inputs.step if steps is None else steps, with_interval=inputs.with_interval, **kw)
         self._report_gpu(issues)
         pos, vel, interval, outside = self._mix_standstill(
             pairs, members, p0.position_probs, result.position_probs, result.velocity_probs,

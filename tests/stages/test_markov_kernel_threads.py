@@ -39,9 +39,9 @@ def test_threaded_chain_equals_the_single_thread_chain_on_real_frames(frames, mo
     calls = []
     real = kernels.speed_priority_run
 
-    def spy(*args, threads=1):
+    def spy(*args, threads=1, **kw):
         calls.append((args[0][0].shape[0], threads))
-        return real(*args, threads=threads)
+        return real(*args, threads=threads, **kw)
 
     monkeypatch.setattr(kernels, "speed_priority_run", spy)
     grid_calls = []
@@ -70,3 +70,48 @@ def test_threaded_chain_equals_the_single_thread_chain_on_real_frames(frames, mo
     assert {t for _, t in grid_calls} == {1, 2, 3} and max(n for n, _ in grid_calls) > 3  # vehicles to share out
     assert len(runs) > len(grid_calls)  # some calls were split into runs on several threads
     assert outputs[2] == outputs[1] and outputs[3] == outputs[1]
+
+
+@pytest.fixture(scope="module")
+def every_frame(tmp_path_factory):
+    """Every one of the first 25 frames of ``frames``' recording, in order (standing vehicles stay or start from one to
+    the next)."""
+    return dense_frames_with_profiles(36, 25, tmp_path_factory.mktemp("dense_all"), lambda n: True)
+
+
+@pytest.mark.skipif(not kernels.available(), reason="numba does not import")
+def test_pairs_that_surely_stay_skip_the_chain_and_the_bytes_stay(every_frame, monkeypatch):
+    """A standing vehicle whose stay probability is 1 in float32 at every step (its start rate ~0: no leader, or a
+    standing one) has its chain weighed by exactly 0 (``_mix_standstill``): the compiled call leaves it out (zeros,
+    no mass-conservation warning), and the MotionGrid and CorridorPredictions bytes are those of running it."""
+    stencils = load_or_build_stencils(MarkovGridConfig())
+    real = kernels.speed_priority_run
+    skipped = []
+
+    def spy(*args, skip=None, **kw):
+        out = real(*args, skip=skip, **kw)
+        if skip is not None and skip.any():
+            skipped.append(int(skip.sum()))
+            assert not out[0][skip].any() and not out[1][skip].any() and not out[3][skip].any()  # no mass, none outside
+            assert (out[-1][~skip] > 0.5).all()  # the others ran
+        return out
+
+    monkeypatch.setattr(kernels, "speed_priority_run", spy)
+
+    def outputs():
+        predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid"), stencils=stencils)
+        got = []
+        for item, profiles in every_frame:
+            prediction, issues = predictor.process(item.corridor_set, item.relation_set, item.scene, item.frame,
+                                                   intention_belief=item.belief, acceleration_profiles=profiles)
+            h = item.corridor_set.header
+            got.append((prediction.corridor_predictions(h, item.corridor_set.scene_id).encode(),
+                        prediction.motion_grid(h, item.corridor_set.scene_id).encode(), sorted(i.kind for i in issues)))
+        return got
+
+    with_skip = outputs()
+    assert sum(skipped) >= 5  # the frames hold such vehicles
+    real_run = PriorityPropagator.run
+    monkeypatch.setattr(PriorityPropagator, "run", lambda self, *a, skip=None, **kw: real_run(self, *a, **kw))  # every pair run
+    skipped.clear()
+    assert outputs() == with_skip and not skipped

@@ -781,7 +781,7 @@ if numba is not None:
         z = np.empty(n_states, f32)
         acc = np.empty(n_states, f32)
         for blk in blocks:
-            n_live = min(n_ln, n_b - blk)
+            n_live = min(n_ln, order.shape[0] - blk)
             first, last, v_first, v_last = -1, -1, -1, -1
             for ln in range(n_ln):
                 b = order[blk + ln] if ln < n_live else -1
@@ -973,7 +973,7 @@ def priority_occupied(slab, s_idx, v_idx, b_idx, lam, psi, factors):
 
 
 def speed_priority_run(state, outside0, tables, n_steps, with_interval, threshold, psi, restriction, preferences, has_input,
-                       forbid_threshold, threads=1):
+                       forbid_threshold, threads=1, skip=None):
     """A whole run of the hybrid chain in one compiled call: Υ(τ) (and Υ([0, τ])), pruning with the pruned mass put back,
     then after step k (where ``has_input[k]``) Γ = colnorm(diag(λ) Ψ) with λ = ``restriction``'s priority for the
     preference ``preferences[k]`` (B, M) at the states holding mass (``SpeedRestriction.priority_at_states``); where
@@ -991,7 +991,8 @@ def speed_priority_run(state, outside0, tables, n_steps, with_interval, threshol
     (B,) float32, ``tables`` as for ``fused_step``, ``psi`` (M, M), ``preferences`` (K, B, M); ``threads`` (>= 1): the
     blocks are shared out between that many threads (the caller and a pool kept per count), each taking the next block
     when free; every block writes only its own pairs' rows (of the outputs and of ``restriction``'s caches), so the
-    numbers do not depend on it (tests/stages/test_markov_kernel_threads.py).
+    numbers do not depend on it (tests/stages/test_markov_kernel_threads.py). ``skip`` (B,) bool: pairs left out of the
+    blocks (their outputs zeros, their total 0), for pairs whose chain the caller weighs by 0.
     Returns position (B, K, N_s), velocity (B, K, N_v), interval position (B, K, N_s) or None, outside (B, K),
     interval outside (B, K) or None, pruned mass (B, K), float32, and the final totals (B,) float64."""
     ptr, v_to, offset, weight, iptr, ioffset, iweight = tables
@@ -1001,6 +1002,8 @@ def speed_priority_run(state, outside0, tables, n_steps, with_interval, threshol
     n_s, n_v = pos0.shape[1], vel0.shape[1]
     # pairs of similar speed and place side by side: a block of them occupies fewer cells together
     order = np.lexsort((np.argmax(pos0 > 0, axis=1), vel0 @ np.arange(n_v, dtype=np.float32))).astype(np.int64)
+    if skip is not None:  # pairs whose chain nobody reads: left out of the blocks, their outputs zeros
+        order = order[~np.asarray(skip, dtype=np.bool_)[order]]
     f32 = np.float32
     outputs = (np.zeros((n_b, n_steps, n_s), f32), np.zeros((n_b, n_steps, n_v), f32),
                np.zeros((n_b, n_steps if with_interval else 0, n_s), f32), np.zeros((n_b, n_steps), f32), np.zeros((n_b, n_steps), f32),
@@ -1009,7 +1012,7 @@ def speed_priority_run(state, outside0, tables, n_steps, with_interval, threshol
             iweight, bool(with_interval), f32(threshold), np.ascontiguousarray(psi, dtype=f32),
             np.ascontiguousarray(preferences, dtype=f32).reshape(n_steps, n_b, n_in), np.asarray(has_input, dtype=np.bool_),
             f32(forbid_threshold), *restriction._args, restriction._values, restriction._done, *outputs)
-    blocks = np.arange(0, n_b, _LANES, dtype=np.int64)
+    blocks = np.arange(0, order.shape[0], _LANES, dtype=np.int64)
     n_threads = min(int(threads), blocks.shape[0])
     if n_threads <= 1:
         _speed_priority_blocks(blocks, *args)
