@@ -89,7 +89,10 @@ corridor: none within ``standstill_leader_gap_m``, standing, faster than
 ``standstill_leader_moving_mps``; a fourth rate for a car standing inside
 an intersection or less than ``standstill_intersection_m`` before its entry;
 default 0, 0, 1.7, 1.0 /s: a car stays unless its leader pulls away or it
-waits at the intersection for a gap).
+waits at the intersection for a gap). A rate of 0 is kept at 1e-9 /s, whose
+P_stay is exactly 1 in float32 at every step: the chain of such a pair is
+weighed by exactly 0, so the compiled chain call leaves it out
+(``kernels.speed_priority_run(skip=...)``; the same outputs, byte for byte).
 
 Calibrated spread (``spread_calibration``, off by default): a file written
 by ``iamp calibrate`` gives, per mode, start-speed band and step, the σ of
