@@ -1216,28 +1216,23 @@ class MarkovPredictor:
                     "outside": np.zeros((0, n_k), np.float32), "exact_s": None}
         inputs = self.model.start(pairs, issues)
         p0 = self._initial(pairs, inputs.initial())
-        members = np.arange(n_b)
         steps = inputs.fixed_steps()
+        stay = stay_probabilities(pairs, self.step_times_s)  # (B, K) P_stay of standing vehicles, 0 for moving ones
         # a standing vehicle that surely stays (float32 stay probability 1 at every step: _mix_standstill weighs its
         # chain by exactly 0) needs no chain: the compiled path leaves it out (the same numbers)
-        kw = {}
-        if isinstance(self.propagator, PriorityPropagator):
-            frozen = np.all(stay_probabilities(pairs, self.step_times_s).astype(np.float32) == 1.0, axis=1)
-            if frozen.any():
-                kw["skip"] = frozen
-        result = self.propagator.run(p0, inputs.step if steps is None else steps, with_interval=inputs.with_interval, **kw)
+        frozen = np.all(stay.astype(np.float32) == 1.0, axis=1)
+        result = self.propagator.run(p0, inputs.step if steps is None else steps, with_interval=inputs.with_interval,
+                                     skip=frozen if frozen.any() else None)
         self._report_gpu(issues)
         pos, vel, interval, outside = self._mix_standstill(
-            pairs, members, p0.position_probs, result.position_probs, result.velocity_probs,
-            result.interval_position_probs, result.outside_mass,
+            stay, p0.position_probs, result.position_probs, result.velocity_probs, result.interval_position_probs, result.outside_mass,
         )
         while (m := inputs.rerun({"position": pos, "velocity": vel, "interval": interval, "outside": outside})) is not None:
             sub = SeparableState(input_probs=p0.input_probs[m], velocity_probs=p0.velocity_probs[m], position_probs=p0.position_probs[m])
             again = self.propagator.run(sub, inputs.step, with_interval=inputs.with_interval)
             self._report_gpu(issues)
             mixed = self._mix_standstill(
-                pairs, m, sub.position_probs, again.position_probs, again.velocity_probs,
-                again.interval_position_probs, again.outside_mass,
+                stay[m], sub.position_probs, again.position_probs, again.velocity_probs, again.interval_position_probs, again.outside_mass,
             )
             pos, vel, outside = pos.copy(), vel.copy(), outside.copy()
             pos[m], vel[m], outside[m] = mixed[0], mixed[1], mixed[3]
@@ -1271,9 +1266,10 @@ class MarkovPredictor:
         """p(t_0) (§1.4): a uniform box in (s, v) (the measurement's, or the particles') × ``input_probs``, on the window."""
         return initial_state(self._window_grid, **self._boxes(pairs), input_probs=input_probs)
 
-    def _mix_standstill(self, pairs, members, start_probs, pos, vel, interval, outside):
-        """Standing vehicles (package docstring, "Standstill"): P_stay(t)·(start box, v-cell 0) + (1 − P_stay(t))·chain."""
-        stay = stay_probabilities([pairs[g] for g in members], self.step_times_s)
+    @staticmethod
+    def _mix_standstill(stay, start_probs, pos, vel, interval, outside):
+        """Standing vehicles (package docstring, "Standstill"): P_stay(t)·(start box, v-cell 0) + (1 − P_stay(t))·chain,
+        ``stay`` (B, K) the pairs' ``stay_probabilities``."""
         if not np.any(stay > 0):
             return pos, vel, interval, outside
         w = stay[:, :, None].astype(np.float32)
