@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The checks of the CUDA path and of real time on a bigger machine, in one go (README, "Real time on more cores"
+# The checks of the CUDA path and of real time on a bigger machine, in one go (docs/performance.md, "Real time on more cores"
 # and "On a GPU"): run on a machine with an NVIDIA GPU and this project's dependencies importable.
 #
 #   bash bench/gpu_checks.sh OUTDIR [DEVICE]      (DEVICE: cuda (default), or cpu to try the script anywhere)

@@ -21,7 +21,7 @@ CORRIDOR_WEIGHTS = ("intentions", "uniform")
 #: ``auto`` (the default): the mode's own, ``MODE_INITIAL_BOX``.
 INITIAL_BOXES = ("auto", "measurement", "particles")
 #: ``initial_box = "auto"`` per mode. Chosen on K729 (the K733-trained AR model; in-sample for the choice), reported on
-#: K733 (README "Initial box per mode"): the measured start speed helped hybrid (mADE 1.73 -> 1.68) and corridor_cv
+#: K733 (docs/evaluation.md "Initial box per mode"): the measured start speed helped hybrid (mADE 1.73 -> 1.68) and corridor_cv
 #: (2.01 -> 1.86), the particles' box the baseline (1.61 with the measurement vs 1.63, but worse on fast cars of K733)
 MODE_INITIAL_BOX = {"hybrid": "measurement", "corridor_cv": "measurement", "baseline": "particles", "cv": "measurement"}
 #: Γ in hybrid mode: colnorm(diag(λ_AR(k)) Ψ) (docs/method.md §8.5), or the memoryless ``direct`` ablation λ_AR(k)·1ᵀ.
@@ -40,10 +40,10 @@ GRID_DISTRIBUTIONS = ("interval", "point")
 #: ``auto`` (the default): the mode's own, ``MODE_SPREAD_SHAPE``
 SPREAD_SHAPES = ("auto", "isotropic", "along")
 #: ``spread_shape = "auto"`` per mode: along the map corridors; round for cv, whose "corridor" is a straight ray (a
-#: turning car leaves it sideways: along it, its fast cars' coverage90 stayed at 0.75-0.85, README "Along the corridor")
+#: turning car leaves it sideways: along it, its fast cars' coverage90 stayed at 0.75-0.85, docs/evaluation.md "Along the corridor")
 MODE_SPREAD_SHAPE = {"hybrid": "along", "baseline": "along", "corridor_cv": "along", "cv": "isotropic"}
 #: ``spread_online_max_mps = 0`` resolves to this per shape. isotropic 1.5 (fixed before any run, session 13); along
-#: 3.0: with 1.5 its c sat at the cap and K733's fast cars' coverage90 stayed at 0.83 (README "Along the corridor";
+#: 3.0: with 1.5 its c sat at the cap and K733's fast cars' coverage90 stayed at 0.83 (docs/evaluation.md "Along the corridor";
 #: chosen after seeing both locations)
 SPREAD_ONLINE_MAX_MPS = {"isotropic": 1.5, "along": 3.0}
 
@@ -76,21 +76,21 @@ class MarkovPredictionConfig(ConfigMixin):
     hybrid_speed_restriction_curves: bool = True
     # hybrid mode, with hybrid_speed_restriction: two or more factors f of the curvature in the cut (√(a_lat / (f·κ)); 1 the
     # baseline's rule, 0 the limit alone), chosen online by back testing on the recording (curve_choice.py: 1 until another
-    # is better by 3 standard errors). Held out, seed 0 (README "Online curve factor"): K729 (K733-trained model) chooses 0,
+    # is better by 3 standard errors). Held out, seed 0 (docs/evaluation.md "Online curve factor"): K729 (K733-trained model) chooses 0,
     # mADE 1.385 -> 1.354, fast 2.66 -> 2.47; K733 keeps 1 (outputs as before). () = the fixed rule of
     # hybrid_speed_restriction_curves
     hybrid_curve_factors: tuple[float, ...] = (0.0, 1.0, 2.0)
     # hybrid mode: two or more shifts (m/s², any sign) added to the acceleration of every AR input distribution of a
     # moving pair, chosen online by back testing as the curve factors are (curve_choice.OnlineShiftChoice: 0 until
     # another is better by 3 standard errors). Off (()): with (0, 0.25, 0.5), set from K729's along-track bias, it kept
-    # 0 on both locations (K729 t = -1.4, K733 +0.1 for 0.25: README "Online acceleration shift"), so it only cost a
+    # 0 on both locations (K729 t = -1.4, K733 +0.1 for 0.25: docs/evaluation.md "Online acceleration shift"), so it only cost a
     # back-test chain per tested frame
     hybrid_accel_shifts: tuple[float, ...] = ()
     # hybrid mode: the AR profiles the chain reads. "frame": the frame's own (the chain waits for them); "previous":
     # the last ones received before the frame, at most hybrid_previous_max_age_s older (a pair without one holds its
     # measured acceleration), so the chain runs as soon as the relation set is in, beside intentions and ar_inference,
     # off the frame's critical path; iamp eval then runs the AR stage at every frame. Held out +1.3-2.5 % mADE (new pairs);
-    # on 2 cores the MotionGrid came 1-2 ms sooner, inside the noise (README "Pipelined AR profiles")
+    # on 2 cores the MotionGrid came 1-2 ms sooner, inside the noise (docs/performance.md "Pipelined AR profiles")
     hybrid_profiles: str = "frame"
     hybrid_previous_max_age_s: float = 0.25
     # true: the AR distribution λ_AR(k) is the preference inside the baseline's full rule set (speed, leader,
@@ -107,7 +107,7 @@ class MarkovPredictionConfig(ConfigMixin):
     # 3.051 -> 3.085 (fast 4.83 -> 4.88), cov90/NLL no better (README). "adaptive" (the default): the model's mean
     # moved by w times the measured acceleration's difference from it, w learnt online on the recording from what the
     # cars then did (initial_blend.py; w = 0, the "ar" input, until 50 records are resolved). Held out, seeds 0-2: K733
-    # learns w = 0 (mADE as "ar"), K729 w = 0.6 (mADE 1.55 -> 1.38 m; README "Online initial blend")
+    # learns w = 0 (mADE as "ar"), K729 w = 0.6 (mADE 1.55 -> 1.38 m; docs/evaluation.md "Online initial blend")
     hybrid_initial_input: str = "adaptive"
     # discretisation (the stencils are cached per ds, dv, v_max, τ)
     ds_m: float = 1.0
@@ -160,7 +160,7 @@ class MarkovPredictionConfig(ConfigMixin):
     # that K729 shows behind a leader that pulls away had it within 15 m (16 of 16; 15 within 10 m), so beyond that the
     # rule had no data; K729's hybrid is the same with 25 (the value before) and 15. Chosen after looking at K733's
     # windows, where cars waiting at a red light saw a leader 15-21 m ahead drive off and were predicted to follow
-    # (README "Leader gap of a standing car"): K733's gain from it is informed, not held out
+    # (docs/evaluation.md "Leader gap of a standing car"): K733's gain from it is informed, not held out
     standstill_leader_gap_m: float = 15.0
     standstill_leader_moving_mps: float = 1.0
     track_timeout_s: float = 2.0
@@ -199,7 +199,7 @@ class MarkovPredictionConfig(ConfigMixin):
     # Gaussian σ (m) along the corridor that widens each pair's s-distribution at each step, per start-speed band,
     # for the grids only (the mean positions stay as they are); "" = none; "shipped" = stages/lib/ar/weights/spread_taf_bw.json (the shipped AR model's, fitted on all of TAF-BW)
     spread_calibration: str = ""
-    # online spread (README "Online spread", online_spread.py): the grids of each start-speed band widened at each step
+    # online spread (docs/evaluation.md "Online spread", online_spread.py): the grids of each start-speed band widened at each step
     # until their ``spread_online_target`` region holds the vehicles' later positions in that share of the checks
     # (the extra σ grows by c·t, c in [0, spread_online_max_mps] moved by spread_online_rate_mps per check); on top of
     # the spread table, if any; only for vehicles starting faster than spread_online_min_speed_mps. Off: false

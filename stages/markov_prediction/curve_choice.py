@@ -7,8 +7,8 @@ baseline's rule, f = 0 the speed limit alone (the curves switch
 ``hybrid_speed_restriction_curves = false``), f = 2 halves the lateral
 accelerations. Which f is right depends on the location and on the model: the
 AR model reads the curvature ahead too, and whether it has learnt to slow for
-it depends on where it was trained. Leave one location out, seed 0 (README,
-Evaluation, "Online curve factor"): the K733-trained model on K729 was best
+it depends on where it was trained. Leave one location out, seed 0 (docs/evaluation.md,
+"Online curve factor"): the K733-trained model on K729 was best
 without the cut (mADE 1.385 → 1.343 m, fast cars 2.66 → 2.41), the
 K729-trained model on K733 best with a stronger one (f = 2: 2.741 → 2.719;
 f = 0: 3.198).
@@ -203,7 +203,7 @@ class OnlineShiftChoice(OnlineCurveChoice):
     back testing on the recording (``OnlineCurveChoice``; here ``factors`` are the candidate shifts in m/s², any sign,
     and ``default`` is 0, the model's own distribution). Why: held out, the models under-predict the cars that
     accelerate at both locations (along-track error at 4 s −3.0 m over all K729 windows, −7.8 for those cars), but a
-    fixed shift chosen on K729 costs more on the others than it gains there (README, Evaluation, "Online acceleration
+    fixed shift chosen on K729 costs more on the others than it gains there (docs/evaluation.md, "Online acceleration
     shift"); a recording whose drivers accelerate harder than the model's training location shows it in the back
     test, and one that does not keeps 0."""
 

@@ -2,8 +2,8 @@
 
 A spread table (``spread.py``, ``iamp calibrate``) belongs to the location
 and the model it was fitted on; on another location the grids of fast cars
-held the truth in their 90 % region in only 0.81 of the windows (README,
-Evaluation, "Online spread"). This widens them from what the stage sees
+held the truth in their 90 % region in only 0.81 of the windows (docs/evaluation.md,
+"Online spread"). This widens them from what the stage sees
 anyway, causally: every ``stride_s`` it keeps each predicted vehicle's grid
 (its start-speed band and the step grids, references, no copies); when a
 later ``TrackFrame`` has that vehicle at one of the prediction's step times
@@ -22,7 +22,7 @@ as an error in speed does. Round, or along each corridor with
 ``spread_shape = "along"`` (``spread.blur_along``); the checks are the same. One c per band, not per step: the checks of all
 steps together reach the target (as ``iamp eval`` counts coverage90 over the
 steps); per step, the early steps, which the chain already spreads enough,
-were widened too and the grids' NLL rose (README, "Online spread"). Only
+were widened too and the grids' NLL rose (docs/evaluation.md, "Online spread"). Only
 vehicles starting faster than ``min_speed_mps`` (2 m/s, the slow/fast split)
 are widened and checked: a standing or slow car's misses are starts and
 stops, which an isotropic blur does not model (widening them raised the slow

@@ -18,7 +18,7 @@ EDGES = np.linspace(-3.0, 2.0, 11)  # the default input cells: 0.5 m/s² wide
 # λ(0) as the model gives it: with "adaptive" the blend learns against the shifted model in use, so a stage that
 # switched later learns a slightly different weight than one shifted from the start (1e-6 of the positions here)
 AR0 = {"hybrid_initial_input": "ar", **PLAIN}
-SHIFTS = (0.0, 0.25, 0.5)  # off by default (README "Online acceleration shift"); the candidates it was measured with
+SHIFTS = (0.0, 0.25, 0.5)  # off by default (docs/evaluation.md "Online acceleration shift"); the candidates it was measured with
 
 
 @pytest.fixture(scope="module")

@@ -9,16 +9,16 @@ acceleration), starts the chain from λ(0) and after step k applies
 inside the baseline's whole rule set (speed, leader, crossing; its
 ``_BaselineInputs`` with ``ar_lam``), and ``hybrid_rules_standing`` "rules"
 keeps the rules' own preference for standing vehicles: an experiment, off by
-default (README, Evaluation: no gain on the held-out location). With
+default (docs/evaluation.md: no gain on the held-out location). With
 ``hybrid_stop_mixture`` (an experiment, off by default) a moving pair's λ_AR(k) is mixed with a
 braking input by the intentions stage's P(stop) on its corridor
-(``stop_mixture``; docs/method.md §8.5). Two more experiments, off by default (README, Evaluation: chosen on
+(``stop_mixture``; docs/method.md §8.5). Two more experiments, off by default (docs/evaluation.md: chosen on
 K729, worse on the held-out K733): ``hybrid_speed_restriction_curves`` false cuts λ_AR(k) by the speed limit
 alone (``speed_profiles``; ``hybrid_curve_factors``, the default, scales the curvature by a factor the stage
 chooses online by back testing, ``curve_choice.py``, ``MarkovPredictor.curve_factor``), and ``hybrid_initial_input`` "measured" starts a moving pair from its measured
 acceleration instead of λ_AR(0) (``_stack_inputs``); "blend" from a normal at the precision-weighted mean of
 λ_AR(0) and the measured acceleration, each weighted by 1/σ² (σ_a: the standard error of the measured slope),
-with the model's spread (``blend_initial``; README, Evaluation).
+with the model's spread (``blend_initial``; docs/evaluation.md).
 """
 
 from __future__ import annotations
