@@ -43,7 +43,9 @@ frames; mean ms per timed frame, not in the stage's or the frame's time, as on t
 ``modes.<mode>.exponent``, and ``...by_vehicles.<N>.at_n.{frames, frame_ms_median,
 markov_prediction_ms_median}``: the medians over the timed frames that hold N ± 2 vehicles (N is the
 recording's mean; its frames' load varies along it and the timed stretches need not sit at the mean: the
-``veh`` column is their median).
+``veh`` column is their median). ``host_reference`` and ``host_reference_end``: ``testkit.host_speed.reference()``
+before and after the run (printed too), this host's speed at fixed work apart from the project's code, so that
+figures of other days can be read against the host that gave them.
 """
 
 from __future__ import annotations
@@ -295,7 +297,12 @@ def main(argv: list[str] | None = None) -> int:
         atexit.register(shutil.rmtree, keep, ignore_errors=True)
     print(f"cpu cores {os.cpu_count()}, backend {args.backend} on {args.device}; {args.warmup} warm-up + {args.frames} timed frames per N; "
           "timings include any other load on the machine")
-    report: dict = {"source": recording, "backend": args.backend, "device": args.device, "modes": {m: {"by_vehicles": {}} for m in args.modes}}
+    from testkit import host_speed
+
+    host = host_speed.reference()  # (this host's speed apart from the project's code: figures of other days read against it)
+    print(host_speed.line(host))
+    report: dict = {"source": recording, "backend": args.backend, "device": args.device, "host_reference": host,
+                    "modes": {m: {"by_vehicles": {}} for m in args.modes}}
     for n in sizes:
         built = build_dense(data, recording, n, keep, sequences=sequences)
         res = run_one(keep, built.name, args, stencils, target=n)
@@ -348,6 +355,8 @@ def main(argv: list[str] | None = None) -> int:
             report["modes"][mode]["exponent"] = fits
             print(f"{mode}: time ~ pairs^{fits['frame']:.2f} (frame), ^{fits['markov_prediction']:.2f} (markov_prediction), "
                   f"^{fits['markov_prediction_cpu']:.2f} (markov_prediction cpu)")
+    report["host_reference_end"] = host_speed.reference()  # (the host may have changed under the run: its speed after it)
+    print(f"after the run: {host_speed.line(report['host_reference_end'])}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(report, indent=2))

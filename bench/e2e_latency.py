@@ -51,7 +51,8 @@ MotionGrid's e2e over the frames holding lo-hi vehicles: a dense recording's loa
 p95 is mostly the busiest frames), ``runs.<label>.at_n.{frames, e2e_ms_p50, e2e_ms_p95}`` (the same over the
 frames within N ± 2 vehicles, for N > 0), ``runs.<label>.node_stats.<node>`` and
 (traced) ``runs.<label>.hops.{stages.<node>.<part>, path.{total, parts.<node>.<part>, tail, via}, gc.<node>}``
-(``hop_table``).
+(``hop_table``), and ``host_reference`` / ``host_reference_end`` (``testkit.host_speed.reference()`` before
+and after the runs, printed too: this host's speed at fixed work, to read figures of other days against).
 """
 
 from __future__ import annotations
@@ -451,6 +452,10 @@ def main() -> int:
     result: dict = {"cpu_count": os.cpu_count(), "pipeline": args.pipeline, "speed": args.speed, "set": list(args.set), "runs": {}}
     sets = "".join(f", --set {item}" for item in args.set)
     print(f"e2e latency: pipeline {args.pipeline}{sets}, speed {args.speed}, {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f} at start")
+    from testkit import host_speed
+
+    result["host_reference"] = host_speed.reference()  # (this host's speed apart from the project's code, before the runs)
+    print(host_speed.line(result["host_reference"]))
     for n in [int(v) for v in args.vehicles.split(",") if v.strip()]:
         if n == 0:
             label, data, recording, origin = "embedded", None, None, "the launcher's embedded default scenario"
@@ -487,6 +492,8 @@ def main() -> int:
                   f"{s['queue_drops']:>6} {s['join_drops']:>6}")
         if "hops" in res:
             print_hops(res["hops"])
+    result["host_reference_end"] = host_speed.reference()  # (and after them: the host may change under a run)
+    print(f"\nafter the runs: {host_speed.line(result['host_reference_end'])}")
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=2, default=float))
     return 0

@@ -41,6 +41,9 @@ def test_dense_bench_writes_its_keys(tmp_path):
         assert (at_n["frames"] == 0) == math.isnan(at_n["frame_ms_median"])
     assert "ar_inference" in report["modes"]["hybrid"]["by_vehicles"]["6"]["stages"]
     assert "hybrid/baseline frame" in r.stdout
+    for key in ("host_reference", "host_reference_end"):  # this host's speed at fixed work, before and after the run
+        assert report[key]["python_ms"] > 0 and report[key]["numpy_ms"] > 0
+    assert r.stdout.count("host reference v") == 2
 
 
 def test_frame_phases_names_the_markov_phases(tmp_path):
