@@ -34,8 +34,10 @@ from typing import Callable
 EXIT_USAGE = 2
 
 
-def _add_record(sub: "argparse._SubParsersAction") -> None:
+def _add_record(sub: "argparse._SubParsersAction", only: str | None = None) -> None:
     p = sub.add_parser("record", help="record every key of a run into an MCAP file until Ctrl-C")
+    if only not in (None, "record"):  # another command: the name and its help only, no imports
+        return
     p.add_argument("file", metavar="FILE.mcap", help="file to write (parent folders are created)")
     p.add_argument("--run-id", required=True, help="run to record: keys iamp/<run>/**")
     p.add_argument("--node-id", default="recorder", help="node id of the recorder (default recorder)")
@@ -69,10 +71,12 @@ def _run_record(args: argparse.Namespace) -> int:
     return recorder.main(argv)
 
 
-def _add_replay(sub: "argparse._SubParsersAction") -> None:
+def _add_replay(sub: "argparse._SubParsersAction", only: str | None = None) -> None:
+    p = sub.add_parser("replay", help="publish a recording onto the bus (original timing or --speed max)")
+    if only not in (None, "replay"):  # another command: the name and its help only, no imports
+        return
     from stages.replay.core import add_cli_arguments
 
-    p = sub.add_parser("replay", help="publish a recording onto the bus (original timing or --speed max)")
     add_cli_arguments(p)
     p.set_defaults(run=_run_replay)
 
@@ -83,10 +87,12 @@ def _run_replay(args: argparse.Namespace) -> int:
     return run_cli(args)
 
 
-def _add_inspect(sub: "argparse._SubParsersAction") -> None:
+def _add_inspect(sub: "argparse._SubParsersAction", only: str | None = None) -> None:
+    p = sub.add_parser("inspect", help="summarise a recording: channels, counts, time range, frames")
+    if only not in (None, "inspect"):  # another command: the name and its help only, no imports
+        return
     from stages.recorder.inspect import add_arguments
 
-    p = sub.add_parser("inspect", help="summarise a recording: channels, counts, time range, frames")
     add_arguments(p)
     p.set_defaults(run=_run_inspect)
 
@@ -97,10 +103,12 @@ def _run_inspect(args: argparse.Namespace) -> int:
     return run(args)
 
 
-def _add_recover(sub: "argparse._SubParsersAction") -> None:
+def _add_recover(sub: "argparse._SubParsersAction", only: str | None = None) -> None:
+    p = sub.add_parser("recover", help="rewrite a recording cut short by a killed writer into a finished MCAP file that any reader reads")
+    if only not in (None, "recover"):  # another command: the name and its help only, no imports
+        return
     from stages.recorder.inspect import add_recover_arguments
 
-    p = sub.add_parser("recover", help="rewrite a recording cut short by a killed writer into a finished MCAP file that any reader reads")
     add_recover_arguments(p)
     p.set_defaults(run=_run_recover)
 
@@ -111,8 +119,10 @@ def _run_recover(args: argparse.Namespace) -> int:
     return run_recover(args)
 
 
-def _add_export(sub: "argparse._SubParsersAction") -> None:
+def _add_export(sub: "argparse._SubParsersAction", only: str | None = None) -> None:
     p = sub.add_parser("export", help="convert a recording for another tool: `iamp export foxglove RUN.mcap OUT.mcap` (Foxglove's schemas)")
+    if only not in (None, "export"):  # another command: the name and its help only, no imports
+        return
     formats = p.add_subparsers(dest="format", metavar="FORMAT")
     from stages.foxglove_bridge.export import add_arguments
 
@@ -137,10 +147,12 @@ def _run_export_foxglove(args: argparse.Namespace) -> int:
     return run(args)
 
 
-def _add_eval(sub: "argparse._SubParsersAction") -> None:
-    from stages.offline.evaluation import add_arguments
-
+def _add_eval(sub: "argparse._SubParsersAction", only: str | None = None) -> None:
     p = sub.add_parser("eval", help="offline comparison of prediction modes against ground truth (mADE/mFDE, coverage, NLL)")
+    if only not in (None, "eval"):  # another command: the name and its help only, no imports
+        return
+    from stages.offline.eval_args import add_arguments
+
     add_arguments(p)
     p.set_defaults(run=_run_eval)
 
@@ -151,10 +163,12 @@ def _run_eval(args: argparse.Namespace) -> int:
     return run_cli(args)
 
 
-def _add_signals(sub: "argparse._SubParsersAction") -> None:
+def _add_signals(sub: "argparse._SubParsersAction", only: str | None = None) -> None:
+    p = sub.add_parser("signals", help="match a recording's KML lane file to its map: report and figure of the signalised stop lines")
+    if only not in (None, "signals"):  # another command: the name and its help only, no imports
+        return
     from stages.offline.signals import add_arguments
 
-    p = sub.add_parser("signals", help="match a recording's KML lane file to its map: report and figure of the signalised stop lines")
     add_arguments(p)
     p.set_defaults(run=_run_signals)
 
@@ -165,10 +179,12 @@ def _run_signals(args: argparse.Namespace) -> int:
     return run_cli(args)
 
 
-def _add_calibrate(sub: "argparse._SubParsersAction") -> None:
+def _add_calibrate(sub: "argparse._SubParsersAction", only: str | None = None) -> None:
+    p = sub.add_parser("calibrate", help="fit each mode's grid spread per step and speed band so that the 90 %% region holds the truth in 90 %% of windows")
+    if only not in (None, "calibrate"):  # another command: the name and its help only, no imports
+        return
     from stages.offline.calibrate import add_arguments
 
-    p = sub.add_parser("calibrate", help="fit each mode's grid spread per step and speed band so that the 90 %% region holds the truth in 90 %% of windows")
     add_arguments(p)
     p.set_defaults(run=_run_calibrate)
 
@@ -179,10 +195,12 @@ def _run_calibrate(args: argparse.Namespace) -> int:
     return run_cli(args)
 
 
-def _add_train(sub: "argparse._SubParsersAction") -> None:
+def _add_train(sub: "argparse._SubParsersAction", only: str | None = None) -> None:
+    p = sub.add_parser("train", help="train the AR acceleration model on recordings (validation vs zero / last-value baselines)")
+    if only not in (None, "train"):  # another command: the name and its help only, no imports
+        return
     from stages.offline.train.cli import add_arguments
 
-    p = sub.add_parser("train", help="train the AR acceleration model on recordings (validation vs zero / last-value baselines)")
     add_arguments(p)
     p.set_defaults(run=_run_train)
 
@@ -193,8 +211,10 @@ def _run_train(args: argparse.Namespace) -> int:
     return run_cli(args)
 
 
-def _add_data(sub: "argparse._SubParsersAction") -> None:
+def _add_data(sub: "argparse._SubParsersAction", only: str | None = None) -> None:
     p = sub.add_parser("data", help="build data folders from recordings (superimpose: dense traffic from real tracks)")
+    if only not in (None, "data"):  # another command: the name and its help only, no imports
+        return
     data_sub = p.add_subparsers(dest="data_command", metavar="DATA_COMMAND")
     s = data_sub.add_parser(
         "superimpose",
@@ -258,12 +278,11 @@ def _run_data(args: argparse.Namespace) -> int:
     return 0
 
 
-# Subcommands, in the order `iamp --help` lists them. Later issues add theirs here:
-#   eval  -> _add_eval  (offline comparison: hybrid vs baseline vs constant velocity; mADE/mFDE table)
-#   train -> _add_train (retrain the AR acceleration model)
-# Each adder declares its subparser and sets `run` to a function args -> exit code,
-# importing its heavy modules inside that function.
-SUBCOMMANDS: list[Callable[["argparse._SubParsersAction"], None]] = [
+# Subcommands, in the order `iamp --help` lists them. Each adder declares its subparser (name and help), then, for
+# its own command only (``only``: None for all), its arguments and `run`, a function args -> exit code that imports
+# the heavy modules: a command's options may import its module (`iamp eval`'s the stage cores, scipy, numba: ~1.7 s),
+# so the others' must not be built on every start.
+SUBCOMMANDS: list[Callable[..., None]] = [
     _add_record,
     _add_replay,
     _add_inspect,
@@ -277,16 +296,21 @@ SUBCOMMANDS: list[Callable[["argparse._SubParsersAction"], None]] = [
 ]
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The ``iamp`` parser: every command with its arguments (``only`` None), or with ``only`` the arguments of that
+    command alone (the others listed with their help; any other word, e.g. "": none has its arguments)."""
     parser = argparse.ArgumentParser(prog="iamp", description="hybrid-iamp tools: record, replay and inspect runs; evaluate predictions.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for add in SUBCOMMANDS:
-        add(sub)
+        add(sub, only)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    words = list(sys.argv[1:] if argv is None else argv)
+    # the command is the first word that is not an option (iamp has no options of its own but -h): only its arguments are
+    # built; without one (`iamp`, `iamp --help`) none are
+    parser = build_parser(next((w for w in words if not w.startswith("-")), ""))
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:

@@ -77,3 +77,28 @@ def test_no_help_string_in_the_project_has_a_bare_percent():
                                         ("(default %(default)s)", False), ("%(prog)s runs", False), ("%d cells", True)])
 def test_the_check_tells_a_bare_percent_from_argparse_s_own(text, bare):
     assert bare_percent(text) is bare
+
+
+@pytest.mark.parametrize("words", [["--help"], ["inspect", "--help"], ["frobnicate"]])
+def test_a_command_builds_only_its_own_options_so_iamp_starts_without_the_evaluation(words):
+    """`iamp eval`'s options came from the evaluation module (the stage cores, scipy, numba): building every command's
+    options on every start cost `iamp --help` and `iamp inspect` ~2 s each. Each command now builds only its own."""
+    import json
+    import subprocess
+    import sys
+
+    code = ("import json, sys; from stages import cli; rc = cli.main(json.loads(sys.argv[1])); "
+            "print(json.dumps([rc, [m for m in ('stages.offline.evaluation', 'stages.markov_prediction', 'scipy', 'torch') if m in sys.modules]]))")
+    done = subprocess.run([sys.executable, "-c", code, json.dumps(words)], cwd=REPO, capture_output=True, text=True, timeout=120)
+    rc, heavy = json.loads(done.stdout.strip().splitlines()[-1])
+    assert rc == (2 if words == ["frobnicate"] else 0), done.stderr
+    assert heavy == [], f"iamp {' '.join(words)} imported {heavy}"
+
+
+def test_each_command_still_builds_its_options_when_chosen():
+    for name in ("record", "replay", "inspect", "recover", "export", "eval", "calibrate", "train", "signals", "data"):
+        parser = cli.build_parser(name)
+        chosen = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices  # noqa: SLF001
+        assert len(chosen[name]._actions) > 1, name  # noqa: SLF001 - more than its -h
+        others = [n for n in chosen if n != name]
+        assert all(len(chosen[n]._actions) == 1 for n in others), name  # noqa: SLF001 - the others: -h only
