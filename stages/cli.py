@@ -29,15 +29,13 @@ import argparse
 import json
 import math
 import sys
+from dataclasses import dataclass
 from typing import Callable
 
 EXIT_USAGE = 2
 
 
-def _add_record(sub: "argparse._SubParsersAction", only: str | None = None) -> None:
-    p = sub.add_parser("record", help="record every key of a run into an MCAP file until Ctrl-C")
-    if only not in (None, "record"):  # another command: the name and its help only, no imports
-        return
+def _args_record(p: argparse.ArgumentParser) -> None:
     p.add_argument("file", metavar="FILE.mcap", help="file to write (parent folders are created)")
     p.add_argument("--run-id", required=True, help="run to record: keys iamp/<run>/**")
     p.add_argument("--node-id", default="recorder", help="node id of the recorder (default recorder)")
@@ -71,10 +69,7 @@ def _run_record(args: argparse.Namespace) -> int:
     return recorder.main(argv)
 
 
-def _add_replay(sub: "argparse._SubParsersAction", only: str | None = None) -> None:
-    p = sub.add_parser("replay", help="publish a recording onto the bus (original timing or --speed max)")
-    if only not in (None, "replay"):  # another command: the name and its help only, no imports
-        return
+def _args_replay(p: argparse.ArgumentParser) -> None:
     from stages.replay.core import add_cli_arguments
 
     add_cli_arguments(p)
@@ -87,10 +82,7 @@ def _run_replay(args: argparse.Namespace) -> int:
     return run_cli(args)
 
 
-def _add_inspect(sub: "argparse._SubParsersAction", only: str | None = None) -> None:
-    p = sub.add_parser("inspect", help="summarise a recording: channels, counts, time range, frames")
-    if only not in (None, "inspect"):  # another command: the name and its help only, no imports
-        return
+def _args_inspect(p: argparse.ArgumentParser) -> None:
     from stages.recorder.inspect import add_arguments
 
     add_arguments(p)
@@ -103,10 +95,7 @@ def _run_inspect(args: argparse.Namespace) -> int:
     return run(args)
 
 
-def _add_recover(sub: "argparse._SubParsersAction", only: str | None = None) -> None:
-    p = sub.add_parser("recover", help="rewrite a recording cut short by a killed writer into a finished MCAP file that any reader reads")
-    if only not in (None, "recover"):  # another command: the name and its help only, no imports
-        return
+def _args_recover(p: argparse.ArgumentParser) -> None:
     from stages.recorder.inspect import add_recover_arguments
 
     add_recover_arguments(p)
@@ -119,10 +108,7 @@ def _run_recover(args: argparse.Namespace) -> int:
     return run_recover(args)
 
 
-def _add_export(sub: "argparse._SubParsersAction", only: str | None = None) -> None:
-    p = sub.add_parser("export", help="convert a recording for another tool: `iamp export foxglove RUN.mcap OUT.mcap` (Foxglove's schemas)")
-    if only not in (None, "export"):  # another command: the name and its help only, no imports
-        return
+def _args_export(p: argparse.ArgumentParser) -> None:
     formats = p.add_subparsers(dest="format", metavar="FORMAT")
     from stages.foxglove_bridge.export import add_arguments
 
@@ -147,10 +133,7 @@ def _run_export_foxglove(args: argparse.Namespace) -> int:
     return run(args)
 
 
-def _add_eval(sub: "argparse._SubParsersAction", only: str | None = None) -> None:
-    p = sub.add_parser("eval", help="offline comparison of prediction modes against ground truth (mADE/mFDE, coverage, NLL)")
-    if only not in (None, "eval"):  # another command: the name and its help only, no imports
-        return
+def _args_eval(p: argparse.ArgumentParser) -> None:
     from stages.offline.eval_args import add_arguments
 
     add_arguments(p)
@@ -163,10 +146,7 @@ def _run_eval(args: argparse.Namespace) -> int:
     return run_cli(args)
 
 
-def _add_signals(sub: "argparse._SubParsersAction", only: str | None = None) -> None:
-    p = sub.add_parser("signals", help="match a recording's KML lane file to its map: report and figure of the signalised stop lines")
-    if only not in (None, "signals"):  # another command: the name and its help only, no imports
-        return
+def _args_signals(p: argparse.ArgumentParser) -> None:
     from stages.offline.signals import add_arguments
 
     add_arguments(p)
@@ -179,10 +159,7 @@ def _run_signals(args: argparse.Namespace) -> int:
     return run_cli(args)
 
 
-def _add_calibrate(sub: "argparse._SubParsersAction", only: str | None = None) -> None:
-    p = sub.add_parser("calibrate", help="fit each mode's grid spread per step and speed band so that the 90 %% region holds the truth in 90 %% of windows")
-    if only not in (None, "calibrate"):  # another command: the name and its help only, no imports
-        return
+def _args_calibrate(p: argparse.ArgumentParser) -> None:
     from stages.offline.calibrate import add_arguments
 
     add_arguments(p)
@@ -195,10 +172,7 @@ def _run_calibrate(args: argparse.Namespace) -> int:
     return run_cli(args)
 
 
-def _add_train(sub: "argparse._SubParsersAction", only: str | None = None) -> None:
-    p = sub.add_parser("train", help="train the AR acceleration model on recordings (validation vs zero / last-value baselines)")
-    if only not in (None, "train"):  # another command: the name and its help only, no imports
-        return
+def _args_train(p: argparse.ArgumentParser) -> None:
     from stages.offline.train.cli import add_arguments
 
     add_arguments(p)
@@ -211,10 +185,7 @@ def _run_train(args: argparse.Namespace) -> int:
     return run_cli(args)
 
 
-def _add_data(sub: "argparse._SubParsersAction", only: str | None = None) -> None:
-    p = sub.add_parser("data", help="build data folders from recordings (superimpose: dense traffic from real tracks)")
-    if only not in (None, "data"):  # another command: the name and its help only, no imports
-        return
+def _args_data(p: argparse.ArgumentParser) -> None:
     data_sub = p.add_subparsers(dest="data_command", metavar="DATA_COMMAND")
     s = data_sub.add_parser(
         "superimpose",
@@ -278,21 +249,28 @@ def _run_data(args: argparse.Namespace) -> int:
     return 0
 
 
-# Subcommands, in the order `iamp --help` lists them. Each adder declares its subparser (name and help), then, for
-# its own command only (``only``: None for all), its arguments and `run`, a function args -> exit code that imports
-# the heavy modules: a command's options may import its module (`iamp eval`'s the stage cores, scipy, numba: ~1.7 s),
-# so the others' must not be built on every start.
-SUBCOMMANDS: list[Callable[..., None]] = [
-    _add_record,
-    _add_replay,
-    _add_inspect,
-    _add_recover,
-    _add_export,
-    _add_eval,
-    _add_calibrate,
-    _add_train,
-    _add_signals,
-    _add_data,
+# Subcommands, in the order `iamp --help` lists them: name, help, and the function that adds the command's arguments
+# and `run` (a function args -> exit code that imports the heavy modules). Only the chosen command's arguments are
+# added (``build_parser(only)``): a command's options may import its module (`iamp eval`'s the stage cores, scipy,
+# numba: ~1.7 s), so the others' must not be built on every start.
+@dataclass(frozen=True)
+class _Command:
+    name: str
+    help: str
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+
+
+SUBCOMMANDS: list[_Command] = [
+    _Command("record", help="record every key of a run into an MCAP file until Ctrl-C", add_arguments=_args_record),
+    _Command("replay", help="publish a recording onto the bus (original timing or --speed max)", add_arguments=_args_replay),
+    _Command("inspect", help="summarise a recording: channels, counts, time range, frames", add_arguments=_args_inspect),
+    _Command("recover", help="rewrite a recording cut short by a killed writer into a finished MCAP file that any reader reads", add_arguments=_args_recover),
+    _Command("export", help="convert a recording for another tool: `iamp export foxglove RUN.mcap OUT.mcap` (Foxglove's schemas)", add_arguments=_args_export),
+    _Command("eval", help="offline comparison of prediction modes against ground truth (mADE/mFDE, coverage, NLL)", add_arguments=_args_eval),
+    _Command("calibrate", help="fit each mode's grid spread per step and speed band so that the 90 %% region holds the truth in 90 %% of windows", add_arguments=_args_calibrate),
+    _Command("train", help="train the AR acceleration model on recordings (validation vs zero / last-value baselines)", add_arguments=_args_train),
+    _Command("signals", help="match a recording's KML lane file to its map: report and figure of the signalised stop lines", add_arguments=_args_signals),
+    _Command("data", help="build data folders from recordings (superimpose: dense traffic from real tracks)", add_arguments=_args_data),
 ]
 
 
@@ -301,8 +279,10 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     command alone (the others listed with their help; any other word, e.g. "": none has its arguments)."""
     parser = argparse.ArgumentParser(prog="iamp", description="hybrid-iamp tools: record, replay and inspect runs; evaluate predictions.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for add in SUBCOMMANDS:
-        add(sub, only)
+    for command in SUBCOMMANDS:
+        p = sub.add_parser(command.name, help=command.help)
+        if only in (None, command.name):
+            command.add_arguments(p)
     return parser
 
 
