@@ -10,8 +10,10 @@ back test; for the upstream stages their ``process``. Wrappers cost about a
 microsecond per call; the functions wrapped are called a few times per frame.
 
 Printed per function, over the timed frames only: ms per frame (its total
-divided by the timed frames: what it adds to a frame on average), median ms
-per call and calls per frame. Nested functions are each counted whole (the
+divided by the timed frames: what it adds to a frame on average), the median
+over the timed frames of its time in each frame (``frame p50``: what the
+median frame holds of it, apart from the rare calls such as the back test's),
+median ms per call and calls per frame. Nested functions are each counted whole (the
 chain phase includes the kernel), so the column does not add up. Prints
 figures, asserts nothing; other load on the machine shows in them.
 
@@ -22,7 +24,7 @@ figures, asserts nothing; other load on the machine shows in them.
 ``--function`` adds a function to the default list (``MODULE:Class.method``
 or ``MODULE:function``); where a module binds a wrapped function by name
 (``from x import f``), wrap it where it is called. ``--json FILE`` writes
-``functions.<qualname>.{ms_per_frame, ms_median, calls_per_frame}`` and
+``functions.<qualname>.{ms_per_frame, frame_ms_median, ms_median, calls_per_frame}`` and
 ``frames``, ``vehicles``, ``modes``.
 """
 
@@ -33,6 +35,7 @@ import atexit
 import collections
 import functools
 import importlib
+import inspect
 import json
 import shutil
 import tempfile
@@ -78,6 +81,7 @@ class Timers:
         self.timed = False
         self.frames = 0
         self.calls: dict[str, list[float]] = collections.defaultdict(list)
+        self.frame_of: dict[str, list[int]] = collections.defaultdict(list)  # the timed frame (0, 1, ...) of each call
 
     def on_frame(self, timed: bool) -> None:
         self.timed = timed
@@ -94,9 +98,10 @@ class Timers:
             for part in path:
                 owner = getattr(owner, part)
             original = getattr(owner, name)
+            static = isinstance(inspect.getattr_static(owner, name), staticmethod)  # (wrapped as one again: no self)
         except (ImportError, AttributeError) as exc:
             raise SystemExit(f"--function {spec!r}: not found ({exc})") from None
-        calls = self.calls[qualname]
+        calls, frame_of = self.calls[qualname], self.frame_of[qualname]
 
         @functools.wraps(original)
         def timed(*args, **kwargs):
@@ -107,13 +112,20 @@ class Timers:
                 return original(*args, **kwargs)
             finally:
                 calls.append(time.perf_counter() - t0)
+                frame_of.append(self.frames - 1)
 
-        setattr(owner, name, timed)
+        setattr(owner, name, staticmethod(timed) if static else timed)
 
     def table(self) -> dict[str, dict[str, float]]:
         frames = max(self.frames, 1)
-        return {q: {"ms_per_frame": float(np.sum(c)) / frames * 1e3, "ms_median": float(np.median(c)) * 1e3, "calls_per_frame": len(c) / frames}
-                for q, c in self.calls.items() if c}
+        out = {}
+        for q, c in self.calls.items():
+            if not c:
+                continue
+            per_frame = np.bincount(np.asarray(self.frame_of[q]), weights=np.asarray(c), minlength=frames)[:frames]
+            out[q] = {"ms_per_frame": float(np.sum(c)) / frames * 1e3, "frame_ms_median": float(np.median(per_frame)) * 1e3,
+                      "ms_median": float(np.median(c)) * 1e3, "calls_per_frame": len(c) / frames}
+        return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -164,9 +176,9 @@ def main(argv: list[str] | None = None) -> int:
     first = result[ns.modes[0]]
     print(f"N={args.vehicles}: {timers.frames} timed frames, {first['vehicles_median']:.0f} vehicles and {first['pairs_median']:.0f} pairs per "
           f"frame (median); " + "; ".join(f"{m} frame p50 {r['frame_ms_median']:.1f} ms" for m, r in result.items()))
-    print(f"{'function':<40}{'ms/frame':>10}{'median/call':>13}{'calls/frame':>13}")
+    print(f"{'function':<40}{'ms/frame':>10}{'frame p50':>11}{'median/call':>13}{'calls/frame':>13}")
     for q, row in sorted(table.items(), key=lambda kv: -kv[1]["ms_per_frame"]):
-        print(f"{q:<40}{row['ms_per_frame']:10.2f}{row['ms_median']:13.2f}{row['calls_per_frame']:13.2f}")
+        print(f"{q:<40}{row['ms_per_frame']:10.2f}{row['frame_ms_median']:11.2f}{row['ms_median']:13.2f}{row['calls_per_frame']:13.2f}")
     print("(wall ms over the timed frames; nested functions each counted whole)")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
