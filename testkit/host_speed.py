@@ -16,6 +16,13 @@ change of host moves both.
 - ``numba``: a compiled scatter-add of float32 8-lane rows into a 1.3 MB table
   through an index list, the memory pattern of the Markov chain's kernel
   (2,000,000 rows; skipped, None, without numba).
+- ``numba_2t``: the same scatter on two threads at once, each into its own
+  table (wall ms until both are done; None without numba). Alone it would
+  take ``numba``; the ratio says how much of a second core the host gives
+  (the chain kernel and the footprints run on two threads, and the streaming
+  stages share the cores): session 31 saw the benches move 20–25 % within a
+  morning while the single-thread figures moved ~10 %. Added in session 31,
+  absent from earlier JSON; the three above are unchanged (``VERSION`` 1).
 
 Each is run ``repeats`` times (the first run of the numba part compiles or loads
 it first, untimed) and the median wall ms kept. The workloads are seeded and fixed:
@@ -28,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import threading
 import time
 from dataclasses import dataclass
 
@@ -111,6 +119,18 @@ def _numba_inputs() -> tuple:
     return table, rows, weights, src
 
 
+def _two_at_once(table, rows, weights, src) -> list:
+    """``_scatter_rows`` on two threads at the same time, each into its own copy of ``table`` (numba releases the GIL);
+    returns the two tables."""
+    tables = [table.copy(), table.copy()]
+    threads = [threading.Thread(target=_scatter_rows, args=(t, rows, weights, src)) for t in tables]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return tables
+
+
 def _timed(fn, repeats: int) -> float:
     times = []
     for _ in range(repeats):
@@ -121,26 +141,29 @@ def _timed(fn, repeats: int) -> float:
 
 
 def reference(repeats: int = 5) -> dict:
-    """{"version", "python_ms", "numpy_ms", "numba_ms" (None without numba), "repeats"}: the median wall ms of each
-    workload over ``repeats`` runs on this host, now (other load on the machine shows in them, as in the benches)."""
+    """{"version", "python_ms", "numpy_ms", "numba_ms", "numba_2t_ms" (both None without numba), "repeats"}: the median
+    wall ms of each workload over ``repeats`` runs on this host, now (other load on the machine shows in them, as in
+    the benches)."""
     repeats = max(1, int(repeats))
     out = {"version": VERSION, "repeats": repeats, "python_ms": _timed(_python_work, repeats)}
     inputs = _numpy_inputs()
     out["numpy_ms"] = _timed(lambda: _numpy_work(inputs), repeats)
     if numba is None:
-        out["numba_ms"] = None
+        out["numba_ms"] = out["numba_2t_ms"] = None
     else:
         table, rows, weights, src = _numba_inputs()
         _scatter_rows(table, rows[:8], weights[:8], src)  # compiled (or loaded from numba's cache) before the timing
         out["numba_ms"] = _timed(lambda: _scatter_rows(table, rows, weights, src), repeats)
+        out["numba_2t_ms"] = _timed(lambda: _two_at_once(table, rows, weights, src), repeats)
     return out
 
 
 def line(ref: dict) -> str:
     """One printed line of ``reference()``'s figures."""
     numba_ms = "–" if ref.get("numba_ms") is None else f"{ref['numba_ms']:.1f}"
+    two = "–" if ref.get("numba_2t_ms") is None else f"{ref['numba_2t_ms']:.1f}"
     return (f"host reference v{ref['version']} (testkit.host_speed, median of {ref['repeats']}): python {ref['python_ms']:.1f} ms, "
-            f"numpy {ref['numpy_ms']:.1f} ms, numba {numba_ms} ms")
+            f"numpy {ref['numpy_ms']:.1f} ms, numba {numba_ms} ms, numba on two threads at once {two} ms")
 
 
 def main(argv: list[str] | None = None) -> int:
