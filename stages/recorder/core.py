@@ -18,7 +18,7 @@ from mcap.exceptions import UnsupportedCompressionError
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 
 from bus_schemas import REGISTRY, SchemaError, json_schema, keys
-from bus_schemas._wire import unpack_envelope
+from bus_schemas._wire import peek_header
 
 from stages.lib.recording_files import default_path, split_path, split_paths
 from stages.lib.base import ConfigError, ConfigMixin, Issue, check_output
@@ -181,7 +181,7 @@ class McapRecorder:
         schema_name = ""
         publish_ns = recv_ns
         try:
-            name, version, body = unpack_envelope(payload, where=key)
+            name, version, header = peek_header(payload, where=key)  # (the body walked, not built: only its header is read)
         except SchemaError as exc:
             issue = f"not an envelope: {exc}"
         else:
@@ -195,7 +195,6 @@ class McapRecorder:
                     schema_name = name
                 else:  # an older version this build reads (upgrades): known, but the MCAP schema describes VERSION only
                     old_version = True
-                header = body.get("header")
                 if isinstance(header, dict) and type(header.get("stamp_ns")) is int and header["stamp_ns"] >= 0:
                     publish_ns = header["stamp_ns"]
         with self._lock:

@@ -52,7 +52,7 @@ import zenoh
 
 import bus_schemas
 from bus_schemas import Progress, SchemaError, keys
-from bus_schemas._wire import Message, unpack_envelope
+from bus_schemas._wire import Message, peek_header
 
 from stages.lib.base import ConfigError, StageResult
 from stages.runtime.args import EXIT_CRASH, EXIT_OK, EXIT_USAGE, on_stop_signals, session_from_args, start_stage
@@ -793,8 +793,8 @@ def gc_freeze() -> int:
 def _peek_stamps(data: bytes) -> tuple[int | None, int]:
     """``header.stamp_ns`` (None if none) and ``header.source_wall_ns`` (0 if none) of a payload (no full decode)."""
     try:
-        _schema, _v, body = unpack_envelope(data)
-        header = body.get("header", {})
+        _schema, _v, header = peek_header(data)
+        header = header if header is not None else {}
         stamp, wall = header.get("stamp_ns"), header.get("source_wall_ns", 0)
     except (SchemaError, AttributeError):
         return None, 0

@@ -25,7 +25,8 @@ FUZZ_SEED = 13
 def _decode_every_way(data: bytes) -> list[BaseException | None]:
     """Decode ``data`` through every entry point a stage or tool uses; return what each raised (None: decoded)."""
     out: list[BaseException | None] = []
-    calls = [lambda: bs.decode(data, where="iamp/t/x/y"), lambda: bs.peek_schema(data), lambda: _wire.unpack_envelope(data)]
+    calls = [lambda: bs.decode(data, where="iamp/t/x/y"), lambda: bs.peek_schema(data), lambda: _wire.unpack_envelope(data),
+             lambda: _wire.peek_header(data)]
     calls += [lambda cls=cls: cls.decode(data, where="iamp/t/x/y") for cls in (bs.TrackFrame, bs.AccelerationProfiles, bs.MotionGrid)]
     for call in calls:
         try:
@@ -147,3 +148,58 @@ def test_an_envelope_in_another_key_order_still_decodes_within_the_default_limit
     padded = msgpack.packb({"body": env["body"], "v": env["v"], "schema": env["schema"], "pad": b"\0" * _wire.DEFAULT_MAX_BYTES}, use_bin_type=True)
     with pytest.raises(bs.PayloadTooLarge, match="DEFAULT_MAX_BYTES"):
         bs.decode(padded)
+
+
+def _same(a, b) -> bool:
+    """Equal, NaN equal to NaN (headers of fuzzed payloads hold NaNs)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    return a == b or (a != a and b != b)
+
+
+def test_peek_header_reads_what_unpack_envelope_reads_without_building_the_body(monkeypatch):
+    """The recorder's and the sinks' header read: the same schema, version and header as the full unpack for every
+    golden payload and every fuzzed one the full unpack accepts; where that raises, the same error, but for the
+    documented leniency of the walk (what it skips is not decoded: bad UTF-8, lengths), which decoding still refuses."""
+    for name, data in golden_payloads():
+        schema, version, body = _wire.unpack_envelope(data)
+        assert _same(_wire.peek_header(data), (schema, version, body.get("header"))), name
+    lenient = checked = 0
+    for how, data in mutated_payloads(FUZZ_N // 4, seed=FUZZ_SEED + 1):
+        try:
+            schema, version, body = _wire.unpack_envelope(data)
+        except bs.SchemaError as exc:
+            try:
+                _wire.peek_header(data)
+            except bs.SchemaError as again:
+                assert (type(again), str(again)) == (type(exc), str(exc)), how
+            else:
+                lenient += 1
+                assert "not valid msgpack" in str(exc), how  # only what msgpack itself refused in the skipped parts
+                with pytest.raises(bs.SchemaError):
+                    bs.decode(data)
+            continue
+        header = body.get("header")
+        assert _same(_wire.peek_header(data), (schema, version, header if isinstance(header, dict) else None)), how
+        checked += 1
+    assert checked > FUZZ_N // 40 and lenient < FUZZ_N // 4 // 20  # the fuzz reaches both; the leniency stays rare
+    # an envelope in the encoders' layout is walked, not unpacked
+    data = dict(golden_payloads())["iamp.MotionGrid.v2.msgpack"]
+    monkeypatch.setattr(_wire.msgpack, "unpackb", lambda *a, **k: (_ for _ in ()).throw(AssertionError("unpacked")))
+    assert _wire.peek_header(data)[:2] == ("iamp.MotionGrid", 2)
+
+
+def test_peek_header_falls_back_for_other_layouts_and_refuses_what_unpack_envelope_refuses():
+    data = dict(golden_payloads())["iamp.TrackFrame.v2.msgpack"]
+    env = msgpack.unpackb(data, raw=False)
+    reordered = msgpack.packb({"body": env["body"], "v": env["v"], "schema": env["schema"]}, use_bin_type=True)
+    assert _same(_wire.peek_header(reordered), ("iamp.TrackFrame", 2, env["body"]["header"]))
+    for bad, error in ((data + b"\0", bs.MalformedPayload), (data[:-1], bs.MalformedPayload), (b"", bs.MalformedPayload),
+                       (msgpack.packb({"schema": "iamp.TrackFrame", "v": 2, "body": []}, use_bin_type=True), bs.MalformedPayload),
+                       (data + b"\0" * bs.TrackFrame.MAX_BYTES, bs.PayloadTooLarge)):
+        with pytest.raises(error):
+            _wire.peek_header(bad)
+    no_header = msgpack.packb({"schema": "iamp.TrackFrame", "v": 2, "body": {"x": 1}}, use_bin_type=True)
+    assert _wire.peek_header(no_header) == ("iamp.TrackFrame", 2, None)
