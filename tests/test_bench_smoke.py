@@ -77,3 +77,19 @@ def test_markov_kernel_bench_runs_its_full_tables(tmp_path):
     r = _run([str(REPO / "bench" / "markov_kernel.py"), "--pairs", "1", "--repeats", "1"], tmp_path)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
     assert "numpy-numba" in r.stdout and "hybrid chain" in r.stdout
+
+
+def test_idle_penalty_bench_replays_the_same_frames_per_gap(tmp_path):
+    out = tmp_path / "idle.json"
+    r = _run([str(REPO / "bench" / "idle_penalty.py"), "--vehicles", "6", "--frames", "3", "--warmup", "1", "--segments", "1",
+              "--rounds", "1", "--repeats", "1", "--gaps", "5,spin2", "--json", str(out)], tmp_path)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    report = json.loads(out.read_text())
+    assert report["frames"] == 3 and set(report["gaps"]) == {"0", "5", "spin2"}  # back to back always, as the pairs' base
+    assert report["gaps"]["0"]["markov_paired_ms"] == 0.0
+    for row in report["gaps"].values():
+        for key in ("markov_ms_median", "markov_paired_ms", "python_ms_median", "numba_ms_median"):
+            assert math.isfinite(row[key]), key
+        assert row["markov_ms_median"] > 0 and row["python_ms_median"] > 0
+    bad = _run([str(REPO / "bench" / "idle_penalty.py"), "--gaps", "0,soon"], tmp_path)
+    assert bad.returncode == 2 and "--gaps" in bad.stderr
