@@ -26,6 +26,16 @@ Prints figures, asserts nothing; other load on the machine shows in them.
 
     python bench/dense.py [--vehicles 6,12,18,36,72] [--frames 40] [--warmup 10] [--source k733|k729] [--modes hybrid,baseline]
                           [--backend numpy|torch|cuda] [--device cpu|cuda] [--json FILE] [--keep DIR] [--set KEY=VALUE ...]
+                          [--idle-ms 60]
+
+The stages run back to back: each starts on a core that was just busy. On
+the bus each is a process that waits for its inputs, ~60-90 ms of every
+100 ms frame, and on some hosts code that has waited runs slower
+(``bench/idle_penalty.py`` measures it; on this project's 2-core VM the
+stages' Python ~40 % slower after 60 ms, the compiled kernels ~5 %).
+``--idle-ms MS`` sleeps MS before each stage's first call of a frame
+(outside every timing), so that the figures are those of stages that
+waited as on the bus (``idle_ms`` in the JSON).
 
 ``--set KEY=VALUE`` sets a markov_prediction parameter for both modes (the
 input cells ``input_min_mps2``, ``input_max_mps2``, ``n_inputs`` go to
@@ -117,6 +127,12 @@ def run_one(data_dir: Path, name: str, args, stencils, on_frame=None, target: fl
     after: dict[str, float] = {}
     n_frames = recording.sequences[0].n_frames
     segments = max(1, int(args.segments))
+    idle_s = float(getattr(args, "idle_ms", 0.0)) / 1e3
+
+    def rest() -> None:  # --idle-ms: the wait of a process on the bus for its inputs, outside every timing
+        if idle_s > 0:
+            time.sleep(idle_s)
+
     per_segment = -(-args.frames // segments)
     for segment in range(segments):
         # fresh cores per segment, started at an evenly spread frame: the recording's edges are sparser
@@ -148,13 +164,20 @@ def run_one(data_dir: Path, name: str, args, stencils, on_frame=None, target: fl
             if n < start:
                 continue  # skipped: the cores first see the frame ``start``
             frame = result.outputs["track_frame"]
+            rest()
             t0, c0 = time.perf_counter(), time.process_time()
             corridor_set = corridors.process(frame, scene)[0]
             t1, c1 = time.perf_counter(), time.process_time()
+            rest()
+            t1r, c1r = time.perf_counter(), time.process_time()
             relation_set = relations.process(frame, corridor_set, scene)[0]
             t2, c2 = time.perf_counter(), time.process_time()
+            rest()
+            t2r, c2r = time.perf_counter(), time.process_time()
             belief = intentions.process(frame, corridor_set, relation_set, scene)[0]
             t3, c3 = time.perf_counter(), time.process_time()
+            rest()
+            t3r, c3r = time.perf_counter(), time.process_time()
             profiles = ar.process(corridor_set, relation_set, frame, scene)[0] if "hybrid" in args.modes else None
             t4, c4 = time.perf_counter(), time.process_time()
             markov_ms, markov_cpu, idle_ms = {}, {}, {}
@@ -163,6 +186,7 @@ def run_one(data_dir: Path, name: str, args, stencils, on_frame=None, target: fl
             for mode, predictor in predictors.items():
                 if mode == "hybrid":
                     inputs["acceleration_profiles"] = profiles
+                rest()
                 m0, mc0 = time.perf_counter(), time.process_time()
                 # as on the bus (README, "Work before the last input"): the pairs once the corridors are in, the chain once
                 # all but the belief is; ``update`` on the whole set then, the part after the last input
@@ -186,14 +210,14 @@ def run_one(data_dir: Path, name: str, args, stencils, on_frame=None, target: fl
             vehicles.append(int(np.isin(frame.agent_types, VEHICLE_TYPES).sum()))
             times["source"].append(t_source * 1e3)
             times["corridors"].append((t1 - t0) * 1e3)
-            times["relations"].append((t2 - t1) * 1e3)
-            times["intentions"].append((t3 - t2) * 1e3)
-            times["ar_inference"].append((t4 - t3) * 1e3)
+            times["relations"].append((t2 - t1r) * 1e3)
+            times["intentions"].append((t3 - t2r) * 1e3)
+            times["ar_inference"].append((t4 - t3r) * 1e3)
             for mode in args.modes:
                 times[f"markov_prediction/{mode}"].append(markov_ms[mode])
                 last_input[mode].append(after[mode])
                 idle[mode].append(idle_ms[mode])
-            for name, ms in (("corridors", c1 - c0), ("relations", c2 - c1), ("intentions", c3 - c2), ("ar_inference", c4 - c3)):
+            for name, ms in (("corridors", c1 - c0), ("relations", c2 - c1r), ("intentions", c3 - c2r), ("ar_inference", c4 - c3r)):
                 cpu[name].append(ms * 1e3)
             for mode in args.modes:
                 cpu[f"markov_prediction/{mode}"].append(markov_cpu[mode])
@@ -243,8 +267,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--modes", default=",".join(MODES), help="comma-separated modes to time (default hybrid,baseline; the ratio needs both)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="markov_prediction parameter (JSON value) for both modes, e.g. --set n_inputs=12; the input cells go to ar_inference too")
+    parser.add_argument("--idle-ms", type=float, default=0.0,
+                        help="sleep this long before each stage's first call of a frame (untimed), as a process on the bus waits for its"
+                             " inputs (60: ~10 Hz); 0: back to back (bench/idle_penalty.py: what the wait costs on this host)")
     args = parser.parse_args(argv)
     check_output_arg(parser, args.json, "--json")  # before the work: a bad path must not cost the run
+    if not (args.idle_ms >= 0 and args.idle_ms < 10_000):
+        parser.error(f"--idle-ms {args.idle_ms}: expected 0 to 10000 ms")
     args.modes = tuple(m.strip() for m in args.modes.split(",") if m.strip())
     if not args.modes or set(args.modes) - set(MODES):
         parser.error(f"--modes {','.join(args.modes)!s}: choose among {', '.join(MODES)}")
@@ -296,12 +325,13 @@ def main(argv: list[str] | None = None) -> int:
         keep = Path(tempfile.mkdtemp(prefix="iamp-dense-"))
         atexit.register(shutil.rmtree, keep, ignore_errors=True)
     print(f"cpu cores {os.cpu_count()}, backend {args.backend} on {args.device}; {args.warmup} warm-up + {args.frames} timed frames per N; "
-          "timings include any other load on the machine")
+          "timings include any other load on the machine"
+          + (f"; each stage after {args.idle_ms:g} ms asleep (--idle-ms)" if args.idle_ms else "; the stages back to back"))
     from testkit import host_speed
 
     host = host_speed.reference()  # (this host's speed apart from the project's code: figures of other days read against it)
     print(host_speed.line(host))
-    report: dict = {"source": recording, "backend": args.backend, "device": args.device, "host_reference": host,
+    report: dict = {"source": recording, "backend": args.backend, "device": args.device, "host_reference": host, "idle_ms": args.idle_ms,
                     "modes": {m: {"by_vehicles": {}} for m in args.modes}}
     for n in sizes:
         built = build_dense(data, recording, n, keep, sequences=sequences)

@@ -19,7 +19,7 @@ figures, asserts nothing; other load on the machine shows in them.
 
     python bench/frame_phases.py [--vehicles 18] [--frames 30] [--warmup 5] [--segments 2] [--source k733|k729]
                                  [--modes hybrid] [--backend numpy|torch|cuda] [--device cpu|cuda]
-                                 [--function MODULE:QUALNAME ...] [--json FILE] [--set KEY=VALUE ...]
+                                 [--function MODULE:QUALNAME ...] [--json FILE] [--set KEY=VALUE ...] [--idle-ms MS]
 
 ``--function`` adds a function to the default list (``MODULE:Class.method``
 or ``MODULE:function``); where a module binds a wrapped function by name
@@ -142,6 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="markov_prediction parameter (JSON value), as bench/dense.py --set, e.g. --set spread_online=true")
+    parser.add_argument("--idle-ms", type=float, default=0.0, help="as bench/dense.py --idle-ms: each stage after this long asleep")
     args = parser.parse_args(argv)
     check_output_arg(parser, args.json, "--json")  # before the work: a bad path must not cost the run
     if args.vehicles < 1 or args.frames < 1:
@@ -154,7 +155,8 @@ def main(argv: list[str] | None = None) -> int:
     # bench/dense.py's arguments, for its run_one
     dense_args = ["--vehicles", str(args.vehicles), "--frames", str(args.frames), "--warmup", str(args.warmup),
                   "--segments", str(args.segments), "--source", args.source, "--modes", args.modes,
-                  "--backend", args.backend, "--device", args.device, *(a for kv in args.set for a in ("--set", kv))]
+                  "--backend", args.backend, "--device", args.device, "--idle-ms", str(args.idle_ms),
+                  *(a for kv in args.set for a in ("--set", kv))]
     ns = dense.parse_args(dense_args)
     timers = Timers()
     for spec in (*DEFAULT_FUNCTIONS, *args.function):

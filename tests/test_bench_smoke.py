@@ -23,10 +23,11 @@ def _run(args: list[str], tmp_path: Path) -> subprocess.CompletedProcess:
 def test_dense_bench_writes_its_keys(tmp_path):
     out = tmp_path / "dense.json"
     r = _run([str(REPO / "bench" / "dense.py"), "--vehicles", "6", "--frames", "3", "--warmup", "1", "--segments", "1",
-              "--modes", "hybrid,baseline", "--json", str(out)], tmp_path)
+              "--modes", "hybrid,baseline", "--idle-ms", "1", "--json", str(out)], tmp_path)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
     assert "embedded" in r.stdout.splitlines()[0]
     report = json.loads(out.read_text())
+    assert report["idle_ms"] == 1.0 and "after 1 ms asleep" in r.stdout
     for mode in ("hybrid", "baseline"):
         n6 = report["modes"][mode]["by_vehicles"]["6"]
         assert n6["frames"] == 3 and n6["vehicles_median"] > 0 and n6["pairs_median"] > 0
