@@ -748,8 +748,11 @@ if numba is not None:
             irel[e] = ioffset[e] * _LANES
         f32 = np.float32
         zero = f32(0.0)
-        cur = np.zeros((n_s, n_in, n_v, n_ln), f32)  # the block's state: rows [first, last], in row s the cells [vlo[s], vhi[s]]
-        nxt = np.zeros((n_s, n_in, n_v, n_ln), f32)  # p⁻: in row t the cells [tlo[t], thi[t]]
+        # the block's state and p⁻, not zeroed here (1.7 MB each, a few % of it used): every cell is written before it is
+        # read, the state's box at the block's start and after each step, p⁻'s box at each step's start (as the blocks of
+        # one call reuse them, each on what the block before left)
+        cur = np.empty((n_s, n_in, n_v, n_ln), f32)  # the block's state: rows [first, last], in row s the cells [vlo[s], vhi[s]]
+        nxt = np.empty((n_s, n_in, n_v, n_ln), f32)  # p⁻: in row t the cells [tlo[t], thi[t]]
         vlo = np.zeros(n_s, np.int64)
         vhi = np.zeros(n_s, np.int64)
         tlo = np.zeros(n_s, np.int64)
