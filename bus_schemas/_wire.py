@@ -239,17 +239,21 @@ def _read_head(data: bytes | bytearray | memoryview) -> tuple[str, int] | None:
     )
     try:
         up.feed(head)
-        if up.read_map_header() != 3 or up.unpack() != "schema":
-            return None
-        schema = up.unpack()
-        if up.unpack() != "v":
-            return None
-        version = up.unpack()
+        return _schema_and_version(up)
     except Exception:  # out of data, wrong types, limits: just not readable here
         return None
-    if isinstance(schema, str) and type(version) is int:
-        return schema, version
-    return None
+
+
+def _schema_and_version(up: msgpack.Unpacker) -> tuple[str, int] | None:
+    """(schema, version) read from an unpacker at an envelope's start, as every encoder writes it (a 3-entry map,
+    ``schema`` a str then ``v`` an int); None where it starts otherwise (msgpack's errors propagate)."""
+    if up.read_map_header() != 3 or up.unpack() != "schema":
+        return None
+    schema = up.unpack()
+    if up.unpack() != "v":
+        return None
+    version = up.unpack()
+    return (schema, version) if isinstance(schema, str) and type(version) is int else None
 
 
 def unpack_envelope(data: bytes, *, where: str = "", expect: type["Message"] | None = None) -> tuple[str, int, dict]:
@@ -335,14 +339,10 @@ def _walk_header(data: bytes | bytearray | memoryview) -> tuple[str, int, dict |
                           max_bin_len=len(data), max_array_len=MAX_ARRAY_LEN, max_map_len=MAX_MAP_LEN, max_ext_len=0)
     try:
         up.feed(data)
-        if up.read_map_header() != 3 or up.unpack() != "schema":
+        head = _schema_and_version(up)
+        if head is None or up.unpack() != "body":
             return None
-        schema = up.unpack()
-        if up.unpack() != "v":
-            return None
-        version = up.unpack()
-        if up.unpack() != "body" or not isinstance(schema, str) or type(version) is not int:
-            return None
+        schema, version = head
         header = None
         for _ in range(up.read_map_header()):
             key = up.unpack()
