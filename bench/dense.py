@@ -97,6 +97,20 @@ def markov_config(args, mode: str):
                                               where="bench/dense.py --set")
 
 
+def feed_markov(predictor, inputs: dict, profiles: bool):
+    """One frame's ``inputs`` into markov_prediction as on the bus (README, "Work before the last input"): where the
+    chain does not read the belief, ``prepare`` on the corridors (the pairs), ``prepare`` on all but the belief (the
+    chain), then ``update`` on the whole set, the part after the last input; else ``update`` alone. ``profiles``: the
+    mode reads the acceleration profiles (missing at the first ``prepare``). Returns (update's result, the
+    ``time.perf_counter()`` at which ``update`` started)."""
+    if not predictor.chain_reads_belief:
+        head = {k: inputs[k] for k in ("corridor_set", "scene", "track_frame")}
+        predictor.prepare(head, {"relation_set", "intention_belief", *(["acceleration_profiles"] if profiles else [])})
+        predictor.prepare({k: v for k, v in inputs.items() if k != "intention_belief"}, {"intention_belief"})
+    start = time.perf_counter()
+    return predictor.update(inputs), start
+
+
 #: Frames whose vehicles lie within this many of N make a result's ``at_n``.
 AT_N_WITHIN = 2
 
@@ -188,15 +202,7 @@ def run_one(data_dir: Path, name: str, args, stencils, on_frame=None, target: fl
                     inputs["acceleration_profiles"] = profiles
                 rest()
                 m0, mc0 = time.perf_counter(), time.process_time()
-                # as on the bus (README, "Work before the last input"): the pairs once the corridors are in, the chain once
-                # all but the belief is; ``update`` on the whole set then, the part after the last input
-                staged = not predictor.chain_reads_belief
-                if staged:
-                    head = {k: inputs[k] for k in ("corridor_set", "scene", "track_frame")}
-                    predictor.prepare(head, {"relation_set", "intention_belief", *(["acceleration_profiles"] if mode == "hybrid" else [])})
-                    predictor.prepare({k: v for k, v in inputs.items() if k != "intention_belief"}, {"intention_belief"})
-                m1 = time.perf_counter()
-                result = predictor.update(inputs)
+                result, m1 = feed_markov(predictor, inputs, profiles=mode == "hybrid")
                 markov_ms[mode] = (time.perf_counter() - m0) * 1e3
                 markov_cpu[mode] = (time.process_time() - mc0) * 1e3
                 after[mode] = (time.perf_counter() - m1) * 1e3

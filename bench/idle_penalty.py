@@ -61,18 +61,15 @@ def wait(kind: str, seconds: float) -> None:
         pass
 
 
-def replay(make_stage, frames: list[dict], kind: str, seconds: float) -> np.ndarray:
-    """Wall ms of each frame through a fresh stage, ``wait(kind, seconds)`` before each."""
+def replay(make_stage, feed, frames: list[dict], kind: str, seconds: float) -> np.ndarray:
+    """Wall ms of each frame through a fresh stage (``feed``: ``bench/dense.py``'s ``feed_markov``), ``wait(kind,
+    seconds)`` before each."""
     stage = make_stage()
     out = np.empty(len(frames))
     for i, inputs in enumerate(frames):
         wait(kind, seconds)
         t0 = time.perf_counter()
-        if not stage.chain_reads_belief:  # as bench/dense.py: the pairs, then the chain, then the rest
-            head = {k: inputs[k] for k in ("corridor_set", "scene", "track_frame")}
-            stage.prepare(head, {"relation_set", "intention_belief", "acceleration_profiles"})
-            stage.prepare({k: v for k, v in inputs.items() if k != "intention_belief"}, {"intention_belief"})
-        stage.update(inputs)
+        feed(stage, inputs, profiles=True)  # as bench/dense.py: the pairs, then the chain, then the rest
         out[i] = (time.perf_counter() - t0) * 1e3
         stage.idle()  # (off the frame, as the runtime does it)
     return out
@@ -163,10 +160,10 @@ def main(argv: list[str] | None = None) -> int:
         fn()
     times: dict[str, list[np.ndarray]] = {g: [] for g in gaps}
     load_ms: dict[str, dict[str, list[float]]] = {g: {k: [] for k in loads} for g in gaps}
-    replay(make_stage, frames[: min(len(frames), 10)], "sleep", 0.0)  # warm: compiled kernels, tables
+    replay(make_stage, dense.feed_markov, frames[: min(len(frames), 10)], "sleep", 0.0)  # warm: compiled kernels, tables
     for r in range(args.rounds):
         for g, (kind, seconds) in gaps.items():
-            times[g].append(replay(make_stage, frames, kind, seconds)[counted])
+            times[g].append(replay(make_stage, dense.feed_markov, frames, kind, seconds)[counted])
             for name, fn in loads.items():
                 load_ms[g][name].append(workload(fn, kind, seconds, args.repeats))
             print(f"round {r}, gap {g}: markov_prediction {np.median(times[g][-1]):.2f} ms, "
