@@ -20,7 +20,7 @@ from stages.offline.train.dataset import (ARDataset, DatasetConfig, PositionNois
                                           smoothed_acceleration)
 from stages.lib.ar.features import ACCEL, FEATURE_NAMES, HISTORY_STEPS, HORIZON_STEPS
 from stages.lib.ar.model import DEFAULT_MODEL_PATH, ARModel, ARNet, GRUNet, load_model, save_model
-from stages.offline.train.fit import TrainConfig, error_table, fit, split_samples
+from stages.offline.train.fit import TrainConfig, _displacement, _loss, error_table, fit, split_samples
 from stages.lib.datasets import DEFAULT_DATA_DIR
 
 pytestmark = pytest.mark.skipif(not (DEFAULT_DATA_DIR / "maps").is_dir(), reason=f"embedded TAF-BW data not found at {DEFAULT_DATA_DIR}")
@@ -284,6 +284,41 @@ def test_same_seed_gives_identical_weights(tiny):
     assert not all(torch.equal(weights[0][k], weights[2][k]) for k in weights[0])
 
 
+def test_displacement_loss_integrates_the_acceleration_errors_exactly():
+    # a constant acceleration error a over t s is a displacement error a·t²/2 at every step's end
+    err = torch.full((1, HORIZON_STEPS), 1.5)
+    disp, w = _displacement(err, torch.ones(1, HORIZON_STEPS))
+    t = 0.1 * torch.arange(1, HORIZON_STEPS + 1, dtype=torch.float32)
+    assert torch.allclose(disp[0], 1.5 * t**2 / 2, atol=1e-5) and torch.equal(w, torch.ones(1, HORIZON_STEPS))
+    # an error only in the first step: a·dt²/2 after it, then a·dt·(t − dt/2): early errors weigh most
+    one = torch.zeros(1, HORIZON_STEPS)
+    one[0, 0] = 2.0
+    disp, _ = _displacement(one, torch.ones(1, HORIZON_STEPS))
+    assert torch.allclose(disp[0], 2.0 * 0.1 * (t - 0.05), atol=1e-5)
+    # a step is kept only while every step up to it is known, with the sample's weight; unknown targets are not read
+    w = torch.full((2, HORIZON_STEPS), 0.5)
+    w[1, 10] = 0.0
+    y = torch.zeros(2, HORIZON_STEPS)
+    y[1, 10] = float("nan")
+    disp, kept = _displacement(torch.ones(2, HORIZON_STEPS) - y, w)
+    assert torch.equal(kept[0], w[0]) and torch.all(kept[1, :10] == 0.5) and torch.all(kept[1, 10:] == 0)
+    assert torch.all(torch.isfinite(disp))
+    loss = _loss(torch.ones(2, HORIZON_STEPS), y, w, "displacement")
+    assert torch.isfinite(loss) and float(loss) > float(_loss(torch.ones(2, HORIZON_STEPS), torch.zeros(2, HORIZON_STEPS), w, "accel")) > 0
+    assert float(_loss(torch.zeros(2, HORIZON_STEPS), torch.zeros(2, HORIZON_STEPS), w, "displacement")) == 0.0
+
+
+def test_displacement_loss_trains_its_own_weights(tiny):
+    train, val, _ = split_samples(tiny, "time", 0.3, 0)
+    fits = [fit(TrainConfig(epochs=2, seed=5, hidden=8, loss=loss), tiny.subset(train), tiny.subset(val)) for loss in ("accel", "displacement")]
+    (a, info_a), (d, info_d) = fits
+    assert not all(torch.equal(a.net.state_dict()[k], d.net.state_dict()[k]) for k in a.net.state_dict())
+    # the validation loss is of the displacement (m) there: not the acceleration loss of the same net
+    assert math.isfinite(info_d["best_val_loss"]) and info_d["best_val_loss"] != info_a["best_val_loss"]
+    with pytest.raises(ValueError, match="loss"):
+        TrainConfig(loss="position")
+
+
 def test_predict_shapes_and_save_load_round_trip(tiny, tiny_model, tmp_path):
     tiny_model.metadata = {"note": "test", "values": [1.0, 2.0]}
     pred = tiny_model.predict(tiny.x, tiny.mask)
@@ -431,6 +466,7 @@ def test_cli_bad_arguments_exit_2(tmp_path, capsys):
     assert cli.main(["train", "--data", str(tmp_path / "nothing"), "--no-progress", "--out", str(tmp_path / "m.pt")]) == 2
     assert cli.main(["train", "--drop-feature", "nope", "--no-progress", "--out", str(tmp_path / "m.pt")]) == 2
     assert cli.main(["train", "--kind", "gru", "--hidden", "0", "--no-progress", "--out", str(tmp_path / "m.pt")]) == 2
+    assert cli.main(["train", "--loss", "jerk", "--no-progress", "--out", str(tmp_path / "m.pt")]) == 2
     assert "hidden" in capsys.readouterr().err
     assert cli.main(["train", "--min-future-steps", "41", "--no-progress", "--out", str(tmp_path / "m.pt")]) == 2
     assert "min_future_steps" in capsys.readouterr().err

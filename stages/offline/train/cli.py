@@ -39,6 +39,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="cpu", help="cpu (default) or cuda")
     p.add_argument("--drop-feature", nargs="+", default=[], metavar="NAME", help="leave features out (ablation), names as in FEATURE_NAMES")
+    p.add_argument("--loss", choices=("accel", "displacement"), default="accel",
+                   help="what the loss (MSE + MAE) compares: the target steps' accelerations (default) or the along-track"
+                        " displacement they integrate to over the 4 s (what mADE scores)")
     p.add_argument("--accel-window", type=float, default=None, help="causal acceleration window, s (default 1.0)")
     p.add_argument("--position-noise", type=float, default=0.0, metavar="M",
                    help="augmentation: jitter each track's positions by white noise of a σ drawn per track from [0, M] m (default 0: off)")

@@ -33,7 +33,9 @@ std 1) and clipped to ±``z_clip`` 3; the net of ``kind``: ``ar``, ``ARNet``
 (linear, or one ReLU layer of ``hidden`` units), or ``gru``, ``GRUNet``
 (``hidden`` 32 units by default); Adam (``lr`` 1e-3, L2 ``weight_decay`` 0.3 for the
 linear net, 0.1 with a hidden layer, 0.01 for the GRU, not tuned), loss MSE + MAE (m/s², mean over the
-known target steps, each sample by its weight: 1/k on one of k tied routes), learning rate cosine-annealed with warm restarts every 10
+known target steps, each sample by its weight: 1/k on one of k tied routes; ``loss`` "displacement", ``--loss``:
+of the along-track displacement, m, that the steps' accelerations integrate to, a step counted while every step up to
+it is known), learning rate cosine-annealed with warm restarts every 10
 epochs (``CosineAnnealingWarmRestarts`` T_0 = 10, stepped per batch), batches
 of 256, at most 200 epochs, early stopping when the validation loss has not
 improved for ``patience`` 20 epochs; the best epoch's weights are kept
@@ -119,6 +121,9 @@ class TrainConfig:
     seed: int = 0
     device: str = "cpu"
     drop_features: tuple[str, ...] = ()
+    #: what the loss compares (``LOSSES``): "accel" the accelerations of the 40 target steps; "displacement" the
+    #: along-track displacement they integrate to (``_displacement``), the quantity mADE scores
+    loss: str = "accel"
     progress: bool = False
 
     def __post_init__(self) -> None:
@@ -128,6 +133,8 @@ class TrainConfig:
             raise ValueError(f"val_fraction = {self.val_fraction!r}: must lie in (0, 1)")
         if self.kind not in KINDS:
             raise ValueError(f"kind = {self.kind!r}: expected one of {', '.join(KINDS)}")
+        if self.loss not in LOSSES:
+            raise ValueError(f"loss = {self.loss!r}: expected one of {', '.join(LOSSES)}")
         if self.hidden < 0 or (self.kind == "gru" and self.hidden < 1):
             raise ValueError(f"hidden = {self.hidden}: must be 0 (linear) or a number of units (at least 1 for kind gru)")
         if self.folds < 0 or self.folds == 1:
@@ -325,9 +332,30 @@ def _normalisation(x: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndar
     return mean.astype(np.float32), std.astype(np.float32)
 
 
-def _loss(pred: torch.Tensor, y: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """MSE + MAE over the known steps, each sample by its weight: `w` (B, 40) = weight × known."""
+#: ``TrainConfig.loss``'s choices (module docstring)
+LOSSES = ("accel", "displacement")
+#: the target steps' length, s (0.1 … 4.0 s)
+STEP_S = 0.1
+
+
+def _displacement(err: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B, 40) acceleration errors of the target steps -> the along-track displacement errors they integrate to at the
+    end of each step (each step's acceleration held over its 0.1 s: the speed error at its end plus the exact position
+    term), with weights that keep a step only while every step up to it is known (a later displacement depends on the
+    unknown ones); `w` (B, 40) = weight × known."""
+    known = w > 0
+    err = torch.where(known, err, torch.zeros_like(err))  # (the targets of unknown steps are not read)
+    v_end = STEP_S * torch.cumsum(err, dim=1)
+    disp = STEP_S * torch.cumsum(v_end - 0.5 * STEP_S * err, dim=1)  # Σ (v_start·dt + a·dt²/2), v_start = v_end − a·dt
+    return disp, w * torch.cumprod(known.to(w.dtype), dim=1)
+
+
+def _loss(pred: torch.Tensor, y: torch.Tensor, w: torch.Tensor, kind: str = "accel") -> torch.Tensor:
+    """MSE + MAE over the known steps, each sample by its weight: `w` (B, 40) = weight × known; of the accelerations
+    (``kind`` "accel", m/s²) or of the displacements they integrate to (``kind`` "displacement", m: ``_displacement``)."""
     err = pred - y
+    if kind == "displacement":
+        err, w = _displacement(err, w)
     total = w.sum().clamp_min(1e-9)
     return ((err * err) * w).sum() / total + (err.abs() * w).sum() / total
 
@@ -365,6 +393,7 @@ class _Trainer:
         self.batch_size = cfg.batch_size
         self.iters = max(1, math.ceil(self.n / cfg.batch_size))
         self.epochs_done = 0
+        self.loss = cfg.loss
 
     def _tensors(self, ds: ARDataset):
         w = ds.y_mask.astype(np.float32) * ds.weight.astype(np.float32)[:, None]
@@ -380,7 +409,7 @@ class _Trainer:
         for i in range(self.iters):
             idx = perm[i * self.batch_size : (i + 1) * self.batch_size]
             self.opt.zero_grad()
-            loss = _loss(self.net(zt[idx], mt[idx]), yt[idx], wt[idx])
+            loss = _loss(self.net(zt[idx], mt[idx]), yt[idx], wt[idx], self.loss)
             loss.backward()
             self.opt.step()
             self.sched.step(self.epochs_done + (i + 1) / self.iters)
@@ -391,7 +420,7 @@ class _Trainer:
         if self.val_t is not None:
             zv, mv, yv, wv = self.val_t
             with torch.no_grad():
-                val_loss = float(_loss(self.net(zv, mv), yv, wv))
+                val_loss = float(_loss(self.net(zv, mv), yv, wv, self.loss))
         return total / self.n, val_loss
 
     def state(self) -> dict[str, Any]:
@@ -551,7 +580,7 @@ def run_training(cfg: TrainConfig, *, cache_dir: Path | None = DEFAULT_CACHE_DIR
                   "parameters": int(sum(p.numel() for p in model.net.parameters()))},
         "training": {k: v for k, v in fitted.items() if k != "history"} | {
             "epochs_max": cfg.epochs, "batch_size": cfg.batch_size, "lr": cfg.lr, "weight_decay": cfg.decay, "z_clip": cfg.z_clip,
-            "patience": cfg.patience, "folds": fitted.get("folds", cfg.folds), "seed": cfg.seed, "device": cfg.device, "loss": "mse + mae",
+            "patience": cfg.patience, "folds": fitted.get("folds", cfg.folds), "seed": cfg.seed, "device": cfg.device, "loss": "mse + mae" if cfg.loss == "accel" else f"mse + mae of the {cfg.loss}",
             "schedule": "CosineAnnealingWarmRestarts(T_0=10), per batch"},
         "train_errors": {"model": error_table(pred_train, train.y, train.y_mask, train.weight)},
         "validation": compare(pred_val, val),
@@ -644,7 +673,7 @@ def run_from_args(args) -> int:
             split=args.split, val_fraction=args.val_fraction, kind=args.kind,
             hidden=DEFAULT_HIDDEN_GRU if args.hidden is None and args.kind == "gru" else (args.hidden or 0), epochs=args.epochs, batch_size=args.batch_size,
             lr=args.lr, weight_decay=args.weight_decay, z_clip=args.z_clip, patience=args.patience, folds=args.folds, seed=args.seed, device=args.device,
-            drop_features=tuple(args.drop_feature), progress=not args.no_progress,
+            drop_features=tuple(args.drop_feature), loss=args.loss, progress=not args.no_progress,
         )
         model, report = run_training(cfg, cache_dir=None if args.no_cache else args.cache_dir, log=lambda m: print(m, file=sys.stderr))
     except ValueError as exc:  # DatasetError, bad options, impossible splits
