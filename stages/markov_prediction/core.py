@@ -1270,16 +1270,23 @@ class MarkovPredictor:
     def _mix_standstill(stay, start_probs, pos, vel, interval, outside):
         """Standing vehicles (package docstring, "Standstill"): P_stay(t)·(start box, v-cell 0) + (1 − P_stay(t))·chain,
         ``stay`` (B, K) the pairs' ``stay_probabilities``."""
-        if not np.any(stay > 0):
+        rows = np.flatnonzero(np.any(stay > 0, axis=1))
+        if rows.size == 0:
             return pos, vel, interval, outside
-        w = stay[:, :, None].astype(np.float32)
-        pos = (1.0 - w) * pos + w * start_probs[:, None, :]
-        vel = (1.0 - w) * vel
-        vel[:, :, 0] += stay.astype(np.float32)
+        # only the standing pairs' rows are mixed (a moving pair's P_stay is 0 at every step: its rows stay as they are,
+        # 1·x + 0·start being x), into copies of the chain's arrays, each row by the formulas below
+        w = stay[rows, :, None].astype(np.float32)
+        start = start_probs[rows, None, :]
+        pos, vel = np.array(pos), np.array(vel)  # (copies in their own dtype: float32 at the end, as every row was)
+        pos[rows] = (1.0 - w) * pos[rows] + w * start
+        vel[rows] = (1.0 - w) * vel[rows]
+        vel[rows, :, 0] += stay[rows].astype(np.float32)
         if interval is not None:
-            interval = (1.0 - w) * interval + w * start_probs[:, None, :]
+            interval = np.array(interval)
+            interval[rows] = (1.0 - w) * interval[rows] + w * start
+            interval = interval.astype(np.float32, copy=False)
         outside = (1.0 - stay.astype(np.float32)) * outside
-        return pos.astype(np.float32), vel.astype(np.float32), None if interval is None else interval.astype(np.float32), outside
+        return pos.astype(np.float32, copy=False), vel.astype(np.float32, copy=False), interval, outside
 
     # ----- outputs --------------------------------------------------------------------
 

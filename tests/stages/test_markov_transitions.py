@@ -459,6 +459,34 @@ def test_initial_state_box_and_dense_form_agree(small_stencils):
         initial_state(cfg, s_m=[-5.0], v_mps=[2.0], half_width_s_m=1.0, half_width_v_mps=0.5, input_probs=np.eye(10)[4])
 
 
+def test_boxes_outside_grid_are_exactly_the_boxes_initial_state_refuses():
+    from stages.lib.markov.propagate import _overlaps, boxes_outside_grid
+
+    cfg = SMALL
+    rng = np.random.default_rng(7)
+    s_edges, v_edges = cfg.s_edges_m(), cfg.v_edges_mps()
+    # boxes ending on an edge, touching the grid from outside, tiny, huge, not finite, zero wide
+    s = np.concatenate([rng.uniform(-10, s_edges[-1] + 10, 400), rng.choice(s_edges, 200) + rng.choice([-0.5, 0.0, 0.5], 200),
+                        [s_edges[0] - 1.0, s_edges[-1] + 1.0, np.nan, 3.0, 3.0, np.inf]])
+    hs = np.concatenate([rng.uniform(1e-12, 5, 400), rng.choice([0.5, 1e-300, 5e-324, 0.25], 200), [1.0, 1.0, 1.0, 0.0, -1.0, 1.0]])
+    v = rng.uniform(-2, v_edges[-1] + 2, s.shape[0])
+    hv = rng.choice([0.25, 1e-300, 0.5, 2.0], s.shape[0])
+    s_out, v_out = boxes_outside_grid(cfg, s_m=s, v_mps=v, half_width_s_m=hs, half_width_v_mps=hv)
+    with np.errstate(invalid="ignore"):  # the definition: a finite box of positive width with some overlap
+        s_def = ~(np.isfinite(s) & np.isfinite(hs) & (hs > 0) & (_overlaps(s_edges, np.nan_to_num(s), hs).sum(axis=1) > 0))
+        v_def = ~(np.isfinite(v) & np.isfinite(hv) & (hv > 0) & (_overlaps(v_edges, v, hv).sum(axis=1) > 0))
+    np.testing.assert_array_equal(s_out, s_def)
+    np.testing.assert_array_equal(v_out, v_def)
+    assert s_out[-6:].tolist() == [True, True, True, True, True, True] and 0 < s_out[:600].sum() < 600
+    for b in range(0, 600, 7):  # initial_state raises for exactly these
+        args = dict(s_m=[s[b]], v_mps=[2.1], half_width_s_m=hs[b], half_width_v_mps=0.5, input_probs=np.eye(10)[4])
+        if s_out[b]:
+            with pytest.raises(ValueError, match="does not intersect"):
+                initial_state(cfg, **args)
+        else:
+            initial_state(cfg, **args)
+
+
 def test_callable_inputs_see_this_steps_marginals(small_stencils):
     seen = []
 

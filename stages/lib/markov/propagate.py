@@ -194,9 +194,17 @@ def boxes_outside_grid(
     s_ok = np.isfinite(s) & np.isfinite(hs) & (hs > 0)
     v_ok = np.isfinite(v) & np.isfinite(hv) & (hv > 0)
     with np.errstate(invalid="ignore"):
-        s_hit = _overlaps(config.s_edges_m(), np.where(s_ok, s, 0.0), np.where(s_ok, hs, 1.0)).sum(axis=1) > 0
-        v_hit = _overlaps(config.v_edges_mps(), np.where(v_ok, v, 0.0), np.where(v_ok, hv, 1.0)).sum(axis=1) > 0
+        s_hit = _hits(config.s_edges_m(), np.where(s_ok, s, 0.0), np.where(s_ok, hs, 1.0))
+        v_hit = _hits(config.v_edges_mps(), np.where(v_ok, v, 0.0), np.where(v_ok, hv, 1.0))
     return ~(s_ok & s_hit), ~(v_ok & v_hit)
+
+
+def _hits(edges: np.ndarray, centres: np.ndarray, half_widths: np.ndarray) -> np.ndarray:
+    """(B,) whether ``_overlaps(edges, centres, half_widths).sum(axis=1) > 0``, without the (B, N) array: for cells
+    that tile [edges[0], edges[-1]] (increasing edges), some cell's overlap min(e_j+1, c + h) − max(e_j, c − h) is
+    > 0 exactly when max(edges[0], c − h) < min(edges[-1], c + h) (the cell holding the start of that interval has
+    it; a difference of two floats is 0 only when they are equal), and a sum of terms >= 0 is > 0 exactly when one is."""
+    return np.maximum(edges[0], centres - half_widths) < np.minimum(edges[-1], centres + half_widths)
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)

@@ -223,11 +223,29 @@ def stop_mixture(p: Predictor, pairs: list[Pair], lam: np.ndarray, standing: np.
 def cell_moments(edges: np.ndarray, probs: np.ndarray) -> tuple[float, float]:
     """(mean, σ) of the density that is uniform inside each input cell with the cell's probability: the cell
     centres' mean and variance plus each cell's own width²/12 (σ > 0 even with all the mass in one cell)."""
-    edges = np.asarray(edges, dtype=np.float64)
-    centres, widths = 0.5 * (edges[1:] + edges[:-1]), np.diff(edges)
+    centres, spread = _cell_table(edges)
     probs = np.asarray(probs, dtype=np.float64) / float(np.sum(probs))
     mean = float(probs @ centres)
-    return mean, float(np.sqrt(probs @ ((centres - mean) ** 2 + widths**2 / 12.0)))
+    return mean, float(np.sqrt(probs @ ((centres - mean) ** 2 + spread)))
+
+
+_CELL_TABLES: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _cell_table(edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The cells' centres and width²/12 of ``edges`` (read only; kept per distinct edges: a chain has one set)."""
+    edges = np.asarray(edges, dtype=np.float64)
+    key = edges.tobytes()
+    found = _CELL_TABLES.get(key)
+    if found is None:
+        centres, widths = 0.5 * (edges[1:] + edges[:-1]), np.diff(edges)
+        found = (centres, widths**2 / 12.0)
+        for a in found:
+            a.flags.writeable = False
+        if len(_CELL_TABLES) >= 64:  # (a bound for callers that make up edges)
+            _CELL_TABLES.clear()
+        _CELL_TABLES[key] = found
+    return found
 
 
 def precision_blend(mu_m: float, sigma_m: float, a: float, sigma_a: float) -> tuple[float, float]:
@@ -286,7 +304,7 @@ def adaptive_initial(learnt, histories, edges: np.ndarray, pairs: list[Pair], la
         if w > 0.0:
             out[b, 0] = start_inputs(edges, mu_m + w * (a - mu_m), sigma_m)
     for track_id, (stamp, a, mus) in means.items():
-        learnt.record(track_id, stamp, a, float(np.mean(mus)))
+        learnt.record(track_id, stamp, a, mus[0] if len(mus) == 1 else float(np.mean(mus)))  # (the mean of one is itself)
     return out
 
 
