@@ -164,3 +164,40 @@ def test_one_call_speed_priority_run_equals_the_step_by_step_run(n_pairs, monkey
             np.testing.assert_allclose(getattr(one, name), getattr(ref, name), atol=1e-6, err_msg=name)
         np.testing.assert_allclose(one.mass_error, steps.mass_error, atol=1e-6)
         assert one.mass_error.max() <= 1e-5
+
+
+@pytest.mark.skipif(not kernels.available(), reason="numba does not import")
+def test_block_scratch_is_kept_per_thread_and_never_read_before_it_is_written():
+    """speed_priority_run's blocks take their scratch arrays (the state, p⁻ and the per-state buffers) from the calling
+    thread's workspace (kernels._block_workspace), made once per thread instead of on every call. What a call leaves
+    there, or NaN in every cell, does not change the next call's numbers: every cell is written before it is read."""
+    import threading
+
+    stencils = build_stencils(SMALL)
+    psi = psi_matrix(SMALL.input_centres_mps2())
+    n_s, n_in, n_v = SMALL.n_s_cells, SMALL.n_inputs, SMALL.n_v_cells
+
+    def run(n_pairs: int, seed: int):
+        case = hybrid_chain_case(SMALL, n_pairs, np.random.default_rng(seed))
+        lazy = case.restriction(SMALL)
+        steps = [InputPriority(weights=None, at_states=lambda b, vv, s, q=q: lazy.priority_at_states(q, b, vv, s, 0.3),
+                               restriction=lazy, preference=q, forbid_threshold=0.3) for q in list(case.preferences)[:-1]]
+        out = PriorityPropagator(stencils, psi, kernel="numba").run(case.p0, steps + [None], with_interval=True)
+        return [getattr(out, name).copy() for name in ("position_probs", "velocity_probs", "interval_position_probs", "outside_mass")]
+
+    first = run(19, 11)
+    mine = kernels._block_workspace(n_s, n_in, n_v)
+    assert kernels._block_workspace(n_s, n_in, n_v) is mine  # the same arrays on this thread
+    run(7, 5)  # another chain leaves its numbers in the scratch
+    again = run(19, 11)
+    for a in mine:
+        a.fill(np.nan if a.dtype.kind == "f" else -(2**40))
+    poisoned = run(19, 11)
+    for a, b, c in zip(first, again, poisoned):
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(a, c)
+    other = []
+    t = threading.Thread(target=lambda: other.append(kernels._block_workspace(n_s, n_in, n_v)))
+    t.start()
+    t.join()
+    assert other[0] is not mine and all(x is not y for x, y in zip(other[0], mine))

@@ -715,12 +715,14 @@ if numba is not None:
     def _speed_priority_blocks(blocks, inp, vel0, pos0, outside0, order, n_steps, ptr, v_to, offset, weight, iptr, ioffset, iweight,
                                with_interval, threshold, psi, prefs, has_input, forbid_threshold, xp, fp, start, bucket, inv_h, cell_s,
                                v_c, a_c, w32, tau, values, done, positions, velocities, ipositions, outsides, ioutsides, pruned,
-                               totals):  # pragma: no cover - compiled
+                               totals, cur, nxt, s_buf, v_buf, b_buf, l_buf, o_buf, f_buf, x_t, lam_t, ratio_t, gathered, z,
+                               acc):  # pragma: no cover - compiled
         """The whole chain of ``speed_priority_run`` for the blocks of ``_LANES`` pairs ``order[blk:blk + _LANES]``, blk
         in ``blocks`` (``order``: similar pairs side by side), each block on the cells its pairs occupy: per s-row of the
         state the velocity cells [vlo, vhi] that may hold mass, per row of p⁻ those its sources reach; the pairs of a
         block are the innermost (vectorised) axis. Writes the rows of its pairs only (of the outputs, zeros on entry,
-        and of ``values``/``done``): calls on disjoint blocks may run at the same time."""
+        and of ``values``/``done``): calls on disjoint blocks may run at the same time, each with its own scratch arrays
+        ``cur`` … ``acc`` (``_block_workspace``: made once per thread, not per call; none is read before it is written)."""
         n_b, n_in = inp.shape
         n_v, n_s = vel0.shape[1], pos0.shape[1]
         n_ln = _LANES
@@ -748,11 +750,10 @@ if numba is not None:
             irel[e] = ioffset[e] * _LANES
         f32 = np.float32
         zero = f32(0.0)
-        # the block's state and p⁻, not zeroed here (1.7 MB each, a few % of it used): every cell is written before it is
-        # read, the state's box at the block's start and after each step, p⁻'s box at each step's start (as the blocks of
-        # one call reuse them, each on what the block before left)
-        cur = np.empty((n_s, n_in, n_v, n_ln), f32)  # the block's state: rows [first, last], in row s the cells [vlo[s], vhi[s]]
-        nxt = np.empty((n_s, n_in, n_v, n_ln), f32)  # p⁻: in row t the cells [tlo[t], thi[t]]
+        # the block's state ``cur`` (rows [first, last], in row s the cells [vlo[s], vhi[s]]) and p⁻ ``nxt`` (in row t the
+        # cells [tlo[t], thi[t]]), (n_s, n_in, n_v, n_ln) float32 as the caller gives them, not zeroed (1.3 MB each, a
+        # few % of it used): every cell is written before it is read, the state's box at the block's start and after each
+        # step, p⁻'s box at each step's start (as the blocks of one call reuse them, each on what the block before left)
         vlo = np.zeros(n_s, np.int64)
         vhi = np.zeros(n_s, np.int64)
         tlo = np.zeros(n_s, np.int64)
@@ -770,19 +771,9 @@ if numba is not None:
         outside = np.zeros(n_ln, f32)
         factor = np.zeros(n_ln, f32)
         pair = np.zeros(n_ln, np.int64)
-        n_states = n_s * n_v * n_ln
-        s_buf = np.empty(n_states, np.int64)
-        v_buf = np.empty(n_states, np.int64)
-        b_buf = np.empty(n_states, np.int64)
-        l_buf = np.empty(n_states, np.int64)
-        o_buf = np.empty(n_states, np.int64)
-        f_buf = np.empty(n_states, f32)
-        x_t = np.empty((n_in, n_states), f32)
-        lam_t = np.empty((n_in, n_states + _LANES), f32)  # (+ spare columns: _priority_into works 8 states at a time)
-        ratio_t = np.empty((n_in, n_states), f32)
-        gathered = np.empty((2 * n_in, n_states + _LANES), f32)
-        z = np.empty(n_states, f32)
-        acc = np.empty(n_states, f32)
+        # the per-state scratch (``_block_workspace``): s_buf … o_buf, f_buf, z, acc (n_states,), x_t, ratio_t (n_in,
+        # n_states), lam_t (n_in, n_states + _LANES) and gathered (2 n_in, n_states + _LANES) (spare columns:
+        # _priority_into works 8 states at a time), n_states = n_s · n_v · n_ln
         for blk in blocks:
             n_live = min(n_ln, order.shape[0] - blk)
             first, last, v_first, v_last = -1, -1, -1, -1
@@ -1018,11 +1009,33 @@ def speed_priority_run(state, outside0, tables, n_steps, with_interval, threshol
     blocks = np.arange(0, order.shape[0], _LANES, dtype=np.int64)
     n_threads = min(int(threads), blocks.shape[0])
     if n_threads <= 1:
-        _speed_priority_blocks(blocks, *args)
+        _speed_priority_blocks(blocks, *args, *_block_workspace(n_s, n_in, n_v))
     else:
-        _on_threads(blocks.shape[0], lambda i: _speed_priority_blocks(blocks[i:i + 1], *args), n_threads)
+        _on_threads(blocks.shape[0], lambda i: _speed_priority_blocks(blocks[i:i + 1], *args, *_block_workspace(n_s, n_in, n_v)), n_threads)
     pos, vel, ipos, out, iout, pruned, totals = outputs
     return pos, vel, (ipos if with_interval else None), out, (iout if with_interval else None), pruned, totals
+
+
+_WORKSPACES = threading.local()
+
+
+def _block_workspace(n_s: int, n_in: int, n_v: int) -> tuple[np.ndarray, ...]:
+    """This thread's scratch arrays for ``_speed_priority_blocks`` (cur, nxt, s_buf … acc, as its parameters), made
+    once per thread and grid (~10 MB for 100 × 10 × 40 cells) instead of on every call: allocated per call, they were
+    paged in again whenever the allocator had given the memory back (on a pool thread, 8 ms in ~15 % of the calls at
+    18 vehicles)."""
+    key = (int(n_s), int(n_in), int(n_v))
+    found = getattr(_WORKSPACES, "arrays", None)
+    if found is None or found[0] != key:
+        n_states = n_s * n_v * _LANES
+        f32 = np.float32
+        found = _WORKSPACES.arrays = (key, (
+            np.empty((n_s, n_in, n_v, _LANES), f32), np.empty((n_s, n_in, n_v, _LANES), f32),
+            *(np.empty(n_states, np.int64) for _ in range(5)), np.empty(n_states, f32),
+            np.empty((n_in, n_states), f32), np.empty((n_in, n_states + _LANES), f32), np.empty((n_in, n_states), f32),
+            np.empty((2 * n_in, n_states + _LANES), f32), np.empty(n_states, f32), np.empty(n_states, f32),
+        ))
+    return found[1]
 
 
 def _on_threads(n_tasks: int, task, n_threads: int) -> None:
