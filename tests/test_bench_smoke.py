@@ -94,3 +94,34 @@ def test_idle_penalty_bench_replays_the_same_frames_per_gap(tmp_path):
         assert row["markov_ms_median"] > 0 and row["python_ms_median"] > 0
     bad = _run([str(REPO / "bench" / "idle_penalty.py"), "--gaps", "0,soon"], tmp_path)
     assert bad.returncode == 2 and "--gaps" in bad.stderr
+
+
+def test_ab_bench_runs_each_version_from_its_own_tree_in_abba_order(tmp_path):
+    """bench/ab.py runs the command once per version and round, the base revision from a temporary worktree (its
+    packages on PYTHONPATH, removed afterwards) and the head from this tree, and reports the paired differences."""
+    probe = ("import json, os, sys, stages; json.dump({'t': {'x': 2.5}, 'own_tree': float(stages.__file__.startswith(os.getcwd())),"
+             " 'this_repo': float(os.path.samefile(os.getcwd(), sys.argv[2]))}, open(sys.argv[1], 'w'))")
+    out = tmp_path / "ab.json"
+    r = _run([str(REPO / "bench" / "ab.py"), "--base", "HEAD", "--rounds", "2", "--metric", "t.x", "--metric", "own_tree",
+              "--metric", "this_repo", "--json", str(out), "--", sys.executable, "-c", probe, "{json}", str(REPO)], tmp_path)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    report = json.loads(out.read_text())
+    assert [(x["round"], x["version"]) for x in report["runs"]] == [(0, "base"), (0, "head"), (1, "head"), (1, "base")]
+    m = report["metrics"]
+    assert m["t.x"]["diff"] == [0.0, 0.0] and m["t.x"]["ratio"] == 1.0
+    assert m["own_tree"]["base"] == m["own_tree"]["head"] == [1.0, 1.0]  # each imports the project from where it runs
+    assert m["this_repo"]["base"] == [0.0, 0.0] and m["this_repo"]["head"] == [1.0, 1.0]  # the base from elsewhere
+    assert m["this_repo"]["diff_mean"] == 1.0 and m["this_repo"]["diff_interval95"] == [1.0, 1.0]
+    listed = subprocess.run(["git", "worktree", "list"], cwd=REPO, capture_output=True, text=True).stdout
+    assert "iamp-ab-" not in listed  # the base's worktree is gone
+    writes = [sys.executable, "-c", "import json, sys; json.dump({'a': 1}, open(sys.argv[1], 'w'))", "{json}"]
+    bad = _run([str(REPO / "bench" / "ab.py"), "--base", "no-such-rev", "--metric", "a", "--", *writes], tmp_path)
+    assert bad.returncode == 2 and "not a revision" in bad.stderr
+    missing = _run([str(REPO / "bench" / "ab.py"), "--base", "HEAD", "--metric", "a.b", "--", *writes], tmp_path)
+    assert missing.returncode == 2 and "a.b" in missing.stderr
+    no_file = _run([str(REPO / "bench" / "ab.py"), "--base", "HEAD", "--metric", "a", "--", sys.executable, "-c", "pass"], tmp_path)
+    assert no_file.returncode == 2 and "{json}" in no_file.stderr
+    fails = _run([str(REPO / "bench" / "ab.py"), "--base", "HEAD", "--metric", "a", "--", sys.executable, "-c", "raise SystemExit(3)",
+                  "{json}"], tmp_path)
+    assert fails.returncode == 1 and "exited 3" in fails.stderr
+    assert "iamp-ab-" not in subprocess.run(["git", "worktree", "list"], cwd=REPO, capture_output=True, text=True).stdout
