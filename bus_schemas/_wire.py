@@ -319,15 +319,13 @@ def peek_header(data: bytes, *, where: str = "") -> tuple[str, int, dict | None]
     one the walk cannot read, goes through ``unpack_envelope``: the same result, or the same ``SchemaError``.
     What the walk does not check: the key types and the lengths of what it skips (a string of more than
     ``MAX_STR_BYTES`` inside the body, a map keyed by numbers): those payloads pass here and fail where they are
-    decoded. The size limits are checked first, as ``unpack_envelope`` checks them."""
+    decoded. The size limits are ``unpack_envelope``'s: a payload over its class's limit goes there and gets its error."""
     if isinstance(data, (bytes, bytearray, memoryview)) and len(data) <= MAX_PAYLOAD_BYTES:
-        head = _read_head(data)
-        if head is not None:
-            cls = REGISTRY.get(head[0])
+        walked = _walk_header(data)
+        if walked is not None:
+            cls = REGISTRY.get(walked[0])
             if len(data) <= (cls.MAX_BYTES if cls is not None else DEFAULT_MAX_BYTES):  # (unpack_envelope's limit)
-                walked = _walk_header(data)
-                if walked is not None:
-                    return walked
+                return walked
     schema, version, body = unpack_envelope(data, where=where)
     header = body.get("header")
     return schema, version, header if isinstance(header, dict) else None

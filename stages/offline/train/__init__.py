@@ -14,3 +14,6 @@ DEFAULT_OUT = Path("artefacts") / "ar_model.pt"
 DEFAULT_CACHE_DIR = Path("artefacts") / "ar_cache"
 """The data set cache of ``iamp train``."""
 SPLITS = ("sequence", "recording", "time")
+#: what the training loss compares (``iamp train --loss``): the target steps' accelerations, or the along-track
+#: displacement they integrate to
+LOSSES = ("accel", "displacement")

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from stages.offline.train import DEFAULT_CACHE_DIR, DEFAULT_OUT, SPLITS
+from stages.offline.train import DEFAULT_CACHE_DIR, DEFAULT_OUT, LOSSES, SPLITS
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -39,7 +39,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="cpu", help="cpu (default) or cuda")
     p.add_argument("--drop-feature", nargs="+", default=[], metavar="NAME", help="leave features out (ablation), names as in FEATURE_NAMES")
-    p.add_argument("--loss", choices=("accel", "displacement"), default="accel",
+    p.add_argument("--loss", choices=LOSSES, default="accel",
                    help="what the loss (MSE + MAE) compares: the target steps' accelerations (default) or the along-track"
                         " displacement they integrate to over the 4 s (what mADE scores)")
     p.add_argument("--accel-window", type=float, default=None, help="causal acceleration window, s (default 1.0)")

@@ -89,7 +89,7 @@ from stages.offline.train.dataset import ARDataset, DatasetConfig, build_dataset
 from stages.lib.ar.features import FEATURE_NAMES, HISTORY_STEPS, HORIZON_STEPS, STEP_S, FeatureConfig
 from stages.lib.ar.model import CHUNK_STEPS, KINDS, N_CHUNKS, ARModel, chunk_means, make_net, save_model
 
-from stages.offline.train import DEFAULT_CACHE_DIR, DEFAULT_OUT, SPLITS
+from stages.offline.train import DEFAULT_CACHE_DIR, DEFAULT_OUT, LOSSES, SPLITS
 
 SOURCE_DIR = Path(__file__).resolve().parents[3]  # the checkout this code runs from, for the model's provenance (git commit)
 
@@ -332,17 +332,11 @@ def _normalisation(x: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndar
     return mean.astype(np.float32), std.astype(np.float32)
 
 
-#: ``TrainConfig.loss``'s choices (module docstring)
-LOSSES = ("accel", "displacement")
-#: the target steps' length, s (0.1 … 4.0 s)
-STEP_S = 0.1
-
-
 def _displacement(err: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, 40) acceleration errors of the target steps -> the along-track displacement errors they integrate to at the
     end of each step (each step's acceleration held over its 0.1 s: the speed error at its end plus the exact position
     term), with weights that keep a step only while every step up to it is known (a later displacement depends on the
-    unknown ones); `w` (B, 40) = weight × known."""
+    unknown ones); `w` (B, 40) = weight × known; steps of ``STEP_S`` (the features' 0.1 s)."""
     known = w > 0
     err = torch.where(known, err, torch.zeros_like(err))  # (the targets of unknown steps are not read)
     v_end = STEP_S * torch.cumsum(err, dim=1)
