@@ -399,9 +399,10 @@ class MarkovPredictor:
         wall = frame.header.source_wall_ns if isinstance(frame, TrackFrame) else h.source_wall_ns
         header = Header(run_id=h.run_id, frame_index=h.frame_index, stamp_ns=h.stamp_ns, producer=self.producer, source_wall_ns=wall)
         scene_id = scene.scene_id if isinstance(scene, SceneInfo) else corridor_set.scene_id
+        # the grid first: the runtime puts the outputs in this order, and the grid is what the frame's consumers wait for
         outputs = {
-            "corridor_predictions": prediction.corridor_predictions(header, scene_id),
             "motion_grid": prediction.motion_grid(header, scene_id),
+            "corridor_predictions": prediction.corridor_predictions(header, scene_id),
         }
         return StageResult(outputs=outputs, issues=issues)
 
