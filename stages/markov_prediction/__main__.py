@@ -20,7 +20,9 @@ INPUTS = {
     # (pipelines/pipelined.toml), the newest profiles come as a latest value and no frame waits for its own
     "previous_profiles": Port(AccelerationProfiles, optional=True, latest=True),
 }
-OUTPUTS = {"corridor_predictions": Port(CorridorPredictions), "motion_grid": Port(MotionGrid)}
+# acceleration_profiles: published with hybrid_profiles = "inline" only (the profiles the stage computed itself,
+# pipelines/inline.toml), so that the viewer and the recording keep them where no ar_inference stage runs
+OUTPUTS = {"corridor_predictions": Port(CorridorPredictions), "motion_grid": Port(MotionGrid), "acceleration_profiles": Port(AccelerationProfiles)}
 
 
 def make_core(config: MarkovPredictionConfig, ctx: NodeContext) -> MarkovPredictor:

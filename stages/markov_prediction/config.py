@@ -90,9 +90,15 @@ class MarkovPredictionConfig(ConfigMixin):
     # the last ones received before the frame, at most hybrid_previous_max_age_s older (a pair without one holds its
     # measured acceleration), so the chain runs as soon as the relation set is in, beside intentions and ar_inference,
     # off the frame's critical path; iamp eval then runs the AR stage at every frame. Held out +1.3-2.5 % mADE (new pairs);
-    # on 2 cores the MotionGrid came 1-2 ms sooner, inside the noise (docs/performance.md "Pipelined AR profiles")
+    # on 2 cores the MotionGrid came 1-2 ms sooner, inside the noise (docs/performance.md "Pipelined AR profiles");
+    # "inline": see ar_model below
     hybrid_profiles: str = "frame"
     hybrid_previous_max_age_s: float = 0.25
+    # "inline": the stage runs the AR model itself (stages.ar_inference's core, weights ``ar_model``) on the frame's corridor
+    # set, relation set and track frame whenever its input set holds no acceleration_profiles: the same profiles as the
+    # ar_inference stage's, one process and one bus hop fewer on the frame's path (pipelines/inline.toml: on 2 cores the
+    # MotionGrid 3-5 ms sooner, docs/performance.md "AR inference inline"); it publishes them as its acceleration_profiles
+    ar_model: str = ""
     # true: the AR distribution λ_AR(k) is the preference inside the baseline's full rule set (speed, leader,
     # crossing: λ = cut(min(λ_speed, λ_lead, λ_conf), λ_AR(k))) instead of the speed cut alone
     hybrid_rules: bool = False
@@ -246,8 +252,8 @@ class MarkovPredictionConfig(ConfigMixin):
         if self.hybrid_accel_shifts and (len(self.hybrid_accel_shifts) < 2 or any(not (isinstance(f, (int, float)) and not isinstance(f, bool)
                                                                                       and math.isfinite(f)) for f in self.hybrid_accel_shifts)):
             raise ValueError(f"hybrid_accel_shifts = {self.hybrid_accel_shifts!r}: expected () or two or more finite shifts in m/s²")
-        if self.hybrid_profiles not in ("frame", "previous"):
-            raise ValueError(f"hybrid_profiles = {self.hybrid_profiles!r}: expected frame or previous")
+        if self.hybrid_profiles not in ("frame", "previous", "inline"):
+            raise ValueError(f"hybrid_profiles = {self.hybrid_profiles!r}: expected frame, previous or inline")
         if not (isinstance(self.hybrid_previous_max_age_s, (int, float)) and math.isfinite(self.hybrid_previous_max_age_s)
                 and self.hybrid_previous_max_age_s > 0):
             raise ValueError(f"hybrid_previous_max_age_s = {self.hybrid_previous_max_age_s!r}: expected a finite number of seconds > 0")

@@ -349,6 +349,14 @@ class MarkovPredictor:
         self._recent_profiles: dict[int, AccelerationProfiles] = {}
         self._told_unused = False  # (issue profiles_port_unused: said once)
         self.previous_profiles = config.mode == "hybrid" and config.hybrid_profiles == "previous"
+        #: hybrid_profiles "inline": the AR stage's core, run here on every frame whose set holds no profiles, and the
+        #: last frame's (stamp, profiles, issues) it gave (a frame's chain phase may run twice; the AR history once)
+        self._inline_ar: Any = None
+        self._inline_last: tuple | None = None
+        if config.mode == "hybrid" and config.hybrid_profiles == "inline":
+            from stages.ar_inference import ARInference, ARInferenceConfig
+
+            self._inline_ar = ARInference(ARInferenceConfig(model=config.ar_model), producer=producer)
         self.shift_choice: OnlineShiftChoice | None = OnlineShiftChoice(config.hybrid_accel_shifts, self.step_times_s) \
             if config.mode == "hybrid" and config.hybrid_accel_shifts else None
         self._shift_logged_ns: int | None = None
@@ -400,10 +408,13 @@ class MarkovPredictor:
         header = Header(run_id=h.run_id, frame_index=h.frame_index, stamp_ns=h.stamp_ns, producer=self.producer, source_wall_ns=wall)
         scene_id = scene.scene_id if isinstance(scene, SceneInfo) else corridor_set.scene_id
         # the grid first: the runtime puts the outputs in this order, and the grid is what the frame's consumers wait for
-        outputs = {
+        outputs: dict[str, Any] = {
             "motion_grid": prediction.motion_grid(header, scene_id),
             "corridor_predictions": prediction.corridor_predictions(header, scene_id),
         }
+        inline = self._inline_last
+        if inline is not None and inline[0] == early.stamp and isinstance(inline[1], AccelerationProfiles):
+            outputs["acceleration_profiles"] = inline[1]  # hybrid_profiles "inline": what the ar_inference stage would publish
         return StageResult(outputs=outputs, issues=issues)
 
     def idle(self) -> None:
@@ -669,6 +680,8 @@ class MarkovPredictor:
         else:
             pp = self._pairs_phase(corridor_set, scene, track_frame, intention_belief=intention_belief)
         issues, pairs, stamp = list(pp.issues), pp.pairs, pp.stamp
+        if self._inline_ar is not None and acceleration_profiles is None:
+            acceleration_profiles = self._inline_profiles(corridor_set, relation_set, track_frame, issues)
         frame_data = self.model.read(Messages(stamp, relation_set, track_frame, intention_belief if self.chain_reads_belief else None,
                                               self._chain_profiles(acceleration_profiles, stamp)), issues)
         for vehicle, good, first in pp.weighed:
@@ -704,6 +717,26 @@ class MarkovPredictor:
         except Exception:  # noqa: BLE001 - done again there, pair by pair
             geometry = None
         return _Early(stamp, issues, final, merged, order, pp.weighed, self.chain_reads_belief, pp.beliefs, geometry)
+
+    def _inline_profiles(self, corridor_set: CorridorSet, relation_set: RelationSet | None, track_frame: TrackFrame | None,
+                         issues: list[Issue]) -> AccelerationProfiles | None:
+        """hybrid_profiles "inline": the frame's AR profiles from the stage's own AR core (once per frame: a chain
+        phase run again for the same frame reads the first run's), for this shard's vehicles; its issues are the
+        frame's. A failure of the AR core costs the frame its profiles (every pair holds its measured acceleration), not
+        the frame."""
+        stamp = int(corridor_set.header.stamp_ns)
+        last = self._inline_last
+        if last is None or last[0] != stamp:
+            if self._shard is not None:  # another shard's vehicles: their features are that shard's work
+                index, n_shards = self._shard
+                corridor_set = dataclasses.replace(corridor_set, vehicles=tuple(v for v in corridor_set.vehicles if shard_of(v.track_id, n_shards) == index))
+            try:
+                profiles, ar_issues = self._inline_ar.process(corridor_set, relation_set, track_frame)
+            except Exception as exc:  # noqa: BLE001 - the frame goes on without profiles
+                profiles, ar_issues = None, [Issue("inline_ar_failed", -1, f"the AR model raised {type(exc).__name__}: {str(exc)[:200]}; no profiles this frame")]
+            last = self._inline_last = (stamp, profiles, ar_issues)
+        issues.extend(last[2])
+        return last[1]
 
     def remember_profiles(self, profiles: AccelerationProfiles | None) -> None:
         """hybrid_profiles "previous": keep ``profiles`` for the chains of later frames (the newest ``_KEEP_PROFILES``
@@ -755,6 +788,9 @@ class MarkovPredictor:
 
     def reset(self) -> None:
         """Forget every track's history (a new sequence starts; the offline tables are kept)."""
+        if self._inline_ar is not None:
+            self._inline_ar.reset()
+            self._inline_last = None
         self._history.clear()
         self._lines.clear()
         self._prepared = None
