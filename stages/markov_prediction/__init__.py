@@ -7,9 +7,13 @@ of mode ``cv``), ``intention_belief`` (``IntentionBelief``: corridor weights
 and particle boxes) and ``acceleration_profiles`` (``AccelerationProfiles``:
 mode ``hybrid``), all of the same stamp; or, instead of the last, ``previous_profiles``
 (the same messages as a latest value, outside the join: ``hybrid_profiles = "previous"``, whose chain reads the
-profiles of the frame before and so runs before the frame's own come; ``launch.py pipelined``). Produces ``corridor_predictions`` (``CorridorPredictions``)
-and ``motion_grid`` (``MotionGrid``) for every frame. Run it alone with
-``python -m stages.markov_prediction``.
+profiles of the frame before and so runs before the frame's own come; ``launch.py pipelined``). With
+``hybrid_profiles = "inline"`` the stage needs no profiles at all: where the set holds none, it runs the AR model
+itself (the ar_inference stage's core, weights ``ar_model``) on the frame's corridor set, relation set and track
+frame, once per frame, and publishes what it got as ``acceleration_profiles`` (``launch.py inline``: no
+ar_inference stage, the same outputs byte for byte, one process and one bus hop fewer on each frame's path).
+Produces ``motion_grid`` (``MotionGrid``) and ``corridor_predictions`` (``CorridorPredictions``), put in this order,
+for every frame. Run it alone with ``python -m stages.markov_prediction``.
 
 On the bus the work starts before the last input: the runtime offers the
 core each incomplete set (``MarkovPredictor.prepare``; README, "Work before
