@@ -51,7 +51,7 @@ DEFAULT_FUNCTIONS = (
     "stages.corridors.core:CorridorBuilder.process",
     "stages.relations.core:RelationExtractor.process",
     "stages.intentions.core:IntentionFilter.process",
-    "stages.ar_inference.core:ARInference.process",
+    "stages.lib.ar.inference:ARInference.process",
     "stages.lib.ar.model:ARModel.predict",
     MARKOV + "prepare",
     MARKOV + "update",

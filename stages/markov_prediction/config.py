@@ -97,7 +97,7 @@ class MarkovPredictionConfig(ConfigMixin):
     # "inline": the stage runs the AR model itself (stages.ar_inference's core, weights ``ar_model``) on the frame's corridor
     # set, relation set and track frame whenever its input set holds no acceleration_profiles: the same profiles as the
     # ar_inference stage's, one process and one bus hop fewer on the frame's path (pipelines/inline.toml: on 2 cores the
-    # MotionGrid 3-5 ms sooner, docs/performance.md "AR inference inline"); it publishes them as its acceleration_profiles
+    # MotionGrid 1-4 ms sooner at p50, 2-5 at p95, docs/performance.md "Session 34"); it publishes them as its acceleration_profiles
     ar_model: str = ""
     # true: the AR distribution λ_AR(k) is the preference inside the baseline's full rule set (speed, leader,
     # crossing: λ = cut(min(λ_speed, λ_lead, λ_conf), λ_AR(k))) instead of the speed cut alone

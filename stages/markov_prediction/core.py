@@ -354,7 +354,7 @@ class MarkovPredictor:
         self._inline_ar: Any = None
         self._inline_last: tuple | None = None
         if config.mode == "hybrid" and config.hybrid_profiles == "inline":
-            from stages.ar_inference import ARInference, ARInferenceConfig
+            from stages.lib.ar.inference import ARInference, ARInferenceConfig  # (torch: only for this mode)
 
             self._inline_ar = ARInference(ARInferenceConfig(model=config.ar_model), producer=producer)
         self.shift_choice: OnlineShiftChoice | None = OnlineShiftChoice(config.hybrid_accel_shifts, self.step_times_s) \
