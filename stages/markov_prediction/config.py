@@ -254,6 +254,9 @@ class MarkovPredictionConfig(ConfigMixin):
             raise ValueError(f"hybrid_accel_shifts = {self.hybrid_accel_shifts!r}: expected () or two or more finite shifts in m/s²")
         if self.hybrid_profiles not in ("frame", "previous", "inline"):
             raise ValueError(f"hybrid_profiles = {self.hybrid_profiles!r}: expected frame, previous or inline")
+        if self.ar_model and self.hybrid_profiles != "inline":
+            raise ValueError(f"ar_model = {self.ar_model!r} is read with hybrid_profiles = \"inline\" only (now {self.hybrid_profiles!r}): "
+                             "set both, or give the weights to the ar_inference stage (its model)")
         if not (isinstance(self.hybrid_previous_max_age_s, (int, float)) and math.isfinite(self.hybrid_previous_max_age_s)
                 and self.hybrid_previous_max_age_s > 0):
             raise ValueError(f"hybrid_previous_max_age_s = {self.hybrid_previous_max_age_s!r}: expected a finite number of seconds > 0")

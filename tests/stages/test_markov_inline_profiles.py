@@ -42,6 +42,10 @@ def test_config_checks():
     with pytest.raises(ValueError, match="frame, previous or inline"):
         MarkovPredictionConfig(hybrid_profiles="own")
     assert MarkovPredictor(MarkovPredictionConfig(mode="baseline", hybrid_profiles="inline"))._inline_ar is None  # hybrid only
+    with pytest.raises(ValueError, match='ar_model.*"inline" only'):
+        MarkovPredictionConfig(ar_model="weights.pt")  # read by nothing in the frame mode: said, not ignored
+    with pytest.raises(Exception, match="no such weights file"):  # a bad path stops the stage at its start, with its name
+        MarkovPredictor(MarkovPredictionConfig(mode="hybrid", hybrid_profiles="inline", ar_model="/nonexistent/w.pt"))
 
 
 def test_inline_gives_the_outputs_of_the_ar_stage_and_markov_prediction_apart(frames, stencils, monkeypatch):
