@@ -85,6 +85,19 @@ def _last_stats(path: Path, node: str) -> bs.NodeStats:
     return last
 
 
+def run_pipeline_k729(pipeline: str, run_id: str, tmp_path: Path) -> tuple[Path, dict[str, int]]:
+    """``launch.py PIPELINE`` on K729 for 5 s at twice real time, recorded: the recording and its message count per
+    topic, after checking that the run ended cleanly and that every source frame has a MotionGrid of
+    markov_prediction."""
+    rec = tmp_path / "run.mcap"
+    run = Launch(pipeline, *K729, "--stop-after", "5", "--speed", "2", "--no-viewer", "--record", str(rec), "--run-id", run_id, cwd=tmp_path)
+    assert run.wait() == 0, run.text()[-4000:]
+    counts = {c["topic"]: c["count"] for c in inspect(str(rec))["channels"]}
+    frames = counts[f"iamp/{run_id}/source/track_frame"]
+    assert frames > 10 and counts[f"iamp/{run_id}/markov_prediction/motion_grid"] == frames, counts
+    return rec, counts
+
+
 def test_run_records_every_source_frame_and_replay_reproduces_it(tmp_path):
     rec = tmp_path / "run.mcap"
     run = Launch(*K729, "--stop-after", "6", "--speed", "3", "--no-viewer", "--record", str(rec), "--run-id", "itest", cwd=tmp_path)

@@ -108,16 +108,11 @@ def test_the_inline_pipeline_predicts_every_frame_on_the_bus(tmp_path):
     """pipelines/inline.toml: no ar_inference stage; markov_prediction predicts every frame in mode hybrid and
     publishes the profiles it computed, one message per frame."""
     import bus_schemas as bs
-    from stages.recorder.inspect import inspect, read_messages
-    from tests.integration.test_launch_run import K729, Launch, _last_stats
+    from stages.recorder.inspect import read_messages
+    from tests.integration.test_launch_run import _last_stats, run_pipeline_k729
 
-    rec = tmp_path / "run.mcap"
-    run = Launch("inline", *K729, "--stop-after", "5", "--speed", "2", "--no-viewer", "--record", str(rec), "--run-id", "inl", cwd=tmp_path)
-    assert run.wait() == 0, run.text()[-4000:]
-    counts = {c["topic"]: c["count"] for c in inspect(str(rec))["channels"]}
-    frames = counts["iamp/inl/source/track_frame"]
-    assert frames > 10 and counts["iamp/inl/markov_prediction/motion_grid"] == frames, counts
-    assert counts["iamp/inl/markov_prediction/acceleration_profiles"] == frames, counts
+    rec, counts = run_pipeline_k729("inline", "inl", tmp_path)
+    assert counts["iamp/inl/markov_prediction/acceleration_profiles"] == counts["iamp/inl/source/track_frame"], counts
     assert not [t for t in counts if "/ar_inference/" in t], counts
     profiles = [bs.decode(m.data) for m in read_messages(str(rec)) if m.topic == "iamp/inl/markov_prediction/acceleration_profiles"]
     assert sum(len(p.profiles) for p in profiles) > 0

@@ -130,15 +130,10 @@ def test_the_pipelined_pipeline_predicts_every_frame_on_the_bus(tmp_path):
     """pipelines/pipelined.toml: markov_prediction with previous_profiles as a latest value predicts every frame
     (none waits for, or is lost for want of, its own profiles), in mode hybrid, with no issue of the binding."""
     import bus_schemas as bs
-    from stages.recorder.inspect import inspect, read_messages
-    from tests.integration.test_launch_run import K729, Launch, _last_stats
+    from stages.recorder.inspect import read_messages
+    from tests.integration.test_launch_run import _last_stats, run_pipeline_k729
 
-    rec = tmp_path / "run.mcap"
-    run = Launch("pipelined", *K729, "--stop-after", "5", "--speed", "2", "--no-viewer", "--record", str(rec), "--run-id", "pipe", cwd=tmp_path)
-    assert run.wait() == 0, run.text()[-4000:]
-    counts = {c["topic"]: c["count"] for c in inspect(str(rec))["channels"]}
-    frames = counts["iamp/pipe/source/track_frame"]
-    assert frames > 10 and counts["iamp/pipe/markov_prediction/motion_grid"] == frames, counts
+    rec, _counts = run_pipeline_k729("pipelined", "pipe", tmp_path)
     grids = [bs.decode(m.data) for m in read_messages(str(rec)) if m.topic == "iamp/pipe/markov_prediction/motion_grid"]
     assert {g.mode for g in grids} == {"hybrid"}
     st = _last_stats(rec, "markov_prediction")
