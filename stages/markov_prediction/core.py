@@ -356,7 +356,10 @@ class MarkovPredictor:
         if config.mode == "hybrid" and config.hybrid_profiles == "inline":
             from stages.lib.ar.inference import ARInference, ARInferenceConfig  # (torch: only for this mode)
 
-            self._inline_ar = ARInference(ARInferenceConfig(model=config.ar_model), producer=producer)
+            # over this stage's input cells (the ar_inference stage is told them apart; here they are the stage's own)
+            self._inline_ar = ARInference(ARInferenceConfig(model=config.ar_model, input_min_mps2=config.input_min_mps2,
+                                                            input_max_mps2=config.input_max_mps2, n_inputs=config.n_inputs),
+                                          producer=producer)
         self.shift_choice: OnlineShiftChoice | None = OnlineShiftChoice(config.hybrid_accel_shifts, self.step_times_s) \
             if config.mode == "hybrid" and config.hybrid_accel_shifts else None
         self._shift_logged_ns: int | None = None
@@ -636,11 +639,7 @@ class MarkovPredictor:
         self.idle()  # the last frame's back test, if the runtime has not run it: before this frame touches any state
         issues: list[Issue] = []
         stamp = int(corridor_set.header.stamp_ns)
-        others: set[int] = set()
-        if self._shard is not None:  # another shard predicts these vehicles: they are left out here, without issues
-            index, n_shards = self._shard
-            others = {v.track_id for v in corridor_set.vehicles if shard_of(v.track_id, n_shards) != index}
-            corridor_set = dataclasses.replace(corridor_set, vehicles=tuple(v for v in corridor_set.vehicles if v.track_id not in others))
+        corridor_set, others = self._own_vehicles(corridor_set)
         given = corridor_set
         corridor_set, dropped = cap_pairs(corridor_set, self.config.max_pairs)
         skipped = {v.track_id for v, w in zip(given.vehicles, corridor_set.vehicles) if v.corridors and not w.corridors} | others
@@ -718,6 +717,15 @@ class MarkovPredictor:
             geometry = None
         return _Early(stamp, issues, final, merged, order, pp.weighed, self.chain_reads_belief, pp.beliefs, geometry)
 
+    def _own_vehicles(self, corridor_set: CorridorSet) -> tuple[CorridorSet, set[int]]:
+        """The set with this shard's vehicles only, and the track ids of the others (another shard predicts them: left
+        out here, without issues); the set as it is and none without shards."""
+        if self._shard is None:
+            return corridor_set, set()
+        index, n_shards = self._shard
+        others = {v.track_id for v in corridor_set.vehicles if shard_of(v.track_id, n_shards) != index}
+        return dataclasses.replace(corridor_set, vehicles=tuple(v for v in corridor_set.vehicles if v.track_id not in others)), others
+
     def _inline_profiles(self, corridor_set: CorridorSet, relation_set: RelationSet | None, track_frame: TrackFrame | None,
                          issues: list[Issue]) -> AccelerationProfiles | None:
         """hybrid_profiles "inline": the frame's AR profiles from the stage's own AR core (once per frame: a chain
@@ -727,11 +735,8 @@ class MarkovPredictor:
         stamp = int(corridor_set.header.stamp_ns)
         last = self._inline_last
         if last is None or last[0] != stamp:
-            if self._shard is not None:  # another shard's vehicles: their features are that shard's work
-                index, n_shards = self._shard
-                corridor_set = dataclasses.replace(corridor_set, vehicles=tuple(v for v in corridor_set.vehicles if shard_of(v.track_id, n_shards) == index))
-            try:
-                profiles, ar_issues = self._inline_ar.process(corridor_set, relation_set, track_frame)
+            try:  # (another shard's vehicles: their features are that shard's work)
+                profiles, ar_issues = self._inline_ar.process(self._own_vehicles(corridor_set)[0], relation_set, track_frame)
             except Exception as exc:  # noqa: BLE001 - the frame goes on without profiles
                 profiles, ar_issues = None, [Issue("inline_ar_failed", -1, f"the AR model raised {type(exc).__name__}: {str(exc)[:200]}; no profiles this frame")]
             last = self._inline_last = (stamp, profiles, ar_issues)

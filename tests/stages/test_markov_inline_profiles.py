@@ -77,6 +77,17 @@ def test_inline_gives_the_outputs_of_the_ar_stage_and_markov_prediction_apart(fr
     assert "acceleration_profiles" not in want.outputs  # the frame mode publishes none
 
 
+def test_the_inline_model_predicts_over_the_stages_own_input_cells(frames):
+    """A stage with other input cells than the defaults gets profiles over its cells (the ar_inference stage must be
+    told them; inline they are the stage's own): no bad_profile."""
+    cells = {"input_min_mps2": -4.0, "input_max_mps2": 3.0, "n_inputs": 14}
+    inline = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", hybrid_profiles="inline", **cells))
+    out = inline.update(_inputs(frames[10]))
+    profiles = out.outputs["acceleration_profiles"]
+    assert len(profiles.input_edges_mps2) == 15 and profiles.input_edges_mps2[0] == -4.0 and profiles.profiles
+    assert "bad_profile" not in [i.kind for i in out.issues]
+
+
 def test_given_profiles_are_read_and_the_model_is_not_run(frames, stencils):
     """A set that holds the frame's profiles (iamp eval, whose AR stage sees every frame; a pipeline that binds them)
     is predicted from those, as the frame mode does: the stage's own AR model does not run and publishes nothing."""
