@@ -86,6 +86,12 @@ class MarkovPredictionConfig(ConfigMixin):
     # 0 on both locations (K729 t = -1.4, K733 +0.1 for 0.25: docs/evaluation.md "Online acceleration shift"), so it only cost a
     # back-test chain per tested frame
     hybrid_accel_shifts: tuple[float, ...] = ()
+    # hybrid mode: two or more leads L (s, >= 0): a moving pair's chain starts at the speed v0 + L·a, a the corridors
+    # stage's estimated acceleration of the car (its speed a moment ahead: the estimate lags, and a car that accelerates
+    # goes on for a while), chosen online by back testing as the curve factors are (curve_choice.OnlineLeadChoice: 0
+    # until another is better by 3 standard errors); () = off. Held out, seed 0 (docs/evaluation.md "Online speed lead"):
+    # K729 (K733-trained model) chooses 0.4 s, mADE 1.366 -> 1.250; K733 keeps 0 (outputs as before)
+    hybrid_speed_leads_s: tuple[float, ...] = (0.0, 0.2, 0.4, 0.8)
     # hybrid mode: the AR profiles the chain reads. "frame": the frame's own (the chain waits for them); "previous":
     # the last ones received before the frame, at most hybrid_previous_max_age_s older (a pair without one holds its
     # measured acceleration), so the chain runs as soon as the relation set is in, beside intentions and ar_inference,
@@ -252,6 +258,9 @@ class MarkovPredictionConfig(ConfigMixin):
         if self.hybrid_accel_shifts and (len(self.hybrid_accel_shifts) < 2 or any(not (isinstance(f, (int, float)) and not isinstance(f, bool)
                                                                                       and math.isfinite(f)) for f in self.hybrid_accel_shifts)):
             raise ValueError(f"hybrid_accel_shifts = {self.hybrid_accel_shifts!r}: expected () or two or more finite shifts in m/s²")
+        if self.hybrid_speed_leads_s and (len(self.hybrid_speed_leads_s) < 2 or any(not (isinstance(f, (int, float)) and not isinstance(f, bool)
+                                                                                        and math.isfinite(f) and f >= 0) for f in self.hybrid_speed_leads_s)):
+            raise ValueError(f"hybrid_speed_leads_s = {self.hybrid_speed_leads_s!r}: expected () or two or more finite leads in s, >= 0")
         if self.hybrid_profiles not in ("frame", "previous", "inline"):
             raise ValueError(f"hybrid_profiles = {self.hybrid_profiles!r}: expected frame, previous or inline")
         if self.ar_model and self.hybrid_profiles != "inline":

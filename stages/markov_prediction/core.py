@@ -54,7 +54,7 @@ from stages.markov_prediction.modes.base import InputModel, Messages, Pair, Vehi
 from stages.markov_prediction.modes.corridor_cv import constant_speed
 from stages.markov_prediction.modes.cv import CV_LINE_ID
 from stages.markov_prediction.initial_blend import OnlineInitialBlend
-from stages.markov_prediction.curve_choice import OnlineCurveChoice, OnlineShiftChoice, frame_tested, sampled
+from stages.markov_prediction.curve_choice import OnlineCurveChoice, OnlineLeadChoice, OnlineShiftChoice, frame_tested, sampled
 from stages.markov_prediction.online_spread import DEFAULT_BANDS_MPS, OnlineSpread
 from stages.markov_prediction.spread import ALONG_TRUNCATE, SpreadTable, blur_along, blur_grid, load_spread
 from stages.markov_prediction.rasterise import (
@@ -363,6 +363,12 @@ class MarkovPredictor:
         self.shift_choice: OnlineShiftChoice | None = OnlineShiftChoice(config.hybrid_accel_shifts, self.step_times_s) \
             if config.mode == "hybrid" and config.hybrid_accel_shifts else None
         self._shift_logged_ns: int | None = None
+        #: hybrid: the lead (s) of the chain's start speed that the latest pairs phase gave its pairs (``Pair.speed_lead_s``),
+        #: and its online choice by back testing (``hybrid_speed_leads_s``), or None
+        self.speed_lead = 0.0
+        self.lead_choice: OnlineLeadChoice | None = OnlineLeadChoice(config.hybrid_speed_leads_s, self.step_times_s) \
+            if config.mode == "hybrid" and config.hybrid_speed_leads_s else None
+        self._lead_logged_ns: int | None = None
         #: whether the chain itself reads the intentions stage's belief (the particle boxes, the stop mixture); where it
         #: does not, ``prepare`` runs the chain before the belief comes
         self.chain_reads_belief = config.initial_box == "particles" or (config.mode == "hybrid" and config.hybrid_stop_mixture)
@@ -528,6 +534,12 @@ class MarkovPredictor:
         self.accel_shift = self._choose(self.shift_choice, self.accel_shift, stamp, track_frame, issues, "accel_shift_failed",
                                         "acceleration shift %g m/s²", "_shift_logged_ns")
 
+    def _choose_speed_lead(self, stamp: int, track_frame: TrackFrame | None, issues: list[Issue]) -> None:
+        """The online speed lead (``curve_choice.OnlineLeadChoice``), as ``_choose_curve_factor``; a failure keeps the
+        lead it had (issue ``speed_lead_failed``)."""
+        self.speed_lead = self._choose(self.lead_choice, self.speed_lead, stamp, track_frame, issues, "speed_lead_failed",
+                                       "speed lead %g s", "_lead_logged_ns")
+
     def _choose(self, choice: OnlineCurveChoice, current: float, stamp: int, track_frame: TrackFrame | None, issues: list[Issue],
                 failed: str, what: str, logged_attr: str) -> float:
         """One online choice's step (``_choose_curve_factor``, ``_choose_accel_shift``); returns the candidate in use."""
@@ -576,6 +588,14 @@ class MarkovPredictor:
                 self._back_test_choice(self.shift_choice, "accel_shift_mps2", chosen, by_track, pairs, stamp, issues, chained)
             except Exception as exc:  # noqa: BLE001
                 issues.append(Issue("accel_shift_failed", -1, f"back test: {type(exc).__name__}: {exc}: this frame's samples skipped"))
+        if self.lead_choice is not None:
+            try:
+                # moving vehicles with an estimated acceleration (2 µs on: yet another start in the ids)
+                eligible = [t for t in driven if all(_leads(p) for p in by_track[t])]
+                self._back_test_choice(self.lead_choice, "speed_lead_s", sampled(sorted(eligible), stamp + 2000), by_track, pairs, stamp,
+                                       issues, chained)
+            except Exception as exc:  # noqa: BLE001
+                issues.append(Issue("speed_lead_failed", -1, f"back test: {type(exc).__name__}: {exc}: this frame's samples skipped"))
 
     def _back_test_choice(self, choice: OnlineCurveChoice, field_name: str, chosen: list[int], by_track: dict[int, list[Pair]],
                           pairs: list[Pair], stamp: int, issues: list[Issue], chained: tuple[list[Pair], dict[str, Any], list[int]]) -> None:
@@ -652,6 +672,8 @@ class MarkovPredictor:
             self._choose_curve_factor(stamp, track_frame, issues)
         if self.shift_choice is not None:
             self._choose_accel_shift(stamp, track_frame, issues)
+        if self.lead_choice is not None:
+            self._choose_speed_lead(stamp, track_frame, issues)
         weighed: list[tuple[Any, list, int]] = []
         pairs = self._vehicle_pairs(corridor_set, track_frame, speed_limit, issues, beliefs, weighed)
         if self.model.chain and pairs:  # the chain's batch as _predict_chain will screen it (the inputs are not known yet)
@@ -708,7 +730,7 @@ class MarkovPredictor:
                     pair.start_rate_hz = max(self.config.hybrid_standstill_rates_hz[standstill_group(pair.relation, self.config)], 1e-9)
         self._signal_walls = apply_signals(self, pairs, issues)  # stages.markov_prediction.signals: nothing without signal phases
         final, merged, order = self._predict_chain(pairs, issues)
-        if self.curve_choice is not None or self.shift_choice is not None:  # done by idle, after this frame's outputs (or first thing in the next frame)
+        if self.curve_choice is not None or self.shift_choice is not None or self.lead_choice is not None:  # done by idle, after this frame's outputs (or first thing in the next frame)
             self._back_test_pending = (pairs, stamp, (final, merged, order))
         found: list[Issue] = []
         try:  # the outputs' part that needs no weights, now (a failure: _belief_phase isolates the pairs, from the arrays)
@@ -812,6 +834,8 @@ class MarkovPredictor:
             self.curve_choice.reset()
         if self.shift_choice is not None:
             self.shift_choice.reset()
+        if self.lead_choice is not None:
+            self.lead_choice.reset()
 
     def observe(self, corridor_set: CorridorSet) -> None:
         """Record each vehicle's speed at this stamp (for its measured acceleration); forget stale tracks.
@@ -1111,6 +1135,8 @@ class MarkovPredictor:
                         stamp_ns=stamp,
                         curve_factor=self.curve_factor,
                         accel_shift_mps2=self.accel_shift,
+                        speed_lead_s=self.speed_lead,
+                        accel_est_mps2=float(vehicle.accel_mps2) if math.isfinite(vehicle.accel_mps2) else math.nan,
                         s_first_m=s_first,
                         length_m=length,
                         width_m=width,
@@ -1299,7 +1325,7 @@ class MarkovPredictor:
         (the measurement's defaults, or the particles')."""
         return {
             "s_m": np.array([p.s0_m - p.s_first_m for p in pairs], dtype=np.float64),
-            "v_mps": np.array([p.v0_mps for p in pairs], dtype=np.float64),
+            "v_mps": np.array([_chain_start_speed(p, self.config.v_max_mps) for p in pairs], dtype=np.float64),
             "half_width_s_m": np.array([p.half_width_s_m if p.half_width_s_m > 0 else self._default_half_s_m for p in pairs]),
             "half_width_v_mps": np.array([p.half_width_v_mps if p.half_width_v_mps > 0 else self._default_half_v_mps for p in pairs]),
         }
@@ -1693,6 +1719,19 @@ def _means_on_map(lines: Centrelines, pos: np.ndarray, s_abs: np.ndarray, shift_
         my = (np.einsum("bkl,bl->bk", pos64, y_c) + shift_all * np.einsum("bkl,bl->bk", pos64, ny_c)) / mass
         ms = np.einsum("bkl,bl->bk", pos64, s_abs) / mass
     return mx, my, ms, ok
+
+
+def _leads(p: Pair) -> bool:
+    """Whether the pair's chain may start ahead of its speed (``hybrid_speed_leads_s``): moving, with an estimated acceleration."""
+    return p.start_rate_hz == 0 and math.isfinite(p.accel_est_mps2)
+
+
+def _chain_start_speed(p: Pair, v_max_mps: float) -> float:
+    """The centre of the pair's initial speed box: v0, or v0 + ``speed_lead_s`` · the estimated acceleration (within
+    [0, ``v_max_mps``]) for a moving pair with one (``hybrid_speed_leads_s``)."""
+    if p.speed_lead_s == 0.0 or not _leads(p):
+        return p.v0_mps
+    return float(min(max(p.v0_mps + p.speed_lead_s * p.accel_est_mps2, 0.0), v_max_mps))
 
 
 def _curve_ahead(p: Pair, horizon_s: float) -> bool:

@@ -214,6 +214,23 @@ class OnlineShiftChoice(OnlineCurveChoice):
             raise ValueError(f"hybrid_accel_shifts = {self.factors!r}: need two or more finite shifts (m/s²)")
 
 
+@dataclass
+class OnlineLeadChoice(OnlineCurveChoice):
+    """Online speed lead (``hybrid_speed_leads_s``): a moving pair's chain starts at v0 + L·a instead of v0, a the
+    corridors stage's estimated acceleration (``Pair.speed_lead_s``, ``MarkovPredictor._boxes``), L chosen as the curve
+    factor is, by causal back testing on the recording (``OnlineCurveChoice``; ``factors`` are the candidate leads in
+    seconds, ``default`` 0, the estimate as it is). Why: the start speed is what is left of hybrid's error where the
+    estimate lags (docs/evaluation.md, "How far perfect inputs go"), and whether the estimated acceleration carries on
+    depends on the recording (K729: a lead of 0.4 s takes hybrid's mADE from 1.37 to 1.23 m; K733, whose positions
+    jitter, loses with any lead: docs/evaluation.md, "Online speed lead")."""
+
+    default: float = 0.0
+
+    def _check(self) -> None:
+        if len(self.factors) < 2 or any(not (math.isfinite(f) and f >= 0) for f in self.factors):
+            raise ValueError(f"hybrid_speed_leads_s = {self.factors!r}: need two or more finite leads (s, >= 0)")
+
+
 def _stamp_hash(stamp_ns: int) -> int:
     """The stamp (µs, so any frame rate) hashed to 64 bits."""
     return ((int(stamp_ns) // 1000) * 0x9E3779B97F4A7C15) & 0xFFFFFFFFFFFFFFFF
@@ -235,4 +252,4 @@ def sampled(track_ids: list[int], stamp_ns: int, n: int = PER_FRAME, pairs: int 
     return [ids[(start + i * max(1, len(ids) // n)) % len(ids)] for i in range(min(n, len(ids)))]
 
 
-__all__ = ["MIN_SAMPLES", "MIN_T", "OnlineCurveChoice", "OnlineShiftChoice", "PAIRS_PER_TEST", "PER_FRAME", "frame_tested", "sampled"]
+__all__ = ["MIN_SAMPLES", "MIN_T", "OnlineCurveChoice", "OnlineLeadChoice", "OnlineShiftChoice", "PAIRS_PER_TEST", "PER_FRAME", "frame_tested", "sampled"]

@@ -762,6 +762,8 @@ class Evaluation:
                 modes[mode]["curve_choice"] = self.predictors[mode].curve_choice.summary()
             if getattr(self.predictors[mode], "shift_choice", None) is not None:  # hybrid_accel_shifts: what it chose
                 modes[mode]["accel_shift"] = self.predictors[mode].shift_choice.summary()
+            if getattr(self.predictors[mode], "lead_choice", None) is not None:  # hybrid_speed_leads_s: what it chose
+                modes[mode]["speed_lead"] = self.predictors[mode].lead_choice.summary()
             modes[mode]["calibration"] = {
                 "levels": list(COVERAGE_LEVELS),
                 **{split: {"coverage": c.coverage(), "steps": c.steps} for split, c in acc.calibration.items()},

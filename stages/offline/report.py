@@ -133,7 +133,8 @@ QUANTITATIVE_HEAD = ["situation", "mode", "windows", "time per step (ms)", "mADE
 
 
 def _online(hybrid: dict[str, Any]) -> str:
-    """What hybrid learnt on the recordings (``modes.hybrid.initial_blend``, ``curve_choice`` and ``accel_shift``), in words; '' if nothing."""
+    """What hybrid learnt on the recordings (``modes.hybrid.initial_blend``, ``curve_choice``, ``accel_shift`` and ``speed_lead``), in
+    words; '' if nothing."""
     parts = []
     blend = hybrid.get("initial_blend")
     if blend:
@@ -146,6 +147,10 @@ def _online(hybrid: dict[str, Any]) -> str:
     if shift:
         parts.append(f"acceleration shift {shift['factor']:g} m/s² of {', '.join(f'{f:g}' for f in shift['factors'])} from {fmt(shift['samples'])}"
                      f" back-tested vehicles (mean ADE {' / '.join(f'{a:.2f}' for a in shift['mean_ade_m'])} m)")
+    lead = hybrid.get("speed_lead")
+    if lead:
+        parts.append(f"speed lead {lead['factor']:g} s of {', '.join(f'{f:g}' for f in lead['factors'])} from {fmt(lead['samples'])}"
+                     f" back-tested vehicles (mean ADE {' / '.join(f'{a:.2f}' for a in lead['mean_ade_m'])} m)")
     return "; ".join(parts)
 
 

@@ -173,6 +173,8 @@ def test_report_sections_and_provenance(built):
     assert "in-sample" in text, "the shipped weights were trained on TAF-BW: the report says hybrid is in-sample"
     curve = data["modes"]["hybrid"]["curve_choice"]  # what hybrid learnt online, in words, as the JSON has it
     assert f"curve factor {curve['factor']:g} of 0, 1, 2 from {curve['samples']:,} back-tested vehicles" in text
+    lead = data["modes"]["hybrid"]["speed_lead"]  # the default online speed lead (hybrid_speed_leads_s)
+    assert f"speed lead {lead['factor']:g} s of 0, 0.2, 0.4, 0.8 from {lead['samples']:,} back-tested vehicles" in text
     assert f"weight of the measured acceleration in λ(0) {data['modes']['hybrid']['initial_blend']['weight']:.2f}" in text
     for mode in MODES:
         cov = data["modes"][mode]["calibration"]["overall"]["coverage"]

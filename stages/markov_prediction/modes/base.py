@@ -56,6 +56,8 @@ class Pair:
     stamp_ns: int = 0  # the frame's stamp (hybrid_initial_input "adaptive" records its pairs by it)
     curve_factor: float = 1.0  # hybrid: the factor of the curvature in its speed restriction (0: the limit alone)
     accel_shift_mps2: float = 0.0  # hybrid: added to the acceleration of its AR input distributions (hybrid_accel_shifts)
+    speed_lead_s: float = 0.0  # hybrid: a moving pair's chain starts at v0 + speed_lead_s · accel_est_mps2 (hybrid_speed_leads_s)
+    accel_est_mps2: float = math.nan  # the corridors stage's estimated acceleration of the vehicle (NaN: none)
     stop_distance_m: float = math.nan  # ... and the distance to the stop position on it
     # hybrid_initial_input "blend": the unshrunk slope of its speeds and the slope's standard error (NaN: no measurement)
     a_fit_mps2: float = math.nan

@@ -1,0 +1,140 @@
+"""hybrid_speed_leads_s (curve_choice.OnlineLeadChoice): a moving pair's chain starts at v0 + L·a (a the corridors
+stage's estimated acceleration), L chosen online by back testing the candidates on the cars the stage predicts."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+import bus_schemas as bs
+from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
+from stages.markov_prediction.curve_choice import OnlineLeadChoice
+from tests.stages.test_markov_prediction import PLAIN, STAMP, _corridor, _corridor_set, _header, _profiles, _vehicle
+
+AR0 = {"hybrid_initial_input": "ar", "hybrid_curve_factors": (), **PLAIN}
+OFF = {**AR0, "hybrid_speed_leads_s": ()}
+LEADS = (0.0, 0.4, 0.8)
+
+
+@pytest.fixture(scope="module")
+def stencils():
+    return MarkovPredictor(MarkovPredictionConfig(**PLAIN)).stencils
+
+
+def test_config_checks():
+    assert MarkovPredictionConfig().hybrid_speed_leads_s == (0.0, 0.2, 0.4, 0.8)  # on by default (docs/evaluation.md "Online speed lead")
+    assert MarkovPredictor(MarkovPredictionConfig(mode="hybrid", hybrid_speed_leads_s=(), **PLAIN)).lead_choice is None
+    assert MarkovPredictor(MarkovPredictionConfig(mode="baseline", **PLAIN)).lead_choice is None
+    for bad in ((0.4,), (0.0, math.nan), (0.0, -0.2), (0.0, "x"), (0.0, True)):
+        with pytest.raises(ValueError, match="hybrid_speed_leads_s"):
+            MarkovPredictionConfig(mode="hybrid", hybrid_speed_leads_s=bad)
+    with pytest.raises(ValueError, match="hybrid_speed_leads_s"):
+        OnlineLeadChoice((0.0, math.inf), 0.4 * np.arange(1, 11))
+    assert OnlineLeadChoice((0.4, 0.0), 0.4 * np.arange(1, 11)).factor == 0.0  # the estimate as it is until the evidence says
+
+
+def _scene(stamp: int, s_now: float, speed: float, accel: float):
+    """A car at ``speed`` (estimated acceleration ``accel``) at arc length ``s_now`` of a straight corridor (x = s)."""
+    corridor = _corridor(7, vehicle_s=s_now, length=600.0, limit=20.0)
+    vehicle = dataclasses.replace(_vehicle(1, speed, [corridor]), accel_mps2=accel)
+    cs = _corridor_set(vehicle, stamp=stamp)
+    frame = bs.TrackFrame(header=_header(stamp), scene_id="test", track_ids=np.array([1], np.int64), agent_types=np.array([1], np.uint8),
+                          x_m=np.array([s_now]), y_m=np.array([0.0]), vx_mps=np.array([math.nan]), vy_mps=np.array([math.nan]),
+                          yaw_rad=np.array([0.0]), length_m=np.array([4.5]), width_m=np.array([1.8]))
+    return cs, frame
+
+
+def _fixed(lead: float, stencils) -> MarkovPredictor:
+    p = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", **OFF), stencils=stencils)
+    p.speed_lead = lead  # (no choice: the pairs get this lead on every frame)
+    return p
+
+
+def test_a_lead_moves_the_start_speed_by_lead_times_the_estimated_acceleration(stencils):
+    """The chain of a car at 8 m/s estimated to accelerate at 1 m/s² with lead 0.8 s starts as the same car at 8.8 m/s
+    without one; a car without an estimated acceleration, or a standing one, is not moved."""
+    stamp = STAMP
+    led, plain = _fixed(0.8, stencils), _fixed(0.0, stencils)
+    cs, frame = _scene(stamp, 10.0, 8.0, 1.0)
+    got, issues = led.process(cs, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
+    assert not issues, issues
+    cs_fast, _ = _scene(stamp, 10.0, 8.8, math.nan)
+    want, _ = plain.process(cs_fast, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
+    np.testing.assert_allclose(got.mean_s_m, want.mean_s_m, rtol=0, atol=1e-9)
+    assert got.mean_s_m[0, -1] > plain.process(cs, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))[0].mean_s_m[0, -1] + 2.5
+    for accel in (math.nan,):  # no estimate: as without a lead
+        cs_none, _ = _scene(stamp, 10.0, 8.0, accel)
+        a, _ = _fixed(0.8, stencils).process(cs_none, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
+        b, _ = _fixed(0.0, stencils).process(cs_none, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
+        np.testing.assert_array_equal(a.mean_s_m, b.mean_s_m)
+    cs_stand, _ = _scene(stamp, 10.0, 0.0, 1.0)  # standing (the standstill mixture's): not led
+    a, _ = _fixed(0.8, stencils).process(cs_stand, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
+    b, _ = _fixed(0.0, stencils).process(cs_stand, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
+    np.testing.assert_array_equal(a.mean_s_m, b.mean_s_m)
+
+
+def _drive(predictor: MarkovPredictor, refs: dict[float, MarkovPredictor], true_accel: float, frames: int) -> int | None:
+    """A car whose estimated speed is 6 m/s and acceleration 1 m/s² at every frame, while it really drives at
+    6 + ``true_accel`` m/s (the estimate lags by 1 s when ``true_accel`` is 1) and its AR profile says 0; every frame's
+    prediction is checked against the fixed-lead reference of the lead in use; returns the frame the lead switched at."""
+    switched_at = None
+    v_true = 6.0 + true_accel
+    for n in range(frames):
+        stamp = STAMP + n * 100_000_000
+        # (positions a few cm off the line, as measured ones are: the back test's paired differences then vary)
+        cs, frame = _scene(stamp, 5.0 + v_true * 0.1 * n + 0.05 * math.sin(1.3 * n), 6.0, 1.0)
+        lead = predictor.speed_lead
+        prediction, issues = predictor.process(cs, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
+        assert not [i for i in issues if i.kind == "speed_lead_failed"], issues
+        if predictor.speed_lead != lead and switched_at is None:
+            switched_at = n
+        ref, _ = refs[predictor.speed_lead].process(cs, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
+        np.testing.assert_array_equal(prediction.mean_s_m, ref.mean_s_m)  # the frame's own prediction: the lead in use
+        predictor.idle()
+    return switched_at
+
+
+def test_a_lagging_estimate_makes_the_stage_lead_and_a_right_one_does_not(stencils):
+    """The estimate says 6 m/s and 1 m/s² while the car holds 6.8 m/s: the back test finds lead 0.8 s closest to where it
+    went and the stage switches to it; a car that holds the estimated 6 m/s leaves the lead at 0."""
+    config = MarkovPredictionConfig(mode="hybrid", **{**AR0, "hybrid_speed_leads_s": LEADS})
+    predictor = MarkovPredictor(config, stencils=stencils)
+    assert predictor.lead_choice is not None and predictor.speed_lead == 0.0
+    switched_at = _drive(predictor, {lead: _fixed(lead, stencils) for lead in LEADS}, 0.8, 140)
+    summary = predictor.lead_choice.summary()
+    assert switched_at is not None and summary["factor"] == 0.8, summary
+    assert summary["mean_ade_m"][2] < summary["mean_ade_m"][1] < summary["mean_ade_m"][0]
+    predictor.reset()
+    assert predictor.lead_choice.factor == 0.8  # kept across sequences
+
+    steady = MarkovPredictor(config, stencils=stencils)
+    assert _drive(steady, {lead: _fixed(lead, stencils) for lead in LEADS}, 0.0, 140) is None
+    summary = steady.lead_choice.summary()
+    assert summary["samples"] >= 20 and summary["factor"] == 0.0, summary
+    assert summary["mean_ade_m"][0] < summary["mean_ade_m"][1] < summary["mean_ade_m"][2]
+
+
+def test_a_failing_back_test_costs_only_its_samples(stencils, monkeypatch):
+    predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", **{**AR0, "hybrid_speed_leads_s": LEADS}), stencils=stencils)
+    reference = _fixed(0.0, stencils)
+    real = predictor._back_test_choice
+
+    def failing(choice, field_name, *args, **kwargs):
+        if field_name == "speed_lead_s":
+            raise RuntimeError("boom")
+        return real(choice, field_name, *args, **kwargs)
+
+    monkeypatch.setattr(predictor, "_back_test_choice", failing)
+    issues = []
+    for n in range(2):
+        stamp = STAMP + n * 100_000_000
+        cs, frame = _scene(stamp, 5.0 + 0.6 * n, 6.0, 1.0)
+        prediction, issues = predictor.process(cs, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
+        ref, _ = reference.process(cs, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
+        np.testing.assert_array_equal(prediction.mean_s_m, ref.mean_s_m)
+        predictor.idle()
+    assert [i.kind for i in issues] == ["speed_lead_failed"] and "boom" in issues[0].detail
+    assert predictor.speed_lead == 0.0 and not predictor.lead_choice.pending
