@@ -324,26 +324,7 @@ class MarkovPredictor:
                 "spread_calibration %s: its %s table was fitted for spread_shape %r, applied %r: its coverage will differ (refit"
                 " it with `iamp calibrate --set spread_shape='\"%s\"'`)", config.spread_calibration, config.mode, self.spread.shape,
                 config.spread_shape, config.spread_shape)
-        #: the online spread (``online_spread.py``, ``spread_online``), or None
-        self.online: OnlineSpread | None = OnlineSpread(
-            self.step_times_s, bands_mps=self.spread.bands_mps if self.spread is not None else DEFAULT_BANDS_MPS,
-            target=config.spread_online_target, rate_mps=config.spread_online_rate_mps, max_mps=config.spread_online_max_mps,
-            min_speed_mps=config.spread_online_min_speed_mps, stride_s=config.tau_s,
-        ) if config.spread_online else None
-        #: the learnt weight of the measured acceleration in λ(0) (``initial_blend.py``, hybrid_initial_input "adaptive")
-        self.initial_blend: OnlineInitialBlend | None = OnlineInitialBlend(config.accel_window_s) \
-            if config.mode == "hybrid" and config.hybrid_initial_input == "adaptive" and config.accel_window_s > 0 else None
-        #: hybrid: the factor of the curvature in the speed restriction's cut that the latest pairs phase gave its pairs
-        #: (``Pair.curve_factor``; 0: the speed limit alone), and its online choice by back testing (``curve_choice.py``,
-        #: ``hybrid_curve_factors``), or None
-        self.curve_factor = 1.0 if config.hybrid_speed_restriction_curves else 0.0
-        self.curve_choice: OnlineCurveChoice | None = OnlineCurveChoice(config.hybrid_curve_factors, self.step_times_s) \
-            if config.mode == "hybrid" and config.hybrid_speed_restriction and config.hybrid_speed_restriction_curves \
-            and config.hybrid_curve_factors else None
-        self._curve_logged_ns: int | None = None
-        #: hybrid: the shift of the AR input distributions that the latest pairs phase gave its moving pairs
-        #: (``Pair.accel_shift_mps2``), and its online choice by back testing (``hybrid_accel_shifts``), or None
-        self.accel_shift = 0.0
+        self._new_learners()
         #: hybrid_profiles "previous": the newest AccelerationProfiles received, by stamp (``remember_profiles``); the
         #: chain of a frame reads the newest from before it (``_chain_profiles``)
         self._recent_profiles: dict[int, AccelerationProfiles] = {}
@@ -360,15 +341,6 @@ class MarkovPredictor:
             self._inline_ar = ARInference(ARInferenceConfig(model=config.ar_model, input_min_mps2=config.input_min_mps2,
                                                             input_max_mps2=config.input_max_mps2, n_inputs=config.n_inputs),
                                           producer=producer)
-        self.shift_choice: OnlineShiftChoice | None = OnlineShiftChoice(config.hybrid_accel_shifts, self.step_times_s) \
-            if config.mode == "hybrid" and config.hybrid_accel_shifts else None
-        self._shift_logged_ns: int | None = None
-        #: hybrid: the lead (s) of the chain's start speed that the latest pairs phase gave its pairs (``Pair.speed_lead_s``),
-        #: and its online choice by back testing (``hybrid_speed_leads_s``), or None
-        self.speed_lead = 0.0
-        self.lead_choice: OnlineLeadChoice | None = OnlineLeadChoice(config.hybrid_speed_leads_s, self.step_times_s) \
-            if config.mode == "hybrid" and config.hybrid_speed_leads_s else None
-        self._lead_logged_ns: int | None = None
         #: whether the chain itself reads the intentions stage's belief (the particle boxes, the stop mixture); where it
         #: does not, ``prepare`` runs the chain before the belief comes
         self.chain_reads_belief = config.initial_box == "particles" or (config.mode == "hybrid" and config.hybrid_stop_mixture)
@@ -812,6 +784,58 @@ class MarkovPredictor:
         if over:
             issues.append(Issue("grid_capped", -1, f"{over} grid cells beyond grid_max_cells_per_step = {self.config.grid_max_cells_per_step} (the lowest values) left out of the MotionGrid"))
         return prediction, issues
+
+    def _new_learners(self) -> None:
+        """What the stage learns online about its location, its tracker and the model, from nothing (``__init__``,
+        ``forget_location``)."""
+        config = self.config
+        #: the online spread (``online_spread.py``, ``spread_online``), or None
+        self.online: OnlineSpread | None = OnlineSpread(
+            self.step_times_s, bands_mps=self.spread.bands_mps if self.spread is not None else DEFAULT_BANDS_MPS,
+            target=config.spread_online_target, rate_mps=config.spread_online_rate_mps, max_mps=config.spread_online_max_mps,
+            min_speed_mps=config.spread_online_min_speed_mps, stride_s=config.tau_s,
+        ) if config.spread_online else None
+        #: the learnt weight of the measured acceleration in λ(0) (``initial_blend.py``, hybrid_initial_input "adaptive")
+        self.initial_blend: OnlineInitialBlend | None = OnlineInitialBlend(config.accel_window_s) \
+            if config.mode == "hybrid" and config.hybrid_initial_input == "adaptive" and config.accel_window_s > 0 else None
+        #: hybrid: the factor of the curvature in the speed restriction's cut that the latest pairs phase gave its pairs
+        #: (``Pair.curve_factor``; 0: the speed limit alone), and its online choice by back testing (``curve_choice.py``,
+        #: ``hybrid_curve_factors``), or None
+        self.curve_factor = 1.0 if config.hybrid_speed_restriction_curves else 0.0
+        self.curve_choice: OnlineCurveChoice | None = OnlineCurveChoice(config.hybrid_curve_factors, self.step_times_s) \
+            if config.mode == "hybrid" and config.hybrid_speed_restriction and config.hybrid_speed_restriction_curves \
+            and config.hybrid_curve_factors else None
+        self._curve_logged_ns: int | None = None
+        #: hybrid: the shift of the AR input distributions that the latest pairs phase gave its moving pairs
+        #: (``Pair.accel_shift_mps2``), and its online choice by back testing (``hybrid_accel_shifts``), or None
+        self.accel_shift = 0.0
+        self.shift_choice: OnlineShiftChoice | None = OnlineShiftChoice(config.hybrid_accel_shifts, self.step_times_s) \
+            if config.mode == "hybrid" and config.hybrid_accel_shifts else None
+        self._shift_logged_ns: int | None = None
+        #: hybrid: the lead (s) of the chain's start speed that the latest pairs phase gave its pairs (``Pair.speed_lead_s``),
+        #: and its online choice by back testing (``hybrid_speed_leads_s``), or None
+        self.speed_lead = 0.0
+        self.lead_choice: OnlineLeadChoice | None = OnlineLeadChoice(config.hybrid_speed_leads_s, self.step_times_s) \
+            if config.mode == "hybrid" and config.hybrid_speed_leads_s else None
+        self._lead_logged_ns: int | None = None
+
+    def forget_location(self) -> None:
+        """``reset``, and forget what was learnt online as well (the online spread, the initial blend's weight, the curve
+        factor, the acceleration shift, the speed lead), which ``reset`` keeps because it belongs to the location, the
+        tracker and the model: for a recording of another place, started as a stage started on it would be (``iamp eval``
+        calls it between recordings)."""
+        self.reset()
+        self._new_learners()
+
+    def learnt(self) -> dict[str, Any]:
+        """What has been learnt online so far: ``initial_blend``, ``curve_choice``, ``accel_shift``, ``speed_lead``
+        (each learner's ``summary()``; a learner the config leaves off is absent)."""
+        out: dict[str, Any] = {}
+        for key, learner in (("initial_blend", self.initial_blend), ("curve_choice", self.curve_choice), ("accel_shift", self.shift_choice),
+                             ("speed_lead", self.lead_choice)):
+            if learner is not None:
+                out[key] = learner.summary()
+        return out
 
     def reset(self) -> None:
         """Forget every track's history (a new sequence starts; the offline tables are kept)."""

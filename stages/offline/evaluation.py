@@ -434,6 +434,8 @@ class Evaluation:
         self.figures: dict[str, _Figure] = {}  # per recording: the instant with the most windows
         self.signal_split = False  # some window had signal phases (by_signal in the report)
         self.recordings: list[str] = []
+        #: per mode, per recording: what its predictor had learnt online at the end of that recording (``MarkovPredictor.learnt``)
+        self.learnt_by_recording: dict[str, dict[str, dict[str, Any]]] = {}
         self.situations: tuple[Situation, ...] = tuple(config.situations)
         self.situation_seen: dict[str, dict[str, Any]] = {}  # per situation: vehicles seen, frames played, frame period
         self.tau_s = self.predictors[config.modes[0]].config.tau_s
@@ -486,11 +488,18 @@ class Evaluation:
             self.situation_seen[sit.name] = {"vehicles": set(), "frames": 0, "seconds": 0.0}
         bar = progress_bar(total, self.config.progress, unit="frame", desc="iamp eval")
         try:
-            for rec in recordings:
+            for i, rec in enumerate(recordings):
+                if i:  # each recording as a stage started on it: what was learnt online belongs to the one before
+                    for predictor in self.predictors.values():
+                        predictor.forget_location()
                 self.recordings.append(rec.name)
                 sha = file_sha256(rec.map_path) if rec.map_path is not None else ""
                 for seq in rec.sequences:
                     self._sequence(rec, seq, sha, bar)
+                for mode, predictor in self.predictors.items():
+                    learnt = predictor.learnt()
+                    if learnt:
+                        self.learnt_by_recording.setdefault(mode, {})[rec.name] = learnt
         finally:
             bar.close()
         return self.report()
@@ -756,14 +765,11 @@ class Evaluation:
             modes[mode]["along_track_m"] = {"overall": along, "by_manoeuvre": {m: a for m, (a, _) in split.items()}}
             modes[mode]["cross_track_m"] = {"overall": cross, "by_manoeuvre": {m: c for m, (_, c) in split.items()}}
             n_steps = self.predictors[mode].config.n_steps
-            if getattr(self.predictors[mode], "initial_blend", None) is not None:  # hybrid_initial_input "adaptive": what it learnt
-                modes[mode]["initial_blend"] = self.predictors[mode].initial_blend.summary()
-            if getattr(self.predictors[mode], "curve_choice", None) is not None:  # hybrid_curve_factors: what it chose
-                modes[mode]["curve_choice"] = self.predictors[mode].curve_choice.summary()
-            if getattr(self.predictors[mode], "shift_choice", None) is not None:  # hybrid_accel_shifts: what it chose
-                modes[mode]["accel_shift"] = self.predictors[mode].shift_choice.summary()
-            if getattr(self.predictors[mode], "lead_choice", None) is not None:  # hybrid_speed_leads_s: what it chose
-                modes[mode]["speed_lead"] = self.predictors[mode].lead_choice.summary()
+            # what hybrid learnt online (initial_blend, curve_choice, accel_shift, speed_lead): of the last recording at the
+            # top level, and of each recording in learnt_by_recording (every recording starts afresh: run)
+            modes[mode].update(self.predictors[mode].learnt())
+            if mode in self.learnt_by_recording:
+                modes[mode]["learnt_by_recording"] = self.learnt_by_recording[mode]
             modes[mode]["calibration"] = {
                 "levels": list(COVERAGE_LEVELS),
                 **{split: {"coverage": c.coverage(), "steps": c.steps} for split, c in acc.calibration.items()},

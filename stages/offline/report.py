@@ -134,7 +134,15 @@ QUANTITATIVE_HEAD = ["situation", "mode", "windows", "time per step (ms)", "mADE
 
 def _online(hybrid: dict[str, Any]) -> str:
     """What hybrid learnt on the recordings (``modes.hybrid.initial_blend``, ``curve_choice``, ``accel_shift`` and ``speed_lead``), in
-    words; '' if nothing."""
+    words, per recording where there were several (``learnt_by_recording``: each starts afresh); '' if nothing."""
+    by_recording = hybrid.get("learnt_by_recording") or {}
+    if len(by_recording) > 1:
+        return "; ".join(f"{name}: {_learnt(learnt)}" for name, learnt in by_recording.items() if _learnt(learnt))
+    return _learnt(hybrid)
+
+
+def _learnt(hybrid: dict[str, Any]) -> str:
+    """``_online`` of one recording's learners."""
     parts = []
     blend = hybrid.get("initial_blend")
     if blend:

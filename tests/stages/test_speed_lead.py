@@ -4,6 +4,7 @@ stage's estimated acceleration), L chosen online by back testing the candidates 
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 
 import numpy as np
@@ -138,3 +139,49 @@ def test_a_failing_back_test_costs_only_its_samples(stencils, monkeypatch):
         predictor.idle()
     assert [i.kind for i in issues] == ["speed_lead_failed"] and "boom" in issues[0].detail
     assert predictor.speed_lead == 0.0 and not predictor.lead_choice.pending
+
+
+def test_forget_location_starts_the_learners_afresh_and_reset_keeps_them(stencils):
+    """``reset`` (a new sequence) keeps what was learnt online; ``forget_location`` (another place) starts from nothing."""
+    config = MarkovPredictionConfig(mode="hybrid", **{**AR0, "hybrid_speed_leads_s": LEADS, "hybrid_curve_factors": (0.0, 1.0, 2.0)})
+    predictor = MarkovPredictor(config, stencils=stencils)
+    _drive(predictor, {lead: _fixed(lead, stencils) for lead in LEADS}, 0.8, 140)
+    learnt = predictor.learnt()
+    assert set(learnt) == {"curve_choice", "speed_lead"} and learnt["speed_lead"]["factor"] == 0.8
+    predictor.reset()
+    assert predictor.speed_lead == 0.8 and predictor.lead_choice.summary()["samples"] == learnt["speed_lead"]["samples"]
+    predictor.forget_location()
+    assert predictor.speed_lead == 0.0 and predictor.curve_factor == 1.0
+    assert predictor.learnt()["speed_lead"]["samples"] == 0 and predictor.learnt()["speed_lead"]["factor"] == 0.0
+    assert predictor.learnt()["curve_choice"]["samples"] == 0
+
+
+def test_iamp_eval_starts_every_recording_afresh(monkeypatch):
+    """Two recordings in one evaluation: the predictors forget what they learnt online between them (as two stages
+    started on each would), and the report keeps what each recording learnt (``learnt_by_recording``)."""
+    from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING
+    from stages.offline.evaluation import EvalConfig, Evaluation
+
+    config = EvalConfig(data_dir=DEFAULT_DATA_DIR, recordings=(DEFAULT_RECORDING,), stride_s=0.4, max_frames_per_sequence=150,
+                        progress=False, modes=("hybrid",))
+    evaluation = Evaluation(config)
+    real_load = evaluation._load
+
+    def twice():
+        (rec,) = real_load()
+        return [rec, dataclasses.replace(rec, name=rec.name + "-again")]
+
+    monkeypatch.setattr(evaluation, "_load", twice)
+    forgotten = []
+    predictor = evaluation.predictors["hybrid"]
+    real_forget = predictor.forget_location
+    monkeypatch.setattr(predictor, "forget_location", lambda: (forgotten.append(len(evaluation.recordings)), real_forget())[1])
+    report = evaluation.run()
+    assert forgotten == [1]  # once, after the first recording
+    by_recording = report["modes"]["hybrid"]["learnt_by_recording"]
+    assert list(by_recording) == [DEFAULT_RECORDING, DEFAULT_RECORDING + "-again"]
+    # the same frames twice, each from nothing: the same samples learnt (not twice as many the second time)
+    first, second = by_recording[DEFAULT_RECORDING], by_recording[DEFAULT_RECORDING + "-again"]
+    assert first["speed_lead"]["samples"] > 0
+    assert json.dumps(first, sort_keys=True) == json.dumps(second, sort_keys=True)
+    assert report["modes"]["hybrid"]["speed_lead"] == by_recording[DEFAULT_RECORDING + "-again"]["speed_lead"]
