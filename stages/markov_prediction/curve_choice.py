@@ -221,8 +221,8 @@ class OnlineLeadChoice(OnlineCurveChoice):
     factor is, by causal back testing on the recording (``OnlineCurveChoice``; ``factors`` are the candidate leads in
     seconds, ``default`` 0, the estimate as it is). Why: the start speed is what is left of hybrid's error where the
     estimate lags (docs/evaluation.md, "How far perfect inputs go"), and whether the estimated acceleration carries on
-    depends on the recording (K729: a lead of 0.4 s takes hybrid's mADE from 1.37 to 1.23 m; K733, whose positions
-    jitter, loses with any lead: docs/evaluation.md, "Online speed lead")."""
+    depends on the recording (K729: a fixed lead of 0.4 s takes hybrid's mADE from 1.366 to 1.228 m, chosen online
+    1.250; K733, whose positions jitter in time, loses with any lead: docs/evaluation.md, "Online speed lead")."""
 
     default: float = 0.0
 
