@@ -17,7 +17,7 @@ import dataclasses
 import math
 import operator
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping, NamedTuple
 
 import numpy as np
 
@@ -494,27 +494,18 @@ class MarkovPredictor:
             self._log.info("initial blend: weight of the measured acceleration %.2f (least squares %.2f) from %d resolved records"
                            " (%d unresolved)", o["weight"], o["raw_weight"], o["resolved"], o["unresolved"])
 
-    def _choose_curve_factor(self, stamp: int, track_frame: TrackFrame | None, issues: list[Issue]) -> None:
-        """The online curve choice (``curve_choice.py``): this stamp's positions kept, the samples whose futures are
-        known scored, the frame's factor set. A failure keeps the factor it had (issue ``curve_choice_failed``)."""
-        self.curve_factor = self._choose(self.curve_choice, self.curve_factor, stamp, track_frame, issues, "curve_choice_failed",
-                                         "curve factor %g", "_curve_logged_ns")
-
-    def _choose_accel_shift(self, stamp: int, track_frame: TrackFrame | None, issues: list[Issue]) -> None:
-        """The online acceleration shift (``curve_choice.OnlineShiftChoice``), as ``_choose_curve_factor``; a failure
-        keeps the shift it had (issue ``accel_shift_failed``)."""
-        self.accel_shift = self._choose(self.shift_choice, self.accel_shift, stamp, track_frame, issues, "accel_shift_failed",
-                                        "acceleration shift %g m/s²", "_shift_logged_ns")
-
-    def _choose_speed_lead(self, stamp: int, track_frame: TrackFrame | None, issues: list[Issue]) -> None:
-        """The online speed lead (``curve_choice.OnlineLeadChoice``), as ``_choose_curve_factor``; a failure keeps the
-        lead it had (issue ``speed_lead_failed``)."""
-        self.speed_lead = self._choose(self.lead_choice, self.speed_lead, stamp, track_frame, issues, "speed_lead_failed",
-                                       "speed lead %g s", "_lead_logged_ns")
+    def _choose_all(self, stamp: int, track_frame: TrackFrame | None, issues: list[Issue]) -> None:
+        """Every online choice by back testing (``_CHOICES``: the curve factor, the acceleration shift, the speed lead):
+        this stamp's positions kept, the samples whose futures are known scored, the value the frame's pairs get set. A
+        failure keeps the value it had (the choice's issue, e.g. ``curve_choice_failed``)."""
+        for c in _CHOICES:
+            choice = getattr(self, c.choice)
+            if choice is not None:
+                setattr(self, c.value, self._choose(choice, getattr(self, c.value), stamp, track_frame, issues, c.failed, c.what, c.choice))
 
     def _choose(self, choice: OnlineCurveChoice, current: float, stamp: int, track_frame: TrackFrame | None, issues: list[Issue],
-                failed: str, what: str, logged_attr: str) -> float:
-        """One online choice's step (``_choose_curve_factor``, ``_choose_accel_shift``); returns the candidate in use."""
+                failed: str, what: str, name: str) -> float:
+        """One online choice's step (``_choose_all``); returns the candidate in use."""
         try:
             if isinstance(track_frame, TrackFrame) and int(track_frame.header.stamp_ns) == stamp:
                 choice.add_positions(stamp, track_frame.track_ids.tolist(), track_frame.x_m.tolist(), track_frame.y_m.tolist())
@@ -524,50 +515,39 @@ class MarkovPredictor:
             choice.reset()
             issues.append(Issue(failed, -1, f"{type(exc).__name__}: {exc}: {what % current} kept"))
             return current
-        logged = getattr(self, logged_attr)
+        logged = self._choice_logged_ns.get(name)
         if self._log is not None and (logged is None or abs(stamp - logged) >= ONLINE_LOG_S * 1e9):
-            setattr(self, logged_attr, stamp)
+            self._choice_logged_ns[name] = stamp
             o = choice.summary()
             self._log.info(what + " of %s: mean ADE %s m over %d back-tested vehicles (%d unresolved)", o["factor"],
                            o["factors"], np.round(o["mean_ade_m"], 3).tolist(), o["samples"], o["unresolved"])
         return chosen
 
     def _back_test(self, pairs: list[Pair], stamp: int, issues: list[Issue], chained: tuple[list[Pair], dict[str, Any], list[int]]) -> None:
-        """The online choices' samples of this frame (``curve_choice.frame_tested``): for the curve choice at most
-        ``curve_choice.PER_FRAME`` moving vehicles with a curve ahead, for the acceleration shift as many moving vehicles
-        the AR model drives; each has its chain run for every candidate but the frame's own in one batch (copies of its
-        pairs with that ``curve_factor`` or ``accel_shift_mps2``; ``chained``: the frame's chain, as ``_predict_chain``
-        returns it, whose rows give the candidate in use), their mean positions kept to be scored later. The frame's own
-        chain is not touched; a failure costs only this frame's samples of that choice (issue ``curve_choice_failed``
-        or ``accel_shift_failed``)."""
+        """The online choices' samples of this frame (``curve_choice.frame_tested``): per choice of ``_CHOICES``, at most
+        ``curve_choice.PER_FRAME`` of the vehicles the AR model drives that it tests (the curve choice: moving with a curve
+        ahead; the shift: any; the lead: with an estimated acceleration); each has its chain run for every candidate but
+        the frame's own in one batch (copies of its pairs with that value in the choice's Pair field; ``chained``: the
+        frame's chain, as ``_predict_chain`` returns it, whose rows give the candidate in use), their mean positions kept
+        to be scored later. The frame's own chain is not touched; a failure costs only this frame's samples of that
+        choice (its issue, e.g. ``curve_choice_failed``)."""
         if not frame_tested(stamp, len(pairs)):
             return
         by_track: dict[int, list[Pair]] = {}
         for p in pairs:
             by_track.setdefault(p.track_id, []).append(p)
         driven = {t for t, ps in by_track.items() if all(p.start_rate_hz == 0 and p.input_probs is not None for p in ps)}
-        if self.curve_choice is not None:
+        horizon = self.step_times_s[-1]
+        for c in _CHOICES:
+            choice = getattr(self, c.choice)
+            if choice is None:
+                continue
             try:
-                eligible = [t for t in driven if all(p.v0_mps > CURVE_MIN_SPEED_MPS for p in by_track[t])
-                            and any(_curve_ahead(p, self.step_times_s[-1]) for p in by_track[t])]
-                self._back_test_choice(self.curve_choice, "curve_factor", sampled(eligible, stamp), by_track, pairs, stamp, issues, chained)
+                # each choice its own vehicle where there are several: the stamp's hash moved by c.hash_offset_ns
+                eligible = [t for t in sorted(driven) if c.eligible(by_track[t], horizon)]
+                self._back_test_choice(choice, c.field, sampled(eligible, stamp + c.hash_offset_ns), by_track, pairs, stamp, issues, chained)
             except Exception as exc:  # noqa: BLE001
-                issues.append(Issue("curve_choice_failed", -1, f"back test: {type(exc).__name__}: {exc}: this frame's samples skipped"))
-        if self.shift_choice is not None:
-            try:
-                # (another vehicle than the curve choice's where there is one: the stamp's hash, moved)
-                chosen = sampled(sorted(driven), stamp + 1000)  # (1 µs on: the hash starts elsewhere in the ids)
-                self._back_test_choice(self.shift_choice, "accel_shift_mps2", chosen, by_track, pairs, stamp, issues, chained)
-            except Exception as exc:  # noqa: BLE001
-                issues.append(Issue("accel_shift_failed", -1, f"back test: {type(exc).__name__}: {exc}: this frame's samples skipped"))
-        if self.lead_choice is not None:
-            try:
-                # moving vehicles with an estimated acceleration (2 µs on: yet another start in the ids)
-                eligible = [t for t in driven if all(_leads(p) for p in by_track[t])]
-                self._back_test_choice(self.lead_choice, "speed_lead_s", sampled(sorted(eligible), stamp + 2000), by_track, pairs, stamp,
-                                       issues, chained)
-            except Exception as exc:  # noqa: BLE001
-                issues.append(Issue("speed_lead_failed", -1, f"back test: {type(exc).__name__}: {exc}: this frame's samples skipped"))
+                issues.append(Issue(c.failed, -1, f"back test: {type(exc).__name__}: {exc}: this frame's samples skipped"))
 
     def _back_test_choice(self, choice: OnlineCurveChoice, field_name: str, chosen: list[int], by_track: dict[int, list[Pair]],
                           pairs: list[Pair], stamp: int, issues: list[Issue], chained: tuple[list[Pair], dict[str, Any], list[int]]) -> None:
@@ -640,12 +620,7 @@ class MarkovPredictor:
         beliefs = self._beliefs(intention_belief, stamp, issues) if self.chain_reads_belief else None
         self.observe(corridor_set)
         speed_limit = scene.speed_limit_mps if scene is not None and _positive(scene.speed_limit_mps) else self.config.default_speed_limit_mps
-        if self.curve_choice is not None:
-            self._choose_curve_factor(stamp, track_frame, issues)
-        if self.shift_choice is not None:
-            self._choose_accel_shift(stamp, track_frame, issues)
-        if self.lead_choice is not None:
-            self._choose_speed_lead(stamp, track_frame, issues)
+        self._choose_all(stamp, track_frame, issues)
         weighed: list[tuple[Any, list, int]] = []
         pairs = self._vehicle_pairs(corridor_set, track_frame, speed_limit, issues, beliefs, weighed)
         if self.model.chain and pairs:  # the chain's batch as _predict_chain will screen it (the inputs are not known yet)
@@ -702,7 +677,7 @@ class MarkovPredictor:
                     pair.start_rate_hz = max(self.config.hybrid_standstill_rates_hz[standstill_group(pair.relation, self.config)], 1e-9)
         self._signal_walls = apply_signals(self, pairs, issues)  # stages.markov_prediction.signals: nothing without signal phases
         final, merged, order = self._predict_chain(pairs, issues)
-        if self.curve_choice is not None or self.shift_choice is not None or self.lead_choice is not None:  # done by idle, after this frame's outputs (or first thing in the next frame)
+        if any(getattr(self, c.choice) is not None for c in _CHOICES):  # done by idle, after this frame's outputs (or first thing in the next frame)
             self._back_test_pending = (pairs, stamp, (final, merged, order))
         found: list[Issue] = []
         try:  # the outputs' part that needs no weights, now (a failure: _belief_phase isolates the pairs, from the arrays)
@@ -805,19 +780,18 @@ class MarkovPredictor:
         self.curve_choice: OnlineCurveChoice | None = OnlineCurveChoice(config.hybrid_curve_factors, self.step_times_s) \
             if config.mode == "hybrid" and config.hybrid_speed_restriction and config.hybrid_speed_restriction_curves \
             and config.hybrid_curve_factors else None
-        self._curve_logged_ns: int | None = None
         #: hybrid: the shift of the AR input distributions that the latest pairs phase gave its moving pairs
         #: (``Pair.accel_shift_mps2``), and its online choice by back testing (``hybrid_accel_shifts``), or None
         self.accel_shift = 0.0
         self.shift_choice: OnlineShiftChoice | None = OnlineShiftChoice(config.hybrid_accel_shifts, self.step_times_s) \
             if config.mode == "hybrid" and config.hybrid_accel_shifts else None
-        self._shift_logged_ns: int | None = None
         #: hybrid: the lead (s) of the chain's start speed that the latest pairs phase gave its pairs (``Pair.speed_lead_s``),
         #: and its online choice by back testing (``hybrid_speed_leads_s``), or None
         self.speed_lead = 0.0
         self.lead_choice: OnlineLeadChoice | None = OnlineLeadChoice(config.hybrid_speed_leads_s, self.step_times_s) \
             if config.mode == "hybrid" and config.hybrid_speed_leads_s else None
-        self._lead_logged_ns: int | None = None
+        #: per online choice (``_CHOICES``), the stamp its state was last logged at
+        self._choice_logged_ns: dict[str, int] = {}
 
     def forget_location(self) -> None:
         """``reset``, and forget what was learnt online as well (the online spread, the initial blend's weight, the curve
@@ -854,12 +828,9 @@ class MarkovPredictor:
             self.online.reset()
         if self.initial_blend is not None:
             self.initial_blend.reset()
-        if self.curve_choice is not None:
-            self.curve_choice.reset()
-        if self.shift_choice is not None:
-            self.shift_choice.reset()
-        if self.lead_choice is not None:
-            self.lead_choice.reset()
+        for c in _CHOICES:
+            if getattr(self, c.choice) is not None:
+                getattr(self, c.choice).reset()
 
     def observe(self, corridor_set: CorridorSet) -> None:
         """Record each vehicle's speed at this stamp (for its measured acceleration); forget stale tracks.
@@ -1745,6 +1716,23 @@ def _means_on_map(lines: Centrelines, pos: np.ndarray, s_abs: np.ndarray, shift_
     return mx, my, ms, ok
 
 
+class _Choice(NamedTuple):
+    """One online choice by back testing (``curve_choice.py``), as the predictor wires it."""
+
+    choice: str  # the predictor's attribute holding it (None: off)
+    value: str  # the predictor's attribute holding the value in use
+    field: str  # the Pair field the value goes to (its back test runs copies of the pairs with each candidate there)
+    failed: str  # the issue of a failure (the frame keeps its value)
+    what: str  # its value in words, for the log and the issue
+    hash_offset_ns: int  # where the stamp's hash starts choosing among the eligible vehicles (each choice its own)
+    eligible: Callable[[list[Pair], float], bool]  # (a driven vehicle's pairs, horizon s): whether it is back-tested
+
+
+def _curve_eligible(pairs: list[Pair], horizon_s: float) -> bool:
+    """The curve choice tests a moving vehicle with a bend ahead."""
+    return all(p.v0_mps > CURVE_MIN_SPEED_MPS for p in pairs) and any(_curve_ahead(p, horizon_s) for p in pairs)
+
+
 def _leads(p: Pair) -> bool:
     """Whether the pair's chain may start ahead of its speed (``hybrid_speed_leads_s``): moving, with an estimated acceleration."""
     return p.start_rate_hz == 0 and math.isfinite(p.accel_est_mps2)
@@ -1756,6 +1744,16 @@ def _chain_start_speed(p: Pair, v_max_mps: float) -> float:
     if p.speed_lead_s == 0.0 or not _leads(p):
         return p.v0_mps
     return float(min(max(p.v0_mps + p.speed_lead_s * p.accel_est_mps2, 0.0), v_max_mps))
+
+
+#: the online choices by back testing, in the order they are chosen and back-tested
+_CHOICES = (
+    _Choice("curve_choice", "curve_factor", "curve_factor", "curve_choice_failed", "curve factor %g", 0, _curve_eligible),
+    _Choice("shift_choice", "accel_shift", "accel_shift_mps2", "accel_shift_failed", "acceleration shift %g m/s²", 1000,
+            lambda pairs, horizon_s: True),  # any vehicle the AR model drives
+    _Choice("lead_choice", "speed_lead", "speed_lead_s", "speed_lead_failed", "speed lead %g s", 2000,
+            lambda pairs, horizon_s: all(_leads(p) for p in pairs)),  # moving, with an estimated acceleration
+)
 
 
 def _curve_ahead(p: Pair, horizon_s: float) -> bool:
