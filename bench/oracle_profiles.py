@@ -11,8 +11,9 @@ It runs ``iamp eval`` in-process (the same options: ``--data``, ``--recording``,
   target; where it is unknown near a track's end, its last known value is held, 0 without one), turned into the chain's
   input distributions exactly as the AR stage turns the model's (``chunk_distributions``, the model's residual spread
   ``sigma_res`` times ``--set-ar sigma_scale``, default 1, floored): only the mean of every distribution is perfect;
-- ``speed``: every vehicle's speed in the instant's CorridorSet (the start speed of every mode's prediction) is replaced
-  by its TRUE speed at the instant: the centred Savitzky–Golay derivative of its positions (the window of the
+- ``speed``: every vehicle's speed in the instant's CorridorSet (the start speed of the corridor modes' predictions:
+  hybrid, baseline, corridor_cv; Cartesian ``cv`` reads the velocity vector, which is not replaced, so its mADE stays,
+  only its slow/fast split follows the replaced speed) is replaced by its TRUE speed at the instant: the centred Savitzky–Golay derivative of its positions (the window of the
   acceleration target, 1.5 s; it reads 0.75 s of the future, so it is not a causal estimate, it is the reference);
   vehicles without one (near a track's end) keep the estimate;
 - ``both``: the two together.
