@@ -206,6 +206,12 @@ conflict point that is not finite, an index out of range: that restriction
 ignored), ``stamp_mismatch`` (relations of another stamp: ignored),
 ``no_relations``.
 
+Another scene or place. What the stage learns online (the curve factor, the acceleration shift, the speed lead,
+the initial blend, the online spread) belongs to a location and its tracker: when the latched ``scene`` names
+another location (``location_id``, else the map's hash) the stage starts it from nothing
+(``MarkovPredictor.forget_location``, issue ``location_changed``), and another scene of the same location starts
+every track afresh (``reset``, issue ``scene_changed``), as the corridors and intentions stages do.
+
 One pair's failure never costs the frame (``core.MarkovPredictor._predict``).
 Before the batch, a pair the chain cannot take is predicted by constant
 speed along its corridor, the ``corridor_cv`` mode's prediction:

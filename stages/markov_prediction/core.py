@@ -352,6 +352,12 @@ class MarkovPredictor:
         #: first thing in the next update, pairs or chain phase): off the frame's path
         self._learn_pending: tuple | None = None
         self._carried_issues: list[Issue] = []  # issues of work done by ``idle``: they go out with the next frame's
+        #: the scene and the location (``location_id``, else the map's hash) the stage works on, and the stamp it took
+        #: them at (``_follow_scene``): another scene starts the tracks afresh, another location the online learners too
+        self._scene_id: str | None = None
+        self._location: str | None = None
+        self._scene_since_ns = -(2**63)
+        self._newest_ns = -(2**63)  # the newest stamp a frame brought (``_follow_scene``)
 
     # ----- entry points ---------------------------------------------------------
 
@@ -611,6 +617,7 @@ class MarkovPredictor:
         self.idle()  # the last frame's back test, if the runtime has not run it: before this frame touches any state
         issues: list[Issue] = []
         stamp = int(corridor_set.header.stamp_ns)
+        self._follow_scene(scene, stamp, issues)
         corridor_set, others = self._own_vehicles(corridor_set)
         given = corridor_set
         corridor_set, dropped = cap_pairs(corridor_set, self.config.max_pairs)
@@ -685,6 +692,41 @@ class MarkovPredictor:
         except Exception:  # noqa: BLE001 - done again there, pair by pair
             geometry = None
         return _Early(stamp, issues, final, merged, order, pp.weighed, self.chain_reads_belief, pp.beliefs, geometry)
+
+    def _follow_scene(self, scene: SceneInfo | None, stamp: int, issues: list[Issue]) -> None:
+        """A frame of another scene than the last starts every track afresh (``reset``: a new sequence, its track ids
+        are not the last one's), one of another location (``location_id``, else the map's hash) forgets what was
+        learnt online as well (``forget_location``: the curve factor, the speed lead, ... belong to a place and its
+        tracker), as a stage started there would be. One issue and one log line per change. A frame older than the
+        one that brought the current scene (``prepare`` may run the next frame first) is the old scene's last: no
+        change."""
+        newest, self._newest_ns = self._newest_ns, max(self._newest_ns, stamp)
+        if stamp < newest - self.config.track_timeout_s * 1e9:  # a replay started again: the tracks' histories lie ahead
+            self.reset()
+            self._newest_ns = stamp
+            what = f"stamp {stamp} is {(newest - stamp) / 1e9:.1f} s before the newest seen (more than track_timeout_s): every track starts afresh"
+            issues.append(Issue("stamp_went_back", -1, what))
+            if self._log is not None:
+                self._log.info("stamp_went_back: %s", what)
+        if not isinstance(scene, SceneInfo) or stamp < self._scene_since_ns:
+            return
+        location = scene.location_id or scene.map_sha256 or scene.scene_id
+        if scene.scene_id == self._scene_id and location == self._location:
+            return
+        before = (self._scene_id, self._location)
+        if before[1] is not None and (before[0] is not None or location != before[1]):
+            if location != before[1]:
+                self.forget_location()
+                what = f"location {before[1]!r} -> {location!r}: tracks and what was learnt online (curve factor, speed lead, ...) start afresh"
+                kind = "location_changed"
+            else:
+                self.reset()
+                what = f"scene {before[0]!r} -> {scene.scene_id!r} at the same location: every track starts afresh"
+                kind = "scene_changed"
+            issues.append(Issue(kind, -1, what))
+            if self._log is not None:
+                self._log.info("%s: %s", kind, what)
+        self._scene_id, self._location, self._scene_since_ns = scene.scene_id, location, stamp
 
     def _own_vehicles(self, corridor_set: CorridorSet) -> tuple[CorridorSet, set[int]]:
         """The set with this shard's vehicles only, and the track ids of the others (another shard predicts them: left
@@ -800,6 +842,8 @@ class MarkovPredictor:
         calls it between recordings)."""
         self.reset()
         self._new_learners()
+        self._scene_id = self._location = None  # (the next frame's scene is taken as it comes, without an issue)
+        self._scene_since_ns = -(2**63)
 
     def learnt(self) -> dict[str, Any]:
         """What has been learnt online so far: ``initial_blend``, ``curve_choice``, ``accel_shift``, ``speed_lead``
@@ -821,6 +865,8 @@ class MarkovPredictor:
         self._prepared = None
         self._prepared_pairs = None
         self._recent_profiles.clear()
+        self._scene_id = None  # (the caller starts a sequence: its scene is taken without an issue; the location is kept)
+        self._scene_since_ns = self._newest_ns = -(2**63)  # (nor are its stamps compared with the last one's)
         self._back_test_pending = None  # its samples would be pending in the curve choice, which forgets those too
         self._learn_pending = None  # (the online spread forgets its kept grids too)
         self._carried_issues = []

@@ -77,7 +77,8 @@ def test_a_lead_moves_the_start_speed_by_lead_times_the_estimated_acceleration(s
     np.testing.assert_array_equal(a.mean_s_m, b.mean_s_m)
 
 
-def _drive(predictor: MarkovPredictor, refs: dict[float, MarkovPredictor], true_accel: float, frames: int) -> int | None:
+def _drive(predictor: MarkovPredictor, refs: dict[float, MarkovPredictor], true_accel: float, frames: int,
+           scene: bs.SceneInfo | None = None) -> int | None:
     """A car whose estimated speed is 6 m/s and acceleration 1 m/s² at every frame, while it really drives at
     6 + ``true_accel`` m/s (the estimate lags by 1 s when ``true_accel`` is 1) and its AR profile says 0; every frame's
     prediction is checked against the fixed-lead reference of the lead in use; returns the frame the lead switched at."""
@@ -88,11 +89,11 @@ def _drive(predictor: MarkovPredictor, refs: dict[float, MarkovPredictor], true_
         # (positions a few cm off the line, as measured ones are: the back test's paired differences then vary)
         cs, frame = _scene(stamp, 5.0 + v_true * 0.1 * n + 0.05 * math.sin(1.3 * n), 6.0, 1.0)
         lead = predictor.speed_lead
-        prediction, issues = predictor.process(cs, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
-        assert not [i for i in issues if i.kind == "speed_lead_failed"], issues
+        prediction, issues = predictor.process(cs, None, scene, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
+        assert not [i for i in issues if i.kind in ("speed_lead_failed", "scene_changed", "location_changed")], issues
         if predictor.speed_lead != lead and switched_at is None:
             switched_at = n
-        ref, _ = refs[predictor.speed_lead].process(cs, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
+        ref, _ = refs[predictor.speed_lead].process(cs, None, scene, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
         np.testing.assert_array_equal(prediction.mean_s_m, ref.mean_s_m)  # the frame's own prediction: the lead in use
         predictor.idle()
     return switched_at
@@ -154,6 +155,60 @@ def test_forget_location_starts_the_learners_afresh_and_reset_keeps_them(stencil
     assert predictor.speed_lead == 0.0 and predictor.curve_factor == 1.0
     assert predictor.learnt()["speed_lead"]["samples"] == 0 and predictor.learnt()["speed_lead"]["factor"] == 0.0
     assert predictor.learnt()["curve_choice"]["samples"] == 0
+
+
+def _scene_info(scene_id: str, location_id: str) -> bs.SceneInfo:
+    return bs.SceneInfo(header=_header(STAMP), scene_id=scene_id, recording="test", location_id=location_id, map_name="test.osm",
+                        map_sha256="", projection="auto", origin_lat_deg=48.0, origin_lon_deg=9.0, frame_rate_hz=10.0,
+                        speed_limit_mps=20.0, n_frames=0)
+
+
+def test_the_streaming_stage_follows_the_scene(stencils):
+    """On the bus nobody calls ``forget_location``: the stage does it itself when the latched scene names another
+    location (a replay of another recording), and only ``reset``s (the tracks) on another scene of the same location;
+    one issue each. A frame older than the new scene's first (``prepare`` ran ahead) is the old scene's: no change."""
+    config = MarkovPredictionConfig(mode="hybrid", **{**AR0, "hybrid_speed_leads_s": LEADS})
+    predictor = MarkovPredictor(config, stencils=stencils)
+    here = _scene_info("k1/seq1", "k1")
+    _drive(predictor, {lead: _fixed(lead, stencils) for lead in LEADS}, 0.8, 140, scene=here)
+    assert predictor.speed_lead == 0.8 and 1 in predictor._history
+
+    def frame_at(n: int, scene: bs.SceneInfo) -> list[str]:
+        stamp = STAMP + n * 100_000_000
+        cs, frame = _scene(stamp, 5.0 + 0.68 * n, 6.0, 1.0)
+        _, issues = predictor.process(cs, None, scene, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
+        predictor.idle()
+        return [i.kind for i in issues if i.kind in ("scene_changed", "location_changed")]
+
+    samples = predictor.lead_choice.summary()["samples"]
+    assert frame_at(141, here) == []
+    assert frame_at(142, _scene_info("k1/seq2", "k1")) == ["scene_changed"]  # the same place: tracks afresh, what was learnt kept
+    assert len(predictor._history[1].samples) == 1 and predictor.speed_lead == 0.8
+    assert predictor.lead_choice.summary()["samples"] >= samples
+    assert frame_at(143, _scene_info("k1/seq2", "k1")) == []
+    assert frame_at(144, _scene_info("k2/seq1", "k2")) == ["location_changed"]  # another place: from nothing
+    assert predictor.speed_lead == 0.0 and predictor.learnt()["speed_lead"]["samples"] == 0
+    assert frame_at(140, _scene_info("k1/seq2", "k1")) == []  # (older than the change: the old scene's last frame)
+    assert frame_at(145, _scene_info("k2/seq1", "k2")) == []
+    predictor.reset()  # the caller starts the next sequence itself (iamp eval): its scene comes without an issue
+    assert frame_at(146, _scene_info("k2/seq2", "k2")) == []
+    assert frame_at(147, _scene_info("k3/seq1", "k3")) == ["location_changed"]  # (a reset keeps the location)
+
+    def kinds(n: int) -> list[str]:
+        stamp = STAMP + n * 100_000_000
+        cs, frame = _scene(stamp, 5.0 + 0.68 * n, 6.0, 1.0)
+        _, issues = predictor.process(cs, None, _scene_info("k3/seq1", "k3"), frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
+        predictor.idle()
+        return [i.kind for i in issues if i.kind in ("scene_changed", "location_changed", "stamp_went_back")]
+
+    for n in range(148, 160):
+        assert kinds(n) == []
+    choice = predictor.lead_choice  # (a replay started again is the same place: what was learnt is kept)
+    assert kinds(150) == []  # a frame a second back (prepare runs ahead, frames come late): within track_timeout_s
+    assert len(predictor._history[1].samples) > 1
+    assert kinds(100) == ["stamp_went_back"]  # 6 s back: the replay started again, the tracks afresh
+    assert len(predictor._history[1].samples) == 1 and predictor.lead_choice is choice
+    assert kinds(101) == []
 
 
 def test_iamp_eval_starts_every_recording_afresh(monkeypatch):
