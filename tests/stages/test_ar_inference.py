@@ -95,6 +95,32 @@ def test_every_pair_gets_a_profile_with_distributions_and_history_grows(chain):
     assert decoded.model == core.model_name and decoded.by_pair().keys() == msg.by_pair().keys()
 
 
+def test_another_scene_starts_every_history_afresh(chain):
+    """The CorridorSet of another scene (a replay of another recording on a running pipeline, stamps going on):
+    the histories start afresh, one ``scene_changed`` issue; a reset takes the next scene without one."""
+    import dataclasses
+
+    from stages.ar_inference import ARInference, ARInferenceConfig
+
+    core = ARInference(ARInferenceConfig())
+    for frame, cs, rs in chain[:50]:
+        msg, issues = core.process(cs, rs, frame)
+        assert "scene_changed" not in [i.kind for i in issues]
+    assert max(p.history_steps for p in msg.profiles) > 20
+    frame, cs, rs = chain[50]
+    other = dataclasses.replace(cs, scene_id=cs.scene_id + "-other")
+    msg, issues = core.process(other, rs, frame)
+    assert [i.kind for i in issues].count("scene_changed") == 1
+    assert max(p.history_steps for p in msg.profiles) == 1
+    frame, cs, rs = chain[51]
+    msg, issues = core.process(dataclasses.replace(cs, scene_id=other.scene_id), rs, frame)
+    assert "scene_changed" not in [i.kind for i in issues] and max(p.history_steps for p in msg.profiles) == 2
+    core.reset()
+    frame, cs, rs = chain[52]
+    msg, issues = core.process(cs, rs, frame)
+    assert "scene_changed" not in [i.kind for i in issues]
+
+
 def test_a_missing_or_corrupt_model_is_a_config_error(tmp_path):
     from stages.lib.base import ConfigError
     from stages.ar_inference import ARInference, ARInferenceConfig

@@ -125,6 +125,7 @@ class ARInference:
                 raise ConfigError(f"device = {config.device!r}: no CUDA device here; use device = 'cpu'")
         self.model = model
         self.tracker = FeatureTracker()
+        self._scene_id = ""  # the scene of the last frame observed (``observe``: another one starts every history afresh)
         ar_kernels.warm_up()  # the compiled feature kernel loaded (or compiled) now, not on the first frame
         meta = getattr(model, "metadata", {}) or {}
         self.step_s = float(meta.get("step_s", 0.1))
@@ -160,6 +161,12 @@ class ARInference:
             relation_set = None
         if frame is not None and int(frame.header.stamp_ns) != int(corridor_set.header.stamp_ns):
             frame = None
+        scene_id = corridor_set.scene_id
+        if scene_id and scene_id != self._scene_id:
+            if self._scene_id:  # another scene (a replay of another recording or sequence): its track ids are not the last one's
+                issues.append(Issue("scene_changed", -1, f"scene {self._scene_id!r} -> {scene_id!r}: every feature history starts afresh"))
+                self.reset()
+            self._scene_id = scene_id
         issues.extend(self.tracker.update(corridor_set, relation_set, frame) or [])
         return issues
 
@@ -202,7 +209,8 @@ class ARInference:
         return message, issues
 
     def reset(self) -> None:
-        """Forget every vehicle's history."""
+        """Forget every vehicle's history (the next frame's scene is taken as it comes, without an issue)."""
         from stages.lib.ar import FeatureTracker
 
         self.tracker = FeatureTracker()
+        self._scene_id = ""
