@@ -697,7 +697,7 @@ class MarkovPredictor:
         """A frame of another scene than the last starts every track afresh (``reset``: a new sequence, its track ids
         are not the last one's), one of another location (``location_id``, else the map's hash) forgets what was
         learnt online as well (``forget_location``: the curve factor, the speed lead, ... belong to a place and its
-        tracker), as a stage started there would be. One issue and one log line per change. A frame older than the
+        tracker), as a stage started there would be. One issue per change (the runtime logs it). A frame older than the
         one that brought the current scene (``prepare`` may run the next frame first) is the old scene's last: no
         change."""
         newest, self._newest_ns = self._newest_ns, max(self._newest_ns, stamp)
@@ -706,8 +706,6 @@ class MarkovPredictor:
             self._newest_ns = stamp
             what = f"stamp {stamp} is {(newest - stamp) / 1e9:.1f} s before the newest seen (more than track_timeout_s): every track starts afresh"
             issues.append(Issue("stamp_went_back", -1, what))
-            if self._log is not None:
-                self._log.info("stamp_went_back: %s", what)
         if not isinstance(scene, SceneInfo) or stamp < self._scene_since_ns:
             return
         location = scene.location_id or scene.map_sha256 or scene.scene_id
@@ -724,8 +722,6 @@ class MarkovPredictor:
                 what = f"scene {before[0]!r} -> {scene.scene_id!r} at the same location: every track starts afresh"
                 kind = "scene_changed"
             issues.append(Issue(kind, -1, what))
-            if self._log is not None:
-                self._log.info("%s: %s", kind, what)
         self._scene_id, self._location, self._scene_since_ns = scene.scene_id, location, stamp
 
     def _own_vehicles(self, corridor_set: CorridorSet) -> tuple[CorridorSet, set[int]]:
