@@ -26,10 +26,9 @@ are skipped this frame (``stages.lib.caps.cap_pairs``; one ``pairs_capped``
 issue). TAF-BW frames (at most ~20 vehicles, ~2 corridors each) never are.
 
 Issues: ``stamp_mismatch`` (relations of another stamp: ignored),
-``nan_prediction`` (pair left out), ``scene_changed`` (the CorridorSet names
-another scene than the last: every vehicle's history starts afresh, as when
-the stamps go back, the feature tracker's ``stamp_backwards``), and the
-feature tracker's (``nan_state`` …). A weights file that is missing or unreadable stops the stage at start
+``nan_prediction`` (pair left out), and the feature tracker's: ``scene_changed``
+(the CorridorSet names another scene than the last) and ``stamp_backwards``
+(every vehicle's history starts afresh), ``nan_state`` …. A weights file that is missing or unreadable stops the stage at start
 (exit 2) with a message naming the file.
 """
 

@@ -407,6 +407,7 @@ class FeatureTracker:
         self.config = config or FeatureConfig()
         self._tracks: dict[int, _Track] = {}
         self._last_stamp_ns: int | None = None
+        self._scene_id = ""  # the scene of the last frame (another one starts every history afresh)
         self._step_ns = int(round(STEP_S / _NS))
         self.issue_counts: collections.Counter[str] = collections.Counter()
 
@@ -417,6 +418,7 @@ class FeatureTracker:
     def reset(self) -> None:
         self._tracks.clear()
         self._last_stamp_ns = None
+        self._scene_id = ""
 
     def step_index(self, stamp_ns: int) -> int:
         return int(round(int(stamp_ns) / self._step_ns))
@@ -431,9 +433,14 @@ class FeatureTracker:
         cfg = self.config
         issues: list[Issue] = []
         stamp = int(corridor_set.header.stamp_ns)
-        if self._last_stamp_ns is not None and stamp < self._last_stamp_ns:
+        scene_id = corridor_set.scene_id
+        if scene_id and self._scene_id and scene_id != self._scene_id:  # (a replay of another recording: other track ids)
+            issues.append(Issue("scene_changed", -1, f"scene {self._scene_id!r} -> {scene_id!r}: feature history reset"))
+            self._tracks.clear()
+        elif self._last_stamp_ns is not None and stamp < self._last_stamp_ns:
             issues.append(Issue("stamp_backwards", -1, f"stamp {stamp} < {self._last_stamp_ns}: feature history reset"))
             self._tracks.clear()
+        self._scene_id = scene_id or self._scene_id
         self._last_stamp_ns = stamp
         timeout_ns = int(round(cfg.track_timeout_s / _NS))
         for track_id in [k for k, t in self._tracks.items() if stamp - t.last_stamp_ns > timeout_ns]:

@@ -60,6 +60,7 @@ class ARInferenceConfig(ConfigMixin):
         """Edges of the input cells, ``(n_inputs + 1,) float64`` m/s² (``stages.lib.markov.grid.uniform_input_edges``)."""
         return np.asarray(uniform_input_edges(self.input_min_mps2, self.input_max_mps2, self.n_inputs), dtype=np.float64)
 
+
 def chunk_distributions(
     accel_mps2: np.ndarray, chunk_steps: int, sigma_res: np.ndarray, edges: np.ndarray, *, sigma_scale: float = 1.0, sigma_floor: float = 0.25
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -125,7 +126,6 @@ class ARInference:
                 raise ConfigError(f"device = {config.device!r}: no CUDA device here; use device = 'cpu'")
         self.model = model
         self.tracker = FeatureTracker()
-        self._scene_id = ""  # the scene of the last frame observed (``observe``: another one starts every history afresh)
         ar_kernels.warm_up()  # the compiled feature kernel loaded (or compiled) now, not on the first frame
         meta = getattr(model, "metadata", {}) or {}
         self.step_s = float(meta.get("step_s", 0.1))
@@ -161,12 +161,6 @@ class ARInference:
             relation_set = None
         if frame is not None and int(frame.header.stamp_ns) != int(corridor_set.header.stamp_ns):
             frame = None
-        scene_id = corridor_set.scene_id
-        if scene_id and scene_id != self._scene_id:
-            if self._scene_id:  # another scene (a replay of another recording or sequence): its track ids are not the last one's
-                issues.append(Issue("scene_changed", -1, f"scene {self._scene_id!r} -> {scene_id!r}: every feature history starts afresh"))
-                self.reset()
-            self._scene_id = scene_id
         issues.extend(self.tracker.update(corridor_set, relation_set, frame) or [])
         return issues
 
@@ -213,4 +207,3 @@ class ARInference:
         from stages.lib.ar import FeatureTracker
 
         self.tracker = FeatureTracker()
-        self._scene_id = ""
