@@ -711,17 +711,14 @@ class MarkovPredictor:
         location = scene.location_id or scene.map_sha256 or scene.scene_id
         if scene.scene_id == self._scene_id and location == self._location:
             return
-        before = (self._scene_id, self._location)
-        if before[1] is not None and (before[0] is not None or location != before[1]):
-            if location != before[1]:
-                self.forget_location()
-                what = f"location {before[1]!r} -> {location!r}: tracks and what was learnt online (curve factor, speed lead, ...) start afresh"
-                kind = "location_changed"
-            else:
-                self.reset()
-                what = f"scene {before[0]!r} -> {scene.scene_id!r} at the same location: every track starts afresh"
-                kind = "scene_changed"
-            issues.append(Issue(kind, -1, what))
+        if self._location is not None and location != self._location:
+            issues.append(Issue("location_changed", -1, f"location {self._location!r} -> {location!r}: tracks and what was learnt"
+                                " online (curve factor, speed lead, ...) start afresh"))
+            self.forget_location()
+        elif self._scene_id is not None:  # (the same location: a scene set, and not this one)
+            issues.append(Issue("scene_changed", -1, f"scene {self._scene_id!r} -> {scene.scene_id!r} at the same location: every"
+                                " track starts afresh"))
+            self.reset()
         self._scene_id, self._location, self._scene_since_ns = scene.scene_id, location, stamp
 
     def _own_vehicles(self, corridor_set: CorridorSet) -> tuple[CorridorSet, set[int]]:
@@ -838,18 +835,13 @@ class MarkovPredictor:
         calls it between recordings)."""
         self.reset()
         self._new_learners()
-        self._scene_id = self._location = None  # (the next frame's scene is taken as it comes, without an issue)
-        self._scene_since_ns = -(2**63)
+        self._location = None  # (with reset's: the next frame's scene is taken as it comes, without an issue)
 
     def learnt(self) -> dict[str, Any]:
         """What has been learnt online so far: ``initial_blend``, ``curve_choice``, ``accel_shift``, ``speed_lead``
         (each learner's ``summary()``; a learner the config leaves off is absent)."""
-        out: dict[str, Any] = {}
-        for key, learner in (("initial_blend", self.initial_blend), ("curve_choice", self.curve_choice), ("accel_shift", self.shift_choice),
-                             ("speed_lead", self.lead_choice)):
-            if learner is not None:
-                out[key] = learner.summary()
-        return out
+        learners = [("initial_blend", self.initial_blend), *((c.key, getattr(self, c.choice)) for c in _CHOICES)]
+        return {key: learner.summary() for key, learner in learners if learner is not None}
 
     def reset(self) -> None:
         """Forget every track's history (a new sequence starts; the offline tables are kept)."""
@@ -1762,6 +1754,7 @@ class _Choice(NamedTuple):
     """One online choice by back testing (``curve_choice.py``), as the predictor wires it."""
 
     choice: str  # the predictor's attribute holding it (None: off)
+    key: str  # its summary's key in ``learnt`` (and in the eval JSON)
     value: str  # the predictor's attribute holding the value in use
     field: str  # the Pair field the value goes to (its back test runs copies of the pairs with each candidate there)
     failed: str  # the issue of a failure (the frame keeps its value)
@@ -1790,10 +1783,10 @@ def _chain_start_speed(p: Pair, v_max_mps: float) -> float:
 
 #: the online choices by back testing, in the order they are chosen and back-tested
 _CHOICES = (
-    _Choice("curve_choice", "curve_factor", "curve_factor", "curve_choice_failed", "curve factor %g", 0, _curve_eligible),
-    _Choice("shift_choice", "accel_shift", "accel_shift_mps2", "accel_shift_failed", "acceleration shift %g m/s²", 1000,
+    _Choice("curve_choice", "curve_choice", "curve_factor", "curve_factor", "curve_choice_failed", "curve factor %g", 0, _curve_eligible),
+    _Choice("shift_choice", "accel_shift", "accel_shift", "accel_shift_mps2", "accel_shift_failed", "acceleration shift %g m/s²", 1000,
             lambda pairs, horizon_s: True),  # any vehicle the AR model drives
-    _Choice("lead_choice", "speed_lead", "speed_lead_s", "speed_lead_failed", "speed lead %g s", 2000,
+    _Choice("lead_choice", "speed_lead", "speed_lead", "speed_lead_s", "speed_lead_failed", "speed lead %g s", 2000,
             lambda pairs, horizon_s: all(_leads(p) for p in pairs)),  # moving, with an estimated acceleration
 )
 
