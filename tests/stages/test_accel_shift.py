@@ -12,7 +12,7 @@ import bus_schemas as bs
 from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
 from stages.markov_prediction.curve_choice import OnlineShiftChoice
 from stages.markov_prediction.modes.hybrid import cell_moments, shift_inputs
-from tests.stages.test_markov_prediction import PLAIN, STAMP, _corridor, _corridor_set, _header, _profiles, _vehicle
+from tests.stages.test_markov_prediction import PLAIN, STAMP, _corridor, _corridor_set, _header, _profiles, _vehicle, _with_failing_back_test
 
 EDGES = np.linspace(-3.0, 2.0, 11)  # the default input cells: 0.5 m/s² wide
 # λ(0) as the model gives it: with "adaptive" the blend learns against the shifted model in use, so a stage that
@@ -116,23 +116,8 @@ def test_a_car_that_accelerates_past_its_profile_makes_the_stage_shift_and_one_t
 def test_a_failing_back_test_costs_only_its_samples_and_off_means_off(stencils, monkeypatch):
     predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", hybrid_curve_factors=(), hybrid_accel_shifts=SHIFTS, **AR0),
                                 stencils=stencils)
-    reference = _fixed(0.0, stencils)
-    real = predictor._back_test_choice
-
-    def failing(choice, field_name, *args, **kwargs):
-        if field_name == "accel_shift_mps2":
-            raise RuntimeError("boom")
-        return real(choice, field_name, *args, **kwargs)
-
-    monkeypatch.setattr(predictor, "_back_test_choice", failing)
-    issues = []
-    for n in range(2):
-        stamp = STAMP + n * 100_000_000
-        cs, frame = _straight_scene(stamp, 5.0 + 0.2 * n, 2.0)
-        prediction, issues = predictor.process(cs, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
-        ref, _ = reference.process(cs, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
-        np.testing.assert_array_equal(prediction.mean_s_m, ref.mean_s_m)
-        predictor.idle()
+    issues = _with_failing_back_test(predictor, _fixed(0.0, stencils), "accel_shift_mps2",
+                                     lambda stamp, n: _straight_scene(stamp, 5.0 + 0.2 * n, 2.0), monkeypatch)
     assert [i.kind for i in issues] == ["accel_shift_failed"] and "boom" in issues[0].detail
     assert predictor.accel_shift == 0.0 and not predictor.shift_choice.pending
     assert MarkovPredictor(MarkovPredictionConfig(mode="hybrid", hybrid_accel_shifts=(), **PLAIN), stencils=stencils).shift_choice is None

@@ -360,6 +360,29 @@ def _profiles(track_id: int, cid: int, accel: float, *, sigma: float = 0.3, edge
                                    input_edges_mps2=np.asarray(edges, np.float64), profiles=(profile,))
 
 
+def _with_failing_back_test(predictor: MarkovPredictor, reference: MarkovPredictor, field_name: str, scene_at, monkeypatch) -> list:
+    """Two frames of ``scene_at(stamp, n)`` (a corridor set and a track frame of car 1 on corridor 7, AR profile 0) with
+    the back test of the online choice on Pair ``field_name`` raising: each frame's prediction must equal
+    ``reference``'s; returns the last frame's issues (tests/stages/test_accel_shift.py, test_speed_lead.py)."""
+    real = predictor._back_test_choice
+
+    def failing(choice, name, *args, **kwargs):
+        if name == field_name:
+            raise RuntimeError("boom")
+        return real(choice, name, *args, **kwargs)
+
+    monkeypatch.setattr(predictor, "_back_test_choice", failing)
+    issues: list = []
+    for n in range(2):
+        stamp = STAMP + n * 100_000_000
+        cs, frame = scene_at(stamp, n)
+        prediction, issues = predictor.process(cs, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
+        ref, _ = reference.process(cs, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
+        np.testing.assert_array_equal(prediction.mean_s_m, ref.mean_s_m)
+        predictor.idle()
+    return issues
+
+
 def test_intention_weights_replace_the_uniform_ones_and_missing_beliefs_fall_back(stencils):
     predictor = MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv", corridor_weights="intentions", initial_box="measurement"), stencils=stencils)
     cs = _corridor_set(_vehicle(1, 10.0, [_corridor(7), _corridor(8, radius=20.0)]))

@@ -13,7 +13,7 @@ import pytest
 import bus_schemas as bs
 from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
 from stages.markov_prediction.curve_choice import OnlineLeadChoice
-from tests.stages.test_markov_prediction import PLAIN, STAMP, _corridor, _corridor_set, _header, _profiles, _vehicle
+from tests.stages.test_markov_prediction import PLAIN, STAMP, _corridor, _corridor_set, _header, _profiles, _vehicle, _with_failing_back_test
 
 AR0 = {"hybrid_initial_input": "ar", "hybrid_curve_factors": (), **PLAIN}
 OFF = {**AR0, "hybrid_speed_leads_s": ()}
@@ -121,23 +121,8 @@ def test_a_lagging_estimate_makes_the_stage_lead_and_a_right_one_does_not(stenci
 
 def test_a_failing_back_test_costs_only_its_samples(stencils, monkeypatch):
     predictor = MarkovPredictor(MarkovPredictionConfig(mode="hybrid", **{**AR0, "hybrid_speed_leads_s": LEADS}), stencils=stencils)
-    reference = _fixed(0.0, stencils)
-    real = predictor._back_test_choice
-
-    def failing(choice, field_name, *args, **kwargs):
-        if field_name == "speed_lead_s":
-            raise RuntimeError("boom")
-        return real(choice, field_name, *args, **kwargs)
-
-    monkeypatch.setattr(predictor, "_back_test_choice", failing)
-    issues = []
-    for n in range(2):
-        stamp = STAMP + n * 100_000_000
-        cs, frame = _scene(stamp, 5.0 + 0.6 * n, 6.0, 1.0)
-        prediction, issues = predictor.process(cs, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
-        ref, _ = reference.process(cs, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
-        np.testing.assert_array_equal(prediction.mean_s_m, ref.mean_s_m)
-        predictor.idle()
+    issues = _with_failing_back_test(predictor, _fixed(0.0, stencils), "speed_lead_s",
+                                     lambda stamp, n: _scene(stamp, 5.0 + 0.6 * n, 6.0, 1.0), monkeypatch)
     assert [i.kind for i in issues] == ["speed_lead_failed"] and "boom" in issues[0].detail
     assert predictor.speed_lead == 0.0 and not predictor.lead_choice.pending
 
