@@ -12,7 +12,7 @@ import bus_schemas as bs
 from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
 from stages.markov_prediction.curve_choice import OnlineShiftChoice
 from stages.markov_prediction.modes.hybrid import cell_moments, shift_inputs
-from tests.stages.test_markov_prediction import PLAIN, STAMP, _corridor, _corridor_set, _header, _profiles, _vehicle, _with_failing_back_test
+from tests.stages.test_markov_prediction import PLAIN, STAMP, _corridor, _corridor_set, _header, _drive_choice, _profiles, _vehicle, _with_failing_back_test
 
 EDGES = np.linspace(-3.0, 2.0, 11)  # the default input cells: 0.5 m/s² wide
 # λ(0) as the model gives it: with "adaptive" the blend learns against the shifted model in use, so a stage that
@@ -69,20 +69,12 @@ def _straight_scene(stamp: int, s_now: float, speed: float):
 def _drive(predictor: MarkovPredictor, refs: dict[float, MarkovPredictor], accel: float, frames: int) -> int | None:
     """Feed a car that starts at 2 m/s and accelerates at ``accel`` while its AR profile says 0 m/s²; check every
     frame's own prediction against the fixed-shift reference of the shift in use; returns the frame it switched at."""
-    switched_at = None
-    for n in range(frames):
+
+    def scene_at(stamp: int, n: int):
         t = 0.1 * n
-        stamp = STAMP + n * 100_000_000
-        cs, frame = _straight_scene(stamp, 5.0 + 2.0 * t + 0.5 * accel * t * t, 2.0 + accel * t)
-        shift = predictor.accel_shift
-        prediction, issues = predictor.process(cs, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
-        assert not [i for i in issues if i.kind == "accel_shift_failed"], issues
-        if predictor.accel_shift != shift and switched_at is None:
-            switched_at = n
-        ref, _ = refs[predictor.accel_shift].process(cs, None, None, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
-        np.testing.assert_array_equal(prediction.mean_s_m, ref.mean_s_m)  # the frame's own prediction: the shift in use
-        predictor.idle()
-    return switched_at
+        return _straight_scene(stamp, 5.0 + 2.0 * t + 0.5 * accel * t * t, 2.0 + accel * t)
+
+    return _drive_choice(predictor, refs, "accel_shift", ("accel_shift_failed",), scene_at, frames)
 
 
 def _fixed(shift: float, stencils) -> MarkovPredictor:

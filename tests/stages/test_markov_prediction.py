@@ -360,6 +360,27 @@ def _profiles(track_id: int, cid: int, accel: float, *, sigma: float = 0.3, edge
                                    input_edges_mps2=np.asarray(edges, np.float64), profiles=(profile,))
 
 
+def _drive_choice(predictor: MarkovPredictor, refs: dict[float, MarkovPredictor], value_attr: str, not_expected: tuple[str, ...],
+                  scene_at, frames: int, scene: bs.SceneInfo | None = None) -> int | None:
+    """``frames`` frames of ``scene_at(stamp, n)`` (a corridor set and a track frame of car 1 on corridor 7, AR profile 0)
+    through ``predictor``, whose online choice keeps its value in ``value_attr``: no issue of the kinds ``not_expected``,
+    and every frame's own prediction that of the fixed-value reference ``refs[value]`` of the value in use; returns the
+    frame the value first changed at (None: never; tests/stages/test_accel_shift.py, test_speed_lead.py)."""
+    switched_at = None
+    for n in range(frames):
+        stamp = STAMP + n * 100_000_000
+        cs, frame = scene_at(stamp, n)
+        value = getattr(predictor, value_attr)
+        prediction, issues = predictor.process(cs, None, scene, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
+        assert not [i for i in issues if i.kind in not_expected], issues
+        if getattr(predictor, value_attr) != value and switched_at is None:
+            switched_at = n
+        ref, _ = refs[getattr(predictor, value_attr)].process(cs, None, scene, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
+        np.testing.assert_array_equal(prediction.mean_s_m, ref.mean_s_m)  # the frame's own prediction: the value in use
+        predictor.idle()
+    return switched_at
+
+
 def _with_failing_back_test(predictor: MarkovPredictor, reference: MarkovPredictor, field_name: str, scene_at, monkeypatch) -> list:
     """Two frames of ``scene_at(stamp, n)`` (a corridor set and a track frame of car 1 on corridor 7, AR profile 0) with
     the back test of the online choice on Pair ``field_name`` raising: each frame's prediction must equal

@@ -13,7 +13,7 @@ import pytest
 import bus_schemas as bs
 from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
 from stages.markov_prediction.curve_choice import OnlineLeadChoice
-from tests.stages.test_markov_prediction import PLAIN, STAMP, _corridor, _corridor_set, _header, _profiles, _vehicle, _with_failing_back_test
+from tests.stages.test_markov_prediction import PLAIN, STAMP, _corridor, _corridor_set, _header, _drive_choice, _profiles, _vehicle, _with_failing_back_test
 
 AR0 = {"hybrid_initial_input": "ar", "hybrid_curve_factors": (), **PLAIN}
 OFF = {**AR0, "hybrid_speed_leads_s": ()}
@@ -82,21 +82,13 @@ def _drive(predictor: MarkovPredictor, refs: dict[float, MarkovPredictor], true_
     """A car whose estimated speed is 6 m/s and acceleration 1 m/s² at every frame, while it really drives at
     6 + ``true_accel`` m/s (the estimate lags by 1 s when ``true_accel`` is 1) and its AR profile says 0; every frame's
     prediction is checked against the fixed-lead reference of the lead in use; returns the frame the lead switched at."""
-    switched_at = None
     v_true = 6.0 + true_accel
-    for n in range(frames):
-        stamp = STAMP + n * 100_000_000
+
+    def scene_at(stamp: int, n: int):
         # (positions a few cm off the line, as measured ones are: the back test's paired differences then vary)
-        cs, frame = _scene(stamp, 5.0 + v_true * 0.1 * n + 0.05 * math.sin(1.3 * n), 6.0, 1.0)
-        lead = predictor.speed_lead
-        prediction, issues = predictor.process(cs, None, scene, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
-        assert not [i for i in issues if i.kind in ("speed_lead_failed", "scene_changed", "location_changed")], issues
-        if predictor.speed_lead != lead and switched_at is None:
-            switched_at = n
-        ref, _ = refs[predictor.speed_lead].process(cs, None, scene, frame, acceleration_profiles=_profiles(1, 7, 0.0, stamp=stamp))
-        np.testing.assert_array_equal(prediction.mean_s_m, ref.mean_s_m)  # the frame's own prediction: the lead in use
-        predictor.idle()
-    return switched_at
+        return _scene(stamp, 5.0 + v_true * 0.1 * n + 0.05 * math.sin(1.3 * n), 6.0, 1.0)
+
+    return _drive_choice(predictor, refs, "speed_lead", ("speed_lead_failed", "scene_changed", "location_changed"), scene_at, frames, scene)
 
 
 def test_a_lagging_estimate_makes_the_stage_lead_and_a_right_one_does_not(stencils):
