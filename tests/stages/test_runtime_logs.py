@@ -432,3 +432,24 @@ def test_episodes_that_start_and_end_on_every_message_are_bounded(log, caplog):
     il.frame(2000, bad, scope="iamp/t/source/track_frame")
     assert "[995 more episodes of this kind not shown in the last 10 s]" in _lines(caplog)[-1]
     il.close()
+
+
+def test_a_kind_that_every_new_car_raises_costs_a_few_lines_a_minute(log, caplog):
+    """The defaults: 5 episode starts of one kind per minute, whatever the number of agents (a tracker quirk raised for
+    each new track, K733's velocities), the others counted and told with the next one shown; another kind and an
+    occasional one are shown every time."""
+    clock = [0.0]
+    il = IssueLog(log, clock=lambda: clock[0])
+    for car in range(40):  # a new car every 0.5 s, each with its own one-frame episode
+        clock[0] = 0.5 * car
+        il.frame(car, [Issue("velocity_rejected", car, "reported velocity off the positions'"), Issue("position_jump", -1, "a jump")]
+                 if car == 7 else [Issue("velocity_rejected", car, "reported velocity off the positions'")])
+    lines = _lines(caplog)
+    assert sum("issue: kind=velocity_rejected" in ln for ln in lines) == 5
+    assert sum("issue ended: kind=velocity_rejected" in ln for ln in lines) == 5
+    assert sum("issue: kind=position_jump" in ln for ln in lines) == 1
+    clock[0] = 61.0
+    il.frame(100, [Issue("velocity_rejected", 100, "reported velocity off the positions'")])
+    assert "issue: kind=velocity_rejected agent=100" in _lines(caplog)[-1]
+    assert "[35 more episodes of this kind not shown in the last 60 s]" in _lines(caplog)[-1]
+    il.close()
