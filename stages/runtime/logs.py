@@ -129,8 +129,8 @@ class IssueLog:
     logged per ``period_s``; the others are counted, their end is not
     logged, and the next shown start of the kind (or ``close``) says how
     many were not shown. The defaults (5 per minute) keep a kind that a
-    recording's tracker raises for every car (K733's velocities, off by
-    half: ``velocity_rejected`` for each new track) to a few lines a
+    recording's tracker raises for every car (K733's reported velocities
+    point backwards: ``velocity_rejected`` for each new track) to a few lines a
     minute, with the count of the others, while an occasional kind is
     shown every time; NodeStats counts every occurrence either way.
     """

@@ -436,8 +436,8 @@ def test_episodes_that_start_and_end_on_every_message_are_bounded(log, caplog):
 
 def test_a_kind_that_every_new_car_raises_costs_a_few_lines_a_minute(log, caplog):
     """The defaults: 5 episode starts of one kind per minute, whatever the number of agents (a tracker quirk raised for
-    each new track, K733's velocities), the others counted and told with the next one shown; another kind and an
-    occasional one are shown every time."""
+    each new track, K733's velocities), the others counted and told with the next one shown; an occasional other kind
+    is shown."""
     clock = [0.0]
     il = IssueLog(log, clock=lambda: clock[0])
     for car in range(40):  # a new car every 0.5 s, each with its own one-frame episode
