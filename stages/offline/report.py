@@ -137,8 +137,13 @@ def _online(hybrid: dict[str, Any]) -> str:
     words, per recording where there were several (``learnt_by_recording``: each starts afresh); '' if nothing."""
     by_recording = hybrid.get("learnt_by_recording") or {}
     if len(by_recording) > 1:
-        return "; ".join(f"{name}: {_learnt(learnt)}" for name, learnt in by_recording.items() if _learnt(learnt))
+        words = ((name, _learnt(learnt)) for name, learnt in by_recording.items())
+        return "; ".join(f"{name}: {said}" for name, said in words if said)
     return _learnt(hybrid)
+
+
+#: the online choices of ``_learnt``: their key in the eval JSON, their name and the unit of their candidates
+_CHOICE_WORDS = (("curve_choice", "curve factor", ""), ("accel_shift", "acceleration shift", " m/s²"), ("speed_lead", "speed lead", " s"))
 
 
 def _learnt(hybrid: dict[str, Any]) -> str:
@@ -147,18 +152,11 @@ def _learnt(hybrid: dict[str, Any]) -> str:
     blend = hybrid.get("initial_blend")
     if blend:
         parts.append(f"weight of the measured acceleration in λ(0) {blend['weight']:.2f} from {fmt(blend['resolved'])} records")
-    curve = hybrid.get("curve_choice")
-    if curve:
-        parts.append(f"curve factor {curve['factor']:g} of {', '.join(f'{f:g}' for f in curve['factors'])} from {fmt(curve['samples'])}"
-                     f" back-tested vehicles (mean ADE {' / '.join(f'{a:.2f}' for a in curve['mean_ade_m'])} m)")
-    shift = hybrid.get("accel_shift")
-    if shift:
-        parts.append(f"acceleration shift {shift['factor']:g} m/s² of {', '.join(f'{f:g}' for f in shift['factors'])} from {fmt(shift['samples'])}"
-                     f" back-tested vehicles (mean ADE {' / '.join(f'{a:.2f}' for a in shift['mean_ade_m'])} m)")
-    lead = hybrid.get("speed_lead")
-    if lead:
-        parts.append(f"speed lead {lead['factor']:g} s of {', '.join(f'{f:g}' for f in lead['factors'])} from {fmt(lead['samples'])}"
-                     f" back-tested vehicles (mean ADE {' / '.join(f'{a:.2f}' for a in lead['mean_ade_m'])} m)")
+    for key, name, unit in _CHOICE_WORDS:
+        c = hybrid.get(key)
+        if c:
+            parts.append(f"{name} {c['factor']:g}{unit} of {', '.join(f'{f:g}' for f in c['factors'])} from {fmt(c['samples'])}"
+                         f" back-tested vehicles (mean ADE {' / '.join(f'{a:.2f}' for a in c['mean_ade_m'])} m)")
     return "; ".join(parts)
 
 
