@@ -191,6 +191,10 @@ class Pacer:
         if new_stamp:  # (drain waits for the last)
             if self.as_fast and len(self._stamps) >= self.window:
                 self._wait(self._stamps[0], time.monotonic() + self.wait_s, self.stop.is_set)
+            if self.stop.is_set():
+                # stopped while this stamp waited: it is not published, so drain waits for the last one that was,
+                # not for acks of a frame nobody receives
+                return False
             self._stamps.append(stamp_ns)
             self._published += 1
         return not self.stop.is_set()

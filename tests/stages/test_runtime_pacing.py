@@ -132,3 +132,26 @@ def test_a_warmup_gives_up_on_a_node_that_never_acks_after_wait_s():
     second.join(5.0)
     assert not second.is_alive()
     assert consumers.waiting_on(1) == ([], [])  # not waited for any more (until it acks)
+
+
+@pytest.mark.parametrize("speed", [1.0, "max"])
+def test_a_stop_during_the_wait_drains_on_the_last_stamp_published_not_the_one_held_back(speed, caplog):
+    """Ctrl-C or ``--stop-after`` while the source waits for its next frame (due at real time, or at ``max`` a node's
+    ack): ``before`` returns False and that frame is not published, so ``drain`` must wait for the acks of the one
+    before it, not of a frame nobody received (which cost 3 s and a warning that every node was behind, at every
+    stop)."""
+    caplog.set_level(logging.INFO, logger=LOG.name)
+    stop = threading.Event()
+    consumers = Consumers("src")
+    consumers.on_alive("op", True)
+    pacer = Pacer(speed, consumers, stop, LOG, window=1, wait_s=2.0)
+    assert pacer.before(0, 0)  # published
+    if speed != "max":
+        consumers.on_ack("op", 0)  # handled at once
+    threading.Timer(0.1, stop.set).start()  # the stop comes while the next frame waits (due 1 s later; at max, op's ack)
+    threading.Timer(0.2, consumers.on_ack, args=("op", 0)).start()  # op handles frame 0 (again: acks only grow)
+    assert not pacer.before(1_000_000_000, 1)
+    t0 = time.monotonic()
+    pacer.drain(2.0)
+    assert time.monotonic() - t0 < 1.0
+    assert "nodes behind" not in caplog.text
