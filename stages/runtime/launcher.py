@@ -121,7 +121,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-record", action="store_true", help="leave the recorder out")
     p.add_argument("--no-viewer", action="store_true", help="leave the viewer out")
     p.add_argument("--foxglove", action="store_true", help="add the live Foxglove bridge (node foxglove): the scene on a Foxglove WebSocket, ws://127.0.0.1:PORT printed")
-    p.add_argument("--data", metavar="PATH", help="data folder laid out like stages/data/taf-bw (default: the embedded scenario)")
+    p.add_argument("--data", metavar="PATH", help="data folder laid out like stages/data/taf-bw (default: the embedded scenario); in a pipeline without a"
+                   " dataset player (live) the folder whose maps/ the stages load the tracker's map from")
     p.add_argument("--recording", metavar="NAME", help="recording to play from --data")
     p.add_argument("--speed", metavar="X|max", help="playback speed factor of the source, or 'max'")
     p.add_argument("--run-id", help="run id (keys under iamp/<run>/); default from the pipeline file")
@@ -197,6 +198,8 @@ def make_editor(args: argparse.Namespace):
             if value is None:
                 continue
             if not sources:
+                if key == "data":
+                    continue  # no player (a live tracker's pipeline): the folder is only where the map stages find the maps (below)
                 raise PipelineError(f"{flag}: the pipeline has no dataset source node ({', '.join(sorted(SOURCE_STAGES))})")
             if key == "speed" and value != "max":
                 try:
@@ -213,6 +216,8 @@ def make_editor(args: argparse.Namespace):
                 n["params"].pop("recording", None)
         # the stages that load the map read it from the source's data folder (by name, checked by sha256), never from a bus path
         data = next((n["params"]["data"] for n in sources if isinstance(n.get("params"), dict) and n["params"].get("data")), None)
+        if data is None and not sources and args.data is not None:
+            data = str(Path(args.data).resolve())
         if data is not None:
             for n in nodes:
                 if n.get("stage") in MAP_STAGES:

@@ -265,3 +265,23 @@ def test_the_launcher_gives_every_map_stage_the_source_data_folder(tmp_path):
     raw2 = {"nodes": [{"id": "source", "stage": "stages.tracks_source"}, {"id": "corridors", "stage": "stages.corridors"}]}
     launch.make_editor(launch.build_parser().parse_args(["--no-record"]))(raw2)
     assert "data" not in raw2["nodes"][1].get("params", {})
+
+
+def test_without_a_player_data_is_where_the_map_stages_find_the_maps_and_recording_is_refused(tmp_path):
+    """``launch.py live --data DIR``: the tracker's SceneInfo names a map that the stages look up in DIR/maps; there is no
+    player to give the folder to, and nothing to choose a recording or speed for."""
+    from stages.runtime import launcher as launch
+    from stages.runtime.pipeline import PipelineError
+
+    def live():
+        return {"nodes": [{"id": "corridors", "stage": "stages.corridors"}, {"id": "relations", "stage": "stages.relations"},
+                          {"id": "markov_prediction", "stage": "stages.markov_prediction"}]}
+
+    raw = live()
+    launch.make_editor(launch.build_parser().parse_args(["--data", str(tmp_path), "--no-record"]))(raw)
+    by_id = {n["id"]: n.get("params", {}) for n in raw["nodes"]}
+    assert by_id["corridors"]["data"] == by_id["relations"]["data"] == str(tmp_path.resolve())
+    assert "data" not in by_id["markov_prediction"]
+    for flags in (["--recording", "k729_2022-03-16"], ["--speed", "2"]):
+        with pytest.raises(PipelineError, match="the pipeline has no dataset source node"):
+            launch.make_editor(launch.build_parser().parse_args([*flags, "--no-record"]))(live())
