@@ -600,7 +600,9 @@ class KinematicEstimator:
         if len(pts) < 3:
             return 0.0
         n = len(pts)
-        t = np.array([p[0] for p in pts], dtype=np.float64) * _NS
+        # times from the newest sample, taken in integer ns first: a live tracker's stamps (wall clock, ~1.8e18 ns) lose
+        # their last 8 bits as float64, and the fit would depend on when the clock started
+        t = np.array([p[0] - t_now for p in pts], dtype=np.float64) * _NS
         v = np.array([p[1] for p in pts])
         # x.mean() is add.reduce(x) / n (numpy's float64 mean: the pairwise sum, then one division), without its overhead
         t -= _add_reduce(t) / n

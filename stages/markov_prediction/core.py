@@ -992,7 +992,7 @@ class MarkovPredictor:
         if len(pts) < 3:
             return None
         n = len(pts)
-        t = np.array([p[0] for p in pts], dtype=np.float64) * _NS
+        t = np.array([p[0] - pts[-1][0] for p in pts], dtype=np.float64) * _NS  # from the newest, in integer ns first (wall-clock stamps)
         v = np.array([p[1] for p in pts])
         t -= t.sum() / n  # (np.mean's number: the same sum divided by n)
         v_mean = v.sum() / n

@@ -630,6 +630,28 @@ def test_speed_lines_made_together_equal_the_numpy_code_vehicle_by_vehicle(stenc
     assert not predictor._lines
 
 
+def test_speed_lines_do_not_depend_on_where_the_clock_starts(stencils):
+    """The same speeds at the same intervals give the same line, bit for bit, whether the stamps start at 0 (a
+    recording) or are wall-clock ns (a live tracker): the times are taken from the newest sample in integer ns before
+    they become float64 (an epoch stamp as float64 loses its last 8 bits), in the numpy code and the compiled one."""
+    rng = np.random.default_rng(11)
+    gaps = rng.integers(60_000_000, 140_000_000, 30)
+    speeds = rng.normal(8.0, 2.0, 30).tolist()
+    lines = []
+    for origin in (0, 1_796_510_259_325_833_659):
+        predictor = MarkovPredictor(MarkovPredictionConfig(**PLAIN, accel_window_s=2.0), stencils=stencils)
+        stamps = (origin + 5_000_000_000 + np.cumsum(gaps)).tolist()
+        for t, v in zip(stamps, speeds):
+            predictor._history.setdefault(1, core._SpeedHistory()).samples.append((int(t), v))
+        numpy_line = predictor._speed_line(1, stamps[-1])
+        predictor._fit_speed_lines([1], stamps[-1])
+        lines.append((numpy_line, predictor._lines[(1, stamps[-1])]))
+    (zero_numpy, zero_kept), (wall_numpy, wall_kept) = lines
+    assert zero_numpy is not None and zero_numpy[0] >= 10
+    assert np.array(zero_numpy).tobytes() == np.array(wall_numpy).tobytes(), (zero_numpy, wall_numpy)
+    assert np.array(zero_kept).tobytes() == np.array(wall_kept).tobytes(), (zero_kept, wall_kept)
+
+
 def test_a_vehicles_first_frame_observed_after_its_second_is_kept(stencils):
     """prepare may observe frame n + 1 before frame n is finished: a vehicle new in frame n then gets its frame n + 1
     speed first. Its frame n speed goes in front (it was dropped as "older than every sample kept", so the vehicle's

@@ -420,7 +420,7 @@ if numba is not None:
         for n in range(ptr.shape[0] - 1):
             lo, m = ptr[n], ptr[n + 1] - ptr[n]
             for i in range(m):
-                t[i] = np.float64(t_ns[lo + i]) * ns
+                t[i] = np.float64(t_ns[lo + i] - t_ns[lo + m - 1]) * ns  # from the newest sample, in integer ns first
             mean_t = _pairwise_sum(t, 0, m) / m
             for i in range(m):
                 t[i] = t[i] - mean_t
