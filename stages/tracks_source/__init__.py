@@ -22,9 +22,14 @@ Parameters (``TracksSourceConfig``):
   False plays the same recording without them (for comparisons).
 - ``projection``: passed through to ``SceneInfo`` (``stages.lib.maps`` decides
   what ``"auto"`` resolves to for a location).
+- ``clock``: ``"recording"`` (default) or ``"wall"``: every stamp moved by
+  one offset so that the first frame carries the wall clock (Unix ns) at
+  which playback starts, as a live tracker stamps its frames (README,
+  "Predicting from a live tracker"); the intervals, and so the pacing, are
+  the recording's.
 
 Time: ``stamp_ns`` is recording time. The first sequence keeps its own stamps
-(``timestamp_ms`` of the file); each following one (and each loop) is shifted
+(``timestamp_ms`` of the file; with ``clock = "wall"`` moved as above); each following one (and each loop) is shifted
 to start one frame period after the previous one ended, so stamps strictly
 increase over a run. ``header.frame_index`` counts the frames of the run
 0, 1, 2, ...

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
@@ -37,6 +38,9 @@ class TracksSourceConfig(ConfigMixin):
     loop: bool = False
     projection: str = "auto"
     signals: bool = True  # publish signal_state when the recording has signal phases (False: play it without them)
+    #: the frames' stamps: "recording" (the recording's own, from about 0) or "wall" (the same moved so that the first
+    #: frame carries the wall clock (Unix ns) at which playback starts, as a live tracker stamps its frames)
+    clock: str = "recording"
 
     def __post_init__(self) -> None:
         if isinstance(self.speed, str):
@@ -50,6 +54,8 @@ class TracksSourceConfig(ConfigMixin):
             raise ValueError("projection must not be empty (use 'auto')")
         if any(not s.strip() for s in self.sequences):
             raise ValueError(f"sequences = {list(self.sequences)!r}: empty sequence id")
+        if self.clock not in ("recording", "wall"):
+            raise ValueError(f"clock = {self.clock!r}: expected \"recording\" or \"wall\"")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -187,7 +193,10 @@ class TrackPlayer:
                 if seq.n_rows == 0:
                     continue
                 first_stamp = int(seq.stamp_ns[0])
-                offset = 0 if last_stamp is None else last_stamp + seq.period_ns - first_stamp
+                if last_stamp is None:  # the first frame: the recording's own stamp, or the wall clock now (clock "wall")
+                    offset = time.time_ns() - first_stamp if self.config.clock == "wall" else 0
+                else:
+                    offset = last_stamp + seq.period_ns - first_stamp
                 for k, view in enumerate(seq.frames()):
                     stamp = view.stamp_ns + offset
                     outputs: dict[str, object] = {}

@@ -1,8 +1,9 @@
 """``python launch.py live``: the whole hybrid pipeline on the frames of a tracker it does not start.
 
 The tracker is a separate process that only knows the hub's endpoint and the
-keys (here the dataset player run as node ``tracker`` of run ``live``, as the
-README's "Predicting from a live tracker" shows); the test waits on messages
+keys (here the dataset player run as node ``tracker`` of run ``live``, its
+frames stamped with the wall clock as a live tracker's are, as the README's
+"Predicting from a live tracker" shows); the test waits on messages
 and liveliness, never on fixed sleeps, and checks the recording.
 """
 
@@ -32,16 +33,18 @@ def test_live_pipeline_predicts_every_frame_of_an_outside_tracker(tmp_path):
 
         def on_grid(_key: str, data: bytes) -> None:
             with lock:
-                grids.append(bs.MotionGrid.decode(data).header.frame_index)
+                grids.append(bs.MotionGrid.decode(data).header.stamp_ns)
 
         with BusClient(connect=[endpoint(port)]) as bus:
             bus.subscribe("iamp/live/markov_prediction/motion_grid", on_grid)
             # a tracker that waits until the stages are visible (a real one may just publish; frames sent before a
             # stage's subscription reaches it are lost, and this test counts every frame)
             tracker = start_module("stages.tracks_source", "--run-id", "live", "--node-id", "tracker", "--connect", endpoint(port),
-                                   "--set", 'recording="k729_2022-03-16"', "--set", "speed=3", "--await-nodes", ",".join(STAGES))
+                                   "--set", 'recording="k729_2022-03-16"', "--set", "speed=3", "--set", 'clock="wall"',
+                                   "--await-nodes", ",".join(STAGES))
             wait_until(lambda: len(grids) >= 30 or tracker.poll() is not None, 120.0, "30 MotionGrids of the tracker's frames")
             assert len(grids) >= 30, output_of(tracker)[-3000:]
+            assert min(grids) > 1_700_000_000 * 10**9  # stamped with the wall clock, as a live tracker stamps its frames
             assert stop_process(tracker) == 0, output_of(tracker)[-3000:]
         run.proc.send_signal(signal.SIGINT)  # the launcher stops the stages in dataflow order, each draining its queue
         assert run.wait() == 0, run.text()[-4000:]

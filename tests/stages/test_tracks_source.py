@@ -8,6 +8,7 @@ import itertools
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -111,6 +112,21 @@ def test_sequences_play_back_to_back_with_increasing_stamps() -> None:
     assert sum("scene" in r.outputs for _, r in items) == 1
 
 
+def test_a_wall_clock_moves_every_stamp_by_one_offset_from_the_wall_clock_at_the_start() -> None:
+    seqs = ("002", "019")
+    recorded = play(TracksSourceConfig(sequences=seqs, speed="max"))
+    before = time.time_ns()
+    wall = play(TracksSourceConfig(sequences=seqs, speed="max", clock="wall"))
+    after = time.time_ns()
+    assert len(wall) == len(recorded)
+    offsets = {ws - rs for (ws, _), (rs, _) in zip(wall, recorded)}
+    assert len(offsets) == 1  # the same intervals, so the same pacing and the same frames
+    assert before <= wall[0][0] <= after
+    assert [r.outputs["track_frame"].header.stamp_ns for _, r in wall] == [s for s, _ in wall]
+    with pytest.raises(ValueError, match="clock"):
+        TracksSourceConfig(clock="utc")
+
+
 def test_loop_starts_over_with_increasing_stamps_and_frame_index() -> None:
     player = TrackPlayer.open(TracksSourceConfig(sequences=("019",), loop=True), run_id="test", producer="player")
     n = player.n_frames_per_pass
@@ -159,7 +175,7 @@ def test_projection_changes_the_scene_id() -> None:
         ({"sequences": "013"}, "parameter sequences = '013' should be"),
         ({"sequences": [13]}, "parameter sequences = [13] should be"),
         ({"projection": ""}, "projection must not be empty"),
-        ({"speeed": 2.0}, "unknown parameter(s) speeed; known: data, loop, projection, recording, sequences, signals, speed"),
+        ({"speeed": 2.0}, "unknown parameter(s) speeed; known: clock, data, loop, projection, recording, sequences, signals, speed"),
     ],
 )
 def test_bad_config_values_name_the_node(params: dict, message: str) -> None:
