@@ -7,7 +7,9 @@
   dropped (or the value cleared) by the decoder and counted as issues
   ``out_of_range_dropped`` / ``out_of_range_cleared``; a joined input stamped
   more than ``--stamp-window-s`` ahead of the newest accepted stamp is
-  rejected (``rejected_stamps``);
+  rejected (``rejected_stamps``), unless ``STAMP_JUMP_AFTER`` in a row agree
+  with one another (a source whose clock jumped: followed from then on,
+  ``stamp_clock_jumps``);
 - the decoded messages wait in the per-input bounded queues (``queues.py``),
   drained in arrival order by one loop, so processing is ordered and
   single-threaded;
@@ -107,6 +109,8 @@ class Node:
         if wildcards:
             self.stats.counters["rejected_keys"] = 0
         self._stamp_clock_ns: int | None = None  # newest stamp accepted on a joined input
+        # joined messages in a row stamped beyond the window, each within the window of the run's newest: [first, newest, count]
+        self._ahead_run: list[int] | None = None
         self.output_keys = {port: keys.data_key(self.run_id, self.node_id, port) for port in spec.outputs}
         self.session: zenoh.Session | None = None
         self._publishers: dict[str, Any] = {}
@@ -289,12 +293,36 @@ class Node:
         return True
 
     def _stamp_ok(self, port: str, key: str, stamp: int) -> bool:
+        """Whether a joined message's stamp is within the window ahead of the stamp clock (then the clock moves to it).
+
+        Beyond it the message is rejected, unless it completes a run of ``STAMP_JUMP_AFTER`` such messages in a row,
+        each within the window of the run's newest: a source whose clock jumped ahead (a live tracker restarted
+        minutes later, re-synchronised, or switched to another clock) is then followed from that message on, once
+        (``stamp_clock_jumps``, one warning); without that every later frame would be rejected for good. A lone far
+        stamp, or stamps far ahead that do not follow one another, stay rejected."""
         window_ns = int(getattr(self.args, "stamp_window_s", 60.0) * 1e9)
         with self._count_lock:
             clock = self._stamp_clock_ns
             if clock is None or stamp <= clock + window_ns:
                 self._stamp_clock_ns = stamp if clock is None else max(clock, stamp)
+                self._ahead_run = None
                 return True
+            run = self._ahead_run
+            if run is not None and abs(stamp - run[1]) <= window_ns:
+                run[1], run[2] = max(run[1], stamp), run[2] + 1
+            else:
+                run = self._ahead_run = [stamp, stamp, 1]
+            jumped = run[2] >= STAMP_JUMP_AFTER
+            if jumped:
+                self._stamp_clock_ns, self._ahead_run = run[1], None
+        if jumped:
+            self._count("stamp_clock_jumps", port)
+            self.log.warning(
+                "stamp clock moved ahead by %.1f s: %d messages in a row stamped beyond the window (%.0f s) agree with one"
+                " another (a restarted or re-synchronised source); the first %d of them were dropped (rejected_stamps)",
+                (run[0] - clock) / 1e9, run[2], window_ns / 1e9, run[2] - 1,
+            )
+            return True
         self._count("rejected_stamps", port)
         self.problems.report(
             f"stamp_window:{port}",
@@ -620,6 +648,7 @@ class Node:
 
     def run_raw_sink(self, core: Any) -> None:
         acked = False
+        window_ns = int(getattr(self.args, "stamp_window_s", 60.0) * 1e9)
 
         def handle(item: tuple) -> None:
             nonlocal acked
@@ -639,10 +668,13 @@ class Node:
                 self.stats.e2e_ms.append((recv_ns - wall) / 1e6)
                 if self._trace is not None:
                     self._trace.write({"key": key, "stamp": stamp, "wall": wall, "recv": recv_ns, "deq": self._deq_ns, "end": time.time_ns()})
-            if stamp is not None and (stamp > self.stats.last_stamp_ns or not acked):
-                # the first stamp too, even 0 (a recording's first frame): a source's warm-up waits for every node's ack of it
+            went_back = stamp is not None and acked and stamp < self.stats.last_stamp_ns - window_ns
+            if stamp is not None and (stamp > self.stats.last_stamp_ns or not acked or went_back):
+                # the first stamp too, even 0 (a recording's first frame): a source's warm-up waits for every node's ack
+                # of it; and a clock that went back by more than the stamp window (a source restarted on an earlier
+                # clock), whose frames would otherwise never be acked: its warm-up and drain waited on the sink
                 acked = True
-                self.stats.last_stamp_ns = max(stamp, self.stats.last_stamp_ns)
+                self.stats.last_stamp_ns = stamp if went_back else max(stamp, self.stats.last_stamp_ns)
                 self._progress_pub.put(
                     Progress(node_id=self.node_id, last_stamp_ns=stamp, last_frame_index=-1, handled=self.stats.counters["processed"]).encode()
                 )
@@ -747,6 +779,9 @@ class Node:
 
 
 JOIN_TIMEOUT_S = 2.0
+#: Joined messages in a row, stamped beyond the stamp window and following one another, after which a node follows
+#: their clock (``Node._stamp_ok``): 2 s of a 10 Hz source's frames.
+STAMP_JUMP_AFTER = 20
 #: Incomplete input sets an operator keeps waiting (the oldest is dropped beyond, ``join_window_full``): 64 frames
 #: = 6.4 s at 10 Hz, so that an input lagging by a few seconds on a loaded machine costs latency, not frames.
 JOIN_WINDOW = 64

@@ -72,3 +72,55 @@ def test_live_pipeline_predicts_every_frame_of_an_outside_tracker(tmp_path):
             last[stats.node_id] = stats
     assert set(STAGES) <= set(last), sorted(last)
     assert all(last[n].counters.get("core_errors", 0) == 0 for n in STAGES), {n: last[n].counters for n in STAGES}
+
+
+def test_a_tracker_restarted_on_another_clock_is_followed_both_ways(tmp_path):
+    """A live tracker restarted on another clock: from a recording's clock to the wall clock (every stamp ~1.8e18 ns
+    ahead, beyond every stage's stamp window: each stage follows once 20 messages in a row agree, the first ones
+    dropped and counted) and back (every core resets its state on a stamp that went back). The pipeline keeps
+    predicting each time, without a core error, and the stand-in tracker's start is not held up by a node that never
+    acks a stamp below the newest it has seen (the recorder did not)."""
+    port = free_port()
+    rec = tmp_path / "restarts.mcap"
+    run = Launch("live", "--no-viewer", "--listen", endpoint(port), "--record", str(rec), cwd=tmp_path)
+    tracker = None
+    big = 10**18
+    try:
+        run.wait_line(rf"^\[launch\] all {len(STAGES)} nodes alive; starting sources: \(none\)")
+        grids: list[int] = []
+        lock = threading.Lock()
+
+        def on_grid(_key: str, data: bytes) -> None:
+            with lock:
+                grids.append(bs.MotionGrid.decode(data).header.stamp_ns)
+
+        def count(wall: bool) -> int:
+            with lock:
+                return sum((s >= big) == wall for s in grids)
+
+        with BusClient(connect=[endpoint(port)]) as bus:
+            bus.subscribe("iamp/live/markov_prediction/motion_grid", on_grid)
+            for clock, wall, want in (("recording", False, 15), ("wall", True, 15), ("recording", False, 30)):
+                tracker = start_module("stages.tracks_source", "--run-id", "live", "--node-id", "tracker", "--connect", endpoint(port),
+                                       "--set", 'recording="k729_2022-03-16"', "--set", "speed=4", "--set", f'clock="{clock}"',
+                                       "--await-nodes", ",".join(STAGES))
+                wait_until(lambda: count(wall) >= want or tracker.poll() is not None, 120.0, f"{want} MotionGrids on the {clock} clock")
+                assert count(wall) >= want, output_of(tracker)[-3000:]
+                assert stop_process(tracker) == 0, output_of(tracker)[-3000:]
+                if not wall:  # (on the wall clock the first frames are rejected, so the warm-up gives up on the stages)
+                    said = output_of(tracker)
+                    assert "no longer waiting" not in said and "not waiting for nodes" not in said, said[-3000:]
+        run.proc.send_signal(signal.SIGINT)
+        assert run.wait() == 0, run.text()[-4000:]
+    finally:
+        kill_all([p for p in (run.proc, tracker) if p is not None])
+    out = run.text()
+    for node in ("corridors", "relations", "intentions", "ar_inference", "markov_prediction"):
+        assert any(line.startswith(f"[{node}]") and "stamp clock moved ahead by" in line for line in out.splitlines()), node
+    last: dict[str, bs.NodeStats] = {}
+    for m in read_messages(str(rec)):
+        if "/_stats/" in m.topic:
+            stats = bs.NodeStats.decode(m.data)
+            last[stats.node_id] = stats
+    assert all(last[n].counters.get("core_errors", 0) == 0 for n in STAGES), {n: last[n].counters for n in STAGES}
+    assert last["corridors"].counters.get("stamp_clock_jumps") == 1

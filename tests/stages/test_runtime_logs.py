@@ -403,6 +403,42 @@ def test_a_stamp_far_ahead_of_the_run_clock_is_rejected_and_later_frames_still_p
     assert any("reason=stamp_out_of_window" in ln for ln in _lines(caplog))
 
 
+def _profiles_at(frame_index: int, stamp_ns: int) -> bytes:
+    env = msgpack.unpackb(_profiles(frame_index), raw=False)
+    env["body"]["header"]["stamp_ns"] = stamp_ns
+    return msgpack.packb(env, use_bin_type=True)
+
+
+def test_a_source_whose_clock_jumped_ahead_is_followed_after_a_run_of_frames_a_lone_far_stamp_is_not(log, caplog):
+    """A live tracker restarted after minutes (or re-synchronised, or switched from a recording's clock to the wall
+    clock) stamps every frame far ahead of the stamps the stage has seen: the stamp window rejected them all, for
+    good. A run of ``STAMP_JUMP_AFTER`` joined messages that agree with one another moves the stage's stamp clock to
+    them (the earlier ones of the run are lost, counted, one warning says so); a lone far stamp, or a few, stay
+    rejected, and so does a run that jumps about."""
+    from stages.runtime.node import STAMP_JUMP_AFTER
+
+    node = _two_input_node(log, queue_size=1000)
+    old = 1_000_000_000
+    node._accept("profiles", "iamp/t/src/profiles", _profiles_at(1, old), 0)
+    far = old + 10**18
+    for i in range(3):  # a few far stamps, then the old clock again: rejected, and the run forgotten
+        node._accept("profiles", "iamp/t/src/profiles", _profiles_at(2 + i, far + i * 100_000_000), 0)
+    node._accept("profiles", "iamp/t/src/profiles", _profiles_at(5, old + 100_000_000), 0)
+    # stamps far ahead but not of one clock (each a minute from the last): never followed
+    for i in range(2 * STAMP_JUMP_AFTER):
+        node._accept("profiles", "iamp/t/src/profiles", _profiles_at(6, far + i * 120 * 10**9), 0)
+    # the restarted tracker: 10 Hz from 300 s later
+    restart = old + 300 * 10**9
+    for i in range(STAMP_JUMP_AFTER + 5):
+        node._accept("profiles", "iamp/t/src/profiles", _profiles_at(100 + i, restart + i * 100_000_000), 0)
+    kept = [it[2].header.frame_index for it in _queued(node) if it is not None]
+    assert kept == [1, 5, *range(100 + STAMP_JUMP_AFTER - 1, 100 + STAMP_JUMP_AFTER + 5)]
+    c = node.stats.counters
+    assert c["rejected_stamps"] == 3 + 2 * STAMP_JUMP_AFTER + STAMP_JUMP_AFTER - 1
+    assert c["stamp_clock_jumps"] == 1
+    assert sum("stamp clock moved ahead by 299.9 s" in ln for ln in _lines(caplog)) == 1
+
+
 def test_out_of_range_objects_are_counted_as_issues_and_never_reach_the_core(log, caplog):
     """Issue 13 item 2 at the runtime: a profile of 1e308 is dropped at decoding, counted, logged once."""
     node, out = _node(log)
