@@ -271,6 +271,21 @@ class ViewState:
         return anchor - int(round(lag_s * 1e9))
 
 
+#: stamps from this on (ns, 1973-03) are taken for a wall clock (Unix ns: a live tracker's), below for a recording's
+#: time from about 0 (``stamp_text``)
+WALL_CLOCK_FROM_NS = 10**17
+
+
+def stamp_text(stamp_ns: int) -> str:
+    """A frame's stamp for the status line: ``t = 12.3 s`` on a recording's clock, the UTC time of day on a wall clock
+    (``22:37:39.3 UTC``: a live tracker stamps with Unix ns, which as seconds say nothing)."""
+    if stamp_ns < WALL_CLOCK_FROM_NS:
+        return f"t = {stamp_ns / 1e9:.1f} s"
+    seconds, tenths = divmod(int(stamp_ns) // 100_000_000, 10)
+    h, rest = divmod(seconds % 86_400, 3600)
+    return f"{h:02d}:{rest // 60:02d}:{rest % 60:02d}.{tenths} UTC"
+
+
 def step_index(step_times_s: np.ndarray, step_s: float) -> int:
     """Index of the first prediction step at or after ``step_s`` (its interval [t_k − τ, t_k] holds ``step_s``); the last if none."""
     times = np.asarray(step_times_s, dtype=float)

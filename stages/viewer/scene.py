@@ -49,6 +49,7 @@ from stages.viewer.model import (
     mean_points,
     object_boxes,
     polyline_segments,
+    stamp_text,
     step_index,
 )
 from stages.viewer.panels import COMPARE_TRUTH_COLOUR, OnlineMADE, mode_colour, vehicle_panel
@@ -544,7 +545,7 @@ class ViewerApp:
             e2e = f"{float(np.median(c.e2e_ms)):.0f} ms" if c.e2e_ms else "–"
             s = self.summary
             self._gui["status"].content = "\n\n".join([
-                f"**run** {self.run_id} · **frame** {item.frame_index} · t = {item.stamp_ns / 1e9:.1f} s · **mode** {item.mode}",
+                f"**run** {self.run_id} · **frame** {item.frame_index} · {stamp_text(item.stamp_ns)} · **mode** {item.mode}",
                 f"showing: {shown}",
                 f"sets received {received} · drawn {c.drawn} · skipped {c.skipped}",
                 f"draw {draw_ms:.0f} ms · frame to screen {age_ms:.0f} ms (p50) · source to screen {e2e} (p50) · ≤ {self.config.max_render_hz:g} Hz",
