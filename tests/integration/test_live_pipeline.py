@@ -3,14 +3,18 @@
 The tracker is a separate process that only knows the hub's endpoint and the
 keys (here the dataset player run as node ``tracker`` of run ``live``, its
 frames stamped with the wall clock as a live tracker's are, as the README's
-"Predicting from a live tracker" shows); the test waits on messages
-and liveliness, never on fixed sleeps, and checks the recording.
+"Predicting from a live tracker" shows); the tests wait on messages
+and liveliness, never on fixed sleeps, and check the recording.
 """
 
 from __future__ import annotations
 
+import contextlib
 import signal
+import subprocess
 import threading
+from pathlib import Path
+from typing import Iterator
 
 import bus_schemas as bs
 from testkit.helpers import endpoint, free_port, kill_all, output_of, start_module, stop_process, wait_until
@@ -19,59 +23,88 @@ from stages.runtime import BusClient
 from test_launch_run import Launch
 
 STAGES = ("corridors", "relations", "intentions", "ar_inference", "markov_prediction", "recorder")
+WALL = 10**18  # stamps from here on are a wall clock's (Unix ns)
+
+
+class LiveRun:
+    """``launch.py live`` recorded to ``rec``, the MotionGrids' stamps as they arrive, and stand-in trackers."""
+
+    def __init__(self, rec: Path) -> None:
+        self.port = free_port()
+        self.rec = rec
+        self.run = Launch("live", "--no-viewer", "--listen", endpoint(self.port), "--record", str(rec), cwd=rec.parent)
+        self.trackers: list[subprocess.Popen] = []
+        self._grids: list[int] = []
+        self._lock = threading.Lock()
+
+    def on_grid(self, _key: str, data: bytes) -> None:
+        with self._lock:
+            self._grids.append(bs.MotionGrid.decode(data).header.stamp_ns)
+
+    def grids(self, wall: bool | None = None) -> list[int]:
+        with self._lock:
+            return [s for s in self._grids if wall is None or (s >= WALL) == wall]
+
+    def tracker(self, clock: str, speed: int) -> subprocess.Popen:
+        """The dataset player as the outside tracker. It waits until the stages are visible (a real one may just
+        publish: frames sent before a stage's subscription reaches it are lost, and these tests count frames)."""
+        proc = start_module("stages.tracks_source", "--run-id", "live", "--node-id", "tracker", "--connect", endpoint(self.port),
+                            "--set", 'recording="k729_2022-03-16"', "--set", f"speed={speed}", "--set", f'clock="{clock}"',
+                            "--await-nodes", ",".join(STAGES))
+        self.trackers.append(proc)
+        return proc
+
+    def last_stats(self) -> dict[str, bs.NodeStats]:
+        last: dict[str, bs.NodeStats] = {}
+        for m in read_messages(str(self.rec)):
+            if "/_stats/" in m.topic:
+                stats = bs.NodeStats.decode(m.data)
+                last[stats.node_id] = stats
+        assert set(STAGES) <= set(last), sorted(last)
+        assert all(last[n].counters.get("core_errors", 0) == 0 for n in STAGES), {n: last[n].counters for n in STAGES}
+        return last
+
+
+@contextlib.contextmanager
+def live_run(rec: Path) -> Iterator[LiveRun]:
+    """The pipeline up, a bus session on its MotionGrids; on exit the launcher stopped by SIGINT (the stages in
+    dataflow order, each draining its queue) and its clean exit checked."""
+    live = LiveRun(rec)
+    try:
+        live.run.wait_line(rf"^\[launch\] all {len(STAGES)} nodes alive; starting sources: \(none\)")
+        with BusClient(connect=[endpoint(live.port)]) as bus:
+            bus.subscribe("iamp/live/markov_prediction/motion_grid", live.on_grid)
+            yield live
+        live.run.proc.send_signal(signal.SIGINT)
+        assert live.run.wait() == 0, live.run.text()[-4000:]
+    finally:
+        kill_all([live.run.proc, *live.trackers])
+
+
+def _feed(live: LiveRun, clock: str, speed: int, want: int) -> str:
+    """One stand-in tracker on ``clock`` until ``want`` MotionGrids of its clock came; stopped; returns its log."""
+    wall = clock == "wall"
+    tracker = live.tracker(clock, speed)
+    wait_until(lambda: len(live.grids(wall)) >= want or tracker.poll() is not None, 120.0, f"{want} MotionGrids on the {clock} clock")
+    assert len(live.grids(wall)) >= want, output_of(tracker)[-3000:]
+    assert stop_process(tracker) == 0, output_of(tracker)[-3000:]
+    return output_of(tracker)
 
 
 def test_live_pipeline_predicts_every_frame_of_an_outside_tracker(tmp_path):
-    port = free_port()
-    rec = tmp_path / "live.mcap"
-    run = Launch("live", "--no-viewer", "--listen", endpoint(port), "--record", str(rec), cwd=tmp_path)
-    tracker = None
-    try:
-        run.wait_line(rf"^\[launch\] all {len(STAGES)} nodes alive; starting sources: \(none\)")
-        grids: list[int] = []
-        lock = threading.Lock()
-
-        def on_grid(_key: str, data: bytes) -> None:
-            with lock:
-                grids.append(bs.MotionGrid.decode(data).header.stamp_ns)
-
-        with BusClient(connect=[endpoint(port)]) as bus:
-            bus.subscribe("iamp/live/markov_prediction/motion_grid", on_grid)
-            # a tracker that waits until the stages are visible (a real one may just publish; frames sent before a
-            # stage's subscription reaches it are lost, and this test counts every frame)
-            tracker = start_module("stages.tracks_source", "--run-id", "live", "--node-id", "tracker", "--connect", endpoint(port),
-                                   "--set", 'recording="k729_2022-03-16"', "--set", "speed=3", "--set", 'clock="wall"',
-                                   "--await-nodes", ",".join(STAGES))
-            wait_until(lambda: len(grids) >= 30 or tracker.poll() is not None, 120.0, "30 MotionGrids of the tracker's frames")
-            assert len(grids) >= 30, output_of(tracker)[-3000:]
-            assert min(grids) > 1_700_000_000 * 10**9  # stamped with the wall clock, as a live tracker stamps its frames
-            assert stop_process(tracker) == 0, output_of(tracker)[-3000:]
-        run.proc.send_signal(signal.SIGINT)  # the launcher stops the stages in dataflow order, each draining its queue
-        assert run.wait() == 0, run.text()[-4000:]
-    finally:
-        kill_all([p for p in (run.proc, tracker) if p is not None])
-
-    counts = {c["topic"]: c["count"] for c in inspect(str(rec))["channels"]}
+    with live_run(tmp_path / "live.mcap") as live:
+        _feed(live, "wall", 3, 30)
+    assert min(live.grids()) >= WALL  # stamped with the wall clock, as a live tracker stamps its frames
+    counts = {c["topic"]: c["count"] for c in inspect(str(live.rec))["channels"]}
     frames = counts["iamp/live/tracker/track_frame"]
     assert frames >= 30 and "iamp/live/tracker/scene" in counts, counts
     # every frame of the tracker went through every stage into a hybrid MotionGrid
     for topic in ("corridors/corridor_set", "relations/relation_set", "intentions/intention_belief",
                   "ar_inference/acceleration_profiles", "markov_prediction/corridor_predictions", "markov_prediction/motion_grid"):
         assert counts.get(f"iamp/live/{topic}") == frames, (topic, counts)
-    modes, cells = set(), 0
-    for m in read_messages(str(rec)):
-        if m.topic == "iamp/live/markov_prediction/motion_grid":
-            grid = bs.MotionGrid.decode(m.data)
-            modes.add(grid.mode)
-            cells += sum(step.values.size for step in grid.steps)
-    assert modes == {"hybrid"} and cells > 0
-    last: dict[str, bs.NodeStats] = {}
-    for m in read_messages(str(rec)):
-        if "/_stats/" in m.topic:
-            stats = bs.NodeStats.decode(m.data)
-            last[stats.node_id] = stats
-    assert set(STAGES) <= set(last), sorted(last)
-    assert all(last[n].counters.get("core_errors", 0) == 0 for n in STAGES), {n: last[n].counters for n in STAGES}
+    grids = [bs.MotionGrid.decode(m.data) for m in read_messages(str(live.rec)) if m.topic == "iamp/live/markov_prediction/motion_grid"]
+    assert {g.mode for g in grids} == {"hybrid"} and sum(step.values.size for g in grids for step in g.steps) > 0
+    live.last_stats()
 
 
 def test_a_tracker_restarted_on_another_clock_is_followed_both_ways(tmp_path):
@@ -80,47 +113,12 @@ def test_a_tracker_restarted_on_another_clock_is_followed_both_ways(tmp_path):
     dropped and counted) and back (every core resets its state on a stamp that went back). The pipeline keeps
     predicting each time, without a core error, and the stand-in tracker's start is not held up by a node that never
     acks a stamp below the newest it has seen (the recorder did not)."""
-    port = free_port()
-    rec = tmp_path / "restarts.mcap"
-    run = Launch("live", "--no-viewer", "--listen", endpoint(port), "--record", str(rec), cwd=tmp_path)
-    tracker = None
-    big = 10**18
-    try:
-        run.wait_line(rf"^\[launch\] all {len(STAGES)} nodes alive; starting sources: \(none\)")
-        grids: list[int] = []
-        lock = threading.Lock()
-
-        def on_grid(_key: str, data: bytes) -> None:
-            with lock:
-                grids.append(bs.MotionGrid.decode(data).header.stamp_ns)
-
-        def count(wall: bool) -> int:
-            with lock:
-                return sum((s >= big) == wall for s in grids)
-
-        with BusClient(connect=[endpoint(port)]) as bus:
-            bus.subscribe("iamp/live/markov_prediction/motion_grid", on_grid)
-            for clock, wall, want in (("recording", False, 15), ("wall", True, 15), ("recording", False, 30)):
-                tracker = start_module("stages.tracks_source", "--run-id", "live", "--node-id", "tracker", "--connect", endpoint(port),
-                                       "--set", 'recording="k729_2022-03-16"', "--set", "speed=4", "--set", f'clock="{clock}"',
-                                       "--await-nodes", ",".join(STAGES))
-                wait_until(lambda: count(wall) >= want or tracker.poll() is not None, 120.0, f"{want} MotionGrids on the {clock} clock")
-                assert count(wall) >= want, output_of(tracker)[-3000:]
-                assert stop_process(tracker) == 0, output_of(tracker)[-3000:]
-                if not wall:  # (on the wall clock the first frames are rejected, so the warm-up gives up on the stages)
-                    said = output_of(tracker)
-                    assert "no longer waiting" not in said and "not waiting for nodes" not in said, said[-3000:]
-        run.proc.send_signal(signal.SIGINT)
-        assert run.wait() == 0, run.text()[-4000:]
-    finally:
-        kill_all([p for p in (run.proc, tracker) if p is not None])
-    out = run.text()
+    with live_run(tmp_path / "restarts.mcap") as live:
+        for clock, want in (("recording", 15), ("wall", 15), ("recording", 30)):
+            said = _feed(live, clock, 4, want)
+            if clock == "recording":  # (on the wall clock the first frames are rejected, so its warm-up gives up on the stages)
+                assert "no longer waiting" not in said and "not waiting for nodes" not in said, said[-3000:]
+    out = live.run.text()
     for node in ("corridors", "relations", "intentions", "ar_inference", "markov_prediction"):
         assert any(line.startswith(f"[{node}]") and "stamp clock moved ahead by" in line for line in out.splitlines()), node
-    last: dict[str, bs.NodeStats] = {}
-    for m in read_messages(str(rec)):
-        if "/_stats/" in m.topic:
-            stats = bs.NodeStats.decode(m.data)
-            last[stats.node_id] = stats
-    assert all(last[n].counters.get("core_errors", 0) == 0 for n in STAGES), {n: last[n].counters for n in STAGES}
-    assert last["corridors"].counters.get("stamp_clock_jumps") == 1
+    assert live.last_stats()["corridors"].counters.get("stamp_clock_jumps") == 1
