@@ -79,10 +79,14 @@ def make_zenoh_config(mode: str = "peer", connect: Iterable[str] = (), listen: I
     conf.insert_json5("scouting/multicast/enabled", "false")
     connect = list(connect)
     listen = list(listen) or ([DEFAULT_LISTEN] if mode == "peer" else [])
-    if connect:
-        conf.insert_json5("connect/endpoints", json.dumps(connect))
-    if listen:
-        conf.insert_json5("listen/endpoints", json.dumps(listen))
+    for flag, endpoints in (("--connect", connect), ("--listen", listen)):
+        if not endpoints:
+            continue
+        try:
+            conf.insert_json5(f"{flag[2:]}/endpoints", json.dumps(endpoints))
+        except Exception as exc:  # zenoh.ZError: an endpoint zenoh cannot parse
+            raise ConfigError(f"{flag} {' '.join(endpoints)}: not a zenoh endpoint (expected <protocol>/<address>:<port>, e.g."
+                              f" tcp/127.0.0.1:7447): {_zenoh_reason(exc)}") from None
     return conf
 
 

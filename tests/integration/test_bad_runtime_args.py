@@ -36,6 +36,10 @@ def test_make_zenoh_config_and_open_session_raise_config_errors(bad_config, tmp_
         make_zenoh_config(config_file=str(tmp_path / "missing.json5"))
     with pytest.raises(ConfigError, match=r"^cannot open the zenoh session \(mode peer, listen \['tcp/999.1.1.1:80'\]"):
         open_session(listen=[BAD_ENDPOINT])
+    # an endpoint zenoh cannot even parse (a typo of the hub's address) was a zenoh traceback from the config
+    for flag, kwargs in (("--listen", {"listen": ["garbage"]}), ("--connect", {"connect": ["127.0.0.1:7447"]})):
+        with pytest.raises(ConfigError, match=rf"^{flag} \S+: not a zenoh endpoint \(expected <protocol>/<address>:<port>"):
+            open_session(**kwargs)
 
 
 @pytest.mark.parametrize("flag", ["config", "listen"])
@@ -49,11 +53,12 @@ def test_a_stage_with_a_bad_zenoh_config_or_endpoint_exits_2_with_one_line(flag,
     assert "Traceback" not in out and "AttributeError" not in out, out
 
 
-def test_the_launcher_with_a_bad_hub_endpoint_exits_2_with_one_line():
-    done = subprocess.run([sys.executable, str(REPO / "launch.py"), "--listen", BAD_ENDPOINT, "--no-viewer", "--stop-after", "1"], cwd=REPO,
+@pytest.mark.parametrize("endpoint, message", [(BAD_ENDPOINT, "cannot open the zenoh session"), ("garbage", "--listen garbage: not a zenoh endpoint")])
+def test_the_launcher_with_a_bad_hub_endpoint_exits_2_with_one_line(endpoint, message):
+    done = subprocess.run([sys.executable, str(REPO / "launch.py"), "--listen", endpoint, "--no-viewer", "--stop-after", "1"], cwd=REPO,
                           env=python_env(), capture_output=True, text=True, timeout=120)
     assert done.returncode == 2, done.stderr
-    assert "launch.py: cannot open the zenoh session" in done.stderr and "Traceback" not in done.stderr, done.stderr
+    assert f"launch.py: {message}" in done.stderr and "Traceback" not in done.stderr, done.stderr
 
 
 @pytest.mark.parametrize("flags, message", [
