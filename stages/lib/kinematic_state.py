@@ -104,6 +104,9 @@ from stages.lib.base import ConfigMixin, Issue, check_ranges
 
 _NS = 1e-9
 _ZERO_MPS = 0.1  # a reported speed below this counts as "reported zero"
+#: decided tracks (reported against position-implied velocity) that the estimator's consistency and its warning are
+#: judged on: the most recent ones (a recording holds a few hundred; a live stream adds thousands a day)
+DECIDED_WINDOW = 1000
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -400,8 +403,12 @@ class KinematicEstimator:
     def __init__(self, config: EstimatorConfig | None = None) -> None:
         self.config = config or EstimatorConfig()
         self._tracks: dict[int, _Track] = {}
-        self._factors: list[float] = []
-        self._cosines: list[float] = []
+        # the last DECIDED_WINDOW decided tracks' (factor, cosine): a live stream decides tracks for days, and the
+        # warning is judged on them (at every newly decided track, not every frame)
+        self._factors: collections.deque[float] = collections.deque(maxlen=DECIDED_WINDOW)
+        self._cosines: collections.deque[float] = collections.deque(maxlen=DECIDED_WINDOW)
+        self._decided_total = 0
+        self._judged_at = 0
         self._warned = False
         self.calibration = Calibration(self.config)
         self._rv_stream = self.config.initial_velocity_noise_mps**2
@@ -658,6 +665,7 @@ class KinematicEstimator:
         cosine = float(np.median(track.cosines))
         self._factors.append(factor)
         self._cosines.append(cosine)
+        self._decided_total += 1
         if not is_consistent(factor, cosine, cfg):
             issues.append(
                 Issue("velocity_inconsistent", track_id, f"reported speed is {factor:.2f} x the position-implied speed, direction cosine {cosine:.2f}")
@@ -665,17 +673,19 @@ class KinematicEstimator:
 
     @property
     def decided(self) -> tuple[tuple[float, float], ...]:
-        """(factor, cosine) of every track decided so far, in the order decided."""
+        """(factor, cosine) of the tracks decided so far (the last ``DECIDED_WINDOW``), in the order decided."""
         return tuple(zip(self._factors, self._cosines))
 
     def consistency(self) -> Consistency:
-        """Reported vs position-implied velocity over the tracks decided so far."""
+        """Reported vs position-implied velocity over the tracks decided so far (the last ``DECIDED_WINDOW``)."""
         return consistency_of(self.decided, self.config)
 
     def warning(self) -> str | None:
-        """One line, returned once, when enough checked tracks disagree with their positions; else None."""
-        if self._warned:
+        """One line, returned once, when enough checked tracks disagree with their positions; else None. Judged
+        again only when a track has been decided since (a stage asks every frame)."""
+        if self._warned or self._judged_at == self._decided_total:
             return None
+        self._judged_at = self._decided_total
         line = disagreement_line(self.consistency(), self.config)
         self._warned = line is not None
         return line

@@ -413,3 +413,23 @@ def test_a_bank_of_one_is_the_single_filter_and_the_bank_is_validated():
             continue
         with pytest.raises(ValueError, match="accel_noise_bank"):
             EstimatorConfig(accel_noise_bank=bad)
+
+
+def test_a_long_live_stream_keeps_the_last_decided_tracks_and_still_warns_when_its_tracker_turns_bad(monkeypatch):
+    """A live tracker's stream decides thousands of tracks a day: the estimator kept every one and judged the warning
+    on all of them at every frame (its cost grew all day). It keeps the last ``DECIDED_WINDOW``; a tracker whose
+    velocities go bad after a good spell is still told, once, from the recent tracks."""
+    from stages.lib import kinematic_state
+
+    monkeypatch.setattr(kinematic_state, "DECIDED_WINDOW", 8)
+    est = KinematicEstimator()
+    x, y, vx, vy = _straight(30, 10.0, noise_m=0.03)
+    for track_id in range(12):  # good velocities
+        _run(est, track_id, x, y, vx, vy, start_ns=track_id * 40 * STEP_NS)
+        assert est.warning() is None
+    assert len(est.decided) == 8 and est.consistency().tracks_checked == 8
+    for track_id in range(12, 20):  # the tracker's velocities halve: the 8 kept tracks are all bad ones
+        _run(est, track_id, x, y, vx * 0.5, vy * 0.5, start_ns=track_id * 40 * STEP_NS)
+    line = est.warning()
+    assert line is not None and "8 of 8 tracks" in line
+    assert est.warning() is None  # once
