@@ -29,9 +29,9 @@ Parameters (``TracksSourceConfig``):
   the recording's.
 
 Time: ``stamp_ns`` is recording time. The first sequence keeps its own stamps
-(``timestamp_ms`` of the file; with ``clock = "wall"`` moved as above); each following one (and each loop) is shifted
-to start one frame period after the previous one ended, so stamps strictly
-increase over a run. ``header.frame_index`` counts the frames of the run
+(``timestamp_ms`` of the file; with ``clock = "wall"`` moved as above); each
+following one (and each loop) is shifted to start one frame period after the
+previous one ended, so stamps strictly increase over a run. ``header.frame_index`` counts the frames of the run
 0, 1, 2, ...
 
 Whatever the loader skipped, flagged or repaired becomes one ``Issue`` per
