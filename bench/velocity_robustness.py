@@ -1,12 +1,16 @@
-"""How much the predictions lean on the reported velocities: iamp eval on a recording as given and with its velocities spoiled.
+"""How much the predictions lean on the tracker: iamp eval on a recording as given, with its velocities spoiled, and at half its frame rate.
 
-Variants (``vx``/``vy`` of every row of every INTERACTION-format track file
-of the recording; positions, yaw and everything else untouched):
+Variants (of every INTERACTION-format track file of the recording; positions,
+yaw and everything else untouched):
 
 - ``given``: the recording as it is (read from ``--data`` directly);
-- ``vel_half``: velocities x 0.5;
+- ``vel_half``: velocities (``vx``/``vy``) x 0.5;
 - ``vel_zero_1s``: velocity 0 for the first second of each track;
-- ``vel_reversed``: velocities negated.
+- ``vel_reversed``: velocities negated;
+- ``rate_half``: every other frame left out (a 10 Hz recording played as a
+  5 Hz tracker's; ``frameRate_hz`` of ``meta_data.csv`` halved): the stages
+  work from the stamps, not from a rate. The windows are those whose start
+  and future are still there (a few fewer).
 
 Each modified recording is written to a temporary folder in the same layout
 (``maps/<rec>.osm`` and ``meta_data.csv`` copied, track files rewritten by
@@ -21,7 +25,12 @@ report: the loader already undoes some spoiling, e.g. a sequence whose
 velocities all point against the motion is flipped back). Asserts nothing.
 
     python bench/velocity_robustness.py --data DIR --recording NAME [--sequence ID ...] [--mode M ...]
-        [--max-frames N] [--json OUT]
+        [--variant V ...] [--model WEIGHTS.pt] [--max-frames N] [--json OUT]
+
+Session 38, ``--data $IAMP_TAF_BW --recording k733_2018-05-02 --mode hybrid
+corridor_cv cv --variant rate_half --model`` the K729-trained seed-0 net of
+``bench/generalisation.py``: mADE 2.31 / 2.91 / 3.47 m on 1,636 windows at
+5 Hz, against 2.41 / 3.00 / 3.57 on 1,647 as given (10 Hz).
 
 Defaults: the embedded ``stages/data/taf-bw``, recording ``k729_2022-03-16``.
 """
@@ -44,7 +53,7 @@ from stages.lib.datasets.interaction import META_FILE, TRACK_FILE_RE
 from stages.lib.base import check_output_arg, json_safe
 from stages.offline.evaluation import EVAL_MODES, EvalConfig, Evaluation
 
-VARIANTS = ("given", "vel_half", "vel_zero_1s", "vel_reversed")
+VARIANTS = ("given", "vel_half", "vel_zero_1s", "vel_reversed", "rate_half")
 DEFAULT_MODES = ("hybrid", "baseline", "corridor_cv", "cv")
 METRICS = ("mADE_m", "mFDE_m", "coverage90")
 
@@ -98,9 +107,41 @@ def spoil_track_file(src: Path, dst: Path, variant: str) -> int:
     return changed
 
 
+def thin_track_file(src: Path, dst: Path) -> int:
+    """Write ``src`` to ``dst`` with every other frame left out (frames counted on the file's own period from its first
+    stamp; the even ones kept); returns the rows left out."""
+    with src.open(newline="", encoding="utf-8-sig") as fh:
+        rows = list(csv.reader(fh))
+    header = [h.strip() for h in rows[0]] if rows else []
+    if "timestamp_ms" not in header:
+        shutil.copyfile(src, dst)
+        return 0
+    its = header.index("timestamp_ms")
+    stamps = sorted({t for r in rows[1:] if len(r) > its and (t := _num(r[its])) is not None})
+    period = min((b - a for a, b in zip(stamps, stamps[1:]) if b > a), default=100.0)
+    keep = [rows[0]] + [r for r in rows[1:] if len(r) > its and (t := _num(r[its])) is not None and round((t - stamps[0]) / period) % 2 == 0]
+    with dst.open("w", newline="", encoding="utf-8") as fh:
+        csv.writer(fh, lineterminator="\n").writerows(keep)
+    return len(rows) - len(keep)
+
+
+def _halve_frame_rate(src: Path, dst: Path) -> None:
+    """``meta_data.csv`` with ``frameRate_hz`` halved (the loader's frame period)."""
+    with src.open(newline="", encoding="utf-8-sig") as fh:
+        rows = list(csv.reader(fh))
+    header = [h.strip() for h in rows[0]]
+    if "frameRate_hz" in header:
+        i = header.index("frameRate_hz")
+        for r in rows[1:]:
+            if len(r) > i and (rate := _num(r[i])) is not None:
+                r[i] = repr(rate / 2)
+    with dst.open("w", newline="", encoding="utf-8") as fh:
+        csv.writer(fh, lineterminator="\n").writerows(rows)
+
+
 def write_variant(data: Path, recording: str, out: Path, variant: str, sequences: tuple[str, ...] = ()) -> int:
-    """The recording's folder and map under ``out`` with spoiled track files (those of ``sequences``, default
-    all; the others are left out); returns the rows changed."""
+    """The recording's folder and map under ``out`` with spoiled (or, ``rate_half``, thinned) track files (those of
+    ``sequences``, default all; the others are left out); returns the rows changed (left out)."""
     ref = find_recording(data, recording)
     if ref.format != "interaction":
         raise SystemExit(f"{recording}: format {ref.format}; only INTERACTION-format recordings are supported")
@@ -109,12 +150,18 @@ def write_variant(data: Path, recording: str, out: Path, variant: str, sequences
     (out / "maps").mkdir(parents=True, exist_ok=True)
     if ref.map_path is not None:
         shutil.copyfile(ref.map_path, out / "maps" / ref.map_path.name)
-    shutil.copyfile(ref.folder / META_FILE, folder / META_FILE)
+    if variant == "rate_half":
+        _halve_frame_rate(ref.folder / META_FILE, folder / META_FILE)
+    else:
+        shutil.copyfile(ref.folder / META_FILE, folder / META_FILE)
     changed = 0
     for path in ref.track_files:
         m = TRACK_FILE_RE.match(path.name)
         if m and (not sequences or any(same_sequence_id(m.group(2), s) for s in sequences)):
-            changed += spoil_track_file(path, folder / path.name, variant)
+            if variant == "rate_half":
+                changed += thin_track_file(path, folder / path.name)
+            else:
+                changed += spoil_track_file(path, folder / path.name, variant)
     return changed
 
 
@@ -126,6 +173,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--mode", nargs="+", default=list(DEFAULT_MODES), choices=EVAL_MODES)
     p.add_argument("--variant", nargs="+", default=list(VARIANTS), choices=VARIANTS, help="variants (given is always run)")
     p.add_argument("--stride", type=float, default=0.4)
+    p.add_argument("--model", type=Path, default=None, help="AR weights for hybrid (default: the shipped model, trained on all of TAF-BW)")
     p.add_argument("--max-frames", type=int, default=0, help="stop each sequence after this many frames (0: all)")
     p.add_argument("--json", type=Path, default=None)
     args = p.parse_args(argv)
@@ -143,10 +191,10 @@ def main(argv: list[str] | None = None) -> int:
             seqs = tuple(args.sequence) or None
             load_report = load_recording(data, args.recording, seqs).report.summary()
             t0 = time.monotonic()
-            print(f"== {variant}: {changed} rows changed; loader: {load_report}", flush=True)
+            print(f"== {variant}: {changed} rows changed (rate_half: left out); loader: {load_report}", flush=True)
             report = Evaluation(EvalConfig(
                 data_dir=data, recordings=(args.recording,), sequences=tuple(args.sequence), modes=tuple(args.mode),
-                stride_s=args.stride, max_frames_per_sequence=max(args.max_frames, 0), progress=False,
+                stride_s=args.stride, max_frames_per_sequence=max(args.max_frames, 0), progress=False, model_path=args.model,
             )).run()
             results[variant] = {
                 "rows_changed": changed, "loader": load_report, "wall_s": round(time.monotonic() - t0, 1),
