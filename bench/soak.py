@@ -9,20 +9,23 @@ core of the hybrid pipeline in process (corridors, relations, intentions,
 ar_inference, markov_prediction with its idle work), ``--passes`` times, each
 pass with its track ids moved by 100,000 and its stamps continuing the
 clock, and prints after each pass: its wall time, the process's peak RSS, the
-number of container objects Python's collector tracks (``gc.get_objects``),
-and every list, dict, set or deque attribute of the cores (and of their
+number of container objects Python's collector tracks (``gc.get_objects``)
+with the types whose count changed since the previous pass, and every list,
+dict, set or deque attribute of the cores (and of their
 attributes, one level down) holding more than 50 entries. Bounded state shows
 as the same figures pass after pass. Prints figures, asserts nothing.
 
-Session 38 (K733, 8 passes, a scratch version of this script): peak RSS
-425 MB and the same number of containers after every pass; the one attribute
-that grew, the corridors stage's decided tracks (132 per pass), is now capped
-at 1,000 (``kinematic_state.DECIDED_WINDOW``).
+Session 38 (K733, 8 passes): peak RSS 421.9 MB after the first pass, 425.6
+from the fourth on; 268,037 containers from the second pass on (the bench's
+own records left out), no type changing. The one attribute that grew, the corridors stage's
+decided tracks (132 per pass), is now capped at 1,000
+(``kinematic_state.DECIDED_WINDOW``).
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import dataclasses
 import gc
 import json
@@ -77,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     cor, rel, intent, ar, markov = cores.values()
     print(f"soak: {args.recording}, {args.passes} passes, track ids moved by {ID_SHIFT:,} a pass", flush=True)
-    scene, offset_ns, rows = None, 0, []
+    scene, offset_ns, rows, types_before = None, 0, [], collections.Counter()
     for k in range(args.passes):
         t0, last, frames = time.perf_counter(), offset_ns, 0
         player = TrackPlayer(TracksSourceConfig(data=data, recording=args.recording), recording, map_sha256="", run_id="soak", producer="source")
@@ -98,12 +101,18 @@ def main(argv: list[str] | None = None) -> int:
         offset_ns = last + 100_000_000  # the next pass continues the clock
         gc.collect()
         large = {f"{name}.{attr}": n for name, core in cores.items() for attr, n in _sizes(core).items() if n > 50}
+        own = {id(r) for r in rows}  # this bench's own per-pass records, left out
+        objects = [o for o in gc.get_objects() if id(o) not in own]
+        types = collections.Counter(f"{type(o).__module__}.{type(o).__qualname__}" for o in objects)
+        changed = {t: types[t] - types_before[t] for t in types.keys() | types_before.keys() if types[t] != types_before[t]} if k else {}
+        types_before = types
         row = {"pass": k, "frames": frames, "wall_s": round(time.perf_counter() - t0, 1),
-               "maxrss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1), "containers": len(gc.get_objects()),
-               "large_state": large}
+               "maxrss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1), "containers": len(objects),
+               "types_changed": dict(sorted(changed.items(), key=lambda kv: -abs(kv[1]))[:8]), "large_state": large}
+        del objects
         rows.append(row)
-        print(f"pass {k}: {frames} frames in {row['wall_s']} s, peak RSS {row['maxrss_mb']} MB, containers {row['containers']:,},"
-              f" state over 50 entries {large}", flush=True)
+        print(f"pass {k}: {frames} frames in {row['wall_s']} s, peak RSS {row['maxrss_mb']} MB, containers {row['containers']:,}"
+              f" (changed since the last pass: {row['types_changed'] or '-'}), state over 50 entries {large}", flush=True)
     if args.json:
         with open(args.json, "w") as handle:
             json.dump({"recording": args.recording, "passes": rows}, handle, indent=2)
