@@ -194,6 +194,9 @@ def make_editor(args: argparse.Namespace):
         if args.no_record:
             raw["nodes"] = nodes = [n for n in nodes if n.get("stage") != RECORDER_STAGE]
         sources = [n for n in nodes if n.get("stage") in SOURCE_STAGES]
+        if args.data is not None and not Path(args.data).is_dir():  # before any node starts (each would fail on it)
+            raise PipelineError(f"--data {args.data}: no such folder (expected a data folder laid out like stages/data/taf-bw:"
+                                " maps/<recording>.osm and recorded_trackfiles/<recording>/)")
         for flag, key, value in (("--data", "data", args.data), ("--recording", "recording", args.recording), ("--speed", "speed", args.speed)):
             if value is None:
                 continue

@@ -285,3 +285,6 @@ def test_without_a_player_data_is_where_the_map_stages_find_the_maps_and_recordi
     for flags in (["--recording", "k729_2022-03-16"], ["--speed", "2"]):
         with pytest.raises(PipelineError, match="the pipeline has no dataset source node"):
             launch.make_editor(launch.build_parser().parse_args([*flags, "--no-record"]))(live())
+    # a folder that is not there stops the launcher before any node starts (each would fail on it on its own)
+    with pytest.raises(PipelineError, match=r"^--data .*nowhere: no such folder"):
+        launch.make_editor(launch.build_parser().parse_args(["--data", str(tmp_path / "nowhere"), "--no-record"]))(live())
