@@ -9,13 +9,12 @@ import dataclasses
 
 import bus_schemas as bs
 from stages.ar_inference import ARInference, ARInferenceConfig
-from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
-from stages.intentions import IntentionFilter, IntentionsConfig
+from stages.corridors import SceneMaps
+from stages.intentions import IntentionsConfig
 from stages.lib.datasets.defaults import DEFAULT_DATA_DIR
 from stages.lib.datasets.loader import load_recording
 from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
-from stages.relations import RelationExtractor, RelationsConfig
-from stages.tracks_source.core import TrackPlayer, TracksSourceConfig
+from stages.offline.chain import Chain
 
 RECORDING = "k733_2018-05-02"  # the busy default scenario, whose tracker's velocities the stages do not trust
 #: 6 s of frames: before markov_prediction's online choices can resolve any sample (they sample vehicles by a hash of
@@ -33,31 +32,22 @@ def _bytes_without_stamp(msg) -> bytes:
 
 
 def _play(offset_ns: int) -> list[dict[str, bytes]]:
+    """The offline chain (corridors, relations, intentions) on the recording's frames moved by ``offset_ns``, then
+    ar_inference and markov_prediction (with its idle work) as on the bus."""
     recording = load_recording(DEFAULT_DATA_DIR, RECORDING)
-    maps = SceneMaps()
-    player = TrackPlayer(TracksSourceConfig(recording=RECORDING), recording, map_sha256="", run_id="clock", producer="source")
-    corridors = CorridorBuilder(CorridorsConfig(), scene_maps=maps)
-    relations = RelationExtractor(RelationsConfig(), scene_maps=maps)
-    intentions = IntentionFilter(IntentionsConfig(), producer="intentions", scene_maps=maps)
+    chain = Chain(recording, recording.sequences[0], SceneMaps(), intentions=IntentionsConfig(), max_frames=FRAMES,
+                  frame_hook=lambda frame: _restamped(frame, offset_ns))
     ar = ARInference(ARInferenceConfig.from_params({}, where="test"), producer="ar_inference")
     markov = MarkovPredictor(MarkovPredictionConfig.from_params({"mode": "hybrid", "corridor_weights": "intentions"}, where="test"),
                              producer="markov_prediction")
-    scene, out = None, []
-    for n, (_stamp, result) in enumerate(player):
-        if n >= FRAMES:
-            break
-        if "scene" in result.outputs:
-            scene = _restamped(result.outputs["scene"], offset_ns)
-        frame = _restamped(result.outputs["track_frame"], offset_ns)
-        corridor_set = corridors.process(frame, scene)[0]
-        relation_set = relations.process(frame, corridor_set, scene)[0]
-        belief = intentions.process(frame, corridor_set, relation_set, scene)[0]
-        profiles = ar.process(corridor_set, relation_set, frame, scene)[0]
-        result = markov.update({"corridor_set": corridor_set, "relation_set": relation_set, "scene": scene, "track_frame": frame,
-                                "intention_belief": belief, "acceleration_profiles": profiles})
+    out = []
+    for item in chain:
+        profiles = ar.process(item.corridor_set, item.relation_set, item.frame, item.scene)[0]
+        result = markov.update({"corridor_set": item.corridor_set, "relation_set": item.relation_set, "scene": item.scene,
+                                "track_frame": item.frame, "intention_belief": item.belief, "acceleration_profiles": profiles})
         markov.idle()
         out.append({name: _bytes_without_stamp(msg) for name, msg in (
-            ("corridor_set", corridor_set), ("relation_set", relation_set), ("intention_belief", belief),
+            ("corridor_set", item.corridor_set), ("relation_set", item.relation_set), ("intention_belief", item.belief),
             ("acceleration_profiles", profiles), ("corridor_predictions", result.outputs["corridor_predictions"]),
             ("motion_grid", result.outputs["motion_grid"]))})
     return out
