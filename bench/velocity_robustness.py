@@ -65,10 +65,19 @@ def _num(text: str) -> float | None:
         return None
 
 
+def _read_rows(path: Path) -> list[list[str]]:
+    with path.open(newline="", encoding="utf-8-sig") as fh:
+        return list(csv.reader(fh))
+
+
+def _write_rows(path: Path, rows: list[list[str]]) -> None:
+    with path.open("w", newline="", encoding="utf-8") as fh:
+        csv.writer(fh, lineterminator="\n").writerows(rows)
+
+
 def spoil_track_file(src: Path, dst: Path, variant: str) -> int:
     """Write ``src`` to ``dst`` with the velocity columns changed; returns the rows changed."""
-    with src.open(newline="", encoding="utf-8-sig") as fh:
-        rows = list(csv.reader(fh))
+    rows = _read_rows(src)
     if not rows:
         shutil.copyfile(src, dst)
         return 0
@@ -102,16 +111,14 @@ def spoil_track_file(src: Path, dst: Path, variant: str) -> int:
             raise ValueError(variant)
         r[ix], r[iy] = repr(vx), repr(vy)
         changed += 1
-    with dst.open("w", newline="", encoding="utf-8") as fh:
-        csv.writer(fh, lineterminator="\n").writerows(rows)
+    _write_rows(dst, rows)
     return changed
 
 
 def thin_track_file(src: Path, dst: Path) -> int:
     """Write ``src`` to ``dst`` with every other frame left out (frames counted on the file's own period from its first
     stamp; the even ones kept); returns the rows left out."""
-    with src.open(newline="", encoding="utf-8-sig") as fh:
-        rows = list(csv.reader(fh))
+    rows = _read_rows(src)
     header = [h.strip() for h in rows[0]] if rows else []
     if "timestamp_ms" not in header:
         shutil.copyfile(src, dst)
@@ -120,23 +127,20 @@ def thin_track_file(src: Path, dst: Path) -> int:
     stamps = sorted({t for r in rows[1:] if len(r) > its and (t := _num(r[its])) is not None})
     period = min((b - a for a, b in zip(stamps, stamps[1:]) if b > a), default=100.0)
     keep = [rows[0]] + [r for r in rows[1:] if len(r) > its and (t := _num(r[its])) is not None and round((t - stamps[0]) / period) % 2 == 0]
-    with dst.open("w", newline="", encoding="utf-8") as fh:
-        csv.writer(fh, lineterminator="\n").writerows(keep)
+    _write_rows(dst, keep)
     return len(rows) - len(keep)
 
 
 def _halve_frame_rate(src: Path, dst: Path) -> None:
     """``meta_data.csv`` with ``frameRate_hz`` halved (the loader's frame period)."""
-    with src.open(newline="", encoding="utf-8-sig") as fh:
-        rows = list(csv.reader(fh))
+    rows = _read_rows(src)
     header = [h.strip() for h in rows[0]]
     if "frameRate_hz" in header:
         i = header.index("frameRate_hz")
         for r in rows[1:]:
             if len(r) > i and (rate := _num(r[i])) is not None:
                 r[i] = repr(rate / 2)
-    with dst.open("w", newline="", encoding="utf-8") as fh:
-        csv.writer(fh, lineterminator="\n").writerows(rows)
+    _write_rows(dst, rows)
 
 
 def write_variant(data: Path, recording: str, out: Path, variant: str, sequences: tuple[str, ...] = ()) -> int:
@@ -150,18 +154,14 @@ def write_variant(data: Path, recording: str, out: Path, variant: str, sequences
     (out / "maps").mkdir(parents=True, exist_ok=True)
     if ref.map_path is not None:
         shutil.copyfile(ref.map_path, out / "maps" / ref.map_path.name)
-    if variant == "rate_half":
-        _halve_frame_rate(ref.folder / META_FILE, folder / META_FILE)
-    else:
-        shutil.copyfile(ref.folder / META_FILE, folder / META_FILE)
+    thinned = variant == "rate_half"
+    (_halve_frame_rate if thinned else shutil.copyfile)(ref.folder / META_FILE, folder / META_FILE)
+    rewrite = thin_track_file if thinned else (lambda src, dst: spoil_track_file(src, dst, variant))
     changed = 0
     for path in ref.track_files:
         m = TRACK_FILE_RE.match(path.name)
         if m and (not sequences or any(same_sequence_id(m.group(2), s) for s in sequences)):
-            if variant == "rate_half":
-                changed += thin_track_file(path, folder / path.name)
-            else:
-                changed += spoil_track_file(path, folder / path.name, variant)
+            changed += rewrite(path, folder / path.name)
     return changed
 
 
