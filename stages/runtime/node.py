@@ -109,6 +109,7 @@ class Node:
         if wildcards:
             self.stats.counters["rejected_keys"] = 0
         self._stamp_clock_ns: int | None = None  # newest stamp accepted on a joined input
+        self._stamp_window_ns = int(getattr(args, "stamp_window_s", 60.0) * 1e9)  # --stamp-window-s
         # joined messages in a row stamped beyond the window, each within the window of the run's newest: [first, newest, count]
         self._ahead_run: list[int] | None = None
         self.output_keys = {port: keys.data_key(self.run_id, self.node_id, port) for port in spec.outputs}
@@ -300,7 +301,7 @@ class Node:
         minutes later, re-synchronised, or switched to another clock) is then followed from that message on, once
         (``stamp_clock_jumps``, one warning); without that every later frame would be rejected for good. A lone far
         stamp, or stamps far ahead that do not follow one another, stay rejected."""
-        window_ns = int(getattr(self.args, "stamp_window_s", 60.0) * 1e9)
+        window_ns = self._stamp_window_ns
         with self._count_lock:
             clock = self._stamp_clock_ns
             if clock is None or stamp <= clock + window_ns:
@@ -648,7 +649,7 @@ class Node:
 
     def run_raw_sink(self, core: Any) -> None:
         acked = False
-        window_ns = int(getattr(self.args, "stamp_window_s", 60.0) * 1e9)
+        window_ns = self._stamp_window_ns
 
         def handle(item: tuple) -> None:
             nonlocal acked
