@@ -45,6 +45,7 @@ def _args_record(p: argparse.ArgumentParser) -> None:
     p.add_argument("--split-bytes", type=int, default=None, help="start the next split file (FILE.001.mcap, ...) at about this size (default 0: never)")
     p.add_argument("--split-s", type=float, default=None, help="start the next split file after this many seconds (default 0: never)")
     p.add_argument("--no-stats", action="store_true", help="leave out the _stats keys")
+    p.add_argument("--overwrite", action="store_true", help="replace FILE.mcap (and its split files) where it exists; without it an existing file is refused")
     p.add_argument("--log-level", default="INFO")
     from stages.runtime import add_network_args
 
@@ -61,6 +62,8 @@ def _run_record(args: argparse.Namespace) -> int:
             params[name] = getattr(args, name)
     if args.no_stats:
         params["include_stats"] = False
+    if args.overwrite:
+        params["overwrite"] = True
     argv = ["--run-id", args.run_id, "--node-id", args.node_id, "--params-json", json.dumps(params), "--log-level", args.log_level, "--mode", args.mode]
     argv += [x for e in args.connect for x in ("--connect", e)]
     argv += [x for e in args.listen for x in ("--listen", e)]

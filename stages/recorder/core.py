@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import re
 import sys
 import threading
@@ -17,12 +18,17 @@ from typing import Any, BinaryIO
 from mcap.exceptions import UnsupportedCompressionError
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 
-from bus_schemas import REGISTRY, SchemaError, json_schema, keys
+from bus_schemas import REGISTRY, SceneInfo, SchemaError, json_schema, keys
 from bus_schemas._wire import peek_header
 
 from stages.lib.recording_files import default_path, split_path, split_paths
 from stages.lib.base import ConfigError, ConfigMixin, Issue, check_output
 from stages.runtime import NodeContext, StageSpec, run_stage
+
+try:
+    import fcntl
+except ImportError:  # not POSIX: no lock, the existence check alone keeps a second recorder off a file
+    fcntl = None  # type: ignore[assignment]
 
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 MESSAGE_ENCODING = "msgpack"
@@ -32,6 +38,14 @@ METADATA_NAME = "hybrid-iamp"
 _MESSAGE_OVERHEAD_BYTES = 1 + 8 + 2 + 4 + 8 + 8
 # The mcap Writer closes a chunk by itself only past this size; the recorder closes them earlier.
 _WRITER_CHUNK_LIMIT = 1 << 62
+# Schemas published latched (the runtime's ``Port(..., latched=True)``: kept by the publisher and answered to queries):
+# every split file starts with the newest one of each key, so that each file reads alone (a replay's stages wait for
+# the scene), and a payload equal to the one the file already holds on its key is not written again.
+LATCHED_SCHEMAS = frozenset({SceneInfo.SCHEMA})
+
+
+class RecordingExists(ConfigError):
+    """The file (or one of its splits) is there and ``overwrite`` is off."""
 
 
 def iamp_version() -> str:
@@ -61,6 +75,7 @@ class RecorderConfig(ConfigMixin):
     split_bytes: int = 0
     split_s: float = 0.0
     split_index: int = 0
+    overwrite: bool = False
 
     def __post_init__(self) -> None:
         if self.compression not in COMPRESSIONS:
@@ -75,6 +90,30 @@ class RecorderConfig(ConfigMixin):
             raise ValueError(f"split_s must be >= 0 (0: no duration limit), got {self.split_s}")
         if self.split_index < 0:
             raise ValueError(f"split_index must be >= 0, got {self.split_index}")
+
+
+def check_not_there(base: Path, overwrite: bool) -> None:
+    """Refuse (``RecordingExists``) to start a recording at ``base`` where it or one of its split files is there, unless
+    ``overwrite``: a run writes split 0 first, so such a file is another recording's (a recorder restarted by the
+    launcher goes on at ``split_index`` > 0 of its own run, and is not asked)."""
+    if overwrite:
+        return
+    there = [p for _i, p in split_paths(base)]
+    if there:
+        more = f" and {len(there) - 1} more of its split files" if len(there) > 1 else ""
+        raise RecordingExists(f"path {there[0]}{more} exists: a recording is never replaced unless asked"
+                              " (choose another path, or pass --overwrite: the recorder's overwrite = true)")
+
+
+def preflight(config: RecorderConfig) -> None:
+    """The launcher's check before any node starts (``StageSpec.preflight``): the file can be written and is not
+    another recording."""
+    base = Path(config.path) if config.path else None
+    if base is None:
+        return
+    check_output(split_path(base, config.split_index), "path")
+    if config.split_index == 0:
+        check_not_there(base, config.overwrite)
 
 
 class McapRecorder:
@@ -100,27 +139,39 @@ class McapRecorder:
         self._lock = threading.Lock()
         self._sequences: dict[tuple[str, str], int] = {}  # per (topic, schema name), across splits
         self._closed = threading.Event()
+        self._latched: dict[str, tuple[bytes, int, str]] = {}  # key -> (payload, publish ns, schema) of its newest latched message
+        self._file_latched: dict[str, bytes] = {}  # key -> the latched payload the current file holds last
+        self.latched_repeats = 0  # latched payloads equal to the one the file held on their key: not written again
+        self._created: list[Path] = []  # files this recorder created (not there before it)
         # the first file's folder now, with a message that names the parameter (an OSError later, at a split, is a crash)
         check_output(split_path(self.base_path, self.split_index), "path")
+        if self.split_index == 0:
+            check_not_there(self.base_path, config.overwrite)
         self._open_file()
         self._timer = threading.Thread(target=self._flush_periodically, name="recorder-flush", daemon=True)
         self._timer.start()
         self.log.info("recording: path=%s run=%s", self.path, run_id)
 
     def _open_file(self) -> None:
-        """Open split ``self.split_index``: a new file with its header and metadata (schemas and channels again as used)."""
+        """Open split ``self.split_index``: a new file with its header and metadata (schemas and channels again as used),
+        locked against a second writer, then the newest latched payloads of the run so far."""
         config = self.config
         self.path = split_path(self.base_path, self.split_index)
         self._schema_ids: dict[str, int] = {}
         self._channel_ids: dict[tuple[str, int], int] = {}
+        self._file_latched = {}
         self._chunk_bytes = 0
         self._chunk_opened = 0.0  # monotonic time of the first message in the open chunk
         self._file_messages = 0
         self._file_opened = time.monotonic()
-        if self.path.exists():
-            self.log.warning("overwriting existing file: path=%s", self.path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file: BinaryIO = open(self.path, "wb")
+        existed = self.path.exists()
+        self._file: BinaryIO = self._open_locked(self.path)
+        if existed:
+            self.log.warning("overwriting existing file: path=%s", self.path)
+        if not existed:
+            self._created.append(self.path)
+        self._file_fresh = 0  # messages received into this file (its latched start not counted)
         try:
             self._writer = Writer(self._file, chunk_size=_WRITER_CHUNK_LIMIT, compression=COMPRESSIONS[config.compression])
         except UnsupportedCompressionError as exc:
@@ -144,10 +195,27 @@ class McapRecorder:
         )
         self._writer.flush()
         self.paths.append(self.path)
+        for key, (payload, publish_ns, schema_name) in self._latched.items():  # each split reads alone: its scene first
+            self._write(key, payload, time.time_ns(), publish_ns, schema_name)
+            self._file_latched[key] = payload
+
+    def _open_locked(self, path: Path) -> BinaryIO:
+        """``path`` opened for writing, emptied only once this process holds its exclusive lock (``flock``): a second
+        recorder on the same file is refused before it has written a byte, and never tears the first one's file."""
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT, 0o666)
+        if fcntl is not None:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                os.close(fd)
+                raise ConfigError(f"path {path} is being written by another recorder (it holds the file's lock):"
+                                  " choose another path") from None
+        os.ftruncate(fd, 0)
+        return os.fdopen(fd, "wb")
 
     def _split_due(self) -> bool:
-        if not self._file_messages:
-            return False  # a split always holds messages
+        if not self._file_fresh:
+            return False  # a split always holds messages received into it
         if self.config.split_bytes and self._file.tell() + self._chunk_bytes >= self.config.split_bytes:
             return True
         return bool(self.config.split_s) and time.monotonic() - self._file_opened >= self.config.split_s
@@ -200,16 +268,17 @@ class McapRecorder:
         with self._lock:
             if self._closed.is_set():
                 raise RuntimeError(f"recorder for {self.path} is closed")
-            schema_id = self._schema_id(schema_name) if schema_name else 0
-            channel_id = self._channel_id(key, schema_id)
-            seq = self._sequences[(key, schema_name)] = (self._sequences.get((key, schema_name), 0) + 1) & 0xFFFFFFFF
-            self._writer.add_message(channel_id=channel_id, log_time=recv_ns, data=bytes(payload), publish_time=publish_ns, sequence=seq)
+            if schema_name in LATCHED_SCHEMAS:
+                payload = bytes(payload)
+                if self._file_latched.get(key) == payload:  # a re-publication, or the start query's answer to a value already in
+                    self.latched_repeats += 1
+                    return None
+                self._latched[key] = (payload, publish_ns, schema_name)
+                self._file_latched[key] = payload
+            self._write(key, payload, recv_ns, publish_ns, schema_name)
             self.messages += 1
+            self._file_fresh += 1
             self.old_versions += old_version
-            self._file_messages += 1
-            if self._chunk_bytes == 0:
-                self._chunk_opened = time.monotonic()
-            self._chunk_bytes += len(payload) + _MESSAGE_OVERHEAD_BYTES
             if self._split_due():
                 self._next_split()
             elif self._chunk_bytes >= self.config.chunk_size_bytes or time.monotonic() - self._chunk_opened >= self.config.flush_period_s:
@@ -218,6 +287,17 @@ class McapRecorder:
             return None
         self.unrecognised += 1
         return [Issue(kind="unrecognised_payload", agent_id=-1, detail=f"recorded without schema: {issue}")]
+
+    def _write(self, key: str, payload: bytes, log_ns: int, publish_ns: int, schema_name: str) -> None:
+        """One message into the open chunk (the lock held); ``schema_name`` empty: a channel without schema."""
+        schema_id = self._schema_id(schema_name) if schema_name else 0
+        channel_id = self._channel_id(key, schema_id)
+        seq = self._sequences[(key, schema_name)] = (self._sequences.get((key, schema_name), 0) + 1) & 0xFFFFFFFF
+        self._writer.add_message(channel_id=channel_id, log_time=log_ns, data=bytes(payload), publish_time=publish_ns, sequence=seq)
+        self._file_messages += 1
+        if self._chunk_bytes == 0:
+            self._chunk_opened = time.monotonic()
+        self._chunk_bytes += len(payload) + _MESSAGE_OVERHEAD_BYTES
 
     def _schema_id(self, name: str) -> int:
         sid = self._schema_ids.get(name)
@@ -271,14 +351,22 @@ class McapRecorder:
                 self._writer.finish()
             finally:
                 self._file.close()
-            if not self._file_messages and len(self.paths) > 1:  # opened by the last cut, never used
+            if not self._file_fresh and len(self.paths) > 1:  # opened by the last cut, never used
                 self.path.unlink(missing_ok=True)
                 self.paths.pop()
                 self.path = self.paths[-1]
         if len(self.paths) > 1:
-            self.log.info("recording closed: path=%s messages=%d channels=%d old_versions=%d splits=%d (%s)", self.path, self.messages, self.channels, self.old_versions, len(self.paths), ", ".join(p.name for p in self.paths))
+            self.log.info("recording closed: path=%s messages=%d channels=%d old_versions=%d latched_repeats=%d splits=%d (%s)", self.path, self.messages, self.channels, self.old_versions, self.latched_repeats, len(self.paths), ", ".join(p.name for p in self.paths))
         else:
-            self.log.info("recording closed: path=%s messages=%d channels=%d old_versions=%d", self.path, self.messages, self.channels, self.old_versions)
+            self.log.info("recording closed: path=%s messages=%d channels=%d old_versions=%d latched_repeats=%d", self.path, self.messages, self.channels, self.old_versions, self.latched_repeats)
+
+    def abandon(self) -> None:
+        """The node could not start (its bus session failed): close, and remove the files this recorder created if
+        nothing was received into them, so that a bad command line leaves no file behind."""
+        self.close()
+        if not self.messages:
+            for path in self._created:
+                path.unlink(missing_ok=True)
 
 
 def _make_core(config: RecorderConfig, ctx: NodeContext) -> McapRecorder:
@@ -293,6 +381,7 @@ SPEC = StageSpec(
     outputs={},
     kind="raw_sink",
     restart_default=True,  # the launcher restarts a killed recorder into the next split file
+    preflight=preflight,
 )
 
 

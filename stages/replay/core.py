@@ -17,7 +17,7 @@ from typing import Callable, Iterator
 from bus_schemas import REGISTRY, SceneInfo, SchemaError, TrackFrame, keys, restamp_source_wall
 from bus_schemas._wire import peek_schema
 
-from stages.lib.base import ConfigMixin
+from stages.lib.base import ConfigError, ConfigMixin
 from stages.recorder.inspect import ReadReport, RecordingError, read_messages, recording_run_id
 from stages.runtime import EXIT_CRASH, EXIT_OK, EXIT_USAGE, BusClient, NodeContext, Port, StageSpec, add_network_args, on_stop_signals, setup_logging, start_stage
 from stages.runtime.pacing import AWAIT_NODES_S, FIRST_ACK_GRACE_S, MAX_SPEED_WINDOW, Consumers, Pacer, parse_speed_value  # noqa: F401 (MAX_SPEED_WINDOW: for tests)
@@ -356,6 +356,14 @@ class _NotAStageCore:
         raise RuntimeError("stages.replay runs through its own main(), not runtime.run_stage")
 
 
+def preflight(config: ReplayConfig) -> None:
+    """The launcher's check before any node starts (``StageSpec.preflight``): the file is there and is a recording."""
+    try:
+        recording_run_id(config.path)
+    except RecordingError as exc:
+        raise ConfigError(f"path: {exc}") from None
+
+
 SPEC = StageSpec(
     stage="stages.replay",
     config_cls=ReplayConfig,
@@ -365,6 +373,7 @@ SPEC = StageSpec(
     outputs={"track_frame": Port(TrackFrame), "scene": Port(SceneInfo, latched=True)},
     kind="source",
     restart_default=False,
+    preflight=preflight,
 )
 
 

@@ -227,8 +227,9 @@ def start_stage(spec: StageSpec, argv: list[str] | None = None, *, bindings: boo
 
 
 def on_stop_signals(handler: Callable[[int], None]) -> None:
-    """Call ``handler(signal number)`` on SIGINT and SIGTERM (only from the main thread; elsewhere nothing is installed)."""
+    """Call ``handler(signal number)`` on SIGINT, SIGTERM and SIGHUP (the terminal or ssh session that ran it closed: a
+    recorder still finishes its file) (only from the main thread; elsewhere nothing is installed)."""
     if threading.current_thread() is not threading.main_thread():
         return
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, lambda signum, _frame: handler(signum))

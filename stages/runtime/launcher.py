@@ -67,6 +67,7 @@ PIPELINES_DIR = Path(__file__).resolve().parents[1] / "pipelines"
 DEFAULT_PIPELINE = PIPELINES_DIR / "hybrid.toml"
 SOURCE_STAGES = {"stages.tracks_source"}
 RECORDER_STAGE = "stages.recorder"
+REPLAY_STAGE = "stages.replay"
 MAP_STAGES = {"stages.corridors", "stages.relations", "stages.intentions", "stages.viewer", "stages.foxglove_bridge"}  # each gets the source's data folder
 VIEWER_STAGE = "stages.viewer"
 VIEWER_URL_RE = re.compile(r"viewer: (https?://\S+)\s*$")
@@ -96,8 +97,11 @@ _print_lock = threading.Lock()
 
 def say(line: str, tag: str = "launch") -> None:
     with _print_lock:
-        sys.stdout.write(f"[{tag}] {line}\n")
-        sys.stdout.flush()
+        try:
+            sys.stdout.write(f"[{tag}] {line}\n")
+            sys.stdout.flush()
+        except (OSError, ValueError):  # the terminal is gone (SIGHUP): the run still stops every node as it should
+            pass
 
 
 def resolve_pipeline_arg(arg: str) -> str:
@@ -118,13 +122,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", default=[], metavar="NODE.KEY=VALUE", help="override a node parameter (TOML value)")
     p.add_argument("--var", action="append", default=[], metavar="NAME=VALUE", help="set a ${NAME} variable of the pipeline file")
     p.add_argument("--record", metavar="FILE.mcap", help="record the run to this MCAP file (default: runs/<run>-<time>.mcap)")
+    p.add_argument("--overwrite", action="store_true", help="let the recorder replace an existing --record file (and its split files); without it such a file stops the launcher before any node starts")
     p.add_argument("--no-record", action="store_true", help="leave the recorder out")
     p.add_argument("--no-viewer", action="store_true", help="leave the viewer out")
     p.add_argument("--foxglove", action="store_true", help="add the live Foxglove bridge (node foxglove): the scene on a Foxglove WebSocket, ws://127.0.0.1:PORT printed")
     p.add_argument("--data", metavar="PATH", help="data folder laid out like stages/data/taf-bw (default: the embedded scenario); in a pipeline without a"
                    " dataset player (live) the folder whose maps/ the stages load the tracker's map from")
     p.add_argument("--recording", metavar="NAME", help="recording to play from --data")
-    p.add_argument("--speed", metavar="X|max", help="playback speed factor of the source, or 'max'")
+    p.add_argument("--speed", metavar="X|max", help="playback speed factor of the source (a dataset player or a recording's replay), or 'max'")
     p.add_argument("--run-id", help="run id (keys under iamp/<run>/); default from the pipeline file")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="join a remote Zenoh router/peer as well")
     p.add_argument("--listen", metavar="ENDPOINT", help="the hub endpoint (default from the pipeline, tcp/127.0.0.1:<free port>)")
@@ -194,21 +199,24 @@ def make_editor(args: argparse.Namespace):
         if args.no_record:
             raw["nodes"] = nodes = [n for n in nodes if n.get("stage") != RECORDER_STAGE]
         sources = [n for n in nodes if n.get("stage") in SOURCE_STAGES]
+        speed = args.speed
+        replays = [n for n in nodes if n.get("stage") == REPLAY_STAGE]
+        if speed is not None and not sources and replays:  # a recording's replay plays at --speed too
+            for n in replays:
+                n.setdefault("params", {})["speed"] = _speed_value(speed)
+            speed = None
         if args.data is not None and not Path(args.data).is_dir():  # before any node starts (each would fail on it)
             raise PipelineError(f"--data {args.data}: no such folder (expected a data folder laid out like stages/data/taf-bw:"
                                 " maps/<recording>.osm and recorded_trackfiles/<recording>/)")
-        for flag, key, value in (("--data", "data", args.data), ("--recording", "recording", args.recording), ("--speed", "speed", args.speed)):
+        for flag, key, value in (("--data", "data", args.data), ("--recording", "recording", args.recording), ("--speed", "speed", speed)):
             if value is None:
                 continue
             if not sources:
                 if key == "data":
                     continue  # no player (a live tracker's pipeline): the folder is only where the map stages find the maps (below)
                 raise PipelineError(f"{flag}: the pipeline has no dataset source node ({', '.join(sorted(SOURCE_STAGES))})")
-            if key == "speed" and value != "max":
-                try:
-                    value = float(value)
-                except ValueError:
-                    raise PipelineError(f"--speed {value!r}: expected a number > 0 or 'max'") from None
+            if key == "speed":
+                value = _speed_value(value)
             for n in sources:
                 n.setdefault("params", {})[key] = str(Path(value).resolve()) if key == "data" else value
                 if key == "recording" and args.data is None:
@@ -236,10 +244,39 @@ def make_editor(args: argparse.Namespace):
                 params = n.setdefault("params", {})
                 if args.record:
                     params["path"] = args.record
+                if getattr(args, "overwrite", False):
+                    params["overwrite"] = True
                 if not params.get("path"):
                     params["path"] = default_record_path(raw.get("bus", {}).get("run_id", raw.get("name", "demo")))
 
     return edit
+
+
+def _speed_value(value: str) -> float | str:
+    if value == "max":
+        return value
+    try:
+        return float(value)
+    except ValueError:
+        raise PipelineError(f"--speed {value!r}: expected a number > 0 or 'max'") from None
+
+
+def preflight(pipeline: Pipeline) -> None:
+    """What the run would fail on at once, checked before any node starts (and by ``--check``): each stage's own
+    ``StageSpec.preflight`` (a recording or replay file that is not there, a recording file that would be replaced), and
+    a recorder writing the file a replay reads. Raises ``PipelineError``."""
+    replayed = {Path(n.params["path"]).resolve(): n.id for n in pipeline.nodes if n.stage == REPLAY_STAGE and n.params.get("path")}
+    for n in pipeline.nodes:
+        if n.stage == RECORDER_STAGE and n.params.get("path") and Path(n.params["path"]).resolve() in replayed:
+            raise PipelineError(f"node {n.id}: records into {n.params['path']}, the file node {replayed[Path(n.params['path']).resolve()]}"
+                                " replays: choose another --record path")
+        check = getattr(n.spec, "preflight", None)
+        if check is not None:
+            try:
+                check(n.config)
+            except ConfigError as exc:
+                flag = " (--record)" if n.stage == RECORDER_STAGE else ""
+                raise PipelineError(f"node {n.id}{flag}: {exc}") from None
 
 
 def free_port() -> int:
@@ -502,8 +539,8 @@ class Launcher:
             self._remove_auth_dir()
             raise
         self.bus.watch_alive(keys.alive_pattern(self.p.run_id), self._on_alive)
-        signal.signal(signal.SIGINT, lambda *_: self.stop_requested.set())
-        signal.signal(signal.SIGTERM, lambda *_: self.stop_requested.set())
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):  # SIGHUP: the terminal or ssh session closed
+            signal.signal(sig, lambda *_: self.stop_requested.set())
         try:
             for n in others:
                 self.spawn(n)
@@ -626,6 +663,15 @@ class Launcher:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.stop_after is not None and not (math.isfinite(args.stop_after) and args.stop_after > 0):
+        print(f"launch.py: --stop-after {args.stop_after}: must be a finite number of seconds > 0", file=sys.stderr)
+        return 2
+    if not (math.isfinite(args.startup_timeout) and args.startup_timeout > 0):
+        print(f"launch.py: --startup-timeout {args.startup_timeout}: must be a finite number of seconds > 0", file=sys.stderr)
+        return 2
+    if args.max_restarts < 0 or not (math.isfinite(args.restart_reset_s) and args.restart_reset_s >= 0):
+        print("launch.py: --max-restarts and --restart-reset-s must be >= 0 (and finite)", file=sys.stderr)
+        return 2
     try:
         variables = {}
         for item in args.var:
@@ -634,6 +680,8 @@ def main(argv: list[str] | None = None) -> int:
             k, v = item.split("=", 1)
             variables[k.strip()] = _toml_value(v.strip())
         pipeline = load_pipeline(resolve_pipeline_arg(args.pipeline), variables=variables, overrides=parse_overrides(args.set), edit=make_editor(args))
+        if not args.describe:
+            preflight(pipeline)
     except (PipelineError, ConfigError) as exc:
         print(f"launch.py: {exc}", file=sys.stderr)
         return 2
@@ -645,15 +693,6 @@ def main(argv: list[str] | None = None) -> int:
     if args.check:
         say(f"pipeline {pipeline.path} is valid: {len(pipeline.nodes)} nodes")
         return 0
-    if args.stop_after is not None and not (math.isfinite(args.stop_after) and args.stop_after > 0):
-        print(f"launch.py: --stop-after {args.stop_after}: must be a finite number of seconds > 0", file=sys.stderr)
-        return 2
-    if not (math.isfinite(args.startup_timeout) and args.startup_timeout > 0):
-        print(f"launch.py: --startup-timeout {args.startup_timeout}: must be a finite number of seconds > 0", file=sys.stderr)
-        return 2
-    if args.max_restarts < 0 or not (math.isfinite(args.restart_reset_s) and args.restart_reset_s >= 0):
-        print("launch.py: --max-restarts and --restart-reset-s must be >= 0 (and finite)", file=sys.stderr)
-        return 2
     hub = resolve_hub(pipeline, args.listen)
     try:
         return Launcher(pipeline, hub, args).run()

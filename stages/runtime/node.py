@@ -180,6 +180,9 @@ class Node:
                 self._keepalive.append(s.declare_queryable(key, self._make_latched_reply(port)))
         if self.spec.kind == "raw_sink":
             self._keepalive.append(s.declare_subscriber(keys.run_pattern(self.run_id), self._on_raw_sample))
+            # the run's latched values (the scene) published before this sink came up (a recorder started late, or
+            # restarted into the next split) are answered by their publishers' queryables
+            threading.Thread(target=self._query_latched_raw, daemon=True).start()
         for port, key in self.input_keys.items():
             self._keepalive.append(s.declare_subscriber(key, self._make_input_cb(port)))
             if self.spec.inputs[port].latched:
@@ -239,6 +242,23 @@ class Node:
             self._accept(port, str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
 
         return cb
+
+    def _query_latched_raw(self) -> None:
+        """A raw sink's start: queue what the run's latched outputs answer (one query on the run's keys, then one more
+        after the routes have settled, as a query sent too early gets no answer); the sink takes a value it already
+        has once (the recorder writes a latched payload once per file)."""
+        for wait_s in (0.0, 1.0):
+            if self.stop_event.wait(wait_s):
+                return
+            try:
+                for reply in self.session.get(keys.run_pattern(self.run_id), timeout=1.0):
+                    if reply.ok is not None:
+                        data = reply.ok.payload.to_bytes()
+                        self._count("received")
+                        self.queue.put((LATCHED_QUERY, str(reply.ok.key_expr), data, time.time_ns()), None, len(data))
+            except Exception as exc:  # the session may be closing
+                self.log.debug("latched query failed: error=%s", exc)
+                return
 
     def _on_raw_sample(self, sample: Any) -> None:
         key = str(sample.key_expr)
@@ -653,12 +673,14 @@ class Node:
 
         def handle(item: tuple) -> None:
             nonlocal acked
-            _port, key, data, recv_ns = item
+            port, key, data, recv_ns = item
             t0 = time.perf_counter()
             try:
                 issues = core.handle(key, data, recv_ns) or []
             except Exception as exc:
                 self._count_failure("core_exception", exc, "sink failed on key=%s (message dropped)", key)
+                return
+            if port == LATCHED_QUERY:  # an old value asked for at the start: recorded, not progress (no ack, no latency)
                 return
             dt = (time.perf_counter() - t0) * 1e3
             self.stats.proc_ms.append(dt)
@@ -837,6 +859,10 @@ def _peek_stamps(data: bytes) -> tuple[int | None, int]:
     return (stamp if type(stamp) is int else None), (wall if type(wall) is int and wall > 0 else 0)
 
 
+# The queue's port of a raw sink's answers to its start query for latched values (``Node._query_latched_raw``).
+LATCHED_QUERY = "_latched_query"
+
+
 def _frame_index_of(messages: Mapping[str, Any]) -> int:
     for m in messages.values():
         h = getattr(m, "header", None)
@@ -875,7 +901,13 @@ def run_stage(spec: StageSpec, argv: list[str] | None = None) -> int:
             return EXIT_USAGE
         if node._gc_refreeze_at:
             gc_freeze()
-        node.open()
+        try:
+            node.open()
+        except BaseException:
+            abandon = getattr(core, "abandon", None)  # a core that made files (the recorder) removes what holds nothing
+            if abandon is not None:
+                abandon()
+            raise
         if spec.kind == "source":
             node.run_source(core)
         elif spec.kind == "raw_sink":

@@ -263,6 +263,12 @@ def load_pipeline(
         raw = tomllib.loads(path.read_text())
     except FileNotFoundError:
         raise PipelineError(f"pipeline file {path} does not exist") from None
+    except IsADirectoryError:
+        raise PipelineError(f"pipeline file {path} is a folder; expected a pipeline TOML file (shipped: stages/pipelines/*.toml)") from None
+    except UnicodeDecodeError:
+        raise PipelineError(f"{where}: not a text file, so not a pipeline TOML file (a recording? `python launch.py replay --var FILE={path}` plays one)") from None
+    except OSError as exc:
+        raise PipelineError(f"pipeline file {path}: cannot be read ({exc.strerror or exc})") from None
     except tomllib.TOMLDecodeError as exc:
         raise PipelineError(f"{where}: not valid TOML: {exc}") from None
     unknown = sorted(set(raw) - TOP_KEYS)

@@ -139,6 +139,13 @@ class StageSpec:
     ``(stamp_ns, StageResult)``), ``"operator"`` (the core has ``update``) or
     ``"raw_sink"`` (no typed inputs; receives every payload of the run as raw
     bytes: the recorder).
+
+    ``preflight(config)``, where a stage has one, checks what its start would
+    fail on at once (an input file or recording that is not there, an output
+    that must not be replaced) without doing the work: the launcher runs it
+    for every node before any starts (and for ``--check``), so that such a
+    mistake is one line and exit 2, not a run torn down seconds later. It
+    raises ``ConfigError``.
     """
 
     stage: str
@@ -148,3 +155,4 @@ class StageSpec:
     outputs: Mapping[str, Port]
     kind: str = "operator"
     restart_default: bool = True
+    preflight: Callable[[Any], None] | None = None

@@ -114,10 +114,56 @@ def test_a_node_that_fails_at_start_stops_the_run_without_tracebacks_from_the_ot
     """The launcher stops the nodes that have not come up yet (still importing) with SIGTERM, not SIGINT: SIGINT made
     each of them print a KeyboardInterrupt traceback from the module it was importing, pages below the one line that
     said what was wrong."""
-    done = subprocess.run([sys.executable, str(REPO / "launch.py"), "--set", 'recorder.path="/proc/iamp-no-such-folder/run.mcap"', "--no-viewer",
+    # (a recorder path that cannot be written no longer starts any node: the launcher's preflight refuses it, below)
+    done = subprocess.run([sys.executable, str(REPO / "launch.py"), "--set", 'ar_inference.model="/nonexistent/weights.pt"', "--no-viewer",
                            "--stop-after", "5", "--run-id", "badrec"], cwd=tmp_path, env=python_env(), capture_output=True, text=True, timeout=180)
     out = done.stdout + done.stderr
     assert done.returncode == 2, out[-3000:]
-    assert "[recorder]" in out and "bad configuration: " in out, out[-3000:]
+    assert "[ar_inference]" in out and "bad configuration: " in out, out[-3000:]
     assert "[launch] run ended: exit code 2" in out
     assert "Traceback" not in out and "KeyboardInterrupt" not in out, out[-3000:]
+
+
+def _launch(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(REPO / "launch.py"), *args], cwd=cwd, env=python_env(), capture_output=True, text=True, timeout=180)
+
+
+def test_the_launcher_refuses_to_record_over_a_file_before_any_node_starts(tmp_path):
+    """``--record`` naming an existing recording emptied it as the recorder started (the run's exit code was 0, or 2
+    after the damage), and ``replay --record`` of the replayed file itself replayed an empty file."""
+    from stages.recorder import McapRecorder, RecorderConfig
+
+    rec = tmp_path / "keep.mcap"
+    with McapRecorder(RecorderConfig(path=str(rec)), "demo") as r:
+        r.handle("iamp/demo/source/scene", b"x", 1)
+    before = rec.read_bytes()
+    for args, message in (
+        (("--record", str(rec)), "exists: a recording is never replaced unless asked"),
+        (("--record", str(rec), "--check"), "exists: a recording is never replaced unless asked"),
+        (("replay", "--var", f"FILE={rec}", "--record", str(rec), "--overwrite"), "the file node source replays: choose another --record path"),
+        (("--record", str(tmp_path / "new.mcap"), "--recording", "nosuch"), "no recording 'nosuch' under"),
+        (("--record", str(tmp_path / "new.mcap"), "--recording", "nosuch", "--check"), "no recording 'nosuch' under"),
+        (("replay", "--var", f"FILE={tmp_path / 'nosuch.mcap'}", "--check"), "nosuch.mcap: no such file"),
+        (("--record", "/proc/iamp-no-such-folder/run.mcap"), "node recorder (--record): path /proc/iamp-no-such-folder/run.mcap: cannot create the folder"),
+        ((str(rec),), "not a text file, so not a pipeline TOML file"),
+        ((str(tmp_path),), "is a folder; expected a pipeline TOML file"),
+    ):
+        done = _launch(*args, "--no-viewer", "--stop-after", "5", cwd=tmp_path)
+        out = done.stdout + done.stderr
+        assert done.returncode == 2 and message in done.stderr, (args, out[-2000:])
+        assert "node up" not in out and "Traceback" not in out and len(done.stderr.strip().splitlines()) == 1, (args, out[-2000:])
+        assert rec.read_bytes() == before
+    assert not (tmp_path / "new.mcap").exists()
+
+
+def test_the_launcher_s_speed_flag_sets_a_replay_s_speed(tmp_path):
+    from stages.recorder import McapRecorder, RecorderConfig
+
+    rec = tmp_path / "r.mcap"
+    with McapRecorder(RecorderConfig(path=str(rec)), "demo") as r:
+        r.handle("iamp/demo/source/scene", b"x", 1)
+    done = _launch("replay", "--var", f"FILE={rec}", "--speed", "max", "--describe", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert '"speed": "max"' in done.stdout, done.stdout[-2000:]
+    done = _launch("replay", "--var", f"FILE={rec}", "--speed", "2", "--describe", cwd=tmp_path)
+    assert done.returncode == 0 and '"speed": 2.0' in done.stdout, done.stdout[-2000:] + done.stderr

@@ -274,6 +274,37 @@ def test_killed_recorder_is_restarted_into_the_next_split_and_the_run_goes_on(tm
     assert later and later == sorted(later) and later[0] > first["last"]
     assert grids_in(split1) >= 1
     assert not (tmp_path / "run.002.mcap").exists()
+    # ... and it holds the scene, which the source published once before the restart: the restarted recorder asked
+    # for it (a replay of the second split alone waited for it forever)
+    assert sum(m.topic == "iamp/killrec/source/scene" for m in read_messages(str(split1))) == 1
+
+
+def test_sighup_to_the_launcher_stops_every_node_and_finishes_the_recording(tmp_path):
+    """A closed terminal or ssh session sends SIGHUP: the launcher died of it and left every stage running (in their
+    own sessions) with the recording unfinished."""
+    import os
+
+    rec = tmp_path / "run.mcap"
+    run = Launch(*K729, "--speed", "2", "--no-viewer", "--record", str(rec), "--run-id", "hup", "--stop-after", "60", cwd=tmp_path)
+    try:
+        run.wait_line(r"^\[launch\] all \d+ nodes alive; starting sources")
+        pids = {node: _pid_of(run, node) for node in ("source", "corridors", "markov_prediction", "recorder")}
+        run.wait_line(r"^\[corridors\] .*scene loaded")
+        run.proc.send_signal(signal.SIGHUP)
+        code = run.wait()
+    finally:
+        kill_all([run.proc])
+    out = run.text()
+    assert code == 0, out[-4000:]
+    for node, pid in pids.items():
+        alive = True
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            alive = False
+        assert not alive, f"{node} (pid {pid}) still runs after the launcher's SIGHUP"
+    info = inspect(str(rec))
+    assert info["summary_present"] and not info["truncated"], info
 
 
 @pytest.fixture
