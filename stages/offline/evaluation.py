@@ -149,6 +149,7 @@ from stages.corridors import SceneMaps
 from stages.lib.kinematic_state import Consistency, EstimatorConfig, consistency_of, disagreement_line
 from stages.lib.datasets import DEFAULT_DATA_DIR, DatasetError, Recording, default_recordings, discover, find_recording, load_ref
 from stages.lib.datasets.model import same_sequence_id
+from stages.lib.datasets.report import LoadReport, report_lines
 from stages.lib.markov import load_or_build_stencils
 from stages.markov_prediction import FramePrediction, MarkovPredictionConfig, MarkovPredictor
 from stages.markov_prediction.core import grid_config
@@ -159,6 +160,7 @@ from stages.offline.truth import (
     MANOEUVRES,
     ROUTE_MAX_ERROR_M,
     ROUTE_TIE_M,
+    STAMP_TOL_NS,
     along_track_directions,
     followed_corridor,
     future_accelerations,
@@ -178,7 +180,6 @@ SLOW_SPEED_MPS = 2.0
 TRACK_HORIZONS_S = (1.0, 2.0, 3.0, 4.0)
 #: nominal levels of the highest-probability regions whose coverage ``calibration`` reports (the reliability diagram).
 COVERAGE_LEVELS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
-_MS = 1_000_000
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -429,6 +430,7 @@ class Evaluation:
         self.ar_ms: list[float] = []
         self.ar_examples: list[dict[str, Any]] = []
         self.skipped: collections.Counter[str] = collections.Counter()
+        self.load_reports: dict[str, LoadReport] = {}  # per recording: the rows its loader skipped, flagged or repaired
         self.skip_examples: dict[str, str] = {}  # per reason, the first occurrence (printed under the table)
         self.instants = 0
         self.figures: dict[str, _Figure] = {}  # per recording: the instant with the most windows
@@ -465,7 +467,9 @@ class Evaluation:
                 except DatasetError as exc:
                     self._skip("unreadable_sequences", f"{name} sequence {want}: {exc}")
             if parts:
-                out.append(dataclasses.replace(parts[0], sequences=tuple(s for p in parts for s in p.sequences)))
+                report = parts[0].report.merged(*(p.report for p in parts[1:]))
+                out.append(dataclasses.replace(parts[0], sequences=tuple(s for p in parts for s in p.sequences), report=report))
+                self.load_reports[name] = report
         return out
 
     def _skip(self, reason: str, detail: str, count: int = 1) -> None:
@@ -547,7 +551,7 @@ class Evaluation:
             if item.intentions_ms is not None:
                 self.intentions_ms.append(item.intentions_ms)
             offset = stamp - first
-            if offset % stride_ns > _MS and stride_ns - offset % stride_ns > _MS:
+            if offset % stride_ns > STAMP_TOL_NS and stride_ns - offset % stride_ns > STAMP_TOL_NS:  # (jittered stamps too)
                 for predictor in self.predictors.values():
                     predictor.observe(corridor_set)
                 if ar is not None and lagged:  # hybrid_profiles "previous": the next instant's chain reads this frame's
@@ -803,6 +807,7 @@ class Evaluation:
             "instants": self.instants,
             "skipped": dict(sorted(self.skipped.items())),
             "skipped_examples": dict(sorted(self.skip_examples.items())),
+            "load_report": {name: rep.as_dict() for name, rep in self.load_reports.items()},
             "velocity_consistency": {name: self.velocity_consistency(name).as_dict() for name in self.recordings},
             "state_filter": {name: self.state_filter(name) for name in self.recordings},
             "intentions_ms_median": float(np.median(self.intentions_ms)) if self.intentions_ms else None,
@@ -991,6 +996,8 @@ def format_table(report: dict[str, Any]) -> str:
     examples = report.get("skipped_examples", {})
     for reason, count in report["skipped"].items():
         lines.append(f"  {reason:<28} {count:>7d}" + (f"  first: {examples[reason]}" if reason in examples else ""))
+    for name, rep in report.get("load_report", {}).items():  # rows the loader left out or changed: fewer or other windows
+        lines += report_lines(name, rep)
     for name, figures in report.get("velocity_consistency", {}).items():
         line = disagreement_line(Consistency(**figures), EstimatorConfig())
         if line is not None:

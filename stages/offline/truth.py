@@ -7,7 +7,7 @@ scored against the same truth:
   positions, reported speed and the smoothed longitudinal acceleration (the
   AR training targets, ``smoothed_acceleration``);
 - ``future_positions`` / ``future_accelerations``: the true positions
-  (accelerations) at t + k·step (±1 ms), k = 1..K: all K or None, or the
+  (accelerations) at t + k·step (the row within ``STAMP_TOL_NS``, 20 ms), k = 1..K: all K or None, or the
   longest run from k = 1 (``future_run``); ``positions_after``: every
   position in (t, t + seconds];
 - ``followed_corridor``: the corridor a car followed, by ONE rule: the
@@ -53,6 +53,12 @@ ACCEL_EDGE_S = 1.5
 SCORE_TIE = 1e-9
 _NS = 1e-9
 _MS_NS = 1_000_000
+# How far a row's stamp may be from the time it stands for: a tracker's stamps jitter by a few ms (a recording's
+# stamps at exactly k·100 ms are the exception), and 20 ms is below half the period of 25 Hz data, so the nearest row
+# within it is the one meant. Was 1 ms: a jitter of ±5 ms left nothing to score or train on.
+STAMP_TOL_NS = 20_000_000
+# Two rows further apart than this are not interpolated between (a gap in the track): the nearer one stands alone.
+_INTERP_MAX_GAP_NS = 250_000_000
 
 
 # --------------------------------------------------------------------------- tracks
@@ -85,7 +91,7 @@ def smoothed_acceleration(stamps_ns: np.ndarray, xy: np.ndarray, period_ns: int,
     out = np.full(n, np.nan)
     w = int(window_samples) | 1
     dt = period_ns * _NS
-    cuts = np.flatnonzero(np.abs(np.diff(stamps_ns) - period_ns) > _MS_NS) + 1
+    cuts = np.flatnonzero(np.abs(np.diff(stamps_ns) - period_ns) > min(STAMP_TOL_NS, period_ns // 4)) + 1
     for a, b in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [n]])):
         if b - a < w:
             continue
@@ -120,23 +126,51 @@ def ground_truth(seq, *, accel_window_s: float = ACCEL_WINDOW_S, accel_edge_s: f
     return out
 
 
+def rows_near(stamps_ns: np.ndarray, want_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Row indices of the stamps (sorted) nearest each wanted time (a tie: the later), and whether each is within
+    ``STAMP_TOL_NS``."""
+    n = stamps_ns.shape[0]
+    j = np.searchsorted(stamps_ns, want_ns)
+    lo, hi = np.clip(j - 1, 0, n - 1), np.minimum(j, n - 1)
+    i = np.where(np.abs(stamps_ns[hi] - want_ns) <= np.abs(stamps_ns[lo] - want_ns), hi, lo)
+    return i, np.abs(stamps_ns[i] - want_ns) <= STAMP_TOL_NS
+
+
 def _future_rows(track: Track, stamp_ns: int, step_ns: int, n_steps: int) -> tuple[np.ndarray, np.ndarray]:
-    """Row indices (n_steps,) of the stamps nearest t + k·step from above, and whether each is within 1 ms."""
-    want = stamp_ns + int(step_ns) * np.arange(1, n_steps + 1)
-    i = np.minimum(np.searchsorted(track.stamps_ns, want - _MS_NS), track.stamps_ns.shape[0] - 1)
-    return i, np.abs(track.stamps_ns[i] - want) <= _MS_NS
+    """Row indices (n_steps,) of the stamps nearest t + k·step, and whether each is within ``STAMP_TOL_NS``."""
+    return rows_near(track.stamps_ns, stamp_ns + int(step_ns) * np.arange(1, n_steps + 1))
+
+
+def _positions_at(track: Track, i: np.ndarray, want_ns: np.ndarray) -> np.ndarray:
+    """Positions (k, 2) at the wanted times: row ``i`` where its stamp is the time, else the line between the two
+    rows around it (when they are at most ``_INTERP_MAX_GAP_NS`` apart; else row ``i`` itself)."""
+    xy = track.xy[i].copy()
+    stamps = track.stamps_ns
+    off = stamps[i] != want_ns
+    if off.any():
+        n = stamps.shape[0]
+        for k in np.flatnonzero(off).tolist():
+            j = int(i[k])
+            a, b = (j - 1, j) if stamps[j] > want_ns[k] else (j, j + 1)
+            if 0 <= a and b < n and 0 < stamps[b] - stamps[a] <= _INTERP_MAX_GAP_NS:
+                f = float(want_ns[k] - stamps[a]) / float(stamps[b] - stamps[a])
+                xy[k] = track.xy[a] + f * (track.xy[b] - track.xy[a])
+    return xy
 
 
 def future_positions(track: Track | None, stamp_ns: int, step_ns: int, n_steps: int) -> np.ndarray | None:
-    """True positions (n_steps, 2) at exactly t + k·step (±1 ms), k = 1..n_steps, or None when one is missing."""
+    """True positions (n_steps, 2) at t + k·step, k = 1..n_steps (a row within ``STAMP_TOL_NS`` of each, its
+    position moved along the track to the exact time), or None when one is missing."""
     if track is None or n_steps <= 0:
         return None
     i, found = _future_rows(track, stamp_ns, step_ns, n_steps)
-    return track.xy[i] if found.all() else None
+    if not found.all():
+        return None
+    return _positions_at(track, i, stamp_ns + int(step_ns) * np.arange(1, n_steps + 1))
 
 
 def future_accelerations(track: Track | None, stamp_ns: int, step_ns: int, n_steps: int) -> np.ndarray | None:
-    """True accelerations (n_steps,) at exactly t + k·step (±1 ms), or None when one is missing or unknown (NaN)."""
+    """True accelerations (n_steps,) at t + k·step (the row within ``STAMP_TOL_NS``), or None when one is missing or unknown (NaN)."""
     if track is None or n_steps <= 0:
         return None
     i, found = _future_rows(track, stamp_ns, step_ns, n_steps)
@@ -147,10 +181,10 @@ def future_accelerations(track: Track | None, stamp_ns: int, step_ns: int, n_ste
 
 
 def future_run(track: Track, stamp_ns: int, step_ns: int, n_steps: int) -> np.ndarray:
-    """True positions (k, 2) at t + j·step (±1 ms), j = 1..k: the longest run up to n_steps (k may be 0)."""
+    """True positions (k, 2) at t + j·step (as ``future_positions``), j = 1..k: the longest run up to n_steps (k may be 0)."""
     i, found = _future_rows(track, stamp_ns, step_ns, n_steps)
     k = int(np.argmin(found)) if not found.all() else n_steps
-    return track.xy[i[:k]]
+    return _positions_at(track, i[:k], stamp_ns + int(step_ns) * np.arange(1, k + 1))
 
 
 def positions_after(track: Track, stamp_ns: int, seconds: float) -> np.ndarray:
@@ -328,6 +362,6 @@ def along_track_directions(start_xy, future_xy: np.ndarray) -> np.ndarray:
 __all__ = [
     "ACCEL_EDGE_S", "MANOEUVRES", "STAND_MAX_DISPLACEMENT_M", "TURN_MIN_HEADING_DEG", "HEADING_CHORD_M", "SPEED_CHANGE_ABS_MPS",
     "SPEED_CHANGE_REL", "SPEED_CHANGE_MIN_MPS", "SPEED_WINDOW_STEPS", "TANGENT_MIN_MOVE_M", "along_track_directions", "manoeuvre_class", "ACCEL_WINDOW_S", "Followed", "ROUTE_MAX_ERROR_M", "ROUTE_TIE_M", "Track", "followed_corridor",
-    "future_accelerations", "future_positions", "future_run", "ground_truth", "positions_after", "route_credit",
+    "future_accelerations", "future_positions", "future_run", "ground_truth", "positions_after", "route_credit", "rows_near", "STAMP_TOL_NS",
     "route_decision", "route_top1", "smoothed_acceleration",
 ]

@@ -407,3 +407,25 @@ def test_k733_zero_start_velocity_repaired_from_positions() -> None:
 def test_repair_rule_rejects_inconsistent_thresholds() -> None:
     with pytest.raises(ValueError):
         RepairRule(zero_speed_mps=1.0, moving_speed_mps=0.5)
+
+
+def test_jittered_stamps_keep_their_truth_and_accelerations():
+    """The truth at t + k·step is the row within 20 ms of it, moved along the track to the exact time; exact stamps
+    give their own rows, as before."""
+    from stages.offline.truth import Track, future_positions, smoothed_acceleration
+
+    rng = np.random.default_rng(0)
+    t_ns = np.arange(60, dtype=np.int64) * 100_000_000
+    jitter = rng.integers(-5_000_000, 5_000_001, t_ns.shape[0])
+    jitter[0] = 0
+    stamps = t_ns + jitter
+    x = 8.0 * stamps / 1e9 + 0.5 * 1.0 * (stamps / 1e9) ** 2  # 8 m/s, accelerating at 1 m/s²
+    xy = np.column_stack([x, np.zeros_like(x)])
+    track = Track(stamps, xy, np.full(x.shape, 8.0), smoothed_acceleration(stamps, xy, 100_000_000, 11))
+    fut = future_positions(track, 0, 400_000_000, 10)
+    assert fut is not None
+    t = np.arange(1, 11) * 0.4
+    np.testing.assert_allclose(fut[:, 0], 8.0 * t + 0.5 * t**2, atol=0.02)
+    assert np.isfinite(track.accel_mps2).sum() > 30, "the jitter does not cut the track into pieces too short to smooth"
+    exact = Track(t_ns, np.column_stack([8.0 * t_ns / 1e9, np.zeros(60)]), np.full(60, 8.0), np.zeros(60))
+    np.testing.assert_array_equal(future_positions(exact, 0, 400_000_000, 10), exact.xy[4:41:4])

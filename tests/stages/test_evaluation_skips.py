@@ -104,3 +104,47 @@ def test_only_a_bad_command_line_or_configuration_stops_it(tmp_path, capsys):
     assert cli.main(base + ["--recording", "nowhere"]) == 2
     err = capsys.readouterr().err
     assert "999" in err and "no_such_parameter" in err and "nowhere" in err
+
+
+def _rewrite_tracks(data, sequence: str, change) -> None:
+    """Apply ``change(header, rows)`` to one sequence's track file (rows as lists of fields, in place)."""
+    import csv
+
+    path = data / "recorded_trackfiles" / DEFAULT_RECORDING / f"vehicle_tracks_{sequence}.csv"
+    with path.open(newline="") as f:
+        rows = list(csv.reader(f))
+    change(rows[0], rows[1:])
+    with path.open("w", newline="") as f:
+        csv.writer(f).writerows(rows)
+
+
+def test_jittered_stamps_give_the_same_windows_and_the_loader_s_findings_are_shown(tmp_path, capsys):
+    """A tracker whose stamps jitter by a few ms (not every recording has its stamps at exactly k·100 ms): with the
+    truth matched within 1 ms, ±5 ms left 0 of the windows to score; one corrupt stamp (ms beyond any array of ns)
+    ended the whole evaluation in an OverflowError; and what the loader skipped or repaired was never shown."""
+    import random
+
+    data = tmp_path / "taf-bw"
+    shutil.copytree(DEFAULT_DATA_DIR, data)
+    clean = Evaluation(_config(data_dir=data)).run()
+    rng = random.Random(0)
+
+    def jitter(header, rows):
+        t, vx = header.index("timestamp_ms"), header.index("vx")
+        for i, r in enumerate(rows):
+            r[t] = str(int(r[t]) + rng.randint(-5, 5))
+            if i % 7 == 3:
+                r[vx] = ""  # an empty measured field: derived from the positions, the row kept
+        rows[len(rows) // 2][t] = "99999999999999"  # one corrupt stamp
+
+    _rewrite_tracks(data, SEQUENCE, jitter)
+    report = Evaluation(_config(data_dir=data)).run()
+    assert _windows(report)["cv"] >= _windows(clean)["cv"] - 3 > 0, (_windows(report), _windows(clean))
+    for mode in MODES:
+        assert report["modes"][mode]["overall"]["mADE_m"] == pytest.approx(clean["modes"][mode]["overall"]["mADE_m"], rel=0.1)
+    problems = report["load_report"][DEFAULT_RECORDING]["problems"]
+    assert problems["time_out_of_range"]["count"] == 1 and problems["time_out_of_range"]["action"] == "skipped"
+    assert problems["velocity_nan_from_positions"]["count"] > 0 and "missing_field" not in problems
+    table = format_table(report)
+    assert "time_out_of_range" in table and "what the loader found" in table
+    assert "load_report" in clean and not clean["load_report"][DEFAULT_RECORDING]["problems"].get("time_out_of_range")

@@ -32,6 +32,7 @@ NON_NUMERIC = "non_numeric"
 NON_FINITE_POSITION = "non_finite_position"
 DUPLICATE_FRAME = "duplicate_frame"
 TIME_BACKWARDS = "time_backwards"
+TIME_OUT_OF_RANGE = "time_out_of_range"
 # reason a row is kept but flagged
 UNKNOWN_AGENT_TYPE = "unknown_agent_type"
 # repairs
@@ -44,7 +45,10 @@ YAW_FROM_NEIGHBOUR = "yaw_from_neighbour"
 YAW_DEFAULTED = "yaw_defaulted"
 SIZE_DEFAULTED = "size_defaulted"
 
-SKIP_REASONS = (MISSING_FIELD, NON_NUMERIC, NON_FINITE_POSITION, DUPLICATE_FRAME, TIME_BACKWARDS)
+# the largest |time| a row may have: int64 nanoseconds, with room for the sums of later steps (about 146 years)
+MAX_STAMP_NS = 2**62
+
+SKIP_REASONS = (MISSING_FIELD, NON_NUMERIC, NON_FINITE_POSITION, DUPLICATE_FRAME, TIME_BACKWARDS, TIME_OUT_OF_RANGE)
 REPAIR_REASONS = (
     VELOCITY_SIGN_FLIPPED,
     YAW_FLIPPED,
@@ -137,6 +141,17 @@ def field_float(fields: list[str], columns: dict[str, int], name: str) -> float:
         raise BadRow(NON_NUMERIC, f"{name}={text!r} is not a number") from None
 
 
+def measured_float(fields: list[str], columns: dict[str, int], name: str) -> float:
+    """An optional measured column (velocity, heading, size) as float: NaN where the column or its value is missing,
+    to be derived from the positions or defaulted like a NaN; text that is no number is a bad row."""
+    if name not in columns:
+        return math.nan
+    i = columns[name]
+    if i >= len(fields) or not fields[i].strip():
+        return math.nan
+    return field_float(fields, columns, name)
+
+
 def field_int(fields: list[str], columns: dict[str, int], name: str) -> int:
     """Column ``name`` as an integer (``"12"`` or ``"12.0"``)."""
     text = field_text(fields, columns, name)
@@ -225,7 +240,12 @@ class RowBuffer:
         length_m: float,
         width_m: float,
     ) -> bool:
-        """Add one parsed row; False (and counted) if it is a duplicate or goes back in time."""
+        """Add one parsed row; False (and counted) if it is a duplicate, goes back in time or has a time that no
+        array of nanoseconds holds."""
+        if not -MAX_STAMP_NS <= stamp_ns <= MAX_STAMP_NS:  # a corrupt value, or not milliseconds (microseconds since 1970)
+            self.report.skip(TIME_OUT_OF_RANGE, file, line, f"track {track_id}: time {stamp_ns / 1e9:.3g} s is beyond ±{MAX_STAMP_NS / 1e9 / 3.156e7:.0f} years"
+                             " (a corrupt value, or a time not in the format's unit)")
+            return False
         if not (math.isfinite(x_m) and math.isfinite(y_m)):
             self.report.skip(NON_FINITE_POSITION, file, line, f"track {track_id}: x={x_m} y={y_m}")
             return False

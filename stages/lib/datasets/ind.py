@@ -39,6 +39,7 @@ from stages.lib.datasets._rows import (
     RowBuffer,
     display_path,
     field_float,
+    measured_float,
     field_int,
     field_text,
     no_usable_row,
@@ -160,11 +161,11 @@ def read_sequence(tracks_path: Path, rule: RepairRule, display_root: Path | None
                 frame = field_int(fields, cols, "frame")
                 x = field_float(fields, cols, "xCenter")
                 y = field_float(fields, cols, "yCenter")
-                vx = field_float(fields, cols, "xVelocity")
-                vy = field_float(fields, cols, "yVelocity")
-                heading_deg = field_float(fields, cols, "heading")
-                length = field_float(fields, cols, "length")
-                width = field_float(fields, cols, "width")
+                vx = measured_float(fields, cols, "xVelocity")  # empty: derived from the positions, like NaN
+                vy = measured_float(fields, cols, "yVelocity")
+                heading_deg = measured_float(fields, cols, "heading")
+                length = measured_float(fields, cols, "length")  # empty: the type's default size
+                width = measured_float(fields, cols, "width")
             except BadRow as exc:
                 report.skip(exc.reason, shown, line, exc.detail)
                 continue
@@ -175,7 +176,7 @@ def read_sequence(tracks_path: Path, rule: RepairRule, display_root: Path | None
                 line=line,
                 track_id=track_id,
                 frame_index=frame,
-                stamp_ns=int(round(frame * 1e9 / meta.frame_rate_hz)),
+                stamp_ns=int(round(frame * 1e9 / meta.frame_rate_hz)) if abs(frame) < 1e15 else 2**63,  # (too far: skipped)
                 agent_type=agent_type,
                 x_m=x,
                 y_m=y,

@@ -39,6 +39,7 @@ from stages.lib.datasets._rows import (
     RowBuffer,
     display_path,
     field_float,
+    measured_float,
     field_int,
     field_text,
     no_usable_row,
@@ -156,11 +157,11 @@ def read_sequence(files: list[Path], meta: SequenceMeta, rule: RepairRule, displ
                     type_name = field_text(fields, cols, "agent_type")
                     x = field_float(fields, cols, "x")
                     y = field_float(fields, cols, "y")
-                    vx = field_float(fields, cols, "vx")
-                    vy = field_float(fields, cols, "vy")
-                    yaw = field_float(fields, cols, "psi_rad")
-                    length = field_float(fields, cols, "length")
-                    width = field_float(fields, cols, "width")
+                    vx = measured_float(fields, cols, "vx")  # empty: derived from the positions, like NaN
+                    vy = measured_float(fields, cols, "vy")
+                    yaw = measured_float(fields, cols, "psi_rad")
+                    length = measured_float(fields, cols, "length")  # empty: the type's default size
+                    width = measured_float(fields, cols, "width")
                 except BadRow as exc:
                     report.skip(exc.reason, shown, line, exc.detail)
                     continue

@@ -88,6 +88,15 @@ class LoadReport:
             builder.add_report(rep)
         return builder.build()
 
+    def as_dict(self) -> dict:
+        """For a JSON report: rows read and kept, and per reason its action, count and first example."""
+        return {
+            "rows_read": self.rows_read,
+            "rows_kept": self.rows_kept,
+            "problems": {p.reason: {"action": p.action, "count": p.count, "first": str(p.examples[0]) if p.examples else ""} for p in self.problems},
+            "ignored_files": list(self.ignored_files),
+        }
+
     def summary(self) -> str:
         """One line: ``rows_read=… rows_kept=… skipped[reason]=n …``."""
         parts = [f"rows_read={self.rows_read}", f"rows_kept={self.rows_kept}"]
@@ -161,3 +170,19 @@ class ReportBuilder:
         return LoadReport(
             rows_read=self.rows_read, rows_kept=self.rows_kept, problems=problems, ignored_files=tuple(dict.fromkeys(self._ignored))
         )
+
+
+def report_lines(name: str, report: dict) -> list[str]:
+    """For a tool's printed table: what the loader did to recording ``name``'s files (``LoadReport.as_dict()``, as a
+    JSON report holds it), one line per reason; nothing when every row was kept as it was."""
+    problems, ignored = report.get("problems", {}), report.get("ignored_files", [])
+    if not problems and not ignored:
+        return []
+    skipped = sum(v["count"] for v in problems.values() if v["action"] == SKIPPED)
+    lines = [f"{name}: rows read {report['rows_read']}, kept {report['rows_kept']} ({skipped} skipped); what the loader found:"]
+    for reason, v in problems.items():
+        first = f"  first: {v['first']}" if v.get("first") else ""
+        lines.append(f"  {v['action']:<9} {reason:<32} {v['count']:>7d}{first}")
+    if ignored:
+        lines.append(f"  ignored files: {', '.join(ignored)}")
+    return lines

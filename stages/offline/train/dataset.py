@@ -10,7 +10,7 @@ per sequence, maps loaded once) and feeds every frame to one
 that
 
 - has at least ``min_future_steps`` (10, 1 s) known targets among the 40
-  steps of its 4 s true future: a position at t + 0.1 k s (±1 ms) with a
+  steps of its 4 s true future: a position at t + 0.1 k s (its row within 20 ms, `truth.STAMP_TOL_NS`) with a
   finite target acceleration there (``future_targets``; else
   ``no_full_future`` when none is known, ``short_future`` when too few).
   The unknown steps are masked (``y_mask`` false, y 0): the loss and the
@@ -102,6 +102,7 @@ from stages.offline.truth import (
     ROUTE_TIE_M,
     ground_truth,
     positions_after,
+    rows_near,
     smoothed_acceleration,
 )
 from stages.lib.maps import project_to_polyline
@@ -109,10 +110,9 @@ from stages.tracks_source.core import file_sha256
 
 from stages.lib.ar.features import ACCEL, FEATURE_NAMES, HISTORY_STEPS, HORIZON_STEPS, N_FEATURES, STEP_S, FeatureConfig, FeatureTracker
 
-DATASET_VERSION = 4
-"""Bump when the sample definition changes (invalidates caches)."""
+DATASET_VERSION = 5
+"""Bump when the sample definition changes (invalidates caches). 5: a row within 20 ms of a step's time (was 1 ms)."""
 _STEP_NS = int(round(STEP_S * 1e9))
-_MS_NS = 1_000_000
 TIED_ROUTES = ("weight", "drop", "first")
 """What a window whose route the future cannot decide gives (module docstring): one sample per tied corridor with
 weight 1/k (``weight``, default), none (``drop``, version 3's behaviour) or one on the first tied corridor (``first``)."""
@@ -295,7 +295,7 @@ class ARDataset:
 
 
 def future_targets(track, stamp_ns: int, step_ns: int, n_steps: int) -> tuple[np.ndarray, np.ndarray]:
-    """(accelerations (n_steps,), known (n_steps,) bool) of the true track at t + k·step (±1 ms), k = 1..n_steps.
+    """(accelerations (n_steps,), known (n_steps,) bool) of the true track at t + k·step (its row within ``truth.STAMP_TOL_NS``), k = 1..n_steps.
 
     A step is known when the track has a row there with a finite target
     (``Track.accel_mps2``); unknown steps hold NaN. No track: nothing known.
@@ -303,9 +303,7 @@ def future_targets(track, stamp_ns: int, step_ns: int, n_steps: int) -> tuple[np
     accel = np.full(n_steps, np.nan)
     if track is None or track.stamps_ns.shape[0] == 0:
         return accel, np.zeros(n_steps, dtype=bool)
-    want = int(stamp_ns) + int(step_ns) * np.arange(1, n_steps + 1)
-    i = np.minimum(np.searchsorted(track.stamps_ns, want - _MS_NS), track.stamps_ns.shape[0] - 1)
-    found = np.abs(track.stamps_ns[i] - want) <= _MS_NS
+    i, found = rows_near(track.stamps_ns, int(stamp_ns) + int(step_ns) * np.arange(1, n_steps + 1))
     accel[found] = track.accel_mps2[i[found]]
     return accel, np.isfinite(accel)
 
