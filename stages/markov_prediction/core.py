@@ -37,7 +37,7 @@ from bus_schemas import (
     SceneInfo,
     TrackFrame,
 )
-from stages.lib.base import Issue, StageResult, isolate
+from stages.lib.base import ConfigError, Issue, StageResult, isolate
 from stages.lib.caps import cap_pairs
 from stages.lib.datasets import DEFAULT_SIZES_M
 from stages.lib.grid_fusion import parse_shard, shard_of
@@ -267,6 +267,11 @@ class MarkovPredictor:
 
     def __init__(self, config: MarkovPredictionConfig, *, producer: str = "markov_prediction", stencils: Any = None,
                  log: Any = None) -> None:
+        if config.backend == "torch" and config.device.startswith("cuda"):
+            import torch
+
+            if not torch.cuda.is_available():  # else the first frame failed deep in torch, every frame
+                raise ConfigError(f"device = {config.device!r}: no CUDA device here (torch {torch.__version__}); use device = 'cpu'")
         self.config = config
         self.producer = producer
         #: FramePrediction.regrid kept (iamp calibrate with spread_shape "along"): each frame's geometry stays referenced

@@ -273,6 +273,10 @@ def run_cli(args) -> int:
         sys.stderr.write(f"iamp calibrate: error: {exc}\n")
         return 2
     tables, measured = cal.fit()
+    if not any(sum(measured[m]["windows"].values()) for m in tables):  # a table of σ 0 from nothing would make every grid a point
+        left_out = ", ".join(f"{k} {v}" for k, v in sorted(cal.skipped.items())) or "nothing counted"
+        sys.stderr.write(f"iamp calibrate: error: no window to fit the spread on ({left_out}); {args.out} not written\n")
+        return 2
     fitted_on = {"data": str(args.data), "recordings": cal.recordings, "stride_s": args.stride, "seed": args.seed,
                  "model": str(args.model) if args.model else "shipped", "level": args.level, "sigmas_m": list(cal.sigmas_m),
                  "speed_noise_gain": cal.speed_noise_gain,

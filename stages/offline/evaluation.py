@@ -479,6 +479,13 @@ class Evaluation:
 
     def run(self) -> dict[str, Any]:
         recordings = self._load()
+        usable = [rec for rec in recordings if rec.map_path is not None]
+        if recordings and not usable:  # nothing to evaluate: the command line named the wrong data
+            raise DatasetError(f"recording {recordings[0].name} has no map: expected maps/{recordings[0].name}.osm in {self.config.data_dir}")
+        for rec in recordings:
+            if rec.map_path is None:  # one recording of several without its map: counted, the others evaluated
+                self._skip("recordings_without_map", f"{rec.name}: expected maps/{rec.name}.osm in {self.config.data_dir}")
+        recordings = usable
         total = 0
         for rec in recordings:
             for seq in rec.sequences:

@@ -104,6 +104,11 @@ def test_only_a_bad_command_line_or_configuration_stops_it(tmp_path, capsys):
     assert cli.main(base + ["--recording", "nowhere"]) == 2
     err = capsys.readouterr().err
     assert "999" in err and "no_such_parameter" in err and "nowhere" in err
+    import torch
+
+    if not torch.cuda.is_available():  # was an AssertionError traceback from inside torch at the first frame
+        assert cli.main(base + ["--mode", "baseline", "--backend", "torch", "--device", "cuda"]) == 2
+        assert "no CUDA device here" in capsys.readouterr().err
 
 
 def _rewrite_tracks(data, sequence: str, change) -> None:
@@ -148,3 +153,29 @@ def test_jittered_stamps_give_the_same_windows_and_the_loader_s_findings_are_sho
     table = format_table(report)
     assert "time_out_of_range" in table and "what the loader found" in table
     assert "load_report" in clean and not clean["load_report"][DEFAULT_RECORDING]["problems"].get("time_out_of_range")
+
+
+def test_a_recording_without_its_map_is_counted_and_the_others_are_evaluated(tmp_path):
+    """One recording of a data folder without `maps/<name>.osm` ended `iamp eval` with exit 2, the others unscored."""
+    data = tmp_path / "taf-bw"
+    shutil.copytree(DEFAULT_DATA_DIR, data)
+    shutil.copytree(data / "recorded_trackfiles" / DEFAULT_RECORDING, data / "recorded_trackfiles" / "k729_copy")
+    report = Evaluation(_config(data_dir=data, recordings=(DEFAULT_RECORDING, "k729_copy"))).run()
+    assert report["skipped"]["recordings_without_map"] == 1 and "k729_copy" in report["skipped_examples"]["recordings_without_map"]
+    assert report["recordings"] == [DEFAULT_RECORDING] and _windows(report)["cv"] > 0
+    with pytest.raises(ValueError, match="k729_copy has no map"):  # alone: the command line named the wrong data
+        Evaluation(_config(data_dir=data, recordings=("k729_copy",))).run()
+
+
+def test_calibrate_with_no_window_writes_nothing_and_says_why(tmp_path, capsys):
+    """With no window (a header-only track file) `iamp calibrate` wrote a table of σ 0, which makes every grid a
+    point, and exited 0."""
+    data = tmp_path / "taf-bw"
+    shutil.copytree(DEFAULT_DATA_DIR, data)
+    path = data / "recorded_trackfiles" / DEFAULT_RECORDING / f"vehicle_tracks_{SEQUENCE}.csv"
+    path.write_text(path.read_text().splitlines()[0] + "\n")  # the header only
+    out = tmp_path / "spread.json"
+    code = cli.main(["calibrate", "--data", str(data), "--recording", DEFAULT_RECORDING, "--sequence", SEQUENCE, "--mode", "cv",
+                     "--out", str(out), "--no-progress"])
+    assert code == 2 and not out.exists()
+    assert "no window to fit the spread on (unreadable_sequences 1)" in capsys.readouterr().err

@@ -97,3 +97,25 @@ def test_lane_file_is_looked_up_by_plain_recording_name_only():
     assert lane_file_for(FIXTURE, REC) == REC_DIR / "k733_map.kml"
     for hostile in ("..", "../taf_bw_signals/recorded_trackfiles/" + REC, "/etc", "", ".hidden", "a/b"):
         assert lane_file_for(FIXTURE, hostile) is None
+
+
+@pytest.mark.parametrize("damage", ["half", "empty"])
+def test_a_lane_file_that_cannot_be_read_costs_the_signals_not_the_recording(tmp_path, damage):
+    """A KML cut in half (or empty) made the whole recording unreadable: every sequence skipped by `iamp eval`, `iamp
+    train` stopped. The signal side is optional: the tracks load without it, and the report says which file was not
+    used and why."""
+    from stages.lib.datasets import DEFAULT_DATA_DIR, load_recording
+
+    rec_dir = tmp_path / "recorded_trackfiles" / REC
+    rec_dir.mkdir(parents=True)
+    (tmp_path / "maps").mkdir()
+    shutil.copy(FIXTURE / "maps" / f"{REC}.osm", tmp_path / "maps" / f"{REC}.osm")
+    shutil.copy(REC_DIR / "meta_data.csv", rec_dir / "meta_data.csv")
+    shutil.copy(REC_DIR / "signal_phases_000.csv", rec_dir / "signal_phases_000.csv")
+    tracks = (DEFAULT_DATA_DIR / "recorded_trackfiles" / "k733_2018-05-02" / "vehicle_tracks_000.csv").read_text().splitlines()
+    (rec_dir / "vehicle_tracks_000.csv").write_text("\n".join(tracks[:300]) + "\n")
+    kml = (REC_DIR / "k733_map.kml").read_text()
+    (rec_dir / "k733_map.kml").write_text(kml[: len(kml) // 2] if damage == "half" else "")
+    rec = load_recording(tmp_path, REC)
+    assert rec.sequences and rec.kml_lanes is None and rec.signal_phases is not None
+    assert any("k733_map.kml (not used: " in f for f in rec.report.ignored_files), rec.report.ignored_files

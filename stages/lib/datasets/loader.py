@@ -162,13 +162,25 @@ def load_ref(
         log.debug("sequence loaded: recording=%s sequence=%s %s", ref.name, seq.id, seq.report.summary())
     first = loaded[0]
     phases = lanes = None
+    # the signal side is optional: a file of it that cannot be used is counted and the tracks play without it (as with
+    # `iamp eval --signals off`), never the recording lost
     if ref.signal_files:
-        phases = signals.read_signal_phases(ref.signal_files, display_root)
-        builder.add_report(dataclasses.replace(phases.report, rows_read=0, rows_kept=0))  # rows_read counts track rows
-        log.debug("signal phases loaded: recording=%s groups=%d %s", ref.name, len(phases.group_ids), phases.report.summary())
+        try:
+            phases = signals.read_signal_phases(ref.signal_files, display_root)
+        except DatasetError as exc:
+            builder.ignore_file(f"{display_path(ref.signal_files[0], display_root)} (not used: {exc}; played without signal phases)")
+            log.warning("signal phases not used: recording=%s reason=%s", ref.name, exc)
+        else:
+            builder.add_report(dataclasses.replace(phases.report, rows_read=0, rows_kept=0))  # rows_read counts track rows
+            log.debug("signal phases loaded: recording=%s groups=%d %s", ref.name, len(phases.group_ids), phases.report.summary())
     if ref.lane_file is not None:
-        lanes = signals.read_kml_lanes(ref.lane_file, display_root)
-        builder.add_report(dataclasses.replace(lanes.report, rows_read=0, rows_kept=0))
+        try:
+            lanes = signals.read_kml_lanes(ref.lane_file, display_root)
+        except DatasetError as exc:
+            builder.ignore_file(f"{display_path(ref.lane_file, display_root)} (not used: {exc}; played without its lanes' signals)")
+            log.warning("lane file not used: recording=%s reason=%s", ref.name, exc)
+        else:
+            builder.add_report(dataclasses.replace(lanes.report, rows_read=0, rows_kept=0))
     return Recording(
         name=ref.name,
         format=ref.format,

@@ -105,6 +105,7 @@ from stages.offline.truth import (
     rows_near,
     smoothed_acceleration,
 )
+from stages.lib.datasets.report import report_lines
 from stages.lib.maps import project_to_polyline
 from stages.tracks_source.core import file_sha256
 
@@ -492,6 +493,8 @@ def build_dataset(cfg: DatasetConfig, *, cache_dir: Path | None = None, progress
     for rec in recordings:
         if rec.map_path is None:
             raise DatasetError(f"recording {rec.name} has no map: expected maps/{rec.name}.osm in {cfg.data_dir}")
+        for line in report_lines(rec.name, rec.report.as_dict()):  # rows the loader left out or changed: fewer samples
+            say(line)
     plays = 1 + len(cfg.speed_factors)  # (a warped copy has about n_frames / f frames: the bar's total is a guess)
     total = plays * sum(min(s.n_frames, cfg.max_frames_per_sequence) if cfg.max_frames_per_sequence else s.n_frames for r in recordings for s in r.sequences)
     bar = progress_bar(total, progress, unit="frame", desc="iamp train: features")
