@@ -86,8 +86,10 @@ class Chain:
         relations_config: RelationsConfig | None = None,
         signals: bool = True,
         frame_hook: Callable[[TrackFrame], TrackFrame] | None = None,
+        on_issues: Callable[[str, list], None] | None = None,
     ) -> None:
         self.recording = recording
+        self.on_issues = on_issues  # on_issues(stage, issues): what a core flagged in a frame (the bus's NodeStats counts)
         self.frame_hook = frame_hook  # applied to every TrackFrame before the cores see it (training-time augmentation)
         self.sequence = sequence
         self.scene_maps = scene_maps
@@ -140,12 +142,16 @@ class Chain:
     def _run(self, stage: str, where: str, call):
         """The core's first output, or None when it raises and ``on_error`` takes the failure."""
         if self.on_error is None:
-            return call()[0]
-        try:
-            return call()[0]
-        except Exception as exc:  # noqa: BLE001 - a data condition never ends an evaluation
-            self.on_error(stage, where, exc)
-            return None
+            out = call()
+        else:
+            try:
+                out = call()
+            except Exception as exc:  # noqa: BLE001 - a data condition never ends an evaluation
+                self.on_error(stage, where, exc)
+                return None
+        if self.on_issues is not None and len(out) > 1 and out[1]:
+            self.on_issues(stage, out[1])
+        return out[0]
 
 
 def chain_frames(recording: Recording, sequence, scene_maps: SceneMaps, *, map_sha256: str = "", **kwargs) -> list[ChainFrame]:

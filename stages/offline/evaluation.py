@@ -431,6 +431,8 @@ class Evaluation:
         self.ar_examples: list[dict[str, Any]] = []
         self.skipped: collections.Counter[str] = collections.Counter()
         self.load_reports: dict[str, LoadReport] = {}  # per recording: the rows its loader skipped, flagged or repaired
+        self.stage_issues: collections.Counter[str] = collections.Counter()  # "stage:kind" -> issues the cores flagged
+        self.stage_issue_examples: dict[str, str] = {}
         self.skip_examples: dict[str, str] = {}  # per reason, the first occurrence (printed under the table)
         self.instants = 0
         self.figures: dict[str, _Figure] = {}  # per recording: the instant with the most windows
@@ -471,6 +473,14 @@ class Evaluation:
                 out.append(dataclasses.replace(parts[0], sequences=tuple(s for p in parts for s in p.sequences), report=report))
                 self.load_reports[name] = report
         return out
+
+    def _stage_issues(self, stage: str, issues: list) -> None:
+        """Count what a core of the chain flagged (a position jump, a restarted track, a car off the map): the oddities
+        of the data, as a stage on the bus counts them in its NodeStats."""
+        for issue in issues:
+            key = f"{stage}:{issue.kind}"
+            self.stage_issues[key] += 1
+            self.stage_issue_examples.setdefault(key, f"agent {issue.agent_id}: {issue.detail}")
 
     def _skip(self, reason: str, detail: str, count: int = 1) -> None:
         """Count ``count`` things skipped for ``reason``; the first one's ``detail`` is kept for the table."""
@@ -522,7 +532,7 @@ class Evaluation:
         chain = Chain(
             rec, seq, self.scene_maps, intentions=self.intentions_config if needs_belief else None, max_frames=cfg.max_frames_per_sequence,
             map_sha256=map_sha256, on_error=lambda stage, where, exc: self._skip(f"{stage}_error_frames", f"{where}: {type(exc).__name__}: {exc}"),
-            run_id="eval", producer="eval", signals=cfg.signals,
+            run_id="eval", producer="eval", signals=cfg.signals, on_issues=self._stage_issues,
         )
         ar = None
         if self.ar_config is not None:
@@ -815,6 +825,7 @@ class Evaluation:
             "skipped": dict(sorted(self.skipped.items())),
             "skipped_examples": dict(sorted(self.skip_examples.items())),
             "load_report": {name: rep.as_dict() for name, rep in self.load_reports.items()},
+            "stage_issues": {k: {"count": n, "first": self.stage_issue_examples.get(k, "")} for k, n in sorted(self.stage_issues.items())},
             "velocity_consistency": {name: self.velocity_consistency(name).as_dict() for name in self.recordings},
             "state_filter": {name: self.state_filter(name) for name in self.recordings},
             "intentions_ms_median": float(np.median(self.intentions_ms)) if self.intentions_ms else None,
@@ -1005,6 +1016,10 @@ def format_table(report: dict[str, Any]) -> str:
         lines.append(f"  {reason:<28} {count:>7d}" + (f"  first: {examples[reason]}" if reason in examples else ""))
     for name, rep in report.get("load_report", {}).items():  # rows the loader left out or changed: fewer or other windows
         lines += report_lines(name, rep)
+    if report.get("stage_issues"):
+        lines.append("issues the stages flagged (frames are still predicted), by stage and kind:")
+        for key, v in report["stage_issues"].items():
+            lines.append(f"  {key:<40} {v['count']:>7d}  first: {v['first']}")
     for name, figures in report.get("velocity_consistency", {}).items():
         line = disagreement_line(Consistency(**figures), EstimatorConfig())
         if line is not None:

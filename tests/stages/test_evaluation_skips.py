@@ -117,10 +117,10 @@ def _rewrite_tracks(data, sequence: str, change) -> None:
 
     path = data / "recorded_trackfiles" / DEFAULT_RECORDING / f"vehicle_tracks_{sequence}.csv"
     with path.open(newline="") as f:
-        rows = list(csv.reader(f))
-    change(rows[0], rows[1:])
+        header, *body = list(csv.reader(f))
+    change(header, body)
     with path.open("w", newline="") as f:
-        csv.writer(f).writerows(rows)
+        csv.writer(f).writerows([header, *body])
 
 
 def test_jittered_stamps_give_the_same_windows_and_the_loader_s_findings_are_shown(tmp_path, capsys):
@@ -179,3 +179,28 @@ def test_calibrate_with_no_window_writes_nothing_and_says_why(tmp_path, capsys):
                      "--out", str(out), "--no-progress"])
     assert code == 2 and not out.exists()
     assert "no window to fit the spread on (unreadable_sequences 1)" in capsys.readouterr().err
+
+
+def test_what_the_stages_flag_is_counted_in_the_report(tmp_path):
+    """A track id that two cars use at once (a tracker's re-used id) makes the corridors stage restart the track at
+    each jump; on the bus that is counted in NodeStats, and `iamp eval` now counts it too (it showed nothing)."""
+    data = tmp_path / "taf-bw"
+    shutil.copytree(DEFAULT_DATA_DIR, data)
+
+    def clash(header, rows):
+        tid, x, t = header.index("track_id"), header.index("x"), header.index("timestamp_ms")
+        first, second = "5711", "5720"  # two cars of the sequence, both there from 1.3 s to 4.4 s
+        moved = set()
+        for i, r in enumerate(rows):  # the second car's rows moved 40 m and given the first car's id
+            if r[tid] == second:
+                r[tid], r[x] = first, str(float(r[x]) + 40.0)
+                moved.add(i)
+        # in time order, the two cars' rows of a frame in turns first (the loader keeps the first row of a track and frame)
+        order = sorted(range(len(rows)), key=lambda i: (int(rows[i][t]), (i in moved) == (int(rows[i][t]) // 100 % 2 == 0)))
+        rows[:] = [rows[i] for i in order]
+
+    _rewrite_tracks(data, SEQUENCE, clash)
+    report = Evaluation(_config(data_dir=data)).run()
+    issues = report["stage_issues"]
+    assert issues.get("corridors:position_jump", {}).get("count", 0) > 0, issues
+    assert "corridors:position_jump" in format_table(report)
