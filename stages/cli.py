@@ -189,6 +189,8 @@ def _run_train(args: argparse.Namespace) -> int:
 
 
 def _args_data(p: argparse.ArgumentParser) -> None:
+    from stages.lib.datasets.superimpose import MAX_DURATION_S, MAX_SHIFT_S, MAX_VEHICLE_SECONDS, MAX_VEHICLES
+
     data_sub = p.add_subparsers(dest="data_command", metavar="DATA_COMMAND")
     s = data_sub.add_parser(
         "superimpose",
@@ -198,11 +200,20 @@ def _args_data(p: argparse.ArgumentParser) -> None:
     s.add_argument("--data", required=True, help="source data folder (maps/ + recorded_trackfiles/, INTERACTION format)")
     s.add_argument("--recording", required=True, help="source recording, e.g. k733_2018-05-02")
     s.add_argument("--sequence", action="append", default=[], help="source sequence (repeatable; default all)")
-    s.add_argument("--vehicles", type=float, required=True, help="target mean number of vehicles per frame")
-    s.add_argument("--out", required=True, help="output data folder (created; the recording's files in it are replaced)")
-    s.add_argument("--name", default=None, help="name of the new recording (default <recording>-dense<N>)")
-    s.add_argument("--shift-s", type=float, default=None, help="time shift between copies (default: the signal cycle estimated from the tracks)")
-    s.add_argument("--duration-s", type=float, default=None, help="duration of the output (default: the longest source sequence)")
+    s.add_argument("--vehicles", type=float, required=True,
+                   help=f"target mean number of vehicles per frame (above 0, at most {MAX_VEHICLES}; "
+                   f"--vehicles x --duration-s at most {MAX_VEHICLE_SECONDS:.0f} vehicle-seconds)")
+    s.add_argument("--out", required=True,
+                   help="output data folder (created; the recording's files in it are replaced once the new ones are complete; "
+                   "it may not hold the source recording or its map, as --data does, nor lie in the source recording's folder)")
+    s.add_argument("--name", default=None,
+                   help="name of the new recording, a plain folder name (no '/', '\\' or '..', not starting with '.'; "
+                   "default <recording>-dense<N>, N as given)")
+    s.add_argument("--shift-s", type=float, default=None,
+                   help=f"time shift between copies, above 0 and at most {MAX_SHIFT_S:.0f} s (default: the signal cycle estimated "
+                   "from the tracks)")
+    s.add_argument("--duration-s", type=float, default=None,
+                   help=f"duration of the output, at most {MAX_DURATION_S:.0f} s (a day) (default: the longest source sequence)")
     s.add_argument("--json", action="store_true", help="print the result as JSON")
     p.set_defaults(run=_run_data, parser=p)
 
@@ -214,14 +225,29 @@ def _run_data(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     from stages.lib.base import ConfigError, check_output
     from stages.lib.datasets import DatasetError
-    from stages.lib.datasets.superimpose import build_dense
+    from stages.lib.datasets.loader import find_recording
+    from stages.lib.datasets.superimpose import build_dense, check_name, check_out_apart, check_request
 
     finite = [v for v in (args.vehicles, args.shift_s, args.duration_s) if v is not None]
-    if not all(math.isfinite(v) for v in finite) or not args.vehicles > 0 or (args.shift_s is not None and args.shift_s < 0) \
+    if not all(math.isfinite(v) for v in finite) or not args.vehicles > 0 or (args.shift_s is not None and not args.shift_s > 0) \
             or (args.duration_s is not None and not args.duration_s > 0):
-        sys.stderr.write("iamp data superimpose: --vehicles and --duration-s must be finite and positive, --shift-s finite and non-negative\n")
+        sys.stderr.write("iamp data superimpose: --vehicles, --shift-s and --duration-s must be finite and positive "
+                         "(--shift-s 0 stacks the copies of a sequence on one another)\n")
         return EXIT_USAGE
-    try:  # after the numbers: a refused command line leaves no folder behind
+    try:  # before the output folder is created: a refused command line leaves no folder behind
+        check_request(args.vehicles, shift_s=args.shift_s, duration_s=args.duration_s)
+        if args.name is not None:
+            check_name(args.name)
+        try:
+            source = find_recording(args.data, args.recording)
+        except DatasetError:
+            source = None  # reported by build_dense, after --out's own check (a bad --out is named first)
+        if source is not None:
+            check_out_apart(args.out, source)
+    except DatasetError as exc:
+        sys.stderr.write(f"iamp data superimpose: {exc}\n")
+        return EXIT_USAGE
+    try:
         check_output(args.out, "--out", folder=True)
     except ConfigError as exc:
         sys.stderr.write(f"iamp data superimpose: {exc}\n")

@@ -22,6 +22,10 @@ sequence ``000``, the source's origin, frame rate, location and speed limit)
 and ``vehicle_tracks_000.csv`` [+ ``pedestrian_tracks_000.csv``], plus the
 source's LICENSE and an ATTRIBUTION.md saying what was derived from what
 (TAF-BW is CC BY-NC-SA 4.0: the derived recording carries the same licence).
+It is written whole into a temporary folder inside the output folder and moved
+into place only when complete (``superimpose``): a failure or Ctrl-C leaves an
+earlier recording of that name as it was. The output may not be, hold or lie
+in the source recording's folder, nor hold its map (``check_out_apart``).
 
 Pure: the standard library's csv and numpy; rows are copied as text except
 the track id and the timestamp (and ``frame_id``, renumbered from the new
@@ -32,8 +36,11 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import fnmatch
 import math
+import os
 import shutil
+import tempfile
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,10 +49,17 @@ import numpy as np
 
 from stages.lib.datasets.interaction import META_FILE, TRACK_FILE_RE
 from stages.lib.datasets.loader import MAPS_DIR, TRACKS_DIR, find_recording
-from stages.lib.datasets.model import FORMAT_INTERACTION, DatasetError
+from stages.lib.datasets.model import FORMAT_INTERACTION, DatasetError, RecordingRef
 
 #: Columns written, in this order, when the sources have them (``time`` of K729 is left out: it would be wrong).
 COLUMNS = ("track_id", "frame_id", "timestamp_ms", "agent_type", "x", "y", "vx", "vy", "psi_rad", "length", "width")
+#: Limits of a request, so that a slip of the finger (``--vehicles 1e6``, ``--duration-s 1e9``) is refused at once
+#: and does not run for hours or out of memory: the output holds about vehicles x duration x frame rate rows (some
+#: 550 bytes of memory each while it is built: 2 million vehicle-seconds at 10 Hz are some 11 GB and 2 minutes).
+MAX_VEHICLES = 1000
+MAX_DURATION_S = 86_400.0  # a day
+MAX_SHIFT_S = 86_400.0  # a longer one only wraps round the sequences again (and round x shift must stay finite)
+MAX_VEHICLE_SECONDS = 2_000_000.0  # a day of 23 vehicles, 1000 vehicles for 2000 s
 META_COLUMNS = ("id", "frameRate_hz", "locationId", "speedLimit_kmh", "date", "weekDay", "startTime", "duration",
                 "originLat", "originLon", "spatAvailable", "simulated", "tracking", "timeZone")
 
@@ -107,6 +121,36 @@ class SuperimposeResult:
     vehicles_mean: float
     vehicles_median: float
     vehicles_max: int
+
+
+def default_name(recording: str, target_vehicles: float) -> str:
+    """``<recording>-dense<N>``, N as given (``0.5`` stays ``0.5``: rounding named it ``-dense0``; ``18.0`` is ``18``)."""
+    return f"{recording}-dense{target_vehicles:.15g}"
+
+
+def check_name(name: str, flag: str = "--name") -> None:
+    """``DatasetError`` unless ``name`` is a plain folder name: it becomes ``recorded_trackfiles/<name>/`` and
+    ``maps/<name>.osm`` under the output, so a separator or ``..`` would write elsewhere (``../../x``: outside the
+    output) or into folders that do not exist (``a/b``), and a leading dot hides it (``.``, ``..``: the folders)."""
+    bad = not name or name.startswith(".") or ".." in name or any(c in name for c in "/\\\0") or len(name.encode()) > 200
+    if bad:
+        raise DatasetError(f"{flag} {name!r}: give a plain folder name (not empty, at most 200 bytes, no '/', '\\' or '..', "
+                           "not starting with '.')")
+
+
+def check_out_apart(out_dir: str | Path, ref: RecordingRef) -> None:
+    """``DatasetError`` where the output folder is the source recording's folder, holds it or lies inside it, or holds
+    its map: the new recording replaces files in the output (its recording folder, map, LICENSE), and the source is
+    read from files that would be among them (``--out`` = ``--data`` and ``--name`` = ``--recording`` deleted the
+    source's tracks)."""
+    out = Path(out_dir).expanduser().resolve()
+    folder = ref.folder.resolve()
+    if out == folder or out in folder.parents:
+        raise DatasetError(f"--out {out_dir}: holds the source recording {ref.name} ({folder}); write to another folder")
+    if folder in out.parents:
+        raise DatasetError(f"--out {out_dir}: lies in the source recording's folder {folder}; write to another folder")
+    if ref.map_path is not None and out in ref.map_path.resolve().parents:
+        raise DatasetError(f"--out {out_dir}: holds the source map {ref.map_path}; write to another folder")
 
 
 def read_sources(data_dir: str | Path, recording: str, sequences: list[str] | None = None) -> tuple[Path | None, list[SourceSequence]]:
@@ -218,8 +262,14 @@ def superimpose(
     licence_dir: Path | None = None,
     description: str = "",
 ) -> SuperimposeResult:
-    """Write the superimposed recording ``name`` under ``out_dir`` (module docstring); returns what was written."""
+    """Write the superimposed recording ``name`` under ``out_dir`` (module docstring); returns what was written.
+
+    Everything is written into a temporary folder inside ``out_dir`` first and moved into place when complete
+    (``_commit``): the work takes seconds to minutes, and a failure or Ctrl-C on the way must leave an earlier
+    recording of that name whole (deleting its tracks first left meta_data.csv without tracks) and nothing behind.
+    """
     out_dir = Path(out_dir)
+    check_name(name, "name")
     if not layers:
         raise DatasetError("superimpose: no layers")
     first = sources[layers[0].source]
@@ -232,11 +282,66 @@ def superimpose(
     duration_ms = int(round(duration_s * 1000.0 / frame_ms)) * frame_ms
     if duration_ms <= 0:
         raise DatasetError(f"superimpose: duration {duration_s} s is not positive")
+    _check_distinct(sources, layers, frame_ms)
     track_dir = out_dir / TRACKS_DIR / name
-    track_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / MAPS_DIR).mkdir(parents=True, exist_ok=True)
-    for stale in track_dir.glob("*_tracks_*.csv"):
-        stale.unlink()
+    if track_dir.exists() and not track_dir.is_dir():
+        raise DatasetError(f"superimpose: {track_dir} is a file, not a recording folder")
+    if map_path is not None and (out_dir / MAPS_DIR / f"{name}.osm").resolve() == Path(map_path).resolve():
+        raise DatasetError(f"superimpose: the map {map_path} would be written over itself; write to another folder")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    # a hidden folder beside maps/ and recorded_trackfiles/ (not in them: a reader listing recordings would see it),
+    # on the output's file system, so that the moves into place are renames
+    stage = Path(tempfile.mkdtemp(prefix=f".{name}.", suffix=".superimpose.tmp", dir=out_dir))
+    try:
+        result = _write(sources, layers, stage, name, first=first, frame_ms=frame_ms, duration_ms=duration_ms,
+                        map_path=map_path, licence_dir=licence_dir, description=description)
+        _commit(stage, out_dir, name)
+    finally:  # also on KeyboardInterrupt: no temporary folder is left behind
+        shutil.rmtree(stage, ignore_errors=True)
+    return dataclasses.replace(result, out_dir=out_dir)
+
+
+def _shift_ms(layer: Layer, frame_ms: int, period_ms: int) -> int:
+    """A layer's circular shift in ms: whole frames, modulo the source's length."""
+    return (int(round(layer.shift_s * 1000.0 / frame_ms)) * frame_ms) % period_ms
+
+
+def _check_distinct(sources: list[SourceSequence], layers: list[Layer], frame_ms: int) -> None:
+    """``DatasetError`` where two layers copy one sequence with the same circular shift: their rows would coincide,
+    vehicle on vehicle under two ids (shift 0, a shift that is a multiple of the sequence's length, or more rounds of
+    a short sequence than it has frames)."""
+    seen: dict[tuple[int, int], int] = {}
+    for k, layer in enumerate(layers):
+        src = sources[layer.source]
+        if src.duration_ms <= 0:
+            continue
+        key = (layer.source, _shift_ms(layer, frame_ms, src.duration_ms))
+        if key in seen:
+            j = seen[key]
+            raise DatasetError(
+                f"copies {j} and {k} of sequence {src.id} would coincide (shifts {layers[j].shift_s:g} s and "
+                f"{layer.shift_s:g} s are equal modulo its {src.duration_ms / 1000:g} s); give another --shift-s, fewer "
+                "--vehicles or longer sequences")
+        seen[key] = k
+
+
+def _write(
+    sources: list[SourceSequence],
+    layers: list[Layer],
+    out_dir: Path,
+    name: str,
+    *,
+    first: SourceSequence,
+    frame_ms: int,
+    duration_ms: int,
+    map_path: Path | None,
+    licence_dir: Path | None,
+    description: str,
+) -> SuperimposeResult:
+    """The recording's files under ``out_dir`` (a fresh folder: ``superimpose``'s temporary one)."""
+    track_dir = out_dir / TRACKS_DIR / name
+    track_dir.mkdir(parents=True)
+    (out_dir / MAPS_DIR).mkdir()
     if map_path is not None:
         shutil.copyfile(map_path, out_dir / MAPS_DIR / f"{name}.osm")
     next_id = {"vehicle": 1, "pedestrian": 1}
@@ -246,7 +351,7 @@ def superimpose(
         period = src.duration_ms
         if period <= 0:
             continue
-        shift_ms = (int(round(layer.shift_s * 1000.0 / frame_ms)) * frame_ms) % period
+        shift_ms = _shift_ms(layer, frame_ms, period)
         local = np.mod(src.time_ms - shift_ms, period)
         wrapped = (src.time_ms - shift_ms) < 0  # rows moved to the end by the circular shift: another track part
         row_kept = _kept_rows(src, layer)
@@ -338,6 +443,58 @@ def superimpose(
     )
 
 
+def _commit(stage: Path, out_dir: Path, name: str) -> None:
+    """Move what ``_write`` wrote into ``stage`` into ``out_dir``: the map, LICENSE and ATTRIBUTION.md by renaming
+    over the old ones, the recording folder by renaming the old one aside and the new one in its place. The files of
+    an old recording folder that are neither track files nor meta_data.csv (signal phases, a KML lane file) are
+    copied into the new one first: the command always replaced only those (``the recording's files``)."""
+    (out_dir / MAPS_DIR).mkdir(exist_ok=True)
+    (out_dir / TRACKS_DIR).mkdir(exist_ok=True)
+    new_dir, old_dir = stage / TRACKS_DIR / name, out_dir / TRACKS_DIR / name
+    if old_dir.is_dir():
+        for entry in old_dir.iterdir():
+            if fnmatch.fnmatch(entry.name, "*_tracks_*.csv") or entry.name == META_FILE:
+                continue
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.copytree(entry, new_dir / entry.name, symlinks=True)
+            else:
+                shutil.copy2(entry, new_dir / entry.name, follow_symlinks=False)
+    for path in sorted((stage / MAPS_DIR).iterdir()):
+        os.replace(path, out_dir / MAPS_DIR / path.name)
+    if old_dir.is_dir():
+        aside = stage / "replaced"
+        os.rename(old_dir, aside)
+        try:
+            os.rename(new_dir, old_dir)
+        except BaseException:
+            os.rename(aside, old_dir)
+            raise
+    else:
+        os.rename(new_dir, old_dir)
+    for file in ("LICENSE", "ATTRIBUTION.md"):
+        if (stage / file).is_file():
+            os.replace(stage / file, out_dir / file)
+
+
+def check_request(target_vehicles: float, *, shift_s: float | None = None, duration_s: float | None = None) -> None:
+    """``DatasetError`` naming the flag where a number of a request is out of range (None: not given, not checked):
+    vehicles in (0, ``MAX_VEHICLES``], shift in (0, ``MAX_SHIFT_S``] (0 stacks the rounds' copies of a sequence on one
+    another), duration in (0, ``MAX_DURATION_S``], and vehicles x duration at most ``MAX_VEHICLE_SECONDS``."""
+    numbers = [v for v in (target_vehicles, shift_s, duration_s) if v is not None]
+    if not all(math.isfinite(v) for v in numbers):
+        raise DatasetError("--vehicles, --shift-s and --duration-s must be finite numbers")
+    if not 0 < target_vehicles <= MAX_VEHICLES:
+        raise DatasetError(f"--vehicles {target_vehicles:g}: give a mean number of vehicles per frame above 0 and at most {MAX_VEHICLES}")
+    if shift_s is not None and not 0 < shift_s <= MAX_SHIFT_S:
+        raise DatasetError(f"--shift-s {shift_s:g}: give a shift above 0 s (0 stacks the copies of a sequence on one another) "
+                           f"and at most {MAX_SHIFT_S:.0f} s")
+    if duration_s is not None and not 0 < duration_s <= MAX_DURATION_S:
+        raise DatasetError(f"--duration-s {duration_s:g}: give a duration above 0 s and at most {MAX_DURATION_S:.0f} s (a day)")
+    if duration_s is not None and target_vehicles * duration_s > MAX_VEHICLE_SECONDS:
+        raise DatasetError(f"--vehicles {target_vehicles:g} x --duration-s {duration_s:g} = {target_vehicles * duration_s:.3g} "
+                           f"vehicle-seconds: at most {MAX_VEHICLE_SECONDS:.0f} (the rows are built in memory); give fewer vehicles or a shorter duration")
+
+
 def build_dense(
     data_dir: str | Path,
     recording: str,
@@ -352,8 +509,16 @@ def build_dense(
     """``target_vehicles`` (mean per frame) superimposed from ``recording`` into ``out_dir`` (module docstring).
 
     ``shift_s`` default: the signal cycle estimated on the longest source
-    sequence; ``duration_s`` default: the longest selected sequence.
+    sequence; ``duration_s`` default: the longest selected sequence; ``name``
+    default: ``default_name``. A request out of range (``check_request``), a
+    name that is not a plain folder name (``check_name``) or an output that
+    overlaps the source (``check_out_apart``) raises ``DatasetError`` before
+    anything is written.
     """
+    check_request(target_vehicles, shift_s=shift_s, duration_s=duration_s)
+    if name is not None:
+        check_name(name)
+    check_out_apart(out_dir, find_recording(data_dir, recording))
     map_path, sources = read_sources(data_dir, recording, sequences)
     vehicles = [s for s in sources if s.kind == "vehicle" and s.time_ms.size]
     if not vehicles:
@@ -363,12 +528,15 @@ def build_dense(
         shift_s = estimate_cycle_s(longest)
     if duration_s is None:
         duration_s = longest.duration_ms / 1000.0
+    check_request(target_vehicles, shift_s=shift_s, duration_s=duration_s)  # the defaults too: the size of the output
     layers = plan_layers(sources, target_vehicles, shift_s=shift_s, duration_s=duration_s)
-    name = name or f"{recording}-dense{int(round(target_vehicles))}"
+    name = default_name(recording, target_vehicles) if name is None else name
     description = (f"Target: {target_vehicles:g} vehicles per frame on average; shift step {shift_s:.1f} s"
                    f" (multiples of it per round over the sequences); duration {duration_s:.1f} s.")
     return superimpose(sources, layers, out_dir, name, duration_s=duration_s, map_path=map_path,
                        licence_dir=Path(data_dir), description=description)
 
 
-__all__ = ["Layer", "SourceSequence", "SuperimposeResult", "build_dense", "estimate_cycle_s", "plan_layers", "read_sources", "superimpose"]
+__all__ = ["MAX_DURATION_S", "MAX_SHIFT_S", "MAX_VEHICLES", "MAX_VEHICLE_SECONDS", "Layer", "SourceSequence", "SuperimposeResult",
+           "build_dense", "check_name", "check_out_apart", "check_request", "default_name", "estimate_cycle_s", "plan_layers",
+           "read_sources", "superimpose"]
