@@ -65,7 +65,9 @@ TYPE_DEFAULT_SIZE_M: dict[int, tuple[float, float]] = {0: (1.0, 1.0), 1: (4.5, 1
 MODE_COLOURS = {"hybrid": (0.12, 0.35, 1.0), "baseline": (0.9, 0.12, 0.12)}  # the means, as the viewer's compare view; other modes black
 CORRIDOR_THICKNESS_M = (0.15, 1.2)  # thickness = a + b * P(route)
 GRID_STEPS = ("max", "all")  # besides a step time in seconds
-_KEEP_STAMPS = 64  # frames and corridor sets kept for the stamp join
+_KEEP_STAMPS = 64  # frames and corridor sets kept for the stamp join (and stamps of messages waiting for theirs)
+_NO_CORRIDORS = "predictions without the corridor set of their stamp"
+_NO_FRAME = "belief without the track frame of its stamp"
 
 STATS_SCHEMA = {
     "type": "object",
@@ -149,8 +151,9 @@ class SceneCounts:
     def log(self, topic: str) -> None:
         self.logged[topic] = self.logged.get(topic, 0) + 1
 
-    def skip(self, reason: str) -> None:
-        self.skipped[reason] = self.skipped.get(reason, 0) + 1
+    def skip(self, reason: str, count: int = 1) -> None:
+        if count:
+            self.skipped[reason] = self.skipped.get(reason, 0) + count
 
 
 def map_lines(scene: SceneInfo, data: str | None) -> tuple[list[np.ndarray], list[np.ndarray], list[str]]:
@@ -183,6 +186,10 @@ class FoxgloveScene:
         self._channels: dict[str, Any] = {}
         self._frames: dict[int, TrackFrame] = {}
         self._corridor_sets: dict[tuple[str, int], CorridorSet] = {}
+        # what came before the message it is drawn with (a recorder logs messages as they arrive, so a prediction can
+        # precede its frame's corridor set): held until it comes, by stamp; dropped and counted when never
+        self._waiting_predictions: dict[int, list[tuple[str, CorridorPredictions]]] = {}
+        self._waiting_beliefs: dict[int, list[tuple[str, IntentionBelief]]] = {}
         self._map_scene_id: str | None = None
         self._map_update: fm.SceneUpdate | None = None
 
@@ -208,7 +215,7 @@ class FoxgloveScene:
         elif isinstance(message, SceneInfo):
             self.add_scene(message, log_time_ns)
         elif isinstance(message, CorridorSet):
-            self._keep(self._corridor_sets, (node_of(topic), int(message.header.stamp_ns)), message)
+            self.add_corridor_set(node_of(topic), message, log_time_ns)
         elif isinstance(message, CorridorPredictions):
             self.add_predictions(node_of(topic), message, log_time_ns)
         elif isinstance(message, MotionGrid):
@@ -225,6 +232,18 @@ class FoxgloveScene:
         store[key] = value
         while len(store) > _KEEP_STAMPS:
             store.pop(next(iter(store)))
+
+    def _wait(self, store: dict, stamp: int, item: Any, reason: str) -> None:
+        store.setdefault(stamp, []).append(item)
+        while len(store) > _KEEP_STAMPS:  # what never found its partner
+            self.counts.skip(reason, len(store.pop(next(iter(store)))))
+
+    def finish(self) -> None:
+        """The end of the input (an export's last message): what still waits for its partner is counted as left out."""
+        for store, reason in ((self._waiting_predictions, _NO_CORRIDORS), (self._waiting_beliefs, _NO_FRAME)):
+            for items in store.values():
+                self.counts.skip(reason, len(items))
+            store.clear()
 
     def add_scene(self, scene: SceneInfo, log_time_ns: int) -> None:
         """The map of a new scene (once per scene id), and the ``world`` -> ``map`` transform."""
@@ -263,6 +282,15 @@ class FoxgloveScene:
         stamp = int(frame.header.stamp_ns)
         self._keep(self._frames, stamp, frame)
         self._log("/objects", fch.SceneUpdateChannel, fm.SceneUpdate(entities=[objects_entity(frame)]), log_time_ns)
+        for node, belief in self._waiting_beliefs.pop(stamp, ()):
+            self._log_belief(node, belief, frame, log_time_ns)
+
+    def add_corridor_set(self, node: str, corridor_set: CorridorSet, log_time_ns: int) -> None:
+        stamp = int(corridor_set.header.stamp_ns)
+        self._keep(self._corridor_sets, (node, stamp), corridor_set)
+        for pred_node, pred in self._waiting_predictions.pop(stamp, ()):
+            self._log(f"/{pred_node}/corridors", fch.SceneUpdateChannel,
+                      fm.SceneUpdate(entities=[corridors_entity(corridor_set, pred, timestamp(stamp))]), log_time_ns)
 
     def add_predictions(self, node: str, pred: CorridorPredictions, log_time_ns: int) -> None:
         stamp = int(pred.header.stamp_ns)
@@ -271,7 +299,7 @@ class FoxgloveScene:
         if corridor_set is not None:
             self._log(f"/{node}/corridors", fch.SceneUpdateChannel, fm.SceneUpdate(entities=[corridors_entity(corridor_set, pred, ts)]), log_time_ns)
         else:
-            self.counts.skip("predictions without the corridor set of their stamp")
+            self._wait(self._waiting_predictions, stamp, (node, pred), _NO_CORRIDORS)
         self._log(f"/{node}/means", fch.SceneUpdateChannel, fm.SceneUpdate(entities=[means_entity(pred, ts)]), log_time_ns)
 
     def add_grid(self, node: str, grid: MotionGrid, log_time_ns: int) -> None:
@@ -287,10 +315,14 @@ class FoxgloveScene:
         self._log(f"/{node}/motion_grid", fch.GridChannel, grid_message(grid, k), log_time_ns)
 
     def add_belief(self, node: str, belief: IntentionBelief, log_time_ns: int) -> None:
-        frame = self._frames.get(int(belief.header.stamp_ns))
+        stamp = int(belief.header.stamp_ns)
+        frame = self._frames.get(stamp)
         if frame is None:
-            self.counts.skip("belief without the track frame of its stamp")
+            self._wait(self._waiting_beliefs, stamp, (node, belief), _NO_FRAME)
             return
+        self._log_belief(node, belief, frame, log_time_ns)
+
+    def _log_belief(self, node: str, belief: IntentionBelief, frame: TrackFrame, log_time_ns: int) -> None:
         entity = belief_entity(belief, frame, timestamp(belief.header.stamp_ns))
         self._log(f"/{node}/vehicles", fch.SceneUpdateChannel, fm.SceneUpdate(entities=[entity]), log_time_ns)
 
