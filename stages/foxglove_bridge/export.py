@@ -39,6 +39,9 @@ class ExportReport:
     undecodable: int = 0
     truncated: bool = False
     error: str = ""
+    damaged_chunks: int = 0
+    damaged_bytes: int = 0
+    damage: str = ""
     logged: dict[str, int] = field(default_factory=dict)
     skipped: dict[str, int] = field(default_factory=dict)
     map_problems: list[str] = field(default_factory=list)
@@ -50,6 +53,8 @@ class ExportReport:
             parts.append(f"{self.undecodable} undecodable payloads left out")
         if self.truncated:
             parts.append(f"source truncated, read up to its last complete chunk: {self.error}")
+        if self.damaged_chunks:
+            parts.append(f"source damaged, {self.damaged_chunks} unreadable chunks skipped ({self.damaged_bytes} bytes, their messages left out): {self.damage}")
         if self.map_problems:
             parts.append(f"map not drawn: {'; '.join(self.map_problems)}")
         return "; ".join(parts)
@@ -95,6 +100,7 @@ def export_foxglove(src: str, dst: str, *, data: str | None = None, grid_step: s
                 else:
                     report.undecodable += 1
                 msg = next(messages, None)
+            scene.finish()  # what still waits for its partner message is counted as left out
         finally:
             writer.close()
         if report.undecodable == report.read:
@@ -108,6 +114,7 @@ def export_foxglove(src: str, dst: str, *, data: str | None = None, grid_step: s
             pass
         raise
     report.truncated, report.error = read.truncated, read.error
+    report.damaged_chunks, report.damaged_bytes, report.damage = read.damaged_chunks, read.damaged_bytes, read.damage
     report.logged = dict(sorted(scene.counts.logged.items()))
     report.skipped = dict(scene.counts.skipped)
     report.map_problems = list(scene.counts.map_problems)

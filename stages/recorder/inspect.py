@@ -7,15 +7,26 @@ where the file ends early: the ``ReadReport`` then says ``truncated`` and
 why, and a warning is logged. A chunk is yielded all or nothing, so a
 recording left by ``kill -9`` reads up to its last complete chunk.
 
+A damaged chunk in the middle of a file (its data does not decompress or
+fails its CRC, or its fields do not read) whose record framing is intact
+(its record length ends inside the file, where the next record begins) is
+skipped: its messages are lost, it is counted in ``damaged_chunks`` and
+``damaged_bytes``, and reading goes on with the next record. Messages of
+later chunks on a channel whose Channel record was in the damaged chunk keep
+their topic and schema when the file has its summary section. A record
+whose length runs past the end of the file, or a chunk followed by no
+record, is a truncation as before: reading stops there.
+
 ``inspect(path)`` summarises a recording as a dict (channels with counts,
 time range, per-schema counts, TrackFrame frame indices, truncation);
 ``main(argv)`` is ``iamp inspect FILE.mcap [--json]``: a table by default,
 JSON with ``--json``, exit 2 for a missing or unreadable file.
 
 ``recover(src, dst)`` rewrites a recording that its writer never finished
-(killed: no footer, no summary, maybe a partial last chunk) into a complete
-MCAP file (mcap's ``Writer``, same chunk compression) with every message of
-every complete chunk, its schemas, channels and metadata, so that any MCAP
+(killed: no footer, no summary, maybe a partial last chunk) or that holds
+damaged chunks into a complete MCAP file (mcap's ``Writer``, same chunk
+compression) with every message of every complete, readable chunk, its
+schemas, channels and metadata, so that any MCAP
 reader (``mcap.reader.make_reader``, Foxglove, ``mcap`` CLI) reads it whole;
 ``recover_main`` is ``iamp recover FILE.mcap [OUT.mcap]``.
 """
@@ -26,6 +37,7 @@ import argparse
 import collections
 import json
 import os
+import struct
 import sys
 import tempfile
 from dataclasses import dataclass, field
@@ -33,6 +45,8 @@ from datetime import datetime, timezone
 from typing import Any, Iterator
 
 from mcap.exceptions import EndOfFile, InvalidMagic
+from mcap.opcode import Opcode
+from mcap.reader import make_reader
 from mcap.records import Attachment, Channel, Chunk, DataEnd, Footer, Metadata, Schema, Statistics
 from mcap.records import Header as McapHeader
 from mcap.records import Message as McapMessage
@@ -45,6 +59,8 @@ from stages.lib.recording_files import put_in_place
 # Largest record we try to load; a corrupt length field beyond this is read as truncation.
 _RECORD_SIZE_LIMIT = 1 << 31
 _MAX_GAPS_LISTED = 50
+_MAX_DAMAGE_LISTED = 5
+_KNOWN_OPCODES = frozenset(int(op) for op in Opcode)
 
 
 class RecordingError(ValueError):
@@ -70,6 +86,11 @@ class ReadReport:
     ``error`` then says where and how. ``summary_present`` is True when the
     writer finished the file (footer with a summary section). ``metadata``
     maps each metadata record's name to its key/value pairs.
+    ``damaged_chunks`` counts the chunks skipped because their data could not
+    be read while their record framing was intact (their messages are lost,
+    how many is unknown), ``damaged_bytes`` their size on disk (whole
+    records), and ``damage`` says which they were and why; ``truncated``
+    stays False for such a file when it is read up to its footer.
     """
 
     truncated: bool = False
@@ -80,6 +101,9 @@ class ReadReport:
     chunks: int = 0
     messages: int = 0
     summary_message_count: int | None = None
+    damaged_chunks: int = 0
+    damaged_bytes: int = 0
+    damage: str = ""
 
 
 def _open(path: str):
@@ -93,29 +117,144 @@ def _open(path: str):
         raise RecordingError(f"{path}: cannot open: {exc.strerror or exc}") from None
 
 
+class _ChunkUnreadable(Exception):
+    """A chunk that does not read and cannot be skipped (its framing is lost): the end of the usable data."""
+
+    def __init__(self, cause: Exception) -> None:
+        super().__init__(str(cause))
+        self.cause = cause
+
+
+class _Records:
+    """The records of an open MCAP file front to back (mcap's ``StreamReader``), each chunk broken up (CRC-checked).
+
+    ``take()`` returns ``(record, inner)``: ``inner`` the records of a chunk,
+    None for any other record. A chunk that does not read (decompression,
+    CRC, its fields) but whose record framing is intact is skipped, counted
+    and described (``damaged_chunks``, ``damaged_bytes``, ``damage``) and the
+    next record read. Raises ``StopIteration`` at the end, ``_ChunkUnreadable``
+    for a chunk read whole that does not break up and cannot be skipped, and
+    whatever mcap raised for any other record that does not read (a torn tail).
+    """
+
+    def __init__(self, f: Any) -> None:
+        self.f = f
+        self.started = False  # a first record was read
+        self.chunks = 0  # chunks read
+        self.damaged_chunks = 0
+        self.damaged_bytes = 0
+        self._damage: list[str] = []
+        self._records = StreamReader(f, emit_chunks=True, record_size_limit=_RECORD_SIZE_LIMIT).records
+
+    @property
+    def damage(self) -> str:
+        more = self.damaged_chunks - len(self._damage)
+        return "; ".join(self._damage) + (f"; and {more} more" if more > 0 else "")
+
+    def take(self) -> tuple[Any, list[Any] | None]:
+        while True:
+            start = self.f.tell() if self.started else len(b"\x89MCAP0\r\n")
+            try:
+                record = next(self._records)
+            except StopIteration:
+                raise
+            except Exception as exc:  # mcap raises EndOfFile, struct.error, decompression and CRC errors
+                end = self._skippable_chunk(start, exc) if self.started else None
+                if end is None:
+                    raise
+                self._skip(start, end, exc, restart=True)  # a generator that raised is finished
+                continue
+            self.started = True
+            if not isinstance(record, Chunk):
+                return record, None
+            try:
+                inner = breakup_chunk(record, validate_crc=True)
+            except Exception as exc:
+                end = self._skippable_chunk(start, None)
+                if end is None:
+                    raise _ChunkUnreadable(exc) from None
+                self._skip(start, end, exc, restart=self.f.tell() != end)
+                continue
+            self.chunks += 1
+            return record, inner
+
+    def _skippable_chunk(self, start: int, read_error: Exception | None) -> int | None:
+        """Where the chunk record at ``start`` ends when its framing is intact (it can be skipped), else None.
+
+        Intact: a Chunk opcode and a length that ends inside the file, the
+        reader did not run out of file inside the record (when it was read:
+        a file still being written), and at its end the file ends or a record
+        of a known opcode begins. ``read_error`` is what the reader raised
+        inside the record (None when the record was read and its data did not
+        break up).
+        """
+        fd = self.f.fileno()
+        head = os.pread(fd, 9, start)
+        if len(head) < 9:
+            return None
+        opcode, length = struct.unpack("<BQ", head)
+        if opcode != Opcode.CHUNK or length > _RECORD_SIZE_LIMIT:
+            return None
+        end = start + 9 + length
+        if end > os.fstat(fd).st_size:
+            return None  # runs past the end: a torn tail
+        if self.f.tell() < end and (read_error is None or isinstance(read_error, (EndOfFile, struct.error))):
+            return None  # the reader met the end of the file inside the record
+        after = os.pread(fd, 1, end)
+        if after and after[0] not in _KNOWN_OPCODES:
+            return None  # no record follows: the framing is lost
+        return end
+
+    def _skip(self, start: int, end: int, exc: Exception, restart: bool) -> None:
+        self.damaged_chunks += 1
+        self.damaged_bytes += end - start
+        if len(self._damage) < _MAX_DAMAGE_LISTED:
+            self._damage.append(f"chunk {self.chunks + self.damaged_chunks} at byte {start} ({end - start} bytes): {_why(exc)}")
+        if restart:  # the reader raised, stopped inside the record or read past it: go on from its end
+            self.f.seek(end)
+            self._records = StreamReader(self.f, skip_magic=True, emit_chunks=True, record_size_limit=_RECORD_SIZE_LIMIT).records
+
+
+def _summary_records(path: str) -> tuple[dict[int, Schema], dict[int, Channel]]:
+    """The schemas and channels of ``path``'s summary section (mcap's reader), empty when it has none that reads."""
+    try:
+        with open(path, "rb") as f:
+            summary = make_reader(f).get_summary()
+    except Exception:  # noqa: BLE001 - no footer, or a damaged summary: nothing to add
+        return {}, {}
+    if summary is None:
+        return {}, {}
+    return dict(summary.schemas), dict(summary.channels)
+
+
 def read_messages(path: str, report: ReadReport | None = None) -> Iterator[RecordedMessage]:
     """Yield the messages of ``path`` in file order; stop cleanly at a truncation.
 
     Raises ``RecordingError`` (before yielding anything) when the file is
-    missing or does not start like an MCAP file. Anything that goes wrong
-    later is read as the end of the usable data: ``report.truncated`` is set,
+    missing or does not start like an MCAP file. A damaged chunk whose record
+    framing is intact is skipped and counted (``report.damaged_chunks``,
+    ``damaged_bytes``, ``damage``). Anything else that goes wrong later is
+    read as the end of the usable data: ``report.truncated`` is set,
     ``report.error`` says what happened, and the iteration ends (callers
     log it; this function does not, so that polling a growing file is quiet).
     """
     report = report if report is not None else ReadReport()
     path = str(path)
     with _open(path) as f:
-        records = StreamReader(f, emit_chunks=True, record_size_limit=_RECORD_SIZE_LIMIT).records
+        reader = _Records(f)
         schemas: dict[int, str] = {}
         channels: dict[int, tuple[str, int]] = {}
-        started = False
         while True:
             try:
-                record = next(records)
+                record, inner = reader.take()
             except StopIteration:
                 break
-            except Exception as exc:  # mcap raises EndOfFile, struct.error, decompression and CRC errors
-                if not started:
+            except _ChunkUnreadable as exc:
+                report.truncated = True
+                report.error = f"chunk {reader.chunks + reader.damaged_chunks + 1} is damaged ({_why(exc.cause)})"
+                break
+            except Exception as exc:
+                if not reader.started:
                     if f.tell() == 0:
                         raise RecordingError(f"{path}: empty file, not an MCAP recording") from None
                     what = "not an MCAP file" if isinstance(exc, InvalidMagic) else f"not a readable MCAP file ({_why(exc)})"
@@ -123,15 +262,10 @@ def read_messages(path: str, report: ReadReport | None = None) -> Iterator[Recor
                 report.truncated = True
                 report.error = f"file ends or breaks at byte {f.tell()} before its footer ({_why(exc)})"
                 break
-            started = True
-            if isinstance(record, Chunk):
-                try:
-                    inner = breakup_chunk(record, validate_crc=True)
-                except Exception as exc:
-                    report.truncated = True
-                    report.error = f"chunk {report.chunks + 1} is damaged ({_why(exc)})"
-                    break
-                report.chunks += 1
+            finally:
+                _note_damage(reader, report, path, schemas, channels)
+            if inner is not None:
+                report.chunks = reader.chunks
                 for rec in inner:
                     msg = _take(rec, schemas, channels, report)
                     if msg is not None:
@@ -140,6 +274,21 @@ def read_messages(path: str, report: ReadReport | None = None) -> Iterator[Recor
             msg = _take(record, schemas, channels, report)
             if msg is not None:
                 yield msg
+
+
+def _note_damage(reader: _Records, report: ReadReport, path: str, schemas: dict[int, str], channels: dict[int, tuple[str, int]]) -> None:
+    """Copy the reader's damage counts into ``report``; at the first damaged chunk add the summary's schemas and channels."""
+    if reader.damaged_chunks == report.damaged_chunks:
+        return
+    if report.damaged_chunks == 0:  # the damaged chunk may have held Channel records that later messages need
+        spare_schemas, spare_channels = _summary_records(path)
+        for sid, schema in spare_schemas.items():
+            schemas.setdefault(sid, schema.name)
+        for cid, channel in spare_channels.items():
+            channels.setdefault(cid, (channel.topic, channel.schema_id))
+    report.damaged_chunks = reader.damaged_chunks
+    report.damaged_bytes = reader.damaged_bytes
+    report.damage = reader.damage
 
 
 def _why(exc: Exception) -> str:
@@ -210,10 +359,13 @@ class RecoverReport:
     attachments: int = 0
     chunks: int = 0
     orphan_messages: int = 0  # messages on a channel whose Channel record was never read (left out)
-    complete: bool = False  # the source had its footer: nothing was lost
+    complete: bool = False  # the source had its footer: nothing was lost but the damaged chunks (if any)
     stopped_at_byte: int = 0  # end of the last record taken from the source
     source_bytes: int = 0
     error: str = ""
+    damaged_chunks: int = 0  # chunks of the source that did not read (framing intact): skipped, their messages lost
+    damaged_bytes: int = 0  # their size in the source
+    damage: str = ""  # which chunks they were and why
 
     def line(self) -> str:
         state = (
@@ -221,6 +373,10 @@ class RecoverReport:
             if self.complete
             else f"stopped at byte {self.stopped_at_byte} of {self.source_bytes} ({self.source_bytes - self.stopped_at_byte} bytes dropped): {self.error}"
         )
+        if self.damaged_chunks:
+            if self.complete:
+                state = "source had its footer" + state[len("source was complete") :]
+            state += f"; DAMAGED: {self.damaged_chunks} unreadable chunks skipped ({self.damaged_bytes} bytes, their messages lost): {self.damage}"
         extra = f", {self.orphan_messages} messages without channel left out" if self.orphan_messages else ""
         return f"recovered {self.messages} messages on {self.channels} channels ({self.schemas} schemas, {self.chunks} chunks{extra}) into {self.dst}; {state}"
 
@@ -236,7 +392,9 @@ def recover(src: str, dst: str | None = None) -> RecoverReport:
 
     Reads ``src`` front to back with mcap's ``StreamReader`` (chunks whole,
     CRC-checked: a chunk is taken all or nothing) and stops at the first
-    record that cannot be read, which for a killed writer is the torn tail.
+    record that cannot be read, which for a killed writer is the torn tail;
+    a damaged chunk whose record framing is intact is skipped and counted
+    (``damaged_chunks``, ``damaged_bytes``, ``damage``) and copying goes on.
     Schemas, channels (topic, encoding, channel metadata), metadata records,
     attachments and messages (log and publish time, sequence, payload) are
     written in file order with mcap's ``Writer`` and the file is finished
@@ -249,9 +407,9 @@ def recover(src: str, dst: str | None = None) -> RecoverReport:
     report = RecoverReport(src=src, dst=dst)
     with _open(src) as f:
         report.source_bytes = os.fstat(f.fileno()).st_size
-        records = StreamReader(f, emit_chunks=True, record_size_limit=_RECORD_SIZE_LIMIT).records
+        records = _Records(f)
         try:
-            first = next(records)
+            first = records.take()
         except Exception as exc:
             if report.source_bytes == 0:
                 raise RecordingError(f"{src}: empty file, not an MCAP recording") from None
@@ -262,7 +420,7 @@ def recover(src: str, dst: str | None = None) -> RecoverReport:
         fd, tmp = tempfile.mkstemp(prefix=".recover-", suffix=".mcap", dir=out_dir)
         try:
             with os.fdopen(fd, "wb") as out:
-                _copy_records(first, records, f, out, report)
+                _copy_records(first, records, f, out, report, src)
             put_in_place(tmp, dst)
         except BaseException:
             try:
@@ -273,12 +431,16 @@ def recover(src: str, dst: str | None = None) -> RecoverReport:
     return report
 
 
-def _copy_records(first: Any, records: Iterator[Any], f: Any, out: Any, report: RecoverReport) -> None:
+def _copy_records(first: tuple[Any, list[Any] | None], records: _Records, f: Any, out: Any, report: RecoverReport, src: str) -> None:
     writer: Writer | None = None
-    header: McapHeader | None = first if isinstance(first, McapHeader) else None
+    header: McapHeader | None = first[0] if isinstance(first[0], McapHeader) else None
     schema_ids: dict[int, int] = {}  # source id -> written id
     channel_ids: dict[int, int] = {}
-    pending: list[Any] = [] if header is not None else [first]
+    pending: list[Any] = [] if header is not None else (first[1] if first[1] is not None else [first[0]])
+    # the source summary's schemas and channels, read at the first damaged chunk: that chunk may have held
+    # Channel records that messages of later chunks need
+    spare_schemas: dict[int, Schema] = {}
+    spare_channels: dict[int, Channel] = {}
 
     deferred: list[Any] = []  # metadata/attachments before the first chunk: the writer takes that chunk's compression
 
@@ -306,6 +468,12 @@ def _copy_records(first: Any, records: Iterator[Any], f: Any, out: Any, report: 
                 report.channels += 1
         elif isinstance(rec, McapMessage):
             cid = channel_ids.get(rec.channel_id)
+            if cid is None and rec.channel_id in spare_channels:
+                channel = spare_channels[rec.channel_id]
+                if channel.schema_id in spare_schemas:
+                    take(spare_schemas[channel.schema_id])
+                take(channel)
+                cid = channel_ids.get(rec.channel_id)
             if cid is None:
                 report.orphan_messages += 1
                 return
@@ -328,18 +496,22 @@ def _copy_records(first: Any, records: Iterator[Any], f: Any, out: Any, report: 
         take(rec)
     while True:
         try:
-            record = next(records)
+            record, inner = records.take()
         except StopIteration:
+            break
+        except _ChunkUnreadable as exc:
+            report.error = f"chunk {records.chunks + records.damaged_chunks + 1} (after byte {report.stopped_at_byte}) is damaged ({_why(exc.cause)})"
             break
         except Exception as exc:  # EndOfFile, struct.error, a length past the limit: the torn tail
             report.error = f"{_why(exc)} reading the record after byte {report.stopped_at_byte}"
             break
-        if isinstance(record, Chunk):
-            try:
-                inner = breakup_chunk(record, validate_crc=True)
-            except Exception as exc:
-                report.error = f"chunk {report.chunks + 1} (after byte {report.stopped_at_byte}) is damaged ({_why(exc)})"
-                break
+        finally:
+            if records.damaged_chunks and not report.damaged_chunks:
+                schemas, channels = _summary_records(src)
+                spare_schemas.update(schemas)
+                spare_channels.update(channels)
+            report.damaged_chunks, report.damaged_bytes, report.damage = records.damaged_chunks, records.damaged_bytes, records.damage
+        if inner is not None:
             ensure_writer(record.compression)
             report.chunks += 1
             for rec in inner:
@@ -410,9 +582,14 @@ def inspect(path: str) -> dict[str, Any]:
     topic and schema, sorted by topic), ``start_ns`` and ``end_ns`` (log
     times, None for an empty file), ``messages``, ``truncated``, ``error``,
     ``summary_present``, ``chunks``, ``by_schema`` (counts), ``metadata``,
-    and ``frames``: for every ``iamp.TrackFrame`` topic the decoded frame
+    ``frames``: for every ``iamp.TrackFrame`` topic the decoded frame
     indices as ``{count, first, last, strictly_increasing, gaps, missing,
-    undecodable}``.
+    undecodable}``; ``damaged_chunks`` and ``damaged_bytes`` (chunks skipped
+    because they did not read, 0 for a sound file), ``damage`` (which and
+    why, None if none) and ``messages_lost``: how many messages the
+    summary's statistics count beyond those read (the skipped chunks' and any
+    other record mcap's reader passed over; 0 for a sound file), None when
+    the file was not read to a summary with statistics.
     """
     report = ReadReport()
     counts: collections.Counter[tuple[str, str]] = collections.Counter()
@@ -449,6 +626,12 @@ def inspect(path: str) -> dict[str, Any]:
         "by_schema": dict(sorted(by_schema.items())),
         "metadata": report.metadata,
         "frames": frames,
+        "damaged_chunks": report.damaged_chunks,
+        "damaged_bytes": report.damaged_bytes,
+        "damage": report.damage or None,
+        "messages_lost": (
+            report.summary_message_count - report.messages if report.summary_message_count is not None and not report.truncated else None
+        ),
     }
 
 
@@ -461,8 +644,24 @@ def _utc(ns: int | None) -> str:
 def format_table(info: dict[str, Any]) -> str:
     """The human-readable form of ``inspect``'s dict."""
     lines = [f"file: {info['path']}"]
+    damaged = info.get("damaged_chunks", 0)
+    lost = info.get("messages_lost")
+    if damaged:
+        damage = f"{damaged} unreadable chunks skipped ({info['damaged_bytes']} bytes, {f'{lost} messages' if lost is not None else 'their messages'} lost): {info['damage']}"
+    elif (lost or 0) > 0:
+        damage = f"{lost} of the {info['messages'] + lost} messages its summary counts were not read"
+    damaged = damaged or (lost or 0) > 0
     if info["truncated"]:
-        lines.append(f"state: TRUNCATED, read up to the last complete chunk: {info['error']} (`iamp recover {info['path']}` writes a finished copy)")
+        lines.append(
+            f"state: TRUNCATED, read up to the last complete chunk: {info['error']}"
+            + (f"; DAMAGED before that: {damage}" if damaged else "")
+            + f" (`iamp recover {info['path']}` writes a finished copy)"
+        )
+    elif damaged:
+        lines.append(
+            f"state: DAMAGED, read to the end, summary {'present' if info['summary_present'] else 'absent'}: {damage} "
+            f"(`iamp recover {info['path']}` writes a copy without them)"
+        )
     else:
         lines.append(f"state: complete, summary {'present' if info['summary_present'] else 'absent'}")
     dur = (info["end_ns"] - info["start_ns"]) / 1e9 if info["start_ns"] is not None else 0.0

@@ -336,6 +336,14 @@ def run_replay(
             )
             if player.report.truncated:
                 log.warning("recording truncated, replayed up to its last complete chunk: path=%s detail=%s", config.path, player.report.error)
+            if player.report.damaged_chunks:
+                log.warning(
+                    "recording damaged, unreadable chunks skipped (their messages not replayed): path=%s damaged_chunks=%d damaged_bytes=%d detail=%s",
+                    config.path,
+                    player.report.damaged_chunks,
+                    player.report.damaged_bytes,
+                    player.report.damage,
+                )
             log.info("replay %s: %s", "stopped" if summary.stopped else "finished", summary.line())
     except Exception:
         log.error("crashed:\n%s", traceback.format_exc().rstrip())

@@ -225,8 +225,9 @@ def test_export_decodes_every_channel_with_the_official_schemas(live_run, tmp_pa
     assert stamps, "no frame with predictions, a grid and a belief in the recording"
     stamp = max(stamps)
 
-    def at(topic: str, kind: str):
-        log_time, _ = recorded[kind][stamp]
+    def at(topic: str, kind: str, *partners: str):
+        # logged when the message and the partners it is drawn with are all in: at the latest of their log times
+        log_time = max(recorded[k][stamp][0] for k in (kind, *partners))
         hits = [d for t, d, _ in decoded[topic] if t == log_time and (d.entities[0] if hasattr(d, "entities") else d).timestamp.seconds * 10**9 + (d.entities[0] if hasattr(d, "entities") else d).timestamp.nanos == stamp]
         assert len(hits) == 1, f"{topic}: {len(hits)} messages at log time {log_time} with stamp {stamp}"
         return hits[0]
@@ -244,7 +245,7 @@ def test_export_decodes_every_channel_with_the_official_schemas(live_run, tmp_pa
 
     # corridors: thickness from P(route); means: one sphere per finite mean of every step
     pred = recorded["iamp.CorridorPredictions"][stamp][1]
-    (corr,) = at("/markov_prediction/corridors", "iamp.CorridorPredictions").entities
+    (corr,) = at("/markov_prediction/corridors", "iamp.CorridorPredictions", "iamp.CorridorSet").entities
     probs = sorted(CORRIDOR_THICKNESS_M[0] + CORRIDOR_THICKNESS_M[1] * p.probability for p in pred.predictions)
     assert sorted(line.thickness for line in corr.lines) == pytest.approx(probs, abs=1e-6)
     (means,) = at("/markov_prediction/means", "iamp.CorridorPredictions").entities
@@ -264,7 +265,7 @@ def test_export_decodes_every_channel_with_the_official_schemas(live_run, tmp_pa
 
     # per-vehicle texts: P(stop) and the top route of every vehicle of the frame
     belief = recorded["iamp.IntentionBelief"][stamp][1]
-    (texts,) = at("/intentions/vehicles", "iamp.IntentionBelief").entities
+    (texts,) = at("/intentions/vehicles", "iamp.IntentionBelief", "iamp.TrackFrame").entities
     assert sorted(t.text for t in texts.texts) == sorted(belief_text(v) for v in belief.vehicles if v.track_id in set(frame.track_ids.tolist()))
 
     # the map and its transform
