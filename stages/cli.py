@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import math
 import sys
 from dataclasses import dataclass
@@ -329,7 +330,14 @@ def main(argv: list[str] | None = None) -> int:
         sys.stderr.write("iamp: error: a command is required\n")
         return EXIT_USAGE
     args.argv = list(argv) if argv is not None else sys.argv[1:]  # the command line as given (iamp eval --report writes it)
-    return int(args.run(args))
+    try:
+        return int(args.run(args))
+    except BrokenPipeError:  # `iamp ... | head`: the reader has what it wanted; the work (a file written) is done
+        try:
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error when Python flushes stdout at exit
+        except (OSError, ValueError):
+            pass
+        return 1
 
 
 if __name__ == "__main__":

@@ -96,6 +96,7 @@ class RecordingPlayer:
         self.run_id = keys.check_run_id(run_id) if run_id is not None else None
         self.report = ReadReport()
         self.skipped: collections.Counter[str] = collections.Counter()
+        self.nodes_seen: set[str] = set()  # the node ids of the recording's data keys (what --node may name)
 
     @property
     def target_run_id(self) -> str | None:
@@ -112,6 +113,7 @@ class RecordingPlayer:
             if parts.output == keys.ALIVE or (parts.is_infrastructure and not self.config.include_infra):
                 self.skipped["infrastructure"] += 1
                 continue
+            self.nodes_seen.add(parts.node_id)
             if wanted and parts.node_id not in wanted:
                 self.skipped["other_node"] += 1
                 continue
@@ -345,6 +347,14 @@ def run_replay(
                     player.report.damage,
                 )
             log.info("replay %s: %s", "stopped" if summary.stopped else "finished", summary.line())
+            unknown = sorted(set(config.nodes) - player.nodes_seen)
+            if unknown:
+                log.warning("--node names nodes the recording does not have: %s; its nodes: %s", ",".join(unknown), ",".join(sorted(player.nodes_seen)) or "none")
+            if not summary.published and not summary.stopped:
+                why = ("no key of the iamp/<run>/<node>/<output> layout: not a hybrid-iamp recording" if player.skipped.get("foreign_key") and not player.nodes_seen
+                       else "--node selects none of its nodes" if player.skipped.get("other_node") else "it holds no data message")
+                log.error("nothing replayed from %s: %s (skipped: %s)", config.path, why, ",".join(f"{k}:{v}" for k, v in sorted(player.skipped.items())) or "nothing")
+                return EXIT_USAGE
     except Exception:
         log.error("crashed:\n%s", traceback.format_exc().rstrip())
         return EXIT_CRASH

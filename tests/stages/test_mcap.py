@@ -383,3 +383,22 @@ def test_payloads_of_an_older_version_replay_paced_and_with_their_scene_latched(
     out = list(RecordingPlayer(ReplayConfig(path=str(path), speed="max"), "t2"))
     assert [o.schema for o in out] == [SceneInfo.SCHEMA] + [TrackFrame.SCHEMA] * 3 + [""]
     assert [o.stamp_ns for o in out] == [None] + [STAMP0_NS + i * 100_000_000 for i in range(3)] + [None]  # frames are acked, the scene is not
+
+
+def test_replay_of_a_foreign_file_or_of_no_node_says_so_and_exits_2(recorded, tmp_path):
+    """A foreign MCAP (or --node naming nothing the file has) replayed nothing and said `replay finished`, exit 0."""
+    from mcap.writer import Writer
+
+    foreign = tmp_path / "foreign.mcap"
+    with open(foreign, "wb") as f:
+        w = Writer(f)
+        w.start()
+        cid = w.register_channel(topic="/camera", message_encoding="json", schema_id=w.register_schema(name="x", encoding="jsonschema", data=b"{}"))
+        for i in range(5):
+            w.add_message(channel_id=cid, log_time=i, data=b"{}", publish_time=i)
+        w.finish()
+    for args, want in (([str(foreign)], "not a hybrid-iamp recording"),
+                       ([str(recorded["path"]), "--node", "nosuch"], "--node names nodes the recording does not have: nosuch; its nodes: ")):
+        done = subprocess.run([sys.executable, "-m", "stages.cli", "replay", *args, "--speed", "max"], capture_output=True, text=True,
+                              timeout=120, env=h.python_env())
+        assert done.returncode == 2 and want in done.stderr, (args, done.stderr[-2000:])
