@@ -137,6 +137,9 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         sys.stderr.write(f"iamp export foxglove: --grid-step: {exc}\n")
         return 2
+    if args.data and not os.path.isdir(args.data):  # else the export ran and drew no map, exit 0
+        sys.stderr.write(f"iamp export foxglove: --data {args.data}: no such folder (expected a data folder with maps/<recording>.osm)\n")
+        return 2
     if os.path.abspath(args.file) == os.path.abspath(args.out):
         sys.stderr.write("iamp export foxglove: OUT.mcap must differ from RUN.mcap\n")
         return 2

@@ -312,6 +312,8 @@ class FoxgloveScene:
                 self._log(f"/{node}/motion_grid/{t:.1f}s", fch.GridChannel, grid_message(grid, k), log_time_ns)
             return
         k = None if self.grid_step == "max" else _step_index(times, float(self.grid_step))
+        if k is not None and times[k] < float(self.grid_step) - 1e-6:  # beyond the horizon: its last step, counted
+            self.counts.skip(f"grid step {float(self.grid_step):g} s beyond the grids' last step: the last one shown instead")
         self._log(f"/{node}/motion_grid", fch.GridChannel, grid_message(grid, k), log_time_ns)
 
     def add_belief(self, node: str, belief: IntentionBelief, log_time_ns: int) -> None:
