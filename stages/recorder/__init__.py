@@ -42,7 +42,17 @@ yyyymmdd-hhmmss>.mcap`` under the current directory), ``chunk_size_bytes``,
 ``compression`` (``zstd``, ``lz4`` or ``none``), ``include_stats`` (record
 ``_stats`` keys), ``flush_period_s``, ``split_bytes`` (0: no size limit),
 ``split_s`` (0: no duration limit), ``split_index`` (the split this process
-writes first; 0 is ``path`` itself).
+writes first; 0 is ``path`` itself), ``overwrite`` (false: a ``path`` that is
+there, or a split of it, is refused before anything is written).
+
+Files: each is locked (``flock``) while written, so a second recorder on it
+is refused; a file the recorder made and never wrote a message into is
+removed when the node cannot start (``abandon``). Latched payloads (the
+scene): every split starts with the newest one of each key, a payload equal
+to the one the file holds on its key is not written again
+(``latched_repeats``), and the runtime asks the run's latched outputs for
+their values when the recorder comes up, so a recorder started mid-run or
+restarted still records the scene.
 """
 
 from __future__ import annotations
