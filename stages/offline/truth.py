@@ -7,7 +7,9 @@ scored against the same truth:
   positions, reported speed and the smoothed longitudinal acceleration (the
   AR training targets, ``smoothed_acceleration``);
 - ``future_positions`` / ``future_accelerations``: the true positions
-  (accelerations) at t + k·step (the row within ``STAMP_TOL_NS``, 20 ms), k = 1..K: all K or None, or the
+  (``positions_at``: a row at the time, or the line between the rows around
+  it when they are at most 250 ms apart: jitter, one missing frame) and
+  accelerations (the row within ``STAMP_TOL_NS``, 20 ms) at t + k·step, k = 1..K: all K or None, or the
   longest run from k = 1 (``future_run``); ``positions_after``: every
   position in (t, t + seconds];
 - ``followed_corridor``: the corridor a car followed, by ONE rule: the
@@ -57,7 +59,8 @@ _MS_NS = 1_000_000
 # stamps at exactly k·100 ms are the exception), and 20 ms is below half the period of 25 Hz data, so the nearest row
 # within it is the one meant. Was 1 ms: a jitter of ±5 ms left nothing to score or train on.
 STAMP_TOL_NS = 20_000_000
-# Two rows further apart than this are not interpolated between (a gap in the track): the nearer one stands alone.
+# Two rows at most this far apart are interpolated between (jitter, or one frame missing at 10 Hz: a tracker's
+# dropout, which cost the whole 4 s window of every instant before it); further apart, the time is not known.
 _INTERP_MAX_GAP_NS = 250_000_000
 
 
@@ -141,32 +144,38 @@ def _future_rows(track: Track, stamp_ns: int, step_ns: int, n_steps: int) -> tup
     return rows_near(track.stamps_ns, stamp_ns + int(step_ns) * np.arange(1, n_steps + 1))
 
 
-def _positions_at(track: Track, i: np.ndarray, want_ns: np.ndarray) -> np.ndarray:
-    """Positions (k, 2) at the wanted times: row ``i`` where its stamp is the time, else the line between the two
-    rows around it (when they are at most ``_INTERP_MAX_GAP_NS`` apart; else row ``i`` itself)."""
-    xy = track.xy[i].copy()
+def positions_at(track: Track, want_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (k, 2) of the track at the wanted times, and whether each is known: a row whose stamp is the time
+    gives its own position; a time between two rows at most ``_INTERP_MAX_GAP_NS`` apart (jittered stamps, or one
+    missing frame at 10 Hz) the line between them; else the row within ``STAMP_TOL_NS`` as it is. A time the track
+    holds none of these for (beyond its ends, or in a longer gap) is not known (NaN)."""
     stamps = track.stamps_ns
-    off = stamps[i] != want_ns
-    if off.any():
-        n = stamps.shape[0]
-        for k in np.flatnonzero(off).tolist():
-            j = int(i[k])
-            a, b = (j - 1, j) if stamps[j] > want_ns[k] else (j, j + 1)
-            if 0 <= a and b < n and 0 < stamps[b] - stamps[a] <= _INTERP_MAX_GAP_NS:
-                f = float(want_ns[k] - stamps[a]) / float(stamps[b] - stamps[a])
-                xy[k] = track.xy[a] + f * (track.xy[b] - track.xy[a])
-    return xy
+    n = stamps.shape[0]
+    want_ns = np.asarray(want_ns, dtype=np.int64)
+    xy = np.full((want_ns.shape[0], 2), np.nan)
+    known = np.zeros(want_ns.shape[0], dtype=bool)
+    if n == 0:
+        return xy, known
+    i, near = rows_near(stamps, want_ns)
+    exact = stamps[i] == want_ns
+    xy[exact], known[exact] = track.xy[i[exact]], True
+    for k in np.flatnonzero(~exact).tolist():
+        b = int(np.searchsorted(stamps, want_ns[k]))  # the first row after the time (none at it: not exact)
+        a = b - 1
+        if 0 <= a and b < n and 0 < stamps[b] - stamps[a] <= _INTERP_MAX_GAP_NS:
+            f = float(want_ns[k] - stamps[a]) / float(stamps[b] - stamps[a])
+            xy[k], known[k] = track.xy[a] + f * (track.xy[b] - track.xy[a]), True
+        elif near[k]:
+            xy[k], known[k] = track.xy[i[k]], True
+    return xy, known
 
 
 def future_positions(track: Track | None, stamp_ns: int, step_ns: int, n_steps: int) -> np.ndarray | None:
-    """True positions (n_steps, 2) at t + k·step, k = 1..n_steps (a row within ``STAMP_TOL_NS`` of each, its
-    position moved along the track to the exact time), or None when one is missing."""
+    """True positions (n_steps, 2) at t + k·step, k = 1..n_steps (``positions_at``), or None when one is not known."""
     if track is None or n_steps <= 0:
         return None
-    i, found = _future_rows(track, stamp_ns, step_ns, n_steps)
-    if not found.all():
-        return None
-    return _positions_at(track, i, stamp_ns + int(step_ns) * np.arange(1, n_steps + 1))
+    xy, known = positions_at(track, stamp_ns + int(step_ns) * np.arange(1, n_steps + 1))
+    return xy if known.all() else None
 
 
 def future_accelerations(track: Track | None, stamp_ns: int, step_ns: int, n_steps: int) -> np.ndarray | None:
@@ -182,9 +191,9 @@ def future_accelerations(track: Track | None, stamp_ns: int, step_ns: int, n_ste
 
 def future_run(track: Track, stamp_ns: int, step_ns: int, n_steps: int) -> np.ndarray:
     """True positions (k, 2) at t + j·step (as ``future_positions``), j = 1..k: the longest run up to n_steps (k may be 0)."""
-    i, found = _future_rows(track, stamp_ns, step_ns, n_steps)
-    k = int(np.argmin(found)) if not found.all() else n_steps
-    return _positions_at(track, i[:k], stamp_ns + int(step_ns) * np.arange(1, k + 1))
+    xy, known = positions_at(track, stamp_ns + int(step_ns) * np.arange(1, n_steps + 1))
+    k = int(np.argmin(known)) if not known.all() else n_steps
+    return xy[:k]
 
 
 def positions_after(track: Track, stamp_ns: int, seconds: float) -> np.ndarray:
@@ -362,6 +371,6 @@ def along_track_directions(start_xy, future_xy: np.ndarray) -> np.ndarray:
 __all__ = [
     "ACCEL_EDGE_S", "MANOEUVRES", "STAND_MAX_DISPLACEMENT_M", "TURN_MIN_HEADING_DEG", "HEADING_CHORD_M", "SPEED_CHANGE_ABS_MPS",
     "SPEED_CHANGE_REL", "SPEED_CHANGE_MIN_MPS", "SPEED_WINDOW_STEPS", "TANGENT_MIN_MOVE_M", "along_track_directions", "manoeuvre_class", "ACCEL_WINDOW_S", "Followed", "ROUTE_MAX_ERROR_M", "ROUTE_TIE_M", "Track", "followed_corridor",
-    "future_accelerations", "future_positions", "future_run", "ground_truth", "positions_after", "route_credit", "rows_near", "STAMP_TOL_NS",
+    "future_accelerations", "future_positions", "future_run", "ground_truth", "positions_after", "route_credit", "rows_near", "positions_at", "STAMP_TOL_NS",
     "route_decision", "route_top1", "smoothed_acceleration",
 ]

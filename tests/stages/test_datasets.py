@@ -429,3 +429,23 @@ def test_jittered_stamps_keep_their_truth_and_accelerations():
     assert np.isfinite(track.accel_mps2).sum() > 30, "the jitter does not cut the track into pieces too short to smooth"
     exact = Track(t_ns, np.column_stack([8.0 * t_ns / 1e9, np.zeros(60)]), np.full(60, 8.0), np.zeros(60))
     np.testing.assert_array_equal(future_positions(exact, 0, 400_000_000, 10), exact.xy[4:41:4])
+
+
+def test_one_missing_frame_is_bridged_and_two_are_not():
+    """A tracker's dropout of one frame cost the whole 4 s window of every instant before it; the truth at the missing
+    time is now the line between its neighbours (200 ms apart), while a longer gap still leaves the time unknown."""
+    from stages.offline.truth import Track, future_positions, future_run
+
+    t_ns = np.arange(60, dtype=np.int64) * 100_000_000
+    xy = np.column_stack([10.0 * t_ns / 1e9, np.zeros(60)])  # 10 m/s
+    one = np.ones(60, dtype=bool)
+    one[12] = False  # the frame at 1.2 s missing
+    track = Track(t_ns[one], xy[one], np.full(59, 10.0), np.zeros(59))
+    fut = future_positions(track, 0, 400_000_000, 10)
+    assert fut is not None
+    np.testing.assert_allclose(fut[:, 0], 10.0 * 0.4 * np.arange(1, 11), atol=1e-9)
+    two = one.copy()
+    two[13] = False  # 1.2 and 1.3 s missing: 300 ms between the rows around them
+    gap = Track(t_ns[two], xy[two], np.full(58, 10.0), np.zeros(58))
+    assert future_positions(gap, 0, 400_000_000, 10) is None
+    assert future_run(gap, 0, 400_000_000, 10).shape == (2, 2)  # 0.4 and 0.8 s; 1.2 s lies in the gap

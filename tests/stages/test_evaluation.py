@@ -91,7 +91,7 @@ def test_cli_writes_json(tmp_path, capsys):
     assert cli.main(["eval", "--data", str(tmp_path / "nothing"), "--no-progress"]) == 2
 
 
-def test_ground_truth_must_be_exact_and_complete():
+def test_ground_truth_must_be_complete_and_bridges_one_missing_frame():
     stamps = np.arange(0, 50) * 100_000_000
     xy = np.column_stack([np.arange(50.0), np.zeros(50)])
     def track(rows):
@@ -101,7 +101,9 @@ def test_ground_truth_must_be_exact_and_complete():
     future = future_positions(track(every), 0, 400_000_000, 10)
     np.testing.assert_array_equal(future[:, 0], np.arange(4.0, 41.0, 4.0))
     assert future_positions(track(every), 1_200_000_000, 400_000_000, 10) is None  # 4 s after 1.2 s is past the track
-    holes = np.delete(every, 8)
+    hole = np.delete(every, 8)  # one frame missing (at 0.8 s): the line between its neighbours
+    np.testing.assert_array_equal(future_positions(track(hole), 0, 400_000_000, 10)[:, 0], np.arange(4.0, 41.0, 4.0))
+    holes = np.delete(every, [8, 9])  # two: 300 ms between the rows around them, the time not known
     assert future_positions(track(holes), 0, 400_000_000, 10) is None
     assert future_positions(None, 0, 400_000_000, 10) is None
 
