@@ -254,6 +254,11 @@ class CorridorBuilder:
             if math.isfinite(x) and math.isfinite(y):
                 state = self.estimator.update(track_id, stamp, x, y, vx, vy, issues)
                 self._estimated_ns[track_id] = stamp
+                if self.estimator.started_ns(track_id) == stamp:
+                    # a new state (a jump, a gap, a re-used id): what this builder kept of the track (its positions for
+                    # the heading and the fallback speed, its routes) belongs to the car before; a speed of 113 m/s
+                    # came from the chord across the jump
+                    self._tracks.pop(track_id, None)
             else:
                 state = unknown
             states[row] = state

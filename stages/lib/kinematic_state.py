@@ -82,7 +82,9 @@ Also:
 - A position more than ``jump_m`` off the filter's prediction (and more than
   five of its standard deviations) restarts the track at the new position
   (issue ``position_jump``); so does a gap longer than ``max_gap_s`` between
-  two samples (a re-used track id, issue ``track_restarted``).
+  two samples (a re-used track id, issue ``track_restarted``). ``started_ns``
+  says at which sample a track's state (re)started: the corridors stage then
+  drops what it kept of the car before.
 
 Chosen by the constant-speed displacement error at 1/2/4 s on both
 development locations (``bench/state_estimator.py``; figures in README.md,
@@ -439,6 +441,12 @@ class KinematicEstimator:
 
     def forget(self, track_id: int) -> None:
         self._tracks.pop(int(track_id), None)
+
+    def started_ns(self, track_id: int) -> int | None:
+        """The stamp of the sample the track's state (re)started at (a new track, a jump, a gap), None for a track it
+        does not hold."""
+        track = self._tracks.get(int(track_id))
+        return None if track is None else track.first_ns
 
     def update(
         self, track_id: int, stamp_ns: int, x_m: float, y_m: float, vx_mps: float, vy_mps: float, issues: list[Issue]
