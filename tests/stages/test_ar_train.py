@@ -554,3 +554,15 @@ def test_patience_0_trains_every_epoch_and_keeps_the_last_weights(tiny):
     assert all(torch.equal(last[k], v) for k, v in model.net.state_dict().items())
     with pytest.raises(ValueError, match="patience"):
         TrainConfig(patience=-1)
+
+
+def test_a_split_that_leaves_no_validation_sample_says_why(tmp_path, capsys):
+    """One sequence, its last 2 % (2.3 s) for validation: the time cut leaves nothing after it with a sample's 4 s
+    history. It said only "no samples to train on (N training, 0 validation)"."""
+    from stages import cli
+
+    code = cli.main(["train", "--recording", "k729_2022-03-16", "--sequence", "013", "--val-fraction", "0.02", "--epochs", "1", "--no-cache",
+                     "--out", str(tmp_path / "m.pt"), "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 2 and "no validation samples: the sequence split left none of the" in err and "larger --val-fraction" in err, err
+    assert not (tmp_path / "m.pt").exists()

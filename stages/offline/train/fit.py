@@ -548,6 +548,13 @@ def run_training(cfg: TrainConfig, *, cache_dir: Path | None = DEFAULT_CACHE_DIR
         train_idx, val_idx, split_info = split_samples(ds, cfg.split, cfg.val_fraction, cfg.seed, reach=cfg.reach)
         train, val = ds.subset(train_idx), ds.subset(val_idx)
         say(f"{len(train)} training and {len(val)} validation samples ({cfg.split} split)")
+        if len(train) and not len(val) and len(ds):
+            dropped = split_info.get("dropped_at_cut", 0) if isinstance(split_info, dict) else 0
+            raise ValueError(
+                f"no validation samples: the {cfg.split} split left none of the {len(ds)} samples for validation"
+                + (f" ({dropped} dropped at a time cut: a validation sample needs its {HISTORY_STEPS * STEP_S:g} s history after the cut,"
+                   " so the later part of a short sequence holds none)" if dropped else "")
+                + f"; give more sequences, or a larger --val-fraction (now {cfg.val_fraction:g})")
         model, fitted = fit(cfg, train, val, log=say)
         pred_val = model.predict(val.x, val.mask)
     pred_train = model.predict(train.x, train.mask)
