@@ -47,8 +47,10 @@ def _args_record(p: argparse.ArgumentParser) -> None:
     p.add_argument("--split-s", type=float, default=None, help="start the next split file after this many seconds (default 0: never)")
     p.add_argument("--no-stats", action="store_true", help="leave out the _stats keys")
     p.add_argument("--overwrite", action="store_true", help="replace FILE.mcap (and its split files) where it exists; without it an existing file is refused")
-    p.add_argument("--log-level", default="INFO")
     from stages.runtime import add_network_args
+    from stages.runtime.args import LOG_LEVELS
+
+    p.add_argument("--log-level", default="INFO", type=str.upper, choices=LOG_LEVELS, help="DEBUG, INFO (default), WARNING, ERROR or CRITICAL")
 
     add_network_args(p)
     p.set_defaults(run=_run_record)
