@@ -334,6 +334,9 @@ def main(argv: list[str] | None = None) -> int:
     args.argv = list(argv) if argv is not None else sys.argv[1:]  # the command line as given (iamp eval --report writes it)
     try:
         return int(args.run(args))
+    except KeyboardInterrupt:  # Ctrl-C: one line, not a traceback (the offline tools write their outputs at the end)
+        sys.stderr.write(f"iamp {getattr(args, 'command', '')}: interrupted\n")
+        return 130
     except BrokenPipeError:  # `iamp ... | head`: the reader has what it wanted; the work (a file written) is done
         try:
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error when Python flushes stdout at exit
