@@ -117,6 +117,9 @@ class FrameHistory:
         self.scene: SceneInfo | None = None
         self.received = 0
         self.restarts = 0
+        # per kind of result: the newest stamp it came for, kept after its parts leave the history (a stage that stops
+        # must not look like a run without that stage: `stalled`)
+        self._last_part_ns: dict[str, int] = {}
 
     def add(self, inputs: Mapping[str, object]) -> bool:
         """File one update's inputs; False (nothing filed) without a track frame."""
@@ -132,6 +135,7 @@ class FrameHistory:
             self._stamps.clear()
             for parts in self._parts.values():
                 parts.clear()
+            self._last_part_ns.clear()
             self.restarts += 1
         self._frames.append(frame)
         self._stamps.append(stamp)
@@ -140,6 +144,7 @@ class FrameHistory:
             msg = inputs.get(kind)
             if isinstance(msg, tp) and msg.header.stamp_ns <= stamp:
                 self._parts[kind].setdefault(int(msg.header.stamp_ns), msg)
+                self._last_part_ns[kind] = max(self._last_part_ns.get(kind, 0), int(msg.header.stamp_ns))
         cut = bisect.bisect_left(self._stamps, stamp - self.history_ns)
         if cut:
             del self._frames[:cut]
@@ -156,6 +161,15 @@ class FrameHistory:
     @property
     def newest_stamp_ns(self) -> int | None:
         return self._stamps[-1] if self._stamps else None
+
+    def stalled(self, after_ns: int) -> dict[str, float]:
+        """Kinds of result that came earlier in this run but not for the last ``after_ns`` of frames: kind -> seconds
+        since the newest one (a stage stopped, hung or far behind; once its parts have left the history the frames
+        would otherwise be shown as if the run had no such stage)."""
+        newest = self.newest_stamp_ns
+        if newest is None:
+            return {}
+        return {k: (newest - t) / 1e9 for k, t in sorted(self._last_part_ns.items()) if newest - t > after_ns}
 
     def expected(self) -> list[str]:
         """The kinds of result that are arriving at all (any of them in the kept window)."""

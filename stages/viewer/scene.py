@@ -59,6 +59,12 @@ ASSUMED_ASPECT = 1280 / 900
 STEP_MIN_S, STEP_MAX_S, STEP_S = 0.4, 4.0, 0.4
 #: Above this the runtime's latency (receive wall time minus header stamp) compares recording time with the wall clock.
 PLAUSIBLE_LATENCY_MS = 60_000.0
+# results that came earlier in the run but not for this long of frames are called out in the status: a stopped stage
+STALLED_AFTER_S = 5.0
+# a node's stats row older than this (a live node sends them about once a second) is marked silent
+STATS_STALE_S = 5.0
+# each of the two steps of closing (drawing, the web server) waits at most this long: both within the launcher's 5 s
+CLOSE_TIMEOUT_S = 1.5
 _TYPE_NAMES = {0: "unknown", 1: "car", 2: "truck", 3: "bus", 4: "motorcycle", 5: "bicycle", 6: "pedestrian"}
 
 
@@ -68,10 +74,17 @@ class StatsBoard:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._latest: dict[str, NodeStats] = {}
+        self._received: dict[str, float] = {}  # node -> monotonic time its newest NodeStats came
 
     def put(self, stats: NodeStats) -> None:
         with self._lock:
             self._latest[stats.node_id] = stats
+            self._received[stats.node_id] = time.monotonic()
+
+    def received_at(self, node_id: str) -> float:
+        """Monotonic time the node's newest NodeStats came (stats come about once a second from a live node)."""
+        with self._lock:
+            return self._received.get(node_id, time.monotonic())
 
     def snapshot(self) -> dict[str, NodeStats]:
         with self._lock:
@@ -154,18 +167,27 @@ class ViewerApp:
         return self.url
 
     def close(self) -> None:
+        """Stop drawing and the server within ``CLOSE_TIMEOUT_S`` each: a browser that stopped reading (a stalled tab,
+        a client that never reads) held the render thread's send and the server's stop past the launcher's 5 s grace,
+        and the viewer was killed instead of stopped."""
         self._stop.set()
         self._wake.set()
         if self._thread is not None:
-            self._thread.join(timeout=5.0)
+            self._thread.join(timeout=CLOSE_TIMEOUT_S)
+            if self._thread.is_alive():
+                self.log.warning("viewer: drawing did not stop within %.1f s (a browser not reading?): left to end with the process", CLOSE_TIMEOUT_S)
         if self.metrics.scores:  # the compare view's figure, for the run's log
             self.log.info("viewer: running mADE at the end: %s", "; ".join(
                 f"{mode} {score.made:.2f} m over {score.windows} vehicle windows" for mode, score in sorted(self.metrics.scores.items())
             ) + f" ({self.metrics.frames_scored} frames)")
         if self.server is not None:
-            with contextlib.redirect_stdout(io.StringIO()):
-                self.server.stop()
-            self.server = None
+            server, self.server = self.server, None
+            stopper = threading.Thread(target=server.stop, name="viewer-stop", daemon=True)
+            with contextlib.redirect_stdout(io.StringIO()):  # viser prints on stop; process-wide, so only while we wait
+                stopper.start()
+                stopper.join(timeout=CLOSE_TIMEOUT_S)
+            if stopper.is_alive():
+                self.log.warning("viewer: the web server did not stop within %.1f s (a browser not reading?): left to end with the process", CLOSE_TIMEOUT_S)
 
     # ------------------------------------------------------------------ the runtime's side
 
@@ -536,32 +558,44 @@ class ViewerApp:
                 shown += f", results more than {self.config.max_lag_s:g} s late: frame shown without them"
             elif not view.paused and not view.show_ground_truth and not view.lookback_s and newest_ns - item.stamp_ns > 5e8:
                 shown += f", results lag the frames by {(newest_ns - item.stamp_ns) / 1e9:.1f} s"
+            stalled = self.history.stalled(int(STALLED_AFTER_S * 1e9))
+            if stalled:
+                oldest = max(stalled.values())
+                shown += (f", **no {', '.join(k.replace('_', ' ') for k in stalled)} for {oldest:.0f} s**"
+                          " (their stage has stopped, hung or fallen far behind)")
             if view.show_ground_truth:
                 shown += f", lagging {item.horizon_s(self.config.horizon_s):.1f} s for ground truth"
             if view.lookback_s:
                 shown += f", {view.lookback_s:.1f} s back"
             draw_ms = float(np.median(c.draw_ms)) if c.draw_ms else 0.0
-            age_ms = float(np.median(c.age_ms)) if c.age_ms else 0.0
-            e2e = f"{float(np.median(c.e2e_ms)):.0f} ms" if c.e2e_ms else "–"
+            # measured only on draws of the newest frame: while the view lags (ground truth, look back, pause) the
+            # figures of before would stand as if current
+            lagging = view.paused or view.show_ground_truth or bool(view.lookback_s)
+            age = f"{float(np.median(c.age_ms)):.0f} ms" if c.age_ms and not lagging else "–"
+            e2e = f"{float(np.median(c.e2e_ms)):.0f} ms" if c.e2e_ms and not lagging else "–"
             s = self.summary
             self._gui["status"].content = "\n\n".join([
                 f"**run** {self.run_id} · **frame** {item.frame_index} · {stamp_text(item.stamp_ns)} · **mode** {item.mode}",
                 f"showing: {shown}",
                 f"sets received {received} · drawn {c.drawn} · skipped {c.skipped}",
-                f"draw {draw_ms:.0f} ms · frame to screen {age_ms:.0f} ms (p50) · source to screen {e2e} (p50) · ≤ {self.config.max_render_hz:g} Hz",
+                f"draw {draw_ms:.0f} ms · frame to screen {age} (p50) · source to screen {e2e} (p50) · ≤ {self.config.max_render_hz:g} Hz",
                 f"objects {s.get('objects', 0)} · corridors {s.get('corridors', 0)} · grid "
-                + ("all steps" if view.blend_steps else f"{s.get('step_s', -1):.1f} s") + f": {s.get('grid_cells', 0)} cells, max {s.get('grid_max', 0):.2f}",
+                + ("all steps" if view.blend_steps else f"{s['step_s']:.1f} s" if s.get("step_s", -1) >= 0 else "–")
+                + f": {s.get('grid_cells', 0)} cells, max {s.get('grid_max', 0):.2f}",
             ])
         self._draw_vehicle_panel(view)
         if stats:
             rows = ["| node | ms p50/p95 | e2e ms p50/p95 | lat ms | q | iss | err | drop |", "|:--|--:|--:|--:|--:|--:|--:|--:|"]
+            now = time.monotonic()
             for node_id in sorted(stats):
                 st = stats[node_id]
                 cn = st.counters
+                age_s = now - self.stats.received_at(node_id)
+                node = node_id if age_s < STATS_STALE_S else f"{node_id} (**silent {age_s:.0f} s**)"
                 lat = f"{st.latency_ms_p50:.0f}" if 0 < st.latency_ms_p50 < PLAUSIBLE_LATENCY_MS else "–"
                 e2e = f"{st.e2e_ms_p50:.0f}/{st.e2e_ms_p95:.0f}" if math.isfinite(st.e2e_ms_p50) and math.isfinite(st.e2e_ms_p95) else "–"
                 rows.append(
-                    f"| {node_id} | {st.proc_ms_p50:.1f}/{st.proc_ms_p95:.0f} | {e2e} | {lat} | {st.queue_depth} | {cn.get('issues', 0)} | "
+                    f"| {node} | {st.proc_ms_p50:.1f}/{st.proc_ms_p95:.0f} | {e2e} | {lat} | {st.queue_depth} | {cn.get('issues', 0)} | "
                     f"{cn.get('decode_errors', 0) + cn.get('core_errors', 0)} | {cn.get('queue_drops', 0) + cn.get('join_drops', 0)} |"
                 )
             self._gui["stages"].content = "\n".join(rows) + (

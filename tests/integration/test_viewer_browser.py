@@ -34,6 +34,7 @@ import re
 import shutil
 import signal
 import subprocess
+import threading
 import sys
 import tempfile
 import time
@@ -377,6 +378,50 @@ def test_results_join_their_frames_by_stamp_however_late(scenario_sets_30):
     assert len(history) == 1 and history.restarts == 1
 
 
+def test_a_stage_that_stops_is_called_out_not_shown_as_a_run_without_it(scenario_sets_30, monkeypatch):
+    """markov_prediction stopped (kill -STOP) for 30 s: once its last results had left the 20 s history the page said
+    "showing: live" over frames without means or grid, and its Stages row kept its last figures as if current."""
+    import time as _time
+
+    from stages.viewer import scene as viewer_scene
+    from stages.viewer.config import ViewerConfig
+    from stages.viewer.model import FrameHistory
+    from stages.viewer.scene import ViewerApp
+
+    sets = scenario_sets_30
+    history = FrameHistory(history_s=1.0)  # 1 s of frames: the results of the first 10 frames leave it
+    for i, s in enumerate(sets):
+        history.add(s if i < 10 else {"track_frame": s["track_frame"], "scene": s["scene"], "corridor_set": s["corridor_set"]})
+    gap_s = (sets[-1]["track_frame"].header.stamp_ns - sets[9]["track_frame"].header.stamp_ns) / 1e9
+    stalled = history.stalled(int(0.5e9))
+    assert set(stalled) >= {"corridor_predictions", "motion_grid"} and "corridor_set" not in stalled, stalled
+    assert stalled["motion_grid"] == pytest.approx(gap_s)
+    assert history.expected() == ["corridor_set"], "the stopped kinds have left the history: frames count as complete"
+
+    monkeypatch.setattr(viewer_scene, "STALLED_AFTER_S", 0.5)
+    monkeypatch.setattr(viewer_scene, "STATS_STALE_S", 0.0)
+    app = ViewerApp(ViewerConfig(port=0, stats=True, history_s=1.0), run_id="t", log=logging.getLogger("iamp.viewer"),
+                    stats=viewer_scene.StatsBoard())
+    app.start()
+    try:
+        import bus_schemas as bs
+
+        app.stats.put(bs.NodeStats(run_id="t", node_id="markov_prediction", stage="stages.markov_prediction", pid=1, uptime_s=1.0,
+                                   counters={}, issues_by_kind={}, errors_by_kind={}, proc_ms_p50=1.0, proc_ms_p95=2.0, proc_ms_max=3.0,
+                                   latency_ms_p50=0.0, latency_ms_p95=0.0, queue_depth=0, last_stamp_ns=0))
+        for i, s in enumerate(sets):
+            app.update(s if i < 10 else {"track_frame": s["track_frame"], "scene": s["scene"], "corridor_set": s["corridor_set"]})
+        app.wait_drawn(lambda summary: summary.get("frame") == sets[-1]["track_frame"].header.frame_index, 60)
+        deadline = _time.monotonic() + 30
+        while "no corridor predictions" not in app._gui["status"].content and _time.monotonic() < deadline:
+            _time.sleep(0.1)
+        status = app._gui["status"].content
+        assert "no corridor predictions, motion grid" in status and "stage has stopped" in status, status
+        assert "markov_prediction (**silent" in app._gui["stages"].content
+    finally:
+        app.close()
+
+
 def test_grid_mesh_puts_row_zero_south_and_hides_cells_below_the_floor():
     import bus_schemas as bs
     from stages.viewer.model import HEAT_LEVELS, grid_mesh, heat_colours
@@ -705,3 +750,31 @@ if __name__ == "__main__":
         make_feature_figures(args.figures)
     else:
         make_figures(args.figures, args.frame)
+
+
+def test_close_does_not_wait_for_a_web_server_that_will_not_stop(caplog, monkeypatch):
+    """A browser that stops reading holds viser's server.stop() (6.0 s measured with a client that never reads) past
+    the launcher's 5 s grace, and the viewer was killed instead of stopped. close() now waits a bounded time for it;
+    here a stand-in server whose stop never returns (the real stall depends on socket buffers and timing)."""
+    from stages.viewer import scene as viewer_scene
+    from stages.viewer.config import ViewerConfig
+    from stages.viewer.scene import ViewerApp
+
+    monkeypatch.setattr(viewer_scene, "CLOSE_TIMEOUT_S", 0.2)
+    app = ViewerApp(ViewerConfig(port=0, stats=False), run_id="t", log=logging.getLogger("iamp.viewer"))
+    app.start()
+    real, never = app.server, threading.Event()
+
+    class Stuck:
+        def stop(self):
+            never.wait()
+
+    app.server = Stuck()
+    try:
+        with caplog.at_level(logging.WARNING, logger="iamp.viewer"):
+            app.close()  # returns: the stuck stop is left to end with the process
+        assert app.server is None
+        assert "the web server did not stop within 0.2 s" in caplog.text
+    finally:
+        never.set()
+        real.stop()
