@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import re
 import threading
 import time
 from typing import Any, Mapping
@@ -53,6 +54,48 @@ class _Listener:
             return True
 
 
+class RepeatFilter(logging.Filter):
+    """Collapses the SDK's repeated log lines (``foxglove.*`` loggers): a client that stopped reading and then left got
+    one ERROR line per message still queued for it (127 in one second). The first line of a kind (logger, level, text
+    with its numbers left out) passes; the same kind within ``window_s`` is counted, and the next one after it passes
+    saying how many were held back."""
+
+    def __init__(self, prefix: str = "foxglove", window_s: float = 10.0, clock=time.monotonic) -> None:
+        super().__init__()
+        self.prefix, self.window_s, self.clock = prefix, window_s, clock
+        self._kinds: dict[tuple, list] = {}  # kind -> [time it last passed, held back since]
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if not record.name.startswith(self.prefix):
+            return True
+        kind = (record.name, record.levelno, re.sub(r"\d+", "#", str(record.msg)))
+        now = self.clock()
+        seen = self._kinds.get(kind)
+        if seen is not None and now - seen[0] < self.window_s:
+            seen[1] += 1
+            return False
+        held = seen[1] if seen is not None else 0
+        if len(self._kinds) > 256:  # many kinds (a text with other changing parts): forget the old ones
+            self._kinds.clear()
+        self._kinds[kind] = [now, 0]
+        if held:
+            record.msg = f"{record.getMessage()} ({held} more like it in the {self.window_s:g} s before)"
+            record.args = ()
+        return True
+
+
+def install_repeat_filter() -> RepeatFilter:
+    """A ``RepeatFilter`` on every handler of the root logger (where the SDK's records end up): once per process."""
+    for handler in logging.getLogger().handlers:
+        found = next((f for f in handler.filters if isinstance(f, RepeatFilter)), None)
+        if found is not None:
+            return found
+    flt = RepeatFilter()
+    for handler in logging.getLogger().handlers:
+        handler.addFilter(flt)
+    return flt
+
+
 class FoxgloveBridge:
     """Serves the run's scene on a Foxglove WebSocket; ``update`` logs what is new in one input set."""
 
@@ -60,6 +103,7 @@ class FoxgloveBridge:
         self.config = config
         self.run_id = run_id
         self.log = log or logging.getLogger(f"iamp.{node_id}")
+        install_repeat_filter()
         self.context = foxglove.Context()
         self.scene = FoxgloveScene(self.context, data=config.data or None, grid_step=parse_grid_step(config.grid_step))
         self.topic_keys = dict(topic_keys or {})  # input port -> bus key (names the Foxglove topics by producing node)

@@ -367,3 +367,28 @@ def test_export_draws_what_was_recorded_before_its_partner(live_run, tmp_path):
     assert report.logged.get("/markov_prediction/corridors") == n_pred > 0, report.logged
     assert report.logged.get("/intentions/vehicles") == n_belief > 0, report.logged
     assert not any("without" in k for k in report.skipped), report.skipped
+
+
+def test_the_sdk_s_repeated_lines_are_collapsed():
+    """A Foxglove client that stopped reading and then left: the SDK logged one ERROR line per message still queued
+    for it (127 in one second). One passes, the rest of the same kind within 10 s are held back and counted."""
+    import logging
+
+    from stages.foxglove_bridge.core import RepeatFilter
+
+    now = [0.0]
+    flt = RepeatFilter(clock=lambda: now[0])
+    records = []
+
+    def emit(name, msg):
+        rec = logging.LogRecord(name, logging.ERROR, __file__, 1, msg, (), None)
+        if flt.filter(rec):
+            records.append(rec.getMessage())
+
+    for i in range(127):
+        emit("foxglove.websocket.connected_client.poller", f"Error sending message to client 127.0.0.1:{57836 + i % 2}: IO error: Broken pipe (os error 32)")
+    emit("iamp.foxglove", "a line of ours")  # never held back
+    assert len(records) == 2 and records[1] == "a line of ours"
+    now[0] = 11.0
+    emit("foxglove.websocket.connected_client.poller", "Error sending message to client 127.0.0.1:57836: IO error: Broken pipe (os error 32)")
+    assert records[-1].endswith("(126 more like it in the 10 s before)"), records[-1]
