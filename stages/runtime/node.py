@@ -122,6 +122,9 @@ class Node:
         self._pending: "collections.OrderedDict[int, dict[str, Message]]" = collections.OrderedDict()
         self._pending_since: dict[int, float] = {}
         self._port_seen: dict[str, float] = {}  # joined port -> when a message of it was last joined (monotonic)
+        joined = [p for p in self.input_keys if spec.inputs[p].joined]
+        self._gap_port = joined[0] if joined else None  # whose frame indices count frames never received
+        self._last_frame_index: int | None = None
         self._keepalive: list[Any] = []
         self._last_stats = 0.0
         self._last_input_mono = time.monotonic()
@@ -237,11 +240,37 @@ class Node:
             self.stop_event.wait(0.2)
 
     def _make_input_cb(self, port: str) -> Callable[[Any], None]:
+        gaps = port == self._gap_port
+
         def cb(sample: Any) -> None:
             self._count("received", port)
-            self._accept(port, str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
+            data = sample.payload.to_bytes()
+            if gaps:
+                self._count_unreceived(data)
+            self._accept(port, str(sample.key_expr), data, time.time_ns())
 
         return cb
+
+    def _count_unreceived(self, data: bytes) -> None:
+        """Frames the source numbered that never reached this node (``frames_unreceived``): gaps in the
+        ``header.frame_index`` of its first joined input as received, before any queue (whose own drops are
+        ``queue_drops``). A node that was stopped or hung, or too slow for its transport, lost them silently: its
+        counters said 0 while it had 301 of 574 frames. (A live tracker that numbers its frames with gaps counts
+        its gaps here too.) A frame index that goes back starts the count afresh (a source started over)."""
+        try:
+            _schema, _v, header = peek_header(data)
+            index = header.get("frame_index") if isinstance(header, dict) else None
+        except (SchemaError, AttributeError):
+            return
+        if type(index) is not int:
+            return
+        with self._count_lock:
+            last, self._last_frame_index = self._last_frame_index, index
+        if last is not None and last + 1 < index < last + MAX_FRAME_GAP:
+            self._count("frames_unreceived", n=index - last - 1)
+            self.problems.report("frames_unreceived", logging.WARNING,
+                                 "frames not received: %d before frame %d (lost on the way: this node or the one before it was stopped, hung or behind its transport, or the publisher skipped them)",
+                                 index - last - 1, index)
 
     def _query_latched_raw(self) -> None:
         """A raw sink's start: queue what the run's latched outputs answer (one query on the run's keys, then one more
@@ -861,6 +890,8 @@ def _peek_stamps(data: bytes) -> tuple[int | None, int]:
 
 # The queue's port of a raw sink's answers to its start query for latched values (``Node._query_latched_raw``).
 LATCHED_QUERY = "_latched_query"
+# A jump of the frame index this large or larger is no run of lost frames but another numbering (not counted).
+MAX_FRAME_GAP = 100_000
 
 
 def _frame_index_of(messages: Mapping[str, Any]) -> int:

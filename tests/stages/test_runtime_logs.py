@@ -489,3 +489,26 @@ def test_a_kind_that_every_new_car_raises_costs_a_few_lines_a_minute(log, caplog
     assert "issue: kind=velocity_rejected agent=100" in _lines(caplog)[-1]
     assert "[35 more episodes of this kind not shown in the last 60 s]" in _lines(caplog)[-1]
     il.close()
+
+
+def test_frames_that_never_reached_the_node_are_counted(log, caplog):
+    """A node stopped (kill -STOP) for 30 s had 273 of 574 frames and every counter at 0: the frames lost before its
+    queue were counted nowhere. Gaps in the frame index of its first joined input, as received, are now counted
+    (``frames_unreceived``) with one warning; a frame index that goes back (a source started over) is no gap, and
+    frames of another input are not counted again."""
+    from types import SimpleNamespace
+
+    node = _two_input_node(log, queue_size=1000)
+    cb, other = node._make_input_cb("profiles"), node._make_input_cb("other")
+
+    def deliver(callback, frame_index):
+        callback(SimpleNamespace(key_expr="iamp/t/src/profiles", payload=SimpleNamespace(to_bytes=lambda: _profiles(frame_index))))
+
+    for i in [0, 1, 2, 6, 7, 20]:  # 3 lost before 6, 12 before 20
+        deliver(cb, i)
+    for i in [0, 5, 9]:  # the other input's gaps: not counted twice
+        deliver(other, i)
+    for i in [0, 1, 3]:  # started over: 1 lost before 3
+        deliver(cb, i)
+    assert node.stats.counters["frames_unreceived"] == 3 + 12 + 1
+    assert sum("frames not received: 3 before frame 6" in ln for ln in _lines(caplog)) == 1
