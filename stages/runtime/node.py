@@ -197,6 +197,8 @@ class Node:
         if self.spec.kind == "source" or self._awaited():
             self._keepalive.append(s.liveliness().declare_subscriber(keys.alive_pattern(self.run_id), self._on_alive, history=True))
         self._token = s.liveliness().declare_token(keys.alive_key(self.run_id, self.node_id))
+        if getattr(self.args, "connect", None):
+            threading.Thread(target=self._check_link, daemon=True).start()
         self.log.info(
             "node up: stage=%s run=%s inputs=%s outputs=%s pid=%d",
             self.spec.stage,
@@ -205,6 +207,20 @@ class Node:
             ",".join(self.output_keys.values()) or "-",
             os.getpid(),
         )
+
+    def _check_link(self) -> None:
+        """One warning when ``LINK_CHECK_S`` after the start this session has no link to any router or peer although it
+        was told to ``--connect``: nothing listens there, or it refused this node (wrong or missing credentials). A
+        node did nothing and said nothing then (zenoh keeps trying to connect; this says so once)."""
+        if self.stop_event.wait(LINK_CHECK_S):
+            return
+        try:
+            linked = bool(self.session.info.routers_zid()) or bool(self.session.info.peers_zid())
+        except Exception:  # noqa: BLE001 - the session closing
+            return
+        if not linked:
+            self.log.warning("no link after %.0f s to --connect %s: nothing listens there, or it refused this node (credentials?);"
+                             " zenoh keeps trying", LINK_CHECK_S, " ".join(self.args.connect))
 
     def _make_latched_reply(self, port: str) -> Callable[[Any], None]:
         key = self.output_keys[port]
@@ -892,6 +908,8 @@ def _peek_stamps(data: bytes) -> tuple[int | None, int]:
 LATCHED_QUERY = "_latched_query"
 # A jump of the frame index this large or larger is no run of lost frames but another numbering (not counted).
 MAX_FRAME_GAP = 100_000
+# How long after its start a node told to --connect may be without any link before it says so.
+LINK_CHECK_S = 5.0
 
 
 def _frame_index_of(messages: Mapping[str, Any]) -> int:

@@ -167,3 +167,34 @@ def test_the_launcher_s_speed_flag_sets_a_replay_s_speed(tmp_path):
     assert '"speed": "max"' in done.stdout, done.stdout[-2000:]
     done = _launch("replay", "--var", f"FILE={rec}", "--speed", "2", "--describe", cwd=tmp_path)
     assert done.returncode == 0 and '"speed": 2.0' in done.stdout, done.stdout[-2000:] + done.stderr
+
+
+def test_a_node_without_any_link_to_its_connect_endpoint_says_so(tmp_path):
+    """`iamp record --connect` to a port where nothing listens (or a router that refuses its credentials) logged `node
+    up` and recorded only its own stats, without a word."""
+    import signal as _signal
+    import time as _time
+
+    from testkit.helpers import free_port
+
+    port = free_port()  # nothing listens there
+    proc = subprocess.Popen([sys.executable, "-m", "stages.cli", "record", str(tmp_path / "r.mcap"), "--run-id", "demo",
+                             "--connect", f"tcp/127.0.0.1:{port}"], cwd=tmp_path, env=python_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    lines = []
+    try:
+        deadline = _time.monotonic() + 60
+        while _time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            if "no link after" in line:
+                break
+    finally:
+        proc.send_signal(_signal.SIGINT)
+        try:
+            proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    assert any(f"no link after 5 s to --connect tcp/127.0.0.1:{port}" in ln for ln in lines), "".join(lines)
