@@ -128,6 +128,8 @@ class Node:
         self._keepalive: list[Any] = []
         self._last_stats = 0.0
         self._last_input_mono = time.monotonic()
+        self._had_input = False  # an input of a kind a stop drains (joined, latched, raw) has come
+        self._silent_since: float | None = None  # when the inputs fell silent (warned once), None while they flow
         self._progress_pub = None
         self._stats_pub = None  # both declared by open(); a node whose open() failed publishes no final stats
         # the inputs a stop waits to be quiet: not latest-value or wildcard ones (the run's NodeStats never are)
@@ -768,7 +770,19 @@ class Node:
                     self._deq_gc_ns = self._trace.gc.pause_ns
             drained = item is None or not (item[0] is None or item[0] in self._drain_ports)
             if not drained:
-                self._last_input_mono = time.monotonic()
+                now = time.monotonic()
+                if self._silent_since is not None:  # the inputs are back
+                    self.log.info("inputs resumed after %.0f s of silence", now - self._silent_since)
+                    self._silent_since = None
+                self._last_input_mono = now
+                self._had_input = True
+            elif self._had_input and self._silent_since is None and not self.stop_event.is_set() \
+                    and time.monotonic() - self._last_input_mono >= SILENT_AFTER_S:
+                # a tracker, source or upstream stage that stopped (killed, hung, its link lost): once, not per frame
+                self._silent_since = self._last_input_mono
+                self.stats.counters["input_silences"] += 1
+                self.log.warning("no input for %.0f s (inputs: %s): its publisher stopped, hung or lost its link?", SILENT_AFTER_S,
+                                 ",".join(sorted(self.input_keys.values())) or "the run's keys")
             if item is not None:
                 try:
                     handle(item)
@@ -910,6 +924,8 @@ LATCHED_QUERY = "_latched_query"
 MAX_FRAME_GAP = 100_000
 # How long after its start a node told to --connect may be without any link before it says so.
 LINK_CHECK_S = 5.0
+# Inputs that flowed and then stopped for this long are reported once (and their return); longer than a run's drain.
+SILENT_AFTER_S = 10.0
 
 
 def _frame_index_of(messages: Mapping[str, Any]) -> int:

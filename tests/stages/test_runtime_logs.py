@@ -512,3 +512,33 @@ def test_frames_that_never_reached_the_node_are_counted(log, caplog):
         deliver(cb, i)
     assert node.stats.counters["frames_unreceived"] == 3 + 12 + 1
     assert sum("frames not received: 3 before frame 6" in ln for ln in _lines(caplog)) == 1
+
+
+def test_inputs_that_fall_silent_are_reported_once_and_their_return_too(log, caplog, monkeypatch):
+    """A live tracker killed: no stage said anything about its silent input, nor when it came back."""
+    import threading
+    import time as _time
+
+    from stages.runtime import node as node_mod
+
+    monkeypatch.setattr(node_mod, "SILENT_AFTER_S", 0.3)
+    node, _out = _node(log)
+    node._stats_pub = RecordingPublisher()
+    handled = []
+
+    def feed():
+        node.queue.put((None, "a", b"", 0), None, 0)
+        _time.sleep(1.0)  # silent for > 0.3 s: one warning, however many loop turns
+        node.queue.put((None, "b", b"", 0), None, 0)
+        _time.sleep(0.2)
+        node.stop_event.set()
+        node.signals = 2
+
+    t = threading.Thread(target=feed)
+    t.start()
+    node._serve(lambda item: handled.append(item[1]))
+    t.join()
+    lines = _lines(caplog)
+    assert handled == ["a", "b"]
+    assert sum("no input for 0 s" in ln for ln in lines) == 1 and node.stats.counters["input_silences"] == 1, lines
+    assert any("inputs resumed after 1 s of silence" in ln for ln in lines), lines
