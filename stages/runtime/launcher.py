@@ -125,6 +125,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="let the recorder replace an existing --record file (and its split files); without it such a file stops the launcher before any node starts")
     p.add_argument("--no-record", action="store_true", help="leave the recorder out")
     p.add_argument("--no-viewer", action="store_true", help="leave the viewer out")
+    p.add_argument("--linger", action="store_true", help="when the sources finish (a replay, a recording played), keep every node up,"
+                   " the viewer on the last frames, until Ctrl-C or --stop-after, instead of ending the run")
     p.add_argument("--foxglove", action="store_true", help="add the live Foxglove bridge (node foxglove): the scene on a Foxglove WebSocket, ws://127.0.0.1:PORT printed")
     p.add_argument("--data", metavar="PATH", help="data folder laid out like stages/data/taf-bw (default: the embedded scenario); in a pipeline without a"
                    " dataset player (live) the folder whose maps/ the stages load the tracker's map from")
@@ -560,6 +562,8 @@ class Launcher:
             self.bus.close()
             self._remove_auth_dir()
 
+    _lingering = False  # --linger: the sources finished and the run waits for Ctrl-C
+
     def _remove_auth_dir(self) -> None:
         if self.auth_dir is not None:
             shutil.rmtree(self.auth_dir, ignore_errors=True)
@@ -604,8 +608,12 @@ class Launcher:
                 say(f"stopping the run because {nid} failed")
                 return self.shutdown(order)
             if sources and all(self.children[s.id].finished for s in sources):
-                say("all sources finished; draining")
-                return self.shutdown(order)
+                if not getattr(self.args, "linger", False):
+                    say("all sources finished; draining")
+                    return self.shutdown(order)
+                if not self._lingering:  # the viewer (and the rest) stay up on the last frames until Ctrl-C
+                    self._lingering = True
+                    say("all sources finished; --linger: every node stays up (the viewer on the last frames) until Ctrl-C")
             time.sleep(0.05)
 
     def next_split(self, c: Child) -> None:

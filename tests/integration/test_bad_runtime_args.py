@@ -198,3 +198,19 @@ def test_a_node_without_any_link_to_its_connect_endpoint_says_so(tmp_path):
         except subprocess.TimeoutExpired:
             proc.kill()
     assert any(f"no link after 5 s to --connect tcp/127.0.0.1:{port}" in ln for ln in lines), "".join(lines)
+
+
+def test_linger_keeps_the_run_up_after_the_source_finished(tmp_path):
+    """A replay's viewer went away the moment the replay ended (at --speed max, within seconds): --linger keeps every
+    node up until Ctrl-C or --stop-after."""
+    from stages.recorder import McapRecorder, RecorderConfig
+
+    rec = tmp_path / "r.mcap"
+    with McapRecorder(RecorderConfig(path=str(rec)), "demo") as r:
+        r.handle("iamp/demo/source/scene", b"x", 1)  # one message: the replay ends at once
+        r.handle("iamp/demo/source/other", b"y", 2)
+    done = _launch("replay", "--var", f"FILE={rec}", "--speed", "max", "--no-viewer", "--record", str(tmp_path / "again.mcap"), "--linger",
+                   "--stop-after", "8", cwd=tmp_path)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-2000:]
+    out = done.stdout
+    assert "all sources finished; --linger" in out and out.index("all sources finished") < out.index("--stop-after 8 s reached"), out[-3000:]
