@@ -696,7 +696,7 @@ def run_pipeline(data_dir: str | Path, recording: str, mcap: str | Path, *, run_
     import time
 
     cmd = [sys.executable, str(REPO / "launch.py"), "--data", str(data_dir), "--recording", recording, "--speed", speed,
-           "--no-viewer", "--record", str(mcap), "--run-id", run_id, *extra]
+           "--no-viewer", "--record", str(mcap), "--overwrite", "--run-id", run_id, *extra]  # (a --keep folder of an earlier run)
     t0 = time.monotonic()
     proc = subprocess.Popen(cmd, cwd=str(cwd or Path(mcap).resolve().parent), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True, start_new_session=True)
