@@ -150,17 +150,17 @@ def compare(base_rev: str, command: list[str], metrics: list[str], rounds: int, 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if "--" not in argv:
-        print("bench/ab.py: give the benchmark command after --, with {json} where it writes its report", file=sys.stderr)
-        return 2
-    cut = argv.index("--")
-    own, command = argv[:cut], argv[cut + 1:]
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    cut = argv.index("--") if "--" in argv else len(argv)
+    own, command = argv[:cut], (argv[cut + 1:] if cut < len(argv) else None)
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                usage="%(prog)s --base REV [--rounds N] --metric KEY [--metric KEY ...] [--json OUT] -- COMMAND ... {json} ...")
     p.add_argument("--base", required=True, help="git revision to compare this working tree with")
     p.add_argument("--rounds", type=int, default=4, help="rounds, each one run per version (default 4; at least 2)")
     p.add_argument("--metric", action="append", required=True, help="dotted path of a number in the command's JSON (repeatable)")
     p.add_argument("--json", type=Path, default=None, help="write the comparison here")
-    args = p.parse_args(own)
+    args = p.parse_args(own)  # (--help: the usage, exit 0)
+    if command is None:
+        p.error(f"give the benchmark command after --, with {PLACEHOLDER} where it writes its report")
     if args.rounds < 2:
         p.error("--rounds must be at least 2 (the interval needs two paired rounds)")
     if not command or not any(PLACEHOLDER in a for a in command):

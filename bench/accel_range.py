@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stages.lib.datasets import discover, full_data_dir, load_ref
+from stages.lib.datasets import DatasetError, discover, full_data_dir, find_recording, load_ref
 from stages.offline.truth import MANOEUVRES, future_positions, ground_truth, manoeuvre_class
 from stages.lib.base import check_output_arg
 
@@ -109,7 +109,13 @@ def main(argv: list[str] | None = None) -> int:
     if data is None:
         print("accel_range: no data folder (--data or IAMP_TAF_BW)", file=sys.stderr)
         return 2
-    refs = {r.name: r for r in discover(data)}
+    try:  # before the work: a data folder or recording that is not there is a bad command line
+        refs = {r.name: r for r in discover(data)}
+        for name in args.recording:
+            find_recording(data, name)
+    except DatasetError as exc:
+        print(f"accel_range: error: {exc}", file=sys.stderr)
+        return 2
     result = {}
     for name in args.recording or sorted(refs):
         rec = load_ref(refs[name])

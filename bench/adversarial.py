@@ -61,6 +61,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--timeout", type=float, default=600.0, help="seconds per launcher run before it is stopped (default 600)")
     args = p.parse_args(argv)
     check_output_arg(p, args.json, "--json")  # before the work: a bad path must not cost the run
+    if args.data is not None and not (args.data / "manifest.json").is_file():
+        p.error(f"--data {args.data}: no manifest.json there (a folder written by python -m testkit.adversarial DIR)")
 
     with tempfile.TemporaryDirectory(prefix="iamp-adv-") as tmp:
         data = args.data

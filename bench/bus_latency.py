@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import os
 import socket
 import subprocess
@@ -137,6 +138,10 @@ def main() -> int:
     ap.add_argument("--rate", type=float, default=200.0, help="paced rate for the latency runs (Hz)")
     ap.add_argument("--json", metavar="FILE")
     args = ap.parse_args()
+    if args.count < 1:
+        ap.error(f"--count {args.count}: must be >= 1")
+    if not (args.rate > 0 and math.isfinite(args.rate)):
+        ap.error(f"--rate {args.rate:g}: must be a number of Hz > 0")
     check_output_arg(ap, args.json, "--json")  # before the work: a bad path must not cost the run
     if args.role == "sink":
         sink(args.hub, args.kind, args.count)

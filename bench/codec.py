@@ -102,10 +102,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=40, help="without a file: frames played through the chain (default 40)")
     parser.add_argument("--repeat", type=int, default=3, help="passes per measurement, best kept (default 3)")
     args = parser.parse_args(argv)
-    if args.mcap is not None:
-        where, payloads = f"recording {args.mcap}", recorded_payloads(args.mcap, args.per_schema)
-    else:
-        where, payloads = chain_payloads(args.vehicles, args.frames, args.per_schema)
+    for flag, value in (("--per-schema", args.per_schema), ("--vehicles", args.vehicles), ("--frames", args.frames), ("--repeat", args.repeat)):
+        if value < 1:
+            parser.error(f"{flag} {value}: must be >= 1")
+    from stages.lib.datasets import DatasetError
+    from stages.recorder.inspect import RecordingError
+
+    try:
+        if args.mcap is not None:
+            where, payloads = f"recording {args.mcap}", recorded_payloads(args.mcap, args.per_schema)
+        else:
+            where, payloads = chain_payloads(args.vehicles, args.frames, args.per_schema)
+    except (RecordingError, DatasetError) as exc:  # a file that is missing or not an MCAP recording; --vehicles out of range
+        print(f"codec: error: {exc}", file=sys.stderr)
+        return 2
     print(f"messages: {where}; CPU ms per message, best of {args.repeat}; ref: reference codec alone, fast: generated codec")
     print(f"{'schema':<26}{'n':>5}{'kB':>8} | {'decode ref':>10}{'fast':>8}{'x':>6} | {'encode ref':>10}{'fast':>8}{'x':>6} | same")
     for schema in sorted(payloads):

@@ -51,7 +51,7 @@ REPO = Path(__file__).resolve().parents[1]
 from bus_schemas import AgentType, MatchStatus
 from plot_frame import default_data_dir, scene_for, track_frames
 from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
-from stages.lib.datasets import discover, load_recording
+from stages.lib.datasets import DatasetError, discover, find_recording, load_recording
 from stages.lib.base import check_output_arg
 
 HORIZON_STEPS = 10
@@ -222,7 +222,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     check_output_arg(parser, args.json, "--json")  # before the work: a bad path must not cost the run
     data = args.data or default_data_dir()
-    names = args.recording or [ref.name for ref in discover(data)]
+    try:  # before the work: a data folder or recording that is not there is a bad command line
+        names = args.recording or [ref.name for ref in discover(data)]
+        for name in args.recording:
+            find_recording(data, name)
+    except DatasetError as exc:
+        print(f"corridor_coverage: error: {exc}", file=sys.stderr)
+        return 2
     params = {}
     for item in args.set:
         key, _, value = item.partition("=")

@@ -73,7 +73,7 @@ from pathlib import Path
 import numpy as np
 
 from stages.lib.datasets import DEFAULT_DATA_DIR, FULL_DATA_ENV, full_data_dir, load_recording
-from stages.lib.datasets.superimpose import build_dense
+from stages.lib.datasets.superimpose import MAX_VEHICLES, build_dense
 
 from bus_schemas import AgentType
 from stages.lib.base import check_output_arg
@@ -254,10 +254,22 @@ def run_one(data_dir: Path, name: str, args, stencils, on_frame=None, target: fl
     return out
 
 
+def vehicle_counts(text: str) -> list[int]:
+    """``--vehicles``: comma-separated whole numbers of vehicles per frame, each 1 to ``MAX_VEHICLES``."""
+    try:
+        sizes = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated whole numbers, e.g. 6,12,18") from None
+    if not sizes or not all(1 <= n <= MAX_VEHICLES for n in sizes):
+        raise argparse.ArgumentTypeError(f"{text!r}: each a number of vehicles per frame from 1 to {MAX_VEHICLES}")
+    return sizes
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    """The command line, checked: ``modes`` a tuple of ``MODES``, ``set`` the parsed ``--set`` pairs."""
+    """The command line, checked: ``vehicles`` a list of ints, ``modes`` a tuple of ``MODES``, ``set`` the parsed
+    ``--set`` pairs."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--vehicles", default="6,12,18,36,72")
+    parser.add_argument("--vehicles", type=vehicle_counts, default="6,12,18,36,72", help="comma-separated vehicles per frame (default 6,12,18,36,72)")
     parser.add_argument("--frames", type=int, default=40, help="timed frames per N")
     parser.add_argument("--warmup", type=int, default=10, help="untimed frames before each segment's timed ones (track histories, caches)")
     parser.add_argument("--segments", type=int, default=4, help="the timed frames are split over this many stretches spread over the recording")
@@ -278,6 +290,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                              " inputs (60: ~10 Hz); 0: back to back (bench/idle_penalty.py: what the wait costs on this host)")
     args = parser.parse_args(argv)
     check_output_arg(parser, args.json, "--json")  # before the work: a bad path must not cost the run
+    for flag, value, least in (("--frames", args.frames, 1), ("--segments", args.segments, 1), ("--warmup", args.warmup, 0),
+                               ("--threads", args.threads, 0)):
+        if value < least:
+            parser.error(f"{flag} {value}: must be >= {least}")
     if not (args.idle_ms >= 0 and args.idle_ms < 10_000):
         parser.error(f"--idle-ms {args.idle_ms}: expected 0 to 10000 ms")
     args.modes = tuple(m.strip() for m in args.modes.split(",") if m.strip())
@@ -291,7 +307,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    sizes = [int(x) for x in args.vehicles.split(",")]
+    sizes = args.vehicles
     if args.backend is None:  # the device's fastest chain: on a GPU the one-kernel chain where numba.cuda can run it
         from stages.lib.markov import cuda_chain
 

@@ -113,7 +113,7 @@ def build(n: int, source: str, work: Path, duration_s: float | None) -> tuple[Pa
 
 def run_pipeline(pipeline: str, data: Path | None, recording: str | None, rec: Path, speed: str, duration_s: float | None, run_id: str,
                  trace: Path | None = None, sets: tuple[str, ...] = ()) -> float:
-    cmd = [sys.executable, str(REPO / "launch.py"), pipeline, "--speed", speed, "--no-viewer", "--record", str(rec), "--run-id", run_id]
+    cmd = [sys.executable, str(REPO / "launch.py"), pipeline, "--speed", speed, "--no-viewer", "--record", str(rec), "--overwrite", "--run-id", run_id]
     for item in sets:
         cmd += ["--set", item]
     if data is not None:
@@ -428,9 +428,22 @@ def _cell(v: dict | None) -> str:
     return f"{v['p50']:.1f}/{v['p95']:.1f}"
 
 
+def vehicle_counts(text: str) -> list[int]:
+    """``--vehicles``: comma-separated whole numbers, each 0 (the embedded scenario as it is) to ``MAX_VEHICLES``."""
+    from stages.lib.datasets.superimpose import MAX_VEHICLES
+
+    try:
+        counts = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated whole numbers, e.g. 0,18") from None
+    if not counts or not all(0 <= n <= MAX_VEHICLES for n in counts):
+        raise argparse.ArgumentTypeError(f"{text!r}: each 0 (the embedded scenario) or a number of vehicles per frame up to {MAX_VEHICLES}")
+    return counts
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--vehicles", default="0,18", help="comma-separated; 0 = the embedded default scenario as it is")
+    ap.add_argument("--vehicles", type=vehicle_counts, default="0,18", help="comma-separated; 0 = the embedded default scenario as it is")
     ap.add_argument("--pipeline", default="hybrid")
     ap.add_argument("--speed", default="1")
     ap.add_argument("--duration-s", type=float, default=None, help="play at most this long (default: the whole recording)")
@@ -456,7 +469,7 @@ def main() -> int:
 
     result["host_reference"] = host_speed.reference()  # (this host's speed apart from the project's code, before the runs)
     print(host_speed.line(result["host_reference"]))
-    for n in [int(v) for v in args.vehicles.split(",") if v.strip()]:
+    for n in args.vehicles:
         if n == 0:
             label, data, recording, origin = "embedded", None, None, "the launcher's embedded default scenario"
         else:

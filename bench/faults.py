@@ -142,7 +142,7 @@ def stage_kills(args, work: Path) -> dict:
     mcap = work / "faults.mcap"
     run_id = "faults"
     stop_after = args.first_kill_s + args.spacing * len(STAGES) + 5
-    launch = Launch(["--speed", str(args.speed), "--record", str(mcap), "--stop-after", f"{stop_after:g}"], work, run_id)
+    launch = Launch(["--speed", str(args.speed), "--record", str(mcap), "--overwrite", "--stop-after", f"{stop_after:g}"], work, run_id)
     kills = []
     try:
         t_play, _ = launch.wait_for(STARTING, 180)
@@ -187,7 +187,7 @@ def stage_kills(args, work: Path) -> dict:
 def recorder_kill(args, work: Path) -> dict:
     mcap = work / "recorder_kill.mcap"
     run_id = "faultsrec"
-    launch = Launch(["--speed", str(args.speed), "--record", str(mcap), "--stop-after", f"{args.recorder_kill_s + 20:g}"], work, run_id)
+    launch = Launch(["--speed", str(args.speed), "--record", str(mcap), "--overwrite", "--stop-after", f"{args.recorder_kill_s + 20:g}"], work, run_id)
     try:
         t_play, _ = launch.wait_for(STARTING, 180)
         while time.time() < t_play + args.recorder_kill_s:

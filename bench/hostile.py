@@ -68,6 +68,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import math
 import os
 import re
 import resource
@@ -690,6 +691,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--burst-at", type=int, default=100, help="burst: source frame index at which the burst starts (default 100)")
     p.add_argument("--burst-rate", type=float, default=0.0, help="burst: payloads per second (default 0: as fast as possible)")
     args = p.parse_args(argv)
+    for flag, value, least in (("--n", args.n, 1), ("--frames", args.frames, 1), ("--burst", args.burst, 0), ("--burst-at", args.burst_at, 0),
+                               *(("--objects", n, 1) for n in args.objects or ())):
+        if value < least:
+            p.error(f"{flag} {value}: must be >= {least}")
+    if not (args.speed > 0 and math.isfinite(args.speed)):
+        p.error(f"--speed {args.speed}: must be a number > 0")
+    if not (args.burst_rate >= 0 and math.isfinite(args.burst_rate)):
+        p.error(f"--burst-rate {args.burst_rate}: must be a number >= 0 (0: as fast as possible)")
     for name in args.section or list(SECTIONS):
         SECTIONS[name](args)
         print()

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from stages.corridors import SceneMaps
-from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, load_recording
+from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, DatasetError, load_recording
 from stages.intentions import IntentionFilter, IntentionsConfig
 from stages.offline.chain import chain_frames
 from stages.offline.intentions_eval import IntentionEvalConfig, entering_events, route_windows
@@ -56,9 +56,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--particles", type=int, nargs="*", default=[100, 300, 1000])
     parser.add_argument("--seeds", type=int, nargs="*", default=[0, 1, 2])
     args = parser.parse_args(argv)
+    if not args.particles or min(args.particles) < 1:
+        parser.error("--particles: give one or more particle counts, each >= 1")
+    if not args.seeds:
+        parser.error("--seeds: give one or more seeds")
 
     scene_maps = SceneMaps(data=args.data)
-    recording = load_recording(args.data, args.recording, tuple(args.sequence) or None)
+    try:
+        recording = load_recording(args.data, args.recording, tuple(args.sequence) or None)
+    except DatasetError as exc:  # a data folder, recording or sequence that is not there: a bad command line
+        print(f"intentions_particles: error: {exc}", file=sys.stderr)
+        return 2
     sha = file_sha256(recording.map_path)
     t0 = time.perf_counter()
     sequences = [chain_frames(recording, seq, scene_maps, map_sha256=sha) for seq in recording.sequences]

@@ -163,14 +163,29 @@ def _time_frame(propagator: MarkovPropagator, p0, inputs, with_interval: bool, r
     return statistics.median(times)
 
 
+def parse_pairs(text: str) -> list[int]:
+    """``--pairs``: comma-separated whole numbers of vehicle-corridor pairs, each >= 1."""
+    try:
+        counts = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated whole numbers, e.g. 1,10,50") from None
+    if not counts or min(counts) < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: each a number of pairs >= 1")
+    return counts
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--pairs", default="1,10,50,200")
+    parser.add_argument("--pairs", type=parse_pairs, default="1,10,50,200", help="comma-separated pairs per frame (default 1,10,50,200)")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     parser.add_argument("--hybrid-only", action="store_true", help="only the hybrid chain's table")
     args = parser.parse_args(argv)
-    pair_counts = [int(x) for x in args.pairs.split(",")]
+    if args.repeats < 1:
+        parser.error(f"--repeats {args.repeats}: must be >= 1")
+    if args.threads < 0:
+        parser.error(f"--threads {args.threads}: must be >= 0 (0: torch's default)")
+    pair_counts = args.pairs
 
     config = MarkovGridConfig()
     start = time.perf_counter()

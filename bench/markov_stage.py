@@ -92,6 +92,10 @@ def scenario(n_pairs: int, seed: int = 0) -> tuple[bs.CorridorSet, bs.RelationSe
             bs.RelationSet(header=header, scene_id="bench", relations=tuple(relations)))
 
 
+#: The backends ``--backends`` names (torch-cuda: skipped, said so, where there is no CUDA device).
+BACKENDS = ("numpy", "torch-cpu", "torch-cuda")
+
+
 def _backends(requested: list[str]) -> list[tuple[str, str, str]]:
     out = []
     for name in requested:
@@ -109,13 +113,30 @@ def _backends(requested: list[str]) -> list[tuple[str, str, str]]:
     return out
 
 
+def parse_pairs(text: str) -> list[int]:
+    """``--pairs``: comma-separated whole numbers of vehicle-corridor pairs, each >= 1."""
+    try:
+        counts = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated whole numbers, e.g. 1,10,50") from None
+    if not counts or min(counts) < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: each a number of pairs >= 1")
+    return counts
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--pairs", default="1,10,50,200")
+    parser.add_argument("--pairs", type=parse_pairs, default="1,10,50,200", help="comma-separated pairs per frame (default 1,10,50,200)")
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--backends", default="numpy,torch-cpu,torch-cuda")
+    parser.add_argument("--backends", default=",".join(BACKENDS), help=f"comma-separated, among {', '.join(BACKENDS)} (default all)")
     args = parser.parse_args(argv)
-    sizes = [int(x) for x in args.pairs.split(",")]
+    if args.repeats < 1:
+        parser.error(f"--repeats {args.repeats}: must be >= 1")
+    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+    unknown = [b for b in backends if b not in BACKENDS]
+    if unknown or not backends:
+        parser.error(f"--backends {args.backends}: " + (f"unknown {', '.join(unknown)}; " if unknown else "") + f"choose among {', '.join(BACKENDS)}")
+    sizes = args.pairs
     try:
         import torch
 
@@ -125,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
         pass
     reference = MarkovPredictor(MarkovPredictionConfig(corridor_weights="uniform", initial_box="measurement"))
     print(f"{'backend':<11} {'pairs':>5} {'frame ms p50':>13} {'p95':>8} {'ms/pair':>8}")
-    for name, backend, device in _backends(args.backends.split(",")):
+    for name, backend, device in _backends(backends):
         predictor = MarkovPredictor(MarkovPredictionConfig(backend=backend, device=device, corridor_weights="uniform", initial_box="measurement"), stencils=reference.stencils)
         per_pair = []
         for n in sizes:

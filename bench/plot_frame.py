@@ -47,7 +47,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 from bus_schemas import AgentType, CorridorSet, Header, MatchStatus, SceneInfo, TrackFrame
 from stages.corridors import CorridorBuilder, CorridorsConfig
-from stages.lib.datasets import load_recording
+from stages.lib.base import check_output_arg
+from stages.lib.datasets import DatasetError, load_recording
 from stages.lib.maps import Projection, RoadMap, lanelet_bounds
 from stages.relations import RelationExtractor, RelationsConfig
 
@@ -220,6 +221,22 @@ def track_frames(sequence, scene_id: str = ""):
         )
 
 
+def written_path(parser: argparse.ArgumentParser, out: Path) -> Path:
+    """The file ``--out`` names as matplotlib writes it: without a suffix, matplotlib adds that of its default
+    format (``savefig.format``, png), so the name gets it here and is printed as written; a suffix matplotlib
+    cannot write is refused."""
+    import matplotlib
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    if not out.suffix:
+        return out.with_name(f"{out.name}.{matplotlib.rcParams['savefig.format']}")
+
+    formats = FigureCanvasBase.get_supported_filetypes()
+    if out.suffix[1:].lower() not in formats:
+        parser.error(f"--out {out}: matplotlib cannot write {out.suffix!r} files; give one of {', '.join('.' + f for f in sorted(formats))}")
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, default=None, help="data folder laid out like taf-bw")
@@ -232,8 +249,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--margin-m", type=float, default=25.0)
     parser.add_argument("--relations", action="store_true", help="draw conflict points and leader links (relations core)")
     args = parser.parse_args(argv)
+    check_output_arg(parser, args.out, "--out")  # before the work: a folder or a path that cannot be written
+    args.out = written_path(parser, args.out)
+    check_output_arg(parser, args.out, "--out")  # (the name with the suffix added: not a folder either)
+    if args.dpi < 1:
+        parser.error(f"--dpi {args.dpi}: must be >= 1")
     data = args.data or default_data_dir()
-    recording = load_recording(data, args.recording, [args.sequence])
+    try:
+        recording = load_recording(data, args.recording, [args.sequence])
+    except DatasetError as exc:  # a data folder, recording or sequence that is not there: a bad command line
+        print(f"plot_frame: error: {exc}", file=sys.stderr)
+        return 2
     sequence = recording.sequences[0]
     is_car = np.isin(sequence.agent_type, [t.value for t in AgentType if t.is_vehicle])
     if args.frame is None:

@@ -28,7 +28,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 
 from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
-from stages.lib.datasets import DEFAULT_DATA_DIR
+from stages.lib.datasets import DEFAULT_DATA_DIR, DatasetError, find_recording
+from stages.lib.datasets.model import same_sequence_id
 from stages.relations import RelationExtractor, RelationsConfig, SceneTables
 from stages.tracks_source.core import TrackPlayer, TracksSourceConfig
 
@@ -65,7 +66,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sequence", default="013")
     parser.add_argument("--repeat", type=int, default=200)
     args = parser.parse_args(argv)
+    if args.repeat < 1:
+        parser.error(f"--repeat {args.repeat}: must be >= 1")
     data = args.data or default_data_dir()
+    try:  # before the work: the K729 recording and its map in --data, the sequence in the embedded one
+        ref = find_recording(data, RECORDING)
+        if ref.map_path is None:
+            raise DatasetError(f"recording {RECORDING} has no map: expected maps/{RECORDING}.osm in {data}")
+        embedded = find_recording(DEFAULT_DATA_DIR, RECORDING)
+        if not any(same_sequence_id(s, args.sequence) for s in embedded.sequence_ids):
+            raise DatasetError(f"--sequence {args.sequence}: no such sequence of the embedded {RECORDING}; available: {', '.join(embedded.sequence_ids)}")
+    except DatasetError as exc:
+        print(f"relations_timing: error: {exc}", file=sys.stderr)
+        return 2
     scene_maps = SceneMaps(data=data)
     config = RelationsConfig()
 

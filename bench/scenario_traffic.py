@@ -13,6 +13,8 @@ distribution.
 from __future__ import annotations
 
 import argparse
+import sys
+
 import numpy as np
 
 from bus_schemas import VEHICLE_TYPE_VALUES
@@ -28,17 +30,26 @@ def main() -> int:
     counts: list[int] = []
     if args.mcap:
         from bus_schemas import TrackFrame
-        from stages.recorder.inspect import read_messages
+        from stages.recorder.inspect import RecordingError, read_messages
 
-        for m in read_messages(args.mcap):
-            if m.schema == TrackFrame.SCHEMA:
-                f = TrackFrame.decode(m.data)
-                counts.append(int(np.isin(np.asarray(f.agent_types, dtype=np.int64), list(VEHICLE_TYPE_VALUES)).sum()))
+        try:  # (raised before the first message: a file that is missing or not an MCAP recording)
+            for m in read_messages(args.mcap):
+                if m.schema == TrackFrame.SCHEMA:
+                    f = TrackFrame.decode(m.data)
+                    counts.append(int(np.isin(np.asarray(f.agent_types, dtype=np.int64), list(VEHICLE_TYPE_VALUES)).sum()))
+        except RecordingError as exc:
+            p.error(f"--mcap: {exc}")
+        if not counts:
+            p.error(f"--mcap {args.mcap}: no TrackFrame in it")
         what = args.mcap
     else:
-        from stages.lib.datasets import DEFAULT_DATA_DIR, load_recording
+        from stages.lib.datasets import DEFAULT_DATA_DIR, DatasetError, load_recording
 
-        rec = load_recording(args.data or DEFAULT_DATA_DIR, args.recording, args.sequence or None)
+        try:
+            rec = load_recording(args.data or DEFAULT_DATA_DIR, args.recording, args.sequence or None)
+        except DatasetError as exc:  # a data folder, recording or sequence that is not there: a bad command line
+            print(f"scenario_traffic: error: {exc}", file=sys.stderr)
+            return 2
         for seq in rec.sequences:
             frames, inverse = np.unique(np.asarray(seq.frame_index), return_inverse=True)
             vehicle = np.isin(np.asarray(seq.agent_type, dtype=np.int64), list(VEHICLE_TYPE_VALUES))

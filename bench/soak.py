@@ -30,6 +30,7 @@ import dataclasses
 import gc
 import json
 import resource
+import sys
 import time
 
 from stages.lib.base import check_output_arg
@@ -62,13 +63,17 @@ def main(argv: list[str] | None = None) -> int:
     from stages.ar_inference import ARInference, ARInferenceConfig
     from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
     from stages.intentions import IntentionFilter, IntentionsConfig
-    from stages.lib.datasets import DEFAULT_DATA_DIR, load_recording
+    from stages.lib.datasets import DEFAULT_DATA_DIR, DatasetError, load_recording
     from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
     from stages.relations import RelationExtractor, RelationsConfig
     from stages.tracks_source.core import TrackPlayer, TracksSourceConfig
 
     data = args.data or str(DEFAULT_DATA_DIR)
-    recording = load_recording(data, args.recording)
+    try:
+        recording = load_recording(data, args.recording)
+    except DatasetError as exc:  # a data folder or recording that is not there: a bad command line
+        print(f"soak: error: {exc}", file=sys.stderr)
+        return 2
     maps = SceneMaps(data=data)
     cores = {
         "corridors": CorridorBuilder(CorridorsConfig(data=data), scene_maps=maps),

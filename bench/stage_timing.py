@@ -27,7 +27,7 @@ REPO = Path(__file__).resolve().parents[1]
 from bus_schemas import AgentType
 from plot_frame import default_data_dir, scene_for, track_frames
 from stages.corridors import CorridorBuilder, CorridorsConfig, SceneMaps
-from stages.lib.datasets import load_recording
+from stages.lib.datasets import DatasetError, load_recording
 
 RECORDING = "k729_2022-03-16"
 VEHICLES = [t.value for t in AgentType if t.is_vehicle]
@@ -43,8 +43,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, default=None)
     parser.add_argument("--repeats", type=int, default=50)
     args = parser.parse_args(argv)
+    if args.repeats < 1:
+        parser.error(f"--repeats {args.repeats}: must be >= 1")
     data = args.data or default_data_dir()
-    recording = load_recording(data, RECORDING)
+    try:
+        recording = load_recording(data, RECORDING)
+    except DatasetError as exc:  # a data folder without the K729 recording: a bad command line
+        print(f"stage_timing: error: {exc}", file=sys.stderr)
+        return 2
     config = CorridorsConfig()
     scene_maps = SceneMaps(config, data=data)
 

@@ -30,7 +30,7 @@ import numpy as np
 
 from bus_schemas import AgentType, MatchStatus
 from stages.corridors import SceneMaps
-from stages.lib.datasets import discover, full_data_dir, load_ref
+from stages.lib.datasets import DatasetError, find_recording, full_data_dir, load_ref
 from stages.offline.chain import Chain
 from stages.offline.truth import future_positions, ground_truth
 from stages.lib.base import check_output_arg
@@ -59,7 +59,11 @@ def main(argv=None) -> int:
     if data is None:
         sys.stderr.write("standing_starts: error: set IAMP_TAF_BW or pass --data\n")
         return 2
-    ref = next(r for r in discover(Path(data)) if r.name == args.recording)
+    try:  # a data folder or recording that is not there: a bad command line
+        ref = find_recording(Path(data), args.recording)
+    except DatasetError as exc:
+        sys.stderr.write(f"standing_starts: error: {exc}\n")
+        return 2
     rec = load_ref(ref, tuple(ref.sequence_ids), display_root=Path(data))
     maps = SceneMaps(data=Path(data))
     groups: dict[str, list[tuple[bool, float]]] = collections.defaultdict(list)

@@ -27,7 +27,7 @@ import sys
 import numpy as np
 
 from bus_schemas import AgentType
-from stages.lib.datasets import discover, load_recording
+from stages.lib.datasets import DatasetError, discover, find_recording, load_recording
 from stages.lib.kinematic_state import EstimatorConfig, KinematicEstimator
 from stages.lib.base import check_output_arg
 
@@ -113,7 +113,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", help="write the figures here")
     args = ap.parse_args(argv)
     check_output_arg(ap, args.json, "--json")  # before the work: a bad path must not cost the run
-    names = args.recording or [r.name for r in discover(args.data)]
+    try:  # before the work: a data folder or recording that is not there is a bad command line
+        names = args.recording or [r.name for r in discover(args.data)]
+        for name in args.recording or ():
+            find_recording(args.data, name)
+    except DatasetError as exc:
+        print(f"state_estimator: error: {exc}", file=sys.stderr)
+        return 2
     result = {}
     for name in names:
         figures = score(load_recording(args.data, name))

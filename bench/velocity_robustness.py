@@ -47,7 +47,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, find_recording, load_recording
+from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, DatasetError, find_recording, load_recording
 from stages.lib.datasets.model import same_sequence_id
 from stages.lib.datasets.interaction import META_FILE, TRACK_FILE_RE
 from stages.lib.base import check_output_arg, json_safe
@@ -179,6 +179,14 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     check_output_arg(p, args.json, "--json")  # before the work: a bad path must not cost the run
     variants = ["given"] + [v for v in args.variant if v != "given"]
+    try:  # before the work: a data folder, recording or sequence that is not there is a bad command line
+        ref = find_recording(args.data, args.recording)
+        for want in args.sequence:
+            if not any(same_sequence_id(s, want) for s in ref.sequence_ids):
+                raise DatasetError(f"recording {ref.name}: no track file for sequence {want!r}; available: {', '.join(ref.sequence_ids)}")
+    except DatasetError as exc:
+        print(f"velocity_robustness: error: {exc}", file=sys.stderr)
+        return 2
 
     results: dict[str, dict] = {}
     with tempfile.TemporaryDirectory(prefix="iamp-velrob-") as tmp:

@@ -1,0 +1,95 @@
+"""A bad command line stops a bench script with one line naming the problem and exit code 2, never a traceback:
+a data folder, recording, sequence or recording file that is not there, numbers out of range, unknown names,
+an output path that is a folder. Each case fails before the work (a second or two: the imports)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+BENCH = REPO / "bench"
+MISSING = "/nonexistent/dir"
+
+
+def _run(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if k != "IAMP_TAF_BW"}  # the embedded data, as on a fresh checkout
+    env["OMP_NUM_THREADS"] = "1"
+    return subprocess.run([sys.executable, str(BENCH / args[0]), *args[1:]], cwd=cwd, env=env, capture_output=True, text=True,
+                          timeout=120)
+
+
+def _problem_lines(stderr: str) -> list[str]:
+    """stderr less argparse's usage block (``usage:`` and its indented continuation lines)."""
+    return [line for line in stderr.splitlines() if line.strip() and not line.startswith(("usage:", " "))]
+
+
+# (script and arguments, a text the one line must hold)
+BAD = [
+    # a data folder that is not there
+    *[([script, "--data", MISSING], MISSING) for script in (
+        "accel_range.py", "corridor_coverage.py", "intentions_particles.py", "plot_frame.py", "scenario_traffic.py", "soak.py",
+        "stage_timing.py", "state_estimator.py", "velocity_robustness.py", "relations_timing.py", "adversarial.py",
+        "window_errors.py", "oracle_profiles.py", "generalisation.py")],
+    (["standing_starts.py", "--data", MISSING, "--recording", "k729_2022-03-16"], MISSING),
+    # a recording or sequence the (embedded) data does not hold
+    (["scenario_traffic.py", "--sequence", "999"], "'999'"),
+    (["velocity_robustness.py", "--sequence", "999"], "'999'"),
+    (["relations_timing.py", "--sequence", "999"], "999"),
+    (["state_estimator.py", "--data", str(REPO / "stages" / "data" / "taf-bw"), "--recording", "nosuch"], "'nosuch'"),
+    (["standing_starts.py", "--data", str(REPO / "stages" / "data" / "taf-bw"), "--recording", "nosuch"], "'nosuch'"),
+    # a recording file that is not there
+    (["codec.py", "/nonexistent.mcap"], "/nonexistent.mcap"),
+    (["scenario_traffic.py", "--mcap", "/nonexistent.mcap"], "/nonexistent.mcap"),
+    # numbers
+    (["dense.py", "--frames", "-5"], "--frames -5"),
+    (["dense.py", "--vehicles", "abc"], "--vehicles"),
+    (["dense.py", "--vehicles", "0"], "--vehicles"),
+    (["dense.py", "--warmup", "-1"], "--warmup -1"),
+    (["e2e_latency.py", "--vehicles", "abc"], "--vehicles"),
+    (["markov_kernel.py", "--pairs", "x"], "--pairs"),
+    (["markov_kernel.py", "--repeats", "0"], "--repeats 0"),
+    (["markov_stage.py", "--pairs", "0"], "--pairs"),
+    (["markov_stage.py", "--repeats", "0"], "--repeats 0"),
+    (["hostile.py", "--section", "fuzz", "--n", "-1"], "--n -1"),
+    (["codec.py", "--per-schema", "0", "--frames", "0"], "--per-schema 0"),
+    (["codec.py", "--vehicles", "5000"], "--vehicles 5000"),
+    (["bus_latency.py", "--count", "0"], "--count 0"),
+    (["relations_timing.py", "--repeat", "0"], "--repeat 0"),
+    (["stage_timing.py", "--repeats", "0"], "--repeats 0"),
+    # names
+    (["markov_stage.py", "--backends", "nosuch"], "numpy, torch-cpu, torch-cuda"),
+    (["ab.py", "--base", "HEAD", "--metric", "a"], "after --"),
+    # output paths
+    (["plot_frame.py", "--out", "/tmp"], "is a folder"),
+    (["plot_frame.py", "--out", "frame.nosuchformat"], ".nosuchformat"),
+]
+
+
+@pytest.mark.parametrize("args, named", BAD, ids=[" ".join(a) for a, _ in BAD])
+def test_bad_command_line_is_one_line_and_exit_2(args, named, tmp_path):
+    r = _run(args, tmp_path)
+    assert "Traceback" not in r.stderr + r.stdout, r.stderr[-3000:]
+    assert r.returncode == 2, r.stdout[-2000:] + r.stderr[-2000:]
+    lines = _problem_lines(r.stderr)
+    assert len(lines) == 1 and named in lines[0], r.stderr
+
+
+def test_ab_help_prints_the_usage(tmp_path):
+    r = _run(["ab.py", "--help"], tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.startswith("usage:") and "--base" in r.stdout and "--metric" in r.stdout and "-- COMMAND" in r.stdout
+
+
+def test_plot_frame_prints_the_files_it_wrote(tmp_path):
+    """Without a suffix matplotlib writes FILE.png: that name is printed, and the SVG beside it."""
+    out = tmp_path / "x" / "noext"
+    r = _run(["plot_frame.py", "--out", str(out)], tmp_path)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    wrote = [line.split(",")[0].removeprefix("wrote ") for line in r.stdout.splitlines() if line.startswith("wrote ")]
+    assert wrote == [str(out) + ".png", str(out) + ".svg"]
+    assert all(Path(p).is_file() for p in wrote) and not out.exists()
