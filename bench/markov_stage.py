@@ -113,15 +113,10 @@ def _backends(requested: list[str]) -> list[tuple[str, str, str]]:
     return out
 
 
-def parse_pairs(text: str) -> list[int]:
-    """``--pairs``: comma-separated whole numbers of vehicle-corridor pairs, each >= 1."""
-    try:
-        counts = [int(x) for x in text.split(",") if x.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated whole numbers, e.g. 1,10,50") from None
-    if not counts or min(counts) < 1:
-        raise argparse.ArgumentTypeError(f"{text!r}: each a number of pairs >= 1")
-    return counts
+try:  # ``--pairs`` as bench/markov_kernel.py takes it; as a script, its folder is first on the module path
+    from markov_kernel import parse_pairs
+except ImportError:
+    from bench.markov_kernel import parse_pairs
 
 
 def main(argv: list[str] | None = None) -> int:
