@@ -129,10 +129,18 @@ def stop_process(proc: subprocess.Popen, sig: int = signal.SIGINT, timeout_s: fl
     return proc.returncode
 
 
-def kill_all(procs: Iterable[subprocess.Popen]) -> None:
-    """Teardown: SIGKILL whatever is still running of ``procs`` (only processes the test started)."""
+def kill_all(procs: Iterable[subprocess.Popen], grace_s: float = 10.0) -> None:
+    """Teardown: stop whatever is still running of ``procs`` (only processes the test started): SIGTERM, then SIGKILL
+    after ``grace_s``. A launcher killed outright left its nodes running (they live in their own sessions): a failed
+    test's recorders were found still running ten minutes later."""
+    procs = [p for p in procs if p.poll() is None]
     for proc in procs:
-        if proc.poll() is None:
+        proc.terminate()
+    deadline = time.monotonic() + grace_s
+    for proc in procs:
+        try:
+            proc.wait(timeout=max(deadline - time.monotonic(), 0.1))
+        except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
 

@@ -19,7 +19,7 @@ spawned::
     stage = "stages.corridors"
     inputs = { track_frame = "source/track_frame", scene = "source/scene" }
     params = { }
-    restart = true                 # default: true for operators, false for sources/sinks
+    restart = true                 # default: the stage's (true for operators and the recorder, false for sources)
     queue_size = 256               # optional
 
 Outputs of processes that the launcher does not start (a live tracker) are
