@@ -291,20 +291,24 @@ class Node:
                                  index - last - 1, index)
 
     def _query_latched_raw(self) -> None:
-        """A raw sink's start: queue what the run's latched outputs answer (one query on the run's keys, then one more
-        after the routes have settled, as a query sent too early gets no answer); the sink takes a value it already
-        has once (the recorder writes a latched payload once per file)."""
-        for wait_s in (0.0, 1.0):
+        """A raw sink's start: queue what the run's latched outputs answer (a query on the run's keys, tried again until
+        one is answered, as a query sent before the routes have settled gets no answer); the sink takes a value it
+        already has once (the recorder writes a latched payload once per file)."""
+        for wait_s in LATCHED_QUERY_WAITS_S:  # until an answer comes: under load the routes take seconds to settle
             if self.stop_event.wait(wait_s):
                 return
+            answered = False
             try:
                 for reply in self.session.get(keys.run_pattern(self.run_id), timeout=1.0):
                     if reply.ok is not None:
                         data = reply.ok.payload.to_bytes()
                         self._count("received")
                         self.queue.put((LATCHED_QUERY, str(reply.ok.key_expr), data, time.time_ns()), None, len(data))
+                        answered = True
             except Exception as exc:  # the session may be closing
                 self.log.debug("latched query failed: error=%s", exc)
+                return
+            if answered:
                 return
 
     def _on_raw_sample(self, sample: Any) -> None:
@@ -920,6 +924,8 @@ def _peek_stamps(data: bytes) -> tuple[int | None, int]:
 
 # The queue's port of a raw sink's answers to its start query for latched values (``Node._query_latched_raw``).
 LATCHED_QUERY = "_latched_query"
+# The pauses before each of that query's tries (s), until one is answered: a run with no latched value yet costs 6 tries.
+LATCHED_QUERY_WAITS_S = (0.0, 0.5, 1.0, 1.5, 2.0, 4.0)
 # A jump of the frame index this large or larger is no run of lost frames but another numbering (not counted).
 MAX_FRAME_GAP = 100_000
 # How long after its start a node told to --connect may be without any link before it says so.

@@ -239,7 +239,11 @@ def test_killed_recorder_is_restarted_into_the_next_split_and_the_run_goes_on(tm
         run.wait_line(r"^\[launch\] recording goes on in " + re.escape(str(split1)))
         assert _pid_of(run, "recorder", count=2) != pid
         # prediction never stopped: the restarted recorder records new predictions into the next split
-        wait_until(lambda: run.proc.poll() is not None or grids_in(split1) >= 3, 120, "predictions in the second split")
+        # ... and the scene, which the source published once before the restart: the restarted recorder asks for it (its
+        # query is tried again until answered: under load the routes to the source's queryable take a moment)
+        scene_in = lambda path: sum(1 for m in read_messages(str(path)) if m.topic == "iamp/killrec/source/scene") if path.exists() else 0  # noqa: E731
+        wait_until(lambda: run.proc.poll() is not None or (grids_in(split1) >= 3 and scene_in(split1) >= 1), 120,
+                   "predictions and the scene in the second split")
         if run.proc.poll() is None:
             run.proc.send_signal(signal.SIGINT)
         code = run.wait()
