@@ -19,7 +19,7 @@ import json
 import sys
 from pathlib import Path
 
-from stages.lib.base import ConfigError, check_output
+from stages.lib.base import ConfigError, check_output, json_safe
 from stages.lib.datasets import DatasetError
 from stages.lib.datasets import interaction
 from stages.lib.datasets.signals import is_lane_file, is_signal_file, read_kml_lanes, read_signal_phases
@@ -110,7 +110,8 @@ def run_cli(args) -> int:
     draw(smap, road_map, figure, f"{args.recording}: KML lanes on the Lanelet2 map, stop lines by signal group ({info['projection']})")
     print(f"figure: {figure}")
     if args.json:
-        args.json.write_text(json.dumps(match_json(smap), indent=1, default=float))
+        # NaN (an unmatched lane's distances) as null: strict JSON, as iamp eval writes
+        args.json.write_text(json.dumps(json_safe(json.loads(json.dumps(match_json(smap), default=float))), indent=1, allow_nan=False))
     return 0
 
 

@@ -119,3 +119,28 @@ def test_a_lane_file_that_cannot_be_read_costs_the_signals_not_the_recording(tmp
     rec = load_recording(tmp_path, REC)
     assert rec.sequences and rec.kml_lanes is None and rec.signal_phases is not None
     assert any("k733_map.kml (not used: " in f for f in rec.report.ignored_files), rec.report.ignored_files
+
+
+def test_a_lane_with_a_coordinate_typo_is_a_bad_lane_not_a_hang(tmp_path):
+    """A latitude of 89.9 for 49.0 in one point: the lane, thousands of km long, was resampled every metre and matched
+    against the whole map (`iamp signals` ran for minutes into gigabytes; the relations stage and the viewer read the
+    same file). It is counted as a bad lane; the other lanes are kept."""
+    import json as _json
+
+    text = (REC_DIR / "k733_map.kml").read_text()
+    first = "8.43807526003106823,49.00557334673142407"
+    assert first in text
+    kml = tmp_path / "k733_map.kml"
+    kml.write_text(text.replace(first, "8.43807526003106823,89.9", 1))
+    lanes = read_kml_lanes(kml)
+    whole = read_kml_lanes(REC_DIR / "k733_map.kml")
+    assert len(lanes.lanes) == len(whole.lanes) - 1
+    bad = lanes.report.get(BAD_LANE)
+    assert bad is not None and bad.count == 1 and "km from the file's other lanes" in bad.examples[0].detail, lanes.report.summary()
+
+    # and iamp signals --json is strict JSON (NaN for an unmatched lane's distances was written as NaN)
+    from stages import cli
+
+    out = tmp_path / "sig.json"
+    assert cli.main(["signals", "--data", str(FIXTURE), "--recording", REC, "--json", str(out), "--figure", str(tmp_path / "s.png")]) == 0
+    _json.loads(out.read_text(), parse_constant=lambda c: (_ for _ in ()).throw(ValueError(f"{c} in strict JSON")))

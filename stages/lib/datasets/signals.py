@@ -318,9 +318,37 @@ def read_kml_lanes(path: Path, display_root: Path | None = None) -> KmlLanes:
         pts_a = np.array(pts, dtype=np.float64)
         lanes.append(KmlLane(lane_id=lane_id, name=name, lon_deg=pts_a[:, 0], lat_deg=pts_a[:, 1], connections=conns, line=line))
         builder.rows_kept += 1
+    lanes = _near_lanes(lanes, builder, shown)
     if not lanes:
         raise DatasetError(f"{path}: no usable lane (Placemark with a LineString and a Source) ({builder.build().summary()})")
     return KmlLanes(lanes=tuple(lanes), ref_lat_deg=ref_lat, ref_lon_deg=ref_lon, source_file=path, report=builder.build())
+
+
+# A lane file describes one junction: a lane with a point farther than this from the median of all the file's points
+# is a typo (a latitude of 89.9 for 49.0, a digit lost), counted as a bad lane. Kept, such a lane of thousands of km
+# was resampled every metre and matched against the whole map: `iamp signals` ran for minutes into gigabytes.
+MAX_LANE_DISTANCE_M = 5000.0
+_M_PER_DEG = 111_320.0
+
+
+def _near_lanes(lanes: list[KmlLane], builder: ReportBuilder, shown: str) -> list[KmlLane]:
+    """The lanes whose every point lies within ``MAX_LANE_DISTANCE_M`` of the median of the file's points (and on
+    the globe); the others counted as ``bad_lane``."""
+    if not lanes:
+        return lanes
+    lat0 = float(np.median(np.concatenate([l.lat_deg for l in lanes])))
+    lon0 = float(np.median(np.concatenate([l.lon_deg for l in lanes])))
+    kept = []
+    for lane in lanes:
+        on_globe = bool(np.all(np.abs(lane.lat_deg) <= 90.0) and np.all(np.abs(lane.lon_deg) <= 180.0))
+        dist = np.hypot((lane.lat_deg - lat0) * _M_PER_DEG, (lane.lon_deg - lon0) * _M_PER_DEG * math.cos(math.radians(lat0))) if on_globe else None
+        if dist is not None and float(dist.max()) <= MAX_LANE_DISTANCE_M:
+            kept.append(lane)
+            continue
+        where = "a point off the globe" if dist is None else f"a point {float(dist.max()) / 1000:.0f} km from the file's other lanes"
+        builder.add(BAD_LANE, SKIPPED, shown, lane.line, f"lane {lane.lane_id} ({lane.name!r}): {where} (a coordinate typo?)")
+        builder.rows_kept -= 1
+    return kept
 
 
 __all__ = [
