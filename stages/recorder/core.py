@@ -169,7 +169,7 @@ class McapRecorder:
         self._file: BinaryIO = self._open_locked(self.path)
         if existed:
             self.log.warning("overwriting existing file: path=%s", self.path)
-        if not existed:
+        else:
             self._created.append(self.path)
         self._file_fresh = 0  # messages received into this file (its latched start not counted)
         try:

@@ -526,11 +526,17 @@ def test_inputs_that_fall_silent_are_reported_once_and_their_return_too(log, cap
     node._stats_pub = RecordingPublisher()
     handled = []
 
+    def until(condition):
+        deadline = _time.monotonic() + 30
+        while not condition() and _time.monotonic() < deadline:
+            _time.sleep(0.02)
+
     def feed():
         node.queue.put((None, "a", b"", 0), None, 0)
-        _time.sleep(1.0)  # silent for > 0.3 s: one warning, however many loop turns
+        until(lambda: node._silent_since is not None)  # silent for > 0.3 s: reported once, however many loop turns
+        until(lambda: _time.monotonic() - node._last_input_mono >= 1.0)  # (a second of silence: the return's figure)
         node.queue.put((None, "b", b"", 0), None, 0)
-        _time.sleep(0.2)
+        until(lambda: node._silent_since is None)
         node.stop_event.set()
         node.signals = 2
 

@@ -161,26 +161,12 @@ def load_ref(
         builder.add_report(seq.report)
         log.debug("sequence loaded: recording=%s sequence=%s %s", ref.name, seq.id, seq.report.summary())
     first = loaded[0]
-    phases = lanes = None
     # the signal side is optional: a file of it that cannot be used is counted and the tracks play without it (as with
     # `iamp eval --signals off`), never the recording lost
-    if ref.signal_files:
-        try:
-            phases = signals.read_signal_phases(ref.signal_files, display_root)
-        except DatasetError as exc:
-            builder.ignore_file(f"{display_path(ref.signal_files[0], display_root)} (not used: {exc}; played without signal phases)")
-            log.warning("signal phases not used: recording=%s reason=%s", ref.name, exc)
-        else:
-            builder.add_report(dataclasses.replace(phases.report, rows_read=0, rows_kept=0))  # rows_read counts track rows
-            log.debug("signal phases loaded: recording=%s groups=%d %s", ref.name, len(phases.group_ids), phases.report.summary())
-    if ref.lane_file is not None:
-        try:
-            lanes = signals.read_kml_lanes(ref.lane_file, display_root)
-        except DatasetError as exc:
-            builder.ignore_file(f"{display_path(ref.lane_file, display_root)} (not used: {exc}; played without its lanes' signals)")
-            log.warning("lane file not used: recording=%s reason=%s", ref.name, exc)
-        else:
-            builder.add_report(dataclasses.replace(lanes.report, rows_read=0, rows_kept=0))
+    phases = _signal_side(ref.signal_files, lambda: signals.read_signal_phases(ref.signal_files, display_root), "signal phases",
+                          ref.name, builder, display_root)
+    lanes = _signal_side((ref.lane_file,) if ref.lane_file is not None else (), lambda: signals.read_kml_lanes(ref.lane_file, display_root),
+                         "its lane file's signals", ref.name, builder, display_root)
     return Recording(
         name=ref.name,
         format=ref.format,
@@ -197,6 +183,22 @@ def load_ref(
         signal_phases=phases,
         kml_lanes=lanes,
     )
+
+
+def _signal_side(files, read, what: str, name: str, builder: ReportBuilder, display_root: Path | None):
+    """``read()`` of a recording's signal-side files (None without any): on a ``DatasetError`` the first file is listed
+    as ignored with the reason and the recording plays without ``what``; its findings go into ``builder``."""
+    if not files:
+        return None
+    try:
+        out = read()
+    except DatasetError as exc:
+        builder.ignore_file(f"{display_path(files[0], display_root)} (not used: {exc}; played without {what})")
+        log.warning("%s not used: recording=%s reason=%s", what, name, exc)
+        return None
+    builder.add_report(dataclasses.replace(out.report, rows_read=0, rows_kept=0))  # rows_read counts track rows
+    log.debug("%s loaded: recording=%s %s", what, name, out.report.summary())
+    return out
 
 
 def _select(ref: RecordingRef, sequences: Iterable[str] | None) -> list[str]:
