@@ -4,6 +4,7 @@ an output path that is a folder. Each case fails before the work (a second or tw
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -70,9 +71,24 @@ BAD = [
 ]
 
 
-@pytest.mark.parametrize("args, named", BAD, ids=[" ".join(a) for a, _ in BAD])
-def test_bad_command_line_is_one_line_and_exit_2(args, named, tmp_path):
-    r = _run(args, tmp_path)
+@pytest.fixture(scope="module")
+def bad_runs(tmp_path_factory) -> list[subprocess.CompletedProcess]:
+    """Every case of BAD, run in one child process (``testkit.script_batch``: each script as its own ``__main__``), in
+    the order of BAD: a process per case cost the suite 25 s of starting Python and importing the stages."""
+    cwd = tmp_path_factory.mktemp("bench_args")
+    env = {k: v for k, v in os.environ.items() if k != "IAMP_TAF_BW"}
+    env["OMP_NUM_THREADS"] = "1"
+    cases = [[str(BENCH / args[0]), args[1:]] for args, _ in BAD]
+    done = subprocess.run([sys.executable, "-m", "testkit.script_batch"], input=json.dumps(cases), cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return [subprocess.CompletedProcess(args, r["code"], r["stdout"], r["stderr"]) for (args, _), r in zip(BAD, json.loads(done.stdout))]
+
+
+@pytest.mark.parametrize("case", range(len(BAD)), ids=[" ".join(a) for a, _ in BAD])
+def test_bad_command_line_is_one_line_and_exit_2(case, bad_runs):
+    named = BAD[case][1]
+    r = bad_runs[case]
     assert "Traceback" not in r.stderr + r.stdout, r.stderr[-3000:]
     assert r.returncode == 2, r.stdout[-2000:] + r.stderr[-2000:]
     lines = _problem_lines(r.stderr)

@@ -17,6 +17,22 @@ EVAL_MODES = ("hybrid", "baseline", "cv", "corridor_cv")
 CORRIDOR_WEIGHTS = ("intentions", "uniform")
 
 
+#: the --dpi a figure may take: below it the text is unreadable, above it one 4 s grid is hundreds of megapixels
+DPI_RANGE = (20, 600)
+
+
+def _dpi(text: str) -> int:
+    import argparse
+
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number of dots per inch, got {text!r}") from None
+    if not DPI_RANGE[0] <= value <= DPI_RANGE[1]:
+        raise argparse.ArgumentTypeError(f"{value} is out of range: give {DPI_RANGE[0]} to {DPI_RANGE[1]}")
+    return value
+
+
 def add_arguments(parser) -> None:
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA_DIR, help="data folder laid out like stages/data/taf-bw (default: the embedded scenario)")
     parser.add_argument("--recording", action="append", default=[], help="recording to evaluate (repeatable; default all of --data; in the embedded folder its K729 recording)")
@@ -41,7 +57,7 @@ def add_arguments(parser) -> None:
                         help="named time windows of recordings to report on ([[situation]] recording, sequence, start, end,"
                              " description); default: every recording is one situation")
     parser.add_argument("--svg", choices=["yes", "no"], default="yes", help="write SVG beside each PNG figure (default yes)")
-    parser.add_argument("--dpi", type=int, default=100, help="resolution of the PNG figures (default 100)")
+    parser.add_argument("--dpi", type=_dpi, default=100, help=f"resolution of the PNG figures, {DPI_RANGE[0]}-{DPI_RANGE[1]} (default 100)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="markov_prediction parameter for every mode (JSON value), e.g. --set speed_limit_factor=1.1")

@@ -35,7 +35,9 @@ and ``prediction_error_<mode>`` (the predictor raised: the instant's windows
 are scored for no mode); frames ``<stage>_error_frames`` (a core raised on
 the frame: without corridors the frame is skipped, without relations,
 beliefs or AR profiles it is predicted without them); and
-``unreadable_sequences`` (a sequence whose files cannot be read). Each mode's
+``unreadable_sequences`` (a sequence whose files cannot be read); situations
+``situations_without_frames`` (a ``--situations`` window that held no frame:
+a sequence that is not there, or a window past the recording). Each mode's
 ``issues`` counts its predictor's issues by kind (fallback pairs among them).
 
 Metrics per window (K = 10 steps of 0.4 s):
@@ -180,6 +182,14 @@ SLOW_SPEED_MPS = 2.0
 TRACK_HORIZONS_S = (1.0, 2.0, 3.0, 4.0)
 #: nominal levels of the highest-probability regions whose coverage ``calibration`` reports (the reliability diagram).
 COVERAGE_LEVELS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+
+
+def _status_name(status) -> str:
+    """A corridor set's match status in words (``off_map``...), or its number where it is none of ours."""
+    try:
+        return MatchStatus(int(status)).name.lower()
+    except (TypeError, ValueError):
+        return f"status {status!r}"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -523,6 +533,9 @@ class Evaluation:
                         self.learnt_by_recording.setdefault(mode, {})[rec.name] = learnt
         finally:
             bar.close()
+        for sit in self.situations:  # a window that holds no frame (a typo in its sequence, or past the recording's end)
+            if not self.situation_seen[sit.name]["frames"]:
+                self._skip("situations_without_frames", f"situation {sit.name!r}: no frame of {sit.recording} in {sit.window_text()}")
         return self.report()
 
     def _sequence(self, rec: Recording, seq, map_sha256: str, bar) -> None:
@@ -613,11 +626,14 @@ class Evaluation:
                 continue
             future = future_positions(truth.get(track_id), stamp, tau_ns, n_steps)
             if future is None:
-                self.skipped["no_full_future"] += 1
+                self._skip("no_full_future", f"{recording} sequence {sequence_id} stamp_ns {stamp} track {track_id}: its track ends"
+                                             f" or has a gap within the next {n_steps * tau_ns * 1e-9:g} s")
                 continue
             vehicle = statuses.get(track_id)
             if vehicle is None or vehicle.status != MatchStatus.MATCHED or not vehicle.corridors:
-                self.skipped["not_matched"] += 1
+                status = "not in the corridor set" if vehicle is None else (
+                    "matched, no corridor" if vehicle.status == MatchStatus.MATCHED else _status_name(vehicle.status))
+                self._skip("not_matched", f"{recording} sequence {sequence_id} stamp_ns {stamp} track {track_id}: {status}")
                 continue
             # the start-speed split uses the speed estimated from positions, as every mode does
             windows[track_id] = (future, float(vehicle.speed_mps))
@@ -658,7 +674,7 @@ class Evaluation:
                     self._skip(f"score_error_{mode}", f"{where} track {track_id}: {type(exc).__name__}: {exc}")
                     continue
                 if result is None:
-                    self.skipped[f"no_prediction_{mode}"] += 1
+                    self._skip(f"no_prediction_{mode}", f"{where} track {track_id}: no corridor prediction for it")
                     continue
                 acc.overall.add(result)
                 (acc.slow if speed <= SLOW_SPEED_MPS else acc.fast).add(result)
@@ -1125,7 +1141,7 @@ def run_cli(args) -> int:
         args.json.write_text(json.dumps(json_safe(report), indent=2, allow_nan=False))
         print(f"wrote {args.json}")
     formats = ("png", "svg") if getattr(args, "svg", "yes") == "yes" else ("png",)
-    dpi = max(int(getattr(args, "dpi", 100)), 20)
+    dpi = int(getattr(args, "dpi", 100))  # the parser keeps it in DPI_RANGE
     if args.figures is not None:
         for path in evaluation.write_figures(args.figures, formats, dpi):
             print(f"wrote {path}")

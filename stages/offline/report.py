@@ -102,8 +102,16 @@ def _short(path: str) -> str:
         return str(path)
 
 
+def _cell(text: Any) -> str:
+    """A table cell's text: a ``|`` (a situation's name, a loader's example row) would end the cell, a newline the row."""
+    return str(text).replace("|", "\\|").replace("\r", " ").replace("\n", " ")
+
+
 def _table(head: list[str], rows: list[list[str]]) -> list[str]:
-    return ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|", *("| " + " | ".join(r) + " |" for r in rows)]
+    def line(cells) -> str:
+        return "| " + " | ".join(_cell(c) for c in cells) + " |"
+
+    return [line(head), "|" + "|".join("---" for _ in head) + "|", *(line(r) for r in rows)]
 
 
 def _bold_min(cells: list[str], values: list[float]) -> list[str]:
@@ -160,6 +168,10 @@ def _learnt(hybrid: dict[str, Any]) -> str:
     return "; ".join(parts)
 
 
+#: the report's figures with a fixed name (the instant figures' names hold their instant)
+_FIXED_FIGURES = ("reliability", "error_by_horizon", "by_manoeuvre", "timing")
+
+
 def write_report(evaluation, report: dict[str, Any], directory: Path, command: str, *, formats: tuple[str, ...] = ("png", "svg"),
                  dpi: int = 100, keep: dict[str, Any] | None = None) -> Path:
     """Write DIR/report.md, DIR/eval.json and the figures; returns the report's path. ``keep`` receives the matplotlib
@@ -168,7 +180,8 @@ def write_report(evaluation, report: dict[str, Any], directory: Path, command: s
 
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    for pattern in ("grid_4s_*", "means_*", "accel_*"):  # an earlier report's instant figures: their names hold the instant
+    # an earlier report's figures: the instant ones' names hold the instant, and a rerun with --svg no writes no SVG
+    for pattern in ("grid_4s_*", "means_*", "accel_*", *(f"{stem}.*" for stem in _FIXED_FIGURES)):
         for stale in directory.glob(pattern):
             if stale.suffix in (".png", ".svg"):
                 stale.unlink()
@@ -269,6 +282,14 @@ def write_report(evaluation, report: dict[str, Any], directory: Path, command: s
                          fmt(cal[4] if cal else None), fmt(st["coverage90"]), fmt(st["nll"]), fmt(st["route_top1"])])
     L += _table(head, rows)
     L.append("")
+    if all("by_signal" in res for res in modes.values()):  # recordings with signal phases only
+        keys = list(first["by_signal"])
+        L.append("By the signal state of the car's group at the window start (recordings with signal phases;"
+                 " `by_signal` in eval.json): mADE in m (windows).")
+        L.append("")
+        L += _table(["mode", *keys], [[mode, *[f"{fmt(res['by_signal'][k]['mADE_m'])} ({fmt(res['by_signal'][k]['windows'])})"
+                                              for k in keys]] for mode, res in modes.items()])
+        L.append("")
     # ---------------------------------------------------------------- calibration
     L.append("## Calibration")
     L.append("")
@@ -382,6 +403,25 @@ def write_report(evaluation, report: dict[str, Any], directory: Path, command: s
     else:
         L.append("Nothing was skipped.")
     L.append("")
+    loads = {name: rep for name, rep in report.get("load_report", {}).items() if rep.get("problems") or rep.get("ignored_files")}
+    if loads:
+        L.append("What the loader left out or changed in the recordings' files (`load_report` in eval.json): fewer or other"
+                 " windows than the files hold.")
+        L.append("")
+        rows = []
+        for name, rep in loads.items():
+            for reason, v in rep.get("problems", {}).items():
+                rows.append([name, v["action"], reason, fmt(v["count"]), v.get("first", "")])
+            for ignored in rep.get("ignored_files", []):
+                rows.append([name, "ignored", "file", "", ignored])
+        L += _table(["recording", "action", "reason", "rows", "first occurrence"], rows)
+        L.append("")
+    if report.get("stage_issues"):
+        L.append("Issues the stages flagged (`stage_issues` in eval.json; the frames were still predicted):")
+        L.append("")
+        L += _table(["stage:kind", "count", "first occurrence"],
+                    [[key, fmt(v["count"]), v.get("first", "")] for key, v in report["stage_issues"].items()])
+        L.append("")
     for key, text in report.get("metrics", {}).items():
         L.append(f"- `{key}`: {text}")
     L.append("")

@@ -112,6 +112,10 @@ def run_cli(args) -> int:
     if args.json:
         # NaN (an unmatched lane's distances) as null: strict JSON, as iamp eval writes
         args.json.write_text(json.dumps(json_safe(json.loads(json.dumps(match_json(smap), default=float))), indent=1, allow_nan=False))
+    if smap.lanes and not smap.matched:  # another location's map, or the wrong projection: nothing to play phases on
+        print(f"iamp signals: no lane of the lane file matched a lanelet of {info['map']} ({info['projection']}): is it this"
+              f" recording's map (--map) and projection (--projection)? The figure shows both.", file=sys.stderr)
+        return EXIT_USAGE
     return 0
 
 

@@ -72,6 +72,8 @@ def load_situations(path: Path) -> tuple[Situation, ...]:
     out, names = [], set()
     for i, e in enumerate(entries):
         where = f"--situations {path}: situation {i + 1}"
+        if not isinstance(e, dict):
+            raise ValueError(f"{where}: expected a [[situation]] table with keys {sorted(_KEYS)}, got {type(e).__name__} {e!r}")
         unknown = set(e) - _KEYS
         if unknown:
             raise ValueError(f"{where}: unknown keys {sorted(unknown)}; expected {sorted(_KEYS)}")

@@ -13,6 +13,7 @@ import math
 from pathlib import Path
 
 import msgpack
+import pytest
 
 import bus_schemas as bs
 from stages.recorder import McapRecorder, RecorderConfig
@@ -24,10 +25,23 @@ def _messages(path: Path) -> list[tuple[str, object]]:
     return [(m.topic, bs.decode(m.data)) for m in read_messages(str(path)) if "/_" not in m.topic]
 
 
-def test_the_source_wall_stamp_reaches_the_motion_grid_unchanged_and_nodes_report_e2e(tmp_path):
-    rec = tmp_path / "run.mcap"
-    run = Launch(*K729, "--stop-after", "4", "--speed", "2", "--no-viewer", "--record", str(rec), "--run-id", "e2e", cwd=tmp_path)
-    assert run.wait() == 0, run.text()[-4000:]
+@pytest.fixture(scope="module")
+def traced(tmp_path_factory) -> tuple[Path, Path]:
+    """One pipeline run of 4 s of K729 at twice real time with IAMP_HOP_TRACE set: (its recording, its trace folder).
+    Both tests read it (a run each cost 8 s of the suite)."""
+    from stages.runtime.trace import TRACE_ENV
+
+    folder = tmp_path_factory.mktemp("e2e")
+    rec, trace = folder / "run.mcap", folder / "trace"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv(TRACE_ENV, str(trace))
+        run = Launch(*K729, "--stop-after", "4", "--speed", "2", "--no-viewer", "--record", str(rec), "--run-id", "e2e", cwd=folder)
+        assert run.wait() == 0, run.text()[-4000:]
+    return rec, trace
+
+
+def test_the_source_wall_stamp_reaches_the_motion_grid_unchanged_and_nodes_report_e2e(traced, tmp_path):
+    rec = traced[0]
     msgs = _messages(rec)
     walls = {m.header.frame_index: m.header.source_wall_ns for t, m in msgs if t.endswith("/source/track_frame")}
     assert len(walls) > 5 and all(w > 0 for w in walls.values())
@@ -96,16 +110,11 @@ params = {{ path = "" }}
     assert math.isnan(cst.e2e_ms_p50) and math.isnan(cst.e2e_ms_p95)
 
 
-def test_the_hop_trace_splits_each_motion_grid_end_to_end_into_parts_that_add_up(tmp_path, monkeypatch):
+def test_the_hop_trace_splits_each_motion_grid_end_to_end_into_parts_that_add_up(traced):
     """IAMP_HOP_TRACE: every node writes its trace; bench/e2e_latency.py's critical path adds up to the recorder's log_time - source wall."""
     from bench.e2e_latency import HOP_PARTS, analyse, hop_table, read_traces
-    from stages.runtime.trace import TRACE_ENV
 
-    trace = tmp_path / "trace"
-    monkeypatch.setenv(TRACE_ENV, str(trace))
-    rec = tmp_path / "run.mcap"
-    run = Launch(*K729, "--stop-after", "4", "--speed", "2", "--no-viewer", "--record", str(rec), "--run-id", "hops", cwd=tmp_path)
-    assert run.wait() == 0, run.text()[-4000:]
+    rec, trace = traced
     traces = read_traces(trace)
     nodes = ("source", "corridors", "relations", "intentions", "ar_inference", "markov_prediction", "recorder")
     assert set(nodes) <= set(traces), sorted(traces)

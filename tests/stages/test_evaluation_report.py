@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 
 import pytest
 from matplotlib.colors import to_hex
@@ -12,7 +13,7 @@ from matplotlib.colors import to_hex
 from stages import cli
 from stages.lib.datasets import DEFAULT_RECORDING, DEFAULT_SEQUENCE
 from stages.offline import figures as fg
-from stages.offline.report import QUANTITATIVE_HEAD
+from stages.offline.report import QUANTITATIVE_HEAD, fmt
 from stages.offline.situations import load_situations
 
 MODES = ("hybrid", "baseline", "corridor_cv", "cv")
@@ -29,6 +30,12 @@ description = "the first seconds of sequence {DEFAULT_SEQUENCE}"
 name = "whole"
 recording = "{DEFAULT_RECORDING}"
 description = "every sequence played"
+
+[[situation]]
+name = "B | none"
+recording = "{DEFAULT_RECORDING}"
+sequence = "999"
+description = "a sequence this run does not play: no frame, counted"
 """
 
 
@@ -65,7 +72,7 @@ def _table_after(text: str, head: list[str]) -> list[list[str]]:
     for row in lines[start:]:
         if not row.startswith("|"):
             break
-        rows.append([c.strip().strip("*") for c in row.strip().strip("|").split("|")])
+        rows.append([c.strip().strip("*").replace("\\|", "|") for c in re.split(r"(?<!\\)\|", row.strip()[1:-1])])
     return rows
 
 
@@ -75,7 +82,7 @@ def test_quantitative_table_equals_the_json_of_the_same_run(built):
     assert text.splitlines()[0].startswith("# ") and "iamp eval " in text and "--report" in text, "the command sits at the top"
     rows = _table_after(text, QUANTITATIVE_HEAD)
     names = [s["name"] for s in data["situations"]]
-    assert names == ["A", "whole"]
+    assert names == ["A", "whole", "B | none"], "a | in a name is escaped in the table, not a column of its own"
     assert len(rows) == len(names) * len(MODES)
     situation = None
     for row in rows:
@@ -83,8 +90,9 @@ def test_quantitative_table_equals_the_json_of_the_same_run(built):
         mode = row[1]
         stats = data["modes"][mode]["by_situation"][situation]
         assert int(row[2].replace(",", "")) == stats["windows"]
-        assert row[3] == f"{stats['time_per_step_ms']:.1f}"
-        assert row[4] == f"{stats['mADE_m']:.2f}" and row[5] == f"{stats['mFDE_m']:.2f}"
+        assert row[3] == fmt(stats["time_per_step_ms"], 1)  # "–" for the situation without a frame
+        assert row[4] == fmt(stats["mADE_m"]) and row[5] == fmt(stats["mFDE_m"])
+        assert (row[4] == "–") == (situation == "B | none")
     assert [r[1] for r in rows[: len(MODES)]] == list(MODES)
     # the report's own copy of the JSON is the same run's
     assert json.loads((folder / "eval.json").read_text())["modes"]["hybrid"]["overall"] == data["modes"]["hybrid"]["overall"]
@@ -92,7 +100,9 @@ def test_quantitative_table_equals_the_json_of_the_same_run(built):
 
 def test_situations_count_what_they_hold(built):
     _, data, _ = built
-    a, whole = data["situations"]
+    a, whole, none = data["situations"]
+    assert none["frames"] == 0 and data["skipped"]["situations_without_frames"] == 1, "a window with no frame is counted"
+    assert "'B | none'" in data["skipped_examples"]["situations_without_frames"]
     assert a["sequence"] == DEFAULT_SEQUENCE and a["end_s"] == 4.0 and whole["end_s"] is None
     assert 0 < a["duration_s"] <= 4.1 and a["vehicles"] >= 1
     for mode in MODES:
@@ -181,7 +191,27 @@ def test_report_sections_and_provenance(built):
         assert f"| {mode} | all | " + " | ".join(f"{c:.2f}" for c in cov) in text
 
 
+def test_a_rerun_without_svg_leaves_no_stale_svg(built, tmp_path):
+    """A report folder rewritten with --svg no kept the first run's SVGs beside the new PNGs (figures of another run)."""
+    folder, data, _ = built
+    again = tmp_path / "rep"
+    shutil.copytree(folder, again)
+    assert (again / "reliability.svg").exists()
+    code = cli.main(["eval", "--recording", DEFAULT_RECORDING, "--sequence", DEFAULT_SEQUENCE, "--max-frames", "20", "--stride", "1.6",
+                     "--mode", "cv", "--report", str(again), "--svg", "no", "--no-progress", "--dpi", "20"])
+    assert code == 0
+    assert not list(again.glob("*.svg")), sorted(p.name for p in again.glob("*.svg"))
+    assert (again / "reliability.png").exists() and "SVG" not in (again / "report.md").read_text()
+
+
 def test_bad_situations_file_is_a_usage_error(tmp_path, capsys):
+    for text, says in (('situation = [1, 2]\n', "expected a [[situation]] table"), ('situation = "A"\n', "one or more")):
+        bad = tmp_path / "not_tables.toml"
+        bad.write_text(text)
+        with pytest.raises(ValueError, match=re.escape(says)):
+            load_situations(bad)
+    assert cli.main(["eval", "--dpi", "0", "--no-progress", "--mode", "cv"]) == 2
+    assert "--dpi" in capsys.readouterr().err
     bad = tmp_path / "bad.toml"
     bad.write_text('[[situation]]\nrecording = "k729_2022-03-16"\nstart = 5\nend = 2\n')
     with pytest.raises(ValueError, match="end > start"):

@@ -17,6 +17,7 @@ from stages import cli
 from stages.corridors import CorridorBuilder
 from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING
 from stages.offline.evaluation import EvalConfig, Evaluation, format_table
+from stages.offline.report import write_report
 from stages.relations import RelationExtractor
 
 pytestmark = pytest.mark.skipif(
@@ -199,8 +200,20 @@ def test_what_the_stages_flag_is_counted_in_the_report(tmp_path):
         order = sorted(range(len(rows)), key=lambda i: (int(rows[i][t]), (i in moved) == (int(rows[i][t]) // 100 % 2 == 0)))
         rows[:] = [rows[i] for i in order]
 
+        rows[len(rows) // 2][t] = "99999999999999"  # and one corrupt stamp: a row the loader leaves out
+
     _rewrite_tracks(data, SEQUENCE, clash)
-    report = Evaluation(_config(data_dir=data)).run()
+    evaluation = Evaluation(_config(data_dir=data))
+    report = evaluation.run()
     issues = report["stage_issues"]
     assert issues.get("corridors:position_jump", {}).get("count", 0) > 0, issues
     assert "corridors:position_jump" in format_table(report)
+    # the report (`iamp eval --report`) shows both, and every reason it skipped has its first occurrence
+    text = write_report(evaluation, report, tmp_path / "rep", "iamp eval ...", formats=("png",), dpi=20).read_text()
+    assert f"| {DEFAULT_RECORDING} | skipped | time_out_of_range | 1 | " in text
+    assert f"| corridors:position_jump | {issues['corridors:position_jump']['count']:,} | agent " in text
+    skipped = text[text.index("| reason | count | first occurrence |"):].splitlines()[2:]
+    skipped = skipped[: next(i for i, line in enumerate(skipped) if not line.startswith("|"))]
+    assert {line.split(" | ")[0].strip("| ") for line in skipped} == set(report["skipped"]) >= {"no_full_future"}
+    assert all(line.rstrip(" |").split(" | ")[-1].strip() for line in skipped), "a reason without its first occurrence"
+    assert "stamp_ns" in report["skipped_examples"]["no_full_future"]

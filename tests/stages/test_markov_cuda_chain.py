@@ -42,15 +42,16 @@ def _scenario(n_pairs: int, seed: int, threshold: float):
             restriction, prefs, has_input, threshold)
 
 
-def compare(threads: int = 32) -> dict:
+def compare(threads: int = 8) -> dict:
     """Max |GPU − CPU| per output over three scenarios (no forbidding; a forbid threshold that bites; no interval), and the largest
-    leak seen (the scenarios must exercise it)."""
+    leak seen (the scenarios must exercise it). On the simulator 8 threads a block: fewer threads than cells, so every
+    block-stride loop runs more than once (the GPU test runs 256)."""
     from stages.lib.markov import cuda_chain
 
     worst = {name: 0.0 for name in (*NAMES, "totals")}
     leak = 0.0
     for seed, threshold, with_interval in ((11, 0.0, True), (12, 0.3, True), (13, 0.3, False)):
-        args = list(_scenario(6, seed, threshold))
+        args = list(_scenario(4, seed, threshold))  # two pairs that leak, one at rest with mass outside, one free
         args[4] = with_interval
         cpu = kernels.speed_priority_run(*args)
         timings: dict = {}

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -62,6 +63,17 @@ def test_iamp_signals_prints_report_and_writes_figure(tmp_path, capsys):
     assert "lane   1 ingress matched" in out and "unmatched" in out and "SCALED_MERCATOR" in out
     assert fig.stat().st_size > 10_000 and js.stat().st_size > 1000
     assert main(["signals", "--data", str(tmp_path), "--recording", REC]) == 2
+    # another location's map: every lane unmatched; it said so in a table, warned from numpy and exited 0
+    from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING
+
+    capsys.readouterr()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        code = main(["signals", "--data", str(FIXTURE), "--recording", REC, "--map", str(DEFAULT_DATA_DIR / "maps" / f"{DEFAULT_RECORDING}.osm"),
+                     "--figure", str(tmp_path / "wrong.png")])
+    out, err = capsys.readouterr()
+    assert code == 2 and "no lane matched, no distance" in out
+    assert "no lane of the lane file matched a lanelet" in err and "--map" in err
 
 
 def test_source_publishes_signal_state_when_the_recording_has_phases(tmp_path):

@@ -172,7 +172,8 @@ class SignalMap:
             f" egress {sum(1 for l in m if not l.ingress)} of {len(self.lanes) - len(ing)}), unmatched {len(self.unmatched)}"
             f" [{', '.join(str(l.lane_id) for l in self.unmatched)}]; signalised ingress lanes {len(sig)},"
             f" matched {sum(1 for l in sig if l.matched)}; connections routed {n_routed} of {n_conn};"
-            f" mean distance KML to centreline {np.nanmean(d):.2f} m (median {np.nanmedian(d):.2f}, max {np.nanmax(d):.2f});"
+            + (f" mean distance KML to centreline {np.nanmean(d):.2f} m (median {np.nanmedian(d):.2f}, max {np.nanmax(d):.2f});"
+               if np.isfinite(d).any() else " no lane matched, no distance;") +
             f" signal groups on the map {len(self.signal_groups)}"
         )
         return lines
