@@ -152,3 +152,23 @@ def test_ar_inference_and_markov_prediction_must_share_the_input_cells():
     ar = p.node("ar_inference").config
     assert p.node("markov_prediction").config.input_cells() == {k: getattr(ar, k) for k in ("input_min_mps2", "input_max_mps2", "n_inputs")} == {
         "input_min_mps2": -3.0, "input_max_mps2": 3.0, "n_inputs": 12}
+
+
+def test_calibrated_grids_flag_sets_the_spread_on_every_markov_node(capsys):
+    """``launch.py --calibrated-grids``: the shipped spread table and the online spread on every markov_prediction node
+    (the two shards of ``sharded`` too), a ``--set`` of either key still wins, and a pipeline without the stage is a
+    usage error. The stage's configs are the ones validated, so a key the stage did not know would fail here."""
+    from stages.runtime.launcher import build_parser, main, make_editor
+
+    for name, nodes in (("hybrid", {"markov_prediction"}), ("sharded", {"markov_0", "markov_1"})):
+        args = build_parser().parse_args([name, "--calibrated-grids", "--no-record"])
+        pipeline = load_pipeline(REPO / "stages" / "pipelines" / f"{name}.toml", edit=make_editor(args))
+        markov = {n.id: n.config for n in pipeline.nodes if n.stage == "stages.markov_prediction"}
+        assert set(markov) == nodes and all(c.spread_calibration == "shipped" and c.spread_online for c in markov.values())
+        plain = load_pipeline(REPO / "stages" / "pipelines" / f"{name}.toml", edit=make_editor(build_parser().parse_args([name, "--no-record"])))
+        assert all(n.config.spread_calibration == "" and not n.config.spread_online for n in plain.nodes if n.stage == "stages.markov_prediction")
+    assert main(["--calibrated-grids", "--set", "markov_prediction.spread_online=false", "--describe"]) == 0
+    out = capsys.readouterr().out
+    assert '"spread_calibration": "shipped", "spread_online": false' in out
+    assert main(["replay", "--var", "FILE=/nonexistent.mcap", "--calibrated-grids", "--check"]) == 2
+    assert "--calibrated-grids: the pipeline has no markov_prediction node" in capsys.readouterr().err

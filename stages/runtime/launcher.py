@@ -70,6 +70,9 @@ RECORDER_STAGE = "stages.recorder"
 REPLAY_STAGE = "stages.replay"
 MAP_STAGES = {"stages.corridors", "stages.relations", "stages.intentions", "stages.viewer", "stages.foxglove_bridge"}  # each gets the source's data folder
 VIEWER_STAGE = "stages.viewer"
+MARKOV_STAGE = "stages.markov_prediction"
+#: ``--calibrated-grids``: markov_prediction's keys for calibrated grids (docs/evaluation.md, "Calibrated grids")
+CALIBRATED_GRIDS = {"spread_calibration": "shipped", "spread_online": True}
 VIEWER_URL_RE = re.compile(r"viewer: (https?://\S+)\s*$")
 FOXGLOVE_STAGE = "stages.foxglove_bridge"
 FOXGLOVE_URL_RE = re.compile(r"foxglove: (wss?://\S+)\s*$")
@@ -127,6 +130,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-viewer", action="store_true", help="leave the viewer out")
     p.add_argument("--linger", action="store_true", help="when the sources finish (a replay, a recording played), keep every node up,"
                    " the viewer on the last frames, until Ctrl-C or --stop-after, instead of ending the run")
+    p.add_argument("--calibrated-grids", action="store_true",
+                   help="calibrated motion grids on every markov_prediction node: the shipped spread table and the online spread"
+                        " (spread_calibration = \"shipped\", spread_online = true), so that the 90 %% region holds the truth in about"
+                        " 90 %% of cases; the defaults' grids are over-confident for moving cars. Costs markov_prediction about twice"
+                        " its time (README, \"Where it stands\")")
     p.add_argument("--foxglove", action="store_true", help="add the live Foxglove bridge (node foxglove): the scene on a Foxglove WebSocket, ws://127.0.0.1:PORT printed")
     p.add_argument("--data", metavar="PATH", help="data folder laid out like stages/data/taf-bw (default: the embedded scenario); in a pipeline without a"
                    " dataset player (live) the folder whose maps/ the stages load the tracker's map from")
@@ -196,6 +204,12 @@ def make_editor(args: argparse.Namespace):
             raw.setdefault("bus", {})["run_id"] = args.run_id
         if getattr(args, "foxglove", False) and not any(n.get("stage") == FOXGLOVE_STAGE for n in nodes):
             nodes.append(foxglove_node(nodes))
+        if getattr(args, "calibrated_grids", False):
+            markov = [n for n in nodes if n.get("stage") == MARKOV_STAGE]
+            if not markov:
+                raise PipelineError("--calibrated-grids: the pipeline has no markov_prediction node to calibrate")
+            for n in markov:  # a --set of either key still wins: overrides come after this edit
+                n.setdefault("params", {}).update(CALIBRATED_GRIDS)
         if args.no_viewer:
             raw["nodes"] = nodes = [n for n in nodes if n.get("stage") != VIEWER_STAGE]
         if args.no_record:
