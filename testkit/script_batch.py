@@ -2,7 +2,8 @@
 
 ``python -m testkit.script_batch < cases.json`` reads a JSON list of ``[script, [args...]]`` and prints one JSON list
 of ``{"code", "stdout", "stderr"}``, one per case, in order. Each script runs as ``python SCRIPT ARGS`` would run it
-(``runpy.run_path`` as ``__main__``, ``sys.argv`` set, the script's folder as ``sys.path[0]``), its output captured; a ``SystemExit`` gives its code, any other
+(``runpy.run_path`` as ``__main__``, ``sys.argv`` set; where scripts import modules beside them, as
+``python SCRIPT`` lets them, the caller puts their folder on ``PYTHONPATH``), its output captured; a ``SystemExit`` gives its code, any other
 exception code 1 with its traceback in ``stderr``. For the tests of how scripts treat bad command lines, which fail
 before their work: a process per case spent most of its second or two starting Python and importing numpy, torch
 and the stages again.
@@ -13,7 +14,6 @@ from __future__ import annotations
 import contextlib
 import io
 import json
-import os
 import runpy
 import sys
 import traceback
@@ -21,9 +21,8 @@ import traceback
 
 def run_case(script: str, args: list[str]) -> dict:
     out, err = io.StringIO(), io.StringIO()
-    argv, path0 = sys.argv, sys.path[0]
+    argv = sys.argv
     sys.argv = [script, *args]
-    sys.path[0] = os.path.dirname(os.path.abspath(script))  # as `python SCRIPT` has it: the script's folder first
     code = 0
     try:
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
@@ -37,7 +36,7 @@ def run_case(script: str, args: list[str]) -> dict:
                 traceback.print_exc()
                 code = 1
     finally:
-        sys.argv, sys.path[0] = argv, path0
+        sys.argv = argv
     return {"code": code, "stdout": out.getvalue(), "stderr": err.getvalue()}
 
 

@@ -78,6 +78,7 @@ def bad_runs(tmp_path_factory) -> list[subprocess.CompletedProcess]:
     cwd = tmp_path_factory.mktemp("bench_args")
     env = {k: v for k, v in os.environ.items() if k != "IAMP_TAF_BW"}
     env["OMP_NUM_THREADS"] = "1"
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(BENCH), env.get("PYTHONPATH")]))  # the scripts' own imports of one another
     cases = [[str(BENCH / args[0]), args[1:]] for args, _ in BAD]
     done = subprocess.run([sys.executable, "-m", "testkit.script_batch"], input=json.dumps(cases), cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=600)

@@ -172,3 +172,16 @@ def test_calibrated_grids_flag_sets_the_spread_on_every_markov_node(capsys):
     assert '"spread_calibration": "shipped", "spread_online": false' in out
     assert main(["replay", "--var", "FILE=/nonexistent.mcap", "--calibrated-grids", "--check"]) == 2
     assert "--calibrated-grids: the pipeline has no markov_prediction node" in capsys.readouterr().err
+
+
+def test_shipped_pipelines_with_a_dataset_source_play_the_default_pipelines_recording():
+    """sharded and sharded4 played the dataset player's own default (K729) while hybrid.toml, the default pipeline, plays
+    K733; live.toml's stand-in tracker command did too. baseline.toml says in its first line that it plays K729."""
+    pipelines = REPO / "stages" / "pipelines"
+    default = load_pipeline(pipelines / "hybrid.toml").node("source").params["recording"]
+    assert default == "k733_2018-05-02"
+    for name in ("sharded", "sharded4", "compare", "inline", "pipelined"):
+        sources = [n for n in load_pipeline(pipelines / f"{name}.toml").nodes if n.stage == "stages.tracks_source"]
+        assert [n.params.get("recording") for n in sources] == [default], name
+    stand_in = [line for line in (pipelines / "live.toml").read_text().splitlines() if "-m stages.tracks_source" in line]
+    assert stand_in and all(f"--set recording={default}" in line for line in stand_in), stand_in

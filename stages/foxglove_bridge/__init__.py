@@ -7,7 +7,9 @@ inputs ``corridor_set``, ``corridor_predictions``, ``motion_grid``,
 ``intention_belief``, plus every node's ``NodeStats`` through the wildcard
 input ``stats``) and serves the scene over the Foxglove WebSocket protocol
 (``foxglove-sdk``'s server; subprotocol ``foxglove.sdk.v1``, Foxglove's
-current name of ``foxglove.websocket.v1``: the SDK refuses a client that offers only the old name) on ``host``
+current name of ``foxglove.websocket.v1``: the SDK refuses a client that offers only the old name with a bare HTTP
+400 and has no hook for the handshake; ``core.HandshakeRefusalNote`` turns its "handshake failed" line into one
+that says which subprotocol to use and what to upgrade) on ``host``
 (127.0.0.1) and ``port`` (8765, Foxglove's default; a busy port moves to a
 free one; 0: a free port). When up it logs one line ``foxglove:
 ws://127.0.0.1:PORT`` (the launcher repeats it as ``[launch] foxglove: ...``);

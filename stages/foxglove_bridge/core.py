@@ -58,7 +58,8 @@ class RepeatFilter(logging.Filter):
     """Collapses the SDK's repeated log lines (``foxglove.*`` loggers): a client that stopped reading and then left got
     one ERROR line per message still queued for it (127 in one second). The first line of a kind (logger, level, text
     with its numbers left out) passes; the same kind within ``window_s`` is counted, and the next one after it passes
-    saying how many were held back."""
+    saying how many were held back. One record is decided once: on a root logger with several handlers (each with this
+    filter) every handler gets the same answer (the second handler used to take the first one's pass for a repeat)."""
 
     def __init__(self, prefix: str = "foxglove", window_s: float = 10.0, clock=time.monotonic) -> None:
         super().__init__()
@@ -68,6 +69,14 @@ class RepeatFilter(logging.Filter):
     def filter(self, record: logging.LogRecord) -> bool:
         if not record.name.startswith(self.prefix):
             return True
+        decided = getattr(record, "_iamp_repeat_passes", None)
+        if decided is not None:  # the same record at the next handler: the same answer (it counted once)
+            return decided
+        passes = self._decide(record)
+        record._iamp_repeat_passes = passes
+        return passes
+
+    def _decide(self, record: logging.LogRecord) -> bool:
         kind = (record.name, record.levelno, re.sub(r"\d+", "#", str(record.msg)))
         now = self.clock()
         seen = self._kinds.get(kind)
@@ -82,6 +91,62 @@ class RepeatFilter(logging.Filter):
             record.msg = f"{record.getMessage()} ({held} more like it in the {self.window_s:g} s before)"
             record.args = ()
         return True
+
+
+SUBPROTOCOL = "foxglove.sdk.v1"
+"""The WebSocket subprotocol foxglove-sdk's server accepts (0.30 also takes ``foxglove.sdk.v1.1``); the same messages as
+the old ``foxglove.websocket.v1``, which it refuses."""
+
+_HANDSHAKE_FAILED = re.compile(r"^Dropping client (\S+): handshake failed$")
+
+
+def _sdk_version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("foxglove-sdk")
+    except Exception:  # noqa: BLE001 - only for the text
+        return "?"
+
+
+class HandshakeRefusalNote(logging.Filter):
+    """Says what a refused WebSocket handshake most likely means, in place of the SDK's bare line.
+
+    foxglove-sdk answers a client that does not offer ``foxglove.sdk.v1`` (older Foxglove and Lichtblick releases offer
+    only ``foxglove.websocket.v1``) with HTTP 400 "Missing expected sec-websocket-protocol header" and logs "Dropping
+    client ADDR: handshake failed" (ERROR, ``foxglove.websocket.server``). It has no hook for the handshake: the
+    response cannot be changed and the subprotocols the client offered are not told. This filter, on that logger,
+    rewrites the line into one WARNING that names the client, the subprotocol this server speaks and what to upgrade;
+    ``RepeatFilter`` then collapses a client's retries."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.sdk_version = _sdk_version()
+        self.refused = 0
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        m = _HANDSHAKE_FAILED.match(record.getMessage())
+        if m is None:
+            return True
+        self.refused += 1
+        record.msg = (f"foxglove: client {m.group(1)} refused at the WebSocket handshake (HTTP 400; foxglove-sdk {self.sdk_version} "
+                      f"does not say why nor what the client offered): this server speaks the subprotocol {SUBPROTOCOL} only, "
+                      f"so a client that offers only foxglove.websocket.v1 (an older Foxglove app or Lichtblick) must be upgraded "
+                      f"(README, Foxglove: Foxglove app version needed); a request that is not a WebSocket upgrade is refused the same way")
+        record.args = ()
+        record.levelno, record.levelname = logging.WARNING, logging.getLevelName(logging.WARNING)
+        return True
+
+
+def install_handshake_note(logger_name: str = "foxglove.websocket.server") -> HandshakeRefusalNote:
+    """A ``HandshakeRefusalNote`` on the SDK's server logger: once per process."""
+    logger = logging.getLogger(logger_name)
+    found = next((f for f in logger.filters if isinstance(f, HandshakeRefusalNote)), None)
+    if found is not None:
+        return found
+    note = HandshakeRefusalNote()
+    logger.addFilter(note)
+    return note
 
 
 def install_repeat_filter() -> RepeatFilter:
@@ -104,6 +169,7 @@ class FoxgloveBridge:
         self.run_id = run_id
         self.log = log or logging.getLogger(f"iamp.{node_id}")
         install_repeat_filter()
+        self.handshake_note = install_handshake_note()
         self.context = foxglove.Context()
         self.scene = FoxgloveScene(self.context, data=config.data or None, grid_step=parse_grid_step(config.grid_step))
         self.topic_keys = dict(topic_keys or {})  # input port -> bus key (names the Foxglove topics by producing node)

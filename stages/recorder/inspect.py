@@ -11,7 +11,10 @@ A damaged chunk in the middle of a file (its data does not decompress or
 fails its CRC, or its fields do not read) whose record framing is intact
 (its record length ends inside the file, where the next record begins) is
 skipped: its messages are lost, it is counted in ``damaged_chunks`` and
-``damaged_bytes``, and reading goes on with the next record. Messages of
+``damaged_bytes``, and reading goes on with the next record. So is a chunk
+whose opcode byte is damaged: mcap's reader passes over a record of an
+unknown opcode without a word; a record of an unknown opcode whose fields
+frame as a chunk's is counted as a damaged chunk. Messages of
 later chunks on a channel whose Channel record was in the damaged chunk keep
 their topic and schema when the file has its summary section. A record
 whose length runs past the end of the file, or a chunk followed by no
@@ -61,6 +64,9 @@ _RECORD_SIZE_LIMIT = 1 << 31
 _MAX_GAPS_LISTED = 50
 _MAX_DAMAGE_LISTED = 5
 _KNOWN_OPCODES = frozenset(int(op) for op in Opcode)
+# a Chunk record's fields before its compression name: start and end time, uncompressed size (8 each), CRC (4), name length (4)
+_CHUNK_FIXED_BYTES = 8 + 8 + 8 + 4 + 4
+_CHUNK_COMPRESSIONS = frozenset({b"", b"zstd", b"lz4"})
 
 
 class RecordingError(ValueError):
@@ -117,6 +123,10 @@ def _open(path: str):
         raise RecordingError(f"{path}: cannot open: {exc.strerror or exc}") from None
 
 
+class _DamagedOpcode(Exception):
+    """Why a record of an unknown opcode that frames as a chunk was skipped (it names the opcode found)."""
+
+
 class _ChunkUnreadable(Exception):
     """A chunk that does not read and cannot be skipped (its framing is lost): the end of the usable data."""
 
@@ -130,9 +140,9 @@ class _Records:
 
     ``take()`` returns ``(record, inner)``: ``inner`` the records of a chunk,
     None for any other record. A chunk that does not read (decompression,
-    CRC, its fields) but whose record framing is intact is skipped, counted
-    and described (``damaged_chunks``, ``damaged_bytes``, ``damage``) and the
-    next record read. Raises ``StopIteration`` at the end, ``_ChunkUnreadable``
+    CRC, its fields, or its opcode byte) but whose record framing is intact
+    is skipped, counted and described (``damaged_chunks``, ``damaged_bytes``,
+    ``damage``) and the next record read. Raises ``StopIteration`` at the end, ``_ChunkUnreadable``
     for a chunk read whole that does not break up and cannot be skipped, and
     whatever mcap raised for any other record that does not read (a torn tail).
     """
@@ -154,6 +164,12 @@ class _Records:
     def take(self) -> tuple[Any, list[Any] | None]:
         while True:
             start = self.f.tell() if self.started else len(b"\x89MCAP0\r\n")
+            if self.started:
+                end = self._chunk_with_damaged_opcode(start)
+                if end is not None:  # mcap's reader would pass over it without a word (an unknown opcode)
+                    opcode = os.pread(self.f.fileno(), 1, start)[0]
+                    self._skip(start, end, _DamagedOpcode(f"its opcode byte is damaged (0x{opcode:02x}, a chunk's is 0x{int(Opcode.CHUNK):02x})"), restart=True)
+                    continue
             try:
                 record = next(self._records)
             except StopIteration:
@@ -203,6 +219,41 @@ class _Records:
         after = os.pread(fd, 1, end)
         if after and after[0] not in _KNOWN_OPCODES:
             return None  # no record follows: the framing is lost
+        return end
+
+    def _chunk_with_damaged_opcode(self, start: int) -> int | None:
+        """Where the record at ``start`` ends when it is a chunk whose opcode byte is damaged, else None.
+
+        mcap's reader skips a record of an unknown opcode silently (the MCAP
+        spec lets later versions add records), so a chunk whose opcode byte
+        was hit would vanish with its messages and only the summary's message
+        count would show it. Such a record is taken for a chunk when its
+        fields frame as a chunk's do (start and end time, sizes, CRC, a known
+        compression name, a data length that ends the record exactly) and
+        its framing is intact (the file ends or a known record follows).
+        """
+        fd = self.f.fileno()
+        head = os.pread(fd, 9 + _CHUNK_FIXED_BYTES, start)
+        if len(head) < 9 + _CHUNK_FIXED_BYTES:
+            return None
+        opcode, length = struct.unpack_from("<BQ", head)
+        if opcode in _KNOWN_OPCODES or length > _RECORD_SIZE_LIMIT or length < _CHUNK_FIXED_BYTES + 8:
+            return None
+        end = start + 9 + length
+        if end > os.fstat(fd).st_size:
+            return None
+        name_length = struct.unpack_from("<I", head, 9 + 28)[0]
+        if name_length > max(len(n) for n in _CHUNK_COMPRESSIONS) or _CHUNK_FIXED_BYTES + name_length + 8 > length:
+            return None
+        rest = os.pread(fd, name_length + 8, start + 9 + _CHUNK_FIXED_BYTES)
+        if len(rest) < name_length + 8 or rest[:name_length] not in _CHUNK_COMPRESSIONS:
+            return None
+        data_length = struct.unpack_from("<Q", rest, name_length)[0]
+        if _CHUNK_FIXED_BYTES + name_length + 8 + data_length != length:
+            return None
+        after = os.pread(fd, 1, end)
+        if after and after[0] not in _KNOWN_OPCODES:
+            return None
         return end
 
     def _skip(self, start: int, end: int, exc: Exception, restart: bool) -> None:
@@ -294,6 +345,8 @@ def _note_damage(reader: _Records, report: ReadReport, path: str, schemas: dict[
 def _why(exc: Exception) -> str:
     if isinstance(exc, EndOfFile):
         return "end of file"
+    if isinstance(exc, _DamagedOpcode):
+        return str(exc)
     name = type(exc).__name__
     if name == "error":  # struct.error
         name = f"{type(exc).__module__}.error"

@@ -27,7 +27,9 @@ What the page shows, top-down (x east, y north, metres of the scene):
   coloured by its type, with its track id as a label;
 - the corridors of the chosen vehicle (or of all) as light blue
   centrelines, each labelled with its probability ``p`` where its
-  prediction ends;
+  prediction ends; a standing car's labels, whose prediction ends where the
+  car stands, go beside its box instead of on it
+  (``model.place_labels_off_boxes``);
 - the predicted mean position of every corridor at every step (small black
   dots) and at the chosen step (white dots);
 - the motion grid of the chosen step (0.4 … 4.0 s; a time between two steps
@@ -62,8 +64,9 @@ frame, on the stage's one session) processing time p50/p95, end-to-end
 latency p50/p95 (``e2e_ms_*``: the source's publish of the frame to the
 node's publish of its result; "–" for an old recording without wall
 stamps), latency,
-queue depth, issues, errors (decode + core) and drops (queue + join).
-"pause" freezes the display; the source keeps playing (it has no control
+queue depth, issues, errors (decode + core) and drops (queue + join), two
+short lines per node with a legend (``panels.stages_markdown``; an
+eight-column table did not fit the side panel). "pause" freezes the display; the source keeps playing (it has no control
 key to listen to).
 
 Keeping up: ``update`` only files the inputs; a render thread draws at

@@ -326,6 +326,22 @@ class Boxes:
     def __len__(self) -> int:
         return int(self.track_ids.shape[0])
 
+    def yaw_rad(self, i: int) -> float:
+        w, _x, _y, z = self.wxyzs[i]
+        return float(2.0 * math.atan2(z, w))
+
+    def contains(self, i: int, xy: tuple[float, float], margin_m: float = 0.0) -> bool:
+        """Whether the point ``xy`` lies on box ``i``'s footprint grown by ``margin_m`` on every side."""
+        yaw = self.yaw_rad(i)
+        dx, dy = xy[0] - float(self.centres_m[i, 0]), xy[1] - float(self.centres_m[i, 1])
+        along, across = dx * math.cos(yaw) + dy * math.sin(yaw), -dx * math.sin(yaw) + dy * math.cos(yaw)
+        return abs(along) <= self.sizes_m[i, 0] / 2.0 + margin_m and abs(across) <= self.sizes_m[i, 1] / 2.0 + margin_m
+
+    def id_label_position(self, i: int) -> tuple[float, float, float]:
+        """Where the track id label of box ``i`` sits: north of the box (above it on screen), not on it."""
+        north_m = 0.5 * float(np.hypot(self.sizes_m[i, 0], self.sizes_m[i, 1])) + 0.8
+        return (float(self.centres_m[i, 0]), float(self.centres_m[i, 1]) + north_m, float(self.sizes_m[i, 2]) + 0.3)
+
 
 def object_boxes(frame: TrackFrame) -> Boxes:
     """Every object of the frame with a finite position as a box, coloured by its type."""
@@ -402,9 +418,89 @@ def box_meshes(boxes: Boxes) -> list[BoxMesh]:
 
 @dataclass(frozen=True, slots=True)
 class Label:
+    """A text in the scene; ``anchor`` (viser's) is the point of the text that sits at ``position_m``."""
+
     name: str
     text: str
     position_m: tuple[float, float, float]
+    anchor: str = "bottom-center"
+
+
+#: A probability label moved off its vehicle's box keeps this gap to every box (m).
+LABEL_CLEARANCE_M = 0.6
+#: Labels moved off a box keep at least this distance from each other and from every id label (m).
+LABEL_SPACING_M = 2.0
+_LABEL_RINGS = 3
+_LABEL_TEXT_M = 1.0  # how far a label's text reaches from its anchor, about, at the usual zoom (it is drawn at a fixed screen size)
+
+
+def _anchor_away(dx: float, dy: float) -> str:
+    """The anchor that makes a label grow in direction (dx, dy) on the screen (north is up): away from its box."""
+    if abs(dy) >= abs(dx):
+        return "bottom-center" if dy >= 0 else "top-center"
+    return "center-left" if dx > 0 else "center-right"
+
+
+def off_box_spots(boxes: Boxes, i: int) -> list[tuple[tuple[float, float], tuple[float, float]]]:
+    """Places for labels beside box ``i``, first choice first, each with the direction (unit) away from the box: beside
+    its front corners (along its heading, which is the corridor direction of a matched car; away = sideways), beside
+    it, ahead of it (away = ahead), beside its rear corners, behind it; each ring ``LABEL_SPACING_M`` further out
+    than the one before."""
+    cx, cy = float(boxes.centres_m[i, 0]), float(boxes.centres_m[i, 1])
+    yaw = boxes.yaw_rad(i)
+    f, left = (math.cos(yaw), math.sin(yaw)), (-math.sin(yaw), math.cos(yaw))
+    half_l = boxes.sizes_m[i, 0] / 2.0 + LABEL_CLEARANCE_M
+    half_w = boxes.sizes_m[i, 1] / 2.0 + LABEL_CLEARANCE_M
+    spots = []
+    for ring in range(_LABEL_RINGS):
+        out = ring * LABEL_SPACING_M
+        for a, b in ((half_l, half_w + out), (half_l, -half_w - out), (0.0, half_w + out), (0.0, -half_w - out),
+                     (half_l + out, 0.0), (-half_l, half_w + out), (-half_l, -half_w - out), (-half_l - out, 0.0)):
+            away = (math.copysign(1.0, b) * left[0], math.copysign(1.0, b) * left[1]) if b else (math.copysign(1.0, a) * f[0], math.copysign(1.0, a) * f[1])
+            spots.append(((cx + a * f[0] + b * left[0], cy + a * f[1] + b * left[1]), away))
+    return spots
+
+
+def place_labels_off_boxes(labels: list[Label], owners: list[int], boxes: Boxes, probabilities: list[float] | None = None) -> list[Label]:
+    """Move each label that lies on its own vehicle's box (``owners``: the track id per label) beside it.
+
+    A standing car's corridors have their last predicted mean where the car
+    is, so their ``p=`` labels were drawn on its box, unreadable. Such a label
+    goes to the first of ``off_box_spots`` that lies on no box of the frame
+    (with ``LABEL_CLEARANCE_M / 2`` to spare), nor does its text as it
+    grows away from the box (about ``_LABEL_TEXT_M``), and is
+    ``LABEL_SPACING_M`` from every id label and every label moved before it
+    (the most probable corridor first, by ``probabilities``); its anchor
+    makes the text grow away from the box (sideways beside it, forward
+    ahead of it). When no spot is free it takes the first one. Labels off
+    their box stay.
+    """
+    index = {int(t): i for i, t in enumerate(boxes.track_ids)}
+    taken = [boxes.id_label_position(i)[:2] for i in range(len(boxes))]
+    out = list(labels)
+    p = probabilities if probabilities is not None else [0.0] * len(labels)
+    order = sorted(range(len(labels)), key=lambda j: -p[j] if math.isfinite(p[j]) else math.inf)
+
+    centres = boxes.centres_m[:, :2] if len(boxes) else np.zeros((0, 2))
+    reach = 0.5 * np.hypot(boxes.sizes_m[:, 0], boxes.sizes_m[:, 1]) if len(boxes) else np.zeros(0)
+
+    def free(spot: tuple[tuple[float, float], tuple[float, float]], near: np.ndarray) -> bool:
+        (x, y), (ax, ay) = spot
+        ends = ((x, y), (x + _LABEL_TEXT_M * ax, y + _LABEL_TEXT_M * ay))  # the text too, as it grows away
+        return (not any(boxes.contains(int(k), xy, LABEL_CLEARANCE_M / 2.0) for k in near for xy in ends)
+                and all(math.hypot(x - t[0], y - t[1]) >= LABEL_SPACING_M for t in taken))
+
+    for j in order:
+        lab, i = labels[j], index.get(int(owners[j]))
+        if i is None or not boxes.contains(i, lab.position_m[:2], LABEL_CLEARANCE_M):
+            continue
+        spots = off_box_spots(boxes, i)
+        far_m = max(math.hypot(xy[0] - centres[i, 0], xy[1] - centres[i, 1]) for xy, _a in spots) + _LABEL_TEXT_M + LABEL_CLEARANCE_M
+        near = np.nonzero(np.hypot(*(centres - centres[i]).T) <= far_m + reach)[0]  # the boxes a spot could touch
+        (x, y), away = next((spot for spot in spots if free(spot, near)), spots[0])
+        taken.append((x, y))
+        out[j] = Label(lab.name, lab.text, (x, y, lab.position_m[2]), _anchor_away(*away))
+    return out
 
 
 @dataclass(frozen=True, slots=True)
@@ -452,11 +548,14 @@ def matched_vehicles(corridor_set: CorridorSet | None) -> list[int]:
     return sorted(v.track_id for v in corridor_set.vehicles if v.status == MatchStatus.MATCHED and v.corridors)
 
 
-def corridor_lines(item: InputSet, vehicle: int | None) -> tuple[Segments, list[Label]]:
+def corridor_lines(item: InputSet, vehicle: int | None, boxes: Boxes | None = None) -> tuple[Segments, list[Label]]:
     """The corridors of one vehicle (or all) as centreline segments, and a probability label per corridor.
 
     The label sits where the corridor's prediction has its mean at the last
-    step (the far end of the heat map), else at the corridor's end.
+    step (the far end of the heat map), else at the corridor's end; a label
+    that would lie on its own vehicle's box (a standing car) is moved beside
+    the box (``place_labels_off_boxes``; ``boxes``: the frame's, default
+    ``object_boxes(item.track_frame)``).
     """
     if item.corridor_set is None:
         return Segments.empty(), []
@@ -468,7 +567,7 @@ def corridor_lines(item: InputSet, vehicle: int | None) -> tuple[Segments, list[
             if ok.any():
                 k = int(np.nonzero(ok)[0][-1])
                 last_mean[(p.track_id, p.corridor_id)] = (float(p.mean_x_m[k]), float(p.mean_y_m[k]))
-    lines, labels = [], []
+    lines, labels, owners, label_p = [], [], [], []
     for v in item.corridor_set.vehicles:
         if vehicle is not None and v.track_id != vehicle:
             continue
@@ -482,6 +581,10 @@ def corridor_lines(item: InputSet, vehicle: int | None) -> tuple[Segments, list[
                 at = (float(c.x_m[-1]), float(c.y_m[-1]))
             if at is not None:
                 labels.append(Label(f"{v.track_id}_{c.corridor_id & 0xFFFFFFFF:x}", f"p={p:.2f}", (at[0], at[1], Z_MEANS)))
+                owners.append(int(v.track_id))
+                label_p.append(float(p))
+    if labels:
+        labels = place_labels_off_boxes(labels, owners, boxes if boxes is not None else object_boxes(item.track_frame), label_p)
     return polyline_segments(lines, CORRIDOR_COLOUR, Z_CORRIDORS), labels
 
 

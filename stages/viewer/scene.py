@@ -52,7 +52,7 @@ from stages.viewer.model import (
     stamp_text,
     step_index,
 )
-from stages.viewer.panels import COMPARE_TRUTH_COLOUR, OnlineMADE, mode_colour, vehicle_panel
+from stages.viewer.panels import COMPARE_TRUTH_COLOUR, OnlineMADE, mode_colour, stages_markdown, vehicle_panel
 
 CAMERA_FOV_RAD = math.radians(30.0)  # narrow: the top-down view is nearly orthographic
 ASSUMED_ASPECT = 1280 / 900
@@ -450,7 +450,7 @@ class ViewerApp:
         grid = item.grid
         k = None if (view.blend_steps or grid is None) else step_index(grid.step_times_s, view.step_s)
         heat = grid_mesh(grid, k, scale=self.config.grid_scale, floor=self.config.grid_floor) if (grid is not None and view.show_grid) else None
-        lines, p_labels = corridor_lines(item, vehicle) if view.show_corridors else (None, [])
+        lines, p_labels = corridor_lines(item, vehicle, boxes) if view.show_corridors else (None, [])
         k_means = None if view.blend_steps else step_index(item.predictions.step_times_s, view.step_s) if item.predictions is not None else None
         every, chosen = mean_points(item, vehicle, k_means) if (view.show_means and item.compare is None) else (np.zeros((0, 3)), np.zeros((0, 3)))
         truth_colour = COMPARE_TRUTH_COLOUR if item.compare is not None else TRUTH_COLOUR  # the compare view: black truth, as in the paper
@@ -460,12 +460,10 @@ class ViewerApp:
             self._sync_meshes("objects/boxes", {"{}_{}_{}".format(*m.colour): (m.vertices_m, m.faces, {"color": m.colour}) for m in box_meshes(boxes)})
             labels = {}
             if view.show_labels:
-                for i, tid in enumerate(boxes.track_ids):
-                    x, y, _ = boxes.centres_m[i]
-                    north_m = 0.5 * float(np.hypot(boxes.sizes_m[i, 0], boxes.sizes_m[i, 1])) + 0.8  # above the box on screen, not on it
-                    labels[f"/objects/labels/t{int(tid)}"] = (str(int(tid)), (float(x), float(y) + north_m, float(boxes.sizes_m[i, 2]) + 0.3))
-                for lab in p_labels:
-                    labels[f"/corridors/p/c{lab.name}"] = (lab.text, lab.position_m)
+                for i, tid in enumerate(boxes.track_ids):  # above the box on screen, not on it
+                    labels[f"/objects/labels/t{int(tid)}"] = (str(int(tid)), boxes.id_label_position(i), "bottom-center")
+                for lab in p_labels:  # a standing car's beside its box (corridor_lines)
+                    labels[f"/corridors/p/c{lab.name}"] = (lab.text, lab.position_m, lab.anchor)
             self._sync_labels(labels)
             if lines is not None and len(lines):
                 self._layers["corridors"] = scene.add_line_segments("/corridors/lines", lines.points_m, lines.colours, thickness=0.25)
@@ -523,17 +521,19 @@ class ViewerApp:
         if handle is not None:
             handle.remove()
 
-    def _sync_labels(self, wanted: dict[str, tuple[str, tuple[float, float, float]]]) -> None:
+    def _sync_labels(self, wanted: dict[str, tuple[str, tuple[float, float, float], str]]) -> None:
         for name in [n for n in self._labels if n not in wanted]:
             self._labels.pop(name).remove()
-        for name, (text, position) in wanted.items():
+        for name, (text, position, anchor) in wanted.items():
             handle = self._labels.get(name)
             if handle is None:
-                self._labels[name] = self.server.scene.add_label(name, text, position=position, anchor="bottom-center", font_screen_scale=0.7, depth_test=False)
+                self._labels[name] = self.server.scene.add_label(name, text, position=position, anchor=anchor, font_screen_scale=0.7, depth_test=False)
             else:
                 handle.position = position
                 if handle.text != text:
                     handle.text = text
+                if handle.anchor != anchor:
+                    handle.anchor = anchor
 
     def _update_vehicle_options(self, vehicles: list[int], selected: str) -> None:
         options = (ALL_VEHICLES, *[str(v) for v in vehicles])
@@ -585,24 +585,9 @@ class ViewerApp:
             ])
         self._draw_vehicle_panel(view)
         if stats:
-            rows = ["| node | ms p50/p95 | e2e ms p50/p95 | lat ms | q | iss | err | drop |", "|:--|--:|--:|--:|--:|--:|--:|--:|"]
             now = time.monotonic()
-            for node_id in sorted(stats):
-                st = stats[node_id]
-                cn = st.counters
-                age_s = now - self.stats.received_at(node_id)
-                node = node_id if age_s < STATS_STALE_S else f"{node_id} (**silent {age_s:.0f} s**)"
-                lat = f"{st.latency_ms_p50:.0f}" if 0 < st.latency_ms_p50 < PLAUSIBLE_LATENCY_MS else "–"
-                e2e = f"{st.e2e_ms_p50:.0f}/{st.e2e_ms_p95:.0f}" if math.isfinite(st.e2e_ms_p50) and math.isfinite(st.e2e_ms_p95) else "–"
-                rows.append(
-                    f"| {node} | {st.proc_ms_p50:.1f}/{st.proc_ms_p95:.0f} | {e2e} | {lat} | {st.queue_depth} | {cn.get('issues', 0)} | "
-                    f"{cn.get('decode_errors', 0) + cn.get('core_errors', 0)} | {cn.get('queue_drops', 0) + cn.get('join_drops', 0)} |"
-                )
-            self._gui["stages"].content = "\n".join(rows) + (
-                "\n\nms: processing per input set · e2e: end to end, source publish to this node's publish "
-                "(– when unknown: an old recording) · lat: receive time minus stamp (– when stamps are recording time) · "
-                "q: queue · iss: issues · err: decode + core errors · drop: queue + join drops"
-            )
+            silent = {node_id: now - self.stats.received_at(node_id) for node_id in stats}
+            self._gui["stages"].content = stages_markdown(stats, {n: a for n, a in silent.items() if a >= STATS_STALE_S}, PLAUSIBLE_LATENCY_MS)
 
 
     # ------------------------------------------------------------------ compare view, selected vehicle, initial zoom (panels.py)

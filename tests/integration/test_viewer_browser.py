@@ -414,11 +414,11 @@ def test_a_stage_that_stops_is_called_out_not_shown_as_a_run_without_it(scenario
         app.wait_drawn(lambda summary: summary.get("frame") == sets[-1]["track_frame"].header.frame_index, 60)
         deadline = _time.monotonic() + 30
         while _time.monotonic() < deadline and not ("no corridor predictions" in app._gui["status"].content
-                                                     and "(**silent" in app._gui["stages"].content):  # (drawn by the render thread)
+                                                     and "· **silent" in app._gui["stages"].content):  # (drawn by the render thread)
             _time.sleep(0.1)
         status = app._gui["status"].content
         assert "no corridor predictions, motion grid" in status and "stage has stopped" in status, status
-        assert "markov_prediction (**silent" in app._gui["stages"].content
+        assert "**markov_prediction** · **silent" in app._gui["stages"].content
     finally:
         app.close()
 

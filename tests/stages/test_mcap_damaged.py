@@ -287,3 +287,39 @@ def test_replay_and_export_read_past_a_damaged_chunk(original, tmp_path):
     report = export_foxglove(str(bad), str(tmp_path / "fox.mcap"))
     assert report.read == len(expected) and report.damaged_chunks == 1 and report.damaged_bytes == length
     assert "source damaged, 1 unreadable chunks skipped" in report.line() and "source truncated" not in report.line()
+
+
+@pytest.mark.parametrize("opcode", [0x06 ^ 0xFF, 0x00, 0x42])
+def test_a_chunk_whose_opcode_byte_is_damaged_is_counted_like_the_others(original, tmp_path, opcode):
+    """mcap's reader passes over a record of an unknown opcode without a word; a chunk whose opcode byte was hit is a damaged chunk."""
+    from stages.replay.core import RecordingPlayer, ReplayConfig
+
+    k = len(original["chunks"]) // 2
+    offset, length, lost = original["chunks"][k]
+    assert original["data"][offset] == 0x06
+    b = bytearray(original["data"])
+    b[offset] = opcode
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(b))
+    expected = without(original["everything"], lost)
+
+    report = ReadReport()
+    assert own_read(bad, report) == expected
+    assert not report.truncated and report.error == "" and report.summary_present
+    assert report.damaged_chunks == 1 and report.damaged_bytes == length and report.chunks == len(original["chunks"]) - 1
+    assert f"chunk {k + 1} at byte {offset} ({length} bytes): its opcode byte is damaged (0x{opcode:02x}" in report.damage, report.damage
+
+    info = inspect(str(bad))
+    assert info["damaged_chunks"] == 1 and info["damaged_bytes"] == length and info["messages_lost"] == len(lost)
+    table = format_table(info)
+    damaged_lines = [line for line in table.splitlines() if "DAMAGED" in line]
+    assert len(damaged_lines) == 1 and "state: DAMAGED" in damaged_lines[0], table
+    assert f"1 unreadable chunks skipped ({length} bytes, {len(lost)} messages lost)" in damaged_lines[0] and "opcode byte is damaged" in damaged_lines[0]
+
+    player = RecordingPlayer(ReplayConfig(path=str(bad)), None)
+    assert [(o.key, o.data) for o in player] == [(m[0], m[2]) for m in expected]
+    assert player.report.damaged_chunks == 1 and player.report.damaged_bytes == length and "opcode byte is damaged" in player.report.damage
+
+    rep = recover(str(bad), str(tmp_path / "out.mcap"))
+    assert rep.complete and rep.damaged_chunks == 1 and rep.messages == len(expected)
+    assert standard_read(tmp_path / "out.mcap") == expected
