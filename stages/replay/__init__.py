@@ -22,6 +22,15 @@ whose data channels carry the same payloads, in the same order and number.
 ``nodes`` restricts the replay to the keys of some recorded nodes (for a
 pipeline that recomputes the rest: ``nodes = ["source"]``).
 
+Like every node, replay publishes its own ``NodeStats`` on
+``iamp/<run>/_stats/<node>`` every ``--stats-period`` (1 s) and at the end
+(``runtime.StatsReporter``): ``processed`` and ``published`` count the
+messages replayed, ``skipped`` (by reason: ``skipped.foreign_key``,
+``skipped.infrastructure``, ``skipped.other_node``) what it left out,
+``damaged_chunks``/``damaged_bytes`` the unreadable chunks passed over and
+``truncated_file`` a file that ended before its footer; so the viewer's
+Stages table and a recording of the run show it as they show any source.
+
 Replay publishes on keys it learns from the file, not on declared ports, so
 it runs its own loop on ``runtime.BusClient`` instead of ``run_stage``; it
 starts as every stage does (``runtime.start_stage``: the same flags

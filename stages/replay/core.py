@@ -19,7 +19,8 @@ from bus_schemas._wire import peek_schema
 
 from stages.lib.base import ConfigError, ConfigMixin
 from stages.recorder.inspect import ReadReport, RecordingError, read_messages, recording_run_id
-from stages.runtime import EXIT_CRASH, EXIT_OK, EXIT_USAGE, BusClient, NodeContext, Port, StageSpec, add_network_args, on_stop_signals, setup_logging, start_stage
+from stages.runtime import (CLOSE_LINGER_S, EXIT_CRASH, EXIT_OK, EXIT_USAGE, BusClient, NodeContext, Port, StageSpec, StatsReporter, add_network_args,
+                            on_stop_signals, setup_logging, start_stage)
 from stages.runtime.pacing import AWAIT_NODES_S, FIRST_ACK_GRACE_S, MAX_SPEED_WINDOW, Consumers, Pacer, parse_speed_value  # noqa: F401 (MAX_SPEED_WINDOW: for tests)
 
 _MATCH_POLL_S = 0.01
@@ -28,6 +29,24 @@ _MATCH_LOOKAHEAD = 1000  # keys of the first this many messages are checked for 
 _PACED_SCHEMAS = frozenset(
     name for name, cls in REGISTRY.items() if "header" in getattr(cls, "__dataclass_fields__", {}) and name != SceneInfo.SCHEMA
 )
+
+
+#: What replay counts in its ``NodeStats`` (``_stats/<node>``) besides the runtime's counters: ``processed`` and
+#: ``published``, the messages replayed; ``skipped`` (and by reason: keys of another layout, infrastructure keys, keys of
+#: nodes not selected); ``damaged_chunks``/``damaged_bytes``, the unreadable chunks passed over; ``truncated_file`` 1 once
+#: the file ended before its footer.
+SKIP_REASONS = ("foreign_key", "infrastructure", "other_node")
+REPLAY_COUNTERS = ("skipped", *(f"skipped.{r}" for r in SKIP_REASONS), "damaged_chunks", "damaged_bytes", "truncated_file")
+
+
+def sync_stats(stats: StatsReporter, player: "RecordingPlayer") -> None:
+    """The player's skip and damage counters into the replay's ``NodeStats``."""
+    for reason, n in player.skipped.items():
+        stats.set(f"skipped.{reason}", n)
+    stats.set("skipped", sum(player.skipped.values()))
+    stats.set("damaged_chunks", player.report.damaged_chunks)
+    stats.set("damaged_bytes", player.report.damaged_bytes)
+    stats.set("truncated_file", int(player.report.truncated))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -211,6 +230,7 @@ def play(
     node_id: str = "replay",
     consumers: Consumers | None = None,
     expected: tuple[str, ...] = (),
+    stats: StatsReporter | None = None,
 ) -> ReplaySummary:
     """Publish the player's messages on ``bus``, paced by ``speed``; stops early when ``stop`` is set.
 
@@ -222,7 +242,8 @@ def play(
     (followed here on the target run when None), with a grace of
     ``FIRST_ACK_GRACE_S`` for nodes that never ack (tools), except the
     ``expected`` ones (the awaited pipeline nodes), waited for as long as
-    one behind.
+    one behind. ``stats``, when given, counts every message published and
+    the player's skipped and damaged counters (the replay's ``NodeStats``).
     """
     summary = ReplaySummary()
     publishers: dict[str, Callable[[bytes], None]] = {}
@@ -253,6 +274,7 @@ def play(
         for msg in itertools.chain(head, items):
             if not pacer.before(msg.log_time_ns, msg.stamp_ns):
                 break
+            t0 = time.perf_counter()
             pub = publishers.get(msg.key)
             if pub is None:
                 pub = publishers[msg.key] = bus.publisher(msg.key, block=True)
@@ -265,6 +287,9 @@ def play(
             else:
                 pub(walls(msg.data, msg.key))
             summary.published += 1
+            if stats is not None:
+                stats.processed((time.perf_counter() - t0) * 1e3, msg.stamp_ns)
+                sync_stats(stats, player)
         if as_fast and not stop.is_set():
             pacer.drain(abort=stop.is_set)
     summary.stopped = stop.is_set()
@@ -272,6 +297,8 @@ def play(
     summary.keys = len(publishers)
     summary.truncated = player.report.truncated
     summary.skipped = dict(player.skipped)
+    if stats is not None:
+        sync_stats(stats, player)
     return summary
 
 
@@ -287,11 +314,16 @@ def run_replay(
     config_file: str | None = None,
     log: logging.Logger | None = None,
     await_nodes: tuple[str, ...] = (),
+    stats_period_s: float = 1.0,
 ) -> int:
     """Open a session, hold a liveliness token, replay, log a summary; returns the exit code.
 
     ``run_id`` None keeps the recorded run id (the token then lives under it,
-    or under ``fallback_run_id`` for a recording without one).
+    or under ``fallback_run_id`` for a recording without one). Like every
+    node, replay publishes its ``NodeStats`` on ``_stats/<node>`` there, every
+    ``stats_period_s`` and once more at the end (``REPLAY_COUNTERS``). A
+    session that cannot join the bus (nothing listens at ``--connect``, or a
+    router refused its credentials) is exit 2 with one line that says why.
     """
     log = log or logging.getLogger(f"iamp.{node_id}")
     try:
@@ -312,52 +344,78 @@ def run_replay(
     try:
         with BusClient(mode, connect, listen, config_file) as bus:
             bus.declare_token(keys.alive_key(token_run, node_id))
-            consumers = None
-            if await_nodes or (config.speed == "max" and player.target_run_id):
-                consumers = watch_consumers(bus, token_run, node_id, acks=config.speed == "max" and bool(player.target_run_id))
-            if await_nodes:
-                # as the runtime's sources: publish only once the consumers' subscriptions are visible
-                consumers.await_nodes(await_nodes, AWAIT_NODES_S, stop, log)
-            log.info(
-                "replay up: path=%s speed=%s run=%s recorded_run=%s",
-                config.path,
-                config.speed,
-                player.run_id or "(as recorded)",
-                player.file_run_id or "-",
-            )
-            summary = play(
-                player,
-                bus,
-                speed=config.speed,
-                wait_for_subscribers_s=config.wait_for_subscribers_s,
-                stop=stop,
-                log=log,
-                node_id=node_id,
-                consumers=consumers,
-                expected=await_nodes,
-            )
-            if player.report.truncated:
-                log.warning("recording truncated, replayed up to its last complete chunk: path=%s detail=%s", config.path, player.report.error)
-            if player.report.damaged_chunks:
-                log.warning(
-                    "recording damaged, unreadable chunks skipped (their messages not replayed): path=%s damaged_chunks=%d damaged_bytes=%d detail=%s",
-                    config.path,
-                    player.report.damaged_chunks,
-                    player.report.damaged_bytes,
-                    player.report.damage,
-                )
-            log.info("replay %s: %s", "stopped" if summary.stopped else "finished", summary.line())
-            unknown = sorted(set(config.nodes) - player.nodes_seen)
-            if unknown:
-                log.warning("--node names nodes the recording does not have: %s; its nodes: %s", ",".join(unknown), ",".join(sorted(player.nodes_seen)) or "none")
-            if not summary.published and not summary.stopped:
-                why = ("no key of the iamp/<run>/<node>/<output> layout: not a hybrid-iamp recording" if player.skipped.get("foreign_key") and not player.nodes_seen
-                       else "--node selects none of its nodes" if player.skipped.get("other_node") else "it holds no data message")
-                log.error("nothing replayed from %s: %s (skipped: %s)", config.path, why, ",".join(f"{k}:{v}" for k, v in sorted(player.skipped.items())) or "nothing")
-                return EXIT_USAGE
+            stats = StatsReporter(bus.publisher(keys.stats_key(token_run, node_id), block=True), token_run, node_id, SPEC.stage,
+                                  period_s=stats_period_s, counters=REPLAY_COUNTERS).start()
+            try:
+                return _replay_on(bus, player, config, stats, token_run=token_run, node_id=node_id, stop=stop, log=log, await_nodes=await_nodes)
+            finally:
+                stats.close()
+                time.sleep(CLOSE_LINGER_S)  # zenoh has no flush: let the last NodeStats leave before the session closes
+    except ConfigError as exc:  # the session: nothing listens at --connect, a router refused it, a bad endpoint or --config
+        log.error("bad configuration: %s", exc)
+        return EXIT_USAGE
     except Exception:
         log.error("crashed:\n%s", traceback.format_exc().rstrip())
         return EXIT_CRASH
+
+
+def _replay_on(
+    bus: BusClient,
+    player: RecordingPlayer,
+    config: ReplayConfig,
+    stats: StatsReporter,
+    *,
+    token_run: str,
+    node_id: str,
+    stop: threading.Event,
+    log: logging.Logger,
+    await_nodes: tuple[str, ...],
+) -> int:
+    """``run_replay`` once its session is open: wait for the awaited nodes, replay, log the summary."""
+    consumers = None
+    if await_nodes or (config.speed == "max" and player.target_run_id):
+        consumers = watch_consumers(bus, token_run, node_id, acks=config.speed == "max" and bool(player.target_run_id))
+    if await_nodes:
+        # as the runtime's sources: publish only once the consumers' subscriptions are visible
+        consumers.await_nodes(await_nodes, AWAIT_NODES_S, stop, log)
+    log.info(
+        "replay up: path=%s speed=%s run=%s recorded_run=%s",
+        config.path,
+        config.speed,
+        player.run_id or "(as recorded)",
+        player.file_run_id or "-",
+    )
+    summary = play(
+        player,
+        bus,
+        speed=config.speed,
+        wait_for_subscribers_s=config.wait_for_subscribers_s,
+        stop=stop,
+        log=log,
+        node_id=node_id,
+        consumers=consumers,
+        expected=await_nodes,
+        stats=stats,
+    )
+    if player.report.truncated:
+        log.warning("recording truncated, replayed up to its last complete chunk: path=%s detail=%s", config.path, player.report.error)
+    if player.report.damaged_chunks:
+        log.warning(
+            "recording damaged, unreadable chunks skipped (their messages not replayed): path=%s damaged_chunks=%d damaged_bytes=%d detail=%s",
+            config.path,
+            player.report.damaged_chunks,
+            player.report.damaged_bytes,
+            player.report.damage,
+        )
+    log.info("replay %s: %s", "stopped" if summary.stopped else "finished", summary.line())
+    unknown = sorted(set(config.nodes) - player.nodes_seen)
+    if unknown:
+        log.warning("--node names nodes the recording does not have: %s; its nodes: %s", ",".join(unknown), ",".join(sorted(player.nodes_seen)) or "none")
+    if not summary.published and not summary.stopped:
+        why = ("no key of the iamp/<run>/<node>/<output> layout: not a hybrid-iamp recording" if player.skipped.get("foreign_key") and not player.nodes_seen
+               else "--node selects none of its nodes" if player.skipped.get("other_node") else "it holds no data message")
+        log.error("nothing replayed from %s: %s (skipped: %s)", config.path, why, ",".join(f"{k}:{v}" for k, v in sorted(player.skipped.items())) or "nothing")
+        return EXIT_USAGE
     return EXIT_OK
 
 
@@ -412,6 +470,7 @@ def main(argv: list[str] | None = None) -> int:
         config_file=args.config,
         log=log,
         await_nodes=tuple(n for n in args.await_nodes.split(",") if n),
+        stats_period_s=args.stats_period,
     )
 
 

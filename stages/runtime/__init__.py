@@ -15,7 +15,8 @@ with its ports, to ``run_stage``. The runtime owns everything else, by module:
   clean stop) and ``run_stage``;
 - ``queues.py``: one bounded queue per input port, drained in arrival order;
 - ``logs.py``: the counters of ``NodeStats`` and the readable logs
-  (``IssueLog`` episodes, rate-limited ``ProblemLog``);
+  (``IssueLog`` episodes, rate-limited ``ProblemLog``); ``StatsReporter``, the
+  same ``NodeStats`` for a node with a loop of its own (replay);
 - ``pacing.py``: pacing of sources and replay (recording rate times
   ``speed``, or ``max``: as fast as every live node acks; a source first
   waits until every node has handled its first frame: the warm-up);
@@ -56,7 +57,7 @@ from stages.runtime.args import (
     start_stage,
 )
 from stages.runtime.bus import BusClient
-from stages.runtime.logs import IssueLog, ProblemLog
+from stages.runtime.logs import IssueLog, ProblemLog, StatsReporter
 from stages.runtime.node import CLOSE_LINGER_S, DRAIN_QUIET_S, JOIN_TIMEOUT_S, JOIN_WINDOW, MiB, Node, StopRequested, run_closing_stage, run_stage
 from stages.runtime.pacing import AWAIT_NODES_S, CONSUMER_WAIT_S, DRAIN_WAIT_S, MAX_SPEED_WINDOW, Consumers, Pacer
 from stages.runtime.ports import WILDCARD_MAX_KEYS, NodeContext, OperatorCore, Port, RawSinkCore, SourceCore, StageSpec
@@ -90,6 +91,7 @@ __all__ = [
     "SourceCore",
     "StageSpec",
     "StageStart",
+    "StatsReporter",
     "StopRequested",
     "WILDCARD_MAX_KEYS",
     "add_network_args",

@@ -18,7 +18,9 @@ import argparse
 import json
 import logging
 import math
+import re
 import signal
+import socket
 import sys
 import threading
 from dataclasses import dataclass
@@ -60,10 +62,75 @@ def add_network_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--config", metavar="FILE", help="zenoh JSON5 config file; the flags above override it")
 
 
+# where in zenoh's Rust source an error was raised (" at /root/.cargo/git/checkouts/zenoh-.../orchestrator.rs:447."): of no
+# use to whoever reads the line
+_RUST_SOURCE_RE = re.compile(r"\s+at\s+\S+\.rs:\d+(?::\d+)?\.?")
+
+
 def _zenoh_reason(exc: BaseException) -> str:
-    """The first line of a zenoh error, short enough for a log line."""
-    text = str(exc).strip()
+    """The first line of a zenoh error, without the Rust source paths zenoh appends, short enough for a log line."""
+    text = _RUST_SOURCE_RE.sub("", str(exc)).strip()
     return (text.splitlines()[0] if text else type(exc).__name__)[:300]
+
+
+def endpoint_address(endpoint: str) -> tuple[str, str, int] | None:
+    """(protocol, host, port) of a zenoh endpoint such as ``tcp/127.0.0.1:7447`` or ``tcp/[::1]:7447`` (its ``?``
+    parameters and ``#`` configuration left out); None for one that is not ``<protocol>/<host>:<port>``."""
+    base = endpoint.split("#", 1)[0].split("?", 1)[0]
+    proto, sep, addr = base.partition("/")
+    host, colon, port = addr.rpartition(":")
+    if not sep or not colon or not host or not port.isdigit():
+        return None
+    return proto, host[1:-1] if host.startswith("[") and host.endswith("]") else host, int(port)
+
+
+def _tcp_listening(endpoint: str, timeout_s: float = 1.0) -> bool | None:
+    """Whether something accepts TCP connections at a ``tcp/`` endpoint (None: another protocol, cannot tell)."""
+    address = endpoint_address(endpoint)
+    if address is None or address[0] != "tcp":
+        return None
+    try:
+        with socket.create_connection(address[1:], timeout=timeout_s):
+            return True
+    except OSError:
+        return False
+
+
+def _config_user(conf: zenoh.Config) -> str | None:
+    """The user of the config's ``transport/auth/usrpwd`` when it has a user and a password, else None."""
+    try:
+        user = json.loads(conf.get_json("transport/auth/usrpwd/user"))
+        password = json.loads(conf.get_json("transport/auth/usrpwd/password"))
+    except Exception:  # noqa: BLE001 - a zenoh build without the key: no credentials known
+        return None
+    return user if isinstance(user, str) and user and password else None
+
+
+USRPWD_HINT = '{transport: {auth: {usrpwd: {user: "...", password: "..."}}}}'
+
+
+def refusal_reason(connect: list[str], conf: zenoh.Config, config_file: str | None) -> str:
+    """One line for a client session that got a link to none of its ``--connect`` endpoints (zenoh says only "Unable to
+    connect to any of [...]", the same for both causes): nothing listens there, or the router there refused this
+    session, which with bus auth (``[bus.auth]``) means wrong or missing credentials; what to fix in either case."""
+    probed = {ep: _tcp_listening(ep) for ep in connect}
+    up = [ep for ep, listening in probed.items() if listening]
+    if not up and all(listening is False for listening in probed.values()):
+        return (f"cannot join the bus: nothing listens at --connect {' '.join(connect)}: start the launcher or router there first,"
+                " or fix the address")
+    where = f"--connect {' '.join(up)}" if up else f"--connect {' '.join(connect)}"
+    what = "refused this session" if up else "refused this session (or nothing listens there)"
+    user = _config_user(conf)
+    if config_file and user:
+        fix = (f"the user/password in --config {config_file} (transport/auth/usrpwd, user {user!r}) are not accepted there:"
+               " use the run's [bus.auth] user and password (a router without auth refuses a session with credentials too)")
+    elif config_file:
+        fix = (f"--config {config_file} has no transport/auth/usrpwd user and password: add the run's [bus.auth] user and"
+               f" password ({USRPWD_HINT})")
+    else:
+        fix = (f"this session has no credentials: give --config FILE, a 0600 JSON5 file {USRPWD_HINT} with the run's [bus.auth]"
+               " user and password")
+    return f"cannot join the bus: the router at {where} {what}: {fix if up else 'if it asks for credentials, ' + fix}"
 
 
 def make_zenoh_config(mode: str = "peer", connect: Iterable[str] = (), listen: Iterable[str] = (), config_file: str | None = None) -> zenoh.Config:
@@ -93,10 +160,13 @@ def make_zenoh_config(mode: str = "peer", connect: Iterable[str] = (), listen: I
 def open_session(mode: str = "peer", connect: Iterable[str] = (), listen: Iterable[str] = (), config_file: str | None = None) -> zenoh.Session:
     """Open a zenoh session with the project's defaults (loopback, no multicast); ``ConfigError`` where zenoh refuses
     the configuration or an endpoint (a bad ``--connect``/``--listen``, a port in use)."""
+    connect, listen = list(connect), list(listen)
     conf = make_zenoh_config(mode, connect, listen, config_file)
     try:
         return zenoh.open(conf)
     except Exception as exc:  # zenoh.ZError: bad endpoint, address in use, ...
+        if mode == "client" and connect and "connect" in str(exc).lower():  # "Unable to connect to any of [...]"
+            raise ConfigError(refusal_reason(connect, conf, config_file)) from None
         raise ConfigError(f"cannot open the zenoh session (mode {mode}, listen {list(listen) or 'default'}, connect {list(connect) or 'none'}): "
                           f"{_zenoh_reason(exc)}") from None
 

@@ -2,11 +2,22 @@
 
 from __future__ import annotations
 
+import functools
+import socket
 from typing import Any, Callable, Iterable
 
 import zenoh
 
-from stages.runtime.args import open_session
+from stages.runtime.args import endpoint_address, open_session
+
+
+@functools.lru_cache(maxsize=64)
+def _addresses(host: str, port: int) -> frozenset[str]:
+    """``host`` and the addresses it resolves to (resolved once: the launcher asks again every few seconds)."""
+    try:
+        return frozenset({host} | {str(info[4][0]) for info in socket.getaddrinfo(host, port)})
+    except OSError:
+        return frozenset({host})
 
 
 class BusClient:
@@ -35,6 +46,21 @@ class BusClient:
     def locators(self) -> list[str]:
         """Endpoints this session listens on (with the real port when 0 was asked)."""
         return _own_locators(self.session)
+
+    def linked_to(self, endpoint: str) -> bool:
+        """Whether this session has a link whose far end is ``endpoint`` (its host name resolved): the link it opens to
+        a ``--connect`` endpoint once something there accepts it. (A peer at that endpoint that opened its own link to
+        this session first is reached through that one instead, which is not counted here.)"""
+        want = endpoint_address(endpoint)
+        if want is None:
+            return False
+        proto, host, port = want
+        hosts = _addresses(host, port)
+        for link in self.session.info.links():
+            got = endpoint_address(str(link.dst))
+            if got is not None and got[0] == proto and got[2] == port and got[1] in hosts:
+                return True
+        return False
 
     def publisher(self, key: str, *, block: bool = True) -> Callable[[bytes], None]:
         pub = self.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP)

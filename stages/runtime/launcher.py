@@ -31,7 +31,9 @@ With ``[bus.auth]`` in the pipeline file, the launcher writes a Zenoh config
 users) and the dictionary into a fresh private folder (0700, files 0600),
 passes ``--config FILE`` to every node and opens its own hub with it, so
 every link of the run is authenticated and no password is on a command line;
-the folder is removed when the run ends. A viewer ``token`` reaches the
+the folder is removed when the run ends. The nodes are then clients of the
+hub (a router) and connect to it alone: the hub joins the extra ``--connect``
+endpoints for them (a client links to one router only). A viewer ``token`` reaches the
 viewer through ``IAMP_VIEWER_TOKEN`` in its environment, not its command line.
 
 Exit codes: 0 clean run, 1 a node failed (the first failing code is
@@ -462,6 +464,7 @@ class Launcher:
         self.auth_dir: Path | None = None
         self.zenoh_config: str | None = None  # with [bus.auth]: the private config every session opens with
         self.started_wall_s = time.time()  # files of this run (split recordings) are newer
+        self._closing = threading.Event()  # set when the run ends, before the hub's session closes
 
     def secret_env(self, node: Any) -> dict[str, str]:
         """Secrets of a node that go through its environment, not its command line (the viewer's token)."""
@@ -489,7 +492,7 @@ class Launcher:
             "--log-level",
             self.args.log_level,
         ]
-        for ep in self.p.connect + self.args.connect:
+        for ep in self.node_extra_connect:
             cmd += ["--connect", ep]
         if self.zenoh_config:
             cmd += ["--config", self.zenoh_config]
@@ -545,15 +548,22 @@ class Launcher:
         for n in order:
             if n.stage == RECORDER_STAGE:
                 say(f"recording to {Path(n.params.get('path')).resolve()}")
+        extra = self.extra_connect
         if self.p.auth is not None:
             self.auth_dir, config = write_auth_config(self.p.auth)
             self.zenoh_config = str(config)
             say(f"bus auth: {self.p.auth.describe()}; every node gets --config {config} (mode 0600)")
+            if extra:
+                say(f"bus auth with --connect {' '.join(extra)}: the nodes are Zenoh clients, which link to one router only, so they"
+                    f" join the hub alone and the hub (a router) links to {' '.join(extra)} for them; that router must accept the"
+                    " run's [bus.auth] user and password (README: Spreading stages over machines)")
         try:
-            self.bus = BusClient(mode=self.hub_mode, listen=[self.hub], connect=self.p.connect + self.args.connect, config_file=self.zenoh_config)
+            self.bus = BusClient(mode=self.hub_mode, listen=[self.hub], connect=extra, config_file=self.zenoh_config)
         except BaseException:
             self._remove_auth_dir()
             raise
+        if extra:
+            threading.Thread(target=self._watch_extra_links, args=(extra,), daemon=True).start()
         self.bus.watch_alive(keys.alive_pattern(self.p.run_id), self._on_alive)
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):  # SIGHUP: the terminal or ssh session closed
             signal.signal(sig, lambda *_: self.stop_requested.set())
@@ -573,8 +583,45 @@ class Launcher:
             t_start = time.monotonic()
             return self.supervise(order, sources, t_start)
         finally:
+            self._closing.set()
             self.bus.close()
             self._remove_auth_dir()
+
+    def _watch_extra_links(self, endpoints: list[str]) -> None:
+        """One line when the hub links to each extra connect endpoint, and one warning if, ``LINK_CHECK_S`` after the
+        start, it still has no link to some of them: every node links to the hub, so the nodes' own check (the same
+        grace) stays quiet while the run is cut off from the remote router or peer it was told to join."""
+        from stages.runtime.node import LINK_CHECK_S
+
+        deadline = time.monotonic() + LINK_CHECK_S
+        pending = list(dict.fromkeys(endpoints))
+        warned = False
+        while pending and not self._closing.wait(2.0 if warned else 0.1):  # after the warning, only to say it came after all
+            try:
+                linked = [ep for ep in pending if self.bus.linked_to(ep)]
+            except Exception:  # noqa: BLE001 - the session closing
+                return
+            for ep in linked:
+                pending.remove(ep)
+                say(f"hub linked to --connect {ep}" + (" (after all)" if warned else ""))
+            if pending and not warned and time.monotonic() >= deadline:
+                warned = True
+                say(f"warning: no link after {LINK_CHECK_S:.0f} s to --connect {' '.join(pending)}: nothing listens there, or it refused"
+                    " the hub (a router with bus auth that does not take the run's credentials?); the nodes have the hub, so the run"
+                    " goes on without it, and zenoh keeps trying")
+
+    @property
+    def extra_connect(self) -> list[str]:
+        """The endpoints to join besides the hub: the pipeline's ``[bus] connect`` and ``--connect``."""
+        return list(dict.fromkeys(self.p.connect + self.args.connect))
+
+    @property
+    def node_extra_connect(self) -> list[str]:
+        """What each node connects to besides the hub: the extra endpoints, except with bus auth. Then every node is a
+        Zenoh client, and a client links to one router only, the first of its endpoints that takes it (measured: the
+        hub, listed first, 10 of 10), so a remote router in its list could only compete with the hub for it. The hub
+        links to the extra endpoints itself and forwards for every node."""
+        return [] if self.p.auth is not None else self.extra_connect
 
     _lingering = False  # --linger: the sources finished and the run waits for Ctrl-C
 

@@ -88,6 +88,74 @@ class _Stats:
         return " ".join(parts)
 
 
+class StatsReporter:
+    """``NodeStats`` for a node that runs its own loop instead of ``run_stage`` (replay), as every node publishes them.
+
+    ``count``/``set``/``processed`` update the counters (the caller's thread); a thread of this reporter puts the
+    message through ``put`` (a publisher on ``_stats/<node>``) every ``period_s``, also while the caller's loop
+    waits (pacing, a recording's gap), and ``close`` puts the last one. The counters are the runtime's (``_Stats``):
+    the same names, the same message.
+    """
+
+    def __init__(self, put: Callable[[bytes], None], run_id: str, node_id: str, stage: str, period_s: float = 1.0, counters: Iterable[str] = ()) -> None:
+        self._put = put
+        self._ids = (run_id, node_id, stage)
+        self._period_s = period_s
+        self._started = time.monotonic()
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self.stats = _Stats()
+        for key in counters:  # present, at 0, from the first message on
+            self.stats.counters[key] = 0
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> "StatsReporter":
+        self._thread = threading.Thread(target=self._run, name="node-stats", daemon=True)
+        self._thread.start()
+        return self
+
+    def count(self, key: str, n: int = 1) -> None:
+        with self._lock:
+            self.stats.counters[key] += n
+
+    def set(self, key: str, value: int) -> None:
+        with self._lock:
+            self.stats.counters[key] = int(value)
+
+    def processed(self, proc_ms: float, stamp_ns: int | None = None) -> None:
+        """One message (or input set) handled and published, in ``proc_ms``; its header stamp, if any."""
+        with self._lock:
+            self.stats.counters["processed"] += 1
+            self.stats.counters["published"] += 1
+            self.stats.proc_ms.append(proc_ms)
+            self.stats.proc_ms_max = max(self.stats.proc_ms_max, proc_ms)
+            if stamp_ns is not None:
+                self.stats.last_stamp_ns = max(self.stats.last_stamp_ns, stamp_ns)
+
+    def summary(self) -> str:
+        with self._lock:
+            return self.stats.summary()
+
+    def publish(self) -> None:
+        with self._lock:
+            msg = self.stats.message(*self._ids, self._started, 0)
+        try:
+            self._put(msg.encode())
+        except Exception:  # noqa: BLE001 - the session closing: stats are never worth a crash
+            pass
+
+    def _run(self) -> None:
+        while not self._stop.wait(self._period_s):
+            self.publish()
+
+    def close(self) -> None:
+        """Stop the thread and put the final counters."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        self.publish()
+
+
 # --------------------------------------------------------------------------- logs a person can read
 
 

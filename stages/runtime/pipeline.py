@@ -56,6 +56,7 @@ from stages.lib.base import ConfigError
 TOP_KEYS = {"name", "vars", "bus", "nodes", "description", "external"}
 BUS_KEYS = {"run_id", "mode", "listen", "connect", "auth"}
 AUTH_KEYS = {"user", "password", "password_env"}
+PASSWORD_IN_FILE = "the pipeline file"  # BusAuth.source of a literal [bus.auth] password
 SECRET_PARAMS = {"stages.viewer": ("token",)}  # node parameters never printed nor put on a command line
 NODE_KEYS = {"id", "stage", "inputs", "outputs", "params", "restart", "queue_size", "description"}
 _VAR_RE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}")
@@ -102,12 +103,27 @@ def parse_auth(value: Any, where: str) -> BusAuth | None:
         if not password:
             raise PipelineError(f"{where}: [bus.auth] password_env = {name!r}: set the environment variable {name} to the bus password")
     else:
-        password, source = value["password"], "the pipeline file"
+        password, source = value["password"], PASSWORD_IN_FILE
         if not isinstance(password, str) or not password:
             raise PipelineError(f"{where}: [bus.auth] password must be a non-empty string (or use password_env = \"NAME\")")
     if any(c in password for c in "\n\r"):
         raise PipelineError(f"{where}: [bus.auth] the password ({source}) must not contain line breaks")
     return BusAuth(user=user, password=password, source=source)
+
+
+def readable_password_warning(path: Path, auth: BusAuth | None) -> str | None:
+    """The warning for a pipeline file that holds the bus password itself (``[bus.auth] password = "..."``) while other
+    users may read it (group or others have read permission: mode & 0o044); None otherwise. It warns, the run goes on."""
+    if auth is None or auth.source != PASSWORD_IN_FILE:
+        return None
+    try:
+        mode = path.stat().st_mode & 0o777
+    except OSError:
+        return None
+    if not mode & 0o044:
+        return None
+    return (f"{path} holds the bus password ([bus.auth] password) and other users can read it (mode {mode:04o}): chmod 600 {path},"
+            " or put the password in an environment variable named by [bus.auth] password_env = \"NAME\" instead")
 
 
 def public_params(stage: str, params: dict[str, Any]) -> dict[str, Any]:
@@ -407,6 +423,9 @@ def load_pipeline(
             if missing:
                 raise PipelineError(f"{nwhere}: input port(s) {', '.join(missing)} not connected (add inputs = {{ {missing[0]} = \"node/output\" }})")
     warnings = []
+    exposed = readable_password_warning(path, auth)
+    if exposed:
+        warnings.append(exposed)
     has_raw_sink = any(n.kind == "raw_sink" for n in nodes)
     for n in nodes:
         for out in n.spec.outputs:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import secrets
 import signal
 import stat
@@ -203,3 +204,115 @@ def test_launcher_exits_2_on_empty_user_and_describe_hides_the_password(tmp_path
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "auth=usrpwd(user=iamp, password from the pipeline file)" in proc.stdout
     assert "s3cret-in-file" not in proc.stdout + proc.stderr
+
+
+def _auth_router(tmp_path: Path, port: int, user: str, password: str) -> BusClient:
+    """A Zenoh router on ``port`` that takes ``user``/``password`` (its dictionary in a 0600 file), as one on another host would."""
+    dictionary = tmp_path / "router-users.txt"
+    fd = os.open(dictionary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(f"{user}:{password}\n")
+    config = tmp_path / "router.json5"
+    fd = os.open(config, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as f:
+        json.dump({"transport": {"auth": {"usrpwd": {"dictionary_file": str(dictionary)}}}}, f)
+    return BusClient(mode="router", listen=[endpoint(port)], config_file=str(config))
+
+
+def test_a_client_refused_by_an_auth_router_gets_one_line_that_says_what_to_fix(tmp_path):
+    """Before, zenoh's own text: 'Unable to connect to any of [Single(tcp/...)]!  at /root/.cargo/git/checkouts/zenoh-.../
+    orchestrator.rs:447.', the same for a wrong password, no credentials and nothing listening."""
+    from stages.lib.base import ConfigError
+    from stages.runtime import open_session
+
+    password = "pw-" + secrets.token_hex(12)
+    port = free_port()
+    hub = [endpoint(port)]
+    wrong = _client_config(tmp_path, "wrong", "iamp", password + "x")
+    json5_without = tmp_path / "plain.json5"
+    json5_without.write_text('{ mode: "client" }\n')
+    with _auth_router(tmp_path, port, "iamp", password):
+        cases = {
+            "wrong": (wrong, [f"refused this session: the user/password in --config {wrong} (transport/auth/usrpwd, user 'iamp')"]),
+            "none": (None, ["refused this session: this session has no credentials: give --config FILE", "usrpwd"]),
+            "no usrpwd": (str(json5_without), [f"refused this session: --config {json5_without} has no transport/auth/usrpwd user and password"]),
+        }
+        for name, (config, wanted) in cases.items():
+            with pytest.raises(ConfigError) as err:
+                open_session("client", hub, config_file=config)
+            text = str(err.value)
+            assert text.startswith(f"cannot join the bus: the router at --connect {hub[0]} "), (name, text)
+            for want in wanted:
+                assert want in text, (name, text)
+            assert "\n" not in text and ".rs:" not in text and ".cargo" not in text, (name, text)
+            assert password not in text and password + "x" not in text
+        # a stage (a node started by hand, as README says) exits 2 with that one line, no Rust path, no traceback
+        done = subprocess.run([sys.executable, str(REPO / "tests" / "integration" / "echo_stage.py"), "--node-id", "echo", "--run-id", RUN,
+                               "--input", "profiles=src/profiles", "--mode", "client", "--connect", hub[0], "--config", wrong],
+                              cwd=REPO, env=python_env(), capture_output=True, text=True, timeout=120)
+    out = done.stdout + done.stderr
+    assert done.returncode == 2, out
+    lines = [line for line in out.splitlines() if "bad configuration:" in line]
+    assert len(lines) == 1 and f"the user/password in --config {wrong}" in lines[0], out
+    assert ".rs:" not in out and ".cargo" not in out and "Traceback" not in out, out
+    dead = endpoint(free_port())
+    with pytest.raises(ConfigError, match=r"^cannot join the bus: nothing listens at --connect " + re.escape(dead) + ": start the launcher or router there"):
+        open_session("client", [dead], config_file=wrong)
+
+
+@pytest.mark.parametrize("how, mode, warned", [("password", 0o644, True), ("password", 0o640, True), ("password", 0o600, False),
+                                               ("password_env", 0o644, False)])
+def test_a_literal_password_in_a_file_others_can_read_gets_one_warning(tmp_path, monkeypatch, how, mode, warned):
+    monkeypatch.setenv(PW_ENV, "pw-from-env")
+    auth = '[bus.auth]\nuser = "iamp"\n' + ('password = "s3cret-in-file"' if how == "password" else f'password_env = "{PW_ENV}"')
+    path = _pipeline(tmp_path, auth)
+    os.chmod(path, mode)
+    found = [w for w in load_pipeline(path).warnings if "bus password" in w]
+    assert len(found) == int(warned), found
+    proc = subprocess.run([sys.executable, str(REPO / "launch.py"), str(path), "--check"], cwd=tmp_path, env=python_env(), capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0, proc.stdout + proc.stderr  # a warning, not a stop
+    lines = [line for line in proc.stdout.splitlines() if "bus password" in line]
+    assert len(lines) == int(warned), proc.stdout
+    if warned:
+        assert lines[0].startswith(f"[launch] warning: {path} holds the bus password") and f"(mode {mode:04o})" in lines[0], lines[0]
+        assert f"chmod 600 {path}" in lines[0] and "password_env" in lines[0], lines[0]
+    assert "s3cret-in-file" not in proc.stdout + proc.stderr
+
+
+def test_with_auth_a_remote_router_is_joined_by_the_hub_and_the_nodes_stay_on_the_hub(tmp_path, monkeypatch):
+    """[bus.auth] and --connect to a remote router: the launcher says what it does in one line, the nodes get the hub
+    alone (a client links to one router only), the hub links to the remote router, and a session on the remote router
+    with the run's credentials reaches the run's recorder through the two routers."""
+    password = "pw-" + secrets.token_hex(12)
+    monkeypatch.setenv(PW_ENV, password)
+    hub_port, far_port = free_port(), free_port()
+    far = endpoint(far_port)
+    pipeline = _pipeline(tmp_path, f'[bus.auth]\nuser = "iamp"\npassword_env = "{PW_ENV}"', hub_port)
+    sessions: list[BusClient] = [_auth_router(tmp_path, far_port, "iamp", password)]
+    run = Launch(str(pipeline), "--connect", far, cwd=tmp_path)
+    try:
+        line = run.wait_line(r"^\[launch\] bus auth with --connect " + re.escape(far) + r": the nodes are Zenoh clients").string
+        assert "join the hub alone" in line and "must accept the run's [bus.auth] user and password" in line, line
+        run.wait_line(r"^\[launch\] all 1 nodes alive; starting sources")
+        run.wait_line(r"^\[launch\] hub linked to --connect " + re.escape(far) + "$")
+        recorder = [c for c in all_command_lines() if "stages.recorder" in c and f"--run-id {RUN}" in c]
+        assert recorder and all(f"--connect {endpoint(hub_port)}" in c and far not in c for c in recorder), recorder
+
+        remote = BusClient(mode="client", connect=[far], config_file=_client_config(tmp_path, "remote", "iamp", password))
+        sessions.append(remote)
+        acks = Acks(remote)
+        publish, matched = remote.publisher_with_matching(f"iamp/{RUN}/remote/profiles")
+        wait_until(matched, 30.0, "the recorder's subscription reaching a session on the remote router")
+        for i in range(1, 4):
+            publish(profiles_payload(i))
+        acks.wait_for(3)
+        run.proc.send_signal(signal.SIGINT)
+        assert run.wait() == 0, run.text()[-4000:]
+    finally:
+        for bus in reversed(sessions):
+            bus.close()
+        kill_all([run.proc])
+    assert "warning: no link" not in run.text(), run.text()[-4000:]
+    topics = {c["topic"]: c["count"] for c in inspect(str(tmp_path / "run.mcap"))["channels"]}
+    assert topics.get(f"iamp/{RUN}/remote/profiles") == 3, topics
