@@ -30,7 +30,9 @@ class CorridorPrediction:
     constant-velocity line of mode ``cv`` (a straight line from the vehicle
     along its velocity, with s from the vehicle's position).
     ``probability`` is the corridor's weight P(R = corridor) used for the
-    grid (uniform over the vehicle's corridors until intentions are wired).
+    grid: the intentions stage's route probability (uniform over the
+    vehicle's corridors with ``corridor_weights = "uniform"``); a vehicle's
+    sum to 1.
 
     Distributions at t_k (time-point marginals):
 
@@ -42,10 +44,12 @@ class CorridorPrediction:
     - ``outside_mass`` ``(K,) float32``: mass past the end of the window or of
       the corridor (never renormalised away: s_probs plus outside sums to 1).
 
-    Positions at t_k, metres in the map frame, NaN when no mass is left inside:
+    Positions at exactly t_k after the frame's stamp, metres in the map frame
+    (docs/wire.md), NaN when no mass is left inside:
 
     - ``mean_x_m``, ``mean_y_m``: Σ p(s_i)·X_c(s_i) / Σ p(s_i), the
-      probability-weighted mean of centreline points (docs/method.md §9, the one
+      probability-weighted mean of centreline points, moved by the vehicle's
+      lateral offset from the centreline (docs/method.md §3.6, §9.1; the one
       the metrics use);
     - ``mean_s_m``: E[s] over the same cells, and ``x_at_mean_s_m``,
       ``y_at_mean_s_m``: X_c(E[s]) (differs from the mean position on curves).
@@ -71,9 +75,10 @@ class CorridorPrediction:
 class CorridorPredictions(Message):
     """Every vehicle-corridor prediction of one frame (the frame of ``header.stamp_ns``).
 
-    ``mode`` names the predictor: ``baseline`` (rule-based Markov chain),
-    ``cv`` (Cartesian constant velocity), ``corridor_cv`` (constant speed
-    along each corridor), later ``hybrid``. ``step_times_s`` ``(K,)`` are the
+    ``mode`` names the predictor: ``hybrid`` (the AR model's acceleration
+    distributions drive the Markov chain), ``baseline`` (rule-based Markov
+    chain), ``cv`` (Cartesian constant velocity), ``corridor_cv`` (constant
+    speed along each corridor). ``step_times_s`` ``(K,)`` are the
     prediction times after the frame (0.4 … 4.0 s by default); ``ds_m`` and
     ``dv_mps`` the cell sizes of ``s_probs`` and ``v_probs``.
     """
@@ -115,9 +120,12 @@ class MotionGrid(Message):
     above ``min_value`` are listed. Per vehicle n the corridors are weighted
     by their probability and the grid G_n sums to 1 − outside mass; vehicles
     combine as 1 − Π_n (1 − G_n) (docs/method.md §9). ``distribution`` says what
-    a step holds: ``interval`` (Υ([0, τ]): occupancy during the step ending
-    at t_k) or ``point`` (the position at t_k). ``steps`` has one entry per
-    ``step_times_s``.
+    a step holds: ``interval`` (Υ([0, τ]): the position at a uniformly random
+    time of the step ending at t_k) or ``point`` (the position at t_k).
+    ``steps`` has one entry per ``step_times_s``, each listing its cells
+    sorted by row, then column. A value is the probability mass of vehicle
+    centre points, not a footprint (no body size; it depends on ``cell_m``):
+    docs/wire.md, "MotionGrid: what a cell holds".
     """
 
     SCHEMA: ClassVar[str] = "iamp.MotionGrid"
