@@ -21,6 +21,7 @@ from stages.lib.base import ConfigError, ConfigMixin
 from stages.recorder.inspect import ReadReport, RecordingError, read_messages, recording_run_id
 from stages.runtime import (CLOSE_LINGER_S, EXIT_CRASH, EXIT_OK, EXIT_USAGE, BusClient, NodeContext, Port, StageSpec, StatsReporter, add_network_args,
                             on_stop_signals, setup_logging, start_stage)
+from stages.runtime.args import concrete_listen
 from stages.runtime.pacing import AWAIT_NODES_S, FIRST_ACK_GRACE_S, MAX_SPEED_WINDOW, Consumers, Pacer, parse_speed_value  # noqa: F401 (MAX_SPEED_WINDOW: for tests)
 
 _MATCH_POLL_S = 0.01
@@ -342,12 +343,14 @@ def run_replay(
     on_stop_signals(on_signal)
     token_run = player.target_run_id or fallback_run_id
     try:
+        listen = concrete_listen(listen)  # a port 0 made concrete: the log line names what a reader connects to
         with BusClient(mode, connect, listen, config_file) as bus:
             bus.declare_token(keys.alive_key(token_run, node_id))
             stats = StatsReporter(bus.publisher(keys.stats_key(token_run, node_id), block=True), token_run, node_id, SPEC.stage,
                                   period_s=stats_period_s, counters=REPLAY_COUNTERS).start()
             try:
-                return _replay_on(bus, player, config, stats, token_run=token_run, node_id=node_id, stop=stop, log=log, await_nodes=await_nodes)
+                return _replay_on(bus, player, config, stats, token_run=token_run, node_id=node_id, stop=stop, log=log, await_nodes=await_nodes,
+                                  listening=listen)
             finally:
                 stats.close()
                 time.sleep(CLOSE_LINGER_S)  # zenoh has no flush: let the last NodeStats leave before the session closes
@@ -370,6 +373,7 @@ def _replay_on(
     stop: threading.Event,
     log: logging.Logger,
     await_nodes: tuple[str, ...],
+    listening: list[str] | tuple[str, ...] = (),
 ) -> int:
     """``run_replay`` once its session is open: wait for the awaited nodes, replay, log the summary."""
     consumers = None
@@ -379,11 +383,12 @@ def _replay_on(
         # as the runtime's sources: publish only once the consumers' subscriptions are visible
         consumers.await_nodes(await_nodes, AWAIT_NODES_S, stop, log)
     log.info(
-        "replay up: path=%s speed=%s run=%s recorded_run=%s",
+        "replay up: path=%s speed=%s run=%s recorded_run=%s listening=%s",
         config.path,
         config.speed,
         player.run_id or "(as recorded)",
         player.file_run_id or "-",
+        ",".join(listening) or "-",  # with --listen ...:0 the port it got: what a reader connects to
     )
     summary = play(
         player,

@@ -84,6 +84,26 @@ def endpoint_address(endpoint: str) -> tuple[str, str, int] | None:
     return proto, host[1:-1] if host.startswith("[") and host.endswith("]") else host, int(port)
 
 
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port free on ``host`` now (the OS's pick; another process may take it before it is used)."""
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def concrete_listen(endpoints: Iterable[str]) -> list[str]:
+    """``endpoints`` with each ``tcp/HOST:0`` given a free port of HOST: zenoh would pick one too, but this zenoh cannot
+    tell which, and whoever connects needs it (the launcher's hub; ``iamp replay --listen tcp/127.0.0.1:0``)."""
+    out = []
+    for ep in endpoints:
+        address = endpoint_address(ep)
+        if address is not None and address[0] == "tcp" and address[2] == 0:
+            host = address[1]
+            ep = f"tcp/{'[' + host + ']' if ':' in host else host}:{free_port(host)}" + ep[len(ep.split("#", 1)[0].split("?", 1)[0]):]
+        out.append(ep)
+    return out
+
+
 def _tcp_listening(endpoint: str, timeout_s: float = 1.0) -> bool | None:
     """Whether something accepts TCP connections at a ``tcp/`` endpoint (None: another protocol, cannot tell)."""
     address = endpoint_address(endpoint)

@@ -61,7 +61,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from stages.lib.base import ConfigError
-from stages.runtime.args import LOG_LEVELS
+from stages.runtime.args import LOG_LEVELS, concrete_listen
 from stages.runtime.pipeline import BusAuth, Pipeline, PipelineError, load_pipeline
 
 PIPELINES_DIR = Path(__file__).resolve().parents[1] / "pipelines"
@@ -297,17 +297,9 @@ def preflight(pipeline: Pipeline) -> None:
                 raise PipelineError(f"node {n.id}{flag}: {exc}") from None
 
 
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def resolve_hub(pipeline: Pipeline, override: str | None) -> str:
     ep = override or (pipeline.listen[0] if pipeline.listen else "tcp/127.0.0.1:0")
-    if ep.endswith(":0"):
-        ep = ep[:-2] + f":{free_port()}"
-    return ep
+    return concrete_listen([ep])[0]
 
 
 class RestartBudget:

@@ -20,8 +20,12 @@ Parameters (``TracksSourceConfig``):
 - ``loop``: start over after the last sequence.
 - ``signals`` True: publish ``signal_state`` when the recording has phases;
   False plays the same recording without them (for comparisons).
-- ``projection``: passed through to ``SceneInfo`` (``stages.lib.maps`` decides
-  what ``"auto"`` resolves to for a location).
+- ``projection``: the projection named in ``SceneInfo``; ``"auto"`` (the
+  default) names the measured one of the recording's location
+  (``stages.lib.projections``: K729 ``utm``, K733 ``scaled_mercator``, other
+  locations ``local_cartesian``), so that a reader of the bus need not know
+  that table (docs/wire.md, "Frames"). The scene id hashes the configured
+  value, as before.
 - ``clock``: ``"recording"`` (default) or ``"wall"``: every stamp moved by
   one offset so that the first frame carries the wall clock (Unix ns) at
   which playback starts, as a live tracker stamps its frames (README,

@@ -12,6 +12,7 @@ from typing import Iterator
 from bus_schemas import Header, SceneInfo, SignalState, TrackFrame
 
 from stages.lib.base import ConfigMixin, Issue, StageResult
+from stages.lib.projections import published_projection
 from stages.lib.datasets import (
     DEFAULT_DATA_DIR,
     DEFAULT_RECORDING,
@@ -159,7 +160,7 @@ class TrackPlayer:
             location_id=rec.location_id,
             map_name=self.map_path.name,
             map_sha256=self.map_sha256,
-            projection=self.config.projection,
+            projection=published_projection(self.config.projection, rec.location_id),
             origin_lat_deg=seq.origin_lat_deg,
             origin_lon_deg=seq.origin_lon_deg,
             frame_rate_hz=seq.frame_rate_hz,

@@ -9,6 +9,7 @@ damaged chunk is replayed by ``python -m stages.replay`` (as the launcher starts
 from __future__ import annotations
 
 import json
+import re
 import threading
 from pathlib import Path
 
@@ -74,12 +75,15 @@ def test_replay_publishes_its_node_stats_with_what_it_replayed_skipped_and_passe
             bus.subscribe(keys.stats_pattern(RUN), on_stats)
             bus.subscribe(keys.data_key(RUN, "source", "track_frame"), lambda _k, _d: None)  # a subscriber for the replay to find
             rp = h.start_module("stages.replay", "--node-id", "source", "--run-id", RUN, "--connect", h.endpoint(port), "--stats-period", "0.2",
+                                "--listen", "tcp/127.0.0.1:0",  # it says the port it got (a reader connects there)
                                 "--params-json", json.dumps({"path": str(src), "speed": "max"}), log_dir=tmp_path)
             procs.append(rp)
             rp.wait(timeout=120)
             out = h.output_of(rp)
             assert rp.returncode == 0, out
             assert f"replay finished: messages={len(replayable)}" in out, out
+            listening = re.search(r"replay up: .* listening=tcp/127\.0\.0\.1:(\d+)", out)
+            assert listening and int(listening.group(1)) > 0, out
 
             def final():
                 with lock:

@@ -26,29 +26,11 @@ Projection, measured on TAF-BW (share of all car rows inside a car lanelet)
 
 from __future__ import annotations
 
-import enum
-
 from lanelet2 import io as ll_io
 from lanelet2 import projection as ll_projection
 
-
-class Projection(enum.Enum):
-    """How the map's latitude and longitude become metres from the origin."""
-
-    UNKNOWN = 0
-    LOCAL_CARTESIAN = 1
-    SCALED_MERCATOR = 2
-    UTM = 3
-    AUTO = 4
-
-
-PROJECTION_BY_LOCATION = {"k729": Projection.UTM, "k733": Projection.SCALED_MERCATOR}
-_AUTO_CANDIDATES = (Projection.LOCAL_CARTESIAN, Projection.SCALED_MERCATOR, Projection.UTM)
-
-
-def projection_for_location(location_id: str) -> Projection:
-    """Measured best projection for a TAF-BW location id; LOCAL_CARTESIAN if unknown."""
-    return PROJECTION_BY_LOCATION.get(location_id.strip().lower(), Projection.LOCAL_CARTESIAN)
+# the names (no lanelet2): stages.lib.projections, which the dataset player reads without loading a map
+from stages.lib.projections import _AUTO_CANDIDATES, PROJECTION_BY_LOCATION, Projection, parse_projection, projection_for_location  # noqa: F401
 
 
 def projector(projection: Projection, origin_lat_deg: float, origin_lon_deg: float):
@@ -61,10 +43,3 @@ def projector(projection: Projection, origin_lat_deg: float, origin_lon_deg: flo
     if projection is Projection.UTM:
         return ll_projection.UtmProjector(origin)
     raise ValueError(f"no projector for {projection}")
-
-
-def parse_projection(value: Projection | str) -> Projection:
-    """A Projection from itself or its name, case-insensitive; UNKNOWN if unrecognised."""
-    if isinstance(value, Projection):
-        return value
-    return Projection.__members__.get(str(value).strip().upper(), Projection.UNKNOWN)
