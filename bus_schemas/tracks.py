@@ -57,6 +57,17 @@ class TrackFrame(Message):
         return int(self.track_ids.shape[0])
 
 
+#: the values of ``SceneInfo.clock``
+SCENE_CLOCKS = ("recording", "wall", "sensor", "unknown")
+
+
+def _scene_add_clock(body: object) -> object:
+    """A v3 SceneInfo body made a v4 one: ``clock`` "unknown" (anything not a map goes on, for the decoder to reject)."""
+    if isinstance(body, dict) and "clock" not in body:
+        body = {**body, "clock": "unknown"}
+    return body
+
+
 @register
 @dataclass(frozen=True, slots=True, kw_only=True, eq=False)
 class SceneInfo(Message):
@@ -69,12 +80,21 @@ class SceneInfo(Message):
     every stage looks it up in the ``maps/`` folder of its own local data
     folder (its ``data`` parameter) and loads it only when that file's sha256
     equals ``map_sha256``. Nothing on the bus names a file to open.
+    ``projection`` names the projection of the map into the positions' frame
+    (docs/wire.md, "Frames"). ``clock`` says what the stamps of the scene's
+    frames (``Header.stamp_ns``) count: ``"recording"`` (a recording's own
+    time, from its start; not the wall clock), ``"wall"`` (Unix ns: a live
+    tracker stamping with the wall clock, or a player with ``clock =
+    "wall"``), ``"sensor"`` (a tracker's own clock of another epoch) or
+    ``"unknown"`` (a publisher that does not say; every scene before v4).
     v2: ``map_path`` (an absolute path on the publishing host) became ``map_name``.
+    v4: ``clock``.
     """
 
     SCHEMA: ClassVar[str] = "iamp.SceneInfo"
-    VERSION: ClassVar[int] = 3  # v3: Header.source_wall_ns
-    UPGRADES: ClassVar[dict[int, Any]] = {2: HEADER_WALL_UPGRADE}  # v2 reads as v3 with source_wall_ns 0 (unknown)
+    VERSION: ClassVar[int] = 4  # v3: Header.source_wall_ns; v4: clock
+    # v2 reads as v4 with source_wall_ns 0 (unknown) and clock "unknown"; v3 with clock "unknown"
+    UPGRADES: ClassVar[dict[int, Any]] = {2: lambda body: _scene_add_clock(HEADER_WALL_UPGRADE(body)), 3: lambda body: _scene_add_clock(body)}
     # strings and a few numbers (measured 417 B)
     MAX_BYTES: ClassVar[int] = 64 * 1024
 
@@ -90,3 +110,4 @@ class SceneInfo(Message):
     frame_rate_hz: Annotated[float, Range(0.01, 1000.0, unit="Hz")]
     speed_limit_mps: Annotated[float, Range(0.0, MAX_SPEED_MPS, nan=True, unit="m/s")]
     n_frames: Annotated[int, NON_NEG_INT]
+    clock: str = "unknown"

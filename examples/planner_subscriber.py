@@ -21,7 +21,7 @@ import msgpack
 import numpy as np
 
 #: the schema versions this reader was written for (docs/wire.md, "Versions")
-VERSIONS = {"iamp.SceneInfo": 3, "iamp.MotionGrid": 2, "iamp.CorridorPredictions": 2}
+VERSIONS = {"iamp.SceneInfo": 4, "iamp.MotionGrid": 2, "iamp.CorridorPredictions": 2}
 
 
 def unpack(payload: bytes) -> tuple[str, int, dict]:
@@ -75,7 +75,7 @@ def main(hub: str, run: str, frames: int = 5, horizon_s: float = 2.0) -> int:
                 return
             shown_scene.set()
         print(f"scene {scene['recording']}: origin {scene['origin_lat_deg']}, {scene['origin_lon_deg']} deg,"
-              f" projection {scene['projection']} (docs/wire.md, \"Frames\")")
+              f" projection {scene['projection']}, stamps on the {scene['clock']} clock (docs/wire.md, \"Frames\", \"Time\")")
 
     def on_sample(sample) -> None:
         if str(sample.key_expr).endswith("/scene"):

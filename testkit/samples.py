@@ -45,6 +45,7 @@ def scene_info() -> bs.SceneInfo:
         frame_rate_hz=10.0,
         speed_limit_mps=13.88888888888889,
         n_frames=1177,
+        clock="recording",
     )
 
 

@@ -166,6 +166,7 @@ class TrackPlayer:
             frame_rate_hz=seq.frame_rate_hz,
             speed_limit_mps=rec.speed_limit_mps,
             n_frames=self.n_frames_per_pass,
+            clock=self.config.clock,  # "recording" or "wall": what the frames' stamps count
         )
 
     def signal_state_at(self, sequence_stamp_ns: int, stamp_ns: int, frame_index: int, scene_id: str) -> SignalState | None:

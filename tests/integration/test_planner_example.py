@@ -51,7 +51,7 @@ def test_the_planner_example_reads_the_running_pipeline_as_the_project_decodes_i
         kill_all([run.proc])
     out = done.stdout
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
-    assert "scene k733_2018-05-02: origin" in out and "projection" in out, out[:2000]
+    assert "scene k733_2018-05-02: origin" in out and "projection scaled_mercator, stamps on the recording clock" in out, out[:2000]
     frames = [line for line in out.splitlines() if line.startswith("frame ")]
     assert len(frames) == 5 and all("hybrid" in f and "ms after the source published it" in f and "2 s ahead" in f for f in frames), frames
     assert any(line.startswith("  vehicle ") and "corridors; most probable" in line for line in out.splitlines()), out[:3000]

@@ -53,7 +53,8 @@ def test_default_scenario_plays_sequence_013_scene_first() -> None:
     assert list(first.outputs) == ["scene", "track_frame"]
     assert all("scene" not in r.outputs for _, r in items[1:])
     assert scene.recording == DEFAULT_RECORDING and scene.location_id == "K729"
-    assert scene.projection == "utm" and scene.n_frames == 1123  # "auto" configured: K729's measured projection named and scene.frame_rate_hz == 10.0
+    # "auto" configured: K729's measured projection is named
+    assert scene.clock == "recording" and scene.projection == "utm" and scene.n_frames == 1123 and scene.frame_rate_hz == 10.0
     assert scene.map_name == "k729_2022-03-16.osm" and "/" not in scene.map_name  # a name in the maps folder, never a path
     assert len(scene.scene_id) == 16
     assert scene.scene_id == scene_id_of(scene.map_sha256, "auto", scene.origin_lat_deg, scene.origin_lon_deg)
@@ -123,6 +124,7 @@ def test_a_wall_clock_moves_every_stamp_by_one_offset_from_the_wall_clock_at_the
     assert len(offsets) == 1  # the same intervals, so the same pacing and the same frames
     assert before <= wall[0][0] <= after
     assert [r.outputs["track_frame"].header.stamp_ns for _, r in wall] == [s for s, _ in wall]
+    assert wall[0][1].outputs["scene"].clock == "wall" and recorded[0][1].outputs["scene"].clock == "recording"  # the scene says so
     with pytest.raises(ValueError, match="clock"):
         TracksSourceConfig(clock="utc")
 
