@@ -102,3 +102,12 @@ def test_each_command_still_builds_its_options_when_chosen():
         assert len(chosen[name]._actions) > 1, name  # noqa: SLF001 - more than its -h
         others = [n for n in chosen if n != name]
         assert all(len(chosen[n]._actions) == 1 for n in others), name  # noqa: SLF001 - the others: -h only
+
+
+def test_recording_and_sequence_take_one_or_more_values_and_repeat_in_every_tool():
+    """`iamp train --sequence 002 --sequence 019` kept only 019, `iamp eval --sequence 002 019` was an error: each
+    tool took one of the two forms. Every tool takes both, and keeps every value."""
+    for tool in ("eval", "calibrate", "train"):
+        required = ["--out", "x.json"] if tool == "calibrate" else []
+        args = cli.build_parser(tool).parse_args([tool, *required, "--sequence", "002", "019", "--sequence", "003", "--recording", "a", "--recording", "b", "c"])
+        assert args.sequence == ["002", "019", "003"] and args.recording == ["a", "b", "c"], tool

@@ -236,8 +236,8 @@ def add_arguments(parser) -> None:
     from stages.lib.datasets import DEFAULT_DATA_DIR
 
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA_DIR, help="data folder laid out like stages/data/taf-bw (default: the embedded scenario)")
-    parser.add_argument("--recording", action="append", default=[], help="recording to fit on (repeatable; default all): one location")
-    parser.add_argument("--sequence", action="append", default=[], help="sequence id (repeatable; default all)")
+    parser.add_argument("--recording", action="extend", nargs="+", default=[], help="recording to fit on (one or more, the flag repeatable; default all): one location")
+    parser.add_argument("--sequence", action="extend", nargs="+", default=[], help="sequence id (one or more, the flag repeatable; default all)")
     parser.add_argument("--mode", nargs="+", default=list(EVAL_MODES), choices=EVAL_MODES, help="modes to calibrate (default all)")
     parser.add_argument("--stride", type=float, default=0.8, help="seconds between windows (default 0.8)")
     parser.add_argument("--model", type=Path, default=None, help="AR model weights for mode hybrid (default: the shipped one)")

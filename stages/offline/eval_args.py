@@ -35,8 +35,8 @@ def _dpi(text: str) -> int:
 
 def add_arguments(parser) -> None:
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA_DIR, help="data folder laid out like stages/data/taf-bw (default: the embedded scenario)")
-    parser.add_argument("--recording", action="append", default=[], help="recording to evaluate (repeatable; default all of --data; in the embedded folder its K729 recording)")
-    parser.add_argument("--sequence", action="append", default=[], help="sequence id to evaluate (repeatable; default all)")
+    parser.add_argument("--recording", action="extend", nargs="+", default=[], help="recordings to evaluate (one or more, the flag repeatable; default all of --data; in the embedded folder its K729 recording)")
+    parser.add_argument("--sequence", action="extend", nargs="+", default=[], help="sequence id to evaluate (one or more, the flag repeatable; default all)")
     parser.add_argument("--mode", nargs="+", default=list(EVAL_MODES), choices=EVAL_MODES, help="prediction modes (default all)")
     parser.add_argument("--stride", type=float, default=0.4, help="seconds between evaluated instants (default 0.4)")
     parser.add_argument("--corridor-weights", choices=list(CORRIDOR_WEIGHTS), default="intentions",

@@ -145,7 +145,7 @@ import numpy as np
 
 from bus_schemas import AgentType, CorridorSet, MatchStatus, RelationSet, SceneInfo, TrackFrame
 
-from stages.lib.base import check_output, json_safe, progress_bar
+from stages.lib.base import ConfigError, check_output, json_safe, progress_bar
 
 from stages.corridors import SceneMaps
 from stages.lib.kinematic_state import Consistency, EstimatorConfig, consistency_of, disagreement_line
@@ -436,6 +436,11 @@ class Evaluation:
                  **dict(config.ar_params)},
                 where="iamp eval --model/--set-ar",
             )
+            cells = {k: getattr(self.ar_config, k) for k in first.input_cells()}
+            if cells != first.input_cells():  # the profiles' cells must be the chain's (the launcher refuses such a pipeline too)
+                differ = ", ".join(f"{k} = {cells[k]!r} (--set-ar) but {v!r} (--set)" for k, v in first.input_cells().items() if cells[k] != v)
+                raise ConfigError(f"the AR profiles' input cells differ from the chain's: {differ}; set them for both,"
+                                  " e.g. --set n_inputs=12 --set-ar n_inputs=12")
         self.intentions_ms: list[float] = []
         self.ar_ms: list[float] = []
         self.ar_examples: list[dict[str, Any]] = []
@@ -586,6 +591,8 @@ class Evaluation:
                     predictor.observe(corridor_set)
                 if ar is not None and lagged:  # hybrid_profiles "previous": the next instant's chain reads this frame's
                     got = self._guarded("ar_inference_error_frames", where, lambda: ar.process(corridor_set, relation_set, frame, scene))
+                    if got:
+                        self._stage_issues("ar_inference", got[1])
                     for predictor in lagged:
                         predictor.remember_profiles(got[0] if got else None)
                 elif ar is not None:
@@ -595,8 +602,10 @@ class Evaluation:
             ar_ms = 0.0
             if ar is not None:
                 t0 = time.perf_counter()
-                profiles = (self._guarded("ar_inference_error_frames", where,
-                                          lambda: ar.process(corridor_set, relation_set, frame, scene)) or (None,))[0]
+                got = self._guarded("ar_inference_error_frames", where, lambda: ar.process(corridor_set, relation_set, frame, scene))
+                profiles = got[0] if got else None
+                if got:  # what the model did with the frame (nan_prediction, pairs_capped, ...): counted as the bus counts it
+                    self._stage_issues("ar_inference", got[1])
                 ar_ms = (time.perf_counter() - t0) * 1e3
                 self.ar_ms.append(ar_ms)
             keys = None

@@ -457,8 +457,8 @@ def _parse_set(items: Sequence[str]) -> tuple[tuple[str, Any], ...]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m stages.offline.intentions_eval", description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA_DIR, help="data folder laid out like stages/data/taf-bw")
-    parser.add_argument("--recording", action="append", default=[], help="recording name (repeatable; default: all of --data; in the embedded folder its K729 recording)")
-    parser.add_argument("--sequence", action="append", default=[], help="sequence id (repeatable; default: all)")
+    parser.add_argument("--recording", action="extend", nargs="+", default=[], help="recording names (one or more, the flag repeatable; default: all of --data; in the embedded folder its K729 recording)")
+    parser.add_argument("--sequence", action="extend", nargs="+", default=[], help="sequence id (one or more, the flag repeatable; default: all)")
     parser.add_argument("--particles", type=int, default=None, help="particles per vehicle (default: the stage's)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="filter seeds to run and pool (default: 0)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="an IntentionsConfig parameter (JSON value)")

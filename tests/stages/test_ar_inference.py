@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import sys
 from pathlib import Path
 
@@ -146,3 +147,63 @@ def test_stage_exits_2_on_a_missing_model(tmp_path):
     )
     assert proc.returncode == 2, proc.stderr
     assert "no such weights file" in proc.stderr
+
+
+def test_the_features_are_computed_as_the_model_was_trained(tmp_path):
+    """A model trained with ``iamp train --accel-window 2.0`` stores ``feature_config.accel_window_s = 2.0``; the
+    inference built its feature tracker with the defaults (1 s) and fed the net features it never saw, without a word."""
+    import copy
+
+    from stages.ar_inference import ARInference, ARInferenceConfig
+    from stages.lib.ar import DEFAULT_MODEL_PATH, load_model
+    from stages.lib.base import ConfigError
+
+    shipped = load_model(DEFAULT_MODEL_PATH)
+    assert ARInference(ARInferenceConfig(), model=shipped).tracker.config.accel_window_s == 1.0
+    wide = copy.deepcopy(shipped)
+    wide.metadata = {**shipped.metadata, "feature_config": {**shipped.metadata["feature_config"], "accel_window_s": 2.0}}
+    core = ARInference(ARInferenceConfig(), model=wide)
+    assert core.tracker.config.accel_window_s == 2.0
+    core.reset()  # a new scene: a fresh history, the same features
+    assert core.tracker.config.accel_window_s == 2.0
+    odd = copy.deepcopy(shipped)
+    odd.metadata = {**shipped.metadata, "feature_config": {**shipped.metadata["feature_config"], "lane_width_m": 3.5}}
+    with pytest.raises(ConfigError, match="lane_width_m"):
+        ARInference(ARInferenceConfig(), model=odd)
+
+
+def test_a_model_with_broken_numbers_is_refused_at_load_and_eval_says_so(tmp_path, capsys):
+    """NaN weights (a diverged training), a NaN residual spread or a feature scale of 0 made every prediction NaN:
+    `iamp eval` and `iamp calibrate` then scored the stages' fallback (the measured acceleration held) with exit 0."""
+    import copy
+
+    import torch
+
+    from stages import cli
+    from stages.lib.ar import DEFAULT_MODEL_PATH, load_model, save_model
+
+    shipped = load_model(DEFAULT_MODEL_PATH)
+
+    def broken(name: str, change) -> str:
+        model = copy.deepcopy(shipped)
+        change(model)
+        return str(save_model(tmp_path / f"{name}.pt", model))
+
+    def nan_weights(m) -> None:
+        with torch.no_grad():
+            next(m.net.parameters()).fill_(float("nan"))
+
+    files = {
+        "weights": broken("nanw", nan_weights),
+        "sigma_res_chunks holds NaN": broken("nansig", lambda m: setattr(m, "sigma_res_chunks", m.sigma_res_chunks * float("nan"))),
+        "feature_std has a value <= 0": broken("std0", lambda m: setattr(m, "feature_std", m.feature_std * 0.0)),
+    }
+    for says, path in files.items():
+        with pytest.raises(ValueError, match=re.escape(says)):
+            load_model(path)
+    code = cli.main(["eval", "--model", files["weights"], "--mode", "hybrid", "--max-frames", "5", "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 2 and "hold NaN or inf" in err and "Traceback" not in err, err
+    # input cells of the profiles that are not the chain's: the profiles were dropped as mismatched, the fallback scored
+    assert cli.main(["eval", "--set-ar", "n_inputs=12", "--mode", "hybrid", "--max-frames", "5", "--no-progress"]) == 2
+    assert "the AR profiles' input cells differ from the chain's: n_inputs = 12" in capsys.readouterr().err

@@ -23,6 +23,28 @@ from stages.lib.caps import cap_pairs
 from stages.lib.markov.grid import DEFAULT_INPUT_MAX_MPS2, DEFAULT_INPUT_MIN_MPS2, DEFAULT_N_INPUTS, uniform_input_edges
 
 
+def model_feature_config(model: Any, name: str = "the model"):
+    """The features' definitions the model was trained with (``feature_config`` in its metadata, written by ``iamp
+    train``): the inference must compute them the same way (a net trained on a 2 s acceleration window, fed the default
+    1 s one, ran on features it never saw). A model without it (older files): the defaults; one that does not read:
+    ``ConfigError``."""
+    import dataclasses
+
+    from stages.lib.ar import FeatureConfig
+
+    stored = (getattr(model, "metadata", {}) or {}).get("feature_config")
+    if not stored:
+        return FeatureConfig()
+    known = {f.name for f in dataclasses.fields(FeatureConfig)}
+    unknown = sorted(set(stored) - known)
+    if unknown:
+        raise ConfigError(f"{name}: its feature_config has keys this build does not know ({', '.join(unknown)}): a model of another version")
+    try:
+        return FeatureConfig(**stored)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{name}: its feature_config does not read: {exc}") from None
+
+
 @dataclass(frozen=True, kw_only=True)
 class ARInferenceConfig(ConfigMixin):
     """Parameters of the AR inference (the ar_inference stage's, documented in stages/ar_inference/__init__.py; docs/method.md §8.5)."""
@@ -125,7 +147,8 @@ class ARInference:
             if not torch.cuda.is_available():
                 raise ConfigError(f"device = {config.device!r}: no CUDA device here; use device = 'cpu'")
         self.model = model
-        self.tracker = FeatureTracker()
+        self.feature_config = model_feature_config(model, self.model_name)
+        self.tracker = FeatureTracker(self.feature_config)
         ar_kernels.warm_up()  # the compiled feature kernel loaded (or compiled) now, not on the first frame
         meta = getattr(model, "metadata", {}) or {}
         self.step_s = float(meta.get("step_s", 0.1))
@@ -206,4 +229,4 @@ class ARInference:
         """Forget every vehicle's history (the next frame's scene is taken as it comes, without an issue)."""
         from stages.lib.ar import FeatureTracker
 
-        self.tracker = FeatureTracker()
+        self.tracker = FeatureTracker(self.feature_config)

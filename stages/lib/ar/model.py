@@ -233,6 +233,22 @@ def save_model(path: str | Path, model: ARModel) -> Path:
 
 
 
+def _broken_numbers(payload: dict) -> str:
+    """What makes a model file's numbers unusable ('' if nothing): non-finite weights or statistics, a feature scale
+    or residual spread that is not positive (the features are divided by the scale)."""
+    for name, tensor in payload["state_dict"].items():
+        if isinstance(tensor, torch.Tensor) and tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            return f"weights {name!r} hold NaN or inf"
+    for key in ("feature_mean", "feature_std", "sigma_res_chunks"):
+        if not bool(torch.isfinite(payload[key]).all()):
+            return f"{key} holds NaN or inf"
+    if not bool((payload["feature_std"] > 0).all()):
+        return "feature_std has a value <= 0 (the features are divided by it)"
+    if not bool((payload["sigma_res_chunks"] >= 0).all()):
+        return "sigma_res_chunks has a negative spread"
+    return ""
+
+
 def load_model(path: str | Path = DEFAULT_MODEL_PATH) -> ARModel:
     """Read a model written by ``save_model``; ``ValueError`` naming the file and the problem otherwise."""
     path = Path(path)
@@ -265,6 +281,9 @@ def load_model(path: str | Path = DEFAULT_MODEL_PATH) -> ARModel:
             f"AR model file {path}: history/horizon/step {payload['history_steps']}/{payload['horizon_steps']}/{payload['step_s']} s, "
             f"this code uses {HISTORY_STEPS}/{HORIZON_STEPS}/{STEP_S} s"
         )
+    broken = _broken_numbers(payload)
+    if broken:  # a diverged training, or a damaged file: every prediction would be NaN and the stages fall back silently
+        raise ValueError(f"AR model file {path}: {broken}; retrain it (`iamp train`)")
     try:
         metadata = json.loads(payload["metadata_json"])
         names = tuple(str(n) for n in payload["feature_names"])

@@ -18,8 +18,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from stages.lib.datasets import DEFAULT_DATA_DIR
 
     p.add_argument("--data", type=Path, default=DEFAULT_DATA_DIR, help=f"data folder (default the embedded {DEFAULT_DATA_DIR})")
-    p.add_argument("--recording", nargs="+", default=[], metavar="NAME", help="recordings to use (default all of --data; in the embedded folder its K729 recording)")
-    p.add_argument("--sequence", nargs="+", default=[], metavar="ID", help="sequences to use (default all)")
+    p.add_argument("--recording", action="extend", nargs="+", default=[], metavar="NAME", help="recordings to use (default all of --data; in the embedded folder its K729 recording)")
+    p.add_argument("--sequence", action="extend", nargs="+", default=[], metavar="ID", help="sequences to use (default all)")
     p.add_argument("--split", choices=SPLITS, default="sequence", help="how to hold out validation data (default sequence)")
     p.add_argument("--val-fraction", type=float, default=0.2, help="share held out for validation (default 0.2)")
     p.add_argument("--kind", choices=("ar", "gru"), default="ar", help="ar: AR-Net, linear or with --hidden one ReLU layer (default); gru: a GRU over the history")
