@@ -362,7 +362,7 @@ class MarkovPredictor:
         self._scene_id: str | None = None
         self._location: str | None = None
         self._scene_since_ns = -(2**63)
-        self._newest_ns = -(2**63)  # the newest stamp a frame brought (``_follow_scene``)
+        self._newest_ns = -(2**63)  # the newest stamp of a frame finished (``_follow_scene``, ``_belief_phase``)
 
     # ----- entry points ---------------------------------------------------------
 
@@ -705,7 +705,10 @@ class MarkovPredictor:
         tracker), as a stage started there would be. One issue per change (the runtime logs it). A frame older than the
         one that brought the current scene (``prepare`` may run the next frame first) is the old scene's last: no
         change."""
-        newest, self._newest_ns = self._newest_ns, max(self._newest_ns, stamp)
+        # against the newest frame finished (``_belief_phase``), not the newest begun: ``prepare`` works ahead on a later
+        # set while an earlier one waits for its belief, and under load (a replay at 4x) that later set was seconds
+        # ahead, so the earlier one's update took it for a replay started again and reset every track (44 times in 12 min)
+        newest = self._newest_ns
         if stamp < newest - self.config.track_timeout_s * 1e9:  # a replay started again: the tracks' histories lie ahead
             self.reset()
             self._newest_ns = stamp
@@ -784,6 +787,7 @@ class MarkovPredictor:
     def _belief_phase(self, early: _Early, intention_belief: IntentionBelief | None) -> tuple[FramePrediction, list[Issue]]:
         """The rest of the frame: each vehicle's corridor weights (from ``intention_belief`` where the chain phase did
         not read it already), its grid and the outputs."""
+        self._newest_ns = max(self._newest_ns, early.stamp)  # the newest frame finished (``_follow_scene``)
         issues = list(early.issues)
         beliefs = early.beliefs if early.beliefs_read else self._beliefs(intention_belief, early.stamp, issues)
         weights: dict[int, float] = {}  # index of the pair (in the chain phase's list) -> P(R = its corridor)
