@@ -142,6 +142,8 @@ class McapRecorder:
         self._latched: dict[str, tuple[bytes, int, str]] = {}  # key -> (payload, publish ns, schema) of its newest latched message
         self._file_latched: dict[str, bytes] = {}  # key -> the latched payload the current file holds last
         self.latched_repeats = 0  # latched payloads equal to the one the file held on their key: not written again
+        self.write_failed: OSError | None = None  # the error that stopped the recording (a full disk): nothing is written after it
+        self.not_recorded = 0  # messages received after it
         self._created: list[Path] = []  # files this recorder created (not there before it)
         # the first file's folder now, with a message that names the parameter (an OSError later, at a split, is a crash)
         check_output(split_path(self.base_path, self.split_index), "path")
@@ -268,25 +270,50 @@ class McapRecorder:
         with self._lock:
             if self._closed.is_set():
                 raise RuntimeError(f"recorder for {self.path} is closed")
-            if schema_name in LATCHED_SCHEMAS:
-                payload = bytes(payload)
-                if self._file_latched.get(key) == payload:  # a re-publication, or the start query's answer to a value already in
-                    self.latched_repeats += 1
-                    return None
-                self._latched[key] = (payload, publish_ns, schema_name)
-                self._file_latched[key] = payload
-            self._write(key, payload, recv_ns, publish_ns, schema_name)
-            self.messages += 1
-            self._file_fresh += 1
-            self.old_versions += old_version
-            if self._split_due():
-                self._next_split()
-            elif self._chunk_bytes >= self.config.chunk_size_bytes or time.monotonic() - self._chunk_opened >= self.config.flush_period_s:
-                self._close_chunk()
+            if self.write_failed is not None:
+                self.not_recorded += 1
+                return [Issue(kind="not_recorded", agent_id=-1, detail=f"the recording stopped: {self.write_failed}")]
+            try:
+                return self._record(key, payload, recv_ns, publish_ns, schema_name, old_version, issue)
+            except OSError as exc:  # a full disk, the medium gone: predictions go on, the recording stops, said once
+                self._stop_writing(exc)
+                self.not_recorded += 1
+                return [Issue(kind="not_recorded", agent_id=-1, detail=f"the recording stopped: {exc}")]
+
+    def _record(self, key: str, payload: bytes, recv_ns: int, publish_ns: int, schema_name: str, old_version: bool,
+                issue: str | None) -> list[Issue] | None:
+        """``handle``'s writing part, the lock held."""
+        if schema_name in LATCHED_SCHEMAS:
+            payload = bytes(payload)
+            if self._file_latched.get(key) == payload:  # a re-publication, or the start query's answer to a value already in
+                self.latched_repeats += 1
+                return None
+            self._latched[key] = (payload, publish_ns, schema_name)
+            self._file_latched[key] = payload
+        self._write(key, payload, recv_ns, publish_ns, schema_name)
+        self.messages += 1
+        self._file_fresh += 1
+        self.old_versions += old_version
+        if self._split_due():
+            self._next_split()
+        elif self._chunk_bytes >= self.config.chunk_size_bytes or time.monotonic() - self._chunk_opened >= self.config.flush_period_s:
+            self._close_chunk()
         if issue is None:
             return None
         self.unrecognised += 1
         return [Issue(kind="unrecognised_payload", agent_id=-1, detail=f"recorded without schema: {issue}")]
+
+    def _stop_writing(self, exc: OSError) -> None:
+        """The first write error (the lock held): nothing more is written (the MCAP writer's state after a failed write
+        is not to be trusted), one ERROR line now, and every later message counted in ``not_recorded``."""
+        if self.write_failed is not None:
+            return
+        self.write_failed = exc
+        self.log.error(
+            "recording stopped: cannot write %s (%s) after %d messages; the run goes on without recording, every later"
+            " message counted as not_recorded; free the space and start a new recording (the file is torn: `iamp recover`"
+            " reads what it holds; recorder.split_bytes / split_s bound each file)", self.path, exc.strerror or exc, self.messages,
+        )
 
     def _write(self, key: str, payload: bytes, log_ns: int, publish_ns: int, schema_name: str) -> None:
         """One message into the open chunk (the lock held); ``schema_name`` empty: a channel without schema."""
@@ -323,8 +350,11 @@ class McapRecorder:
     def flush(self) -> None:
         """Close the open chunk now and hand it to the OS."""
         with self._lock:
-            if not self._closed.is_set() and self._chunk_bytes:
-                self._close_chunk()
+            if not self._closed.is_set() and self._chunk_bytes and self.write_failed is None:
+                try:
+                    self._close_chunk()
+                except OSError as exc:
+                    self._stop_writing(exc)
 
     def _flush_periodically(self) -> None:
         period = self.config.flush_period_s
@@ -332,13 +362,15 @@ class McapRecorder:
             with self._lock:
                 if self._closed.is_set():
                     return
+                if self.write_failed is not None:
+                    continue
                 try:
                     if self._split_due():
                         self._next_split()
                     elif self._chunk_bytes and time.monotonic() - self._chunk_opened >= period:
                         self._close_chunk()
-                except OSError as exc:
-                    self.log.error("flush failed: path=%s error=%s", self.path, exc)
+                except OSError as exc:  # (it was logged every 0.25 s, thousands of lines, while the disk stayed full)
+                    self._stop_writing(exc)
 
     # ---- end
     def close(self) -> None:
@@ -348,9 +380,15 @@ class McapRecorder:
                 return
             self._closed.set()
             try:
-                self._writer.finish()
+                if self.write_failed is None:
+                    self._writer.finish()
+            except OSError as exc:  # the summary does not fit either: the file stays torn, said once
+                self._stop_writing(exc)
             finally:
-                self._file.close()
+                try:
+                    self._file.close()
+                except OSError as exc:
+                    self._stop_writing(exc)
             if not self._file_fresh and len(self.paths) > 1:  # opened by the last cut, never used
                 self.path.unlink(missing_ok=True)
                 self.paths.pop()
@@ -359,6 +397,13 @@ class McapRecorder:
             self.log.info("recording closed: path=%s messages=%d channels=%d old_versions=%d latched_repeats=%d splits=%d (%s)", self.path, self.messages, self.channels, self.old_versions, self.latched_repeats, len(self.paths), ", ".join(p.name for p in self.paths))
         else:
             self.log.info("recording closed: path=%s messages=%d channels=%d old_versions=%d latched_repeats=%d", self.path, self.messages, self.channels, self.old_versions, self.latched_repeats)
+
+    def end_failure(self) -> str | None:
+        """Why the run's recording is not whole, for the node's exit code (1), or None: it stopped on a write error."""
+        if self.write_failed is None:
+            return None
+        return (f"the recording stopped on a write error ({self.write_failed.strerror or self.write_failed}) after {self.messages}"
+                f" messages; {self.not_recorded} received after it were not recorded; {self.path} is torn: `iamp recover` reads it")
 
     def abandon(self) -> None:
         """The node could not start (its bus session failed): close, and remove the files this recorder created if

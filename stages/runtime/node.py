@@ -995,6 +995,11 @@ def run_stage(spec: StageSpec, argv: list[str] | None = None) -> int:
         node.close()
         return EXIT_CRASH
     node.close()
+    end_failure = getattr(core, "end_failure", None)  # a core that went on after losing its purpose (the recorder, a full disk)
+    failure = end_failure() if end_failure is not None else None
+    if failure:
+        log.error("failed: %s", failure)
+        return EXIT_CRASH
     return EXIT_OK
 
 

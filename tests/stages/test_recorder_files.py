@@ -149,3 +149,48 @@ def test_iamp_record_refuses_an_existing_file_before_it_touches_it(tmp_path):
                           capture_output=True, text=True, timeout=60, env=h.python_env())
     assert done.returncode == 2, done.stderr
     assert not new.exists(), "a file the recorder made and never used is removed when its bus session cannot open"
+
+
+class _SmallDisk:
+    """A file that takes ``room`` bytes, then fails every write as a full disk does (ENOSPC)."""
+
+    def __init__(self, f, room: int) -> None:
+        self._f, self.room = f, room
+
+    def write(self, data) -> int:
+        import errno
+        import os
+
+        if self.room < len(data):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        self.room -= len(data)
+        return self._f.write(data)
+
+    def __getattr__(self, name):
+        return getattr(self._f, name)
+
+
+def test_a_full_disk_stops_the_recording_once_and_loudly_and_the_messages_after_are_counted(tmp_path, monkeypatch, caplog):
+    """A full disk (a 20 MB tmpfs in a soak run): every message after it failed in the recorder, its flush thread logged
+    "flush failed" four times a second (thousands of lines) and the run only learnt of it at the stop, from a crash.
+    Now: one ERROR line, the rest counted as not_recorded (an issue the runtime counts), the file kept as far as it
+    got (readable), and the node's exit a failure (``end_failure``)."""
+    import logging
+
+    real_open = McapRecorder._open_locked
+    monkeypatch.setattr(McapRecorder, "_open_locked", lambda self, path: _SmallDisk(real_open(self, path), 6000))
+    path = tmp_path / "run.mcap"
+    rec = McapRecorder(RecorderConfig(path=str(path), chunk_size_bytes=1000, flush_period_s=0.05), "t1", log=logging.getLogger("iamp.rec"))
+    with caplog.at_level(logging.ERROR, logger="iamp.rec"):
+        rec.handle(SCENE_KEY, make_scene("t1").encode(), STAMP0_NS)
+        kinds = [[i.kind for i in (rec.handle(FRAME_KEY, make_frame(i, "t1").encode(), STAMP0_NS + i) or [])] for i in range(200)]
+        assert rec.write_failed is not None and rec.not_recorded > 0
+        first = kinds.index(["not_recorded"])
+        assert all(k == ["not_recorded"] for k in kinds[first:]) and rec.messages >= first + 1  # (the chunk that failed counted too)
+        h.wait_until(lambda: rec._timer.is_alive(), 5.0, "the flush thread")  # it went on running, quietly
+        rec.flush()
+        rec.close()  # the summary does not fit either: no exception
+    errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert len(errors) == 1 and "recording stopped: cannot write" in errors[0] and "No space left on device" in errors[0], errors
+    assert "not recorded" in rec.end_failure() and "iamp recover" in rec.end_failure()
+    assert [m.topic for m in read_messages(str(path))][:1] == [SCENE_KEY]  # what it wrote before reads back
