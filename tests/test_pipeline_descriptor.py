@@ -185,3 +185,15 @@ def test_shipped_pipelines_with_a_dataset_source_play_the_default_pipelines_reco
         assert [n.params.get("recording") for n in sources] == [default], name
     stand_in = [line for line in (pipelines / "live.toml").read_text().splitlines() if "-m stages.tracks_source" in line]
     assert stand_in and all(f"--set recording={default}" in line for line in stand_in), stand_in
+
+
+def test_the_launcher_says_how_many_recorded_frames_got_a_motion_grid():
+    """A 12-minute soak at 4x lost 15.7 % of its frames to markov_prediction's queue; the launcher exited 0 saying
+    nothing of it, and `iamp inspect` only checks the track frames' continuity."""
+    from stages.runtime.launcher import predicted_line
+
+    counts = {"iamp/r/source/track_frame": 200, "iamp/r/source/scene": 1, "iamp/r/hybrid/motion_grid": 150, "iamp/r/baseline/motion_grid": 200}
+    assert predicted_line(counts) == ("predicted: 200 track frames recorded, MotionGrids of baseline 200 (100.0%), hybrid 150 (75.0%);"
+                                      " up to 50 frames without one: the nodes' queue_drops and join_drops above say where")
+    assert predicted_line({"iamp/r/source/track_frame": 10, "iamp/r/markov_prediction/motion_grid": 10}).endswith("markov_prediction 10 (100.0%)")
+    assert predicted_line({"iamp/r/source/scene": 1}) == "" and predicted_line({"iamp/r/source/track_frame": 5}) == ""

@@ -119,6 +119,10 @@ def test_run_records_every_source_frame_and_replay_reproduces_it(tmp_path):
         assert counts[f"iamp/itest/{topic}"] == frames["count"], (topic, counts)
     grids = [m for m in read_messages(str(rec)) if m.topic == "iamp/itest/markov_prediction/motion_grid"]
     assert grids and {bs.decode(m.data).mode for m in grids} == {"hybrid"}
+    # the launcher's last lines say it from the file's summary: every recorded frame, how many got a MotionGrid
+    lost = frames["count"] - len(grids)
+    assert (f"[launch] predicted: {frames['count']} track frames recorded, MotionGrids of markov_prediction {len(grids)}"
+            f" ({len(grids) / frames['count']:.1%})" + (f"; up to {lost} frames without one" if lost else "")) in out, out[-2000:]
     profiles = [bs.decode(m.data) for m in read_messages(str(rec)) if m.topic == "iamp/itest/ar_inference/acceleration_profiles"]
     assert any(p.profiles for p in profiles) and profiles[0].model.startswith("ar_taf_bw.pt@")
 
