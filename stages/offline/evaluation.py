@@ -497,6 +497,17 @@ class Evaluation:
             self.stage_issues[key] += 1
             self.stage_issue_examples.setdefault(key, f"agent {issue.agent_id}: {issue.detail}")
 
+    def _model_provenance(self) -> dict[str, Any]:
+        """Hybrid's model by name and hash (``model_name``), the recordings it was trained on as its file says
+        (``model_trained_on``) and those of this evaluation among them (``model_in_sample``: hybrid's figures there are
+        in-sample, optimistic); nothing without mode hybrid."""
+        model = getattr(self, "_ar_model", None)
+        if self.ar_config is None or model is None:
+            return {}
+        trained = [str(r) for r in ((getattr(model, "metadata", {}) or {}).get("recordings") or [])]
+        return {"model_name": self._ar_model_name, "model_trained_on": trained,
+                "model_in_sample": [r for r in self.recordings if r in trained]}
+
     def _skip(self, reason: str, detail: str, count: int = 1) -> None:
         """Count ``count`` things skipped for ``reason``; the first one's ``detail`` is kept for the table."""
         self.skipped[reason] += count
@@ -558,6 +569,7 @@ class Evaluation:
 
             ar = ARInference(self.ar_config, producer="eval", model=getattr(self, "_ar_model", None))
             self._ar_model = ar.model  # loaded once, shared by the sequences
+            self._ar_model_name = getattr(self, "_ar_model_name", None) or ar.model_name
         for predictor in self.predictors.values():
             predictor.reset()
         self._estimators.setdefault(rec.name, []).append(chain.corridors.estimator)
@@ -855,6 +867,7 @@ class Evaluation:
             "state_filter": {name: self.state_filter(name) for name in self.recordings},
             "intentions_ms_median": float(np.median(self.intentions_ms)) if self.intentions_ms else None,
             "model": str(self.ar_config.model) if self.ar_config is not None else None,
+            **self._model_provenance(),
             "situations": [
                 {**sit.as_dict(), "vehicles": len(self.situation_seen.get(sit.name, {}).get("vehicles", ())),
                  "duration_s": round(self.situation_seen.get(sit.name, {}).get("seconds", 0.0), 3),
@@ -1016,7 +1029,12 @@ def format_table(report: dict[str, Any]) -> str:
     """The printed summary: per mode overall/slow/fast, then timing."""
     head = (f"{'mode':<12} {'split':<8} {'windows':>7} {'mADE':>7} {'mFDE':>7} {'wADE':>7} {'wFDE':>7} {'cov50':>6} {'cov90':>6} {'NLL':>6}"
             f" {'top1':>5} {'routes':>6}")
-    lines = [head, "-" * len(head)]
+    lines = []
+    if report.get("model_name"):  # which model scored hybrid, and where its figures are in-sample
+        inside = report.get("model_in_sample") or []
+        lines.append(f"hybrid's model {report['model_name']}, trained on {', '.join(report.get('model_trained_on') or []) or 'recordings it does not name'}"
+                     + (f": IN-SAMPLE on {', '.join(inside)} (hybrid's figures there are optimistic)" if inside else ": every scored recording held out"))
+    lines += [head, "-" * len(head)]
     for mode, res in report["modes"].items():
         for split, stats in (("overall", res["overall"]), ("slow", res["by_speed"]["slow"]), ("fast", res["by_speed"]["fast"])):
             lines.append(

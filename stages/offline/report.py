@@ -243,7 +243,13 @@ def write_report(evaluation, report: dict[str, Any], directory: Path, command: s
     ]
     L += _table(["", ""], [[f"**{a}**", b] for a, b in rows])
     L.append("")
-    if model and "stages/lib/ar/weights" in str(model).replace("\\", "/"):
+    inside = report.get("model_in_sample")
+    if inside:  # the model file names the recordings it was trained on
+        L.append(f"*hybrid's model was trained on {', '.join(report.get('model_trained_on') or [])}: on {', '.join(inside)} its"
+                 " figures are in-sample (optimistic). For held-out figures train on one location and evaluate on the other"
+                 " (`bench/generalisation.py`).*")
+        L.append("")
+    elif inside is None and model and "stages/lib/ar/weights" in str(model).replace("\\", "/"):
         L.append("*The shipped AR weights were trained on TAF-BW (K729 and K733): on these recordings hybrid's figures are"
                  " in-sample. For held-out figures train on one location and evaluate on the other (`bench/generalisation.py`).*")
         L.append("")

@@ -207,3 +207,25 @@ def test_a_model_with_broken_numbers_is_refused_at_load_and_eval_says_so(tmp_pat
     # input cells of the profiles that are not the chain's: the profiles were dropped as mismatched, the fallback scored
     assert cli.main(["eval", "--set-ar", "n_inputs=12", "--mode", "hybrid", "--max-frames", "5", "--no-progress"]) == 2
     assert "the AR profiles' input cells differ from the chain's: n_inputs = 12" in capsys.readouterr().err
+
+
+def test_iamp_eval_names_hybrid_s_model_and_where_its_figures_are_in_sample(tmp_path, capsys):
+    """`iamp eval --model M` on M's own training recording said nothing of it (the figures are in-sample), and the
+    printed table never named the model."""
+    import copy
+    import json
+
+    from stages import cli
+    from stages.lib.ar import DEFAULT_MODEL_PATH, load_model, save_model
+
+    other = copy.deepcopy(load_model(DEFAULT_MODEL_PATH))
+    other.metadata = {**other.metadata, "recordings": ["k733_2018-05-02"]}
+    held_out = str(save_model(tmp_path / "k733only.pt", other))
+    for model, says, inside in ((None, "IN-SAMPLE on k729_2022-03-16", ["k729_2022-03-16"]), (held_out, "every scored recording held out", [])):
+        out_json = tmp_path / "eval.json"
+        args = ["eval", "--mode", "hybrid", "--max-frames", "5", "--no-progress", "--json", str(out_json)] + (["--model", model] if model else [])
+        assert cli.main(args) == 0
+        first = capsys.readouterr().out.splitlines()[0]
+        assert first.startswith("hybrid's model ") and says in first, first
+        report = json.loads(out_json.read_text())
+        assert report["model_in_sample"] == inside and report["model_name"].split("@")[0] in first
