@@ -254,6 +254,19 @@ def add_arguments(parser) -> None:
     parser.add_argument("--set-intentions", action="append", default=[], metavar="KEY=VALUE", help="intentions parameter (JSON value)")
 
 
+def _model_sha256(model: Path | None) -> str:
+    """The sha256 of the AR weights the table was fitted with (hybrid's spread belongs to them): ``iamp eval`` warns
+    when a table is used with other weights. '' when the file cannot be read."""
+    import hashlib
+
+    from stages.lib.ar.model import DEFAULT_MODEL_PATH
+
+    try:
+        return hashlib.sha256(Path(model or DEFAULT_MODEL_PATH).read_bytes()).hexdigest()
+    except OSError:
+        return ""
+
+
 def run_cli(args) -> int:
     try:
         check_output(args.out, "--out")  # the outputs' places first: a bad one must not cost the run
@@ -278,7 +291,8 @@ def run_cli(args) -> int:
         sys.stderr.write(f"iamp calibrate: error: no window to fit the spread on ({left_out}); {args.out} not written\n")
         return 2
     fitted_on = {"data": str(args.data), "recordings": cal.recordings, "stride_s": args.stride, "seed": args.seed,
-                 "model": str(args.model) if args.model else "shipped", "level": args.level, "sigmas_m": list(cal.sigmas_m),
+                 "model": str(args.model) if args.model else "shipped", "model_sha256": _model_sha256(args.model),
+                 "level": args.level, "sigmas_m": list(cal.sigmas_m),
                  "speed_noise_gain": cal.speed_noise_gain,
                  "params": {k: v for k, v in config.params}, "windows": {m: measured[m]["windows"] for m in tables}}
     write_spread(args.out, tables, fitted_on)

@@ -505,8 +505,31 @@ class Evaluation:
         if self.ar_config is None or model is None:
             return {}
         trained = [str(r) for r in ((getattr(model, "metadata", {}) or {}).get("recordings") or [])]
-        return {"model_name": self._ar_model_name, "model_trained_on": trained,
-                "model_in_sample": [r for r in self.recordings if r in trained]}
+        out = {"model_name": self._ar_model_name, "model_trained_on": trained, "model_in_sample": [r for r in self.recordings if r in trained]}
+        mismatch = self._spread_model_mismatch()
+        if mismatch:
+            out["warnings"] = [mismatch]
+        return out
+
+    def _spread_model_mismatch(self) -> str:
+        """'' unless hybrid reads a spread table (``spread_calibration = FILE``) that ``iamp calibrate`` fitted with other
+        AR weights than the ones scored: hybrid's spread belongs to its model (the table was applied without a word)."""
+        hybrid = self.predictors.get("hybrid")
+        table = hybrid.config.spread_calibration if hybrid is not None else ""
+        if not table or table == "shipped":
+            return ""
+        try:
+            data = json.loads(Path(table).expanduser().read_text())
+            fitted = data.get("fitted_on", {}) if "hybrid" in data.get("modes", {}) else {}
+        except (OSError, ValueError, AttributeError, TypeError):
+            return ""
+        sha = str(fitted.get("model_sha256") or "")
+        ours = str(self._ar_model_name).rpartition("@")[2]
+        if not sha or not ours or sha.startswith(ours):
+            return ""
+        return (f"spread_calibration = {table}: fitted with AR weights {fitted.get('model', '?')} (sha256 {sha[:12]}), scored with"
+                f" {self._ar_model_name}: hybrid's coverage and NLL are those of another model's spread; refit it with"
+                " `iamp calibrate --model` of these weights")
 
     def _skip(self, reason: str, detail: str, count: int = 1) -> None:
         """Count ``count`` things skipped for ``reason``; the first one's ``detail`` is kept for the table."""
@@ -1029,7 +1052,7 @@ def format_table(report: dict[str, Any]) -> str:
     """The printed summary: per mode overall/slow/fast, then timing."""
     head = (f"{'mode':<12} {'split':<8} {'windows':>7} {'mADE':>7} {'mFDE':>7} {'wADE':>7} {'wFDE':>7} {'cov50':>6} {'cov90':>6} {'NLL':>6}"
             f" {'top1':>5} {'routes':>6}")
-    lines = []
+    lines = [f"WARNING: {w}" for w in report.get("warnings", [])]
     if report.get("model_name"):  # which model scored hybrid, and where its figures are in-sample
         inside = report.get("model_in_sample") or []
         lines.append(f"hybrid's model {report['model_name']}, trained on {', '.join(report.get('model_trained_on') or []) or 'recordings it does not name'}"

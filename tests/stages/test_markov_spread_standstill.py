@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -124,6 +125,9 @@ def test_iamp_calibrate_writes_a_file_the_stage_reads(tmp_path):
     table = load_spread(str(out), "cv", 10)
     assert table.sigma_m.shape == (3, 10) and np.all(np.diff(table.sigma_m, axis=1) >= 0)
     assert table.speed_noise_gain == 1.0 and data["fitted_on"]["speed_noise_gain"] == 1.0  # the default gain is written
+    from stages.lib.ar.model import DEFAULT_MODEL_PATH
+
+    assert data["fitted_on"]["model_sha256"] == hashlib.sha256(DEFAULT_MODEL_PATH.read_bytes()).hexdigest()  # its weights
     MarkovPredictor(MarkovPredictionConfig(mode="cv", spread_calibration=str(out)))  # the stage takes it
     bad = subprocess.run([sys.executable, "-m", "stages.cli", "calibrate", "--mode", "cv", "--out", str(out), "--set",
                           f"spread_calibration={out}"], cwd=ROOT, env=env, capture_output=True, text=True)
@@ -286,3 +290,22 @@ def test_the_compiled_blur_gives_the_numpy_blurs_numbers():
                                            int(np.ceil(3.0 * s_cells)), BLUR_MIN_VALUE)
             np.testing.assert_array_equal(got[0], want[0], err_msg=f"trial {trial}, sigma {sigma}")
             np.testing.assert_array_equal(got[1], want[1], err_msg=f"trial {trial}, sigma {sigma}")
+
+
+def test_iamp_eval_warns_when_hybrid_s_spread_table_was_fitted_with_other_weights(tmp_path, capsys):
+    """A table that `iamp calibrate` fitted for one model, read by `iamp eval` scoring another: applied without a word
+    (hybrid's spread belongs to its model)."""
+    from stages import cli
+    from stages.lib.ar.model import DEFAULT_MODEL_PATH
+    from stages.markov_prediction.spread import resolve
+
+    data = json.loads(resolve("shipped", "along").read_text())
+    assert "hybrid" in data["modes"]
+    shipped_sha = hashlib.sha256(DEFAULT_MODEL_PATH.read_bytes()).hexdigest()
+    for sha, warned in (("0" * 64, True), (shipped_sha, False)):
+        table = tmp_path / f"spread_{sha[:4]}.json"
+        table.write_text(json.dumps({**data, "fitted_on": {**data.get("fitted_on", {}), "model": "other.pt", "model_sha256": sha}}))
+        assert cli.main(["eval", "--mode", "hybrid", "--max-frames", "5", "--no-progress", "--set", f"spread_calibration={table}"]) == 0
+        out = capsys.readouterr().out
+        assert ("WARNING: spread_calibration = " in out and "fitted with AR weights other.pt" in out) is warned, out[:600]
+
