@@ -229,3 +229,11 @@ def test_iamp_eval_names_hybrid_s_model_and_where_its_figures_are_in_sample(tmp_
         assert first.startswith("hybrid's model ") and says in first, first
         report = json.loads(out_json.read_text())
         assert report["model_in_sample"] == inside and report["model_name"].split("@")[0] in first
+
+
+def test_a_folder_given_as_the_model_says_so(tmp_path):
+    from stages.ar_inference import ARInference, ARInferenceConfig
+    from stages.lib.base import ConfigError
+
+    with pytest.raises(ConfigError, match="is a folder; expected a weights file"):
+        ARInference(ARInferenceConfig(model=str(tmp_path)))

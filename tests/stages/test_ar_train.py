@@ -566,3 +566,17 @@ def test_a_split_that_leaves_no_validation_sample_says_why(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and "no validation samples: the sequence split left none of the" in err and "larger --val-fraction" in err, err
     assert not (tmp_path / "m.pt").exists()
+
+
+def test_a_model_worse_than_zero_acceleration_on_validation_is_warned_about():
+    """4 cars, 107 samples: a 38,440-parameter net whose validation MSE (0.96) was worse than predicting 0 (0.50),
+    written with exit 0 and no word."""
+    from stages.offline.train.fit import weak_model_warning
+
+    report = {"validation": {"model": {"mse": 0.962}, "zero": {"mse": 0.499}}, "sizes": {"train": 107, "dataset": {"cars": 4}}}
+    said = weak_model_warning(report)
+    assert "worse than predicting zero acceleration (0.499)" in said and "107 training samples from 4 cars" in said
+    report["validation"]["model"]["mse"] = 0.28
+    assert weak_model_warning(report) == ""
+    report["validation"]["model"]["mse"] = float("nan")  # no validation window: nothing to compare
+    assert weak_model_warning(report) == ""

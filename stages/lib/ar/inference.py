@@ -131,6 +131,8 @@ class ARInference:
         self.producer = producer
         path = Path(config.model) if config.model else Path(DEFAULT_MODEL_PATH)
         if model is None:
+            if path.is_dir():
+                raise ConfigError(f"model = {str(path)!r}: is a folder; expected a weights file written by `iamp train --out FILE`")
             if not path.is_file():
                 raise ConfigError(f"model = {str(path)!r}: no such weights file (train one with `iamp train --out FILE`)")
             try:

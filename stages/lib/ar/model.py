@@ -299,7 +299,8 @@ def load_model(path: str | Path = DEFAULT_MODEL_PATH) -> ARModel:
             z_clip=payload["z_clip"],
         )
     except (ValueError, RuntimeError, KeyError, TypeError) as exc:
-        raise ValueError(f"AR model file {path}: inconsistent contents ({exc})") from None
+        first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__  # (torch lists every key)
+        raise ValueError(f"AR model file {path}: inconsistent contents ({first}); expected a file written by `iamp train`") from None
 
 
 __all__ = ["ARModel", "ARNet", "GRUNet", "KINDS", "make_net", "CHUNK_STEPS", "DEFAULT_MODEL_PATH", "N_CHUNKS", "chunk_means", "load_model", "save_model"]

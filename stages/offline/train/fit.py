@@ -658,6 +658,19 @@ def format_report(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def weak_model_warning(report: dict[str, Any]) -> str:
+    """'' unless the trained model predicts the validation accelerations worse than zero acceleration does (too little
+    data, or a split that holds out another behaviour): hybrid with it would be worse than corridor_cv."""
+    v = report.get("validation", {})
+    model, zero = v.get("model", {}).get("mse", math.nan), v.get("zero", {}).get("mse", math.nan)
+    if not (math.isfinite(model) and math.isfinite(zero)) or model <= zero:
+        return ""
+    return (f"the model's validation MSE {model:.3f} is worse than predicting zero acceleration ({zero:.3f}), with"
+            f" {report['sizes']['train']} training samples from {report['sizes']['dataset']['cars']} cars: more data (more"
+            " sequences or recordings), a smaller model (--kind ar, or a smaller --hidden) or fewer epochs; as it is, hybrid"
+            " with it would predict worse than corridor_cv")
+
+
 def run_from_args(args) -> int:
     """``iamp train``: the parsed arguments of ``stages.offline.train.cli.add_arguments`` → exit code."""
     try:
@@ -681,7 +694,14 @@ def run_from_args(args) -> int:
         sys.stderr.write(f"iamp train: error: {exc}\n")
         return 2
     print(format_report(report))
-    path = save_model(args.out, model)
+    weak = weak_model_warning(report)
+    if weak:
+        print(f"WARNING: {weak}", file=sys.stderr)
+    try:
+        path = save_model(args.out, model)
+    except OSError as exc:  # (the folder was checked before the training: the disk, or a path the check cannot see)
+        sys.stderr.write(f"iamp train: error: --out {args.out}: cannot write the weights ({exc.strerror or exc})\n")
+        return 2
     print(f"wrote {path}")
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
