@@ -580,3 +580,22 @@ def test_a_model_worse_than_zero_acceleration_on_validation_is_warned_about():
     assert weak_model_warning(report) == ""
     report["validation"]["model"]["mse"] = float("nan")  # no validation window: nothing to compare
     assert weak_model_warning(report) == ""
+
+
+def test_iamp_train_writes_its_provenance_into_both_outputs(tmp_path):
+    """The weights file had the git commit, date and configs but not the loss curve; the JSON the curve but not the
+    commit, date, seed or configs: a researcher needed both files to know what a model was."""
+    import json as _json
+
+    from stages import cli
+    from stages.lib.ar import load_model
+
+    out, js = tmp_path / "m.pt", tmp_path / "m.json"
+    assert cli.main(["train", "--sequence", "019", "002", "--max-frames", "60", "--epochs", "2", "--no-progress", "--no-cache",
+                     "--accel-window", "2.0", "--out", str(out), "--json", str(js)]) == 0
+    report, meta = _json.loads(js.read_text()), load_model(out).metadata
+    for key in ("git_commit", "date_utc", "seed", "feature_config", "dataset_config", "torch", "history"):
+        assert key in report and key in meta, key
+    assert report["feature_config"]["accel_window_s"] == meta["feature_config"]["accel_window_s"] == 2.0
+    assert meta["history"] == report["history"] and len(report["history"]) >= 1
+    assert meta["sequences"] and len(meta["sequences"]) == 2  # both sequences given in one --sequence

@@ -616,7 +616,10 @@ def run_training(cfg: TrainConfig, *, cache_dir: Path | None = DEFAULT_CACHE_DIR
         "git_commit": _git_commit(),
         "date_utc": _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat(),
         "torch": torch.__version__,
+        "history": report["history"],  # the loss curve, with the weights it led to
     }
+    for key in ("feature_config", "dataset_config", "seed", "git_commit", "date_utc", "torch"):  # the JSON says it too
+        report.setdefault(key, model.metadata[key])
     return model, report
 
 
