@@ -96,7 +96,10 @@ def test_eval_gives_ar_inference_the_chain_cells():
                                        params=tuple(WIDE.items())))
     np.testing.assert_array_equal(evaluation.ar_config.input_edges(), evaluation.predictors["hybrid"].grid.input_edges())
     assert evaluation.predictors["baseline"].grid.n_inputs == 12
-    # --set-ar wins (an experiment); markov_prediction then ignores the profiles with a bad_profile issue (tested above)
-    other = Evaluation(EvalConfig(recordings=(DEFAULT_RECORDING,), modes=("hybrid",), progress=False, params=tuple(WIDE.items()),
-                                  ar_params=(("n_inputs", 10),)))
-    assert other.ar_config.n_inputs == 10 and other.predictors["hybrid"].grid.n_inputs == 12
+    # --set-ar with other cells than the chain's: refused, as the launcher refuses such a pipeline (it used to run, every
+    # profile ignored as a bad_profile, and score the stage's fallback as hybrid with exit 0)
+    from stages.lib.base import ConfigError
+
+    with pytest.raises(ConfigError, match="input cells differ from the chain's: n_inputs = 10"):
+        Evaluation(EvalConfig(recordings=(DEFAULT_RECORDING,), modes=("hybrid",), progress=False, params=tuple(WIDE.items()),
+                              ar_params=(("n_inputs", 10),)))

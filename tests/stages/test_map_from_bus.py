@@ -240,7 +240,7 @@ def test_the_source_publishes_a_map_name_and_hash_never_a_path(played):
     assert scene.map_name == MAP_NAME and os.sep not in scene.map_name
     assert scene.map_sha256 == file_sha256(DEFAULT_DATA_DIR / "maps" / MAP_NAME)
     assert not hasattr(scene, "map_path")
-    assert SceneInfo.VERSION == 3
+    assert SceneInfo.VERSION == 4
 
 
 def test_the_launcher_gives_every_map_stage_the_source_data_folder(tmp_path):
