@@ -197,3 +197,16 @@ def test_the_launcher_says_how_many_recorded_frames_got_a_motion_grid():
                                       " up to 50 frames without one: the nodes' queue_drops and join_drops above say where")
     assert predicted_line({"iamp/r/source/track_frame": 10, "iamp/r/markov_prediction/motion_grid": 10}).endswith("markov_prediction 10 (100.0%)")
     assert predicted_line({"iamp/r/source/scene": 1}) == "" and predicted_line({"iamp/r/source/track_frame": 5}) == ""
+
+
+def test_check_refuses_a_model_that_is_no_whole_weights_file(tmp_path, capsys):
+    """`launch.py --check --var MODEL=trunc.pt` said the pipeline was valid; the node then failed at start."""
+    from stages.runtime.launcher import main
+
+    shipped = REPO / "stages" / "lib" / "ar" / "weights" / "ar_taf_bw.pt"
+    cut = tmp_path / "cut.pt"
+    cut.write_bytes(shipped.read_bytes()[:2000])
+    for model, says in ((cut, "not a whole weights file"), (tmp_path, "is a folder"), (tmp_path / "none.pt", "no such weights file")):
+        assert main(["--check", "--var", f"MODEL={model}"]) == 2
+        assert f"node ar_inference: model = '{model}': {says}" in capsys.readouterr().err
+    assert main(["--check", "--var", f"MODEL={shipped}"]) == 0

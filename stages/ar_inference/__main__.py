@@ -21,7 +21,28 @@ def make_core(config: ARInferenceConfig, ctx: NodeContext) -> ARInference:
     return core
 
 
-SPEC = StageSpec(stage="stages.ar_inference", config_cls=ARInferenceConfig, make_core=make_core, inputs=INPUTS, outputs=OUTPUTS)
+def preflight(config: ARInferenceConfig) -> None:
+    """The launcher's check before any node starts (``StageSpec.preflight``, and ``launch.py --check``): a ``model``
+    that is no file, a folder, or not a whole weights file (``iamp train`` writes a zip archive; a truncated copy has
+    no end record) stops the run at once with what to fix, not the node minutes later. Cheap: torch is not loaded."""
+    import zipfile
+    from pathlib import Path
+
+    from stages.lib.base import ConfigError
+
+    if not config.model:
+        return  # the shipped weights
+    path = Path(config.model).expanduser()
+    if path.is_dir():
+        raise ConfigError(f"model = {config.model!r}: is a folder; expected a weights file written by `iamp train --out FILE`")
+    if not path.is_file():
+        raise ConfigError(f"model = {config.model!r}: no such weights file (train one with `iamp train --out FILE`)")
+    if not zipfile.is_zipfile(path):
+        raise ConfigError(f"model = {config.model!r}: not a whole weights file (truncated, or not written by `iamp train`)")
+
+
+SPEC = StageSpec(stage="stages.ar_inference", config_cls=ARInferenceConfig, make_core=make_core, inputs=INPUTS, outputs=OUTPUTS,
+                 preflight=preflight)
 
 
 def main(argv: list[str] | None = None) -> int:
