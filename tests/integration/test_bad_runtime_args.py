@@ -115,11 +115,13 @@ def test_a_node_that_fails_at_start_stops_the_run_without_tracebacks_from_the_ot
     each of them print a KeyboardInterrupt traceback from the module it was importing, pages below the one line that
     said what was wrong."""
     # (a recorder path that cannot be written no longer starts any node: the launcher's preflight refuses it, below)
-    done = subprocess.run([sys.executable, str(REPO / "launch.py"), "--set", 'ar_inference.model="/nonexistent/weights.pt"', "--no-viewer",
-                           "--stop-after", "5", "--run-id", "badrec"], cwd=tmp_path, env=python_env(), capture_output=True, text=True, timeout=180)
+    # (nor a missing ar_inference model: preflight too; a spread table that is not there fails in the node's start)
+    done = subprocess.run([sys.executable, str(REPO / "launch.py"), "--set", 'markov_prediction.spread_calibration="/nonexistent/spread.json"',
+                           "--no-viewer", "--stop-after", "5", "--run-id", "badrec"], cwd=tmp_path, env=python_env(), capture_output=True,
+                          text=True, timeout=180)
     out = done.stdout + done.stderr
     assert done.returncode == 2, out[-3000:]
-    assert "[ar_inference]" in out and "bad configuration: " in out, out[-3000:]
+    assert "[markov_prediction]" in out and "bad configuration: " in out, out[-3000:]
     assert "[launch] run ended: exit code 2" in out
     assert "Traceback" not in out and "KeyboardInterrupt" not in out, out[-3000:]
 
