@@ -254,14 +254,17 @@ def run_one(data_dir: Path, name: str, args, stencils, on_frame=None, target: fl
     return out
 
 
-def vehicle_counts(text: str) -> list[int]:
-    """``--vehicles``: comma-separated whole numbers of vehicles per frame, each 1 to ``MAX_VEHICLES``."""
+def vehicle_counts(text: str, minimum: int = 1) -> list[int]:
+    """``--vehicles``: comma-separated whole numbers of vehicles per frame, each ``minimum`` to ``MAX_VEHICLES``
+    (bench/e2e_latency.py takes 0 too: the embedded scenario as it is)."""
     try:
         sizes = [int(x) for x in text.split(",") if x.strip()]
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated whole numbers, e.g. 6,12,18") from None
-    if not sizes or not all(1 <= n <= MAX_VEHICLES for n in sizes):
-        raise argparse.ArgumentTypeError(f"{text!r}: each a number of vehicles per frame from 1 to {MAX_VEHICLES}")
+        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated whole numbers, e.g. {minimum},18") from None
+    if not sizes or not all(minimum <= n <= MAX_VEHICLES for n in sizes):
+        each = (f"each 0 (the embedded scenario) or a number of vehicles per frame up to {MAX_VEHICLES}" if minimum == 0
+                else f"each a number of vehicles per frame from {minimum} to {MAX_VEHICLES}")
+        raise argparse.ArgumentTypeError(f"{text!r}: {each}")
     return sizes
 
 

@@ -429,16 +429,12 @@ def _cell(v: dict | None) -> str:
 
 
 def vehicle_counts(text: str) -> list[int]:
-    """``--vehicles``: comma-separated whole numbers, each 0 (the embedded scenario as it is) to ``MAX_VEHICLES``."""
-    from stages.lib.datasets.superimpose import MAX_VEHICLES
-
-    try:
-        counts = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated whole numbers, e.g. 0,18") from None
-    if not counts or not all(0 <= n <= MAX_VEHICLES for n in counts):
-        raise argparse.ArgumentTypeError(f"{text!r}: each 0 (the embedded scenario) or a number of vehicles per frame up to {MAX_VEHICLES}")
-    return counts
+    """``--vehicles``: bench/dense.py's, with 0 too (the embedded scenario as it is)."""
+    try:  # as a script, its folder is first on the module path
+        from dense import vehicle_counts as counts
+    except ImportError:
+        from bench.dense import vehicle_counts as counts
+    return counts(text, minimum=0)
 
 
 def main() -> int:

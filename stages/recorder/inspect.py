@@ -266,13 +266,18 @@ class _Records:
             self._records = StreamReader(self.f, skip_magic=True, emit_chunks=True, record_size_limit=_RECORD_SIZE_LIMIT).records
 
 
-def _summary_records(path: str) -> tuple[dict[int, Schema], dict[int, Channel]]:
-    """The schemas and channels of ``path``'s summary section (mcap's reader), empty when it has none that reads."""
+def _summary(path: str):
+    """``path``'s summary section (mcap's reader), None when it has none that reads (no footer, a damaged summary)."""
     try:
         with open(path, "rb") as f:
-            summary = make_reader(f).get_summary()
-    except Exception:  # noqa: BLE001 - no footer, or a damaged summary: nothing to add
-        return {}, {}
+            return make_reader(f).get_summary()
+    except Exception:  # noqa: BLE001 - nothing to add
+        return None
+
+
+def _summary_records(path: str) -> tuple[dict[int, Schema], dict[int, Channel]]:
+    """The schemas and channels of ``path``'s summary section, empty when it has none that reads."""
+    summary = _summary(path)
     if summary is None:
         return {}, {}
     return dict(summary.schemas), dict(summary.channels)
@@ -282,11 +287,7 @@ def summary_counts(path: str) -> dict[str, Any] | None:
     """A finished recording's message count and counts per topic from its summary section's statistics, without
     reading its messages (the launcher's report at the end of a run: reading a 2 GB file took 10 s); None when the file
     has no summary with statistics (torn, or written without them): then ``inspect`` reads it."""
-    try:
-        with open(path, "rb") as f:
-            summary = make_reader(f).get_summary()
-    except Exception:  # noqa: BLE001 - no footer, a damaged summary
-        return None
+    summary = _summary(path)
     if summary is None or summary.statistics is None:
         return None
     per_topic: collections.Counter[str] = collections.Counter()

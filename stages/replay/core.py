@@ -243,8 +243,10 @@ def play(
     (followed here on the target run when None), with a grace of
     ``FIRST_ACK_GRACE_S`` for nodes that never ack (tools), except the
     ``expected`` ones (the awaited pipeline nodes), waited for as long as
-    one behind. ``stats``, when given, counts every message published and
-    the player's skipped and damaged counters (the replay's ``NodeStats``).
+    one behind. ``stats``, when given, counts every message published, and
+    at the end the player's skipped and damaged counters (the replay's
+    ``NodeStats``; ``run_replay``'s reporter copies them in before each of
+    its messages too).
     """
     summary = ReplaySummary()
     publishers: dict[str, Callable[[bytes], None]] = {}
@@ -290,7 +292,6 @@ def play(
             summary.published += 1
             if stats is not None:
                 stats.processed((time.perf_counter() - t0) * 1e3, msg.stamp_ns)
-                sync_stats(stats, player)
         if as_fast and not stop.is_set():
             pacer.drain(abort=stop.is_set)
     summary.stopped = stop.is_set()
@@ -347,7 +348,7 @@ def run_replay(
         with BusClient(mode, connect, listen, config_file) as bus:
             bus.declare_token(keys.alive_key(token_run, node_id))
             stats = StatsReporter(bus.publisher(keys.stats_key(token_run, node_id), block=True), token_run, node_id, SPEC.stage,
-                                  period_s=stats_period_s, counters=REPLAY_COUNTERS).start()
+                                  period_s=stats_period_s, counters=REPLAY_COUNTERS, refresh=lambda: sync_stats(stats, player)).start()
             try:
                 return _replay_on(bus, player, config, stats, token_run=token_run, node_id=node_id, stop=stop, log=log, await_nodes=await_nodes,
                                   listening=listen)

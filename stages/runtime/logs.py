@@ -97,8 +97,10 @@ class StatsReporter:
     the same names, the same message.
     """
 
-    def __init__(self, put: Callable[[bytes], None], run_id: str, node_id: str, stage: str, period_s: float = 1.0, counters: Iterable[str] = ()) -> None:
+    def __init__(self, put: Callable[[bytes], None], run_id: str, node_id: str, stage: str, period_s: float = 1.0, counters: Iterable[str] = (),
+                 refresh: Callable[[], None] | None = None) -> None:
         self._put = put
+        self._refresh = refresh  # called before each message: counters kept elsewhere copied in then, not per item
         self._ids = (run_id, node_id, stage)
         self._period_s = period_s
         self._started = time.monotonic()
@@ -137,6 +139,8 @@ class StatsReporter:
             return self.stats.summary()
 
     def publish(self) -> None:
+        if self._refresh is not None:
+            self._refresh()
         with self._lock:
             msg = self.stats.message(*self._ids, self._started, 0)
         try:

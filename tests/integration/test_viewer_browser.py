@@ -381,8 +381,6 @@ def test_results_join_their_frames_by_stamp_however_late(scenario_sets_30):
 def test_a_stage_that_stops_is_called_out_not_shown_as_a_run_without_it(scenario_sets_30, monkeypatch):
     """markov_prediction stopped (kill -STOP) for 30 s: once its last results had left the 20 s history the page said
     "showing: live" over frames without means or grid, and its Stages row kept its last figures as if current."""
-    import time as _time
-
     from stages.viewer import scene as viewer_scene
     from stages.viewer.config import ViewerConfig
     from stages.viewer.model import FrameHistory
@@ -412,10 +410,8 @@ def test_a_stage_that_stops_is_called_out_not_shown_as_a_run_without_it(scenario
         for i, s in enumerate(sets):
             app.update(s if i < 10 else {"track_frame": s["track_frame"], "scene": s["scene"], "corridor_set": s["corridor_set"]})
         app.wait_drawn(lambda summary: summary.get("frame") == sets[-1]["track_frame"].header.frame_index, 60)
-        deadline = _time.monotonic() + 30
-        while _time.monotonic() < deadline and not ("no corridor predictions" in app._gui["status"].content
-                                                     and "· **silent" in app._gui["stages"].content):  # (drawn by the render thread)
-            _time.sleep(0.1)
+        wait_until(lambda: "no corridor predictions" in app._gui["status"].content and "· **silent" in app._gui["stages"].content,
+                   30, "the status naming the stopped results and the silent stage (drawn by the render thread)", interval_s=0.1)
         status = app._gui["status"].content
         assert "no corridor predictions, motion grid" in status and "stage has stopped" in status, status
         assert "**markov_prediction** · **silent" in app._gui["stages"].content

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import bus_schemas as bs
-from testkit.helpers import RecordingPublisher
+from testkit.helpers import RecordingPublisher, wait_until
 from testkit.samples import SAMPLES
 from stages.lib.base import ConfigMixin, Issue, StageResult
 from stages.runtime import IssueLog, Node, Port, ProblemLog, StageSpec, build_parser
@@ -526,19 +526,16 @@ def test_inputs_that_fall_silent_are_reported_once_and_their_return_too(log, cap
     node._stats_pub = RecordingPublisher()
     handled = []
 
-    def until(condition):
-        deadline = _time.monotonic() + 30
-        while not condition() and _time.monotonic() < deadline:
-            _time.sleep(0.02)
-
     def feed():
-        node.queue.put((None, "a", b"", 0), None, 0)
-        until(lambda: node._silent_since is not None)  # silent for > 0.3 s: reported once, however many loop turns
-        until(lambda: _time.monotonic() - node._last_input_mono >= 1.0)  # (a second of silence: the return's figure)
-        node.queue.put((None, "b", b"", 0), None, 0)
-        until(lambda: node._silent_since is None)
-        node.stop_event.set()
-        node.signals = 2
+        try:  # (a wait that times out ends the feed; the assertions below then say what was missing)
+            node.queue.put((None, "a", b"", 0), None, 0)
+            wait_until(lambda: node._silent_since is not None, 30, "the silence reported")  # > 0.3 s: once, however many loop turns
+            wait_until(lambda: _time.monotonic() - node._last_input_mono >= 1.0, 30, "a second of silence")  # (the return's figure)
+            node.queue.put((None, "b", b"", 0), None, 0)
+            wait_until(lambda: node._silent_since is None, 30, "the input resumed")
+        finally:
+            node.stop_event.set()
+            node.signals = 2
 
     t = threading.Thread(target=feed)
     t.start()
