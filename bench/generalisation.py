@@ -34,16 +34,19 @@ direction is the closer one to a held-out test; the K733 -> K729 direction
 still evaluates on data whose statistics guided those defaults (only the AR
 model is held out there).
 
-With ``--calibrate`` each direction first fits the grids' spread on the
+Without ``--calibrate`` the grids are raw (``spread_calibration = ""``,
+``spread_online = false``): the stage's default spread table was fitted on
+both locations, so its coverage would be in-sample on either. With
+``--calibrate`` each direction first fits the grids' spread on the
 training location with its model (``iamp calibrate --recording A --model
 <that model> --stride 0.8``, every mode; the file is cached beside the model,
 keyed by the model, the ``--set`` values, the modes' spread shapes and the
 project's code; ``--recalibrate`` fits again) and the eval reads it (``--set spread_calibration=FILE``), so the
 coverage is calibrated on one location and reported on the other. ``--set
 KEY=VALUE`` passes a markov_prediction parameter to both; ``--eval-set
-KEY=VALUE`` to ``iamp eval`` only (e.g. ``--eval-set spread_online=true``:
-the online spread on top of the table, which ``iamp calibrate`` does not
-take).
+KEY=VALUE`` to ``iamp eval`` only (e.g. ``--eval-set spread_online=false``:
+the table without the online spread on top, which is on by default and which
+``iamp calibrate`` does not take).
 
 Models are cached under ``artefacts/generalisation/`` keyed by training
 recording, seed and a hash of the training options (data folder and the
@@ -111,6 +114,8 @@ SLOW_FAST_MPS = 2.0
 OUT_DIR = Path("artefacts") / "generalisation"
 DEFAULT_JSON = Path("artefacts") / "generalisation.json"
 NEW_KEYS = ("by_manoeuvre", "along_track_m", "cross_track_m")
+#: without --calibrate: raw grids (stages.markov_prediction.config.RAW_GRIDS as iamp eval's --set values)
+RAW_SETS = ('spread_calibration=""', "spread_online=false")
 
 
 # --------------------------------------------------------------------------- subprocesses
@@ -524,6 +529,8 @@ def _run_seed(args, data: Path, names: list[str], seed: int) -> dict[str, Any]:
         if args.calibrate:
             cal = calibrate(data, RECORDINGS[a], train["model"], seed, sets, args.recalibrate)
             sets.append(f"spread_calibration={cal['file']}")
+        else:  # raw grids: the stage's default, the shipped table, was fitted on both locations (in-sample on either)
+            sets = [*RAW_SETS, *sets]
         sets.extend(args.eval_set)
         ev, ev_seconds, ev_path = eval_model(data, RECORDINGS[b], train["model"], seed, args.stride, args.max_frames, name, sets,
                                              tuple(m for m in MODES if m in args.modes))

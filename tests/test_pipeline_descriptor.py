@@ -154,24 +154,34 @@ def test_ar_inference_and_markov_prediction_must_share_the_input_cells():
         "input_min_mps2": -3.0, "input_max_mps2": 3.0, "n_inputs": 12}
 
 
-def test_calibrated_grids_flag_sets_the_spread_on_every_markov_node(capsys):
-    """``launch.py --calibrated-grids``: the shipped spread table and the online spread on every markov_prediction node
-    (the two shards of ``sharded`` too), a ``--set`` of either key still wins, and a pipeline without the stage is a
-    usage error. The stage's configs are the ones validated, so a key the stage did not know would fail here."""
+def test_grids_are_calibrated_by_default_and_raw_on_request(capsys):
+    """Every markov_prediction node (the two shards of ``sharded`` too) makes calibrated grids by default (the shipped
+    spread table and the online spread); ``launch.py --raw-grids`` turns both off on every one, ``--calibrated-grids``
+    names the default for a pipeline file that sets otherwise, a ``--set`` of either key still wins, the two flags
+    exclude each other, and a pipeline without the stage is a usage error. The stage's configs are the ones
+    validated, so a key the stage did not know would fail here."""
     from stages.runtime.launcher import build_parser, main, make_editor
 
-    for name, nodes in (("hybrid", {"markov_prediction"}), ("sharded", {"markov_0", "markov_1"})):
-        args = build_parser().parse_args([name, "--calibrated-grids", "--no-record"])
+    def markov(name: str, *flags: str) -> dict:
+        args = build_parser().parse_args([name, *flags, "--no-record"])
         pipeline = load_pipeline(REPO / "stages" / "pipelines" / f"{name}.toml", edit=make_editor(args))
-        markov = {n.id: n.config for n in pipeline.nodes if n.stage == "stages.markov_prediction"}
-        assert set(markov) == nodes and all(c.spread_calibration == "shipped" and c.spread_online for c in markov.values())
-        plain = load_pipeline(REPO / "stages" / "pipelines" / f"{name}.toml", edit=make_editor(build_parser().parse_args([name, "--no-record"])))
-        assert all(n.config.spread_calibration == "" and not n.config.spread_online for n in plain.nodes if n.stage == "stages.markov_prediction")
-    assert main(["--calibrated-grids", "--set", "markov_prediction.spread_online=false", "--describe"]) == 0
+        return {n.id: n.config for n in pipeline.nodes if n.stage == "stages.markov_prediction"}
+
+    for name, nodes in (("hybrid", {"markov_prediction"}), ("sharded", {"markov_0", "markov_1"})):
+        for flags in ((), ("--calibrated-grids",)):
+            found = markov(name, *flags)
+            assert set(found) == nodes and all(c.spread_calibration == "shipped" and c.spread_online for c in found.values())
+        raw = markov(name, "--raw-grids")
+        assert set(raw) == nodes and all(c.spread_calibration == "" and not c.spread_online for c in raw.values())
+    assert main(["--raw-grids", "--set", "markov_prediction.spread_online=true", "--describe"]) == 0
     out = capsys.readouterr().out
-    assert '"spread_calibration": "shipped", "spread_online": false' in out
-    assert main(["replay", "--var", "FILE=/nonexistent.mcap", "--calibrated-grids", "--check"]) == 2
-    assert "--calibrated-grids: the pipeline has no markov_prediction node" in capsys.readouterr().err
+    assert '"spread_calibration": "", "spread_online": true' in out
+    with pytest.raises(SystemExit) as stop:
+        build_parser().parse_args(["--raw-grids", "--calibrated-grids"])
+    assert stop.value.code == 2 and "not allowed with argument" in capsys.readouterr().err
+    for flag in ("--calibrated-grids", "--raw-grids"):
+        assert main(["replay", "--var", "FILE=/nonexistent.mcap", flag, "--check"]) == 2
+        assert f"{flag}: the pipeline has no markov_prediction node" in capsys.readouterr().err
 
 
 def test_shipped_pipelines_with_a_dataset_source_play_the_default_pipelines_recording():

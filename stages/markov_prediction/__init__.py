@@ -235,7 +235,7 @@ the measurement's box is used, so the window always holds the initial box.
 
 from __future__ import annotations
 
-from stages.markov_prediction.config import MODES, MarkovPredictionConfig
+from stages.markov_prediction.config import MODES, RAW_GRIDS, MarkovPredictionConfig
 from stages.markov_prediction.core import CV_LINE_ID, FramePrediction, MarkovPredictor, PairInfo
 
 __all__ = [
@@ -248,6 +248,7 @@ __all__ = [
     "MarkovPredictionConfig",
     "MarkovPredictor",
     "PairInfo",
+    "RAW_GRIDS",
     "main",
 ]
 

@@ -42,6 +42,10 @@ SPREAD_SHAPES = ("auto", "isotropic", "along")
 #: ``spread_shape = "auto"`` per mode: along the map corridors; round for cv, whose "corridor" is a straight ray (a
 #: turning car leaves it sideways: along it, its fast cars' coverage90 stayed at 0.75-0.85, docs/evaluation.md "Along the corridor")
 MODE_SPREAD_SHAPE = {"hybrid": "along", "baseline": "along", "corridor_cv": "along", "cv": "isotropic"}
+#: the parameters of raw grids, without the calibrated spread that is on by default (``launch.py --raw-grids``;
+#: ``bench/generalisation.py`` without ``--calibrate``): the chain's own distributions rasterised, over-confident for
+#: moving cars (docs/evaluation.md "Calibrated grids")
+RAW_GRIDS = {"spread_calibration": "", "spread_online": False}
 #: ``spread_online_max_mps = 0`` resolves to this per shape. isotropic 1.5 (fixed before any run, session 13); along
 #: 3.0: with 1.5 its c sat at the cap and K733's fast cars' coverage90 stayed at 0.83 (docs/evaluation.md "Along the corridor";
 #: chosen after seeing both locations)
@@ -198,10 +202,13 @@ class MarkovPredictionConfig(ConfigMixin):
     conflict_epsilon: float = 1e-4
     # constant-velocity baselines
     cv_accel_sigma_mps2: float = 1.0
-    # motion grid (§9)
-    grid_cell_m: float = 0.5
+    # motion grid (§9): 1 m cells, the chain's own resolution along the corridor (ds_m); 0.5 m cells hold the same
+    # mass in four times the cells (docs/method.md §9)
+    grid_cell_m: float = 1.0
     grid_lateral_sigma_m: float = 0.4
-    grid_substeps: int = 4
+    # samples along each s-cell's footprint; 0 (default): one every half grid cell, max(1, ⌈2·ds_m / grid_cell_m⌉)
+    # (4 on 0.5 m cells, 2 on 1 m ones), as the lateral offsets are; resolved at construction
+    grid_substeps: int = 0
     grid_extent_m: tuple[float, ...] = ()
     grid_margin_m: float = 3.0
     grid_min_value: float = 1e-5
@@ -209,13 +216,16 @@ class MarkovPredictionConfig(ConfigMixin):
     lateral_offset_decay_s: float = 1e6
     # calibrated spread (README "Calibrated grids"): a JSON file written by ``iamp calibrate`` with, per mode, the
     # Gaussian σ (m) along the corridor that widens each pair's s-distribution at each step, per start-speed band,
-    # for the grids only (the mean positions stay as they are); "" = none; "shipped" = stages/lib/ar/weights/spread_taf_bw.json (the shipped AR model's, fitted on all of TAF-BW)
-    spread_calibration: str = ""
+    # for the grids only (the mean positions stay as they are); "" = none (raw grids: over-confident for moving
+    # cars); "shipped" (default) = the shipped AR model's table for the shape, stages/lib/ar/weights/spread_taf_bw_along.json
+    # or spread_taf_bw.json (fitted on all of TAF-BW; with weights of your own, fit yours with ``iamp calibrate``)
+    spread_calibration: str = "shipped"
     # online spread (docs/evaluation.md "Online spread", online_spread.py): the grids of each start-speed band widened at each step
     # until their ``spread_online_target`` region holds the vehicles' later positions in that share of the checks
     # (the extra σ grows by c·t, c in [0, spread_online_max_mps] moved by spread_online_rate_mps per check); on top of
-    # the spread table, if any; only for vehicles starting faster than spread_online_min_speed_mps. Off: false
-    spread_online: bool = False
+    # the spread table, if any; only for vehicles starting faster than spread_online_min_speed_mps. On by default
+    # (it carries a table to a location it was not fitted on); false: the table alone
+    spread_online: bool = True
     spread_online_min_speed_mps: float = 2.0
     spread_online_target: float = 0.9
     spread_online_rate_mps: float = 0.05
@@ -308,6 +318,8 @@ class MarkovPredictionConfig(ConfigMixin):
         if self.kernel_threads < 1:
             raise ValueError(f"kernel_threads = {self.kernel_threads!r}: expected an integer >= 1 (1: the compiled chain on the"
                              " stage's own thread; 2 uses two cores)")
+        if self.grid_substeps == 0:  # resolved here so that every reader sees the samples in use
+            object.__setattr__(self, "grid_substeps", max(1, math.ceil(2.0 * self.ds_m / self.grid_cell_m - 1e-9)))
         for name in ("n_steps", "window_cells", "grid_substeps", "max_pairs", "grid_max_cells_per_step"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} = {getattr(self, name)!r}: must be >= 1")

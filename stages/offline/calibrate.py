@@ -75,7 +75,9 @@ class SpreadCalibration(Evaluation):
         n_steps, tau = 10, 0.4  # the margin's bound; the predictors' own steps are read below
         widest = math.hypot(max(sigmas_m), speed_noise_gain * SPEED_NOISE_CAP_MPS * n_steps * tau)
         margin = dict(config.params).get("grid_margin_m", 3.0) + 3.0 * widest  # no candidate's blur leaves the grid
-        super().__init__(dataclasses.replace(config, params=(*config.params, ("grid_margin_m", margin))))
+        # the candidates are applied to the raw grids: no table and no online spread under them (both are on by default)
+        raw = (("spread_calibration", ""), ("spread_online", False))
+        super().__init__(dataclasses.replace(config, params=(*config.params, ("grid_margin_m", margin), *raw)))
         self.sigmas_m = tuple(float(s) for s in sigmas_m)
         self.level = level
         self.speed_noise_gain = float(speed_noise_gain)
@@ -294,6 +296,8 @@ def run_cli(args) -> int:
                  "model": str(args.model) if args.model else "shipped", "model_sha256": _model_sha256(args.model),
                  "level": args.level, "sigmas_m": list(cal.sigmas_m),
                  "speed_noise_gain": cal.speed_noise_gain,
+                 # the grid the σ were fitted on (a table carries over between cell sizes; docs/evaluation.md, "Calibrated grids")
+                 "grid_cell_m": next(iter(cal.predictors.values())).config.grid_cell_m,
                  "params": {k: v for k, v in config.params}, "windows": {m: measured[m]["windows"] for m in tables}}
     write_spread(args.out, tables, fitted_on)
     print(format_fit(tables, measured))

@@ -156,6 +156,7 @@ from stages.lib.markov import load_or_build_stencils
 from stages.markov_prediction import FramePrediction, MarkovPredictionConfig, MarkovPredictor
 from stages.markov_prediction.core import grid_config
 from stages.markov_prediction.rasterise import GridFrame, highest_density_threshold
+from stages.markov_prediction.spread import resolve as spread_file
 from stages.intentions import IntentionsConfig
 from stages.offline.chain import Chain
 from stages.offline.truth import (
@@ -510,6 +511,28 @@ class Evaluation:
         if mismatch:
             out["warnings"] = [mismatch]
         return out
+
+    def _grids_provenance(self) -> dict[str, Any]:
+        """``grids``: which spread the scored grids carry (``spread_calibration``, ``spread_online``: calibrated by
+        default, raw with ``spread_calibration = ""``), the recordings the table was fitted on as its file says
+        (``spread_fitted_on``) and those of this evaluation among them (``spread_in_sample``: coverage and NLL there
+        are in-sample, optimistic; means and mADE do not depend on the spread)."""
+        if not self.predictors:
+            return {}
+        cfg = next(iter(self.predictors.values())).config
+        out: dict[str, Any] = {"spread_calibration": cfg.spread_calibration, "spread_online": bool(cfg.spread_online),
+                               "spread_fitted_on": [], "spread_in_sample": []}
+        if cfg.spread_calibration:
+            fitted: set[str] = set()
+            for predictor in self.predictors.values():
+                try:
+                    data = json.loads(spread_file(cfg.spread_calibration, predictor.config.spread_shape).read_text())
+                    fitted.update(str(r) for r in (data.get("fitted_on", {}) or {}).get("recordings") or [])
+                except (OSError, ValueError, AttributeError, TypeError):
+                    continue  # (the stage itself refused a bad file before this)
+            out["spread_fitted_on"] = sorted(fitted)
+            out["spread_in_sample"] = [r for r in self.recordings if r in fitted]
+        return {"grids": out}
 
     def _spread_model_mismatch(self) -> str:
         """'' unless hybrid reads a spread table (``spread_calibration = FILE``) that ``iamp calibrate`` fitted with other
@@ -891,6 +914,7 @@ class Evaluation:
             "intentions_ms_median": float(np.median(self.intentions_ms)) if self.intentions_ms else None,
             "model": str(self.ar_config.model) if self.ar_config is not None else None,
             **self._model_provenance(),
+            **self._grids_provenance(),
             "situations": [
                 {**sit.as_dict(), "vehicles": len(self.situation_seen.get(sit.name, {}).get("vehicles", ())),
                  "duration_s": round(self.situation_seen.get(sit.name, {}).get("seconds", 0.0), 3),
@@ -1057,6 +1081,16 @@ def format_table(report: dict[str, Any]) -> str:
         inside = report.get("model_in_sample") or []
         lines.append(f"hybrid's model {report['model_name']}, trained on {', '.join(report.get('model_trained_on') or []) or 'recordings it does not name'}"
                      + (f": IN-SAMPLE on {', '.join(inside)} (hybrid's figures there are optimistic)" if inside else ": every scored recording held out"))
+    grids = report.get("grids")
+    if grids:  # which spread the coverage and NLL columns are of, and where its table is in-sample
+        if not grids.get("spread_calibration"):
+            lines.append("grids: raw (spread_calibration = \"\"" + (", online spread on" if grids.get("spread_online") else "")
+                         + "): over-confident for moving cars")
+        else:
+            inside = grids.get("spread_in_sample") or []
+            lines.append(f"grids: calibrated (spread table {grids['spread_calibration']}, fitted on {', '.join(grids.get('spread_fitted_on') or []) or 'recordings it does not name'}"
+                         + (", online spread on)" if grids.get("spread_online") else ")")
+                         + (f": IN-SAMPLE on {', '.join(inside)} (cov50, cov90 and NLL there are optimistic)" if inside else ""))
     lines += [head, "-" * len(head)]
     for mode, res in report["modes"].items():
         for split, stats in (("overall", res["overall"]), ("slow", res["by_speed"]["slow"]), ("fast", res["by_speed"]["fast"])):

@@ -253,6 +253,15 @@ def write_report(evaluation, report: dict[str, Any], directory: Path, command: s
         L.append("*The shipped AR weights were trained on TAF-BW (K729 and K733): on these recordings hybrid's figures are"
                  " in-sample. For held-out figures train on one location and evaluate on the other (`bench/generalisation.py`).*")
         L.append("")
+    grids = report.get("grids") or {}
+    if grids.get("spread_in_sample"):  # the spread table names the recordings it was fitted on
+        L.append(f"*The grids' spread table ({grids.get('spread_calibration')}) was fitted on {', '.join(grids.get('spread_fitted_on') or [])}:"
+                 f" on {', '.join(grids['spread_in_sample'])} cov50, cov90 and NLL are in-sample (optimistic); means and mADE do not"
+                 " depend on it. For held-out coverage fit the table on another location (`bench/generalisation.py --calibrate`).*")
+        L.append("")
+    elif grids and not grids.get("spread_calibration"):
+        L.append("*Raw grids (`spread_calibration = \"\"`): over-confident for moving cars; cov90 is expected well under 0.9 for them.*")
+        L.append("")
     L.append("Timing figures are wall time on the machine that made the report, with whatever else ran on it;"
              " compare modes within this report only.")
     L.append("")

@@ -74,8 +74,11 @@ REPLAY_STAGE = "stages.replay"
 MAP_STAGES = {"stages.corridors", "stages.relations", "stages.intentions", "stages.viewer", "stages.foxglove_bridge"}  # each gets the source's data folder
 VIEWER_STAGE = "stages.viewer"
 MARKOV_STAGE = "stages.markov_prediction"
-#: ``--calibrated-grids``: markov_prediction's keys for calibrated grids (docs/evaluation.md, "Calibrated grids")
+#: ``--calibrated-grids`` / ``--raw-grids``: markov_prediction's keys for calibrated grids (its defaults, named for a
+#: pipeline file that sets others) and for raw ones (``stages.markov_prediction.config.RAW_GRIDS``; docs/evaluation.md,
+#: "Calibrated grids")
 CALIBRATED_GRIDS = {"spread_calibration": "shipped", "spread_online": True}
+RAW_GRIDS = {"spread_calibration": "", "spread_online": False}
 VIEWER_URL_RE = re.compile(r"viewer: (https?://\S+)\s*$")
 FOXGLOVE_STAGE = "stages.foxglove_bridge"
 FOXGLOVE_URL_RE = re.compile(r"foxglove: (wss?://\S+)\s*$")
@@ -133,11 +136,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-viewer", action="store_true", help="leave the viewer out")
     p.add_argument("--linger", action="store_true", help="when the sources finish (a replay, a recording played), keep every node up,"
                    " the viewer on the last frames, until Ctrl-C or --stop-after, instead of ending the run")
-    p.add_argument("--calibrated-grids", action="store_true",
-                   help="calibrated motion grids on every markov_prediction node: the shipped spread table and the online spread"
-                        " (spread_calibration = \"shipped\", spread_online = true), so that the 90 %% region holds the truth in about"
-                        " 90 %% of cases; the defaults' grids are over-confident for moving cars. Costs markov_prediction about twice"
-                        " its time (README, \"Where it stands\")")
+    grids = p.add_mutually_exclusive_group()
+    grids.add_argument("--calibrated-grids", action="store_true",
+                       help="calibrated motion grids on every markov_prediction node (its default, spread_calibration = \"shipped\","
+                            " spread_online = true; for a pipeline file that sets other values): the shipped spread table and the online"
+                            " spread, so that the 90 %% region holds the truth in about 90 %% of cases")
+    grids.add_argument("--raw-grids", action="store_true",
+                       help="raw motion grids on every markov_prediction node (spread_calibration = \"\", spread_online = false): the"
+                            " chain's own distributions, over-confident for moving cars (their 90 %% region holds the truth in 40-65 %%"
+                            " of cases) and cheaper (README, \"Where it stands\")")
     p.add_argument("--foxglove", action="store_true", help="add the live Foxglove bridge (node foxglove): the scene on a Foxglove WebSocket, ws://127.0.0.1:PORT printed")
     p.add_argument("--data", metavar="PATH", help="data folder laid out like stages/data/taf-bw (default: the embedded scenario); in a pipeline without a"
                    " dataset player (live) the folder whose maps/ the stages load the tracker's map from")
@@ -207,12 +214,14 @@ def make_editor(args: argparse.Namespace):
             raw.setdefault("bus", {})["run_id"] = args.run_id
         if getattr(args, "foxglove", False) and not any(n.get("stage") == FOXGLOVE_STAGE for n in nodes):
             nodes.append(foxglove_node(nodes))
-        if getattr(args, "calibrated_grids", False):
+        for flag, keys in (("calibrated_grids", CALIBRATED_GRIDS), ("raw_grids", RAW_GRIDS)):
+            if not getattr(args, flag, False):
+                continue
             markov = [n for n in nodes if n.get("stage") == MARKOV_STAGE]
             if not markov:
-                raise PipelineError("--calibrated-grids: the pipeline has no markov_prediction node to calibrate")
+                raise PipelineError(f"--{flag.replace('_', '-')}: the pipeline has no markov_prediction node")
             for n in markov:  # a --set of either key still wins: overrides come after this edit
-                n.setdefault("params", {}).update(CALIBRATED_GRIDS)
+                n.setdefault("params", {}).update(keys)
         if args.no_viewer:
             raw["nodes"] = nodes = [n for n in nodes if n.get("stage") != VIEWER_STAGE]
         if args.no_record:

@@ -9,7 +9,7 @@ import pytest
 
 import bus_schemas as bs
 from stages.lib.markov import InputPerState, MarkovGridConfig, MarkovPropagator, build_stencils, gamma_from_priority, initial_state, psi_matrix
-from stages.markov_prediction import CV_LINE_ID, MarkovPredictionConfig, MarkovPredictor
+from stages.markov_prediction import CV_LINE_ID, RAW_GRIDS, MarkovPredictionConfig, MarkovPredictor
 from stages.markov_prediction import core
 from stages.markov_prediction import priority as pr
 from stages.markov_prediction.chain import InputPriority, PriorityPropagator
@@ -242,7 +242,7 @@ def test_numpy_and_torch_cpu_agree(baseline, baseline_torch):
 
 
 def test_grid_sums_to_one_minus_outside_and_stays_on_the_road():
-    predictor = MarkovPredictor(MarkovPredictionConfig(grid_distribution="point", **PLAIN))
+    predictor = MarkovPredictor(MarkovPredictionConfig(grid_distribution="point", **PLAIN, **RAW_GRIDS))  # the chain's own grids
     straight, curve = _corridor(7, length=60.0), _corridor(8, length=60.0, radius=25.0)
     prediction, issues = predictor.process(_corridor_set(_vehicle(1, 12.0, [straight, curve])))
     assert any(i.kind == "corridor_too_short" for i in issues), "60 m is too short for 12 m/s: reported"

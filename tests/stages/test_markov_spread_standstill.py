@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
+from stages.markov_prediction import RAW_GRIDS, MarkovPredictionConfig, MarkovPredictor
 from stages.markov_prediction.spread import BLUR_MIN_VALUE, SCHEMA, SpreadTable, blur_grid, load_spread, write_spread
 from stages.offline.calibrate import smallest_sigma
 from tests.stages.test_markov_prediction import PLAIN, STAMP, _corridor, _corridor_set, _profiles, _relation, _relation_set, _vehicle
@@ -91,9 +91,9 @@ def test_spread_file_is_checked_and_read_per_mode_and_band(tmp_path):
 @pytest.mark.parametrize("mode", ["baseline", "corridor_cv"])
 def test_calibrated_spread_widens_the_grid_and_leaves_the_means(tmp_path, stencils, mode, shape):
     cs = _corridor_set(_vehicle(1, 8.0, [_corridor(7)]))
-    plain = MarkovPredictor(MarkovPredictionConfig(mode=mode, **PLAIN), stencils=stencils)
+    plain = MarkovPredictor(MarkovPredictionConfig(mode=mode, **PLAIN, **RAW_GRIDS), stencils=stencils)
     wide = MarkovPredictor(MarkovPredictionConfig(mode=mode, spread_calibration=str(_spread_file(tmp_path, mode, 4.0)),
-                                                  spread_shape=shape, **PLAIN), stencils=stencils)
+                                                  spread_online=False, spread_shape=shape, **PLAIN), stencils=stencils)
     a, _ = plain.process(cs, _relation_set(_relation(1, 7)))
     b, _ = wide.process(cs, _relation_set(_relation(1, 7)))
     np.testing.assert_array_equal(a.mean_xy_m, b.mean_xy_m)
@@ -228,7 +228,7 @@ def test_speed_noise_widens_the_calibrated_spread_of_a_scattering_track_only(tmp
     assert load_spread(str(plain_path), "corridor_cv", 10).speed_noise_gain == 0.0
 
     def run(spread: Path, speeds) -> tuple:
-        predictor = MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv", spread_calibration=str(spread), **PLAIN), stencils=stencils)
+        predictor = MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv", spread_calibration=str(spread), spread_online=False, **PLAIN), stencils=stencils)
         for i, v in enumerate(speeds):  # 0.1 s apart; the last frame is predicted
             pred, _ = predictor.process(_corridor_set(_vehicle(1, v, [_corridor(7)]), stamp=STAMP + i * 100_000_000),
                                         _relation_set(_relation(1, 7), stamp=STAMP + i * 100_000_000))

@@ -11,7 +11,7 @@ import pytest
 
 from stages.lib.datasets import DEFAULT_DATA_DIR
 from stages.lib.markov import MarkovGridConfig, load_or_build_stencils
-from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
+from stages.markov_prediction import RAW_GRIDS, MarkovPredictionConfig, MarkovPredictor
 from stages.markov_prediction.online_spread import OnlineSpread
 from stages.markov_prediction.rasterise import GridFrame, SparseGrid
 
@@ -110,9 +110,9 @@ def test_in_the_stage_it_widens_moving_vehicles_grids_and_leaves_their_means(fra
 
     caplog.set_level(logging.INFO, logger="test.markov")
     stencils = load_or_build_stencils(MarkovGridConfig())
-    plain = MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv"), stencils=stencils)
+    plain = MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv", **RAW_GRIDS), stencils=stencils)
     # the 50 % region misses about every other check of a moving car: the extra spread moves from the first
-    online = MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv", spread_online=True, spread_online_rate_mps=0.5,
+    online = MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv", spread_calibration="", spread_online=True, spread_online_rate_mps=0.5,
                                                     spread_online_target=0.5), stencils=stencils,
                              log=logging.getLogger("test.markov"))
     wider = 0

@@ -9,7 +9,7 @@ import pytest
 
 from stages.lib.datasets import DEFAULT_DATA_DIR
 from stages.lib.markov import MarkovGridConfig, frame_kernels, load_or_build_stencils
-from stages.markov_prediction import MarkovPredictionConfig, MarkovPredictor
+from stages.markov_prediction import RAW_GRIDS, MarkovPredictionConfig, MarkovPredictor
 from stages.markov_prediction.rasterise import (
     Centrelines, GridFrame, cell_footprints_arrays, lateral_kernel, lateral_table, vehicle_grid, vehicle_grids,
 )
@@ -190,7 +190,8 @@ def test_in_the_stage_the_along_spread_keeps_means_and_mass_with_fewer_cells(fra
     table.write_text(json.dumps({"schema": SCHEMA, "modes": {"corridor_cv": {"bands_mps": [0.5, 2.0], "sigma_m": sigma}}}))
     stencils = load_or_build_stencils(MarkovGridConfig())
     make = lambda **kw: MarkovPredictor(MarkovPredictionConfig(mode="corridor_cv", **kw), stencils=stencils)  # noqa: E731
-    plain, iso, along = make(), make(spread_calibration=str(table), spread_shape="isotropic"), make(spread_calibration=str(table))
+    plain, iso, along = make(**RAW_GRIDS), make(spread_calibration=str(table), spread_online=False, spread_shape="isotropic"), \
+        make(spread_calibration=str(table), spread_online=False)
     last = max(frames, key=lambda f: sum(v.speed_mps > 3.0 for v in f["corridor_set"].vehicles if v.corridors))
     args = (last["corridor_set"], last["relation_set"], last["scene"], last["track_frame"])
     p0, p_iso, p_along = (m.process(*args, intention_belief=last["intention_belief"])[0] for m in (plain, iso, along))
