@@ -98,12 +98,15 @@ P_stay is exactly 1 in float32 at every step: the chain of such a pair is
 weighed by exactly 0, so the compiled chain call leaves it out
 (``kernels.speed_priority_run(skip=...)``; the same outputs, byte for byte).
 
-Calibrated spread (``spread_calibration``, off by default): a file written
-by ``iamp calibrate`` gives, per mode, start-speed band and step, the σ of
-an isotropic Gaussian that blurs each vehicle's grid before fusion
+Calibrated spread (``spread_calibration``, default "shipped": the table the
+shipped AR model was fitted with on TAF-BW; "" for raw grids, which are
+over-confident for moving cars): a file written by ``iamp calibrate`` gives,
+per mode, start-speed band and step, the σ of a Gaussian that blurs each
+vehicle's grid before fusion, along its corridors (``spread_shape`` "along",
+the corridor modes; the lateral kernel widened with it) or round (cv)
 (``spread.py``; the corridor distributions and means do not change), widened
 per vehicle by its own speed noise when the file has a ``speed_noise_gain``.
-Online spread (``spread_online``, off by default; ``online_spread.py``): the
+Online spread (``spread_online``, on by default; ``online_spread.py``): the
 grids of vehicles starting faster than ``spread_online_min_speed_mps`` are
 widened further, by c·t per step, c per start-speed band learnt as the
 vehicles move on (each kept grid checked against the vehicle's later
@@ -166,10 +169,11 @@ the cell average, and spread it with σ_s(t) = √(σ0² + (½·σ_a·t²)²) al
 the line (``cv_accel_sigma_mps2`` 1) for the grid. The motion grid
 rasterises each pair's ``grid_distribution`` ("interval": occupancy during
 the step, Υ([0, τ]); "point": position at t_k) along the centreline with
-``grid_substeps`` samples per s-cell and a lateral Gaussian of
-``grid_lateral_sigma_m`` 0.4, weights corridors by their probability
+``grid_substeps`` samples per s-cell (default: one every half grid cell) and
+a lateral Gaussian of ``grid_lateral_sigma_m`` 0.4 (sampled every half cell),
+weights corridors by their probability
 (uniform over a vehicle's corridors), combines vehicles as 1 − Π(1 − G_n)
-and keeps cells above ``grid_min_value`` 1e-5 on a ``grid_cell_m`` 0.5 grid
+and keeps cells above ``grid_min_value`` 1e-5 on a ``grid_cell_m`` 1.0 grid
 whose extent is ``grid_extent_m`` (x_min, y_min, x_max, y_max) or, when
 empty, the occupied cells plus ``grid_margin_m``.
 

@@ -47,7 +47,7 @@ from stages.lib.markov import frame_kernels
 from stages.markov_prediction.rasterise import GridFrame, SparseGrid, gaussian_rows
 
 SCHEMA = "iamp-spread-calibration/1"
-#: a blurred step keeps only the cells above this value: the blur's far tails (at σ = 6 m on 0.5 m cells, half
+#: a blurred step keeps only the cells above this value: the blur's far tails (measured at σ = 6 m on 0.5 m cells: half
 #: of the cells and about 0.1 % of the mass) are left out. Below ``iamp eval``'s NLL floor (1e-6, which scores a
 #: missing cell the same) and a tenth of the MotionGrid's ``grid_min_value``; a highest-density region never
 #: reaches them (its threshold is fixed by the cells above it)
