@@ -43,7 +43,15 @@ yyyymmdd-hhmmss>.mcap`` under the current directory), ``chunk_size_bytes``,
 ``_stats`` keys), ``flush_period_s``, ``split_bytes`` (0: no size limit),
 ``split_s`` (0: no duration limit), ``split_index`` (the split this process
 writes first; 0 is ``path`` itself), ``overwrite`` (false: a ``path`` that is
-there, or a split of it, is refused before anything is written).
+there, or a split of it, is refused before anything is written),
+``keep_splits`` (with splits: keep only the newest this many files, deleting
+older ones as new splits receive their first message; 0: keep all),
+``min_free_mb`` (default 64; 0: none): the free-space floor, checked about
+once a second, below which the oldest kept split is deleted or, with none to
+delete, the current file is finished (it reads whole) and recording stops:
+one ERROR line, every later message an issue ``not_recorded``, exit 1 at the
+end (``end_failure``). A write error (a disk full before the floor saw it)
+stops it the same way, the file then torn.
 
 Files: each is locked (``flock``) while written, so a second recorder on it
 is refused; a file the recorder made and never wrote a message into is

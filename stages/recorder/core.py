@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
+import math
 import os
 import re
+import shutil
 import sys
 import threading
 import time
@@ -76,6 +79,13 @@ class RecorderConfig(ConfigMixin):
     split_s: float = 0.0
     split_index: int = 0
     overwrite: bool = False
+    #: with split_bytes or split_s: keep only the newest this many split files of the run, deleting older ones as
+    #: new splits open (0: keep every split). A bounded ring of recent files for unattended runs
+    keep_splits: int = 0
+    #: stop cleanly when the recording's file system has less than this many MiB free (checked about once a second):
+    #: with keep_splits the oldest kept split is deleted first; else the current file is finished (it reads whole) and
+    #: every later message is counted as not_recorded. 0: no floor (write until the disk is full)
+    min_free_mb: float = 64.0
 
     def __post_init__(self) -> None:
         if self.compression not in COMPRESSIONS:
@@ -90,6 +100,12 @@ class RecorderConfig(ConfigMixin):
             raise ValueError(f"split_s must be >= 0 (0: no duration limit), got {self.split_s}")
         if self.split_index < 0:
             raise ValueError(f"split_index must be >= 0, got {self.split_index}")
+        if self.keep_splits < 0:
+            raise ValueError(f"keep_splits must be >= 0 (0: keep every split), got {self.keep_splits}")
+        if self.keep_splits and not (self.split_bytes or self.split_s):
+            raise ValueError(f"keep_splits = {self.keep_splits} needs split_bytes or split_s > 0 (without them the recording is one file)")
+        if not (self.min_free_mb >= 0 and math.isfinite(self.min_free_mb)):
+            raise ValueError(f"min_free_mb must be a number >= 0 (0: no floor), got {self.min_free_mb}")
 
 
 def check_not_there(base: Path, overwrite: bool) -> None:
@@ -144,6 +160,9 @@ class McapRecorder:
         self.latched_repeats = 0  # latched payloads equal to the one the file held on their key: not written again
         self.write_failed: OSError | None = None  # the error that stopped the recording (a full disk): nothing is written after it
         self.not_recorded = 0  # messages received after it
+        self.finished_early = False  # stopped by the free-space floor: the file was finished first (it reads whole)
+        self.splits_removed = 0  # old splits deleted (keep_splits, or to stay above min_free_mb)
+        self._space_checked = 0.0  # monotonic time of the last free-space check
         self._created: list[Path] = []  # files this recorder created (not there before it)
         # the first file's folder now, with a message that names the parameter (an OSError later, at a split, is a crash)
         check_output(split_path(self.base_path, self.split_index), "path")
@@ -230,6 +249,65 @@ class McapRecorder:
         self.split_index += 1
         self._open_file()
 
+    def _prune_splits(self) -> None:
+        """keep_splits: the newest ``keep_splits`` files stay, the current one among them (called when the current split
+        receives its first message: a split the last cut opened and nothing reached is removed at the close instead)."""
+        older = self._older_splits()
+        for _index, path in older[: max(0, len(older) - (self.config.keep_splits - 1))]:
+            self._remove_split(path, f"keep_splits = {self.config.keep_splits}")
+
+    def _older_splits(self) -> list[tuple[int, Path]]:
+        """This recording's split files on disk before the current one, oldest first."""
+        return [(i, p) for i, p in split_paths(self.base_path) if i < self.split_index]
+
+    def _remove_split(self, path: Path, why: str) -> bool:
+        """Delete one finished split file (``why``: the rule that asked); False where it could not be."""
+        try:
+            path.unlink()
+        except OSError as exc:
+            self.log.warning("could not remove split %s (%s): %s", path, why, exc.strerror or exc)
+            return False
+        self.splits_removed += 1
+        self.log.info("split removed (%s): path=%s", why, path)
+        return True
+
+    def _check_space(self) -> None:
+        """The free-space floor (the lock held, about once a second): below ``min_free_mb`` delete the oldest kept split
+        (with keep_splits) or finish the current file and stop recording (one ERROR line)."""
+        floor = self.config.min_free_mb
+        now = time.monotonic()
+        if not floor or now - self._space_checked < 1.0:
+            return
+        self._space_checked = now
+        try:
+            free = shutil.disk_usage(self.path.parent).free
+        except OSError:
+            return  # (the write that fails then says what is wrong)
+        if free >= floor * 2**20:
+            return
+        older = self._older_splits() if self.config.keep_splits else []
+        if older and self._remove_split(older[0][1], f"{free / 2**20:.0f} MiB free, min_free_mb = {floor:g}"):
+            return
+        self._finish_early(free)
+
+    def _finish_early(self, free: int) -> None:
+        """Below the free-space floor with nothing to delete: the current file finished (summary and indexes: it reads
+        whole) and closed, one ERROR line, every later message ``not_recorded``, the node's exit 1 at the end."""
+        reason = f"{free / 2**20:.0f} MiB free on its file system, below min_free_mb = {self.config.min_free_mb:g}"
+        try:
+            self._writer.finish()
+            self._file.close()
+            self.finished_early = True
+        except OSError as exc:
+            self._stop_writing(exc)
+            return
+        self.write_failed = OSError(errno.ENOSPC, reason)
+        self.log.error(
+            "recording stopped: %s, after %d messages; %s is finished and reads whole; the run goes on without recording,"
+            " every later message counted as not_recorded (free space, or bound the recording with recorder.split_bytes and"
+            " keep_splits)", reason, self.messages, self.path,
+        )
+
     def __enter__(self) -> "McapRecorder":
         return self
 
@@ -293,9 +371,13 @@ class McapRecorder:
         self._write(key, payload, recv_ns, publish_ns, schema_name)
         self.messages += 1
         self._file_fresh += 1
+        if self._file_fresh == 1 and self.config.keep_splits:
+            self._prune_splits()
         self.old_versions += old_version
         if self._split_due():
             self._next_split()
+            self._space_checked = 0.0  # a new file: the floor checked at once
+            self._check_space()
         elif self._chunk_bytes >= self.config.chunk_size_bytes or time.monotonic() - self._chunk_opened >= self.config.flush_period_s:
             self._close_chunk()
         if issue is None:
@@ -369,6 +451,7 @@ class McapRecorder:
                         self._next_split()
                     elif self._chunk_bytes and time.monotonic() - self._chunk_opened >= period:
                         self._close_chunk()
+                    self._check_space()
                 except OSError as exc:  # (it was logged every 0.25 s, thousands of lines, while the disk stayed full)
                     self._stop_writing(exc)
 
@@ -386,7 +469,7 @@ class McapRecorder:
                 self._stop_writing(exc)
             finally:
                 try:
-                    self._file.close()
+                    self._file.close()  # (a second close of a file finished early does nothing)
                 except OSError as exc:
                     self._stop_writing(exc)
             if not self._file_fresh and len(self.paths) > 1:  # opened by the last cut, never used
@@ -394,7 +477,9 @@ class McapRecorder:
                 self.paths.pop()
                 self.path = self.paths[-1]
         if len(self.paths) > 1:
-            self.log.info("recording closed: path=%s messages=%d channels=%d old_versions=%d latched_repeats=%d splits=%d (%s)", self.path, self.messages, self.channels, self.old_versions, self.latched_repeats, len(self.paths), ", ".join(p.name for p in self.paths))
+            kept = [p for p in self.paths if p.exists()]
+            self.log.info("recording closed: path=%s messages=%d channels=%d old_versions=%d latched_repeats=%d splits=%d (%s)%s", self.path, self.messages, self.channels, self.old_versions, self.latched_repeats, len(self.paths), ", ".join(p.name for p in kept),
+                          f"; {self.splits_removed} older splits removed" if self.splits_removed else "")
         else:
             self.log.info("recording closed: path=%s messages=%d channels=%d old_versions=%d latched_repeats=%d", self.path, self.messages, self.channels, self.old_versions, self.latched_repeats)
 
@@ -402,6 +487,9 @@ class McapRecorder:
         """Why the run's recording is not whole, for the node's exit code (1), or None: it stopped on a write error."""
         if self.write_failed is None:
             return None
+        if self.finished_early:
+            return (f"the recording stopped early: {self.write_failed.strerror}; {self.messages} messages recorded ({self.path}"
+                    f" reads whole), {self.not_recorded} received after it not recorded")
         return (f"the recording stopped on a write error ({self.write_failed.strerror or self.write_failed}) after {self.messages}"
                 f" messages; {self.not_recorded} received after it were not recorded; {self.path} is torn: `iamp recover` reads it")
 

@@ -96,7 +96,50 @@ def test_split_index_starts_at_a_later_split_and_stale_files_are_told_apart(tmp_
     assert split_paths(base, since_s=base.stat().st_mtime + 3600) == []
 
 
-@pytest.mark.parametrize("bad", [{"split_bytes": -1}, {"split_s": -0.5}, {"split_index": -1}])
+def test_keep_splits_keeps_the_newest_files_each_reading_alone(tmp_path):
+    """``keep_splits = 2``: as splits open, older ones are deleted; the two left are finished, start with the scene and
+    hold the newest frames, in order."""
+    base = tmp_path / "run.mcap"
+    frame_key, scene_key = keys.data_key("t1", "source", "track_frame"), keys.data_key("t1", "source", "scene")
+    frames = [make_frame(i, "t1").encode() for i in range(60)]
+    with McapRecorder(RecorderConfig(path=str(base), chunk_size_bytes=2000, split_bytes=6000, keep_splits=2), "t1") as rec:
+        rec.handle(scene_key, make_scene("t1").encode(), STAMP0_NS)
+        for i, data in enumerate(frames):
+            rec.handle(frame_key, data, STAMP0_NS + 1 + i)
+    files = split_paths(base)
+    assert len(files) == 2 and rec.splits_removed == len(rec.paths) - 2 >= 2, (files, rec.paths)
+    assert [p for _, p in files] == rec.paths[-2:]
+    got = []
+    for _i, p in files:
+        msgs = read_whole(p)
+        assert msgs[0][1] == "iamp.SceneInfo", "each kept split reads alone: the scene first"
+        got += [d for t, _s, d, _q in msgs[1:] if t == frame_key]
+    assert got == frames[-len(got):] and len(got) >= 2, "the newest frames, in order"
+
+
+def test_free_space_floor_finishes_the_file_and_counts_what_follows(tmp_path):
+    """Below ``min_free_mb`` (here more than any disk has, so the real free space is always below it) the recorder
+    finishes its file (summary and indexes: it reads whole), says so once, counts every later message as
+    ``not_recorded`` and reports the early stop for the node's exit code; nothing raises."""
+    base = tmp_path / "run.mcap"
+    frame_key = keys.data_key("t1", "source", "track_frame")
+    rec = McapRecorder(RecorderConfig(path=str(base), min_free_mb=1e12), "t1")
+    try:
+        assert rec.handle(frame_key, make_frame(0, "t1").encode(), STAMP0_NS) is None
+        h.wait_until(lambda: rec.finished_early, 10.0, "the flush timer's free-space check")
+        issues = rec.handle(frame_key, make_frame(1, "t1").encode(), STAMP0_NS + 1)
+        assert [i.kind for i in issues] == ["not_recorded"] and "min_free_mb" in issues[0].detail
+    finally:
+        rec.close()
+    assert rec.not_recorded == 1 and rec.messages == 1
+    assert [d for t, _s, d, _q in read_whole(base)] == [make_frame(0, "t1").encode()]
+    assert "reads whole" in rec.end_failure()
+    with pytest.raises(ValueError, match="keep_splits = 2 needs split_bytes or split_s"):
+        RecorderConfig(keep_splits=2)
+
+
+@pytest.mark.parametrize("bad", [{"split_bytes": -1}, {"split_s": -0.5}, {"split_index": -1}, {"keep_splits": -1}, {"min_free_mb": -1.0},
+                                 {"min_free_mb": float("nan")}])
 def test_bad_split_parameters_are_refused(bad):
     with pytest.raises(ValueError):
         RecorderConfig(**bad)
