@@ -45,6 +45,9 @@ def _args_record(p: argparse.ArgumentParser) -> None:
     p.add_argument("--flush-period-s", type=float, default=None, help="close the open chunk at least this often (default 1)")
     p.add_argument("--split-bytes", type=int, default=None, help="start the next split file (FILE.001.mcap, ...) at about this size (default 0: never)")
     p.add_argument("--split-s", type=float, default=None, help="start the next split file after this many seconds (default 0: never)")
+    p.add_argument("--keep-splits", type=int, default=None, help="with --split-bytes or --split-s: keep only the newest N split files (default 0: all)")
+    p.add_argument("--min-free-mb", type=float, default=None, help="finish the file and stop recording (or delete the oldest kept split) below this much"
+                   " free space on its file system, MiB (default 64; 0: none)")
     p.add_argument("--no-stats", action="store_true", help="leave out the _stats keys")
     p.add_argument("--overwrite", action="store_true", help="replace FILE.mcap (and its split files) where it exists; without it an existing file is refused")
     from stages.runtime import add_network_args
@@ -60,7 +63,7 @@ def _run_record(args: argparse.Namespace) -> int:
     from stages import recorder
 
     params: dict[str, object] = {"path": args.file}
-    for name in ("compression", "chunk_size_bytes", "flush_period_s", "split_bytes", "split_s"):
+    for name in ("compression", "chunk_size_bytes", "flush_period_s", "split_bytes", "split_s", "keep_splits", "min_free_mb"):
         if getattr(args, name) is not None:
             params[name] = getattr(args, name)
     if args.no_stats:
