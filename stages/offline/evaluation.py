@@ -539,10 +539,10 @@ class Evaluation:
         AR weights than the ones scored: hybrid's spread belongs to its model (the table was applied without a word)."""
         hybrid = self.predictors.get("hybrid")
         table = hybrid.config.spread_calibration if hybrid is not None else ""
-        if not table or table == "shipped":
+        if not table:
             return ""
         try:
-            data = json.loads(Path(table).expanduser().read_text())
+            data = json.loads(spread_file(table, hybrid.config.spread_shape).read_text())
             fitted = data.get("fitted_on", {}) if "hybrid" in data.get("modes", {}) else {}
         except (OSError, ValueError, AttributeError, TypeError):
             return ""
@@ -550,9 +550,10 @@ class Evaluation:
         ours = str(self._ar_model_name).rpartition("@")[2]
         if not sha or not ours or sha.startswith(ours):
             return ""
-        return (f"spread_calibration = {table}: fitted with AR weights {fitted.get('model', '?')} (sha256 {sha[:12]}), scored with"
-                f" {self._ar_model_name}: hybrid's coverage and NLL are those of another model's spread; refit it with"
-                " `iamp calibrate --model` of these weights")
+        return (f"spread_calibration = {table}{' (the default)' if table == 'shipped' else ''}: fitted with AR weights"
+                f" {fitted.get('model', '?')} (sha256 {sha[:12]}), scored with {self._ar_model_name}: hybrid's coverage and NLL are"
+                " those of another model's spread (the online spread corrects part of it); fit a table for these weights with"
+                " `iamp calibrate --model` and pass it with --set spread_calibration=FILE")
 
     def _skip(self, reason: str, detail: str, count: int = 1) -> None:
         """Count ``count`` things skipped for ``reason``; the first one's ``detail`` is kept for the table."""

@@ -308,4 +308,14 @@ def test_iamp_eval_warns_when_hybrid_s_spread_table_was_fitted_with_other_weight
         assert cli.main(["eval", "--mode", "hybrid", "--max-frames", "5", "--no-progress", "--set", f"spread_calibration={table}"]) == 0
         out = capsys.readouterr().out
         assert ("WARNING: spread_calibration = " in out and "fitted with AR weights other.pt" in out) is warned, out[:600]
+    # the default table (shipped) read while scoring weights of one's own: said too, with what to do
+    import torch
+
+    blob = torch.load(DEFAULT_MODEL_PATH, map_location="cpu", weights_only=False)
+    own = tmp_path / "own.pt"
+    torch.save({**blob, "note": "a copy saved again: other bytes"} if isinstance(blob, dict) else blob, own)
+    assert hashlib.sha256(own.read_bytes()).hexdigest() != shipped_sha
+    assert cli.main(["eval", "--mode", "hybrid", "--max-frames", "5", "--no-progress", "--model", str(own)]) == 0
+    out = capsys.readouterr().out
+    assert "WARNING: spread_calibration = shipped (the default): fitted with AR weights shipped" in out and "iamp calibrate --model" in out, out[:600]
 
