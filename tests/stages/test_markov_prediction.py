@@ -321,6 +321,20 @@ def test_config_names_what_to_fix():
         MarkovPredictionConfig.from_params({"device": "cuda"})
 
 
+def test_defaults_are_calibrated_grids_on_1_m_cells_sampled_every_half_cell():
+    """The grids' defaults: the shipped spread table and the online spread on 1 m cells; ``grid_substeps`` 0 resolves
+    to a footprint sample every half cell along (⌈2·ds/cell⌉) at construction, so every reader sees the number in use;
+    RAW_GRIDS turns the spread off."""
+    cfg = MarkovPredictionConfig()
+    assert (cfg.spread_calibration, cfg.spread_online, cfg.grid_cell_m, cfg.grid_substeps) == ("shipped", True, 1.0, 2)
+    assert MarkovPredictionConfig(grid_cell_m=0.5).grid_substeps == 4 and MarkovPredictionConfig(grid_cell_m=0.3).grid_substeps == 7
+    assert MarkovPredictionConfig(grid_cell_m=4.0).grid_substeps == 1 and MarkovPredictionConfig(grid_substeps=3).grid_substeps == 3
+    raw = MarkovPredictionConfig(**RAW_GRIDS)
+    assert (raw.spread_calibration, raw.spread_online) == ("", False)
+    with pytest.raises(ValueError, match="grid_substeps = -1"):
+        MarkovPredictionConfig(grid_substeps=-1)
+
+
 # --------------------------------------------------------------------------- intentions and hybrid inputs
 
 
