@@ -60,6 +60,10 @@ def test_report_has_every_key_with_finite_values(slice_report):
     assert report["corridor_weights"] == "intentions" and report["intentions_ms_median"] > 0
     table = format_table(report)
     assert "baseline" in table and "by manoeuvre (true future)" in table and "along-track bias at 4 s" in table
+    # the grids are the default's, calibrated with the shipped table, which was fitted on this very recording (in-sample)
+    grids = report["grids"]
+    assert grids["spread_calibration"] == "shipped" and grids["spread_online"] and grids["spread_in_sample"] == [DEFAULT_RECORDING]
+    assert DEFAULT_RECORDING in grids["spread_fitted_on"] and f"IN-SAMPLE on {DEFAULT_RECORDING} (cov50, cov90 and NLL" in table
     json.dumps(report)
 
 
