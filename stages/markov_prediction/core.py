@@ -56,7 +56,7 @@ from stages.markov_prediction.modes.cv import CV_LINE_ID
 from stages.markov_prediction.initial_blend import OnlineInitialBlend
 from stages.markov_prediction.curve_choice import OnlineCurveChoice, OnlineLeadChoice, OnlineShiftChoice, frame_tested, sampled
 from stages.markov_prediction.online_spread import DEFAULT_BANDS_MPS, OnlineSpread
-from stages.markov_prediction.spread import ALONG_TRUNCATE, SpreadTable, blur_along, blur_grid, load_spread
+from stages.markov_prediction.spread import ALONG_TRUNCATE, SpreadTable, blur_along, blur_grid, fold_behind, load_spread
 from stages.markov_prediction.rasterise import (
     Centrelines, FootprintBatch, GridFrame, SparseGrid, cell_footprints_arrays, fuse, lateral_kernel, lateral_table, vehicle_grids,
 )
@@ -1471,7 +1471,8 @@ class MarkovPredictor:
         raw_lower = cell_lower = s_first[:, None] + lower[None, :]  # (B, L)
         if cfg.spread_shape == "along" and (self.spread is not None or self.online is not None) and n_b:
             # the grids only (pos and interval stay): along the corridor, and across it per step
-            grid_probs, cell_lower, lateral_kernel_, lateral = self._along(grid_probs, self._vehicle_sigmas(pairs), cell_lower, end_s)
+            grid_probs, cell_lower, lateral_kernel_, lateral = self._along(grid_probs, self._vehicle_sigmas(pairs), cell_lower, end_s,
+                                                                           np.array([p.s0_m for p in pairs], dtype=np.float64))
         used = grid_probs.max(axis=1) > 0 if n_b else None  # (B, L): the cells that hold mass at some step, the only ones rasterised
         batch = cell_footprints_arrays(lines, cell_lower, cfg.ds_m, cfg.grid_substeps, *lateral_kernel_, used=used) if n_b else None
         frame = self._grid_frame(batch, used)
@@ -1538,14 +1539,15 @@ class MarkovPredictor:
             sigma[b] = by_track[p.track_id]
         return sigma
 
-    def _along(self, probs: np.ndarray, sigma: np.ndarray, cell_lower: np.ndarray, end_s: np.ndarray):
+    def _along(self, probs: np.ndarray, sigma: np.ndarray, cell_lower: np.ndarray, end_s: np.ndarray, start_s: np.ndarray):
         """``spread_shape = "along"``: the s-distributions ``probs`` (B, K, L) on the cells of lower edges ``cell_lower``
         (B, L) blurred along their corridors by σ (m, (B, K)), and the lateral kernel widened per step
         (``lateral_table``). The window grows by the blur's reach (at most ``ALONG_PAD_CELLS``) at both ends, so that
         what is blurred behind the window's start or past its end stays (the footprints continue the centreline
-        straight past its ends); none past the corridor's end (``end_s``, (B,)). Returns (probs, a new array or
-        ``probs`` itself where every σ is 0; their cells' lower edges (B, L'); the footprints' (offsets, weights); the
-        ``lateral`` (rows, table) of ``vehicle_grids`` or None)."""
+        straight past its ends); none past the corridor's end (``end_s``, (B,)). With ``spread_fold_start`` what the
+        blur carries behind each pair's start (``start_s``, (B,): the vehicle's position now) is folded ahead of it
+        (``fold_behind``). Returns (probs, a new array or ``probs`` itself where every σ is 0; their cells' lower edges
+        (B, L'); the footprints' (offsets, weights); the ``lateral`` (rows, table) of ``vehicle_grids`` or None)."""
         cfg = self.config
         if not np.any(sigma > 0):
             return probs, cell_lower, self._lateral, None
@@ -1555,6 +1557,8 @@ class MarkovPredictor:
             cell_lower = np.concatenate([cell_lower[:, :1] - cfg.ds_m * np.arange(pad, 0, -1)[None, :], cell_lower,
                                          cell_lower[:, -1:] + cfg.ds_m * np.arange(1, pad + 1)[None, :]], axis=1)
         out = blur_along(probs, sigma / cfg.ds_m)
+        if cfg.spread_fold_start:
+            fold_behind(out, probs, np.floor((start_s - cell_lower[:, 0]) / cfg.ds_m).astype(np.int64))
         np.copyto(out, 0.0, where=(cell_lower >= end_s[:, None])[:, None, :])  # past the corridor's end: none (outside)
         if cfg.spread_lateral_ratio > 0:
             base = cfg.grid_lateral_sigma_m
@@ -1577,7 +1581,8 @@ class MarkovPredictor:
         sigma = np.zeros(raw.shape[:2])
         sigma[members] = np.asarray(sigmas_m, dtype=np.float64)[None, :]
         probs[members] = raw[members]
-        probs, cell_lower, kernel, lateral = self._along(probs, sigma, geo["cell_lower"], geo["end_s"])
+        probs, cell_lower, kernel, lateral = self._along(probs, sigma, geo["cell_lower"], geo["end_s"],
+                                                         np.array([p.s0_m for p in pairs], dtype=np.float64))
         used = probs.max(axis=1) > 0
         batch = cell_footprints_arrays(geo["lines"], cell_lower, cfg.ds_m, cfg.grid_substeps, *kernel, used=used)
         return vehicle_grids(geo["frame"], batch, probs, [p.probability for p in pairs], [members], geo["shift"], lateral=lateral)[0]

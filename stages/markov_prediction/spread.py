@@ -260,6 +260,26 @@ def blur_along(probs: np.ndarray, sigma_cells: np.ndarray, min_value: float = BL
     return out.reshape(shape)
 
 
+def fold_behind(out: np.ndarray, before: np.ndarray, start_cell: np.ndarray) -> None:
+    """In place: what the along blur carried behind each pair's start folded ahead of it. ``out`` (B, K, L) the
+    blurred s-distributions, ``before`` (B, K, L) the same unblurred, ``start_cell`` (B,) the cell that holds the
+    vehicle's position now. In a cell behind it the blurred mass above the unblurred (the blur's, not the chain's own
+    measurement spread) moves to the cell mirrored about the start cell (2·start − j; dropped past the window's end,
+    as the blur drops it): a car is not predicted behind where it is now, and the mass is kept, close to where the blur
+    put it. The means and the chain's distributions are not touched (the grids only)."""
+    n_b, _n_k, n_l = out.shape
+    j = np.arange(n_l)
+    behind = j[None, :] < np.clip(start_cell, 0, n_l)[:, None]  # (B, L)
+    if not behind.any():
+        return
+    bb, jj = np.nonzero(behind)
+    excess = out[bb, :, jj] - np.minimum(out[bb, :, jj], before[bb, :, jj])  # (n, K)
+    out[bb, :, jj] -= excess
+    target = 2 * start_cell[bb] - jj
+    keep = target < n_l
+    out[bb[keep], :, target[keep]] += excess[keep]  # (each target once per pair: the mirror is one to one)
+
+
 def blur_grid(frame: GridFrame, grid: SparseGrid, sigmas_m: np.ndarray) -> SparseGrid:
     """One vehicle's grid (all steps) with step k blurred by an isotropic Gaussian of σ = ``sigmas_m[k]`` (m; 0: as is);
     a blurred step keeps its cells above ``BLUR_MIN_VALUE``."""

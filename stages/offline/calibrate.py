@@ -298,6 +298,7 @@ def run_cli(args) -> int:
                  "speed_noise_gain": cal.speed_noise_gain,
                  # the grid the σ were fitted on (a table carries over between cell sizes; docs/evaluation.md, "Calibrated grids")
                  "grid_cell_m": next(iter(cal.predictors.values())).config.grid_cell_m,
+                 "spread_fold_start": next(iter(cal.predictors.values())).config.spread_fold_start,
                  "params": {k: v for k, v in config.params}, "windows": {m: measured[m]["windows"] for m in tables}}
     write_spread(args.out, tables, fitted_on)
     print(format_fit(tables, measured))

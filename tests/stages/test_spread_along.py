@@ -13,7 +13,7 @@ from stages.markov_prediction import RAW_GRIDS, MarkovPredictionConfig, MarkovPr
 from stages.markov_prediction.rasterise import (
     Centrelines, GridFrame, cell_footprints_arrays, lateral_kernel, lateral_table, vehicle_grid, vehicle_grids,
 )
-from stages.markov_prediction.spread import SCHEMA, blur_along
+from stages.markov_prediction.spread import SCHEMA, blur_along, fold_behind
 
 
 def _probs(rng, shape, density=0.3):
@@ -64,6 +64,31 @@ def _batch(rng, n_pairs, n_cells, offsets, weights):
     packed = Centrelines(*[list(a) for a in zip(*lines)])
     lower = np.stack([s[0] - 3.0 + np.arange(n_cells, dtype=np.float64) for s, *_ in lines])
     return cell_footprints_arrays(packed, lower, 1.0, 4, offsets, weights)
+
+
+def test_fold_behind_moves_the_blurs_mass_ahead_of_the_start_and_keeps_the_chains_own():
+    """What the blur carried behind a pair's start cell goes to the mirrored cell ahead of it; the chain's own mass
+    behind the start (its measurement spread) stays; the total is kept where the mirror stays in the window."""
+    rng = np.random.default_rng(3)
+    before = np.zeros((3, 4, 40), np.float32)
+    before[:, :, 10:13] = [0.2, 0.5, 0.3]  # each pair's own mass on cells 10..12, a little behind its start (11)
+    out = blur_along(before, np.tile(rng.uniform(1.0, 6.0, (3, 1)), (1, 4)))
+    start = np.array([11, 11, 38])  # (the third pair's mirrors fall past the window: that mass is dropped)
+    folded = out.copy()
+    fold_behind(folded, before, start)
+    for b in range(3):
+        j0 = start[b]
+        assert np.all(folded[b, :, :j0] <= np.maximum(before[b, :, :j0], 0) + 1e-7), "behind the start: at most the chain's own"
+        assert np.all(folded[b, :, :j0] >= np.minimum(out[b, :, :j0], before[b, :, :j0]) - 1e-7)
+        moved = out[b, :, :j0] - folded[b, :, :j0]  # (K, j0)
+        gained = folded[b, :, j0 + 1:] - out[b, :, j0 + 1:]
+        if 2 * j0 < before.shape[2]:
+            np.testing.assert_allclose(folded[b].sum(axis=1), out[b].sum(axis=1), rtol=1e-5)
+            np.testing.assert_allclose(gained[:, :j0], moved[:, ::-1], atol=1e-7)  # cell j0 - d -> j0 + d
+    np.testing.assert_array_equal(folded[:, :, 11], out[:, :, 11])  # the start cell itself is not touched
+    unchanged = out.copy()
+    fold_behind(unchanged, before, np.zeros(3, np.int64))  # nothing behind: nothing moves
+    np.testing.assert_array_equal(unchanged, out)
 
 
 def test_lateral_spread_per_step_compiled_equals_vehicle_grid():
@@ -199,12 +224,15 @@ def test_in_the_stage_the_along_spread_keeps_means_and_mass_with_fewer_cells(fra
     np.testing.assert_array_equal(p_along.position_probs, p0.position_probs)
     moving = [t for t, v in p_along.start_speeds_mps.items() if v > 2.0]
     assert moving, "no moving vehicle in the frame"
+    p_sym = make(spread_calibration=str(table), spread_online=False, spread_fold_start=False).process(*args, intention_belief=last["intention_belief"])[0]
     for t in moving:
-        g0, gi, ga = p0.vehicle_grids[t], p_iso.vehicle_grids[t], p_along.vehicle_grids[t]
+        g0, gi, ga, gs = p0.vehicle_grids[t], p_iso.vehicle_grids[t], p_along.vehicle_grids[t], p_sym.vehicle_grids[t]
         assert g0.keys.size < ga.keys.size < gi.keys.size  # wider than none, fewer cells than the round blur
+        assert ga.keys.size <= gs.keys.size  # folded ahead of the start: no more cells than the symmetric blur
         n_cells = p_along.grid_frame.n_cells
         last_k = n_steps - 1
-        assert ga.step(last_k, n_cells)[1].sum() == pytest.approx(g0.step(last_k, p0.grid_frame.n_cells)[1].sum(), rel=0.02)
+        for g, frame in ((ga, p_along.grid_frame), (gs, p_sym.grid_frame)):
+            assert g.step(last_k, frame.n_cells)[1].sum() == pytest.approx(g0.step(last_k, p0.grid_frame.n_cells)[1].sum(), rel=0.02)
 
 
 def test_regrid_gives_the_stages_own_along_grid(frames, tmp_path):
