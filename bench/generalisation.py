@@ -114,8 +114,6 @@ SLOW_FAST_MPS = 2.0
 OUT_DIR = Path("artefacts") / "generalisation"
 DEFAULT_JSON = Path("artefacts") / "generalisation.json"
 NEW_KEYS = ("by_manoeuvre", "along_track_m", "cross_track_m")
-#: without --calibrate: raw grids (stages.markov_prediction.config.RAW_GRIDS as iamp eval's --set values)
-RAW_SETS = ('spread_calibration=""', "spread_online=false")
 
 
 # --------------------------------------------------------------------------- subprocesses
@@ -530,7 +528,9 @@ def _run_seed(args, data: Path, names: list[str], seed: int) -> dict[str, Any]:
             cal = calibrate(data, RECORDINGS[a], train["model"], seed, sets, args.recalibrate)
             sets.append(f"spread_calibration={cal['file']}")
         else:  # raw grids: the stage's default, the shipped table, was fitted on both locations (in-sample on either)
-            sets = [*RAW_SETS, *sets]
+            from stages.markov_prediction.config import RAW_GRIDS
+
+            sets = [*(f"{k}={json.dumps(v)}" for k, v in RAW_GRIDS.items()), *sets]
         sets.extend(args.eval_set)
         ev, ev_seconds, ev_path = eval_model(data, RECORDINGS[b], train["model"], seed, args.stride, args.max_frames, name, sets,
                                              tuple(m for m in MODES if m in args.modes))

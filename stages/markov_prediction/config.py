@@ -236,12 +236,12 @@ class MarkovPredictionConfig(ConfigMixin):
     # own (MODE_SPREAD_SHAPE: along, cv isotropic). After construction always the shape in use. ``iamp calibrate`` fits
     # a table for the shape it runs with (the file says which)
     spread_shape: str = "auto"
-    # with spread_shape "along": the grids widened across the corridor too, step k of a pair by
-    # σ_lat = min(√(grid_lateral_sigma_m² + (ratio·σ_k)²), max) (σ_k the along σ): lane offsets grow with the horizon
     # with spread_shape "along": what the blur carries behind a vehicle's position now is folded ahead of it (mirrored
     # about its cell; the chain's own mass there stays): a car is not predicted behind where it is. false: the blur
     # is symmetric (tables fitted before 2026-12-06)
     spread_fold_start: bool = True
+    # with spread_shape "along": the grids widened across the corridor too, step k of a pair by
+    # σ_lat = min(√(grid_lateral_sigma_m² + (ratio·σ_k)²), max) (σ_k the along σ): lane offsets grow with the horizon
     spread_lateral_ratio: float = 0.33
     spread_lateral_max_m: float = 1.5
     # issues

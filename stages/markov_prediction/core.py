@@ -1418,6 +1418,7 @@ class MarkovPredictor:
             interval = np.asarray(interval, dtype=np.float32).copy()
         s_first = np.array([p.s_first_m for p in pairs], dtype=np.float64).reshape(n_b)
         end_s = np.array([p.end_s_m for p in pairs], dtype=np.float64).reshape(n_b)
+        s0 = np.array([p.s0_m for p in pairs], dtype=np.float64).reshape(n_b)  # each vehicle's position now
         beyond_all = s_first[:, None] + lower[None, :] >= end_s[:, None]  # cells past the corridor's end count as outside
         past = np.flatnonzero(beyond_all.any(axis=1))
         if past.size:
@@ -1451,7 +1452,6 @@ class MarkovPredictor:
                     mean_xy[rows, :, 0] = ex + shift_all[rows] * -np.sin(eh)
                     mean_xy[rows, :, 1] = ey + shift_all[rows] * np.cos(eh)
             finite = np.isfinite(mean_s)
-            s0 = np.array([p.s0_m for p in pairs], dtype=np.float64)
             at = np.where(finite, mean_s, s0[:, None])
             sx, sy, _h, cos_at, sin_at = lines.xy_heading_trig(at)
             xy_at_mean[..., 0] = np.where(finite, sx + shift_all * -sin_at, np.nan)
@@ -1471,8 +1471,7 @@ class MarkovPredictor:
         raw_lower = cell_lower = s_first[:, None] + lower[None, :]  # (B, L)
         if cfg.spread_shape == "along" and (self.spread is not None or self.online is not None) and n_b:
             # the grids only (pos and interval stay): along the corridor, and across it per step
-            grid_probs, cell_lower, lateral_kernel_, lateral = self._along(grid_probs, self._vehicle_sigmas(pairs), cell_lower, end_s,
-                                                                           np.array([p.s0_m for p in pairs], dtype=np.float64))
+            grid_probs, cell_lower, lateral_kernel_, lateral = self._along(grid_probs, self._vehicle_sigmas(pairs), cell_lower, end_s, s0)
         used = grid_probs.max(axis=1) > 0 if n_b else None  # (B, L): the cells that hold mass at some step, the only ones rasterised
         batch = cell_footprints_arrays(lines, cell_lower, cfg.ds_m, cfg.grid_substeps, *lateral_kernel_, used=used) if n_b else None
         frame = self._grid_frame(batch, used)
@@ -1480,7 +1479,7 @@ class MarkovPredictor:
                 "mean_xy": mean_xy, "mean_s": mean_s, "xy_at_mean": xy_at_mean, "frame": frame, "batch": batch, "grid_probs": grid_probs,
                 "shift": shift_all, "lateral": lateral,
                 # for ``regrid`` (``keep_geometry``): the grids rebuilt with another along spread
-                "lines": lines, "cell_lower": raw_lower, "end_s": end_s, "raw_grid_probs": raw_grid_probs}
+                "lines": lines, "cell_lower": raw_lower, "end_s": end_s, "start_s": s0, "raw_grid_probs": raw_grid_probs}
 
     def _finish_grids(self, pairs: list[Pair], geo: dict[str, Any]) -> FramePrediction:
         """The outputs from ``_finish_geometry``'s: each vehicle's grid (its corridors' weighted by ``probability``),
@@ -1581,8 +1580,7 @@ class MarkovPredictor:
         sigma = np.zeros(raw.shape[:2])
         sigma[members] = np.asarray(sigmas_m, dtype=np.float64)[None, :]
         probs[members] = raw[members]
-        probs, cell_lower, kernel, lateral = self._along(probs, sigma, geo["cell_lower"], geo["end_s"],
-                                                         np.array([p.s0_m for p in pairs], dtype=np.float64))
+        probs, cell_lower, kernel, lateral = self._along(probs, sigma, geo["cell_lower"], geo["end_s"], geo["start_s"])
         used = probs.max(axis=1) > 0
         batch = cell_footprints_arrays(geo["lines"], cell_lower, cfg.ds_m, cfg.grid_substeps, *kernel, used=used)
         return vehicle_grids(geo["frame"], batch, probs, [p.probability for p in pairs], [members], geo["shift"], lateral=lateral)[0]

@@ -273,8 +273,9 @@ def fold_behind(out: np.ndarray, before: np.ndarray, start_cell: np.ndarray) -> 
     if not behind.any():
         return
     bb, jj = np.nonzero(behind)
-    excess = out[bb, :, jj] - np.minimum(out[bb, :, jj], before[bb, :, jj])  # (n, K)
-    out[bb, :, jj] -= excess
+    blurred = out[bb, :, jj]  # (n, K)
+    excess = blurred - np.minimum(blurred, before[bb, :, jj])
+    out[bb, :, jj] = blurred - excess
     target = 2 * start_cell[bb] - jj
     keep = target < n_l
     out[bb[keep], :, target[keep]] += excess[keep]  # (each target once per pair: the mirror is one to one)

@@ -46,6 +46,7 @@ import numpy as np
 from stages.lib.base import check_output, json_safe
 from stages.markov_prediction.rasterise import highest_density_threshold
 from stages.markov_prediction.core import SPEED_NOISE_CAP_MPS
+from stages.markov_prediction.config import RAW_GRIDS
 from stages.markov_prediction.spread import BLUR_MIN_VALUE, SpreadTable, blur_step, with_speed_noise, write_spread
 from stages.offline.evaluation import EVAL_MODES, EvalConfig, Evaluation, _key_values
 
@@ -76,8 +77,7 @@ class SpreadCalibration(Evaluation):
         widest = math.hypot(max(sigmas_m), speed_noise_gain * SPEED_NOISE_CAP_MPS * n_steps * tau)
         margin = dict(config.params).get("grid_margin_m", 3.0) + 3.0 * widest  # no candidate's blur leaves the grid
         # the candidates are applied to the raw grids: no table and no online spread under them (both are on by default)
-        raw = (("spread_calibration", ""), ("spread_online", False))
-        super().__init__(dataclasses.replace(config, params=(*config.params, ("grid_margin_m", margin), *raw)))
+        super().__init__(dataclasses.replace(config, params=(*config.params, ("grid_margin_m", margin), *RAW_GRIDS.items())))
         self.sigmas_m = tuple(float(s) for s in sigmas_m)
         self.level = level
         self.speed_noise_gain = float(speed_noise_gain)
@@ -292,13 +292,13 @@ def run_cli(args) -> int:
         left_out = ", ".join(f"{k} {v}" for k, v in sorted(cal.skipped.items())) or "nothing counted"
         sys.stderr.write(f"iamp calibrate: error: no window to fit the spread on ({left_out}); {args.out} not written\n")
         return 2
+    stage = next(iter(cal.predictors.values())).config
     fitted_on = {"data": str(args.data), "recordings": cal.recordings, "stride_s": args.stride, "seed": args.seed,
                  "model": str(args.model) if args.model else "shipped", "model_sha256": _model_sha256(args.model),
                  "level": args.level, "sigmas_m": list(cal.sigmas_m),
                  "speed_noise_gain": cal.speed_noise_gain,
                  # the grid the σ were fitted on (a table carries over between cell sizes; docs/evaluation.md, "Calibrated grids")
-                 "grid_cell_m": next(iter(cal.predictors.values())).config.grid_cell_m,
-                 "spread_fold_start": next(iter(cal.predictors.values())).config.spread_fold_start,
+                 "grid_cell_m": stage.grid_cell_m, "spread_fold_start": stage.spread_fold_start,
                  "params": {k: v for k, v in config.params}, "windows": {m: measured[m]["windows"] for m in tables}}
     write_spread(args.out, tables, fitted_on)
     print(format_fit(tables, measured))

@@ -526,9 +526,8 @@ class Evaluation:
             fitted: set[str] = set()
             for predictor in self.predictors.values():
                 try:
-                    data = json.loads(spread_file(cfg.spread_calibration, predictor.config.spread_shape).read_text())
-                    fitted.update(str(r) for r in (data.get("fitted_on", {}) or {}).get("recordings") or [])
-                except (OSError, ValueError, AttributeError, TypeError):
+                    fitted.update(str(r) for r in (_spread_table(predictor).get("fitted_on", {}) or {}).get("recordings") or [])
+                except (AttributeError, TypeError):
                     continue  # (the stage itself refused a bad file before this)
             out["spread_fitted_on"] = sorted(fitted)
             out["spread_in_sample"] = [r for r in self.recordings if r in fitted]
@@ -542,9 +541,9 @@ class Evaluation:
         if not table:
             return ""
         try:
-            data = json.loads(spread_file(table, hybrid.config.spread_shape).read_text())
+            data = _spread_table(hybrid)
             fitted = data.get("fitted_on", {}) if "hybrid" in data.get("modes", {}) else {}
-        except (OSError, ValueError, AttributeError, TypeError):
+        except (AttributeError, TypeError):
             return ""
         sha = str(fitted.get("model_sha256") or "")
         ours = str(self._ar_model_name).rpartition("@")[2]
@@ -1071,6 +1070,19 @@ def _fill_forward(means: np.ndarray, pair) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- table
+
+
+def _spread_table(predictor: MarkovPredictor) -> dict[str, Any]:
+    """The spread file a predictor reads (``spread_calibration``, "shipped" resolved for its shape), parsed; {} where it
+    reads none or the file does not read (the stage itself refused a bad file before this)."""
+    table = predictor.config.spread_calibration
+    if not table:
+        return {}
+    try:
+        data = json.loads(spread_file(table, predictor.config.spread_shape).read_text())
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
 
 
 def format_table(report: dict[str, Any]) -> str:
