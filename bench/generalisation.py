@@ -67,6 +67,23 @@ Run (full TAF-BW recordings named by ``IAMP_TAF_BW``)::
 ratios and goal items that need a mode not run say "unknown". Comparing AR
 models: ``--modes hybrid --train-opt=--kind=gru``, one run per candidate.
 
+``--model DIRECTION=FILE`` scores a model you trained yourself (``iamp
+train --out FILE``, any options, or your own code writing the same format)
+in that direction instead of training one: ``--model k729-k733=my.pt``
+scores ``my.pt`` on K733 beside the baseline, corridor_cv and cv of the
+same run (with ``--calibrate`` its spread is fitted on K729 with it, as for
+a trained one). Repeatable, once per direction; a direction without one is
+trained as usual. The file is checked before anything runs: it must load as
+an AR model, and the recordings its metadata says it was trained on
+(``recordings``) must not include the scored location, or
+the figures would not be held out (exit 2; the shipped weights, trained on
+both locations, are refused in either direction); a file whose metadata
+names no recordings is scored with a warning that this cannot be checked.
+The same file is scored for every seed of ``--seeds`` (the eval's particle
+filter still takes the seed). The JSON's ``train`` of that direction says
+``"given": true`` with the file's SHA-256 (``key``, its first 12 hex digits,
+also the calibration cache's key).
+
 ``--seeds 0,1,2`` runs everything once per seed (each its own model, cached
 per seed) and ends with each mode's mADE mean and range over the seeds per
 direction and split (JSON: ``seeds``, ``by_seed.<seed>`` with the directions
@@ -170,6 +187,64 @@ def train_model(data: Path, recording: str, seed: int, train_opts: list[str], re
     return info
 
 
+def given_models(items: list[str]) -> tuple[dict[str, Path], list[str]]:
+    """``--model DIRECTION=FILE`` values: {direction: file} and the warnings to print; ``ValueError`` with the one line
+    that says what to fix (an unknown direction, a direction twice, a file that is not there or not an AR model, a
+    model trained on the location the direction scores)."""
+    out: dict[str, Path] = {}
+    warnings: list[str] = []
+    for item in items:
+        direction, sep, file = item.partition("=")
+        direction = direction.strip()
+        if not sep or not file.strip():
+            raise ValueError(f"--model {item!r}: expected DIRECTION=FILE, e.g. --model k729-k733=my_model.pt")
+        if direction not in DIRECTIONS:
+            raise ValueError(f"--model {item!r}: unknown direction {direction!r} (expected one of {', '.join(DIRECTIONS)})")
+        if direction in out:
+            raise ValueError(f"--model: direction {direction} given twice")
+        path = Path(file.strip()).expanduser()
+        if not path.is_file():
+            raise ValueError(f"--model {item!r}: {path} is not a file")
+        from stages.lib.ar.model import load_model
+
+        try:
+            metadata = load_model(path).metadata
+        except Exception as exc:  # noqa: BLE001 - any failure to load is the same answer: not an AR model file
+            raise ValueError(f"--model {item!r}: {path} does not load as an AR model ({type(exc).__name__}: {exc})") from None
+        recordings = _trained_on(metadata)
+        scored = DIRECTIONS[direction][1]
+        if not isinstance(recordings, list) or not recordings:
+            warnings.append(f"--model {direction}={path}: its metadata names no training recordings: cannot check that it "
+                            f"never saw {scored.upper()} (scored as if held out)")
+        elif any(str(r).lower().startswith(scored) for r in recordings):
+            raise ValueError(f"--model {item!r}: {path} was trained on {', '.join(map(str, recordings))}, which includes the "
+                             f"location this direction scores ({scored.upper()}): not held out (iamp eval gives in-sample figures)")
+        out[direction] = path.resolve()
+    return out, warnings
+
+
+def _trained_on(metadata: Any) -> list[str] | None:
+    """The recordings a model's metadata says it was trained on (``iamp train`` writes them as ``recordings``; an
+    empty ``dataset_config.recordings`` means every recording of its data, so it is not read)."""
+    found = metadata.get("recordings") if isinstance(metadata, dict) else None
+    return [str(r) for r in found] if isinstance(found, list) and found else None
+
+
+def given_model(recording: str, seed: int, path: Path) -> dict[str, Any]:
+    """The ``train`` entry of a direction whose model is ``--model``'s file: as ``train_model``'s, keyed by the file's
+    SHA-256 (the calibration cache follows the file's contents, not its name)."""
+    from stages.lib.ar.model import load_model
+
+    digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    metadata = load_model(path).metadata
+    trained_on = _trained_on(metadata)
+    print(f"model for the direction trained on {recording}: given {path} (sha256 {digest[:12]}; trained on "
+          f"{', '.join(trained_on) if trained_on else 'recordings its metadata does not name'})")
+    return {"recording": recording, "seed": seed, "options": [], "key": digest[:12], "sha256": digest, "model": str(path),
+            "given": True, "cached": True, "seconds": None, "trained_on": trained_on,
+            "model_kind": {"kind": metadata.get("kind"), "hidden": metadata.get("hidden"), "parameters": None}}
+
+
 def spread_shapes(sets: list[str]) -> dict[str, str]:
     """Per mode, the spread_shape its markov_prediction resolves to with the ``--set`` values ``sets``."""
     from stages.markov_prediction import MarkovPredictionConfig
@@ -185,15 +260,19 @@ def spread_shapes(sets: list[str]) -> dict[str, str]:
     return {m: MarkovPredictionConfig(mode=m, spread_shape=shape).spread_shape for m in MODES}
 
 
-def calibrate(data: Path, recording: str, model: str, seed: int, sets: list[str], recalibrate: bool) -> dict[str, Any]:
-    """``iamp calibrate`` on the training location with its model (every mode; stride 0.8 s): the spread file the eval reads."""
+def calibrate(data: Path, recording: str, model: str, seed: int, sets: list[str], recalibrate: bool,
+              model_sha256: str | None = None) -> dict[str, Any]:
+    """``iamp calibrate`` on the training location with its model (every mode; stride 0.8 s): the spread file the eval reads.
+    ``model_sha256``: a ``--model`` file's digest, part of the cache key (a trained model's name holds its own key)."""
     # the shape each mode's table is fitted for is part of the key (spread_shape "auto" resolves per mode, and a file
     # fitted before the shape existed is round)
     # and the project's code (the modes' grids decide the fit)
     from stages.lib.fingerprint import code_fingerprint
 
-    key = hashlib.sha256(json.dumps({"model": model, "sets": sets, "shapes": spread_shapes(sets), "code": code_fingerprint()},
-                                    sort_keys=True).encode()).hexdigest()[:12]
+    keyed = {"model": model, "sets": sets, "shapes": spread_shapes(sets), "code": code_fingerprint()}
+    if model_sha256 is not None:
+        keyed["model_sha256"] = model_sha256
+    key = hashlib.sha256(json.dumps(keyed, sort_keys=True).encode()).hexdigest()[:12]
     out = OUT_DIR / f"spread_{recording}_seed{seed}_{key}.json"
     report, log = out.with_suffix(".report.json"), out.with_suffix(".log")
     info: dict[str, Any] = {"recording": recording, "file": str(out), "report_json": str(report)}
@@ -301,7 +380,7 @@ def _find_key(mode_res: dict[str, Any], key: str) -> Any:
 
 def format_direction(name: str, train: dict[str, Any], ev: dict[str, Any], summary: dict[str, Any]) -> str:
     a, b = DIRECTIONS[name]
-    how = "cached" if train["cached"] else f"trained in {train['seconds']:.0f} s"
+    how = "given: --model" if train.get("given") else "cached" if train["cached"] else f"trained in {train['seconds']:.0f} s"
     lines = [f"=== train {RECORDINGS[a]} -> eval {RECORDINGS[b]} ===", f"model {train['model']} ({how})"]
     sizes, val = train.get("sizes") or {}, train.get("validation") or {}
     if sizes and val:
@@ -436,9 +515,18 @@ def main(argv: list[str] | None = None) -> int:
                    help="markov_prediction parameter for iamp eval only (repeatable), e.g. --eval-set spread_online=true")
     p.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES),
                    help="modes iamp eval runs (default all; e.g. --modes hybrid to compare AR models without re-running the others)")
+    p.add_argument("--model", action="append", default=[], metavar="DIRECTION=FILE",
+                   help="score this AR model file in DIRECTION (k729-k733: it must not have seen K733) instead of training one; "
+                        "repeatable, once per direction")
     p.add_argument("--json", type=Path, default=DEFAULT_JSON, help=f"write everything here (default {DEFAULT_JSON})")
     args = p.parse_args(argv)
     check_output_arg(p, args.json, "--json")  # before the work (training and evaluations: minutes to hours)
+    try:
+        args.given, warnings = given_models(args.model)
+    except ValueError as exc:
+        p.error(str(exc))
+    for line in warnings:
+        print(f"warning: {line}", file=sys.stderr, flush=True)
 
     data = args.data if args.data is not None else full_data_dir()
     if data is None or not (Path(data) / "recorded_trackfiles").is_dir():
@@ -522,17 +610,19 @@ def _run_seed(args, data: Path, names: list[str], seed: int) -> dict[str, Any]:
     directions: dict[str, Any] = {}
     for name in names:
         a, b = DIRECTIONS[name]
-        train = train_model(data, RECORDINGS[a], seed, args.train_opt, args.retrain)
+        given = getattr(args, "given", {}).get(name)
+        train = given_model(RECORDINGS[a], seed, given) if given is not None else train_model(data, RECORDINGS[a], seed, args.train_opt, args.retrain)
         sets, cal = list(args.set), None
         if args.calibrate:
-            cal = calibrate(data, RECORDINGS[a], train["model"], seed, sets, args.recalibrate)
+            cal = calibrate(data, RECORDINGS[a], train["model"], seed, sets, args.recalibrate, train.get("sha256"))
             sets.append(f"spread_calibration={cal['file']}")
         else:  # raw grids: the stage's default, the shipped table, was fitted on both locations (in-sample on either)
             from stages.markov_prediction.config import RAW_GRIDS
 
             sets = [*(f"{k}={json.dumps(v)}" for k, v in RAW_GRIDS.items()), *sets]
         sets.extend(args.eval_set)
-        ev, ev_seconds, ev_path = eval_model(data, RECORDINGS[b], train["model"], seed, args.stride, args.max_frames, name, sets,
+        tag = name if given is None else f"{name}_model{train['key']}"  # (a given model's eval its own files)
+        ev, ev_seconds, ev_path = eval_model(data, RECORDINGS[b], train["model"], seed, args.stride, args.max_frames, tag, sets,
                                              tuple(m for m in MODES if m in args.modes))
         summary = summarise(ev)
         text = format_direction(name, train, ev, summary)

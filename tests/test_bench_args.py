@@ -65,6 +65,11 @@ BAD = [
     # names
     (["markov_stage.py", "--backends", "nosuch"], "numpy, torch-cpu, torch-cuda"),
     (["ab.py", "--base", "HEAD", "--metric", "a"], "after --"),
+    # a model of one's own for bench/generalisation.py: a direction it does not know, no file, not a model, not held out
+    (["generalisation.py", "--model", "nosuch=/x.pt"], "'nosuch'"),
+    (["generalisation.py", "--model", "k729-k733=/nonexistent.pt"], "/nonexistent.pt"),
+    (["generalisation.py", "--model", f"k733-k729={REPO / 'README.md'}"], "does not load as an AR model"),
+    (["generalisation.py", "--model", f"k729-k733={REPO / 'stages' / 'lib' / 'ar' / 'weights' / 'ar_taf_bw.pt'}"], "not held out"),
     # output paths
     (["plot_frame.py", "--out", "/tmp"], "is a folder"),
     (["plot_frame.py", "--out", "frame.nosuchformat"], ".nosuchformat"),
