@@ -236,13 +236,15 @@ def given_model(recording: str, seed: int, path: Path) -> dict[str, Any]:
     from stages.lib.ar.model import load_model
 
     digest = hashlib.sha256(path.read_bytes()).hexdigest()
-    metadata = load_model(path).metadata
+    model = load_model(path)
+    metadata = model.metadata
     trained_on = _trained_on(metadata)
     print(f"model for the direction trained on {recording}: given {path} (sha256 {digest[:12]}; trained on "
           f"{', '.join(trained_on) if trained_on else 'recordings its metadata does not name'})")
     return {"recording": recording, "seed": seed, "options": [], "key": digest[:12], "sha256": digest, "model": str(path),
             "given": True, "cached": True, "seconds": None, "trained_on": trained_on,
-            "model_kind": {"kind": metadata.get("kind"), "hidden": metadata.get("hidden"), "parameters": None}}
+            "model_kind": {"kind": metadata.get("kind"), "hidden": metadata.get("hidden"),
+                           "parameters": int(sum(p.numel() for p in model.net.parameters()))}}
 
 
 def spread_shapes(sets: list[str]) -> dict[str, str]:

@@ -59,4 +59,4 @@ def test_a_given_model_is_keyed_by_its_contents(generalisation, models):
     digest = hashlib.sha256(models["k729"].read_bytes()).hexdigest()
     assert train["given"] is True and train["sha256"] == digest and train["key"] == digest[:12]
     assert train["trained_on"] == ["k729_2022-03-16"] and train["model"] == str(models["k729"])
-    assert train["model_kind"]["kind"] == "gru"
+    assert train["model_kind"]["kind"] == "gru" and train["model_kind"]["parameters"] > 0
