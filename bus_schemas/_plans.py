@@ -99,6 +99,19 @@ class Range:
 _HINTS: dict[type, dict[str, Any]] = {}
 
 
+_OPTIONAL: dict[type, frozenset[str]] = {}
+
+
+def _optional(cls: type) -> frozenset[str]:
+    """The fields of ``cls`` that have a default (each one's "unknown": ``Header.source_wall_ns`` 0, ``SceneInfo.clock``
+    "unknown", NaN for the estimated state, ...): a payload may leave them out and reads with the default."""
+    found = _OPTIONAL.get(cls)
+    if found is None:
+        found = _OPTIONAL[cls] = frozenset(f.name for f in dataclasses.fields(cls)
+                                           if f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING)
+    return found
+
+
 def _hints(cls: type) -> dict[str, Any]:
     h = _HINTS.get(cls)
     if h is None:

@@ -90,7 +90,7 @@ import numpy as np
 from . import _fastcodec
 from ._plans import (  # noqa: F401  (re-exported: the schemas and tests import them from here)
     MAX_ARRAY_DIM, MAX_PAYLOAD_BYTES, MiB, _ALLOWED_DTYPES, _ARRAY, _BOOL, _BYTES, _DICT, _ENUM, _FLOAT, _INT, _OBJ, _PLAIN, _RANGE,
-    _STR, _TUPLE, _UNION, Array, Range, _hints, _plan,
+    _STR, _TUPLE, _UNION, Array, Range, _hints, _optional, _plan,
 )
 from .errors import MalformedPayload, OutOfRange, PayloadTooLarge, SchemaError, UnknownSchema, WrongSchema, WrongVersion
 
@@ -457,8 +457,12 @@ def _decode_obj(cls: type, body: Any, path: str, where: str) -> Any:
     if body.keys() == hints.keys():  # the usual case, one set comparison
         missing = unknown = ()
     else:
-        missing = [n for n in hints if n not in body]
+        left_out = [n for n in hints if n not in body]
+        optional = _optional(cls)
+        missing = [n for n in left_out if n not in optional]
         unknown = [n for n in body if n not in hints]
+        if left_out and not missing and not unknown:  # only fields with a default left out: they read as their default
+            hints = {n: tp for n, tp in hints.items() if n in body}
     if missing:
         raise MalformedPayload(f"{path}{_at(where)}: missing field(s) {', '.join(missing)}")
     if unknown:

@@ -186,6 +186,8 @@ class CorridorBuilder:
         self.log = log
         self.scene_maps = scene_maps or SceneMaps(config)
         self._scene_id: str | None = None
+        self._scene_content: tuple | None = None  # what of the scene the map depends on (``_scene_content``)
+        self._scene_ignored: tuple | None = None  # another content under the same scene_id, already reported
         self._map: SceneMap | None = None
         self._indices: tuple[LaneletIndex, RouteCache] | None = None  # of `_map` (`_matching_indices`)
         self._centre_of: object = False  # the road map whose centre `_centre` is (False: none yet)
@@ -326,8 +328,16 @@ class CorridorBuilder:
         if scene is None:
             issues.append(Issue("no_map", -1, "no SceneInfo received yet: every vehicle is OFF_MAP"))
             return None
+        content = _scene_content(scene)
+        if scene.scene_id == self._scene_id and content != self._scene_content and content != self._scene_ignored:
+            # the stages take a scene once per scene_id: a tracker that corrects its map, projection or origin under the
+            # same id would otherwise be ignored without a word (once per such content)
+            self._scene_ignored = content
+            issues.append(Issue("scene_changed_same_id", -1, f"scene {scene.scene_id!r} published again with another map,"
+                                " projection or origin: ignored (the stages load a scene once per scene_id; give a changed"
+                                " scene a new scene_id)"))
         if scene.scene_id != self._scene_id:
-            self._scene_id = scene.scene_id
+            self._scene_id, self._scene_content, self._scene_ignored = scene.scene_id, content, None
             self._map = self.scene_maps.get(scene, self.config.projection)
             self._indices = None
             if self._map.road_map is not None:
@@ -711,3 +721,8 @@ def _entry(
         corridors=(),
         **_state_fields(state),
     )
+
+
+def _scene_content(scene: SceneInfo) -> tuple:
+    """What of a SceneInfo decides the map and its frame: file, sha256, projection, origin."""
+    return (scene.map_name, scene.map_sha256, scene.projection, scene.origin_lat_deg, scene.origin_lon_deg)

@@ -39,6 +39,9 @@ viewer through ``IAMP_VIEWER_TOKEN`` in its environment, not its command line.
 Exit codes: 0 clean run, 1 a node failed (the first failing code is
 reported), 2 bad command line or pipeline file, or an unusable map (the
 corridors stage reports it; the run stops at once with the map's problem).
+Without a dataset player (``live``) the map comes from the tracker's
+SceneInfo, a message rather than this run's configuration: an unusable one
+is one line per report and the run goes on, waiting for a scene it can load.
 """
 
 from __future__ import annotations
@@ -653,7 +656,15 @@ class Launcher:
                 say(f"--stop-after {self.args.stop_after:g} s reached")
                 return self.shutdown(order)
             for nid, c in list(self.children.items()):
-                if c.fatal is not None:
+                if c.fatal is not None and not sources:
+                    # no dataset player: the scene is a live tracker's message, not this run's configuration, so a map
+                    # it names that cannot be loaded never ends the run: one line per report, and the stages wait for
+                    # a scene they can load
+                    say(f"{nid} reports {c.fatal}: the tracker's SceneInfo names a map this run cannot load (its maps/"
+                        " folder: --data); the stages predict nothing until it publishes one they can, under a new scene_id;"
+                        " the run goes on")
+                    c.fatal = None
+                elif c.fatal is not None:
                     say(f"stopping the run: {nid} reports {c.fatal}")
                     self.first_failure = EXIT_UNUSABLE_MAP
                     return self.shutdown(order)

@@ -86,6 +86,22 @@ def test_header_wall_stamp_defaults_to_unknown_and_is_range_checked():
         bs.TrackFrame.decode(bad)
 
 
+def test_a_field_with_a_default_may_be_left_out_and_reads_as_its_default():
+    # README, "Predicting from a live tracker": source_wall_ns "0 if unknown", clock "unknown" if left out; a tracker
+    # writing msgpack itself need not send them. A field without a default is still required, and a misspelt
+    # optional one is still an unknown field
+    frame = _repack(track_frame().encode(), lambda e: e["body"]["header"].pop("source_wall_ns"))
+    assert bs.TrackFrame.decode(frame).header.source_wall_ns == 0
+    scene = SAMPLES["iamp.SceneInfo"]()
+    assert scene.clock != "unknown"
+    decoded = bs.SceneInfo.decode(_repack(scene.encode(), lambda e: e["body"].pop("clock")))
+    assert decoded.clock == "unknown" and decoded.map_sha256 == scene.map_sha256
+    with pytest.raises(bs.MalformedPayload, match="unknown field"):
+        bs.SceneInfo.decode(_repack(scene.encode(), lambda e: (e["body"].pop("clock"), e["body"].__setitem__("clok", "wall"))))
+    with pytest.raises(bs.MalformedPayload, match="missing field"):
+        bs.TrackFrame.decode(_repack(track_frame().encode(), lambda e: e["body"]["header"].pop("stamp_ns")))
+
+
 def test_track_frame_arrays_keep_dtype_and_values():
     f = track_frame(5)
     g = bs.TrackFrame.decode(f.encode())

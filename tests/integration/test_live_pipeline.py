@@ -10,6 +10,8 @@ and liveliness, never on fixed sleeps, and check the recording.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import re
 import signal
 import subprocess
 import threading
@@ -81,6 +83,41 @@ def live_run(rec: Path) -> Iterator[LiveRun]:
         kill_all([live.run.proc, *live.trackers])
 
 
+def _unusable_scene_first(live: LiveRun) -> None:
+    """A tracker whose SceneInfo names a map of another sha256 (a message, not the run's configuration): the launcher
+    says so in one line and the run goes on (before, it stopped the whole run with exit 2); the trackers after it
+    publish a scene the stages can load, under another scene_id, and are predicted."""
+    from stages.lib.datasets import DEFAULT_DATA_DIR, load_recording
+    from stages.tracks_source.core import TrackPlayer, TracksSourceConfig, file_sha256
+
+    recording = load_recording(DEFAULT_DATA_DIR, "k729_2022-03-16", ["013"])
+    player = TrackPlayer(TracksSourceConfig(recording=recording.name), recording, map_sha256=file_sha256(recording.map_path),
+                         run_id="live", producer="tracker")
+    scene, frames = None, []
+    for _stamp, result in player:
+        scene = result.outputs.get("scene", scene)
+        frames.append(result.outputs["track_frame"])
+        if len(frames) == 3:
+            break
+    bad = dataclasses.replace(scene, scene_id="unusable-map", map_sha256="0" * 64)
+    said = re.compile(r"^\[launch\] corridors reports map \S+ unusable: map_sha256_mismatch.*the run goes on$")
+    with BusClient(connect=[endpoint(live.port)]) as bus:
+        sent = iter(range(10**6))
+
+        def reported() -> bool:
+            # the scene and a frame again until the launcher says it (a put before the new session's routes reach the
+            # stages is lost), the frames on the wall clock as the second tracker's below
+            bus.put("iamp/live/tracker/scene", bad.encode())
+            n = next(sent)
+            frame = frames[n % len(frames)]
+            header = dataclasses.replace(frame.header, stamp_ns=WALL + n * 100_000_000, frame_index=n)
+            bus.put("iamp/live/tracker/track_frame", dataclasses.replace(frame, header=header, scene_id=bad.scene_id).encode())
+            return any(said.search(line) for line in list(live.run.lines))
+
+        wait_until(reported, 60.0, "the launcher's line on the tracker's unusable map", interval_s=0.1)
+    assert live.run.proc.poll() is None, live.run.text()[-3000:]
+
+
 def _feed(live: LiveRun, clock: str, speed: int, want: int) -> str:
     """One stand-in tracker on ``clock`` until ``want`` MotionGrids of its clock came; stopped; returns its log."""
     wall = clock == "wall"
@@ -100,6 +137,7 @@ def test_live_pipeline_predicts_every_frame_of_an_outside_tracker_and_follows_it
     restarts every frame of the tracker goes through every stage into a hybrid MotionGrid. (One pipeline for what
     were two tests: a run each cost the suite 9 s.)"""
     with live_run(tmp_path / "live.mcap") as live:
+        _unusable_scene_first(live)
         for clock, want in (("recording", 15), ("wall", 15), ("recording", 45)):
             said = _feed(live, clock, 4, want)
             if clock == "recording":  # (on the wall clock the first frames are rejected, so its warm-up gives up on the stages)

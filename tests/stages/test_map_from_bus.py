@@ -235,6 +235,23 @@ def test_a_scene_of_another_hash_is_reported_once_and_not_resolved_again(played,
     assert any(v.corridors for v in corridor_set.vehicles)
 
 
+def test_a_changed_scene_under_the_same_scene_id_is_reported_once_and_the_map_kept(played, layout):
+    # a tracker that corrects its map, projection or origin but keeps its scene_id: one issue that says to give the
+    # changed scene a new id, the loaded map kept (its vehicles keep their corridors); a new id loads the new scene
+    scene, frames = played
+    data, _outside, _fifos = layout
+    builder = CorridorBuilder(CorridorsConfig(data=str(data)))
+    kinds = []
+    for k, frame in enumerate(frames * 2):
+        sent = scene if k < 2 else dataclasses.replace(scene, map_sha256="0" * 64)
+        corridor_set, issues = builder.process(frame, sent)
+        kinds += [i.kind for i in issues]
+    assert kinds.count("scene_changed_same_id") == 1 and "map_sha256_mismatch" not in kinds, kinds
+    assert any(v.corridors for v in corridor_set.vehicles)
+    _, issues = builder.process(frames[0], dataclasses.replace(scene, scene_id="fixed", map_sha256="0" * 64))
+    assert [i.kind for i in issues].count("map_sha256_mismatch") == 1
+
+
 def test_the_source_publishes_a_map_name_and_hash_never_a_path(played):
     scene, _frames = played
     assert scene.map_name == MAP_NAME and os.sep not in scene.map_name
