@@ -37,6 +37,8 @@ from stages.corridors.matching import LaneletIndex, LaneletMatch, select_lanelet
 from stages.corridors.routes import RouteCache, RouteGeometry, cut_corridor, max_separation_m, project_vehicle, route_hash
 
 _NS = 1e-9
+#: a step between two frames' stamps below this (1 ms: no tracker runs at 1 kHz) says the stamps are not nanoseconds
+MIN_FRAME_STEP_NS = 1_000_000
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -226,6 +228,7 @@ class CorridorBuilder:
         issues: list[Issue] = []
         scene_map = self._scene(frame, scene, issues)
         stamp = int(frame.header.stamp_ns)
+        self._check_step(stamp, scene, issues)
         self._expire(stamp, issues)
         n = len(frame)
         entries: list[VehicleCorridors | None] = [None] * n
@@ -367,6 +370,17 @@ class CorridorBuilder:
         if frame.scene_id and frame.scene_id != scene.scene_id:
             issues.append(Issue("scene_mismatch", -1, f"frame names scene {frame.scene_id}, latched scene is {scene.scene_id}"))
         return self._map
+
+    def _check_step(self, stamp_ns: int, scene: SceneInfo | None, issues: list[Issue]) -> None:
+        """One ``stamp_step_implausible`` issue per frame whose stamp is less than ``MIN_FRAME_STEP_NS`` after the last
+        one: stamps in milliseconds or microseconds (every speed and acceleration from them is wrong, and the stages
+        after this one drop the vehicles as out of range), said where the cause is."""
+        step = stamp_ns - self._last_stamp_ns if self._last_stamp_ns is not None else 0
+        if 0 < step < MIN_FRAME_STEP_NS:
+            rate = scene.frame_rate_hz if scene is not None else math.nan
+            said = f" where the SceneInfo says {rate:g} Hz ({1e9 / rate:,.0f} ns a frame)" if math.isfinite(rate) and rate > 0 else ""
+            issues.append(Issue("stamp_step_implausible", -1, f"stamps advance {step} ns from the last frame{said}: header.stamp_ns"
+                                " must be nanoseconds (milliseconds or microseconds?); speeds and accelerations from them are wrong"))
 
     def _expire(self, stamp_ns: int, issues: list[Issue]) -> None:
         if self._last_stamp_ns is not None and stamp_ns < self._last_stamp_ns:
