@@ -530,8 +530,8 @@ class MarkovPredictor:
         if self._log is not None and (logged is None or abs(stamp - logged) >= ONLINE_LOG_S * 1e9):
             self._choice_logged_ns[name] = stamp
             o = choice.summary()
-            self._log.info(what + " of %s: mean ADE %s m over %d back-tested vehicles (%d unresolved)", o["factor"],
-                           o["factors"], np.round(o["mean_ade_m"], 3).tolist(), o["samples"], o["unresolved"])
+            self._log.info(what + " of %s: mean ADE %s m over %d back-tested vehicles (%d unresolved, %d whose track jumped)",
+                           o["factor"], o["factors"], np.round(o["mean_ade_m"], 3).tolist(), o["samples"], o["unresolved"], o["jumped"])
         return chosen
 
     def _back_test(self, pairs: list[Pair], stamp: int, issues: list[Issue], chained: tuple[list[Pair], dict[str, Any], list[int]]) -> None:

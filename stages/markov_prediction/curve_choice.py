@@ -75,6 +75,7 @@ class OnlineCurveChoice:
     sum_diff2: np.ndarray = field(init=False)  # Σ (ADE − the default's ADE)² per candidate
     samples: int = 0
     unresolved: int = 0  # samples without positions over half the horizon (track ended, gaps)
+    jumped: int = 0  # samples whose track moved faster than MAX_TRUTH_SPEED_MPS between two positions (not scored)
     pending: list[_Sample] = field(default_factory=list)
     positions: dict[int, list[tuple[int, float, float]]] = field(default_factory=dict)
 
@@ -143,9 +144,10 @@ class OnlineCurveChoice:
             if sample.stamp_ns > ready:
                 keep.append(sample)
                 continue
+            jumped = self.jumped
             ade = self._score(sample)
             if ade is None:
-                self.unresolved += 1
+                self.unresolved += int(self.jumped == jumped)
                 continue
             self.sum_ade += ade
             self.sum_diff2 += (ade - ade[self._default_index]) ** 2
@@ -169,15 +171,21 @@ class OnlineCurveChoice:
             return None
         stamps = [p[0] for p in kept]
         tol = int(round(self.tolerance_s * 1e9))
-        truth = []
+        truth, last = [], -1
         for dt in self.step_ns.tolist():
             want = sample.stamp_ns + dt
             i = bisect.bisect_left(stamps, want - tol)
             if i >= len(stamps) or abs(stamps[i] - want) > tol:
                 break
             truth.append(kept[i][1:])
+            last = i
         n = len(truth)
         if n < max(1, -(-self.step_ns.size // 2)):
+            return None
+        if _jumped(kept, bisect.bisect_left(stamps, sample.stamp_ns - tol), last):
+            # the track jumped (a re-used id, a tracker's glitch, a position far off the map): its error is not the
+            # candidates', and one such sample would swamp every mean (a 70 km jump: mean ADE 1,155 m for the run)
+            self.jumped += 1
             return None
         err = np.linalg.norm(sample.means[:, :, :n] - np.asarray(truth)[None, None], axis=3)  # (C, P, n)
         with np.errstate(invalid="ignore"):
@@ -193,7 +201,7 @@ class OnlineCurveChoice:
     def summary(self) -> dict[str, object]:
         mean = (self.sum_ade / self.samples).tolist() if self.samples else [math.nan] * len(self.factors)
         return {"factor": self.factor, "factors": list(self.factors), "samples": self.samples, "unresolved": self.unresolved,
-                "mean_ade_m": mean, "t_vs_default": self.t_values().tolist()}
+                "jumped": self.jumped, "mean_ade_m": mean, "t_vs_default": self.t_values().tolist()}
 
 
 @dataclass
@@ -229,6 +237,22 @@ class OnlineLeadChoice(OnlineCurveChoice):
     def _check(self) -> None:
         if len(self.factors) < 2 or any(not (math.isfinite(f) and f >= 0) for f in self.factors):
             raise ValueError(f"hybrid_speed_leads_s = {self.factors!r}: need two or more finite leads (s, >= 0)")
+
+
+#: a track that moved faster than this between two of its kept positions jumped: no car's motion (K733's fastest cars
+#: are under 20 m/s; a glitch or a re-used id moves tens to thousands of metres in a frame)
+MAX_TRUTH_SPEED_MPS = 70.0
+
+
+def _jumped(kept: list[tuple[int, float, float]], first: int, last: int) -> bool:
+    """Whether the positions ``kept[first..last]`` (stamp order; from the sample's own stamp on where it is kept) hold a
+    step faster than ``MAX_TRUTH_SPEED_MPS``."""
+    if last <= first:
+        return False
+    run = np.asarray(kept[max(first, 0): last + 1], dtype=np.float64)  # (n, 3): stamp, x, y
+    dt = np.diff(run[:, 0]) * 1e-9
+    step = np.hypot(np.diff(run[:, 1]), np.diff(run[:, 2]))
+    return bool(np.any(step > MAX_TRUTH_SPEED_MPS * np.maximum(dt, 1e-3)))
 
 
 def _stamp_hash(stamp_ns: int) -> int:

@@ -75,6 +75,21 @@ def test_samples_wait_for_the_horizon_and_a_car_that_leaves_is_scored_on_what_wa
     assert not choice.positions  # nothing left to score: the positions are forgotten
 
 
+def test_a_track_that_jumps_is_counted_and_not_scored():
+    # a position far off (a tracker's glitch, a re-used id) within a sample's horizon: its error is not the candidates',
+    # and one such sample swamped the run's means (a new-user probe: 1,155 m for the rest of the run); the samples
+    # around it score as before
+    choice = OnlineCurveChoice((0.0, 1.0), STEPS)
+    _feed(choice, 1, 10.0, [1.0, 3.0])
+    _feed(choice, 2, 20.0, [1.0, 3.0])
+    choice.add_positions(int(22.0 * S), [2], [50_000.0], [50_000.0])  # (the same stamp as a kept one: kept once, not moved)
+    choice.positions[2][20] = (int(22.0 * S), 50_000.0, 50_000.0)
+    _feed(choice, 3, 30.0, [1.0, 3.0])
+    choice.resolve(int(40.0 * S))
+    assert choice.samples == 2 and choice.jumped == 1 and choice.unresolved == 0
+    assert choice.summary()["mean_ade_m"] == pytest.approx([1.0, 3.0]) and choice.summary()["jumped"] == 1
+
+
 def test_positions_in_any_order_and_reset_keeps_what_was_learnt():
     a, b = OnlineCurveChoice((0.0, 1.0), STEPS), OnlineCurveChoice((0.0, 1.0), STEPS)
     t = np.round(np.arange(0.0, 4.05, 0.1), 6)
