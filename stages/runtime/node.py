@@ -287,7 +287,7 @@ class Node:
         if last is not None and last + 1 < index < last + MAX_FRAME_GAP:
             self._count("frames_unreceived", n=index - last - 1)
             self.problems.report("frames_unreceived", logging.WARNING,
-                                 "frames not received: %d before frame %d (lost on the way: this node or the one before it was stopped, hung or behind its transport, or the publisher skipped them)",
+                                 "frames not received: %d before frame %d (lost on the way: this node or the one before it was stopped, hung or behind its transport, or the publisher skipped them, or sent frames this node could not read: see decode_errors)",
                                  index - last - 1, index)
 
     def _query_latched_raw(self) -> None:
