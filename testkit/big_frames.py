@@ -17,17 +17,21 @@ import numpy as np
 
 from bus_schemas import Header, SceneInfo, TrackFrame
 from stages.lib.datasets import DEFAULT_DATA_DIR, load_recording
-from stages.tracks_source.core import TracksSourceConfig, TrackPlayer
+from stages.tracks_source.core import TracksSourceConfig, TrackPlayer, file_sha256
 
 RECORDING = "k729_2022-03-16"
 SEQUENCE = "013"
 
 
-def real_frames(limit: int | None = None) -> tuple[SceneInfo, list[TrackFrame]]:
-    """The scene and the TrackFrames of K729 sequence 013 (the first ``limit``)."""
+def real_frames(limit: int | None = None, *, run_id: str = "big", producer: str = "source",
+                map_sha256: bool = False) -> tuple[SceneInfo, list[TrackFrame]]:
+    """The scene and the TrackFrames of K729 sequence 013 (the first ``limit``), as the dataset player publishes them
+    in run ``run_id`` as node ``producer``; ``map_sha256``: the scene names its map's hash, as the player's on the bus
+    (a stage loads the map only then)."""
     recording = load_recording(DEFAULT_DATA_DIR, RECORDING, (SEQUENCE,))
     one = dataclasses.replace(recording, sequences=(recording.sequences[0],))
-    player = TrackPlayer(TracksSourceConfig(recording=recording.name), one, map_sha256="", run_id="big", producer="source")
+    sha = file_sha256(recording.map_path) if map_sha256 else ""
+    player = TrackPlayer(TracksSourceConfig(recording=recording.name), one, map_sha256=sha, run_id=run_id, producer=producer)
     scene, frames = None, []
     for _stamp, result in player:
         scene = result.outputs.get("scene", scene)

@@ -87,18 +87,9 @@ def _unusable_scene_first(live: LiveRun) -> None:
     """A tracker whose SceneInfo names a map of another sha256 (a message, not the run's configuration): the launcher
     says so in one line and the run goes on (before, it stopped the whole run with exit 2); the trackers after it
     publish a scene the stages can load, under another scene_id, and are predicted."""
-    from stages.lib.datasets import DEFAULT_DATA_DIR, load_recording
-    from stages.tracks_source.core import TrackPlayer, TracksSourceConfig, file_sha256
+    from testkit.big_frames import real_frames
 
-    recording = load_recording(DEFAULT_DATA_DIR, "k729_2022-03-16", ["013"])
-    player = TrackPlayer(TracksSourceConfig(recording=recording.name), recording, map_sha256=file_sha256(recording.map_path),
-                         run_id="live", producer="tracker")
-    scene, frames = None, []
-    for _stamp, result in player:
-        scene = result.outputs.get("scene", scene)
-        frames.append(result.outputs["track_frame"])
-        if len(frames) == 3:
-            break
+    scene, frames = real_frames(3, run_id="live", producer="tracker", map_sha256=True)
     bad = dataclasses.replace(scene, scene_id="unusable-map", map_sha256="0" * 64)
     said = re.compile(r"^\[launch\] corridors reports map \S+ unusable: map_sha256_mismatch.*the run goes on$")
     with BusClient(connect=[endpoint(live.port)]) as bus:

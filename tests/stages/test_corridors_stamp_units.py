@@ -7,21 +7,7 @@ from __future__ import annotations
 import dataclasses
 
 from stages.corridors import CorridorBuilder, CorridorsConfig
-from stages.lib.datasets import DEFAULT_DATA_DIR, DEFAULT_RECORDING, load_recording
-from stages.tracks_source.core import TrackPlayer, TracksSourceConfig, file_sha256
-
-
-def _played(n: int):
-    recording = load_recording(DEFAULT_DATA_DIR, DEFAULT_RECORDING, ["013"])
-    player = TrackPlayer(TracksSourceConfig(recording=recording.name), recording, map_sha256=file_sha256(recording.map_path),
-                         run_id="t", producer="source")
-    scene, frames = None, []
-    for _stamp, result in player:
-        scene = result.outputs.get("scene", scene)
-        frames.append(result.outputs["track_frame"])
-        if len(frames) == n:
-            return scene, frames
-    raise AssertionError("the embedded sequence is too short")
+from testkit.big_frames import real_frames
 
 
 def _issues(scene, frames, divide: int) -> list:
@@ -34,7 +20,7 @@ def _issues(scene, frames, divide: int) -> list:
 
 
 def test_stamps_in_milliseconds_are_named_once_per_frame_and_nanoseconds_are_not():
-    scene, frames = _played(6)
+    scene, frames = real_frames(6, run_id="t", map_sha256=True)
     for divide in (1_000_000, 1_000):  # milliseconds, microseconds
         per_frame = [[i for i in issues if i.kind == "stamp_step_implausible"] for issues in _issues(scene, frames, divide)]
         assert [len(f) for f in per_frame] == [0] + [1] * (len(frames) - 1)
