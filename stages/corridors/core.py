@@ -37,6 +37,9 @@ from stages.corridors.matching import LaneletIndex, LaneletMatch, select_lanelet
 from stages.corridors.routes import RouteCache, RouteGeometry, cut_corridor, max_separation_m, project_vehicle, route_hash
 
 _NS = 1e-9
+#: on the bus (``update``) a frame stamped at most this much before the newest one seen arrived late and is skipped;
+#: further back, a source that started over (every track reset, ``stamp_backwards``)
+LATE_FRAME_NS = 500_000_000
 #: a step between two frames' stamps below this (1 ms: no tracker runs at 1 kHz) says the stamps are not nanoseconds
 MIN_FRAME_STEP_NS = 1_000_000
 
@@ -220,6 +223,15 @@ class CorridorBuilder:
         scene = inputs.get("scene")
         if not isinstance(frame, TrackFrame):
             return StageResult(issues=[Issue("no_frame", -1, "update without a track_frame")])
+        stamp, last = int(frame.header.stamp_ns), self._last_stamp_ns
+        if last is not None and 0 < last - stamp <= LATE_FRAME_NS:
+            # a frame that arrived after a newer one (the bus or the tracker reordered them): skipped, so that the
+            # vehicles' states go on from the newer frame; before, it reset every track (stamp_backwards) and the other
+            # stages, which reset only after track_timeout_s, disagreed. A step back beyond LATE_FRAME_NS is a source
+            # that started over: process resets its state (stamp_backwards)
+            return StageResult(issues=[Issue("frame_late", -1, f"frame {frame.header.frame_index} stamped {(last - stamp) / 1e6:.0f} ms"
+                                             " before the last one: arrived out of order, skipped (no CorridorSet; the"
+                                             " tracks go on from the newer frame)")])
         corridor_set, issues = self.process(frame, scene if isinstance(scene, SceneInfo) else None)
         return StageResult(outputs={"corridor_set": corridor_set}, issues=issues)
 
