@@ -213,7 +213,8 @@ def test_a_scene_of_another_hash_is_reported_once_and_not_resolved_again(played,
     mismatches, no_map = 0, 0
     for k, frame in enumerate(frames * 3):
         republished = dataclasses.replace(other, header=Header(run_id="t", frame_index=k, stamp_ns=k, producer="source"))
-        result = builder.update({"track_frame": dataclasses.replace(frame, scene_id="otherhash"), "scene": republished})
+        later = dataclasses.replace(frame.header, stamp_ns=k * 100_000_000)  # (the frames again, later: not late ones)
+        result = builder.update({"track_frame": dataclasses.replace(frame, header=later, scene_id="otherhash"), "scene": republished})
         assert "corridor_set" in result.outputs
         mismatches += [i.kind for i in result.issues].count("map_sha256_mismatch")
         no_map += [i.kind for i in result.issues].count("no_map")
