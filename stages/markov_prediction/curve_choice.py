@@ -144,10 +144,10 @@ class OnlineCurveChoice:
             if sample.stamp_ns > ready:
                 keep.append(sample)
                 continue
-            jumped = self.jumped
             ade = self._score(sample)
-            if ade is None:
-                self.unresolved += int(self.jumped == jumped)
+            if ade is None or ade is JUMPED:
+                self.unresolved += ade is None
+                self.jumped += ade is JUMPED
                 continue
             self.sum_ade += ade
             self.sum_diff2 += (ade - ade[self._default_index]) ** 2
@@ -162,10 +162,10 @@ class OnlineCurveChoice:
             if not kept:
                 del self.positions[track_id]
 
-    def _score(self, sample: _Sample) -> np.ndarray | None:
+    def _score(self, sample: _Sample) -> np.ndarray | object | None:
         """(C,) each candidate's ADE of the sample (the best of the vehicle's pairs) over the step times at which the
         vehicle was seen (within ``tolerance_s``), from the first on; None when that is less than half the horizon (a
-        car that left soon after) or a candidate has no finite mean."""
+        car that left soon after) or a candidate has no finite mean; ``JUMPED`` when its track jumped (``_jumped``)."""
         kept = self.positions.get(sample.track_id)
         if not kept:
             return None
@@ -185,8 +185,7 @@ class OnlineCurveChoice:
         if _jumped(kept, bisect.bisect_left(stamps, sample.stamp_ns - tol), last):
             # the track jumped (a re-used id, a tracker's glitch, a position far off the map): its error is not the
             # candidates', and one such sample would swamp every mean (a 70 km jump: mean ADE 1,155 m for the run)
-            self.jumped += 1
-            return None
+            return JUMPED
         err = np.linalg.norm(sample.means[:, :, :n] - np.asarray(truth)[None, None], axis=3)  # (C, P, n)
         with np.errstate(invalid="ignore"):
             ade = err.mean(axis=2)  # (C, P): NaN where a step has no mean
@@ -239,6 +238,8 @@ class OnlineLeadChoice(OnlineCurveChoice):
             raise ValueError(f"hybrid_speed_leads_s = {self.factors!r}: need two or more finite leads (s, >= 0)")
 
 
+#: ``_score``'s answer for a sample whose track jumped (counted as ``jumped``, not scored)
+JUMPED = object()
 #: a track that moved faster than this between two of its kept positions jumped: no car's motion (K733's fastest cars
 #: are under 20 m/s; a glitch or a re-used id moves tens to thousands of metres in a frame)
 MAX_TRUTH_SPEED_MPS = 70.0

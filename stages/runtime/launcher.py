@@ -388,7 +388,9 @@ class Child:
         self.env: dict[str, str] = {}  # added to the launcher's environment (secrets that must not be on the command line)
         self.proc: subprocess.Popen | None = None
         self.budget = budget or RestartBudget()
-        self.fatal: str | None = None  # a condition in the node's output that ends the run (an unusable map)
+        # a condition in the node's output (an unusable map): it ends the run where the map is the run's own (a dataset
+        # player or replay); in a live run it is said and cleared (``supervise``)
+        self.fatal: str | None = None
         self.finished = False  # a source that ended on its own, or a node we stopped
         self.exit_code: int | None = None
 
