@@ -56,7 +56,7 @@ from stages.markov_prediction.modes.cv import CV_LINE_ID
 from stages.markov_prediction.initial_blend import OnlineInitialBlend
 from stages.markov_prediction.curve_choice import OnlineCurveChoice, OnlineLeadChoice, OnlineShiftChoice, frame_tested, sampled
 from stages.markov_prediction.online_spread import DEFAULT_BANDS_MPS, OnlineSpread
-from stages.markov_prediction.spread import ALONG_TRUNCATE, SpreadTable, blur_along, blur_grid, fold_behind, load_spread
+from stages.markov_prediction.spread import ALONG_TRUNCATE, SpreadTable, along_spread, blur_grid, load_spread
 from stages.markov_prediction.rasterise import (
     Centrelines, FootprintBatch, GridFrame, SparseGrid, cell_footprints_arrays, fuse, lateral_kernel, lateral_table, vehicle_grids,
 )
@@ -1552,13 +1552,11 @@ class MarkovPredictor:
             return probs, cell_lower, self._lateral, None
         pad = min(int(math.ceil(ALONG_TRUNCATE * float(np.nanmax(np.where(np.isfinite(sigma), sigma, 0.0))) / cfg.ds_m)), ALONG_PAD_CELLS)
         if pad > 0:
-            probs = np.pad(probs, ((0, 0), (0, 0), (pad, pad)))
             cell_lower = np.concatenate([cell_lower[:, :1] - cfg.ds_m * np.arange(pad, 0, -1)[None, :], cell_lower,
                                          cell_lower[:, -1:] + cfg.ds_m * np.arange(1, pad + 1)[None, :]], axis=1)
-        out = blur_along(probs, sigma / cfg.ds_m)
-        if cfg.spread_fold_start:
-            fold_behind(out, probs, np.floor((start_s - cell_lower[:, 0]) / cfg.ds_m).astype(np.int64))
-        np.copyto(out, 0.0, where=(cell_lower >= end_s[:, None])[:, None, :])  # past the corridor's end: none (outside)
+        # padded, blurred, folded ahead of the start (spread_fold_start), none past the corridor's end (outside)
+        start_cell = np.floor((start_s - cell_lower[:, 0]) / cfg.ds_m).astype(np.int64) if cfg.spread_fold_start else None
+        out = along_spread(probs, sigma / cfg.ds_m, pad, start_cell, cell_lower >= end_s[:, None])
         if cfg.spread_lateral_ratio > 0:
             base = cfg.grid_lateral_sigma_m
             wide = np.minimum(np.hypot(base, cfg.spread_lateral_ratio * sigma), max(cfg.spread_lateral_max_m, base))

@@ -214,10 +214,10 @@ def _blurred(frame: GridFrame, cells: np.ndarray, values: np.ndarray, sigma_m: f
 ALONG_TRUNCATE = 4.0
 
 
-def along_weights(sigma_cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def along_weights(sigma_cells: np.ndarray, centred: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For σ (cells, any shape): ``which`` (flat, the row of ``weights`` each σ uses, -1 where σ is 0 or not finite),
-    ``weights`` (U, 2·max radius + 1: one normalised discrete Gaussian per distinct σ, centred, zero-padded) and
-    ``radii`` (U,): ⌈ALONG_TRUNCATE·σ⌉."""
+    ``weights`` (U, 2·max radius + 1: one normalised discrete Gaussian per distinct σ, from the front, zero-padded;
+    ``centred``: each centred at the row's middle, as computed) and ``radii`` (U,): ⌈ALONG_TRUNCATE·σ⌉."""
     flat = np.asarray(sigma_cells, dtype=np.float64).reshape(-1)
     ok = np.isfinite(flat) & (flat > 0)
     which = np.full(flat.size, -1, np.int64)
@@ -228,10 +228,13 @@ def along_weights(sigma_cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
     radii = np.ceil(ALONG_TRUNCATE * unique).astype(np.int64)
     top = int(radii.max())
     weights = gaussian_rows(np.arange(-top, top + 1, dtype=np.float64), unique, radii.astype(np.float64))
+    if centred:
+        return which, weights, radii
     # each row's weights from its own radius: row u's 2·radii[u] + 1 weights start at top − radii[u]; moved to the front
-    out = np.zeros((unique.size, 2 * top + 1))
-    for u, r in enumerate(radii.tolist()):
-        out[u, : 2 * r + 1] = weights[u, top - r: top + r + 1]
+    # (all rows at once: a gather, then the places past each row's 2·radii[u] + 1 set to 0)
+    col = np.arange(2 * top + 1)
+    out = np.take_along_axis(weights, np.minimum((top - radii)[:, None] + col[None, :], 2 * top), axis=1)
+    out[col[None, :] > 2 * radii[:, None]] = 0.0
     return which, out, radii
 
 
@@ -258,6 +261,27 @@ def blur_along(probs: np.ndarray, sigma_cells: np.ndarray, min_value: float = BL
         row = full[rad: rad + n_l]
         out[r] = np.where(row > min_value, row, 0.0)
     return out.reshape(shape)
+
+
+def along_spread(probs: np.ndarray, sigma_cells: np.ndarray, pad: int, start_cell: np.ndarray | None, beyond: np.ndarray,
+                 min_value: float = BLUR_MIN_VALUE) -> np.ndarray:
+    """The grids' along spread of the pairs' s-distributions ``probs`` (B, K, L): the window padded by ``pad`` cells
+    (zeros) at both ends, ``blur_along`` by ``sigma_cells`` (B, K), with ``start_cell`` (B,; in the padded window)
+    ``fold_behind`` (None: no fold), and the cells ``beyond`` (B, L + 2·pad) (past the corridor's end) set to 0. float32,
+    a new array. In one compiled pass where numba imports (``frame_kernels.along_rows``: the same numbers), else
+    these functions one after the other."""
+    probs = np.asarray(probs, dtype=np.float32)
+    if np.size(sigma_cells) != probs.shape[0] * probs.shape[1]:
+        raise ValueError(f"along_spread: {np.size(sigma_cells)} sigmas for {probs.shape[0] * probs.shape[1]} rows")
+    if frame_kernels.available():
+        which, weights, radii = along_weights(sigma_cells, centred=True)
+        return frame_kernels.along_rows(probs, pad, which, weights, radii, min_value, start_cell, beyond)
+    padded = np.pad(probs, ((0, 0), (0, 0), (pad, pad))) if pad > 0 else probs
+    out = blur_along(padded, sigma_cells, min_value)
+    if start_cell is not None:
+        fold_behind(out, padded, np.asarray(start_cell, dtype=np.int64))
+    np.copyto(out, 0.0, where=np.asarray(beyond, dtype=np.bool_)[:, None, :])
+    return out
 
 
 def fold_behind(out: np.ndarray, before: np.ndarray, start_cell: np.ndarray) -> None:

@@ -13,7 +13,7 @@ from stages.markov_prediction import RAW_GRIDS, MarkovPredictionConfig, MarkovPr
 from stages.markov_prediction.rasterise import (
     Centrelines, GridFrame, cell_footprints_arrays, lateral_kernel, lateral_table, vehicle_grid, vehicle_grids,
 )
-from stages.markov_prediction.spread import SCHEMA, blur_along, fold_behind
+from stages.markov_prediction.spread import SCHEMA, along_spread, blur_along, fold_behind
 
 
 def _probs(rng, shape, density=0.3):
@@ -89,6 +89,36 @@ def test_fold_behind_moves_the_blurs_mass_ahead_of_the_start_and_keeps_the_chain
     unchanged = out.copy()
     fold_behind(unchanged, before, np.zeros(3, np.int64))  # nothing behind: nothing moves
     np.testing.assert_array_equal(unchanged, out)
+
+
+@pytest.mark.parametrize("fold", [True, False])
+def test_along_spread_compiled_equals_pad_blur_fold_and_cut(monkeypatch, fold):
+    """along_spread's one compiled pass gives the numpy sequence (pad, blur_along, fold_behind, the cells past the end
+    set to 0) bit for bit: rows without a σ, starts before, inside and past the window, ends inside it."""
+    rng = np.random.default_rng(7)
+    n_b, n_k, n_l, pad = 5, 6, 40, 9
+    probs = _probs(rng, (n_b, n_k, n_l), density=0.5)
+    sigma = rng.uniform(0.2, 2.0, (n_b, n_k))
+    sigma[0] = 0.0  # as is (copied into the padded window)
+    sigma[1, 2] = np.nan
+    start = np.array([-3, 0, 12, 30, n_l + 2 * pad + 5]) if fold else None
+    beyond = np.zeros((n_b, n_l + 2 * pad), np.bool_)
+    beyond[2, 35:] = True
+    beyond[4, 50:] = True
+    got = along_spread(probs, sigma, pad, start, beyond)
+    monkeypatch.setattr(frame_kernels, "numba", None)
+    want = along_spread(probs, sigma, pad, start, beyond)
+    assert got.dtype == want.dtype == np.float32 and got.shape == (n_b, n_k, n_l + 2 * pad)
+    np.testing.assert_array_equal(got, want)
+    padded = np.pad(probs, ((0, 0), (0, 0), (pad, pad)))
+    by_hand = blur_along(padded, sigma)
+    if fold:
+        fold_behind(by_hand, padded, start)
+    by_hand[beyond[:, None, :].repeat(n_k, axis=1)] = 0.0
+    np.testing.assert_array_equal(want, by_hand)
+    assert np.any(got[2, :, :35] > 0) and not np.any(got[2, :, 35:]) and not np.any(got[4, :, 50:])
+    with pytest.raises(ValueError, match="sigmas"):
+        along_spread(probs, sigma[:3], pad, start, beyond)
 
 
 def test_lateral_spread_per_step_compiled_equals_vehicle_grid():

@@ -17,6 +17,8 @@
   pass (np.cumsum's order).
 - ``blur_rows``: the s-distributions of the pairs blurred along their corridors (``spread.blur_along``), every
   row in one call, only the cells that hold mass scattered.
+- ``along_rows``: ``spread.along_spread`` (the window padded, blurred, folded ahead of the start and cut at the
+  corridor's end) in one pass per row, without the padded copy of the input.
 - ``blur_cells``: one step of a vehicle's grid blurred as ``spread.blur_step`` and ``spread.block_cells_sorted``
   do it (cloud in cell onto blocks, scipy's ``gaussian_filter`` arithmetic, the blocks' cells above a value in
   cell order), in one call: the same numbers.
@@ -364,6 +366,58 @@ if numba is not None:
                 out[r, l] = a if a > min_value else 0.0
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def _along_rows(probs, pad, which, weights, radii, min_value, start_cell, fold, beyond, out):  # pragma: no cover - compiled
+        """``spread.along_spread`` in one pass per row (b, k): row k of pair b of ``probs`` (B, K, L), placed ``pad``
+        cells into its row of ``out`` (B, K, L + 2·pad; the pad cells 0), blurred as ``_blur_rows`` (the same sums in
+        the same order: the pad's zeros add nothing; here each row of ``weights`` is centred, not from the front), then with ``fold`` the blur's excess behind ``start_cell[b]``
+        moved to the mirrored cell (``spread.fold_behind``'s float32 operations), then the cells ``beyond[b]`` set to 0."""
+        n_b, n_k, n_l = probs.shape
+        n_o = out.shape[2]
+        top = (weights.shape[1] - 1) // 2  # each row of ``weights`` centred there
+        acc = np.zeros(n_o)
+        zero = np.float32(0.0)
+        for b in range(n_b):
+            start = start_cell[b]
+            behind = min(max(start, 0), n_o)
+            for k in range(n_k):
+                u = which[b * n_k + k]
+                row = out[b, k]
+                if u < 0:
+                    for l in range(n_o):
+                        row[l] = zero
+                    for l in range(n_l):
+                        row[l + pad] = probs[b, k, l]
+                else:
+                    rad = radii[u]
+                    for l in range(n_o):
+                        acc[l] = 0.0
+                    for l in range(n_l):
+                        v = np.float64(probs[b, k, l])
+                        if v == 0.0:
+                            continue
+                        lp = l + pad
+                        lo = lp - rad if lp > rad else 0
+                        hi = lp + rad + 1 if lp + rad + 1 < n_o else n_o
+                        for m in range(lo, hi):
+                            acc[m] += v * weights[u, m - lp + top]
+                    for l in range(n_o):
+                        a = acc[l]
+                        row[l] = a if a > min_value else 0.0
+                if fold:
+                    for j in range(behind):
+                        blurred = row[j]
+                        i = j - pad
+                        before = probs[b, k, i] if 0 <= i < n_l else zero
+                        excess = blurred - (blurred if blurred <= before else before)
+                        row[j] = blurred - excess
+                        target = 2 * start - j
+                        if target < n_o:
+                            row[target] = row[target] + excess
+                for l in range(n_o):
+                    if beyond[b, l]:
+                        row[l] = zero
+
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
     def _add_running_sums(p, correct, ends, out):  # pragma: no cover - compiled
         """Per run [ends[n - 1], ends[n]) of ``p`` (ends[-1] taken as 0): out[start + 1 + j] = p[start + 1 + j] +
         correct[start : start + 1 + j].cumsum()[-1], the running sum taken as np.cumsum takes it (from its first term,
@@ -654,6 +708,8 @@ def warm_up() -> None:
     fuse_sorted([np.array([0, 3], np.int64), np.array([3], np.int64)], np.full(3, 0.5), 2, 1.0 - 1e-7)
     add_running_sums(np.zeros(3), np.zeros(2), np.array([3], np.int64), np.zeros(3))
     blur_rows(np.ones((1, 3), np.float32), np.zeros(1, np.int64), np.array([[0.25, 0.5, 0.25]]), np.ones(1, np.int64), 1e-6)
+    along_rows(np.ones((1, 1, 3), np.float32), 1, np.zeros(1, np.int64), np.array([[0.25, 0.5, 0.25]]), np.ones(1, np.int64), 1e-6,
+               np.ones(1, np.int64), np.zeros((1, 5), np.bool_))
     _warm = True
 
 
@@ -667,6 +723,23 @@ def blur_cells(cells: np.ndarray, values: np.ndarray, n_rows: int, n_cols: int, 
     w, radius = gaussian_kernel(sigma_cells / f)
     return _blur_cells(np.ascontiguousarray(cells, dtype=np.int64), np.ascontiguousarray(values, dtype=np.float64), int(n_rows),
                        int(n_cols), int(f), int(pad), w, radius, float(min_value))
+
+
+def along_rows(probs: np.ndarray, pad: int, which: np.ndarray, weights: np.ndarray, radii: np.ndarray, min_value: float,
+               start_cell: np.ndarray | None, beyond: np.ndarray) -> np.ndarray | None:
+    """``spread.along_spread`` in one compiled call: ``probs`` (B, K, L) float32 padded by ``pad`` cells at both ends,
+    blurred (``which`` (B·K,) into ``weights`` (U, 2·max radius + 1; each row centred) / ``radii``, as ``blur_rows``), folded ahead of ``start_cell`` (B,) (None:
+    not), the cells ``beyond`` (B, L + 2·pad) set to 0; float32 (B, K, L + 2·pad). None where numba is missing."""
+    if numba is None:
+        return None
+    n_b, n_k, n_l = probs.shape
+    out = np.empty((n_b, n_k, n_l + 2 * int(pad)), np.float32)
+    fold = start_cell is not None
+    _along_rows(np.ascontiguousarray(probs, dtype=np.float32), int(pad), np.ascontiguousarray(which, dtype=np.int64),
+                np.ascontiguousarray(weights, dtype=np.float64), np.ascontiguousarray(radii, dtype=np.int64), float(min_value),
+                np.ascontiguousarray(start_cell if fold else np.zeros(n_b), dtype=np.int64), fold,
+                np.ascontiguousarray(beyond, dtype=np.bool_), out)
+    return out
 
 
 def blur_rows(probs: np.ndarray, which: np.ndarray, weights: np.ndarray, radii: np.ndarray, min_value: float) -> np.ndarray | None:
