@@ -179,7 +179,8 @@ def analyse(rec: Path, expect: tuple[str, ...] = (), target: float | None = None
         }
     node_stats = {
         node: {"e2e_ms_p50": s.e2e_ms_p50, "e2e_ms_p95": s.e2e_ms_p95, "proc_ms_p50": s.proc_ms_p50, "proc_ms_p95": s.proc_ms_p95,
-               "queue_drops": s.counters.get("queue_drops", 0), "join_drops": s.counters.get("join_drops", 0)}
+               "queue_drops": s.counters.get("queue_drops", 0), "join_drops": s.counters.get("join_drops", 0),
+               "stale_drops": s.counters.get("stale_drops", 0)}
         for node, s in sorted(stats.items())
     }
     return {"source_frames": len(source_frames), "vehicles_mean": float(np.mean(vehicles)) if vehicles else 0.0,
@@ -495,10 +496,10 @@ def main() -> int:
         if "at_n" in res:
             a = res["at_n"]
             print(f"   {'/'.join(GRID)} at {n} ± {a['vehicles_within']} vehicles: {a['frames']} frames, p50 {a['e2e_ms_p50']:.1f} / p95 {a['e2e_ms_p95']:.1f} ms")
-        print(f"   {'NodeStats (last)':<40} {'e2e p50':>8} {'e2e p95':>8} {'proc p50':>8} {'proc p95':>8} {'q drop':>6} {'j drop':>6}")
+        print(f"   {'NodeStats (last)':<40} {'e2e p50':>8} {'e2e p95':>8} {'proc p50':>8} {'proc p95':>8} {'q drop':>6} {'j drop':>6} {'stale':>6}")
         for node, s in res["node_stats"].items():
             print(f"   {node:<40} {s['e2e_ms_p50']:>8.1f} {s['e2e_ms_p95']:>8.1f} {s['proc_ms_p50']:>8.1f} {s['proc_ms_p95']:>8.1f} "
-                  f"{s['queue_drops']:>6} {s['join_drops']:>6}")
+                  f"{s['queue_drops']:>6} {s['join_drops']:>6} {s['stale_drops']:>6}")
         if "hops" in res:
             print_hops(res["hops"])
     result["host_reference_end"] = host_speed.reference()  # (and after them: the host may change under a run)

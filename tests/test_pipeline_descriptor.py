@@ -220,3 +220,29 @@ def test_check_refuses_a_model_that_is_no_whole_weights_file(tmp_path, capsys):
         assert main(["--check", "--var", f"MODEL={model}"]) == 2
         assert f"node ar_inference: model = '{model}': {says}" in capsys.readouterr().err
     assert main(["--check", "--var", f"MODEL={shipped}"]) == 0
+
+
+def test_the_live_pipeline_bounds_its_stages_inputs_in_age_and_max_age_s_is_checked(tmp_path):
+    """A live tracker's frames come whether or not the stages keep up (a probe's 200 vehicles fell 14 s behind):
+    live.toml gives every processing stage ``max_age_s``, which reaches the stage as ``--max-age-s``; the replay and
+    dataset pipelines, which count every frame, have none. A bad value, or one on a node that is not a processing
+    stage, stops the load naming the node."""
+    from stages.runtime import launcher
+
+    live = load_pipeline(REPO / "stages" / "pipelines" / "live.toml")
+    processing = ("corridors", "relations", "intentions", "ar_inference", "markov_prediction")
+    assert {n.id: n.max_age_s for n in live.nodes if n.max_age_s} == dict.fromkeys(processing, 0.5)
+    run = launcher.Launcher(live, "tcp/127.0.0.1:1", launcher.build_parser().parse_args(["live", "--no-viewer"]))
+    for node in live.nodes:
+        cmd = run.command(node)
+        assert (cmd[cmd.index("--max-age-s") + 1] == "0.5") if node.id in processing else "--max-age-s" not in cmd, node.id
+    assert "max_age_s=0.5" in live.describe()
+    for name in ("hybrid", "baseline", "replay", "inline"):
+        assert not any(n.max_age_s for n in load_pipeline(REPO / "stages" / "pipelines" / f"{name}.toml").nodes), name
+    base = '[[nodes]]\nid = "source"\nstage = "stages.tracks_source"\n[[nodes]]\nid = "corridors"\nstage = "stages.corridors"\n' \
+           'inputs = { track_frame = "source/track_frame", scene = "source/scene" }\n'
+    for value in ("0", "-1.5", '"fast"', "nan"):
+        with pytest.raises(PipelineError, match=r"node corridors: 'max_age_s' must be a number of seconds > 0"):
+            load_pipeline(_write(tmp_path, base + f"max_age_s = {value}\n"))
+    with pytest.raises(PipelineError, match=r"node recorder: 'max_age_s' applies to processing stages only \(stage stages.recorder is a raw_sink\)"):
+        load_pipeline(_write(tmp_path, base + '[[nodes]]\nid = "recorder"\nstage = "stages.recorder"\nmax_age_s = 1.0\n'))

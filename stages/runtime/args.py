@@ -48,6 +48,9 @@ def check_runtime_args(args: argparse.Namespace) -> None:
     and a positive payload bound, a positive stamp window and NodeStats period (0 would publish stats on every loop)."""
     if args.queue_size < 1:
         raise ConfigError(f"--queue-size {args.queue_size}: must be >= 1")
+    max_age = getattr(args, "max_age_s", 0.0)
+    if not (math.isfinite(max_age) and max_age >= 0):
+        raise ConfigError(f"--max-age-s {max_age}: must be a finite number >= 0 (0: inputs are not bounded in age)")
     for flag, value in (("--queue-mib", args.queue_mib), ("--stamp-window-s", args.stamp_window_s), ("--stats-period", args.stats_period)):
         if not (math.isfinite(value) and value > 0):
             raise ConfigError(f"{flag} {value}: must be a finite number > 0")
@@ -221,6 +224,9 @@ def build_parser(spec: StageSpec) -> argparse.ArgumentParser:
     p.add_argument("--input", action="append", default=[], metavar="PORT=NODE/OUTPUT", help="bind one input")
     p.add_argument("--queue-size", type=int, default=256, help="bounded queue length of each input (default 256 messages)")
     p.add_argument("--queue-mib", type=float, default=64.0, help="bounded queue size of each input in MiB of payload (default 64)")
+    p.add_argument("--max-age-s", type=float, default=0.0,
+                   help="skip a joined input that waited longer than this many seconds in the queue where a newer one of its"
+                        " port is queued (stale_drops; default 0: off; the live pipeline sets it)")
     p.add_argument(
         "--stamp-window-s",
         type=float,

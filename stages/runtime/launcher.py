@@ -516,6 +516,8 @@ class Launcher:
             cmd += ["--await-nodes", ",".join(others)]
         if node.queue_size:
             cmd += ["--queue-size", str(node.queue_size)]
+        if node.max_age_s:
+            cmd += ["--max-age-s", repr(node.max_age_s)]
         return cmd
 
     def _on_alive(self, node_id: str, alive: bool) -> None:

@@ -2,7 +2,7 @@
 
 Every drop is counted in ``NodeStats`` (``received``, ``processed``,
 ``published``, ``decode_errors``, ``join_drops``, ``queue_drops``,
-``rejected_stamps``, ``rejected_keys``, ``issues``, ``core_errors``, most
+``stale_drops``, ``rejected_stamps``, ``rejected_keys``, ``issues``, ``core_errors``, most
 also per port as ``<counter>.<port>``; ``issues_by_kind``,
 ``errors_by_kind``) and logged so that a person can read the log: issues
 once per episode, other problems once per kind and 10 s with the count of
@@ -35,7 +35,7 @@ class _Stats:
 
     def __init__(self) -> None:
         self.counters: dict[str, int] = collections.Counter()
-        for k in ("received", "processed", "published", "decode_errors", "join_drops", "queue_drops", "issues", "core_errors"):
+        for k in ("received", "processed", "published", "decode_errors", "join_drops", "queue_drops", "stale_drops", "issues", "core_errors"):
             self.counters[k] = 0
         self.issues_by_kind: dict[str, int] = collections.Counter()
         self.errors_by_kind: dict[str, int] = collections.Counter()

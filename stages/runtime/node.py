@@ -88,7 +88,11 @@ class Node:
         self.stop_event = threading.Event()
         self.signals = 0
         self.queue = InputQueue(
-            args.queue_size, self._count_queue_drop, block=spec.kind == "raw_sink", max_bytes=int(getattr(args, "queue_mib", 64) * MiB)
+            args.queue_size, self._count_queue_drop, block=spec.kind == "raw_sink", max_bytes=int(getattr(args, "queue_mib", 64) * MiB),
+            # --max-age-s (a live pipeline's max_age_s): a joined input that waited longer than that is skipped where a
+            # newer one of its port is queued (stale_drops); latched, latest-value and wildcard inputs never
+            max_age_s=float(getattr(args, "max_age_s", 0.0) or 0.0) if spec.kind == "operator" else 0.0,
+            ageing=frozenset(p for p, port in spec.inputs.items() if port.joined), on_stale=self._count_stale,
         )
         self.bindings = bindings
         self.input_keys = {port: f"{keys.ROOT}/{self.run_id}/{ref}" for port, ref in bindings.items()}
@@ -100,7 +104,7 @@ class Node:
         # so that copying the counters for NodeStats never meets a key being added
         self._count_lock = threading.Lock()
         for port in self.input_keys:
-            for k in ("received", "decode_errors", "queue_drops", "rejected_stamps"):
+            for k in ("received", "decode_errors", "queue_drops", "stale_drops", "rejected_stamps"):
                 self.stats.counters[f"{k}.{port}"] = 0
         self.stats.counters["rejected_stamps"] = 0
         wildcards = [p for p in self.input_keys if self.spec.inputs[p].pattern is not None]
@@ -171,6 +175,19 @@ class Node:
             nbytes,
             self.args.queue_size,
             getattr(self.args, "queue_mib", 64),
+        )
+
+    def _count_stale(self, port: str | None, nbytes: int, item: Any = None) -> None:
+        """The queue skipped an entry of ``port`` older than ``--max-age-s`` (a newer one is queued): ``stale_drops``.
+        Not decoded first (a stage that is behind has no time for it): a malformed entry skipped so counts here too."""
+        self._count("stale_drops", port)
+        self.problems.report(
+            f"stale:{port}",
+            logging.WARNING,
+            "input older than %.2f s skipped: port=%s (a newer one is queued; the stage is behind its input and works on"
+            " its freshest frames; max_age_s)",
+            self.args.max_age_s,
+            port,
         )
 
     # ---- session and declarations

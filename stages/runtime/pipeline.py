@@ -21,6 +21,7 @@ spawned::
     params = { }
     restart = true                 # default: the stage's (true for operators and the recorder, false for sources)
     queue_size = 256               # optional
+    max_age_s = 1.0                # optional: skip joined inputs that waited longer (a newer one queued); live pipelines
 
 Outputs of processes that the launcher does not start (a live tracker) are
 declared with their schema so that edges to them can be checked::
@@ -42,6 +43,7 @@ from __future__ import annotations
 import copy
 import importlib
 import json
+import math
 import os
 import re
 import tomllib
@@ -58,7 +60,7 @@ BUS_KEYS = {"run_id", "mode", "listen", "connect", "auth"}
 AUTH_KEYS = {"user", "password", "password_env"}
 PASSWORD_IN_FILE = "the pipeline file"  # BusAuth.source of a literal [bus.auth] password
 SECRET_PARAMS = {"stages.viewer": ("token",)}  # node parameters never printed nor put on a command line
-NODE_KEYS = {"id", "stage", "inputs", "outputs", "params", "restart", "queue_size", "description"}
+NODE_KEYS = {"id", "stage", "inputs", "outputs", "params", "restart", "queue_size", "max_age_s", "description"}
 _VAR_RE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}")
 
 
@@ -143,6 +145,7 @@ class NodeDesc:
     restart: bool
     queue_size: int | None
     description: str = ""
+    max_age_s: float | None = None  # an operator's inputs bounded in age (``--max-age-s``), None: not
 
     @property
     def kind(self) -> str:
@@ -194,7 +197,8 @@ class Pipeline:
         lines = [f"pipeline {self.name} ({self.path})", f"  bus: run_id={self.run_id} mode={self.mode} listen={self.listen} connect={self.connect}"
                  + (f" auth={self.auth.describe()}" if self.auth else "")]
         for n in self.topo_order():
-            lines.append(f"  node {n.id}: stage={n.stage} kind={n.kind} restart={str(n.restart).lower()}")
+            lines.append(f"  node {n.id}: stage={n.stage} kind={n.kind} restart={str(n.restart).lower()}"
+                         + (f" queue_size={n.queue_size}" if n.queue_size else "") + (f" max_age_s={n.max_age_s:g}" if n.max_age_s else ""))
             for port, ref in n.inputs.items():
                 p = n.spec.inputs[port]
                 lines.append(f"    in  {port:<14} <- iamp/{self.run_id}/{ref}  [{p.schema.SCHEMA} v{p.schema.VERSION}{', ' + p.kind_label() if p.kind_label() else ''}]")
@@ -366,7 +370,13 @@ def load_pipeline(
         qs = nd.get("queue_size")
         if qs is not None and (type(qs) is not int or qs < 1):
             raise PipelineError(f"{nwhere}: 'queue_size' must be a positive integer")
-        nodes.append(NodeDesc(nid, stage, spec, dict(inputs), params, config, restart, qs, nd.get("description", "")))
+        age = nd.get("max_age_s")
+        if age is not None and (type(age) not in (int, float) or not math.isfinite(age) or age <= 0):
+            raise PipelineError(f"{nwhere}: 'max_age_s' must be a number of seconds > 0")
+        if age is not None and spec.kind != "operator":
+            raise PipelineError(f"{nwhere}: 'max_age_s' applies to processing stages only (stage {stage} is a {spec.kind})")
+        nodes.append(NodeDesc(nid, stage, spec, dict(inputs), params, config, restart, qs, nd.get("description", ""),
+                              float(age) if age is not None else None))
 
     if overrides:
         raise PipelineError(f"{where}: --set names unknown node(s) {', '.join(sorted(overrides))}; nodes: {', '.join(n.id for n in nodes)}")

@@ -545,3 +545,70 @@ def test_inputs_that_fall_silent_are_reported_once_and_their_return_too(log, cap
     assert handled == ["a", "b"]
     assert sum("no input for 0 s" in ln for ln in lines) == 1 and node.stats.counters["input_silences"] == 1, lines
     assert any("inputs resumed after 1 s of silence" in ln for ln in lines), lines
+
+
+class _Clock:
+    """A monotonic clock the test moves by hand (the queue's ``clock``)."""
+
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_the_input_queue_skips_entries_older_than_max_age_but_never_a_ports_newest():
+    """``max_age_s``: an entry of an ageing port that waited longer is skipped (``on_stale``) where a newer one of its
+    port is queued; the newest is handed out however old; other ports, and a blocking queue, keep everything."""
+    from stages.runtime.queues import InputQueue
+
+    clock, stale = _Clock(), []
+    q = InputQueue(64, lambda *a: None, max_age_s=0.5, ageing={"frames"}, on_stale=lambda port, n, item: stale.append((port, item)), clock=clock)
+    for i in range(5):
+        q.put(("frames", i), "frames", 10)
+        q.put(("scene", i), "scene", 10)
+        clock.now += 0.2  # frame i waited (5 - i) * 0.2 s when the loop comes to it
+    got = []
+    while (item := q.get(timeout=0)) is not None:
+        got.append(item)
+    # frames 0..2 waited 1.0, 0.8, 0.6 s (> 0.5): skipped; 3 (0.4 s) and 4 are handed out; every scene entry stays
+    assert [i for p, i in got if p == "frames"] == [3, 4] and [i for p, i in got if p == "scene"] == [0, 1, 2, 3, 4]
+    assert stale == [("frames", ("frames", 0)), ("frames", ("frames", 1)), ("frames", ("frames", 2))] and len(q) == 0
+    q.put(("frames", 9), "frames", 10)
+    clock.now += 60.0
+    assert q.get(timeout=0) == ("frames", 9) and len(stale) == 3  # alone in its port: handed out, however old
+    sink = InputQueue(64, lambda *a: None, block=True, max_age_s=0.5, ageing={"frames"}, on_stale=lambda *a: stale.append(a), clock=clock)
+    for i in range(3):
+        sink.put(("frames", i), "frames", 10)
+    clock.now += 60.0
+    assert [sink.get(timeout=0) for _ in range(3)] == [("frames", 0), ("frames", 1), ("frames", 2)] and len(stale) == 3
+
+
+def test_a_node_with_max_age_skips_stale_joined_inputs_counted_and_said_once(log, caplog):
+    """``--max-age-s``: a stage that fell behind its input skips to its freshest frames; each skipped frame is a
+    ``stale_drops`` (and per port), one WARNING line for the episode, and the frames it works on are the newest."""
+    spec = StageSpec(
+        stage="tests.echo",
+        config_cls=_Cfg,
+        make_core=lambda c, ctx: _EchoCore(),
+        inputs={"profiles": Port(bs.AccelerationProfiles)},
+        outputs={"profiles": Port(bs.AccelerationProfiles)},
+    )
+    args = build_parser(spec).parse_args(["--node-id", "echo", "--run-id", "t", "--input", "profiles=src/profiles", "--max-age-s", "0.5"])
+    node = Node(spec, args, _Cfg(), {"profiles": "src/profiles"})
+    node.log, node.issue_log, node.problems = log, IssueLog(log), ProblemLog(log)
+    clock = _Clock()
+    node.queue._clock = clock  # (the queue's clock, moved by hand: a stage busy for 2.5 s while 20 frames came)
+    out = RecordingPublisher()
+    node._publishers, node._progress_pub = {"profiles": out}, RecordingPublisher()
+    for i in range(20):
+        node._accept("profiles", "iamp/t/src/profiles", _profiles(i), 0)
+        clock.now += 0.125
+    while (item := node.queue.get(timeout=0)) is not None:
+        node._handle_operator_item(_EchoCore(), item)
+    echoed = [bs.AccelerationProfiles.decode(p).header.frame_index for p in out.sent]
+    assert echoed == [16, 17, 18, 19]  # waited 0.5 s or less (frame 16: exactly 0.5)
+    c = node.stats.counters
+    assert c["stale_drops"] == 16 and c["stale_drops.profiles"] == 16 and c["queue_drops"] == 0
+    said = [ln for ln in _lines(caplog) if "input older than 0.50 s skipped: port=profiles" in ln]
+    assert len(said) == 1, _lines(caplog)
