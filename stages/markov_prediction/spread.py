@@ -242,16 +242,16 @@ def blur_along(probs: np.ndarray, sigma_cells: np.ndarray, min_value: float = BL
     """The pairs' s-distributions ``probs`` (B, K, L) each blurred along its corridor: step k of pair b by a discrete
     Gaussian of σ = ``sigma_cells[b, k]`` cells (0: as is), cut at ``ALONG_TRUNCATE``·σ; mass carried past either end
     of the window is dropped, and values at or below ``min_value`` become 0. float32, a new array. The compiled
-    ``frame_kernels.blur_rows`` where numba imports (the same sums in another order), else this definition."""
+    ``frame_kernels.along_rows`` where numba imports (the same sums in another order), else this definition."""
     probs = np.asarray(probs, dtype=np.float32)
     shape = probs.shape
     rows = probs.reshape(-1, shape[-1])
+    if np.size(sigma_cells) != rows.shape[0]:
+        raise ValueError(f"blur_along: {np.size(sigma_cells)} sigmas for {rows.shape[0]} rows")
+    if frame_kernels.available():  # (along_rows without padding, fold or end)
+        which, weights, radii = along_weights(sigma_cells, centred=True)
+        return frame_kernels.along_rows(rows[None], 0, which, weights, radii, min_value, None, np.zeros((1, rows.shape[1]), np.bool_))[0].reshape(shape)
     which, weights, radii = along_weights(sigma_cells)
-    if which.size != rows.shape[0]:
-        raise ValueError(f"blur_along: {which.size} sigmas for {rows.shape[0]} rows")
-    found = frame_kernels.blur_rows(rows, which, weights, radii, min_value)
-    if found is not None:
-        return found.reshape(shape)
     out = rows.copy()
     n_l = rows.shape[1]
     for r in np.flatnonzero(which >= 0).tolist():

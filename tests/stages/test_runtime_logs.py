@@ -199,7 +199,7 @@ class _EchoCore:
         return StageResult(outputs={"profiles": msg}, issues=issues)
 
 
-def _node(log) -> tuple[Node, RecordingPublisher]:
+def _node(log, *argv: str) -> tuple[Node, RecordingPublisher]:
     spec = StageSpec(
         stage="tests.echo",
         config_cls=_Cfg,
@@ -207,7 +207,7 @@ def _node(log) -> tuple[Node, RecordingPublisher]:
         inputs={"profiles": Port(bs.AccelerationProfiles)},
         outputs={"profiles": Port(bs.AccelerationProfiles)},
     )
-    args = build_parser(spec).parse_args(["--node-id", "echo", "--run-id", "t", "--input", "profiles=src/profiles"])
+    args = build_parser(spec).parse_args(["--node-id", "echo", "--run-id", "t", "--input", "profiles=src/profiles", *argv])
     node = Node(spec, args, _Cfg(), {"profiles": "src/profiles"})
     node.log = log
     node.issue_log = IssueLog(log)
@@ -587,20 +587,9 @@ def test_the_input_queue_skips_entries_older_than_max_age_but_never_a_ports_newe
 def test_a_node_with_max_age_skips_stale_joined_inputs_counted_and_said_once(log, caplog):
     """``--max-age-s``: a stage that fell behind its input skips to its freshest frames; each skipped frame is a
     ``stale_drops`` (and per port), one WARNING line for the episode, and the frames it works on are the newest."""
-    spec = StageSpec(
-        stage="tests.echo",
-        config_cls=_Cfg,
-        make_core=lambda c, ctx: _EchoCore(),
-        inputs={"profiles": Port(bs.AccelerationProfiles)},
-        outputs={"profiles": Port(bs.AccelerationProfiles)},
-    )
-    args = build_parser(spec).parse_args(["--node-id", "echo", "--run-id", "t", "--input", "profiles=src/profiles", "--max-age-s", "0.5"])
-    node = Node(spec, args, _Cfg(), {"profiles": "src/profiles"})
-    node.log, node.issue_log, node.problems = log, IssueLog(log), ProblemLog(log)
+    node, out = _node(log, "--max-age-s", "0.5")
     clock = _Clock()
     node.queue._clock = clock  # (the queue's clock, moved by hand: a stage busy for 2.5 s while 20 frames came)
-    out = RecordingPublisher()
-    node._publishers, node._progress_pub = {"profiles": out}, RecordingPublisher()
     for i in range(20):
         node._accept("profiles", "iamp/t/src/profiles", _profiles(i), 0)
         clock.now += 0.125

@@ -15,10 +15,10 @@
   threads of their own where there are many terms.
 - ``add_running_sums``: ``rasterise.unwrap_each``'s running sums of the corrections, every corridor's in one
   pass (np.cumsum's order).
-- ``blur_rows``: the s-distributions of the pairs blurred along their corridors (``spread.blur_along``), every
-  row in one call, only the cells that hold mass scattered.
-- ``along_rows``: ``spread.along_spread`` (the window padded, blurred, folded ahead of the start and cut at the
-  corridor's end) in one pass per row, without the padded copy of the input.
+- ``along_rows``: the s-distributions of the pairs blurred along their corridors, every row in one call, only the
+  cells that hold mass scattered (``spread.blur_along``), and with ``spread.along_spread`` the window padded, what
+  the blur put behind the car folded ahead of it and the cells past the corridor's end cut, in the same pass
+  (without a padded copy of the input).
 - ``blur_cells``: one step of a vehicle's grid blurred as ``spread.blur_step`` and ``spread.block_cells_sorted``
   do it (cloud in cell onto blocks, scipy's ``gaussian_filter`` arithmetic, the blocks' cells above a value in
   cell order), in one call: the same numbers.
@@ -338,39 +338,14 @@ if numba is not None:
         return keys[:k].copy(), vals[:k].copy()
 
     @numba.njit(cache=True, nogil=True, boundscheck=False)
-    def _blur_rows(probs, which, weights, radii, min_value, out):  # pragma: no cover - compiled
-        """Row r of ``probs`` (R, L) correlated with the symmetric weights ``weights[which[r]]`` (radius
-        ``radii[which[r]]``; which < 0: copied as is), what falls past either end dropped, sums at or below
-        ``min_value`` set to 0: ``spread.blur_along``'s numpy definition, each sum in another order."""
-        n_r, n_l = probs.shape
-        acc = np.zeros(n_l)
-        for r in range(n_r):
-            u = which[r]
-            if u < 0:
-                for l in range(n_l):
-                    out[r, l] = probs[r, l]
-                continue
-            rad = radii[u]
-            for l in range(n_l):
-                acc[l] = 0.0
-            for l in range(n_l):
-                v = np.float64(probs[r, l])
-                if v == 0.0:
-                    continue
-                lo = l - rad if l > rad else 0
-                hi = l + rad + 1 if l + rad + 1 < n_l else n_l
-                for m in range(lo, hi):
-                    acc[m] += v * weights[u, m - l + rad]
-            for l in range(n_l):
-                a = acc[l]
-                out[r, l] = a if a > min_value else 0.0
-
-    @numba.njit(cache=True, nogil=True, boundscheck=False)
     def _along_rows(probs, pad, which, weights, radii, min_value, start_cell, fold, beyond, out):  # pragma: no cover - compiled
         """``spread.along_spread`` in one pass per row (b, k): row k of pair b of ``probs`` (B, K, L), placed ``pad``
-        cells into its row of ``out`` (B, K, L + 2·pad; the pad cells 0), blurred as ``_blur_rows`` (the same sums in
-        the same order: the pad's zeros add nothing; here each row of ``weights`` is centred, not from the front), then with ``fold`` the blur's excess behind ``start_cell[b]``
-        moved to the mirrored cell (``spread.fold_behind``'s float32 operations), then the cells ``beyond[b]`` set to 0."""
+        cells into its row of ``out`` (B, K, L + 2·pad; the pad cells 0), blurred: each sum of v·w over the cells that
+        hold mass (v ≠ 0), taken in float64 in cell order, what falls past either end dropped, a sum at or below
+        ``min_value`` set to 0 (``spread.blur_along``'s numpy definition, each sum in another order; the pad's zeros add
+        nothing; each row of ``weights`` centred at its middle), a row without a σ (``which`` < 0) copied as is; then
+        with ``fold`` the blur's excess behind ``start_cell[b]`` moved to the mirrored cell (``spread.fold_behind``'s
+        float32 operations), then the cells ``beyond[b]`` set to 0."""
         n_b, n_k, n_l = probs.shape
         n_o = out.shape[2]
         top = (weights.shape[1] - 1) // 2  # each row of ``weights`` centred there
@@ -707,7 +682,6 @@ def warm_up() -> None:
     footprint_bounds(box, box, box, box, np.zeros(1), rows, np.ones((1, 1), np.bool_))
     fuse_sorted([np.array([0, 3], np.int64), np.array([3], np.int64)], np.full(3, 0.5), 2, 1.0 - 1e-7)
     add_running_sums(np.zeros(3), np.zeros(2), np.array([3], np.int64), np.zeros(3))
-    blur_rows(np.ones((1, 3), np.float32), np.zeros(1, np.int64), np.array([[0.25, 0.5, 0.25]]), np.ones(1, np.int64), 1e-6)
     along_rows(np.ones((1, 1, 3), np.float32), 1, np.zeros(1, np.int64), np.array([[0.25, 0.5, 0.25]]), np.ones(1, np.int64), 1e-6,
                np.ones(1, np.int64), np.zeros((1, 5), np.bool_))
     _warm = True
@@ -728,7 +702,7 @@ def blur_cells(cells: np.ndarray, values: np.ndarray, n_rows: int, n_cols: int, 
 def along_rows(probs: np.ndarray, pad: int, which: np.ndarray, weights: np.ndarray, radii: np.ndarray, min_value: float,
                start_cell: np.ndarray | None, beyond: np.ndarray) -> np.ndarray | None:
     """``spread.along_spread`` in one compiled call: ``probs`` (B, K, L) float32 padded by ``pad`` cells at both ends,
-    blurred (``which`` (B·K,) into ``weights`` (U, 2·max radius + 1; each row centred) / ``radii``, as ``blur_rows``), folded ahead of ``start_cell`` (B,) (None:
+    blurred (``which`` (B·K,) into ``weights`` (U, 2·max radius + 1; each row centred) / ``radii``), folded ahead of ``start_cell`` (B,) (None:
     not), the cells ``beyond`` (B, L + 2·pad) set to 0; float32 (B, K, L + 2·pad). None where numba is missing."""
     if numba is None:
         return None
@@ -739,17 +713,6 @@ def along_rows(probs: np.ndarray, pad: int, which: np.ndarray, weights: np.ndarr
                 np.ascontiguousarray(weights, dtype=np.float64), np.ascontiguousarray(radii, dtype=np.int64), float(min_value),
                 np.ascontiguousarray(start_cell if fold else np.zeros(n_b), dtype=np.int64), fold,
                 np.ascontiguousarray(beyond, dtype=np.bool_), out)
-    return out
-
-
-def blur_rows(probs: np.ndarray, which: np.ndarray, weights: np.ndarray, radii: np.ndarray, min_value: float) -> np.ndarray | None:
-    """``spread.blur_along``'s rows in one compiled call: ``probs`` (R, L) float32, ``which`` (R,) the row of
-    ``weights`` (U, W) each uses (-1: none), ``radii`` (U,); float32 (R, L). None where numba is missing."""
-    if numba is None:
-        return None
-    out = np.empty(probs.shape, np.float32)
-    _blur_rows(np.ascontiguousarray(probs, dtype=np.float32), np.ascontiguousarray(which, dtype=np.int64),
-               np.ascontiguousarray(weights, dtype=np.float64), np.ascontiguousarray(radii, dtype=np.int64), float(min_value), out)
     return out
 
 
