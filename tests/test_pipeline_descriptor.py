@@ -204,7 +204,7 @@ def test_the_launcher_says_how_many_recorded_frames_got_a_motion_grid():
 
     counts = {"iamp/r/source/track_frame": 200, "iamp/r/source/scene": 1, "iamp/r/hybrid/motion_grid": 150, "iamp/r/baseline/motion_grid": 200}
     assert predicted_line(counts) == ("predicted: 200 track frames recorded, MotionGrids of baseline 200 (100.0%), hybrid 150 (75.0%);"
-                                      " up to 50 frames without one: the nodes' queue_drops and join_drops above say where")
+                                      " up to 50 frames without one: the nodes' queue_drops, stale_drops and join_drops above say where")
     assert predicted_line({"iamp/r/source/track_frame": 10, "iamp/r/markov_prediction/motion_grid": 10}).endswith("markov_prediction 10 (100.0%)")
     assert predicted_line({"iamp/r/source/scene": 1}) == "" and predicted_line({"iamp/r/source/track_frame": 5}) == ""
 

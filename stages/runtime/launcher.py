@@ -771,7 +771,7 @@ class Launcher:
 
 def predicted_line(per_topic: dict[str, int]) -> str:
     """How many of the recorded source frames got a MotionGrid, per producing node: the frames a loaded machine lost
-    (queue and join drops) showed only in the nodes' counters. '' without frames or grids in the recording."""
+    (queue, stale and join drops) showed only in the nodes' counters. '' without frames or grids in the recording."""
     frames = sum(n for topic, n in per_topic.items() if topic.endswith("/track_frame"))
     grids = {topic.split("/")[-2]: n for topic, n in per_topic.items() if topic.endswith("/motion_grid")}
     if not frames or not grids:
@@ -779,7 +779,7 @@ def predicted_line(per_topic: dict[str, int]) -> str:
     parts = [f"{node} {n} ({n / frames:.1%})" for node, n in sorted(grids.items())]
     lost = max(frames - n for n in grids.values())
     return (f"predicted: {frames} track frames recorded, MotionGrids of " + ", ".join(parts)
-            + (f"; up to {lost} frames without one: the nodes' queue_drops and join_drops above say where" if lost > 0 else ""))
+            + (f"; up to {lost} frames without one: the nodes' queue_drops, stale_drops and join_drops above say where" if lost > 0 else ""))
 
 
 def main(argv: list[str] | None = None) -> int:
