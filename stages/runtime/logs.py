@@ -2,7 +2,8 @@
 
 Every drop is counted in ``NodeStats`` (``received``, ``processed``,
 ``published``, ``decode_errors``, ``join_drops``, ``queue_drops``,
-``stale_drops``, ``rejected_stamps``, ``rejected_keys``, ``issues``, ``core_errors``, most
+``stale_drops``, ``duplicate_inputs`` (a frame received twice: not a loss),
+``rejected_stamps``, ``rejected_keys``, ``issues``, ``core_errors``, most
 also per port as ``<counter>.<port>``; ``issues_by_kind``,
 ``errors_by_kind``) and logged so that a person can read the log: issues
 once per episode, other problems once per kind and 10 s with the count of
@@ -35,7 +36,8 @@ class _Stats:
 
     def __init__(self) -> None:
         self.counters: dict[str, int] = collections.Counter()
-        for k in ("received", "processed", "published", "decode_errors", "join_drops", "queue_drops", "stale_drops", "issues", "core_errors"):
+        for k in ("received", "processed", "published", "decode_errors", "join_drops", "queue_drops", "stale_drops", "duplicate_inputs",
+                  "issues", "core_errors"):
             self.counters[k] = 0
         self.issues_by_kind: dict[str, int] = collections.Counter()
         self.errors_by_kind: dict[str, int] = collections.Counter()

@@ -104,7 +104,7 @@ class Node:
         # so that copying the counters for NodeStats never meets a key being added
         self._count_lock = threading.Lock()
         for port in self.input_keys:
-            for k in ("received", "decode_errors", "queue_drops", "stale_drops", "rejected_stamps"):
+            for k in ("received", "decode_errors", "queue_drops", "stale_drops", "duplicate_inputs", "rejected_stamps"):
                 self.stats.counters[f"{k}.{port}"] = 0
         self.stats.counters["rejected_stamps"] = 0
         wildcards = [p for p in self.input_keys if self.spec.inputs[p].pattern is not None]
@@ -125,6 +125,9 @@ class Node:
         self._wild_in: dict[str, dict[str, Message]] = {}  # wildcard inputs: port -> key -> newest
         self._pending: "collections.OrderedDict[int, dict[str, Message]]" = collections.OrderedDict()
         self._pending_since: dict[int, float] = {}
+        # the stamps of the last input sets handled -> (when (monotonic), their joined ports): a joined message for one
+        # of them on one of those ports, soon after, is a duplicate (DUPLICATE_WINDOW_S)
+        self._handled: "collections.OrderedDict[int, tuple[float, frozenset[str]]]" = collections.OrderedDict()
         self._port_seen: dict[str, float] = {}  # joined port -> when a message of it was last joined (monotonic)
         joined = [p for p in self.input_keys if spec.inputs[p].joined]
         self._gap_port = joined[0] if joined else None  # whose frame indices count frames never received
@@ -553,14 +556,21 @@ class Node:
             header = getattr(msg, "header", None)
             stamp = int(header.stamp_ns) if header is not None else 0
             lat_ms = (recv_ns - stamp) / 1e6 if header is not None else math.nan
-            entry = self._pending.setdefault(stamp, {})
             now = time.monotonic()
+            handled = self._handled.get(stamp)
+            if handled is not None and port in handled[1] and now - handled[0] <= DUPLICATE_WINDOW_S and stamp not in self._pending:
+                # its set, with this input, was handled a moment ago: a frame sent twice, not a new set (nor one to drop later)
+                self._count("duplicate_inputs", port)
+                self.problems.report(f"duplicate:{port}", logging.WARNING, "duplicate input: port=%s stamp_ns=%d (its input set was"
+                                     " handled %.0f ms ago: ignored)", port, stamp, (now - handled[0]) * 1e3)
+                return
+            entry = self._pending.setdefault(stamp, {})
             self._pending_since.setdefault(stamp, now)
             self._port_seen[port] = now
             if self._trace is not None:
                 self._hops.setdefault(stamp, {})[port] = [recv_ns, self._deq_ns, time.time_ns()]
             if port in entry:
-                self.stats.counters["join_drops"] += 1
+                self._count("duplicate_inputs", port)
                 self.problems.report(f"duplicate:{port}", logging.WARNING, "duplicate input: port=%s stamp_ns=%d (older one replaced)", port, stamp)
             entry[port] = msg
             self._maybe_prepare(core, stamp, entry)
@@ -643,6 +653,10 @@ class Node:
                 self._drop_pending(old, "superseded")
             inputs = self._pending.pop(s)
             self._pending_since.pop(s, None)
+            self._handled[s] = (time.monotonic(), frozenset(inputs))
+            self._handled.move_to_end(s)
+            while len(self._handled) > DUPLICATE_MEMORY:
+                self._handled.popitem(last=False)
             inputs.update(self._not_joined_inputs())
             self._run_update(core, inputs, s, lat_ms, self._hops.pop(s, None))
 
@@ -890,6 +904,13 @@ STAMP_JUMP_AFTER = 20
 #: Incomplete input sets an operator keeps waiting (the oldest is dropped beyond, ``join_window_full``): 64 frames
 #: = 6.4 s at 10 Hz, so that an input lagging by a few seconds on a loaded machine costs latency, not frames.
 JOIN_WINDOW = 64
+#: A joined message whose stamp's input set was handled at most this long ago is a duplicate (a tracker or a link that
+#: sends a frame twice): counted as ``duplicate_inputs`` and ignored, where it used to open a set that was then
+#: dropped (``join_drops``, "superseded") although its frame was predicted. Later, the same stamp is a new set (a
+#: source restarted on the same clock).
+DUPLICATE_WINDOW_S = 2.0
+#: How many handled stamps a node remembers for that
+DUPLICATE_MEMORY = 64
 DRAIN_QUIET_S = 0.3
 CLOSE_LINGER_S = 0.05
 

@@ -601,3 +601,36 @@ def test_a_node_with_max_age_skips_stale_joined_inputs_counted_and_said_once(log
     assert c["stale_drops"] == 16 and c["stale_drops.profiles"] == 16 and c["queue_drops"] == 0
     said = [ln for ln in _lines(caplog) if "input older than 0.50 s skipped: port=profiles" in ln]
     assert len(said) == 1, _lines(caplog)
+
+
+def test_a_frame_received_twice_is_a_duplicate_not_a_dropped_set(log, caplog, monkeypatch):
+    """A probe's tracker sent frames twice: each copy opened a set that was later dropped as superseded
+    (``join_drops``) although its frame was predicted. Now a joined message whose set was handled within
+    ``DUPLICATE_WINDOW_S`` is ``duplicate_inputs`` (one line per episode) and ignored, as is a second copy inside a set
+    still waiting; later, the same stamp is a new set (a source restarted on the same clock)."""
+    import stages.runtime.node as node_module
+
+    node, out = _node(log)
+    clock = _Clock()
+    monkeypatch.setattr(node_module.time, "monotonic", clock)
+    for i in (1, 1, 2, 2, 2, 3):
+        _deliver(node, _EchoCore(), "profiles", "iamp/t/src/profiles", _profiles(i))
+        clock.now += 0.1
+    echoed = [bs.AccelerationProfiles.decode(p).header.frame_index for p in out.sent]
+    c = node.stats.counters
+    assert echoed == [1, 2, 3] and c["duplicate_inputs"] == 3 and c["duplicate_inputs.profiles"] == 3 and c["join_drops"] == 0
+    assert len([ln for ln in _lines(caplog) if ln.startswith("duplicate input: port=profiles")]) == 1
+    clock.now += node_module.DUPLICATE_WINDOW_S + 1.0
+    _deliver(node, _EchoCore(), "profiles", "iamp/t/src/profiles", _profiles(1))  # long after: a replay, a new set
+    assert [bs.AccelerationProfiles.decode(p).header.frame_index for p in out.sent] == [1, 2, 3, 1] and c["duplicate_inputs"] == 3
+    # a copy inside a set still waiting for its other input replaces the first: a duplicate too
+    spec = StageSpec(stage="tests.echo2", config_cls=_Cfg, make_core=lambda c, ctx: _EchoCore(), outputs={"profiles": Port(bs.AccelerationProfiles)},
+                     inputs={"profiles": Port(bs.AccelerationProfiles), "other": Port(bs.AccelerationProfiles)})
+    argv = ["--node-id", "echo", "--run-id", "t", "--input", "profiles=src/profiles", "--input", "other=src/other"]
+    two = Node(spec, build_parser(spec).parse_args(argv), _Cfg(), {"profiles": "src/profiles", "other": "src/other"})
+    two.log, two.issue_log, two.problems = log, IssueLog(log), ProblemLog(log)
+    two._publishers, two._progress_pub = {"profiles": RecordingPublisher()}, RecordingPublisher()
+    for port in ("profiles", "profiles", "other"):
+        _deliver(two, _EchoCore(), port, f"iamp/t/src/{port}", _profiles(5))
+    assert len(two._publishers["profiles"].sent) == 1
+    assert two.stats.counters["duplicate_inputs.profiles"] == 1 and two.stats.counters["join_drops"] == 0
