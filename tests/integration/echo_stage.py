@@ -4,9 +4,11 @@
 
 Every frame it echoes carries one issue (kind ``echoed``, agent 7), so the
 runtime's issue episodes show in its log. Used by
-``tests/integration/test_hostile_payloads_on_the_bus.py`` and
-``tests/integration/test_await_consumers.py``, through ``start`` (the stage as
-a process, its output to a log file) and ``profiles_payload`` (a good input).
+``tests/integration/test_hostile_payloads_on_the_bus.py``,
+``tests/integration/test_await_consumers.py`` and
+``tests/integration/test_stale_inputs.py`` (``--set delay_s=S``: a stage
+slower than its input), through ``start`` (the stage as a process, its
+output to a log file) and ``profiles_payload`` (a good input).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,17 +32,22 @@ from testkit.samples import SAMPLES
 
 @dataclass(frozen=True)
 class EchoConfig(ConfigMixin):
-    pass
+    delay_s: float = 0.0  # each frame takes this long (a stage slower than its input: tests/integration/test_stale_inputs.py)
 
 
 class EchoCore:
+    def __init__(self, delay_s: float = 0.0) -> None:
+        self.delay_s = delay_s
+
     def update(self, inputs):
+        if self.delay_s > 0:
+            time.sleep(self.delay_s)
         msg = inputs["profiles"]
         return StageResult(outputs={"profiles": msg}, issues=[Issue("echoed", 7, f"frame {msg.header.frame_index}")])
 
 
 def make_core(config: EchoConfig, ctx: NodeContext) -> EchoCore:
-    return EchoCore()
+    return EchoCore(config.delay_s)
 
 
 SPEC = StageSpec(
