@@ -61,7 +61,8 @@ viewer stages resolve the map the same way (their own ``data`` parameter).
 
 Objects. Non-vehicles (pedestrians, bicycles, UNKNOWN with an
 ``unknown_type`` issue) are NOT_A_VEHICLE without corridors: obstacles for the
-relations. A vehicle whose position, or both speed and heading, cannot be
+relations. A frame whose objects are all UNKNOWN also has one ``all_untyped``
+issue (agent -1): nothing of it is predicted. A vehicle whose position, or both speed and heading, cannot be
 known is BAD_STATE (issue ``bad_state``); a repeated track id is BAD_STATE
 (``duplicate_track``). Stopped vehicles get corridors like any other.
 

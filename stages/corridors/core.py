@@ -44,6 +44,9 @@ LATE_FRAME_NS = 500_000_000
 MIN_FRAME_STEP_NS = 1_000_000
 
 
+#: the agent type values a tracker may send that are a type (``AgentType``; 0 is UNKNOWN)
+_KNOWN_TYPES = frozenset(int(t) for t in AgentType if t is not AgentType.UNKNOWN)
+
 @dataclass(frozen=True, kw_only=True)
 class CorridorsConfig(ConfigMixin):
     """Parameters of the corridors stage (package docstring, docs/method.md §5)."""
@@ -248,6 +251,10 @@ class CorridorBuilder:
         seen: set[int] = set()
         states: dict[int, KinematicState] = {}
         kept = self._cap(frame, scene_map, issues)
+        if n and not any(t in _KNOWN_TYPES for t in np.asarray(frame.agent_types).tolist()):
+            # (each object has its own unknown_type too; this says what it means for the frame, once per episode)
+            issues.append(Issue("all_untyped", -1, f"all {n} objects have agent type 0 (unknown) or a value that is no type: none is"
+                                " predicted, they are obstacles only; a tracker that does not classify sends 1 (car) for what it wants predicted"))
         for row in range(n):
             track_id = int(frame.track_ids[row])
             if kept is not None and not kept[row]:  # beyond max_objects: an entry without corridors, nothing computed

@@ -512,3 +512,21 @@ def test_two_cars_under_one_id_never_give_a_speed_from_the_chord_between_them(k7
             fastest = max([fastest] + [v.speed_mps for v in corridor_set.vehicles if v.track_id == a and math.isfinite(v.speed_mps)])
     assert "position_jump" in kinds
     assert fastest < 40.0, f"a speed of {fastest:.0f} m/s from positions of two cars"
+
+
+def test_a_frame_whose_objects_are_all_untyped_says_so_once(k729, scene_maps):
+    """A tracker that does not classify sends agent type 0 for everything: each object is an obstacle only
+    (``unknown_type``), and nothing is predicted. The frame says what that means in one issue (``all_untyped``, agent
+    -1), with what to send instead; a frame with any typed object (a pedestrian is typed) has none."""
+    _recording, _sequence, scene, views = k729
+    view = next(v for v in views if v.frame_index == 834)
+    base = _frame(view)
+    builder = CorridorBuilder(CorridorsConfig(), scene_maps=scene_maps)
+    untyped = dataclasses.replace(base, agent_types=np.zeros(len(base), np.uint8))
+    corridor_set, issues = builder.process(untyped, scene)
+    said = [i for i in issues if i.kind == "all_untyped"]
+    assert len(said) == 1 and said[0].agent_id == -1 and f"all {len(base)} objects have agent type 0" in said[0].detail
+    assert "sends 1 (car)" in said[0].detail and all(v.status == MatchStatus.NOT_A_VEHICLE for v in corridor_set.vehicles)
+    for types in (base.agent_types, np.full(len(base), AgentType.PEDESTRIAN, np.uint8)):
+        _set, issues = CorridorBuilder(CorridorsConfig(), scene_maps=scene_maps).process(dataclasses.replace(base, agent_types=types), scene)
+        assert not [i for i in issues if i.kind == "all_untyped"]
