@@ -453,6 +453,13 @@ def main() -> int:
                     help="passed to launch.py --set (repeatable), e.g. markov_prediction.kernel_threads=1")
     args = ap.parse_args()
     check_output_arg(ap, args.json, "--json")  # before the work: a bad path must not cost the run
+    from stages.runtime.launcher import PIPELINES_DIR, resolve_pipeline_arg
+
+    pipeline = Path(resolve_pipeline_arg(args.pipeline))
+    if not pipeline.is_file():  # (before the dense data is built; launch.py runs in the work folder, so a path is made absolute)
+        names = ", ".join(sorted(p.stem for p in PIPELINES_DIR.glob("*.toml")))
+        ap.error(f"--pipeline {args.pipeline}: no such pipeline file, nor a shipped pipeline ({names})")
+    args.pipeline = args.pipeline if pipeline.parent == PIPELINES_DIR and pipeline.stem == args.pipeline else str(pipeline.resolve())
     if args.keep:
         work = Path(args.keep)
     else:  # the dense data and its recording (~100 MB for the whole dense18): removed at exit, also when the run fails

@@ -52,6 +52,8 @@ BAD = [
     (["dense.py", "--vehicles", "0"], "--vehicles"),
     (["dense.py", "--warmup", "-1"], "--warmup -1"),
     (["e2e_latency.py", "--vehicles", "abc"], "--vehicles"),
+    (["e2e_latency.py", "--pipeline", "nosuch"], "--pipeline nosuch: no such pipeline file"),
+    (["e2e_latency.py", "--pipeline", "/nonexistent/p.toml"], "/nonexistent/p.toml"),
     (["markov_kernel.py", "--pairs", "x"], "--pairs"),
     (["markov_kernel.py", "--repeats", "0"], "--repeats 0"),
     (["markov_stage.py", "--pairs", "0"], "--pairs"),
