@@ -42,10 +42,9 @@ _NS = 1e-9
 LATE_FRAME_NS = 500_000_000
 #: a step between two frames' stamps below this (1 ms: no tracker runs at 1 kHz) says the stamps are not nanoseconds
 MIN_FRAME_STEP_NS = 1_000_000
-
-
 #: the agent type values a tracker may send that are a type (``AgentType``; 0 is UNKNOWN)
 _KNOWN_TYPES = frozenset(int(t) for t in AgentType if t is not AgentType.UNKNOWN)
+
 
 @dataclass(frozen=True, kw_only=True)
 class CorridorsConfig(ConfigMixin):
