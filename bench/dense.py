@@ -24,9 +24,15 @@ stages), the hybrid/baseline ratio, and per mode the exponent of a
 least-squares fit log(time) ~ log(pairs) over the N (1 = linear).
 Prints figures, asserts nothing; other load on the machine shows in them.
 
-    python bench/dense.py [--vehicles 6,12,18,36,72] [--frames 40] [--warmup 10] [--source k733|k729] [--modes hybrid,baseline]
-                          [--backend numpy|torch|cuda] [--device cpu|cuda] [--json FILE] [--keep DIR] [--set KEY=VALUE ...]
-                          [--idle-ms 60]
+    python bench/dense.py [--vehicles 6,12,18,36,72] [--frames 40] [--warmup 10] [--segments 4] [--source k733|k729]
+                          [--modes hybrid,baseline] [--backend numpy|torch|cuda] [--device cpu|cuda] [--threads N] [--json FILE]
+                          [--keep DIR] [--set KEY=VALUE ...] [--idle-ms 60]
+
+The timed frames are split over ``--segments`` stretches spread along the
+recording (the recording's load varies along it), each on fresh cores after
+its own ``--warmup`` frames: ``--frames 40 --segments 4`` times 4 x 10
+frames after 4 x 10 warm-up frames (``--frames`` is rounded up to whole
+stretches; the first line says what runs).
 
 The stages run back to back: each starts on a core that was just busy. On
 the bus each is a process that waits for its inputs, ~60-90 ms of every
@@ -41,16 +47,21 @@ waited as on the bus (``idle_ms`` in the JSON).
 input cells ``input_min_mps2``, ``input_max_mps2``, ``n_inputs`` go to
 ar_inference too, and the stencils are built for them).
 
-``--json FILE`` writes ``modes.<mode>.by_vehicles.<N>.frame_ms_median``,
-``frame_ms_p95``, ``vehicles_median``, ``pairs_median`` and
+``--json FILE`` (strict JSON: a figure with no frame to take it from, such as
+an ``at_n`` of no frame, is ``null``) writes ``source``, ``backend``,
+``device``, ``idle_ms``, ``modes.<mode>.by_vehicles.<N>.frame_ms_median``,
+``frame_ms_p95``, ``frames`` (timed), ``vehicles_median``, ``vehicles_mean``,
+``pairs_median`` and
 ``stages.<stage>.ms_median`` / ``ms_p95`` / ``cpu_ms_median`` (CPU time of
-the process, less sensitive to other load on the machine than wall time),
+the process, less sensitive to other load on the machine than wall time; not
+for ``source``),
 ``frame_cpu_ms_median``, ``stages.markov_prediction.after_last_input_ms_median`` (the ``update`` after the
 ``prepare`` calls: what is left once the belief is in; on the bus the rest runs while it is on its way),
 ``stages.markov_prediction.idle_ms_mean`` (the stage's ``idle()``, called after every frame as the runtime
 calls it once a frame's outputs are out and nothing waits: the online curve choice's back test, every few
 frames; mean ms per timed frame, not in the stage's or the frame's time, as on the bus), plus
-``modes.<mode>.exponent``, and ``...by_vehicles.<N>.at_n.{frames, frame_ms_median,
+``modes.<mode>.exponent.{frame, markov_prediction, markov_prediction_cpu}`` (with two N or more; ``null``
+without two different pair counts), and ``...by_vehicles.<N>.at_n.{frames, vehicles_within, frame_ms_median,
 markov_prediction_ms_median}``: the medians over the timed frames that hold N ± 2 vehicles (N is the
 recording's mean; its frames' load varies along it and the timed stretches need not sit at the mean: the
 ``veh`` column is their median). ``host_reference`` and ``host_reference_end``: ``testkit.host_speed.reference()``
@@ -76,7 +87,6 @@ from stages.lib.datasets import DEFAULT_DATA_DIR, FULL_DATA_ENV, full_data_dir, 
 from stages.lib.datasets.superimpose import MAX_VEHICLES, build_dense
 
 from bus_schemas import AgentType
-from stages.lib.base import check_output_arg
 
 VEHICLE_TYPES = [t.value for t in AgentType if t.is_vehicle]
 UPSTREAM = ("source", "corridors", "relations", "intentions")
@@ -209,7 +219,7 @@ def run_one(data_dir: Path, name: str, args, stencils, on_frame=None, target: fl
                 i0 = time.perf_counter()
                 predictor.idle()
                 idle_ms[mode] = (time.perf_counter() - i0) * 1e3
-                if mode == "hybrid" and timed:
+                if mode == args.modes[0] and timed:  # (every mode predicts the same pairs)
                     pairs.append(len(result.outputs["corridor_predictions"].predictions))
             if not timed:
                 continue
@@ -254,6 +264,33 @@ def run_one(data_dir: Path, name: str, args, stencils, on_frame=None, target: fl
     return out
 
 
+def exponent(pairs: list[float], ms: list[float]) -> float | None:
+    """The slope of a least-squares fit log(ms) ~ log(pairs) over the rows with pairs > 0 and a finite time > 0;
+    None where fewer than two different pair counts are left."""
+    x, y = np.asarray(pairs, dtype=np.float64), np.asarray(ms, dtype=np.float64)
+    ok = (x > 0) & np.isfinite(y) & (y > 0)
+    if np.unique(x[ok]).size < 2:
+        return None
+    return float(np.polyfit(np.log(x[ok]), np.log(y[ok]), 1)[0])
+
+
+def finite_json(value):
+    """``value`` with every non-finite float (NaN: no frame of that kind) as None: strict JSON, which has no NaN."""
+    if isinstance(value, float):
+        return value if np.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: finite_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_json(v) for v in value]
+    return value
+
+
+def write_json(path: Path, report: dict) -> None:
+    """``report`` as strict JSON (``finite_json``) into ``path``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(finite_json(report), indent=2, allow_nan=False))
+
+
 def vehicle_counts(text: str, minimum: int = 1) -> list[int]:
     """``--vehicles``: comma-separated whole numbers of vehicles per frame, each ``minimum`` to ``MAX_VEHICLES``
     (bench/e2e_latency.py takes 0 too: the embedded scenario as it is)."""
@@ -268,9 +305,10 @@ def vehicle_counts(text: str, minimum: int = 1) -> list[int]:
     return sizes
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+def parse_args(argv: list[str] | None = None, error=None) -> argparse.Namespace:
     """The command line, checked: ``vehicles`` a list of ints, ``modes`` a tuple of ``MODES``, ``set`` the parsed
-    ``--set`` pairs."""
+    ``--set`` pairs (each a markov_prediction parameter of a valid value). ``error``: where a check's message goes
+    (default this parser's usage error; bench/frame_phases.py passes its own)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--vehicles", type=vehicle_counts, default="6,12,18,36,72", help="comma-separated vehicles per frame (default 6,12,18,36,72)")
     parser.add_argument("--frames", type=int, default=40, help="timed frames per N")
@@ -292,19 +330,31 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="sleep this long before each stage's first call of a frame (untimed), as a process on the bus waits for its"
                              " inputs (60: ~10 Hz); 0: back to back (bench/idle_penalty.py: what the wait costs on this host)")
     args = parser.parse_args(argv)
-    check_output_arg(parser, args.json, "--json")  # before the work: a bad path must not cost the run
+    fail = error or parser.error
+    from stages.lib.base import ConfigError, check_output
+
+    for flag, path, folder in (("--json", args.json, False), ("--keep", args.keep, True)):
+        try:  # before the work: a bad path must not cost the run
+            check_output(path, flag, folder=folder)
+        except ConfigError as exc:
+            fail(str(exc))
     for flag, value, least in (("--frames", args.frames, 1), ("--segments", args.segments, 1), ("--warmup", args.warmup, 0),
                                ("--threads", args.threads, 0)):
         if value < least:
-            parser.error(f"{flag} {value}: must be >= {least}")
+            fail(f"{flag} {value}: must be >= {least}")
     if not (args.idle_ms >= 0 and args.idle_ms < 10_000):
-        parser.error(f"--idle-ms {args.idle_ms}: expected 0 to 10000 ms")
+        fail(f"--idle-ms {args.idle_ms}: expected 0 to 10000 ms")
     args.modes = tuple(m.strip() for m in args.modes.split(",") if m.strip())
     if not args.modes or set(args.modes) - set(MODES):
-        parser.error(f"--modes {','.join(args.modes)!s}: choose among {', '.join(MODES)}")
+        fail(f"--modes {','.join(args.modes)!s}: choose among {', '.join(MODES)}")
     from stages.offline.evaluation import _key_values
 
-    args.set = _key_values(args.set, "--set")
+    try:
+        args.set = _key_values(args.set, "--set")
+        for mode in args.modes:  # unknown keys and bad values now, not after the dense data are built
+            markov_config(argparse.Namespace(set=args.set, backend="numpy", device="cpu"), mode)
+    except (ValueError, ConfigError) as exc:
+        fail(str(exc))
     return args
 
 
@@ -344,13 +394,24 @@ def main(argv: list[str] | None = None) -> int:
     from stages.lib.markov import load_or_build_stencils
     from stages.markov_prediction.core import grid_config
 
-    stencils = load_or_build_stencils(grid_config(markov_config(args, "baseline")))  # --set applies to both modes: one grid
     keep = args.keep
+    if keep is not None:
+        from stages.lib.datasets import DatasetError
+        from stages.lib.datasets.loader import find_recording
+        from stages.lib.datasets.superimpose import check_out_apart
+
+        try:
+            check_out_apart(keep, find_recording(data, recording), flag="--keep")
+        except DatasetError as exc:
+            print(f"bench/dense.py: {exc}", file=sys.stderr)
+            return 2
+    stencils = load_or_build_stencils(grid_config(markov_config(args, "baseline")))  # --set applies to both modes: one grid
     if keep is None:  # a temporary folder holds ~20 MB per N: removed at exit, also when the run fails
         keep = Path(tempfile.mkdtemp(prefix="iamp-dense-"))
         atexit.register(shutil.rmtree, keep, ignore_errors=True)
-    print(f"cpu cores {os.cpu_count()}, backend {args.backend} on {args.device}; {args.warmup} warm-up + {args.frames} timed frames per N; "
-          "timings include any other load on the machine"
+    per_segment = -(-args.frames // args.segments)  # (run_one's split: whole stretches)
+    print(f"cpu cores {os.cpu_count()}, backend {args.backend} on {args.device}; per N {args.segments} stretch(es) of {args.warmup} warm-up + "
+          f"{per_segment} timed frames ({args.segments * per_segment} timed); timings include any other load on the machine"
           + (f"; each stage after {args.idle_ms:g} ms asleep (--idle-ms)" if args.idle_ms else "; the stages back to back"))
     from testkit import host_speed
 
@@ -373,8 +434,7 @@ def main(argv: list[str] | None = None) -> int:
                           for m in args.modes),
               flush=True)
         if args.json:  # written after every N, so that a run cut short keeps what it measured
-            args.json.parent.mkdir(parents=True, exist_ok=True)
-            args.json.write_text(json.dumps(report, indent=2))
+            write_json(args.json, report)
     stage_names = [*UPSTREAM, "ar_inference", "markov_prediction"]
     print()
     print(f"{'mode':<9}{'N':>4}{'veh':>6}{'pairs':>7} | " + " ".join(f"{s[:12]:>12}" for s in stage_names) + " | frame p50    p95")
@@ -401,20 +461,20 @@ def main(argv: list[str] | None = None) -> int:
     if len(sizes) > 1:
         for mode in args.modes:
             rows = [report["modes"][mode]["by_vehicles"][str(n)] for n in sizes]
-            x = np.log([max(r["pairs_median"], 1.0) for r in rows])
-            fits = {}
-            for label, values in (("frame", [r["frame_ms_median"] for r in rows]),
-                                  ("markov_prediction", [r["stages"]["markov_prediction"]["ms_median"] for r in rows]),
-                                  ("markov_prediction_cpu", [r["stages"]["markov_prediction"]["cpu_ms_median"] for r in rows])):
-                fits[label] = float(np.polyfit(x, np.log(values), 1)[0])
+            fits = {label: exponent([r["pairs_median"] for r in rows], values)
+                    for label, values in (("frame", [r["frame_ms_median"] for r in rows]),
+                                          ("markov_prediction", [r["stages"]["markov_prediction"]["ms_median"] for r in rows]),
+                                          ("markov_prediction_cpu", [r["stages"]["markov_prediction"]["cpu_ms_median"] for r in rows]))}
             report["modes"][mode]["exponent"] = fits
+            if fits["frame"] is None:
+                print(f"{mode}: no exponent of time vs pairs (fewer than two different pair counts with a time)")
+                continue
             print(f"{mode}: time ~ pairs^{fits['frame']:.2f} (frame), ^{fits['markov_prediction']:.2f} (markov_prediction), "
                   f"^{fits['markov_prediction_cpu']:.2f} (markov_prediction cpu)")
     report["host_reference_end"] = host_speed.reference()  # (the host may have changed under the run: its speed after it)
     print(f"after the run: {host_speed.line(report['host_reference_end'])}")
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(report, indent=2))
+        write_json(args.json, report)
         print(f"wrote {args.json}")
     return 0
 

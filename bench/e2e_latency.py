@@ -44,12 +44,16 @@ part's mean over the tail (frames at or above the p95) next to its mean over
 the frames at or below the median; then each node's GC pauses per
 generation. All of one machine's wall clock.
 
-``--json FILE`` writes ``runs.<label>.outputs.<node/output>.{n, e2e_ms_p50,
-e2e_ms_p95, e2e_ms_max, frames_lost}``, ``runs.<label>.source_frames``,
+``--json FILE`` (strict JSON: a figure without a sample is ``null``) writes
+``runs.<label>.outputs.<node/output>.{n, e2e_ms_p50, e2e_ms_p95, e2e_ms_max,
+frames_lost, unknown_wall}`` (``unknown_wall``, the ``no wall`` column: its
+messages whose header carries no source wall time, not in the figures), ``runs.<label>.source_frames``,
 ``runs.<label>.vehicles_mean``, ``runs.<label>.by_vehicles.<lo-hi>.{frames, e2e_ms_p50, e2e_ms_p95}`` (the
 MotionGrid's e2e over the frames holding lo-hi vehicles: a dense recording's load varies along it, and its
 p95 is mostly the busiest frames), ``runs.<label>.at_n.{frames, e2e_ms_p50, e2e_ms_p95}`` (the same over the
-frames within N ± 2 vehicles, for N > 0), ``runs.<label>.node_stats.<node>`` and
+frames within N ± 2 vehicles, for N > 0), ``runs.<label>.node_stats.<node>`` (its last NodeStats: among them
+``e2e_ms_p50``, ``e2e_ms_p95``, ``processing_ms_p50``/``_p95`` and the counters ``queue_drops``, ``join_drops`` and
+``stale_drops``, the table's ``q drop``, ``j drop`` and ``stale`` columns) and
 (traced) ``runs.<label>.hops.{stages.<node>.<part>, path.{total, parts.<node>.<part>, tail, via}, gc.<node>}``
 (``hop_table``), and ``host_reference`` / ``host_reference_end`` (``testkit.host_speed.reference()`` before
 and after the runs, printed too: this host's speed at fixed work, to read figures of other days against).
@@ -442,7 +446,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--vehicles", type=vehicle_counts, default="0,18", help="comma-separated; 0 = the embedded default scenario as it is")
     ap.add_argument("--pipeline", default="hybrid")
-    ap.add_argument("--speed", default="1")
+    ap.add_argument("--speed", default="1", help="playback speed: a number > 0 (1: real time) or 'max'")
     ap.add_argument("--duration-s", type=float, default=None, help="play at most this long (default: the whole recording)")
     ap.add_argument("--source", choices=sorted(SOURCES), default="k733")
     ap.add_argument("--keep", default=None, help="keep the dense data and recordings in this folder")
@@ -453,6 +457,16 @@ def main() -> int:
                     help="passed to launch.py --set (repeatable), e.g. markov_prediction.kernel_threads=1")
     args = ap.parse_args()
     check_output_arg(ap, args.json, "--json")  # before the work: a bad path must not cost the run
+    check_output_arg(ap, args.keep, "--keep", folder=True)
+    if args.duration_s is not None and not (math.isfinite(args.duration_s) and args.duration_s > 0):
+        ap.error(f"--duration-s {args.duration_s:g}: give a time above 0 s")
+    if args.speed != "max":
+        try:
+            speed_ok = math.isfinite(float(args.speed)) and float(args.speed) > 0
+        except ValueError:
+            speed_ok = False
+        if not speed_ok:
+            ap.error(f"--speed {args.speed}: give a number above 0 (1: real time) or 'max'")
     from stages.runtime.launcher import PIPELINES_DIR, resolve_pipeline_arg
 
     pipeline = Path(resolve_pipeline_arg(args.pipeline))
@@ -512,7 +526,11 @@ def main() -> int:
     result["host_reference_end"] = host_speed.reference()  # (and after them: the host may change under a run)
     print(f"\nafter the runs: {host_speed.line(result['host_reference_end'])}")
     if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=2, default=float))
+        try:  # (strict JSON: NaN, where a figure had no sample, is null)
+            from dense import finite_json
+        except ImportError:
+            from bench.dense import finite_json
+        Path(args.json).write_text(json.dumps(finite_json(result), indent=2, default=float))
     return 0
 
 

@@ -22,10 +22,14 @@ figures, asserts nothing; other load on the machine shows in them.
                                  [--function MODULE:QUALNAME ...] [--json FILE] [--set KEY=VALUE ...] [--idle-ms MS]
 
 ``--function`` adds a function to the default list (``MODULE:Class.method``
-or ``MODULE:function``); where a module binds a wrapped function by name
-(``from x import f``), wrap it where it is called. ``--json FILE`` writes
-``functions.<qualname>.{ms_per_frame, frame_ms_median, ms_median, calls_per_frame}`` and
-``frames``, ``vehicles``, ``modes``.
+or ``MODULE:function``; one named twice is timed once); where a module binds
+a wrapped function by name (``from x import f``), wrap it where it is called.
+``--frames`` is rounded up to whole ``--segments`` stretches, as in
+bench/dense.py. ``--json FILE`` writes
+``functions.<qualname>.{ms_per_frame, frame_ms_median, ms_median, calls_per_frame}``,
+``frames`` (timed), ``vehicles`` (the requested N; the measured ones are in
+``stages``), ``modes``, ``source`` and ``stages`` (bench/dense.py's figures of
+the same run, per mode).
 """
 
 from __future__ import annotations
@@ -88,10 +92,10 @@ class Timers:
         self.frames += int(timed)
 
     def wrap(self, spec: str) -> None:
-        """Wrap ``MODULE:QUALNAME`` in place (on its class or module); ``SystemExit`` with a message when it is not found."""
+        """Wrap ``MODULE:QUALNAME`` in place (on its class or module); ``ValueError`` with a message when it is not found."""
         module_name, _, qualname = spec.partition(":")
         if not qualname:
-            raise SystemExit(f"--function {spec!r}: expected MODULE:QUALNAME, e.g. stages.corridors.core:CorridorBuilder.process")
+            raise ValueError(f"--function {spec!r}: expected MODULE:QUALNAME, e.g. stages.corridors.core:CorridorBuilder.process")
         try:
             owner = importlib.import_module(module_name)
             *path, name = qualname.split(".")
@@ -99,8 +103,8 @@ class Timers:
                 owner = getattr(owner, part)
             original = getattr(owner, name)
             static = isinstance(inspect.getattr_static(owner, name), staticmethod)  # (wrapped as one again: no self)
-        except (ImportError, AttributeError) as exc:
-            raise SystemExit(f"--function {spec!r}: not found ({exc})") from None
+        except (ImportError, AttributeError, ValueError) as exc:
+            raise ValueError(f"--function {spec!r}: not found ({exc})") from None
         calls, frame_of = self.calls[qualname], self.frame_of[qualname]
 
         @functools.wraps(original)
@@ -145,22 +149,26 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--idle-ms", type=float, default=0.0, help="as bench/dense.py --idle-ms: each stage after this long asleep")
     args = parser.parse_args(argv)
     check_output_arg(parser, args.json, "--json")  # before the work: a bad path must not cost the run
-    if args.vehicles < 1 or args.frames < 1:
-        parser.error("--vehicles and --frames must be >= 1")
     try:  # as a script, its folder is first on the module path (bench/ is not an installed package)
         import dense
     except ImportError:
         from bench import dense
+
+    if not 1 <= args.vehicles <= dense.MAX_VEHICLES or args.frames < 1:
+        parser.error(f"--vehicles must be 1 to {dense.MAX_VEHICLES} and --frames >= 1")
 
     # bench/dense.py's arguments, for its run_one
     dense_args = ["--vehicles", str(args.vehicles), "--frames", str(args.frames), "--warmup", str(args.warmup),
                   "--segments", str(args.segments), "--source", args.source, "--modes", args.modes,
                   "--backend", args.backend, "--device", args.device, "--idle-ms", str(args.idle_ms),
                   *(a for kv in args.set for a in ("--set", kv))]
-    ns = dense.parse_args(dense_args)
+    ns = dense.parse_args(dense_args, error=parser.error)  # (its checks, with this script's usage)
     timers = Timers()
-    for spec in (*DEFAULT_FUNCTIONS, *args.function):
-        timers.wrap(spec)
+    for spec in dict.fromkeys((*DEFAULT_FUNCTIONS, *args.function)):  # a function named twice is timed once
+        try:
+            timers.wrap(spec)
+        except ValueError as exc:
+            parser.error(str(exc))
     from stages.lib.datasets import DEFAULT_DATA_DIR, FULL_DATA_ENV, full_data_dir
     from stages.lib.datasets.superimpose import build_dense
     from stages.lib.markov import load_or_build_stencils
@@ -184,8 +192,8 @@ def main(argv: list[str] | None = None) -> int:
     print("(wall ms over the timed frames; nested functions each counted whole)")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"vehicles": args.vehicles, "frames": timers.frames, "modes": list(ns.modes), "source": recording,
-                                         "functions": table, "stages": result}, indent=2))
+        args.json.write_text(json.dumps(dense.finite_json({"vehicles": args.vehicles, "frames": timers.frames, "modes": list(ns.modes),
+                                                           "source": recording, "functions": table, "stages": result}), indent=2))
         print(f"wrote {args.json}")
     return 0
 

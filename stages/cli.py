@@ -31,6 +31,7 @@ import os
 import math
 import sys
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
 
 EXIT_USAGE = 2
@@ -253,6 +254,8 @@ def _run_data(args: argparse.Namespace) -> int:
     except DatasetError as exc:
         sys.stderr.write(f"iamp data superimpose: {exc}\n")
         return EXIT_USAGE
+    out = Path(args.out)
+    made = [f for f in (out, *out.parents) if not f.exists()]  # the folders check_output creates, deepest first
     try:
         check_output(args.out, "--out", folder=True)
     except ConfigError as exc:
@@ -263,9 +266,18 @@ def _run_data(args: argparse.Namespace) -> int:
             args.data, args.recording, args.vehicles, args.out, name=args.name, sequences=args.sequence or None,
             shift_s=args.shift_s, duration_s=args.duration_s,
         )
-    except DatasetError as exc:
-        sys.stderr.write(f"iamp data superimpose: {exc}\n")
-        return EXIT_USAGE
+    except (DatasetError, OSError) as exc:
+        for folder in made:  # a refused request leaves no folder behind (only those it made, and only while empty)
+            try:
+                folder.rmdir()
+            except OSError:
+                break
+        if isinstance(exc, DatasetError):
+            sys.stderr.write(f"iamp data superimpose: {exc}\n")
+            return EXIT_USAGE
+        sys.stderr.write(f"iamp data superimpose: writing the recording failed: {exc.strerror or exc}"
+                         f"{f' ({exc.filename})' if exc.filename else ''}; an earlier recording of that name is as it was\n")
+        return 1
     summary = {
         "out": str(result.out_dir), "recording": result.name, "layers": len(result.layers),
         "shifts_s": [round(l.shift_s, 3) for l in result.layers],

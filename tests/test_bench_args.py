@@ -72,6 +72,20 @@ BAD = [
     (["generalisation.py", "--model", "k729-k733=/nonexistent.pt"], "/nonexistent.pt"),
     (["generalisation.py", "--model", f"k733-k729={REPO / 'README.md'}"], "does not load as an AR model"),
     (["generalisation.py", "--model", f"k729-k733={REPO / 'stages' / 'lib' / 'ar' / 'weights' / 'ar_taf_bw.pt'}"], "not held out"),
+    # found by a new-user probe (each was a traceback, some after minutes of work): --set not KEY=VALUE, an unknown
+    # parameter or a bad value; a --keep that is a file or the source's own data folder; a --function of no module;
+    # a duration or speed that is not positive (they failed in the commands the bench runs, naming flags not given)
+    (["dense.py", "--set", "junk"], "--set 'junk': expected KEY=VALUE"),
+    (["dense.py", "--set", "nosuchkey=3"], "unknown parameter(s) nosuchkey"),
+    (["dense.py", "--set", "n_inputs=abc"], "n_inputs = 'abc' should be int"),
+    (["dense.py", "--keep", str(REPO / "README.md")], "--keep"),
+    (["dense.py", "--keep", str(REPO / "stages" / "data" / "taf-bw")], "--keep"),
+    (["frame_phases.py", "--set", "junk"], "--set 'junk'"),
+    (["frame_phases.py", "--function", ":foo"], "--function ':foo'"),
+    (["frame_phases.py", "--modes", "nonsense"], "--modes nonsense"),
+    (["e2e_latency.py", "--duration-s", "-1"], "--duration-s -1"),
+    (["e2e_latency.py", "--speed", "0"], "--speed 0"),
+    (["e2e_latency.py", "--keep", str(REPO / "README.md")], "--keep"),
     # output paths
     (["plot_frame.py", "--out", "/tmp"], "is a folder"),
     (["plot_frame.py", "--out", "frame.nosuchformat"], ".nosuchformat"),
@@ -117,3 +131,15 @@ def test_plot_frame_prints_the_files_it_wrote(tmp_path):
     wrote = [line.split(",")[0].removeprefix("wrote ") for line in r.stdout.splitlines() if line.startswith("wrote ")]
     assert wrote == [str(out) + ".png", str(out) + ".svg"]
     assert all(Path(p).is_file() for p in wrote) and not out.exists()
+
+
+def test_dense_figures_as_strict_json_and_an_exponent_only_where_it_can_be_fitted():
+    """bench/dense.py --modes baseline counted no pairs, so the fit of time against pairs had only zeros and failed
+    with a LinAlgError after the whole run; an ``at_n`` of no frame was written as a bare NaN, not JSON."""
+    from bench import dense
+
+    assert dense.exponent([10, 20, 40], [1.0, 2.0, 4.0]) == pytest.approx(1.0)
+    assert dense.exponent([0, 0], [1.0, 2.0]) is None and dense.exponent([10, 10], [1.0, 2.0]) is None
+    assert dense.exponent([10, 20, 40], [1.0, float("nan"), 4.0]) == pytest.approx(1.0)
+    text = json.dumps(dense.finite_json({"a": float("nan"), "b": [1.5, float("inf")], "c": {"d": 2}}), allow_nan=False)
+    assert json.loads(text) == {"a": None, "b": [1.5, None], "c": {"d": 2}}

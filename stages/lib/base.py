@@ -11,6 +11,7 @@ import contextlib
 import dataclasses
 import math
 import os
+import tempfile
 import types
 import typing
 import uuid
@@ -53,12 +54,15 @@ class ConfigError(ValueError):
 def check_output(path: str | Path | None, flag: str, *, folder: bool = False) -> None:
     """Before a long run: that ``path`` (a file, or with ``folder`` a folder) can be written, so that a bad output
     flag fails at once and not after the work, which it would lose. Creates the folder the file goes in (``folder``:
-    the folder itself) and raises ``ConfigError`` naming ``flag`` where it cannot, where the folder is not writable or
-    where a file is to be written over a folder. None: nothing to check."""
+    the folder itself) and raises ``ConfigError`` naming ``flag`` where it cannot, where the folder is not writable (a
+    temporary file is made in it and removed), where the file exists and is not writable, or where a file is to be
+    written over a folder. None: nothing to check."""
     if path is None:
         return
     path = Path(path)
     target = path if folder else path.parent
+    if folder and path.exists() and not path.is_dir():
+        raise ConfigError(f"{flag} {path}: is a file, not a folder")
     try:
         target.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -69,6 +73,13 @@ def check_output(path: str | Path | None, flag: str, *, folder: bool = False) ->
         raise ConfigError(f"{flag} {path}: is a folder; expected a file name")
     if not os.access(target, os.W_OK | os.X_OK):
         raise ConfigError(f"{flag} {path}: the folder {target} is not writable")
+    if not folder and path.exists() and not os.access(path, os.W_OK):
+        raise ConfigError(f"{flag} {path}: the file exists and is not writable")
+    try:  # what os.access cannot tell (a read-only or special file system such as /sys, root's rights): a real file
+        with tempfile.TemporaryFile(dir=target):
+            pass
+    except OSError as exc:
+        raise ConfigError(f"{flag} {path}: cannot write in the folder {target} ({exc.strerror or exc})") from None
 
 
 def check_output_arg(parser: "argparse.ArgumentParser", path: str | Path | None, flag: str, *, folder: bool = False) -> None:

@@ -4,6 +4,9 @@ in a traceback after the work, which was lost."""
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import pytest
 
 from stages import cli
@@ -21,8 +24,18 @@ def test_check_output_creates_the_folder_and_refuses_what_cannot_be_written(tmp_
     with pytest.raises(ConfigError, match=r"^--json .*: is a folder; expected a file name$"):
         check_output(tmp_path / "figs", "--json")
     (tmp_path / "plain").write_text("x")
-    with pytest.raises(ConfigError, match=r"^--figures .*plain: cannot create the folder"):
+    with pytest.raises(ConfigError, match=r"^--figures .*plain: is a file, not a folder$"):
         check_output(tmp_path / "plain", "--figures", folder=True)
+    # found by a new-user probe: a bench ran its minutes and then failed writing its --json
+    if Path("/sys").is_dir():  # a folder root may "write" by its rights (os.access) where no file can be made
+        with pytest.raises(ConfigError, match=r"^--json /sys/x.json: (cannot write in the folder /sys|the folder /sys is not writable)"):
+            check_output("/sys/x.json", "--json")
+    (tmp_path / "kept.json").write_text("{}")
+    (tmp_path / "kept.json").chmod(0o444)
+    if not os.access(tmp_path / "kept.json", os.W_OK):  # (root may write it anyway: then there is nothing to refuse)
+        with pytest.raises(ConfigError, match=r"kept.json: the file exists and is not writable$"):
+            check_output(tmp_path / "kept.json", "--json")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "figs", "kept.json", "plain"]  # no probe file left behind
     with pytest.raises(ConfigError, match=r"^--out .*: cannot create the folder /proc/iamp-no-such-folder \("):
         check_output(f"{UNCREATABLE}/m.pt", "--out")
 

@@ -8,9 +8,11 @@ import shutil
 import numpy as np
 import pytest
 
+from bus_schemas.common import VEHICLE_TYPE_VALUES
 from stages.cli import main as iamp
 from stages.lib.datasets import DEFAULT_DATA_DIR, load_recording
 from stages.lib.datasets import DatasetError
+from stages.lib.datasets.model import agent_type_from_name
 from stages.lib.datasets import superimpose as superimpose_module
 from stages.lib.datasets.superimpose import Layer, build_dense, plan_layers, read_sources, superimpose
 
@@ -49,7 +51,14 @@ def test_layers_are_shifted_copies_with_fresh_ids(tmp_path):
     frames, counts = np.unique(seq.frame_index, return_counts=True)
     src_rec = load_recording(DEFAULT_DATA_DIR, REC, ["013"])
     assert counts.max() > np.unique(src_rec.sequences[0].frame_index, return_counts=True)[1].max()
-    assert result.vehicles_mean == pytest.approx(2 * len(src.rows) / (src.duration_ms / src.frame_ms), rel=0.02)
+    # vehicles per frame count rows of a vehicle type only: K729's vehicle track files hold pedestrians too
+    n_vehicle_rows = int(np.count_nonzero(src.vehicle))
+    assert 0 < n_vehicle_rows < len(src.rows)
+    assert result.vehicles_mean == pytest.approx(2 * n_vehicle_rows / (src.duration_ms / src.frame_ms), rel=0.02)
+    # as the stages count them: the loader's agent types
+    n_frames = int(round(result.duration_s * 1000 / src.frame_ms))
+    loaded_vehicles = np.count_nonzero(np.isin(seq.agent_type, list(VEHICLE_TYPE_VALUES)))
+    assert result.vehicles_mean == pytest.approx(loaded_vehicles / n_frames, rel=0.02)
 
 
 def test_build_dense_reaches_the_target_and_the_cli_writes_it(tmp_path, capsys):
@@ -76,17 +85,20 @@ def test_a_partial_last_layer_makes_the_mean_hit_the_target(tmp_path):
     layers = plan_layers(sources, target, shift_s=0.0, duration_s=src.duration_ms / 1000)
     assert [l.share for l in layers[:-1]] == [1.0] * (len(layers) - 1) and 0.0 < layers[-1].share < 1.0
     assert sum(sources[l.source].mean_per_frame() * l.share for l in layers) == pytest.approx(target, rel=1e-6)
-    # the partial copy writes whole tracks, about its share of the source's rows, under fresh ids
+    # the partial copy writes whole tracks, about its share of the source's vehicle rows, under fresh ids
     half = superimpose(sources, [Layer(first, 0.0, share=0.5)], tmp_path, "half", duration_s=src.duration_ms / 1000, map_path=map_path)
     rows = _rows(tmp_path / "recorded_trackfiles" / "half" / "vehicle_tracks_000.csv")
-    _ids, track_rows = np.unique(src.track_ids.astype(str), return_counts=True)
-    assert 0.5 * len(src.rows) <= len(rows) < 0.5 * len(src.rows) + track_rows.max()  # whole tracks until the share is reached
+    ids, inverse = np.unique(src.track_ids.astype(str), return_inverse=True)
+    track_vehicle_rows = np.bincount(inverse, weights=src.vehicle)
+    n_vehicle = int(np.count_nonzero(src.vehicle))
+    kept_vehicle = sum(agent_type_from_name(r["agent_type"]).is_vehicle for r in rows)
+    assert 0.5 * n_vehicle <= kept_vehicle < 0.5 * n_vehicle + track_vehicle_rows.max()  # whole tracks until the share is reached
     it, ix, iy = (src.columns.index(c) for c in ("timestamp_ms", "x", "y"))
     source_of = {(int(row[it]), row[ix], row[iy]): tid for row, tid in zip(src.rows, src.track_ids)}
     kept_sources = {source_of[(int(r["timestamp_ms"]), r["x"], r["y"])] for r in rows}
     whole = sum(int((src.track_ids == tid).sum()) for tid in kept_sources)
     assert whole == len(rows)  # every kept source track is written whole
-    assert half.vehicles_mean == pytest.approx(len(rows) / (src.duration_ms / src.frame_ms), rel=0.02)
+    assert half.vehicles_mean == pytest.approx(kept_vehicle / (src.duration_ms / src.frame_ms), rel=0.02)
     # the same layer picks the same tracks (a hash of the id, not a random draw)
     again = superimpose(sources, [Layer(first, 0.0, share=0.5)], tmp_path / "b", "half", duration_s=src.duration_ms / 1000, map_path=map_path)
     assert again.n_rows == half.n_rows
@@ -245,3 +257,49 @@ def test_a_failed_or_interrupted_build_leaves_the_old_output_whole(small_data, t
     assert (folder / "signal_phases_000.csv").read_text() == "kept\n"
     assert load_recording(out, "dense").sequences[0].n_rows == result.n_rows
     assert not [p for p in out.iterdir() if p.name.startswith(".")]
+
+
+def test_a_map_that_cannot_be_moved_into_place_leaves_the_old_recording(small_data, tmp_path, monkeypatch):
+    """The map was moved into place before the recording folder: where the recording's move then failed (a read-only
+    recorded_trackfiles/), a new map stood beside the old recording. Now the recording goes first, and where the map
+    cannot follow, the old recording is put back: the output is as it was."""
+    out = tmp_path / "out"
+    assert _cli(small_data, out, "--vehicles", "4", "--shift-s", "30", "--name", "dense") == 0
+    before = _snapshot(out)
+    real_replace = superimpose_module.os.replace
+
+    def failing(src, dst):
+        if str(dst).endswith(".osm"):
+            raise PermissionError(13, "Permission denied", str(dst))
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(superimpose_module.os, "replace", failing)
+    with pytest.raises(PermissionError):
+        build_dense(small_data, REC, 6.0, out, name="dense", shift_s=20.0)
+    assert _snapshot(out) == before
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]
+
+
+def test_the_command_line_says_what_to_fix_and_leaves_no_folder(small_data, tmp_path, capsys):
+    """Found by a new-user probe: a repeated --sequence stacked two copies vehicle on vehicle; an unknown recording
+    left the --out folders it had made; a duration or shift under one frame named the wrong cause; a file where
+    maps/ goes failed with a traceback after the work."""
+    assert _cli(small_data, tmp_path / "o1", "--vehicles", "4", "--sequence", "013", "--sequence", "013") == 2
+    _one_line_refusal(capsys, "--sequence 013", "more than once")
+    assert not (tmp_path / "o1").exists()
+    assert iamp(["data", "superimpose", "--data", str(small_data), "--recording", "nosuch", "--vehicles", "4",
+                 "--out", str(tmp_path / "o2" / "deep")]) == 2
+    _one_line_refusal(capsys, "nosuch")
+    assert not (tmp_path / "o2").exists()
+    assert _cli(small_data, tmp_path / "o3", "--vehicles", "4", "--shift-s", "30", "--duration-s", "0.01") == 2
+    _one_line_refusal(capsys, "shorter than one frame", "--duration-s")
+    assert _cli(small_data, tmp_path / "o3", "--vehicles", "4", "--shift-s", "0.01") == 2
+    _one_line_refusal(capsys, "shorter than one frame", "--shift-s")
+    (tmp_path / "o4").mkdir()
+    (tmp_path / "o4" / "maps").write_text("not a folder\n")
+    assert _cli(small_data, tmp_path / "o4", "--vehicles", "4", "--shift-s", "30") == 2
+    _one_line_refusal(capsys, "maps", "is a file, not a folder")
+    assert sorted(p.name for p in (tmp_path / "o4").iterdir()) == ["maps"]
+    (tmp_path / "o5").write_text("a file\n")
+    assert _cli(small_data, tmp_path / "o5", "--vehicles", "4", "--shift-s", "30") == 2
+    _one_line_refusal(capsys, "--out", "is a file, not a folder")

@@ -11,10 +11,21 @@ hash of their ids, until their rows reach the share) tops the mean up to
 the target. Each (layer, tile, source
 track) gets a fresh track id (a track cut by the wrap becomes two tracks:
 one leaving at the end, one entering at the start, as tracks do at a
-recording's edges). Shifting a recording by multiples of its signal cycle
-keeps every copy in phase with the lights (except at the wrap point);
-``estimate_cycle_s`` finds the cycle from the tracks (the autocorrelation of
-the number of moving vehicles).
+recording's edges). The default shift step is the signal cycle
+(``estimate_cycle_s`` finds it from the tracks: the autocorrelation of the
+number of moving vehicles), so that the copies start in phase with the
+lights; but the wrap and the tiling are over the sequence's length, which is
+not a multiple of the cycle, so the rows a copy wraps round (and every tile
+after the first) are out of phase with the others (K733's 244.1 s over an
+89.2 s cycle: about 66 s). The output is meant for load (how many vehicles
+and pairs a frame holds), not for traffic: copies do not see each other, so
+cars of two copies drive through one another, and standing cars of two
+copies can stand on the same spot (at 18 vehicles some 500 pairs of
+vehicles closer than 1 m over 1 in 10 frames, against 9 in the source).
+
+"Vehicles" are the rows whose ``agent_type`` is a vehicle type (car, truck,
+bus, motorcycle, as the stages count them): K729's vehicle track files hold
+pedestrians too, which are copied but not counted.
 
 The output folder is laid out like the TAF-BW data: ``maps/<name>.osm`` (a
 copy of the source map), ``recorded_trackfiles/<name>/meta_data.csv`` (one
@@ -49,7 +60,7 @@ import numpy as np
 
 from stages.lib.datasets.interaction import META_FILE, TRACK_FILE_RE
 from stages.lib.datasets.loader import MAPS_DIR, TRACKS_DIR, find_recording
-from stages.lib.datasets.model import FORMAT_INTERACTION, DatasetError, RecordingRef
+from stages.lib.datasets.model import FORMAT_INTERACTION, DatasetError, RecordingRef, agent_type_from_name
 
 #: Columns written, in this order, when the sources have them (``time`` of K729 is left out: it would be wrong).
 COLUMNS = ("track_id", "frame_id", "timestamp_ms", "agent_type", "x", "y", "vx", "vy", "psi_rad", "length", "width")
@@ -75,6 +86,7 @@ class SourceSequence:
     meta: dict[str, str]
     time_ms: np.ndarray
     track_ids: np.ndarray  # text ids as read (object array)
+    vehicle: np.ndarray  # per row: its agent_type is a vehicle type (``AgentType.is_vehicle``: what the stages predict)
 
     @property
     def duration_ms(self) -> int:
@@ -88,10 +100,10 @@ class SourceSequence:
         return int(round(1000.0 / float(self.meta.get("frameRate_hz") or 10)))
 
     def mean_per_frame(self) -> float:
-        """Mean number of tracks per frame over the sequence's frames."""
+        """Mean number of vehicles (rows of a vehicle type) per frame over the sequence's frames."""
         if not self.time_ms.size:
             return 0.0
-        return float(self.time_ms.size) / (self.duration_ms / self.frame_ms)
+        return float(np.count_nonzero(self.vehicle)) / (self.duration_ms / self.frame_ms)
 
 
 @dataclass(frozen=True, slots=True)
@@ -138,7 +150,7 @@ def check_name(name: str, flag: str = "--name") -> None:
                            "not starting with '.')")
 
 
-def check_out_apart(out_dir: str | Path, ref: RecordingRef) -> None:
+def check_out_apart(out_dir: str | Path, ref: RecordingRef, flag: str = "--out") -> None:
     """``DatasetError`` where the output folder is the source recording's folder, holds it or lies inside it, or holds
     its map: the new recording replaces files in the output (its recording folder, map, LICENSE), and the source is
     read from files that would be among them (``--out`` = ``--data`` and ``--name`` = ``--recording`` deleted the
@@ -146,11 +158,11 @@ def check_out_apart(out_dir: str | Path, ref: RecordingRef) -> None:
     out = Path(out_dir).expanduser().resolve()
     folder = ref.folder.resolve()
     if out == folder or out in folder.parents:
-        raise DatasetError(f"--out {out_dir}: holds the source recording {ref.name} ({folder}); write to another folder")
+        raise DatasetError(f"{flag} {out_dir}: holds the source recording {ref.name} ({folder}); write to another folder")
     if folder in out.parents:
-        raise DatasetError(f"--out {out_dir}: lies in the source recording's folder {folder}; write to another folder")
+        raise DatasetError(f"{flag} {out_dir}: lies in the source recording's folder {folder}; write to another folder")
     if ref.map_path is not None and out in ref.map_path.resolve().parents:
-        raise DatasetError(f"--out {out_dir}: holds the source map {ref.map_path}; write to another folder")
+        raise DatasetError(f"{flag} {out_dir}: holds the source map {ref.map_path}; write to another folder")
 
 
 def read_sources(data_dir: str | Path, recording: str, sequences: list[str] | None = None) -> tuple[Path | None, list[SourceSequence]]:
@@ -162,6 +174,9 @@ def read_sources(data_dir: str | Path, recording: str, sequences: list[str] | No
     with open(meta_path, newline="", encoding="utf-8") as f:
         metas = {row["id"].strip(): row for row in csv.DictReader(f)}
     wanted = list(sequences) if sequences else list(ref.sequence_ids)
+    twice = sorted({q for q in wanted if wanted.count(q) > 1})
+    if twice:  # its copies would start at the same shifts: vehicle on vehicle under two ids
+        raise DatasetError(f"--sequence {', '.join(twice)} given more than once; name each sequence once (the copies are made by --vehicles)")
     out = []
     for seq_id in wanted:
         files = sorted(p for p in ref.folder.iterdir() if (m := TRACK_FILE_RE.match(p.name)) and m.group(2) == seq_id)
@@ -179,14 +194,17 @@ def read_sources(data_dir: str | Path, recording: str, sequences: list[str] | No
             for need in ("track_id", "timestamp_ms", "agent_type", "x", "y"):
                 if need not in header:
                     raise DatasetError(f"{path}: no column {need!r}")
-            it, ii = header.index("timestamp_ms"), header.index("track_id")
+            it, ii, ia = header.index("timestamp_ms"), header.index("track_id"), header.index("agent_type")
             time_ms = np.array([int(round(float(r[it]))) for r in rows], dtype=np.int64)
-            out.append(SourceSequence(seq_id, kind, header, rows, dict(meta), time_ms, np.array([r[ii].strip() for r in rows], dtype=object)))
+            is_vehicle = {}  # per type name as written: a few names for the whole file
+            vehicle = np.array([is_vehicle.setdefault(r[ia], agent_type_from_name(r[ia]).is_vehicle) for r in rows], dtype=np.bool_)
+            out.append(SourceSequence(seq_id, kind, header, rows, dict(meta), time_ms,
+                                      np.array([r[ii].strip() for r in rows], dtype=object), vehicle))
     return ref.map_path, out
 
 
 def estimate_cycle_s(source: SourceSequence, *, low_s: float = 40.0, high_s: float = 150.0) -> float:
-    """The signal cycle (s): the lag in [low_s, high_s] of the highest autocorrelation of the number of tracks moving faster than 3 m/s."""
+    """The signal cycle (s): the lag in [low_s, high_s] of the highest autocorrelation of the number of vehicles moving faster than 3 m/s."""
     cols = source.columns
     if "vx" not in cols or "vy" not in cols:
         raise DatasetError(f"sequence {source.id}: no vx/vy columns to estimate the signal cycle from; give --shift-s")
@@ -194,7 +212,7 @@ def estimate_cycle_s(source: SourceSequence, *, low_s: float = 40.0, high_s: flo
     speed = np.array([math.hypot(float(r[ivx]), float(r[ivy])) for r in source.rows])
     frame = (source.time_ms // source.frame_ms).astype(np.int64)
     moving = np.zeros(int(frame.max()) + 1 if frame.size else 1)
-    np.add.at(moving, frame, (speed > 3.0).astype(float))
+    np.add.at(moving, frame, ((speed > 3.0) & source.vehicle).astype(float))
     x = moving - moving.mean()
     ac = np.correlate(x, x, "full")[x.size - 1 :]
     lags_s = np.arange(ac.size) * source.frame_ms / 1000.0
@@ -236,11 +254,12 @@ def plan_layers(sources: list[SourceSequence], target_vehicles: float, *, shift_
 
 def _kept_rows(src: SourceSequence, layer: Layer) -> np.ndarray | None:
     """Which of the source's rows a partial layer writes (``Layer.share``: whole tracks, in the order of a hash of
-    their ids, until their rows reach the share); None: all of them."""
+    their ids, until their vehicle rows reach the share); None: all of them."""
     if layer.share >= 1.0:
         return None
     names = src.track_ids.astype(str)
-    ids, rows = np.unique(names, return_counts=True)
+    ids, inverse = np.unique(names, return_inverse=True)
+    rows = np.bincount(inverse, weights=src.vehicle, minlength=ids.size).astype(np.int64)  # vehicle rows per track
     order = sorted(range(ids.size), key=lambda k: zlib.crc32(f"{ids[k]}@{layer.shift_s:.3f}".encode()))
     goal, kept, n = layer.share * float(rows.sum()), [], 0
     for k in order:
@@ -281,7 +300,11 @@ def superimpose(
     frame_ms = first.frame_ms
     duration_ms = int(round(duration_s * 1000.0 / frame_ms)) * frame_ms
     if duration_ms <= 0:
-        raise DatasetError(f"superimpose: duration {duration_s} s is not positive")
+        raise DatasetError(f"duration {duration_s:g} s: shorter than one frame ({frame_ms} ms); give a longer --duration-s")
+    for layer in layers:
+        if layer.shift_s != 0 and int(round(layer.shift_s * 1000.0 / frame_ms)) == 0:
+            raise DatasetError(f"shift {layer.shift_s:g} s: shorter than one frame ({frame_ms} ms), the copies would coincide; "
+                               "give a longer --shift-s")
     _check_distinct(sources, layers, frame_ms)
     track_dir = out_dir / TRACKS_DIR / name
     if track_dir.exists() and not track_dir.is_dir():
@@ -289,6 +312,7 @@ def superimpose(
     if map_path is not None and (out_dir / MAPS_DIR / f"{name}.osm").resolve() == Path(map_path).resolve():
         raise DatasetError(f"superimpose: the map {map_path} would be written over itself; write to another folder")
     out_dir.mkdir(parents=True, exist_ok=True)
+    _check_writable(out_dir, name)
     # a hidden folder beside maps/ and recorded_trackfiles/ (not in them: a reader listing recordings would see it),
     # on the output's file system, so that the moves into place are renames
     stage = Path(tempfile.mkdtemp(prefix=f".{name}.", suffix=".superimpose.tmp", dir=out_dir))
@@ -299,6 +323,21 @@ def superimpose(
     finally:  # also on KeyboardInterrupt: no temporary folder is left behind
         shutil.rmtree(stage, ignore_errors=True)
     return dataclasses.replace(result, out_dir=out_dir)
+
+
+def _check_writable(out_dir: Path, name: str) -> None:
+    """``DatasetError`` before the work where ``_commit`` could not move the new files into place: the output folder,
+    its ``maps/`` and ``recorded_trackfiles/`` (where they exist) and an old recording folder of that name (moved aside:
+    a folder moved to another parent needs write access to itself) must be writable folders."""
+    need = [out_dir, out_dir / MAPS_DIR, out_dir / TRACKS_DIR, out_dir / TRACKS_DIR / name]
+    for folder in need:
+        if not folder.exists():
+            continue
+        if not folder.is_dir():
+            raise DatasetError(f"{folder} is a file, not a folder; remove it or write to another --out")
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise DatasetError(f"{folder} is not writable: the new recording could not be moved into place; "
+                               "make it writable or write to another --out")
 
 
 def _shift_ms(layer: Layer, frame_ms: int, period_ms: int) -> int:
@@ -345,7 +384,7 @@ def _write(
     if map_path is not None:
         shutil.copyfile(map_path, out_dir / MAPS_DIR / f"{name}.osm")
     next_id = {"vehicle": 1, "pedestrian": 1}
-    written: dict[str, list[tuple[int, int, list[str]]]] = {"vehicle": [], "pedestrian": []}
+    written: dict[str, list[tuple[int, int, list[str], bool]]] = {"vehicle": [], "pedestrian": []}  # (ms, id, values, vehicle)
     for layer in layers:
         src = sources[layer.source]
         period = src.duration_ms
@@ -383,7 +422,7 @@ def _write(
                         values.append(str(int(t_out[r]) // frame_ms))
                     else:
                         values.append(row[idx[c]])
-                written[src.kind].append((int(t_out[r]), new, values))
+                written[src.kind].append((int(t_out[r]), new, values, bool(src.vehicle[r])))
     n_rows = 0
     header = [c for c in COLUMNS if any(c in sources[layer.source].columns for layer in layers)]
     for kind, rows in written.items():
@@ -396,7 +435,7 @@ def _write(
         with open(track_dir / f"{kind}_tracks_000.csv", "w", newline="", encoding="utf-8") as f:
             w = csv.writer(f, lineterminator="\n")
             w.writerow(header)
-            for _t, _id, values in rows:
+            for _t, _id, values, _vehicle in rows:
                 w.writerow(values)
         n_rows += len(rows)
     meta = {c: first.meta.get(c, "") for c in META_COLUMNS}
@@ -408,8 +447,8 @@ def _write(
         w.writerow(meta)
     if licence_dir is not None and (licence_dir / "LICENSE").is_file():
         shutil.copyfile(licence_dir / "LICENSE", out_dir / "LICENSE")
-    vehicle_times = np.array([t for t, _i, _v in written["vehicle"]], dtype=np.int64)
-    _u, counts = np.unique(vehicle_times, return_counts=True) if vehicle_times.size else (None, np.zeros(1))
+    # vehicles per frame: rows of a vehicle type, of any file (K729's vehicle files hold pedestrians too)
+    vehicle_times = np.array([t for rows in written.values() for t, _i, _v, vehicle in rows if vehicle], dtype=np.int64)
     n_frames = duration_ms // frame_ms
     counts_all = np.zeros(n_frames)
     if vehicle_times.size:
@@ -444,8 +483,9 @@ def _write(
 
 
 def _commit(stage: Path, out_dir: Path, name: str) -> None:
-    """Move what ``_write`` wrote into ``stage`` into ``out_dir``: the map, LICENSE and ATTRIBUTION.md by renaming
-    over the old ones, the recording folder by renaming the old one aside and the new one in its place. The files of
+    """Move what ``_write`` wrote into ``stage`` into ``out_dir``: first the recording folder, by renaming the old one
+    aside and the new one in its place, then the map, LICENSE and ATTRIBUTION.md by renaming over the old ones (where
+    the map cannot be moved, the old recording folder is put back: no recording without its map). The files of
     an old recording folder that are neither track files nor meta_data.csv (signal phases, a KML lane file) are
     copied into the new one first: the command always replaced only those (``the recording's files``)."""
     (out_dir / MAPS_DIR).mkdir(exist_ok=True)
@@ -459,10 +499,8 @@ def _commit(stage: Path, out_dir: Path, name: str) -> None:
                 shutil.copytree(entry, new_dir / entry.name, symlinks=True)
             else:
                 shutil.copy2(entry, new_dir / entry.name, follow_symlinks=False)
-    for path in sorted((stage / MAPS_DIR).iterdir()):
-        os.replace(path, out_dir / MAPS_DIR / path.name)
+    aside = stage / "replaced"
     if old_dir.is_dir():
-        aside = stage / "replaced"
         os.rename(old_dir, aside)
         try:
             os.rename(new_dir, old_dir)
@@ -471,6 +509,14 @@ def _commit(stage: Path, out_dir: Path, name: str) -> None:
             raise
     else:
         os.rename(new_dir, old_dir)
+    try:  # the map after the recording: where it cannot be moved, the recording goes back as it was (no new recording
+        for path in sorted((stage / MAPS_DIR).iterdir()):  # beside an old map, nor a new map without its recording)
+            os.replace(path, out_dir / MAPS_DIR / path.name)
+    except BaseException:
+        os.rename(old_dir, new_dir)
+        if aside.is_dir():
+            os.rename(aside, old_dir)
+        raise
     for file in ("LICENSE", "ATTRIBUTION.md"):
         if (stage / file).is_file():
             os.replace(stage / file, out_dir / file)
