@@ -231,8 +231,11 @@ class IssueLog:
         recent.append(now)
         return True
 
-    def frame(self, stamp_ns: int, issues: Iterable[Issue], scope: str | None = None) -> None:
-        """The issues of one handled frame (or, for a raw sink, one message on key ``scope``)."""
+    def frame(self, stamp_ns: int, issues: Iterable[Issue], scope: str | None = None, *, closes: bool = True) -> None:
+        """The issues of one handled frame (or, for a raw sink, one message on key ``scope``). ``closes`` false: a call
+        of the core that handled no frame (grid_fusion run by a clock tick or by one shard's part of a frame, which
+        publishes nothing): its issues start or go on with their episodes, and the episodes it lacks are not ended
+        (each such call ended a shard outage's episode: one outage logged as many, until the rate limit hid the next)."""
         episodes = self._open.get(scope)
         if episodes is None:
             if not issues:
@@ -256,7 +259,7 @@ class IssueLog:
                 ep.occurrences += 1
                 ep.last_ns = stamp_ns
             seen.add(k)
-        for k in [k for k in episodes if k not in seen]:
+        for k in [k for k in episodes if k not in seen] if closes else ():
             ep = episodes.pop(k)
             if ep.shown:
                 self._line(logging.INFO, "issue ended", scope, k, ep)

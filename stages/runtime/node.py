@@ -472,7 +472,12 @@ class Node:
         for issue in result.issues:
             self.stats.counters["issues"] += 1
             self.stats.issues_by_kind[issue.kind] += 1
-        self.issue_log.frame(stamp_ns, result.issues)
+        # the frame the issues are about: the one published (grid_fusion publishes an older frame than the input that
+        # ran it, or none: a clock tick, stamp 0); a call that published nothing while the node has outputs handled no
+        # frame and ends no episode
+        published = next((int(m.header.stamp_ns) for m in result.outputs.values() if getattr(m, "header", None) is not None), None)
+        self.issue_log.frame(stamp_ns if published is None else published, result.issues,
+                             closes=bool(result.outputs) or not self._publishers)
         self.stats.last_stamp_ns = max(self.stats.last_stamp_ns, stamp_ns)
         self.stats.counters["processed"] += 1
         self._progress_pub.put(

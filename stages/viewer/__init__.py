@@ -70,7 +70,11 @@ eight-column table did not fit the side panel). "pause" freezes the display; the
 key to listen to).
 
 Keeping up: ``update`` only files the inputs; a render thread draws at
-most ``max_render_hz`` times a second and always the newest complete set
+most ``max_render_hz`` times a second while a browser is connected (at
+most ``idle_render_hz`` while none is: drawing for nobody at 10 Hz took a
+third of a core at 72 vehicles, and the prediction stages lost half their
+frames to it on 2 cores; a page that opens gets the scene kept on the
+server and the newest set at once) and always the newest complete set
 (the newest frame whose results have all arrived), counting the frames that
 were never drawn as skipped (the runtime's queue in front drops the oldest
 entries when full). When the results lag, the side panel says by how much;
@@ -82,6 +86,7 @@ Parameters (``ViewerConfig``):
 - ``host`` "127.0.0.1", ``port`` 8080 (0: a free port; a busy port moves
   to the next free one, and the logged URL says which);
 - ``max_render_hz`` 10, ``status_hz`` 2: draw and side-panel rates;
+  ``idle_render_hz`` 1: the draw rate while no browser is connected;
 - ``history_s`` 20: input sets kept for ground truth and looking back;
 - ``horizon_s`` 4: the ground truth shown when predictions do not say
   their horizon;

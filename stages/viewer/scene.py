@@ -321,20 +321,31 @@ class ViewerApp:
 
     def _on_client_connect(self, client: Any) -> None:
         self.log.info("viewer: client connected: id=%d", client.client_id)
-        if self.map is not None:
-            self._wake.set()
+        self._wake.set()  # from the idle rate to max_render_hz at once: the newest set drawn now
+
+    def _draw_period_s(self) -> float:
+        """1 / ``max_render_hz`` while a browser is connected, else 1 / ``idle_render_hz`` (when slower)."""
+        hz = self.config.max_render_hz
+        if not self.server.get_clients():
+            hz = min(hz, self.config.idle_render_hz)
+        return 1.0 / hz
 
     # ------------------------------------------------------------------ drawing
 
     def _render_loop(self) -> None:
-        period = 1.0 / self.config.max_render_hz
         while not self._stop.is_set():
             self._wake.wait(timeout=1.0 / self.config.status_hz)
             if self._stop.is_set():
                 break
-            wait = self._last_draw_mono + period - time.monotonic()
-            if wait > 0:  # at most max_render_hz: newer sets pile up meanwhile and the newest wins
-                self._stop.wait(wait)
+            # at most max_render_hz (idle_render_hz with no browser connected): newer sets pile up meanwhile and the
+            # newest wins; a browser that connects while this waits ends the wait (``_wake``)
+            while (wait := self._last_draw_mono + self._draw_period_s() - time.monotonic()) > 0 and not self._stop.is_set():
+                self._wake.clear()
+                if self._wake.wait(min(wait, 1.0 / self.config.status_hz)):
+                    continue  # (a new set or a client: the period is looked at again)
+                if time.monotonic() - self._last_status_mono >= 1.0 / self.config.status_hz:
+                    self._last_status_mono = time.monotonic()
+                    self._draw_status_safely()
             self._wake.clear()
             try:
                 self._draw()
@@ -344,6 +355,12 @@ class ViewerApp:
             except Exception:
                 self.log.exception("viewer: draw failed (the next set is drawn anew)")
                 self._last_key = None
+
+    def _draw_status_safely(self) -> None:
+        try:
+            self._draw_status()
+        except Exception:
+            self.log.exception("viewer: status panel failed")
 
     def _draw(self) -> None:
         with self._lock:

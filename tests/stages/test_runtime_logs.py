@@ -634,3 +634,42 @@ def test_a_frame_received_twice_is_a_duplicate_not_a_dropped_set(log, caplog, mo
         _deliver(two, _EchoCore(), port, f"iamp/t/src/{port}", _profiles(5))
     assert len(two._publishers["profiles"].sent) == 1
     assert two.stats.counters["duplicate_inputs.profiles"] == 1 and two.stats.counters["join_drops"] == 0
+
+
+class _FusionLikeCore:
+    """As grid_fusion: most calls publish nothing (a clock tick, one shard's part of a frame); every other input is a
+    whole frame, published as the frame of the stamp before it (an older frame than the input that ran the core),
+    with ``shard_missing`` while ``down`` holds its frame index."""
+
+    def __init__(self, down: range) -> None:
+        self.down = down
+        self.previous = None
+
+    def update(self, inputs):
+        msg = inputs["profiles"]
+        i = msg.header.frame_index
+        if i % 2:  # a part of a frame, or a tick: nothing published
+            return StageResult()
+        out, self.previous = self.previous, msg
+        if out is None:
+            return StageResult()
+        issues = [Issue("shard_missing", -1, "published with shard(s) [0] only")] if out.header.frame_index in self.down else []
+        return StageResult(outputs={"profiles": out}, issues=issues)
+
+
+def test_calls_that_publish_nothing_neither_end_an_episode_nor_give_it_their_stamp(log, caplog):
+    """A new-user probe killed one shard of the sharded pipeline: grid_fusion logged the outage as one episode per
+    frame (each tick or partial frame between two published ones ended it), the rate limit then hid the next outage
+    altogether, and the lines carried the tick's stamp (0): a negative duration. Now the calls that publish nothing
+    end no episode, and an episode's stamps are those of the frames published."""
+    node, _out = _node(log)
+    core = _FusionLikeCore(down=range(10, 20))
+    for i in range(40):
+        _deliver(node, core, "profiles", "src/profiles", _profiles(i))
+    node.issue_log.close()
+    lines = [line for line in _lines(caplog) if "shard_missing" in line]
+    assert lines == [
+        "issue: kind=shard_missing agent=-1 stamp_ns=2000000000 published with shard(s) [0] only",
+        "issue ended: kind=shard_missing agent=-1 frames=5 first_stamp_ns=2000000000 last_stamp_ns=2800000000 duration_s=0.8",
+    ], lines
+    assert node.stats.issues_by_kind["shard_missing"] == 5
