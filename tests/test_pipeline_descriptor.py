@@ -204,7 +204,10 @@ def test_the_launcher_says_how_many_recorded_frames_got_a_motion_grid():
 
     counts = {"iamp/r/source/track_frame": 200, "iamp/r/source/scene": 1, "iamp/r/hybrid/motion_grid": 150, "iamp/r/baseline/motion_grid": 200}
     assert predicted_line(counts) == ("predicted: 200 track frames recorded, MotionGrids of baseline 200 (100.0%), hybrid 150 (75.0%);"
-                                      " up to 50 frames without one: the nodes' queue_drops, stale_drops and join_drops above say where")
+                                      " up to 50 frames without one: the nodes' queue_drops, stale_drops and join_drops above say where,"
+                                      " or a node that restarted or lost its inputs (its 'restarting' and 'no input for' lines)")
+    fused = predicted_line({"iamp/r/source/track_frame": 10, "iamp/r/grid_fusion/motion_grid": 10, "iamp/r/markov_0/motion_grid": 10})
+    assert fused.endswith("; grid_fusion publishes a frame with a shard missing too: its shard_missing says how many")
     assert predicted_line({"iamp/r/source/track_frame": 10, "iamp/r/markov_prediction/motion_grid": 10}).endswith("markov_prediction 10 (100.0%)")
     assert predicted_line({"iamp/r/source/scene": 1}) == "" and predicted_line({"iamp/r/source/track_frame": 5}) == ""
 
@@ -246,3 +249,42 @@ def test_the_live_pipeline_bounds_its_stages_inputs_in_age_and_max_age_s_is_chec
             load_pipeline(_write(tmp_path, base + f"max_age_s = {value}\n"))
     with pytest.raises(PipelineError, match=r"node recorder: 'max_age_s' applies to processing stages only \(stage stages.recorder is a raw_sink\)"):
         load_pipeline(_write(tmp_path, base + '[[nodes]]\nid = "recorder"\nstage = "stages.recorder"\nmax_age_s = 1.0\n'))
+
+
+SHARDED = (REPO / "stages" / "pipelines" / "sharded.toml").read_text()
+
+
+@pytest.mark.parametrize("old, new, message", [
+    # a copy-paste slip: two shards "0/2" ran with half the vehicles never predicted, every line of the run clean
+    ('shard = "1/2"', 'shard = "0/2"', r'node grid_fusion: grid_1 comes from markov_1, whose shard is "0/2": bind shard i'),
+    ('shard = "0/2"', 'shard = "0/3"', r"node grid_fusion: its shards count 2 and 3 shards in all: give them one n"),
+    (', grid_1 = "markov_1/motion_grid", predictions_1 = "markov_1/corridor_predictions"', "",
+     r"node grid_fusion: shard\(s\) 1/2 not bound \(grid_i, predictions_i\): the vehicles of a shard not bound are never predicted"),
+    ('predictions_1 = "markov_1/corridor_predictions"', 'predictions_1 = "markov_0/corridor_predictions"',
+     r"node grid_fusion: grid_1 and predictions_1 come from markov_0 and markov_1: bind both to one shard's outputs"),
+    ('params = { mode = "hybrid", corridor_weights = "intentions", shard = "1/2" }',
+     'params = { mode = "baseline", corridor_weights = "intentions", shard = "1/2" }',
+     r"node grid_fusion: shards markov_0 and markov_1 differ in .*mode .*'hybrid' / 'baseline'.*: the shards of one grid must be alike"),
+    ('shard = "1/2"', 'shard = ""', r'node grid_fusion: grid_1 comes from markov_1, which has no shard: set shard = "1/N" on it'),
+])
+def test_shards_of_one_grid_add_up_to_every_vehicle_once(tmp_path, old, new, message):
+    """Found by a new-user probe: these sharding slips passed ``--check`` and ran without a warning anywhere."""
+    assert old in SHARDED
+    with pytest.raises(PipelineError, match=message):
+        load_pipeline(_write(tmp_path, SHARDED.replace(old, new, 1)))
+
+
+def test_a_shard_run_elsewhere_counts_by_its_port(tmp_path):
+    """A shard the pipeline does not start (``[external]``, README "Spreading stages over machines") is known only by
+    the ports it is bound to: the local ones are checked, and the external one fills its index."""
+    start = SHARDED.index('[[nodes]]\nid = "markov_1"')
+    end = SHARDED.index("[[nodes]]", start + 1)
+    text = SHARDED[:start] + SHARDED[end:]
+    text = text.replace("[bus]", '[external]\n"markov_1/motion_grid" = "iamp.MotionGrid"\n'
+                                 '"markov_1/corridor_predictions" = "iamp.CorridorPredictions"\n\n[bus]', 1)
+    assert len(load_pipeline(_write(tmp_path, text)).nodes) == 9
+    with pytest.raises(PipelineError, match=r'grid_0 comes from markov_0, whose shard is "1/2"'):  # the external one's index
+        load_pipeline(_write(tmp_path, text.replace('shard = "0/2"', 'shard = "1/2"')))
+    with pytest.raises(PipelineError, match=r"grid_2 comes from markov_0, a shard of 2: 2 shards go on grid_0 .. grid_1"):
+        load_pipeline(_write(tmp_path, text.replace('grid_0 = "markov_0/motion_grid", predictions_0 = "markov_0/corridor_predictions"',
+                                                    'grid_2 = "markov_0/motion_grid", predictions_2 = "markov_0/corridor_predictions"')))

@@ -18,7 +18,7 @@ from bus_schemas import REGISTRY, SceneInfo, SchemaError, TrackFrame, keys, rest
 from bus_schemas._wire import peek_schema
 
 from stages.lib.base import ConfigError, ConfigMixin
-from stages.recorder.inspect import ReadReport, RecordingError, read_messages, recording_run_id
+from stages.recorder.inspect import ReadReport, RecordingError, read_messages, recording_run_id, summary_counts
 from stages.runtime import (CLOSE_LINGER_S, EXIT_CRASH, EXIT_OK, EXIT_USAGE, BusClient, NodeContext, Port, StageSpec, StatsReporter, add_network_args,
                             on_stop_signals, setup_logging, start_stage)
 from stages.runtime.args import concrete_listen
@@ -60,6 +60,9 @@ class ReplayConfig(ConfigMixin):
     include_infra: bool = False
     wait_for_subscribers_s: float = 10.0
     nodes: tuple[str, ...] = ()
+    # the node whose MotionGrids the pipeline's viewer shows (replay.toml's GRIDS): a warning where the recording has
+    # none of it but another node's (a sharded run's are grid_fusion's); "": no such check
+    shown_grids: str = "markov_prediction"
 
     def __post_init__(self) -> None:
         if not self.path:
@@ -363,6 +366,26 @@ def run_replay(
         return EXIT_CRASH
 
 
+def _say_whose_grids(path: str, shown: str, log: logging.Logger) -> None:
+    """One warning where the recording has MotionGrids, but none of node ``shown``, the one the pipeline's viewer shows
+    (a sharded run's are grid_fusion's and its shards': the replay pipeline's viewer showed nothing without a word;
+    ``--var GRIDS=`` tells it). From the file's summary section (nothing said for a file without one)."""
+    counts = summary_counts(path)
+    nodes = set()
+    for topic in (counts or {}).get("per_topic", {}):
+        try:
+            parts = keys.parse_key(topic)
+        except keys.KeyFormatError:
+            continue
+        if parts.output == "motion_grid":
+            nodes.add(parts.node_id)
+    if nodes and shown not in nodes:
+        use = "grid_fusion" if "grid_fusion" in nodes else sorted(nodes)[0]
+        log.warning("the recording's MotionGrids come from node(s) %s, not %s%s: the viewer shows none; to show them: "
+                    "launch.py replay --var FILE=%s --var GRIDS=%s", ", ".join(sorted(nodes)), shown,
+                    " (a sharded run: grid_fusion fuses the shards)" if "grid_fusion" in nodes else "", path, use)
+
+
 def _replay_on(
     bus: BusClient,
     player: RecordingPlayer,
@@ -378,6 +401,8 @@ def _replay_on(
 ) -> int:
     """``run_replay`` once its session is open: wait for the awaited nodes, replay, log the summary."""
     consumers = None
+    if config.shown_grids:
+        _say_whose_grids(config.path, config.shown_grids, log)
     if await_nodes or (config.speed == "max" and player.target_run_id):
         consumers = watch_consumers(bus, token_run, node_id, acks=config.speed == "max" and bool(player.target_run_id))
     if await_nodes:
@@ -505,6 +530,7 @@ def run_cli(args: argparse.Namespace) -> int:
             include_infra=args.include_infra,
             wait_for_subscribers_s=args.wait_for_subscribers_s,
             nodes=tuple(args.node),
+            shown_grids="",  # (no viewer of its own: whose grids a reader takes is the reader's)
         )
     except ValueError as exc:
         log.error("bad configuration: %s", exc)

@@ -771,7 +771,9 @@ class Launcher:
 
 def predicted_line(per_topic: dict[str, int]) -> str:
     """How many of the recorded source frames got a MotionGrid, per producing node: the frames a loaded machine lost
-    (queue, stale and join drops) showed only in the nodes' counters. '' without frames or grids in the recording."""
+    (queue, stale and join drops), a restart or a lost link cost showed only in the nodes' counters and logs; a fused
+    grid (grid_fusion) counts though a shard's vehicles may be missing from it. '' without frames or grids in the
+    recording."""
     frames = sum(n for topic, n in per_topic.items() if topic.endswith("/track_frame"))
     grids = {topic.split("/")[-2]: n for topic, n in per_topic.items() if topic.endswith("/motion_grid")}
     if not frames or not grids:
@@ -779,7 +781,9 @@ def predicted_line(per_topic: dict[str, int]) -> str:
     parts = [f"{node} {n} ({n / frames:.1%})" for node, n in sorted(grids.items())]
     lost = max(frames - n for n in grids.values())
     return (f"predicted: {frames} track frames recorded, MotionGrids of " + ", ".join(parts)
-            + (f"; up to {lost} frames without one: the nodes' queue_drops, stale_drops and join_drops above say where" if lost > 0 else ""))
+            + (f"; up to {lost} frames without one: the nodes' queue_drops, stale_drops and join_drops above say where, or a node"
+               " that restarted or lost its inputs (its 'restarting' and 'no input for' lines)" if lost > 0 else "")
+            + ("; grid_fusion publishes a frame with a shard missing too: its shard_missing says how many" if "grid_fusion" in grids else ""))
 
 
 def main(argv: list[str] | None = None) -> int:

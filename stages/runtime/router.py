@@ -23,7 +23,7 @@ DEFAULT_ROUTER_LISTEN = "tcp/0.0.0.0:7447"
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m stages.runtime.router", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m stages.runtime.router", description=__doc__.split("\n")[0].replace("``", ""))
     parser.add_argument("--listen", action="append", default=[], metavar="ENDPOINT", help=f"endpoint to listen on (default {DEFAULT_ROUTER_LISTEN})")
     parser.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="another router to connect to")
     parser.add_argument("--config", metavar="FILE", help="zenoh JSON5 config file; the flags above override it")

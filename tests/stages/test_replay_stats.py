@@ -99,3 +99,36 @@ def test_replay_publishes_its_node_stats_with_what_it_replayed_skipped_and_passe
     assert c["skipped.infrastructure"] == 1 and c["skipped.foreign_key"] == 1 and c["skipped.other_node"] == 0 and c["skipped"] == 2, c
     assert c["damaged_chunks"] == 1 and c["damaged_bytes"] == damaged_bytes and c["truncated_file"] == 0, c
     assert stats.last_stamp_ns > STAMP0_NS
+
+
+def test_a_recording_whose_grids_are_another_nodes_says_how_to_show_them(tmp_path, caplog):
+    """Found by a new-user probe: a sharded run records its MotionGrids on grid_fusion/motion_grid (and the shards'),
+    the replay pipeline's viewer read markov_prediction's, and the replay showed no prediction without a word. Now
+    the replay says whose grids the file holds and the ``--var GRIDS=`` that shows them; a file with the shown node's
+    grids, or a replay with no viewer to feed (``shown_grids = ""``), says nothing."""
+    import logging
+
+    from testkit import samples
+    from stages.replay.core import _say_whose_grids
+
+    grid = samples.motion_grid().encode()
+
+    def recording(name: str, nodes: tuple[str, ...]) -> str:
+        path = tmp_path / name
+        with McapRecorder(RecorderConfig(path=str(path)), "t1") as rec:
+            rec.handle(keys.data_key("t1", "source", "track_frame"), make_frame(0, "t1").encode(), STAMP0_NS)
+            for k, node in enumerate(nodes):
+                rec.handle(keys.data_key("t1", node, "motion_grid"), grid, STAMP0_NS + 1 + k)
+        return str(path)
+
+    log = logging.getLogger("iamp.test_replay")
+    caplog.set_level(logging.WARNING, logger=log.name)
+    sharded = recording("sharded.mcap", ("markov_0", "markov_1", "grid_fusion"))
+    _say_whose_grids(sharded, "markov_prediction", log)
+    lines = [r.getMessage() for r in caplog.records if r.name == log.name]
+    assert len(lines) == 1 and "grid_fusion, markov_0, markov_1, not markov_prediction" in lines[0], lines
+    assert lines[0].endswith(f"launch.py replay --var FILE={sharded} --var GRIDS=grid_fusion")
+    caplog.clear()
+    _say_whose_grids(sharded, "grid_fusion", log)  # told: nothing to say
+    _say_whose_grids(recording("plain.mcap", ("markov_prediction",)), "markov_prediction", log)
+    assert not [r for r in caplog.records if r.name == log.name]
