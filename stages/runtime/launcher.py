@@ -599,21 +599,37 @@ class Launcher:
     def _watch_extra_links(self, endpoints: list[str]) -> None:
         """One line when the hub links to each extra connect endpoint, and one warning if, ``LINK_CHECK_S`` after the
         start, it still has no link to some of them: every node links to the hub, so the nodes' own check (the same
-        grace) stays quiet while the run is cut off from the remote router or peer it was told to join."""
+        grace) stays quiet while the run is cut off from the remote router or peer it was told to join. Then, for the
+        whole run, one warning when a link is lost (the router stopped, the network cut: the nodes beyond it went
+        without this run's messages and nothing said so but their ``no input for`` lines) and one line when it is back."""
         from stages.runtime.node import LINK_CHECK_S
 
         deadline = time.monotonic() + LINK_CHECK_S
-        pending = list(dict.fromkeys(endpoints))
+        eps = list(dict.fromkeys(endpoints))
+        linked: dict[str, bool] = {ep: False for ep in eps}
+        ever: set[str] = set()
+        lost_at: dict[str, float] = {}
         warned = False
-        while pending and not self._closing.wait(2.0 if warned else 0.1):  # after the warning, only to say it came after all
+        while not self._closing.wait(0.1 if len(ever) < len(eps) and not warned else 1.0):
             try:
-                linked = [ep for ep in pending if self.bus.linked_to(ep)]
+                now_linked = {ep: self.bus.linked_to(ep) for ep in eps}
             except Exception:  # noqa: BLE001 - the session closing
                 return
-            for ep in linked:
-                pending.remove(ep)
-                say(f"hub linked to --connect {ep}" + (" (after all)" if warned else ""))
-            if pending and not warned and time.monotonic() >= deadline:
+            now = time.monotonic()
+            for ep in eps:
+                if now_linked[ep] and not linked[ep]:
+                    if ep in lost_at:
+                        say(f"hub linked to --connect {ep} again after {now - lost_at.pop(ep):.0f} s without it")
+                    else:
+                        say(f"hub linked to --connect {ep}" + (" (after all)" if warned else ""))
+                    ever.add(ep)
+                elif linked[ep] and not now_linked[ep]:
+                    lost_at[ep] = now
+                    say(f"warning: the hub lost its link to --connect {ep}: what runs beyond it gets nothing of this run until it is"
+                        " back (zenoh keeps trying; a line says when)")
+                linked[ep] = now_linked[ep]
+            pending = [ep for ep in eps if ep not in ever]
+            if pending and not warned and now >= deadline:
                 warned = True
                 say(f"warning: no link after {LINK_CHECK_S:.0f} s to --connect {' '.join(pending)}: nothing listens there, or it refused"
                     " the hub (a router with bus auth that does not take the run's credentials?); the nodes have the hub, so the run"

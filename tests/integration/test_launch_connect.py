@@ -56,3 +56,26 @@ def test_an_extra_connect_endpoint_that_is_there_gets_a_linked_line_and_no_warni
         finally:
             kill_all([run.proc])
     assert not re.search(WARNING, run.text(), re.MULTILINE), run.text()[-4000:]
+
+
+def test_a_link_lost_and_back_mid_run_is_said_once_each(tmp_path):
+    """Found by a new-user probe: a router stopped for 12 s mid-run and started again; the stages beyond it went
+    without the run's messages and recovered, and the launcher said nothing of either."""
+    port = free_port()
+    there = endpoint(port)
+    router = BusClient(mode="router", listen=[there])
+    run = Launch(str(_pipeline(tmp_path)), "--connect", there, cwd=tmp_path)
+    try:
+        run.wait_line(r"^\[launch\] hub linked to --connect " + re.escape(there) + "$")
+        router.close()
+        run.wait_line(r"^\[launch\] warning: the hub lost its link to --connect " + re.escape(there) + ": ")
+        router = BusClient(mode="router", listen=[there])
+        run.wait_line(r"^\[launch\] hub linked to --connect " + re.escape(there) + r" again after \d+ s without it$", timeout_s=60)
+        run.proc.send_signal(signal.SIGINT)
+        assert run.wait() == 0, run.text()[-4000:]
+    finally:
+        kill_all([run.proc])
+        router.close()
+    lines = run.text().splitlines()
+    assert len([line for line in lines if "lost its link" in line]) == 1, run.text()[-4000:]
+    assert not re.search(WARNING, run.text(), re.MULTILINE), run.text()[-4000:]
