@@ -199,8 +199,8 @@ class FoxgloveBridge:
             self.server.stop()
             self.server = None
             logged = self.scene.counts.logged
-            self.log.info("foxglove: logged /map %d times, /tf %d, %d messages in all on %d topics", logged.get("/map", 0),
-                          logged.get("/tf", 0), sum(logged.values()), len(logged))
+            self.log.info("foxglove: logged /map %d times, /tf %d, %d messages in all on %d topics; %d not built, no client subscribed",
+                          logged.get("/map", 0), logged.get("/tf", 0), sum(logged.values()), len(logged), self.scene.counts.unheard)
 
     def _key(self, port: str, default_node: str) -> str:
         return self.topic_keys.get(port, f"iamp/{self.run_id}/{default_node}/{port}")
