@@ -288,3 +288,10 @@ def test_a_shard_run_elsewhere_counts_by_its_port(tmp_path):
     with pytest.raises(PipelineError, match=r"grid_2 comes from markov_0, a shard of 2: 2 shards go on grid_0 .. grid_1"):
         load_pipeline(_write(tmp_path, text.replace('grid_0 = "markov_0/motion_grid", predictions_0 = "markov_0/corridor_predictions"',
                                                     'grid_2 = "markov_0/motion_grid", predictions_2 = "markov_0/corridor_predictions"')))
+
+
+def test_shards_may_differ_in_how_they_run(tmp_path):
+    """Threads (and backend, device) say how a shard runs, not what it predicts: a shard on a bigger machine may use more."""
+    text = SHARDED.replace('shard = "1/2" }', 'shard = "1/2", kernel_threads = 4 }', 1)
+    assert "kernel_threads = 4" in text
+    assert load_pipeline(_write(tmp_path, text)).node("markov_1").config.kernel_threads == 4

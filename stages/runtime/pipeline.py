@@ -246,11 +246,16 @@ def _substitute(value: Any, variables: dict[str, Any], where: str) -> Any:
     return value
 
 
+#: parameters of how a markov_prediction runs, not what it predicts (the numbers do not depend on them): shards may differ there
+_HOW_NOT_WHAT = frozenset({"kernel_threads", "backend", "device", "stencil_cache_dir"})
+
+
 def _check_shards(fusion: NodeDesc, by_id: dict[str, NodeDesc], external: dict[str, str], where: str) -> None:
     """``PipelineError`` where the shards bound to a grid_fusion node would not add up to every vehicle once: shard i's
     ``motion_grid`` and ``corridor_predictions`` on ``grid_i`` and ``predictions_i`` (one node for both), each a
     markov_prediction with ``shard = "i/n"``, one n for all, every i of 0 .. n-1 bound (shards the pipeline does
-    not start, ``[external]``, count by their port), and the shards alike in every other parameter. A copy-paste
+    not start, ``[external]``, count by their port), and the shards alike in every other parameter but those of how
+they run (``_HOW_NOT_WHAT``: threads, backend, device). A copy-paste
     slip (two shards "0/2") passed and ran with half the vehicles never predicted and the other half fused with
     themselves, every line of the run clean."""
     import dataclasses
@@ -293,11 +298,11 @@ def _check_shards(fusion: NodeDesc, by_id: dict[str, NodeDesc], external: dict[s
                     else f"grid_{beyond[0]} is past {n} shards")
             raise PipelineError(f"{where}: {what}: the vehicles of a shard not bound are never predicted")
     if len(local) > 1:
-        first_i, first = local[0]
+        _, first = local[0]
         base = dataclasses.asdict(dataclasses.replace(first.config, shard=""))
-        for i, src in local[1:]:
+        for _, src in local[1:]:
             other = dataclasses.asdict(dataclasses.replace(src.config, shard=""))
-            differ = sorted(k for k in base if base[k] != other.get(k))
+            differ = sorted(k for k in base if base[k] != other.get(k) and k not in _HOW_NOT_WHAT)
             if differ:
                 raise PipelineError(f"{where}: shards {first.id} and {src.id} differ in {', '.join(differ)} "
                                     f"({', '.join(f'{k} = {base[k]!r} / {other[k]!r}' for k in differ[:3])}): the shards of one grid must be alike")
