@@ -285,10 +285,11 @@ def finite_json(value):
     return value
 
 
-def write_json(path: Path, report: dict) -> None:
-    """``report`` as strict JSON (``finite_json``) into ``path``."""
+def write_json(path: str | Path, report: dict) -> None:
+    """``report`` as strict JSON (``finite_json``; numpy scalars as floats) into ``path`` (the benches' --json)."""
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(finite_json(report), indent=2, allow_nan=False))
+    path.write_text(json.dumps(finite_json(report), indent=2, allow_nan=False, default=float))
 
 
 def vehicle_counts(text: str, minimum: int = 1) -> list[int]:

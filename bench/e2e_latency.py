@@ -460,13 +460,12 @@ def main() -> int:
     check_output_arg(ap, args.keep, "--keep", folder=True)
     if args.duration_s is not None and not (math.isfinite(args.duration_s) and args.duration_s > 0):
         ap.error(f"--duration-s {args.duration_s:g}: give a time above 0 s")
-    if args.speed != "max":
-        try:
-            speed_ok = math.isfinite(float(args.speed)) and float(args.speed) > 0
-        except ValueError:
-            speed_ok = False
-        if not speed_ok:
-            ap.error(f"--speed {args.speed}: give a number above 0 (1: real time) or 'max'")
+    from stages.runtime.pacing import parse_speed_value
+
+    try:  # (launch.py's own rule, before the dense data is built)
+        parse_speed_value(args.speed if args.speed == "max" else float(args.speed))
+    except ValueError:
+        ap.error(f"--speed {args.speed}: give a number above 0 (1: real time) or 'max'")
     from stages.runtime.launcher import PIPELINES_DIR, resolve_pipeline_arg
 
     pipeline = Path(resolve_pipeline_arg(args.pipeline))
@@ -527,10 +526,10 @@ def main() -> int:
     print(f"\nafter the runs: {host_speed.line(result['host_reference_end'])}")
     if args.json:
         try:  # (strict JSON: NaN, where a figure had no sample, is null)
-            from dense import finite_json
+            from dense import write_json
         except ImportError:
-            from bench.dense import finite_json
-        Path(args.json).write_text(json.dumps(finite_json(result), indent=2, default=float))
+            from bench.dense import write_json
+        write_json(args.json, result)
     return 0
 
 

@@ -40,7 +40,6 @@ import collections
 import functools
 import importlib
 import inspect
-import json
 import shutil
 import tempfile
 import time
@@ -191,9 +190,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{q:<40}{row['ms_per_frame']:10.2f}{row['frame_ms_median']:11.2f}{row['ms_median']:13.2f}{row['calls_per_frame']:13.2f}")
     print("(wall ms over the timed frames; nested functions each counted whole)")
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(dense.finite_json({"vehicles": args.vehicles, "frames": timers.frames, "modes": list(ns.modes),
-                                                           "source": recording, "functions": table, "stages": result}), indent=2))
+        dense.write_json(args.json, {"vehicles": args.vehicles, "frames": timers.frames, "modes": list(ns.modes), "source": recording,
+                                     "functions": table, "stages": result})
         print(f"wrote {args.json}")
     return 0
 

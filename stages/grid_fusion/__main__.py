@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from bus_schemas import CorridorPredictions, MotionGrid, NodeStats
 from stages.grid_fusion import MAX_SHARDS, GridFusionConfig, make
+from stages.lib.grid_fusion import check_shard_sources
 from stages.runtime import NodeContext, Port, StageSpec, run_stage
 
 INPUTS = {
@@ -20,7 +21,8 @@ def make_core(config: GridFusionConfig, ctx: NodeContext):
     return make(config, ctx.input_keys, ctx.node_id)
 
 
-SPEC = StageSpec(stage="stages.grid_fusion", config_cls=GridFusionConfig, make_core=make_core, inputs=INPUTS, outputs=OUTPUTS)
+SPEC = StageSpec(stage="stages.grid_fusion", config_cls=GridFusionConfig, make_core=make_core, inputs=INPUTS, outputs=OUTPUTS,
+                 check_sources=check_shard_sources)
 
 
 def main(argv: list[str] | None = None) -> int:

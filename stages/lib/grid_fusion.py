@@ -12,9 +12,11 @@ the sum of the shards' ``min_value``.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import zlib
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -40,6 +42,64 @@ def parse_shard(text: str) -> tuple[int, int] | None:
     if not (n >= 1 and 0 <= i < n):
         raise ValueError(f"shard = {text!r}: expected \"i/n\" with 0 <= i < n, e.g. \"0/2\"")
     return i, n
+
+
+#: parameters of how a markov_prediction runs, not what it predicts (the numbers do not depend on them): shards may differ there
+_HOW_NOT_WHAT = frozenset({"kernel_threads", "backend", "device", "stencil_cache_dir"})
+
+
+def check_shard_sources(sources: Mapping[str, tuple[str, Any]]) -> None:
+    """``ValueError`` where the shards bound to a grid_fusion node would not add up to every vehicle once (its
+    ``StageSpec.check_sources``; ``sources``: port -> (source node, its configuration, None for one the pipeline does
+    not start)): shard i's ``motion_grid`` and ``corridor_predictions`` on ``grid_i`` and ``predictions_i`` (one node
+    for both), each a markov_prediction with ``shard = "i/n"``, one n for all, every i of 0 .. n-1 bound (a shard
+    run elsewhere counts by its port), and the shards alike in every other parameter but those of how they run
+    (``_HOW_NOT_WHAT``: threads, backend, device). A copy-paste slip (two shards "0/2") passed and ran with half the
+    vehicles never predicted and the other half fused with themselves, every line of the run clean."""
+    ports: dict[int, dict[str, tuple[str, Any]]] = {}
+    for port, source in sources.items():
+        kind, _, index = port.partition("_")
+        if kind in ("grid", "predictions") and index.isdigit():
+            ports.setdefault(int(index), {})[kind] = source
+    counts: set[int] = set()
+    local: list[tuple[str, Any]] = []
+    for i, bound in sorted(ports.items()):
+        nodes = {node for node, _config in bound.values()}
+        if len(nodes) > 1:
+            raise ValueError(f"grid_{i} and predictions_{i} come from {' and '.join(sorted(nodes))}: bind both to one shard's outputs")
+        node, config = next(iter(bound.values()))
+        if config is None:  # run elsewhere: known by its port only
+            continue
+        shard = parse_shard(getattr(config, "shard", "") or "")
+        if shard is None:
+            raise ValueError(f"grid_{i} comes from {node}, which has no shard: set shard = \"{i}/N\" on it (N shards in all)")
+        if i >= shard[1]:
+            raise ValueError(f"grid_{i} comes from {node}, a shard of {shard[1]}: {shard[1]} shards go on grid_0 .. "
+                             f"grid_{shard[1] - 1} (and predictions_0 .. predictions_{shard[1] - 1})")
+        if shard[0] != i:
+            raise ValueError(f"grid_{i} comes from {node}, whose shard is \"{shard[0]}/{shard[1]}\": bind shard i's outputs to "
+                             f"grid_i and predictions_i (or set shard = \"{i}/{shard[1]}\" on {node})")
+        counts.add(shard[1])
+        local.append((node, config))
+    if len(counts) > 1:
+        raise ValueError(f"its shards count {' and '.join(str(c) for c in sorted(counts))} shards in all: give them one n (\"i/n\")")
+    if counts:
+        n = counts.pop()
+        unbound = sorted(set(range(n)) - set(ports))
+        beyond = sorted(set(ports) - set(range(n)))
+        if unbound or beyond:
+            what = (f"shard(s) {', '.join(f'{i}/{n}' for i in unbound)} not bound (grid_i, predictions_i)" if unbound
+                    else f"grid_{beyond[0]} is past {n} shards")
+            raise ValueError(f"{what}: the vehicles of a shard not bound are never predicted")
+    if len(local) > 1:
+        first, first_config = local[0]
+        base = dataclasses.asdict(dataclasses.replace(first_config, shard=""))
+        for node, config in local[1:]:
+            other = dataclasses.asdict(dataclasses.replace(config, shard=""))
+            differ = sorted(k for k in base if base[k] != other.get(k) and k not in _HOW_NOT_WHAT)
+            if differ:
+                raise ValueError(f"shards {first} and {node} differ in {', '.join(differ)} "
+                                 f"({', '.join(f'{k} = {base[k]!r} / {other[k]!r}' for k in differ[:3])}): the shards of one grid must be alike")
 
 
 def compatible(a: MotionGrid, b: MotionGrid) -> str:

@@ -246,68 +246,6 @@ def _substitute(value: Any, variables: dict[str, Any], where: str) -> Any:
     return value
 
 
-#: parameters of how a markov_prediction runs, not what it predicts (the numbers do not depend on them): shards may differ there
-_HOW_NOT_WHAT = frozenset({"kernel_threads", "backend", "device", "stencil_cache_dir"})
-
-
-def _check_shards(fusion: NodeDesc, by_id: dict[str, NodeDesc], external: dict[str, str], where: str) -> None:
-    """``PipelineError`` where the shards bound to a grid_fusion node would not add up to every vehicle once: shard i's
-    ``motion_grid`` and ``corridor_predictions`` on ``grid_i`` and ``predictions_i`` (one node for both), each a
-    markov_prediction with ``shard = "i/n"``, one n for all, every i of 0 .. n-1 bound (shards the pipeline does
-    not start, ``[external]``, count by their port), and the shards alike in every other parameter but those of how
-they run (``_HOW_NOT_WHAT``: threads, backend, device). A copy-paste
-    slip (two shards "0/2") passed and ran with half the vehicles never predicted and the other half fused with
-    themselves, every line of the run clean."""
-    import dataclasses
-
-    from stages.lib.grid_fusion import parse_shard
-
-    ports: dict[int, dict[str, str]] = {}
-    for port, ref in fusion.inputs.items():
-        kind, _, index = port.partition("_")
-        if kind in ("grid", "predictions") and index.isdigit():
-            ports.setdefault(int(index), {})[kind] = ref
-    counts: set[int] = set()
-    local: list[tuple[int, NodeDesc]] = []
-    for i, refs in sorted(ports.items()):
-        sources = {ref.split("/")[0] for ref in refs.values()}
-        if len(sources) > 1:
-            raise PipelineError(f"{where}: grid_{i} and predictions_{i} come from {' and '.join(sorted(sources))}: bind both to one shard's outputs")
-        if next(iter(refs.values())) in external:
-            continue
-        src = by_id[next(iter(sources))]
-        shard = parse_shard(getattr(src.config, "shard", "") or "")
-        if shard is None:
-            raise PipelineError(f"{where}: grid_{i} comes from {src.id}, which has no shard: set shard = \"{i}/N\" on it (N shards in all)")
-        if i >= shard[1]:
-            raise PipelineError(f"{where}: grid_{i} comes from {src.id}, a shard of {shard[1]}: {shard[1]} shards go on grid_0 .. "
-                                f"grid_{shard[1] - 1} (and predictions_0 .. predictions_{shard[1] - 1})")
-        if shard[0] != i:
-            raise PipelineError(f"{where}: grid_{i} comes from {src.id}, whose shard is \"{shard[0]}/{shard[1]}\": bind shard i's outputs to "
-                                f"grid_i and predictions_i (or set shard = \"{i}/{shard[1]}\" on {src.id})")
-        counts.add(shard[1])
-        local.append((i, src))
-    if len(counts) > 1:
-        raise PipelineError(f"{where}: its shards count {' and '.join(str(c) for c in sorted(counts))} shards in all: give them one n (\"i/n\")")
-    if counts:
-        n = counts.pop()
-        unbound = sorted(set(range(n)) - set(ports))
-        beyond = sorted(set(ports) - set(range(n)))
-        if unbound or beyond:
-            what = (f"shard(s) {', '.join(f'{i}/{n}' for i in unbound)} not bound (grid_i, predictions_i)" if unbound
-                    else f"grid_{beyond[0]} is past {n} shards")
-            raise PipelineError(f"{where}: {what}: the vehicles of a shard not bound are never predicted")
-    if len(local) > 1:
-        _, first = local[0]
-        base = dataclasses.asdict(dataclasses.replace(first.config, shard=""))
-        for _, src in local[1:]:
-            other = dataclasses.asdict(dataclasses.replace(src.config, shard=""))
-            differ = sorted(k for k in base if base[k] != other.get(k) and k not in _HOW_NOT_WHAT)
-            if differ:
-                raise PipelineError(f"{where}: shards {first.id} and {src.id} differ in {', '.join(differ)} "
-                                    f"({', '.join(f'{k} = {base[k]!r} / {other[k]!r}' for k in differ[:3])}): the shards of one grid must be alike")
-
-
 def _load_stage(stage: str, where: str) -> Any:
     if not re.fullmatch(r"stages\.[a-z_][a-z0-9_.]*", stage):
         raise PipelineError(f"{where}: stage {stage!r} is not a module under stages. (e.g. stages.corridors)")
@@ -496,9 +434,14 @@ def load_pipeline(
             missing = [p for p, port in n.spec.inputs.items() if p not in n.inputs and port.needs_binding]
             if missing:
                 raise PipelineError(f"{nwhere}: input port(s) {', '.join(missing)} not connected (add inputs = {{ {missing[0]} = \"node/output\" }})")
-    for n in nodes:
-        if n.stage == "stages.grid_fusion":
-            _check_shards(n, by_id, external, f"{where}: node {n.id}")
+    for n in nodes:  # the stage's own rules on how it is bound (StageSpec.check_sources)
+        check = getattr(n.spec, "check_sources", None)
+        if check is not None:
+            sources = {port: (ref.split("/")[0], None if ref in external else by_id[ref.split("/")[0]].config) for port, ref in n.inputs.items()}
+            try:
+                check(sources)
+            except ValueError as exc:
+                raise PipelineError(f"{where}: node {n.id}: {exc}") from None
     warnings = []
     exposed = readable_password_warning(path, auth)
     if exposed:

@@ -146,6 +146,13 @@ class StageSpec:
     for every node before any starts (and for ``--check``), so that such a
     mistake is one line and exit 2, not a run torn down seconds later. It
     raises ``ConfigError``.
+
+    ``check_sources(sources)``, where a stage has one, checks how a pipeline
+    binds it, beyond each port's schema: ``sources`` maps each bound input
+    port to (the source node's id, its configuration; None for an
+    ``[external]`` output). The pipeline loader calls it (so ``--check`` and
+    every launch); it raises ``ValueError`` saying what to fix (grid_fusion:
+    shards that add up to every vehicle once).
     """
 
     stage: str
@@ -156,3 +163,4 @@ class StageSpec:
     kind: str = "operator"
     restart_default: bool = True
     preflight: Callable[[Any], None] | None = None
+    check_sources: Callable[[Mapping[str, tuple[str, Any]]], None] | None = None
