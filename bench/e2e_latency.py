@@ -9,7 +9,9 @@ data, from the embedded scenario, said so), then runs
 
     python launch.py [PIPELINE] --data DIR --recording NAME --speed 1 --no-viewer --record FILE.mcap
 
-to its end (or ``--duration-s``), and reads the recording. Every payload
+to its end (or ``--duration-s``), and reads the recording. ``--viewer`` runs
+the viewer too (on a free port, no page opened), as ``launch.py`` does by
+default: what the viewer costs the stages beside it. Every payload
 carries ``Header.source_wall_ns``, the wall clock at which the source
 published its frame; the recorder writes each payload with ``log_time`` =
 its wall clock when the payload arrived (``RecordingWriter``: the runtime's
@@ -24,7 +26,7 @@ of the machine before and after: the figures include every other process's
 load; nothing is asserted.
 
     python bench/e2e_latency.py [--vehicles 0,18] [--pipeline hybrid] [--duration-s S] [--speed 1]
-                                [--source k733|k729] [--expect markov_prediction/motion_grid] [--keep DIR] [--json FILE] [--no-trace]
+                                [--source k733|k729] [--expect markov_prediction/motion_grid] [--keep DIR] [--json FILE] [--no-trace] [--viewer]
                                 [--set NODE.KEY=VALUE ...]
 
 Unless ``--no-trace``, the run goes with ``IAMP_HOP_TRACE`` set
@@ -116,8 +118,10 @@ def build(n: int, source: str, work: Path, duration_s: float | None) -> tuple[Pa
 
 
 def run_pipeline(pipeline: str, data: Path | None, recording: str | None, rec: Path, speed: str, duration_s: float | None, run_id: str,
-                 trace: Path | None = None, sets: tuple[str, ...] = ()) -> float:
-    cmd = [sys.executable, str(REPO / "launch.py"), pipeline, "--speed", speed, "--no-viewer", "--record", str(rec), "--overwrite", "--run-id", run_id]
+                 trace: Path | None = None, sets: tuple[str, ...] = (), viewer: bool = False) -> float:
+    cmd = [sys.executable, str(REPO / "launch.py"), pipeline, "--speed", speed, "--record", str(rec), "--overwrite", "--run-id", run_id]
+    # the viewer on a free port, no page opened (what a user's default run costs the stages beside it)
+    cmd += ["--set", "viewer.port=0"] if viewer else ["--no-viewer"]
     for item in sets:
         cmd += ["--set", item]
     if data is not None:
@@ -453,6 +457,7 @@ def main() -> int:
     ap.add_argument("--expect", default="markov_prediction/motion_grid", help="outputs listed even when none came (comma-separated)")
     ap.add_argument("--json", default=None)
     ap.add_argument("--no-trace", action="store_true", help=f"run without the per-hop trace ({TRACE_ENV}): no decomposition table")
+    ap.add_argument("--viewer", action="store_true", help="run the viewer too (on a free port, no page opened), as launch.py does by default")
     ap.add_argument("--set", action="append", default=[], metavar="NODE.KEY=VALUE",
                     help="passed to launch.py --set (repeatable), e.g. markov_prediction.kernel_threads=1")
     args = ap.parse_args()
@@ -479,8 +484,9 @@ def main() -> int:
         work = Path(tempfile.mkdtemp(prefix="iamp-e2e-"))
         atexit.register(shutil.rmtree, work, ignore_errors=True)
     work.mkdir(parents=True, exist_ok=True)
-    result: dict = {"cpu_count": os.cpu_count(), "pipeline": args.pipeline, "speed": args.speed, "set": list(args.set), "runs": {}}
-    sets = "".join(f", --set {item}" for item in args.set)
+    result: dict = {"cpu_count": os.cpu_count(), "pipeline": args.pipeline, "speed": args.speed, "set": list(args.set),
+                    "viewer": args.viewer, "runs": {}}
+    sets = "".join(f", --set {item}" for item in args.set) + (", with the viewer (no page open)" if args.viewer else "")
     print(f"e2e latency: pipeline {args.pipeline}{sets}, speed {args.speed}, {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f} at start")
     from testkit import host_speed
 
@@ -497,7 +503,8 @@ def main() -> int:
         if trace is not None:
             shutil.rmtree(trace, ignore_errors=True)
         load0 = os.getloadavg()[0]
-        wall_s = run_pipeline(args.pipeline, data, recording, rec, args.speed, args.duration_s if n == 0 else None, f"e2e{label}", trace, tuple(args.set))
+        wall_s = run_pipeline(args.pipeline, data, recording, rec, args.speed, args.duration_s if n == 0 else None, f"e2e{label}", trace, tuple(args.set),
+                              args.viewer)
         load1 = os.getloadavg()[0]
         res = analyse(rec, tuple(e for e in args.expect.split(",") if e), target=n if n > 0 else None)
         if trace is not None:

@@ -12,7 +12,7 @@ from .corridors import Corridor, CorridorSet, MatchStatus, VehicleCorridors
 from .common import VEHICLE_TYPE_VALUES, AgentType, Header
 from .errors import MalformedPayload, PayloadTooLarge, SchemaError, UnknownSchema, WrongSchema, WrongVersion
 from .relations import ConflictKind, CorridorRelations, RelationSet
-from .predictions import CorridorPrediction, CorridorPredictions, GridStep, MotionGrid
+from .predictions import CorridorPrediction, CorridorPredictions, GridStep, MotionGrid, coverage
 from .infra import NodeStats, Progress
 from .intentions import CorridorBelief, IntentionBelief, Manoeuvre, VehicleBelief
 from .tracks import SceneInfo, TrackFrame
@@ -31,6 +31,7 @@ __all__ = [
     "Corridor",
     "CorridorPrediction",
     "CorridorPredictions",
+    "coverage",
     "CorridorRelations",
     "CorridorSet",
     "CorridorBelief",

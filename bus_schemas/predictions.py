@@ -4,6 +4,15 @@
 frame, the Markov chain's marginals at the prediction steps t_k = k·τ
 (k = 1..K) and the positions derived from them. ``iamp.MotionGrid`` holds the
 occupancy of all vehicles fused on one map-frame grid, sparse per step.
+
+Both say which vehicles they cover (v3): ``shard`` is "" for a message that
+covers every vehicle of its frame, "i/n" for a ``markov_prediction`` shard's
+own output (only the vehicles whose id hashes to shard i of n);
+``missing_shards`` lists the shards ("i/n") whose vehicles a fused message
+(``grid_fusion``) lacks this frame (down, late, or an incompatible grid). A
+consumer that needs the whole scene checks ``shard == "" and not
+missing_shards``: an empty area of a partial grid may hold vehicles nobody
+predicted.
 """
 
 from __future__ import annotations
@@ -20,6 +29,23 @@ F64_K = Annotated[np.ndarray, Array("float64", ("k",))]
 POS_K = Annotated[np.ndarray, Array("float64", ("k",)), COORD_OR_NAN]
 TIMES_K = Annotated[np.ndarray, Array("float64", ("k",)), Range(0.0, 3600.0, unit="s")]
 CELL = Range(1e-6, 1.0e3)
+
+
+def _add_coverage(body: object) -> object:
+    """Body of a v2 CorridorPredictions or MotionGrid made a v3 one, read as a whole frame's (``shard`` "", no
+    ``missing_shards``): v2 did not say, so a v2 shard's own output or a fused frame that lacked a shard reads as
+    whole too."""
+    if isinstance(body, dict):
+        return {"shard": "", "missing_shards": [], **body}
+    return body
+
+
+def _v1_to_v3(body: object) -> object:
+    return _add_coverage(HEADER_WALL_UPGRADE(body))
+
+
+#: ``UPGRADES`` of both schemas: v1 reads as v3 with source_wall_ns 0 (unknown), v1 and v2 as a whole frame's
+_COVERAGE_UPGRADES: dict[int, Any] = {1: _v1_to_v3, 2: _add_coverage}
 
 
 @dataclass(frozen=True, slots=True, kw_only=True, eq=False)
@@ -80,12 +106,14 @@ class CorridorPredictions(Message):
     chain), ``cv`` (Cartesian constant velocity), ``corridor_cv`` (constant
     speed along each corridor). ``step_times_s`` ``(K,)`` are the
     prediction times after the frame (0.4 … 4.0 s by default); ``ds_m`` and
-    ``dv_mps`` the cell sizes of ``s_probs`` and ``v_probs``.
+    ``dv_mps`` the cell sizes of ``s_probs`` and ``v_probs``. ``shard`` and
+    ``missing_shards`` say whether it covers every vehicle of its frame
+    (module docstring).
     """
 
     SCHEMA: ClassVar[str] = "iamp.CorridorPredictions"
-    VERSION: ClassVar[int] = 2  # v2: Header.source_wall_ns
-    UPGRADES: ClassVar[dict[int, Any]] = {1: HEADER_WALL_UPGRADE}  # v1 reads as v2 with source_wall_ns 0 (unknown)
+    VERSION: ClassVar[int] = 3  # v3: shard, missing_shards; v2: Header.source_wall_ns
+    UPGRADES: ClassVar[dict[int, Any]] = _COVERAGE_UPGRADES
     # measured about 3.5 kB per (vehicle, corridor) prediction (K x W float32): 8 MiB is about 2,300 predictions
     MAX_BYTES: ClassVar[int] = 8 * 1024 * 1024
     # a prediction with a value out of range (probabilities outside [0, 1], inf positions) is dropped, recorded
@@ -98,6 +126,8 @@ class CorridorPredictions(Message):
     ds_m: Annotated[float, CELL]
     dv_mps: Annotated[float, CELL]
     predictions: tuple[CorridorPrediction, ...]
+    shard: str = ""  # "": every vehicle of the frame; "i/n": only shard i of n's (module docstring)
+    missing_shards: tuple[str, ...] = ()  # the shards ("i/n") whose vehicles this fused frame lacks
 
 
 @dataclass(frozen=True, slots=True, kw_only=True, eq=False)
@@ -125,12 +155,14 @@ class MotionGrid(Message):
     ``steps`` has one entry per ``step_times_s``, each listing its cells
     sorted by row, then column. A value is the probability mass of vehicle
     centre points, not a footprint (no body size; it depends on ``cell_m``):
-    docs/wire.md, "MotionGrid: what a cell holds".
+    docs/wire.md, "MotionGrid: what a cell holds". ``shard`` and
+    ``missing_shards`` say whether it covers every vehicle of its frame
+    (module docstring).
     """
 
     SCHEMA: ClassVar[str] = "iamp.MotionGrid"
-    VERSION: ClassVar[int] = 2  # v2: Header.source_wall_ns
-    UPGRADES: ClassVar[dict[int, Any]] = {1: HEADER_WALL_UPGRADE}  # v1 reads as v2 with source_wall_ns 0 (unknown)
+    VERSION: ClassVar[int] = 3  # v3: shard, missing_shards; v2: Header.source_wall_ns
+    UPGRADES: ClassVar[dict[int, Any]] = _COVERAGE_UPGRADES
     # 12 B per listed cell and step (measured up to 62 kB, 5,069 cells): 16 MiB is about 1.4 million cells
     MAX_BYTES: ClassVar[int] = 16 * 1024 * 1024
 
@@ -146,3 +178,15 @@ class MotionGrid(Message):
     min_value: Annotated[float, PROB]
     step_times_s: TIMES_K
     steps: tuple[GridStep, ...]
+    shard: str = ""  # "": every vehicle of the frame; "i/n": only shard i of n's (module docstring)
+    missing_shards: tuple[str, ...] = ()  # the shards ("i/n") whose vehicles this fused frame lacks
+
+
+def coverage(*messages: "CorridorPredictions | MotionGrid | None") -> str:
+    """"" when the predictions ``messages`` (one frame's; None skipped) cover every vehicle of their frame; else what
+    they lack, in words: "shard 0/2's vehicles only" (a shard's own output) or "shard 1/2 missing" (a fused frame)."""
+    shard = next((m.shard for m in messages if m is not None and m.shard), "")
+    if shard:
+        return f"shard {shard}'s vehicles only"
+    missing = sorted({s for m in messages if m is not None for s in m.missing_shards})
+    return f"shard {', '.join(missing)} missing" if missing else ""

@@ -21,7 +21,7 @@ import msgpack
 import numpy as np
 
 #: the schema versions this reader was written for (docs/wire.md, "Versions")
-VERSIONS = {"iamp.SceneInfo": 4, "iamp.MotionGrid": 2, "iamp.CorridorPredictions": 2}
+VERSIONS = {"iamp.SceneInfo": 4, "iamp.MotionGrid": 3, "iamp.CorridorPredictions": 3}
 
 
 def unpack(payload: bytes) -> tuple[str, int, dict]:
@@ -85,6 +85,8 @@ def main(hub: str, run: str, frames: int = 5, horizon_s: float = 2.0) -> int:
         if VERSIONS.get(schema) != version:
             print(f"skipping {schema} v{version}: this reader knows v{VERSIONS.get(schema)}", file=sys.stderr)
             return
+        if body.get("shard"):  # a shard's own output (sharded pipelines): only its vehicles; grid_fusion's has the frame's
+            return
         with lock:
             parts = pending.setdefault(body["header"]["stamp_ns"], {})
             parts[schema] = body
@@ -97,6 +99,9 @@ def main(hub: str, run: str, frames: int = 5, horizon_s: float = 2.0) -> int:
         header = grid["header"]
         late = f"{(time.time_ns() - header['source_wall_ns']) / 1e6:.0f} ms after the source published it" if header["source_wall_ns"] else "lateness unknown"
         print(f"frame {header['frame_index']} (stamp {header['stamp_ns']} ns), {grid['mode']}: {late}; step {k} = {times[k]:g} s ahead")
+        missing = sorted(set(grid.get("missing_shards", ())) | set(predictions.get("missing_shards", ())))
+        if missing:  # a fused frame without some shard's vehicles: an empty cell there is not a free one
+            print(f"  WARNING: shard(s) {', '.join(missing)} missing from this frame: their vehicles are not predicted")
         for track, corridors in sorted(vehicles(predictions, k).items()):
             best = max(corridors, key=lambda c: c[1])
             print(f"  vehicle {track}: {len(corridors)} corridors; most probable {best[0]} p={best[1]:.2f} at ({best[2]:.1f}, {best[3]:.1f}) m,"

@@ -198,7 +198,8 @@ def corridor_predictions() -> bs.CorridorPredictions:
     )
     assert pred.s_probs.shape == (k, w)
     return bs.CorridorPredictions(
-        header=header(), scene_id="0123456789abcdef", mode="baseline", step_times_s=steps, ds_m=1.0, dv_mps=0.5, predictions=(pred,)
+        header=header(), scene_id="0123456789abcdef", mode="baseline", step_times_s=steps, ds_m=1.0, dv_mps=0.5, predictions=(pred,),
+        shard="0/2",  # a shard's own output (v3): only its vehicles
     )
 
 
@@ -221,6 +222,7 @@ def motion_grid() -> bs.MotionGrid:
         min_value=1e-5,
         step_times_s=np.array([0.4, 0.8]),
         steps=(step([20, 20, 21], [41, 42, 42], [0.5, 0.25, 0.125]), step([20], [45], [0.75])),
+        missing_shards=("1/2",),  # a fused frame that lacks a shard's vehicles (v3)
     )
 
 

@@ -29,6 +29,9 @@ Foxglove topics (``<node>`` is the producing node of the bus key,
   (``grid_step="all"``); cropped to the cells above zero;
 - ``/<node>/vehicles`` ``foxglove.SceneUpdate``: per vehicle of an
   ``IntentionBelief`` a text ``P(stop)`` and its top route (manoeuvre, P);
+- ``/<node>/coverage`` ``foxglove.Log``: a line each time what the node's
+  motion grids cover changes: a shard's own vehicles only, a shard missing
+  from a fused frame (``MotionGrid.shard``, ``missing_shards``), whole again;
 - ``/stats/<node>`` JSON (schema ``iamp.NodeStatsPlot``): the node's
   ``NodeStats`` flattened to numbers (processing and latency percentiles,
   queue depth, every counter) for Foxglove's Plot panel.
@@ -47,7 +50,7 @@ import foxglove
 from foxglove import channels as fch
 from foxglove import messages as fm
 
-from bus_schemas import CorridorPredictions, CorridorSet, IntentionBelief, Manoeuvre, MotionGrid, NodeStats, SceneInfo, TrackFrame
+from bus_schemas import CorridorPredictions, CorridorSet, IntentionBelief, Manoeuvre, MotionGrid, NodeStats, SceneInfo, TrackFrame, coverage
 
 FRAME_ID = "map"
 # RGB 0-1 by AgentType value (the viewer's palette)
@@ -193,6 +196,7 @@ class FoxgloveScene:
         self._waiting_beliefs: dict[int, list[tuple[str, IntentionBelief]]] = {}
         self._map_scene_id: str | None = None
         self._map_update: fm.SceneUpdate | None = None
+        self._coverage: dict[str, str] = {}  # node -> what its last grid lacked ("" whole)
 
     # ------------------------------------------------------------------ channels
     def _channel(self, topic: str, make: Callable[..., Any]) -> Any:
@@ -314,6 +318,7 @@ class FoxgloveScene:
         self._log(f"/{node}/means", fch.SceneUpdateChannel, lambda: fm.SceneUpdate(entities=[means_entity(pred, ts)]), log_time_ns)
 
     def add_grid(self, node: str, grid: MotionGrid, log_time_ns: int) -> None:
+        self._log_coverage(node, grid, log_time_ns)
         if grid.n_rows <= 0 or grid.n_cols <= 0 or not grid.steps:
             self.counts.skip("empty motion grid")
             return
@@ -326,6 +331,18 @@ class FoxgloveScene:
         if k is not None and times[k] < float(self.grid_step) - 1e-6:  # beyond the horizon: its last step, counted
             self.counts.skip(f"grid step {float(self.grid_step):g} s beyond the grids' last step: the last one shown instead")
         self._log(f"/{node}/motion_grid", fch.GridChannel, lambda: grid_message(grid, k), log_time_ns)
+
+    def _log_coverage(self, node: str, grid: MotionGrid, log_time_ns: int) -> None:
+        """``/<node>/coverage``: a Log line each time what the node's grids cover changes (a shard's vehicles only, a
+        shard missing from a fused frame, whole again): an empty area of such a grid may hold vehicles nobody predicted."""
+        what = coverage(grid)
+        if what == self._coverage.get(node, ""):
+            return
+        self._coverage[node] = what
+        level = fm.LogLevel.Warning if what else fm.LogLevel.Info
+        text = f"motion grid: {what}: other vehicles not predicted" if what else "motion grid: every vehicle of the frame again"
+        self._log(f"/{node}/coverage", fch.LogChannel,
+                  lambda: fm.Log(timestamp=timestamp(int(grid.header.stamp_ns)), level=level, message=text, name=node), log_time_ns)
 
     def add_belief(self, node: str, belief: IntentionBelief, log_time_ns: int) -> None:
         stamp = int(belief.header.stamp_ns)

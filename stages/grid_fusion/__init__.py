@@ -79,6 +79,7 @@ class GridFusion:
         self.frames: dict[int, _Frame] = {}
         self.last_published = -1
         self._seen: dict[tuple[str, int], int] = {}  # (kind, shard) -> newest stamp taken
+        self._label: dict[int, str] = {}  # shard input -> its messages' ``shard`` ("i/n")
 
     def _up(self, now: float) -> list[int]:
         """Shards heard from within the timeout; one never heard from counts as up until a timeout after the first message."""
@@ -98,6 +99,8 @@ class GridFusion:
                     continue  # the same latest value again
                 self._seen[(kind, shard)] = stamp
                 self.last_seen[shard] = now
+                if getattr(msg, "shard", ""):
+                    self._label[shard] = msg.shard
                 if self.started is None:
                     self.started = now
                 if stamp <= self.last_published:
@@ -123,23 +126,32 @@ class GridFusion:
         if missing:
             issues.append(Issue("shard_missing", -1, f"stamp {stamp}: no grid from shard(s) {missing} "
                                 f"({'down' if not set(missing) & up else 'late'}): published with shard(s) {sorted(have)} only"))
-        grids = [frame.grids[s] for s in sorted(have)]
         outputs: dict[str, Any] = {}
-        if grids:
-            good = [grids[0]] + [g for g in grids[1:] if not compatible(grids[0], g)]
-            for g in grids[1:]:
-                why = compatible(grids[0], g)
+        if have:
+            first = min(have)
+            good = [first]
+            for s in sorted(have - {first}):
+                why = compatible(frame.grids[first], frame.grids[s])
                 if why:
-                    issues.append(Issue("incompatible_grid", -1, f"stamp {stamp}: a shard's grid left out: {why}"))
-            h = good[0].header
+                    issues.append(Issue("incompatible_grid", -1, f"stamp {stamp}: shard {s}'s grid left out: {why}"))
+                else:
+                    good.append(s)
+            grids = [frame.grids[s] for s in good]
+            h = grids[0].header
             # every shard carries the source frame's publish time; the earliest, should they ever differ
-            wall = min((g.header.source_wall_ns for g in good if g.header.source_wall_ns), default=0)
+            wall = min((g.header.source_wall_ns for g in grids if g.header.source_wall_ns), default=0)
             header = Header(run_id=h.run_id, frame_index=h.frame_index, stamp_ns=h.stamp_ns, producer=self.producer, source_wall_ns=wall)
-            outputs["motion_grid"] = fuse_motion_grids(good, header)
+            # the message says whose vehicles it lacks (a consumer cannot tell a missing shard from an empty road)
+            outputs["motion_grid"] = fuse_motion_grids(grids, header, self._labels(s for s in self.shards if s not in good))
             parts = [frame.predictions[s] for s in sorted(frame.predictions)]
             if parts:
-                outputs["corridor_predictions"] = merge_predictions(parts, header)
+                outputs["corridor_predictions"] = merge_predictions(
+                    parts, header, self._labels(s for s in self.shards if s not in frame.predictions))
         return StageResult(outputs=outputs, issues=issues)
+
+    def _labels(self, shards) -> tuple[str, ...]:
+        """The ``missing_shards`` labels ("i/n") of shard inputs: as the shard's messages name it, else i of the bound count."""
+        return tuple(self._label.get(s) or f"{s}/{len(self.shards)}" for s in shards)
 
     _bound_predictions: frozenset[str] = frozenset()
 

@@ -115,8 +115,9 @@ def compatible(a: MotionGrid, b: MotionGrid) -> str:
     return ""
 
 
-def fuse_motion_grids(grids: Sequence[MotionGrid], header: Header) -> MotionGrid:
-    """1 − Π (1 − G) over ``grids`` (compatible ones, at least one) on the union of their lattices, under ``header``."""
+def fuse_motion_grids(grids: Sequence[MotionGrid], header: Header, missing_shards: Sequence[str] = ()) -> MotionGrid:
+    """1 − Π (1 − G) over ``grids`` (compatible ones, at least one) on the union of their lattices, under ``header``;
+    ``missing_shards``: the shards ("i/n") whose vehicles it lacks (with those the inputs already lacked)."""
     if not grids:
         raise ValueError("fuse_motion_grids: no grid")
     first = grids[0]
@@ -152,17 +153,25 @@ def fuse_motion_grids(grids: Sequence[MotionGrid], header: Header) -> MotionGrid
         header=header, scene_id=first.scene_id, mode=first.mode, distribution=first.distribution,
         origin_x_m=x0 * cell, origin_y_m=y0 * cell, cell_m=cell, n_rows=max(int(n_rows), 1), n_cols=max(int(n_cols), 1),
         min_value=min_value, step_times_s=np.asarray(first.step_times_s, dtype=np.float64), steps=tuple(steps),
+        missing_shards=_missing(missing_shards, grids),
     )
 
 
-def merge_predictions(parts: Sequence[CorridorPredictions], header: Header) -> CorridorPredictions:
-    """The shards' CorridorPredictions of one frame as one message (predictions concatenated, ordered by track and corridor)."""
+def _missing(missing_shards: Sequence[str], parts: Sequence[MotionGrid | CorridorPredictions]) -> tuple[str, ...]:
+    """The shards missing from a fused message: those named and those its parts lacked, once each, sorted."""
+    return tuple(sorted(set(missing_shards).union(*(p.missing_shards for p in parts))))
+
+
+def merge_predictions(parts: Sequence[CorridorPredictions], header: Header, missing_shards: Sequence[str] = ()) -> CorridorPredictions:
+    """The shards' CorridorPredictions of one frame as one message (predictions concatenated, ordered by track and
+    corridor); ``missing_shards`` as in ``fuse_motion_grids``."""
     if not parts:
         raise ValueError("merge_predictions: nothing to merge")
     first = parts[0]
     preds = sorted((p for part in parts for p in part.predictions), key=lambda p: (p.track_id, p.corridor_id))
     return CorridorPredictions(header=header, scene_id=first.scene_id, mode=first.mode, step_times_s=first.step_times_s,
-                               ds_m=first.ds_m, dv_mps=first.dv_mps, predictions=tuple(preds))
+                               ds_m=first.ds_m, dv_mps=first.dv_mps, predictions=tuple(preds),
+                               missing_shards=_missing(missing_shards, parts))
 
 
 __all__ = ["compatible", "fuse_motion_grids", "merge_predictions", "parse_shard", "shard_of"]

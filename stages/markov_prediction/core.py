@@ -132,8 +132,9 @@ class FramePrediction:
     #: that σ (``iamp calibrate``'s candidates for ``spread_shape = "along"``); None otherwise
     regrid: Any = None
 
-    def corridor_predictions(self, header: Header, scene_id: str) -> CorridorPredictions:
-        """The ``CorridorPredictions`` message (s-distributions cropped to the cells ever occupied)."""
+    def corridor_predictions(self, header: Header, scene_id: str, shard: str = "") -> CorridorPredictions:
+        """The ``CorridorPredictions`` message (s-distributions cropped to the cells ever occupied); ``shard``: the
+        stage's ("i/n" where it predicts only that shard's vehicles)."""
         out = []
         n_b = len(self.pairs)
         # every pair's arrays converted at once (each message gets its own rows); cells ever occupied: [lo, hi)
@@ -177,6 +178,7 @@ class FramePrediction:
             ds_m=float(self.ds_m),
             dv_mps=float(self.dv_mps),
             predictions=tuple(out),
+            shard=shard,
         )
 
     @functools.cached_property
@@ -200,8 +202,9 @@ class FramePrediction:
         counts = self._above_min[4]
         return int(np.maximum(counts - self.max_cells_per_step, 0).sum())
 
-    def motion_grid(self, header: Header, scene_id: str) -> MotionGrid:
-        """The ``MotionGrid`` message: the fused grid, cells above ``min_grid_value``, one COO layer per step."""
+    def motion_grid(self, header: Header, scene_id: str, shard: str = "") -> MotionGrid:
+        """The ``MotionGrid`` message: the fused grid, cells above ``min_grid_value``, one COO layer per step; ``shard``
+        as in ``corridor_predictions``."""
         frame = self.grid_frame
         n_k = self.step_times_s.shape[0]
         keys, values, keep, bounds, counts = self._above_min
@@ -233,6 +236,7 @@ class FramePrediction:
             min_value=float(self.min_grid_value),
             step_times_s=self.step_times_s.astype(np.float64),
             steps=tuple(steps),
+            shard=shard,
         )
 
 
@@ -280,6 +284,7 @@ class MarkovPredictor:
         self._online_logged_ns: int | None = None
         self._blend_logged_ns: int | None = None
         self._shard = parse_shard(config.shard)
+        self._shard_label = "" if self._shard is None else f"{self._shard[0]}/{self._shard[1]}"  # the outputs' ``shard``
         self.grid = grid_config(config)
         cfg = self.grid
         self.n_s = config.window_cells
@@ -401,8 +406,8 @@ class MarkovPredictor:
         scene_id = scene.scene_id if isinstance(scene, SceneInfo) else corridor_set.scene_id
         # the grid first: the runtime puts the outputs in this order, and the grid is what the frame's consumers wait for
         outputs: dict[str, Any] = {
-            "motion_grid": prediction.motion_grid(header, scene_id),
-            "corridor_predictions": prediction.corridor_predictions(header, scene_id),
+            "motion_grid": prediction.motion_grid(header, scene_id, self._shard_label),
+            "corridor_predictions": prediction.corridor_predictions(header, scene_id, self._shard_label),
         }
         inline = self._inline_last
         if inline is not None and inline[0] == early.stamp and isinstance(inline[1], AccelerationProfiles):

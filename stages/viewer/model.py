@@ -15,7 +15,7 @@ from typing import Mapping
 
 import numpy as np
 
-from bus_schemas import AccelerationProfiles, AgentType, CorridorPredictions, CorridorSet, IntentionBelief, MatchStatus, MotionGrid, SceneInfo, TrackFrame
+from bus_schemas import AccelerationProfiles, AgentType, CorridorPredictions, CorridorSet, IntentionBelief, MatchStatus, MotionGrid, SceneInfo, TrackFrame, coverage
 
 # --------------------------------------------------------------------------- colours (RGB, 0-255)
 
@@ -89,6 +89,13 @@ class InputSet:
             if msg is not None:
                 return msg.mode
         return "-"
+
+    @property
+    def coverage(self) -> str:
+        """"" when the predictions shown cover every vehicle of the frame; else what they lack (``bus_schemas.coverage``:
+        a shard's own output, or a fused frame with shards missing), for the side panel."""
+        what = coverage(self.grid, self.predictions)
+        return f"predictions: {what}: other vehicles not predicted" if what else ""
 
     def horizon_s(self, default_s: float) -> float:
         for msg in (self.predictions, self.grid):

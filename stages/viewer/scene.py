@@ -573,6 +573,8 @@ class ViewerApp:
             newest_ns = self.history.newest_stamp_ns or item.stamp_ns
             if not item.complete:
                 shown += f", results more than {self.config.max_lag_s:g} s late: frame shown without them"
+            if item.coverage:
+                shown += f", **{item.coverage}**"
             elif not view.paused and not view.show_ground_truth and not view.lookback_s and newest_ns - item.stamp_ns > 5e8:
                 shown += f", results lag the frames by {(newest_ns - item.stamp_ns) / 1e9:.1f} s"
             stalled = self.history.stalled(int(STALLED_AFTER_S * 1e9))

@@ -104,6 +104,9 @@ def test_two_shards_through_a_router_equal_one_and_degrade_when_one_dies():
                 wait_until(lambda: stamp in preds, 30, "the merged predictions")
                 all_tracks = {v.track_id for v in item.corridor_set.vehicles if v.corridors}
                 assert {p.track_id for p in preds[stamp].predictions} == all_tracks
+                # whose vehicles each message covers: the shards say which they are, the fused frame lacks none
+                assert [got[n][stamp].shard for n in ("m_all", "m0", "fusion")] == ["", "0/2", ""]
+                assert got["fusion"][stamp].missing_shards == () and preds[stamp].missing_shards == ()
             assert stats.get("fusion") is None or not stats["fusion"].issues_by_kind.get("shard_missing")
 
             m1.send_signal(signal.SIGKILL)
@@ -114,7 +117,9 @@ def test_two_shards_through_a_router_equal_one_and_degrade_when_one_dies():
                 only0 = _dense(got["m0"][stamp])
                 fused = _dense(got["fusion"][stamp])
                 assert fused == pytest.approx(only0, abs=1e-6)  # shard 0's vehicles, nothing waits for shard 1
+                assert got["fusion"][stamp].missing_shards == ("1/2",)  # and the message says so, on the bus
                 wait_until(lambda: stamp in preds, 30, "the merged predictions")
+                assert preds[stamp].missing_shards == ("1/2",)
                 assert {p.track_id for p in preds[stamp].predictions} == {v.track_id for v in item.corridor_set.vehicles
                                                                           if v.corridors and shard_of(v.track_id, 2) == 0}
             wait_until(lambda: stats.get("fusion") and stats["fusion"].issues_by_kind.get("shard_missing", 0) >= N_AFTER, 30,

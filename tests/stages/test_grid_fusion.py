@@ -76,6 +76,9 @@ def test_two_shards_fused_equal_one(frames):
         ta = {p.track_id for p in x["corridor_predictions"].predictions}
         tb = {p.track_id for p in y["corridor_predictions"].predictions}
         assert ta and tb and ta.isdisjoint(tb) and ta | tb == tracks  # each vehicle in exactly one shard
+        # each message says whose vehicles it covers: the whole frame, or one shard's
+        assert [(m["motion_grid"].shard, m["corridor_predictions"].shard) for m in (full, x, y)] == [("", ""), ("0/2", "0/2"), ("1/2", "1/2")]
+        assert not any(m[o].missing_shards for m in (full, x, y) for o in ("motion_grid", "corridor_predictions"))
         g = full["motion_grid"]
         fused = fuse_motion_grids([x["motion_grid"], y["motion_grid"]], g.header)
         d1, d2 = dense(g), dense(fused)
@@ -102,6 +105,8 @@ def test_fusion_waits_for_every_shard_and_degrades_when_one_is_down(frames):
     assert "motion_grid" not in out.outputs  # shard 1 is up (start-up grace): wait for it
     out = core.update({"grid_0": a[0]["motion_grid"], "grid_1": b[0]["motion_grid"]})
     assert out.outputs["motion_grid"].header.stamp_ns == a[0]["motion_grid"].header.stamp_ns and not out.issues
+    fused = out.outputs["motion_grid"]
+    assert fused.shard == "" and fused.missing_shards == ()  # the whole frame: shard outputs fused
     # shard 1 goes quiet: after the timeout the frames come with shard 0's vehicles only, each counted
     clock.t = 0.5
     assert "motion_grid" not in core.update({"grid_0": a[1]["motion_grid"], "grid_1": b[0]["motion_grid"]}).outputs
@@ -109,7 +114,31 @@ def test_fusion_waits_for_every_shard_and_degrades_when_one_is_down(frames):
     out = core.update({"grid_0": a[2]["motion_grid"], "grid_1": b[0]["motion_grid"]})
     assert out.outputs["motion_grid"].header.stamp_ns == a[1]["motion_grid"].header.stamp_ns
     assert [i.kind for i in out.issues] == ["shard_missing"]
+    # the message itself says so (a consumer cannot tell a missing shard from an empty road), and after a round trip
+    fused = type(out.outputs["motion_grid"]).decode(out.outputs["motion_grid"].encode())
+    assert fused.shard == "" and fused.missing_shards == ("1/2",)
     assert dense(out.outputs["motion_grid"]) == pytest.approx(dense(fuse_motion_grids([a[1]["motion_grid"]], a[1]["motion_grid"].header)))
     out = core.update({"grid_0": a[2]["motion_grid"]})
     assert out.outputs["motion_grid"].header.stamp_ns == a[2]["motion_grid"].header.stamp_ns
     assert [i.kind for i in out.issues] == ["shard_missing"]
+
+
+def test_fused_predictions_and_grids_name_the_shards_they_lack(frames):
+    """A shard whose grid cannot be fused, or whose predictions did not come, is named in ``missing_shards`` of that
+    output; the labels are the shards' own ("i/n"), else i of the bound count for one never heard from."""
+    import dataclasses
+
+    a, _ = _run(frames, "0/3")
+    grid0, preds0 = a[0]["motion_grid"], a[0]["corridor_predictions"]
+    other = dataclasses.replace(grid0, cell_m=grid0.cell_m * 2, shard="1/3")  # a shard of another cell size
+    core = GridFusion(GridFusionConfig(shard_timeout_s=1.0, max_pending_frames=1), [0, 1, 2], clock=_Clock())
+    core._bound_predictions = frozenset({"predictions_0", "predictions_1", "predictions_2"})
+    out = core.update({"grid_0": grid0, "predictions_0": preds0, "grid_1": other})
+    assert "motion_grid" not in out.outputs  # shard 2 and shard 1's predictions still awaited
+    later = dataclasses.replace(grid0, header=dataclasses.replace(grid0.header, stamp_ns=grid0.header.stamp_ns + 10**8))
+    out = core.update({"grid_0": later})  # a newer frame waits beyond max_pending_frames: the first goes out as it is
+    kinds = sorted(i.kind for i in out.issues)
+    assert kinds == ["incompatible_grid", "shard_missing"]
+    assert out.outputs["motion_grid"].missing_shards == ("1/3", "2/3")  # 1: its grid left out; 2: never heard from
+    assert out.outputs["corridor_predictions"].missing_shards == ("1/3", "2/3")
+    assert out.outputs["corridor_predictions"].shard == "" and out.outputs["motion_grid"].shard == ""
