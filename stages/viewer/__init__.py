@@ -54,7 +54,9 @@ distributions of its most probable corridor for the next 4 s (a heat image:
 one row per 0.4 s step, columns -3 … 2 m/s²) and, once known (ground truth
 on), its true future with each corridor's ADE (``panels.vehicle_panel``).
 
-Side panel: run, frame, stamp, mode, what is shown (live, paused, lagging),
+Side panel: run, frame, stamp, mode, what is shown (live, paused, lagging;
+in a sharded pipeline, a shard's vehicles only or a shard missing from the
+fused frame: ``MotionGrid.shard``, ``missing_shards``),
 frames received, drawn and skipped, the draw time and the time from a
 frame's arrival to its drawing with its results (and from the source's
 publish of the frame, "source to screen", when it carries a wall stamp),
