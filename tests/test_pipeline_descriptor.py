@@ -295,3 +295,36 @@ def test_shards_may_differ_in_how_they_run(tmp_path):
     text = SHARDED.replace('shard = "1/2" }', 'shard = "1/2", kernel_threads = 4 }', 1)
     assert "kernel_threads = 4" in text
     assert load_pipeline(_write(tmp_path, text)).node("markov_1").config.kernel_threads == 4
+
+
+def test_observers_run_at_a_lower_cpu_priority_and_nice_is_checked(tmp_path):
+    """The viewer and the Foxglove bridge decode and draw every frame; on 2 cores at 18 vehicles the viewer alone, with
+    no page open, cost the MotionGrid about 4 ms at p50 (bench/e2e_latency.py --viewer). Their stages default to
+    ``nice = 10`` (``StageSpec.nice_default``), which reaches the node as ``--nice`` and lowers the priority of the
+    process itself, so they take CPU the prediction stages leave; a pipeline's ``nice`` overrides it, and a bad value
+    stops the load naming the node."""
+    from stages.runtime import launcher
+
+    hybrid = load_pipeline(REPO / "stages" / "pipelines" / "hybrid.toml")
+    assert {n.id: n.nice for n in hybrid.nodes if n.nice} == {"viewer": 10}
+    assert "nice=10" in hybrid.describe()
+    run = launcher.Launcher(hybrid, "tcp/127.0.0.1:1", launcher.build_parser().parse_args(["hybrid"]))
+    for node in hybrid.nodes:
+        cmd = run.command(node)
+        assert cmd[cmd.index("--nice") + 1] == ("10" if node.id == "viewer" else "0"), node.id
+    base = '[[nodes]]\nid = "source"\nstage = "stages.tracks_source"\n[[nodes]]\nid = "viewer"\nstage = "stages.viewer"\n' \
+           'inputs = { track_frame = "source/track_frame", scene = "source/scene" }\n'
+    assert load_pipeline(_write(tmp_path, base + "nice = 0\n")).node("viewer").nice == 0
+    assert load_pipeline(_write(tmp_path, base + "nice = 19\n")).node("viewer").nice == 19
+    for value in ("-1", "20", "2.5", '"low"', "true"):
+        with pytest.raises(PipelineError, match=r"node viewer: 'nice' must be an integer from 0 \(as started\) to 19"):
+            load_pipeline(_write(tmp_path, base + f"nice = {value}\n"))
+    # the node applies it to its own process, before any thread starts (checked in a child: niceness only goes up)
+    code = ("import os; from stages.viewer.__main__ import SPEC; from stages.runtime.args import start_stage; "
+            "before = os.nice(0); start = start_stage(SPEC, {argv!r}, bindings=False); print(before, os.nice(0))")
+    for argv, want in (([], 10), (["--nice", "3"], 3), (["--nice", "0"], 0)):
+        out = subprocess.run([sys.executable, "-c", code.format(argv=argv)], cwd=REPO, capture_output=True, text=True, timeout=120)
+        before, after = map(int, out.stdout.split())
+        assert after - before == want, (argv, out.stdout, out.stderr[-2000:])
+    bad = subprocess.run([sys.executable, "-m", "stages.viewer", "--nice", "20"], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "--nice 20: must be 0 (as started) to 19" in bad.stdout + bad.stderr

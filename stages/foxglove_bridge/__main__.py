@@ -30,7 +30,8 @@ def make_core(config: FoxgloveConfig, ctx: NodeContext, opened: list | None = No
     return bridge
 
 
-SPEC = StageSpec(stage="stages.foxglove_bridge", config_cls=FoxgloveConfig, make_core=make_core, inputs=INPUTS, outputs=OUTPUTS, restart_default=True)
+SPEC = StageSpec(stage="stages.foxglove_bridge", config_cls=FoxgloveConfig, make_core=make_core, inputs=INPUTS, outputs=OUTPUTS, restart_default=True,
+                 nice_default=10)  # an observer: never ahead of the prediction stages for CPU (StageSpec)
 
 
 def main(argv: list[str] | None = None) -> int:

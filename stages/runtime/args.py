@@ -18,6 +18,7 @@ import argparse
 import json
 import logging
 import math
+import os
 import re
 import signal
 import socket
@@ -54,6 +55,24 @@ def check_runtime_args(args: argparse.Namespace) -> None:
     for flag, value in (("--queue-mib", args.queue_mib), ("--stamp-window-s", args.stamp_window_s), ("--stats-period", args.stats_period)):
         if not (math.isfinite(value) and value > 0):
             raise ConfigError(f"{flag} {value}: must be a finite number > 0")
+    nice = getattr(args, "nice", 0)
+    if not 0 <= nice <= MAX_NICE:
+        raise ConfigError(f"--nice {nice}: must be 0 (as started) to {MAX_NICE} (the lowest priority)")
+
+
+#: the largest ``--nice`` (Linux's lowest priority); a node only ever lowers its own priority, which needs no privilege
+MAX_NICE = 19
+
+
+def apply_nice(n: int, log: logging.Logger) -> None:
+    """Lower this process's CPU priority by ``n`` (before any thread starts: the threads take it over); a platform
+    without ``os.nice`` says so once and runs as it is."""
+    if n <= 0:
+        return
+    try:
+        os.nice(n)
+    except (AttributeError, OSError) as exc:
+        log.warning("--nice %d not applied (%s): the node runs at its start priority", n, exc)
 
 
 def add_network_args(parser: argparse.ArgumentParser) -> None:
@@ -234,6 +253,8 @@ def build_parser(spec: StageSpec) -> argparse.ArgumentParser:
         help="reject inputs stamped more than this many seconds ahead of the newest accepted stamp (default 60)",
     )
     p.add_argument("--stats-period", type=float, default=1.0, help="seconds between NodeStats (default 1)")
+    p.add_argument("--nice", type=int, default=spec.nice_default, metavar="N",
+                   help=f"lower this node's CPU priority by N (0-19, os.nice) before it starts (default {spec.nice_default})")
     p.add_argument("--log-level", default="INFO", type=str.upper, choices=LOG_LEVELS, help="DEBUG, INFO (default), WARNING, ERROR or CRITICAL")
     p.add_argument(
         "--await-nodes",
@@ -319,6 +340,7 @@ def start_stage(spec: StageSpec, argv: list[str] | None = None, *, bindings: boo
     except (ConfigError, ValueError, json.JSONDecodeError) as exc:
         log.error("bad configuration: %s", exc)
         return EXIT_USAGE
+    apply_nice(args.nice, log)
     return StageStart(args=args, config=config, log=log)
 
 

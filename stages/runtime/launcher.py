@@ -518,6 +518,7 @@ class Launcher:
             cmd += ["--queue-size", str(node.queue_size)]
         if node.max_age_s:
             cmd += ["--max-age-s", repr(node.max_age_s)]
+        cmd += ["--nice", str(getattr(node, "nice", 0))]  # (0 too: a node started as it is, whatever its stage's default)
         return cmd
 
     def _on_alive(self, node_id: str, alive: bool) -> None:

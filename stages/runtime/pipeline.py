@@ -60,7 +60,7 @@ BUS_KEYS = {"run_id", "mode", "listen", "connect", "auth"}
 AUTH_KEYS = {"user", "password", "password_env"}
 PASSWORD_IN_FILE = "the pipeline file"  # BusAuth.source of a literal [bus.auth] password
 SECRET_PARAMS = {"stages.viewer": ("token",)}  # node parameters never printed nor put on a command line
-NODE_KEYS = {"id", "stage", "inputs", "outputs", "params", "restart", "queue_size", "max_age_s", "description"}
+NODE_KEYS = {"id", "stage", "inputs", "outputs", "params", "restart", "queue_size", "max_age_s", "description", "nice"}
 _VAR_RE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}")
 
 
@@ -146,6 +146,7 @@ class NodeDesc:
     queue_size: int | None
     description: str = ""
     max_age_s: float | None = None  # an operator's inputs bounded in age (``--max-age-s``), None: not
+    nice: int = 0  # the node's CPU niceness (``--nice``): the pipeline's ``nice``, else its stage's ``nice_default``
 
     @property
     def kind(self) -> str:
@@ -198,7 +199,8 @@ class Pipeline:
                  + (f" auth={self.auth.describe()}" if self.auth else "")]
         for n in self.topo_order():
             lines.append(f"  node {n.id}: stage={n.stage} kind={n.kind} restart={str(n.restart).lower()}"
-                         + (f" queue_size={n.queue_size}" if n.queue_size else "") + (f" max_age_s={n.max_age_s:g}" if n.max_age_s else ""))
+                         + (f" queue_size={n.queue_size}" if n.queue_size else "") + (f" max_age_s={n.max_age_s:g}" if n.max_age_s else "")
+                         + (f" nice={n.nice}" if n.nice else ""))
             for port, ref in n.inputs.items():
                 p = n.spec.inputs[port]
                 lines.append(f"    in  {port:<14} <- iamp/{self.run_id}/{ref}  [{p.schema.SCHEMA} v{p.schema.VERSION}{', ' + p.kind_label() if p.kind_label() else ''}]")
@@ -377,8 +379,11 @@ def load_pipeline(
             raise PipelineError(f"{nwhere}: 'max_age_s' must be a number of seconds > 0")
         if age is not None and spec.kind != "operator":
             raise PipelineError(f"{nwhere}: 'max_age_s' applies to processing stages only (stage {stage} is a {spec.kind})")
+        nice = nd.get("nice", spec.nice_default)
+        if type(nice) is not int or not 0 <= nice <= 19:
+            raise PipelineError(f"{nwhere}: 'nice' must be an integer from 0 (as started) to 19 (the lowest CPU priority), got {nice!r}")
         nodes.append(NodeDesc(nid, stage, spec, dict(inputs), params, config, restart, qs, nd.get("description", ""),
-                              float(age) if age is not None else None))
+                              float(age) if age is not None else None, nice))
 
     if overrides:
         raise PipelineError(f"{where}: --set names unknown node(s) {', '.join(sorted(overrides))}; nodes: {', '.join(n.id for n in nodes)}")

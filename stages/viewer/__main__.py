@@ -37,7 +37,8 @@ def make_core(config: ViewerConfig, ctx: NodeContext, opened: list | None = None
     return app
 
 
-SPEC = StageSpec(stage="stages.viewer", config_cls=ViewerConfig, make_core=make_core, inputs=INPUTS, outputs=OUTPUTS, restart_default=True)
+SPEC = StageSpec(stage="stages.viewer", config_cls=ViewerConfig, make_core=make_core, inputs=INPUTS, outputs=OUTPUTS, restart_default=True,
+                 nice_default=10)  # an observer: never ahead of the prediction stages for CPU (StageSpec)
 
 
 def main(argv: list[str] | None = None) -> int:
