@@ -24,8 +24,9 @@ import signal
 import socket
 import sys
 import threading
+import time
 from dataclasses import dataclass
-from typing import Any, Callable, Iterable
+from typing import Any, Callable, Iterable, Mapping
 
 import zenoh
 
@@ -58,6 +59,35 @@ def check_runtime_args(args: argparse.Namespace) -> None:
     nice = getattr(args, "nice", 0)
     if not 0 <= nice <= MAX_NICE:
         raise ConfigError(f"--nice {nice}: must be 0 (as started) to {MAX_NICE} (the lowest priority)")
+
+
+#: set by the launcher in each node's environment: its own pid (``watch_launcher``)
+LAUNCHER_PID_ENV = "IAMP_LAUNCHER_PID"
+#: how often a launched node looks whether its launcher is still there (s)
+LAUNCHER_WATCH_S = 0.5
+
+
+def watch_launcher(log: logging.Logger, environ: Mapping[str, str] | None = None, interval_s: float = LAUNCHER_WATCH_S) -> threading.Thread | None:
+    """A node the launcher started (``IAMP_LAUNCHER_PID`` in its environment) stops when the launcher is gone: killed
+    hard (SIGKILL, a crash, an OOM kill), it can stop nothing, and its nodes went on running, recording and holding
+    their ports with nobody to read their logs. Once the node's parent is no longer that pid it logs one line and
+    sends itself SIGTERM, so it stops as on Ctrl-C (a recorder finishes its file). A node started by hand (no such
+    variable) is left alone. Returns the watching thread (None where there is nothing to watch)."""
+    value = (os.environ if environ is None else environ).get(LAUNCHER_PID_ENV, "")
+    try:
+        launcher = int(value)
+    except ValueError:
+        return None
+
+    def watch() -> None:
+        while os.getppid() == launcher:
+            time.sleep(interval_s)
+        log.warning("the launcher (pid %d) is gone: stopping (the nodes of a run do not outlive their launcher)", launcher)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    thread = threading.Thread(target=watch, name="launcher-watch", daemon=True)
+    thread.start()
+    return thread
 
 
 #: the largest ``--nice`` (Linux's lowest priority); a node only ever lowers its own priority, which needs no privilege
@@ -341,6 +371,7 @@ def start_stage(spec: StageSpec, argv: list[str] | None = None, *, bindings: boo
         log.error("bad configuration: %s", exc)
         return EXIT_USAGE
     apply_nice(args.nice, log)
+    watch_launcher(log)
     return StageStart(args=args, config=config, log=log)
 
 

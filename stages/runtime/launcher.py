@@ -65,7 +65,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from stages.lib.base import ConfigError
-from stages.runtime.args import LOG_LEVELS, concrete_listen
+from stages.runtime.args import LAUNCHER_PID_ENV, LOG_LEVELS, concrete_listen
 from stages.runtime.pipeline import BusAuth, Pipeline, PipelineError, load_pipeline
 
 PIPELINES_DIR = Path(__file__).resolve().parents[1] / "pipelines"
@@ -406,7 +406,8 @@ class Child:
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,
             cwd=os.getcwd(),
-            env={**single_threaded_env(os.environ), **self.env, "PYTHONUNBUFFERED": "1"},  # the nodes import the installed package
+            # (the nodes import the installed package; each stops when this process is gone: args.watch_launcher)
+            env={**single_threaded_env(os.environ), **self.env, "PYTHONUNBUFFERED": "1", LAUNCHER_PID_ENV: str(os.getpid())},
             start_new_session=True,  # a Ctrl-C at the terminal reaches the launcher only; it stops children in order
             text=True,
             bufsize=1,

@@ -232,6 +232,43 @@ def test_killed_processing_stage_is_restarted_and_a_sighup_then_stops_every_node
     assert _last_stats(rec, "corridors").counters["processed"] > 0
 
 
+def test_a_launcher_killed_hard_takes_its_nodes_with_it_and_the_recording_is_finished(tmp_path):
+    """A launcher that dies without stopping anything (SIGKILL, a crash, the OOM killer): its nodes ran on headless,
+    recording (70 MB more in 30 s in a new user's probe), holding the viewer's port, with nobody reading their logs.
+    Each node now watches its launcher (``IAMP_LAUNCHER_PID``, ``stages.runtime.args.watch_launcher``) and stops as on
+    Ctrl-C when it is gone: every node ends, and the recording is complete."""
+    import os
+
+    rec = tmp_path / "run.mcap"
+    run = Launch(*K729, "--speed", "2", "--no-viewer", "--record", str(rec), "--run-id", "orphan", cwd=tmp_path)
+    try:
+        run.wait_line(r"^\[launch\] all \d+ nodes alive; starting sources")
+        pids = {node: _pid_of(run, node) for node in ("source", "corridors", "markov_prediction", "recorder")}
+        run.wait_line(r"^\[corridors\] .*scene loaded")  # frames are flowing
+        run.proc.kill()
+        run.proc.wait()
+
+        def gone(pid: int) -> bool:
+            try:
+                os.kill(pid, 0)
+            except ProcessLookupError:
+                return True
+            return False
+
+        wait_until(lambda: all(gone(pid) for pid in pids.values()), 60,
+                   f"every node gone after the launcher's SIGKILL: {[n for n, p in pids.items() if not gone(p)]}")
+    finally:
+        kill_all([run.proc])
+        for pid in pids.values() if "pids" in locals() else ():
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+    info = inspect(str(rec))
+    assert info["summary_present"] and not info["truncated"], info
+    assert info["frames"]["iamp/orphan/source/track_frame"]["count"] > 0
+
+
 def test_killed_recorder_is_restarted_into_the_next_split_and_the_run_goes_on(tmp_path):
     from mcap.reader import make_reader
 
