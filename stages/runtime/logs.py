@@ -190,6 +190,11 @@ class IssueLog:
 
         issue ended: kind=off_map_heading agent=2578 frames=37 first_stamp_ns=26800000000 last_stamp_ns=30400000000 duration_s=3.6
 
+An episode of one frame ends at DEBUG only: its start line says all there
+is to say, and at a busy junction a tracker's one-frame quirks (a
+velocity rejected, a state pending) made half of a stage's log lines
+"ended" lines with ``frames=1``.
+
     ``close()`` (node shutdown) logs the episodes still open, once each
     (``issue open at stop: ...``, same fields). A raw sink's lines name the
     key (``key=...``) instead of the agent, and its agent too when not -1.
@@ -261,8 +266,8 @@ class IssueLog:
             seen.add(k)
         for k in [k for k in episodes if k not in seen] if closes else ():
             ep = episodes.pop(k)
-            if ep.shown:
-                self._line(logging.INFO, "issue ended", scope, k, ep)
+            if ep.shown:  # (an episode of one frame: its start line said all; its end at DEBUG)
+                self._line(logging.INFO if ep.frames > 1 else logging.DEBUG, "issue ended", scope, k, ep)
         if not episodes:
             del self._open[scope]
 
