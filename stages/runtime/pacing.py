@@ -202,9 +202,10 @@ class Pacer:
     def drain(self, timeout_s: float | None = None, abort: Callable[[], bool] | None = None) -> None:
         """Wait (at most ``timeout_s``, default ``wait_s``) until the live nodes have acked the last stamp; ``abort`` ends it early."""
         if self._stamps:
-            self._wait(self._stamps[-1], time.monotonic() + (timeout_s or self.wait_s), abort or (lambda: False), timeout_s or self.wait_s)
+            self._wait(self._stamps[-1], time.monotonic() + (timeout_s or self.wait_s), abort or (lambda: False), timeout_s or self.wait_s,
+                       at_end=True)
 
-    def _wait(self, target: int, deadline: float, abort: Callable[[], bool], wait_s: float | None = None) -> None:
+    def _wait(self, target: int, deadline: float, abort: Callable[[], bool], wait_s: float | None = None, at_end: bool = False) -> None:
         if self.consumers is None:
             return
         now = time.monotonic()
@@ -222,6 +223,11 @@ class Pacer:
                     self.consumers.ignore(tools)
                 silent = [n for n in silent if n in self.expected]
             if not silent and not behind:
+                return
+            if now > deadline and at_end:  # the play's end (drain), not pacing: said as such (it read as a pacing failure)
+                self.log.info("end of play: nodes still behind after %.1f s: %s; the source stops waiting (they handle what they"
+                              " have queued as they stop)", wait_s or self.wait_s, ",".join(behind + silent))
+                self.consumers.ignore(behind + silent)
                 return
             if now > deadline:
                 self.log.warning(

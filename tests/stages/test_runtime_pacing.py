@@ -65,6 +65,24 @@ def test_a_silent_node_is_not_waited_for_after_the_grace_and_a_behind_one_after_
     assert consumers.waiting_on(2) == ([], [])
 
 
+def test_the_end_of_play_wait_is_not_called_a_pacing_failure(caplog):
+    """At the play's end the source waits (``drain``) for the nodes to ack its last frame: a node still behind then
+    was logged as "pacing: nodes behind ..., no longer waiting", which read as a pacing failure in a run at real time
+    (a new user's probe). It is said as what it is, at INFO."""
+    caplog.set_level(logging.INFO, logger=LOG.name)
+    consumers = Consumers("src")
+    consumers.add_alive(["slow"])
+    consumers.on_ack("slow", 0)
+    pacer = Pacer(1.0, consumers, threading.Event(), LOG, window=1, wait_s=0.3, expected=["slow"])
+    pacer.before(1, 1)
+    caplog.clear()
+    pacer.drain(0.2)
+    records = [r for r in caplog.records if r.name == LOG.name]
+    assert [r.levelno for r in records] == [logging.INFO]
+    assert "end of play: nodes still behind after 0.2 s: slow; the source stops waiting" in records[0].getMessage()
+    assert not any(r.getMessage().startswith("pacing:") for r in records)
+
+
 def test_an_expected_node_that_has_acked_nothing_is_waited_for_wait_s_not_the_tools_grace(caplog):
     """A pipeline node's first input set may take seconds (caches, compiled kernels): replay must not take it for a
     tool that never acks and flood it; a tool holding a token is still let go after the short grace."""
