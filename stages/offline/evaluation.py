@@ -422,7 +422,8 @@ class Evaluation:
             for mode in config.modes
         }
         first = mode_configs[config.modes[0]]  # --set applies to every mode: one grid, one set of stencils
-        stencils = load_or_build_stencils(grid_config(first)) if {"baseline", "hybrid"} & set(config.modes) else None
+        # (in the folder --set stencil_cache_dir names, as the stage would: it was ignored here)
+        stencils = load_or_build_stencils(grid_config(first), first.stencil_cache_dir or None) if {"baseline", "hybrid"} & set(config.modes) else None
         self.predictors = {
             mode: MarkovPredictor(mode_config, producer=f"eval-{mode}", stencils=stencils) for mode, mode_config in mode_configs.items()
         }

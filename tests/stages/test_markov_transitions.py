@@ -222,6 +222,14 @@ def _assert_same(a, b):
         np.testing.assert_array_equal(a.kernel(kind), b.kernel(kind))
 
 
+def test_a_cache_folder_with_a_tilde_is_under_home(tmp_path, monkeypatch):
+    """``stencil_cache_dir = "~/x"`` made a folder named "~" in the current one (the other path parameters expand it)."""
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    monkeypatch.chdir(tmp_path)
+    assert cache_path(SMALL, "~/stencils").parent == tmp_path / "home" / "stencils"
+    assert not (tmp_path / "~").exists()
+
+
 def test_cache_second_build_loads_from_disk(tmp_path, monkeypatch):
     first = load_or_build_stencils(SMALL, cache_dir=tmp_path)
     path = cache_path(SMALL, tmp_path)
@@ -575,3 +583,18 @@ def test_numba_kernel_equals_scipy_when_the_window_moves_and_mass_leaves(small_s
     for name in ("position_probs", "velocity_probs", "interval_position_probs", "outside_mass", "interval_outside_mass",
                  "pruned_mass", "final_state", "mass_error"):
         np.testing.assert_allclose(getattr(runs["numba"], name), getattr(runs["scipy"], name), atol=1e-6, err_msg=name)
+
+
+def test_iamp_eval_builds_its_stencils_in_the_folder_stencil_cache_dir_names(tmp_path, monkeypatch):
+    """``iamp eval --set stencil_cache_dir=...`` was ignored: the evaluation loaded the stencils from the default folder."""
+    from stages.offline import evaluation
+
+    asked = []
+
+    def record(config, cache_dir=None):
+        asked.append(cache_dir)
+        return load_or_build_stencils(config)  # (from the default folder, which the other tests fill: a build takes a minute)
+
+    monkeypatch.setattr(evaluation, "load_or_build_stencils", record)
+    evaluation.Evaluation(evaluation.EvalConfig(modes=("baseline",), params=(("stencil_cache_dir", str(tmp_path / "x")),), progress=False))
+    assert asked == [str(tmp_path / "x")]

@@ -25,6 +25,9 @@ import numpy as np
 
 try:  # pragma: no cover - exercised where numba is missing only
     import numba
+
+    if numba.config.DISABLE_JIT:  # NUMBA_DISABLE_JIT=1: the numpy reference path, not these kernels run as Python
+        raise ImportError("NUMBA_DISABLE_JIT is set")
 except Exception:  # noqa: BLE001 - any import failure leaves the numpy path
     numba = None
 

@@ -54,6 +54,9 @@ import numpy as np
 try:  # pragma: no cover - exercised where numba is missing only
     import numba
 
+    if numba.config.DISABLE_JIT:  # NUMBA_DISABLE_JIT=1: the numpy reference path, not these kernels run as Python
+        raise ImportError("NUMBA_DISABLE_JIT is set")
+
     _NUMBA_ERROR: str | None = None
 except Exception as exc:  # noqa: BLE001 - any import failure leaves the scipy path
     numba = None

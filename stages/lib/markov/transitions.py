@@ -279,8 +279,9 @@ def default_cache_dir() -> Path:
 
 
 def cache_path(config: MarkovGridConfig, cache_dir: str | os.PathLike[str] | None = None) -> Path:
-    """Where the stencils of ``config`` are cached: ``<dir>/stencils-<cache_key>.npz``."""
-    directory = default_cache_dir() if cache_dir is None else Path(cache_dir)
+    """Where the stencils of ``config`` are cached: ``<dir>/stencils-<cache_key>.npz`` (``~`` in ``cache_dir`` is the
+    home folder, as in the other path parameters; it made a folder named ``~`` in the current one)."""
+    directory = default_cache_dir() if cache_dir is None else Path(cache_dir).expanduser()
     return directory / f"stencils-{config.cache_key()}.npz"
 
 
