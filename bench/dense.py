@@ -356,12 +356,7 @@ def parse_args(argv: list[str] | None = None, error=None) -> argparse.Namespace:
             markov_config(argparse.Namespace(set=args.set, backend="numpy", device="cpu"), mode)
     except (ValueError, ConfigError) as exc:
         fail(str(exc))
-    return args
-
-
-def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
-    sizes = args.vehicles
+    # the backend of the device, and the device itself, before any work (a CPU machine asked for cuda: exit 2, not 0)
     if args.backend is None:  # the device's fastest chain: on a GPU the one-kernel chain where numba.cuda can run it
         from stages.lib.markov import cuda_chain
 
@@ -372,15 +367,19 @@ def main(argv: list[str] | None = None) -> int:
         if args.device == "cpu":
             args.device = "cuda"
         if (reason := cuda_chain.unavailable_reason()) is not None:
-            print(f"--backend cuda: {reason}; nothing measured")
-            return 0
+            fail(f"--backend cuda: {reason}; nothing measured")
     elif args.device != "cpu":
         args.backend = "torch"
         import torch
 
         if args.device.startswith("cuda") and not torch.cuda.is_available():
-            print(f"--device {args.device}: no CUDA device here; nothing measured")
-            return 0
+            fail(f"--device {args.device}: no CUDA device here (torch.cuda.is_available() is false); nothing measured")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    sizes = args.vehicles
     if args.threads:
         import torch
 

@@ -4,13 +4,25 @@
 #
 #   bash bench/gpu_checks.sh OUTDIR [DEVICE]      (DEVICE: cuda (default), or cpu to try the script anywhere)
 #
+# The Python it runs: $PYTHON, else the project's .venv/bin/python where there is one, else python3. With DEVICE cuda
+# it stops at once (exit 2) where that Python sees no CUDA device, instead of running its 30 minutes of steps.
+#
 # Needs $IAMP_TAF_BW (the full TAF-BW data) for the dense recordings; without it the benches use the embedded
 # scenario (they say so). Writes one log per check to OUTDIR and dense_cuda.json; prints each log's tail. Each
 # check has its own time limit and a failing one does not stop the others. Asserts nothing about times.
 set -u
 OUT=${1:?usage: bash bench/gpu_checks.sh OUTDIR [DEVICE]}
 DEV=${2:-cuda}
-PY=${PYTHON:-python3}
+HERE=$(cd "$(dirname "$0")/.." && pwd)
+if [ -n "${PYTHON:-}" ]; then PY=$PYTHON; elif [ -x "$HERE/.venv/bin/python" ]; then PY=$HERE/.venv/bin/python; else PY=python3; fi
+if ! "$PY" -c "import stages, torch" 2>/dev/null; then
+    echo "bench/gpu_checks.sh: $PY cannot import the project and torch: run 'make setup', or set PYTHON to the project's Python" >&2
+    exit 2
+fi
+if [ "$DEV" != cpu ] && ! "$PY" -c "import sys, torch; sys.exit(0 if torch.cuda.is_available() else 1)"; then
+    echo "bench/gpu_checks.sh: no CUDA device here (torch.cuda.is_available() is false): nothing to check; DEVICE cpu tries the script anyway" >&2
+    exit 2
+fi
 mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1
 T0=$(date +%s)

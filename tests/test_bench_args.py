@@ -29,6 +29,12 @@ def _problem_lines(stderr: str) -> list[str]:
     return [line for line in stderr.splitlines() if line.strip() and not line.startswith(("usage:", " "))]
 
 
+def _has_cuda() -> bool:
+    import torch
+
+    return torch.cuda.is_available()
+
+
 # (script and arguments, a text the one line must hold)
 BAD = [
     # a data folder that is not there
@@ -86,6 +92,10 @@ BAD = [
     (["e2e_latency.py", "--duration-s", "-1"], "--duration-s -1"),
     (["e2e_latency.py", "--speed", "0"], "--speed 0"),
     (["e2e_latency.py", "--keep", str(REPO / "README.md")], "--keep"),
+    # a GPU asked for on a machine without one (CI has none; each case is skipped where a GPU is there): it printed
+    # "nothing measured" and exit 0, and frame_phases.py died of a traceback (a new user's probe)
+    (["dense.py", "--device", "cuda"], "--device cuda: no CUDA device here"),
+    (["frame_phases.py", "--device", "cuda"], "--device cuda: no CUDA device here"),
     # output paths
     (["plot_frame.py", "--out", "/tmp"], "is a folder"),
     (["plot_frame.py", "--out", "frame.nosuchformat"], ".nosuchformat"),
@@ -110,6 +120,8 @@ def bad_runs(tmp_path_factory) -> list[subprocess.CompletedProcess]:
 @pytest.mark.parametrize("case", range(len(BAD)), ids=[" ".join(a) for a, _ in BAD])
 def test_bad_command_line_is_one_line_and_exit_2(case, bad_runs):
     named = BAD[case][1]
+    if "--device" in BAD[case][0] and _has_cuda():
+        pytest.skip("a CUDA device is here")
     r = bad_runs[case]
     assert "Traceback" not in r.stderr + r.stdout, r.stderr[-3000:]
     assert r.returncode == 2, r.stdout[-2000:] + r.stderr[-2000:]
@@ -143,3 +155,13 @@ def test_dense_figures_as_strict_json_and_an_exponent_only_where_it_can_be_fitte
     assert dense.exponent([10, 20, 40], [1.0, float("nan"), 4.0]) == pytest.approx(1.0)
     text = json.dumps(dense.finite_json({"a": float("nan"), "b": [1.5, float("inf")], "c": {"d": 2}}), allow_nan=False)
     assert json.loads(text) == {"a": None, "b": [1.5, None], "c": {"d": 2}}
+
+
+def test_gpu_checks_stop_at_once_without_a_gpu(tmp_path):
+    """bench/gpu_checks.sh on a machine without a GPU ran its 30 minutes of steps, each failing (and without $PYTHON
+    it ran the system python3, which cannot import the project): it stops before any step now, in one line."""
+    if _has_cuda():
+        pytest.skip("a CUDA device is here")
+    r = subprocess.run(["bash", str(BENCH / "gpu_checks.sh"), str(tmp_path / "out")], cwd=tmp_path, capture_output=True, text=True,
+                       timeout=120, env={k: v for k, v in os.environ.items() if k != "PYTHON"} | {"PYTHON": sys.executable})
+    assert r.returncode == 2 and "no CUDA device here" in r.stderr and not (tmp_path / "out").exists(), r.stdout[-2000:] + r.stderr
