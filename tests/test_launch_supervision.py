@@ -68,3 +68,45 @@ def test_the_launcher_settings_and_their_defaults():
     assert (args.max_restarts, args.restart_reset_s) == (2, 5.0)
     assert launch.main(["--max-restarts", "-1", "--no-viewer"]) == 2
     assert "--restart-reset-s" in launch.build_parser().format_help()
+
+
+class _Child:
+    def __init__(self, proc) -> None:
+        self.proc = proc
+
+    def poll(self):
+        return self.proc.poll()
+
+
+def test_the_start_waits_for_a_node_that_works_and_says_for_whom_it_waits(capsys):
+    """At a first start on a machine the stages compile their kernels: a new user's cold start on 2 cores took
+    markov_prediction past the fixed 90 s and the launcher gave up on it, having said nothing for 90 s. The start
+    timeout now counts only while the awaited node does no work (its CPU time stands still), and a line every
+    ``progress_s`` names the nodes awaited with their CPU time; a node that idles is still given up on."""
+    import subprocess
+    import time
+
+    from stages.runtime.pipeline import load_pipeline
+
+    hybrid = load_pipeline(Path(launch.PIPELINES_DIR) / "hybrid.toml")
+    run = launch.Launcher(hybrid, "tcp/127.0.0.1:1", launch.build_parser().parse_args(["hybrid"]))
+    # works (CPU) for 3 s, then idles: a stand-in for a node compiling its kernels that then hangs before coming up
+    busy = subprocess.Popen([sys.executable, "-c", "import time\nt = time.time()\nwhile time.time() - t < 3: pass\ntime.sleep(60)"])
+    try:
+        run.children = {"markov_prediction": _Child(busy)}
+        t0 = time.monotonic()
+        missing = run.wait_alive(["markov_prediction"], timeout=1.0, progress_s=1.0)
+        waited = time.monotonic() - t0
+    finally:
+        busy.kill()
+        busy.wait()
+    assert missing == ["markov_prediction"]
+    assert 3.0 <= waited < 9.0  # not given up after 1 s while it worked; given up about 1 s after it stopped working
+    out = capsys.readouterr().out
+    assert "waiting for markov_prediction (" in out and "s of CPU) to come up" in out and "compiles the stages' kernels" in out
+    # a node that exits ends the wait at once
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    run.children = {"corridors": _Child(gone)}
+    t0 = time.monotonic()
+    assert run.wait_alive(["corridors"], timeout=30.0) == ["corridors"] and time.monotonic() - t0 < 5.0

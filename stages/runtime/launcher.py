@@ -156,7 +156,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--run-id", help="run id (keys under iamp/<run>/); default from the pipeline file")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="join a remote Zenoh router/peer as well")
     p.add_argument("--listen", metavar="ENDPOINT", help="the hub endpoint (default from the pipeline, tcp/127.0.0.1:<free port>)")
-    p.add_argument("--startup-timeout", type=float, default=90.0, metavar="SECONDS", help="how long to wait for every node's liveliness (default 90)")
+    p.add_argument("--startup-timeout", type=float, default=90.0, metavar="SECONDS", help="how long to wait for a node's liveliness while it does no work: one that uses CPU (compiling its kernels at a first"
+                        " start) is waited for up to 10 times as long (default 90)")
     p.add_argument("--log-level", default="INFO", type=str.upper, choices=LOG_LEVELS, help="log level passed to every node: DEBUG, INFO (default), WARNING, ERROR or CRITICAL")
     p.add_argument("--max-restarts", type=int, default=MAX_RESTARTS, metavar="N", help=f"restarts a node gets before its death stops the run (default {MAX_RESTARTS})")
     p.add_argument(
@@ -526,18 +527,36 @@ class Launcher:
         with self._alive_lock:
             (self.alive.add if alive else self.alive.discard)(node_id)
 
-    def wait_alive(self, ids: list[str], timeout: float) -> list[str]:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
+    def wait_alive(self, ids: list[str], timeout: float, progress_s: float = 15.0) -> list[str]:
+        """Wait until the nodes ``ids`` are alive; returns those that are not (a node that exited ends the wait at once,
+        as does a stop request). ``timeout`` counts while no missing node works: a node whose process is using CPU
+        (compiling its kernels at a first start on a machine: over a minute on 2 cores, past the old fixed 90 s) is
+        waited for, up to ``STARTUP_CAP_FACTOR`` times ``timeout``; every ``progress_s`` one line says who is awaited."""
+        t0 = last_said = last_looked = time.monotonic()
+        deadline, cap = t0 + timeout, t0 + STARTUP_CAP_FACTOR * timeout
+        cpu: dict[str, float | None] = {}  # each missing node's CPU time when last looked at (once a second)
+        while not self.stop_requested.is_set():
+            now = time.monotonic()
             with self._alive_lock:
                 missing = [i for i in ids if i not in self.alive]
             if not missing:
                 return []
             for i in missing:
-                c = self.children[i]
-                code = c.poll()
-                if code is not None:
+                if self.children[i].poll() is not None:
                     return missing
+            if now - last_looked >= 1.0 or not cpu:
+                last_looked = now
+                used = {i: _cpu_seconds(self.children[i].proc.pid) for i in missing if self.children[i].proc is not None}
+                if any(v is not None and cpu.get(i) is not None and v > cpu[i] + 0.1 for i, v in used.items()):
+                    deadline = min(max(deadline, now + timeout), cap)  # working: the idle time starts again
+                cpu = used
+            if now - last_said >= progress_s:
+                last_said = now
+                busy = ", ".join(f"{i} ({v:.0f} s of CPU)" if v is not None else i for i, v in cpu.items())
+                say(f"waiting for {busy} to come up ({now - t0:.0f} s; a first start on a machine compiles the stages' kernels,"
+                    " a minute or more on 2 cores)")
+            if now >= deadline:
+                break
             time.sleep(0.05)
         with self._alive_lock:
             return [i for i in ids if i not in self.alive]
@@ -582,6 +601,9 @@ class Launcher:
             for n in others:
                 self.spawn(n)
             missing = self.wait_alive([n.id for n in others], self.args.startup_timeout)
+            if missing and self.stop_requested.is_set():
+                say(f"stop requested while starting (not up yet: {', '.join(missing)})")
+                return self.shutdown(order)
             if missing:
                 dead = [f"{i} ({describe_code(self.children[i].poll())})" for i in missing if self.children[i].poll() is not None]
                 say(f"nodes not alive after start: {', '.join(missing)}" + (f"; exited: {', '.join(dead)}" if dead else f" (waited {self.args.startup_timeout:.0f} s)"))
@@ -785,6 +807,20 @@ class Launcher:
         line = predicted_line(per_topic)
         if line:
             say(line)
+
+
+#: ``wait_alive`` waits for a node that keeps using CPU at most this many times ``--startup-timeout``
+STARTUP_CAP_FACTOR = 10
+
+
+def _cpu_seconds(pid: int) -> float | None:
+    """The CPU time (user + system, s) process ``pid`` has used, from /proc (None where there is none: not Linux, gone)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 def predicted_line(per_topic: dict[str, int]) -> str:

@@ -131,7 +131,9 @@ class Consumers:
                 return missing
             if time.monotonic() > deadline:
                 if log is not None:
-                    log.warning("start: nodes not visible after %.0f s, publishing anyway: %s", timeout_s, ",".join(missing))
+                    # (at a first start on a machine the stages compile their kernels, a minute or more on 2 cores: not a fault)
+                    log.warning("start: %s not up after %.0f s (still starting, or not there); not waiting longer: what this node"
+                                " publishes before they are up does not reach them", ",".join(missing), timeout_s)
                 return missing
             if tick is not None:
                 tick()
