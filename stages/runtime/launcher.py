@@ -518,10 +518,18 @@ class Launcher:
             cmd += ["--await-nodes", ",".join(others)]
         if node.queue_size:
             cmd += ["--queue-size", str(node.queue_size)]
-        if node.max_age_s:
+        if node.max_age_s and not self.paced_at_max:
             cmd += ["--max-age-s", repr(node.max_age_s)]
         cmd += ["--nice", str(getattr(node, "nice", 0))]  # (0 too: a node started as it is, whatever its stage's default)
         return cmd
+
+    @property
+    def paced_at_max(self) -> bool:
+        """Every source of the pipeline plays at ``max`` (paced by the nodes' acks, a few frames in flight): its frames
+        are all handled however long each takes, so no input is skipped for its age (``max_age_s`` is for a source at
+        real time, or N times it, whose frames come whether the stages keep up or not)."""
+        sources = [n for n in self.p.nodes if n.kind == "source"]
+        return bool(sources) and all(getattr(n.config, "speed", None) == "max" for n in sources)
 
     def _on_alive(self, node_id: str, alive: bool) -> None:
         with self._alive_lock:
