@@ -340,3 +340,21 @@ def test_observers_run_at_a_lower_cpu_priority_and_nice_is_checked(tmp_path):
         assert after - before == want, (argv, out.stdout, out.stderr[-2000:])
     bad = subprocess.run([sys.executable, "-m", "stages.viewer", "--nice", "20"], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "--nice 20: must be 0 (as started) to 19" in bad.stdout + bad.stderr
+
+
+@pytest.mark.parametrize("sets, message", [
+    (["markov_prediction.n_steps=12"], "a table for n_steps = 10; fit one for 12 steps with `iamp calibrate`, or set spread_calibration"),
+    (["markov_prediction.backend=\"torch\"", "markov_prediction.device=\"cuda\""], "node markov_prediction: device = 'cuda': no CUDA device here"),
+    (["markov_prediction.backend=\"cuda\""], "node markov_prediction: backend = 'cuda': "),
+    (["ar_inference.device=\"cuda\""], "node ar_inference: device = 'cuda': no CUDA device here"),
+])
+def test_check_refuses_what_would_stop_a_node_at_its_start(sets, message):
+    """``launch.py --check`` called these valid, and the node stopped at its start seconds later (a new user's probe):
+    a horizon the shipped spread table was not fitted for, and a GPU on a machine without one."""
+    import torch
+
+    if "cuda" in " ".join(sets) and torch.cuda.is_available():
+        pytest.skip("a CUDA device is here")
+    r = subprocess.run([sys.executable, str(REPO / "launch.py"), "--check", *(a for s in sets for a in ("--set", s))],
+                       cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and message in r.stderr, r.stdout + r.stderr

@@ -30,6 +30,11 @@ def preflight(config: ARInferenceConfig) -> None:
 
     from stages.lib.base import ConfigError
 
+    if config.device != "cpu":  # (torch loaded only then)
+        import torch
+
+        if not torch.cuda.is_available():
+            raise ConfigError(f"device = {config.device!r}: no CUDA device here; use device = 'cpu'")
     if not config.model:
         return  # the shipped weights
     path = Path(config.model).expanduser()

@@ -29,8 +29,34 @@ def make_core(config: MarkovPredictionConfig, ctx: NodeContext) -> MarkovPredict
     return MarkovPredictor(config, producer=ctx.node_id, log=ctx.log)
 
 
+def preflight(config: MarkovPredictionConfig) -> None:
+    """The launcher's check before any node starts (``StageSpec.preflight``, and ``launch.py --check``): a device that is
+    not here and a spread table that does not fit the horizon stopped the node at its start, after ``--check`` had
+    called the pipeline valid. The same checks (and messages) as the core's."""
+    from stages.lib.base import ConfigError
+
+    if config.backend == "cuda":
+        from stages.lib.markov import cuda_chain
+
+        if (reason := cuda_chain.unavailable_reason()) is not None:
+            raise ConfigError(f"backend = 'cuda': {reason}; use backend = 'numpy'")
+    elif config.backend == "torch" and config.device.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            raise ConfigError(f"device = {config.device!r}: no CUDA device here (torch {torch.__version__}); use device = 'cpu'")
+    if config.spread_calibration:
+        from stages.markov_prediction.spread import load_spread
+
+        try:
+            load_spread(config.spread_calibration, config.mode, config.n_steps, config.spread_shape)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+
+
 SPEC = StageSpec(
-    stage="stages.markov_prediction", config_cls=MarkovPredictionConfig, make_core=make_core, inputs=INPUTS, outputs=OUTPUTS
+    stage="stages.markov_prediction", config_cls=MarkovPredictionConfig, make_core=make_core, inputs=INPUTS, outputs=OUTPUTS,
+    preflight=preflight,
 )
 
 

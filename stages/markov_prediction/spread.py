@@ -131,8 +131,10 @@ def load_spread(path: str, mode: str, n_steps: int, shape: str = "isotropic") ->
     if not (math.isfinite(gain) and gain >= 0):
         raise ValueError(f"{where}: mode {mode}: speed_noise_gain must be a number >= 0, got {gain}")
     if sigma.shape != (len(bands) + 1, n_steps) or not np.all(np.isfinite(sigma)) or np.any(sigma < 0) or list(bands) != sorted(bands):
+        other = (f": a table for n_steps = {sigma.shape[1]}; fit one for {n_steps} steps with `iamp calibrate`, or set"
+                 f" spread_calibration = \"\" (the chain's own grids)") if sigma.ndim == 2 and sigma.shape[1] != n_steps else ""
         raise ValueError(f"{where}: mode {mode}: sigma_m must be {len(bands) + 1} x {n_steps} finite values >= 0 (one row per band,"
-                         f" one per step) and bands_mps increasing; got shape {sigma.shape}")
+                         f" one per step) and bands_mps increasing; got shape {sigma.shape}{other}")
     if shape not in ("isotropic", "along"):
         raise ValueError(f"{where}: mode {mode}: shape must be \"isotropic\" or \"along\", got {shape!r}")
     return SpreadTable(bands, sigma, gain, shape)
