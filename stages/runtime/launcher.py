@@ -459,6 +459,67 @@ def describe_code(code: int) -> str:
     return f"exit code {code}"
 
 
+#: the share of recorded frames without a MotionGrid above which the end of a run says where they went and what to do
+LOSS_TO_EXPLAIN = 0.05
+DROP_COUNTERS = ("queue_drops", "stale_drops", "join_drops")
+
+
+class RunStats:
+    """Every node's NodeStats over the run, as the launcher hears them (``iamp/<run>/_stats/*``), a restarted node's
+    counters added up over its runs (each run counts from 0; its own last line at stop covers its last run only)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.last: dict[str, Any] = {}
+        self._carried: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
+        self.runs: collections.Counter[str] = collections.Counter()
+
+    def on_stats(self, _key: str, data: bytes) -> None:
+        from bus_schemas import NodeStats, SchemaError
+
+        try:
+            msg = NodeStats.decode(data)
+        except SchemaError:
+            return  # (the nodes count what they cannot read; a stats line is not worth one)
+        with self._lock:
+            prev = self.last.get(msg.node_id)
+            if prev is None or prev.pid != msg.pid:
+                self.runs[msg.node_id] += 1
+                if prev is not None:
+                    self._carried[msg.node_id].update(prev.counters)
+            self.last[msg.node_id] = msg
+
+    def counters(self, node_id: str) -> collections.Counter:
+        with self._lock:
+            last = self.last.get(node_id)
+            return self._carried[node_id] + collections.Counter(last.counters if last is not None else {})
+
+    def diagnosis(self, paced: bool) -> str:
+        """Where the frames without a grid went (the nodes' drops), the slowest stage, and, where the stages could not
+        keep up at real time, what to do; '' where no node says anything."""
+        with self._lock:
+            nodes = dict(self.last)
+        drops = {n: {k: self.counters(n)[k] for k in DROP_COUNTERS if self.counters(n)[k]} for n in nodes}
+        drops = {n: d for n, d in sorted(drops.items(), key=lambda kv: -sum(kv[1].values())) if d}
+        working = {n: m for n, m in nodes.items() if math.isfinite(m.proc_ms_p50) and m.counters.get("processed", 0)}
+        if not drops and not working:
+            return ""
+        parts = []
+        if drops:
+            parts.append("input sets dropped: " + "; ".join(
+                f"{n} " + ", ".join(f"{v} {k.split('_')[0]}" for k, v in d.items())
+                + (f" (over its {self.runs[n]} runs)" if self.runs[n] > 1 else "") for n, d in drops.items()))
+        if working:
+            slow = sorted(working.items(), key=lambda kv: -kv[1].proc_ms_p50)[:2]
+            parts.append("slowest: " + ", ".join(f"{n} {m.proc_ms_p50:.0f} ms a set at p50 ({m.proc_ms_p95:.0f} at p95)" for n, m in slow))
+        line = "where the frames went: " + "; ".join(parts)
+        if drops and not paced:
+            line += ("; more than this machine keeps up with at real time: leave the viewer out (--no-viewer), play fewer"
+                     " vehicles, spread markov_prediction over shards on more cores or machines (launch.py sharded; README,"
+                     " \"Spreading stages over machines\"), or play at --speed max to handle every frame (not real time)")
+        return line
+
+
 class Launcher:
     def __init__(self, pipeline: Pipeline, hub: str, args: argparse.Namespace) -> None:
         self.p = pipeline
@@ -466,6 +527,7 @@ class Launcher:
         self.args = args
         self.children: dict[str, Child] = {}
         self.stop_requested = threading.Event()
+        self.stats = RunStats()  # every node's NodeStats as heard: the end of the run says where lost frames went
         self.first_failure: int | None = None
         self.alive: set[str] = set()
         self._alive_lock = threading.Lock()
@@ -603,6 +665,7 @@ class Launcher:
         if extra:
             threading.Thread(target=self._watch_extra_links, args=(extra,), daemon=True).start()
         self.bus.watch_alive(keys.alive_pattern(self.p.run_id), self._on_alive)
+        self.bus.subscribe(keys.stats_pattern(self.p.run_id), self.stats.on_stats)
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):  # SIGHUP: the terminal or ssh session closed
             signal.signal(sig, lambda *_: self.stop_requested.set())
         try:
@@ -815,6 +878,8 @@ class Launcher:
         line = predicted_line(per_topic)
         if line:
             say(line)
+            if lost_share(per_topic) > LOSS_TO_EXPLAIN and (why := self.stats.diagnosis(self.paced_at_max)):
+                say(why)
 
 
 #: ``wait_alive`` waits for a node that keeps using CPU at most this many times ``--startup-timeout``
@@ -829,6 +894,13 @@ def _cpu_seconds(pid: int) -> float | None:
         return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
     except (OSError, ValueError, IndexError):
         return None
+
+
+def lost_share(per_topic: dict[str, int]) -> float:
+    """The share of the recorded source frames that the node with the fewest MotionGrids has none for (0 without)."""
+    frames = sum(n for topic, n in per_topic.items() if topic.endswith("/track_frame"))
+    grids = [n for topic, n in per_topic.items() if topic.endswith("/motion_grid")]
+    return max(0.0, 1.0 - min(grids) / frames) if frames and grids else 0.0
 
 
 def predicted_line(per_topic: dict[str, int]) -> str:
