@@ -675,8 +675,11 @@ class Node:
         self._prep_ns.pop(stamp, None)
         if entry is not None:
             self.stats.counters["join_drops"] += 1
+            # what it waited for, and from whom (a stage stopped upstream was named nowhere: "had=" alone)
+            lacked = ",".join(f"{p} (from {self.bindings.get(p, '?')})" for p in self._join_ports() if p not in entry)
             self.problems.report(
-                f"join:{reason}", logging.WARNING, "dropped input set: reason=%s stamp_ns=%d had=%s", reason, stamp, ",".join(sorted(entry))
+                f"join:{reason}", logging.WARNING, "dropped input set: reason=%s stamp_ns=%d had=%s lacked=%s", reason, stamp,
+                ",".join(sorted(entry)), lacked or "-"
             )
 
     def _expire_pending(self) -> None:

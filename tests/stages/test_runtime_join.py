@@ -60,7 +60,8 @@ def _node() -> Node:
     return node
 
 
-def test_a_lagging_input_is_waited_for_and_a_silent_one_times_out(monkeypatch):
+def test_a_lagging_input_is_waited_for_and_a_silent_one_times_out(monkeypatch, caplog):
+    caplog.set_level("WARNING")
     clock = _Clock()
     monkeypatch.setattr(node_module.time, "monotonic", clock)
     node, core = _node(), _Recorder()
@@ -87,6 +88,8 @@ def test_a_lagging_input_is_waited_for_and_a_silent_one_times_out(monkeypatch):
     assert node.stats.counters["join_drops"] == 0
     at(4.0 * JOIN_TIMEOUT_S, "a", 9)  # b silent for 2.4 timeouts: the sets of frames 7 and 8 are dropped
     assert node.stats.counters["join_drops"] == 2
+    # the line names what the set lacked and who sends it (a stopped stage upstream was named nowhere)
+    assert "dropped input set: reason=join_timeout stamp_ns=1700000000 had=a lacked=b (from src/b)" in caplog.text
     assert set(node._pending) == {1_000_000_000 + 9 * 100_000_000}
     assert core.stamps == list(range(7))
 
