@@ -115,3 +115,23 @@ def test_pairs_that_surely_stay_skip_the_chain_and_the_bytes_stay(every_frame, m
     monkeypatch.setattr(PriorityPropagator, "run", lambda self, *a, skip=None, **kw: real_run(self, *a, **kw))  # every pair run
     skipped.clear()
     assert outputs() == with_skip and not skipped
+
+
+def test_one_worker_pool_whatever_the_thread_counts_asked():
+    """A pool per thread count (``min(kernel_threads, blocks)`` changes from frame to frame) kept every size asked for,
+    each with its threads; with ``kernel_threads = 1000`` a new user's probe saw the stage grow. One pool now, grown
+    when more are asked, and never more threads than the machine's cores."""
+    import os
+    import threading
+
+    from stages.lib.markov import kernels
+
+    def run(n_threads):
+        seen = set()
+        kernels._on_threads(50, lambda i: seen.add(threading.current_thread().name), n_threads)
+        return seen
+
+    for n in (2, 3, 2, 64, 3):
+        assert len(run(n)) <= min(n, os.cpu_count())
+    assert list(kernels._pools) == [0]
+    assert kernels._pools[0]._max_workers <= os.cpu_count() - 1 or os.cpu_count() == 1

@@ -1051,6 +1051,7 @@ def _on_threads(n_tasks: int, task, n_threads: int) -> None:
         while (i := next(counter)) < n_tasks:
             task(i)
 
+    n_threads = min(n_threads, os.cpu_count() or n_threads)  # (threads beyond the cores only take turns)
     futures = [_pool(n_threads).submit(work) for _ in range(n_threads - 1)]
     try:
         work()
@@ -1060,16 +1061,20 @@ def _on_threads(n_tasks: int, task, n_threads: int) -> None:
         f.result()
 
 
-_pools: dict[int, concurrent.futures.ThreadPoolExecutor] = {}
+_pools: dict[int, concurrent.futures.ThreadPoolExecutor] = {}  # one pool, under the key 0: the most workers asked for yet
 if hasattr(os, "register_at_fork"):  # a forked child has none of its parent's threads: it makes its own pools
     os.register_at_fork(after_in_child=_pools.clear)
 
 
 def _pool(n_threads: int) -> concurrent.futures.ThreadPoolExecutor:
-    """The ``n_threads − 1`` worker threads of ``_on_threads`` (the caller is the other), made on first use."""
-    pool = _pools.get(n_threads)
-    if pool is None:
-        pool = _pools[n_threads] = concurrent.futures.ThreadPoolExecutor(max_workers=n_threads - 1, thread_name_prefix="markov-kernel")
+    """A pool of at least ``n_threads − 1`` worker threads for ``_on_threads`` (the caller is the other), made on first
+    use: one pool, grown when more are asked for (a pool per thread count kept every size a frame's blocks asked for,
+    each with its threads and their workspaces)."""
+    pool = _pools.get(0)
+    if pool is None or pool._max_workers < n_threads - 1:
+        if pool is not None:
+            pool.shutdown(wait=False)  # (its threads end once idle; work already submitted still runs)
+        pool = _pools[0] = concurrent.futures.ThreadPoolExecutor(max_workers=n_threads - 1, thread_name_prefix="markov-kernel")
     return pool
 
 
