@@ -130,7 +130,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("pipeline", nargs="?", default=str(DEFAULT_PIPELINE), help=f"pipeline TOML file, or the name of a shipped one ({names}; default hybrid)")
     p.add_argument("--check", action="store_true", help="validate the pipeline and exit (0 ok, 2 error)")
     p.add_argument("--describe", action="store_true", help="print the resolved nodes, keys, schemas and parameters, then exit")
-    p.add_argument("--stop-after", type=float, metavar="SECONDS", help="stop the run cleanly after this many seconds of playing")
+    p.add_argument("--stop-after", type=float, metavar="SECONDS", help="stop the run cleanly this many seconds after the sources start (their loading included: a"
+                   " recording takes a second or two before its first frame)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.KEY=VALUE", help="override a node parameter (TOML value)")
     p.add_argument("--var", action="append", default=[], metavar="NAME=VALUE", help="set a ${NAME} variable of the pipeline file")
     p.add_argument("--record", metavar="FILE.mcap", help="record the run to this MCAP file (default: runs/<run>-<time>.mcap)")
