@@ -532,9 +532,8 @@ class MarkovPredictor:
             issues.append(Issue(failed, -1, f"{type(exc).__name__}: {exc}: {what % current} kept"))
             return current
         logged = self._choice_logged_ns.get(name)
-        if self._log is not None and (logged is None or abs(stamp - logged) >= ONLINE_LOG_S * 1e9):
-            self._choice_logged_ns[name] = stamp
-            o = choice.summary()
+        if self._log is not None and (logged is None or abs(stamp - logged) >= ONLINE_LOG_S * 1e9) and (o := choice.summary())["samples"]:
+            self._choice_logged_ns[name] = stamp  # (not before the first back-tested vehicle: "mean ADE [nan, nan, nan] m over 0")
             self._log.info(what + " of %s: mean ADE %s m over %d back-tested vehicles (%d unresolved, %d whose track jumped)",
                            o["factor"], o["factors"], np.round(o["mean_ade_m"], 3).tolist(), o["samples"], o["unresolved"], o["jumped"])
         return chosen
