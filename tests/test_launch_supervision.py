@@ -141,3 +141,14 @@ def test_the_end_of_an_overloaded_run_says_where_the_frames_went_and_what_to_do(
     assert "--speed max" not in stats.diagnosis(paced=True)  # paced: the advice for real time does not apply
     per_topic = {"iamp/r/source/track_frame": 1000, "iamp/r/markov_prediction/motion_grid": 41}
     assert launch.lost_share(per_topic) == pytest.approx(0.959) and launch.lost_share({}) == 0.0
+
+
+def test_the_nodes_run_the_launchers_own_code():
+    """The nodes start as ``python -m stages.X`` in the caller's folder: a second checkout's ``launch.py`` ran its
+    launcher with the nodes of the package the interpreter had installed (a new user's probe). The launcher puts the
+    folder of its own ``stages`` first on the nodes' ``PYTHONPATH``."""
+    import os
+
+    root = str(Path(launch.__file__).resolve().parents[2])
+    assert launch.code_path({}) == root
+    assert launch.code_path({"PYTHONPATH": os.pathsep.join(["/x", root, "/y"])}) == os.pathsep.join([root, "/x", "/y"])

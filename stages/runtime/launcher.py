@@ -409,7 +409,8 @@ class Child:
             stdin=subprocess.DEVNULL,
             cwd=os.getcwd(),
             # (the nodes import the installed package; each stops when this process is gone: args.watch_launcher)
-            env={**single_threaded_env(os.environ), **self.env, "PYTHONUNBUFFERED": "1", LAUNCHER_PID_ENV: str(os.getpid())},
+            env={**single_threaded_env(os.environ), **self.env, "PYTHONUNBUFFERED": "1", LAUNCHER_PID_ENV: str(os.getpid()),
+                 "PYTHONPATH": code_path(os.environ)},
             start_new_session=True,  # a Ctrl-C at the terminal reaches the launcher only; it stops children in order
             text=True,
             bufsize=1,
@@ -881,6 +882,17 @@ class Launcher:
             say(line)
             if lost_share(per_topic) > LOSS_TO_EXPLAIN and (why := self.stats.diagnosis(self.paced_at_max)):
                 say(why)
+
+
+def code_path(environ: Mapping[str, str]) -> str:
+    """``PYTHONPATH`` for the nodes: the folder this launcher's own ``stages`` package is in, first, so that the nodes
+    run the launcher's code. They start as ``python -m stages.X`` in the caller's folder: another checkout's
+    ``launch.py`` ran its launcher with the nodes of whichever package the interpreter or the folder held."""
+    import stages
+
+    root = str(Path(stages.__file__).resolve().parents[1])
+    rest = [p for p in environ.get("PYTHONPATH", "").split(os.pathsep) if p and p != root]
+    return os.pathsep.join([root, *rest])
 
 
 #: ``wait_alive`` waits for a node that keeps using CPU at most this many times ``--startup-timeout``
