@@ -118,16 +118,28 @@ def test_a_node_that_fails_at_start_stops_the_run_without_tracebacks_from_the_ot
     """The launcher stops the nodes that have not come up yet (still importing) with SIGTERM, not SIGINT: SIGINT made
     each of them print a KeyboardInterrupt traceback from the module it was importing, pages below the one line that
     said what was wrong."""
-    # (a recorder path that cannot be written no longer starts any node: the launcher's preflight refuses it, below)
-    # (nor a missing ar_inference model: preflight too; a spread table that is not there fails in the node's start)
-    done = subprocess.run([sys.executable, str(REPO / "launch.py"), "--set", 'markov_prediction.spread_calibration="/nonexistent/spread.json"',
+    # (a recorder path that cannot be written no longer starts any node: the launcher's preflight refuses it, below;
+    # nor a missing ar_inference model or spread table: preflight too. A weights file that is a whole zip archive but
+    # no model passes preflight and fails in the node's start)
+    import zipfile
+
+    bad = tmp_path / "not_a_model.pt"
+    with zipfile.ZipFile(bad, "w") as z:
+        z.writestr("hello.txt", "a zip archive, not weights")
+    done = subprocess.run([sys.executable, str(REPO / "launch.py"), "--set", f'ar_inference.model="{bad}"',
                            "--no-viewer", "--stop-after", "5", "--run-id", "badrec"], cwd=tmp_path, env=python_env(), capture_output=True,
                           text=True, timeout=180)
     out = done.stdout + done.stderr
     assert done.returncode == 2, out[-3000:]
-    assert "[markov_prediction]" in out and "bad configuration: " in out, out[-3000:]
+    assert "[ar_inference]" in out and "bad configuration: " in out, out[-3000:]
     assert "[launch] run ended: exit code 2" in out
     assert "Traceback" not in out and "KeyboardInterrupt" not in out, out[-3000:]
+    # the spread table that is not there: refused before any node starts, in one line
+    done = subprocess.run([sys.executable, str(REPO / "launch.py"), "--set", 'markov_prediction.spread_calibration="/nonexistent/spread.json"',
+                           "--no-viewer", "--stop-after", "5", "--run-id", "badrec"], cwd=tmp_path, env=python_env(), capture_output=True,
+                          text=True, timeout=180)
+    assert done.returncode == 2 and "node markov_prediction: spread_calibration = '/nonexistent/spread.json': cannot read" in done.stderr
+    assert "[markov_prediction]" not in done.stdout, done.stdout[-2000:]
 
 
 def _launch(*args: str, cwd: Path) -> subprocess.CompletedProcess:
