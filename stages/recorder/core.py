@@ -127,7 +127,10 @@ def preflight(config: RecorderConfig) -> None:
     base = Path(config.path) if config.path else None
     if base is None:
         return
-    check_output(split_path(base, config.split_index), "path")
+    try:
+        check_output(split_path(base, config.split_index), "path")
+    except ConfigError as exc:  # (a read-only checkout: the default runs/ folder cannot be made)
+        raise ConfigError(f"{exc}: record elsewhere (launch.py --record FILE.mcap) or not at all (--no-record)") from None
     if config.split_index == 0:
         check_not_there(base, config.overwrite)
 

@@ -163,6 +163,7 @@ def test_the_launcher_refuses_to_record_over_a_file_before_any_node_starts(tmp_p
         (("--record", str(tmp_path / "new.mcap"), "--recording", "nosuch", "--check"), "no recording 'nosuch' under"),
         (("replay", "--var", f"FILE={tmp_path / 'nosuch.mcap'}", "--check"), "nosuch.mcap: no such file"),
         (("--record", "/proc/iamp-no-such-folder/run.mcap"), "node recorder (--record): path /proc/iamp-no-such-folder/run.mcap: cannot create the folder"),
+        (("--record", "/proc/iamp-no-such-folder/run.mcap"), ": record elsewhere (launch.py --record FILE.mcap) or not at all (--no-record)"),
         ((str(rec),), "not a text file, so not a pipeline TOML file"),
         ((str(tmp_path),), "is a folder; expected a pipeline TOML file"),
     ):
