@@ -890,9 +890,11 @@ def code_path(environ: Mapping[str, str]) -> str:
     ``launch.py`` ran its launcher with the nodes of whichever package the interpreter or the folder held."""
     import stages
 
-    root = str(Path(stages.__file__).resolve().parents[1])
-    rest = [p for p in environ.get("PYTHONPATH", "").split(os.pathsep) if p and p != root]
-    return os.pathsep.join([root, *rest])
+    root = Path(stages.__file__).resolve().parents[1]
+    rest = [p for p in environ.get("PYTHONPATH", "").split(os.pathsep) if p and p != str(root)]
+    if root.name in ("site-packages", "dist-packages"):  # an install: the nodes find it there anyway (and a whole
+        return os.pathsep.join(rest)  # site-packages ahead of the standard library could shadow it)
+    return os.pathsep.join([str(root), *rest])
 
 
 #: ``wait_alive`` waits for a node that keeps using CPU at most this many times ``--startup-timeout``
