@@ -409,8 +409,9 @@ class Child:
             stdin=subprocess.DEVNULL,
             cwd=os.getcwd(),
             # (the nodes import the installed package; each stops when this process is gone: args.watch_launcher)
-            env={**single_threaded_env(os.environ), **self.env, "PYTHONUNBUFFERED": "1", LAUNCHER_PID_ENV: str(os.getpid()),
-                 "PYTHONPATH": code_path(os.environ)},
+            env={k: v for k, v in {**single_threaded_env(os.environ), **self.env, "PYTHONUNBUFFERED": "1",
+                                   LAUNCHER_PID_ENV: str(os.getpid()), "PYTHONPATH": code_path(os.environ)}.items()
+                 if k != "PYTHONPATH" or v},
             start_new_session=True,  # a Ctrl-C at the terminal reaches the launcher only; it stops children in order
             text=True,
             bufsize=1,
