@@ -40,11 +40,12 @@ def user_cache_dir(environ: MutableMapping[str, str]) -> Path:
 
 
 def ensure(environ: MutableMapping[str, str] | None = None, package_dir: Path | None = None, user_dir: Path | None = None,
-           fallback: Path | None = None) -> str | None:
+           fallback: Path | None = None, numba_imported: bool | None = None) -> str | None:
     """Set ``NUMBA_CACHE_DIR`` in ``environ`` (default ``os.environ``) where numba would find nowhere to cache; returns
-    the folder set, or None (nothing to do: a folder was set already, numba is imported, or it can cache)."""
+    the folder set, or None (nothing to do: a folder was set already, numba is imported (``numba_imported``, default:
+    whether it is), or it can cache)."""
     environ = os.environ if environ is None else environ
-    if environ.get(ENV) or "numba" in sys.modules:
+    if environ.get(ENV) or ("numba" in sys.modules if numba_imported is None else numba_imported):
         return None
     package_dir = Path(__file__).resolve().parent if package_dir is None else package_dir
     if _can_write(package_dir / "lib" / "markov" / "__pycache__"):

@@ -11,19 +11,21 @@ from stages import _numba_cache
 
 def test_a_writable_install_or_home_is_left_as_it_is(tmp_path):
     env: dict[str, str] = {}
-    assert _numba_cache.ensure(env, package_dir=tmp_path / "pkg", user_dir=tmp_path / "none") is None and env == {}
+    assert _numba_cache.ensure(env, package_dir=tmp_path / "pkg", user_dir=tmp_path / "none", numba_imported=False) is None and env == {}
     blocked = tmp_path / "blocked"
     blocked.write_text("a file, not a folder")
-    assert _numba_cache.ensure(env, package_dir=blocked, user_dir=tmp_path / "home-cache") is None and env == {}
+    assert _numba_cache.ensure(env, package_dir=blocked, user_dir=tmp_path / "home-cache", numba_imported=False) is None and env == {}
     env = {_numba_cache.ENV: "/somewhere/of/the/users"}  # the user's choice stands
-    assert _numba_cache.ensure(env, package_dir=blocked, user_dir=blocked) is None
+    assert _numba_cache.ensure(env, package_dir=blocked, user_dir=blocked, numba_imported=False) is None
+    # numba imported already: too late to tell it anything
+    assert _numba_cache.ensure({}, package_dir=blocked, user_dir=blocked, fallback=tmp_path / "f", numba_imported=True) is None
 
 
 def test_neither_writable_sets_a_folder_in_the_temporary_one_and_says_so(tmp_path, capsys):
     blocked = tmp_path / "blocked"
     blocked.write_text("a file, not a folder")
     env: dict[str, str] = {}
-    got = _numba_cache.ensure(env, package_dir=blocked, user_dir=blocked / "numba", fallback=tmp_path / "fallback")
+    got = _numba_cache.ensure(env, package_dir=blocked, user_dir=blocked / "numba", fallback=tmp_path / "fallback", numba_imported=False)
     assert got == str(tmp_path / "fallback") == env[_numba_cache.ENV] and (tmp_path / "fallback").is_dir()
     assert f"NUMBA_CACHE_DIR={tmp_path / 'fallback'}" in capsys.readouterr().err
 
