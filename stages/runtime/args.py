@@ -33,7 +33,7 @@ import zenoh
 from bus_schemas import keys
 
 from stages.lib.base import ConfigError
-from stages.runtime.ports import StageSpec
+from stages.runtime.ports import MAX_NICE, StageSpec
 
 EXIT_OK = 0
 EXIT_CRASH = 1
@@ -88,10 +88,6 @@ def watch_launcher(log: logging.Logger, environ: Mapping[str, str] | None = None
     thread = threading.Thread(target=watch, name="launcher-watch", daemon=True)
     thread.start()
     return thread
-
-
-#: the largest ``--nice`` (Linux's lowest priority); a node only ever lowers its own priority, which needs no privilege
-MAX_NICE = 19
 
 
 def apply_nice(n: int, log: logging.Logger) -> None:

@@ -502,7 +502,8 @@ class RunStats:
         keep up at real time, what to do; '' where no node says anything."""
         with self._lock:
             nodes = dict(self.last)
-        drops = {n: {k: self.counters(n)[k] for k in DROP_COUNTERS if self.counters(n)[k]} for n in nodes}
+        totals = {n: self.counters(n) for n in nodes}
+        drops = {n: {k: totals[n][k] for k in DROP_COUNTERS if totals[n][k]} for n in nodes}
         drops = {n: d for n, d in sorted(drops.items(), key=lambda kv: -sum(kv[1].values())) if d}
         working = {n: m for n, m in nodes.items() if math.isfinite(m.proc_ms_p50) and m.counters.get("processed", 0)}
         if not drops and not working:
@@ -912,11 +913,16 @@ def _cpu_seconds(pid: int) -> float | None:
         return None
 
 
+def _frames_and_grids(per_topic: dict[str, int]) -> tuple[int, dict[str, int]]:
+    """The recorded source frames, and the MotionGrids recorded per producing node."""
+    frames = sum(n for topic, n in per_topic.items() if topic.endswith("/track_frame"))
+    return frames, {topic.split("/")[-2]: n for topic, n in per_topic.items() if topic.endswith("/motion_grid")}
+
+
 def lost_share(per_topic: dict[str, int]) -> float:
     """The share of the recorded source frames that the node with the fewest MotionGrids has none for (0 without)."""
-    frames = sum(n for topic, n in per_topic.items() if topic.endswith("/track_frame"))
-    grids = [n for topic, n in per_topic.items() if topic.endswith("/motion_grid")]
-    return max(0.0, 1.0 - min(grids) / frames) if frames and grids else 0.0
+    frames, grids = _frames_and_grids(per_topic)
+    return max(0.0, 1.0 - min(grids.values()) / frames) if frames and grids else 0.0
 
 
 def predicted_line(per_topic: dict[str, int]) -> str:
@@ -924,8 +930,7 @@ def predicted_line(per_topic: dict[str, int]) -> str:
     (queue, stale and join drops), a restart or a lost link cost showed only in the nodes' counters and logs; a fused
     grid (grid_fusion) counts though a shard's vehicles may be missing from it. '' without frames or grids in the
     recording."""
-    frames = sum(n for topic, n in per_topic.items() if topic.endswith("/track_frame"))
-    grids = {topic.split("/")[-2]: n for topic, n in per_topic.items() if topic.endswith("/motion_grid")}
+    frames, grids = _frames_and_grids(per_topic)
     if not frames or not grids:
         return ""
     parts = [f"{node} {n} ({n / frames:.1%})" for node, n in sorted(grids.items())]

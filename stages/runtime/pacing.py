@@ -226,15 +226,13 @@ class Pacer:
                 silent = [n for n in silent if n in self.expected]
             if not silent and not behind:
                 return
-            if now > deadline and at_end:  # the play's end (drain), not pacing: said as such (it read as a pacing failure)
-                self.log.info("end of play: nodes still behind after %.1f s: %s; the source stops waiting (they handle what they"
-                              " have queued as they stop)", wait_s or self.wait_s, ",".join(behind + silent))
-                self.consumers.ignore(behind + silent)
-                return
             if now > deadline:
-                self.log.warning(
-                    "pacing: nodes behind after %.1f s, no longer waiting for them until they ack: %s", wait_s or self.wait_s, ",".join(behind + silent)
-                )
+                if at_end:  # the play's end (drain), not pacing: said as such (it read as a pacing failure)
+                    self.log.info("end of play: nodes still behind after %.1f s: %s; the source stops waiting (they handle what"
+                                  " they have queued as they stop)", wait_s or self.wait_s, ",".join(behind + silent))
+                else:
+                    self.log.warning("pacing: nodes behind after %.1f s, no longer waiting for them until they ack: %s",
+                                     wait_s or self.wait_s, ",".join(behind + silent))
                 self.consumers.ignore(behind + silent)
                 return
             time.sleep(0.002)

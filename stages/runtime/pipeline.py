@@ -54,6 +54,7 @@ from typing import Any
 from bus_schemas import keys
 
 from stages.lib.base import ConfigError
+from stages.runtime.ports import MAX_NICE
 
 TOP_KEYS = {"name", "vars", "bus", "nodes", "description", "external"}
 BUS_KEYS = {"run_id", "mode", "listen", "connect", "auth"}
@@ -380,8 +381,8 @@ def load_pipeline(
         if age is not None and spec.kind != "operator":
             raise PipelineError(f"{nwhere}: 'max_age_s' applies to processing stages only (stage {stage} is a {spec.kind})")
         nice = nd.get("nice", spec.nice_default)
-        if type(nice) is not int or not 0 <= nice <= 19:
-            raise PipelineError(f"{nwhere}: 'nice' must be an integer from 0 (as started) to 19 (the lowest CPU priority), got {nice!r}")
+        if type(nice) is not int or not 0 <= nice <= MAX_NICE:
+            raise PipelineError(f"{nwhere}: 'nice' must be an integer from 0 (as started) to {MAX_NICE} (the lowest CPU priority), got {nice!r}")
         nodes.append(NodeDesc(nid, stage, spec, dict(inputs), params, config, restart, qs, nd.get("description", ""),
                               float(age) if age is not None else None, nice))
 

@@ -131,6 +131,11 @@ class NodeContext:
     output_keys: Mapping[str, str] = field(default_factory=dict)
 
 
+#: the largest niceness (Linux's lowest CPU priority) of ``StageSpec.nice_default``, a pipeline's ``nice`` and
+#: ``--nice``; a node only ever lowers its own priority, which needs no privilege
+MAX_NICE = 19
+
+
 @dataclass(frozen=True)
 class StageSpec:
     """Everything the runtime needs to know about a stage.
@@ -158,8 +163,9 @@ class StageSpec:
     stage takes before it starts, unless the pipeline or ``--nice`` says
     otherwise: 10 for the observers (viewer, Foxglove bridge), whose
     decoding and drawing must not take CPU from the prediction stages when
-    the cores are short (on 2 cores the viewer cost the MotionGrid about 4 ms
-    at p50 at 18 vehicles, with no page open); 0 for the rest.
+    the cores are short (on 2 cores the viewer cost the MotionGrid 1-3 ms at
+    p50 at 18 vehicles with no page open, the lower priority about half of
+    it back: docs/performance.md, "Session 45"); 0 for the rest.
     """
 
     stage: str
