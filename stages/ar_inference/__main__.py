@@ -30,11 +30,9 @@ def preflight(config: ARInferenceConfig) -> None:
 
     from stages.lib.base import ConfigError
 
-    if config.device != "cpu":  # (torch loaded only then)
-        import torch
+    from stages.lib.ar.inference import check_device
 
-        if not torch.cuda.is_available():
-            raise ConfigError(f"device = {config.device!r}: no CUDA device here; use device = 'cpu'")
+    check_device(config.device)
     if not config.model:
         return  # the shipped weights
     path = Path(config.model).expanduser()

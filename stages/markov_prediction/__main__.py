@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from bus_schemas import AccelerationProfiles, CorridorPredictions, CorridorSet, IntentionBelief, MotionGrid, RelationSet, SceneInfo, TrackFrame
 from stages.markov_prediction.config import MarkovPredictionConfig
-from stages.markov_prediction.core import MarkovPredictor
+from stages.markov_prediction.core import MarkovPredictor, check_torch_device
 from stages.runtime import NodeContext, Port, StageSpec, run_stage
 
 INPUTS = {
@@ -32,7 +32,7 @@ def make_core(config: MarkovPredictionConfig, ctx: NodeContext) -> MarkovPredict
 def preflight(config: MarkovPredictionConfig) -> None:
     """The launcher's check before any node starts (``StageSpec.preflight``, and ``launch.py --check``): a device that is
     not here and a spread table that does not fit the horizon stopped the node at its start, after ``--check`` had
-    called the pipeline valid. The same checks (and messages) as the core's."""
+    called the pipeline valid. The core's own device check (``check_torch_device``), and its spread table's."""
     from stages.lib.base import ConfigError
 
     if config.backend == "cuda":
@@ -40,11 +40,7 @@ def preflight(config: MarkovPredictionConfig) -> None:
 
         if (reason := cuda_chain.unavailable_reason()) is not None:
             raise ConfigError(f"backend = 'cuda': {reason}; use backend = 'numpy'")
-    elif config.backend == "torch" and config.device.startswith("cuda"):
-        import torch
-
-        if not torch.cuda.is_available():
-            raise ConfigError(f"device = {config.device!r}: no CUDA device here (torch {torch.__version__}); use device = 'cpu'")
+    check_torch_device(config)
     if config.spread_calibration:
         from stages.markov_prediction.spread import load_spread
 

@@ -262,6 +262,16 @@ def _stencil_grid(grid: MarkovGridConfig) -> tuple:
     return (grid.ds_m, grid.dv_mps, grid.v_max_mps, grid.tau_s, grid.input_edges_mps2)
 
 
+def check_torch_device(config: MarkovPredictionConfig) -> None:
+    """The torch backend's CUDA device is here (ConfigError otherwise); the core's start and the launcher's preflight
+    (``stages.markov_prediction.__main__``) both ask."""
+    if config.backend == "torch" and config.device.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            raise ConfigError(f"device = {config.device!r}: no CUDA device here (torch {torch.__version__}); use device = 'cpu'")
+
+
 class MarkovPredictor:
     """CorridorSet + RelationSet (+ latched SceneInfo, optional TrackFrame) -> CorridorPredictions + MotionGrid.
 
@@ -271,11 +281,7 @@ class MarkovPredictor:
 
     def __init__(self, config: MarkovPredictionConfig, *, producer: str = "markov_prediction", stencils: Any = None,
                  log: Any = None) -> None:
-        if config.backend == "torch" and config.device.startswith("cuda"):
-            import torch
-
-            if not torch.cuda.is_available():  # else the first frame failed deep in torch, every frame
-                raise ConfigError(f"device = {config.device!r}: no CUDA device here (torch {torch.__version__}); use device = 'cpu'")
+        check_torch_device(config)  # else the first frame failed deep in torch, every frame
         self.config = config
         self.producer = producer
         #: FramePrediction.regrid kept (iamp calibrate with spread_shape "along"): each frame's geometry stays referenced

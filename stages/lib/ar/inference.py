@@ -117,6 +117,16 @@ def _erf(x: np.ndarray) -> np.ndarray:
     return erf(x)
 
 
+def check_device(device: str) -> None:
+    """``device`` is one this machine has (torch is loaded only for another than "cpu"); ConfigError otherwise. The
+    core's start and the launcher's preflight (``stages.ar_inference``) both ask."""
+    if device != "cpu":
+        import torch
+
+        if not torch.cuda.is_available():
+            raise ConfigError(f"device = {device!r}: no CUDA device here; use device = 'cpu'")
+
+
 class ARInference:
     """The ar_inference core: keeps every vehicle's feature history, predicts every pair of a frame in one batch.
 
@@ -143,11 +153,7 @@ class ARInference:
             self.model_name = f"{path.name}@{digest}"
         else:
             self.model_name = getattr(model, "name", None) or f"{path.name}"
-        if config.device != "cpu":
-            import torch
-
-            if not torch.cuda.is_available():
-                raise ConfigError(f"device = {config.device!r}: no CUDA device here; use device = 'cpu'")
+        check_device(config.device)
         self.model = model
         self.feature_config = model_feature_config(model, self.model_name)
         self.tracker = FeatureTracker(self.feature_config)
