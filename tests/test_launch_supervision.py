@@ -125,7 +125,7 @@ def test_the_start_waits_for_a_node_that_works_and_says_for_whom_it_waits(capsys
     assert run.wait_alive(["markov_prediction"], timeout=30.0) == ["markov_prediction"] and clock.t < 1.0
 
 
-def test_the_end_of_an_overloaded_run_says_where_the_frames_went_and_what_to_do():
+def test_the_end_of_an_overloaded_run_says_where_the_frames_went_and_what_to_do(capsys):
     """A new user's probe at 72 vehicles: "predicted: ... 48 (4.1 %)" and a pointer to ten long stop lines, whose
     counters covered a restarted node's last run only. The launcher keeps every node's NodeStats (a restart's counters
     added to the run before) and, where more than 5 % of the frames have no grid, names the drops, the slowest stages
@@ -145,13 +145,16 @@ def test_the_end_of_an_overloaded_run_says_where_the_frames_went_and_what_to_do(
     put("markov_prediction", 2, 87.0, queue_drops=300, join_drops=100)
     put("markov_prediction", 3, 80.0, queue_drops=247, join_drops=169)  # restarted: a new pid, counters from 0
     put("intentions", 4, 47.0, stale_drops=30)
-    stats.on_stats("iamp/r/_stats/x", b"not a message")  # ignored
+    stats.on_stats("iamp/r/_stats/x", b"not a message")  # said once, counted, left out
+    stats.on_stats("iamp/r/_stats/x", b"nor this")
     assert stats.counters("markov_prediction")["queue_drops"] == 547 and stats.runs["markov_prediction"] == 2
     line = stats.diagnosis(paced=False)
     assert line.startswith("where the frames went: input sets dropped: markov_prediction 547 queue, 269 join (over its 2 runs);"
                            " intentions 30 stale; slowest: markov_prediction 80 ms a set at p50 (240 at p95), intentions 47 ms")
     assert "--no-viewer" in line and "launch.py sharded" in line and "--speed max" in line
     assert "--speed max" not in stats.diagnosis(paced=True)  # paced: the advice for real time does not apply
+    assert stats.unreadable == 2 and "(2 NodeStats messages unreadable)" in line
+    assert capsys.readouterr().out.count("warning: a NodeStats message on iamp/r/_stats/x does not read") == 1
     per_topic = {"iamp/r/source/track_frame": 1000, "iamp/r/markov_prediction/motion_grid": 41}
     assert launch.lost_share(per_topic) == pytest.approx(0.959) and launch.lost_share({}) == 0.0
 
@@ -165,3 +168,15 @@ def test_the_nodes_run_the_launchers_own_code():
     root = str(Path(launch.__file__).resolve().parents[2])
     assert launch.code_path({}) == root
     assert launch.code_path({"PYTHONPATH": os.pathsep.join(["/x", root, "/y"])}) == os.pathsep.join([root, "/x", "/y"])
+
+
+def test_a_launcher_pid_that_is_no_number_is_said_and_not_watched(caplog):
+    import logging
+
+    from stages.runtime.args import LAUNCHER_PID_ENV, watch_launcher
+
+    log = logging.getLogger("iamp.test_watch")
+    assert watch_launcher(log, {}) is None and not caplog.records
+    with caplog.at_level(logging.WARNING, logger=log.name):
+        assert watch_launcher(log, {LAUNCHER_PID_ENV: "abc"}) is None
+    assert [r.getMessage() for r in caplog.records] == [f"{LAUNCHER_PID_ENV}='abc' is no process id: this node does not watch for its launcher"]

@@ -74,9 +74,12 @@ def watch_launcher(log: logging.Logger, environ: Mapping[str, str] | None = None
     sends itself SIGTERM, so it stops as on Ctrl-C (a recorder finishes its file). A node started by hand (no such
     variable) is left alone. Returns the watching thread (None where there is nothing to watch)."""
     value = (os.environ if environ is None else environ).get(LAUNCHER_PID_ENV, "")
+    if not value:
+        return None
     try:
         launcher = int(value)
     except ValueError:
+        log.warning("%s=%r is no process id: this node does not watch for its launcher", LAUNCHER_PID_ENV, value)
         return None
 
     def watch() -> None:

@@ -476,14 +476,21 @@ class RunStats:
         self.last: dict[str, Any] = {}
         self._carried: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
         self.runs: collections.Counter[str] = collections.Counter()
+        self.unreadable = 0  # NodeStats messages that did not decode: said once, counted, left out of the figures
 
-    def on_stats(self, _key: str, data: bytes) -> None:
+    def on_stats(self, key: str, data: bytes) -> None:
         from bus_schemas import NodeStats, SchemaError
 
         try:
             msg = NodeStats.decode(data)
-        except SchemaError:
-            return  # (the nodes count what they cannot read; a stats line is not worth one)
+        except SchemaError as exc:
+            with self._lock:
+                self.unreadable += 1
+                first = self.unreadable == 1
+            if first:
+                say(f"warning: a NodeStats message on {key} does not read ({exc}): such messages are left out of the"
+                    " end-of-run figures (counted there)")
+            return
         with self._lock:
             prev = self.last.get(msg.node_id)
             if prev is None or prev.pid != msg.pid:
@@ -516,7 +523,7 @@ class RunStats:
         if working:
             slow = sorted(working.items(), key=lambda kv: -kv[1].proc_ms_p50)[:2]
             parts.append("slowest: " + ", ".join(f"{n} {m.proc_ms_p50:.0f} ms a set at p50 ({m.proc_ms_p95:.0f} at p95)" for n, m in slow))
-        line = "where the frames went: " + "; ".join(parts)
+        line = "where the frames went: " + "; ".join(parts) + (f" ({self.unreadable} NodeStats messages unreadable)" if self.unreadable else "")
         if drops and not paced:
             line += ("; more than this machine keeps up with at real time: leave the viewer out (--no-viewer), play fewer"
                      " vehicles, spread markov_prediction over shards on more cores or machines (launch.py sharded; README,"
